@@ -1,0 +1,214 @@
+"""Configuration: YAML files under ``configs/``, merged in a fixed order, checked against a schema.
+
+Order of precedence (later wins):
+
+1. ``configs/default.yaml``: every known key with its default; this file *is* the schema;
+2. ``configs/protocols/<protocol>.yaml``: the evaluation protocol of the dataset (folds, image size, epochs);
+3. the detector's own defaults (``DetectorSpec.defaults``) and ``configs/detectors/<detector>.yaml`` if present;
+4. ``configs/profiles/<profile>.yaml``: ``paper`` (the seed's protocol) or ``smoke`` (small and fast, for CPU);
+5. files given with ``--config FILE``;
+6. ``--set section.key=value`` overrides (values parsed as YAML scalars).
+
+A key that is not in the schema is an error naming the key and the file; so is a value of the wrong type. A
+mapping written as ``{}`` in ``default.yaml`` is open (free-form options handed to a plugin, e.g. ``model``), and
+a key whose default is ``null`` accepts any type.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import yaml
+
+from harness.errors import ConfigError
+
+ENV_CONFIG_DIR = "HARNESS_CONFIG_DIR"
+
+
+def config_dir() -> Path:
+    """The folder holding default.yaml, protocols/, profiles/ and detectors/."""
+    env = os.environ.get(ENV_CONFIG_DIR)
+    if env:
+        return Path(env)
+    try:  # a regular (non-editable) install ships configs/ as harness.configs
+        from importlib.resources import files
+
+        installed = Path(str(files("harness.configs")))
+        if (installed / "default.yaml").exists():
+            return installed
+    except (ModuleNotFoundError, TypeError):
+        pass
+    return Path(__file__).resolve().parent.parent / "configs"
+
+
+class _Loader(yaml.SafeLoader):
+    """Safe loader that refuses duplicate keys (a common silent mistake in hand-edited YAML)."""
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: set = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r}", key_node.start_mark
+            )
+        seen.add(key)
+    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping with ``safe_load`` semantics; errors name the file and the line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        data = yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{path}: invalid YAML{where}: {problem}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def dump_yaml(data: Mapping[str, Any]) -> str:
+    return yaml.safe_dump(_plain(data), sort_keys=False, default_flow_style=None, width=120)
+
+
+def _plain(obj: Any) -> Any:
+    """Turn tuples, paths and numpy scalars into YAML-safe builtins."""
+    if isinstance(obj, Mapping):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "item") and callable(obj.item):
+        return obj.item()
+    return obj
+
+
+def schema() -> dict[str, Any]:
+    return read_yaml(config_dir() / "default.yaml")
+
+
+def _type_ok(default: Any, value: Any) -> bool:
+    if default is None or value is None:
+        return True
+    if isinstance(default, bool):
+        return isinstance(value, bool)
+    if isinstance(default, int):
+        return isinstance(value, int) and not isinstance(value, bool)
+    if isinstance(default, float):
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if isinstance(default, str):
+        return isinstance(value, str)
+    if isinstance(default, list):
+        return isinstance(value, (list, tuple))
+    if isinstance(default, dict):
+        return isinstance(value, dict)
+    return True
+
+
+def merge(base: dict[str, Any], update: Mapping[str, Any], schema_node: Mapping[str, Any] | None, source: str,
+          path: str = "") -> dict[str, Any]:
+    """Merge ``update`` into a copy of ``base``, checking keys and types against ``schema_node``."""
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        dotted = f"{path}{key}"
+        if schema_node is not None and key not in schema_node:
+            known = sorted(map(str, schema_node))
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f"; did you mean '{path}{close[0]}'?" if close else ""
+            raise ConfigError(f"{source}: unknown key {dotted!r}{hint} (known keys here: {', '.join(known) or 'none'})")
+        default = schema_node.get(key) if schema_node is not None else None
+        if schema_node is not None and not _type_ok(default, value):
+            raise ConfigError(
+                f"{source}: key {dotted!r} expects {type(default).__name__}, got {type(value).__name__} ({value!r})"
+            )
+        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
+            open_map = isinstance(default, dict) and not default
+            out[key] = merge(out[key], value, None if (open_map or schema_node is None) else default, source, dotted + ".")
+        else:
+            out[key] = copy.deepcopy(_plain(value))
+    return out
+
+
+def parse_override(item: str) -> dict[str, Any]:
+    """``"train.epochs=3"`` -> ``{"train": {"epochs": 3}}`` (the value is parsed as a YAML scalar)."""
+    if "=" not in item:
+        raise ConfigError(f"override {item!r}: expected section.key=value")
+    dotted, raw = item.split("=", 1)
+    keys = [k for k in dotted.strip().split(".") if k]
+    if not keys:
+        raise ConfigError(f"override {item!r}: empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from None
+    node: dict[str, Any] = {}
+    cur = node
+    for k in keys[:-1]:
+        cur = cur.setdefault(k, {})
+    cur[keys[-1]] = value
+    return node
+
+
+def available(kind: str) -> list[str]:
+    folder = config_dir() / kind
+    return sorted(p.stem for p in folder.glob("*.yaml")) if folder.exists() else []
+
+
+def load_config(
+    profile: str | None = None,
+    protocol: str | None = None,
+    detector: str | None = None,
+    detector_defaults: Mapping[str, Any] | None = None,
+    files: Iterable[str | Path] = (),
+    overrides: Iterable[str] = (),
+) -> dict[str, Any]:
+    """Resolve a run's configuration (see the module docstring for the order)."""
+    root = config_dir()
+    sch = schema()
+    cfg = copy.deepcopy(sch)
+    layers: list[tuple[str, Mapping[str, Any]]] = []
+    if protocol:
+        path = root / "protocols" / f"{protocol}.yaml"
+        if not path.exists():
+            raise ConfigError(f"unknown protocol {protocol!r}: no {path} (available: {', '.join(available('protocols'))})")
+        layers.append((str(path), read_yaml(path)))
+    if detector_defaults:
+        layers.append((f"defaults of detector {detector!r}", detector_defaults))
+    if detector and (root / "detectors" / f"{detector}.yaml").exists():
+        path = root / "detectors" / f"{detector}.yaml"
+        layers.append((str(path), read_yaml(path)))
+    if profile:
+        path = root / "profiles" / f"{profile}.yaml"
+        if not path.exists():
+            raise ConfigError(f"unknown profile {profile!r}: no {path} (available: {', '.join(available('profiles'))})")
+        layers.append((str(path), read_yaml(path)))
+    for f in files:
+        layers.append((str(f), read_yaml(f)))
+    for item in overrides:
+        layers.append((f"--set {item}", parse_override(item)))
+    for source, layer in layers:
+        cfg = merge(cfg, layer, sch, source)
+    cfg.setdefault("meta", {})
+    cfg["meta"] = {**cfg.get("meta", {}), "profile": profile, "protocol": protocol, "sources": [s for s, _ in layers]}
+    return cfg

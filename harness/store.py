@@ -1,0 +1,219 @@
+"""The results store: one folder per run, every file written atomically, readable by reports alone.
+
+Layout under the store root (``--store``, default ``results/<profile>``)::
+
+    <dataset>/<detector>/<encoding>/<fold>/seed<seed>/
+        config.yaml          the fully resolved configuration of the run
+        status.json          {"state": "running" | "finished" | "failed", "config_hash", "started", "updated", ...}
+        metrics.json         evaluation of the held-out fold (schema below)
+        predictions.json     COCO-format detections on the held-out images (category ids as in the GT)
+        gt.json              the COCO ground truth the predictions were scored against (for re-scoring, bootstrap)
+        log.jsonl            one JSON object per epoch
+        checkpoints/         last.pt (resume) and best.pt (by fitness)
+    <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
+    _profiles/<detector>.json                parameters, FLOPs, latency of a detector
+
+``metrics.json`` (``METRICS_SCHEMA``)::
+
+    {
+      "schema": 1,
+      "run":     {"dataset", "detector", "encoding", "fold", "seed"},
+      "support": {"images": int, "instances": int, "image_ids_sha1": str, "categories": {name: instances}},
+      "metrics": {"mAP50": float, "mAP50_95": float, "precision": float, "recall": float,
+                  "conf_threshold": float, "coco_stats": [12 floats], "engine": str},
+      "per_category": {name: {"AP50": float | null, "AP50_95": float | null, "instances": int}},
+      "model":   {"params": int, ...},               # optional
+      "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...},   # optional
+      "environment": {...}                           # optional: versions, device, threads
+    }
+
+Numbers are fractions in 0..1. A category with no ground truth in the fold has ``AP50 = null``; fold aggregation
+skips it rather than counting it as zero.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from harness.errors import StoreError
+from harness.io import atomic_write_json, atomic_write_text, read_json
+
+METRICS_SCHEMA = 1
+STATES = ("running", "finished", "failed")
+
+
+@dataclass(frozen=True, order=True)
+class RunKey:
+    """What identifies a run: the five levels of the store's folder layout."""
+
+    dataset: str
+    detector: str
+    encoding: str
+    fold: str
+    seed: int = 0
+
+    def parts(self) -> tuple[str, str, str, str, str]:
+        return (self.dataset, self.detector, self.encoding, _safe(self.fold), f"seed{self.seed}")
+
+    def __str__(self) -> str:
+        return f"{self.dataset}/{self.detector}/{self.encoding}/{self.fold}/seed{self.seed}"
+
+
+def _safe(part: str) -> str:
+    """Fold names such as 'P4+P5' are fine as folder names; path separators and '..' are not."""
+    if not part or "/" in part or "\\" in part or part in (".", "..") or part.startswith("_"):
+        raise StoreError(f"{part!r} cannot be used as a folder name in the results store")
+    return part
+
+
+def config_hash(config: dict[str, Any]) -> str:
+    """Stable hash of a resolved config (key order does not matter)."""
+    return hashlib.sha1(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def image_ids_hash(image_ids: list[int]) -> str:
+    return hashlib.sha1(",".join(str(int(i)) for i in sorted(image_ids)).encode()).hexdigest()
+
+
+class Run:
+    """The folder of one run and typed access to its files."""
+
+    def __init__(self, root: Path, key: RunKey):
+        self.key = key
+        self.path = Path(root).joinpath(*key.parts())
+
+    # paths
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.yaml"
+
+    @property
+    def status_path(self) -> Path:
+        return self.path / "status.json"
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.path / "metrics.json"
+
+    @property
+    def predictions_path(self) -> Path:
+        return self.path / "predictions.json"
+
+    @property
+    def gt_path(self) -> Path:
+        return self.path / "gt.json"
+
+    @property
+    def log_path(self) -> Path:
+        return self.path / "log.jsonl"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / "checkpoints"
+
+    # status
+    def status(self) -> dict[str, Any] | None:
+        if not self.status_path.exists():
+            return None
+        return read_json(self.status_path)
+
+    def is_finished(self) -> bool:
+        st = self.status()
+        return bool(st and st.get("state") == "finished" and self.metrics_path.exists())
+
+    def set_status(self, state: str, **extra: Any) -> None:
+        if state not in STATES:
+            raise ValueError(f"unknown run state {state!r}")
+        previous = self.status() or {}
+        now = time.strftime("%Y-%m-%dT%H:%M:%S")
+        record = {**previous, **extra, "state": state, "updated": now}
+        record.setdefault("started", now)
+        atomic_write_json(self.status_path, record)
+
+    # content
+    def write_config(self, config: dict[str, Any]) -> str:
+        from harness.config import dump_yaml
+
+        digest = config_hash(config)
+        atomic_write_text(self.config_path, f"# resolved configuration; config_hash {digest}\n" + dump_yaml(config))
+        return digest
+
+    def write_metrics(self, metrics: dict[str, Any]) -> None:
+        metrics = {"schema": METRICS_SCHEMA, "run": asdict(self.key), **metrics}
+        atomic_write_json(self.metrics_path, metrics)
+
+    def read_metrics(self) -> dict[str, Any]:
+        if not self.metrics_path.exists():
+            raise StoreError(f"{self.metrics_path}: no metrics for run {self.key} (not finished?)")
+        data = read_json(self.metrics_path)
+        if data.get("schema") != METRICS_SCHEMA:
+            raise StoreError(f"{self.metrics_path}: metrics schema {data.get('schema')!r}, expected {METRICS_SCHEMA}")
+        return data
+
+    def append_log(self, record: dict[str, Any]) -> None:
+        """Append one JSON line; a partial last line from a crash is ignored by ``read_log``."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record, default=str) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def read_log(self) -> list[dict[str, Any]]:
+        if not self.log_path.exists():
+            return []
+        out = []
+        for line in self.log_path.read_text(encoding="utf-8").splitlines():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+        return out
+
+
+class Store:
+    """A results store rooted at ``root``."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def run(self, key: RunKey) -> Run:
+        return Run(self.root, key)
+
+    def runs(self, dataset: str | None = None, detector: str | None = None, finished_only: bool = True) -> Iterator[Run]:
+        """Every run in the store (sorted), optionally filtered; only finished ones unless asked."""
+        if not self.root.exists():
+            return
+        for status in sorted(self.root.glob("*/*/*/*/seed*/status.json")):
+            ds, det, enc, fold, seed = status.parent.relative_to(self.root).parts
+            if ds.startswith("_") or (dataset and ds != dataset) or (detector and det != detector):
+                continue
+            try:
+                key = RunKey(ds, det, enc, fold, int(seed[4:]))
+            except ValueError:
+                continue
+            run = Run(self.root, key)
+            if finished_only and not run.is_finished():
+                continue
+            yield run
+
+    def sensing_path(self, dataset: str, analysis: str) -> Path:
+        return self.root / dataset / "_sensing" / f"{analysis}.json"
+
+    def profile_path(self, detector: str) -> Path:
+        return self.root / "_profiles" / f"{detector}.json"
+
+    def write_sensing(self, dataset: str, analysis: str, result: dict[str, Any]) -> Path:
+        return atomic_write_json(self.sensing_path(dataset, analysis), result)
+
+    def write_profile(self, detector: str, result: dict[str, Any]) -> Path:
+        return atomic_write_json(self.profile_path(detector), result)
+
+    def read_profiles(self) -> dict[str, dict[str, Any]]:
+        folder = self.root / "_profiles"
+        return {p.stem: read_json(p) for p in sorted(folder.glob("*.json"))} if folder.exists() else {}

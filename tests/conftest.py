@@ -1,0 +1,51 @@
+"""Shared fixtures. Installed third-party plugins are never auto-loaded in tests (results must not depend on what
+else is installed): ``HARNESS_DISABLE_PLUGIN_AUTOLOAD`` is set before the harness is imported."""
+
+from __future__ import annotations
+
+import os
+
+os.environ["HARNESS_DISABLE_PLUGIN_AUTOLOAD"] = "1"
+os.environ.pop("HARNESS_LOAD_PLUGINS", None)
+os.environ.pop("HARNESS_PLUGINS_DIR", None)
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED = REPO.parent / "shared"
+
+
+@pytest.fixture
+def host():
+    """The plugin host with the built-in plugins loaded."""
+    from harness.plugins import load_plugins
+
+    return load_plugins()
+
+
+@pytest.fixture
+def fresh_plugins(monkeypatch):
+    """Start the plugin manager from scratch for this test and restore the normal state afterwards."""
+    from harness import plugins
+
+    plugins.reset_for_tests()
+    yield plugins
+    plugins.reset_for_tests()
+    plugins.load_plugins()
+
+
+@pytest.fixture
+def cli_runner():
+    """Invoke the CLI in-process: ``cli_runner(["list", "--json"])`` -> click Result."""
+    from click.testing import CliRunner
+
+    from harness.cli import get_cli
+
+    runner = CliRunner()
+
+    def invoke(args, **kw):
+        return runner.invoke(get_cli(), args, catch_exceptions=False, **kw)
+
+    return invoke
