@@ -269,7 +269,9 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                        next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
                        name=det.name)
         res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
-        return {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
+        out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
+        out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
+        return out
 
     def on_epoch(record: dict[str, Any]) -> None:
         r.append_log({"fold": fold.name, "seed": seed, **record})

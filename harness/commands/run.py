@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
 import click
+
+# Training runs on CPUs that other processes share (CI runners, laptops): OpenMP threads that spin while they wait
+# for a busy core slow every step down several times over. Passive waiting costs little on an idle machine. It must
+# be set before torch is first imported, which the commands below do lazily; an explicit setting is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from harness.hookspecs import hookimpl
 

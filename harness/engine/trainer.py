@@ -345,7 +345,7 @@ def _cpu_state(model: nn.Module) -> dict[str, torch.Tensor]:
 def _brief(metrics: Mapping[str, Any] | None) -> dict[str, Any] | None:
     if metrics is None:
         return None
-    return {k: metrics[k] for k in ("precision", "recall", "mAP50", "mAP50_95") if k in metrics}
+    return {k: metrics[k] for k in ("precision", "recall", "mAP50", "mAP50_95", "AP50_per_category") if k in metrics}
 
 
 def _line(r: Mapping[str, Any], name: str) -> str:

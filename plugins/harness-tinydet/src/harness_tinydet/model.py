@@ -198,16 +198,17 @@ class TinyDetDual(TinyDet):
         return self.stem(rgb) + self.thermal_stem(thermal)
 
 
-def _options(model_cfg: dict[str, Any]) -> dict[str, Any]:
+def check_options(model_cfg: dict[str, Any]) -> dict[str, Any]:
+    """The ``model`` section of the config must hold TinyDet options only; anything else is a config error."""
     unknown = sorted(set(model_cfg) - set(OPTIONS))
     if unknown:
         raise ConfigError(f"model options {unknown} are not TinyDet options (known: {', '.join(OPTIONS)})")
-    return model_cfg
+    return dict(model_cfg)
 
 
 def build_tinydet(num_classes: int, in_channels: int = 4, **model_cfg: Any) -> TinyDet:
-    return TinyDet(num_classes, in_channels=in_channels, **_options(model_cfg))
+    return TinyDet(num_classes, in_channels=in_channels, **check_options(model_cfg))
 
 
 def build_tinydet_dual(num_classes: int, in_channels: int = 1, **model_cfg: Any) -> TinyDetDual:
-    return TinyDetDual(num_classes, in_channels=in_channels, **_options(model_cfg))
+    return TinyDetDual(num_classes, in_channels=in_channels, **check_options(model_cfg))

@@ -1,10 +1,25 @@
-"""The plugin module named by the ``harness`` entry point: it registers the detectors with the harness."""
+"""The plugin module named by the ``harness`` entry point: it registers the detectors with the harness.
+
+The builders import the model (and torch) only when the harness actually builds a detector.
+"""
 
 from __future__ import annotations
 
+from typing import Any
+
 from harness import DetectorSpec, hookimpl
 
-from harness_tinydet.model import build_tinydet, build_tinydet_dual
+
+def build_tinydet(num_classes: int, in_channels: int = 4, **model_cfg: Any):
+    from harness_tinydet.model import TinyDet, check_options
+
+    return TinyDet(num_classes, in_channels=in_channels, **check_options(model_cfg))
+
+
+def build_tinydet_dual(num_classes: int, in_channels: int = 1, **model_cfg: Any):
+    from harness_tinydet.model import TinyDetDual, check_options
+
+    return TinyDetDual(num_classes, in_channels=in_channels, **check_options(model_cfg))
 
 
 @hookimpl
@@ -15,6 +30,7 @@ def register_detectors(register):
         input_kind="single",
         description="tiny anchor-free two-level detector (example plugin)",
         label="example plugin",
+        defaults={"train": {"lr0": 0.04}},
     ))
     register(DetectorSpec(
         name="tinydet-dual",
@@ -23,4 +39,5 @@ def register_detectors(register):
         description="two-stream TinyDet: RGB and thermal stems summed at stride 4 (example plugin)",
         label="example plugin",
         thermal_channels=1,
+        defaults={"train": {"lr0": 0.04}},
     ))
