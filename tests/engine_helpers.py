@@ -121,7 +121,7 @@ class ShapesPlugin:
 
     @hookimpl
     def register_datasets(self, register):
-        register(DatasetSpec(name="shapes", open=lambda root=None, **opts: ShapesSource(**opts),
+        register(DatasetSpec(name="shapes", open=lambda root=None, sensing=None, **opts: ShapesSource(**opts),
                              categories=CATEGORIES, default_encoding="test-ir8",
                              description="coloured shapes for engine tests"))
 
