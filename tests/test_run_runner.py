@@ -7,6 +7,7 @@ import json
 import pytest
 
 from engine_helpers import CATEGORIES, ShapesPlugin, tinydet_module
+from harness.config import read_yaml
 from harness.errors import ConfigError, StoreError
 from harness.plugins import temporary_plugin
 
@@ -65,7 +66,9 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
         assert all(p["image_id"] in gt_ids and 1 <= p["category_id"] <= 3 and len(p["bbox"]) == 4 for p in preds)
         log = [json.loads(line) for line in (r.path / "log.jsonl").read_text().splitlines()]
         assert [rec["epoch"] for rec in log] == [1, 2, 3] and all(rec["fold"] == r.key.fold for rec in log)
-        assert "train:\n  batch: 8" in (r.path / "config.yaml").read_text()
+        cfg = read_yaml(r.path / "config.yaml")
+        assert cfg["train"]["batch"] == 8 and cfg["train"]["lr0"] == 0.04  # the detector's default is recorded
+        assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
     table = fold_table(summary)
     assert "mean ± SD" in table and table.count("trained") == 2
     lines = category_table(summary).splitlines()
