@@ -144,8 +144,8 @@ def test_bad_requests_are_clear_errors(plugins, tmp_path):
 def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
     store = str(tmp_path / "store")
     sets = [a for s in FAST for a in ("--set", s)]
-    res = cli_runner(["run", "--detector", "tinydet-dual", "--dataset", "shapes", "--folds", "A,B", "--store", store,
-                      "--no-progress", *sets])
+    res = cli_runner(["run", "--detector", "tinydet-dual", "--dataset", "shapes", "--encoding", "test-ir8",
+                      "--folds", "A,B", "--store", store, "--no-progress", *sets])
     assert res.exit_code == 0, res.output
     out = res.output
     assert "tinydet-dual on shapes, encoding test-ir8" in out and "mean ± SD" in out and "per category" in out
