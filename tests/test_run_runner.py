@@ -157,6 +157,7 @@ def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
                       "--fold", "B", "--categories", "warm,cold", "--store", store, "--no-progress", *sets])
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
+    lines = lines[next(i for i, line in enumerate(lines) if line.startswith("encoding ablation:")):]
     assert lines[0].startswith("encoding ablation: tinydet on shapes, fold B")
     assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
     assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]
