@@ -121,13 +121,16 @@ def register_commands(cli: click.Group) -> None:
                   help="A group's similarity parameters (thermal px, degrees, thermal px per RGB px). Repeatable.")
     @click.option("--auto", "auto_pairs", multiple=True, metavar="GROUP=RGB,THERMAL",
                   help="Register a group automatically from one RGB image and one thermal file. Repeatable.")
+    @click.option("--init", "init_file", type=click.Path(exists=True, path_type=Path), default=None,
+                  help="Homographies YAML to start --auto from (default: the group's entry in --out, else the EXIF "
+                       "focal-length prior, else RGB width fitted to thermal width).")
     @click.option("--rgb-size", default=None, help="RGB image size WxH (centre of the similarity).")
     @click.option("--thermal-size", default=None, help="Thermal image size WxH (centre of the similarity).")
     @click.option("--min-correlation", type=float, default=0.5, show_default=True,
                   help="Automatic registration: reject pairs whose structure correlation stays below this.")
     def register_cmd(out: Path, landmarks: Path | None, method: str, threshold: float, similarities: tuple[str, ...],
-                     auto_pairs: tuple[str, ...], rgb_size: str | None, thermal_size: str | None,
-                     min_correlation: float) -> None:
+                     auto_pairs: tuple[str, ...], init_file: Path | None, rgb_size: str | None,
+                     thermal_size: str | None, min_correlation: float) -> None:
         """Compute per-group RGB->thermal homographies and save them in an editable YAML file."""
         import numpy as np
 
@@ -138,6 +141,7 @@ def register_commands(cli: click.Group) -> None:
         if not (landmarks or similarities or auto_pairs):
             raise click.UsageError("give --landmarks, --similarity or --auto")
         entries = reg.load_homography_entries(out) if out.exists() else {}
+        starts = reg.load_homography_entries(init_file) if init_file else {}
         rows = []
         rs, ts = _size(rgb_size, "--rgb-size"), _size(thermal_size, "--thermal-size")
         if landmarks:
@@ -166,7 +170,7 @@ def register_commands(cli: click.Group) -> None:
                 rgb_path, thermal_path = (Path(v) for v in files.split(","))
             except ValueError:
                 raise click.BadParameter(f"--auto {item!r}: expected GROUP=RGB,THERMAL") from None
-            res, rgb_shape, th_shape = reg.register_files(rgb_path, thermal_path, init=entries.get(group),
+            res, rgb_shape, th_shape = reg.register_files(rgb_path, thermal_path, init=starts.get(group, entries.get(group)),
                                                           min_correlation=min_correlation)
             status = "ok" if res.ok else f"REJECTED ({res.reason})"
             if res.ok:

@@ -153,14 +153,15 @@ def stretch_to_uint8(img: np.ndarray, low: float = 1.0, high: float = 99.0, clah
 def find_checkerboard(img: np.ndarray, pattern: tuple[int, int], thermal: bool = False) -> np.ndarray | None:
     """Inner-corner positions (N x 2 float32, row-major) of a ``pattern = (cols, rows)`` checkerboard, or None.
 
-    Thermal frames (any dtype) are stretched with ``stretch_to_uint8`` and tried both ways round (a warm board on
-    a cold background and the inverse). Uses ``findChessboardCornersSB`` (robust on low-resolution frames) and
+    Thermal frames (any dtype) are stretched with ``stretch_to_uint8`` (plain, then with CLAHE for low contrast)
+    and tried both ways round (a warm board on a cold background and the inverse). Uses ``findChessboardCornersSB`` (robust on low-resolution frames) and
     falls back to ``findChessboardCorners`` + ``cornerSubPix``.
     """
     import cv2
 
     if thermal or img.dtype != np.uint8:
-        candidates = [stretch_to_uint8(img), stretch_to_uint8(img, invert=True)]
+        candidates = [stretch_to_uint8(img, clahe=False), stretch_to_uint8(img),
+                      stretch_to_uint8(img, clahe=False, invert=True), stretch_to_uint8(img, invert=True)]
     else:
         candidates = [cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img]
     for gray in candidates:

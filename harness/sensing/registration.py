@@ -95,6 +95,12 @@ def homography_from_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "l
         raise DataError(f"{len(s)} RGB landmarks but {len(d)} thermal landmarks")
     if len(s) < 4:
         raise DataError(f"a homography needs at least 4 landmark pairs, got {len(s)}")
+    for name, pts in (("RGB", s), ("thermal", d)):
+        centred = pts - pts.mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False)
+        if sv[1] <= 1e-9 * max(sv[0], 1.0):
+            raise DataError(f"the {name} landmarks are collinear or duplicated; a homography needs 4 points in general "
+                            "position (no three on a line)")
     if method == "lsq":
         H, mask = cv2.findHomography(s, d, 0)
     elif method == "ransac":
@@ -105,7 +111,7 @@ def homography_from_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "l
                 H, _ = cv2.findHomography(s[inl], d[inl], 0)
     else:
         raise DataError(f"unknown landmark method {method!r}; use 'lsq' or 'ransac'")
-    if H is None:
+    if H is None or not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12 or abs(H[2, 2]) < 1e-12:
         raise DataError(f"no homography fits the {len(s)} landmark pairs (are they collinear or duplicated?)")
     H = normalize(H)
     if not return_inliers:
