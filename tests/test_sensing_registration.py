@@ -277,3 +277,19 @@ def test_register_command_from_landmarks_similarity_and_images(tmp_path, cli_run
     np.testing.assert_allclose(apply_homography(Hs["P1"], rgb), th, atol=0.05)
     assert np.median(corner_error(Hs["P3"], H_true, SCENE_TH)) < 1.0
     assert "ok" in res.output
+
+
+def test_sensing_context_registers_unknown_groups_automatically_or_refuses():
+    from harness.config import load_config
+    from harness.sensing.pipeline import SensingContext
+
+    H_true = _scene_truth()
+    rgb, thermal = render_pair(2, H_true, SCENE_RGB, SCENE_TH)
+    ctx = SensingContext.from_config(load_config())
+    ir8 = np.zeros(thermal.shape, np.uint8)
+    pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 40, 30]]), np.array([0]), "G01", prior=_prior())
+    assert np.median(corner_error(ctx.entries["G01"].H, H_true, SCENE_TH)) < 1.0 and ctx.auto_results["G01"].ok
+    np.testing.assert_array_equal(pair.thermal, thermal[pair.origin[1]:, pair.origin[0]:][:pair.size[1], :pair.size[0]])
+    _, other = render_pair(77, H_true, SCENE_RGB, SCENE_TH)
+    with pytest.raises(DataError, match="group 'G02': automatic registration rejected"):
+        ctx.align_capture(rgb, other, ir8, np.zeros((0, 4)), np.zeros(0), "G02", prior=_prior())

@@ -117,3 +117,32 @@ def test_align_pair_moves_rgb_boxes_through_h_and_respects_thermal_validity():
     assert support_mask(H, (200, 200), (50, 60))[:, 50:].sum() == 0
     with pytest.raises(DataError, match="boxes_frame"):
         align_pair(rgb, thermal, np.zeros((50, 60), np.uint8), np.zeros((0, 4)), np.zeros(0), H, boxes_frame="x")
+
+
+def test_sensing_context_runs_a_capture_as_the_config_says(tmp_path):
+    from harness.config import load_config
+    from harness.sensing.calibration import CameraModel
+    from harness.sensing.pipeline import SensingContext
+    from harness.sensing.registration import save_homographies
+
+    rgb = np.full((200, 200, 3), 90, np.uint8)
+    thermal = np.full((50, 60), 25.0, np.float32)
+    ir8 = np.zeros((50, 60), np.uint8)
+    H = np.diag([0.25, 0.25, 1.0])
+    save_homographies(tmp_path / "H.yaml", {"P1": H})
+    CameraModel(np.array([[60.0, 0, 29.5], [0, 60.0, 24.5], [0, 0, 1]]), [-0.2, 0, 0, 0, 0], (60, 50)).save(
+        tmp_path / "th.yaml")
+    cfg = load_config(overrides=["sensing.registration.homographies=H.yaml", "sensing.registration.method=file",
+                                 "sensing.warp.min_box_size=2.0"])
+    ctx = SensingContext.from_config(cfg, base=tmp_path)
+    pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 20, 20], [0, 0, 1.5, 1.5]]), np.array([0, 1]), "P1")
+    assert pair.dropped == 1 and pair.origin == (0, 0)
+    with pytest.raises(DataError, match="group 'P9' has no homography"):
+        ctx.align_capture(rgb, thermal, ir8, np.zeros((0, 4)), np.zeros(0), "P9")
+    cfg = load_config(overrides=["sensing.undistort.thermal_camera=th.yaml"])
+    ctx = SensingContext.from_config(cfg, base=tmp_path)
+    th_u, ir8_u, cam = ctx.undistort_thermal(thermal, ir8)
+    assert th_u.shape == ir8_u.shape and th_u.shape[0] < 50 and np.allclose(th_u, 25.0)
+    with pytest.raises(DataError, match="'focal' needs"):
+        SensingContext.from_config(load_config(overrides=["sensing.registration.method=focal"])).homography(
+            "P1", rgb, thermal)

@@ -9,6 +9,8 @@ module             what it does
 ``warp``           RGB warped into the thermal frame, common support, boxes carried through H, ``align_pair``
 ``c2``             the signed local radiometric contrast channel C2
 ``analyses``       registration error on landmarks, displacement study of C2 around boxes
+``options``        the ``sensing:`` config section as typed records
+``pipeline``       ``SensingContext``: one capture through undistortion, registration and alignment
 =================  ==========================================================================================
 
 Every function is a small, pure array-in/array-out step; the CLI (``harness sensing ...``) and the dataset
