@@ -14,7 +14,7 @@ edge ``x`` is the centre coordinate ``x - 0.5``; ``transform_boxes`` converts on
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
