@@ -39,9 +39,13 @@ def _write_result(result: dict[str, Any], analysis: str, dataset: str | None, st
 
 
 def _progress(total: int | None, label: str) -> Any:
+    """A rich progress bar on stderr (hidden when stderr is not a terminal), so tables on stdout stay clean."""
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True)
+    console = Console(stderr=True)
+    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True,
+                    console=console, disable=not console.is_terminal)
 
 
 @hookimpl

@@ -122,7 +122,7 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str | No
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(cols)]
 
     def fmt(row: Sequence[str]) -> str:
-        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(row, widths, align))
+        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(row, widths, align)).rstrip()
 
     return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *[fmt(r) for r in rows]])
 

@@ -62,8 +62,9 @@ def _centred_padded(t: np.ndarray, r: int) -> tuple[np.ndarray, np.float32]:
 def _blur_padded(xp: np.ndarray, r: int, h: int, w: int, sigma: float) -> np.ndarray:
     import scipy.fft
 
-    hp, wp = xp.shape
-    spec = scipy.fft.rfft2(xp, workers=1)
+    # FFT sizes with small prime factors; the zeros beyond the reflect padding are never reached by the kernel
+    hp, wp = (scipy.fft.next_fast_len(n, real=True) for n in xp.shape)
+    spec = scipy.fft.rfft2(xp, s=(hp, wp), workers=1)
     spec *= _kernel_spectrum(hp, wp, float(sigma))
     return scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[r:r + h, r:r + w]
 
