@@ -75,29 +75,37 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(args.warmup):
         ours()
         anchor()
-    times_ours, times_anchor = [], []
+    times_ours, times_anchor, cpu_ours, cpu_anchor = [], [], [], []
     for _ in range(args.repeats):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         ours()
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         anchor()
-        t2 = time.perf_counter()
+        c2_, t2 = time.process_time(), time.perf_counter()
         times_ours.append(t1 - t0)
         times_anchor.append(t2 - t1)
+        cpu_ours.append(c1 - c0)
+        cpu_anchor.append(c2_ - c1)
     med_ours = statistics.median(times_ours) * 1e3
     med_anchor = statistics.median(times_anchor) * 1e3
     ratio = med_anchor / med_ours
+    cpu_o, cpu_a = statistics.median(cpu_ours) * 1e3, statistics.median(cpu_anchor) * 1e3
 
     float_diff = float(np.abs(c2(t).astype(np.float64) - scipy_c2(t)).max())
     u_diff = np.abs(ours().astype(int) - anchor().astype(int))
     agree = float_diff < 1e-4 and u_diff.max() <= 1
 
     print(f"C2 encode of one {t.shape[1]}x{t.shape[0]} frame ({what}), 1 thread, {args.repeats} rounds")
-    print(f"  {'implementation':<44} {'median ms':>10} {'min ms':>8}")
-    print(f"  {'harness.sensing.c2.c2_uint8 (FFT background)':<44} {med_ours:>10.2f} {min(times_ours) * 1e3:>8.2f}")
-    print(f"  {'anchor: scipy gaussian_filter + np.percentile':<44} {med_anchor:>10.2f} {min(times_anchor) * 1e3:>8.2f}")
-    print(f"  ratio anchor / harness: {ratio:.2f}x  (target >= 3x: {'met' if ratio >= 3 else 'NOT met'})")
-    print(f"  harness median {med_ours:.2f} ms  (target <= 6 ms: {'met' if med_ours <= 6 else 'NOT met'})")
+    print(f"  {'implementation':<44} {'median ms':>10} {'min ms':>8} {'median CPU ms':>14}")
+    print(f"  {'harness.sensing.c2.c2_uint8 (FFT background)':<44} {med_ours:>10.2f} {min(times_ours) * 1e3:>8.2f} "
+          f"{cpu_o:>14.2f}")
+    print(f"  {'anchor: scipy gaussian_filter + np.percentile':<44} {med_anchor:>10.2f} {min(times_anchor) * 1e3:>8.2f} "
+          f"{cpu_a:>14.2f}")
+    print(f"  ratio anchor / harness: {ratio:.2f}x wall, {cpu_a / cpu_o:.2f}x CPU  "
+          f"(target >= 3x: {'met' if ratio >= 3 else 'NOT met'})")
+    print(f"  harness median {med_ours:.2f} ms wall, {cpu_o:.2f} ms CPU  (target <= 6 ms wall: "
+          f"{'met' if med_ours <= 6 else 'NOT met'}; CPU: {'met' if cpu_o <= 6 else 'NOT met'})")
+    print("  (CPU time leaves out time-slicing by other processes on a shared machine; wall time is the target)")
     print(f"  agreement: max |C2 - C2_scipy| = {float_diff:.2e}; uint8 differs by <= {int(u_diff.max())} "
           f"on {int((u_diff > 0).sum())} of {u_diff.size} pixels -> {'ok' if agree else 'MISMATCH'}")
     return 0 if agree else 1
