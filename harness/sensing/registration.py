@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -791,6 +791,3 @@ def leave_one_out_errors(landmarks: Landmarks, method: str = "lsq", ransac_thres
             errors[k] = reprojection_errors(H, landmarks.rgb[[k]], landmarks.thermal[[k]])[0]  # type: ignore[arg-type]
     return errors
 
-
-def as_points(values: Iterable[Sequence[float]]) -> np.ndarray:
-    return np.asarray(list(values), dtype=np.float64).reshape(-1, 2)
