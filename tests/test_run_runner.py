@@ -94,6 +94,12 @@ def test_finished_runs_are_skipped_changed_ones_refused_and_forced(plugins, tmp_
     forced = run(changed)
     assert forced.results[0].state == "trained"
     assert forced.results[0].metrics["train"] != first.results[0].metrics["train"]
+    # --init starts another run from the finished run's best weights, and records where they came from
+    best = first.results[0].path / "checkpoints" / "best.pt"
+    init = run(request(tmp_path, folds="B", store=tmp_path / "other", init=best))
+    report = init.results[0].metrics["train"]["init"]
+    assert report["loaded"] == report["total"] and report["path"] == str(best)
+    assert read_yaml(init.results[0].path / "config.yaml")["train"]["init"] == str(best)
 
 
 @pytest.mark.slow
