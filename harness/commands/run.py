@@ -19,17 +19,22 @@ def _split(text: str | None) -> list[str]:
 
 
 def _common(f):
-    f = click.option("--profile", default="smoke", show_default=True,
-                     help="Run profile under configs/profiles/: smoke (small, CPU) or paper (the seed's protocol).")(f)
-    f = click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
-                     help="Extra YAML config file(s), applied after the profile.")(f)
-    f = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-                     help="Override one config key, e.g. --set train.epochs=5 (repeatable).")(f)
-    f = click.option("--store", type=click.Path(file_okay=False), default=None,
-                     help="Results store root [default: results/<profile>].")(f)
-    f = click.option("--seeds", default=None, help="Comma-separated seeds [default: protocol.seeds].")(f)
-    f = click.option("--force", is_flag=True, help="Redo runs that already finished.")(f)
-    f = click.option("--no-progress", is_flag=True, help="No progress bars (log lines only).")(f)
+    """The options ``run`` and ``ablate`` share (applied bottom-up, so they list in this order)."""
+    options = [
+        click.option("--profile", default="smoke", show_default=True,
+                     help="Run profile under configs/profiles/: smoke (small, CPU) or paper (the seed's protocol)."),
+        click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
+                     help="Extra YAML config file(s), applied after the profile."),
+        click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                     help="Override one config key, e.g. --set protocol.epochs=5 (repeatable)."),
+        click.option("--seeds", default=None, help="Comma-separated seeds [default: protocol.seeds]."),
+        click.option("--store", type=click.Path(file_okay=False), default=None,
+                     help="Results store root [default: results/<profile>]."),
+        click.option("--force", is_flag=True, help="Redo runs that already finished."),
+        click.option("--no-progress", is_flag=True, help="No progress bars (log lines only)."),
+    ]
+    for option in reversed(options):
+        f = option(f)
     return f
 
 
