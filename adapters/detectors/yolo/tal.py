@@ -5,13 +5,15 @@ For every ground-truth box g and anchor point a whose centre lies inside g:
     t(a, g) = s(a, c_g)^alpha * u(a, g)^beta          alignment metric (alpha 0.5, beta 6.0)
 
 with ``s`` the predicted probability of g's class and ``u`` the CIoU (clamped at 0) of a's predicted box with g.
-Each box keeps its ``topk`` (10) anchors by ``t``; an anchor kept by several boxes goes to the one its predicted box
-overlaps most. The positive's soft classification target is the IoU-aware normalised metric
+Each box keeps its ``topk`` (10) anchors by ``t``; an anchor kept by several boxes goes to the box, among all those
+it lies in, that its predicted box overlaps most. A positive's soft classification target is the IoU-aware
+normalised metric
 
     t_hat(a) = t(a, g) * max_a' u(a', g) / max_a' t(a', g)
 
 (so every box's best anchor gets a target equal to that box's best IoU). Everything is batched over images with
-padded ground truth ``[B, M, ...]`` and a validity mask; there is no Python loop over anchors or boxes.
+padded ground truth ``[B, M, ...]`` and a validity mask; there is no Python loop over anchors or boxes. Only the
+candidate test and the top-k need dense ``[B, M, A]`` tensors; the rest works on the ``B * M * topk`` kept pairs.
 """
 
 from __future__ import annotations
@@ -47,9 +49,10 @@ def anchors_inside_boxes(points: torch.Tensor, gt_boxes: torch.Tensor, eps: floa
         centre = (gt_boxes[..., :2] + gt_boxes[..., 2:]) / 2
         half = (gt_boxes[..., 2:] - gt_boxes[..., :2]).clamp(min=min_side) / 2
         gt_boxes = torch.cat((centre - half, centre + half), -1)
-    lt = points[None, None] - gt_boxes[..., None, :2]  # [B, M, A, 2]
-    rb = gt_boxes[..., None, 2:] - points[None, None]
-    return torch.minimum(lt.amin(-1), rb.amin(-1)) > eps
+    x, y = points[:, 0], points[:, 1]
+    x1, y1, x2, y2 = (gt_boxes[..., i, None] for i in range(4))  # [B, M, 1] each
+    # x - x1 > eps written as x > x1 + eps: boolean comparisons only, no [B, M, A] float temporaries
+    return (x > x1 + eps) & (y > y1 + eps) & (x < x2 - eps) & (y < y2 - eps)
 
 
 class TaskAlignedAssigner:
@@ -95,25 +98,42 @@ class TaskAlignedAssigner:
         align = pd_scores.new_zeros((b, m, a))
         align[bi, mi, ai] = cls_score.pow(self.alpha) * iou.pow(self.beta)
 
-        # each box keeps its top-k candidates by the alignment metric
+        # each box keeps its top-k candidates by the alignment metric: from here on, only those B*M*k pairs
         k = min(self.topk, a)
-        top_idx = align.topk(k, dim=-1).indices  # [B, M, k], distinct per row
-        mask_pos = torch.zeros_like(inside).scatter_(-1, top_idx, True) & inside
+        top_align, top_idx = align.topk(k, dim=-1)  # [B, M, k], distinct anchors per box
+        pb, pm, pk = inside.gather(-1, top_idx).nonzero(as_tuple=True)
+        pa = top_idx[pb, pm, pk]
+        p_align = top_align[pb, pm, pk]
+        p_iou = overlaps.gather(-1, top_idx)[pb, pm, pk]
 
-        # an anchor chosen by several boxes goes to the box its prediction overlaps most
-        fg_mask = mask_pos.any(1)  # [B, A]
-        gt_index = torch.where(mask_pos, overlaps, torch.full_like(overlaps, -1.0)).argmax(1)  # [B, A]
-        mask_pos = (torch.arange(m, device=device)[None, :, None] == gt_index[:, None, :]) & fg_mask[:, None, :]
+        # an anchor chosen by several boxes goes to the box its prediction overlaps most, among all the boxes it lies
+        # in (the public rule; first index on ties)
+        anchor_key = pb * a + pa
+        count = torch.zeros(b * a, dtype=torch.long, device=device).scatter_add_(0, anchor_key, torch.ones_like(pa))
+        single = count[anchor_key] == 1
+        contested = torch.nonzero(count > 1)[:, 0]
+        cb, ca = contested // a, contested % a
+        cm = overlaps[cb, :, ca].argmax(1)  # [K]
+        pb, pm, pa = torch.cat((pb[single], cb)), torch.cat((pm[single], cm)), torch.cat((pa[single], ca))
+        p_align = torch.cat((p_align[single], align[cb, cm, ca]))
+        p_iou = torch.cat((p_iou[single], overlaps[cb, cm, ca]))
+        anchor_key = pb * a + pa
+
+        fg_mask = torch.zeros(b * a, dtype=torch.bool, device=device)
+        fg_mask[anchor_key] = True
+        gt_index = torch.zeros(b * a, dtype=torch.long, device=device)
+        gt_index[anchor_key] = pm
+        fg_mask, gt_index = fg_mask.view(b, a), gt_index.view(b, a)
+
+        # IoU-aware soft target: t * max IoU / max t, per box, over the positives it finally keeps
+        box_key = pb * m + pm
+        best_align = p_align.new_zeros(b * m).scatter_reduce(0, box_key, p_align, "amax")
+        best_iou = p_iou.new_zeros(b * m).scatter_reduce(0, box_key, p_iou, "amax")
+        norm = pd_scores.new_zeros(b * a)
+        norm[anchor_key] = p_align * best_iou[box_key] / (best_align[box_key] + self.eps)
 
         labels = gt_labels.gather(1, gt_index)  # [B, A]
         boxes = gt_boxes.gather(1, gt_index[..., None].expand(-1, -1, 4))  # [B, A, 4]
-        scores = F.one_hot(labels, self.num_classes).to(pd_scores.dtype) * fg_mask[..., None]
-
-        # IoU-aware soft target: t * max IoU / max t, per box, over its positives
-        align = align * mask_pos
-        best_align = align.amax(-1, keepdim=True)  # [B, M, 1]
-        best_iou = (overlaps * mask_pos).amax(-1, keepdim=True)
-        norm = (align * best_iou / (best_align + self.eps)).amax(1)  # [B, A]
-        scores = scores * norm[..., None]
+        scores = F.one_hot(labels, self.num_classes).to(pd_scores.dtype) * (norm.view(b, a) * fg_mask)[..., None]
         labels = torch.where(fg_mask, labels, torch.full_like(labels, self.num_classes))
         return Assignment(labels=labels, boxes=boxes, scores=scores, fg_mask=fg_mask, gt_index=gt_index)
