@@ -21,6 +21,15 @@ from adapters.detectors.yolo.v8 import build_yolov8
 from harness.errors import HarnessError
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Small tensors gain nothing from a second thread, and on a shared 2-core machine two threads can be 10x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def grid(n: int = 4, stride: int = 8) -> torch.Tensor:
     """Anchor points (pixels) of an n x n grid: centres 4, 12, 20, 28 for stride 8."""
     pts, _ = make_anchors([torch.zeros(1, 1, n, n)], [stride])

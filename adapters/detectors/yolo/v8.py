@@ -254,6 +254,8 @@ class YOLOv8(nn.Module):
         return y
 
     def _check_input(self, x: Any) -> None:
+        if torch.jit.is_tracing():  # shapes are fixed while tracing (ONNX export): nothing to check, no warnings
+            return
         if not isinstance(x, torch.Tensor) or x.dim() != 4:
             raise HarnessError(
                 f"YOLOv8 expects one float tensor [B, {self.in_channels}, H, W]; got "
