@@ -169,3 +169,18 @@ def test_ours_is_a_registered_single_stream_detector(host):
     model = spec.build(8, in_channels=4, scale="n", conf=0.25, iou=0.5, max_det=10)
     assert (model.nc, model.in_channels, model.conf, model.iou, model.max_det) == (8, 4, 0.25, 0.5, 10)
     assert callable(spec.load_official)
+
+
+def test_harness_profile_reports_the_seed_figures(cli_runner):
+    """``harness profile --detector ours --json``: 11,128,968 parameters fused and 28.5 GFLOPs (paper convention)."""
+    import json
+
+    pytest.importorskip("harness.profiling", reason="the profiling module is not in this checkout yet")
+    result = cli_runner(["profile", "--detector", "ours", "--json", "--no-latency", "--no-onnx", "--no-fvcore",
+                         "--no-store"])
+    assert result.exit_code == 0, result.output
+    (record,) = json.loads(result.output)
+    assert record["params"]["fused"] == 11_128_968
+    assert record["params"]["total"] == 11_138_984
+    assert round(record["flops"]["paper"]["gflops"], 1) == 28.5
+    assert record["reference"] == {"params_m": 11.13, "gflops": 28.5, "source": "seed paper"}
