@@ -6,13 +6,10 @@ gains, ``weights`` to start from public-layout YOLOv8 weights ...); see ``build`
 
 from __future__ import annotations
 
-import logging
 from typing import Any
 
 from harness.api import DetectorSpec, Reference
 from harness.hookspecs import hookimpl
-
-log = logging.getLogger(__name__)
 
 DESCRIPTION = "YOLOv8s, 4-channel [R,G,B,C2] input (the seed's detector)"
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -143,6 +144,16 @@ class Detect(nn.Module):
         return names
 
 
+def _positive_int(name: str, value: Any) -> int:
+    try:
+        v = operator.index(value)  # int, numpy integer; not float or bool-like strings
+    except TypeError:
+        v = 0
+    if isinstance(value, bool) or v < 1:
+        raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+    return v
+
+
 def cls_bias_prior(nc: int, stride: float) -> float:
     return math.log(5 / nc / (640 / stride) ** 2)
 
@@ -156,10 +167,7 @@ class YOLOv8(nn.Module):
         super().__init__()
         if scale not in SCALES:
             raise ConfigError(f"model.scale: unknown YOLOv8 scale {scale!r}; use one of {', '.join(SCALES)}")
-        if not (isinstance(nc, int) and nc >= 1):
-            raise ConfigError(f"num_classes must be a positive integer, got {nc!r}")
-        if not (isinstance(in_channels, int) and in_channels >= 1):
-            raise ConfigError(f"in_channels must be a positive integer, got {in_channels!r}")
+        nc, in_channels = _positive_int("num_classes", nc), _positive_int("in_channels", in_channels)
         self.nc = nc
         self.in_channels = in_channels
         self.scale = scale
