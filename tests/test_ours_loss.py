@@ -242,3 +242,21 @@ def test_assigner_matches_the_rule_written_with_loops(seed):
     torch.testing.assert_close(out.scores, target, atol=1e-6, rtol=1e-4)
     # fewer positives than boxes x topk: some anchors were wanted by several boxes, so the conflict rule is exercised
     assert int(fg.sum()) < int(gt_mask.sum()) * topk
+
+
+def test_gains_scale_the_losses():
+    torch.manual_seed(3)
+    maps = [torch.randn(2, 64 + 3, s, s) for s in (8, 4, 2)]
+    targets = [{"boxes": torch.tensor([[4.0, 6.0, 40.0, 50.0]]), "labels": torch.tensor([1])},
+               {"boxes": torch.tensor([[20.0, 10.0, 60.0, 30.0]]), "labels": torch.tensor([2])}]
+
+    def run(**gains):
+        crit = V8DetectionLoss(nc=3, **gains)
+        crit.strides = (8, 16, 32)
+        return crit(maps, targets)
+
+    base = run()
+    doubled = run(box=15.0, cls=1.0, dfl=3.0)
+    for k in ("box", "cls", "dfl"):
+        assert base[k].item() > 0
+        torch.testing.assert_close(doubled[k], 2 * base[k])
