@@ -137,8 +137,15 @@ def load_manifest(root: str | Path, manifest: str | Path | None = None,
         source = next((root / n for n in MANIFEST_NAMES if (root / n).exists()), None)
     if source is not None:
         data = _read_manifest_file(source)
-    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     known = _manifest_fields()
+    bad_options = sorted(set(overrides or {}) - set(known))
+    if bad_options:
+        from harness.errors import ConfigError
+
+        raise ConfigError(f"the M3T dataset does not take option(s) {', '.join(map(repr, bad_options))} "
+                          f"(dataset.<option>); it takes root, manifest and the manifest keys "
+                          f"{', '.join(sorted(known))}")
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise DataError(f"{source or 'dataset options'}: unknown manifest key(s) {', '.join(map(repr, unknown))}; "
@@ -619,6 +626,7 @@ class M3TSource:
     # -------------------------------------------------------------- raw form
     def _raw_samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
         aligner = RawAligner(self)
+        self._aligner = aligner
         for rec in self.records:
             try:
                 sample = aligner.sample(rec, report)
@@ -629,6 +637,22 @@ class M3TSource:
         aligner.finish(report)
         if self._clipped:
             report.note(f"{self._clipped} RGB-frame box(es) reaching past the image edge were clipped to it")
+
+    def write_artifacts(self, folder: Path) -> None:
+        """Called by ``harness.prepare`` before the prepared folder is published: the homographies the raw form
+        used (one per inspection group, full-frame undistorted RGB -> thermal), for registration studies."""
+        aligner = getattr(self, "_aligner", None)
+        if aligner is None or not aligner.fitted:
+            return
+        from harness.sensing.registration import HomographyEntry, save_homographies
+
+        entries = {g: HomographyEntry(h, method=str(self.registration.get(g, {}).get("source", "")),
+                                      quality={k: v for k, v in self.registration.get(g, {}).items() if k != "source"})
+                   for g, h in sorted(aligner.fitted.items())}
+        save_homographies(Path(folder) / "homographies.yaml", entries,
+                          meta={"frame": "undistorted wide-camera pixels (calibration K) -> thermal pixels"
+                                if aligner.cam is not None else "RGB pixels -> thermal pixels",
+                                "dataset": self.name})
 
     def thermal_partner(self, rec: ImageRecord) -> Path:
         m = self.manifest
@@ -713,6 +737,8 @@ class RawAligner:
         self.thermal_size: tuple[int, int] | None = m.thermal_size
         self._cams: dict[tuple[int, int], tuple[Any, Any]] = {}
         self._H: dict[tuple[str, tuple[int, int]], np.ndarray | str] = {}
+        #: group -> H on full-frame undistorted pixels (camera K), as used
+        self.fitted: dict[str, np.ndarray] = {}
         self.dropped = 0
 
     # ---------------------------------------------------------------- pieces
@@ -742,17 +768,26 @@ class RawAligner:
         return h
 
     def _to_new(self, h_k: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``new_cam``)."""
+        """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``new_cam``):
+        a pixel ``p'`` of the new camera is the ray ``K'^-1 p'``, i.e. the pixel ``K K'^-1 p'`` of camera K."""
         cam, new_cam = self.cameras(size)
         if cam is None:
             return h_k
         return h_k @ cam.K @ np.linalg.inv(new_cam.K)
+
+    def _to_k(self, h_new: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        cam, new_cam = self.cameras(size)
+        if cam is None:
+            return h_new
+        h = h_new @ new_cam.K @ np.linalg.inv(cam.K)
+        return h / h[2, 2]
 
     def _group_homography(self, group: str, size: tuple[int, int]) -> np.ndarray | str:
         from harness.sensing.registration import homography_from_landmarks, reprojection_errors
 
         if group in self.homographies:
             self.src.registration[group] = {"source": "homographies file"}
+            self.fitted[group] = self.homographies[group]
             return self._to_new(self.homographies[group], size)
         if self.landmarks is not None:
             lm = self.landmarks
@@ -773,6 +808,7 @@ class RawAligner:
                 err = reprojection_errors(h, rgb_pts, lm.thermal[idx])  # type: ignore[arg-type]
                 self.src.registration[group] = {"source": "landmarks", "pairs": len(idx),
                                                 "rms_px": round(float(np.sqrt(np.mean(err ** 2))), 4)}
+                self.fitted[group] = self._to_k(h, size)  # type: ignore[arg-type]
                 return h  # type: ignore[return-value]
         if self.opts["auto_registration"]:
             self.src.registration[group] = {"source": "auto (ECC per image)"}

@@ -979,19 +979,28 @@ def _round_box(box: Iterable[float]) -> list[float]:
 
 
 def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generator, limit: int) -> list[dict[str, Any]]:
-    """Window-frame corners inside the thermal frame, clicked in both images with a little noise."""
+    """Corners of windows, AC units and vents (sharp in both images) inside the thermal frame, spread out by
+    farthest-point selection as a careful annotator would, clicked in both images with a little noise."""
     tw, th = rig.thermal_size
     pts = []
     for o in frame.objects:
-        if o.category != "window":
+        if o.category not in ("window", "ac_unit", "vent") or o.attrs.get("round"):
             continue
         for x, y in ((o.box[0], o.box[1]), (o.box[2], o.box[1]), (o.box[0], o.box[3]), (o.box[2], o.box[3])):
             if 4 <= x <= tw - 4 and 4 <= y <= th - 4:
                 pts.append((x - 0.5, y - 0.5))
     while len(pts) < 4:  # a plain wall: distinctive texture points instead
         pts.append((rng.uniform(8, tw - 8), rng.uniform(8, th - 8)))
-    idx = rng.permutation(len(pts))[:limit]
-    thermal = np.array(pts, np.float64)[idx]
+    cand = np.array(pts, np.float64)
+    chosen = [int(np.argmin(cand[:, 0] + cand[:, 1]))]
+    dist = np.linalg.norm(cand - cand[chosen[0]], axis=1)
+    while len(chosen) < min(limit, len(cand)):
+        nxt = int(np.argmax(dist))
+        if dist[nxt] <= 0:
+            break
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(cand - cand[nxt], axis=1))
+    thermal = cand[chosen]
     rgb = distort_points(apply_homography(np.linalg.inv(session.homography), thermal), rig.k_rgb, rig.dist_rgb)
     thermal_click = thermal + rng.normal(0, 0.35, thermal.shape)
     rgb_click = rgb + rng.normal(0, 0.8, rgb.shape)
@@ -1143,7 +1152,7 @@ def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, pr
                                 "drift_c": round(frame.drift_c, 4), "vignette_c": round(frame.vignette_c, 4),
                                 "objects": objects_meta})
             if lm_count[session.name] < 24:
-                for lm in _landmarks(frame, session, rig, rng, limit=6):
+                for lm in _landmarks(frame, session, rig, rng, limit=min(12, 24 - lm_count[session.name])):
                     landmarks.append({"scene": rgb_rel, "group": session.name, **lm})
                     lm_count[session.name] += 1
             bar.advance()
