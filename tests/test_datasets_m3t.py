@@ -70,6 +70,24 @@ def test_true_homographies_give_smaller_box_errors(tiny, tmp_path):
     assert err.mean() < 0.7
 
 
+def test_landmarks_clicked_on_the_raw_images_are_undistorted_first(tiny, tmp_path):
+    from adapters.datasets.synthetic import distort_points
+    from harness.sensing.calibration import CameraModel
+
+    cam = CameraModel.load(tiny / "calibration" / "wide_camera.yaml")
+    path = tiny / "registration" / "landmarks.json"
+    data = json.loads(path.read_text())
+    for item in data["landmarks"]:
+        item["rgb"] = distort_points(np.array([item["rgb"]]), cam.K, cam.dist)[0].tolist()
+    path.write_text(json.dumps(data))
+    (tiny / "m3t.yaml").write_text("landmarks_rgb: raw\n")
+    err, _ = corner_errors(_prepare(tiny, tmp_path / "raw"), tiny)
+    assert err.mean() < 1.0
+    (tiny / "m3t.yaml").write_text("landmarks_rgb: undistorted\n")  # the wrong frame: distortion left in
+    wrong, _ = corner_errors(_prepare(tiny, tmp_path / "wrong"), tiny)
+    assert wrong.mean() > err.mean() + 0.1
+
+
 def test_prepared_thermal_is_the_decoded_rjpeg_unresampled(tiny, tmp_path):
     from harness.sensing.radiometry import read_rjpeg
 

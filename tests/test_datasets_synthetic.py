@@ -153,16 +153,13 @@ def test_thermal_capture_is_a_real_layout_rjpeg_with_capture_time(tiny_source):
 
 
 def test_landmarks_are_noisy_clicks_of_the_true_homography(tiny_source):
-    from harness.sensing.calibration import CameraModel, undistort_points
     from harness.sensing.registration import load_homographies, read_landmarks, registration_error
 
     lm = read_landmarks(tiny_source / "registration" / "landmarks.json")
-    cam = CameraModel.load(tiny_source / "calibration" / "wide_camera.yaml")
     true_h = load_homographies(tiny_source / "ground_truth" / "homographies.yaml")
     assert set(lm.group) == set(true_h)
-    lm.rgb = undistort_points(lm.rgb, cam, CameraModel(cam.K, [0] * 5, cam.image_size))
     err = registration_error(lm, true_h)
-    # click noise 0.8 RGB px (x0.57 in thermal px) and 0.35 thermal px per axis: ~0.6 px mean distance
+    # click noise 0.8 RGB px (x0.57 in thermal px) and 0.35 thermal px per axis: ~0.7 px mean distance
     assert 0.3 < err["mean"] < 1.0
     assert err["max"] < 3.0
 

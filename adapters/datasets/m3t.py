@@ -78,7 +78,7 @@ class Manifest:
     homographies: str | None = "registration/homographies.yaml"
     landmarks: str | None = "registration/landmarks.json"
     captures: str | None = "captures.csv"
-    session_gap_min: float = 30.0
+    landmarks_rgb: str = "undistorted"  # frame of the landmarks' RGB points: undistorted (camera K) | raw
     categories: Mapping[str, str] = field(default_factory=dict)  # name in the annotation file -> ours or "ignore"
     source: str | None = None  # the manifest file, for messages
 
@@ -208,10 +208,10 @@ def _check_manifest_value(key: str, value: Any, where: str) -> Any:
         if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(isinstance(v, int) and v > 0 for v in value):
             raise bad("[width, height] in pixels")
         return (int(value[0]), int(value[1]))
-    if key == "session_gap_min":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
-            raise bad("a positive number of minutes")
-        return float(value)
+    if key == "landmarks_rgb":
+        if value not in ("undistorted", "raw"):
+            raise bad("'undistorted' (pixels of the undistorted wide image, camera K) or 'raw' (of the JPEG as shot)")
+        return value
     if key in ("rgb_suffix", "thermal_suffix"):
         if not isinstance(value, str):
             raise bad("a string")
@@ -473,10 +473,13 @@ class M3TSource:
 
     def _assign_groups(self) -> None:
         """Inspection groups: an explicit group from the captures file, else a new group whenever consecutive
-        captures of a project are more than ``session_gap_min`` apart, named ``<project>-01``, ``<project>-02``
-        ... in time order (``harness.sensing.registration.group_by_capture_time``); a project without capture
-        times is one group named after the project."""
+        captures of a project are more than ``sensing.groups.gap_s`` apart, named ``<project>-01``,
+        ``<project>-02`` ... in time order (``harness.sensing.registration.group_by_capture_time``); a project
+        without capture times is one group named after the project."""
+        from harness.sensing.options import SensingOptions
         from harness.sensing.registration import group_by_capture_time
+
+        gap_s = SensingOptions.from_config(self.sensing).group_gap_s
 
         by_project: dict[str, list[ImageRecord]] = {}
         for r in self.records:
@@ -484,8 +487,7 @@ class M3TSource:
                 by_project.setdefault(r.project, []).append(r)
         for project, recs in by_project.items():
             timed = {r.file_name: r.captured for r in recs if r.captured is not None}
-            groups = group_by_capture_time(timed, gap_s=self.manifest.session_gap_min * 60.0,
-                                           prefix=f"{project}-") if timed else {}
+            groups = group_by_capture_time(timed, gap_s=gap_s, prefix=f"{project}-") if timed else {}
             for r in recs:
                 r.group = groups.get(r.file_name, project)
 
@@ -690,39 +692,35 @@ def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0)
 
 
 # ------------------------------------------------------------------------------------------------ raw alignment
-#: Sensing options the raw form reads from the ``sensing`` config section (defaults here).
-SENSING_DEFAULTS: dict[str, Any] = {
-    "undistort_alpha": 0.0,  # 0: crop undistorted images to valid pixels only
-    "landmark_method": "lsq",  # lsq | ransac
-    "ransac_threshold": 2.0,  # thermal px
-    "auto_registration": False,  # ECC on edges for groups with neither a homography nor landmarks
-    "crop": True,  # crop to the common support
-    "min_box_size": 1.0,  # thermal px; smaller boxes after the transform are dropped (and counted)
-    "interpolation": "linear",
-    "antialias": True,
-}
-
-
 class RawAligner:
     """The sensing pipeline for one raw M3T dataset: undistort, register per inspection group, warp, crop.
 
+    Options come from the ``sensing`` config section (``harness.sensing.options.SensingOptions``); the files it
+    names (``sensing.undistort.rgb_camera``, ``sensing.registration.homographies``) take precedence over the
+    dataset's own (manifest keys ``rgb_camera``, ``homographies``).
+
     Homography convention: ``H`` maps *undistorted* wide-camera pixels (the calibration's camera matrix ``K``,
-    full frame) to thermal pixels, OpenCV pixel centres. With no calibration file the RGB is used as it is and
-    ``H`` maps raw RGB pixels. Landmarks are clicked on the raw (distorted) images and undistorted here.
+    full frame, OpenCV pixel centres) to thermal pixels; without a calibration, raw RGB pixels. Per inspection
+    group it comes from the homographies file, else from the group's landmarks (>= 4 pairs, least squares),
+    else ``sensing.registration.method``: ``auto`` (ECC on edges, per image, quality-checked), ``focal`` (the
+    optics prior of the two focal lengths) or ``file`` (the pair is skipped).
     """
 
     def __init__(self, source: M3TSource):
         from harness.sensing.calibration import CameraModel
+        from harness.sensing.options import SensingOptions
 
         self.src = source
         m = source.manifest
-        self.opts = {**SENSING_DEFAULTS, **{k: v for k, v in source.sensing.items() if k in SENSING_DEFAULTS}}
-        cam = m.optional("rgb_camera")
+        self.opts = SensingOptions.from_config(source.sensing)
+        und = self.opts.undistort
+        cam = Path(und.rgb_camera) if und.rgb_camera else m.optional("rgb_camera")
         self.cam = CameraModel.load(cam) if cam else None
-        tcam = m.optional("thermal_camera")
+        tcam = Path(und.thermal_camera) if und.thermal_camera else m.optional("thermal_camera")
         self.thermal_cam = CameraModel.load(tcam) if tcam else None
         self.homographies: dict[str, np.ndarray] = {}
-        hpath = m.optional("homographies")
+        hpath = Path(self.opts.registration.homographies) if self.opts.registration.homographies \
+            else m.optional("homographies")
         if hpath is not None:
             from harness.sensing.registration import load_homographies
 
@@ -751,7 +749,7 @@ class RawAligner:
                 self._cams[size] = (None, None)
             else:
                 cam = self.cam if self.cam.image_size == size else self.cam.scaled(size)
-                new_cam, _ = undistorted_camera(cam, float(self.opts["undistort_alpha"]))
+                new_cam, _ = undistorted_camera(cam, float(self.opts.undistort.alpha))
                 self._cams[size] = (cam, new_cam)
         return self._cams[size]
 
@@ -759,7 +757,7 @@ class RawAligner:
         """RGB (undistorted, cropped: ``new_cam``) -> thermal homography of ``group``, or ``SkipPair``."""
         key = (group, size)
         if key not in self._H:
-            self._H[key] = self._group_homography(group, size)
+            self._H[key] = self._group_homography(group, size, (temp.shape[1], temp.shape[0]))
         h = self._H[key]
         if isinstance(h, str):
             if h == "auto":
@@ -782,7 +780,22 @@ class RawAligner:
         h = h_new @ new_cam.K @ np.linalg.inv(cam.K)
         return h / h[2, 2]
 
-    def _group_homography(self, group: str, size: tuple[int, int]) -> np.ndarray | str:
+    def _landmark_points(self, idx: list[int], size: tuple[int, int]) -> np.ndarray:
+        """The landmarks' RGB points in the frame of ``undistort_image``'s output."""
+        assert self.landmarks is not None
+        pts = self.landmarks.rgb[idx]
+        cam, new_cam = self.cameras(size)
+        if cam is None:
+            return pts
+        if self.src.manifest.landmarks_rgb == "raw":
+            from harness.sensing.calibration import undistort_points
+
+            return undistort_points(pts, cam, new_cam)
+        from harness.sensing.registration import apply_homography
+
+        return apply_homography(new_cam.K @ np.linalg.inv(cam.K), pts)
+
+    def _group_homography(self, group: str, size: tuple[int, int], tsize: tuple[int, int]) -> np.ndarray | str:
         from harness.sensing.registration import homography_from_landmarks, reprojection_errors
 
         if group in self.homographies:
@@ -791,18 +804,11 @@ class RawAligner:
             return self._to_new(self.homographies[group], size)
         if self.landmarks is not None:
             lm = self.landmarks
-            idx = [i for i, (scene, g) in enumerate(zip(lm.scene, lm.group))
-                   if self.group_of.get(scene, g) == group]
+            idx = [i for i, (scene, g) in enumerate(zip(lm.scene, lm.group)) if self.group_of.get(scene, g) == group]
             if len(idx) >= 4:
-                cam, new_cam = self.cameras(size)
-                rgb_pts = lm.rgb[idx]
-                if cam is not None:
-                    from harness.sensing.calibration import undistort_points
-
-                    rgb_pts = undistort_points(rgb_pts, cam, new_cam)
+                rgb_pts = self._landmark_points(idx, size)
                 try:
-                    h = homography_from_landmarks(rgb_pts, lm.thermal[idx], method=str(self.opts["landmark_method"]),
-                                                  ransac_threshold=float(self.opts["ransac_threshold"]))
+                    h = homography_from_landmarks(rgb_pts, lm.thermal[idx], method="lsq")
                 except HarnessError as exc:
                     return f"registration failed: inspection group {group}: {exc}"
                 err = reprojection_errors(h, rgb_pts, lm.thermal[idx])  # type: ignore[arg-type]
@@ -810,20 +816,35 @@ class RawAligner:
                                                 "rms_px": round(float(np.sqrt(np.mean(err ** 2))), 4)}
                 self.fitted[group] = self._to_k(h, size)  # type: ignore[arg-type]
                 return h  # type: ignore[return-value]
-        if self.opts["auto_registration"]:
+        method = self.opts.registration.method
+        if method == "auto":
             self.src.registration[group] = {"source": "auto (ECC per image)"}
             return "auto"
-        return (f"no homography for inspection group {group}: add it to registration/homographies.yaml, give "
-                "landmarks (registration/landmarks.json), or set sensing.auto_registration=true")
+        if method == "focal":
+            h = self._prior(size, tsize)
+            self.src.registration[group] = {"source": "focal-length prior"}
+            self.fitted[group] = self._to_k(h, size)
+            return h
+        return (f"no homography for inspection group {group}: add it to the homographies file "
+                "(registration/homographies.yaml), give landmarks (registration/landmarks.json), or set "
+                "sensing.registration.method to auto or focal")
+
+    def _prior(self, size: tuple[int, int], tsize: tuple[int, int]) -> np.ndarray:
+        """Centres aligned, scale = thermal / wide focal length (M3T: 40 mm and 24 mm 35-mm equivalents)."""
+        from harness.sensing.registration import focal_length_px, homography_from_focal_lengths
+
+        new_cam = self.cameras(size)[1]
+        f_rgb = new_cam.fx if new_cam is not None else focal_length_px(focal_35mm=24.0, image_size=size)
+        return homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=40.0, image_size=tsize), size, tsize)
 
     def _auto(self, group: str, rgb: np.ndarray, temp: np.ndarray) -> np.ndarray:
-        from harness.sensing.registration import estimate_homography_auto, focal_length_px, homography_from_focal_lengths
+        from harness.sensing.registration import estimate_homography_auto
 
-        size = (rgb.shape[1], rgb.shape[0])
-        f_rgb = self.cameras(size)[1].fx if self.cam is not None else focal_length_px(focal_35mm=24.0, image_size=size)
-        tsize = (temp.shape[1], temp.shape[0])
-        init = homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=40.0, image_size=tsize), size, tsize)
-        res = estimate_homography_auto(rgb, temp, init=init)
+        r = self.opts.registration
+        size, tsize = (rgb.shape[1], rgb.shape[0]), (temp.shape[1], temp.shape[0])
+        res = estimate_homography_auto(rgb, temp, init=self._prior(size, tsize), search_scale=r.search_scale,
+                                       search_rotation_deg=r.search_rotation_deg, min_correlation=r.min_correlation,
+                                       max_corner_shift=r.max_corner_shift)
         if not res.ok:
             raise SkipPair(f"registration failed: automatic registration rejected ({res.reason})")
         return res.H
@@ -873,19 +894,20 @@ class RawAligner:
         boxes, labels, ids = src._boxes_in(rec, rw, rh, report)
         if self.thermal_cam is not None:
             tcam = self.thermal_cam if self.thermal_cam.image_size == (tw, th) else self.thermal_cam.scaled((tw, th))
-            temp, _, _ = undistort_image(temp, tcam, float(self.opts["undistort_alpha"]))
-            ir8, _, _ = undistort_image(ir8, tcam, float(self.opts["undistort_alpha"]))
+            temp, _, _ = undistort_image(temp, tcam, float(self.opts.undistort.alpha))
+            ir8, _, _ = undistort_image(ir8, tcam, float(self.opts.undistort.alpha))
         cam, new_cam = self.cameras((rw, rh))
         if cam is not None:
-            rgb_u, _, _ = undistort_image(rgb, cam, float(self.opts["undistort_alpha"]))
+            rgb_u, _, _ = undistort_image(rgb, cam, float(self.opts.undistort.alpha))
             boxes_u = undistort_boxes(boxes, cam, new_cam)
         else:
             rgb_u, boxes_u = rgb, boxes
         h = self.homography(rec.group, (rw, rh), rgb_u, temp)
         try:
-            pair = align_pair(rgb_u, temp, ir8, boxes_u, labels, h, boxes_frame="rgb", crop=bool(self.opts["crop"]),
-                              min_box_size=float(self.opts["min_box_size"]),
-                              interpolation=str(self.opts["interpolation"]), antialias=bool(self.opts["antialias"]))
+            w = self.opts.warp
+            pair = align_pair(rgb_u, temp, ir8, boxes_u, labels, h, boxes_frame="rgb", crop=bool(w.crop),
+                              min_box_size=float(w.min_box_size), interpolation=str(w.interpolation),
+                              antialias=bool(w.antialias))
         except HarnessError as exc:
             raise SkipPair(f"alignment failed: {exc}") from None
         self.dropped += pair.dropped
@@ -899,7 +921,7 @@ class RawAligner:
     def finish(self, report: PrepareReport) -> None:
         if self.dropped:
             report.note(f"{self.dropped} RGB-frame box(es) fell outside the thermal frame (or below "
-                        f"{self.opts['min_box_size']} px) after registration and were left out")
+                        f"{self.opts.warp.min_box_size} px) after registration and were left out")
         for group, how in sorted(self.src.registration.items()):
             report.note(f"registration of {group}: " + ", ".join(f"{k} {v}" for k, v in how.items()))
 

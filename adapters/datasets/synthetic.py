@@ -33,8 +33,8 @@ with ``px_per_m = f_T / Z``):
 * **Annotations** are what an annotator drawing on the raw RGB image would produce: the envelope of each object's
   outline projected into the distorted RGB frame, rounded to 0.01 px. The true thermal-frame box of each object is
   its extent on the canvas (snapped to the canvas grid, so it is exact).
-* **Landmarks** are window-frame corners (or wall points) clicked in both images with a click noise of
-  0.8 RGB px and 0.35 thermal px (1 sigma).
+* **Landmarks** are corners of windows, AC units and vents, spread over the frame, clicked on the undistorted
+  wide image and on the thermal image with a click noise of 0.8 RGB px and 0.35 thermal px (1 sigma per axis).
 
 Everything is deterministic in ``seed``: each image draws from its own ``SeedSequence((seed, project, index))``.
 """
@@ -1001,7 +1001,7 @@ def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generato
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(cand - cand[nxt], axis=1))
     thermal = cand[chosen]
-    rgb = distort_points(apply_homography(np.linalg.inv(session.homography), thermal), rig.k_rgb, rig.dist_rgb)
+    rgb = apply_homography(np.linalg.inv(session.homography), thermal)  # undistorted wide image (camera K)
     thermal_click = thermal + rng.normal(0, 0.35, thermal.shape)
     rgb_click = rgb + rng.normal(0, 0.8, rgb.shape)
     return [{"rgb": [round(float(a), 2), round(float(b), 2)], "thermal": [round(float(c), 2), round(float(d), 2)]}
@@ -1166,9 +1166,9 @@ def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, pr
                {"info": {"description": f"m3t-synth {prof.name}, seed {seed}: annotations in the RGB (wide) frame",
                          "frame": "rgb"}, "images": images, "annotations": anns, "categories": categories}, indent=None)
     write_json(root / "registration" / "landmarks.json", {
-        "description": "landmark pairs clicked on the raw (distorted) wide-camera image and on the thermal image; "
-                       "scene = the RGB file, group = its inspection group",
-        "rgb_frame": "distorted", "convention": "OpenCV pixel coordinates (pixel centres at integers)",
+        "description": "landmark pairs clicked on the undistorted wide-camera image (calibration K, full frame) "
+                       "and on the thermal image; scene = the RGB file, group = its inspection group",
+        "rgb_frame": "undistorted", "convention": "OpenCV pixel coordinates (pixel centres at integers)",
         "landmarks": landmarks})
     _write_camera(root / "calibration" / "wide_camera.yaml", rig)
     gt = root / "ground_truth"
@@ -1236,7 +1236,7 @@ thermal_suffix: _T
 thermal_size: [{tw}, {th}]
 rgb_camera: calibration/wide_camera.yaml
 landmarks: registration/landmarks.json
-session_gap_min: 30
+landmarks_rgb: undistorted
 """
 
 _README = """\
