@@ -145,6 +145,20 @@ def test_dataset_folds_are_the_seeds_project_groups(tiny):
     assert folds["P1"] == (("P2", "P3", "P4", "P5"), ("P1",))
 
 
+def test_displacement_delamination_response_falls_and_seepage_does_not(tiny_source, tmp_path):
+    """The seed's displacement study on the synthetic set: the compact delamination patch loses its C2 response
+    when thermal and boxes are misregistered by a few pixels; the diffuse water seepage does not."""
+    from harness.sensing.analyses import displacement_study
+
+    ds = _prepare(tiny_source, tmp_path / "cache")
+    r = displacement_study(iter(ds), ds.categories, [2, 5, 10])
+    delam, seep = r["classes"]["delamination"], r["classes"]["water_seepage"]
+    assert delam["boxes"] >= 5 and seep["boxes"] >= 3
+    assert delam["R"][2] < 85 and delam["R"][3] < 75  # 5 px and 10 px, in % of the aligned response
+    assert delam["R"][1] > delam["R"][2] > delam["R"][3]
+    assert min(seep["R"][1:]) >= 95
+
+
 # ------------------------------------------------------------------------------------------------ aligned form
 def _export_aligned(prepared, out: Path) -> None:
     """Write prepared samples in the aligned M3T layout (RGB PNG, centi-Kelvin PNG, COCO in the thermal frame)."""
