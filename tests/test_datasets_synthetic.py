@@ -116,7 +116,8 @@ def _digest(root: Path) -> str:
 
 @pytest.mark.slow
 def test_generation_is_deterministic_in_the_seed(tiny_source, tmp_path):
-    again = S.generate(tmp_path / "again", profile="tiny", seed=0, progress=False)
+    """Same seed, same bytes, whether rendered in this process (the fixture) or by two worker processes."""
+    again = S.generate(tmp_path / "again", profile="tiny", seed=0, progress=False, workers=2)
     other = S.generate(tmp_path / "other", profile="tiny", seed=1, progress=False)
     assert _digest(again.root) == _digest(tiny_source)
     assert _digest(other.root) != _digest(tiny_source)

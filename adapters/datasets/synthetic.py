@@ -374,6 +374,31 @@ def fbm(shape: tuple[int, int], cell_px: float, rng: np.random.Generator, octave
     return out / math.sqrt(total)
 
 
+def smooth(a: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur; for wide kernels on a reduced copy (the field is smooth at that scale anyway)."""
+    import cv2
+
+    if sigma <= 4:
+        return cv2.GaussianBlur(a, (0, 0), sigma)
+    f = int(sigma // 2)
+    h, w = a.shape[:2]
+    small = cv2.resize(a, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), sigma / f)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+_R2: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _radius2(shape: tuple[int, int]) -> np.ndarray:
+    """Squared distance from the image centre, 0 at the centre and 1 in the corners (cached per size)."""
+    if shape not in _R2:
+        h, w = shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        _R2[shape] = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    return _R2[shape]
+
+
 def smoothstep(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)
@@ -425,19 +450,23 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
     ym = (c.v(np.arange(h)) / ppm + rng.uniform(0, 50))[:, None].astype(np.float32)
     base = np.array(look.wall_rgb, np.float32)
     cell = lambda m: m * ppm * c.k  # noqa: E731  metres -> canvas pixels
-    albedo = np.broadcast_to(base, (h, w, 3)).copy()
+    albedo = layers.albedo
+    if look.material != "brick":
+        albedo[:] = base
     if look.material == "brick":
         bw, bh, joint = 0.225, 0.075, 0.010
-        row = np.floor(ym / bh)
-        xs = xm + (row % 2) * bw / 2
-        col = np.floor(xs / bw)
-        dx = np.minimum(xs / bw - col, 1 - (xs / bw - col)) * bw
-        dy = np.broadcast_to(np.minimum(ym / bh - row, 1 - (ym / bh - row)) * bh, dx.shape)
-        mortar = smoothstep((joint / 2 - np.minimum(dx, dy)) / px_m + 0.5)
-        table = rng.normal(0.0, 1.0, size=(97, 89, 3)).astype(np.float32)
-        jitter = table[(row % 97).astype(int), (col % 89).astype(int)]
-        brick = base * (1 + 0.10 * jitter[..., :1] + 0.03 * jitter)
-        albedo = brick * (1 - mortar[..., None]) + np.array([0.74, 0.71, 0.66], np.float32) * mortar[..., None]
+        row = np.floor(ym / bh)  # (h, 1); odd courses are offset by half a brick
+        odd = (row % 2) == 1
+        xe, xo = xm / bw, (xm + bw / 2) / bw  # (1, w) in bricks, even / odd courses
+        ce, co = np.floor(xe), np.floor(xo)
+        dx = np.where(odd, np.minimum(xo - co, 1 - (xo - co)), np.minimum(xe - ce, 1 - (xe - ce))) * bw
+        fy = ym / bh - row
+        dy = np.minimum(fy, 1 - fy) * bh
+        mortar = smoothstep((joint / 2 - np.minimum(dx, dy)) / px_m + 0.5)[..., None]
+        table = rng.normal(0.0, 1.0, size=(97 * 89, 3)).astype(np.float32)
+        brick_col = base * (1 + 0.10 * table[:, :1] + 0.03 * table)
+        idx = (row.astype(np.int64) % 97) * 89 + np.where(odd, co, ce).astype(np.int64) % 89
+        albedo = brick_col[idx] * (1 - mortar) + np.array([0.74, 0.71, 0.66], np.float32) * mortar
         albedo *= (1 + 0.04 * fbm((h, w), cell(0.05), rng))[..., None]
     elif look.material == "render":
         albedo *= (1 + 0.035 * fbm((h, w), cell(0.6), rng) + 0.025 * value_noise((h, w), cell(0.01), rng))[..., None]
@@ -470,7 +499,9 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
     # soft light gradient (sun from one side)
     gx, gy = rng.uniform(-0.06, 0.06, size=2)
     ramp = 1 + gx * (c.u(np.arange(w))[None, :] / c.thermal_size[0] - 0.5) + gy * (c.v(np.arange(h))[:, None] / c.thermal_size[1] - 0.5)
-    layers.albedo[:] = np.clip(albedo * ramp[..., None], 0.0, 1.0)
+    albedo *= ramp[..., None].astype(np.float32)
+    np.clip(albedo, 0.0, 1.0, out=albedo)
+    layers.albedo = albedo
 
 
 def window_grid(layers: Layers, look: Look, rng: np.random.Generator) -> list[SceneObject]:
@@ -881,39 +912,44 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
         kept.append(obj)
     objects = windows + kept
 
-    # --- thermal: wall physics from absorptivity, overlays, glass; block-average to the sensor grid
-    absorb = 1 - 0.7 * luminance(layers.albedo)
-    absorb = cv2.GaussianBlur(absorb, (0, 0), max(0.5, 0.08 * ppm * canvas.k))
+    # --- thermal: wall physics from absorptivity, overlays, glass, over the footprint; block-average to the sensor
+    ys, xs = canvas.thermal_slice()
+    sigma = max(0.5, 0.08 * ppm * canvas.k)  # lateral conduction, 8 cm
+    pad = int(3 * sigma) + 2
+    region = (slice(max(ys.start - pad, 0), min(ys.stop + pad, canvas.height)),
+              slice(max(xs.start - pad, 0), min(xs.stop + pad, canvas.width)))
+    absorb = smooth(1 - 0.7 * luminance(layers.albedo[region]), sigma)
     a_wall = 1 - 0.7 * float(luminance(np.array(look.wall_rgb)))
-    rows = canvas.v(np.arange(canvas.height))[:, None]
+    rows = canvas.v(np.arange(region[0].start, region[0].stop))[:, None].astype(np.float32)
     temp = (look.ambient_c + look.sun_load_c * (1 + 0.4 * (absorb - a_wall) / a_wall)
             - 0.08 * (rows / ppm) + 0.25 * fbm(absorb.shape, 1.2 * ppm * canvas.k, rng, octaves=2)
-            + layers.dtemp)
+            + layers.dtemp[region])
     if look.slab_bridge_c > 0 and windows:  # floor slabs between storeys
-        slab_v = np.array(sorted({round(w.attrs["storey_top"], 3) for w in windows}))
+        slab_v = np.array(sorted({round(w.attrs["storey_top"], 3) for w in windows}), np.float32)
         d = np.min(np.abs(rows - slab_v[None, :]), axis=1, keepdims=True)
         temp += look.slab_bridge_c * np.exp(-0.5 * (d / (0.12 * ppm)) ** 2)
-    temp = np.where(np.isnan(layers.glass), temp, layers.glass).astype(np.float32)
-    ys, xs = canvas.thermal_slice()
+    glass = layers.glass[region]
+    temp = np.where(np.isnan(glass), temp, glass).astype(np.float32)
     tw, th = canvas.thermal_size
-    true_t = cv2.resize(temp[ys, xs], (tw, th), interpolation=cv2.INTER_AREA)
+    inner = (slice(ys.start - region[0].start, ys.stop - region[0].start),
+             slice(xs.start - region[1].start, xs.stop - region[1].start))
+    true_t = cv2.resize(temp[inner], (tw, th), interpolation=cv2.INTER_AREA)
     meas = cv2.GaussianBlur(true_t, (0, 0), 0.55)
-    yy, xx = np.mgrid[0:th, 0:tw].astype(np.float32)
-    r2 = ((xx - (tw - 1) / 2) ** 2 + (yy - (th - 1) / 2) ** 2) / (((tw - 1) / 2) ** 2 + ((th - 1) / 2) ** 2)
     vig = look.vignette_c * rng.uniform(0.8, 1.2)
-    meas = meas + drift_c + vig * r2 + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32) \
-        + rng.normal(0, 0.05, size=(th, tw)).astype(np.float32)
+    meas = meas + drift_c + vig * _radius2((th, tw)) + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32) \
+        + 0.05 * rng.standard_normal((th, tw), dtype=np.float32)
 
     # --- RGB: sample the canvas through the rig geometry and lens distortion, then the camera
     img = cv2.remap(layers.albedo, maps[0], maps[1], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     rh, rw = img.shape[:2]
-    yy, xx = np.mgrid[0:rh, 0:rw].astype(np.float32)
-    rr = ((xx - rw / 2) ** 2 + (yy - rh / 2) ** 2) / ((rw / 2) ** 2 + (rh / 2) ** 2)
-    gain = rng.uniform(0.88, 1.1) * (1 - 0.22 * rr)
+    gain = np.float32(rng.uniform(0.88, 1.1)) * (1 - 0.22 * _radius2((rh, rw)))
     balance = np.array([rng.uniform(0.95, 1.05), 1.0, rng.uniform(0.93, 1.06)], np.float32)
-    img = img * gain[..., None] * balance + rng.normal(0, 0.012, size=img.shape).astype(np.float32)
+    img *= gain[..., None]
+    img *= balance
+    img += 0.012 * rng.standard_normal(img.shape, dtype=np.float32)
     img = cv2.GaussianBlur(img, (0, 0), 0.5)
-    rgb = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    img *= 255.0
+    rgb = np.clip(np.rint(img), 0, 255).astype(np.uint8)
     return Frame(rgb, meas.astype(np.float32), true_t.astype(np.float32), objects, float(drift_c), float(vig))
 
 
@@ -1009,10 +1045,13 @@ def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generato
 
 
 def generate(out: str | Path | None = None, profile: str = "small", seed: int = 0, thermal_format: str = "rjpeg",
-             force: bool = False, progress: bool = True) -> SynthSummary:
-    """Write the synthetic M3T-like dataset to ``out`` (atomically: a temporary folder renamed into place)."""
+             force: bool = False, progress: bool = True, workers: int | None = None) -> SynthSummary:
+    """Write the synthetic M3T-like dataset to ``out`` (atomically: a temporary folder renamed into place).
+
+    ``workers``: processes rendering in parallel (default: up to 4, at most the CPU count; 1 renders in this
+    process). The output does not depend on it: every image draws from its own seed.
+    """
     from harness.io import atomic_write_json, atomic_write_text
-    from harness.sensing.radiometry import write_rjpeg, write_thermal
 
     prof = get_profile(profile)
     if thermal_format not in THERMAL_FORMATS:
@@ -1020,11 +1059,13 @@ def generate(out: str | Path | None = None, profile: str = "small", seed: int = 
     out = Path(out) if out is not None else default_root(profile, seed, thermal_format)
     if out.exists() and any(out.iterdir()) and not force:
         raise DataError(f"{out} already exists and is not empty; pass --force to replace it, or choose --out")
+    if workers is None:
+        workers = 1 if prof.total <= 16 else min(4, os.cpu_count() or 1)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     t_start = time.perf_counter()
     try:
-        summary = _generate_into(tmp, prof, seed, thermal_format, progress, write_rjpeg, write_thermal,
+        summary = _generate_into(tmp, prof, seed, thermal_format, progress, max(1, int(workers)),
                                  atomic_write_json, atomic_write_text)
         if out.exists():
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
@@ -1042,124 +1083,187 @@ def generate(out: str | Path | None = None, profile: str = "small", seed: int = 
     return summary
 
 
-def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, progress: bool,
-                   write_rjpeg: Callable[..., Any], write_thermal: Callable[..., Any],
+@dataclass(frozen=True)
+class _Chunk:
+    """Consecutive images of one inspection group, rendered and written by one worker."""
+
+    root: str
+    profile: str
+    seed: int
+    thermal_format: str
+    project: str
+    session: int
+    items: tuple[tuple[int, int], ...]  # (index in the session, index in the project)
+
+
+def _plan(prof: Profile, root: Path, seed: int, thermal_format: str, chunk: int = 8) -> list[_Chunk]:
+    out = []
+    for p, (project, n_img) in enumerate(zip(PROJECTS, prof.images)):
+        n_sess = prof.sessions[p]
+        per = [n_img // n_sess + (1 if s < n_img % n_sess else 0) for s in range(n_sess)]
+        k = 0
+        for s, count in enumerate(per):
+            items = [(i, k + i) for i in range(count)]
+            k += count
+            for c in range(0, count, chunk):
+                out.append(_Chunk(str(root), prof.name, seed, thermal_format, project, s, tuple(items[c:c + chunk])))
+    return out
+
+
+def _session(rig: Rig, seed: int, project: str, s: int) -> tuple[Session, tuple[int, int]]:
+    """The inspection group's geometry and the sawtooth of its sensor drift, from the group's own seed."""
+    p = PROJECTS.index(project)
+    look = LOOKS[project]
+    srng = np.random.default_rng(np.random.SeedSequence((seed, p, 1000 + s)))
+    start = datetime.fromisoformat(look.date) + timedelta(days=int(s // 2), hours=3 * (s % 2))
+    session = make_session(rig, project, s, start, look, srng)
+    return session, (int(srng.integers(6, 13)), int(srng.integers(0, 12)))
+
+
+_WORKER: dict[Any, Any] = {}
+
+
+def _render_chunk(task: _Chunk) -> list[dict[str, Any]]:
+    """Render and write the chunk's images; return what the annotation files need, per image."""
+    from harness.sensing.radiometry import write_rjpeg, write_thermal
+
+    prof = PROFILES[task.profile]
+    if ("rig", task.profile) not in _WORKER:
+        rig = Rig.for_profile(prof)
+        w, h = prof.rgb_size
+        grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
+        _WORKER.clear()
+        _WORKER[("rig", task.profile)] = (rig, undistort_points_dense(grid, rig.k_rgb, rig.dist_rgb))
+    rig, undist = _WORKER[("rig", task.profile)]
+    session, saw = _session(rig, task.seed, task.project, task.session)
+    canvas = canvas_for_session(rig, session)
+    maps = rgb_render_maps(rig, session, canvas, undist)
+    look = LOOKS[task.project]
+    p = PROJECTS.index(task.project)
+    root = Path(task.root)
+    folder = root / "images" / task.project
+    folder.mkdir(parents=True, exist_ok=True)
+    w, h = prof.rgb_size
+    hinv = np.linalg.inv(session.homography)
+    out = []
+    for i, k in task.items:
+        rng = np.random.default_rng(np.random.SeedSequence((task.seed, p, k)))
+        frame = render_frame(rig, session, canvas, maps, look, rng, _sawtooth(i, saw[0], saw[1], *look.drift_c))
+        when = session.start + timedelta(seconds=float(i * 5 + rng.integers(0, 3)))
+        stem = f"DJI_{when:%Y%m%d%H%M%S}_{k + 1:04d}"
+        (folder / f"{stem}_W.JPG").write_bytes(_rgb_jpeg_bytes(frame.rgb, when, rig, prof.jpeg_quality))
+        params = {"ambient": look.ambient_c, "distance": round(session.distance_m, 2), "emissivity": 0.95,
+                  "humidity": 50.0, "reflected": look.ambient_c}
+        if task.thermal_format == "rjpeg":
+            thermal_rel = f"{task.project}/{stem}_T.JPG"
+            write_rjpeg(folder / f"{stem}_T.JPG", frame.temperature, params=params, exif={"DateTimeOriginal": when})
+        else:
+            thermal_rel = f"{task.project}/{stem}_T.png"
+            write_thermal(folder / f"{stem}_T.png", frame.temperature, unit="centikelvin", params=params,
+                          extra={"captured": when.isoformat(sep=" ")})
+        write_thermal(root / "ground_truth" / "temperature" / task.project / f"{stem}.png", frame.true_temperature,
+                      unit="centikelvin")
+        objects = []
+        for obj in frame.objects:
+            rgb_box = project_box_to_rgb(obj.box, hinv, rig)
+            full = (rgb_box[2] - rgb_box[0]) * (rgb_box[3] - rgb_box[1])
+            clip = np.clip(rgb_box, 0, [w, h, w, h])
+            cw, ch = clip[2] - clip[0], clip[3] - clip[1]
+            if cw < 2 or ch < 2 or cw * ch < 0.3 * full:
+                continue  # not (enough) in the RGB picture: an annotator would not box it
+            objects.append({"category": obj.category, "rgb_box": [float(b) for b in clip],
+                            "box": [float(b) for b in obj.box],
+                            "attrs": {a: v for a, v in obj.attrs.items() if a != "storey_top"}})
+        out.append({"k": k, "project": task.project, "group": session.name, "stem": stem, "when": when,
+                    "rgb_rel": f"{task.project}/{stem}_W.JPG", "thermal_rel": thermal_rel, "objects": objects,
+                    "drift_c": frame.drift_c, "vignette_c": frame.vignette_c,
+                    "landmarks": _landmarks(frame, session, rig, rng, limit=12)})
+    return out
+
+
+def _run_chunks(chunks: list[_Chunk], workers: int, progress: bool, label: str) -> list[list[dict[str, Any]]]:
+    results: list[list[dict[str, Any]] | None] = [None] * len(chunks)
+    bar = _progress(progress, sum(len(c.items) for c in chunks), label)
+    try:
+        if workers <= 1 or len(chunks) <= 1:
+            for n, c in enumerate(chunks):
+                results[n] = _render_chunk(c)
+                bar.advance(len(c.items))
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=min(workers, len(chunks)), mp_context=ctx) as pool:
+                futures = {pool.submit(_render_chunk, c): n for n, c in enumerate(chunks)}
+                for fut in as_completed(futures):
+                    results[futures[fut]] = fut.result()
+                    bar.advance(len(chunks[futures[fut]].items))
+    finally:
+        bar.close()
+    return [r for r in results if r is not None]
+
+
+def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, progress: bool, workers: int,
                    write_json: Callable[..., Any], write_text: Callable[..., Any]) -> SynthSummary:
     from adapters.datasets.m3t import M3T_CATEGORIES
+    from harness.sensing.registration import HomographyEntry, save_homographies
 
     rig = Rig.for_profile(prof)
     w, h = prof.rgb_size
-    grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
-    undist = undistort_points_dense(grid, rig.k_rgb, rig.dist_rgb)
+    tw, th = prof.thermal_size
+    chunks = _plan(prof, root, seed, thermal_format)
+    rendered = _run_chunks(chunks, workers, progress, f"generating m3t-synth ({prof.name})")
     cat_id = {n: i + 1 for i, n in enumerate(M3T_CATEGORIES)}
-    images, anns, gt_images, gt_anns, frames_meta = [], [], [], [], []
-    landmarks: list[dict[str, Any]] = []
+    images, anns, gt_images, gt_anns, frames_meta, landmarks = [], [], [], [], [], []
     lm_count: dict[str, int] = {}
     sessions_out: dict[str, Any] = {}
     true_h: dict[str, np.ndarray] = {}
     ann_counts = {c: 0 for c in M3T_CATEGORIES}
     th_counts = {c: 0 for c in M3T_CATEGORIES}
     image_id, ann_id = 0, 0
-    tw, th = prof.thermal_size
-
-    plan: list[tuple[str, int, int, int]] = []  # project, session index, index in session, index in project
-    for p, (project, n_img) in enumerate(zip(PROJECTS, prof.images)):
-        n_sess = prof.sessions[p]
-        per = [n_img // n_sess + (1 if s < n_img % n_sess else 0) for s in range(n_sess)]
-        k = 0
-        for s, count in enumerate(per):
-            for i in range(count):
-                plan.append((project, s, i, k))
-                k += 1
-
-    bar = _progress(progress, len(plan), f"generating m3t-synth ({prof.name})")
-    session: Session | None = None
-    canvas: Canvas | None = None
-    maps: tuple[np.ndarray, np.ndarray] | None = None
-    saw = (8, 0)
-    try:
-        for project, s, i, k in plan:
-            p = PROJECTS.index(project)
-            look = LOOKS[project]
-            if session is None or session.project != project or i == 0:
-                srng = np.random.default_rng(np.random.SeedSequence((seed, p, 1000 + s)))
-                start = datetime.fromisoformat(look.date) + timedelta(days=int(s // 2), hours=3 * (s % 2))
-                session = make_session(rig, project, s, start, look, srng)
-                canvas = canvas_for_session(rig, session)
-                maps = rgb_render_maps(rig, session, canvas, undist)
-                saw = (int(srng.integers(6, 13)), int(srng.integers(0, 12)))
-                sessions_out[session.name] = {"project": project, "distance_m": round(session.distance_m, 3),
-                                              "start": session.start.isoformat(sep=" "),
-                                              "normal": [round(float(x), 6) for x in session.normal]}
-                lm_count[session.name] = 0
-                true_h[session.name] = session.homography
-            assert canvas is not None and maps is not None
-            rng = np.random.default_rng(np.random.SeedSequence((seed, p, k)))
-            drift = _sawtooth(i, saw[0], saw[1], *look.drift_c)
-            frame = render_frame(rig, session, canvas, maps, look, rng, drift)
-            when = session.start + timedelta(seconds=float(i * 5 + rng.integers(0, 3)))
-            stem = f"DJI_{when:%Y%m%d%H%M%S}_{k + 1:04d}"
-            rgb_rel = f"{project}/{stem}_W.JPG"
-            folder = root / "images" / project
-            folder.mkdir(parents=True, exist_ok=True)
-            (folder / f"{stem}_W.JPG").write_bytes(_rgb_jpeg_bytes(frame.rgb, when, rig, prof.jpeg_quality))
-            params = {"ambient": look.ambient_c, "distance": round(session.distance_m, 2), "emissivity": 0.95,
-                      "humidity": 50.0, "reflected": look.ambient_c}
-            if thermal_format == "rjpeg":
-                thermal_rel = f"{project}/{stem}_T.JPG"
-                write_rjpeg(folder / f"{stem}_T.JPG", frame.temperature, params=params,
-                            exif={"DateTimeOriginal": when})
-            else:
-                thermal_rel = f"{project}/{stem}_T.png"
-                write_thermal(folder / f"{stem}_T.png", frame.temperature, unit="centikelvin", params=params,
-                              extra={"captured": when.isoformat(sep=" ")})
-            write_thermal(root / "ground_truth" / "temperature" / project / f"{stem}.png", frame.true_temperature,
-                          unit="centikelvin")
+    for chunk, results in zip(chunks, rendered):
+        if chunk.items[0][0] == 0:
+            session, _ = _session(rig, seed, chunk.project, chunk.session)
+            sessions_out[session.name] = {"project": chunk.project, "distance_m": round(session.distance_m, 3),
+                                          "start": session.start.isoformat(sep=" "),
+                                          "normal": [round(float(x), 6) for x in session.normal]}
+            true_h[session.name] = session.homography
+            lm_count[session.name] = 0
+        for r in results:
             image_id += 1
-            images.append({"id": image_id, "file_name": rgb_rel, "width": w, "height": h,
-                           "date_captured": when.isoformat(sep=" ")})
-            gt_images.append({"id": image_id, "file_name": thermal_rel, "rgb_file_name": rgb_rel, "width": tw,
-                              "height": th, "group": session.name, "project": project})
-            hinv = np.linalg.inv(session.homography)
+            when = r["when"].isoformat(sep=" ")
+            images.append({"id": image_id, "file_name": r["rgb_rel"], "width": w, "height": h, "date_captured": when})
+            gt_images.append({"id": image_id, "file_name": r["thermal_rel"], "rgb_file_name": r["rgb_rel"],
+                              "width": tw, "height": th, "group": r["group"], "project": r["project"]})
             objects_meta = []
-            for obj in frame.objects:
-                rgb_box = project_box_to_rgb(obj.box, hinv, rig)
-                full = (rgb_box[2] - rgb_box[0]) * (rgb_box[3] - rgb_box[1])
-                clip = np.clip(rgb_box, 0, [w, h, w, h])
-                cw, ch = clip[2] - clip[0], clip[3] - clip[1]
-                if cw < 2 or ch < 2 or cw * ch < 0.3 * full:
-                    continue  # not (enough) in the RGB picture: an annotator would not box it
+            for obj in r["objects"]:
                 ann_id += 1
-                bbox = _round_box(clip)
-                anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[obj.category], "bbox": bbox,
+                cat = obj["category"]
+                bbox = _round_box(obj["rgb_box"])
+                anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[cat], "bbox": bbox,
                              "area": round(bbox[2] * bbox[3], 2), "iscrowd": 0})
-                ann_counts[obj.category] += 1
-                tbox = np.clip(obj.box, 0, [tw, th, tw, th])
+                ann_counts[cat] += 1
+                box = np.array(obj["box"])
+                tbox = np.clip(box, 0, [tw, th, tw, th])
                 tarea = max(tbox[2] - tbox[0], 0) * max(tbox[3] - tbox[1], 0)
-                area = (obj.box[2] - obj.box[0]) * (obj.box[3] - obj.box[1])
-                record = {"id": ann_id, "category": obj.category, "thermal_box": [round(float(b), 4) for b in obj.box],
-                          **{k2: v for k2, v in obj.attrs.items() if k2 != "storey_top"}}
-                objects_meta.append(record)
+                area = (box[2] - box[0]) * (box[3] - box[1])
+                objects_meta.append({"id": ann_id, "category": cat, "thermal_box": [round(float(b), 4) for b in box],
+                                     **obj["attrs"]})
                 if tarea > 0:
                     tb = [float(b) for b in tbox]
-                    gt_anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[obj.category],
-                                    "bbox": [tb[0], tb[1], tb[2] - tb[0], tb[3] - tb[1]], "area": tarea, "iscrowd": 0,
-                                    "unclipped_box": [float(b) for b in obj.box],
+                    gt_anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[cat],
+                                    "bbox": [tb[0], tb[1], tb[2] - tb[0], tb[3] - tb[1]], "area": float(tarea),
+                                    "iscrowd": 0, "unclipped_box": obj["box"],
                                     "visible_fraction": round(float(tarea / area), 4)})
-                    th_counts[obj.category] += 1
-            frames_meta.append({"image_id": image_id, "file_name": rgb_rel, "thermal_file": thermal_rel,
-                                "group": session.name, "captured": when.isoformat(sep=" "),
-                                "drift_c": round(frame.drift_c, 4), "vignette_c": round(frame.vignette_c, 4),
-                                "objects": objects_meta})
-            if lm_count[session.name] < 24:
-                for lm in _landmarks(frame, session, rig, rng, limit=min(12, 24 - lm_count[session.name])):
-                    landmarks.append({"scene": rgb_rel, "group": session.name, **lm})
-                    lm_count[session.name] += 1
-            bar.advance()
-    finally:
-        bar.close()
-
-    from harness.sensing.registration import HomographyEntry, save_homographies
+                    th_counts[cat] += 1
+            frames_meta.append({"image_id": image_id, "file_name": r["rgb_rel"], "thermal_file": r["thermal_rel"],
+                                "group": r["group"], "captured": when, "drift_c": round(r["drift_c"], 4),
+                                "vignette_c": round(r["vignette_c"], 4), "objects": objects_meta})
+            for lm in r["landmarks"]:  # the first 24 clicks of each inspection group
+                if lm_count[r["group"]] < 24:
+                    landmarks.append({"scene": r["rgb_rel"], "group": r["group"], **lm})
+                    lm_count[r["group"]] += 1
 
     categories = _coco_categories()
     write_json(root / "annotations" / "instances_rgb.json",

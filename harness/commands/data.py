@@ -84,11 +84,13 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--thermal-format", type=click.Choice(["rjpeg", "centikelvin"]), default="rjpeg", show_default=True,
                   help="Thermal files as DJI R-JPEGs (_T.JPG) or 16-bit centi-Kelvin PNGs with sidecars.")
     @click.option("--force", is_flag=True, help="Replace an existing output folder.")
-    def synth_cmd(profile: str, out: Path | None, seed: int, thermal_format: str, force: bool) -> None:
+    @click.option("--workers", type=int, default=None, help="Rendering processes (default: up to 4, CPU count).")
+    def synth_cmd(profile: str, out: Path | None, seed: int, thermal_format: str, force: bool,
+                  workers: int | None) -> None:
         """Generate the synthetic M3T-like dataset (raw M3T layout + ground truth). Deterministic in --seed."""
         from adapters.datasets.synthetic import generate
 
-        s = generate(out, profile=profile, seed=seed, thermal_format=thermal_format, force=force)
+        s = generate(out, profile=profile, seed=seed, thermal_format=thermal_format, force=force, workers=workers)
         click.echo(f"m3t-synth {s.profile} (seed {s.seed}): {sum(s.images.values())} pairs in {s.root} "
                    f"({s.seconds:.1f} s)")
         click.echo("images per project: " + ", ".join(f"{p} {n}" for p, n in s.images.items()))
