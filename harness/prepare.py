@@ -52,9 +52,19 @@ def cache_root(root: str | Path | None = None) -> Path:
     return Path(os.environ.get(ENV_CACHE) or "cache")
 
 
+#: ``sensing`` sub-sections that only steer analyses of prepared data, not preparation (left out of the key).
+ANALYSIS_ONLY_SENSING = ("displacement",)
+
+
+def preparation_sensing(sensing: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The part of the ``sensing`` section that can change prepared samples."""
+    return {k: v for k, v in dict(sensing or {}).items() if k not in ANALYSIS_ONLY_SENSING}
+
+
 def cache_key(fingerprint: str, sensing: Mapping[str, Any] | None, dataset: str) -> str:
-    """``sha1({dataset, fingerprint, sensing, PREPARE_VERSION})`` as 16 hex digits."""
-    payload = json.dumps({"dataset": dataset, "fingerprint": fingerprint, "sensing": dict(sensing or {}),
+    """``sha1({dataset, fingerprint, sensing, PREPARE_VERSION})`` as 16 hex digits (analysis-only sensing keys,
+    such as the displacement study's shifts, are left out)."""
+    payload = json.dumps({"dataset": dataset, "fingerprint": fingerprint, "sensing": preparation_sensing(sensing),
                           "version": PREPARE_VERSION}, sort_keys=True, default=str)
     return hashlib.sha1(payload.encode()).hexdigest()[:16]
 
@@ -93,7 +103,7 @@ def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str 
     The returned ``PreparedDataset`` has two extra attributes: ``from_cache`` (bool) and ``key``.
     """
     spec, source = open_source(dataset, cfg)
-    sensing = dict(cfg.get("sensing") or {})
+    sensing = preparation_sensing(cfg.get("sensing"))
     fingerprint = source.fingerprint()
     key = cache_key(fingerprint, sensing, spec.name)
     folder = _cache_root(cache_root) / spec.name / key

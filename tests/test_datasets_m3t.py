@@ -201,6 +201,20 @@ def test_aligned_form_reads_back_what_was_prepared(tiny, tmp_path):
         assert a.group == s.group
 
 
+def test_aligned_form_skips_pairs_whose_sizes_disagree(tiny, tmp_path):
+    import cv2
+
+    ds = _prepare(tiny, tmp_path / "cache")
+    out = tmp_path / "aligned"
+    _export_aligned(ds, out)
+    first = sorted((out / "aligned" / "rgb").rglob("*.png"))[0]
+    cv2.imwrite(str(first), np.zeros((50, 60, 3), np.uint8))
+    report = PrepareReport()
+    samples = list(open_m3t(out).samples(report))
+    assert len(samples) == len(ds) - 1
+    assert report.summary()["skip_reasons"] == {"RGB size mismatch": 1}
+
+
 # ------------------------------------------------------------------------------------------------ manifest
 def test_manifest_maps_folder_names_and_categories(tiny):
     (tiny / "images" / "P1").rename(tiny / "images" / "Site_Alpha")

@@ -22,8 +22,10 @@ def _prep(root: Path, cache: Path, cfg: dict | None = None, **kw):
 def test_cache_key_depends_on_fingerprint_sensing_and_dataset():
     base = cache_key("abc", {}, "m3t")
     assert base == cache_key("abc", {}, "m3t") and len(base) == 16
-    assert len({base, cache_key("abd", {}, "m3t"), cache_key("abc", {"crop": False}, "m3t"),
+    assert len({base, cache_key("abd", {}, "m3t"), cache_key("abc", {"warp": {"crop": False}}, "m3t"),
                 cache_key("abc", {}, "m3t-synth")}) == 4
+    # the displacement study's settings do not change prepared samples
+    assert cache_key("abc", {"displacement": {"shifts": [1]}}, "m3t") == base
 
 
 def test_prepared_once_then_reused_and_rebuilt_when_inputs_change(tiny, tmp_path):
@@ -35,7 +37,7 @@ def test_prepared_once_then_reused_and_rebuilt_when_inputs_change(tiny, tmp_path
     assert np.array_equal(np.asarray(again[0].rgb), np.asarray(first[0].rgb))
     # a changed sensing option prepares into a new folder
     cfg = synth_cfg(tiny)
-    cfg["sensing"] = {"min_box_size": 2.0}
+    cfg["sensing"] = {**cfg["sensing"], "warp": {**cfg["sensing"]["warp"], "min_box_size": 2.0}}
     other = _prep(tiny, cache, cfg)
     assert not other.from_cache and other.folder != first.folder
     # so does a changed input file
@@ -76,7 +78,8 @@ def test_samples_satisfy_the_contract_and_keep_provenance(tiny, tmp_path):
         validate_sample(s, num_classes=8)
         assert s.meta["file_name"].endswith("_W.JPG") and s.meta["thermal_file"].endswith("_T.JPG")
         assert len(s.meta["ann_ids"]) == len(s.boxes)
-    assert ds.manifest["sensing"] == {} and ds.manifest["groups"] == ["P1", "P2", "P3", "P4", "P5"]
+    assert ds.manifest["sensing"]["warp"]["crop"] is True
+    assert ds.manifest["groups"] == ["P1", "P2", "P3", "P4", "P5"]
 
 
 # ------------------------------------------------------------------------------------------------ folds

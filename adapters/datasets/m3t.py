@@ -523,8 +523,8 @@ class M3TSource:
         h = hashlib.sha1()
         manifest_view = {k: (sorted(v.items()) if isinstance(v, Mapping) else v) for k, v in vars(m).items()
                          if k not in ("root", "source")}
-        h.update(json.dumps({"adapter": ADAPTER_VERSION, "name": self.name, "manifest": manifest_view,
-                             "sensing": self.sensing}, sort_keys=True, default=str).encode())
+        h.update(json.dumps({"adapter": ADAPTER_VERSION, "name": self.name, "manifest": manifest_view},
+                            sort_keys=True, default=str).encode())
         h.update(_content_hash(m.annotations_path).encode())
         for key in ("rgb_camera", "thermal_camera", "homographies", "landmarks", "captures"):
             h.update(_content_hash(m.optional(key)).encode())
