@@ -131,6 +131,23 @@ def test_inspection_groups_come_from_capture_times(tiny):
     assert src.groups() == ["P1", "P2", "P3", "P4", "P5"]
 
 
+def test_capture_times_from_exif_when_file_names_carry_none(tiny):
+    coco = json.loads((tiny / "annotations" / "instances_rgb.json").read_text())
+    for img in coco["images"]:
+        old = tiny / "images" / img["file_name"]
+        new_name = img["file_name"].replace("DJI_", "IMG_")
+        old.rename(tiny / "images" / new_name)
+        t_old = old.with_name(old.name.replace("_W.JPG", "_T.JPG"))
+        t_old.rename(t_old.with_name(t_old.name.replace("DJI_", "IMG_")))
+        img["file_name"] = new_name
+        del img["date_captured"]
+    (tiny / "annotations" / "instances_rgb.json").write_text(json.dumps(coco))
+    src = open_m3t(tiny)
+    sessions = json.loads((tiny / "ground_truth" / "sessions.json").read_text())
+    assert src.inspection_groups() == sorted(sessions)
+    assert all(r.captured is not None for r in src.records)
+
+
 def test_a_captures_file_overrides_groups(tiny):
     coco = json.loads((tiny / "annotations" / "instances_rgb.json").read_text())
     rows = ["file,group"] + [f"{img['file_name']},site-A" for img in coco["images"][:2]]

@@ -371,6 +371,18 @@ def time_from_name(name: str) -> datetime | None:
         return None
 
 
+def _exif_time(path: Path) -> datetime | None:
+    """EXIF ``DateTimeOriginal`` of a JPEG (None when it has none or cannot be read)."""
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return None
+    from harness.sensing.registration import capture_time
+
+    try:
+        return capture_time(path)
+    except HarnessError:
+        return None
+
+
 def clip_box_xywh(box: Sequence[float], width: int, height: int) -> tuple[list[float] | None, bool]:
     """``[x, y, w, h]`` -> clipped ``[x0, y0, x1, y1]`` inside ``[0, W] x [0, H]`` (None when nothing is left) and
     whether clipping changed it."""
@@ -448,7 +460,7 @@ class M3TSource:
                 rec.captured = cap.get("time") or rec.captured
                 rec.group = cap.get("group") or ""
             if rec.captured is None:
-                rec.captured = time_from_name(Path(rec.file_name).name)
+                rec.captured = time_from_name(Path(rec.file_name).name) or _exif_time(base / rec.file_name)
             self.records.append(rec)
         self._assign_groups()
         self.records.sort(key=lambda r: (r.project, r.captured or datetime.min, r.file_name))
