@@ -44,8 +44,8 @@ def test_baseline_parallax_falls_with_distance():
     kt = S.camera_matrix((160, 128), 40.0)
     t = np.array([0.03, 0.0, 0.0])
     n = np.array([0, 0, 1.0])
-    shift = [S.plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2] - S.plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2]
-             for d in (5.0, 10.0)]
+    shift = [S.plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2]
+             - S.plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2] for d in (5.0, 10.0)]
     # f_T * B / Z: halves when the distance doubles
     assert shift[0] == pytest.approx(kt[0, 0] * 0.03 / 5.0)
     assert shift[1] == pytest.approx(shift[0] / 2)
@@ -185,7 +185,8 @@ def test_category_signatures_in_the_true_temperature(tiny_source):
     deltas: dict[str, list[float]] = {c: [] for c in M3T_CATEGORIES}
     for f in frames:
         stem = Path(f["file_name"]).name.replace("_W.JPG", "")
-        temp, _ = read_thermal(tiny_source / "ground_truth" / "temperature" / f["file_name"].split("/")[0] / f"{stem}.png")
+        project = f["file_name"].split("/")[0]
+        temp, _ = read_thermal(tiny_source / "ground_truth" / "temperature" / project / f"{stem}.png")
         for o in f["objects"]:
             box = o["thermal_box"]
             if box[0] < 0 or box[1] < 0 or box[2] > 160 or box[3] > 128 or o["category"] == "window":

@@ -160,10 +160,10 @@ def load_manifest(root: str | Path, manifest: str | Path | None = None,
     for key in Manifest.PATH_KEYS:  # refuse escaping paths up front, whatever the form
         if getattr(m, key) is not None:
             m.path(key)
-    if m.annotations:
-        m.annotations_path
-    for pid, folder in m.projects.items():
-        m.path("images" if m.format == "raw" else "rgb", f"{m.images if m.format == 'raw' else m.rgb}/{folder}")
+    _ = m.annotations_path
+    key = "images" if m.format == "raw" else "rgb"
+    for folder in m.projects.values():
+        m.path(key, f"{getattr(m, key)}/{folder}")
     return m
 
 
@@ -194,7 +194,8 @@ def _check_manifest_value(key: str, value: Any, where: str) -> Any:
             raise bad("'raw' or 'aligned'")
         return value
     if key in ("projects", "categories"):
-        if not isinstance(value, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in value.items()):
+        if not isinstance(value, Mapping) or not all(isinstance(k, str) and isinstance(v, str)
+                                                     for k, v in value.items()):
             raise bad("a mapping of names to names")
         if key == "categories":
             for v in value.values():
@@ -205,7 +206,8 @@ def _check_manifest_value(key: str, value: Any, where: str) -> Any:
     if key == "thermal_size":
         if value is None:
             return None
-        if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(isinstance(v, int) and v > 0 for v in value):
+        if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(
+                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value):
             raise bad("[width, height] in pixels")
         return (int(value[0]), int(value[1]))
     if key == "landmarks_rgb":

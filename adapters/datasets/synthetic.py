@@ -474,15 +474,15 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
         pw, ph, joint = 2.4, 1.2, 0.018
         dx = np.abs(((xm + pw / 2) % pw) - pw / 2)
         dy = np.abs(((ym + ph / 2) % ph) - ph / 2)
-        groove = smoothstep((joint / 2 - np.minimum(np.broadcast_to(dx, (h, w)), np.broadcast_to(dy, (h, w)))) / px_m + 0.5)
+        groove = smoothstep((joint / 2 - np.minimum(dx, dy)) / px_m + 0.5)
         tx = np.abs(((xm + 0.3) % 0.6) - 0.3)
         ty = np.abs(((ym + 0.3) % 0.6) - 0.3)
         tie = smoothstep((0.013 - np.sqrt(tx * tx + ty * ty)) / px_m + 0.5)
         albedo *= (1 + 0.07 * fbm((h, w), cell(0.4), rng) + 0.03 * value_noise((h, w), cell(0.015), rng))[..., None]
         albedo *= (1 - 0.45 * groove - 0.5 * tie)[..., None]
     elif look.material == "paint":
-        streaks = cv2.resize(rng.standard_normal((max(2, int(h / cell(0.8))), max(2, int(w / cell(0.06))))).astype(np.float32),
-                             (w, h), interpolation=cv2.INTER_CUBIC)
+        grid = rng.standard_normal((max(2, int(h / cell(0.8))), max(2, int(w / cell(0.06))))).astype(np.float32)
+        streaks = cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
         albedo *= (1 + 0.04 * fbm((h, w), cell(0.5), rng) - 0.03 * np.clip(streaks, 0, None)
                    + 0.02 * value_noise((h, w), cell(0.012), rng))[..., None]
     elif look.material == "cladding":
@@ -498,7 +498,8 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
         raise ValueError(look.material)
     # soft light gradient (sun from one side)
     gx, gy = rng.uniform(-0.06, 0.06, size=2)
-    ramp = 1 + gx * (c.u(np.arange(w))[None, :] / c.thermal_size[0] - 0.5) + gy * (c.v(np.arange(h))[:, None] / c.thermal_size[1] - 0.5)
+    ramp = (1 + gx * (c.u(np.arange(w))[None, :] / c.thermal_size[0] - 0.5)
+            + gy * (c.v(np.arange(h))[:, None] / c.thermal_size[1] - 0.5))
     albedo *= ramp[..., None].astype(np.float32)
     np.clip(albedo, 0.0, 1.0, out=albedo)
     layers.albedo = albedo
@@ -584,7 +585,8 @@ def paint_ac_unit(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     d = np.sqrt((u - fx) ** 2 + (v - fy) ** 2)
     fan = inside & (d < fr)
     rings = fan & ((d / (0.022 * ppm)) % 2 < 0.8)
-    louvre = inside & (u < x0 + 0.38 * w) & (u > x0 + 0.06 * w) & (((v - y0) / (0.04 * ppm)) % 2 < 0.7) & (v > y0 + 0.12 * h) & (v < y1 - 0.12 * h)
+    louvre = (inside & (u < x0 + 0.38 * w) & (u > x0 + 0.06 * w) & (((v - y0) / (0.04 * ppm)) % 2 < 0.7)
+              & (v > y0 + 0.12 * h) & (v < y1 - 0.12 * h))
     alb = layers.albedo[ys, xs]
     housing = np.array([0.83, 0.83, 0.81], np.float32) * rng.uniform(0.9, 1.05)
     alb = np.where(inside[..., None], housing, alb)
@@ -667,7 +669,8 @@ def paint_crack(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gen
         b = pts[a] + rng.normal(0, 1, 2) * 0.2 * np.array([x1 - x0, y1 - y0])
         b = np.clip(b, [x0, y0], [x1, y1])
         bx, by = to_px(np.array([pts[a], (pts[a] + b) / 2 + rng.normal(0, 0.5, 2), b]))
-        cv2.polylines(mask, [np.c_[bx, by].reshape(-1, 1, 2)], False, 160, thickness=1, lineType=cv2.LINE_AA, shift=shift)
+        cv2.polylines(mask, [np.c_[bx, by].reshape(-1, 1, 2)], False, 160, thickness=1, lineType=cv2.LINE_AA,
+                      shift=shift)
     m = mask.astype(np.float32) / 255.0
     rows, cols = np.nonzero(m > 0.3)
     if len(rows) == 0:
@@ -704,7 +707,8 @@ def paint_peeling(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
         return None
     m8 = mask.astype(np.uint8)
     edge = cv2.dilate(m8, np.ones((3, 3), np.uint8)) - cv2.erode(m8, np.ones((3, 3), np.uint8))
-    under = np.array([0.80, 0.78, 0.74], np.float32) if luminance(np.array(look.wall_rgb)) < 0.6 else np.array([0.55, 0.53, 0.50], np.float32)
+    dark_wall = luminance(np.array(look.wall_rgb)) < 0.6  # the under-layer shows lighter on dark walls
+    under = np.array([0.80, 0.78, 0.74] if dark_wall else [0.55, 0.53, 0.50], np.float32)
     speck = value_noise(mask.shape, max(1.0, cell / 6), rng) > 1.2
     alb = layers.albedo[ys, xs]
     tex = under * (1 + 0.06 * value_noise(mask.shape, max(1.0, cell / 4), rng))[..., None]
@@ -815,7 +819,8 @@ def paint_downpipe(layers: Layers, x: float, width: float, rng: np.random.Genera
     ys, xs, u, v = win
     inside = (u > x) & (u < x + width)
     shade = 0.75 + 0.25 * np.cos((u - x - width / 2) / width * np.pi)
-    layers.albedo[ys, xs] = np.where(inside[..., None], np.array([0.55, 0.56, 0.57], np.float32) * shade[..., None], layers.albedo[ys, xs])
+    pipe = np.array([0.55, 0.56, 0.57], np.float32) * shade[..., None]
+    layers.albedo[ys, xs] = np.where(inside[..., None], pipe, layers.albedo[ys, xs])
     layers.dtemp[ys, xs] += np.where(inside, -0.6, 0.0)
 
 
@@ -832,11 +837,13 @@ def _overlaps(box: np.ndarray, others: Iterable[np.ndarray], gap: float) -> bool
     return False
 
 
-def place_objects(layers: Layers, look: Look, windows: list[SceneObject], rng: np.random.Generator) -> list[SceneObject]:
+def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
+                  rng: np.random.Generator) -> list[SceneObject]:
     """Equipment and defects on free wall, mostly inside the thermal footprint (some straddle its edge)."""
     c, ppm = layers.canvas, layers.ppm
     tw, th = c.thermal_size
-    occupied = [np.array([o.box[0] - 0.06 * ppm, o.box[1], o.box[2] + 0.06 * ppm, o.box[3] + 0.22 * ppm]) for o in windows]
+    occupied = [np.array([o.box[0] - 0.06 * ppm, o.box[1], o.box[2] + 0.06 * ppm, o.box[3] + 0.22 * ppm])
+                for o in windows]  # windows with their sills
     out: list[SceneObject] = []
     order = ["ac_unit", "water_seepage", "efflorescence", "vent", "paint_peeling", "delamination", "crack"]
     for cat in order:

@@ -35,7 +35,7 @@ def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root
 
 def _dataset_options(func: Any) -> Any:
     func = click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
-                        help="Override a config key, e.g. dataset.profile=full or sensing.landmark_method=ransac.")(func)
+                        help="Override a config key, e.g. dataset.profile=full or sensing.warp.crop=false.")(func)
     func = click.option("--config", "configs", multiple=True, type=click.Path(dir_okay=False),
                         help="Extra config YAML file(s).")(func)
     func = click.option("--cache", type=click.Path(file_okay=False, path_type=Path), default=None,
