@@ -802,9 +802,9 @@ def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
         return None
     amp = -rng.uniform(0.5, 2.0)
     layers.dtemp[ys, xs] += amp * prof
-    stain = rng.uniform(0.04, 0.08)
-    tide = np.exp(-((prof - 0.34) / 0.03) ** 2) * inside
-    layers.albedo[ys, xs] *= (1 - stain * np.clip(prof, 0, 1) * inside - 0.03 * tide)[..., None]
+    stain = rng.uniform(0.07, 0.14)  # faint: a damp patch darkens the surface by a few per cent
+    tide = np.exp(-((prof - 0.34) / 0.03) ** 2) * inside  # the drying edge leaves a slightly darker line
+    layers.albedo[ys, xs] *= (1 - stain * np.clip(prof, 0, 1) * inside - 0.05 * tide)[..., None]
     obj.attrs.update(delta_c=round(amp, 2))
     rows, cols = np.nonzero(stain_region)
     return c.extent_box(rows + ys.start, cols + xs.start)
