@@ -65,7 +65,7 @@ def test_boxes_after_the_pipeline_match_the_generators_ground_truth(tiny, tmp_pa
 def test_true_homographies_give_smaller_box_errors(tiny, tmp_path):
     shutil.copy(tiny / "ground_truth" / "homographies.yaml", tiny / "registration" / "homographies.yaml")
     ds = _prepare(tiny, tmp_path / "cache")
-    assert "homographies file" in " ".join(ds.manifest["report"]["notes"])
+    assert "source dataset file" in " ".join(ds.manifest["report"]["notes"])
     err, _ = corner_errors(ds, tiny)
     assert err.mean() < 0.7
 

@@ -662,12 +662,12 @@ class M3TSource:
             return
         from harness.sensing.registration import HomographyEntry, save_homographies
 
-        entries = {g: HomographyEntry(h, method=str(self.registration.get(g, {}).get("source", "")),
-                                      quality={k: v for k, v in self.registration.get(g, {}).items() if k != "source"})
+        entries = {g: HomographyEntry(h, method=str(aligner.how(g).get("source", "")),
+                                      quality={k: v for k, v in aligner.how(g).items() if k != "source"})
                    for g, h in sorted(aligner.fitted.items())}
         save_homographies(Path(folder) / "homographies.yaml", entries,
                           meta={"frame": "undistorted wide-camera pixels (calibration K) -> thermal pixels"
-                                if aligner.cam is not None else "RGB pixels -> thermal pixels",
+                                if aligner.ctx.rgb_camera is not None else "RGB pixels -> thermal pixels",
                                 "dataset": self.name})
 
     def thermal_partner(self, rec: ImageRecord) -> Path:
@@ -707,34 +707,34 @@ def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0)
 
 # ------------------------------------------------------------------------------------------------ raw alignment
 class RawAligner:
-    """The sensing pipeline for one raw M3T dataset: undistort, register per inspection group, warp, crop.
+    """The sensing pipeline for one raw M3T dataset, through ``harness.sensing.pipeline.SensingContext``.
 
-    Options come from the ``sensing`` config section (``harness.sensing.options.SensingOptions``); the files it
-    names (``sensing.undistort.rgb_camera``, ``sensing.registration.homographies``) take precedence over the
-    dataset's own (manifest keys ``rgb_camera``, ``homographies``).
+    The context undistorts both sensors, picks the group's homography and runs ``align_pair``; this class adds
+    what the dataset brings: its calibration files (manifest ``rgb_camera``/``thermal_camera``, used when the
+    ``sensing.undistort`` section names none) and its per-group registration (manifest ``homographies``, else the
+    group's ``landmarks``). A homography file named in ``sensing.registration.homographies`` wins over both.
 
-    Homography convention: ``H`` maps *undistorted* wide-camera pixels (the calibration's camera matrix ``K``,
-    full frame, OpenCV pixel centres) to thermal pixels; without a calibration, raw RGB pixels. Per inspection
-    group it comes from the homographies file, else from the group's landmarks (>= 4 pairs, least squares),
-    else ``sensing.registration.method``: ``auto`` (ECC on edges, per image, quality-checked), ``focal`` (the
-    optics prior of the two focal lengths) or ``file`` (the pair is skipped).
+    Dataset convention: a shipped homography maps *undistorted* wide-camera pixels of the calibration's camera
+    matrix ``K`` (full frame, OpenCV pixel centres) to thermal pixels, whatever ``sensing.undistort.alpha`` crops;
+    without a calibration, raw RGB pixels. It is converted here to the frame of ``undistort_image``'s output.
+    Groups with neither fall back to ``sensing.registration.method`` (``auto``: ECC on edges, quality-checked;
+    ``focal``: the 40 mm / 24 mm focal-length prior; ``file``: the pair is skipped).
     """
 
     def __init__(self, source: M3TSource):
         from harness.sensing.calibration import CameraModel
-        from harness.sensing.options import SensingOptions
+        from harness.sensing.pipeline import SensingContext
 
         self.src = source
         m = source.manifest
-        self.opts = SensingOptions.from_config(source.sensing)
-        und = self.opts.undistort
-        cam = Path(und.rgb_camera) if und.rgb_camera else m.optional("rgb_camera")
-        self.cam = CameraModel.load(cam) if cam else None
-        tcam = Path(und.thermal_camera) if und.thermal_camera else m.optional("thermal_camera")
-        self.thermal_cam = CameraModel.load(tcam) if tcam else None
+        self.ctx = SensingContext.from_config(source.sensing)
+        self.opts = self.ctx.options
+        if self.ctx.rgb_camera is None and m.optional("rgb_camera") is not None:
+            self.ctx.rgb_camera = CameraModel.load(m.optional("rgb_camera"))  # type: ignore[arg-type]
+        if self.ctx.thermal_camera is None and m.optional("thermal_camera") is not None:
+            self.ctx.thermal_camera = CameraModel.load(m.optional("thermal_camera"))  # type: ignore[arg-type]
         self.homographies: dict[str, np.ndarray] = {}
-        hpath = Path(self.opts.registration.homographies) if self.opts.registration.homographies \
-            else m.optional("homographies")
+        hpath = m.optional("homographies")
         if hpath is not None:
             from harness.sensing.registration import load_homographies
 
@@ -747,121 +747,82 @@ class RawAligner:
             self.landmarks = read_landmarks(lpath)
         self.group_of = {r.file_name: r.group for r in source.records}
         self.thermal_size: tuple[int, int] | None = m.thermal_size
-        self._cams: dict[tuple[int, int], tuple[Any, Any]] = {}
-        self._H: dict[tuple[str, tuple[int, int]], np.ndarray | str] = {}
-        #: group -> H on full-frame undistorted pixels (camera K), as used
-        self.fitted: dict[str, np.ndarray] = {}
+        self._new_cam: Any = None
+        self._tried: set[str] = set()
         self.dropped = 0
 
-    # ---------------------------------------------------------------- pieces
-    def cameras(self, size: tuple[int, int]) -> tuple[Any, Any]:
-        """(distorted camera at this image size, the undistorted camera ``undistort_image`` will return)."""
-        if size not in self._cams:
+    # ---------------------------------------------------------------- frames
+    @property
+    def new_cam(self) -> Any:
+        """The camera of ``undistort_image``'s output (None without an RGB calibration)."""
+        if self._new_cam is None and self.ctx.rgb_camera is not None:
             from harness.sensing.calibration import undistorted_camera
 
-            if self.cam is None:
-                self._cams[size] = (None, None)
-            else:
-                cam = self.cam if self.cam.image_size == size else self.cam.scaled(size)
-                new_cam, _ = undistorted_camera(cam, float(self.opts.undistort.alpha))
-                self._cams[size] = (cam, new_cam)
-        return self._cams[size]
+            self._new_cam, _ = undistorted_camera(self.ctx.rgb_camera, float(self.opts.undistort.alpha))
+        return self._new_cam
 
-    def homography(self, group: str, size: tuple[int, int], rgb: np.ndarray, temp: np.ndarray) -> np.ndarray:
-        """RGB (undistorted, cropped: ``new_cam``) -> thermal homography of ``group``, or ``SkipPair``."""
-        key = (group, size)
-        if key not in self._H:
-            self._H[key] = self._group_homography(group, size, (temp.shape[1], temp.shape[0]))
-        h = self._H[key]
-        if isinstance(h, str):
-            if h == "auto":
-                return self._auto(group, rgb, temp)
-            raise SkipPair(h)
-        return h
-
-    def _to_new(self, h_k: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``new_cam``):
-        a pixel ``p'`` of the new camera is the ray ``K'^-1 p'``, i.e. the pixel ``K K'^-1 p'`` of camera K."""
-        cam, new_cam = self.cameras(size)
-        if cam is None:
+    def to_frame(self, h_k: np.ndarray) -> np.ndarray:
+        """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``K'``): a pixel
+        ``p'`` of the new camera is the ray ``K'^-1 p'``, i.e. the pixel ``K K'^-1 p'`` of camera K."""
+        if self.new_cam is None:
             return h_k
-        return h_k @ cam.K @ np.linalg.inv(new_cam.K)
-
-    def _to_k(self, h_new: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        cam, new_cam = self.cameras(size)
-        if cam is None:
-            return h_new
-        h = h_new @ new_cam.K @ np.linalg.inv(cam.K)
+        h = h_k @ self.ctx.rgb_camera.K @ np.linalg.inv(self.new_cam.K)
         return h / h[2, 2]
 
-    def _landmark_points(self, idx: list[int], size: tuple[int, int]) -> np.ndarray:
+    def to_k(self, h_new: np.ndarray) -> np.ndarray:
+        if self.new_cam is None:
+            return h_new
+        h = h_new @ self.new_cam.K @ np.linalg.inv(self.ctx.rgb_camera.K)
+        return h / h[2, 2]
+
+    def _landmark_points(self, idx: list[int]) -> np.ndarray:
         """The landmarks' RGB points in the frame of ``undistort_image``'s output."""
         assert self.landmarks is not None
         pts = self.landmarks.rgb[idx]
-        cam, new_cam = self.cameras(size)
-        if cam is None:
+        if self.new_cam is None:
             return pts
         if self.src.manifest.landmarks_rgb == "raw":
             from harness.sensing.calibration import undistort_points
 
-            return undistort_points(pts, cam, new_cam)
+            return undistort_points(pts, self.ctx.rgb_camera, self.new_cam)
         from harness.sensing.registration import apply_homography
 
-        return apply_homography(new_cam.K @ np.linalg.inv(cam.K), pts)
+        return apply_homography(self.new_cam.K @ np.linalg.inv(self.ctx.rgb_camera.K), pts)
 
-    def _group_homography(self, group: str, size: tuple[int, int], tsize: tuple[int, int]) -> np.ndarray | str:
-        from harness.sensing.registration import homography_from_landmarks, reprojection_errors
+    def register_group(self, group: str) -> None:
+        """Put the dataset's own registration of ``group`` (file, else landmarks) into the context, once."""
+        from harness.sensing.registration import HomographyEntry, homography_from_landmarks, reprojection_errors
 
+        if group in self._tried or group in self.ctx.entries:
+            return
+        self._tried.add(group)
         if group in self.homographies:
-            self.src.registration[group] = {"source": "homographies file"}
-            self.fitted[group] = self.homographies[group]
-            return self._to_new(self.homographies[group], size)
-        if self.landmarks is not None:
-            lm = self.landmarks
-            idx = [i for i, (scene, g) in enumerate(zip(lm.scene, lm.group)) if self.group_of.get(scene, g) == group]
-            if len(idx) >= 4:
-                rgb_pts = self._landmark_points(idx, size)
-                try:
-                    h = homography_from_landmarks(rgb_pts, lm.thermal[idx], method="lsq")
-                except HarnessError as exc:
-                    return f"registration failed: inspection group {group}: {exc}"
-                err = reprojection_errors(h, rgb_pts, lm.thermal[idx])  # type: ignore[arg-type]
-                self.src.registration[group] = {"source": "landmarks", "pairs": len(idx),
-                                                "rms_px": round(float(np.sqrt(np.mean(err ** 2))), 4)}
-                self.fitted[group] = self._to_k(h, size)  # type: ignore[arg-type]
-                return h  # type: ignore[return-value]
-        method = self.opts.registration.method
-        if method == "auto":
-            self.src.registration[group] = {"source": "auto (ECC per image)"}
-            return "auto"
-        if method == "focal":
-            h = self._prior(size, tsize)
-            self.src.registration[group] = {"source": "focal-length prior"}
-            self.fitted[group] = self._to_k(h, size)
-            return h
-        return (f"no homography for inspection group {group}: add it to the homographies file "
-                "(registration/homographies.yaml), give landmarks (registration/landmarks.json), or set "
-                "sensing.registration.method to auto or focal")
+            self.ctx.entries[group] = HomographyEntry(self.to_frame(self.homographies[group]), "dataset file")
+            return
+        if self.landmarks is None:
+            return
+        lm = self.landmarks
+        idx = [i for i, (scene, g) in enumerate(zip(lm.scene, lm.group)) if self.group_of.get(scene, g) == group]
+        if len(idx) < 4:
+            return
+        rgb_pts = self._landmark_points(idx)
+        try:
+            h = homography_from_landmarks(rgb_pts, lm.thermal[idx], method="lsq")
+        except HarnessError as exc:
+            log.warning("inspection group %s: landmarks give no homography (%s)", group, exc)
+            return
+        err = reprojection_errors(h, rgb_pts, lm.thermal[idx])  # type: ignore[arg-type]
+        self.ctx.entries[group] = HomographyEntry(h, "landmarks",  # type: ignore[arg-type]
+                                                  quality={"pairs": len(idx),
+                                                           "rms_px": round(float(np.sqrt(np.mean(err ** 2))), 4)})
 
-    def _prior(self, size: tuple[int, int], tsize: tuple[int, int]) -> np.ndarray:
+    def prior(self, rgb_size: tuple[int, int], thermal_size: tuple[int, int]) -> np.ndarray:
         """Centres aligned, scale = thermal / wide focal length (M3T: 40 mm and 24 mm 35-mm equivalents)."""
         from harness.sensing.registration import focal_length_px, homography_from_focal_lengths
 
-        new_cam = self.cameras(size)[1]
-        f_rgb = new_cam.fx if new_cam is not None else focal_length_px(focal_35mm=24.0, image_size=size)
-        return homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=40.0, image_size=tsize), size, tsize)
-
-    def _auto(self, group: str, rgb: np.ndarray, temp: np.ndarray) -> np.ndarray:
-        from harness.sensing.registration import estimate_homography_auto
-
-        r = self.opts.registration
-        size, tsize = (rgb.shape[1], rgb.shape[0]), (temp.shape[1], temp.shape[0])
-        res = estimate_homography_auto(rgb, temp, init=self._prior(size, tsize), search_scale=r.search_scale,
-                                       search_rotation_deg=r.search_rotation_deg, min_correlation=r.min_correlation,
-                                       max_corner_shift=r.max_corner_shift)
-        if not res.ok:
-            raise SkipPair(f"registration failed: automatic registration rejected ({res.reason})")
-        return res.H
+        f_rgb = self.new_cam.fx if self.new_cam is not None else focal_length_px(focal_35mm=24.0, image_size=rgb_size)
+        return homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=40.0, image_size=thermal_size),
+                                             rgb_size, thermal_size)
 
     def read_thermal(self, path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(temperature C, 8-bit preview, info). R-JPEGs give their own palette picture as the preview."""
@@ -885,9 +846,6 @@ class RawAligner:
 
     # ---------------------------------------------------------------- one pair
     def sample(self, rec: ImageRecord, report: PrepareReport) -> AlignedSample:
-        from harness.sensing.calibration import undistort_boxes, undistort_image
-        from harness.sensing.warp import align_pair
-
         src = self.src
         tpath = src.thermal_partner(rec)
         rgb = src._read_rgb(src.base / rec.file_name)
@@ -905,25 +863,18 @@ class RawAligner:
         if rec.width is not None and rec.height is not None and (rec.width, rec.height) != (rw, rh):
             raise SkipPair(f"RGB size mismatch: the annotation file says {rec.width}x{rec.height}, "
                            f"the image is {rw}x{rh}")
+        cam = self.ctx.rgb_camera
+        if cam is not None and cam.image_size != (rw, rh):
+            raise SkipPair(f"RGB size mismatch: the camera calibration is for {cam.image_size[0]}x{cam.image_size[1]}, "
+                           f"the image is {rw}x{rh}")
         boxes, labels, ids = src._boxes_in(rec, rw, rh, report)
-        if self.thermal_cam is not None:
-            tcam = self.thermal_cam if self.thermal_cam.image_size == (tw, th) else self.thermal_cam.scaled((tw, th))
-            temp, _, _ = undistort_image(temp, tcam, float(self.opts.undistort.alpha))
-            ir8, _, _ = undistort_image(ir8, tcam, float(self.opts.undistort.alpha))
-        cam, new_cam = self.cameras((rw, rh))
-        if cam is not None:
-            rgb_u, _, _ = undistort_image(rgb, cam, float(self.opts.undistort.alpha))
-            boxes_u = undistort_boxes(boxes, cam, new_cam)
-        else:
-            rgb_u, boxes_u = rgb, boxes
-        h = self.homography(rec.group, (rw, rh), rgb_u, temp)
+        self.register_group(rec.group)
+        prior = self.prior((self.new_cam.image_size if self.new_cam is not None else (rw, rh)), (tw, th))
         try:
-            w = self.opts.warp
-            pair = align_pair(rgb_u, temp, ir8, boxes_u, labels, h, boxes_frame="rgb", crop=bool(w.crop),
-                              min_box_size=float(w.min_box_size), interpolation=str(w.interpolation),
-                              antialias=bool(w.antialias))
+            pair = self.ctx.align_capture(rgb, temp, ir8, boxes, labels, rec.group, boxes_frame="rgb", prior=prior)
         except HarnessError as exc:
-            raise SkipPair(f"alignment failed: {exc}") from None
+            raise SkipPair(f"registration failed: {exc}" if "registration" in str(exc) or "homography" in str(exc)
+                           else f"alignment failed: {exc}") from None
         self.dropped += pair.dropped
         kept_ids = [i for i, k in zip(ids, pair.kept) if k]
         return pair.to_sample(rec.image_id, rec.project, {
@@ -932,12 +883,25 @@ class RawAligner:
             "ann_ids": kept_ids, "thermal_format": info.get("format"),
         })
 
+    @property
+    def fitted(self) -> dict[str, np.ndarray]:
+        """group -> the homography used, on full-frame undistorted pixels (camera K)."""
+        return {g: self.to_k(e.H) for g, e in self.ctx.entries.items()}
+
+    def how(self, group: str) -> dict[str, Any]:
+        e = self.ctx.entries.get(group)
+        if e is None:
+            return {}
+        q = {k: v for k, v in (e.quality or {}).items() if k in ("pairs", "rms_px", "correlation")}
+        return {"source": e.method, **q}
+
     def finish(self, report: PrepareReport) -> None:
         if self.dropped:
             report.note(f"{self.dropped} RGB-frame box(es) fell outside the thermal frame (or below "
                         f"{self.opts.warp.min_box_size} px) after registration and were left out")
-        for group, how in sorted(self.src.registration.items()):
-            report.note(f"registration of {group}: " + ", ".join(f"{k} {v}" for k, v in how.items()))
+        for group in sorted(self.ctx.entries):
+            self.src.registration[group] = self.how(group)
+            report.note(f"registration of {group}: " + ", ".join(f"{k} {v}" for k, v in self.how(group).items()))
 
 
 # ------------------------------------------------------------------------------------------------ opening
