@@ -110,6 +110,24 @@ def test_fitted_homographies_are_saved_with_the_prepared_data(tiny, tmp_path):
         assert corner_error(fitted[g], true[g], (160, 128)).mean() < 1.5
 
 
+def test_registration_error_command_on_the_synthetic_landmarks(tiny, tmp_path, cli_runner):
+    """`harness sensing registration-error` against the true homography measures the click noise; the
+    homographies fitted while preparing score about the same on those landmarks."""
+    ds = _prepare(tiny, tmp_path / "cache")
+    lm = tiny / "registration" / "landmarks.json"
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies",
+                      str(tiny / "ground_truth" / "homographies.yaml"), "--out", str(tmp_path / "true.json")])
+    assert res.exit_code == 0, res.output
+    true = json.loads((tmp_path / "true.json").read_text())
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies",
+                      str(ds.folder / "homographies.yaml"), "--out", str(tmp_path / "fitted.json")])
+    assert res.exit_code == 0, res.output
+    fitted = json.loads((tmp_path / "fitted.json").read_text())
+    assert true["n"] == fitted["n"] > 50
+    assert 0.3 < true["mean"] < 1.0  # 0.8 RGB px and 0.35 thermal px click noise per axis
+    assert fitted["mean"] <= true["mean"] + 0.05  # least squares fits the clicks it was fitted on
+
+
 def test_centikelvin_thermal_files_are_read_the_same_way(tmp_path):
     from adapters.datasets.synthetic import generate
     from harness.sensing.radiometry import read_thermal
