@@ -58,6 +58,13 @@ def test_a_damaged_cache_is_prepared_again(tiny, tmp_path):
     assert (again.folder / "rgb.u8").stat().st_size > 100
 
 
+def test_relative_dataset_and_cache_paths(tiny, tmp_path, monkeypatch):
+    monkeypatch.chdir(tiny.parent)
+    ds = prepare("m3t-synth", synth_cfg(Path(tiny.name)), cache_root="rel-cache", progress=False)
+    assert len(ds) == 8 and (tiny.parent / "rel-cache" / "m3t-synth").is_dir()
+    assert ds[0].meta["thermal_file"].startswith("images/P1/")
+
+
 def test_cache_root_from_the_environment(tiny, tmp_path, monkeypatch):
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "envcache"))
     ds = prepare("m3t-synth", synth_cfg(tiny), progress=False)

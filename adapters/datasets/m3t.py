@@ -126,7 +126,7 @@ def load_manifest(root: str | Path, manifest: str | Path | None = None,
                   overrides: Mapping[str, Any] | None = None) -> Manifest:
     """Read the manifest (``manifest``, else ``m3t.yaml``/``m3t.json`` at ``root``, else defaults) and apply
     ``overrides`` (the ``dataset`` config section). Unknown keys and wrong types are ``DataError``s."""
-    root = Path(root)
+    root = Path(root).resolve()  # every path below is compared against the resolved root
     data: dict[str, Any] = {}
     source: Path | None = None
     if manifest is not None:
