@@ -105,15 +105,16 @@ class Manifest:
 
 
 def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
-    """``root / rel`` resolved, refused with a ``DataError`` when it points outside ``root`` (``..``, absolute
-    paths, symbolic links leading out)."""
+    """``root / rel``, refused with a ``DataError`` when the path written in a manifest or annotation file leaves
+    ``root``: an absolute path, or ``..`` steps climbing out. The check is on the path as written (``..`` folded),
+    so symbolic links the user placed inside the dataset folder (images kept on another disk) are followed."""
     rel_s = str(rel)
     if not rel_s or "\x00" in rel_s:
         raise DataError(f"{what}: empty or invalid path {rel_s!r}")
-    root_r = Path(root).resolve()
-    target = (root_r / rel_s).resolve()
-    if target != root_r and root_r not in target.parents:
-        raise DataError(f"{what}: path {rel_s!r} leads outside the dataset root {root_r} (to {target}); "
+    root_a = Path(os.path.abspath(root))
+    target = Path(os.path.normpath(root_a / rel_s))
+    if os.path.isabs(rel_s) or (target != root_a and root_a not in target.parents):
+        raise DataError(f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "
                         "paths in the manifest and the annotation files must stay inside the dataset folder")
     return target
 
@@ -126,7 +127,7 @@ def load_manifest(root: str | Path, manifest: str | Path | None = None,
                   overrides: Mapping[str, Any] | None = None) -> Manifest:
     """Read the manifest (``manifest``, else ``m3t.yaml``/``m3t.json`` at ``root``, else defaults) and apply
     ``overrides`` (the ``dataset`` config section). Unknown keys and wrong types are ``DataError``s."""
-    root = Path(root).resolve()  # every path below is compared against the resolved root
+    root = Path(os.path.abspath(root))  # every path below is compared against the absolute root
     data: dict[str, Any] = {}
     source: Path | None = None
     if manifest is not None:
