@@ -155,6 +155,30 @@ def test_m3t_synth_is_generated_on_first_use_then_reused(tmp_path, monkeypatch):
     assert (root / "synth.json").stat().st_mtime_ns == stamp
 
 
+def test_concurrent_first_use_generates_once(tmp_path, monkeypatch):
+    import threading
+
+    from adapters.datasets import synthetic
+
+    calls = []
+    real = synthetic.generate
+
+    def counting(*args, **kw):
+        calls.append(args[0])
+        return real(*args, **{**kw, "progress": False})
+
+    monkeypatch.setattr(synthetic, "generate", counting)
+    monkeypatch.setenv("HARNESS_DATA", str(tmp_path / "data"))
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(len(synthetic.open_synthetic(profile="tiny", seed=5))))
+               for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert results == [8, 8] and len(calls) == 1
+
+
 def test_m3t_synth_refuses_a_folder_it_did_not_generate(tmp_path):
     from adapters.datasets.synthetic import open_synthetic
 
