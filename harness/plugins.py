@@ -46,6 +46,9 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
     "harness.encodings",
     "harness.commands.sensing",
+    "harness.commands.data",
+    "adapters.datasets.m3t",
+    "adapters.datasets.synthetic",
 )
 
 #: hook name -> (kind shown to users, spec class)
