@@ -44,6 +44,11 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "harness.encodings",
+    "harness.commands.sensing",
+    "harness.commands.data",
+    "adapters.datasets.m3t",
+    "adapters.datasets.synthetic",
     "adapters.detectors.ours",
 )
 
