@@ -71,7 +71,9 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
         log = [json.loads(line) for line in (r.path / "log.jsonl").read_text().splitlines()]
         assert [rec["epoch"] for rec in log] == [1, 2, 3] and all(rec["fold"] == r.key.fold for rec in log)
         cfg = read_yaml(r.path / "config.yaml")
-        assert cfg["train"]["batch"] == 8 and cfg["train"]["lr0"] == 0.04  # the detector's default is recorded
+        assert cfg["train"]["batch"] == 8
+        # the detector's defaults are a layer of the resolved config, below the profile (which sets lr0 itself)
+        assert "defaults of detector 'tinydet'" in cfg["meta"]["sources"] and cfg["train"]["lr0"] == 0.002
         assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
     table = fold_table(summary)
     assert "mean ± SD" in table and table.count("trained") == 2
