@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -164,6 +165,8 @@ def main() -> None:
     if args.measure:
         print(json.dumps(measure(args)))
         return
+    # the same OpenMP wait policy as `harness run` (see harness/commands/run.py), inherited by every measurement
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     rows = {}
     for what in ("anchor-train", "engine-train", "anchor-eval", "engine-eval"):
         cmd = [sys.executable, __file__, "--measure", what] + [f"--{k}={v}" for k, v in vars(args).items()
