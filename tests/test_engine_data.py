@@ -115,3 +115,20 @@ def test_eval_letterbox_boxes_map_back_to_the_thermal_frame(prepared):
     item = ds[0]
     orig, _ = prepared.targets(4)
     np.testing.assert_allclose(item["letterbox"].to_original(item["boxes"].numpy()), orig, atol=1e-4)
+
+
+def test_batches_do_not_depend_on_the_number_of_workers(prepared):
+    from harness.engine.data import train_loader
+
+    def epoch(workers):
+        ds = TrainDataset(SampleSource(prepared, None, IR8), 64, AugmentSettings(), seed=7)
+        ds.set_epoch(1)
+        loader = train_loader(ds, 4, workers=workers, seed=7)
+        loader.sampler.set_epoch(1)
+        return [(b.image_ids, b.images, [t["boxes"] for t in b.targets]) for b in loader]
+
+    serial, parallel = epoch(0), epoch(2)
+    assert len(serial) == len(parallel) == 3
+    for (ids_a, img_a, box_a), (ids_b, img_b, box_b) in zip(serial, parallel):
+        assert ids_a == ids_b and torch.equal(img_a, img_b)
+        assert all(torch.equal(x, y) for x, y in zip(box_a, box_b))
