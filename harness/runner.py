@@ -252,9 +252,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     train_src = SampleSource(prepared, train_idx, enc, enc_params)
     val_src = SampleSource(prepared, val_idx, enc, enc_params)
     train_src.warm()
-    aug = AugmentSettings.from_config(cfg["augment"])
-    if train_src.extra and not cfg["augment"].get("hsv_4ch", True):
-        aug = AugmentSettings(**{**aug.__dict__, "hsv_h": 0.0, "hsv_s": 0.0, "hsv_v": 0.0})
+    aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
     gt = prepared.coco(val_idx)
     ncls = len(prepared.categories)
     in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels

@@ -132,3 +132,12 @@ def test_batches_do_not_depend_on_the_number_of_workers(prepared):
     for (ids_a, img_a, box_a), (ids_b, img_b, box_b) in zip(serial, parallel):
         assert ids_a == ids_b and torch.equal(img_a, img_b)
         assert all(torch.equal(x, y) for x, y in zip(box_a, box_b))
+
+
+def test_augment_settings_from_config():
+    section = {"mosaic": 0.5, "hsv_h": 0.015, "hsv_s": 0.7, "hsv_v": 0.4, "fliplr": 0.5, "hsv_4ch": False}
+    rgb_only = AugmentSettings.from_config(section, extra_channels=0)
+    assert (rgb_only.mosaic, rgb_only.hsv_s) == (0.5, 0.7)  # 3-channel input keeps its jitter
+    four = AugmentSettings.from_config(section, extra_channels=1)
+    assert (four.hsv_h, four.hsv_s, four.hsv_v) == (0.0, 0.0, 0.0) and four.mosaic == 0.5
+    assert AugmentSettings.from_config({**section, "hsv_4ch": True}, extra_channels=1).hsv_v == 0.4

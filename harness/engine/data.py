@@ -43,9 +43,14 @@ class AugmentSettings:
     flipud: float = 0.0
 
     @classmethod
-    def from_config(cls, section: Mapping[str, Any]) -> "AugmentSettings":
+    def from_config(cls, section: Mapping[str, Any], extra_channels: int = 0) -> "AugmentSettings":
+        """From the ``augment`` section; with an extra channel and ``hsv_4ch: false`` there is no HSV jitter at all
+        (what the seed does for 4-channel input; by default the jitter acts on RGB only)."""
         known = {f.name for f in fields(cls)}
-        return cls(**{k: float(v) for k, v in section.items() if k in known and v is not None})
+        values = {k: float(v) for k, v in section.items() if k in known and v is not None}
+        if extra_channels and not section.get("hsv_4ch", True):
+            values.update(hsv_h=0.0, hsv_s=0.0, hsv_v=0.0)
+        return cls(**values)
 
     @classmethod
     def off(cls) -> "AugmentSettings":
