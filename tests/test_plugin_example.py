@@ -13,6 +13,7 @@ import pytest
 # the whole job needs the dataset cache and the evaluation (skipped cleanly on a checkout without them)
 pytest.importorskip("harness.prepare")
 pytest.importorskip("harness.evaluation")
+pytest.importorskip("setuptools")  # the plugin is built without build isolation, with the environment's setuptools
 
 from engine_helpers import REPO, write_plugin_dir
 
