@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gc
 import hashlib
 import io
 import logging
@@ -106,6 +107,8 @@ class PreparedEval:
     n_gt: dict[int, int]  # non-crowd GT per category id
     n_crowd: int
     crowd_ann_ids: set[int]
+    #: the kept detections as arrays, in ``dets`` order: image_id (internal), category_id, score
+    det_columns: tuple[np.ndarray, np.ndarray, np.ndarray]
     dropped: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
@@ -159,12 +162,65 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
         images.append(rec)
 
     # annotations
-    anns: list[dict[str, Any]] = []
+    anns = _fast_annotations(gt["annotations"], key_to_internal, all_int, cat_names)
+    if anns is None:  # something is unusual: the record-by-record path normalises it or names the bad record
+        anns = _checked_annotations(gt["annotations"], key_to_internal, cat_names)
     n_gt = {cid: 0 for cid in cat_names}
-    n_crowd = 0
     crowd_ids: set[int] = set()
-    ignore_without_crowd = 0
-    for i, a in enumerate(gt["annotations"]):
+    for a in anns:
+        if a["iscrowd"]:
+            crowd_ids.add(a["id"])
+        else:
+            n_gt[a["category_id"]] += 1
+    n_crowd = len(crowd_ids)
+    notes: list[str] = []
+    ignore_without_crowd = sum(1 for a in gt["annotations"] if a.get("ignore") and not a.get("iscrowd"))
+    if ignore_without_crowd:
+        msg = (f"{ignore_without_crowd} GT annotation(s) carry ignore=1 without iscrowd=1; COCO evaluation honours only "
+               f"iscrowd, so they are scored as ordinary objects (mark ignore regions with iscrowd=1)")
+        log.warning(msg)
+        notes.append(msg)
+
+    dets, columns, dropped = _prepare_detections(detections, key_to_internal, all_int, cat_names, strict)
+    prepared_gt = {"info": {"description": "harness evaluation"}, "images": images, "annotations": anns, "categories": cats}
+    return PreparedEval(prepared_gt, dets, sorted(cat_names), cat_names, keys, n_gt, n_crowd, crowd_ids, columns,
+                        dropped, notes)
+
+
+def _fast_annotations(anns_in: list, key_to_internal: dict, all_int: bool, cat_names: dict[int, str]) -> list | None:
+    """Vectorised path for ordinary GT (dicts with integer ids and valid boxes); ``None`` when anything is unusual."""
+    if not anns_in:
+        return []
+    try:
+        img = [a["image_id"] for a in anns_in]
+        cat = [a["category_id"] for a in anns_in]
+        box = np.asarray([a["bbox"] for a in anns_in], dtype=np.float64)
+        area = np.asarray([a["area"] if "area" in a else np.nan for a in anns_in], dtype=np.float64)
+        crowd = [a.get("iscrowd", 0) for a in anns_in]
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+    n = len(anns_in)
+    if not (all_int and all(type(v) is int for v in img) and all(type(v) is int for v in cat)):
+        return None
+    if box.shape != (n, 4) or not np.isfinite(box).all() or (box[:, 2:] < 0).any():
+        return None
+    area = np.where(np.isnan(area), box[:, 2] * box[:, 3], area)
+    if not np.isfinite(area).all() or (area < 0).any():
+        return None
+    img_a, cat_a = np.asarray(img, dtype=np.int64), np.asarray(cat, dtype=np.int64)
+    if not np.isin(img_a, np.fromiter(key_to_internal, dtype=np.int64)).all():
+        return None
+    if not np.isin(cat_a, np.fromiter(cat_names, dtype=np.int64)).all():
+        return None
+    crowd_l = [int(bool(c)) for c in crowd]
+    return [{"id": j, "image_id": i, "category_id": c, "bbox": b, "area": ar, "iscrowd": cr}
+            for j, (i, c, b, ar, cr) in enumerate(zip(img, cat, box.tolist(), area.tolist(), crowd_l), start=1)]
+
+
+def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[int, str]) -> list[dict[str, Any]]:
+    """Record-by-record normalisation of GT annotations; an error names the annotation."""
+    anns: list[dict[str, Any]] = []
+    for i, a in enumerate(anns_in):
         where = f"ground truth annotations[{i}]" + (f" (id {a.get('id')!r})" if isinstance(a, Mapping) and "id" in a else "")
         if not isinstance(a, Mapping):
             raise EvaluationError(f"{where}: not a dict")
@@ -178,39 +234,24 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
         if cid not in cat_names:
             raise EvaluationError(f"{where}: category_id {a['category_id']!r} is not in the ground truth's categories")
         box = _box(a["bbox"], where)
-        area = float(a.get("area", box[2] * box[3]))
+        try:
+            area = float(a.get("area", box[2] * box[3]))
+        except (TypeError, ValueError):
+            area = float("nan")
         if not math.isfinite(area) or area < 0:
             raise EvaluationError(f"{where}: area {a.get('area')!r} is not a finite non-negative number")
-        crowd = int(bool(a.get("iscrowd", 0)))
-        if a.get("ignore") and not crowd:
-            ignore_without_crowd += 1
-        ann_id = len(anns) + 1
-        anns.append({"id": ann_id, "image_id": key_to_internal[img], "category_id": cid, "bbox": box,
-                     "area": area, "iscrowd": crowd})
-        if crowd:
-            n_crowd += 1
-            crowd_ids.add(ann_id)
-        else:
-            n_gt[cid] += 1  # type: ignore[index]
-    notes: list[str] = []
-    if ignore_without_crowd:
-        msg = (f"{ignore_without_crowd} GT annotation(s) carry ignore=1 without iscrowd=1; COCO evaluation honours only "
-               f"iscrowd, so they are scored as ordinary objects (mark ignore regions with iscrowd=1)")
-        log.warning(msg)
-        notes.append(msg)
-
-    dets, dropped = _prepare_detections(detections, key_to_internal, all_int, cat_names, strict)
-    prepared_gt = {"info": {"description": "harness evaluation"}, "images": images, "annotations": anns, "categories": cats}
-    return PreparedEval(prepared_gt, dets, sorted(cat_names), cat_names, keys, n_gt, n_crowd, crowd_ids, dropped, notes)
+        anns.append({"id": len(anns) + 1, "image_id": key_to_internal[img], "category_id": cid, "bbox": box,
+                     "area": area, "iscrowd": int(bool(a.get("iscrowd", 0)))})
+    return anns
 
 
 def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal: dict, all_int: bool,
-                        cat_names: dict[int, str], strict: bool) -> tuple[list[dict[str, Any]], dict[str, int]]:
+                        cat_names: dict[int, str], strict: bool) -> tuple[list[dict[str, Any]], tuple, dict[str, int]]:
     """Vectorised checks of COCO results (a million detections take about a second)."""
     n = len(detections)
     dropped = {"unknown_category": 0, "unknown_image": 0}
     if n == 0:
-        return [], dropped
+        return [], (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)), dropped
     try:
         img_raw = [d["image_id"] for d in detections]
         cat_raw = [d["category_id"] for d in detections]
@@ -285,15 +326,18 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
             raise EvaluationError(msg)
         log.warning("%s: dropped, not scored", msg)
         dropped = {"unknown_category": n_bad_cat, "unknown_image": n_bad_img}
-    keep = np.flatnonzero(known_img & known_cat)
+    keep_mask = known_img & known_cat
     areas = boxes[:, 2] * boxes[:, 3]
-    imgs_l, cats_l, scores_l, areas_l, boxes_l = imgs.tolist(), cats.tolist(), scores.tolist(), areas.tolist(), boxes.tolist()
-    dets = [
-        {"id": j + 1, "image_id": imgs_l[i], "category_id": cats_l[i], "bbox": boxes_l[i], "score": scores_l[i],
-         "area": areas_l[i], "iscrowd": 0}
-        for j, i in enumerate(keep.tolist())
-    ]
-    return dets, dropped
+    # the caller's bbox lists are shared (read-only) rather than copied when they are plain lists
+    box_rows = box_raw if all(type(b) is list for b in box_raw) else boxes.tolist()
+    cols = (imgs.tolist(), cats.tolist(), box_rows, scores.tolist(), areas.tolist())
+    if not keep_mask.all():
+        idx = np.flatnonzero(keep_mask).tolist()
+        cols = tuple([c[i] for i in idx] for c in cols)  # type: ignore[assignment]
+    dets = [{"id": j, "image_id": im, "category_id": c, "bbox": b, "score": sc, "area": ar}
+            for j, (im, c, b, sc, ar) in enumerate(zip(*cols), start=1)]
+    columns = (imgs[keep_mask], cats[keep_mask], scores[keep_mask])
+    return dets, columns, dropped
 
 
 # ----------------------------------------------------------------------------------------------- engines
@@ -307,6 +351,18 @@ class EngineResult:
     op_scores: np.ndarray | None = None
     op_cat_index: np.ndarray | None = None
     op_is_tp: np.ndarray | None = None
+
+
+@contextlib.contextmanager
+def _gc_paused() -> Any:
+    """Pause the cyclic garbage collector (reference counting still frees everything); restore it afterwards."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
 
 
 def _silent(*_: Any, **__: Any) -> None:
@@ -438,9 +494,7 @@ def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: di
         result.op_is_tp = np.zeros(0, dtype=bool)
         return
     n = len(dets)
-    img = np.fromiter((d["image_id"] for d in dets), dtype=np.int64, count=n)
-    cat = np.fromiter((d["category_id"] for d in dets), dtype=np.int64, count=n)
-    score = np.fromiter((d["score"] for d in dets), dtype=np.float64, count=n)
+    img, cat, score = prep.det_columns
     ids = np.arange(1, n + 1)
     # rank within (image, category) by descending score, ties in input order (COCOeval's stable sort)
     order = np.lexsort((ids, -score, cat, img))
@@ -573,8 +627,9 @@ def evaluate(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], eng
         raise EvaluationError(f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)")
     if safit_anchor not in ANCHORS:
         raise EvaluationError(f"unknown SAFit NWD anchor {safit_anchor!r}; use one of {', '.join(ANCHORS)}")
-    prep = prepare(gt, detections, strict=strict)
-    res = run_engine(prep, engine, "iou")
+    with _gc_paused():  # millions of short-lived dicts: generational GC passes would cost a third of the time
+        prep = prepare(gt, detections, strict=strict)
+        res = run_engine(prep, engine, "iou")
     n_gt = np.array([prep.n_gt[c] for c in prep.cat_ids], dtype=np.int64)
     op = max_f1_operating_point(res.op_scores, res.op_cat_index, res.op_is_tp, n_gt)
     stats = [_nullable(s) for s in res.stats]
@@ -607,7 +662,8 @@ def evaluate(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], eng
         per_category[name] = {"AP50": ap50, "AP50_95": ap, "instances": prep.n_gt[cid],
                               "precision": pr[0] if pr else None, "recall": pr[1] if pr else None}
     if matching == "safit":
-        block, safit_cat = _safit_block(prep, engine, safit_anchor)
+        with _gc_paused():
+            block, safit_cat = _safit_block(prep, engine, safit_anchor)
         metrics["safit"] = block
         for cid in prep.cat_ids:
             per_category[prep.cat_names[cid]]["SAFit_AP50"], per_category[prep.cat_names[cid]]["SAFit_AP50_95"] = safit_cat[cid]
