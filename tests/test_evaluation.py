@@ -244,3 +244,19 @@ def test_operating_point_equals_brute_force_sweep():
             best = (float(np.mean(f1s)), t)
     assert op.conf_threshold == best[1]
     assert op.f1 == pytest.approx(best[0], abs=1e-12)
+
+
+def test_python_matching_fallback_equals_the_cpp_path():
+    from harness.evaluation.coco import (_faster_matches_at_50, _python_matches_at_50, prepare,
+                                         _faster_eval_class, _silent)
+    from faster_coco_eval.core.coco import COCO
+
+    gt, dets = random_coco(seed=13, crowd=0.15)
+    prep = prepare(gt, dets)
+    ev = _faster_eval_class("iou", "center")(COCO(prep.gt, print_function=_silent),
+                                              COCO({"images": prep.gt["images"], "categories": prep.gt["categories"],
+                                                    "annotations": prep.dets}, print_function=_silent),
+                                              iouType="bbox", print_function=_silent)
+    ev.evaluate()
+    cpp, py = _faster_matches_at_50(ev), _python_matches_at_50(ev)
+    assert len(cpp) > 50 and cpp == py

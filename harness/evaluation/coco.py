@@ -454,7 +454,11 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
     result = EngineResult(list(map(float, ev.stats[:12])), np.asarray(ev.eval["precision"]),
                           np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl))
     if want_op:
-        matches = _faster_matches_at_50(ev)
+        try:
+            matches = _faster_matches_at_50(ev)
+        except (AttributeError, TypeError, RuntimeError, KeyError) as exc:  # faster-coco-eval internals changed
+            log.debug("faster-coco-eval C++ matching unavailable (%s); matching in Python", exc)
+            matches = _python_matches_at_50(ev)
         _fill_operating_inputs(result, prep, matches)
     return result
 
@@ -482,6 +486,40 @@ def _faster_matches_at_50(ev: Any) -> dict[int, int]:
     for key in acc["matched"]:
         d, g = key.split("_", 1)
         out[int(d)] = int(g)
+    return out
+
+
+def _python_matches_at_50(ev: Any) -> dict[int, int]:
+    """COCOeval.evaluateImg's greedy matching at IoU 0.50, area 'all', on faster-coco-eval's IoU matrices."""
+    p = ev.params
+    out: dict[int, int] = {}
+    thr = min(0.5, 1 - 1e-10)
+    for img in p.imgIds:
+        for cat in p.catIds:
+            ious = ev.ious.get((img, cat))
+            if ious is None or len(ious) == 0:
+                continue
+            gts = ev.gt_dataset.get_instances([img], [cat], True)[0][0]
+            dts = _sorted_topk(ev.dt_dataset.get_instances([img], [cat], True)[0][0], p.maxDets[-1])
+            ignore = np.array([int(g.get("iscrowd", 0)) for g in gts])
+            gtind = np.argsort(ignore, kind="mergesort")
+            ious = np.asarray(ious)[:, gtind]
+            gts = [gts[i] for i in gtind]
+            ignore = ignore[gtind]
+            taken = np.zeros(len(gts), dtype=bool)
+            for di, d in enumerate(dts):
+                best, m = thr, -1
+                for gi in range(len(gts)):
+                    if taken[gi] and not ignore[gi]:
+                        continue
+                    if m > -1 and ignore[m] == 0 and ignore[gi] == 1:
+                        break
+                    if ious[di, gi] < best:
+                        continue
+                    best, m = ious[di, gi], gi
+                if m > -1:
+                    taken[m] = True
+                    out[int(d["id"])] = int(gts[m]["id"])
     return out
 
 
