@@ -247,8 +247,8 @@ def test_operating_point_equals_brute_force_sweep():
 
 
 def test_python_matching_fallback_equals_the_cpp_path():
-    from harness.evaluation.coco import (_faster_matches_at_50, _python_matches_at_50, prepare,
-                                         _faster_eval_class, _silent)
+    from harness.evaluation.engines import _faster_eval_class, _faster_matches_at_50, _python_matches_at_50, _silent
+    from harness.evaluation.inputs import prepare
     from faster_coco_eval.core.coco import COCO
 
     gt, dets = random_coco(seed=13, crowd=0.15)

@@ -13,7 +13,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from harness.evaluation.coco import EvaluationError, _norm_id, evaluate
+from harness.evaluation.coco import evaluate
+from harness.evaluation.inputs import EvaluationError, _norm_id
 
 log = logging.getLogger(__name__)
 

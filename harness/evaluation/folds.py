@@ -12,7 +12,7 @@ import math
 import statistics
 from typing import Any, Mapping, Sequence
 
-from harness.evaluation.coco import EvaluationError
+from harness.evaluation.inputs import EvaluationError
 
 #: Headline metrics aggregated over folds (SAFit ones are added as ``safit_<name>`` when present).
 FOLD_METRICS = ("mAP50", "mAP50_95", "precision", "recall", "f1")
