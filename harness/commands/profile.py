@@ -32,7 +32,7 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
         fv = flops.get("fvcore") or {}
         lat = r.get("latency") or {}
         rows.append([
-            r["detector"] + (f" [{r['label']}]" if r.get("label") else ""),
+            r["detector"],
             "x".join(str(s[1]) for s in r["input"]["shapes"]) + "ch",
             f"{r['params']['fused'] / 1e6:.3f}",
             _fmt(ref.get("params_m"), ".2f"),
@@ -66,6 +66,8 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
     for name, text in CONVENTIONS.items():
         out.append(f"GFLOPs {name}: {text}.")
     for r in results:
+        if r.get("label"):
+            out.append(f"{r['detector']}: {r['label']}")
         lat = r.get("latency") or {}
         t, o = lat.get("torch") or {}, lat.get("onnxruntime") or {}
         if "median_ms" in t:
