@@ -135,3 +135,16 @@ def test_engines_agree_under_safit():
     assert sa["mAP50"] > a["metrics"]["mAP50"]  # tiny, loosely placed boxes score higher under SAFit
     assert {k: v.get("SAFit_AP50_95") for k, v in a["per_category"].items()} == \
            pytest.approx({k: v.get("SAFit_AP50_95") for k, v in b["per_category"].items()}, abs=1e-12)
+
+
+def test_config_selects_engine_matching_and_anchor():
+    from harness.config import load_config
+    from harness.evaluation import evaluate_with_config
+
+    cfg = load_config(overrides=["eval.matching=safit", "eval.safit_anchor=topleft", "eval.engine=pycocotools"])
+    gt, dets = _one_box((100, 100, 20, 20))
+    m = evaluate_with_config(gt, dets, cfg)["metrics"]
+    assert (m["engine"], m["matching"], m["safit"]["anchor"]) == ("pycocotools", "safit", "topleft")
+    assert m["safit"]["mAP50_95"] == pytest.approx(0.2)
+    default = evaluate_with_config(gt, dets, load_config())["metrics"]
+    assert (default["engine"], default["matching"]) == ("faster-coco-eval", "iou") and "safit" not in default
