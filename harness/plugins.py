@@ -45,6 +45,8 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
     "harness.commands.profile",
+    "harness.encodings",
+    "harness.commands.sensing",
 )
 
 #: hook name -> (kind shown to users, spec class)
