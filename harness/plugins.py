@@ -47,6 +47,10 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.profile",
     "harness.encodings",
     "harness.commands.sensing",
+    "harness.commands.data",
+    "adapters.datasets.m3t",
+    "adapters.datasets.synthetic",
+    "adapters.detectors.ours",
 )
 
 #: hook name -> (kind shown to users, spec class)
