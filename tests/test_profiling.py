@@ -189,6 +189,11 @@ class _TinyPlugin:
                               reference=Reference(params_m=0.0006, gflops=0.00007, source="hand count")))
         register(DetectorSpec(name="tiny-dual", build=lambda num_classes, in_channels=1, **kw: TinyDualDetector(),
                               input_kind="dual", thermal_channels=1))
+        register(DetectorSpec(name="tiny-broken", build=_broken))
+
+
+def _broken(num_classes, **kw):
+    raise ValueError("no weights for this width")
 
 
 def test_cli_profile_and_export(cli_runner, tmp_path):
@@ -196,8 +201,8 @@ def test_cli_profile_and_export(cli_runner, tmp_path):
     from harness.store import Store
 
     with temporary_plugin(_TinyPlugin(), name="tiny-profiling-plugin"):
-        res = cli_runner(["profile", "--detector", "all", "--imgsz", "16", "--runs", "3", "--warmup", "1",
-                          "--threads", "1", "--no-onnx", "--store", str(tmp_path / "store")])
+        args = ["--imgsz", "16", "--runs", "3", "--warmup", "1", "--threads", "1", "--no-onnx"]
+        res = cli_runner(["profile", "--detector", "tiny-attn,tiny-dual", *args, "--store", str(tmp_path / "store")])
         assert res.exit_code == 0, res.output
         lines = res.output.splitlines()
         row = next(line for line in lines if line.startswith("tiny-attn"))
@@ -218,3 +223,10 @@ def test_cli_profile_and_export(cli_runner, tmp_path):
 
         res = cli_runner(["profile", "--detector", "nope", "--no-store"])
         assert res.exit_code == 2 and "unknown detector 'nope'" in res.output
+
+        # one detector that cannot be built does not stop the others
+        res = cli_runner(["profile", "--detector", "tiny-broken,tiny-dual", *args, "--no-store", "--no-fvcore"])
+        assert res.exit_code == 1
+        assert any(line.startswith("tiny-dual") and "error" not in line for line in res.output.splitlines())
+        assert "tiny-broken: not profiled: detector 'tiny-broken' could not be built" in res.output
+        assert "no weights for this width" in res.output

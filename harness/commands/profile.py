@@ -27,6 +27,9 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
               "torch ms med/p90", "ORT ms med/p90", "unused params"]
     rows = []
     for r in results:
+        if "error" in r:
+            rows.append([r["detector"]] + ["error"] + ["-"] * (len(header) - 2))
+            continue
         ref = r.get("reference") or {}
         flops = r["flops"]
         fv = flops.get("fvcore") or {}
@@ -59,6 +62,10 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
 
     header, rows = profile_rows(results)
     out = [format_table(header, rows), ""]
+    failed = [r for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
+    for r in failed:
+        out.append(f"{r['detector']}: not profiled: {r['error']}")
     if results:
         r0 = results[0]
         out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = BN-folded "
@@ -90,7 +97,8 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="profile")
-    @click.option("--detector", required=True, help="Detector name, or 'all' for every registered detector.")
+    @click.option("--detector", required=True,
+                  help="Detector name, several separated by commas, or 'all' for every registered detector.")
     @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of the table.")
     @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size.")
     @click.option("--num-classes", type=int, default=8, show_default=True)
@@ -119,34 +127,46 @@ def register_commands(cli: click.Group) -> None:
         from harness.profiling import profile_detector
         from harness.store import Store
 
+        from harness.errors import HarnessError
+
         host = get_host()
-        names = sorted(host.detectors()) if detector == "all" else [detector]
-        if detector != "all":
-            host.detector(detector)  # unknown names fail here with the list of available ones
+        names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
+        for name in names:
+            host.detector(name)  # unknown names fail here with the list of available ones
         results = []
         with Progress(transient=True, disable=as_json) as progress:
             task = progress.add_task("profiling", total=len(names))
             for name in names:
                 progress.update(task, description=f"profiling {name}")
-                results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes, in_channels=in_channels,
-                                                host=host, latency=latency, onnx=onnx, fvcore=fvcore, warmup=warmup,
-                                                runs=runs, threads=threads, device=device))
+                try:
+                    results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes,
+                                                    in_channels=in_channels, host=host, latency=latency, onnx=onnx,
+                                                    fvcore=fvcore, warmup=warmup, runs=runs, threads=threads,
+                                                    device=device))
+                except HarnessError as exc:
+                    if len(names) == 1:
+                        raise
+                    results.append({"detector": name, "error": str(exc)})  # the others are still profiled
                 progress.advance(task)
         if not no_store:
             root = store or Path("results") / run_profile
             for r in results:
-                Store(root).write_profile(r["detector"], r)
+                if "error" not in r:
+                    Store(root).write_profile(r["detector"], r)
+        failed = [r["detector"] for r in results if "error" in r]
         if as_json:
             click.echo(json.dumps(results, indent=2, default=str))
-            return
-        click.echo(format_profiles(results))
+        else:
+            click.echo(format_profiles(results))
         if show_table:
             for r in results:
-                table = (r["flops"].get("fvcore") or {}).get("table")
+                table = (r.get("flops", {}).get("fvcore") or {}).get("table")
                 if table:
                     click.echo(f"\n{r['detector']}: {table}")
-        if not no_store:
+        if not no_store and not as_json:
             click.echo(f"\nprofiles written to {(store or Path('results') / run_profile) / '_profiles'}")
+        if failed:
+            raise click.ClickException(f"could not profile {', '.join(failed)} (see above)")
 
     @cli.command(name="export")
     @click.option("--detector", required=True, help="Detector name.")
