@@ -246,17 +246,60 @@ def test_operating_point_equals_brute_force_sweep():
     assert op.f1 == pytest.approx(best[0], abs=1e-12)
 
 
-def test_python_matching_fallback_equals_the_cpp_path():
-    from harness.evaluation.engines import _faster_eval_class, _faster_matches_at_50, _python_matches_at_50, _silent
-    from harness.evaluation.inputs import prepare
-    from faster_coco_eval.core.coco import COCO
+def _pycocotools_matches_at_50(gt, dets):
+    """dt id -> gt id from plain pycocotools' evalImgs at IoU 0.50, area 'all' (detections numbered 1..N)."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
 
-    gt, dets = random_coco(seed=13, crowd=0.15)
+    with contextlib.redirect_stdout(io.StringIO()):
+        g = COCO()
+        g.dataset = copy.deepcopy(gt)
+        g.createIndex()
+        ev = COCOeval(g, g.loadRes(copy.deepcopy(dets)), "bbox")
+        ev.evaluate()
+    out = {}
+    for e in ev.evalImgs:
+        if e is not None and e["aRng"] == [0, 1e10]:
+            out.update({d: int(m) for d, m in zip(e["dtIds"], e["dtMatches"][0]) if m > 0})
+    return out
+
+
+@pytest.mark.parametrize("seed", [13, 14])
+def test_bulk_greedy_matching_equals_cocoeval(seed):
+    from harness.evaluation.inputs import prepare
+    from harness.evaluation.pairs import pair_layout
+    from harness.evaluation.safit import iou_elementwise
+
+    gt, dets = random_coco(seed=seed, crowd=0.15)
+    # exact ties: a duplicated GT box (COCO gives the detection to the later one) and a crowd copy of a GT
+    a = gt["annotations"][0]
+    gt["annotations"] += [dict(a, id=10_001), dict(a, id=10_002, iscrowd=1)]
+    dets.append({"image_id": a["image_id"], "category_id": a["category_id"], "bbox": list(a["bbox"]), "score": 0.999})
+    ref = _pycocotools_matches_at_50(gt, dets)
+    renumbered = {x["id"]: k + 1 for k, x in enumerate(gt["annotations"])}  # the harness numbers GT 1..N in order
+    ref = {d: renumbered[g] for d, g in ref.items()}
     prep = prepare(gt, dets)
-    ev = _faster_eval_class("iou", "center")(COCO(prep.gt, print_function=_silent),
-                                              COCO({"images": prep.gt["images"], "categories": prep.gt["categories"],
-                                                    "annotations": prep.dets}, print_function=_silent),
-                                              iouType="bbox", print_function=_silent)
-    ev.evaluate()
-    cpp, py = _faster_matches_at_50(ev), _python_matches_at_50(ev)
-    assert len(cpp) > 50 and cpp == py
+    layout = pair_layout(prep, 100)
+    got = layout.greedy_match(prep, layout.values(prep, iou_elementwise), threshold=0.5)
+    assert len(ref) > 50 and got == ref
+    assert got[len(dets)] == renumbered[10_001]  # of two identical GT boxes, the later one (crowd comes last)
+
+
+def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
+    from faster_coco_eval.core.coco import COCO
+    from faster_coco_eval.core.faster_eval_api import COCOeval_faster
+
+    from harness.evaluation.inputs import prepare
+    from harness.evaluation.pairs import pair_layout
+    from harness.evaluation.safit import iou_elementwise
+
+    gt, dets = random_coco(seed=15, crowd=0.15)
+    prep = prepare(gt, dets)
+    layout = pair_layout(prep, 100)
+    ours = layout.matrices(layout.values(prep, iou_elementwise))
+    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt)), COCO(copy.deepcopy(gt)).loadRes(copy.deepcopy(dets)),
+                         iouType="bbox")
+    ev.evaluate()  # the library's own per-pair IoU matrices, dense 1 image at a time
+    theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}
+    assert set(ours) == set(theirs) and len(ours) > 50
+    assert all(np.array_equal(ours[k], theirs[k]) for k in ours)

@@ -8,17 +8,18 @@ TP flags. ``matching="safit"`` swaps the IoU matrix for SAFit's (``harness.evalu
 from __future__ import annotations
 
 import contextlib
-import copy
 import gc
 import io
 import logging
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Mapping
 
 import numpy as np
 
 from harness.evaluation.inputs import EvaluationError, PreparedEval
-from harness.evaluation.safit import ANCHORS, SAFIT_C, safit_xywh
+from harness.evaluation.pairs import pair_layout
+from harness.evaluation.safit import ANCHORS, SAFIT_C, iou_elementwise, safit_elementwise, safit_xywh
 
 log = logging.getLogger(__name__)
 
@@ -72,18 +73,49 @@ def _safit_matrix(gt: list[dict[str, Any]], dt: list[dict[str, Any]], max_det: i
 def _faster_eval_class(matching: str, anchor: str) -> type:
     from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
-    if matching == "iou":
-        return COCOeval_faster
+    class HarnessEvalFaster(COCOeval_faster):  # type: ignore[misc, valid-type]
+        """faster-coco-eval with the Python-side work done in bulk: the IoU (or SAFit) matrices of every pair are
+        computed in one vectorised pass and the C++ datasets are filled directly. Its C++ matching and
+        accumulation are unchanged. Without ``harness_inputs`` (or if the library's internals moved) it behaves
+        as the stock class, with SAFit computed pair by pair."""
 
-    class SAFitEvalFaster(COCOeval_faster):  # type: ignore[misc, valid-type]
+        harness_inputs: PreparedEval | None = None
+
+        def _prepare(self) -> None:
+            prep = self.harness_inputs
+            if prep is None or self.params.iouType != "bbox" or self.lvis_style or not self.params.useCats:
+                return super()._prepare()
+            try:
+                measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
+                self._harness_layout = pair_layout(prep, self.params.maxDets[-1])
+                self._harness_values = self._harness_layout.values(prep, measure)
+                self._harness_pairs = self._harness_layout.matrices(self._harness_values)
+                self.gt_dataset.clean()
+                self.dt_dataset.clean()
+                for g in prep.gt["annotations"]:
+                    self.gt_dataset.append_ref(g["image_id"], g["category_id"], g)
+                for d in prep.dets:
+                    self.dt_dataset.append_ref(d["image_id"], d["category_id"], d)
+                self._nonempty_iou_pairs = set(self._harness_pairs)
+            except AttributeError as exc:  # the library's internals changed: do it its own way
+                log.debug("faster-coco-eval bulk preparation unavailable (%s)", exc)
+                self.harness_inputs = None
+                self._harness_pairs = None
+                return super()._prepare()
+
         def computeIoU(self, imgId: int, catId: int) -> Any:  # noqa: N802 (COCOeval's name)
+            pairs = getattr(self, "_harness_pairs", None)
+            if pairs is not None:
+                return pairs.get((int(imgId), int(catId)), [])
+            if matching == "iou":
+                return super().computeIoU(imgId, catId)
             p = self.params
             cat = [catId] if p.useCats else p.catIds
             gt = self.gt_dataset.get_instances([imgId], cat, bool(p.useCats))[0][0]
             dt = self.dt_dataset.get_instances([imgId], cat, bool(p.useCats))[0][0]
             return _safit_matrix(gt, dt, p.maxDets[-1], anchor)
 
-    return SAFitEvalFaster
+    return HarnessEvalFaster
 
 
 def _pycoco_eval_class(matching: str, anchor: str) -> type:
@@ -131,6 +163,7 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
         ranges = {k: list(v) for k, v in area_ranges.items() if k != "all"}
     cls = _faster_eval_class(matching, anchor)
     ev = cls(gt, dt, iouType="bbox", print_function=_silent, ranges=ranges)
+    ev.harness_inputs = prep
     ev.params.imgIds = [im["id"] for im in prep.gt["images"]]
     ev.params.catIds = list(prep.cat_ids)
     ev.evaluate()
@@ -139,73 +172,12 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
     result = EngineResult(list(map(float, ev.stats[:12])), np.asarray(ev.eval["precision"]),
                           np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl))
     if want_op:
-        try:
-            matches = _faster_matches_at_50(ev)
-        except (AttributeError, TypeError, RuntimeError, KeyError) as exc:  # faster-coco-eval internals changed
-            log.debug("faster-coco-eval C++ matching unavailable (%s); matching in Python", exc)
-            matches = _python_matches_at_50(ev)
-        _fill_operating_inputs(result, prep, matches)
+        layout = getattr(ev, "_harness_layout", None) or pair_layout(prep, ev.params.maxDets[-1])
+        values = getattr(ev, "_harness_values", None)
+        if values is None:
+            values = layout.values(prep, iou_elementwise)
+        _fill_operating_inputs(result, prep, layout.greedy_match(prep, values, threshold=0.5))
     return result
-
-
-def _faster_matches_at_50(ev: Any) -> dict[int, int]:
-    """COCO's own matching at IoU 0.50, area 'all', last maxDets: detection id -> GT id.
-
-    faster-coco-eval's ``eval["matched"]`` is the union over all thresholds and area ranges, so the C++ image
-    evaluation is re-run once on the already computed IoU matrices with only that threshold and area range.
-    """
-    import faster_coco_eval.faster_eval_api_cpp as _C
-
-    p = ev.params
-    ious = [[ev.ious[i, c] for c in p.catIds] for i in p.imgIds]
-    all_range = [list(p.areaRng[0])]
-    evals = _C.COCOevalEvaluateImages(all_range, p.maxDets[-1], [0.5], ious, ev.gt_dataset, ev.dt_dataset,
-                                      p.imgIds, p.catIds, bool(p.useCats))
-    params = copy.deepcopy(ev._paramsEval)
-    params.iouThrs = np.array([0.5])
-    params.areaRng = all_range
-    params.areaRngLbl = ["all"]
-    params.maxDets = [p.maxDets[-1]]
-    acc = _C.COCOevalAccumulate(params, evals)
-    out: dict[int, int] = {}
-    for key in acc["matched"]:
-        d, g = key.split("_", 1)
-        out[int(d)] = int(g)
-    return out
-
-
-def _python_matches_at_50(ev: Any) -> dict[int, int]:
-    """COCOeval.evaluateImg's greedy matching at IoU 0.50, area 'all', on faster-coco-eval's IoU matrices."""
-    p = ev.params
-    out: dict[int, int] = {}
-    thr = min(0.5, 1 - 1e-10)
-    for img in p.imgIds:
-        for cat in p.catIds:
-            ious = ev.ious.get((img, cat))
-            if ious is None or len(ious) == 0:
-                continue
-            gts = ev.gt_dataset.get_instances([img], [cat], True)[0][0]
-            dts = _sorted_topk(ev.dt_dataset.get_instances([img], [cat], True)[0][0], p.maxDets[-1])
-            ignore = np.array([int(g.get("iscrowd", 0)) for g in gts])
-            gtind = np.argsort(ignore, kind="mergesort")
-            ious = np.asarray(ious)[:, gtind]
-            gts = [gts[i] for i in gtind]
-            ignore = ignore[gtind]
-            taken = np.zeros(len(gts), dtype=bool)
-            for di, d in enumerate(dts):
-                best, m = thr, -1
-                for gi in range(len(gts)):
-                    if taken[gi] and not ignore[gi]:
-                        continue
-                    if m > -1 and ignore[m] == 0 and ignore[gi] == 1:
-                        break
-                    if ious[di, gi] < best:
-                        continue
-                    best, m = ious[di, gi], gi
-                if m > -1:
-                    taken[m] = True
-                    out[int(d["id"])] = int(gts[m]["id"])
-    return out
 
 
 def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: dict[int, int]) -> None:
@@ -217,7 +189,7 @@ def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: di
         result.op_is_tp = np.zeros(0, dtype=bool)
         return
     n = len(dets)
-    img, cat, score = prep.det_columns
+    img, cat, score, _ = prep.det_columns
     ids = np.arange(1, n + 1)
     # rank within (image, category) by descending score, ties in input order (COCOeval's stable sort)
     order = np.lexsort((ids, -score, cat, img))

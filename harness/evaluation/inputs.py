@@ -81,8 +81,8 @@ class PreparedEval:
     n_gt: dict[int, int]  # non-crowd GT per category id
     n_crowd: int
     crowd_ann_ids: set[int]
-    #: the kept detections as arrays, in ``dets`` order: image_id (internal), category_id, score
-    det_columns: tuple[np.ndarray, np.ndarray, np.ndarray]
+    #: the kept detections as arrays, in ``dets`` order: image_id (internal), category_id, score, boxes [N, 4]
+    det_columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     dropped: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
@@ -187,7 +187,7 @@ def _fast_annotations(anns_in: list, key_to_internal: dict, all_int: bool, cat_n
     if not np.isin(cat_a, np.fromiter(cat_names, dtype=np.int64)).all():
         return None
     crowd_l = [int(bool(c)) for c in crowd]
-    return [{"id": j, "image_id": i, "category_id": c, "bbox": b, "area": ar, "iscrowd": cr}
+    return [{"id": j, "image_id": i, "category_id": c, "bbox": b, "area": ar, "iscrowd": cr, "ignore": cr}
             for j, (i, c, b, ar, cr) in enumerate(zip(img, cat, box.tolist(), area.tolist(), crowd_l), start=1)]
 
 
@@ -214,8 +214,9 @@ def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[i
             area = float("nan")
         if not math.isfinite(area) or area < 0:
             raise EvaluationError(f"{where}: area {a.get('area')!r} is not a finite non-negative number")
+        crowd = int(bool(a.get("iscrowd", 0)))
         anns.append({"id": len(anns) + 1, "image_id": key_to_internal[img], "category_id": cid, "bbox": box,
-                     "area": area, "iscrowd": int(bool(a.get("iscrowd", 0)))})
+                     "area": area, "iscrowd": crowd, "ignore": crowd})
     return anns
 
 
@@ -225,7 +226,7 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
     n = len(detections)
     dropped = {"unknown_category": 0, "unknown_image": 0}
     if n == 0:
-        return [], (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)), dropped
+        return [], (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4))), dropped
     try:
         img_raw = [d["image_id"] for d in detections]
         cat_raw = [d["category_id"] for d in detections]
@@ -310,5 +311,5 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
         cols = tuple([c[i] for i in idx] for c in cols)  # type: ignore[assignment]
     dets = [{"id": j, "image_id": im, "category_id": c, "bbox": b, "score": sc, "area": ar}
             for j, (im, c, b, sc, ar) in enumerate(zip(*cols), start=1)]
-    columns = (imgs[keep_mask], cats[keep_mask], scores[keep_mask])
+    columns = (imgs[keep_mask], cats[keep_mask], scores[keep_mask], boxes[keep_mask])
     return dets, columns, dropped

@@ -50,38 +50,29 @@ def _as_boxes(boxes: np.ndarray | list) -> np.ndarray:
     return arr.reshape(-1, 4)
 
 
-def iou_xywh(dt: np.ndarray, gt: np.ndarray, iscrowd: np.ndarray | None = None) -> np.ndarray:
-    """COCO box IoU, ``[D, 4] x [G, 4] -> [D, G]``; for a crowd GT the union is the detection's own area."""
-    d, g = _as_boxes(dt), _as_boxes(gt)
-    crowd = np.zeros(len(g), dtype=bool) if iscrowd is None else np.asarray(iscrowd, dtype=bool).reshape(-1)
-    iw = np.minimum(d[:, None, 0] + d[:, None, 2], g[None, :, 0] + g[None, :, 2]) - np.maximum(d[:, None, 0], g[None, :, 0])
-    ih = np.minimum(d[:, None, 1] + d[:, None, 3], g[None, :, 1] + g[None, :, 3]) - np.maximum(d[:, None, 1], g[None, :, 1])
+# The equations, on broadcastable [..., 4] arrays (element-wise for matched pairs, [D,1,4] x [1,G,4] for matrices).
+def iou_elementwise(d: np.ndarray, g: np.ndarray, crowd: np.ndarray | bool = False) -> np.ndarray:
+    """COCO box IoU (``|d ∩ g| / |d ∪ g|``; ``|d ∩ g| / |d|`` for a crowd GT), same operation order as COCO's C code."""
+    iw = np.minimum(d[..., 0] + d[..., 2], g[..., 0] + g[..., 2]) - np.maximum(d[..., 0], g[..., 0])
+    ih = np.minimum(d[..., 1] + d[..., 3], g[..., 1] + g[..., 3]) - np.maximum(d[..., 1], g[..., 1])
     inter = np.where((iw > 0) & (ih > 0), iw * ih, 0.0)
-    da = (d[:, 2] * d[:, 3])[:, None]
-    ga = (g[:, 2] * g[:, 3])[None, :]
-    union = np.where(crowd[None, :], da, da + ga - inter)
+    da = d[..., 2] * d[..., 3]
+    ga = g[..., 2] * g[..., 3]
+    union = np.where(crowd, da, da + ga - inter)
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.where(union > 0, inter / union, 0.0)
-    return out
+        return np.where(inter > 0, inter / union, 0.0)
 
 
-def nwd_xywh(dt: np.ndarray, gt: np.ndarray, c: float = SAFIT_C, anchor: Anchor = "center") -> np.ndarray:
-    """Normalized Wasserstein distance, ``exp(-W2 / C)``, ``[D, 4] x [G, 4] -> [D, G]``.
-
-    ``W2 = ||(px_d - px_g, py_d - py_g, (w_d - w_g)/2, (h_d - h_g)/2)||_2`` with ``(px, py)`` the box centre
-    (``anchor="center"``) or its top-left corner (``anchor="topleft"``, as the official RGBT-Tiny code).
-    """
+def nwd_elementwise(d: np.ndarray, g: np.ndarray, c: float = SAFIT_C, anchor: Anchor = "center") -> np.ndarray:
+    """``exp(-||(px_d - px_g, py_d - py_g, (w_d - w_g)/2, (h_d - h_g)/2)||_2 / C)``."""
     if anchor not in ANCHORS:
         raise ValueError(f"NWD anchor must be one of {ANCHORS}, got {anchor!r}")
-    d, g = _as_boxes(dt), _as_boxes(gt)
-    if anchor == "center":
-        d[:, :2] += d[:, 2:] / 2.0
-        g[:, :2] += g[:, 2:] / 2.0
-    d[:, 2:] /= 2.0
-    g[:, 2:] /= 2.0
-    diff = d[:, None, :] - g[None, :, :]
-    w2 = np.sqrt(np.sum(diff * diff, axis=-1))
-    return np.exp(-w2 / c)
+    shift = 0.5 if anchor == "center" else 0.0  # centre (x + w/2, y + h/2) or top-left corner (x, y)
+    dx = (d[..., 0] + shift * d[..., 2]) - (g[..., 0] + shift * g[..., 2])
+    dy = (d[..., 1] + shift * d[..., 3]) - (g[..., 1] + shift * g[..., 3])
+    dw = (d[..., 2] - g[..., 2]) / 2.0
+    dh = (d[..., 3] - g[..., 3]) / 2.0
+    return np.exp(-np.sqrt(dx * dx + dy * dy + dw * dw + dh * dh) / c)
 
 
 def safit_weight(gt_area: np.ndarray | float, c: float = SAFIT_C) -> np.ndarray:
@@ -90,9 +81,30 @@ def safit_weight(gt_area: np.ndarray | float, c: float = SAFIT_C) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-(np.sqrt(np.maximum(a, 0.0)) - c) / c))
 
 
+def safit_elementwise(d: np.ndarray, g: np.ndarray, crowd: np.ndarray | bool = False, c: float = SAFIT_C,
+                      anchor: Anchor = "center") -> np.ndarray:
+    """``SAFit = w(A_g) IoU + (1 - w(A_g)) NWD`` with ``A_g = w_g * h_g`` of the GT box."""
+    w = safit_weight(g[..., 2] * g[..., 3], c)
+    return w * iou_elementwise(d, g, crowd) + (1.0 - w) * nwd_elementwise(d, g, c, anchor)
+
+
+# Matrix forms: detections [D, 4] x ground truth [G, 4] -> [D, G].
+def iou_xywh(dt: np.ndarray, gt: np.ndarray, iscrowd: np.ndarray | None = None) -> np.ndarray:
+    """COCO box IoU matrix; for a crowd GT the union is the detection's own area."""
+    d, g = _as_boxes(dt), _as_boxes(gt)
+    crowd = np.zeros(len(g), dtype=bool) if iscrowd is None else np.asarray(iscrowd, dtype=bool).reshape(-1)
+    return iou_elementwise(d[:, None, :], g[None, :, :], crowd[None, :])
+
+
+def nwd_xywh(dt: np.ndarray, gt: np.ndarray, c: float = SAFIT_C, anchor: Anchor = "center") -> np.ndarray:
+    """Normalized Wasserstein distance matrix (see ``nwd_elementwise``)."""
+    d, g = _as_boxes(dt), _as_boxes(gt)
+    return nwd_elementwise(d[:, None, :], g[None, :, :], c, anchor)
+
+
 def safit_xywh(dt: np.ndarray, gt: np.ndarray, iscrowd: np.ndarray | None = None, c: float = SAFIT_C,
                anchor: Anchor = "center") -> np.ndarray:
-    """``SAFit = w(A_g) IoU + (1 - w(A_g)) NWD``, ``[D, 4] x [G, 4] -> [D, G]``, weight from each GT box's w*h."""
-    g = _as_boxes(gt)
-    w = safit_weight(g[:, 2] * g[:, 3], c)[None, :]
-    return w * iou_xywh(dt, g, iscrowd) + (1.0 - w) * nwd_xywh(dt, g, c, anchor)
+    """SAFit matrix, weight from each GT box's w*h."""
+    d, g = _as_boxes(dt), _as_boxes(gt)
+    crowd = np.zeros(len(g), dtype=bool) if iscrowd is None else np.asarray(iscrowd, dtype=bool).reshape(-1)
+    return safit_elementwise(d[:, None, :], g[None, :, :], crowd[None, :], c, anchor)
