@@ -55,6 +55,11 @@ def _ids_sha1(ids: Iterable[int | str]) -> str:
     return hashlib.sha1(",".join(sorted(str(i) for i in ids)).encode()).hexdigest()
 
 
+def _all_type(values: list, kind: type) -> bool:
+    """Every element is exactly of type ``kind`` (a C-speed check for a million-element list)."""
+    return set(map(type, values)) <= {kind}
+
+
 def _box(value: Any, where: str) -> list[float]:
     try:
         box = [float(v) for v in value]
@@ -174,7 +179,7 @@ def _fast_annotations(anns_in: list, key_to_internal: dict, all_int: bool, cat_n
     except (KeyError, TypeError, ValueError, AttributeError):
         return None
     n = len(anns_in)
-    if not (all_int and all(type(v) is int for v in img) and all(type(v) is int for v in cat)):
+    if not (all_int and _all_type(img, int) and _all_type(cat, int)):
         return None
     if box.shape != (n, 4) or not np.isfinite(box).all() or (box[:, 2:] < 0).any():
         return None
@@ -265,7 +270,7 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
         raise EvaluationError("detections: every score must be a finite number")
 
     # image ids (fast path: plain Python ints that the GT uses as they are)
-    if all_int and all(type(v) is int for v in img_raw):
+    if all_int and _all_type(img_raw, int):
         imgs = np.asarray(img_raw, dtype=np.int64)
         known_img = np.isin(imgs, np.fromiter(key_to_internal, dtype=np.int64, count=len(key_to_internal)))
     else:
@@ -276,7 +281,7 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
             if internal is not None:
                 imgs[i] = internal
                 known_img[i] = True
-    if all(type(v) is int for v in cat_raw):
+    if _all_type(cat_raw, int):
         cats = np.asarray(cat_raw, dtype=np.int64)
     else:
         cats = np.zeros(n, dtype=np.int64)
@@ -304,7 +309,7 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
     keep_mask = known_img & known_cat
     areas = boxes[:, 2] * boxes[:, 3]
     # the caller's bbox lists are shared (read-only) rather than copied when they are plain lists
-    box_rows = box_raw if all(type(b) is list for b in box_raw) else boxes.tolist()
+    box_rows = box_raw if _all_type(box_raw, list) else boxes.tolist()
     cols = (imgs.tolist(), cats.tolist(), box_rows, scores.tolist(), areas.tolist())
     if not keep_mask.all():
         idx = np.flatnonzero(keep_mask).tolist()
