@@ -303,3 +303,23 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}
     assert set(ours) == set(theirs) and len(ours) > 50
     assert all(np.array_equal(ours[k], theirs[k]) for k in ours)
+
+
+def test_stock_preparation_path_gives_the_same_numbers():
+    """Without the bulk inputs the faster-coco-eval subclass falls back to the library's own preparation."""
+    from faster_coco_eval.core.coco import COCO
+
+    from harness.evaluation.engines import _faster_eval_class, _silent
+    from harness.evaluation.inputs import prepare
+
+    gt, dets = random_coco(seed=16, crowd=0.1)
+    ref_stats, _ = pycocotools_reference(gt, dets)
+    prep = prepare(gt, dets)
+    dt = COCO(print_function=_silent)
+    dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
+    ev = _faster_eval_class("iou", "center")(COCO(prep.gt, print_function=_silent), dt, iouType="bbox",
+                                              print_function=_silent)
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    assert list(ev.stats) == pytest.approx(ref_stats, abs=1e-12)

@@ -84,7 +84,7 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
         def _prepare(self) -> None:
             prep = self.harness_inputs
             if prep is None or self.params.iouType != "bbox" or self.lvis_style or not self.params.useCats:
-                return super()._prepare()
+                return self._stock_prepare()
             try:
                 measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
                 self._harness_layout = pair_layout(prep, self.params.maxDets[-1])
@@ -101,7 +101,12 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
                 log.debug("faster-coco-eval bulk preparation unavailable (%s)", exc)
                 self.harness_inputs = None
                 self._harness_pairs = None
-                return super()._prepare()
+                return self._stock_prepare()
+
+        def _stock_prepare(self) -> None:
+            if not self.cocoDt.anns and self.cocoDt.dataset.get("annotations"):
+                self.cocoDt.createIndex()
+            return super()._prepare()
 
         def computeIoU(self, imgId: int, catId: int) -> Any:  # noqa: N802 (COCOeval's name)
             pairs = getattr(self, "_harness_pairs", None)
@@ -156,8 +161,8 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
     from faster_coco_eval.core.coco import COCO
 
     gt = COCO(prep.gt, print_function=_silent)
-    dt = COCO({"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets},
-              print_function=_silent)
+    dt = COCO(print_function=_silent)  # indexed only if the library's own preparation is needed (see _prepare)
+    dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
     ranges = None
     if area_ranges is not None:
         ranges = {k: list(v) for k, v in area_ranges.items() if k != "all"}
@@ -176,12 +181,13 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
         values = getattr(ev, "_harness_values", None)
         if values is None:
             values = layout.values(prep, iou_elementwise)
-        _fill_operating_inputs(result, prep, layout.greedy_match(prep, values, threshold=0.5))
+        _fill_operating_inputs(result, prep, layout.greedy_match(prep, values, threshold=0.5), layout.evaluated)
     return result
 
 
-def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: dict[int, int]) -> None:
-    """Evaluated detections (top 100 per image and category by score), without those matched to crowd GT."""
+def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: dict[int, int],
+                           evaluated: np.ndarray) -> None:
+    """Evaluated detections (``evaluated``: top 100 per image and category), without those matched to crowd GT."""
     dets = prep.dets
     if not dets:
         result.op_scores = np.zeros(0)
@@ -189,15 +195,7 @@ def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: di
         result.op_is_tp = np.zeros(0, dtype=bool)
         return
     n = len(dets)
-    img, cat, score, _ = prep.det_columns
-    ids = np.arange(1, n + 1)
-    # rank within (image, category) by descending score, ties in input order (COCOeval's stable sort)
-    order = np.lexsort((ids, -score, cat, img))
-    grp = np.concatenate([[True], (img[order][1:] != img[order][:-1]) | (cat[order][1:] != cat[order][:-1])])
-    starts = np.flatnonzero(grp)
-    rank = np.arange(n) - np.repeat(starts, np.diff(np.append(starts, n)))
-    evaluated = np.zeros(n, dtype=bool)
-    evaluated[order[rank < 100]] = True
+    _, cat, score, _ = prep.det_columns
     matched_gt = np.zeros(n, dtype=np.int64)
     if matches:
         d_ids = np.fromiter(matches.keys(), dtype=np.int64, count=len(matches))

@@ -30,6 +30,8 @@ class PairLayout:
     gt_box: np.ndarray  # [G, 4] all GT boxes
     gt_crowd: np.ndarray  # [G]
     gt_id: np.ndarray  # [G] annotation ids
+    #: [N] per detection of prep.dets: within the first ``max_det`` of its (image, category) by score, i.e. evaluated
+    evaluated: np.ndarray
 
     def values(self, prep: PreparedEval, measure: Callable[..., np.ndarray]) -> np.ndarray:
         """``measure(d, g, crowd)`` of every entry (element-wise on [E, 4] boxes)."""
@@ -93,23 +95,27 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     g_crowd = np.fromiter((a["iscrowd"] for a in anns), dtype=bool, count=n_ann)
     g_id = np.fromiter((a["id"] for a in anns), dtype=np.int64, count=n_ann)
     empty = np.zeros(0, dtype=np.int64)
-    if len(d_img) == 0 or n_ann == 0:
-        return PairLayout(empty, empty, empty, empty, empty, empty, empty, empty, empty, g_box, g_crowd, g_id)
-    img_ids = np.unique(g_img)
+    if len(d_img) == 0:
+        return PairLayout(empty, empty, empty, empty, empty, empty, empty, empty, empty, g_box, g_crowd, g_id,
+                          np.zeros(0, dtype=bool))
+    # every detection is on an image of the GT (prepare dropped the others), so every one has a pair key
+    img_ids = np.unique(np.fromiter((im["id"] for im in prep.gt["images"]), dtype=np.int64))
     cat_ids = np.asarray(prep.cat_ids, dtype=np.int64)
     n_cat = len(cat_ids)
 
     def pair_key(img: np.ndarray, cat: np.ndarray) -> np.ndarray:
-        pos = np.minimum(np.searchsorted(img_ids, img), len(img_ids) - 1)
-        known = img_ids[pos] == img  # detections on images without GT pair with nothing
-        return np.where(known, pos * n_cat + np.searchsorted(cat_ids, cat), -1)
+        return np.searchsorted(img_ids, img) * n_cat + np.searchsorted(cat_ids, cat)
 
     d_key = pair_key(d_img, d_cat)
     order = np.lexsort((np.arange(len(d_key)), -d_score, d_key))
     d_key_sorted = d_key[order]
     starts = np.flatnonzero(np.r_[True, d_key_sorted[1:] != d_key_sorted[:-1]])
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-    keep = (rank < max_det) & (d_key_sorted >= 0)
+    keep = rank < max_det
+    evaluated = np.zeros(len(d_key), dtype=bool)
+    evaluated[order[keep]] = True
+    if n_ann == 0:
+        return PairLayout(empty, empty, empty, empty, empty, empty, empty, empty, empty, g_box, g_crowd, g_id, evaluated)
     d_sorted, d_key_sorted = order[keep], d_key_sorted[keep]
     dk, d_start, d_count = np.unique(d_key_sorted, return_index=True, return_counts=True)
 
@@ -127,4 +133,4 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     det = d_sorted[d_start[di][pair] + row]
     gt = g_sorted[g_start[gi][pair] + col]
     return PairLayout(img_ids[keys // n_cat], cat_ids[keys % n_cat], rows, cols, det, gt, pair, row, col,
-                      g_box, g_crowd, g_id)
+                      g_box, g_crowd, g_id, evaluated)
