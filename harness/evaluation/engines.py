@@ -3,6 +3,11 @@
 Both get the same prepared inputs (``harness.evaluation.inputs``) and return the same ``EngineResult``: the 12
 stats, COCOeval's precision array, and, for the operating point, the evaluated detections at IoU 0.50 with their
 TP flags. ``matching="safit"`` swaps the IoU matrix for SAFit's (``harness.evaluation.safit``) in either engine.
+
+With faster-coco-eval, the Python-side work the library does one (image, category) pair at a time (filling its
+C++ datasets, the IoU matrices) is done in bulk (``harness.evaluation.pairs``); the matrices are bitwise the
+library's own and its C++ matching and accumulation are untouched. The operating point's matching at IoU 0.50 is
+COCO's greedy matching, also in bulk. pycocotools is run exactly as published.
 """
 
 from __future__ import annotations
