@@ -44,6 +44,8 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "adapters.datasets.rgbt_tiny",
+    "adapters.datasets.m3fd",
 )
 
 #: hook name -> (kind shown to users, spec class)
