@@ -46,6 +46,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
+    "harness.commands.compare",
 )
 
 #: hook name -> (kind shown to users, spec class)

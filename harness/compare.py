@@ -1,0 +1,327 @@
+"""Cross-dataset comparison: the seed's table of images, instances, mAP50 and mAP50:95 per dataset, annotation
+source and detector, built from the results store alone.
+
+One row per (dataset, annotation source, detector, encoding). A row aggregates the finished runs of that
+combination: the support is summed over its held-out folds (each fold's images and instances, once per fold), and
+the metrics are the mean (and sample SD when there is more than one fold) of the per-fold values, each fold
+first averaged over its seeds.
+
+Rows are only comparable when every detector was scored on the same samples. Within one (dataset, annotation
+source) the folds and, per fold, the support (image ids, instances) must be identical for every detector; a table
+with differing supports is refused (``SupportMismatch``), or, when asked, printed with the differing rows marked
+``!`` and the differences listed under it.
+
+SAFit-AP (RGBT-Tiny's scale-adaptive matching) can be added beside standard mAP: it is re-scored from each run's
+stored ``predictions.json`` against its ``gt.json`` by the one evaluator (``matching="safit"``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from harness.errors import HarnessError, StoreError
+from harness.io import read_json
+from harness.store import Run, Store
+
+log = logging.getLogger(__name__)
+
+#: Short names of annotation sources, as the seed's tables write them.
+SOURCE_LABELS = {"thermal": "T", "t": "T", "ir": "T", "01": "T", "visible": "RGB", "rgb": "RGB", "vis": "RGB", "00": "RGB"}
+NO_SOURCE = "-"
+
+
+class SupportMismatch(HarnessError):
+    """Detectors of one dataset and annotation source were scored on different samples."""
+
+
+@dataclass
+class FoldResult:
+    """One held-out fold of one (detector, encoding): support and metrics, averaged over its seeds."""
+
+    fold: str
+    seeds: list[int]
+    images: int
+    instances: int
+    image_ids_sha1: str
+    map50: float
+    map50_95: float
+    safit50: float | None = None
+    safit50_95: float | None = None
+
+
+@dataclass
+class CompareRow:
+    dataset: str
+    source: str
+    detector: str
+    encoding: str
+    folds: list[str]
+    seeds: list[int]
+    images: int
+    instances: int
+    map50: float
+    map50_sd: float | None
+    map50_95: float
+    map50_95_sd: float | None
+    safit50: float | None = None
+    safit50_95: float | None = None
+    #: False when the support differs from the other detectors of the same dataset and source
+    matched: bool = True
+    per_fold: list[FoldResult] = field(default_factory=list)
+
+
+@dataclass
+class CompareTable:
+    rows: list[CompareRow]
+    #: human-readable differences in support, one per (dataset, source) that is not sample-matched
+    mismatches: list[str]
+    safit: bool = False
+    store: str = ""
+
+    # ------------------------------------------------------------------ formats
+    def columns(self) -> list[str]:
+        cols = ["dataset", "GT", "detector", "encoding", "folds", "images", "instances", "mAP50", "mAP50:95"]
+        return cols + (["SAFit-AP50", "SAFit-AP50:95"] if self.safit else [])
+
+    def _cells(self, r: CompareRow) -> list[str]:
+        mark = "" if r.matched else " !"
+        cells = [r.dataset, r.source, r.detector + mark, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
+                 _pct(r.map50, r.map50_sd), _pct(r.map50_95, r.map50_95_sd)]
+        if self.safit:
+            cells += [_pct(r.safit50), _pct(r.safit50_95)]
+        return cells
+
+    def to_text(self) -> str:
+        cols = self.columns()
+        body = [self._cells(r) for r in self.rows]
+        widths = [max(len(c), *(len(b[i]) for b in body)) if body else len(c) for i, c in enumerate(cols)]
+        right = {"folds", "images", "instances", "mAP50", "mAP50:95", "SAFit-AP50", "SAFit-AP50:95"}
+
+        def line(cells: Sequence[str]) -> str:
+            return "  ".join(c.rjust(w) if col in right else c.ljust(w) for c, w, col in zip(cells, widths, cols)).rstrip()
+
+        out = [line(cols), line(["-" * w for w in widths])]
+        prev = None
+        for r, cells in zip(self.rows, body):
+            if prev is not None and (r.dataset, r.source) != prev:
+                out.append("")
+            prev = (r.dataset, r.source)
+            out.append(line(cells))
+        out.append("")
+        out.append("AP in %, mean ± sample SD over held-out folds; images and instances summed over held-out folds.")
+        if self.mismatches:
+            out.append("! NOT SAMPLE-MATCHED: these rows were scored on different supports and must not be compared:")
+            out.extend(f"  - {m}" for m in self.mismatches)
+        return "\n".join(out)
+
+    def to_markdown(self) -> str:
+        cols = self.columns()
+        out = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+        out += ["| " + " | ".join(self._cells(r)) + " |" for r in self.rows]
+        if self.mismatches:
+            out.append("")
+            out += [f"**Not sample-matched:** {m}" for m in self.mismatches]
+        return "\n".join(out)
+
+    def to_csv(self) -> str:
+        buf = io.StringIO()
+        fields = ["dataset", "source", "detector", "encoding", "folds", "seeds", "images", "instances", "map50",
+                  "map50_sd", "map50_95", "map50_95_sd", "safit50", "safit50_95", "matched"]
+        w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+        w.writeheader()
+        for r in self.rows:
+            d = {k: v for k, v in asdict(r).items() if k in fields}
+            d["folds"], d["seeds"] = " ".join(r.folds), " ".join(map(str, r.seeds))
+            w.writerow(d)
+        return buf.getvalue()
+
+    def to_json(self) -> str:
+        return json.dumps({"store": self.store, "safit": self.safit, "mismatches": self.mismatches,
+                           "rows": [asdict(r) for r in self.rows]}, indent=2)
+
+    def render(self, fmt: str) -> str:
+        return {"text": self.to_text, "markdown": self.to_markdown, "csv": self.to_csv, "json": self.to_json}[fmt]()
+
+
+def _pct(value: float | None, sd: float | None = None) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return f"{100 * value:.1f}" + (f" ± {100 * sd:.1f}" if sd is not None else "")
+
+
+def mean_sd(values: Sequence[float]) -> tuple[float, float | None]:
+    """Mean and sample SD (n - 1); SD is None for a single value."""
+    n = len(values)
+    mean = sum(values) / n
+    if n < 2:
+        return mean, None
+    return mean, math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1))
+
+
+# ---------------------------------------------------------------------------------------------- reading the store
+def annotation_source(run: Run) -> str:
+    """The annotation source of a run: ``dataset.gt`` of its resolved config, else the ``-T``/``-RGB`` suffix a
+    dataset gives its fold names (RGBT-Tiny), else ``-`` (the dataset has a single annotation set)."""
+    gt = None
+    if run.config_path.exists():
+        from harness.config import read_yaml
+
+        cfg = read_yaml(run.config_path)
+        ds = cfg.get("dataset") if isinstance(cfg, dict) else None
+        gt = ds.get("gt") if isinstance(ds, dict) else None
+    if gt is not None:
+        return SOURCE_LABELS.get(str(gt).strip().lower(), str(gt))
+    fold = run.key.fold
+    for suffix in ("T", "RGB"):
+        if fold.endswith(f"-{suffix}"):
+            return suffix
+    return NO_SOURCE
+
+
+def _safit_scores(run: Run) -> tuple[float, float]:
+    """SAFit mAP50 and mAP50:95 of a run, re-scored from its stored predictions and ground truth."""
+    from harness.evaluation import evaluate
+
+    for path in (run.gt_path, run.predictions_path):
+        if not path.exists():
+            raise StoreError(f"{path}: missing; SAFit-AP is re-scored from a run's gt.json and predictions.json")
+    result = evaluate(read_json(run.gt_path), read_json(run.predictions_path), matching="safit")
+    return float(result["metrics"]["mAP50"]), float(result["metrics"]["mAP50_95"])
+
+
+def _fold_result(fold: str, runs: list[Run], safit: bool) -> FoldResult:
+    metrics = [r.read_metrics() for r in runs]
+    supports = {(m["support"]["images"], m["support"]["instances"], m["support"].get("image_ids_sha1", "")) for m in metrics}
+    if len(supports) > 1:
+        raise SupportMismatch(
+            f"{runs[0].path.parent}: the seeds of fold {fold!r} were scored on different supports {sorted(supports)}; "
+            f"re-run the odd seed"
+        )
+    images, instances, sha = supports.pop()
+    m50, _ = mean_sd([float(m["metrics"]["mAP50"]) for m in metrics])
+    m5095, _ = mean_sd([float(m["metrics"]["mAP50_95"]) for m in metrics])
+    out = FoldResult(fold, sorted(r.key.seed for r in runs), int(images), int(instances), sha, m50, m5095)
+    if safit:
+        scores = [_safit_scores(r) for r in runs]
+        out.safit50 = mean_sd([s[0] for s in scores])[0]
+        out.safit50_95 = mean_sd([s[1] for s in scores])[0]
+    return out
+
+
+def collect(store: Store, datasets: Iterable[str]) -> dict[tuple[str, str], dict[tuple[str, str], dict[str, list[Run]]]]:
+    """``{(dataset, source): {(detector, encoding): {fold: [runs]}}}`` over finished runs."""
+    out: dict[tuple[str, str], dict[tuple[str, str], dict[str, list[Run]]]] = {}
+    for ds in datasets:
+        for run in store.runs(dataset=ds):
+            key = (ds, annotation_source(run))
+            out.setdefault(key, {}).setdefault((run.key.detector, run.key.encoding), {}).setdefault(run.key.fold, []).append(run)
+    return out
+
+
+def _support_signature(folds: dict[str, FoldResult]) -> dict[str, Any]:
+    return {"folds": sorted(folds), "per_fold": {f: {"images": r.images, "instances": r.instances,
+                                                       "image_ids_sha1": r.image_ids_sha1} for f, r in sorted(folds.items())}}
+
+
+def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict[str, FoldResult]]) -> list[str]:
+    """Differences in support between the (detector, encoding) entries of one dataset and source ([] when matched).
+
+    Delegates to ``harness.evaluation.check_sample_matched`` (the evaluator's rule for what counts as the same
+    samples) when available; the folds must also be the same set for every entry.
+    """
+    if len(entries) < 2:
+        return []
+    problems: list[str] = []
+    names = {k: f"{k[0]}/{k[1]}" for k in entries}
+    fold_sets = {k: tuple(sorted(v)) for k, v in entries.items()}
+    if len(set(fold_sets.values())) > 1:
+        listing = "; ".join(f"{names[k]}: {', '.join(f) or 'none'}" for k, f in fold_sets.items())
+        problems.append(f"{dataset} ({source}): detectors were evaluated on different folds ({listing})")
+    common = set.intersection(*(set(f) for f in fold_sets.values()))
+    for fold in sorted(common):
+        supports = {names[k]: {"images": v[fold].images, "instances": v[fold].instances,
+                               "image_ids_sha1": v[fold].image_ids_sha1} for k, v in entries.items()}
+        problems.extend(_check_fold(dataset, source, fold, supports))
+    return problems
+
+
+def _check_fold(dataset: str, source: str, fold: str, supports: dict[str, dict[str, Any]]) -> list[str]:
+    try:
+        from harness.evaluation import check_sample_matched
+    except ImportError:  # evaluation not installed: compare the recorded supports directly
+        check_sample_matched = None
+    if check_sample_matched is not None:
+        try:
+            check_sample_matched(supports)
+            return []
+        except HarnessError as exc:
+            return [f"{dataset} ({source}) fold {fold}: {exc}"]
+    distinct = {json.dumps(s, sort_keys=True) for s in supports.values()}
+    if len(distinct) == 1:
+        return []
+    listing = "; ".join(f"{n}: {s['images']} images, {s['instances']} instances, ids {s['image_ids_sha1'][:8]}"
+                        for n, s in supports.items())
+    return [f"{dataset} ({source}) fold {fold}: different supports ({listing})"]
+
+
+def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatched: bool = False,
+                safit: bool = False) -> CompareTable:
+    """The cross-dataset table for ``datasets`` from the store at ``store_root`` (see the module docstring)."""
+    store = Store(store_root)
+    if not store.root.is_dir():
+        raise StoreError(f"{store.root}: no results store here; pass --store (the folder `harness run` wrote into)")
+    found = collect(store, datasets)
+    missing = [d for d in datasets if not any(k[0] == d for k in found)]
+    if missing:
+        raise StoreError(
+            f"{store.root}: no finished runs for dataset(s) {', '.join(missing)}; run `harness run --dataset NAME ...` "
+            f"into this store first (finished runs found for: {', '.join(sorted({k[0] for k in found})) or 'none'})"
+        )
+    rows: list[CompareRow] = []
+    mismatches: list[str] = []
+    order = {d: i for i, d in enumerate(datasets)}
+    for (ds, source), entries in sorted(found.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
+        results = {k: {fold: _fold_result(fold, runs, safit) for fold, runs in folds.items()} for k, folds in entries.items()}
+        problems = check_matched(ds, source, results)
+        mismatches.extend(problems)
+        bad = _mismatched_entries(results) if problems else set()
+        for (det, enc), folds in sorted(results.items()):
+            fr = [folds[f] for f in sorted(folds)]
+            m50, sd50 = mean_sd([f.map50 for f in fr])
+            m5095, sd5095 = mean_sd([f.map50_95 for f in fr])
+            row = CompareRow(ds, source, det, enc, [f.fold for f in fr], sorted({s for f in fr for s in f.seeds}),
+                             sum(f.images for f in fr), sum(f.instances for f in fr), m50, sd50, m5095, sd5095,
+                             matched=(det, enc) not in bad, per_fold=fr)
+            if safit:
+                row.safit50 = mean_sd([f.safit50 for f in fr])[0]  # type: ignore[misc]
+                row.safit50_95 = mean_sd([f.safit50_95 for f in fr])[0]  # type: ignore[misc]
+            rows.append(row)
+    table = CompareTable(rows, mismatches, safit=safit, store=str(store.root))
+    if mismatches and not allow_mismatched:
+        raise SupportMismatch(
+            "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
+            + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows marked '!'"
+        )
+    for m in mismatches:
+        log.warning("not sample-matched: %s", m)
+    return table
+
+
+def _mismatched_entries(results: dict[tuple[str, str], dict[str, FoldResult]]) -> set[tuple[str, str]]:
+    """Entries whose support differs from the most common support of their dataset and source."""
+    sigs = {k: json.dumps(_support_signature(v), sort_keys=True) for k, v in results.items()}
+    counts: dict[str, int] = {}
+    for s in sigs.values():
+        counts[s] = counts.get(s, 0) + 1
+    best = max(counts.values())
+    majority = [s for s, c in counts.items() if c == best]
+    if len(majority) > 1:  # no majority: every entry is suspect
+        return set(results)
+    return {k for k, s in sigs.items() if s != majority[0]}
