@@ -11,8 +11,9 @@ source) the folds and, per fold, the support (image ids, instances) must be iden
 with differing supports is refused (``SupportMismatch``), or, when asked, printed with the differing rows marked
 ``!`` and the differences listed under it.
 
-SAFit-AP (RGBT-Tiny's scale-adaptive matching) can be added beside standard mAP: it is re-scored from each run's
-stored ``predictions.json`` against its ``gt.json`` by the one evaluator (``matching="safit"``).
+SAFit-AP (RGBT-Tiny's scale-adaptive matching) is shown beside standard mAP when the runs were evaluated with
+``eval.matching: safit`` (the RGBT-Tiny protocol does so; their metrics carry a ``safit`` block), and on request
+for other runs, re-scored from each run's stored ``predictions.json`` against its ``gt.json`` by the one evaluator.
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ class FoldResult:
     images: int
     instances: int
     image_ids_sha1: str
-    map50: float
-    map50_95: float
+    map50: float | None
+    map50_95: float | None
     safit50: float | None = None
     safit50_95: float | None = None
 
@@ -66,12 +67,14 @@ class CompareRow:
     seeds: list[int]
     images: int
     instances: int
-    map50: float
+    map50: float | None
     map50_sd: float | None
-    map50_95: float
+    map50_95: float | None
     map50_95_sd: float | None
     safit50: float | None = None
     safit50_95: float | None = None
+    safit50_sd: float | None = None
+    safit50_95_sd: float | None = None
     #: False when the support differs from the other detectors of the same dataset and source
     matched: bool = True
     per_fold: list[FoldResult] = field(default_factory=list)
@@ -95,7 +98,7 @@ class CompareTable:
         cells = [r.dataset, r.source, r.detector + mark, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
                  _pct(r.map50, r.map50_sd), _pct(r.map50_95, r.map50_95_sd)]
         if self.safit:
-            cells += [_pct(r.safit50), _pct(r.safit50_95)]
+            cells += [_pct(r.safit50, r.safit50_sd), _pct(r.safit50_95, r.safit50_95_sd)]
         return cells
 
     def to_text(self) -> str:
@@ -156,15 +159,6 @@ def _pct(value: float | None, sd: float | None = None) -> str:
     return f"{100 * value:.1f}" + (f" ± {100 * sd:.1f}" if sd is not None else "")
 
 
-def mean_sd(values: Sequence[float]) -> tuple[float, float | None]:
-    """Mean and sample SD (n - 1); SD is None for a single value."""
-    n = len(values)
-    mean = sum(values) / n
-    if n < 2:
-        return mean, None
-    return mean, math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1))
-
-
 # ---------------------------------------------------------------------------------------------- reading the store
 def annotation_source(run: Run) -> str:
     """The annotation source of a run: ``dataset.gt`` of its resolved config, else the ``-T``/``-RGB`` suffix a
@@ -185,34 +179,42 @@ def annotation_source(run: Run) -> str:
     return NO_SOURCE
 
 
-def _safit_scores(run: Run) -> tuple[float, float]:
-    """SAFit mAP50 and mAP50:95 of a run, re-scored from its stored predictions and ground truth."""
+def _safit_rescored(run: Run) -> dict[str, Any]:
+    """The SAFit block of a run, re-scored by the one evaluator from its stored predictions and ground truth."""
     from harness.evaluation import evaluate
 
     for path in (run.gt_path, run.predictions_path):
         if not path.exists():
             raise StoreError(f"{path}: missing; SAFit-AP is re-scored from a run's gt.json and predictions.json")
     result = evaluate(read_json(run.gt_path), read_json(run.predictions_path), matching="safit")
-    return float(result["metrics"]["mAP50"]), float(result["metrics"]["mAP50_95"])
+    return result["metrics"]["safit"]
 
 
-def _fold_result(fold: str, runs: list[Run], safit: bool) -> FoldResult:
-    metrics = [r.read_metrics() for r in runs]
-    supports = {(m["support"]["images"], m["support"]["instances"], m["support"].get("image_ids_sha1", "")) for m in metrics}
-    if len(supports) > 1:
-        raise SupportMismatch(
-            f"{runs[0].path.parent}: the seeds of fold {fold!r} were scored on different supports {sorted(supports)}; "
-            f"re-run the odd seed"
-        )
-    images, instances, sha = supports.pop()
-    m50, _ = mean_sd([float(m["metrics"]["mAP50"]) for m in metrics])
-    m5095, _ = mean_sd([float(m["metrics"]["mAP50_95"]) for m in metrics])
-    out = FoldResult(fold, sorted(r.key.seed for r in runs), int(images), int(instances), sha, m50, m5095)
-    if safit:
-        scores = [_safit_scores(r) for r in runs]
-        out.safit50 = mean_sd([s[0] for s in scores])[0]
-        out.safit50_95 = mean_sd([s[1] for s in scores])[0]
-    return out
+def _fold_result(fold: str, runs: list[Run], safit: bool) -> tuple[FoldResult, dict[str, Any]]:
+    """The fold's seeds averaged, and one representative metrics dict (for the sample-matched guard)."""
+    from harness.evaluation import check_sample_matched, mean_sd
+
+    metrics = {str(r.key): r.read_metrics() for r in runs}
+    try:
+        check_sample_matched(metrics)
+    except HarnessError as exc:
+        raise SupportMismatch(f"the seeds of one fold were scored on different samples; re-run the odd seed. {exc}") from None
+    first = next(iter(metrics.values()))
+    sup = first["support"]
+    out = FoldResult(fold, sorted(r.key.seed for r in runs), int(sup["images"]), int(sup["instances"]),
+                     str(sup.get("image_ids_sha1", "")),
+                     mean_sd([m["metrics"].get("mAP50") for m in metrics.values()])["mean"],
+                     mean_sd([m["metrics"].get("mAP50_95") for m in metrics.values()])["mean"])
+    blocks = []
+    for run, m in zip(runs, metrics.values()):
+        block = m["metrics"].get("safit")
+        if block is None and safit:
+            block = _safit_rescored(run)
+        blocks.append(block)
+    if all(b is not None for b in blocks):
+        out.safit50 = mean_sd([b.get("mAP50") for b in blocks])["mean"]
+        out.safit50_95 = mean_sd([b.get("mAP50_95") for b in blocks])["mean"]
+    return out, first
 
 
 def collect(store: Store, datasets: Iterable[str]) -> dict[tuple[str, str], dict[tuple[str, str], dict[str, list[Run]]]]:
@@ -225,17 +227,15 @@ def collect(store: Store, datasets: Iterable[str]) -> dict[tuple[str, str], dict
     return out
 
 
-def _support_signature(folds: dict[str, FoldResult]) -> dict[str, Any]:
-    return {"folds": sorted(folds), "per_fold": {f: {"images": r.images, "instances": r.instances,
-                                                       "image_ids_sha1": r.image_ids_sha1} for f, r in sorted(folds.items())}}
+def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict[str, dict[str, Any]]]) -> list[str]:
+    """What differs between the supports of the (detector, encoding) entries of one dataset and source.
 
-
-def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict[str, FoldResult]]) -> list[str]:
-    """Differences in support between the (detector, encoding) entries of one dataset and source ([] when matched).
-
-    Delegates to ``harness.evaluation.check_sample_matched`` (the evaluator's rule for what counts as the same
-    samples) when available; the folds must also be the same set for every entry.
+    ``entries``: ``{(detector, encoding): {fold: metrics}}``. Every entry must cover the same folds, and per fold the
+    evaluator's guard (``harness.evaluation.check_sample_matched``: image-id hash, images, instances, instances per
+    category) must pass. Returns ``[]`` when the entries are sample-matched.
     """
+    from harness.evaluation import check_sample_matched
+
     if len(entries) < 2:
         return []
     problems: list[str] = []
@@ -246,34 +246,27 @@ def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict
         problems.append(f"{dataset} ({source}): detectors were evaluated on different folds ({listing})")
     common = set.intersection(*(set(f) for f in fold_sets.values()))
     for fold in sorted(common):
-        supports = {names[k]: {"images": v[fold].images, "instances": v[fold].instances,
-                               "image_ids_sha1": v[fold].image_ids_sha1} for k, v in entries.items()}
-        problems.extend(_check_fold(dataset, source, fold, supports))
+        try:
+            check_sample_matched({names[k]: v[fold] for k, v in entries.items()})
+        except HarnessError as exc:
+            detail = str(exc).split("\n")[1].strip() if "\n" in str(exc) else str(exc)
+            problems.append(f"{dataset} ({source}) {detail}")
     return problems
 
 
-def _check_fold(dataset: str, source: str, fold: str, supports: dict[str, dict[str, Any]]) -> list[str]:
-    try:
-        from harness.evaluation import check_sample_matched
-    except ImportError:  # evaluation not installed: compare the recorded supports directly
-        check_sample_matched = None
-    if check_sample_matched is not None:
-        try:
-            check_sample_matched(supports)
-            return []
-        except HarnessError as exc:
-            return [f"{dataset} ({source}) fold {fold}: {exc}"]
-    distinct = {json.dumps(s, sort_keys=True) for s in supports.values()}
-    if len(distinct) == 1:
-        return []
-    listing = "; ".join(f"{n}: {s['images']} images, {s['instances']} instances, ids {s['image_ids_sha1'][:8]}"
-                        for n, s in supports.items())
-    return [f"{dataset} ({source}) fold {fold}: different supports ({listing})"]
+def _support_signature(folds: dict[str, FoldResult]) -> str:
+    return json.dumps({f: [r.images, r.instances, r.image_ids_sha1] for f, r in sorted(folds.items())}, sort_keys=True)
 
 
 def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatched: bool = False,
                 safit: bool = False) -> CompareTable:
-    """The cross-dataset table for ``datasets`` from the store at ``store_root`` (see the module docstring)."""
+    """The cross-dataset table for ``datasets`` from the store at ``store_root`` (see the module docstring).
+
+    SAFit columns appear when the runs were evaluated with ``eval.matching=safit`` (their metrics carry a SAFit
+    block) or when ``safit=True`` (runs without the block are re-scored from their stored predictions).
+    """
+    from harness.evaluation import aggregate_folds
+
     store = Store(store_root)
     if not store.root.is_dir():
         raise StoreError(f"{store.root}: no results store here; pass --store (the folder `harness run` wrote into)")
@@ -288,22 +281,29 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
     mismatches: list[str] = []
     order = {d: i for i, d in enumerate(datasets)}
     for (ds, source), entries in sorted(found.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
-        results = {k: {fold: _fold_result(fold, runs, safit) for fold, runs in folds.items()} for k, folds in entries.items()}
-        problems = check_matched(ds, source, results)
+        results: dict[tuple[str, str], dict[str, FoldResult]] = {}
+        representative: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
+        for k, folds in entries.items():
+            for fold, runs in folds.items():
+                fr, metrics = _fold_result(fold, runs, safit)
+                results.setdefault(k, {})[fold] = fr
+                representative.setdefault(k, {})[fold] = metrics
+        problems = check_matched(ds, source, representative)
         mismatches.extend(problems)
         bad = _mismatched_entries(results) if problems else set()
         for (det, enc), folds in sorted(results.items()):
             fr = [folds[f] for f in sorted(folds)]
-            m50, sd50 = mean_sd([f.map50 for f in fr])
-            m5095, sd5095 = mean_sd([f.map50_95 for f in fr])
+            agg = aggregate_folds([_fold_metrics(ds, f) for f in fr])
+            m = agg["metrics"]
             row = CompareRow(ds, source, det, enc, [f.fold for f in fr], sorted({s for f in fr for s in f.seeds}),
-                             sum(f.images for f in fr), sum(f.instances for f in fr), m50, sd50, m5095, sd5095,
+                             agg["support"]["images"], agg["support"]["instances"],
+                             m["mAP50"]["mean"], m["mAP50"]["sd"], m["mAP50_95"]["mean"], m["mAP50_95"]["sd"],
                              matched=(det, enc) not in bad, per_fold=fr)
-            if safit:
-                row.safit50 = mean_sd([f.safit50 for f in fr])[0]  # type: ignore[misc]
-                row.safit50_95 = mean_sd([f.safit50_95 for f in fr])[0]  # type: ignore[misc]
+            if "safit_mAP50" in m and m["safit_mAP50"]["n"] == len(fr):
+                row.safit50, row.safit50_95 = m["safit_mAP50"]["mean"], m["safit_mAP50_95"]["mean"]
+                row.safit50_sd, row.safit50_95_sd = m["safit_mAP50"]["sd"], m["safit_mAP50_95"]["sd"]
             rows.append(row)
-    table = CompareTable(rows, mismatches, safit=safit, store=str(store.root))
+    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows), store=str(store.root))
     if mismatches and not allow_mismatched:
         raise SupportMismatch(
             "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
@@ -314,9 +314,18 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
     return table
 
 
+def _fold_metrics(dataset: str, f: FoldResult) -> dict[str, Any]:
+    """A fold's seed-averaged numbers in the shape ``aggregate_folds`` reads."""
+    metrics: dict[str, Any] = {"mAP50": f.map50, "mAP50_95": f.map50_95}
+    if f.safit50 is not None:
+        metrics["safit"] = {"mAP50": f.safit50, "mAP50_95": f.safit50_95}
+    return {"run": {"dataset": dataset, "fold": f.fold}, "metrics": metrics, "per_category": {},
+            "support": {"images": f.images, "instances": f.instances, "image_ids_sha1": f.image_ids_sha1}}
+
+
 def _mismatched_entries(results: dict[tuple[str, str], dict[str, FoldResult]]) -> set[tuple[str, str]]:
     """Entries whose support differs from the most common support of their dataset and source."""
-    sigs = {k: json.dumps(_support_signature(v), sort_keys=True) for k, v in results.items()}
+    sigs = {k: _support_signature(v) for k, v in results.items()}
     counts: dict[str, int] = {}
     for s in sigs.values():
         counts[s] = counts.get(s, 0) + 1
