@@ -47,6 +47,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
     "harness.commands.compare",
+    "harness.commands.pretrain",
 )
 
 #: hook name -> (kind shown to users, spec class)

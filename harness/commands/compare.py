@@ -21,7 +21,8 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--datasets", required=True, help="Comma-separated datasets, in table order (e.g. m3t,rgbt-tiny).")
     @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
                   help="Results store to read (default: results/<profile>).")
-    @click.option("--profile", default=None, help="Profile whose default store to read when --store is not given.")
+    @click.option("--profile", default="smoke", show_default=True,
+                  help="Profile whose default store (results/<profile>) to read when --store is not given.")
     @click.option("--safit", is_flag=True, help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions.")
     @click.option("--allow-mismatched", is_flag=True,
                   help="Print rows scored on different supports, marked '!', instead of refusing.")
