@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 
 from adapters.datasets import m3fd
+from pathlib import Path
 from eightbit_fixtures import write_m3fd, write_voc
 from harness.api import PrepareReport
-from harness.config import load_config
 from harness.errors import ConfigError, DataError
 from harness.sample import validate_sample
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -53,7 +55,12 @@ def test_recorded_split_by_frame_blocks_matches_the_protocol_file(release):
     assert fold.name == "val" and fold.val_groups == ("00400-00499", "00900-00999")
     split = m3fd.recorded_split()
     assert len(split["val"]) == 8 and len(split["train"]) == 34  # 800 / 3,400 of 4,200
-    assert load_config(protocol="m3fd")["protocol"]["folds"] == {"val": split["val"]}
+    assert split["val"] == ["00400-00499", "00900-00999", "01400-01499", "01900-01999", "02400-02499",
+                            "02900-02999", "03400-03499", "03900-03999"]
+    # the split is recorded, block by block, where users look for it
+    for doc in (REPO / "docs" / "datasets.md", REPO / "configs" / "protocols" / "m3fd.yaml"):
+        text = doc.read_text()
+        assert all(block in text for block in split["val"]), doc
     samples, _ = collect(source)
     assert [s.meta["split"] for s in samples] == ["train"] * 5 + ["val"] * 3
 
@@ -123,8 +130,8 @@ def test_errors_for_layout_and_options(tmp_path, monkeypatch):
     (tmp_path / "Ir").mkdir()
     with pytest.raises(DataError, match="missing Annotation, Vis"):
         m3fd.open_m3fd(tmp_path)
-    with pytest.raises(ConfigError, match="unknown option.*'gt'"):
-        m3fd.open_m3fd(tmp_path, gt="thermal")
+    with pytest.raises(ConfigError, match="'strict' must be true or false"):
+        m3fd.open_m3fd(tmp_path, strict="yes")
 
 
 def test_registered_for_pretraining_with_ir8(host):

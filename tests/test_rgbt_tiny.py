@@ -239,8 +239,6 @@ def test_strides_keep_every_kth_frame_per_sequence(release):
 
 def test_options_are_checked(release):
     root, _ = release
-    with pytest.raises(ConfigError, match="unknown option.*'annotations'.*known: root"):
-        rgbt_tiny.open_rgbt_tiny(root, annotations="T")
     with pytest.raises(ConfigError, match="'gt' must be thermal"):
         rgbt_tiny.open_rgbt_tiny(root, gt="lwir")
     with pytest.raises(ConfigError, match="'train_stride' must be a positive integer"):

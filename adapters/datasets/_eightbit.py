@@ -10,7 +10,7 @@ import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -133,14 +133,6 @@ def resolve_root(root: str | os.PathLike | None, env: str, dataset: str, must_co
             f"(found: {', '.join(found) or 'nothing'}); point dataset.root or {env} at the folder that holds them"
         )
     return path
-
-
-def check_options(dataset: str, options: Mapping[str, Any], known: Mapping[str, str]) -> None:
-    """Refuse an option the dataset does not know, listing the ones it does (with their meaning)."""
-    unknown = sorted(set(options) - set(known))
-    if unknown:
-        listing = "; ".join(f"{k}: {v}" for k, v in known.items())
-        raise ConfigError(f"dataset {dataset!r}: unknown option(s) {', '.join(map(repr, unknown))} under 'dataset:' (known: {listing})")
 
 
 def positive_int(dataset: str, name: str, value: Any) -> int:

@@ -19,7 +19,8 @@ What the loader does, and why:
   neighbouring frames are near-duplicates, so a random split leaks. Groups are blocks of ``BLOCK`` consecutive
   frame numbers (``00000-00099``, ``00100-00199``, ...), and every ``VAL_EVERY``-th block (the 5th, 10th, ...) is
   held out for validation: 3,400 train / 800 val pairs of the 4,200. The same split is written out, block by
-  block, in ``configs/protocols/m3fd.yaml`` and in docs/datasets.md.
+  block, in docs/datasets.md and ``configs/protocols/m3fd.yaml``; every prepared copy records it in its manifest
+  (``folds``) and every sample its ``split``.
 * The sample has no radiometric thermal (``thermal=None``); ``ir8`` is the infrared image, which is the fourth
   input channel (encoding ``ir8``) during pretraining.
 """
@@ -38,7 +39,6 @@ import numpy as np
 from adapters.datasets._eightbit import (
     BoxStats,
     ImageReadError,
-    check_options,
     clip_boxes,
     file_stat,
     read_rgb,
@@ -184,6 +184,9 @@ class M3fdSource:
                           f"{len(self.stems) - n_val} train / {n_val} val pairs")
 
     # ------------------------------------------------------------------ DatasetSource
+    def __len__(self) -> int:
+        return len(self.stems)
+
     def groups(self) -> list[str]:
         return sorted({block_of(int(s)) for s in self.stems})
 
@@ -282,10 +285,8 @@ def find_root(root: str | Path | None) -> Path:
     return resolve_root(path, ROOT_ENV, DATASET, SUBDIRS)  # raises, naming what is missing
 
 
-def open_m3fd(root: str | Path | None = None, **options: Any) -> M3fdSource:
-    """Open an M3FD detection release; options: see ``OPTIONS``."""
-    check_options(DATASET, {"root": root, **options}, OPTIONS)
-    strict = options.get("strict", False)
+def open_m3fd(root: str | Path | None = None, strict: bool = False) -> M3fdSource:
+    """Open an M3FD detection release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
     return M3fdSource(find_root(root), strict=strict)

@@ -43,7 +43,6 @@ import numpy as np
 from adapters.datasets._eightbit import (
     BoxStats,
     ImageReadError,
-    check_options,
     clip_boxes,
     file_stat,
     positive_int,
@@ -417,6 +416,10 @@ class RgbtTinySource:
                     log.warning("RGBT-Tiny %s", self.notes[-1])
 
     # ------------------------------------------------------------------ DatasetSource
+    def __len__(self) -> int:
+        """Pairs that ``samples`` will try to decode (for progress bars)."""
+        return len(self.pairs)
+
     def groups(self) -> list[str]:
         return sorted({p.key.sequence for p in self.pairs})
 
@@ -512,18 +515,17 @@ class RgbtTinySource:
         return sample, stats, was_colour
 
 
-def open_rgbt_tiny(root: str | Path | None = None, **options: Any) -> RgbtTinySource:
-    """Open an RGBT-Tiny release; options: see ``OPTIONS`` (``harness list`` and docs/datasets.md)."""
-    check_options(DATASET, {"root": root, **options}, OPTIONS)
+def open_rgbt_tiny(root: str | Path | None = None, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
+                   strict: bool = False) -> RgbtTinySource:
+    """Open an RGBT-Tiny release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     path = resolve_root(root, ROOT_ENV, DATASET, ("images", "annotations_coco"))
-    strict = options.get("strict", False)
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
     return RgbtTinySource(
         path,
-        gt=normalise_gt(options.get("gt", "thermal")),
-        train_stride=positive_int(DATASET, "train_stride", options.get("train_stride", 1)),
-        test_stride=positive_int(DATASET, "test_stride", options.get("test_stride", 1)),
+        gt=normalise_gt(gt),
+        train_stride=positive_int(DATASET, "train_stride", train_stride),
+        test_stride=positive_int(DATASET, "test_stride", test_stride),
         strict=strict,
     )
 
