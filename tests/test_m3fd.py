@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from adapters.datasets import m3fd
-from pathlib import Path
 from eightbit_fixtures import write_m3fd, write_voc
 from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
