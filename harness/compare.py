@@ -243,14 +243,14 @@ def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict
     fold_sets = {k: tuple(sorted(v)) for k, v in entries.items()}
     if len(set(fold_sets.values())) > 1:
         listing = "; ".join(f"{names[k]}: {', '.join(f) or 'none'}" for k, f in fold_sets.items())
-        problems.append(f"{dataset} ({source}): detectors were evaluated on different folds ({listing})")
+        problems.append(f"[GT {source}] dataset {dataset!r}: detectors were evaluated on different folds ({listing})")
     common = set.intersection(*(set(f) for f in fold_sets.values()))
     for fold in sorted(common):
         try:
             check_sample_matched({names[k]: v[fold] for k, v in entries.items()})
         except HarnessError as exc:
             detail = str(exc).split("\n")[1].strip() if "\n" in str(exc) else str(exc)
-            problems.append(f"{dataset} ({source}) {detail}")
+            problems.append(f"[GT {source}] {detail}")
     return problems
 
 
@@ -273,9 +273,10 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
     found = collect(store, datasets)
     missing = [d for d in datasets if not any(k[0] == d for k in found)]
     if missing:
+        present = sorted({r.key.dataset for r in store.runs()})
         raise StoreError(
             f"{store.root}: no finished runs for dataset(s) {', '.join(missing)}; run `harness run --dataset NAME ...` "
-            f"into this store first (finished runs found for: {', '.join(sorted({k[0] for k in found})) or 'none'})"
+            f"into this store first (finished runs found for: {', '.join(present) or 'none'})"
         )
     rows: list[CompareRow] = []
     mismatches: list[str] = []
@@ -310,7 +311,7 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
             + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows marked '!'"
         )
     for m in mismatches:
-        log.warning("not sample-matched: %s", m)
+        log.info("not sample-matched (printed, marked '!'): %s", m)
     return table
 
 

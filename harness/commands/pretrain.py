@@ -99,11 +99,12 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         "checkpoint": str(checkpoint),
         "checkpoint_sha1": _sha1(checkpoint),
         "fine_tuning": (
-            f"`harness run --init {checkpoint}` loads every tensor whose name and shape match: backbone, neck and box "
-            f"regression carry over; class outputs sized for {len(summary.categories)} classes start afresh when the "
-            f"target has a different number. The extra input channel meant '{CHANNEL_MEANING.get(summary.encoding, summary.encoding)}' "
-            f"here; on M3T it is the run's encoding (c2 by default: "
-            f"'{CHANNEL_MEANING['c2']}'), so its first-layer filters adapt during fine-tuning."
+            f"`harness run --init {checkpoint}` loads it through the detector's importer (else by tensor name and "
+            f"shape): backbone, neck and box regression carry over; the class outputs, sized for "
+            f"{len(summary.categories)} classes, are re-initialised when the target dataset has another number (the "
+            f"run's metrics.json lists what was loaded under train.init). The extra input channel meant "
+            f"'{CHANNEL_MEANING.get(summary.encoding, summary.encoding)}' here; on M3T it is the run's encoding (c2 "
+            f"by default: '{CHANNEL_MEANING['c2']}'), so the first layer's filters for it adapt during fine-tuning."
         ),
     }
     atomic_write_json(Path(result.path) / "pretrain.json", record)
