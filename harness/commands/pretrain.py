@@ -3,7 +3,7 @@
 
 Pretraining is an ordinary run in the results store (``<store>/m3fd/<detector>/<encoding>/val/seed<k>/``): it
 trains on the dataset's training groups, selects the best epoch on its held-out fold, and is skipped when it
-already finished with the same configuration. Beside the checkpoint it writes ``pretrain.json``, which records
+already finished with the same configuration. In the run folder it writes ``pretrain.json``, which records
 what the input channels meant, because that changes at fine-tuning (docs/datasets.md, "Pretraining on M3FD"):
 
 * 4th channel in pretraining: the dataset's encoding, by default ``ir8`` (8-bit infrared *intensity*);
@@ -152,7 +152,8 @@ def register_commands(cli: click.Group) -> None:
                    f"encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 {_fmt(r['val_mAP50_95'])} [{res.state}]")
         click.echo(f"checkpoint: {res.checkpoint}")
         click.echo(f"fine-tune:  harness run --detector {r['detector']} --dataset m3t --init {res.checkpoint}")
-        click.echo(f"note: the extra channel was '{r['extra_channel']}' here; see pretrain.json beside the checkpoint.")
+        record_path = Path(r["checkpoint"]).parent.parent / "pretrain.json"
+        click.echo(f"note: the extra channel was '{r['extra_channel']}' here; see {record_path}")
 
 
 def _fmt(v: Any) -> str:
