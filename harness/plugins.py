@@ -44,6 +44,8 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "harness.encodings",
+    "harness.commands.sensing",
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
     "harness.commands.compare",
