@@ -49,6 +49,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.data",
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
+    "adapters.detectors.ours",
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
     "harness.commands.compare",
