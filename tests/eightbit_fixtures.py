@@ -137,3 +137,76 @@ def write_voc(path: Path, filename: str, w: int, h: int, objects) -> None:
         f"<annotation>\n  <folder>M3FD</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
         f"    <height>{h}</height>\n    <depth>3</depth>\n  </size>\n{obj_xml}</annotation>\n"
     )
+
+
+# ---------------------------------------------------------------------------------------------- real tiny runs
+#: Settings that make a run take a couple of seconds on a CPU: 64 px, one epoch, the smallest YOLOv8 scale.
+TINY_RUN = ["--set", "protocol.imgsz=64", "--set", "protocol.epochs=1", "--set", "protocol.patience=1",
+            "--set", "train.batch=4", "--set", "train.nominal_batch=4", "--set", "train.threads=1",
+            "--set", "model.scale=n", "--no-progress"]
+
+
+def invoke(args: list[str], cache: Path | None = None):
+    """Run the ``harness`` CLI in-process (prepared data under ``cache``, never the working directory); a non-zero
+    exit is returned, not raised (tests check it)."""
+    import os
+
+    from click.testing import CliRunner
+
+    from harness.cli import get_cli
+
+    env = {"HARNESS_CACHE": str(cache)} if cache is not None else {}
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        return CliRunner().invoke(get_cli(), args, catch_exceptions=False)
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+_BUILT: dict = {}
+
+
+def trained_store(tmp_path_factory) -> dict:
+    """``build_trained_store`` once per test session (the runs are shared by the RGBT-Tiny, M3FD and compare tests).
+
+    Skipped, saying why, only in a checkout that does not have the training engine (``harness run``) yet."""
+    import pytest
+
+    pytest.importorskip("harness.runner", reason="needs the training engine (`harness run`), absent from this checkout")
+    if "store" not in _BUILT:
+        _BUILT.update(build_trained_store(tmp_path_factory.mktemp("trained")))
+    return _BUILT
+
+
+def build_trained_store(base: Path) -> dict:
+    """Write both fixture releases under ``base`` and fill a results store with real tiny runs:
+
+    1. ``harness pretrain --detector ours --dataset m3fd``                 (m3fd/ours/ir8/val)
+    2. ``harness run --detector ours --dataset rgbt-tiny --init <ckpt>``   (rgbt-tiny/ours/proxy8/test-T)
+    3. the same with ``--encoding ir8``                                     (rgbt-tiny/ours/ir8/test-T)
+    4. the same with ``--set dataset.gt=visible``                           (rgbt-tiny/ours/proxy8/test-RGB)
+    """
+    base = Path(base)
+    rgbt_root, m3fd_root, store, cache = base / "RGBT-Tiny", base / "m3fd", base / "store", base / "cache"
+    expected = write_rgbt_tiny(rgbt_root)
+    write_m3fd(m3fd_root)
+    common = [*TINY_RUN, "--store", str(store)]
+    out = {"base": base, "store": store, "cache": cache, "rgbt_root": rgbt_root, "m3fd_root": m3fd_root,
+           "expected": expected}
+    res = invoke(["pretrain", "--detector", "ours", "--dataset", "m3fd", "--set", f"dataset.root={m3fd_root}", *common],
+                 cache)
+    assert res.exit_code == 0, res.output
+    out["pretrain_output"] = res.output
+    out["checkpoint"] = Path(next(line.split(maxsplit=1)[1] for line in res.output.splitlines() if line.startswith("checkpoint:")))
+    rgbt = ["run", "--detector", "ours", "--dataset", "rgbt-tiny", "--set", f"dataset.root={rgbt_root}", *common]
+    for name, extra in (("run_init", ["--init", str(out["checkpoint"])]), ("run_ir8", ["--encoding", "ir8"]),
+                        ("run_visible", ["--set", "dataset.gt=visible"])):
+        res = invoke(rgbt + extra, cache)
+        assert res.exit_code == 0, res.output
+        out[name] = res.output
+    return out

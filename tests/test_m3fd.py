@@ -139,3 +139,38 @@ def test_registered_for_pretraining_with_ir8(host):
     spec = host.dataset("m3fd")
     assert spec.thermal == "8bit" and spec.default_encoding == "ir8" and spec.protocol == "m3fd"
     assert spec.categories == ("people", "car", "bus", "motorcycle", "lamp", "truck")
+
+
+# ------------------------------------------------------------------ pretraining
+@pytest.mark.slow
+def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
+    import json
+
+    from eightbit_fixtures import trained_store
+
+    trained = trained_store(tmp_path_factory)
+    ckpt = trained["checkpoint"]
+    assert ckpt.is_file() and ckpt.parts[-7:-2] == ("m3fd", "ours", "ir8", "val", "seed0")
+    record = json.loads((ckpt.parent.parent / "pretrain.json").read_text())
+    assert record["encoding"] == "ir8" and record["categories"] == list(m3fd.CATEGORIES)
+    assert (record["train_images"], record["val_images"]) == (5, 3)  # the recorded block split of the fixture
+    assert "8-bit thermal intensity" in record["extra_channel"] and "c2" in record["fine_tuning"]
+    assert f"--init {ckpt}" in trained["pretrain_output"]
+    # `harness run --init` on another dataset loaded it (see the RGBT-Tiny end-to-end test for the details)
+    from harness.store import RunKey, Store
+
+    init = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    assert init["path"] == str(ckpt) and init["loaded"] > 0
+
+
+def test_prepared_manifest_records_the_split(release, tmp_path):
+    from harness.config import load_config
+    from harness.prepare import prepare, resolve_folds
+
+    root, _ = release
+    cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])
+    ds = prepare("m3fd", cfg, cache_root=tmp_path / "cache", progress=False)
+    (fold,) = ds.manifest["folds"]
+    assert fold == {"name": "val", "train_groups": ["00000-00099", "00100-00199"], "val_groups": ["00400-00499", "00900-00999"]}
+    (resolved,) = resolve_folds("m3fd", ds, cfg)
+    assert resolved.name == "val" and len(ds.indices(resolved.val_groups)) == 3

@@ -284,3 +284,59 @@ def test_clip_boxes_by_hand():
     assert keep.tolist() == [True, True, True] and changed == 2
     _, keep, _ = clip_boxes(np.array([[70, 10, 80, 20]]), 64, 48)
     assert keep.tolist() == [False]
+
+
+# ------------------------------------------------------------------ end to end through the harness
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from eightbit_fixtures import trained_store
+
+    return trained_store(tmp_path_factory)
+
+
+@pytest.mark.slow
+def test_harness_run_ours_on_rgbt_tiny_end_to_end(trained):
+    from harness.store import RunKey, Store
+
+    out = trained["run_init"]
+    assert "test-T" in out and "trained" in out and "pedestrian" in out  # fold table and per-category table
+    run = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0))
+    assert run.is_finished()
+    m = run.read_metrics()
+    expected = trained["expected"]
+    test_frames = [k for k, split in expected["frames"].items() if split == "test"]
+    # held out: exactly the test2017 sequence, scored against the thermal annotations
+    assert m["support"]["images"] == len(test_frames) == 3
+    assert m["support"]["instances"] == sum(len(expected["thermal_boxes"][k]) for k in test_frames)
+    assert m["train"]["images"] == 6
+    for key in ("mAP50", "mAP50_95"):
+        assert 0.0 <= m["metrics"][key] <= 1.0
+        assert 0.0 <= m["metrics"]["safit"][key] <= 1.0  # the protocol evaluates with SAFit beside standard mAP
+    gt = json.loads(run.gt_path.read_text())
+    assert sorted(i["file_name"] for i in gt["images"]) == [f"{s}/01/{f}.jpg" for s, f in sorted(test_frames)]
+    assert isinstance(json.loads(run.predictions_path.read_text()), list)
+    # fine-tuned from the M3FD checkpoint: everything but the class outputs (6 -> 7 classes) was loaded
+    init = m["train"]["init"]
+    assert init["loaded"] > 100 and init["checkpoint_nc"] == 6
+    visible = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-RGB", 0)).read_metrics()
+    assert visible["support"]["instances"] == sum(len(expected["visible_boxes"][k]) for k in test_frames)
+    assert visible["support"]["image_ids_sha1"] == m["support"]["image_ids_sha1"]
+
+
+# ------------------------------------------------------------------ through the prepared-sample cache
+def test_prepare_records_drops_folds_and_options(copy_release, tmp_path):
+    from harness.config import load_config
+    from harness.prepare import prepare
+
+    root, expected = copy_release
+    (root / "images" / "DJI_0101_1" / "01" / "00001.jpg").unlink()
+    cfg = load_config(protocol="rgbt-tiny", overrides=[f"dataset.root={root}", "dataset.gt=RGB"])
+    ds = prepare("rgbt-tiny", cfg, cache_root=tmp_path / "cache", progress=False)
+    assert len(ds) == len(expected["frames"]) - 1 and not ds.radiometric
+    report = ds.manifest["report"]
+    assert report["skip_reasons"] == {"missing thermal frame": 1}
+    assert any("annotation source: visible (RGB)" in n for n in report["notes"])
+    assert ds.manifest["folds"] == [{"name": "test-RGB", "train_groups": ["DJI_0001_1"], "val_groups": ["DJI_0101_1"]}]
+    bad = load_config(protocol="rgbt-tiny", overrides=[f"dataset.root={root}", "dataset.annotations=T"])
+    with pytest.raises(ConfigError, match="does not take option.*'annotations'.*gt, train_stride"):
+        prepare("rgbt-tiny", bad, cache_root=tmp_path / "cache", progress=False)
