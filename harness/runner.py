@@ -16,6 +16,9 @@ Everything lands in the results store (``harness.store``): ``config.yaml``, ``st
 ``checkpoints/``, ``predictions.json``, ``gt.json`` and ``metrics.json`` (support, metrics, per-category AP, model
 parameters, training summary and environment). ``ablate`` runs one fold over several encodings for the seed's
 encoding-ablation table.
+
+Under ``torchrun`` every process runs this same job (``harness.distributed``): rank 0 prepares the dataset first and
+is the only one that writes the store; training and prediction are shared by all processes.
 """
 
 from __future__ import annotations
@@ -167,8 +170,10 @@ def run_hash(cfg: Mapping[str, Any]) -> str:
 # ------------------------------------------------------------------------------------------------- the job
 def run(request: RunRequest) -> RunSummary:
     """Train and evaluate every selected fold and seed; see the module docstring."""
+    from harness import distributed as hd
     from harness.plugins import get_host
 
+    hd.init_from_env()
     host = get_host()
     det = host.detector(request.detector)
     ds = host.dataset(request.dataset)
@@ -181,7 +186,8 @@ def run(request: RunRequest) -> RunSummary:
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
 
-    prepared = prepare_dataset(ds.name, cfg)
+    with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
+        prepared = prepare_dataset(ds.name, cfg)
     folds = resolve_folds(ds, prepared, cfg, request.folds or "all")
     if not folds:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
@@ -226,6 +232,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
     import torch
 
+    from harness import distributed as hd
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
@@ -237,14 +244,20 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         raise ConfigError(f"fold {fold.name!r}: no training images (train groups {list(fold.train_groups)})")
     if not val_idx:
         raise ConfigError(f"fold {fold.name!r}: no held-out images (groups {list(fold.val_groups)})")
+    dist = hd.info()
+    main = dist.is_main
     st = r.status() or {}
-    fresh = force or st.get("config_hash") != digest
-    if fresh and r.path.exists():
-        for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
-            stale.unlink(missing_ok=True)
-    r.path.mkdir(parents=True, exist_ok=True)
-    r.write_config(cfg)
-    r.set_status("running", config_hash=digest, fold=fold.name, seed=seed)
+    # under torchrun rank 0 decides (before it writes the status the other processes would otherwise read)
+    fresh = hd.broadcast_object(force or st.get("config_hash") != digest)
+    if main:
+        if fresh and r.path.exists():
+            for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
+                stale.unlink(missing_ok=True)
+        r.path.mkdir(parents=True, exist_ok=True)
+        r.write_config(cfg)
+        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed,
+                     **({"world_size": dist.world_size} if dist.active else {}))
+    hd.barrier()
 
     settings = TrainSettings.from_config(cfg, seed)
     eval_cfg = cfg["eval"]
@@ -262,10 +275,12 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     init_report = ckpt.init_from(model, init, det.load_official) if init else None
     name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
-    def validate(m: Any) -> dict[str, Any]:
+    def validate(m: Any) -> dict[str, Any] | None:
         dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
                        next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       name=det.name)
+                       name=det.name, distributed=dist.active)
+        if not main:
+            return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
         res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
         out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
         out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
@@ -284,14 +299,20 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             final.load_state_dict(ckpt.load(result.best_path)["model"])
         final.eval()
         t0 = time.perf_counter()
+        visited: list[int] = []
         dets = predict(final, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
                        trainer.device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       progress=progress, name=det.name)
+                       progress=progress, name=det.name, distributed=dist.active, visited=visited)
         predict_s = time.perf_counter() - t0
+        if not main:  # rank 0 scores and writes; the others read its metrics once they are stored
+            hd.barrier()
+            return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
+                              len(val_idx))
         evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
     except BaseException as exc:
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
-        r.set_status("failed", config_hash=digest, error=reason)
+        if main:
+            reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+            r.set_status("failed", config_hash=digest, error=reason)
         raise
     support = dict(evaluation["support"])
     support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
@@ -303,7 +324,8 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
                   "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
         "train": {**result.summary(), "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
-                  "init": init_report, "predict_s": round(predict_s, 3),
+                  "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
+                  "processes": dist.world_size,
                   "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
         "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
     }
@@ -311,6 +333,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     atomic_write_json(r.gt_path, gt, indent=None)
     r.write_metrics(metrics)
     r.set_status("finished", config_hash=digest, error=None)
+    hd.barrier()
     m = evaluation["metrics"]
     log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
              m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
