@@ -56,6 +56,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",
+    "harness.commands.sweep",
 )
 
 #: hook name -> (kind shown to users, spec class)

@@ -168,12 +168,54 @@ def run_hash(cfg: Mapping[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- the job
-def run(request: RunRequest) -> RunSummary:
-    """Train and evaluate every selected fold and seed; see the module docstring."""
+@dataclass
+class PlannedRun:
+    """One (fold, seed) of a request, before anything is trained: its store folder, configuration and hash."""
+
+    fold: Any
+    seed: int
+    run: Run
+    config: dict[str, Any]
+    digest: str
+
+    @property
+    def state(self) -> str:
+        """``finished`` (same configuration: skipped), ``conflict`` (finished with another one), or ``todo``."""
+        if not self.run.is_finished():
+            return "todo"
+        return "finished" if (self.run.status() or {}).get("config_hash") == self.digest else "conflict"
+
+
+@dataclass
+class RunPlan:
+    """What ``run`` would do for a request: the resolved plugins, configuration, prepared data and runs."""
+
+    detector: Any
+    dataset: Any
+    encoding: Any
+    config: dict[str, Any]
+    init: str | None
+    store: Store
+    prepared: Any
+    runs: list[PlannedRun]
+
+    def conflicts(self) -> list[str]:
+        return [f"{p.run.key} (stored {(p.run.status() or {}).get('config_hash')}, now {p.digest})"
+                for p in self.runs if p.state == "conflict"]
+
+
+def conflict_error(conflicts: Sequence[str], store: Store) -> StoreError:
+    return StoreError(
+        "these runs already finished with a different configuration: " + "; ".join(conflicts)
+        + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
+    )
+
+
+def plan(request: RunRequest) -> RunPlan:
+    """Resolve the request (plugins, configuration, prepared dataset, folds, seeds) into its runs."""
     from harness import distributed as hd
     from harness.plugins import get_host
 
-    hd.init_from_env()
     host = get_host()
     det = host.detector(request.detector)
     ds = host.dataset(request.dataset)
@@ -193,30 +235,33 @@ def run(request: RunRequest) -> RunSummary:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
     fingerprint = str(prepared.manifest.get("fingerprint", ""))
 
-    plan: list[tuple[Any, int, Run, dict[str, Any], str]] = []
-    conflicts = []
+    runs = []
     for fold in folds:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
             rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "val_groups": list(fold.val_groups),
                                          "train_groups": list(fold.train_groups), **init_info})
-            digest = run_hash(rcfg)
-            r = store.run(key)
-            st = r.status() or {}
-            if r.is_finished() and st.get("config_hash") != digest and not request.force:
-                conflicts.append(f"{key} (stored {st.get('config_hash')}, now {digest})")
-            plan.append((fold, seed, r, rcfg, digest))
-    if conflicts:
-        raise StoreError(
-            "these runs already finished with a different configuration: " + "; ".join(conflicts)
-            + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
-        )
+            runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
+    return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
 
-    summary = RunSummary(det.name, ds.name, enc.name, request.profile, store.root, cfg, list(prepared.categories))
-    for fold, seed, r, rcfg, digest in plan:
+
+def run(request: RunRequest) -> RunSummary:
+    """Train and evaluate every selected fold and seed; see the module docstring."""
+    from harness import distributed as hd
+
+    hd.init_from_env()
+    p = plan(request)
+    det, ds, enc, prepared, init = p.detector, p.dataset, p.encoding, p.prepared, p.init
+    conflicts = p.conflicts()
+    if conflicts and not request.force:
+        raise conflict_error(conflicts, p.store)
+
+    summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
+                         list(prepared.categories))
+    for planned in p.runs:
+        fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
-        st = r.status() or {}
-        if r.is_finished() and st.get("config_hash") == digest and not request.force:
+        if planned.state == "finished" and not request.force:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
             summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx), len(val_idx)))
             continue
