@@ -46,6 +46,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
     "harness.encodings",
     "harness.commands.sensing",
+    "harness.commands.report",
 )
 
 #: hook name -> (kind shown to users, spec class)
