@@ -22,7 +22,7 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from harness.errors import HarnessError
 from harness.report.collect import Entry, StoreView, profile_numbers
@@ -261,23 +261,16 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], ablati
     scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None)
     comps: list[PairedComparison] = []
     if progress is not None and resamples > 0:
-        from harness.report.stats import common_folds
-
-        needed: dict[str, Entry] = {}
-        total = 0
-        for a, b in pairs:
-            try:
-                folds = common_folds(a, b)
-            except HarnessError:
-                continue
-            total += scorer.evaluations([a, b], folds)
-        progress.start(total, f"bootstrap {dataset}")
-        del needed
+        runs = {str(r.path) for a, b in pairs for f in set(a.folds) & set(b.folds) for e in (a, b)
+                for r in e.folds[f].runs}
+        progress.start(len(runs) * (1 + resamples), f"bootstrap {dataset}")
     for a, b in pairs:
         try:
             comps.append(paired_comparison(a, b, resamples, seed, scorer))
         except (SampleMismatchError, HarnessError) as exc:
-            skipped.append(f"{a.label} vs {b.label}: {exc}".splitlines()[0])
+            lines = str(exc).splitlines()
+            detail = "; ".join(ln.strip() for ln in lines[1:] if ln.startswith("  "))
+            skipped.append(f"{a.label} vs {b.label}: {lines[0].rstrip(':')}" + (f" ({detail})" if detail else ""))
     if comps:
         sec.tables.append(paired_table(comps, f"{dataset}-paired".replace("/", "-"),
                                        f"{dataset}: paired comparisons (A - B, percentage points)"))
