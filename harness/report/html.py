@@ -29,6 +29,7 @@ nav a.off { color: var(--muted); }
 table { border-collapse: collapse; font-variant-numeric: tabular-nums; }
 th, td { border: 1px solid var(--line); padding: 4px 8px; white-space: nowrap; }
 th { background: var(--head); font-weight: 600; }
+th.group { text-align: center; border-bottom-color: #aeb8c2; }
 td.r, th.r { text-align: right; }
 td.l, th.l { text-align: left; }
 td.best { font-weight: 700; color: var(--best); }
@@ -54,13 +55,34 @@ def _code(text: str) -> str:
     return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
 
 
+def _header(t: Table) -> str:
+    """One header row, or two when columns are grouped (a spanning group cell over the columns' short labels)."""
+    if not any(c.group for c in t.columns):
+        return "<tr>" + "".join(f'<th class="{c.align}">{escape(c.label)}</th>' for c in t.columns) + "</tr>"
+    top, bottom = [], []
+    i = 0
+    while i < len(t.columns):
+        c = t.columns[i]
+        if not c.group:
+            top.append(f'<th rowspan="2" class="{c.align}">{escape(c.label)}</th>')
+            i += 1
+            continue
+        j = i
+        while j < len(t.columns) and t.columns[j].group == c.group:
+            bottom.append(f'<th class="{t.columns[j].align}">{escape(t.columns[j].short or t.columns[j].label)}</th>')
+            j += 1
+        top.append(f'<th colspan="{j - i}" class="group">{escape(c.group)}</th>')
+        i = j
+    return f"<tr>{''.join(top)}</tr><tr>{''.join(bottom)}</tr>"
+
+
 def render_table(t: Table) -> str:
     out = [f'<h3 id="{escape(t.name)}">{escape(t.title)}</h3>']
     if t.warning:
         items = "".join(f"<li>{escape(d)}</li>" for d in t.warning_details)
         out.append(f'<div class="loud" role="alert">⚠ {escape(t.warning)}{f"<ul>{items}</ul>" if items else ""}</div>')
     best = {c.key: t.best_rows(c) for c in t.columns}
-    head = "".join(f'<th class="{c.align}">{escape(c.label)}</th>' for c in t.columns)
+    head = _header(t)
     body = []
     for i, r in enumerate(t.rows):
         cells = []
@@ -76,7 +98,7 @@ def render_table(t: Table) -> str:
             cells.append(f'<td class="{" ".join(cls)}">{escape(text)}</td>')
         row_cls = ' class="summary"' if r.get("_summary") else ""
         body.append(f"<tr{row_cls}>{''.join(cells)}</tr>")
-    out.append(f'<div class="table-wrap"><table><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody>'
+    out.append(f'<div class="table-wrap"><table><thead>{head}</thead><tbody>{"".join(body)}</tbody>'
                f"</table></div>")
     if t.notes:
         out.append('<ul class="notes">' + "".join(f"<li>{_code(n)}</li>" for n in t.notes) + "</ul>")

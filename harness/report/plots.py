@@ -1,4 +1,4 @@
-"""Accuracy versus complexity: held-out mAP against GFLOPs, one panel per dataset and metric.
+"""Accuracy versus complexity: held-out mAP against GFLOPs, one panel per dataset (rows) and metric (columns).
 
 * x: GFLOPs of the detector's profile (``_profiles/<detector>.json``, the "paper" convention unless asked), on a
   **log** axis shared by all panels;
@@ -90,27 +90,26 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
     style = _style(labels)
 
     with matplotlib.rc_context({"svg.hashsalt": "harness-report", "font.size": 9, "axes.titlesize": 10}):
-        ncols, nrows = len(datasets), len(metrics)
-        width = max(5.2, 4.6 * ncols) + 1.8
+        ncols, nrows = len(metrics), len(datasets)  # one row per dataset, one column per metric
+        width = 4.8 * ncols + 1.8
         caption = textwrap.wrap(conventions, int(15 * width))
         caption_h = 0.16 * len(caption) + 0.15  # inches
-        height = 3.3 * nrows + 0.6 + caption_h
+        height = 3.4 * nrows + 0.7 + caption_h
         fig = Figure(figsize=(width, height), layout="constrained")
         FigureCanvasAgg(fig)
         axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True)
         xs_all = [p.gflops for p in points]
         lo, hi = min(xs_all), max(xs_all)
         x_lo, x_hi = lo / 1.8, hi * 1.8
-        for r, metric in enumerate(metrics):
-            for c, ds in enumerate(datasets):
+        for r, ds in enumerate(datasets):
+            for c, metric in enumerate(metrics):
                 ax = axes[r][c]
                 pts = [p for p in points if p.dataset == ds and p.metric == metric]
                 for p in pts:
                     marker, color = style[p.label]
                     yerr = None if p.sd is None else 100 * p.sd
                     ax.errorbar(p.gflops, 100 * p.value, yerr=yerr, fmt=marker, color=color, markersize=8,
-                                capsize=3, elinewidth=1, markeredgecolor="black", markeredgewidth=0.6, zorder=3,
-                                clip_on=False)
+                                capsize=3, elinewidth=1, markeredgecolor="black", markeredgewidth=0.6, zorder=3)
                     ax.annotate(p.label, (p.gflops, 100 * p.value), textcoords="offset points", xytext=(6, 5),
                                 fontsize=8, zorder=4)
                 if pts:
@@ -129,8 +128,7 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 ax.set_ylim(max(0.0, y_bot - pad), min(105.0, y_top + pad))
                 ax.grid(True, which="major", linestyle=":", linewidth=0.6)
                 ax.set_title(f"{ds}: {METRIC_LABELS[metric].split(' ')[0]}")
-                if c == 0:
-                    ax.set_ylabel(METRIC_LABELS[metric])
+                ax.set_ylabel(METRIC_LABELS[metric])
                 if r == nrows - 1:
                     ax.set_xlabel("GFLOPs (log scale)")
         handles = [Line2D([], [], marker=style[lab][0], color=style[lab][1], linestyle="none", markersize=8,

@@ -69,13 +69,16 @@ class Interval:
 @dataclass(frozen=True)
 class Column:
     """``kind``: text | int | pct (fraction shown in %) | pp (difference of fractions in percentage points) |
-    float | sci. ``best``: "max" or "min" to mark the best value of the column (bold in Markdown and HTML)."""
+    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the column (bold in Markdown and HTML)."""
 
     key: str
     label: str
     kind: str = "text"
     digits: int = 1
     best: str | None = None
+    #: columns sharing a group get one spanning header in HTML, each showing its ``short`` label under it
+    group: str | None = None
+    short: str | None = None
 
     @property
     def align(self) -> str:
@@ -206,7 +209,7 @@ def format_value(v: Any, kind: str, digits: int = 1) -> str:
             return "-"
         if kind == "int":
             return f"{int(round(x)):,}"
-        if kind == "sci":
+        if kind == "sig":
             return f"{x:.3g}"
         return f"{scale * float(x):{'+' if signed else ''}.{digits}f}"
 
@@ -347,11 +350,11 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     name = f"{_slug(dataset)}-folds"
     cols = [Column("detector", "Detector"), Column("encoding", "Encoding")]
     for f in folds:
-        cols += [Column(f"{f}:mAP50", f"{f} mAP50", "pct", best="max"),
-                 Column(f"{f}:mAP50_95", f"{f} mAP50:95", "pct", best="max")]
-    cols += [Column("mAP50", "mAP50 mean ± SD", "pct", best="max"),
-             Column("mAP50_95", "mAP50:95 mean ± SD", "pct", best="max"),
-             Column("params", "Params (M)", "float", 2, best="min"), Column("gflops", "GFLOPs", "float", 1, best="min"),
+        cols += [Column(f"{f}:mAP50", f"{f} mAP50", "pct", best="max", group=f, short="mAP50"),
+                 Column(f"{f}:mAP50_95", f"{f} mAP50:95", "pct", best="max", group=f, short="mAP50:95")]
+    cols += [Column("mAP50", "mAP50 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50"),
+             Column("mAP50_95", "mAP50:95 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50:95"),
+             Column("params", "Params (M)", "sig", best="min"), Column("gflops", "GFLOPs", "sig", best="min"),
              Column("images", "Images", "int"), Column("instances", "Inst.", "int")]
     if pareto is not None:
         cols.append(Column("pareto", "Pareto"))
@@ -451,8 +454,11 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
     multi = len(rows_e) > 1
     for e in rows_e:
         prefix = f"{names[e.label]} " if multi else ""
-        cols += [Column(f"{e.label}:AP50", f"{prefix}AP50", "pct", best="max" if not multi else None),
-                 Column(f"{e.label}:AP50_95", f"{prefix}AP50:95", "pct", best="max" if not multi else None)]
+        group = names[e.label] if multi else None
+        cols += [Column(f"{e.label}:AP50", f"{prefix}AP50", "pct", best="max" if not multi else None, group=group,
+                        short="AP50"),
+                 Column(f"{e.label}:AP50_95", f"{prefix}AP50:95", "pct", best="max" if not multi else None,
+                        group=group, short="AP50:95")]
     table = Table(name, f"{dataset}: per category (AP over the folds that contain the category, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
     ref = aggs[rows_e[0].label]["per_category"]
