@@ -160,6 +160,12 @@ def test_same_seed_same_interval_and_scores_are_cached(pair_store):
     assert again.bootstrap["mAP50_95"].ci_low == first.bootstrap["mAP50_95"].ci_low
 
 
+def test_worker_processes_give_the_same_numbers(pair_store):
+    one = compare_detectors(pair_store, "synth", "medium", "weak", resamples=11, seed=2)
+    two = compare_detectors(pair_store, "synth", "medium", "weak", resamples=11, seed=2, workers=2)
+    assert one.bootstrap == two.bootstrap
+
+
 def test_pairs_scored_on_different_samples_are_refused(tmp_path):
     from harness.evaluation import SampleMismatchError
 

@@ -42,11 +42,14 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--resamples", type=click.IntRange(min=0), default=200, show_default=True,
                   help="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
     @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap resamples.")
+    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+                  help="Processes for the bootstrap's re-scoring.")
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
                   help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
     @click.option("--title", default=None, help="Title of the report.")
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
-                   print_tables: bool, resamples: int, seed: int, ablation_categories: str, title: str | None) -> None:
+                   print_tables: bool, resamples: int, seed: int, workers: int, ablation_categories: str,
+                   title: str | None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         \b
@@ -64,7 +67,7 @@ def register_commands(cli: click.Group) -> None:
         target = out or Path("reports") / Path(root).resolve().name
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
         report = build_report(root, names, out=target, formats=fmts, resamples=resamples, seed=seed,
-                              ablation_categories=cats, title=title, progress=True)
+                              ablation_categories=cats, title=title, progress=True, workers=workers)
         if print_tables:
             click.echo(report.to_text())
             return
@@ -90,9 +93,11 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--resamples", type=click.IntRange(min=0), default=1000, show_default=True,
                   help="Paired-bootstrap resamples of the held-out images (0: per-fold differences only).")
     @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap resamples.")
+    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+                  help="Processes for the bootstrap's re-scoring.")
     @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of the tables.")
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
-                              seed: int, as_json: bool) -> None:
+                              seed: int, workers: int, as_json: bool) -> None:
         """Paired comparison of A and B (DETECTOR or DETECTOR/ENCODING) on the same held-out images.
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
@@ -109,7 +114,7 @@ def register_commands(cli: click.Group) -> None:
             task = bar.add_task("bootstrap", total=None)
             comp = compare_detectors(root, dataset, a, b, resamples=resamples, seed=seed,
                                      progress=lambda k: bar.advance(task, k),
-                                     on_total=lambda n: bar.update(task, total=n))
+                                     on_total=lambda n: bar.update(task, total=n), workers=workers)
         if as_json:
             click.echo(json.dumps(comp.to_dict(), indent=2))
         else:

@@ -229,8 +229,8 @@ def _pareto_labels(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]
     return {pts[i][0] for i in idx}
 
 
-def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], ablations: Sequence[Table],
-                    resamples: int, seed: int, progress: Any) -> tuple[Section, list[PairedComparison]]:
+def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamples: int, seed: int, progress: Any,
+                    workers: int = 1) -> tuple[Section, list[PairedComparison]]:
     sec = Section("paired", "Paired comparisons", dataset)
     entries = view.entries(dataset)
     pairs: list[tuple[Entry, Entry]] = []
@@ -258,7 +258,7 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], ablati
         return sec, []
     from harness.evaluation import SampleMismatchError
 
-    scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None)
+    scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None, workers)
     comps: list[PairedComparison] = []
     if progress is not None and resamples > 0:
         runs = {str(r.path) for a, b in pairs for f in set(a.folds) & set(b.folds) for e in (a, b)
@@ -283,8 +283,8 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], ablati
     return sec, comps
 
 
-def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int,
-                     ablation_categories: Sequence[str], progress: Any = None) -> tuple[list[Section], list[PairedComparison]]:
+def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
+                     progress: Any = None, workers: int = 1) -> tuple[list[Section], list[PairedComparison]]:
     """The sections of one dataset (see the module docstring for the order)."""
     root = view.root
     entries = view.entries(dataset)
@@ -323,7 +323,7 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int,
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
     sections.append(sec)
 
-    sec, comps = _paired_section(view, dataset, rows, abl, resamples, seed, progress)
+    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
     sections.append(sec)
 
     sec = Section("registration", "Registration error", dataset)
@@ -382,11 +382,12 @@ class _Progress:
 def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,
                  formats: Sequence[str] = FORMATS, resamples: int = REPORT_RESAMPLES, seed: int = 0,
                  ablation_categories: Sequence[str] = ABLATION_CATEGORIES, title: str | None = None,
-                 progress: bool = False) -> Report:
+                 progress: bool = False, workers: int = 1) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
-    differences only). Returns the ``Report`` (its ``files`` lists what was written).
+    differences only); ``workers``: processes for the bootstrap. Returns the ``Report`` (its ``files`` lists what was
+    written).
     """
     bad = [f for f in formats if f not in FORMATS]
     if bad:
@@ -411,7 +412,7 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
                     environment={"python": platform.python_version(), "machine": platform.machine()})
     with _Progress(progress) as bar:
         for ds in chosen:
-            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar)
+            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers)
             report.sections += sections
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))

@@ -146,18 +146,45 @@ def _quiet_evaluation() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------------------------- scoring
+def score_resamples(indexed: IndexedRun, rows: np.ndarray, engine: str = "faster-coco-eval",
+                    progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """``[len(rows), 2]`` mAP50, mAP50:95 of ``harness.evaluation.evaluate`` on each resample (a row of image
+    positions); NaN where a metric is undefined (no ground truth drawn)."""
+    from harness.evaluation import evaluate
+
+    out = np.full((len(rows), 2), np.nan)
+    with _quiet_evaluation():
+        for i, row in enumerate(rows):
+            gt, dets = indexed.resample(row)
+            m = evaluate(gt, dets, engine=engine)["metrics"]
+            out[i] = [np.nan if m.get(k) is None else m[k] for k in METRICS]
+            if progress:
+                progress(1)
+    return out
+
+
+def _score_chunk(gt_path: str, predictions_path: str, engine: str, rows: np.ndarray) -> np.ndarray:
+    """Worker process: read the run's files and score a chunk of resamples."""
+    from harness.io import read_json
+
+    indexed = IndexedRun.from_coco(read_json(gt_path), read_json(predictions_path))
+    return score_resamples(indexed, rows, engine)
+
+
 class BootstrapScorer:
     """Scores entries on shared image resamples; each (run, fold) is evaluated once per resample and cached.
 
     ``scores(entry, folds)`` -> array ``[1 + resamples, 2]``: row 0 the original images, rows 1.. the resamples;
     columns mAP50 and mAP50:95 as the mean over ``folds`` of the seed-averaged fold values (NaN where undefined).
+    ``workers > 1`` scores chunks of resamples in that many processes (same numbers, in the same order).
     """
 
     def __init__(self, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                 progress: Callable[[int], None] | None = None):
+                 progress: Callable[[int], None] | None = None, workers: int = 1):
         if resamples < 0:
             raise ValueError("resamples must be >= 0")
         self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
+        self.workers = max(1, int(workers))
         self._fold_ids: dict[tuple[str, str], list[Any]] = {}
         self._run_scores: dict[str, np.ndarray] = {}
 
@@ -194,22 +221,27 @@ class BootstrapScorer:
         cache_key = str(run.path)
         if cache_key in self._run_scores:
             return self._run_scores[cache_key]
-        from harness.evaluation import evaluate
-
         indexed, engine = self._load(run)
         self._fold_images(dataset, fold, indexed, str(run.path))
         n = len(indexed.image_ids)
         if n == 0:
             raise StoreError(f"{run.gt_path}: no images; nothing to resample")
-        draws = bootstrap_indices(n, self.resamples, self.seed, fold)
-        out = np.full((1 + self.resamples, 2), np.nan)
-        with _quiet_evaluation():
-            for r in range(1 + self.resamples):
-                gt, dets = indexed.resample(np.arange(n) if r == 0 else draws[r - 1])
-                m = evaluate(gt, dets, engine=engine)["metrics"]
-                out[r] = [np.nan if m.get(k) is None else m[k] for k in METRICS]
-                if self.progress:
-                    self.progress(1)
+        rows = np.concatenate([np.arange(n)[None, :], bootstrap_indices(n, self.resamples, self.seed, fold)])
+        if self.workers > 1 and len(rows) >= 4 * self.workers:
+            from concurrent.futures import ProcessPoolExecutor
+
+            chunks = np.array_split(rows, 4 * self.workers)
+            with ProcessPoolExecutor(self.workers) as pool:
+                futures = [pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c)
+                           for c in chunks]
+                parts = []
+                for fut, c in zip(futures, chunks):
+                    parts.append(fut.result())
+                    if self.progress:
+                        self.progress(len(c))
+            out = np.concatenate(parts)
+        else:
+            out = score_resamples(indexed, rows, engine, self.progress)
         self._run_scores[cache_key] = out
         return out
 
@@ -366,13 +398,19 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
         boot[key] = BootstrapResult(
             key, _f(obs_a), _f(obs_b), _f(obs_a - obs_b), lo, hi, percentile_ci(da[valid]), percentile_ci(db[valid]),
             resamples, int(valid.sum()), seed, float(np.mean(d <= 0)) if d.size else None)
-        stored = Stat(statistics.fmean(x for x in [a.folds[f].metrics["metrics"].get(key) for f in folds] if x is not None)
-                      if any(a.folds[f].metrics["metrics"].get(key) is not None for f in folds) else None)
-        if stored.mean is not None and boot[key].a is not None and abs(stored.mean - boot[key].a) > 1e-6:
-            comp.notes.append(f"note: re-scored {key} of {a.label} ({boot[key].a:.4f}) differs from the stored "
-                              f"metrics ({stored.mean:.4f}); was the run evaluated with other settings?")
+        for label, entry, observed in ((a.label, a, boot[key].a), (b.label, b, boot[key].b)):
+            stored = _stored_mean(entry, folds, key)
+            if stored is not None and observed is not None and abs(stored - observed) > 1e-6:
+                comp.notes.append(f"note: re-scored {key} of {label} ({observed:.4f}) differs from its stored "
+                                  f"metrics ({stored:.4f}); were the runs evaluated with other settings?")
     comp.bootstrap = boot
     return comp
+
+
+def _stored_mean(entry: Entry, folds: Sequence[str], key: str) -> float | None:
+    """The stored metric of ``entry`` as the bootstrap statistic defines it: mean over folds of the seed means."""
+    values = [entry.folds[f].metrics["metrics"].get(key) for f in folds]
+    return None if any(v is None for v in values) else statistics.fmean(values)
 
 
 def _f(x: Any) -> float | None:
@@ -381,7 +419,7 @@ def _f(x: Any) -> float | None:
 
 def compare_detectors(store: Any, dataset: str, a: str, b: str, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
                       progress: Callable[[int], None] | None = None,
-                      on_total: Callable[[int], None] | None = None) -> PairedComparison:
+                      on_total: Callable[[int], None] | None = None, workers: int = 1) -> PairedComparison:
     """``harness compare-detectors``: A and B are ``DETECTOR`` or ``DETECTOR/ENCODING`` on ``dataset``."""
     view = store if isinstance(store, StoreView) else StoreView(store)
     ea, eb = view.entry(dataset, a), view.entry(dataset, b)
@@ -389,7 +427,7 @@ def compare_detectors(store: Any, dataset: str, a: str, b: str, resamples: int =
         raise StoreError(f"{a!r} and {b!r} name the same runs ({ea.label}); compare two different entries")
     folds = common_folds(ea, eb)
     check_pair_matched(ea, eb, folds)
-    scorer = BootstrapScorer(resamples, seed, progress)
+    scorer = BootstrapScorer(resamples, seed, progress, workers)
     if on_total is not None:
         on_total(scorer.evaluations([ea, eb], folds) if resamples > 0 else 0)
     return paired_comparison(ea, eb, resamples, seed, scorer, folds)
