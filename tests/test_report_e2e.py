@@ -2,8 +2,9 @@
 
 The store is filled once per session by the commands a user runs (in-process): ``harness run`` of the example
 plugin's two detectors (single- and dual-stream TinyDet) on every project-grouped fold of the tiny synthetic M3T
-(1 epoch at 64 px), ``harness ablate`` over three encodings, ``harness profile`` of both detectors, and the two
-sensing analyses. Nothing in it is written by hand.
+(1 epoch at 64 px), ``harness ablate`` over three encodings, ``harness profile`` of both detectors, the two
+sensing analyses, and the same two detectors on a second dataset (the engine tests' ``shapes``) for the
+cross-dataset table. Nothing in it is written by hand.
 """
 
 from __future__ import annotations
@@ -61,14 +62,18 @@ def real_store(tmp_path_factory):
     import harness_tinydet.plugin as tinydet
 
     sets = [a for s in FAST for a in ("--set", s)]
+    from engine_helpers import ShapesPlugin
+
     try:
-        with temporary_plugin(tinydet, name="tinydet-report-test"):
+        with temporary_plugin(tinydet, name="tinydet-report-test"), temporary_plugin(ShapesPlugin(), name="shapes-report-test"):
             _cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
             _cli(["run", "--detector", "tinydet-dual", "--dataset", DATASET, "--folds", "all", "--store", str(store),
                   *sets])
             _cli(["ablate", "--detector", "tinydet", "--dataset", DATASET, "--encodings", "c2,ir8,none",
                   "--fold", "P4+P5", "--store", str(store), *sets])
             for det in ("tinydet", "tinydet-dual"):
+                _cli(["run", "--detector", det, "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "all",
+                      "--store", str(store), *sets[:-2]])
                 _cli(["profile", "--detector", det, "--imgsz", "64", "--no-latency", "--no-onnx", "--no-fvcore",
                       "--store", str(store)])
         landmarks = next((root / "data").glob("*/registration/landmarks.json"))
@@ -95,10 +100,13 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     from harness.store import Store
 
     report, out = real_report
+    assert report.datasets == [DATASET, "shapes"]
     absent = {f"{s.dataset}/{s.key}": s.absent for s in report.sections if s.absent}
     if "None/cross-dataset" in absent and "harness.compare" in absent["None/cross-dataset"]:
         absent.pop("None/cross-dataset")  # the cross-dataset builder is not part of this checkout yet
-    assert absent == {}
+    # the seed's dataset has every section; the second dataset (no ablation, no sensing) says what would fill them
+    assert sorted(absent) == ["shapes/ablation", "shapes/displacement", "shapes/registration"]
+    assert "harness ablate" in absent["shapes/ablation"] and "harness sensing displacement" in absent["shapes/displacement"]
     store = Store(real_store)
     titles = [t.title for t in report.tables]
     assert titles[:3] == [f"{DATASET}: project-grouped folds (held-out mAP, %)",
@@ -122,7 +130,7 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     assert [r["encoding"] for r in ablation.rows] == ["c2", "ir8", "none"]
     assert [c.label for c in ablation.columns][-2:] == ["AP50 delamination", "AP50 water_seepage"]
     # paired comparisons with bootstrap intervals that bracket their observed difference
-    paired = next(t for t in report.tables if "paired" in t.name)
+    paired = next(t for t in report.tables if t.name == f"{DATASET}-paired")
     assert len(paired.rows) == 3
     for c in report.comparisons:
         for b in c.bootstrap.values():
@@ -135,11 +143,22 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     assert [c.label for c in disp_table.columns][-3:] == ["R(2 px) %", "R(5 px) %", "R(10 px) %"]
     # the figure and every file
     fig = next(f for s in report.sections for f in s.figures)
-    assert {p.label for p in fig.points} == {"tinydet", "tinydet-dual"}
+    assert {(p.dataset, p.label) for p in fig.points} == {(d, det) for d in (DATASET, "shapes")
+                                                         for det in ("tinydet", "tinydet-dual")}
     assert "64x64" in fig.caption and "cpu" in fig.caption and "'paper' convention" in fig.caption
     for name in ("report.md", "report.html", "tidy.csv", "figures/accuracy_vs_gflops.png",
                  "figures/accuracy_vs_gflops.svg"):
         assert (out / name).stat().st_size > 500, name
+    try:
+        import harness.compare  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        cross = next(t for t in report.tables if t.name == "cross-dataset")
+        assert [(r["dataset"], r["detector"]) for r in cross.rows] == [
+            (DATASET, "tinydet"), (DATASET, "tinydet-dual"), ("shapes", "tinydet"), ("shapes", "tinydet-dual")]
+        assert cross.warning is None and cross.rows[0]["images"] == folds.rows[0]["images"]
+        assert cross.rows[0]["mAP50_95"].mean == pytest.approx(folds.rows[0]["mAP50_95"].mean)
     tidy = (out / "tidy.csv").read_text().splitlines()
     assert len(tidy) > 100 and all(line.count(",") >= 14 for line in tidy[:50])
 

@@ -124,7 +124,7 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 errs = [100 * (p.sd or 0.0) for p in pts] or [0.0]
                 y_top = max(v + e for v, e in zip(vals, errs))
                 y_bot = min(v - e for v, e in zip(vals, errs))
-                pad = max(3.0, 0.12 * (y_top - y_bot))
+                pad = max(0.15 * (y_top - y_bot), 0.1 * y_top, 0.2)
                 ax.set_ylim(max(0.0, y_bot - pad), min(105.0, y_top + pad))
                 ax.grid(True, which="major", linestyle=":", linewidth=0.6)
                 ax.set_title(f"{ds}: {METRIC_LABELS[metric].split(' ')[0]}")

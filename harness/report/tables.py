@@ -635,8 +635,11 @@ def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
 
 # -------------------------------------------------------------------------------------------------- cross-dataset
 def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | None:
-    """The cross-dataset table of ``harness.compare.build_table`` (mismatches labelled, not refused).
+    """The cross-dataset table of ``harness.compare.build_table``, restricted to the project tables' rows.
 
+    The builder aggregates every (dataset, annotation source, detector, encoding) of the store; entries evaluated on
+    fewer folds (encoding ablations) are left out here, as in the project-grouped tables, and named in a note. Rows
+    of a dataset whose entries were not scored on the same samples are marked ``!`` and the table is labelled.
     Returns None when ``harness.compare`` is not part of this installation.
     """
     try:
@@ -647,15 +650,30 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | Non
     if not with_runs:
         return Table("cross-dataset", "Cross-dataset comparison", [])
     ct = build_table(view.root, with_runs, allow_mismatched=True)
+    keep: set[tuple[str, str, str]] = set()
+    bad: set[str] = set()
+    table = Table("cross-dataset", "Cross-dataset comparison (held-out mAP, %)", [])
+    for ds in with_runs:
+        rows_e, _, folds = main_entries(view.entries(ds))
+        keep.update((ds, e.detector, e.encoding) for e in rows_e)
+        label, details = _fold_matching(rows_e, folds)
+        if label:
+            bad.add(ds)
+            _merge_warning(table, label, [f"{ds}: {d}" for d in details])
     cols = [Column("dataset", "Dataset"), Column("source", "GT"), Column("detector", "Detector"),
             Column("encoding", "Encoding"), Column("folds", "Folds", "int"), Column("images", "Images", "int"),
             Column("instances", "Instances", "int"), Column("mAP50", "mAP50", "pct"),
             Column("mAP50_95", "mAP50:95", "pct")]
     if ct.safit:
         cols += [Column("safit50", "SAFit-AP50", "pct"), Column("safit50_95", "SAFit-AP50:95", "pct")]
-    table = Table("cross-dataset", "Cross-dataset comparison (held-out mAP, %)", cols)
+    table.columns = cols
+    left_out = []
     for r in ct.rows:
-        row = {"dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if r.matched else " !"),
+        if (r.dataset, r.detector, r.encoding) not in keep:
+            left_out.append(f"{r.dataset}/{r.detector}/{r.encoding} [{', '.join(r.folds)}]")
+            continue
+        matched = r.dataset not in bad
+        row = {"dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
                "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
                "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds))}
         if ct.safit:
@@ -666,13 +684,13 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | Non
             table.records.append(record("cross-dataset", f"{key}_mean", s.mean, sd=s.sd, n=s.n, dataset=r.dataset,
                                         detector=r.detector, encoding=r.encoding, fold=" ".join(r.folds),
                                         category=f"GT {r.source}", images=r.images, instances=r.instances,
-                                        seeds=r.seeds, sample_matched=r.matched))
-    if ct.mismatches:
-        table.warning = "NOT sample-matched: rows marked ! were scored on different supports"
-        table.warning_details = list(ct.mismatches)
+                                        seeds=r.seeds, sample_matched=matched))
     table.notes.append("One row per dataset, annotation source (GT: T thermal, RGB visible, - single set), detector "
-                       "and encoding; AP in %, mean ± sample SD over held-out folds; images and instances summed over "
-                       "held-out folds (from `harness compare`).")
+                       "and encoding, aggregated by `harness compare`; AP in %, mean ± sample SD over held-out folds; "
+                       "images and instances summed over held-out folds.")
+    if left_out:
+        table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablations): "
+                           + ", ".join(left_out))
     return table
 
 
