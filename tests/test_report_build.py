@@ -66,6 +66,7 @@ def test_html_page_is_self_contained(built):
     assert "<script" not in page.lower() and "<link" not in page.lower() and "<img" not in page.lower()
     assert not EXTERNAL.search(page)
     assert page.count("<table>") == len(report.tables) >= 4 and "Absent." in page
+    assert '<th colspan="2" class="group">P1</th>' in page  # fold headers span their two metrics
 
 
 def test_text_report_is_aligned(built):

@@ -191,6 +191,17 @@ def test_missing_predictions_and_bad_names_are_clear_errors(tmp_path):
         compare_detectors(Store(tmp_path), "synth", "alpha", "beta")
 
 
+def test_a_stored_number_that_re_scoring_does_not_reproduce_is_noted(tmp_path):
+    store = synthetic_store(tmp_path, folds=("P1",), per_fold=4)
+    run = store.run(RunKey("synth", "alpha", "c2", "P1", 0))
+    m = run.read_metrics()
+    m["metrics"]["mAP50_95"] = 0.01
+    run.write_metrics({k: v for k, v in m.items() if k not in ("schema", "run")})
+    comp = compare_detectors(store, "synth", "alpha", "beta", resamples=3)
+    assert any("re-scored mAP50_95 of alpha/c2" in n and "0.0100" in n for n in comp.notes)
+    assert not any("beta" in n for n in comp.notes)
+
+
 def test_compare_detectors_command(cli_runner, pair_store):
     res = cli_runner(["compare-detectors", "strong", "weak/c2", "--dataset", "synth", "--store", str(pair_store.root),
                       "--resamples", "20"])
