@@ -46,6 +46,10 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
     "harness.encodings",
     "harness.commands.sensing",
+    "harness.commands.data",
+    "adapters.datasets.m3t",
+    "adapters.datasets.synthetic",
+    "adapters.detectors.ours",
     "harness.commands.report",
 )
 
