@@ -111,6 +111,24 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
     assert res.exit_code == 2 and "unknown report format(s) pdf" in res.output
 
 
+def test_unreadable_files_are_skipped_and_named(tmp_path):
+    store = synthetic_store(tmp_path / "s", folds=("P1", "P2"), per_fold=3, profiles={"alpha": (1e6, 1.0)})
+    store.run(RunKey("synth", "beta", "c2", "P2", 0)).metrics_path.write_text("{ not json")
+    store.profile_path("beta").write_text("[1, 2")
+    store.sensing_path("synth", "displacement").parent.mkdir(parents=True, exist_ok=True)
+    store.sensing_path("synth", "displacement").write_text("{}x")
+    report = build_report(store, out=tmp_path / "out", resamples=0)
+    assert any("synth/beta/c2/P2/seed0: skipped" in p and "invalid JSON" in p for p in report.problems)
+    assert any("profile skipped" in p and "beta.json" in p for p in report.problems)
+    disp = next(s for s in report.sections if s.key == "displacement")
+    assert disp.absent.startswith("unreadable:") and "displacement.json" in disp.absent
+    folds = report.tables[0]
+    assert [r["detector"] for r in folds.rows] == ["alpha", "support"]  # beta lost a fold: out of the table, named
+    assert any("beta/c2 [P1]" in n for n in folds.notes)
+    assert "UNREADABLE FILES IN THE STORE" in (tmp_path / "out" / "report.txt").read_text()
+    assert "unreadable files in the store" in (tmp_path / "out" / "report.html").read_text()
+
+
 def test_an_empty_store_is_a_clear_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(HarnessError, match="holds no finished runs"):

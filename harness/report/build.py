@@ -87,6 +87,8 @@ class Report:
     comparisons: list[PairedComparison] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
     environment: dict[str, Any] = field(default_factory=dict)
+    #: store files that could not be read (skipped, named with the reason)
+    problems: list[str] = field(default_factory=list)
 
     @property
     def tables(self) -> list[Table]:
@@ -98,6 +100,8 @@ class Report:
     def to_text(self) -> str:
         """Every table and note, aligned for the terminal (``harness report --print``)."""
         out = [self.title, f"store: {self.store}   generated: {self.generated}", ""]
+        if self.problems:
+            out += ["!!! UNREADABLE FILES IN THE STORE (skipped) !!!", *[f"!!!   {p}" for p in self.problems], ""]
         current = None
         for s in self.sections:
             if s.dataset != current:
@@ -119,6 +123,8 @@ class Report:
 
     def to_markdown(self, figure_dir: str = "figures") -> str:
         out = [f"# {self.title}", "", f"Results store `{self.store}`, generated {self.generated}.", ""]
+        if self.problems:
+            out += ["> **⚠ Unreadable files in the store (skipped)**", *[f"> - {p}" for p in self.problems], ""]
         current = None
         for s in self.sections:
             if s.dataset != current:
@@ -283,6 +289,13 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamp
     return sec, comps
 
 
+def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[str, Any] | None, str | None]:
+    try:
+        return view.sensing(dataset, analysis), None
+    except HarnessError as exc:
+        return None, f"unreadable: {exc}"
+
+
 def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
                      progress: Any = None, workers: int = 1) -> tuple[list[Section], list[PairedComparison]]:
     """The sections of one dataset (see the module docstring for the order)."""
@@ -327,8 +340,10 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sections.append(sec)
 
     sec = Section("registration", "Registration error", dataset)
-    reg = view.sensing(dataset, "registration_error")
-    if reg is None:
+    reg, problem = _read_sensing(view, dataset, "registration_error")
+    if problem:
+        sec.absent = f"{problem}; re-run `harness sensing registration-error ... --dataset {dataset} --store {root}`."
+    elif reg is None:
         sec.absent = (f"no registration-error analysis of {dataset}; fill with `harness sensing registration-error "
                       f"--landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} --store {root}`.")
     else:
@@ -336,8 +351,10 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sections.append(sec)
 
     sec = Section("displacement", "C2 under thermal displacement", dataset)
-    disp = view.sensing(dataset, "displacement")
-    if disp is None:
+    disp, problem = _read_sensing(view, dataset, "displacement")
+    if problem:
+        sec.absent = f"{problem}; re-run `harness sensing displacement --dataset {dataset} --store {root}`."
+    elif disp is None:
         sec.absent = (f"no displacement study of {dataset}; fill with `harness sensing displacement --dataset "
                       f"{dataset} --store {root}`.")
     else:
@@ -417,8 +434,14 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
     sec = Section("cross-dataset", "Cross-dataset comparison")
-    table = cross_dataset_table(view, chosen)
-    if table is None:
+    try:
+        table = cross_dataset_table(view, chosen)
+    except HarnessError as exc:
+        table = None
+        sec.absent = f"the cross-dataset table could not be built: {exc}"
+    if sec.absent:
+        pass
+    elif table is None:
         sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
     elif not table.rows:
         sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
@@ -430,6 +453,7 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
                                f"`harness run --dataset OTHER --store {view.root}` to compare across datasets.")
         sec.tables.append(table)
     report.sections.append(sec)
+    report.problems = list(view.problems)
     if out_dir is not None:
         report.files += write_report(report, out_dir, formats)
     return report

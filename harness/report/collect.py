@@ -173,15 +173,41 @@ class StoreView:
             raise StoreError(f"{self.store.root}: no results store here; pass --store (the folder `harness run` wrote "
                              f"into)")
         self._entries: dict[str, list[Entry]] = {}
+        self._profiles: dict[str, dict[str, Any]] | None = None
+        #: files that could not be read (named, with the reason); the report lists them instead of failing
+        self.problems: list[str] = []
 
     @property
     def root(self) -> Path:
         return self.store.root
 
+    def _problem(self, text: str) -> None:
+        if text not in self.problems:
+            log.warning("%s", text)
+            self.problems.append(text)
+
+    def finished_runs(self, dataset: str) -> list[Run]:
+        """Finished runs of ``dataset``; a run whose status or metrics cannot be read is skipped and recorded."""
+        out = []
+        for run in self.store.runs(dataset=dataset, finished_only=False):
+            try:
+                if not run.is_finished():
+                    continue
+                m = _read_metrics(run)
+            except HarnessError as exc:
+                self._problem(f"{run.key}: skipped, {exc}")
+                continue
+            missing = [k for k in ("support", "metrics", "per_category") if not isinstance(m.get(k), dict)]
+            if missing:
+                self._problem(f"{run.key}: skipped, {run.metrics_path} has no {', '.join(missing)} section")
+                continue
+            out.append(run)
+        return out
+
     # ------------------------------------------------------------------------------------------ what is there
     def datasets(self) -> list[str]:
         """Datasets with finished runs or sensing analyses, sorted."""
-        names = {r.key.dataset for r in self.store.runs()}
+        names = {r.key.dataset for r in self.store.runs(finished_only=False)}
         for p in self.root.glob("*/_sensing/*.json"):
             names.add(p.parent.parent.name)
         return sorted((n for n in names if not n.startswith("_")), key=natural_key)
@@ -190,9 +216,11 @@ class StoreView:
         """(run key, state) of runs in the store that are not finished (running, failed, or without metrics)."""
         out = []
         for r in self.store.runs(dataset=dataset, finished_only=False):
-            if not r.is_finished():
-                state = (r.status() or {}).get("state", "unknown")
-                out.append((str(r.key), state))
+            try:
+                if not r.is_finished():
+                    out.append((str(r.key), (r.status() or {}).get("state", "unknown")))
+            except HarnessError:
+                out.append((str(r.key), "unreadable status"))
         return out
 
     def entries(self, dataset: str) -> list[Entry]:
@@ -202,7 +230,7 @@ class StoreView:
         from harness.evaluation import check_sample_matched
 
         grouped: dict[tuple[str, str], dict[str, list[Run]]] = {}
-        for run in self.store.runs(dataset=dataset):
+        for run in self.finished_runs(dataset):
             grouped.setdefault((run.key.detector, run.key.encoding), {}).setdefault(run.key.fold, []).append(run)
         entries = []
         for (det, enc), folds in sorted(grouped.items(), key=lambda kv: (natural_key(kv[0][0]), natural_key(kv[0][1]))):
@@ -234,13 +262,35 @@ class StoreView:
 
     # ------------------------------------------------------------------------------------------ other files
     def profiles(self) -> dict[str, dict[str, Any]]:
-        return self.store.read_profiles()
+        """``_profiles/<detector>.json`` by detector; an unreadable file is skipped and recorded."""
+        if self._profiles is None:
+            from harness.io import read_json
+
+            self._profiles = {}
+            for path in sorted((self.root / "_profiles").glob("*.json")):
+                try:
+                    data = read_json(path)
+                except HarnessError as exc:
+                    self._problem(f"profile skipped: {exc}")
+                    continue
+                if isinstance(data, dict):
+                    self._profiles[path.stem] = data
+                else:
+                    self._problem(f"profile skipped: {path} does not hold a JSON object")
+        return self._profiles
 
     def sensing(self, dataset: str, analysis: str) -> dict[str, Any] | None:
+        """``<dataset>/_sensing/<analysis>.json`` or None; an unreadable file raises a ``DataError`` naming it."""
+        from harness.errors import DataError
         from harness.io import read_json
 
         path = self.store.sensing_path(dataset, analysis)
-        return read_json(path) if path.exists() else None
+        if not path.exists():
+            return None
+        data = read_json(path)
+        if not isinstance(data, dict):
+            raise DataError(f"{path}: expected a JSON object")
+        return data
 
 
 def profile_numbers(profile: Mapping[str, Any] | None) -> dict[str, Any]:

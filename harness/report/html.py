@@ -138,9 +138,12 @@ def render_html(report: Report) -> str:
         body.append(render_section(s))
     warned = [t.title for t in report.tables if t.warning]
     banner = ""
+    if report.problems:
+        banner += (f'<div class="loud" role="alert">⚠ unreadable files in the store (skipped)<ul>'
+                   f'{"".join(f"<li>{escape(p)}</li>" for p in report.problems)}</ul></div>')
     if warned:
-        banner = (f'<div class="loud" role="alert">⚠ {len(warned)} table(s) compare rows that were not scored on the '
-                  f'same samples<ul>{"".join(f"<li>{escape(w)}</li>" for w in warned)}</ul></div>')
+        banner += (f'<div class="loud" role="alert">⚠ {len(warned)} table(s) compare rows that were not scored on the '
+                   f'same samples<ul>{"".join(f"<li>{escape(w)}</li>" for w in warned)}</ul></div>')
     return f"""<!DOCTYPE html>
 <html lang="en">
 <head>
