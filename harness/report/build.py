@@ -289,6 +289,27 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamp
     return sec, comps
 
 
+def _cross_section(view: StoreView, datasets: Sequence[str]) -> Section:
+    sec = Section("cross-dataset", "Cross-dataset comparison")
+    try:
+        table = cross_dataset_table(view, datasets)
+    except HarnessError as exc:
+        sec.absent = f"the cross-dataset table could not be built: {exc}"
+        return sec
+    if table is None:
+        sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
+    elif not table.rows:
+        sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
+                      f"{view.root}` for each dataset.")
+    else:
+        with_runs = [d for d in datasets if view.entries(d)]
+        if len(with_runs) < 2:
+            table.notes.append(f"Only {', '.join(with_runs)} has runs in this store; add another dataset with "
+                               f"`harness run --dataset OTHER --store {view.root}` to compare across datasets.")
+        sec.tables.append(table)
+    return sec
+
+
 def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[str, Any] | None, str | None]:
     try:
         return view.sensing(dataset, analysis), None
@@ -433,26 +454,7 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
             report.sections += sections
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
-    sec = Section("cross-dataset", "Cross-dataset comparison")
-    try:
-        table = cross_dataset_table(view, chosen)
-    except HarnessError as exc:
-        table = None
-        sec.absent = f"the cross-dataset table could not be built: {exc}"
-    if sec.absent:
-        pass
-    elif table is None:
-        sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
-    elif not table.rows:
-        sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
-                      f"{view.root}` for each dataset.")
-    else:
-        with_runs = [d for d in chosen if view.entries(d)]
-        if len(with_runs) < 2:
-            table.notes.append(f"Only {', '.join(with_runs)} has runs in this store; add another dataset with "
-                               f"`harness run --dataset OTHER --store {view.root}` to compare across datasets.")
-        sec.tables.append(table)
-    report.sections.append(sec)
+    report.sections.append(_cross_section(view, chosen))
     report.problems = list(view.problems)
     if out_dir is not None:
         report.files += write_report(report, out_dir, formats)
