@@ -102,14 +102,18 @@ class Table:
         return format_value(row.get(col.key), col.kind, col.digits)
 
     def best_rows(self, col: Column) -> set[int]:
-        """Indices of the rows holding the best value of ``col`` (ties all count; summary rows never)."""
+        """Indices of the rows holding the best value of ``col`` (ties all count; none when every row is equal;
+        summary rows never)."""
         if not col.best:
             return set()
         vals = [(i, _number(r.get(col.key))) for i, r in enumerate(self.rows) if not r.get("_summary")]
         vals = [(i, v) for i, v in vals if v is not None]
         if len(vals) < 2:
             return set()
-        target = max(v for _, v in vals) if col.best == "max" else min(v for _, v in vals)
+        lo, hi = min(v for _, v in vals), max(v for _, v in vals)
+        if math.isclose(lo, hi, rel_tol=1e-12, abs_tol=1e-12):
+            return set()  # all equal: nothing stands out
+        target = hi if col.best == "max" else lo
         return {i for i, v in vals if math.isclose(v, target, rel_tol=1e-12, abs_tol=1e-12)}
 
     # ---------------------------------------------------------------------------------------------- renderers
