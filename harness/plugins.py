@@ -44,6 +44,7 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "harness.commands.profile",
     "harness.encodings",
     "harness.commands.sensing",
     "harness.commands.data",
