@@ -51,6 +51,10 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
     "adapters.detectors.ours",
+    "adapters.datasets.rgbt_tiny",
+    "adapters.datasets.m3fd",
+    "harness.commands.compare",
+    "harness.commands.pretrain",
     "harness.commands.report",
 )
 
