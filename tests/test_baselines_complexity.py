@@ -15,6 +15,16 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from adapters.detectors import cmadet, eme, icafusion
 
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """One intra-op thread: on a shared 2-core machine two threads per op wait on each other."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 SEED = {"icafusion": (120.24, 191.68), "eme": (46.15, 109.20), "cmadet": (33.47, 33.67)}
 BUILDERS = {"icafusion": icafusion.build, "eme": eme.build, "cmadet": cmadet.build}
 

@@ -22,6 +22,16 @@ from adapters.detectors.yolo.v5 import (
 )
 
 
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """One intra-op thread: on a shared 2-core machine two threads per op wait on each other."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+
 def n_params(modules) -> int:
     return sum(p.numel() for m in modules for p in m.parameters())
 
