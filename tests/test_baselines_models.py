@@ -259,6 +259,8 @@ def test_bad_inputs_and_options_raise_clear_errors():
         tiny("eme").forward_raw(torch.rand(1, 4, 64, 64))
     with pytest.raises(HarnessError, match="labels"):
         tiny("eme").train()(pair(), [{"boxes": torch.zeros(1, 4)}, {"boxes": torch.zeros(0, 4), "labels": []}])
+    with pytest.raises(HarnessError, match="labels must be 0..7"):
+        tiny("cmadet").train()(pair(), [{"boxes": torch.ones(1, 4) * torch.tensor([1, 1, 9, 9]), "labels": [8]}] * 2)
     with pytest.raises(ConfigError, match="unknown model option"):
         eme.build(NC, widht=0.5)
     with pytest.raises(ConfigError, match="model.scale"):

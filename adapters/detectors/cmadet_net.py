@@ -49,7 +49,6 @@ from adapters.detectors.yolo.v5 import (
     run_backbone,
     run_pan,
     scale_width,
-    targets_to_tensor,
 )
 
 P3_STRIDE = 8
@@ -287,7 +286,7 @@ class CMADet(AnchorDetector):
     def compute_loss(self, inputs: Any, targets: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
         feats, aux = self._forward(inputs)
         raw = self.detect(feats)
-        losses = self.criterion(raw, targets_to_tensor(targets, raw[0].device, self.name), self.image_size(inputs))
+        losses = self.criterion(raw, self.target_rows(targets, raw[0].device), self.image_size(inputs))
         bs = raw[0].shape[0]
         losses["tv"] = self.tv_weight * sum(total_variation(f) for f in aux["flows"]) * bs
         if self.osr:

@@ -331,10 +331,17 @@ class AnchorDetector(nn.Module):
             return self.compute_loss(inputs, targets)
         return self.predict(inputs)
 
+    def target_rows(self, targets: Sequence[Mapping[str, torch.Tensor]], device: torch.device) -> torch.Tensor:
+        """Targets as YOLO rows (image, class, cx, cy, w, h), with the labels checked against ``nc``."""
+        rows = targets_to_tensor(targets, device, self.name)
+        if len(rows) and (rows[:, 1].min() < 0 or rows[:, 1].max() >= self.nc):
+            raise HarnessError(f"detector {self.name!r}: target labels must be 0..{self.nc - 1} (built for "
+                               f"{self.nc} classes), got labels {sorted(set(rows[:, 1].long().tolist()))}")
+        return rows
+
     def compute_loss(self, inputs: Any, targets: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
         raw = self.forward_raw(inputs)
-        rows = targets_to_tensor(targets, raw[0].device, self.name)
-        return self.criterion(raw, rows, self.image_size(inputs))
+        return self.criterion(raw, self.target_rows(targets, raw[0].device), self.image_size(inputs))
 
     @torch.no_grad()
     def predict(self, inputs: Any) -> list[dict[str, torch.Tensor]]:
