@@ -47,6 +47,8 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.detectors.icafusion",
     "adapters.detectors.eme",
     "adapters.detectors.cmadet",
+    "harness.encodings",
+    "harness.commands.sensing",
 )
 
 #: hook name -> (kind shown to users, spec class)

@@ -1,0 +1,76 @@
+"""How far the harness's R-JPEG temperatures are from DJI's corrected ones, on the real M3T samples.
+
+Anchor: DJI Thermal SDK ``temp_c`` (reference arrays beside the files). Compared: the blackbody route the harness
+uses (``raw14 / 16 - 273.15``), and two published corrections applied to it in a ``T^4`` radiance balance with the
+file's parameters: grey body only (emissivity, reflected temperature), and grey body + the FLIR/Thermimage
+atmospheric transmission model. Also checks that ``raw14`` is reproduced bit for bit.
+
+    .venv/bin/python benchmarks/rjpeg_gap.py [--data ../shared/data/dji-m3t-rjpeg]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
+
+
+def flir_tau(distance_m: float, humidity_pct: float, t_atm_c: float) -> float:
+    """Atmospheric transmission of the FLIR model with Thermimage's default constants."""
+    a1, a2, b1, b2, x = 0.006569, 0.01262, -0.002276, -0.00667, 1.9
+    h2o = humidity_pct / 100 * math.exp(1.5587 + 0.06939 * t_atm_c - 0.00027816 * t_atm_c ** 2
+                                        + 0.00000068455 * t_atm_c ** 3)
+    k = math.sqrt(distance_m / 2)
+    return x * math.exp(-k * (a1 + b1 * math.sqrt(h2o))) + (1 - x) * math.exp(-k * (a2 + b2 * math.sqrt(h2o)))
+
+
+def radiance_balance(t0_c: np.ndarray, emissivity: float, reflected_c: float, tau: float, t_atm_c: float) -> np.ndarray:
+    """Object temperature from ``W = tau (e W_obj + (1 - e) W_refl) + (1 - tau) W_atm`` with ``W = T^4``."""
+    w = (t0_c + 273.15) ** 4
+    wr, wa = (reflected_c + 273.15) ** 4, (t_atm_c + 273.15) ** 4
+    wo = (w - (1 - tau) * wa - tau * (1 - emissivity) * wr) / (tau * emissivity)
+    return wo ** 0.25 - 273.15
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DATA)
+    args = ap.parse_args(argv)
+    from harness.sensing.radiometry import read_rjpeg
+
+    files = sorted(args.data.glob("*_reference.npz"))
+    if not files:
+        print(f"no reference arrays in {args.data}")
+        return 1
+    print(f"{'file':<8} {'raw14':>6} {'route':<28} {'mean d':>8} {'mean |d|':>9} {'P95 |d|':>8} {'max |d|':>8}")
+    for ref_path in files:
+        name = ref_path.name.replace("_reference.npz", "")
+        rj = read_rjpeg(args.data / f"{name}.jpg")
+        ref = np.load(ref_path)
+        exact = bool(np.array_equal(rj.raw14, ref["raw14"]))
+        p = rj.params
+        t0 = rj.temperature_c.astype(np.float64)
+        # DJI's iirp SDK uses the reflected temperature for the atmosphere as well (pre-v3 headers)
+        routes = {
+            "blackbody (harness)": t0,
+            "grey body": radiance_balance(t0, p["emissivity"], p["reflected"], 1.0, p["reflected"]),
+            "grey body + FLIR atmosphere": radiance_balance(
+                t0, p["emissivity"], p["reflected"], flir_tau(p["distance"], p["humidity"], p["reflected"]),
+                p["reflected"]),
+        }
+        for route, est in routes.items():
+            d = ref["temp_c"].astype(np.float64) - est
+            print(f"{name:<8} {'exact' if exact else 'DIFF':>6} {route:<28} {d.mean():>+8.3f} {np.abs(d).mean():>9.3f} "
+                  f"{np.percentile(np.abs(d), 95):>8.3f} {np.abs(d).max():>8.3f}")
+    print("d = DJI temp_c - route, degrees C; target of a full correction: |d| <= 0.05")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,261 @@
+"""``harness sensing ...``: radiometric decoding, calibration, registration and the sensor-level analyses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from harness.hookspecs import hookimpl
+
+DEFAULT_STORE = "results/paper"
+
+
+def _size(value: str | None, what: str) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{what} must look like 640x512, got {value!r}") from None
+    return w, h
+
+
+def _write_result(result: dict[str, Any], analysis: str, dataset: str | None, store: str | None,
+                  out: Path | None) -> list[Path]:
+    from harness.io import atomic_write_json
+    from harness.sensing.analyses import nan_to_none
+
+    clean = nan_to_none(result)
+    written = []
+    if out is not None:
+        written.append(atomic_write_json(out, clean))
+    if store and dataset:
+        from harness.store import Store
+
+        written.append(Store(store).write_sensing(dataset, analysis, clean))
+    return written
+
+
+def _progress(total: int | None, label: str) -> Any:
+    """A rich progress bar on stderr (hidden when stderr is not a terminal), so tables on stdout stay clean."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True,
+                    console=console, disable=not console.is_terminal)
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.group(name="sensing")
+    def sensing() -> None:
+        """Sensing pipeline: decode R-JPEGs, calibrate cameras, register RGB to thermal, sensor-level analyses."""
+
+    # ------------------------------------------------------------------------------------------------ decode
+    @sensing.command(name="decode")
+    @click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
+    @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")
+    @click.option("--unit", type=click.Choice(["centikelvin", "decicelsius", "celsius"]), default="centikelvin",
+                  show_default=True, help="Storage unit of the temperature file.")
+    @click.option("--format", "fmt", type=click.Choice(["png", "tiff", "npy"]), default=None,
+                  help="File type (default: png for centikelvin, tiff otherwise).")
+    @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
+    def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool) -> None:
+        """Decode DJI R-JPEGs to temperature files (blackbody, C) with a JSON sidecar stating the unit."""
+        from harness.sensing.analyses import _table
+        from harness.sensing.radiometry import read_rjpeg, write_thermal
+
+        fmt = fmt or ("png" if unit == "centikelvin" else "tiff")
+        rows = []
+        with _progress(len(inputs), "decoding") as bar:
+            task = bar.add_task("decode", total=len(inputs))
+            for path in inputs:
+                rj = read_rjpeg(path)
+                t = rj.temperature_c
+                target = out_dir / f"{path.stem}.{'tif' if fmt == 'tiff' else fmt}"
+                write_thermal(target, t, unit=unit, params=rj.params,
+                              extra={"source": str(path), "decoder": "blackbody raw14/16-273.15",
+                                     "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))}})
+                if preview:
+                    import cv2
+
+                    cv2.imwrite(str(out_dir / f"{path.stem}_ir8.png"), rj.preview(grayscale=True))
+                rows.append([path.name, f"{t.shape[1]}x{t.shape[0]}", f"{t.min():.2f}", f"{t.max():.2f}",
+                             f"{t.mean():.2f}", f"{rj.params.get('emissivity', float('nan')):.2f}", target.name])
+                bar.advance(task)
+        click.echo(_table(["file", "size", "min C", "max C", "mean C", "emissivity", "written"], rows,
+                          align="lrrrrrl"))
+
+    # ------------------------------------------------------------------------------------------------ calibrate
+    @sensing.command(name="calibrate")
+    @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+    @click.option("--pattern", required=True, help="Inner corners of the checkerboard, COLSxROWS (e.g. 9x6).")
+    @click.option("--square", type=float, default=1.0, show_default=True, help="Square size (any unit).")
+    @click.option("--thermal", is_flag=True, help="Thermal views (R-JPEG, temperature files or 8-bit frames).")
+    @click.option("--name", default="", help="Camera name stored in the file.")
+    @click.option("--out", type=click.Path(path_type=Path), required=True, help="Camera model YAML to write.")
+    def calibrate_cmd(images: tuple[Path, ...], pattern: str, square: float, thermal: bool, name: str, out: Path) -> None:
+        """Calibrate one camera from checkerboard views and write its model (intrinsics, distortion, size)."""
+        from harness.sensing.calibration import calibrate_checkerboard, load_view
+
+        pat = _size(pattern, "--pattern")
+        views = [(str(p), load_view(p, thermal=thermal)) for p in images]
+        res = calibrate_checkerboard(views, pat, square_size=square, thermal=thermal, name=name)  # type: ignore[arg-type]
+        res.camera.save(out)
+        cam = res.camera
+        click.echo(f"{len(res.used)} of {len(views)} views used; RMS reprojection error {res.rms:.3f} px")
+        if res.rejected:
+            click.echo("board not found in: " + ", ".join(Path(r).name for r in res.rejected))
+        click.echo(f"fx {cam.fx:.2f}  fy {cam.fy:.2f}  cx {cam.cx:.2f}  cy {cam.cy:.2f}  "
+                   f"dist {' '.join(f'{v:+.4f}' for v in cam.dist)}  -> {out}")
+
+    # ------------------------------------------------------------------------------------------------ register
+    @sensing.command(name="register")
+    @click.option("--out", type=click.Path(path_type=Path), required=True,
+                  help="Homographies YAML to write (groups already in it are kept unless replaced).")
+    @click.option("--landmarks", type=click.Path(exists=True, path_type=Path), default=None,
+                  help="Landmarks CSV/JSON: one homography per group from its point pairs.")
+    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True)
+    @click.option("--threshold", type=float, default=2.0, show_default=True, help="RANSAC inlier threshold, px.")
+    @click.option("--similarity", "similarities", multiple=True, metavar="GROUP=TX,TY,THETA,SCALE",
+                  help="A group's similarity parameters (thermal px, degrees, thermal px per RGB px). Repeatable.")
+    @click.option("--auto", "auto_pairs", multiple=True, metavar="GROUP=RGB,THERMAL",
+                  help="Register a group automatically from one RGB image and one thermal file. Repeatable.")
+    @click.option("--init", "init_file", type=click.Path(exists=True, path_type=Path), default=None,
+                  help="Homographies YAML to start --auto from (default: the group's entry in --out, else the EXIF "
+                       "focal-length prior, else RGB width fitted to thermal width).")
+    @click.option("--rgb-size", default=None, help="RGB image size WxH (centre of the similarity).")
+    @click.option("--thermal-size", default=None, help="Thermal image size WxH (centre of the similarity).")
+    @click.option("--min-correlation", type=float, default=0.5, show_default=True,
+                  help="Automatic registration: reject pairs whose structure correlation stays below this.")
+    def register_cmd(out: Path, landmarks: Path | None, method: str, threshold: float, similarities: tuple[str, ...],
+                     auto_pairs: tuple[str, ...], init_file: Path | None, rgb_size: str | None,
+                     thermal_size: str | None, min_correlation: float) -> None:
+        """Compute per-group RGB->thermal homographies and save them in an editable YAML file."""
+        import numpy as np
+
+        from harness.errors import DataError
+        from harness.sensing import registration as reg
+        from harness.sensing.analyses import _table
+
+        if not (landmarks or similarities or auto_pairs):
+            raise click.UsageError("give --landmarks, --similarity or --auto")
+        entries = reg.load_homography_entries(out) if out.exists() else {}
+        starts = reg.load_homography_entries(init_file) if init_file else {}
+        rows = []
+        rs, ts = _size(rgb_size, "--rgb-size"), _size(thermal_size, "--thermal-size")
+        if landmarks:
+            lm = reg.read_landmarks(landmarks)
+            for group in lm.groups():
+                sub = lm.by_group(group)
+                try:
+                    H, inl = reg.homography_from_landmarks(sub.rgb, sub.thermal, method, threshold, return_inliers=True)
+                except DataError as exc:
+                    raise DataError(f"{landmarks}: group {group!r}: {exc}") from None
+                err = reg.reprojection_errors(H, sub.rgb[inl], sub.thermal[inl])
+                entries[group] = reg.HomographyEntry(H, "landmarks", None, rs, ts, quality={
+                    "landmarks": len(sub), "inliers": int(inl.sum()), "fit_rmse_px": float(np.sqrt(np.mean(err ** 2)))})
+                rows.append([group, "landmarks", f"{int(inl.sum())}/{len(sub)} pts, rmse {np.sqrt(np.mean(err ** 2)):.2f} px"])
+        for item in similarities:
+            group, _, vals = item.partition("=")
+            try:
+                tx, ty, theta, scale = (float(v) for v in vals.split(","))
+            except ValueError:
+                raise click.BadParameter(f"--similarity {item!r}: expected GROUP=TX,TY,THETA,SCALE") from None
+            entries[group] = reg.entry_from_similarity({"tx": tx, "ty": ty, "theta_deg": theta, "scale": scale}, rs, ts)
+            rows.append([group, "similarity", f"t=({tx:g}, {ty:g}) theta={theta:g} deg scale={scale:g}"])
+        for item in auto_pairs:
+            group, _, files = item.partition("=")
+            try:
+                rgb_path, thermal_path = (Path(v) for v in files.split(","))
+            except ValueError:
+                raise click.BadParameter(f"--auto {item!r}: expected GROUP=RGB,THERMAL") from None
+            res, rgb_shape, th_shape = reg.register_files(rgb_path, thermal_path, init=starts.get(group, entries.get(group)),
+                                                          min_correlation=min_correlation)
+            status = "ok" if res.ok else f"REJECTED ({res.reason})"
+            if res.ok:
+                entries[group] = reg.HomographyEntry(res.H, "auto", None, rgb_shape, th_shape, quality={
+                    "correlation": round(res.correlation, 4), "initial_correlation": round(res.initial_correlation, 4),
+                    "corner_shift_px": round(res.corner_shift_px, 2)})
+            rows.append([group, "auto", f"correlation {res.correlation:.3f} (from {res.initial_correlation:.3f}), {status}"])
+        reg.save_homographies(out, entries)
+        click.echo(_table(["group", "method", "result"], rows, align="lll"))
+        click.echo(f"-> {out} ({len(entries)} group(s))")
+
+    # ------------------------------------------------------------------------------------------------ analyses
+    @sensing.command(name="registration-error")
+    @click.option("--landmarks", type=click.Path(exists=True, path_type=Path), required=True,
+                  help="Landmarks CSV (scene,group,rgb_x,rgb_y,thermal_x,thermal_y) or JSON.")
+    @click.option("--homographies", type=click.Path(exists=True, path_type=Path), default=None,
+                  help="Evaluate these per-group homographies; without, fit per group and score leave-one-out.")
+    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True)
+    @click.option("--dataset", default=None, help="Dataset name: also write <store>/<dataset>/_sensing/registration_error.json.")
+    @click.option("--store", default=DEFAULT_STORE, show_default=True, help="Results store root.")
+    @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
+    def registration_error_cmd(landmarks: Path, homographies: Path | None, method: str, dataset: str | None,
+                               store: str, out: Path | None) -> None:
+        """Registration error on landmark pairs: mean, median, P95 and per-scene mean, in thermal pixels."""
+        from harness.sensing.analyses import format_registration_error, registration_error_study
+        from harness.sensing.registration import load_homography_entries, read_landmarks, support_boxes
+
+        lm = read_landmarks(landmarks)
+        Hs, support = None, None
+        if homographies is not None:
+            entries = load_homography_entries(homographies)
+            Hs = {g: e.H for g, e in entries.items()}
+            support = support_boxes(entries)
+        result = registration_error_study(lm, Hs, method=method, support=support)
+        result.update({"analysis": "registration_error", "landmarks_file": str(landmarks),
+                       "homographies_file": str(homographies) if homographies else None})
+        click.echo(format_registration_error(result))
+        for path in _write_result(result, "registration_error", dataset, store, out):
+            click.echo(f"-> {path}")
+
+    @sensing.command(name="displacement")
+    @click.option("--dataset", default=None, help="Prepare (or reuse the cache of) this dataset.")
+    @click.option("--prepared", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+                  help="A prepared dataset folder instead of --dataset.")
+    @click.option("--shifts", default=None, help="Comma-separated displacements in px (default: sensing.displacement.shifts).")
+    @click.option("--max-images", type=int, default=None, help="Use at most this many images.")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Config override (e.g. encoding.c2.sigma=11).")
+    @click.option("--store", default=DEFAULT_STORE, show_default=True, help="Results store root.")
+    @click.option("--no-store", is_flag=True, help="Do not write into the results store.")
+    @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
+    def displacement_cmd(dataset: str | None, prepared: Path | None, shifts: str | None, max_images: int | None,
+                         overrides: tuple[str, ...], store: str, no_store: bool, out: Path | None) -> None:
+        """How much C2 contrast boxes keep when the thermal map is shifted 2-15 px (R_c(d) in %)."""
+        from harness.config import load_config
+        from harness.errors import HarnessError
+        from harness.sensing.analyses import displacement_study, format_displacement
+        from harness.sensing.options import SensingOptions
+
+        if (dataset is None) == (prepared is None):
+            raise click.UsageError("give exactly one of --dataset or --prepared")
+        cfg = load_config(overrides=overrides)
+        opts = SensingOptions.from_config(cfg)
+        shift_list = [int(v) for v in shifts.split(",")] if shifts else list(opts.displacement_shifts)
+        c2_params = {"sigma": 11.0, "percentile": 99.0, "floor": 0.05, **dict(cfg.get("encoding", {}).get("c2", {}) or {})}
+        if prepared is not None:
+            from harness.prepared import PreparedDataset
+
+            data = PreparedDataset(prepared)
+        else:
+            try:
+                from harness.prepare import prepare
+            except ImportError:
+                raise HarnessError("this installation has no dataset preparation (harness.prepare); "
+                                   "prepare the dataset elsewhere and pass --prepared DIR") from None
+            data = prepare(dataset, cfg)
+        n = len(data) if max_images is None else min(len(data), max_images)
+        with _progress(n, "displacement") as bar:
+            task = bar.add_task("images", total=n)
+            result = displacement_study(iter(data), data.categories, shift_list, max_images=max_images,
+                                        progress=lambda k: bar.advance(task, k), **c2_params)
+        result["dataset"] = data.name
+        click.echo(format_displacement(result))
+        for path in _write_result(result, "displacement", data.name, None if no_store else store, out):
+            click.echo(f"-> {path}")
+

@@ -1,0 +1,18 @@
+"""The sensing pipeline (the seed's section III): raw captures to aligned samples, C2, sensor-level analyses.
+
+=================  ==========================================================================================
+module             what it does
+=================  ==========================================================================================
+``radiometry``     DJI M3T R-JPEG decoding (APP3 raw14, APP4 parameters), decoded thermal files + sidecars
+``calibration``    checkerboard calibration per sensor, ``CameraModel`` YAML, undistortion without black borders
+``registration``   RGB->thermal homographies: landmarks, similarity parameters, automatic (ECC on edges), groups
+``warp``           RGB warped into the thermal frame, common support, boxes carried through H, ``align_pair``
+``c2``             the signed local radiometric contrast channel C2
+``analyses``       registration error on landmarks, displacement study of C2 around boxes
+``options``        the ``sensing:`` config section as typed records
+``pipeline``       ``SensingContext``: one capture through undistortion, registration and alignment
+=================  ==========================================================================================
+
+Every function is a small, pure array-in/array-out step; the CLI (``harness sensing ...``) and the dataset
+adapters compose them. Heavy imports (OpenCV) happen inside functions.
+"""

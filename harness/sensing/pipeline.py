@@ -1,0 +1,120 @@
+"""One capture through the whole sensing chain, driven by the ``sensing:`` config section.
+
+What a dataset adapter calls once per RGB/thermal pair::
+
+    ctx = SensingContext.from_config(cfg)                     # cameras and homographies loaded once
+    pair = ctx.align_capture(rgb, temperature_c, ir8, boxes, labels, group, boxes_frame="thermal")
+    sample = pair.to_sample(image_id, group, meta={"file_name": ...})
+
+Order: undistortion of each sensor (the thermal correction goes to the temperature map and the preview alike;
+boxes move with their frame), the group's homography (from the homographies file, else by
+``sensing.registration.method``), then ``align_pair`` (warp RGB into the thermal frame, common support, crop, boxes).
+Homographies are defined between the *undistorted* images when cameras are configured.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from harness.errors import DataError
+from harness.sensing import registration as reg
+from harness.sensing.calibration import CameraModel, undistort_boxes, undistort_image
+from harness.sensing.options import SensingOptions
+from harness.sensing.warp import AlignedPair, align_pair
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SensingContext:
+    options: SensingOptions = field(default_factory=SensingOptions)
+    rgb_camera: CameraModel | None = None
+    thermal_camera: CameraModel | None = None
+    entries: dict[str, reg.HomographyEntry] = field(default_factory=dict)
+    #: automatic registrations made on the fly, with their quality (for the prepare report)
+    auto_results: dict[str, reg.AutoRegistration] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any] | None, base: str | Path | None = None) -> "SensingContext":
+        """Load the cameras and homographies the config names (relative paths resolved against ``base``)."""
+        opts = SensingOptions.from_config(cfg)
+
+        def path(p: str | None) -> Path | None:
+            if p is None:
+                return None
+            q = Path(p).expanduser()
+            return q if q.is_absolute() or base is None else Path(base) / q
+
+        rgb_cam = CameraModel.load(path(opts.undistort.rgb_camera)) if opts.undistort.rgb_camera else None
+        th_cam = CameraModel.load(path(opts.undistort.thermal_camera)) if opts.undistort.thermal_camera else None
+        hfile = path(opts.registration.homographies)
+        entries = reg.load_homography_entries(hfile) if hfile else {}
+        return cls(opts, rgb_cam, th_cam, entries)
+
+    # ------------------------------------------------------------------ steps
+    def undistort_rgb(self, rgb: np.ndarray) -> tuple[np.ndarray, CameraModel | None]:
+        if self.rgb_camera is None:
+            return rgb, None
+        out, new_cam, _ = undistort_image(rgb, self.rgb_camera, self.options.undistort.alpha)
+        return out, new_cam
+
+    def undistort_thermal(self, thermal: np.ndarray | None, ir8: np.ndarray
+                          ) -> tuple[np.ndarray | None, np.ndarray, CameraModel | None]:
+        """The same geometric correction for the temperature map and the preview."""
+        if self.thermal_camera is None:
+            return thermal, ir8, None
+        a = self.options.undistort.alpha
+        ir8_u, new_cam, _ = undistort_image(ir8, self.thermal_camera, a)
+        th_u = None if thermal is None else undistort_image(np.asarray(thermal, np.float32), self.thermal_camera, a)[0]
+        return th_u, ir8_u, new_cam
+
+    def homography(self, group: str, rgb: np.ndarray, thermal: np.ndarray, prior: np.ndarray | None = None
+                   ) -> np.ndarray:
+        """The group's H: from the homographies file; else ``registration.method`` decides: ``auto`` registers
+        this pair (from ``prior``, else the default start) and keeps the result for the group's later pairs;
+        ``focal`` uses ``prior``; ``file`` is an error. A rejected automatic registration is an error naming the
+        group (register it with landmarks or similarity parameters)."""
+        if group in self.entries:
+            return self.entries[group].H
+        method = self.options.registration.method
+        if method == "file":
+            raise DataError(f"group {group!r} has no homography in {self.options.registration.homographies}; add it "
+                            "with `harness sensing register` or set sensing.registration.method to auto")
+        if method == "focal":
+            if prior is None:
+                raise DataError(f"group {group!r}: registration method 'focal' needs the focal-length prior")
+            return reg.normalize(prior)
+        if method != "auto":
+            raise DataError(f"unknown sensing.registration.method {method!r}; use auto, focal or file")
+        o = self.options.registration
+        res = reg.estimate_homography_auto(rgb, thermal, init=prior, min_correlation=o.min_correlation,
+                                           max_corner_shift=o.max_corner_shift, search_scale=o.search_scale,
+                                           search_rotation_deg=o.search_rotation_deg)
+        self.auto_results[group] = res
+        if not res.ok:
+            raise DataError(f"group {group!r}: automatic registration rejected ({res.reason}); register the group "
+                            "with landmarks or similarity parameters (`harness sensing register`)")
+        log.info("group %s registered automatically (structure correlation %.3f)", group, res.correlation)
+        self.entries[group] = reg.HomographyEntry(res.H, "auto", quality=res.to_dict())
+        return res.H
+
+    def align_capture(self, rgb: np.ndarray, thermal: np.ndarray | None, ir8: np.ndarray, boxes: np.ndarray,
+                      labels: np.ndarray, group: str, boxes_frame: str = "thermal",
+                      prior: np.ndarray | None = None) -> AlignedPair:
+        """Undistort both sensors, get the group's homography, and align (see the module docstring)."""
+        rgb_u, rgb_cam = self.undistort_rgb(rgb)
+        th_u, ir8_u, th_cam = self.undistort_thermal(thermal, ir8)
+        b = np.asarray(boxes, dtype=np.float32).reshape(-1, 4)
+        if boxes_frame == "rgb" and rgb_cam is not None:
+            b = undistort_boxes(b, self.rgb_camera, rgb_cam)  # type: ignore[arg-type]
+        elif boxes_frame == "thermal" and th_cam is not None:
+            b = undistort_boxes(b, self.thermal_camera, th_cam)  # type: ignore[arg-type]
+        H = self.homography(group, rgb_u, th_u if th_u is not None else ir8_u, prior)
+        w = self.options.warp
+        return align_pair(rgb_u, th_u, ir8_u, b, labels, H, boxes_frame=boxes_frame, crop=w.crop,
+                          min_box_size=w.min_box_size, interpolation=w.interpolation, antialias=w.antialias)

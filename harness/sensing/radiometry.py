@@ -1,0 +1,435 @@
+"""Radiometric decoding: DJI M3T R-JPEGs and decoded temperature maps, to temperature in degrees C.
+
+DJI M3T R-JPEG ("iirp" family: M3T, M30T, M3TD, H20N, H30T, M4T, Mavic 2 Enterprise Advanced), as laid out in the
+file (see ``docs/sensing.md``)::
+
+    SOI  APP1 Exif  APP2 MPF  APP3 x N  APP4 (256 B)  APP5 (tau table)  APP7 ...  APP0 JFIF ... SOS <palette preview> EOI
+
+* APP3: the payloads concatenated in file order are W*H little-endian uint16 words; each word is a 14-bit count
+  shifted left by 2, so ``raw14 = word >> 2`` (the two low bits are always zero).
+* APP4: a 32-byte header (``FF D2 D1 FF`` + ``iirp``), then five little-endian float32 measurement parameters at
+  table offset 0: ambient temperature (C), object distance (m), emissivity (0-1), relative humidity (fraction
+  0-1), reflected temperature (C). Further fields: gain-mode byte (0x80), sensor name (0x85), format version
+  (uint32, 0x99), width and height (uint16, 0x9D / 0x9F), all offsets from the payload start.
+
+Blackbody (uncorrected, emissivity 1, no atmosphere) temperature::
+
+    T0 [C] = raw14 / 16 - 273.15          (resolution 1/16 K)
+
+DJI's SDK additionally corrects for emissivity, reflected temperature and atmospheric transmission; that
+correction is not reproduced here (the file's APP5 transmission table is proprietary), so ``T0`` is what the
+harness reports, with the parameters carried along for provenance. See ``docs/sensing.md`` for the measured gap.
+
+Decoded thermal is read from uint16 centi-Kelvin PNG/TIFF, int16 deci-Celsius TIFF, float32 TIFF or ``.npy``; a
+JSON sidecar ``<file>.json`` (e.g. ``frame.png.json``) states the unit (``read_thermal``/``write_thermal``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from harness.errors import DataError
+from harness.sensing import jpeg
+
+log = logging.getLogger(__name__)
+
+KELVIN = 273.15
+#: raw14 counts per kelvin of the iirp blackbody scale.
+COUNTS_PER_K = 16.0
+IIRP_TAG = b"iirp"
+APP4_MAGIC = b"\xff\xd2\xd1\xff"
+#: EXIF models whose R-JPEGs use the iirp layout (used when APP4 carries no format tag).
+IIRP_MODELS = ("M3T", "M30T", "M3TD", "ZH20N", "H30T", "M4T", "MAVIC2-ENTERPRISE-ADVANCED")
+PARAM_KEYS = ("ambient", "distance", "emissivity", "humidity", "reflected")
+#: Measurement parameters of the public M3T samples; used by ``write_rjpeg`` when none are given.
+DEFAULT_PARAMS: dict[str, float] = {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
+                                    "reflected": 25.0}
+PARAM_UNITS = {"ambient": "C", "distance": "m", "emissivity": "0-1", "humidity": "%", "reflected": "C"}
+
+
+# ---------------------------------------------------------------------------------------------- maths
+def raw14_to_celsius(raw14: np.ndarray) -> np.ndarray:
+    """Blackbody temperature ``T0 = raw14 / 16 - 273.15`` in C, float32 (computed in float64, then rounded)."""
+    return (np.asarray(raw14, dtype=np.float64) / COUNTS_PER_K - KELVIN).astype(np.float32)
+
+
+def celsius_to_raw14(temperature_c: np.ndarray) -> np.ndarray:
+    """Inverse of ``raw14_to_celsius``: ``round((T + 273.15) * 16)`` as uint16; exact to 1/16 K.
+
+    Raises ``DataError`` for temperatures outside the 14-bit range (below -273.15 C or above 750.7 C) or NaN.
+    """
+    t = np.asarray(temperature_c, dtype=np.float64)
+    if not np.isfinite(t).all():
+        raise DataError("temperature map has NaN or infinite values; cannot encode raw counts")
+    raw = np.rint((t + KELVIN) * COUNTS_PER_K)
+    if raw.min() < 0 or raw.max() > 0x3FFF:
+        raise DataError(f"temperatures {t.min():.2f}..{t.max():.2f} C are outside the 14-bit range "
+                        f"({-KELVIN:.2f}..{0x3FFF / COUNTS_PER_K - KELVIN:.2f} C)")
+    return raw.astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------------------------- R-JPEG
+@dataclass
+class RJpeg:
+    """A decoded DJI R-JPEG.
+
+    ``raw14`` uint16 HxW counts; ``params`` the APP4 measurement parameters (``ambient`` C, ``distance`` m,
+    ``emissivity`` 0-1, ``humidity`` %, ``reflected`` C); ``exif`` the EXIF tags; ``header`` the other APP4
+    fields (format tag, version, gain mode, sensor, width, height).
+    """
+
+    path: Path
+    raw14: np.ndarray
+    params: dict[str, float]
+    exif: dict[str, Any] = field(default_factory=dict)
+    header: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def temperature_c(self) -> np.ndarray:
+        """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW)."""
+        return raw14_to_celsius(self.raw14)
+
+    def blackbody_c(self) -> np.ndarray:
+        """Same as ``temperature_c`` (named for the correction it leaves out)."""
+        return self.temperature_c
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.raw14.shape)  # type: ignore[return-value]
+
+    def preview(self, grayscale: bool = False) -> np.ndarray:
+        """The palette rendering stored as the file's picture: uint8 HxWx3 RGB (or HxW with ``grayscale``).
+
+        Never use it for radiometry; it is the 8-bit preview (``ir8``) only.
+        """
+        import cv2
+
+        data = np.frombuffer(jpeg._read_bytes(self.path), np.uint8)
+        img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR)
+        if img is None:
+            raise DataError(f"{self.path}: the preview picture cannot be decoded")
+        return img if grayscale else img[:, :, ::-1].copy()
+
+
+def read_rjpeg(path: str | Path) -> RJpeg:
+    """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1.
+
+    ``raw14 = (APP3 words, little-endian uint16) >> 2``. A file that is not a JPEG, has no radiometric payload
+    (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it.
+    """
+    path = Path(path)
+    data = jpeg._read_bytes(path)
+    layout = jpeg.read_segments(data, path)
+    exif: dict[str, Any] = {}
+    for payload in layout.payloads(jpeg.APP1):
+        exif = jpeg.parse_exif(payload)
+        if exif:
+            break
+    app4 = layout.payloads(jpeg.APP4)
+    header, params = parse_app4(app4[0], path) if app4 else ({}, {})
+    tag = header.get("format")
+    if tag is not None and tag != "iirp":
+        raise DataError(f"{path}: DJI radiometric format {tag!r} is not supported; only the iirp family "
+                        f"({', '.join(IIRP_MODELS)}) is decoded")
+    if tag is None and exif.get("Model") and str(exif["Model"]).upper() not in IIRP_MODELS:
+        raise DataError(f"{path}: camera model {exif['Model']!r} does not write iirp R-JPEGs; "
+                        f"supported models: {', '.join(IIRP_MODELS)}")
+    chunks = layout.payloads(jpeg.APP3)
+    if not chunks:
+        raise DataError(f"{path}: no radiometric payload (APP3 segments): this is a plain JPEG, not a DJI R-JPEG; "
+                        "export the original R-JPEG from the drone, or give a decoded temperature file")
+    raw = b"".join(chunks)
+    w, h = layout.width, layout.height
+    if header.get("width") and header.get("height") and (header["width"], header["height"]) != (w, h):
+        log.debug("%s: APP4 says %dx%d, frame is %dx%d; using APP4", path, header["width"], header["height"], w, h)
+        w, h = header["width"], header["height"]
+    if len(raw) != w * h * 2:
+        raise DataError(f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
+                        "16-bit words; the file is damaged or of an unsupported layout")
+    words = np.frombuffer(raw, dtype="<u2").reshape(h, w)
+    if np.any(words & 3):
+        raise DataError(f"{path}: radiometric words have their two low bits set; not the iirp layout "
+                        "(14-bit counts shifted left by 2)")
+    raw14 = (words >> 2).astype(np.uint16)
+    return RJpeg(path=path, raw14=raw14, params=params, exif=exif, header=header)
+
+
+def parse_app4(payload: bytes, name: str | Path = "<APP4>") -> tuple[dict[str, Any], dict[str, float]]:
+    """(header fields, measurement params) of an iirp APP4 payload; see the module docstring for offsets."""
+    header: dict[str, Any] = {}
+    base = 0
+    if payload.startswith(APP4_MAGIC):
+        header["format"] = payload[4:8].split(b"\x00", 1)[0].decode("ascii", "replace")
+        base = 32
+    if header.get("format", "iirp") != "iirp":
+        return header, {}
+    if len(payload) < base + 20:
+        raise DataError(f"{name}: APP4 parameter block is {len(payload)} bytes, too short for the five parameters")
+    ambient, distance, emissivity, humidity, reflected = struct.unpack("<5f", payload[base:base + 20])
+    params = {
+        "ambient": round(float(ambient), 6),
+        "distance": round(float(distance), 6),
+        "emissivity": round(float(emissivity), 6),
+        "humidity": round(float(humidity) * 100.0, 4),  # stored as a fraction, reported in %
+        "reflected": round(float(reflected), 6),
+    }
+    if len(payload) >= 0xA1:
+        header["gain_mode"] = payload[0x80]
+        header["sensor"] = payload[0x85:0x95].split(b"\x00", 1)[0].decode("ascii", "replace")
+        header["version"] = struct.unpack("<I", payload[0x99:0x9D])[0]
+        header["width"], header["height"] = struct.unpack("<HH", payload[0x9D:0xA1])
+    return header, params
+
+
+def _checked_params(params: Mapping[str, Any] | None) -> dict[str, float]:
+    out = dict(DEFAULT_PARAMS)
+    for key, value in (params or {}).items():
+        if key not in PARAM_KEYS:
+            raise DataError(f"unknown measurement parameter {key!r}; known: {', '.join(PARAM_KEYS)}")
+        out[key] = float(value)
+    if out["humidity"] <= 1.0:  # given as a fraction
+        out["humidity"] *= 100.0
+    return out
+
+
+def build_app4(params: Mapping[str, Any] | None, width: int, height: int) -> bytes:
+    """A 256-byte iirp APP4 payload with the five parameters and the header fields the reader checks."""
+    p = _checked_params(params)
+    buf = bytearray(256)
+    buf[0:8] = APP4_MAGIC + IIRP_TAG
+    struct.pack_into("<5f", buf, 32, p["ambient"], p["distance"], p["emissivity"], p["humidity"] / 100.0,
+                     p["reflected"])
+    buf[64:68] = b"\x2c\x01\x20\x00"  # marks the table at offset 32 (as in camera files)
+    buf[0x80] = 1  # gain mode
+    buf[0x85:0x85 + 9] = b"synthetic"
+    struct.pack_into("<I", buf, 0x99, 0x200)
+    struct.pack_into("<HH", buf, 0x9D, width, height)
+    return bytes(buf)
+
+
+def write_rjpeg(path: str | Path, temperature_c: np.ndarray, params: Mapping[str, Any] | None = None,
+                preview: np.ndarray | None = None, exif: Mapping[str, Any] | None = None, quality: int = 95) -> Path:
+    """Write a DJI-layout iirp R-JPEG whose blackbody temperature is ``temperature_c`` (exact to 1/16 K).
+
+    Layout: SOI, APP1 Exif (Make ``DJI``, Model ``M3T``, size, focal length 9.1 mm, plus ``exif``), APP3 chunks of
+    ``raw14 << 2`` little-endian words, APP4 (iirp header + ``params``), APP5 (header only: no transmission
+    table, so DJI's own SDK will not open the file), then the ``preview`` (uint8 HxW or HxWx3 RGB; a white-hot
+    min-max rendering when ``None``) as a baseline JPEG. ``read_rjpeg`` returns ``raw14 = round((T+273.15)*16)``.
+    """
+    import cv2
+
+    path = Path(path)
+    t = np.asarray(temperature_c)
+    if t.ndim != 2:
+        raise DataError(f"{path}: temperature map must be 2-D (HxW), got shape {t.shape}")
+    h, w = t.shape
+    raw14 = celsius_to_raw14(t)
+    if preview is None:
+        lo, hi = float(t.min()), float(t.max())
+        preview = np.rint((t - lo) / max(hi - lo, 1e-6) * 255).astype(np.uint8)
+    preview = np.asarray(preview)
+    if preview.shape[:2] != (h, w) or preview.dtype != np.uint8:
+        raise DataError(f"{path}: preview must be uint8 {h}x{w}[x3], got {preview.dtype} {preview.shape}")
+    if preview.ndim == 2:
+        preview = np.repeat(preview[:, :, None], 3, axis=2)
+    ok, encoded = cv2.imencode(".jpg", np.ascontiguousarray(preview[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:  # pragma: no cover
+        raise DataError(f"{path}: could not encode the preview")
+    picture = encoded.tobytes()
+    tags: dict[str, Any] = {"Make": "DJI", "Model": "M3T", "ImageDescription": "WhiteHot", "Software": "rgbt-harness",
+                            "FocalLength": 9.1, "FocalLengthIn35mmFilm": 40, "ExifImageWidth": w,
+                            "ExifImageHeight": h}
+    tags.update(exif or {})
+    words = (raw14.astype("<u2") << 2).tobytes()
+    chunk = 65532  # what the camera uses; even, so no word is split across segments
+    app3 = b"".join(jpeg.segment(jpeg.APP3, words[i:i + chunk]) for i in range(0, len(words), chunk))
+    app5 = jpeg.segment(jpeg.APP5, b"\x00\x00\x00\x00" + b"\xff" * 252)
+    out = (b"\xff\xd8" + jpeg.segment(jpeg.APP1, jpeg.build_exif(tags)) + app3
+           + jpeg.segment(jpeg.APP4, build_app4(params, w, h)) + app5 + picture[2:])
+    from harness.io import atomic_write_bytes
+
+    return atomic_write_bytes(path, out)
+
+
+# ---------------------------------------------------------------------------------------------- decoded files
+#: unit -> (scale, offset) with ``C = value * scale + offset``
+UNITS: dict[str, tuple[float, float]] = {
+    "celsius": (1.0, 0.0),
+    "kelvin": (1.0, -KELVIN),
+    "centikelvin": (0.01, -KELVIN),
+    "decicelsius": (0.1, 0.0),
+    "centicelsius": (0.01, 0.0),
+    "raw14": (1.0 / COUNTS_PER_K, -KELVIN),
+}
+#: what a file's unit is assumed to be when it has no sidecar, by dtype
+DEFAULT_UNIT = {"uint16": "centikelvin", "int16": "decicelsius", "float32": "celsius", "float64": "celsius"}
+#: how each unit is stored
+UNIT_DTYPE = {"celsius": np.float32, "kelvin": np.float32, "centikelvin": np.uint16, "decicelsius": np.int16,
+              "centicelsius": np.int16, "raw14": np.uint16}
+THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
+PLAUSIBLE_C = (-100.0, 800.0)
+
+
+def sidecar_path(path: str | Path) -> Path:
+    """The sidecar of ``frame.png`` is ``frame.png.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def read_sidecar(path: str | Path) -> dict[str, Any] | None:
+    """The sidecar of ``path`` (``frame.png.json``, else ``frame.json``) or ``None`` when there is none."""
+    path = Path(path)
+    for candidate in (sidecar_path(path), path.with_suffix(".json")):
+        if candidate.exists() and candidate != path:
+            try:
+                data = json.loads(candidate.read_text(encoding="utf-8"))
+            except (OSError, json.JSONDecodeError) as exc:
+                raise DataError(f"{candidate}: unreadable sidecar ({exc})") from None
+            if not isinstance(data, dict) or not ({"unit", "scale", "offset"} & set(data)):
+                if candidate == sidecar_path(path):
+                    raise DataError(f"{candidate}: sidecar must be a JSON object with a 'unit' key")
+                continue  # frame.json that is not a thermal sidecar (e.g. annotations)
+            data["_path"] = str(candidate)
+            return data
+    return None
+
+
+def _load_array(path: Path) -> np.ndarray:
+    suffix = path.suffix.lower()
+    if not path.exists():
+        raise DataError(f"{path}: file not found")
+    try:
+        if suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            import cv2
+
+            arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if arr is None:
+                raise DataError(f"{path}: not a readable PNG image")
+    except DataError:
+        raise
+    except Exception as exc:  # tifffile / numpy raise many types for damaged files
+        raise DataError(f"{path}: cannot read the {suffix} file ({type(exc).__name__}: {exc})") from None
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim != 2:
+        raise DataError(f"{path}: expected a single-channel temperature map, got shape {arr.shape}")
+    return arr
+
+
+def read_thermal(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """Temperature in C (float32 HxW) and an info dict, from any supported thermal file.
+
+    * ``.jpg``/``.jpeg``: a DJI iirp R-JPEG, decoded to blackbody temperature (``read_rjpeg``);
+    * ``.png``/``.tif``/``.tiff``/``.npy``: ``C = value * scale + offset`` with the unit taken from the sidecar
+      ``<file>.json`` (``{"unit": "centikelvin"}`` or explicit ``scale``/``offset``); without a sidecar the dtype
+      decides (uint16 centi-Kelvin, int16 deci-Celsius, float Celsius) and implausible values are refused.
+
+    ``info``: ``unit``, ``scale``, ``offset``, ``dtype``, ``format``, ``params`` (measurement parameters when
+    known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value, kept as they are).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in THERMAL_SUFFIXES:
+        raise DataError(f"{path}: unsupported thermal file type {suffix!r}; use one of {', '.join(THERMAL_SUFFIXES)}")
+    if suffix in (".jpg", ".jpeg"):
+        rj = read_rjpeg(path)
+        info = {"format": "rjpeg", "unit": "raw14", "scale": 1.0 / COUNTS_PER_K, "offset": -KELVIN,
+                "dtype": "uint16", "decoder": "blackbody", "params": dict(rj.params), "exif": rj.exif,
+                "header": rj.header, "nodata": 0}
+        return rj.temperature_c, info
+    arr = _load_array(path)
+    side = read_sidecar(path)
+    dtype = arr.dtype.name
+    if side is not None:
+        unit = side.get("unit", "custom")
+        if "scale" in side or "offset" in side:
+            scale, offset = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
+        elif unit in UNITS:
+            scale, offset = UNITS[unit]
+        else:
+            raise DataError(f"{side['_path']}: unknown unit {unit!r}; use one of {', '.join(UNITS)} "
+                            "or give 'scale' and 'offset' (C = value * scale + offset)")
+    else:
+        if dtype not in DEFAULT_UNIT:
+            raise DataError(f"{path}: {dtype} image without a sidecar: an 8-bit or colour image carries no "
+                            f"temperatures; write {sidecar_path(path).name} with its 'unit' if it does")
+        unit = DEFAULT_UNIT[dtype]
+        scale, offset = UNITS[unit]
+    temp = (arr.astype(np.float64) * scale + offset).astype(np.float32)
+    nodata_value = side.get("nodata") if side else None
+    nodata = int((arr == nodata_value).sum()) if nodata_value is not None else 0
+    finite = np.isfinite(temp)
+    if not finite.all():
+        raise DataError(f"{path}: {int((~finite).sum())} NaN or infinite temperature value(s)")
+    if side is None:
+        lo, hi = float(temp.min()), float(temp.max())
+        if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
+            raise DataError(f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
+                            f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
+    info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
+            "params": dict(side.get("params", {})) if side else {}, "nodata": nodata,
+            "sidecar": side.get("_path") if side else None}
+    return temp, info
+
+
+def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "centikelvin",
+                  params: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None) -> Path:
+    """Write a temperature map (C) as ``path`` (.png, .tif/.tiff or .npy) in ``unit``, plus its sidecar.
+
+    ``centikelvin``: uint16 ``round((T + 273.15) * 100)``; ``decicelsius``: int16 ``round(T * 10)`` (TIFF or
+    npy only: PNG cannot hold int16); ``celsius``: float32 (TIFF or npy). The sidecar ``<file>.json`` records
+    unit, scale, offset, dtype, shape and ``params``. Returns the data file's path.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if unit not in UNITS:
+        raise DataError(f"unknown unit {unit!r}; use one of {', '.join(UNITS)}")
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DataError(f"{path}: write thermal maps as .png, .tif/.tiff or .npy")
+    t = np.asarray(temperature_c, dtype=np.float64)
+    if t.ndim != 2 or not np.isfinite(t).all():
+        raise DataError(f"{path}: temperature map must be a finite 2-D array, got shape {t.shape}")
+    scale, offset = UNITS[unit]
+    dtype = np.dtype(UNIT_DTYPE[unit])
+    values = (t - offset) / scale
+    if dtype.kind in "iu":
+        values = np.rint(values)
+        info = np.iinfo(dtype)
+        if values.min() < info.min or values.max() > info.max:
+            raise DataError(f"{path}: temperatures {t.min():.2f}..{t.max():.2f} C do not fit {unit} ({dtype.name})")
+    arr = values.astype(dtype)
+    if suffix == ".png" and dtype not in (np.uint8, np.uint16):
+        raise DataError(f"{path}: PNG cannot store {dtype.name} ({unit}); use .tif or unit='centikelvin'")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".npy":
+        np.save(path, arr)
+    elif suffix in (".tif", ".tiff"):
+        import tifffile
+
+        tifffile.imwrite(path, arr)
+    else:
+        import cv2
+
+        if not cv2.imwrite(str(path), arr):  # pragma: no cover
+            raise DataError(f"{path}: could not write PNG")
+    from harness import __version__
+    from harness.io import atomic_write_json
+
+    sidecar = {"unit": unit, "scale": scale, "offset": offset, "dtype": dtype.name, "shape": list(arr.shape),
+               "formula": "C = value * scale + offset", "params": dict(params or {}),
+               "writer": f"rgbt-harness {__version__}", **dict(extra or {})}
+    atomic_write_json(sidecar_path(path), sidecar)
+    return path
