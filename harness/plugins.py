@@ -49,6 +49,9 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.detectors.cmadet",
     "harness.encodings",
     "harness.commands.sensing",
+    "harness.commands.data",
+    "adapters.datasets.m3t",
+    "adapters.datasets.synthetic",
 )
 
 #: hook name -> (kind shown to users, spec class)

@@ -1,0 +1,125 @@
+"""``harness synth``, ``harness prepare`` and ``harness folds``: make data, cache aligned samples, show the folds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import click
+
+from harness.hookspecs import hookimpl
+
+
+def format_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A plain table: text left-aligned, numbers right-aligned, columns separated by two spaces."""
+    cells = [[str(h) for h in header]] + [[f"{v:,}" if isinstance(v, int) else str(v) for v in r] for r in rows]
+    numeric = [all(isinstance(r[i], (int, float)) for r in rows) if rows else False for i in range(len(header))]
+    widths = [max(len(c[i]) for c in cells) for i in range(len(header))]
+
+    def line(c: list[str]) -> str:
+        return "  ".join(v.rjust(w) if numeric[i] else v.ljust(w) for i, (v, w) in enumerate(zip(c, widths))).rstrip()
+
+    out = [line(cells[0]), "  ".join("-" * w for w in widths)]
+    out += [line(c) for c in cells[1:]]
+    return "\n".join(out)
+
+
+def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root: str | None) -> tuple[Any, dict]:
+    from harness.config import load_config
+    from harness.plugins import get_host
+
+    spec = get_host().dataset(dataset)
+    extra = list(overrides) + ([f"dataset.root={root}"] if root else [])
+    return spec, load_config(protocol=spec.protocol, files=configs, overrides=extra)
+
+
+def _dataset_options(func: Any) -> Any:
+    func = click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
+                        help="Override a config key, e.g. dataset.profile=full or sensing.warp.crop=false.")(func)
+    func = click.option("--config", "configs", multiple=True, type=click.Path(dir_okay=False),
+                        help="Extra config YAML file(s).")(func)
+    func = click.option("--cache", type=click.Path(file_okay=False, path_type=Path), default=None,
+                        help="Cache folder (default: $HARNESS_CACHE or ./cache).")(func)
+    func = click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")(func)
+    func = click.option("--dataset", required=True, help="Dataset name (see `harness list`).")(func)
+    return func
+
+
+def prepare_summary(ds: Any) -> str:
+    """What ``harness prepare`` prints: where, how many, what was skipped and why."""
+    m = ds.manifest
+    rep = m.get("report", {})
+    lines = [f"{'reused' if getattr(ds, 'from_cache', False) else 'prepared'} {m['dataset']}: {m['count']} aligned "
+             f"samples, {m['instances']} instances -> {ds.folder}"]
+    pairs = {k: v for k, v in rep.get("skip_reasons", {}).items() if not k.startswith("annotation")}
+    anns = {k: v for k, v in rep.get("skip_reasons", {}).items() if k.startswith("annotation")}
+    lines.append(f"skipped pairs: {sum(pairs.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in pairs.items())
+                                                            + ")" if pairs else ""))
+    lines.append(f"skipped annotations: {sum(anns.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items())
+                                                                 + ")" if anns else ""))
+    for note in rep.get("notes", []):
+        lines.append(f"note: {note}")
+    support = ds.support()
+    lines.append(format_table(["category", "instances"], [[c, n] for c, n in support["categories"].items()]))
+    return "\n".join(lines)
+
+
+def folds_table(ds: Any, folds: Sequence[Any]) -> str:
+    from harness.prepare import fold_support
+
+    rows = []
+    for s in fold_support(ds, folds):
+        rows.append([s.fold, "+".join(s.val_groups), s.train_images, s.train_instances, s.val_images, s.val_instances])
+    return format_table(["fold", "held out", "train images", "train instances", "val images", "val instances"], rows)
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="synth")
+    @click.option("--profile", type=click.Choice(["tiny", "small", "full"]), default="small", show_default=True,
+                  help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.")
+    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+                  help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<profile>-seed<seed>).")
+    @click.option("--seed", type=int, default=0, show_default=True)
+    @click.option("--thermal-format", type=click.Choice(["rjpeg", "centikelvin"]), default="rjpeg", show_default=True,
+                  help="Thermal files as DJI R-JPEGs (_T.JPG) or 16-bit centi-Kelvin PNGs with sidecars.")
+    @click.option("--force", is_flag=True, help="Replace an existing output folder.")
+    @click.option("--workers", type=int, default=None, help="Rendering processes (default: up to 4, CPU count).")
+    def synth_cmd(profile: str, out: Path | None, seed: int, thermal_format: str, force: bool,
+                  workers: int | None) -> None:
+        """Generate the synthetic M3T-like dataset (raw M3T layout + ground truth). Deterministic in --seed."""
+        from adapters.datasets.synthetic import generate
+
+        s = generate(out, profile=profile, seed=seed, thermal_format=thermal_format, force=force, workers=workers)
+        click.echo(f"m3t-synth {s.profile} (seed {s.seed}): {sum(s.images.values())} pairs in {s.root} "
+                   f"({s.seconds:.1f} s)")
+        click.echo("images per project: " + ", ".join(f"{p} {n}" for p, n in s.images.items()))
+        click.echo(f"inspection groups: {len(s.groups)}")
+        click.echo(s.table())
+
+    @cli.command(name="prepare")
+    @_dataset_options
+    @click.option("--force", is_flag=True, help="Prepare again even if a cached copy exists.")
+    def prepare_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
+                    overrides: tuple[str, ...], force: bool) -> None:
+        """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
+        from harness.prepare import prepare
+
+        _, cfg = _config(dataset, configs, overrides, root)
+        ds = prepare(dataset, cfg, cache_root=cache, force=force)
+        click.echo(prepare_summary(ds))
+
+    @cli.command(name="folds")
+    @_dataset_options
+    @click.option("--folds", "selection", default="all", show_default=True, help="Fold name(s), comma-separated.")
+    def folds_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
+                  overrides: tuple[str, ...], selection: str) -> None:
+        """Print train/val image and instance counts per fold (prepares the dataset if needed)."""
+        from harness.prepare import prepare, resolve_folds
+
+        spec, cfg = _config(dataset, configs, overrides, root)
+        ds = prepare(dataset, cfg, cache_root=cache)
+        folds = resolve_folds(spec, ds, cfg, selection)
+        click.echo(f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "
+                   f"{', '.join(sorted(set(ds.groups)))}")
+        click.echo(folds_table(ds, folds))
