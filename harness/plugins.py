@@ -52,6 +52,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.data",
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
+    "adapters.detectors.ours",
 )
 
 #: hook name -> (kind shown to users, spec class)
