@@ -39,7 +39,8 @@ import torch
 from torch import nn
 
 from adapters.detectors.yolo.blocks import C3, SPPF, Concat, Conv, fuse_model
-from harness.boxes import batched_nms, cxcywh_to_xyxy
+from adapters.detectors.yolo.postprocess import postprocess as nms_candidates
+from harness.boxes import cxcywh_to_xyxy
 from harness.errors import HarnessError
 
 #: The standard YOLOv5 anchors (pixels at 640), P3/8, P4/16, P5/32: three (w, h) pairs per level.
@@ -216,30 +217,12 @@ def postprocess(pred: torch.Tensor, conf: float = 0.001, iou: float = 0.6, max_d
     YOLOv5's validation does), otherwise only its best class. The ``max_nms`` highest-scoring candidates enter
     exact per-class NMS (``harness.boxes.batched_nms``) and the first ``max_det`` survivors are kept, then clipped
     to ``image_size`` (h, w) when given. Returns one ``{"boxes" [K,4] xyxy, "scores" [K], "labels" [K] int64}`` per
-    image, sorted by decreasing score.
+    image, sorted by decreasing score. The candidate selection and NMS are the ones the anchor-free head uses
+    (``adapters.detectors.yolo.postprocess``), fed with the YOLOv5 scores.
     """
-    out: list[dict[str, torch.Tensor]] = []
-    for x in pred:
-        scores_all = x[:, 5:] * x[:, 4:5]
-        if multi_label:
-            i, j = torch.nonzero(scores_all > conf, as_tuple=True)
-            scores, labels = scores_all[i, j], j
-        else:
-            best, label = scores_all.max(1)
-            i = torch.nonzero(best > conf)[:, 0]
-            scores, labels = best[i], label[i]
-        if scores.numel() > max_nms:
-            top = scores.topk(max_nms).indices
-            i, scores, labels = i[top], scores[top], labels[top]
-        boxes = cxcywh_to_xyxy(x[i, :4]).float()
-        keep = batched_nms(boxes, scores, labels, iou, max_keep=max_det)
-        kept = boxes[keep]
-        if image_size is not None:
-            h, w = image_size
-            kept = torch.stack((kept[:, 0].clamp(0, w), kept[:, 1].clamp(0, h),
-                                kept[:, 2].clamp(0, w), kept[:, 3].clamp(0, h)), 1)
-        out.append({"boxes": kept, "scores": scores[keep].float(), "labels": labels[keep].long()})
-    return out
+    boxes = cxcywh_to_xyxy(pred[..., :4])
+    scores = pred[..., 5:] * pred[..., 4:5]
+    return nms_candidates(boxes, scores, conf, iou, max_det, multi_label, max_nms, image_size)
 
 
 # ------------------------------------------------------------------------------------------------ inputs
