@@ -47,6 +47,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.detectors.icafusion",
     "adapters.detectors.eme",
     "adapters.detectors.cmadet",
+    "harness.commands.profile",
     "harness.encodings",
     "harness.commands.sensing",
     "harness.commands.data",

@@ -1,0 +1,196 @@
+"""``harness profile`` (parameters, GFLOPs in labelled conventions, latency) and ``harness export`` (ONNX)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from harness.hookspecs import hookimpl
+
+
+def _fmt(x: Any, spec: str = ".2f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _lat(rec: Any) -> str:
+    if not isinstance(rec, dict) or "median_ms" not in rec:
+        return "error" if isinstance(rec, dict) and "error" in rec else "-"
+    return f"{rec['median_ms']:.1f}/{rec['p90_ms']:.1f}"
+
+
+def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the profile table (one row per detector)."""
+    header = ["Detector", "Input", "Params (M)", "ref", "GFLOPs paper", "ref", "GFLOPs exact", "GFLOPs fvcore",
+              "torch ms med/p90", "ORT ms med/p90", "unused params"]
+    rows = []
+    for r in results:
+        if "error" in r:
+            rows.append([r["detector"]] + ["error"] + ["-"] * (len(header) - 2))
+            continue
+        ref = r.get("reference") or {}
+        flops = r["flops"]
+        fv = flops.get("fvcore") or {}
+        lat = r.get("latency") or {}
+        rows.append([
+            r["detector"],
+            "x".join(str(s[1]) for s in r["input"]["shapes"]) + "ch",
+            f"{r['params']['fused'] / 1e6:.3f}",
+            _fmt(ref.get("params_m"), ".2f"),
+            f"{flops['paper']['gflops']:.3f}",
+            _fmt(ref.get("gflops"), ".2f"),
+            f"{flops['exact']['gflops']:.3f}",
+            _fmt(fv.get("gflops"), ".3f") if "error" not in fv else "error",
+            _lat(lat.get("torch")),
+            _lat(lat.get("onnxruntime")),
+            f"{r['params']['unreachable_count']:,}",
+        ])
+    return header, rows
+
+
+def format_table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    line = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    return "\n".join([line(header), "  ".join("-" * w for w in widths)] + [line(r) for r in rows])
+
+
+def format_profiles(results: list[dict[str, Any]]) -> str:
+    """The table plus the notes that make its numbers unambiguous."""
+    from harness.profiling import CONVENTIONS
+
+    header, rows = profile_rows(results)
+    out = [format_table(header, rows), ""]
+    failed = [r for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
+    for r in failed:
+        out.append(f"{r['detector']}: not profiled: {r['error']}")
+    if results:
+        r0 = results[0]
+        out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = BN-folded "
+                   f"parameter count; 'ref' = the detector's published figures.")
+    for name, text in CONVENTIONS.items():
+        out.append(f"GFLOPs {name}: {text}.")
+    for r in results:
+        if r.get("label"):
+            out.append(f"{r['detector']}: {r['label']}")
+        lat = r.get("latency") or {}
+        t, o = lat.get("torch") or {}, lat.get("onnxruntime") or {}
+        if "median_ms" in t:
+            out.append(f"{r['detector']}: latency over {t['runs']} runs after {t['warmup']} warm-up, torch "
+                       f"{t['threads']} thread(s) on {t['device']}" + (f", onnxruntime {o['threads']} thread(s) "
+                                                                        f"({o['provider']})" if "median_ms" in o else ""))
+        p = r["params"]
+        if p["unreachable"]:
+            names = ", ".join(p["unreachable"][:6]) + (f" (+{len(p['unreachable']) - 6} more)" if len(p["unreachable"]) > 6 else "")
+            out.append(f"{r['detector']}: {p['unreachable_count']:,} parameters never take part in the forward pass: {names}")
+        ref = r.get("reference") or {}
+        if ref.get("source"):
+            out.append(f"{r['detector']}: reference from {ref['source']}")
+        for key in ("onnx",):
+            if isinstance(r.get(key), dict) and "error" in r[key]:
+                out.append(f"{r['detector']}: ONNX export failed: {r[key]['error']}")
+    return "\n".join(out)
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="profile")
+    @click.option("--detector", required=True,
+                  help="Detector name, several separated by commas, or 'all' for every registered detector.")
+    @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of the table.")
+    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size.")
+    @click.option("--num-classes", type=int, default=8, show_default=True)
+    @click.option("--in-channels", type=int, default=4, show_default=True,
+                  help="Channels of a single-stream detector's input (3 + encoding channels).")
+    @click.option("--runs", type=int, default=30, show_default=True, help="Timed runs per latency back-end.")
+    @click.option("--warmup", type=int, default=5, show_default=True, help="Untimed warm-up runs.")
+    @click.option("--threads", type=int, default=None, help="Threads for torch and onnxruntime [default: torch's].")
+    @click.option("--device", default="cpu", show_default=True, help="Device for torch latency (cpu, cuda).")
+    @click.option("--latency/--no-latency", default=True, show_default=True)
+    @click.option("--onnx/--no-onnx", default=True, show_default=True, help="Export and time onnxruntime.")
+    @click.option("--fvcore/--no-fvcore", default=True, show_default=True, help="Add fvcore's count and table.")
+    @click.option("--table", "show_table", is_flag=True, help="Also print fvcore's per-module table.")
+    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
+                  help="Results store to write profiles into [default: results/<profile>].")
+    @click.option("--profile", "run_profile", default="paper", show_default=True,
+                  help="Run profile whose default store is used when --store is not given.")
+    @click.option("--no-store", is_flag=True, help="Do not write the results store.")
+    def profile_cmd(detector: str, as_json: bool, imgsz: int, num_classes: int, in_channels: int, runs: int,
+                    warmup: int, threads: int | None, device: str, latency: bool, onnx: bool, fvcore: bool,
+                    show_table: bool, store: Path | None, run_profile: str, no_store: bool) -> None:
+        """Parameters, GFLOPs ("paper" and "exact" conventions, fvcore) and latency of detectors at IMGSZ, batch 1."""
+        from rich.progress import Progress
+
+        from harness.plugins import get_host
+        from harness.profiling import profile_detector
+        from harness.store import Store
+
+        from harness.errors import HarnessError
+
+        host = get_host()
+        names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
+        for name in names:
+            host.detector(name)  # unknown names fail here with the list of available ones
+        results = []
+        with Progress(transient=True, disable=as_json) as progress:
+            task = progress.add_task("profiling", total=len(names))
+            for name in names:
+                progress.update(task, description=f"profiling {name}")
+                try:
+                    results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes,
+                                                    in_channels=in_channels, host=host, latency=latency, onnx=onnx,
+                                                    fvcore=fvcore, warmup=warmup, runs=runs, threads=threads,
+                                                    device=device))
+                except HarnessError as exc:
+                    if len(names) == 1:
+                        raise
+                    results.append({"detector": name, "error": str(exc)})  # the others are still profiled
+                progress.advance(task)
+        if not no_store:
+            root = store or Path("results") / run_profile
+            for r in results:
+                if "error" not in r:
+                    Store(root).write_profile(r["detector"], r)
+        failed = [r["detector"] for r in results if "error" in r]
+        if as_json:
+            click.echo(json.dumps(results, indent=2, default=str))
+        else:
+            click.echo(format_profiles(results))
+        if show_table:
+            for r in results:
+                table = (r.get("flops", {}).get("fvcore") or {}).get("table")
+                if table:
+                    click.echo(f"\n{r['detector']}: {table}")
+        if not no_store and not as_json:
+            click.echo(f"\nprofiles written to {(store or Path('results') / run_profile) / '_profiles'}")
+        if failed:
+            raise click.ClickException(f"could not profile {', '.join(failed)} (see above)")
+
+    @cli.command(name="export")
+    @click.option("--detector", required=True, help="Detector name.")
+    @click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+                  help="Output .onnx file.")
+    @click.option("--imgsz", type=int, default=640, show_default=True)
+    @click.option("--num-classes", type=int, default=8, show_default=True)
+    @click.option("--in-channels", type=int, default=4, show_default=True)
+    @click.option("--opset", type=int, default=18, show_default=True, help="ONNX opset (17 or newer).")
+    @click.option("--dynamic-batch", is_flag=True, help="Make the batch dimension dynamic.")
+    @click.option("--check/--no-check", default=True, show_default=True,
+                  help="Run the file in onnxruntime and require outputs equal to torch within 1e-4.")
+    def export_cmd(detector: str, onnx_path: Path, imgsz: int, num_classes: int, in_channels: int, opset: int,
+                   dynamic_batch: bool, check: bool) -> None:
+        """Export a detector's raw forward (BN folded, no NMS) to ONNX and check it against torch."""
+        from harness.profiling import export_detector
+
+        rec = export_detector(detector, onnx_path, imgsz=imgsz, num_classes=num_classes, in_channels=in_channels,
+                              opset=opset, dynamic_batch=dynamic_batch, check=check)
+        ins = ", ".join(f"{k} {v}" for k, v in rec["inputs"].items())
+        outs = ", ".join(f"{k} {v}" for k, v in rec["outputs"].items())
+        click.echo(f"wrote {rec['path']} (opset {rec['opset']}, {rec['exporter']} exporter, BN folded: {rec['fused']}, "
+                   f"NMS not in the graph)")
+        click.echo(f"inputs: {ins}")
+        click.echo(f"outputs: {outs}")
+        if check:
+            click.echo(f"onnxruntime matches torch: max |diff| {rec['max_abs_diff']:.2g} <= {rec['atol']:g}")

@@ -1,0 +1,262 @@
+"""The two COCO engines behind ``evaluate``: faster-coco-eval (C++) and pycocotools (the reference).
+
+Both get the same prepared inputs (``harness.evaluation.inputs``) and return the same ``EngineResult``: the 12
+stats, COCOeval's precision array, and, for the operating point, the evaluated detections at IoU 0.50 with their
+TP flags. ``matching="safit"`` swaps the IoU matrix for SAFit's (``harness.evaluation.safit``) in either engine.
+
+With faster-coco-eval, the Python-side work the library does one (image, category) pair at a time (filling its
+C++ datasets, the IoU matrices) is done in bulk (``harness.evaluation.pairs``); the matrices are bitwise the
+library's own and its C++ matching and accumulation are untouched. The operating point's matching at IoU 0.50 is
+COCO's greedy matching, also in bulk. pycocotools is run exactly as published.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import io
+import logging
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Mapping
+
+import numpy as np
+
+from harness.evaluation.inputs import EvaluationError, PreparedEval
+from harness.evaluation.pairs import pair_layout
+from harness.evaluation.safit import ANCHORS, SAFIT_C, iou_elementwise, safit_elementwise, safit_xywh
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("faster-coco-eval", "pycocotools")
+MATCHINGS = ("iou", "safit")
+
+
+@dataclass
+class EngineResult:
+    stats: list[float]  # the 12 COCO stats (-1 where undefined)
+    precision: np.ndarray  # [T, R, K, A, M] as COCOeval.eval["precision"]
+    iou_thrs: np.ndarray
+    area_labels: list[str]
+    #: for the operating point: evaluated, non-ignored detections at IoU 0.50, area "all", maxDets 100
+    op_scores: np.ndarray | None = None
+    op_cat_index: np.ndarray | None = None
+    op_is_tp: np.ndarray | None = None
+
+
+@contextlib.contextmanager
+def _gc_paused() -> Any:
+    """Pause the cyclic garbage collector (reference counting still frees everything); restore it afterwards."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+def _silent(*_: Any, **__: Any) -> None:
+    return None
+
+
+def _sorted_topk(dt: list[dict[str, Any]], max_det: int) -> list[dict[str, Any]]:
+    inds = np.argsort([-d["score"] for d in dt], kind="mergesort")
+    return [dt[i] for i in inds[:max_det]]
+
+
+def _safit_matrix(gt: list[dict[str, Any]], dt: list[dict[str, Any]], max_det: int, anchor: str) -> Any:
+    if len(gt) == 0 or len(dt) == 0:
+        return []
+    dt = _sorted_topk(dt, max_det)
+    g = np.array([o["bbox"] for o in gt], dtype=np.float64)
+    d = np.array([o["bbox"] for o in dt], dtype=np.float64)
+    crowd = np.array([bool(o.get("iscrowd", 0)) for o in gt])
+    return safit_xywh(d, g, crowd, SAFIT_C, anchor)  # type: ignore[arg-type]
+
+
+def _faster_eval_class(matching: str, anchor: str) -> type:
+    from faster_coco_eval.core.faster_eval_api import COCOeval_faster
+
+    class HarnessEvalFaster(COCOeval_faster):  # type: ignore[misc, valid-type]
+        """faster-coco-eval with the Python-side work done in bulk: the IoU (or SAFit) matrices of every pair are
+        computed in one vectorised pass and the C++ datasets are filled directly. Its C++ matching and
+        accumulation are unchanged. Without ``harness_inputs`` (or if the library's internals moved) it behaves
+        as the stock class, with SAFit computed pair by pair."""
+
+        harness_inputs: PreparedEval | None = None
+
+        def _prepare(self) -> None:
+            prep = self.harness_inputs
+            if prep is None or self.params.iouType != "bbox" or self.lvis_style or not self.params.useCats:
+                return self._stock_prepare()
+            try:
+                measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
+                self._harness_layout = pair_layout(prep, self.params.maxDets[-1])
+                self._harness_values = self._harness_layout.values(prep, measure)
+                self._harness_pairs = self._harness_layout.matrices(self._harness_values)
+                self.gt_dataset.clean()
+                self.dt_dataset.clean()
+                for g in prep.gt["annotations"]:
+                    self.gt_dataset.append_ref(g["image_id"], g["category_id"], g)
+                for d in prep.dets:
+                    self.dt_dataset.append_ref(d["image_id"], d["category_id"], d)
+                self._nonempty_iou_pairs = set(self._harness_pairs)
+            except AttributeError as exc:  # the library's internals changed: do it its own way
+                log.debug("faster-coco-eval bulk preparation unavailable (%s)", exc)
+                self.harness_inputs = None
+                self._harness_pairs = None
+                return self._stock_prepare()
+
+        def _stock_prepare(self) -> None:
+            if not self.cocoDt.anns and self.cocoDt.dataset.get("annotations"):
+                self.cocoDt.createIndex()
+            return super()._prepare()
+
+        def computeIoU(self, imgId: int, catId: int) -> Any:  # noqa: N802 (COCOeval's name)
+            pairs = getattr(self, "_harness_pairs", None)
+            if pairs is not None:
+                return pairs.get((int(imgId), int(catId)), [])
+            if matching == "iou":
+                return super().computeIoU(imgId, catId)
+            p = self.params
+            cat = [catId] if p.useCats else p.catIds
+            gt = self.gt_dataset.get_instances([imgId], cat, bool(p.useCats))[0][0]
+            dt = self.dt_dataset.get_instances([imgId], cat, bool(p.useCats))[0][0]
+            return _safit_matrix(gt, dt, p.maxDets[-1], anchor)
+
+    return HarnessEvalFaster
+
+
+def _pycoco_eval_class(matching: str, anchor: str) -> type:
+    from pycocotools.cocoeval import COCOeval
+
+    if matching == "iou":
+        return COCOeval
+
+    class SAFitEvalPycoco(COCOeval):  # type: ignore[misc, valid-type]
+        def computeIoU(self, imgId: int, catId: int) -> Any:  # noqa: N802
+            p = self.params
+            if p.useCats:
+                gt, dt = self._gts[imgId, catId], self._dts[imgId, catId]
+            else:
+                gt = [o for c in p.catIds for o in self._gts[imgId, c]]
+                dt = [o for c in p.catIds for o in self._dts[imgId, c]]
+            return _safit_matrix(gt, dt, p.maxDets[-1], anchor)
+
+    return SAFitEvalPycoco
+
+
+def run_engine(prep: PreparedEval, engine: str = "faster-coco-eval", matching: str = "iou", anchor: str = "center",
+               area_ranges: Mapping[str, tuple[float, float]] | None = None, operating_point: bool = True) -> EngineResult:
+    """Run one engine on prepared inputs. ``area_ranges`` replaces COCO's small/medium/large (first must be 'all')."""
+    if engine not in ENGINES:
+        raise EvaluationError(f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)")
+    if matching not in MATCHINGS:
+        raise EvaluationError(f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)")
+    if anchor not in ANCHORS:
+        raise EvaluationError(f"unknown SAFit NWD anchor {anchor!r}; use one of {', '.join(ANCHORS)} (config eval.safit_anchor)")
+    if engine == "faster-coco-eval":
+        return _run_faster(prep, matching, anchor, area_ranges, operating_point)
+    return _run_pycocotools(prep, matching, anchor, area_ranges, operating_point)
+
+
+def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Mapping[str, tuple[float, float]] | None,
+                want_op: bool) -> EngineResult:
+    from faster_coco_eval.core.coco import COCO
+
+    gt = COCO(prep.gt, print_function=_silent)
+    dt = COCO(print_function=_silent)  # indexed only if the library's own preparation is needed (see _prepare)
+    dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
+    ranges = None
+    if area_ranges is not None:
+        ranges = {k: list(v) for k, v in area_ranges.items() if k != "all"}
+    cls = _faster_eval_class(matching, anchor)
+    ev = cls(gt, dt, iouType="bbox", print_function=_silent, ranges=ranges)
+    ev.harness_inputs = prep
+    ev.params.imgIds = [im["id"] for im in prep.gt["images"]]
+    ev.params.catIds = list(prep.cat_ids)
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    result = EngineResult(list(map(float, ev.stats[:12])), np.asarray(ev.eval["precision"]),
+                          np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl))
+    if want_op:
+        layout = getattr(ev, "_harness_layout", None) or pair_layout(prep, ev.params.maxDets[-1])
+        values = getattr(ev, "_harness_values", None)
+        if values is None:
+            values = layout.values(prep, iou_elementwise)
+        _fill_operating_inputs(result, prep, layout.greedy_match(prep, values, threshold=0.5), layout.evaluated)
+    return result
+
+
+def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: dict[int, int],
+                           evaluated: np.ndarray) -> None:
+    """Evaluated detections (``evaluated``: top 100 per image and category), without those matched to crowd GT."""
+    dets = prep.dets
+    if not dets:
+        result.op_scores = np.zeros(0)
+        result.op_cat_index = np.zeros(0, dtype=np.int64)
+        result.op_is_tp = np.zeros(0, dtype=bool)
+        return
+    n = len(dets)
+    _, cat, score, _ = prep.det_columns
+    matched_gt = np.zeros(n, dtype=np.int64)
+    if matches:
+        d_ids = np.fromiter(matches.keys(), dtype=np.int64, count=len(matches))
+        g_ids = np.fromiter(matches.values(), dtype=np.int64, count=len(matches))
+        matched_gt[d_ids - 1] = g_ids
+    crowd = np.zeros(n, dtype=bool)
+    if prep.crowd_ann_ids:
+        crowd = np.isin(matched_gt, np.fromiter(prep.crowd_ann_ids, dtype=np.int64))
+    keep = evaluated & ~crowd
+    cat_index = np.searchsorted(np.asarray(prep.cat_ids), cat)
+    result.op_scores = score[keep]
+    result.op_cat_index = cat_index[keep]
+    result.op_is_tp = (matched_gt > 0)[keep]
+
+
+def _run_pycocotools(prep: PreparedEval, matching: str, anchor: str,
+                     area_ranges: Mapping[str, tuple[float, float]] | None, want_op: bool) -> EngineResult:
+    from pycocotools.coco import COCO
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        gt = COCO()
+        gt.dataset = prep.gt
+        gt.createIndex()
+        dt = COCO()
+        dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
+        dt.createIndex()
+        cls = _pycoco_eval_class(matching, anchor)
+        ev = cls(gt, dt, "bbox")
+        ev.params.imgIds = [im["id"] for im in prep.gt["images"]]
+        ev.params.catIds = list(prep.cat_ids)
+        if area_ranges is not None:
+            ev.params.areaRng = [list(v) for v in area_ranges.values()]
+            ev.params.areaRngLbl = list(area_ranges)
+        ev.evaluate()
+        ev.accumulate()
+        if area_ranges is None:
+            ev.summarize()
+            stats = list(map(float, ev.stats))
+        else:
+            stats = [-1.0] * 12  # pycocotools' summarize() only knows small/medium/large
+    result = EngineResult(stats, np.asarray(ev.eval["precision"]), np.asarray(ev.params.iouThrs),
+                          list(ev.params.areaRngLbl))
+    if want_op:
+        all_rng = list(ev.params.areaRng[0])
+        scores, cats, tps = [], [], []
+        cat_pos = {c: k for k, c in enumerate(prep.cat_ids)}
+        for e in ev.evalImgs:
+            if e is None or list(e["aRng"]) != all_rng:
+                continue
+            ignore = np.asarray(e["dtIgnore"][0], dtype=bool) if len(e["dtIds"]) else np.zeros(0, dtype=bool)
+            match = np.asarray(e["dtMatches"][0]) if len(e["dtIds"]) else np.zeros(0)
+            sc = np.asarray(e["dtScores"], dtype=np.float64)
+            scores.append(sc[~ignore])
+            tps.append((match > 0)[~ignore])
+            cats.append(np.full(int((~ignore).sum()), cat_pos[e["category_id"]], dtype=np.int64))
+        result.op_scores = np.concatenate(scores) if scores else np.zeros(0)
+        result.op_cat_index = np.concatenate(cats) if cats else np.zeros(0, dtype=np.int64)
+        result.op_is_tp = np.concatenate(tps) if tps else np.zeros(0, dtype=bool)
+    return result
