@@ -3,10 +3,10 @@ beside the seed paper's figures; then CPU train-step time at 256 px, batch 8, at
 
     .venv/bin/python benchmarks/baselines_complexity.py [--steps 3] [--scale n] [--threads 1] [--no-timing]
 
-Counts come from models built on the meta device. "paper" GFLOPs: Conv2d and Linear multiply-adds plus one per
-nearest-upsample output, x2 (thop 0.1.1's convention, which the seed uses); "exact": torch FlopCounterMode (all
-matmuls, incl. attention). "unused": parameters of modules the forward never calls (ICAFusion's checkpoint-only
-modules). Timings are noisy on a shared machine: compare the ratios, which share one run.
+Counts come from models built on the meta device and the harness profiler (``harness.profiling``): "paper"
+GFLOPs are thop 0.1.1's module rules on the BN-folded model, x2 (the seed's convention); "exact" is torch
+FlopCounterMode (all matmuls, incl. attention); "unused" are parameters the forward never reaches (ICAFusion's
+checkpoint-only modules). Timings are noisy on a shared machine: compare the ratios, which share one run.
 """
 
 from __future__ import annotations
@@ -15,37 +15,13 @@ import argparse
 import time
 
 import torch
-from torch import nn
-from torch.utils.flop_counter import FlopCounterMode
 
 from adapters.detectors import cmadet, eme, icafusion
+from harness.profiling.flops import exact_flops, paper_flops
+from harness.profiling.params import reachable_parameters
 
 SEED = {"icafusion": (120.24, 191.68), "eme": (46.15, 109.20), "cmadet": (33.47, 33.67)}
 BUILD = {"icafusion": icafusion.build, "eme": eme.build, "cmadet": cmadet.build}
-
-
-def paper_gflops(model: nn.Module, inputs) -> float:
-    total = [0]
-    hooks = []
-
-    def conv(m, i, o):
-        total[0] += o.numel() * (m.in_channels // m.groups) * m.kernel_size[0] * m.kernel_size[1]
-
-    def linear(m, i, o):
-        total[0] += o.numel() * m.in_features
-
-    def upsample(m, i, o):
-        total[0] += o.numel()
-
-    for m in model.modules():
-        for kind, fn in ((nn.Conv2d, conv), (nn.Linear, linear), (nn.Upsample, upsample)):
-            if isinstance(m, kind):
-                hooks.append(m.register_forward_hook(fn))
-    with torch.no_grad():
-        model.forward_raw(inputs)
-    for h in hooks:
-        h.remove()
-    return 2 * total[0] / 1e9
 
 
 def complexity() -> None:
@@ -56,14 +32,9 @@ def complexity() -> None:
             model = build(8).eval().fuse()
             x = (torch.zeros(1, 3, 640, 640), torch.zeros(1, 3, 640, 640))
         params = sum(p.numel() for p in model.parameters()) / 1e6
-        paper = paper_gflops(model, x)
-        with FlopCounterMode(display=False) as fc, torch.no_grad():
-            model.forward_raw(x)
-        exact = fc.get_total_flops() / 1e9
-        unused = 0.0
-        if hasattr(model, "unused_parameter_names"):
-            dead = set(model.unused_parameter_names())
-            unused = sum(p.numel() for n, p in model.named_parameters() if n in dead) / 1e6
+        paper = paper_flops(model, x).gflops
+        exact = exact_flops(model, x).gflops
+        unused = reachable_parameters(model, x).unreachable_count / 1e6
         sp, sg = SEED[name]
         print(f"{name:<10} {params:>11.3f} {sp:>7.2f} {100 * (params / sp - 1):>+6.2f}% {paper:>13.3f} {sg:>7.2f} "
               f"{100 * (paper / sg - 1):>+6.2f}% {exact:>13.3f} {unused:>11.3f}")
