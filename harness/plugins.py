@@ -54,6 +54,10 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
     "adapters.detectors.ours",
+    "adapters.datasets.rgbt_tiny",
+    "adapters.datasets.m3fd",
+    "harness.commands.compare",
+    "harness.commands.pretrain",
 )
 
 #: hook name -> (kind shown to users, spec class)

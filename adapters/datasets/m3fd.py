@@ -1,0 +1,309 @@
+"""M3FD (Liu et al., CVPR 2022): registered visible/infrared pairs with six classes, used here for pretraining.
+
+Layout (``dataset.root`` or ``$HARNESS_M3FD`` points at ``M3FD_Detection/`` or at the folder holding it)::
+
+    M3FD_Detection/Annotation/00000.xml ...   Pascal VOC: <size>, <object><name>, <bndbox> (one label per pair)
+    M3FD_Detection/Ir/00000.png ...           infrared, 8-bit grey (stored as three identical channels)
+    M3FD_Detection/Vis/00000.png ...          visible
+
+What the loader does, and why:
+
+* **Per-image sizes.** Most pairs are 1024x768 but not all (780x420, 740x400, 880x520 occur): every pair is read
+  at its own size and the ``<size>`` of its XML is checked against the images.
+* **Six classes mapped by name** (case and surrounding spaces ignored), in our fixed order ``CATEGORIES``;
+  projects disagree on the class order, so ids from elsewhere are never trusted. An XML naming any other class is
+  a **counted skip of the whole pair** (reason ``unknown class``): dropping only that box would leave an unlabelled
+  object that training treats as background, and one odd file should not stop 4,200 pairs from being prepared.
+  ``dataset.strict: true`` turns every skip into an error.
+* **A fixed, recorded train/val split.** M3FD ships no detection split. Files are numbered in capture order, and
+  neighbouring frames are near-duplicates, so a random split leaks. Groups are blocks of ``BLOCK`` consecutive
+  frame numbers (``00000-00099``, ``00100-00199``, ...), and every ``VAL_EVERY``-th block (the 5th, 10th, ...) is
+  held out for validation: 3,400 train / 800 val pairs of the 4,200. The same split is written out, block by
+  block, in docs/datasets.md and ``configs/protocols/m3fd.yaml``; every prepared copy records it in its manifest
+  (``folds``) and every sample its ``split``.
+* The sample has no radiometric thermal (``thermal=None``); ``ir8`` is the infrared image, which is the fourth
+  input channel (encoding ``ir8``) during pretraining.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from adapters.datasets._eightbit import (
+    BoxStats,
+    ImageReadError,
+    clip_boxes,
+    file_stat,
+    read_rgb,
+    read_thermal8,
+    resolve_root,
+    stat_digest,
+)
+from harness.api import DatasetSpec, Fold, PrepareReport
+from harness.errors import ConfigError, DataError
+from harness.hookspecs import hookimpl
+from harness.sample import AlignedSample
+
+log = logging.getLogger(__name__)
+
+DATASET = "m3fd"
+ROOT_ENV = "HARNESS_M3FD"
+#: Our fixed class order (the README's); XML names are matched case-insensitively.
+CATEGORIES = ("people", "car", "bus", "motorcycle", "lamp", "truck")
+SUBDIRS = ("Annotation", "Ir", "Vis")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp")
+#: Consecutive frame numbers per group, and every VAL_EVERY-th group is held out: the recorded split.
+BLOCK = 100
+VAL_EVERY = 5
+FOLD = "val"
+OPTIONS = {
+    "root": f"M3FD_Detection/ or the folder holding it (default: ${ROOT_ENV})",
+    "strict": "raise instead of skipping a pair that cannot be used (default false)",
+}
+ADAPTER_VERSION = 1
+
+
+def block_of(number: int) -> str:
+    """Group name of frame ``number``: its block of ``BLOCK`` consecutive numbers, e.g. 431 -> '00400-00499'."""
+    start = (number // BLOCK) * BLOCK
+    return f"{start:05d}-{start + BLOCK - 1:05d}"
+
+
+def is_val_block(group: str) -> bool:
+    """The recorded split: block k (0-based, by frame number) is held out when (k + 1) % VAL_EVERY == 0."""
+    k = int(group.split("-")[0]) // BLOCK
+    return (k + 1) % VAL_EVERY == 0
+
+
+def recorded_split(count: int = 4200) -> dict[str, list[str]]:
+    """The train and val groups of frames ``0 .. count-1`` (what configs/protocols/m3fd.yaml records)."""
+    groups = sorted({block_of(n) for n in range(count)})
+    return {"train": [g for g in groups if not is_val_block(g)], "val": [g for g in groups if is_val_block(g)]}
+
+
+@dataclass
+class VocAnnotation:
+    width: int | None
+    height: int | None
+    #: (name as written, xmin, ymin, xmax, ymax)
+    objects: list[tuple[str, float, float, float, float]]
+
+
+def parse_voc(path: Path) -> VocAnnotation:
+    """Read a Pascal-VOC XML; a malformed file or field is a ``DataError`` naming the file (and line/column)."""
+    try:
+        tree = ET.parse(path)
+    except ET.ParseError as exc:
+        line, col = exc.position
+        raise DataError(f"{path}: malformed XML at line {line} column {col + 1}") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
+    root = tree.getroot()
+
+    def number(node: ET.Element | None, tag: str, where: str) -> float:
+        text = node.findtext(tag) if node is not None else None
+        try:
+            value = float(str(text).strip())
+        except ValueError:
+            raise DataError(f"{path}: {where}: <{tag}> must be a number, got {text!r}") from None
+        if not math.isfinite(value):
+            raise DataError(f"{path}: {where}: <{tag}> is not finite")
+        return value
+
+    size = root.find("size")
+    width = height = None
+    if size is not None and size.findtext("width") not in (None, "") and size.findtext("height") not in (None, ""):
+        width, height = int(number(size, "width", "<size>")), int(number(size, "height", "<size>"))
+    objects = []
+    for i, obj in enumerate(root.findall("object")):
+        name = (obj.findtext("name") or "").strip()
+        box = obj.find("bndbox")
+        where = f"object {i} ({name or 'no name'})"
+        if box is None:
+            raise DataError(f"{path}: {where}: no <bndbox>")
+        objects.append((name, *(number(box, t, where) for t in ("xmin", "ymin", "xmax", "ymax"))))
+    return VocAnnotation(width, height, objects)
+
+
+def _index(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_file() and p.suffix.lower() in exts:
+            out.setdefault(p.stem, p)
+    return out
+
+
+class M3fdSource:
+    """An opened M3FD detection release (see the module docstring)."""
+
+    name = DATASET
+    categories = CATEGORIES
+
+    def __init__(self, root: Path, strict: bool = False):
+        self.root, self.strict = root, strict
+        self.xml = _index(root / "Annotation", (".xml",))
+        self.ir = _index(root / "Ir", IMAGE_EXTS)
+        self.vis = _index(root / "Vis", IMAGE_EXTS)
+        self.dropped: list[tuple[str, str]] = []
+        self.notes: list[str] = []
+        stems = sorted(set(self.xml) | set(self.ir) | set(self.vis))
+        bad = [s for s in stems if not s.isdigit()]
+        if bad:
+            raise DataError(
+                f"dataset {DATASET!r}: {root}: file name(s) {', '.join(bad[:5])} are not frame numbers; the release "
+                f"names files 00000..04199 and the recorded split is defined on those numbers"
+            )
+        self.stems: list[str] = []
+        for s in stems:
+            if s not in self.xml:
+                self.dropped.append((str(self.ir.get(s) or self.vis[s]), f"no annotation: Annotation/{s}.xml not found"))
+            elif s not in self.ir:
+                self.dropped.append((str(self.xml[s]), f"missing thermal frame: Ir/{s}.png not found"))
+            elif s not in self.vis:
+                self.dropped.append((str(self.xml[s]), f"missing visible frame: Vis/{s}.png not found"))
+            else:
+                self.stems.append(s)
+        if not self.stems:
+            raise DataError(f"dataset {DATASET!r}: no complete Annotation/Ir/Vis triple under {root}")
+        self.notes.append(f"{len(self.xml)} annotations, {len(self.ir)} infrared, {len(self.vis)} visible images; "
+                          f"{len(self.stems)} complete pairs, {len(self.dropped)} dropped")
+        if self.dropped:
+            log.warning("M3FD: %s", self.notes[-1])
+        if self.strict and self.dropped:
+            path, reason = self.dropped[0]
+            raise DataError(f"dataset {DATASET!r} (strict): {path}: {reason}")
+        n_val = sum(1 for s in self.stems if is_val_block(block_of(int(s))))
+        self.notes.append(f"recorded split (blocks of {BLOCK} frames, every {VAL_EVERY}th held out): "
+                          f"{len(self.stems) - n_val} train / {n_val} val pairs")
+
+    # ------------------------------------------------------------------ DatasetSource
+    def __len__(self) -> int:
+        return len(self.stems)
+
+    def groups(self) -> list[str]:
+        return sorted({block_of(int(s)) for s in self.stems})
+
+    def folds(self) -> list[Fold]:
+        groups = self.groups()
+        return [Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))]
+
+    def fingerprint(self) -> str:
+        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY]
+        for s in self.stems:
+            parts.append((s, file_stat(self.xml[s]), file_stat(self.ir[s]), file_stat(self.vis[s])))
+        return stat_digest(parts)
+
+    def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
+        for path, reason in self.dropped:
+            report.skip(path, reason)
+        for note in self.notes:
+            report.note(note)
+        stats, colour = BoxStats(), 0
+        try:
+            for s in self.stems:
+                out = self._sample(s, report)
+                if out is None:
+                    continue
+                sample, box_stats, was_colour = out
+                stats.add(box_stats)
+                colour += was_colour
+                yield sample
+        finally:
+            report.note(f"boxes: {stats.kept} kept, {stats.clipped} clipped to the frame, "
+                        f"{stats.degenerate} dropped with no area inside the frame")
+            if colour:
+                report.note(f"{colour} infrared image(s) were colour and were converted to luminance")
+
+    def _skip(self, report: PrepareReport, path: Path, reason: str) -> None:
+        if self.strict:
+            raise DataError(f"{path}: {reason}")
+        log.warning("M3FD: skipped %s (%s)", path, reason)
+        report.skip(path, reason)
+
+    def _sample(self, stem: str, report: PrepareReport) -> tuple[AlignedSample, BoxStats, bool] | None:
+        xml_path = self.xml[stem]
+        try:
+            ann = parse_voc(xml_path)
+        except DataError as exc:
+            self._skip(report, xml_path, f"malformed annotation: {exc}")
+            return None
+        unknown = sorted({name for name, *_ in ann.objects if name.strip().lower() not in CATEGORIES})
+        if unknown:
+            self._skip(report, xml_path, f"unknown class: {', '.join(map(repr, unknown))} is not one of {', '.join(CATEGORIES)}")
+            return None
+        try:
+            ir8, was_colour = read_thermal8(self.ir[stem])
+            rgb = read_rgb(self.vis[stem])
+        except ImageReadError as exc:
+            self._skip(report, xml_path, f"unreadable image: {exc}")
+            return None
+        h, w = ir8.shape
+        if rgb.shape[:2] != (h, w):
+            self._skip(report, xml_path, f"size mismatch: Vis {rgb.shape[1]}x{rgb.shape[0]}, Ir {w}x{h}")
+            return None
+        if ann.width is not None and (ann.width, ann.height) != (w, h) and (ann.width, ann.height) != (0, 0):
+            self._skip(report, xml_path, f"size mismatch: <size> says {ann.width}x{ann.height}, images are {w}x{h}")
+            return None
+        xyxy = np.array([o[1:] for o in ann.objects], dtype=np.float64).reshape(-1, 4)
+        labels = np.array([CATEGORIES.index(o[0].strip().lower()) for o in ann.objects], dtype=np.int64)
+        boxes, keep, clipped = clip_boxes(xyxy, w, h)
+        stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum()))
+        number = int(stem)
+        group = block_of(number)
+        sample = AlignedSample(
+            image_id=number + 1,
+            rgb=rgb,
+            thermal=None,
+            ir8=ir8,
+            boxes=np.ascontiguousarray(boxes[keep]),
+            labels=np.ascontiguousarray(labels[keep]),
+            group=group,
+            meta={
+                "file_name": f"Ir/{self.ir[stem].name}",
+                "rgb_file": f"Vis/{self.vis[stem].name}",
+                "annotation": f"Annotation/{xml_path.name}",
+                "split": "val" if is_val_block(group) else "train",
+            },
+        )
+        return sample, stats, was_colour
+
+
+def find_root(root: str | Path | None) -> Path:
+    """Accept ``M3FD_Detection/`` itself or the folder that holds it."""
+    path = resolve_root(root, ROOT_ENV, DATASET, ())
+    if all((path / d).is_dir() for d in SUBDIRS):
+        return path
+    if all((path / "M3FD_Detection" / d).is_dir() for d in SUBDIRS):
+        return path / "M3FD_Detection"
+    return resolve_root(path, ROOT_ENV, DATASET, SUBDIRS)  # raises, naming what is missing
+
+
+def open_m3fd(root: str | Path | None = None, strict: bool = False) -> M3fdSource:
+    """Open an M3FD detection release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
+    if not isinstance(strict, bool):
+        raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
+    return M3fdSource(find_root(root), strict=strict)
+
+
+SPEC = DatasetSpec(
+    name=DATASET,
+    open=open_m3fd,
+    categories=CATEGORIES,
+    description="M3FD visible/infrared pairs, 6 classes, 8-bit IR; fixed recorded train/val split (pretraining)",
+    thermal="8bit",
+    default_encoding="ir8",
+    protocol="m3fd",
+    root_env=ROOT_ENV,
+)
+
+
+@hookimpl
+def register_datasets(register: Any) -> None:
+    register(SPEC)

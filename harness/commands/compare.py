@@ -1,0 +1,49 @@
+"""``harness compare``: the cross-dataset table (images, instances, mAP50, mAP50:95 per detector and annotation
+source) from the results store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from harness.hookspecs import hookimpl
+
+
+def default_store(profile: str | None) -> Path:
+    """Where ``harness run`` writes when given no ``--store``: ``results/<profile>``."""
+    return Path("results") / (profile or "default")
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="compare")
+    @click.option("--datasets", required=True, help="Comma-separated datasets, in table order (e.g. m3t,rgbt-tiny).")
+    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
+                  help="Results store to read (default: results/<profile>).")
+    @click.option("--profile", default="smoke", show_default=True,
+                  help="Profile whose default store (results/<profile>) to read when --store is not given.")
+    @click.option("--safit", is_flag=True, help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions.")
+    @click.option("--allow-mismatched", is_flag=True,
+                  help="Print rows scored on different supports, marked '!', instead of refusing.")
+    @click.option("--format", "fmt", type=click.Choice(["text", "markdown", "csv", "json"]), default="text",
+                  show_default=True)
+    @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                  help="Also write the table to this file.")
+    def compare_cmd(datasets: str, store: Path | None, profile: str | None, safit: bool, allow_mismatched: bool,
+                    fmt: str, out: Path | None) -> None:
+        """Compare detectors across datasets on identical supports.
+
+        One row per dataset, annotation source (T or RGB), detector and encoding, read from finished runs in the
+        results store. Detectors of the same dataset and source must have been scored on the same samples (same
+        folds, same image ids, same instances); otherwise the command refuses, unless --allow-mismatched.
+        """
+        from harness.compare import build_table
+        from harness.io import atomic_write_text
+
+        names = [d.strip() for d in datasets.split(",") if d.strip()]
+        table = build_table(store or default_store(profile), names, allow_mismatched=allow_mismatched, safit=safit)
+        text = table.render(fmt)
+        click.echo(text)
+        if out is not None:
+            atomic_write_text(out, text + ("" if text.endswith("\n") else "\n"))

@@ -1,0 +1,160 @@
+"""``harness pretrain``: train a detector on a pretraining dataset (M3FD by default) and hand its checkpoint to
+``harness run --init`` for fine-tuning.
+
+Pretraining is an ordinary run in the results store (``<store>/m3fd/<detector>/<encoding>/val/seed<k>/``): it
+trains on the dataset's training groups, selects the best epoch on its held-out fold, and is skipped when it
+already finished with the same configuration. In the run folder it writes ``pretrain.json``, which records
+what the input channels meant, because that changes at fine-tuning (docs/datasets.md, "Pretraining on M3FD"):
+
+* 4th channel in pretraining: the dataset's encoding, by default ``ir8`` (8-bit infrared *intensity*);
+* 4th channel on M3T: ``c2`` (signed local radiometric *contrast*) unless ``--encoding`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import click
+
+from harness.hookspecs import hookimpl
+
+log = logging.getLogger(__name__)
+
+#: What each encoding puts in the extra channel, in words (for pretrain.json and the printed hint).
+CHANNEL_MEANING = {
+    "ir8": "8-bit thermal intensity (bright = warm, per-image camera gain)",
+    "proxy8": "local contrast of the 8-bit thermal intensity (0.5 = local background)",
+    "c2": "signed local radiometric contrast from temperatures in C (0.5 = local background temperature)",
+    "linear16": "temperature in C, linearly scaled",
+    "none": "no extra channel (RGB only)",
+}
+
+
+@dataclass
+class PretrainResult:
+    checkpoint: Path
+    record: dict[str, Any]
+    state: str
+
+
+def _sha1(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, fold: str | None = None,
+             seed: int = 0, profile: str | None = "smoke", config_files: Sequence[str | Path] = (),
+             overrides: Sequence[str] = (), store: str | Path | None = None, force: bool = False,
+             progress: bool = True, out: str | Path | None = None) -> PretrainResult:
+    """Train ``detector`` on ``dataset``'s training groups and return the checkpoint for ``harness run --init``."""
+    from harness.errors import ConfigError, StoreError
+    from harness.io import atomic_write_json
+    from harness.plugins import get_host
+    from harness.runner import RunRequest, run
+
+    host = get_host()
+    spec = host.dataset(dataset)
+    if fold is None:
+        from harness.config import load_config
+
+        folds = (load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)
+                 ["protocol"].get("folds") or {})
+        if len(folds) > 1:
+            raise ConfigError(f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with --fold")
+        fold = next(iter(folds), "all")
+    summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=fold, seeds=[seed],
+                             profile=profile, config_files=config_files, overrides=overrides, store=store, force=force,
+                             progress=progress))
+    if len(summary.results) != 1:
+        raise ConfigError(f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected {len(summary.results)}; "
+                          f"use --fold")
+    result = summary.results[0]
+    ckpt_dir = Path(result.path) / "checkpoints"
+    checkpoint = next((p for p in (ckpt_dir / "best.pt", ckpt_dir / "last.pt") if p.exists()), None)
+    if checkpoint is None:
+        raise StoreError(f"{ckpt_dir}: the pretraining run finished but left no best.pt or last.pt")
+    det = host.detector(detector)
+    metrics = result.metrics.get("metrics", {})
+    record = {
+        "detector": detector,
+        "input_kind": det.input_kind,
+        "dataset": dataset,
+        "categories": summary.categories,
+        "encoding": summary.encoding,
+        "extra_channel": CHANNEL_MEANING.get(summary.encoding, summary.encoding),
+        "fold": result.key.fold,
+        "seed": seed,
+        "train_images": result.train_images,
+        "val_images": result.val_images,
+        "val_mAP50": metrics.get("mAP50"),
+        "val_mAP50_95": metrics.get("mAP50_95"),
+        "checkpoint": str(checkpoint),
+        "checkpoint_sha1": _sha1(checkpoint),
+        "fine_tuning": (
+            f"`harness run --init {checkpoint}` loads it through the detector's importer (else by tensor name and "
+            f"shape): backbone, neck and box regression carry over; the class outputs, sized for "
+            f"{len(summary.categories)} classes, are re-initialised when the target dataset has another number (the "
+            f"run's metrics.json lists what was loaded under train.init). The extra input channel meant "
+            f"'{CHANNEL_MEANING.get(summary.encoding, summary.encoding)}' here; on M3T it is the run's encoding (c2 "
+            f"by default: '{CHANNEL_MEANING['c2']}'), so the first layer's filters for it adapt during fine-tuning."
+        ),
+    }
+    atomic_write_json(Path(result.path) / "pretrain.json", record)
+    if out is not None:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp")
+        shutil.copyfile(checkpoint, tmp)
+        tmp.replace(out)
+        atomic_write_json(out.with_name(out.name + ".json"), {**record, "copied_from": str(checkpoint), "checkpoint": str(out)})
+        checkpoint = out
+    return PretrainResult(checkpoint, record, result.state)
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="pretrain")
+    @click.option("--detector", required=True, help="Detector name (see `harness list`).")
+    @click.option("--dataset", default="m3fd", show_default=True, help="Pretraining dataset.")
+    @click.option("--encoding", default=None,
+                  help="Extra-channel encoding [default: the dataset's, ir8 for m3fd; proxy8 is closer to c2].")
+    @click.option("--fold", default=None, help="Held-out fold to select the checkpoint on [default: the protocol's only fold].")
+    @click.option("--seed", default=0, show_default=True, type=int)
+    @click.option("--profile", default="smoke", show_default=True, help="Run profile: smoke or paper.")
+    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False), help="Extra YAML config file(s).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
+    @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store root [default: results/<profile>].")
+    @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also copy the checkpoint here.")
+    @click.option("--force", is_flag=True, help="Redo the pretraining run even if it finished.")
+    @click.option("--no-progress", is_flag=True, help="No progress bars.")
+    def pretrain_cmd(detector: str, dataset: str, encoding: str | None, fold: str | None, seed: int, profile: str,
+                     config_files: tuple[str, ...], overrides: tuple[str, ...], store: str | None, out: str | None,
+                     force: bool, no_progress: bool) -> None:
+        """Pretrain DETECTOR on DATASET (M3FD) and print the checkpoint to fine-tune from.
+
+        \b
+        Example:
+          harness pretrain --detector ours --dataset m3fd --profile paper
+          harness run --detector ours --dataset m3t --init <printed checkpoint>
+        """
+        res = pretrain(detector, dataset, encoding, fold, seed, profile, config_files, overrides, store, force,
+                       not no_progress, out)
+        r = res.record
+        click.echo(f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val images, "
+                   f"encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 {_fmt(r['val_mAP50_95'])} [{res.state}]")
+        click.echo(f"checkpoint: {res.checkpoint}")
+        click.echo(f"fine-tune:  harness run --detector {r['detector']} --dataset m3t --init {res.checkpoint}")
+        record_path = Path(r["checkpoint"]).parent.parent / "pretrain.json"
+        click.echo(f"note: the extra channel was '{r['extra_channel']}' here; see {record_path}")
+
+
+def _fmt(v: Any) -> str:
+    return "-" if v is None else f"{100 * float(v):.1f}%"

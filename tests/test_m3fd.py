@@ -1,0 +1,176 @@
+"""M3FD adapter on a few pairs written by the test in the release layout (M3FD_Detection/{Annotation,Ir,Vis})."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adapters.datasets import m3fd
+from eightbit_fixtures import write_m3fd, write_voc
+from harness.api import PrepareReport
+from harness.errors import ConfigError, DataError
+from harness.sample import validate_sample
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def release(tmp_path):
+    expected = write_m3fd(tmp_path)
+    return tmp_path, expected
+
+
+def collect(source):
+    report = PrepareReport()
+    return list(source.samples(report)), report
+
+
+def test_pairs_per_image_sizes_and_classes_by_name(release):
+    root, expected = release
+    samples, report = collect(m3fd.open_m3fd(root))
+    assert [s.image_id for s in samples] == [n + 1 for n in sorted(expected)] and not report.skipped
+    for s in samples:
+        validate_sample(s, num_classes=6)
+        n = s.image_id - 1
+        want = expected[n]
+        np.testing.assert_allclose(s.boxes, np.array([b[:4] for b in want], np.float32))
+        assert s.labels.tolist() == [c for *_, c in want]  # "car " and "People" alike map by name
+        assert s.thermal is None and s.ir8.dtype == np.uint8
+        assert s.meta["file_name"] == f"Ir/{n:05d}.png" and s.meta["annotation"] == f"Annotation/{n:05d}.xml"
+    sizes = {s.image_id - 1: s.ir8.shape for s in samples}
+    assert sizes[120] == (40, 72) and sizes[0] == (48, 64)
+
+
+def test_root_may_be_the_release_folder_or_its_parent(release):
+    root, _ = release
+    assert m3fd.open_m3fd(root).root == m3fd.open_m3fd(root / "M3FD_Detection").root == root / "M3FD_Detection"
+
+
+def test_recorded_split_by_frame_blocks_matches_the_protocol_file(release):
+    root, _ = release
+    source = m3fd.open_m3fd(root)
+    assert source.groups() == ["00000-00099", "00100-00199", "00400-00499", "00900-00999"]
+    (fold,) = source.folds()
+    assert fold.name == "val" and fold.val_groups == ("00400-00499", "00900-00999")
+    split = m3fd.recorded_split()
+    assert len(split["val"]) == 8 and len(split["train"]) == 34  # 800 / 3,400 of 4,200
+    assert split["val"] == ["00400-00499", "00900-00999", "01400-01499", "01900-01999", "02400-02499",
+                            "02900-02999", "03400-03499", "03900-03999"]
+    # the split is recorded, block by block, where users look for it
+    for doc in (REPO / "docs" / "datasets.md", REPO / "configs" / "protocols" / "m3fd.yaml"):
+        text = doc.read_text()
+        assert all(block in text for block in split["val"]), doc
+    samples, _ = collect(source)
+    assert [s.meta["split"] for s in samples] == ["train"] * 5 + ["val"] * 3
+
+
+def test_class_name_not_in_the_list_skips_the_pair_with_a_counted_reason(release):
+    root, _ = release
+    ann = root / "M3FD_Detection" / "Annotation" / "00002.xml"
+    write_voc(ann, "00002.png", 64, 48, [("Car", 1, 1, 10, 10), ("Dog", 5, 5, 20, 20)])
+    samples, report = collect(m3fd.open_m3fd(root))
+    assert len(samples) == 7 and 3 not in {s.image_id for s in samples}
+    assert report.summary()["skip_reasons"] == {"unknown class": 1}
+    path, reason = report.skipped[0]
+    assert path.endswith("00002.xml") and "'Dog' is not one of people, car" in reason
+    with pytest.raises(DataError, match="00002.xml: unknown class"):
+        collect(m3fd.open_m3fd(root, strict=True))
+
+
+def test_missing_infrared_image_is_a_counted_drop(release):
+    root, _ = release
+    (root / "M3FD_Detection" / "Ir" / "00003.png").unlink()
+    (root / "M3FD_Detection" / "Annotation" / "00401.xml").unlink()
+    source = m3fd.open_m3fd(root)
+    samples, report = collect(source)
+    assert len(samples) == 6
+    assert report.summary()["skip_reasons"] == {"missing thermal frame": 1, "no annotation": 1}
+    with pytest.raises(DataError, match="strict"):
+        m3fd.open_m3fd(root, strict=True)
+
+
+def test_malformed_xml_names_file_and_position(release):
+    root, _ = release
+    ann = root / "M3FD_Detection" / "Annotation" / "00001.xml"
+    ann.write_text("<annotation>\n  <size><width>64</width>\n</annotation>\n")
+    samples, report = collect(m3fd.open_m3fd(root))
+    assert len(samples) == 7
+    (path, reason), = report.skipped
+    assert reason.startswith("malformed annotation") and "00001.xml: malformed XML at line 3 column" in reason
+
+
+def test_non_numeric_coordinates_and_size_mismatch(release):
+    root, _ = release
+    base = root / "M3FD_Detection" / "Annotation"
+    write_voc(base / "00000.xml", "00000.png", 64, 48, [("Car", "a", 1, 10, 10)])
+    write_voc(base / "00001.xml", "00001.png", 1024, 768, [("Car", 1, 1, 10, 10)])
+    samples, report = collect(m3fd.open_m3fd(root))
+    assert len(samples) == 6
+    reasons = dict((p.rsplit("/", 1)[-1], r) for p, r in report.skipped)
+    assert "<xmin> must be a number" in reasons["00000.xml"]
+    assert reasons["00001.xml"] == "size mismatch: <size> says 1024x768, images are 64x48"
+
+
+def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
+    root, _ = release
+    write_voc(root / "M3FD_Detection" / "Annotation" / "00000.xml", "00000.png", 64, 48,
+              [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)])
+    samples, report = collect(m3fd.open_m3fd(root))
+    s = samples[0]
+    np.testing.assert_array_equal(s.boxes, [[0, 2, 20, 48]])
+    assert s.labels.tolist() == [m3fd.CATEGORIES.index("truck")]
+    assert any("1 clipped to the frame, 1 dropped" in n for n in report.notes)
+
+
+def test_errors_for_layout_and_options(tmp_path, monkeypatch):
+    monkeypatch.delenv(m3fd.ROOT_ENV, raising=False)
+    with pytest.raises(DataError, match="HARNESS_M3FD"):
+        m3fd.open_m3fd()
+    (tmp_path / "Ir").mkdir()
+    with pytest.raises(DataError, match="missing Annotation, Vis"):
+        m3fd.open_m3fd(tmp_path)
+    with pytest.raises(ConfigError, match="'strict' must be true or false"):
+        m3fd.open_m3fd(tmp_path, strict="yes")
+
+
+def test_registered_for_pretraining_with_ir8(host):
+    spec = host.dataset("m3fd")
+    assert spec.thermal == "8bit" and spec.default_encoding == "ir8" and spec.protocol == "m3fd"
+    assert spec.categories == ("people", "car", "bus", "motorcycle", "lamp", "truck")
+
+
+# ------------------------------------------------------------------ pretraining
+@pytest.mark.slow
+def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
+    import json
+
+    from eightbit_fixtures import trained_store
+
+    trained = trained_store(tmp_path_factory)
+    ckpt = trained["checkpoint"]
+    assert ckpt.is_file() and ckpt.parts[-7:-2] == ("m3fd", "ours", "ir8", "val", "seed0")
+    record = json.loads((ckpt.parent.parent / "pretrain.json").read_text())
+    assert record["encoding"] == "ir8" and record["categories"] == list(m3fd.CATEGORIES)
+    assert (record["train_images"], record["val_images"]) == (5, 3)  # the recorded block split of the fixture
+    assert "8-bit thermal intensity" in record["extra_channel"] and "c2" in record["fine_tuning"]
+    assert f"--init {ckpt}" in trained["pretrain_output"]
+    # `harness run --init` on another dataset loaded it (see the RGBT-Tiny end-to-end test for the details)
+    from harness.store import RunKey, Store
+
+    init = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    assert init["path"] == str(ckpt) and init["loaded"] > 0
+
+
+def test_prepared_manifest_records_the_split(release, tmp_path):
+    from harness.config import load_config
+    from harness.prepare import prepare, resolve_folds
+
+    root, _ = release
+    cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])
+    ds = prepare("m3fd", cfg, cache_root=tmp_path / "cache", progress=False)
+    (fold,) = ds.manifest["folds"]
+    assert fold == {"name": "val", "train_groups": ["00000-00099", "00100-00199"], "val_groups": ["00400-00499", "00900-00999"]}
+    (resolved,) = resolve_folds("m3fd", ds, cfg)
+    assert resolved.name == "val" and len(ds.indices(resolved.val_groups)) == 3
