@@ -58,6 +58,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.m3fd",
     "harness.commands.compare",
     "harness.commands.pretrain",
+    "harness.commands.run",
 )
 
 #: hook name -> (kind shown to users, spec class)
