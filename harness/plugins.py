@@ -44,6 +44,9 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "adapters.detectors.icafusion",
+    "adapters.detectors.eme",
+    "adapters.detectors.cmadet",
     "harness.commands.profile",
     "harness.encodings",
     "harness.commands.sensing",
@@ -55,6 +58,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.m3fd",
     "harness.commands.compare",
     "harness.commands.pretrain",
+    "harness.commands.run",
     "harness.commands.report",
 )
 

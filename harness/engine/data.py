@@ -1,0 +1,263 @@
+"""The data pipeline: prepared samples + an encoding -> augmented, letterboxed tensors in the model contract.
+
+``SampleSource`` reads a subset of a ``harness.prepared.PreparedDataset`` (memory-mapped) and stacks each
+sample's RGB with the encoding's channel: ``uint8 H x W x (3 + k)``, channels ``[R, G, B, enc]`` (``k = 0`` for RGB-only
+encodings such as ``none``). ``TrainDataset`` augments (mosaic, random affine, flips on every channel, HSV on RGB
+only) and letterboxes to the protocol size; ``LetterboxDataset`` only letterboxes (evaluation). ``collate`` stacks a
+batch and ``to_inputs`` turns it into what a detector takes: one ``[B, 3 + k, H, W]`` float tensor in 0..1 for a
+single-stream detector, or ``(rgb [B, 3, H, W], thermal [B, thermal_channels, H, W])`` for a dual-stream one, the
+thermal stream being the encoding's channel replicated.
+
+Every sample's augmentation draws from ``numpy.random.default_rng((seed, epoch, index))`` and the epoch's order
+from a generator seeded by ``(seed, epoch)``: a run is reproducible, independent of the number of worker
+processes, and resumes mid-run to exactly the batches it would have seen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from harness.engine import augment as A
+from harness.errors import ConfigError, HarnessError
+
+
+@dataclass(frozen=True)
+class AugmentSettings:
+    """The ``augment`` section of the config (see ``configs/default.yaml``)."""
+
+    mosaic: float = 1.0
+    hsv_h: float = 0.015
+    hsv_s: float = 0.7
+    hsv_v: float = 0.4
+    degrees: float = 0.0
+    translate: float = 0.1
+    scale: float = 0.5
+    shear: float = 0.0
+    perspective: float = 0.0
+    fliplr: float = 0.5
+    flipud: float = 0.0
+
+    @classmethod
+    def from_config(cls, section: Mapping[str, Any], extra_channels: int = 0) -> "AugmentSettings":
+        """From the ``augment`` section; with an extra channel and ``hsv_4ch: false`` there is no HSV jitter at all
+        (what the seed does for 4-channel input; by default the jitter acts on RGB only)."""
+        known = {f.name for f in fields(cls)}
+        values = {k: float(v) for k, v in section.items() if k in known and v is not None}
+        if extra_channels and not section.get("hsv_4ch", True):
+            values.update(hsv_h=0.0, hsv_s=0.0, hsv_v=0.0)
+        return cls(**values)
+
+    @classmethod
+    def off(cls) -> "AugmentSettings":
+        return cls(mosaic=0.0, hsv_h=0.0, hsv_s=0.0, hsv_v=0.0, translate=0.0, scale=0.0, fliplr=0.0)
+
+
+class SampleSource:
+    """A subset of a prepared dataset seen through one encoding: images ``[R, G, B, enc]`` and their targets."""
+
+    def __init__(self, prepared: Any, indices: Sequence[int] | None = None, encoding: Any = None,
+                 params: Mapping[str, Any] | None = None):
+        self.prepared = prepared
+        self.indices = list(range(len(prepared))) if indices is None else [int(i) for i in indices]
+        self.encoding = encoding
+        self.params = dict(params or {})
+        self.extra = int(getattr(encoding, "channels", 0)) if encoding is not None else 0
+        self.channels = 3 + self.extra
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def warm(self) -> None:
+        """Compute the encoding for the dataset now (once, cached beside the prepared arrays), before workers fork."""
+        if self.extra and self.indices:
+            self.prepared.channel(self.indices[0], self.encoding, self.params)
+
+    def image(self, k: int) -> np.ndarray:
+        i = self.indices[k]
+        rgb = self.prepared[i].rgb
+        if not self.extra:
+            return np.ascontiguousarray(rgb)
+        ch = self.prepared.channel(i, self.encoding, self.params)
+        return np.dstack((rgb, ch))
+
+    def targets(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        boxes, labels = self.prepared.targets(self.indices[k])
+        return np.array(boxes, dtype=np.float32).reshape(-1, 4), np.array(labels, dtype=np.int64)
+
+    def image_id(self, k: int) -> int:
+        return int(self.prepared.records[self.indices[k]]["image_id"])
+
+    def shape(self, k: int) -> tuple[int, int]:
+        r = self.prepared.records[self.indices[k]]
+        return int(r["height"]), int(r["width"])
+
+
+def _item(img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, image_id: int,
+          letterbox: A.Letterbox | None = None) -> dict[str, Any]:
+    return {
+        "image": torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))),
+        "boxes": torch.from_numpy(np.asarray(boxes, dtype=np.float32).reshape(-1, 4)),
+        "labels": torch.from_numpy(np.asarray(labels, dtype=np.int64)),
+        "image_id": image_id,
+        "letterbox": letterbox,
+    }
+
+
+class TrainDataset(Dataset):
+    """Augmented training samples at ``imgsz x imgsz`` (see the module docstring for the order of operations).
+
+    With probability ``mosaic`` a sample is a 4-image mosaic (``augment.mosaic4``) cropped back to ``imgsz`` by the
+    random affine; otherwise it is letterboxed and then warped by the random affine. Then HSV jitter on RGB only,
+    then up-down and left-right flips. ``set_epoch`` picks the epoch (and whether mosaic is on) before each pass.
+    """
+
+    def __init__(self, source: SampleSource, imgsz: int, augment: AugmentSettings, seed: int = 0):
+        if len(source) == 0:
+            raise HarnessError("no training images: the fold's training groups are empty")
+        self.source, self.imgsz, self.aug, self.seed = source, int(imgsz), augment, int(seed)
+        self.epoch = 0
+        self.mosaic_on = augment.mosaic > 0
+
+    def set_epoch(self, epoch: int, mosaic: bool = True) -> None:
+        self.epoch = int(epoch)
+        self.mosaic_on = bool(mosaic) and self.aug.mosaic > 0
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def rng(self, k: int) -> np.random.Generator:
+        return np.random.default_rng((self.seed, self.epoch, int(k)))
+
+    def _resized(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        img, r = A.resize_long_side(self.source.image(k), self.imgsz)
+        boxes, labels = self.source.targets(k)
+        return img, boxes * r, labels
+
+    def __getitem__(self, k: int) -> dict[str, Any]:
+        aug, s = self.aug, self.imgsz
+        rng = self.rng(k)
+        use_mosaic = rng.random() < aug.mosaic and self.mosaic_on
+        others = rng.integers(0, len(self.source), 3)
+        if use_mosaic:
+            parts = [self._resized(j) for j in (k, *others.tolist())]
+            img, boxes, labels = A.mosaic4([p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts], s, rng)
+            border = -s // 2
+        else:
+            boxes, labels = self.source.targets(k)
+            img, lb = A.letterbox(self.source.image(k), s)
+            boxes = A.scale_boxes(boxes, lb.ratio, lb.pad)
+            border = 0
+        img, boxes, labels = A.random_affine(img, boxes, labels, rng, degrees=aug.degrees, translate=aug.translate,
+                                             scale=aug.scale, shear=aug.shear, perspective=aug.perspective,
+                                             border=border)
+        img = A.augment_hsv(img, rng, aug.hsv_h, aug.hsv_s, aug.hsv_v)
+        if rng.random() < aug.flipud:
+            img, boxes = A.flip_ud(img, boxes)
+        if rng.random() < aug.fliplr:
+            img, boxes = A.flip_lr(img, boxes)
+        return _item(img, boxes, labels, self.source.image_id(k))
+
+
+class LetterboxDataset(Dataset):
+    """Evaluation samples: letterboxed to ``imgsz x imgsz``, no augmentation, with the letterbox record to undo it."""
+
+    def __init__(self, source: SampleSource, imgsz: int):
+        self.source, self.imgsz = source, int(imgsz)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def __getitem__(self, k: int) -> dict[str, Any]:
+        img, lb = A.letterbox(self.source.image(k), self.imgsz)
+        boxes, labels = self.source.targets(k)
+        return _item(img, A.scale_boxes(boxes, lb.ratio, lb.pad), labels, self.source.image_id(k), lb)
+
+
+@dataclass
+class Batch:
+    """A collated batch: images ``uint8 [B, C, H, W]``, per-image targets, ids and letterbox records."""
+
+    images: torch.Tensor
+    targets: list[dict[str, torch.Tensor]]
+    image_ids: list[int]
+    letterboxes: list[A.Letterbox | None]
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+
+def collate(items: list[dict[str, Any]]) -> Batch:
+    return Batch(
+        images=torch.stack([it["image"] for it in items]),
+        targets=[{"boxes": it["boxes"], "labels": it["labels"]} for it in items],
+        image_ids=[it["image_id"] for it in items],
+        letterboxes=[it["letterbox"] for it in items],
+    )
+
+
+def to_inputs(images: torch.Tensor, input_kind: str = "single", thermal_channels: int = 3,
+              device: torch.device | str = "cpu", channels_last: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """uint8 ``[B, C, H, W]`` -> the detector's inputs, floats in 0..1 (see the module docstring)."""
+    x = images.to(device, non_blocking=True).float().div_(255.0)
+    if input_kind == "single":
+        return x.contiguous(memory_format=torch.channels_last) if channels_last else x
+    if input_kind != "dual":
+        raise ConfigError(f"unknown detector input kind {input_kind!r}")
+    if x.shape[1] != 4:
+        raise ConfigError(
+            f"a dual-stream detector needs an encoding with one channel for its thermal stream, got {x.shape[1] - 3} "
+            f"extra channel(s); choose an encoding such as 'ir8' or 'c2' with --encoding"
+        )
+    rgb = x[:, :3].contiguous()
+    thermal = x[:, 3:4].repeat(1, int(thermal_channels), 1, 1)
+    if channels_last:
+        rgb = rgb.contiguous(memory_format=torch.channels_last)
+        thermal = thermal.contiguous(memory_format=torch.channels_last)
+    return rgb, thermal
+
+
+def targets_to(targets: list[dict[str, torch.Tensor]], device: torch.device | str) -> list[dict[str, torch.Tensor]]:
+    return [{k: v.to(device, non_blocking=True) for k, v in t.items()} for t in targets]
+
+
+class EpochSampler(Sampler[int]):
+    """A shuffled order that depends only on ``(seed, epoch)``; ``max_images`` keeps the first N of it."""
+
+    def __init__(self, n: int, seed: int = 0, max_images: int | None = None, shuffle: bool = True):
+        self.n, self.seed, self.shuffle = int(n), int(seed), shuffle
+        self.max_images = None if max_images is None else max(1, int(max_images))
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def order(self) -> list[int]:
+        if not self.shuffle:
+            idx = list(range(self.n))
+        else:
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+            idx = torch.randperm(self.n, generator=g).tolist()
+        return idx[: self.max_images] if self.max_images is not None else idx
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.order())
+
+    def __len__(self) -> int:
+        return self.n if self.max_images is None else min(self.n, self.max_images)
+
+
+def train_loader(dataset: TrainDataset, batch: int, workers: int = 0, seed: int = 0,
+                 max_images: int | None = None) -> DataLoader:
+    sampler = EpochSampler(len(dataset), seed=seed, max_images=max_images)
+    return DataLoader(dataset, batch_size=int(batch), sampler=sampler, num_workers=int(workers), collate_fn=collate,
+                      drop_last=False, generator=torch.Generator().manual_seed(int(seed)),
+                      persistent_workers=False)
+
+
+def eval_loader(dataset: LetterboxDataset, batch: int, workers: int = 0) -> DataLoader:
+    return DataLoader(dataset, batch_size=int(batch), shuffle=False, num_workers=int(workers), collate_fn=collate)

@@ -1,0 +1,388 @@
+"""The training loop every detector shares.
+
+``Trainer(model, dataset, settings, ...).fit()`` trains a detector that follows the model contract
+(``harness.api.DetectorSpec``): in train mode ``model(inputs, targets)`` returns a dict of scalar losses, which the
+engine sums and back-propagates as they are (detectors in the YOLO tradition scale their loss by the batch size, so
+that gradients accumulated to the nominal batch are sums over images).
+
+Per iteration: warm-up (``harness.engine.optim``), forward under autocast (CUDA only), backward (through a
+gradient scaler on CUDA), and every ``accumulate`` iterations an optimiser step with gradient-norm clipping and an
+EMA update. Per epoch: the learning rate of the schedule, mosaic switched off for the last ``close_mosaic`` epochs,
+validation of the EMA weights through the ``validate`` callback, ``fitness = 0.1 * mAP50 + 0.9 * mAP50:95``, the best
+weights saved to ``best.pt``, a log line and a ``log.jsonl`` record, the full state saved to ``last.pt``, and early
+stopping after ``patience`` epochs without a better fitness. ``fit(resume=True)`` continues from ``last.pt`` to the
+same state an uninterrupted run would have reached.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import torch
+from torch import nn
+
+from harness.engine import checkpoint as ckpt
+from harness.engine import optim
+from harness.engine.data import TrainDataset, targets_to, to_inputs, train_loader
+from harness.engine.ema import ModelEMA
+from harness.engine.runtime import select_device, set_threads
+from harness.errors import ConfigError, HarnessError, PluginError
+
+log = logging.getLogger(__name__)
+
+
+class TrainingError(HarnessError):
+    """Training cannot go on (e.g. the loss became NaN); the message says at which epoch and what to try."""
+
+
+def fitness(metrics: Mapping[str, Any]) -> float:
+    """``0.1 * mAP50 + 0.9 * mAP50:95``: the checkpoint-selection score."""
+    return 0.1 * float(metrics.get("mAP50") or 0.0) + 0.9 * float(metrics.get("mAP50_95") or 0.0)
+
+
+@dataclass
+class TrainSettings:
+    """Everything the loop reads, from the ``protocol`` and ``train`` sections of a resolved config."""
+
+    imgsz: int = 640
+    epochs: int = 150
+    patience: int = 50
+    batch: int = 16
+    nominal_batch: int = 64
+    optimizer: str = "SGD"
+    lr0: float = 0.01
+    lrf: float = 0.01
+    momentum: float = 0.937
+    weight_decay: float = 0.0005
+    warmup_epochs: float = 3.0
+    warmup_min_iters: int = 100
+    warmup_momentum: float = 0.8
+    warmup_bias_lr: float = 0.1
+    cos_lr: bool = False
+    ema: bool = True
+    ema_decay: float = 0.9999
+    ema_tau: float = 2000.0
+    amp: bool = True
+    close_mosaic: int = 10
+    workers: int = 0
+    deterministic: bool = True
+    threads: int | None = None
+    max_images: int | None = None
+    device: str = "auto"
+    clip_grad: float = 10.0
+    val_period: int = 1
+    channels_last: bool = False
+    seed: int = 0
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], seed: int = 0) -> "TrainSettings":
+        known = {f.name for f in fields(cls)}
+        values = {k: v for k, v in dict(cfg.get("train", {})).items() if k in known}
+        proto = cfg.get("protocol", {})
+        values.update(imgsz=int(proto.get("imgsz", 640)), epochs=int(proto.get("epochs", 150)),
+                      patience=int(proto.get("patience", 50)), seed=int(seed))
+        s = cls(**values)
+        s.check()
+        return s
+
+    def check(self) -> None:
+        if self.optimizer not in optim.OPTIMIZERS:
+            raise ConfigError(f"train.optimizer: {self.optimizer!r} is not one of {', '.join(optim.OPTIMIZERS)}")
+        for name in ("epochs", "batch", "nominal_batch", "imgsz", "val_period"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"{'protocol' if name in ('epochs', 'imgsz') else 'train'}.{name} must be at least 1")
+        if self.imgsz % 32:
+            raise ConfigError(f"protocol.imgsz={self.imgsz} must be a multiple of 32 (the detectors' largest stride)")
+
+
+@dataclass
+class TrainResult:
+    epochs_run: int
+    best_epoch: int | None  # 1-based
+    best_fitness: float | None
+    stopped_early: bool
+    time_s: float
+    history: list[dict[str, Any]] = field(default_factory=list)
+    best_path: str | None = None
+    last_path: str | None = None
+    resumed_from: int | None = None  # epochs already done when the run was resumed
+    device: str = "cpu"
+
+    def summary(self) -> dict[str, Any]:
+        out = asdict(self)
+        out.pop("history")
+        return out
+
+
+class Trainer:
+    """Train ``model`` on ``dataset``; see the module docstring.
+
+    ``validate(model) -> metrics`` scores a model in eval mode (the runner predicts the held-out images and
+    evaluates them); without it, the fitness is the negative mean training loss. ``on_epoch(record)`` receives each
+    epoch's record (the runner appends it to ``log.jsonl``).
+    """
+
+    def __init__(self, model: nn.Module, dataset: TrainDataset, settings: TrainSettings, input_kind: str = "single",
+                 thermal_channels: int = 3, checkpoint_dir: str | Path | None = None,
+                 validate: Callable[[nn.Module], Mapping[str, Any]] | None = None,
+                 on_epoch: Callable[[dict[str, Any]], None] | None = None, progress: bool = True,
+                 config_hash: str = "", name: str = "model"):
+        self.model, self.dataset, self.s = model, dataset, settings
+        self.input_kind, self.thermal_channels = input_kind, thermal_channels
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        self.validate, self.on_epoch, self.progress = validate, on_epoch, progress
+        self.config_hash, self.name = config_hash, name
+        self.device = select_device(settings.device)
+        self.ema: ModelEMA | None = None
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def last_path(self) -> Path | None:
+        return self.checkpoint_dir / "last.pt" if self.checkpoint_dir else None
+
+    @property
+    def best_path(self) -> Path | None:
+        return self.checkpoint_dir / "best.pt" if self.checkpoint_dir else None
+
+    @property
+    def eval_model(self) -> nn.Module:
+        """The weights that are validated and kept: the EMA when enabled, else the model."""
+        return self.ema.module if self.ema is not None else self.model
+
+    # ------------------------------------------------------------------ the loop
+    def fit(self, resume: bool = True) -> TrainResult:
+        s = self.s
+        set_threads(s.threads)
+        model = self.model.to(self.device)
+        if s.channels_last:
+            model = model.to(memory_format=torch.channels_last)
+        amp = bool(s.amp and self.device.type == "cuda")
+        loader = train_loader(self.dataset, s.batch, s.workers, s.seed, s.max_images)
+        nb = len(loader)
+        accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
+        wd = optim.scaled_weight_decay(s.weight_decay, s.batch, accumulate_target, s.nominal_batch)
+        opt = optim.build_optimizer(model, s.optimizer, s.lr0, s.momentum, wd)
+        scaler = torch.amp.GradScaler(self.device.type, enabled=amp)
+        self.ema = ModelEMA(model, s.ema_decay, s.ema_tau) if s.ema else None
+        nw = optim.warmup_iterations(s.warmup_epochs, nb, s.warmup_min_iters)
+
+        start_epoch, best_fit, best_epoch, history, resumed_from = 0, None, None, [], None
+        last_opt_step = -1
+        if resume and self.last_path is not None and self.last_path.exists():
+            state = ckpt.load(self.last_path)
+            if state.get("config_hash", "") != self.config_hash:
+                log.warning("%s was written by a different configuration; starting this run again", self.last_path)
+            else:
+                model.load_state_dict(state["model"])
+                opt.load_state_dict(state["optimizer"])
+                if state.get("scaler"):
+                    scaler.load_state_dict(state["scaler"])
+                if self.ema is not None and state.get("ema"):
+                    self.ema.load_state_dict(state["ema"])
+                ckpt.set_rng_state(state["rng"])
+                start_epoch = int(state["epoch"]) + 1
+                best_fit, best_epoch = state.get("best_fitness"), state.get("best_epoch")
+                history = list(state.get("history", []))
+                last_opt_step = int(state.get("last_opt_step", start_epoch * nb - 1))
+                resumed_from = start_epoch
+                if state.get("done"):
+                    log.info("%s: training already complete (%d epochs)", self.name, start_epoch)
+                    return self._result(start_epoch, best_epoch, best_fit, bool(state.get("stopped_early")), 0.0,
+                                        history, resumed_from)
+                log.info("%s: resuming after epoch %d of %d", self.name, start_epoch, s.epochs)
+
+        t_start = time.perf_counter()
+        stopped_early = False
+        epoch = start_epoch - 1
+        bar = _progress(self.progress)
+        with bar:
+            for epoch in range(start_epoch, s.epochs):
+                t0 = time.perf_counter()
+                mosaic = epoch < s.epochs - s.close_mosaic
+                self.dataset.set_epoch(epoch, mosaic=mosaic)
+                loader.sampler.set_epoch(epoch)  # type: ignore[attr-defined]
+                model.train()
+                factor = optim.lr_factor(epoch, s.epochs, s.lrf, s.cos_lr)
+                for g in opt.param_groups:
+                    g["lr"] = g["initial_lr"] * factor
+                sums: dict[str, float] = {}
+                seen = 0
+                pending = False
+                task = bar.add_task(f"{self.name} {epoch + 1}/{s.epochs}", total=nb, losses="")
+                for i, batch in enumerate(loader):
+                    ni = i + nb * epoch
+                    accumulate = accumulate_target
+                    if ni <= nw and nw > 0:
+                        accumulate = max(1, round(optim.interp(ni, nw, 1, s.nominal_batch / s.batch)))
+                        for g in opt.param_groups:
+                            start = s.warmup_bias_lr if g["name"] == "bias" else 0.0
+                            g["lr"] = optim.interp(ni, nw, start, g["initial_lr"] * factor)
+                            optim.set_momentum(g, optim.interp(ni, nw, s.warmup_momentum, s.momentum))
+                    inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last)
+                    targets = targets_to(batch.targets, self.device)
+                    with torch.autocast(self.device.type, enabled=amp):
+                        losses = model(inputs, targets)
+                    loss = self._total(losses, epoch, i)
+                    scaler.scale(loss).backward()
+                    pending = True
+                    for k, v in losses.items():
+                        sums[k] = sums.get(k, 0.0) + float(v.detach())
+                    seen += len(batch)
+                    if ni - last_opt_step >= accumulate:
+                        self._step(model, opt, scaler)
+                        last_opt_step, pending = ni, False
+                    bar.update(task, advance=1, losses=" ".join(f"{k} {v / (i + 1):.3f}" for k, v in sums.items()))
+                if pending:  # every epoch ends on an optimiser step, so a checkpoint never holds half-summed gradients
+                    self._step(model, opt, scaler)
+                    last_opt_step = nb * (epoch + 1) - 1
+                bar.remove_task(task)
+
+                mean_losses = {k: v / max(nb, 1) for k, v in sums.items()}
+                metrics = None
+                validated = self.validate is not None and ((epoch + 1) % s.val_period == 0 or epoch + 1 == s.epochs)
+                if validated:
+                    metrics = dict(self._validate())
+                    fit = fitness(metrics)
+                elif self.validate is None:
+                    fit = -sum(mean_losses.values())
+                else:
+                    fit = None
+                improved = fit is not None and (best_fit is None or fit > best_fit)
+                if improved:
+                    best_fit, best_epoch = fit, epoch + 1
+                    if self.best_path is not None:
+                        ckpt.save(self.best_path, {"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch,
+                                                   "model": _cpu_state(self.eval_model), "fitness": fit,
+                                                   "config_hash": self.config_hash})
+                dt = time.perf_counter() - t0
+                record = {
+                    "epoch": epoch + 1, "epochs": s.epochs, "time_s": round(dt, 3),
+                    "images_per_s": round(seen / dt, 2) if dt > 0 else None,
+                    "lr": {g["name"]: g["lr"] for g in opt.param_groups}, "mosaic": mosaic,
+                    "loss": {k: round(v, 5) for k, v in mean_losses.items()},
+                    "metrics": _brief(metrics), "fitness": fit, "best_fitness": best_fit, "best_epoch": best_epoch,
+                    "improved": improved,
+                }
+                history.append(record)
+                log.info(_line(record, self.name))
+                stopped_early = best_epoch is not None and (epoch + 1) - best_epoch >= s.patience and epoch + 1 < s.epochs
+                done = stopped_early or epoch + 1 == s.epochs
+                if self.last_path is not None:
+                    ckpt.save(self.last_path, {
+                        "format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch, "done": done,
+                        "stopped_early": stopped_early, "model": _cpu_state(model), "optimizer": opt.state_dict(),
+                        "scaler": scaler.state_dict() if amp else None,
+                        "ema": self.ema.state_dict() if self.ema is not None else None,
+                        "rng": ckpt.rng_state(), "best_fitness": best_fit, "best_epoch": best_epoch,
+                        "history": history, "last_opt_step": last_opt_step, "config_hash": self.config_hash,
+                        "settings": asdict(s),
+                    })
+                if self.on_epoch is not None:  # after the checkpoint: a resumed run never logs an epoch twice
+                    self.on_epoch(record)
+                if stopped_early:
+                    log.info("%s: no better fitness for %d epochs, stopping after epoch %d (best: epoch %d)",
+                             self.name, s.patience, epoch + 1, best_epoch)
+                    break
+        return self._result(epoch + 1, best_epoch, best_fit, stopped_early, time.perf_counter() - t_start, history,
+                            resumed_from)
+
+    # ------------------------------------------------------------------ pieces
+    def _total(self, losses: Any, epoch: int, i: int) -> torch.Tensor:
+        if not isinstance(losses, Mapping) or not losses or not all(isinstance(v, torch.Tensor) for v in losses.values()):
+            raise PluginError(
+                f"detector {self.name!r}: in train mode model(inputs, targets) must return a dict of scalar loss "
+                f"tensors, got {type(losses).__name__}"
+            )
+        loss = sum(v.sum() for v in losses.values())
+        if not torch.isfinite(loss):
+            bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
+            raise TrainingError(
+                f"{self.name}: loss {', '.join(bad)} became {float(loss.detach())} at epoch {epoch + 1}, iteration {i + 1}; "
+                f"try a lower train.lr0, a longer train.warmup_epochs, or train.amp=false"
+            )
+        return loss
+
+    def _step(self, model: nn.Module, opt: torch.optim.Optimizer, scaler: torch.amp.GradScaler) -> None:
+        scaler.unscale_(opt)
+        if self.s.clip_grad and self.s.clip_grad > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=self.s.clip_grad)
+        scaler.step(opt)
+        scaler.update()
+        opt.zero_grad(set_to_none=True)
+        if self.ema is not None:
+            self.ema.update(model)
+
+    def _validate(self) -> Mapping[str, Any]:
+        m = self.eval_model
+        was_training = m.training
+        m.eval()
+        try:
+            assert self.validate is not None
+            return self.validate(m)
+        finally:
+            m.train(was_training)
+
+    def _result(self, epochs_run: int, best_epoch: int | None, best_fit: float | None, stopped: bool, t: float,
+                history: list[dict[str, Any]], resumed_from: int | None) -> TrainResult:
+        return TrainResult(
+            epochs_run=epochs_run, best_epoch=best_epoch, best_fitness=best_fit, stopped_early=stopped,
+            time_s=round(sum(r.get("time_s", 0.0) for r in history), 3) if history else t, history=history,
+            best_path=str(self.best_path) if self.best_path and self.best_path.exists() else None,
+            last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
+            resumed_from=resumed_from, device=str(self.device),
+        )
+
+
+def _cpu_state(model: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
+
+
+def _brief(metrics: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    if metrics is None:
+        return None
+    return {k: metrics[k] for k in ("precision", "recall", "mAP50", "mAP50_95", "AP50_per_category") if k in metrics}
+
+
+def _line(r: Mapping[str, Any], name: str) -> str:
+    loss = " ".join(f"{k} {v:.3f}" for k, v in r["loss"].items())
+    parts = [f"{name} epoch {r['epoch']}/{r['epochs']}", f"loss {sum(r['loss'].values()):.3f} ({loss})",
+             f"lr {max(r['lr'].values()):.5f}"]
+    m = r.get("metrics")
+    if m:
+        parts.append(f"P {m.get('precision', math.nan):.3f} R {m.get('recall', math.nan):.3f} "
+                     f"mAP50 {m.get('mAP50', math.nan):.3f} mAP50:95 {m.get('mAP50_95', math.nan):.3f}")
+    if r.get("fitness") is not None:
+        parts.append(f"fitness {r['fitness']:.4f}{' *' if r['improved'] else ''}")
+    parts.append(f"{r['time_s']:.1f} s")
+    return "  ".join(parts)
+
+
+class _NoProgress:
+    def __enter__(self) -> "_NoProgress":
+        return self
+
+    def __exit__(self, *_: Any) -> None:
+        return None
+
+    def add_task(self, *_: Any, **__: Any) -> int:
+        return 0
+
+    def update(self, *_: Any, **__: Any) -> None:
+        return None
+
+    def remove_task(self, *_: Any) -> None:
+        return None
+
+
+def _progress(enabled: bool) -> Any:
+    if not enabled:
+        return _NoProgress()
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    TimeRemainingColumn(), TextColumn("{task.fields[losses]}"), transient=True)

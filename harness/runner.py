@@ -1,0 +1,468 @@
+"""The main job: prepare -> folds -> (train -> predict -> evaluate -> store) for every fold and seed.
+
+``run(RunRequest(detector=..., dataset=...))`` resolves the detector, dataset and encoding through the plugin
+host, resolves the configuration (``harness.config.load_config``: default < protocol < detector defaults < profile
+< files < ``--set``), prepares the dataset once (``harness.prepare.prepare``: every detector and encoding reads the
+same cached, aligned samples), resolves the folds, and then for each fold and seed:
+
+* a run that already **finished** with the same configuration hash is skipped (its stored metrics are reused);
+  one that finished with a different configuration is refused before anything is trained, unless ``force``;
+* a run that was **interrupted** resumes from its last checkpoint (``checkpoints/last.pt``);
+* otherwise the detector is built (seeded), optionally initialised from ``init``, trained on the fold's training
+  groups with the EMA weights validated on the held-out groups each epoch (the best by fitness is kept), then the
+  best weights predict the held-out images and ``harness.evaluation.evaluate`` scores them.
+
+Everything lands in the results store (``harness.store``): ``config.yaml``, ``status.json``, ``log.jsonl``,
+``checkpoints/``, ``predictions.json``, ``gt.json`` and ``metrics.json`` (support, metrics, per-category AP, model
+parameters, training summary and environment). ``ablate`` runs one fold over several encodings for the seed's
+encoding-ablation table.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import re
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from harness.errors import ConfigError, StoreError
+from harness.io import atomic_write_json
+from harness.store import Run, RunKey, Store, config_hash, image_ids_hash
+
+log = logging.getLogger(__name__)
+
+#: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch")}
+
+
+@dataclass
+class RunRequest:
+    """What ``harness run`` asks for (see ``harness run --help``)."""
+
+    detector: str
+    dataset: str
+    encoding: str | None = None
+    folds: str = "all"
+    seeds: Sequence[int] | None = None
+    profile: str | None = "smoke"
+    config_files: Sequence[str | Path] = ()
+    overrides: Sequence[str] = ()
+    store: str | Path | None = None
+    force: bool = False
+    init: str | Path | None = None
+    progress: bool = True
+
+
+@dataclass
+class FoldResult:
+    """One (fold, seed) run: where it is stored and what it scored."""
+
+    key: RunKey
+    path: Path
+    metrics: dict[str, Any]
+    state: str  # "trained", "resumed" or "skipped" (finished earlier with the same configuration)
+    train_images: int = 0
+    val_images: int = 0
+
+
+@dataclass
+class RunSummary:
+    detector: str
+    dataset: str
+    encoding: str
+    profile: str | None
+    store: Path
+    config: dict[str, Any]
+    categories: list[str]
+    results: list[FoldResult] = field(default_factory=list)
+
+    @property
+    def metrics(self) -> list[dict[str, Any]]:
+        return [r.metrics for r in self.results]
+
+    def aggregate(self) -> dict[str, Any]:
+        from harness.evaluation import aggregate_folds
+
+        return aggregate_folds(self.metrics)
+
+
+# ------------------------------------------------------------------------------------------------- resolution
+def prepare_dataset(dataset: str, cfg: Mapping[str, Any]) -> Any:
+    """The dataset's prepared samples (``harness.prepare.prepare``: computed once, then read from the cache)."""
+    from harness.prepare import prepare
+
+    return prepare(dataset, dict(cfg))
+
+
+def resolve_folds(dataset_spec: Any, prepared: Any, cfg: Mapping[str, Any], selection: str) -> list[Any]:
+    from harness.prepare import resolve_folds as _resolve
+
+    return _resolve(dataset_spec, prepared, dict(cfg), selection)
+
+
+def fold_indices(prepared: Any, fold: Any) -> tuple[list[int], list[int]]:
+    from harness.prepare import fold_indices as _indices
+
+    train_idx, val_idx = _indices(prepared, fold)
+    return list(train_idx), list(val_idx)
+
+
+def choose_encoding(detector: Any, dataset: Any, requested: str | None, host: Any) -> Any:
+    """The encoding a run uses: the requested one, else the detector's (dual-stream) or the dataset's default."""
+    name = requested or (detector.default_thermal_encoding if detector.input_kind == "dual" else dataset.default_encoding)
+    enc = host.encoding(name)
+    if detector.input_kind == "dual" and enc.channels == 0:
+        raise ConfigError(
+            f"detector {detector.name!r} is dual-stream and needs a thermal encoding, but {name!r} adds no channel; "
+            f"use e.g. --encoding {detector.default_thermal_encoding}"
+        )
+    if dataset.thermal == "8bit" and enc.needs == "thermal":
+        raise ConfigError(
+            f"encoding {name!r} needs radiometric thermal, but dataset {dataset.name!r} has only 8-bit thermal; "
+            f"use an 8-bit encoding such as 'proxy8' or 'ir8'"
+        )
+    return enc
+
+
+def resolve_config(request: RunRequest, detector: Any, dataset: Any) -> dict[str, Any]:
+    from harness.config import load_config
+
+    return load_config(request.profile, protocol=dataset.protocol, detector=detector.name,
+                       detector_defaults=detector.defaults, files=request.config_files, overrides=request.overrides)
+
+
+def parse_seeds(text: str | Sequence[int] | None) -> list[int] | None:
+    if text is None or text == "":
+        return None
+    if isinstance(text, str):
+        try:
+            return [int(s) for s in text.split(",") if s.strip()]
+        except ValueError:
+            raise ConfigError(f"--seeds {text!r}: expected comma-separated integers such as 0,1,2") from None
+    return [int(s) for s in text]
+
+
+def run_config(cfg: Mapping[str, Any], key: RunKey, extra: Mapping[str, Any]) -> dict[str, Any]:
+    """The configuration recorded for one run: the resolved config plus the run's identity under ``meta``."""
+    out = copy.deepcopy(dict(cfg))
+    out["meta"] = {**out.get("meta", {}), "detector": key.detector, "dataset": key.dataset, "encoding": key.encoding,
+                   "fold": key.fold, "seed": key.seed, **extra}
+    return out
+
+
+def run_hash(cfg: Mapping[str, Any]) -> str:
+    """Hash of what determines a run's result: the config without speed-only keys and without file locations."""
+    trimmed = copy.deepcopy(dict(cfg))
+    for section, key in HASH_EXCLUDE:
+        trimmed.get(section, {}).pop(key, None)
+    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
+    return config_hash(trimmed)
+
+
+# ------------------------------------------------------------------------------------------------- the job
+def run(request: RunRequest) -> RunSummary:
+    """Train and evaluate every selected fold and seed; see the module docstring."""
+    from harness.plugins import get_host
+
+    host = get_host()
+    det = host.detector(request.detector)
+    ds = host.dataset(request.dataset)
+    enc = choose_encoding(det, ds, request.encoding, host)
+    cfg = resolve_config(request, det, ds)
+    if request.init:
+        cfg["train"]["init"] = str(request.init)
+    init = cfg["train"].get("init")
+    seeds = parse_seeds(request.seeds) or [int(s) for s in cfg["protocol"].get("seeds") or [0]]
+    store = Store(request.store or Path("results") / (request.profile or "default"))
+    init_info = _init_info(init)
+
+    prepared = prepare_dataset(ds.name, cfg)
+    folds = resolve_folds(ds, prepared, cfg, request.folds or "all")
+    if not folds:
+        raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
+    fingerprint = str(prepared.manifest.get("fingerprint", ""))
+
+    plan: list[tuple[Any, int, Run, dict[str, Any], str]] = []
+    conflicts = []
+    for fold in folds:
+        for seed in seeds:
+            key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
+            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "val_groups": list(fold.val_groups),
+                                         "train_groups": list(fold.train_groups), **init_info})
+            digest = run_hash(rcfg)
+            r = store.run(key)
+            st = r.status() or {}
+            if r.is_finished() and st.get("config_hash") != digest and not request.force:
+                conflicts.append(f"{key} (stored {st.get('config_hash')}, now {digest})")
+            plan.append((fold, seed, r, rcfg, digest))
+    if conflicts:
+        raise StoreError(
+            "these runs already finished with a different configuration: " + "; ".join(conflicts)
+            + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
+        )
+
+    summary = RunSummary(det.name, ds.name, enc.name, request.profile, store.root, cfg, list(prepared.categories))
+    for fold, seed, r, rcfg, digest in plan:
+        train_idx, val_idx = fold_indices(prepared, fold)
+        st = r.status() or {}
+        if r.is_finished() and st.get("config_hash") == digest and not request.force:
+            log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
+            summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx), len(val_idx)))
+            continue
+        result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
+                         init=init, force=request.force, progress=request.progress)
+        summary.results.append(result)
+    return summary
+
+
+def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,
+            train_idx: Sequence[int], val_idx: Sequence[int], init: str | Path | None = None, force: bool = False,
+            progress: bool = True) -> FoldResult:
+    """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
+    import torch
+
+    from harness.engine import checkpoint as ckpt
+    from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
+    from harness.engine.predict import predict
+    from harness.engine.runtime import environment, seed_everything
+    from harness.engine.trainer import Trainer, TrainSettings
+    from harness.evaluation import evaluate
+
+    if not train_idx:
+        raise ConfigError(f"fold {fold.name!r}: no training images (train groups {list(fold.train_groups)})")
+    if not val_idx:
+        raise ConfigError(f"fold {fold.name!r}: no held-out images (groups {list(fold.val_groups)})")
+    st = r.status() or {}
+    fresh = force or st.get("config_hash") != digest
+    if fresh and r.path.exists():
+        for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
+            stale.unlink(missing_ok=True)
+    r.path.mkdir(parents=True, exist_ok=True)
+    r.write_config(cfg)
+    r.set_status("running", config_hash=digest, fold=fold.name, seed=seed)
+
+    settings = TrainSettings.from_config(cfg, seed)
+    eval_cfg = cfg["eval"]
+    enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
+    train_src = SampleSource(prepared, train_idx, enc, enc_params)
+    val_src = SampleSource(prepared, val_idx, enc, enc_params)
+    train_src.warm()
+    aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
+    gt = prepared.coco(val_idx)
+    ncls = len(prepared.categories)
+    in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
+
+    seed_everything(seed, settings.deterministic)
+    model = build_model(det, ncls, in_channels, cfg.get("model") or {})
+    init_report = ckpt.init_from(model, init, det.load_official) if init else None
+    name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
+
+    def validate(m: Any) -> dict[str, Any]:
+        dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
+                       next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
+                       name=det.name)
+        res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+        out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
+        out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
+        return out
+
+    def on_epoch(record: dict[str, Any]) -> None:
+        r.append_log({"fold": fold.name, "seed": seed, **record})
+
+    trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
+                      det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
+    resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
+    try:
+        result = trainer.fit(resume=not fresh)
+        final = trainer.eval_model
+        if cfg["train"].get("final", "best") == "best" and result.best_path:
+            final.load_state_dict(ckpt.load(result.best_path)["model"])
+        final.eval()
+        t0 = time.perf_counter()
+        dets = predict(final, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
+                       trainer.device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
+                       progress=progress, name=det.name)
+        predict_s = time.perf_counter() - t0
+        evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+    except BaseException as exc:
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        r.set_status("failed", config_hash=digest, error=reason)
+        raise
+    support = dict(evaluation["support"])
+    support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
+    params = sum(p.numel() for p in model.parameters())
+    metrics = {
+        "support": support,
+        "metrics": evaluation["metrics"],
+        "per_category": evaluation["per_category"],
+        "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+                  "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
+        "train": {**result.summary(), "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
+                  "init": init_report, "predict_s": round(predict_s, 3),
+                  "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
+        "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+    }
+    atomic_write_json(r.predictions_path, dets, indent=None)
+    atomic_write_json(r.gt_path, gt, indent=None)
+    r.write_metrics(metrics)
+    r.set_status("finished", config_hash=digest, error=None)
+    m = evaluation["metrics"]
+    log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
+             m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
+    return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
+
+
+def build_model(det: Any, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> Any:
+    """``det.build(num_classes, in_channels=..., **model_cfg)`` with bad options reported as a config error."""
+    try:
+        return det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
+    except TypeError as exc:
+        if "keyword argument" in str(exc):
+            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}") from None
+        raise
+
+
+def _init_info(init: str | Path | None) -> dict[str, Any]:
+    if not init:
+        return {}
+    import hashlib
+
+    path = Path(init)
+    if not path.is_file():
+        raise ConfigError(f"train.init / --init {init}: no such checkpoint file")
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return {"init_sha1": h.hexdigest()}
+
+
+# ------------------------------------------------------------------------------------------------- ablation
+DEFAULT_ABLATION_CATEGORIES = ("delamination", "water seepage")
+
+
+@dataclass
+class AblationSummary:
+    detector: str
+    dataset: str
+    fold: str
+    categories: list[str]
+    runs: dict[str, RunSummary]  # encoding -> its run
+
+
+def ablate(detector: str, dataset: str, encodings: Sequence[str], fold: str, seeds: Sequence[int] | None = None,
+           profile: str | None = "smoke", config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
+           store: str | Path | None = None, force: bool = False, progress: bool = True,
+           categories: Sequence[str] = DEFAULT_ABLATION_CATEGORIES) -> AblationSummary:
+    """The encoding ablation: the same detector, fold and seeds, once per encoding (runs are stored like any other)."""
+    if not encodings:
+        raise ConfigError("--encodings: name at least one encoding, e.g. none,ir8,linear16,c2")
+    if "," in fold or fold == "all":
+        raise ConfigError(f"--fold {fold!r}: the ablation uses one fold, e.g. P4+P5")
+    runs: dict[str, RunSummary] = {}
+    for enc in encodings:
+        runs[enc] = run(RunRequest(detector=detector, dataset=dataset, encoding=enc, folds=fold, seeds=seeds,
+                                   profile=profile, config_files=config_files, overrides=overrides, store=store,
+                                   force=force, progress=progress))
+    first = next(iter(runs.values()))
+    return AblationSummary(detector, dataset, fold, [match_category(c, first.categories) for c in categories], runs)
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[\s_\-]+", " ", name.strip().lower())
+
+
+def match_category(wanted: str, categories: Sequence[str]) -> str:
+    """``"water seepage"`` finds ``water_seepage`` or ``Water-Seepage``; an unknown name is a clear error."""
+    for c in categories:
+        if _norm(c) == _norm(wanted):
+            return c
+    raise ConfigError(f"category {wanted!r} is not in the dataset (categories: {', '.join(categories)})")
+
+
+# ------------------------------------------------------------------------------------------------- tables
+def _fmt(v: float | None, digits: int = 3) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def _mean_sd(values: Sequence[float | None]) -> tuple[float | None, float | None]:
+    present = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    mean = statistics.fmean(present) if present else None
+    sd = statistics.stdev(present) if len(present) >= 2 else None
+    return mean, sd
+
+
+def _pm(stats: Mapping[str, Any] | tuple[float | None, float | None]) -> str:
+    mean, sd = (stats.get("mean"), stats.get("sd")) if isinstance(stats, Mapping) else stats
+    if mean is None:
+        return "-"
+    return f"{mean:.3f} ± {sd:.3f}" if sd is not None else f"{mean:.3f}"
+
+
+def format_table(headers: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None) -> str:
+    """A plain-text table whose columns line up (first column left-aligned, the others right-aligned)."""
+    align = align or ("l" + "r" * (len(headers) - 1))
+    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(headers)]
+
+    def line(cells: Sequence[str]) -> str:
+        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(cells, widths, align)).rstrip()
+
+    rule = "  ".join("-" * w for w in widths)
+    return "\n".join([line(headers), rule, *(line(r) for r in rows)])
+
+
+def fold_table(summary: RunSummary) -> str:
+    """Per fold (and seed): support, P, R, mAP50, mAP50:95, epochs; then mean ± sample SD over the rows."""
+    headers = ["fold", "seed", "train", "val", "inst", "P", "R", "mAP50", "mAP50:95", "epochs", "state"]
+    rows = []
+    for r in summary.results:
+        m, tr = r.metrics["metrics"], r.metrics.get("train") or {}
+        epochs = f"{tr.get('best_epoch') or '-'}/{tr.get('epochs_run', '-')}"
+        rows.append([r.key.fold, str(r.key.seed), str(r.train_images), str(r.val_images),
+                     str(r.metrics["support"].get("instances", "-")), _fmt(m.get("precision")), _fmt(m.get("recall")),
+                     _fmt(m.get("mAP50")), _fmt(m.get("mAP50_95")), epochs, r.state])
+    if len(summary.results) > 1:
+        agg = summary.aggregate()["metrics"]
+        rows.append(["mean ± SD", "", "", "", "", *(_pm(agg.get(k, {})) for k in ("precision", "recall", "mAP50", "mAP50_95")),
+                     "", ""])
+    title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
+             f"(best epoch / epochs run)")
+    return title + "\n" + format_table(headers, rows)
+
+
+def category_table(summary: RunSummary) -> str:
+    """Per category: AP50 in each fold, then AP50 and AP50:95 as mean ± sample SD over the folds with instances."""
+    labels = [f"{r.key.fold}" + (f"/s{r.key.seed}" if len({x.key.seed for x in summary.results}) > 1 else "")
+              for r in summary.results]
+    agg = summary.aggregate()["per_category"] if summary.results else {}
+    headers = ["category", "inst", *[f"AP50 {lab}" for lab in labels], "AP50", "AP50:95"]
+    rows = []
+    for cat in summary.categories:
+        per = [r.metrics["per_category"].get(cat) or {} for r in summary.results]
+        inst = sum(int(p.get("instances") or 0) for p in per)
+        a = agg.get(cat, {})
+        rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
+                     _pm(a.get("AP50_95", {}))])
+    return "per category (AP50 mean ± SD over the folds where the category has instances)\n" + format_table(headers, rows)
+
+
+def ablation_table(ab: AblationSummary) -> str:
+    """The seed's encoding-ablation table: P, R, mAP50, mAP50:95 and AP50 of the chosen categories."""
+    headers = ["encoding", "P", "R", "mAP50", "mAP50:95", *[f"AP50 {c}" for c in ab.categories]]
+    rows = []
+    for enc, summary in ab.runs.items():
+        ms = summary.metrics
+
+        def col(get: Any) -> str:
+            return _pm(_mean_sd([get(m) for m in ms])) if len(ms) > 1 else _fmt(get(ms[0]))
+
+        rows.append([enc, *(col(lambda m, k=k: m["metrics"].get(k)) for k in ("precision", "recall", "mAP50", "mAP50_95")),
+                     *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)])
+    seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
+    title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
+    return title + "\n" + format_table(headers, rows)

@@ -1,0 +1,143 @@
+"""Tiny prepared datasets and plugins for the engine and run tests (made by the tests themselves).
+
+Shapes on a noisy background, in the thermal frame. Category ``window`` is a dark rectangle visible in RGB and
+slightly cool in thermal; categories ``warm`` and ``cold`` are the *same* grey square in RGB and differ only in
+temperature (+4 C / -4 C), so only a detector that reads the fourth channel can tell them apart.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from harness import AlignedSample, DatasetSpec, EncodingSpec, Fold, hookimpl
+from harness.prepared import PreparedDataset, PreparedWriter
+
+REPO = Path(__file__).resolve().parent.parent
+PLUGIN_SRC = REPO / "plugins" / "harness-tinydet" / "src"
+CATEGORIES = ("window", "warm", "cold")
+
+
+def tinydet_module():
+    """The example plugin's model module, imported from the source tree (no installation needed)."""
+    if str(PLUGIN_SRC) not in sys.path:
+        sys.path.insert(0, str(PLUGIN_SRC))
+    import harness_tinydet.model as m
+
+    return m
+
+
+def make_sample(image_id: int, group: str, rng: np.random.Generator, size: tuple[int, int] = (64, 80),
+                n_objects: tuple[int, int] = (1, 3)) -> AlignedSample:
+    h, w = size
+    rgb = np.clip(rng.normal(150, 12, (h, w, 3)), 0, 255).astype(np.uint8)
+    temp = (20.0 + rng.normal(0, 0.3, (h, w))).astype(np.float32)
+    boxes, labels = [], []
+    occupied = np.zeros((h, w), bool)
+    for _ in range(int(rng.integers(n_objects[0], n_objects[1] + 1))):
+        for _attempt in range(20):
+            bw, bh = int(rng.integers(10, 22)), int(rng.integers(10, 22))
+            x1, y1 = int(rng.integers(0, w - bw)), int(rng.integers(0, h - bh))
+            if not occupied[max(0, y1 - 2):y1 + bh + 2, max(0, x1 - 2):x1 + bw + 2].any():
+                break
+        else:
+            continue
+        occupied[y1:y1 + bh, x1:x1 + bw] = True
+        label = int(rng.integers(0, len(CATEGORIES)))
+        if label == 0:  # window: dark blue in RGB, a little cooler
+            rgb[y1:y1 + bh, x1:x1 + bw] = (30, 40, 90)
+            temp[y1:y1 + bh, x1:x1 + bw] -= 1.0
+        else:  # warm / cold: identical grey squares in RGB, opposite temperature
+            rgb[y1:y1 + bh, x1:x1 + bw] = (225, 225, 225)
+            temp[y1:y1 + bh, x1:x1 + bw] += 4.0 if label == 1 else -4.0
+        boxes.append([x1, y1, x1 + bw, y1 + bh])
+        labels.append(label)
+    ir8 = np.clip((temp - 14.0) / 12.0 * 255, 0, 255).astype(np.uint8)
+    return AlignedSample(image_id=image_id, rgb=rgb, thermal=temp, ir8=ir8,
+                         boxes=np.asarray(boxes, np.float32).reshape(-1, 4), labels=np.asarray(labels, np.int64),
+                         group=group, meta={"file_name": f"{group}_{image_id:04d}.jpg"})
+
+
+def write_dataset(folder: Path, groups: tuple[str, ...] = ("A", "B"), per_group: int = 8, seed: int = 0,
+                  size: tuple[int, int] = (64, 80), name: str = "shapes") -> PreparedDataset:
+    rng = np.random.default_rng(seed)
+    with PreparedWriter(folder, name, CATEGORIES, fingerprint=f"shapes-{seed}-{per_group}") as w:
+        k = 1
+        for g in groups:
+            for _ in range(per_group):
+                w.add(make_sample(k, g, rng, size))
+                k += 1
+    return PreparedDataset(folder)
+
+
+def ir8_channel(sample: AlignedSample, **_: Any) -> np.ndarray:
+    return np.ascontiguousarray(sample.ir8)
+
+
+ENCODINGS = (
+    EncodingSpec(name="test-ir8", fn=ir8_channel, channels=1, needs="ir8", description="the 8-bit thermal (tests)"),
+    EncodingSpec(name="test-none", fn=lambda s, **_: None, channels=0, needs=None, description="RGB only (tests)"),
+)
+
+
+class ShapesSource:
+    """A DatasetSource generating the shapes dataset (for runs through the whole pipeline)."""
+
+    name = "shapes"
+    categories = CATEGORIES
+
+    def __init__(self, groups: tuple[str, ...] = ("A", "B"), per_group: int = 8, seed: int = 0,
+                 size: tuple[int, int] = (64, 80)):
+        self._groups, self.per_group, self.seed, self.size = groups, per_group, seed, size
+
+    def groups(self) -> list[str]:
+        return list(self._groups)
+
+    def folds(self) -> list[Fold]:
+        return [Fold(g, tuple(o for o in self._groups if o != g), (g,)) for g in self._groups]
+
+    def fingerprint(self) -> str:
+        return f"shapes-{self._groups}-{self.per_group}-{self.seed}-{self.size}"
+
+    def samples(self, report: Any):
+        rng = np.random.default_rng(self.seed)
+        k = 1
+        for g in self._groups:
+            for _ in range(self.per_group):
+                yield make_sample(k, g, rng, self.size)
+                k += 1
+
+
+class ShapesPlugin:
+    """Registers the test encodings and the ``shapes`` dataset."""
+
+    @hookimpl
+    def register_encodings(self, register):
+        for e in ENCODINGS:
+            register(e)
+
+    @hookimpl
+    def register_datasets(self, register):
+        register(DatasetSpec(name="shapes", open=lambda root=None, sensing=None, **opts: ShapesSource(**opts),
+                             categories=CATEGORIES, default_encoding="test-ir8",
+                             description="coloured shapes for engine tests"))
+
+
+PLUGIN_FILE = '''
+"""Test plugin loaded through HARNESS_PLUGINS_DIR: the shapes dataset and test encodings."""
+import sys
+sys.path.insert(0, {tests!r})
+from engine_helpers import ShapesPlugin
+_p = ShapesPlugin()
+register_encodings = _p.register_encodings
+register_datasets = _p.register_datasets
+'''
+
+
+def write_plugin_dir(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "shapes_plugin.py").write_text(PLUGIN_FILE.format(tests=str(Path(__file__).resolve().parent)))
+    return folder

@@ -1,0 +1,67 @@
+"""The example plugin in plugins/harness-tinydet installs as a package, is found through its entry point, and runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+# the whole job needs the dataset cache and the evaluation (skipped cleanly on a checkout without them)
+pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.evaluation")
+pytest.importorskip("setuptools")  # the plugin is built without build isolation, with the environment's setuptools
+
+from engine_helpers import REPO, write_plugin_dir
+
+PLUGIN = REPO / "plugins" / "harness-tinydet"
+
+
+def _env(site, **extra):
+    env = dict(os.environ)
+    env.pop("HARNESS_DISABLE_PLUGIN_AUTOLOAD", None)
+    env["PYTHONPATH"] = os.pathsep.join([str(site), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env["HARNESS_LOAD_PLUGINS"] = "harness-tinydet"  # only this distribution, whatever else is installed
+    env.update({k: str(v) for k, v in extra.items()})
+    return env
+
+
+def _harness(args, env, timeout=300):
+    return subprocess.run([sys.executable, "-m", "harness", *args], env=env, capture_output=True, text=True,
+                          timeout=timeout, cwd=env.get("HARNESS_TEST_CWD"))
+
+
+@pytest.mark.slow
+def test_example_plugin_installs_lists_and_runs(tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(PLUGIN, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
+    site = tmp_path / "site"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr
+    assert (site / "harness_tinydet" / "plugin.py").exists()
+
+    env = _env(site, HARNESS_PLUGINS_DIR=write_plugin_dir(tmp_path / "dir_plugins"), HARNESS_CACHE=tmp_path / "cache",
+               HARNESS_TEST_CWD=tmp_path)
+    listed = _harness(["list", "--json"], env)
+    assert listed.returncode == 0, listed.stderr
+    detectors = {d["name"]: d for d in json.loads(listed.stdout)["detectors"]}
+    assert detectors["tinydet"]["plugin"] == "tinydet" and detectors["tinydet"]["input_kind"] == "single"
+    assert detectors["tinydet-dual"]["input_kind"] == "dual"
+
+    plugins = json.loads(_harness(["plugins", "--external"], env).stdout)["plugins"]
+    mine = next(p for p in plugins if p["name"] == "tinydet")
+    assert mine["distribution"] == "harness-tinydet" and mine["version"] == "0.1.0"
+
+    store = tmp_path / "store"
+    sets = ["protocol.imgsz=64", "protocol.epochs=2", "train.batch=8", "train.nominal_batch=8", "train.threads=1",
+            "train.warmup_min_iters=0", "train.device=cpu"]
+    ran = _harness(["run", "--detector", "tinydet", "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "A",
+                    "--store", str(store), "--no-progress", *[a for s in sets for a in ("--set", s)]], env)
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    assert "tinydet on shapes, encoding test-ir8" in ran.stdout
+    metrics = json.loads((store / "shapes" / "tinydet" / "test-ir8" / "A" / "seed0" / "metrics.json").read_text())
+    assert metrics["train"]["epochs_run"] == 2 and metrics["support"]["images"] == 8

@@ -1,0 +1,179 @@
+"""The main job end to end on a tiny dataset: store layout, skip / refuse / force, resume, tables, errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+# the whole job needs the dataset cache and the evaluation (skipped cleanly on a checkout without them)
+pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.evaluation")
+
+from engine_helpers import CATEGORIES, ShapesPlugin, tinydet_module
+from harness.config import read_yaml
+from harness.errors import ConfigError, StoreError
+from harness.plugins import temporary_plugin
+
+FAST = ["protocol.imgsz=64", "protocol.epochs=3", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
+        "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=1", "train.threads=1",
+        "train.device=cpu", "eval.batch=16"]
+
+
+@pytest.fixture
+def plugins(host, tmp_path, monkeypatch):
+    """The shapes dataset, the test encodings and the example TinyDet plugin, registered for one test."""
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    tinydet_module()
+    import harness_tinydet.plugin as tinydet_plugin
+
+    with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-test"):
+        yield host
+
+
+def request(tmp_path, **kw):
+    from harness.runner import RunRequest
+
+    base = dict(detector="tinydet", dataset="shapes", store=tmp_path / "store", overrides=FAST, progress=False)
+    base.update(kw)
+    return RunRequest(**base)
+
+
+@pytest.mark.slow
+def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
+    from harness.runner import category_table, fold_table, run
+    from harness.store import METRICS_SCHEMA
+
+    summary = run(request(tmp_path))
+    assert [r.key.fold for r in summary.results] == ["A", "B"] and {r.state for r in summary.results} == {"trained"}
+    for r in summary.results:
+        files = {p.name for p in r.path.iterdir()}
+        assert {"config.yaml", "status.json", "metrics.json", "predictions.json", "gt.json", "log.jsonl",
+                "checkpoints"} <= files
+        assert {p.name for p in (r.path / "checkpoints").iterdir()} == {"last.pt", "best.pt"}
+        status = json.loads((r.path / "status.json").read_text())
+        assert status["state"] == "finished" and status["config_hash"]
+        m = json.loads((r.path / "metrics.json").read_text())
+        assert m["schema"] == METRICS_SCHEMA
+        assert m["run"] == {"dataset": "shapes", "detector": "tinydet", "encoding": "test-ir8", "fold": r.key.fold,
+                            "seed": 0}
+        gt = json.loads((r.path / "gt.json").read_text())
+        assert m["support"]["images"] == len(gt["images"]) == 8 == r.val_images
+        assert m["support"]["instances"] == len(gt["annotations"])
+        assert len(m["support"]["image_ids_sha1"]) == 40
+        assert set(m["per_category"]) == set(CATEGORIES)
+        assert m["model"]["params"] > 1000 and m["model"]["in_channels"] == 4
+        assert m["train"]["epochs_run"] == 3 and m["train"]["images"] == 8 and m["train"]["imgsz"] == 64
+        assert m["environment"]["torch"] and m["environment"]["device"] == "cpu"
+        preds = json.loads((r.path / "predictions.json").read_text())
+        gt_ids = {im["id"] for im in gt["images"]}
+        assert all(p["image_id"] in gt_ids and 1 <= p["category_id"] <= 3 and len(p["bbox"]) == 4 for p in preds)
+        log = [json.loads(line) for line in (r.path / "log.jsonl").read_text().splitlines()]
+        assert [rec["epoch"] for rec in log] == [1, 2, 3] and all(rec["fold"] == r.key.fold for rec in log)
+        cfg = read_yaml(r.path / "config.yaml")
+        assert cfg["train"]["batch"] == 8
+        # the detector's defaults are a layer of the resolved config, below the profile (which sets lr0 itself)
+        assert "defaults of detector 'tinydet'" in cfg["meta"]["sources"] and cfg["train"]["lr0"] == 0.002
+        assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
+    table = fold_table(summary)
+    assert "mean ± SD" in table and table.count("trained") == 2
+    lines = category_table(summary).splitlines()
+    assert any(line.startswith("warm") for line in lines) and "AP50 A" in lines[1]
+
+
+@pytest.mark.slow
+def test_finished_runs_are_skipped_changed_ones_refused_and_forced(plugins, tmp_path):
+    from harness.runner import run
+
+    first = run(request(tmp_path, folds="A"))
+    again = run(request(tmp_path, folds="A"))
+    assert again.results[0].state == "skipped"
+    assert again.results[0].metrics == first.results[0].metrics
+    changed = request(tmp_path, folds="A", overrides=[*FAST, "train.lr0=0.02"])
+    with pytest.raises(StoreError, match="different configuration.*--force"):
+        run(changed)
+    changed.force = True
+    forced = run(changed)
+    assert forced.results[0].state == "trained"
+    assert forced.results[0].metrics["train"] != first.results[0].metrics["train"]
+    # --init starts another run from the finished run's best weights, and records where they came from
+    best = first.results[0].path / "checkpoints" / "best.pt"
+    init = run(request(tmp_path, folds="B", store=tmp_path / "other", init=best))
+    report = init.results[0].metrics["train"]["init"]
+    assert report["loaded"] == report["total"] and report["path"] == str(best)
+    assert read_yaml(init.results[0].path / "config.yaml")["train"]["init"] == str(best)
+
+
+@pytest.mark.slow
+def test_an_interrupted_run_resumes_to_the_uninterrupted_result(plugins, tmp_path, monkeypatch):
+    from harness.engine import trainer as trainer_mod
+    from harness.runner import run
+
+    reference = run(request(tmp_path, folds="B", store=tmp_path / "reference"))
+
+    original = trainer_mod.Trainer._validate
+    calls = {"n": 0}
+
+    def crash_on_second(self):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(trainer_mod.Trainer, "_validate", crash_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        run(request(tmp_path, folds="B"))
+    monkeypatch.setattr(trainer_mod.Trainer, "_validate", original)
+    run_dir = tmp_path / "store" / "shapes" / "tinydet" / "test-ir8" / "B" / "seed0"
+    status = json.loads((run_dir / "status.json").read_text())
+    assert status["state"] == "failed" and status["error"] == "interrupted"
+    assert (run_dir / "checkpoints" / "last.pt").exists()
+
+    resumed = run(request(tmp_path, folds="B"))
+    assert resumed.results[0].state == "resumed"
+    a, b = reference.results[0].metrics, resumed.results[0].metrics
+    assert a["metrics"] == b["metrics"] and a["per_category"] == b["per_category"]
+    assert a["train"]["best_epoch"] == b["train"]["best_epoch"] and b["train"]["resumed_from"] == 1
+    log = [json.loads(line)["epoch"] for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert log == [1, 2, 3]  # the interrupted epoch was not checkpointed, so it is not logged twice
+
+
+def test_bad_requests_are_clear_errors(plugins, tmp_path):
+    from harness.errors import UnknownNameError
+    from harness.runner import run
+
+    with pytest.raises(UnknownNameError, match="unknown detector 'nope'"):
+        run(request(tmp_path, detector="nope"))
+    with pytest.raises(ConfigError, match="dual-stream and needs a thermal encoding"):
+        run(request(tmp_path, detector="tinydet-dual", encoding="test-none"))
+    with pytest.raises(ConfigError, match="selects no fold|unknown fold|no fold"):
+        run(request(tmp_path, folds="Z"))
+    with pytest.raises(ConfigError, match="not TinyDet options"):
+        run(request(tmp_path, overrides=[*FAST, "model.depth=3"]))
+
+
+@pytest.mark.slow
+def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
+    store = str(tmp_path / "store")
+    sets = [a for s in FAST for a in ("--set", s)]
+    res = cli_runner(["run", "--detector", "tinydet-dual", "--dataset", "shapes", "--encoding", "test-ir8",
+                      "--folds", "A,B", "--store", store, "--no-progress", *sets])
+    assert res.exit_code == 0, res.output
+    out = res.output
+    assert "tinydet-dual on shapes, encoding test-ir8" in out and "mean ± SD" in out and "per category" in out
+    header = next(line for line in out.splitlines() if line.startswith("fold"))
+    rule = out.splitlines()[out.splitlines().index(header) + 1]
+    assert len(header) == len(rule.rstrip())  # the columns line up under their headers
+
+    res = cli_runner(["ablate", "--detector", "tinydet", "--dataset", "shapes", "--encodings", "test-none,test-ir8",
+                      "--fold", "B", "--categories", "warm,cold", "--store", store, "--no-progress", *sets])
+    assert res.exit_code == 0, res.output
+    lines = res.output.strip().splitlines()
+    lines = lines[next(i for i, line in enumerate(lines) if line.startswith("encoding ablation:")):]
+    assert lines[0].startswith("encoding ablation: tinydet on shapes, fold B")
+    assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
+    assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]
+
+    res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--fold", "B",
+                      "--categories", "delamination", "--store", store, "--no-progress", *sets])
+    assert res.exit_code == 2 and "category 'delamination' is not in the dataset" in res.output
