@@ -59,6 +59,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",
+    "harness.commands.report",
 )
 
 #: hook name -> (kind shown to users, spec class)
