@@ -55,7 +55,25 @@ def test_parameters_total_trainable_and_reachable():
     assert sorted(p.unreachable) == ["dead", "unused.bias", "unused.weight"]
     assert p.unreachable_count == 32
     assert p.modules_not_called == ["unused"]
+    assert p.frozen_unreachable == [] and p.frozen_unreachable_count == 0
     assert next(model.parameters()).device.type == "cpu"  # the analysis ran on a meta copy
+
+
+def test_frozen_unreachable_parameters_are_told_apart_from_unused_ones():
+    from harness.commands.profile import format_profiles
+
+    model = TinyAttentionDetector().eval()
+    model.dead.requires_grad_(False)  # like a fixed decoding projection applied after the raw forward
+    p = reachable_parameters(model, _x())
+    assert p.unreachable_count == 32
+    assert p.frozen_unreachable == ["dead"] and p.frozen_unreachable_count == 5
+    r = profile_model(model, _x(), latency=False, onnx=False, fvcore=False)
+    r.update(detector="tiny", imgsz=16, num_classes=6)
+    text = format_profiles([r])
+    assert "tiny: 27 parameters never take part in the forward pass: unused.weight, unused.bias" in text
+    assert "tiny: 5 frozen parameters are outside the raw forward" in text and text.count("dead") == 1
+    table_row = next(line for line in text.splitlines() if line.startswith("tiny "))
+    assert table_row.split()[-1] == "27"
 
 
 def test_paper_flops_follow_thop_rules():

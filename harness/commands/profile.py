@@ -45,7 +45,7 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
             _fmt(fv.get("gflops"), ".3f") if "error" not in fv else "error",
             _lat(lat.get("torch")),
             _lat(lat.get("onnxruntime")),
-            f"{r['params']['unreachable_count']:,}",
+            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
         ])
     return header, rows
 
@@ -82,9 +82,15 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
                        f"{t['threads']} thread(s) on {t['device']}" + (f", onnxruntime {o['threads']} thread(s) "
                                                                         f"({o['provider']})" if "median_ms" in o else ""))
         p = r["params"]
-        if p["unreachable"]:
-            names = ", ".join(p["unreachable"][:6]) + (f" (+{len(p['unreachable']) - 6} more)" if len(p["unreachable"]) > 6 else "")
-            out.append(f"{r['detector']}: {p['unreachable_count']:,} parameters never take part in the forward pass: {names}")
+        frozen = set(p.get("frozen_unreachable", []))
+        unused = [n for n in p["unreachable"] if n not in frozen]
+        if unused:
+            count = p["unreachable_count"] - p.get("frozen_unreachable_count", 0)
+            names = ", ".join(unused[:6]) + (f" (+{len(unused) - 6} more)" if len(unused) > 6 else "")
+            out.append(f"{r['detector']}: {count:,} parameters never take part in the forward pass: {names}")
+        if frozen:
+            out.append(f"{r['detector']}: {p['frozen_unreachable_count']:,} frozen parameters are outside the raw "
+                       f"forward (fixed, applied when boxes are decoded): {', '.join(sorted(frozen))}")
         ref = r.get("reference") or {}
         if ref.get("source"):
             out.append(f"{r['detector']}: reference from {ref['source']}")
