@@ -15,14 +15,7 @@ from adapters.detectors import cmadet, eme, icafusion
 from harness.profiling.flops import exact_flops, paper_flops
 from harness.profiling.params import reachable_parameters
 
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """One intra-op thread: on a shared 2-core machine two threads per op wait on each other."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 SEED = {"icafusion": (120.24, 191.68), "eme": (46.15, 109.20), "cmadet": (33.47, 33.67)}

@@ -9,14 +9,7 @@ from torch import nn
 from adapters.detectors import cmadet, eme, icafusion
 from harness.errors import ConfigError, HarnessError
 
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """One intra-op thread: on a shared 2-core machine two threads per op wait on each other."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 NC = 8

@@ -10,19 +10,10 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 from datasets_helpers import tiny_source  # noqa: F401  (session fixture: the tiny synthetic M3T set)
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 pytest.importorskip("harness.runner", reason="needs the training engine (`harness run`), absent from this checkout")
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

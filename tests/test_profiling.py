@@ -28,16 +28,10 @@ from harness.profiling.model_io import fused_copy
 from harness.profiling.params import reachable_parameters
 from profiling_models import TinyAttentionDetector, TinyDualDetector
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 CONV, LINEARS, ATTN, HEAD, UP = 18_432, 3 * 4_096, 2 * 32_768, 3_072, 1_536
 BN_MACS = 2 * 512 * 2  # thop: 2 ops per input element, doubled for an affine BatchNorm
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _x():

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from harness.api import DetectorSpec, Reference
+from adapters.detectors._dual import dual_stream_spec, load_weights
+from harness.api import Reference
 from harness.hookspecs import hookimpl
 
 NAME = "cmadet"
@@ -34,28 +35,17 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float
     model = CMADet(num_classes, in_channels, width=w, depth=d, **options)
     set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
     if weights is not None:
-        model.load_report = load_weights(model, weights)
+        model.load_report = load_reconstruction_weights(model, weights)
     return model
 
 
-def load_weights(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
+def load_reconstruction_weights(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
     """Load a state dict saved from this reconstruction (there is no official checkpoint); returns the key report."""
-    from adapters.detectors.yolo.v5 import load_state_dict_report, read_weights
-
-    return load_state_dict_report(model, read_weights(state_dict, NAME), NAME)
+    return load_weights(model, state_dict, NAME)
 
 
 @hookimpl
 def register_detectors(register):
-    register(DetectorSpec(
-        name=NAME,
-        build=build,
-        input_kind="dual",
-        description=DESCRIPTION,
-        label=LABEL,
-        reference=Reference(params_m=33.47, gflops=33.67, source="seed paper"),
-        default_thermal_encoding="ir8",
-        thermal_channels=3,
-        defaults={"eval": {"iou": 0.6}},
-        load_official=None,  # no official checkpoint exists
-    ))
+    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
+                              reference=Reference(params_m=33.47, gflops=33.67, source="seed paper"), nms_iou=0.6,
+                              load_official=None))  # no official checkpoint exists

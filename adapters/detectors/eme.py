@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from harness.api import DetectorSpec, Reference
+from adapters.detectors._dual import dual_stream_spec, load_weights
+from harness.api import Reference
 from harness.hookspecs import hookimpl
 
 NAME = "eme"
@@ -42,22 +43,11 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
     """Load weights in the YOLOv5 (v6.x) layout (``model.0`` ... ``model.24``; ShaPE as ``stem.conv.weight``)."""
-    from adapters.detectors.yolo.v5 import load_state_dict_report, read_weights
-
-    return load_state_dict_report(model, read_weights(state_dict, NAME), NAME)
+    return load_weights(model, state_dict, NAME)
 
 
 @hookimpl
 def register_detectors(register):
-    register(DetectorSpec(
-        name=NAME,
-        build=build,
-        input_kind="dual",
-        description=DESCRIPTION,
-        label=LABEL,
-        reference=Reference(params_m=46.15, gflops=109.2, source="seed paper"),
-        default_thermal_encoding="ir8",
-        thermal_channels=3,
-        defaults={"eval": {"iou": 0.6}},
-        load_official=load_official,
-    ))
+    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
+                              reference=Reference(params_m=46.15, gflops=109.2, source="seed paper"), nms_iou=0.6,
+                              load_official=load_official))

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from harness.api import DetectorSpec, Reference
+from adapters.detectors._dual import dual_stream_spec, load_weights
+from harness.api import Reference
 from harness.hookspecs import hookimpl
 
 NAME = "icafusion"
@@ -44,22 +45,11 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 
     ``state_dict``: a mapping or a file path. Returns ``{"loaded", "missing", "unexpected", "mismatched"}``.
     """
-    from adapters.detectors.yolo.v5 import load_state_dict_report, read_weights
-
-    return load_state_dict_report(model, read_weights(state_dict, NAME), NAME)
+    return load_weights(model, state_dict, NAME)
 
 
 @hookimpl
 def register_detectors(register):
-    register(DetectorSpec(
-        name=NAME,
-        build=build,
-        input_kind="dual",
-        description=DESCRIPTION,
-        label=LABEL,
-        reference=Reference(params_m=120.24, gflops=191.68, source="seed paper"),
-        default_thermal_encoding="ir8",
-        thermal_channels=3,
-        defaults={"eval": {"iou": 0.5}},
-        load_official=load_official,
-    ))
+    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
+                              reference=Reference(params_m=120.24, gflops=191.68, source="seed paper"), nms_iou=0.5,
+                              load_official=load_official))
