@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from harness.hookspecs import hookimpl
+from harness.textable import text_table
 
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
@@ -50,18 +51,12 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
     return header, rows
 
 
-def format_table(header: list[str], rows: list[list[str]]) -> str:
-    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
-    line = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-    return "\n".join([line(header), "  ".join("-" * w for w in widths)] + [line(r) for r in rows])
-
-
 def format_profiles(results: list[dict[str, Any]]) -> str:
     """The table plus the notes that make its numbers unambiguous."""
     from harness.profiling import CONVENTIONS
 
     header, rows = profile_rows(results)
-    out = [format_table(header, rows), ""]
+    out = [text_table(header, rows), ""]
     failed = [r for r in results if "error" in r]
     results = [r for r in results if "error" not in r]
     for r in failed:

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
 from harness.report.collect import Entry, StoreView, natural_key, profile_numbers
+from harness.textable import text_table
 
 #: The seed's thermal-only defect categories shown in the encoding-ablation table.
 ABLATION_CATEGORIES = ("delamination", "water seepage")
@@ -231,18 +232,6 @@ def format_value(v: Any, kind: str, digits: int = 1) -> str:
     if isinstance(v, (int, float)):
         return num(v, kind == "pp")
     return str(v)
-
-
-def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None) -> str:
-    """Plain text with aligned columns (``align``: one ``l``/``r`` per column; default first left, rest right)."""
-    cols = len(header)
-    align = align or ("l" + "r" * (cols - 1))
-    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(cols)]
-
-    def fmt(row: Sequence[str]) -> str:
-        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(row, widths, align)).rstrip()
-
-    return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *[fmt(r) for r in rows]])
 
 
 def _md_escape(text: str) -> str:
