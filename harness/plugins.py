@@ -44,6 +44,9 @@ ENV_DIRS = "HARNESS_PLUGINS_DIR"
 #: Built-in plugins, registered in this order before any third-party plugin.
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.core",
+    "adapters.detectors.icafusion",
+    "adapters.detectors.eme",
+    "adapters.detectors.cmadet",
     "harness.commands.profile",
     "harness.encodings",
     "harness.commands.sensing",
@@ -57,6 +60,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.pretrain",
     "harness.commands.run",
     "harness.commands.sweep",
+    "harness.commands.report",
 )
 
 #: hook name -> (kind shown to users, spec class)

@@ -36,6 +36,7 @@ from typing import Any, Mapping, Sequence
 from harness.errors import ConfigError, StoreError
 from harness.io import atomic_write_json
 from harness.store import Run, RunKey, Store, config_hash, image_ids_hash
+from harness.textable import text_table
 
 log = logging.getLogger(__name__)
 
@@ -472,18 +473,6 @@ def _pm(stats: Mapping[str, Any] | tuple[float | None, float | None]) -> str:
     return f"{mean:.3f} ± {sd:.3f}" if sd is not None else f"{mean:.3f}"
 
 
-def format_table(headers: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None) -> str:
-    """A plain-text table whose columns line up (first column left-aligned, the others right-aligned)."""
-    align = align or ("l" + "r" * (len(headers) - 1))
-    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) if rows else len(str(h)) for i, h in enumerate(headers)]
-
-    def line(cells: Sequence[str]) -> str:
-        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(cells, widths, align)).rstrip()
-
-    rule = "  ".join("-" * w for w in widths)
-    return "\n".join([line(headers), rule, *(line(r) for r in rows)])
-
-
 def fold_table(summary: RunSummary) -> str:
     """Per fold (and seed): support, P, R, mAP50, mAP50:95, epochs; then mean ± sample SD over the rows."""
     headers = ["fold", "seed", "train", "val", "inst", "P", "R", "mAP50", "mAP50:95", "epochs", "state"]
@@ -500,7 +489,7 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return title + "\n" + format_table(headers, rows)
+    return title + "\n" + text_table(headers, rows)
 
 
 def category_table(summary: RunSummary) -> str:
@@ -516,7 +505,7 @@ def category_table(summary: RunSummary) -> str:
         a = agg.get(cat, {})
         rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
                      _pm(a.get("AP50_95", {}))])
-    return "per category (AP50 mean ± SD over the folds where the category has instances)\n" + format_table(headers, rows)
+    return "per category (AP50 mean ± SD over the folds where the category has instances)\n" + text_table(headers, rows)
 
 
 def ablation_table(ab: AblationSummary) -> str:
@@ -533,4 +522,4 @@ def ablation_table(ab: AblationSummary) -> str:
                      *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)])
     seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
     title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
-    return title + "\n" + format_table(headers, rows)
+    return title + "\n" + text_table(headers, rows)

@@ -49,3 +49,15 @@ def cli_runner():
         return runner.invoke(get_cli(), args, catch_exceptions=False, **kw)
 
     return invoke
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One intra-op torch thread for a test module (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``):
+    small tensors gain nothing from a second thread, and on a shared 2-core machine two threads can be 10x slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

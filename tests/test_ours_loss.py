@@ -20,14 +20,7 @@ from adapters.detectors.yolo.tal import TaskAlignedAssigner, anchors_inside_boxe
 from adapters.detectors.yolo.v8 import build_yolov8
 from harness.errors import HarnessError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small tensors gain nothing from a second thread, and on a shared 2-core machine two threads can be 10x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def grid(n: int = 4, stride: int = 8) -> torch.Tensor:

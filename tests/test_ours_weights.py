@@ -13,14 +13,7 @@ from adapters.detectors.yolo.v8 import build_yolov8
 from adapters.detectors.yolo.weights import load_yolov8_weights, read_state_dict
 from harness.errors import HarnessError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small tensors gain nothing from a second thread, and on a shared 2-core machine two threads can be 10x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def trained_like(nc: int, in_channels: int, seed: int, scale: str = "n") -> torch.nn.Module:

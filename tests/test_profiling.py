@@ -28,16 +28,10 @@ from harness.profiling.model_io import fused_copy
 from harness.profiling.params import reachable_parameters
 from profiling_models import TinyAttentionDetector, TinyDualDetector
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 CONV, LINEARS, ATTN, HEAD, UP = 18_432, 3 * 4_096, 2 * 32_768, 3_072, 1_536
 BN_MACS = 2 * 512 * 2  # thop: 2 ops per input element, doubled for an affine BatchNorm
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _x():
@@ -55,7 +49,25 @@ def test_parameters_total_trainable_and_reachable():
     assert sorted(p.unreachable) == ["dead", "unused.bias", "unused.weight"]
     assert p.unreachable_count == 32
     assert p.modules_not_called == ["unused"]
+    assert p.frozen_unreachable == [] and p.frozen_unreachable_count == 0
     assert next(model.parameters()).device.type == "cpu"  # the analysis ran on a meta copy
+
+
+def test_frozen_unreachable_parameters_are_told_apart_from_unused_ones():
+    from harness.commands.profile import format_profiles
+
+    model = TinyAttentionDetector().eval()
+    model.dead.requires_grad_(False)  # like a fixed decoding projection applied after the raw forward
+    p = reachable_parameters(model, _x())
+    assert p.unreachable_count == 32
+    assert p.frozen_unreachable == ["dead"] and p.frozen_unreachable_count == 5
+    r = profile_model(model, _x(), latency=False, onnx=False, fvcore=False)
+    r.update(detector="tiny", imgsz=16, num_classes=6)
+    text = format_profiles([r])
+    assert "tiny: 27 parameters never take part in the forward pass: unused.weight, unused.bias" in text
+    assert "tiny: 5 frozen parameters are outside the raw forward" in text and text.count("dead") == 1
+    table_row = next(line for line in text.splitlines() if line.startswith("tiny "))
+    assert table_row.split()[-1] == "27"
 
 
 def test_paper_flops_follow_thop_rules():

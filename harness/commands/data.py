@@ -11,17 +11,12 @@ from harness.hookspecs import hookimpl
 
 
 def format_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A plain table: text left-aligned, numbers right-aligned, columns separated by two spaces."""
-    cells = [[str(h) for h in header]] + [[f"{v:,}" if isinstance(v, int) else str(v) for v in r] for r in rows]
-    numeric = [all(isinstance(r[i], (int, float)) for r in rows) if rows else False for i in range(len(header))]
-    widths = [max(len(c[i]) for c in cells) for i in range(len(header))]
+    """A plain table: text left-aligned, numbers right-aligned (integers with thousands separators)."""
+    from harness.textable import text_table
 
-    def line(c: list[str]) -> str:
-        return "  ".join(v.rjust(w) if numeric[i] else v.ljust(w) for i, (v, w) in enumerate(zip(c, widths))).rstrip()
-
-    out = [line(cells[0]), "  ".join("-" * w for w in widths)]
-    out += [line(c) for c in cells[1:]]
-    return "\n".join(out)
+    numeric = [bool(rows) and all(isinstance(r[i], (int, float)) for r in rows) for i in range(len(header))]
+    cells = [[f"{v:,}" if isinstance(v, int) else str(v) for v in r] for r in rows]
+    return text_table(header, cells, "".join("r" if n else "l" for n in numeric))
 
 
 def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root: str | None) -> tuple[Any, dict]:

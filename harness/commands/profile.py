@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from harness.hookspecs import hookimpl
+from harness.textable import text_table
 
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
@@ -45,15 +46,9 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
             _fmt(fv.get("gflops"), ".3f") if "error" not in fv else "error",
             _lat(lat.get("torch")),
             _lat(lat.get("onnxruntime")),
-            f"{r['params']['unreachable_count']:,}",
+            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
         ])
     return header, rows
-
-
-def format_table(header: list[str], rows: list[list[str]]) -> str:
-    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
-    line = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-    return "\n".join([line(header), "  ".join("-" * w for w in widths)] + [line(r) for r in rows])
 
 
 def format_profiles(results: list[dict[str, Any]]) -> str:
@@ -61,7 +56,7 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
     from harness.profiling import CONVENTIONS
 
     header, rows = profile_rows(results)
-    out = [format_table(header, rows), ""]
+    out = [text_table(header, rows), ""]
     failed = [r for r in results if "error" in r]
     results = [r for r in results if "error" not in r]
     for r in failed:
@@ -82,9 +77,15 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
                        f"{t['threads']} thread(s) on {t['device']}" + (f", onnxruntime {o['threads']} thread(s) "
                                                                         f"({o['provider']})" if "median_ms" in o else ""))
         p = r["params"]
-        if p["unreachable"]:
-            names = ", ".join(p["unreachable"][:6]) + (f" (+{len(p['unreachable']) - 6} more)" if len(p["unreachable"]) > 6 else "")
-            out.append(f"{r['detector']}: {p['unreachable_count']:,} parameters never take part in the forward pass: {names}")
+        frozen = set(p.get("frozen_unreachable", []))
+        unused = [n for n in p["unreachable"] if n not in frozen]
+        if unused:
+            count = p["unreachable_count"] - p.get("frozen_unreachable_count", 0)
+            names = ", ".join(unused[:6]) + (f" (+{len(unused) - 6} more)" if len(unused) > 6 else "")
+            out.append(f"{r['detector']}: {count:,} parameters never take part in the forward pass: {names}")
+        if frozen:
+            out.append(f"{r['detector']}: {p['frozen_unreachable_count']:,} frozen parameters are outside the raw "
+                       f"forward (fixed, applied when boxes are decoded): {', '.join(sorted(frozen))}")
         ref = r.get("reference") or {}
         if ref.get("source"):
             out.append(f"{r['detector']}: reference from {ref['source']}")

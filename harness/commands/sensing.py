@@ -65,7 +65,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
     def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool) -> None:
         """Decode DJI R-JPEGs to temperature files (blackbody, C) with a JSON sidecar stating the unit."""
-        from harness.sensing.analyses import _table
+        from harness.textable import text_table as _table
         from harness.sensing.radiometry import read_rjpeg, write_thermal
 
         fmt = fmt or ("png" if unit == "centikelvin" else "tiff")
@@ -139,7 +139,7 @@ def register_commands(cli: click.Group) -> None:
 
         from harness.errors import DataError
         from harness.sensing import registration as reg
-        from harness.sensing.analyses import _table
+        from harness.textable import text_table as _table
 
         if not (landmarks or similarities or auto_pairs):
             raise click.UsageError("give --landmarks, --similarity or --auto")

@@ -27,6 +27,10 @@ class ParamReport:
     unreachable: list[str] = field(default_factory=list)
     unreachable_count: int = 0
     modules_not_called: list[str] = field(default_factory=list)
+    #: the unreachable parameters that were frozen (``requires_grad=False``) in the model, e.g. YOLOv8's fixed DFL
+    #: projection, which is applied when boxes are decoded, after ``forward_raw``
+    frozen_unreachable: list[str] = field(default_factory=list)
+    frozen_unreachable_count: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -47,6 +51,7 @@ def reachable_parameters(model: nn.Module, example_inputs: Any) -> ParamReport:
     dual = is_dual(example_inputs)
     wrapper = RawForward(to_meta(model), dual).eval()
     named = [(strip_prefix(n), p) for n, p in wrapper.named_parameters()]
+    frozen = {n for n, p in named if not p.requires_grad}
     for _, p in named:
         p.requires_grad_(True)
     called: set[int] = set()
@@ -77,4 +82,7 @@ def reachable_parameters(model: nn.Module, example_inputs: Any) -> ParamReport:
         used.update(".".join(parts[:k]) for k in range(len(parts) + 1))
     not_called = [n for n in names.values() if n not in used]
     outer = [strip_prefix(n) for n in not_called if not any(n.startswith(o + ".") for o in not_called)]
-    return ParamReport(total, trainable, buffers, total - un_count, unreachable, un_count, outer)
+    frozen_un = [n for n in unreachable if n in frozen]
+    frozen_count = sum(p.numel() for (n, p), g in zip(named, grads) if g is None and n in frozen)
+    return ParamReport(total, trainable, buffers, total - un_count, unreachable, un_count, outer,
+                       frozen_un, frozen_count)

@@ -25,6 +25,7 @@ import numpy as np
 from harness.errors import DataError
 from harness.sample import AlignedSample
 from harness.sensing import c2 as c2mod
+from harness.textable import text_table
 
 log = logging.getLogger(__name__)
 
@@ -115,18 +116,6 @@ def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[st
                           "mean |C2 - 0.5| in the box after shifting the thermal map d px"}
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None) -> str:
-    """Plain text table with aligned columns (first column left, the rest right unless ``align`` says)."""
-    cols = len(header)
-    align = align or ("l" + "r" * (cols - 1))
-    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(cols)]
-
-    def fmt(row: Sequence[str]) -> str:
-        return "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(row, widths, align)).rstrip()
-
-    return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *[fmt(r) for r in rows]])
-
-
 def format_displacement(result: Mapping[str, Any]) -> str:
     """``class | boxes | A(0) | R(2 px) ... R(15 px)`` with percentages; a mean-over-classes row at the end."""
     shifts = result["shifts"][1:]
@@ -142,7 +131,7 @@ def format_displacement(result: Mapping[str, Any]) -> str:
         rows.append(["mean (classes)", str(result["boxes"]), f"{mean['A'][0]:.4f}", *[f"{r:.1f}%" for r in mean["R"][1:]]])
     title = (f"C2 retained under thermal displacement (R_c(d) = A_c(d) / A_c(0)), {result['images']} images, "
              f"{result['boxes']} boxes")
-    return title + "\n" + _table(header, rows)
+    return title + "\n" + text_table(header, rows)
 
 
 # ---------------------------------------------------------------------------------------------- registration error
@@ -186,11 +175,11 @@ def registration_error_study(landmarks: Any, homographies: Mapping[str, np.ndarr
 
 def format_registration_error(result: Mapping[str, Any]) -> str:
     """Overall mean / median / P95 (px) and the per-scene mean, aligned."""
-    head = _table(["landmarks", "mean (px)", "median (px)", "P95 (px)", "max (px)"],
+    head = text_table(["landmarks", "mean (px)", "median (px)", "P95 (px)", "max (px)"],
                   [[str(result["n"]), f"{result['mean']:.2f}", f"{result['median']:.2f}", f"{result['p95']:.2f}",
                     f"{result['max']:.2f}"]], align="rrrrr")
     rows = [[scene, str(v["n"]), f"{v['mean']:.2f}", f"{v['median']:.2f}"] for scene, v in result["per_scene"].items()]
-    per = _table(["scene", "n", "mean (px)", "median (px)"], rows)
+    per = text_table(["scene", "n", "mean (px)", "median (px)"], rows)
     note = f"registration error in thermal pixels ({result.get('mode', '')})"
     if result.get("outside_support"):
         note += f"; {result['outside_support']} landmark(s) outside the common support left out"

@@ -1,0 +1,55 @@
+"""ICAFusion as a built-in detector plugin (dual-stream; the network is in ``adapters.detectors.icafusion_net``).
+
+Model options (config section ``model``): ``scale`` (YOLOv5 size n/s/m/l, default l as published) or explicit
+``width``/``depth`` multiples, ``tokens`` (fusion token grids at P3/P4/P5, default 20/16/10), ``heads``,
+``block_exp``, ``dropout``, ``prior_bias`` (YOLOv5's objectness/class bias prior; off as in the official code),
+``sort_obj_iou``, ``weights`` (a state dict file in the official key layout), and the NMS settings ``conf``,
+``iou``, ``max_det``, ``multi_label``, ``max_nms``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+from adapters.detectors._dual import dual_stream_spec, load_weights
+from harness.api import Reference
+from harness.hookspecs import hookimpl
+
+NAME = "icafusion"
+DESCRIPTION = ("ICAFusion: two YOLOv5l streams (RGB, thermal) fused by iterative cross-attention blocks at P3/P4/P5, "
+               "YOLOv5 PAN neck and anchor head; official yolov5l_Transfusion layout")
+LABEL = "official architecture and checkpoint layout"
+
+
+def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float | None = None,
+          depth: float | None = None, tokens: Any = (20, 16, 10), heads: int = 8, block_exp: int = 4,
+          dropout: float = 0.1, prior_bias: bool = False, sort_obj_iou: bool = True, weights: Any = None,
+          conf: float | None = None, iou: float | None = None, max_det: int | None = None,
+          multi_label: bool | None = None, max_nms: int | None = None, **unknown: Any):
+    """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated)."""
+    from adapters.detectors.icafusion_net import ICAFusion
+    from adapters.detectors.yolo.v5 import check_options, resolve_scale, set_inference_options
+
+    check_options(NAME, unknown, ())
+    w, d = resolve_scale(NAME, scale, width, depth)
+    model = ICAFusion(num_classes, in_channels, width=w, depth=d, tokens=tuple(tokens), heads=heads,
+                      block_exp=block_exp, dropout=dropout, prior_bias=prior_bias, sort_obj_iou=sort_obj_iou)
+    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
+    if weights is not None:
+        model.load_report = load_official(model, weights)
+    return model
+
+
+def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
+    """Load weights in the official ICAFusion layout (``model.0`` ... ``model.37``, incl. the unused modules).
+
+    ``state_dict``: a mapping or a file path. Returns ``{"loaded", "missing", "unexpected", "mismatched"}``.
+    """
+    return load_weights(model, state_dict, NAME)
+
+
+@hookimpl
+def register_detectors(register):
+    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
+                              reference=Reference(params_m=120.24, gflops=191.68, source="seed paper"), nms_iou=0.5,
+                              load_official=load_official))

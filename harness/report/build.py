@@ -1,0 +1,480 @@
+"""``build_report``: every table, the accuracy-versus-GFLOPs figure and the paired comparisons of a results store,
+written as Markdown, CSV and one self-contained HTML page.
+
+The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
+table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
+and the C2 displacement table; then the cross-dataset table. A section whose data the store does not hold is kept
+and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
+loud label (and the list of differences) in every format.
+
+Output folder (``out``)::
+
+    report.md  report.html  report.txt          the whole report in three formats
+    tidy.csv                                    every number as one long-format record, with its support
+    csv/<table>.csv                             each table, wide, raw numbers (fractions)
+    figures/accuracy_vs_gflops.png / .svg       the figure
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from harness.errors import HarnessError
+from harness.report.collect import Entry, StoreView, profile_numbers
+from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
+from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
+from harness.report.tables import (
+    ABLATION_CATEGORIES,
+    Table,
+    ablation_tables,
+    category_table,
+    cross_dataset_table,
+    displacement_table,
+    main_entries,
+    paired_table,
+    project_table,
+    records_csv,
+    registration_table,
+)
+from harness.store import Store
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("md", "csv", "html")
+#: Bootstrap resamples per paired comparison in a report (``harness compare-detectors`` defaults to 1000).
+REPORT_RESAMPLES = 200
+
+
+@dataclass
+class FigureOut:
+    name: str
+    title: str
+    svg: str
+    caption: str
+    files: list[Path] = field(default_factory=list)
+    points: list[PlotPoint] = field(default_factory=list)
+
+
+@dataclass
+class Section:
+    """A part of the report: tables and figures, or the reason it is absent and the command that would fill it."""
+
+    key: str
+    title: str
+    dataset: str | None = None
+    tables: list[Table] = field(default_factory=list)
+    figures: list[FigureOut] = field(default_factory=list)
+    absent: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def anchor(self) -> str:
+        return f"{self.dataset or 'all'}-{self.key}".replace(" ", "-").replace("/", "-").replace("+", "-")
+
+
+@dataclass
+class Report:
+    title: str
+    store: str
+    datasets: list[str]
+    generated: str
+    sections: list[Section] = field(default_factory=list)
+    comparisons: list[PairedComparison] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+    environment: dict[str, Any] = field(default_factory=dict)
+    #: store files that could not be read (skipped, named with the reason)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def tables(self) -> list[Table]:
+        return [t for s in self.sections for t in s.tables]
+
+    def records(self) -> list[dict[str, Any]]:
+        return [r for t in self.tables for r in t.records]
+
+    def to_text(self) -> str:
+        """Every table and note, aligned for the terminal (``harness report --print``)."""
+        out = [self.title, f"store: {self.store}   generated: {self.generated}", ""]
+        if self.problems:
+            out += ["!!! UNREADABLE FILES IN THE STORE (skipped) !!!", *[f"!!!   {p}" for p in self.problems], ""]
+        current = None
+        for s in self.sections:
+            if s.dataset != current:
+                current = s.dataset
+                head = f"# {current}" if current else "# all datasets"
+                out += [head, ""]
+            if s.absent:
+                out += [f"{s.title}: ABSENT. {s.absent}", ""]
+                continue
+            for t in s.tables:
+                out += [t.to_text(), ""]
+            for f in s.figures:
+                where = ", ".join(str(p) for p in f.files) or "not written (no --out)"
+                out += [f"{f.title}: {where}", f"  {f.caption}", ""]
+            out += [f"  {n}" for n in s.notes]
+            if s.notes:
+                out.append("")
+        return "\n".join(out).rstrip() + "\n"
+
+    def to_markdown(self, figure_dir: str = "figures") -> str:
+        out = [f"# {self.title}", "", f"Results store `{self.store}`, generated {self.generated}.", ""]
+        if self.problems:
+            out += ["> **⚠ Unreadable files in the store (skipped)**", *[f"> - {p}" for p in self.problems], ""]
+        current = None
+        for s in self.sections:
+            if s.dataset != current:
+                current = s.dataset
+                out += [f"## {current or 'All datasets'}", ""]
+            if s.absent:
+                out += [f"### {s.title}", "", f"*Absent.* {s.absent}", ""]
+                continue
+            for t in s.tables:
+                out += [t.to_markdown(), ""]
+            for f in s.figures:
+                out += [f"### {f.title}", "", f"![{f.title}]({figure_dir}/{f.name}.png)", "", f.caption, ""]
+            if s.notes:
+                out += [f"- {n}" for n in s.notes] + [""]
+        return "\n".join(out).rstrip() + "\n"
+
+
+# -------------------------------------------------------------------------------------------------- hardware
+def _hardware(entries: Sequence[Entry], profiles: dict[str, Any]) -> str:
+    runs = set()
+    for e in entries:
+        env = e.environment()
+        if env:
+            dev = env.get("gpu") or env.get("device") or "?"
+            runs.add(f"{dev}, {env.get('threads', '?')} thread(s), torch {env.get('torch', '?')}")
+    profs = {f"{p.get('machine') or '?'} CPU, torch {p.get('torch') or '?'}" for p in
+             (profile_numbers(v) for v in profiles.values()) if p}
+    parts = []
+    if runs:
+        parts.append("runs on " + "; ".join(sorted(runs)))
+    if profs:
+        parts.append("profiles on " + "; ".join(sorted(profs)))
+    return ", ".join(parts) or "hardware not recorded"
+
+
+# -------------------------------------------------------------------------------------------------- sections
+def _points(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]) -> list[PlotPoint]:
+    names = {}
+    dets = [e.detector for e in rows]
+    for e in rows:
+        names[e.label] = e.detector if dets.count(e.detector) == 1 else e.label
+    points = []
+    for e in rows:
+        prof = profile_numbers(profiles.get(e.detector))
+        if not prof or prof.get("gflops") is None:
+            continue
+        agg = e.aggregate()["metrics"]
+        for metric in ("mAP50_95", "mAP50"):
+            m = agg.get(metric) or {}
+            if m.get("mean") is None:
+                continue
+            points.append(PlotPoint(dataset, names[e.label], e.detector, metric, float(prof["gflops"]),
+                                    float(m["mean"]), m.get("sd"), int(m.get("n") or 0)))
+    return points
+
+
+def _conventions(view: StoreView, entries: Sequence[Entry], profiles: dict[str, Any]) -> str:
+    profs = [profile_numbers(profiles[d]) for d in dict.fromkeys(e.detector for e in entries) if d in profiles]
+    sizes = sorted({p["imgsz"] for p in profs if p.get("imgsz")})
+    run_sizes = sorted({s for s in (e.train_imgsz() for e in entries) if s})
+    folds = sorted({len(e.folds) for e in entries})
+    return (f"x: GFLOPs, 'paper' convention (BatchNorm folded, 1 multiply-add = 2 FLOPs, network up to the raw head "
+            f"outputs, no decoding or NMS) at {'/'.join(f'{s}x{s}' for s in sizes) or '?'} input, batch 1, both "
+            f"inputs for dual-stream detectors, log scale. y: COCO box AP in % (mAP50:95 over IoU 0.50:0.05:0.95, "
+            f"mAP50 at IoU 0.50; 101 recall points, maxDets 100), mean over {'/'.join(map(str, folds))} held-out "
+            f"fold(s); error bars: ± 1 sample SD over folds. Runs trained and evaluated at "
+            f"{'/'.join(f'{s}x{s}' for s in run_sizes) or '?'} px; {_hardware(entries, profiles)}. Dashed: Pareto "
+            f"front. Store: {view.root}.")
+
+
+def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) -> Section:
+    sec = Section("accuracy-vs-gflops", "Accuracy versus GFLOPs")
+    profiles = view.profiles()
+    points: list[PlotPoint] = []
+    used: list[Entry] = []
+    unprofiled: list[str] = []
+    for ds in datasets:
+        rows, _, _ = main_entries(view.entries(ds))
+        used.extend(rows)
+        points.extend(_points(ds, rows, profiles))
+        unprofiled.extend(e.detector for e in rows if e.detector not in profiles)
+    unprofiled = list(dict.fromkeys(unprofiled))
+    if not used:
+        sec.absent = ("no finished runs in the store; fill with `harness run --detector D --dataset X --store "
+                      f"{view.root}` and `harness profile --detector D --store {view.root}`.")
+        return sec
+    if not points:
+        sec.absent = (f"no detector of the runs has a profile; fill with `harness profile --detector "
+                      f"{' / '.join(unprofiled) or 'all'} --store {view.root}`.")
+        return sec
+    conventions = _conventions(view, used, profiles)
+    svg, files = accuracy_vs_gflops(points, conventions, out / "figures" / "accuracy_vs_gflops" if out else None,
+                                    title="Held-out accuracy versus GFLOPs")
+    sec.figures.append(FigureOut("accuracy_vs_gflops", "Accuracy versus GFLOPs", svg, conventions, files, points))
+    if unprofiled:
+        sec.notes.append(f"Not plotted (no profile): {', '.join(unprofiled)}; fill with `harness profile --detector "
+                         f"NAME --store {view.root}`.")
+    return sec
+
+
+def _pareto_labels(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]) -> set[str] | None:
+    pts = [(e.label, profile_numbers(profiles.get(e.detector)).get("gflops"), e.aggregate()["metrics"].get("mAP50_95"))
+           for e in rows]
+    pts = [(lab, g, m["mean"]) for lab, g, m in pts if g is not None and m and m.get("mean") is not None]
+    if not pts:
+        return None
+    idx = pareto_front([p[1] for p in pts], [p[2] for p in pts])
+    return {pts[i][0] for i in idx}
+
+
+def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamples: int, seed: int, progress: Any,
+                    workers: int = 1) -> tuple[Section, list[PairedComparison]]:
+    sec = Section("paired", "Paired comparisons", dataset)
+    entries = view.entries(dataset)
+    pairs: list[tuple[Entry, Entry]] = []
+    skipped: list[str] = []
+
+    def best(candidates: Sequence[Entry]) -> Entry:
+        return max(candidates, key=lambda e: (e.aggregate()["metrics"].get("mAP50_95") or {}).get("mean") or -1.0)
+
+    if len(rows) >= 2:
+        ref = best(rows)
+        pairs += [(ref, e) for e in rows if e is not ref]
+    by_det: dict[str, list[Entry]] = {}
+    for e in entries:
+        by_det.setdefault(e.detector, []).append(e)
+    for det, group in by_det.items():
+        if len(group) >= 2:
+            common = set.intersection(*(set(e.fold_names) for e in group))
+            if common:
+                ref = best(group)
+                pairs += [(ref, e) for e in group if e is not ref and (ref, e) not in pairs and (e, ref) not in pairs]
+    if not pairs:
+        sec.absent = (f"fewer than two detectors (or encodings) evaluated on the same folds of {dataset}; fill with "
+                      f"`harness run --detector OTHER --dataset {dataset} --store {view.root}`, then "
+                      f"`harness compare-detectors A B --dataset {dataset} --store {view.root}`.")
+        return sec, []
+    from harness.evaluation import SampleMismatchError
+
+    scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None, workers)
+    comps: list[PairedComparison] = []
+    if progress is not None and resamples > 0:
+        runs = {str(r.path) for a, b in pairs for f in set(a.folds) & set(b.folds) for e in (a, b)
+                for r in e.folds[f].runs}
+        progress.start(len(runs) * (1 + resamples), f"bootstrap {dataset}")
+    for a, b in pairs:
+        try:
+            comps.append(paired_comparison(a, b, resamples, seed, scorer))
+        except (SampleMismatchError, HarnessError) as exc:
+            lines = str(exc).splitlines()
+            detail = "; ".join(ln.strip() for ln in lines[1:] if ln.startswith("  "))
+            skipped.append(f"{a.label} vs {b.label}: {lines[0].rstrip(':')}" + (f" ({detail})" if detail else ""))
+    if comps:
+        sec.tables.append(paired_table(comps, f"{dataset}-paired".replace("/", "-"),
+                                       f"{dataset}: paired comparisons (A - B, percentage points)"))
+    if skipped:
+        sec.notes += [f"Not compared: {s}" for s in skipped]
+        if not comps:
+            sec.absent = "no pair of entries was scored on the same samples: " + "; ".join(skipped)
+    sec.notes.append(f"Single pairs with more resamples: `harness compare-detectors A B --dataset {dataset} --store "
+                     f"{view.root} --resamples 1000`.")
+    return sec, comps
+
+
+def _cross_section(view: StoreView, datasets: Sequence[str]) -> Section:
+    sec = Section("cross-dataset", "Cross-dataset comparison")
+    try:
+        table = cross_dataset_table(view, datasets)
+    except HarnessError as exc:
+        sec.absent = f"the cross-dataset table could not be built: {exc}"
+        return sec
+    if table is None:
+        sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
+    elif not table.rows:
+        sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
+                      f"{view.root}` for each dataset.")
+    else:
+        with_runs = [d for d in datasets if view.entries(d)]
+        if len(with_runs) < 2:
+            table.notes.append(f"Only {', '.join(with_runs)} has runs in this store; add another dataset with "
+                               f"`harness run --dataset OTHER --store {view.root}` to compare across datasets.")
+        sec.tables.append(table)
+    return sec
+
+
+def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[str, Any] | None, str | None]:
+    try:
+        return view.sensing(dataset, analysis), None
+    except HarnessError as exc:
+        return None, f"unreadable: {exc}"
+
+
+def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
+                     progress: Any = None, workers: int = 1) -> tuple[list[Section], list[PairedComparison]]:
+    """The sections of one dataset (see the module docstring for the order)."""
+    root = view.root
+    entries = view.entries(dataset)
+    profiles = view.profiles()
+    rows, _, _ = main_entries(entries)
+    sections: list[Section] = []
+    run_cmd = f"`harness run --detector D --dataset {dataset} --folds all --store {root}`"
+
+    sec = Section("folds", "Project-grouped folds", dataset)
+    table = project_table(view, dataset, pareto=_pareto_labels(dataset, rows, profiles))
+    if table is None:
+        sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
+    else:
+        sec.tables.append(table)
+    unfinished = view.unfinished(dataset)
+    if unfinished:
+        sec.notes.append("Runs in the store that are not finished (not shown): "
+                         + ", ".join(f"{k} ({s})" for k, s in unfinished))
+    sections.append(sec)
+
+    sec = Section("categories", "Per category", dataset)
+    table = category_table(view, dataset)
+    if table is None:
+        sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
+    else:
+        sec.tables.append(table)
+    sections.append(sec)
+
+    sec = Section("ablation", "Encoding ablation", dataset)
+    abl, notes = ablation_tables(view, dataset, ablation_categories)
+    sec.tables += abl
+    sec.notes += notes
+    if not abl:
+        sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
+                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --fold F "
+                      f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
+    sections.append(sec)
+
+    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
+    sections.append(sec)
+
+    sec = Section("registration", "Registration error", dataset)
+    reg, problem = _read_sensing(view, dataset, "registration_error")
+    if problem:
+        sec.absent = f"{problem}; re-run `harness sensing registration-error ... --dataset {dataset} --store {root}`."
+    elif reg is None:
+        sec.absent = (f"no registration-error analysis of {dataset}; fill with `harness sensing registration-error "
+                      f"--landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} --store {root}`.")
+    else:
+        sec.tables.append(registration_table(reg, dataset))
+    sections.append(sec)
+
+    sec = Section("displacement", "C2 under thermal displacement", dataset)
+    disp, problem = _read_sensing(view, dataset, "displacement")
+    if problem:
+        sec.absent = f"{problem}; re-run `harness sensing displacement --dataset {dataset} --store {root}`."
+    elif disp is None:
+        sec.absent = (f"no displacement study of {dataset}; fill with `harness sensing displacement --dataset "
+                      f"{dataset} --store {root}`.")
+    else:
+        sec.tables.append(displacement_table(disp, dataset))
+    sections.append(sec)
+    return sections, comps
+
+
+# -------------------------------------------------------------------------------------------------- the report
+class _Progress:
+    """A rich progress bar for the bootstrap (hidden when stderr is not a terminal)."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self._bar: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> "_Progress":
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            console = Console(stderr=True)
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), transient=True, console=console, disable=not console.is_terminal)
+            self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+
+    def start(self, total: int, label: str) -> None:
+        if self._bar is not None:
+            self._task = self._bar.add_task(label, total=total)
+
+    def advance(self, k: int = 1) -> None:
+        if self._bar is not None and self._task is not None:
+            self._bar.advance(self._task, k)
+
+
+def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,
+                 formats: Sequence[str] = FORMATS, resamples: int = REPORT_RESAMPLES, seed: int = 0,
+                 ablation_categories: Sequence[str] = ABLATION_CATEGORIES, title: str | None = None,
+                 progress: bool = False, workers: int = 1) -> Report:
+    """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
+
+    ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
+    differences only); ``workers``: processes for the bootstrap. Returns the ``Report`` (its ``files`` lists what was
+    written).
+    """
+    bad = [f for f in formats if f not in FORMATS]
+    if bad:
+        raise HarnessError(f"unknown report format(s) {', '.join(bad)}; use any of {', '.join(FORMATS)}")
+    view = StoreView(store)
+    available = view.datasets()
+    if datasets:
+        missing = [d for d in datasets if d not in available]
+        if missing:
+            raise HarnessError(f"{view.root}: nothing stored for dataset(s) {', '.join(missing)} (the store has: "
+                               f"{', '.join(available) or 'nothing'}); run `harness run --dataset NAME --store "
+                               f"{view.root}` first")
+        chosen = list(datasets)
+    else:
+        chosen = available
+    if not chosen:
+        raise HarnessError(f"{view.root}: the results store holds no finished runs or analyses; fill it with "
+                           f"`harness run --store {view.root} ...` first")
+    out_dir = Path(out) if out is not None else None
+    report = Report(title or f"Benchmark report: {', '.join(chosen)}", str(view.root), chosen,
+                    time.strftime("%Y-%m-%d %H:%M:%S"),
+                    environment={"python": platform.python_version(), "machine": platform.machine()})
+    with _Progress(progress) as bar:
+        for ds in chosen:
+            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers)
+            report.sections += sections
+            report.comparisons += comps
+    report.sections.append(_plot_section(view, chosen, out_dir))
+    report.sections.append(_cross_section(view, chosen))
+    report.problems = list(view.problems)
+    if out_dir is not None:
+        report.files += write_report(report, out_dir, formats)
+    return report
+
+
+def write_report(report: Report, out: Path, formats: Sequence[str] = FORMATS) -> list[Path]:
+    """Write the formats asked for (the figure files are written while building)."""
+    from harness.io import atomic_write_text
+
+    written: list[Path] = [p for s in report.sections for f in s.figures for p in f.files]
+    written.append(atomic_write_text(out / "report.txt", report.to_text()))
+    if "md" in formats:
+        written.append(atomic_write_text(out / "report.md", report.to_markdown()))
+    if "csv" in formats:
+        written.append(atomic_write_text(out / "tidy.csv", records_csv(report.records())))
+        for t in report.tables:
+            written.append(atomic_write_text(out / "csv" / f"{t.name}.csv", t.to_csv()))
+    if "html" in formats:
+        from harness.report.html import render_html
+
+        written.append(atomic_write_text(out / "report.html", render_html(report)))
+    return written

@@ -1,0 +1,433 @@
+"""Paired comparisons of two detectors (or two encodings) evaluated on the same held-out images.
+
+Two views of the same question, "is A better than B on these data?":
+
+1. **Per-fold differences**: ``d_f = m_A(f) - m_B(f)`` for every held-out fold ``f`` both were evaluated on (each
+   fold's value the mean over its seeds), summarised as mean ± sample SD and the number of folds A wins. With the
+   seed's four folds this is a small sample; it shows consistency, not significance.
+
+2. **Paired bootstrap over images** (the PASCAL VOC organisers' procedure: resample test images with replacement
+   and score both methods on the same resamples)::
+
+       for r in 1..R:
+           for every fold f:  I_f^r = n_f images drawn with replacement from fold f's held-out images
+                              (seeded per fold: SeedSequence([seed, crc32(f)]), so a fold's resamples do not
+                              depend on which other folds take part)
+           S_X^r = mean over folds f of [ mean over X's seeds of mAP(X's predictions on I_f^r) ]   for X in {A, B}
+           D^r   = S_A^r - S_B^r
+       95 % CI of D = [2.5th, 97.5th percentile of D^r]  (percentile bootstrap)
+
+   ``mAP(...)`` is computed by ``harness.evaluation.evaluate`` from the run's stored ``predictions.json`` and
+   ``gt.json``: the resampled ground truth and detections get **new, unique image ids** (1..n_f in draw order), so
+   an image drawn twice counts twice (its objects twice in the recall denominator, its detections twice in the
+   ranking), which a plain id filter would silently collapse. The statistic on the original images (identity
+   resample) equals the table's mean over folds, which ties the interval to the number it qualifies. Resamples in
+   which a statistic is undefined (no ground truth drawn at all) are dropped and counted (``valid``).
+
+Both detectors must have been scored on the same samples (``check_sample_matched`` per fold, plus identical image
+ids in their ``gt.json``); otherwise the paired comparison is refused: pairing different images is meaningless.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import statistics
+import zlib
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from harness.errors import StoreError
+from harness.report.collect import Entry, StoreView, natural_key
+from harness.report.tables import Stat, text_table
+
+log = logging.getLogger(__name__)
+
+METRICS = ("mAP50", "mAP50_95")
+#: Resamples used when none are given.
+DEFAULT_RESAMPLES = 1000
+CONFIDENCE = 0.95
+
+
+# ---------------------------------------------------------------------------------------------- resampling
+def _key(value: Any) -> Any:
+    """An image id as a dict key: ``12``, ``"12"`` and ``12.0`` are the same image (as in harness.evaluation)."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str) and value.strip().lstrip("+-").isdigit():
+        return int(value.strip())
+    return value
+
+
+@dataclass
+class IndexedRun:
+    """A run's ground truth and detections grouped by image, ready to be resampled many times."""
+
+    gt: dict[str, Any]
+    image_ids: list[Any]  # sorted: position i is the image that resample index i refers to
+    images: dict[Any, dict[str, Any]]
+    anns: dict[Any, list[dict[str, Any]]]
+    dets: dict[Any, list[dict[str, Any]]]
+
+    @classmethod
+    def from_coco(cls, gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]]) -> "IndexedRun":
+        images = {_key(im["id"]): im for im in gt.get("images", [])}
+        anns: dict[Any, list[dict[str, Any]]] = {}
+        for a in gt.get("annotations", []):
+            anns.setdefault(_key(a["image_id"]), []).append(a)
+        dets: dict[Any, list[dict[str, Any]]] = {}
+        for d in detections:
+            dets.setdefault(_key(d["image_id"]), []).append(d)
+        ids = sorted(images, key=lambda k: (isinstance(k, str), k))
+        return cls(dict(gt), ids, images, anns, dets)
+
+    def resample(self, indices: Sequence[int]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The ground truth and detections of the images at ``indices`` (repeats allowed), renumbered 1..n."""
+        return resample_coco(self, [self.image_ids[i] for i in indices])
+
+
+def resample_coco(run: IndexedRun | Mapping[str, Any], image_ids: Sequence[Any],
+                  detections: Sequence[Mapping[str, Any]] | None = None) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """COCO ground truth and detections restricted to ``image_ids`` in that order, duplicates kept.
+
+    Image ``k`` of the list (1-based) gets the new id ``k``; its annotations (with new unique annotation ids) and
+    its detections follow it, so an image drawn twice is two images. ``run`` is an ``IndexedRun`` or a COCO GT dict
+    (then ``detections`` are given). The original id is kept in ``images[k]["source_id"]``.
+    """
+    idx = run if isinstance(run, IndexedRun) else IndexedRun.from_coco(run, detections or [])
+    images, anns, dets = [], [], []
+    ann_id = 1
+    for new_id, old in enumerate(image_ids, start=1):
+        key = _key(old)
+        if key not in idx.images:
+            raise StoreError(f"image id {old!r} is not in the ground truth being resampled")
+        images.append({**idx.images[key], "id": new_id, "source_id": idx.images[key]["id"]})
+        for a in idx.anns.get(key, ()):
+            anns.append({**a, "id": ann_id, "image_id": new_id})
+            ann_id += 1
+        dets.extend({**d, "image_id": new_id} for d in idx.dets.get(key, ()))
+    gt = {k: v for k, v in idx.gt.items() if k not in ("images", "annotations")}
+    gt.update(images=images, annotations=anns)
+    return gt, dets
+
+
+def bootstrap_indices(n: int, resamples: int, seed: int, stream: str = "") -> np.ndarray:
+    """``[resamples, n]`` indices drawn with replacement; reproducible per (seed, stream) (stream: the fold)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), zlib.crc32(stream.encode())]))
+    return rng.integers(0, n, size=(int(resamples), int(n)), dtype=np.int64)
+
+
+def percentile_ci(values: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float | None, float | None]:
+    """Percentile bootstrap interval of the finite ``values``."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return None, None
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.percentile(v, [100 * alpha, 100 * (1 - alpha)])
+    return float(lo), float(hi)
+
+
+@contextlib.contextmanager
+def _quiet_evaluation() -> Iterator[None]:
+    """Resamples without ground truth of a category are normal here: keep the evaluator's warnings out of the log."""
+    logger = logging.getLogger("harness.evaluation")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+# ---------------------------------------------------------------------------------------------- scoring
+def score_resamples(indexed: IndexedRun, rows: np.ndarray, engine: str = "faster-coco-eval",
+                    progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """``[len(rows), 2]`` mAP50, mAP50:95 of ``harness.evaluation.evaluate`` on each resample (a row of image
+    positions); NaN where a metric is undefined (no ground truth drawn)."""
+    from harness.evaluation import evaluate
+
+    out = np.full((len(rows), 2), np.nan)
+    with _quiet_evaluation():
+        for i, row in enumerate(rows):
+            gt, dets = indexed.resample(row)
+            m = evaluate(gt, dets, engine=engine)["metrics"]
+            out[i] = [np.nan if m.get(k) is None else m[k] for k in METRICS]
+            if progress:
+                progress(1)
+    return out
+
+
+def _score_chunk(gt_path: str, predictions_path: str, engine: str, rows: np.ndarray) -> np.ndarray:
+    """Worker process: read the run's files and score a chunk of resamples."""
+    from harness.io import read_json
+
+    indexed = IndexedRun.from_coco(read_json(gt_path), read_json(predictions_path))
+    return score_resamples(indexed, rows, engine)
+
+
+class BootstrapScorer:
+    """Scores entries on shared image resamples; each (run, fold) is evaluated once per resample and cached.
+
+    ``scores(entry, folds)`` -> array ``[1 + resamples, 2]``: row 0 the original images, rows 1.. the resamples;
+    columns mAP50 and mAP50:95 as the mean over ``folds`` of the seed-averaged fold values (NaN where undefined).
+    ``workers > 1`` scores chunks of resamples in that many processes (same numbers, in the same order).
+    """
+
+    def __init__(self, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+                 progress: Callable[[int], None] | None = None, workers: int = 1):
+        if resamples < 0:
+            raise ValueError("resamples must be >= 0")
+        self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
+        self.workers = max(1, int(workers))
+        self._fold_ids: dict[tuple[str, str], list[Any]] = {}
+        self._run_scores: dict[str, np.ndarray] = {}
+
+    def evaluations(self, entries: Sequence[Entry], folds: Sequence[str]) -> int:
+        """How many evaluator calls scoring ``entries`` on ``folds`` still needs (for progress bars)."""
+        todo = 0
+        for e in entries:
+            for f in folds:
+                todo += sum(1 for r in e.folds[f].runs if str(r.path) not in self._run_scores)
+        return todo * (1 + self.resamples)
+
+    def _load(self, run: Any) -> tuple[IndexedRun, str]:
+        from harness.io import read_json
+
+        for path in (run.gt_path, run.predictions_path):
+            if not path.exists():
+                raise StoreError(f"{path}: missing; the paired bootstrap re-scores a run's predictions.json against "
+                                 f"its gt.json. Re-run this fold with `harness run ... --force` to write them")
+        metrics = run.read_metrics()
+        engine = (metrics.get("metrics") or {}).get("engine") or "faster-coco-eval"
+        return IndexedRun.from_coco(read_json(run.gt_path), read_json(run.predictions_path)), engine
+
+    def _fold_images(self, dataset: str, fold: str, indexed: IndexedRun, where: str) -> None:
+        ids = self._fold_ids.setdefault((dataset, fold), indexed.image_ids)
+        if ids != indexed.image_ids:
+            from harness.evaluation import SampleMismatchError
+
+            raise SampleMismatchError(f"{where}: its gt.json holds other images than the other runs of fold {fold!r} "
+                                      f"({len(indexed.image_ids)} vs {len(ids)} images); a paired comparison needs "
+                                      f"the same held-out images")
+
+    def run_scores(self, dataset: str, fold: str, run: Any) -> np.ndarray:
+        """``[1 + resamples, 2]`` mAP50, mAP50:95 of one run on the original images and on each resample."""
+        cache_key = str(run.path)
+        if cache_key in self._run_scores:
+            return self._run_scores[cache_key]
+        indexed, engine = self._load(run)
+        self._fold_images(dataset, fold, indexed, str(run.path))
+        n = len(indexed.image_ids)
+        if n == 0:
+            raise StoreError(f"{run.gt_path}: no images; nothing to resample")
+        rows = np.concatenate([np.arange(n)[None, :], bootstrap_indices(n, self.resamples, self.seed, fold)])
+        if self.workers > 1 and len(rows) >= 4 * self.workers:
+            from concurrent.futures import ProcessPoolExecutor
+
+            chunks = np.array_split(rows, 4 * self.workers)
+            with ProcessPoolExecutor(self.workers) as pool:
+                futures = [pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c)
+                           for c in chunks]
+                parts = []
+                for fut, c in zip(futures, chunks):
+                    parts.append(fut.result())
+                    if self.progress:
+                        self.progress(len(c))
+            out = np.concatenate(parts)
+        else:
+            out = score_resamples(indexed, rows, engine, self.progress)
+        self._run_scores[cache_key] = out
+        return out
+
+    def scores(self, entry: Entry, folds: Sequence[str]) -> np.ndarray:
+        per_fold = []
+        for f in folds:
+            seeds = [self.run_scores(entry.dataset, f, r) for r in entry.folds[f].runs]
+            per_fold.append(np.mean(np.stack(seeds), axis=0))  # NaN stays NaN: an undefined resample is dropped
+        return np.mean(np.stack(per_fold), axis=0)
+
+
+# ---------------------------------------------------------------------------------------------- results
+@dataclass
+class BootstrapResult:
+    """Paired bootstrap of one metric: observed values, the difference and its percentile CI."""
+
+    metric: str
+    a: float | None
+    b: float | None
+    delta: float | None
+    ci_low: float | None
+    ci_high: float | None
+    a_ci: tuple[float | None, float | None]
+    b_ci: tuple[float | None, float | None]
+    resamples: int
+    valid: int
+    seed: int
+    #: fraction of valid resamples with D <= 0 (small: A is rarely not better)
+    p_not_better: float | None
+    confidence: float = CONFIDENCE
+
+    @property
+    def excludes_zero(self) -> bool:
+        return self.ci_low is not None and self.ci_high is not None and (self.ci_low > 0 or self.ci_high < 0)
+
+
+@dataclass
+class FoldDifference:
+    metric: str
+    folds: list[str]
+    a: list[float | None]
+    b: list[float | None]
+    diffs: list[float | None]
+    stat: Stat
+    wins: int
+
+
+@dataclass
+class PairedComparison:
+    dataset: str
+    a: str
+    b: str
+    folds: list[str]
+    images: int
+    instances: int
+    fold_differences: dict[str, FoldDifference]
+    bootstrap: dict[str, BootstrapResult] | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def to_text(self) -> str:
+        """Per-fold table and bootstrap summary, aligned."""
+        pct = lambda v: "-" if v is None or not math.isfinite(v) else f"{100 * v:.1f}"  # noqa: E731
+        pp = lambda v: "-" if v is None or not math.isfinite(v) else f"{100 * v:+.1f}"  # noqa: E731
+        header = ["fold", f"{self.a} mAP50", f"{self.b} mAP50", "Δ mAP50", f"{self.a} mAP50:95", f"{self.b} mAP50:95",
+                  "Δ mAP50:95"]
+        f50, f95 = self.fold_differences["mAP50"], self.fold_differences["mAP50_95"]
+        rows = [[f, pct(f50.a[i]), pct(f50.b[i]), pp(f50.diffs[i]), pct(f95.a[i]), pct(f95.b[i]), pp(f95.diffs[i])]
+                for i, f in enumerate(self.folds)]
+        sd = lambda s: "" if s.sd is None else f" ± {100 * s.sd:.1f}"  # noqa: E731
+        rows.append(["mean ± SD", "", "", pp(f50.stat.mean) + sd(f50.stat), "", "", pp(f95.stat.mean) + sd(f95.stat)])
+        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} images, "
+               f"{self.instances} instances; AP in %, Δ = A - B in percentage points",
+               text_table(header, rows), "",
+               f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s)."]
+        if self.bootstrap:
+            b0 = next(iter(self.bootstrap.values()))
+            out.append(f"paired bootstrap over images: {b0.resamples} resamples ({b0.valid} valid), seed {b0.seed}, "
+                       f"percentile {int(100 * b0.confidence)} % CI of the mean over folds")
+            bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI", "P(Δ <= 0)", "CI excludes 0"]
+            brows = []
+            for key, b in self.bootstrap.items():
+                brows.append([key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
+                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta), f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
+                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}", "yes" if b.excludes_zero else "no"])
+            out.append(text_table(bh, brows))
+        else:
+            out.append("no bootstrap (resamples = 0)")
+        out += self.notes
+        return "\n".join(out)
+
+
+def fold_differences(a: Entry, b: Entry, folds: Sequence[str]) -> dict[str, FoldDifference]:
+    """Per-fold differences A - B of mAP50 and mAP50:95 (each fold's value averaged over its seeds)."""
+    out = {}
+    for key in METRICS:
+        va = [a.folds[f].metrics["metrics"].get(key) for f in folds]
+        vb = [b.folds[f].metrics["metrics"].get(key) for f in folds]
+        diffs = [None if x is None or y is None else float(x) - float(y) for x, y in zip(va, vb)]
+        present = [d for d in diffs if d is not None]
+        stat = Stat(statistics.fmean(present) if present else None,
+                    statistics.stdev(present) if len(present) >= 2 else None, len(present))
+        out[key] = FoldDifference(key, list(folds), va, vb, diffs, stat, sum(1 for d in present if d > 0))
+    return out
+
+
+def common_folds(a: Entry, b: Entry) -> list[str]:
+    folds = sorted(set(a.fold_names) & set(b.fold_names), key=natural_key)
+    if not folds:
+        raise StoreError(f"{a.label} (folds {', '.join(a.fold_names)}) and {b.label} (folds {', '.join(b.fold_names)}) "
+                         f"share no held-out fold of {a.dataset!r}; a paired comparison needs the same held-out images")
+    return folds
+
+
+def check_pair_matched(a: Entry, b: Entry, folds: Sequence[str]) -> None:
+    """Refuse (``SampleMismatchError``) a pair scored on different samples in any of ``folds``."""
+    from harness.evaluation import check_sample_matched
+
+    for f in folds:
+        check_sample_matched({f"{a.label}@{f}": a.folds[f].metrics, f"{b.label}@{f}": b.folds[f].metrics})
+        for e in (a, b):
+            if e.folds[f].seed_mismatch:
+                from harness.evaluation import SampleMismatchError
+
+                raise SampleMismatchError(f"{e.label} fold {f}: its seeds were scored on different samples "
+                                          f"({e.folds[f].seed_mismatch})")
+
+
+def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+                      scorer: BootstrapScorer | None = None, folds: Sequence[str] | None = None) -> PairedComparison:
+    """Per-fold differences and (``resamples > 0``) the paired bootstrap of A - B; see the module docstring."""
+    if a.dataset != b.dataset:
+        raise StoreError(f"{a.label} is on {a.dataset!r} and {b.label} on {b.dataset!r}: pair runs of one dataset")
+    folds = list(folds) if folds is not None else common_folds(a, b)
+    check_pair_matched(a, b, folds)
+    images = sum(a.folds[f].images for f in folds)
+    instances = sum(a.folds[f].instances for f in folds)
+    comp = PairedComparison(a.dataset, a.label, b.label, folds, images, instances, fold_differences(a, b, folds))
+    if resamples <= 0:
+        return comp
+    scorer = scorer or BootstrapScorer(resamples, seed)
+    if scorer.resamples != resamples or scorer.seed != seed:
+        raise ValueError("the scorer was made for other resamples or another seed")
+    sa, sb = scorer.scores(a, folds), scorer.scores(b, folds)
+    boot: dict[str, BootstrapResult] = {}
+    for j, key in enumerate(METRICS):
+        da, db = sa[1:, j], sb[1:, j]
+        valid = np.isfinite(da) & np.isfinite(db)
+        d = da[valid] - db[valid]
+        lo, hi = percentile_ci(d)
+        obs_a, obs_b = sa[0, j], sb[0, j]
+        boot[key] = BootstrapResult(
+            key, _f(obs_a), _f(obs_b), _f(obs_a - obs_b), lo, hi, percentile_ci(da[valid]), percentile_ci(db[valid]),
+            resamples, int(valid.sum()), seed, float(np.mean(d <= 0)) if d.size else None)
+        for label, entry, observed in ((a.label, a, boot[key].a), (b.label, b, boot[key].b)):
+            stored = _stored_mean(entry, folds, key)
+            if stored is not None and observed is not None and abs(stored - observed) > 1e-6:
+                comp.notes.append(f"note: re-scored {key} of {label} ({observed:.4f}) differs from its stored "
+                                  f"metrics ({stored:.4f}); were the runs evaluated with other settings?")
+    comp.bootstrap = boot
+    return comp
+
+
+def _stored_mean(entry: Entry, folds: Sequence[str], key: str) -> float | None:
+    """The stored metric of ``entry`` as the bootstrap statistic defines it: mean over folds of the seed means."""
+    values = [entry.folds[f].metrics["metrics"].get(key) for f in folds]
+    return None if any(v is None for v in values) else statistics.fmean(values)
+
+
+def _f(x: Any) -> float | None:
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+def compare_detectors(store: Any, dataset: str, a: str, b: str, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+                      progress: Callable[[int], None] | None = None,
+                      on_total: Callable[[int], None] | None = None, workers: int = 1) -> PairedComparison:
+    """``harness compare-detectors``: A and B are ``DETECTOR`` or ``DETECTOR/ENCODING`` on ``dataset``."""
+    view = store if isinstance(store, StoreView) else StoreView(store)
+    ea, eb = view.entry(dataset, a), view.entry(dataset, b)
+    if ea.label == eb.label:
+        raise StoreError(f"{a!r} and {b!r} name the same runs ({ea.label}); compare two different entries")
+    folds = common_folds(ea, eb)
+    check_pair_matched(ea, eb, folds)
+    scorer = BootstrapScorer(resamples, seed, progress, workers)
+    if on_total is not None:
+        on_total(scorer.evaluations([ea, eb], folds) if resamples > 0 else 0)
+    return paired_comparison(ea, eb, resamples, seed, scorer, folds)

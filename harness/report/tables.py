@@ -1,0 +1,734 @@
+"""The report's tables: each built from the results store as tidy records plus a wide, printable layout.
+
+Every table is a ``Table``: typed cells in rows (``Stat`` for mean ± sample SD), the tidy long-format records
+behind them (one per number: dataset, detector, encoding, fold, category, metric, value, SD, n, unit, and the
+support it was measured on), notes that make the numbers unambiguous, and a loud ``warning`` when its rows were not
+scored on the same samples. Renderers: aligned text (``to_text``), Markdown, wide CSV; ``html.py`` renders HTML.
+
+Tables (builders below, all reading only the store through ``collect.StoreView``):
+
+* ``project_table``: the seed's project-grouped table: per held-out fold mAP50 and mAP50:95, their mean ± sample
+  SD over folds, Params (M) and GFLOPs from the detector's profile;
+* ``category_table``: per category, instances and AP50 / AP50:95 as means over the folds that contain it;
+* ``ablation_tables``: one per detector run with several encodings on common folds: P, R, mAP50, mAP50:95 and
+  AP50 of the seed's two thermal-only defects (delamination, water seepage);
+* ``registration_table`` and ``displacement_table``: the sensor-level analyses of ``harness sensing``;
+* ``cross_dataset_table``: the cross-dataset comparison of ``harness.compare``;
+* ``paired_table``: paired comparisons (per-fold differences, paired bootstrap CIs) from ``stats.py``.
+
+AP, precision and recall are fractions in the store and in CSV files, and percentages (one decimal) in text,
+Markdown and HTML.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping, Sequence
+
+from harness.report.collect import Entry, StoreView, natural_key, profile_numbers
+from harness.textable import text_table
+
+#: The seed's thermal-only defect categories shown in the encoding-ablation table.
+ABLATION_CATEGORIES = ("delamination", "water seepage")
+
+#: Columns of the tidy long-format records (``tidy.csv``).
+RECORD_FIELDS = ("table", "dataset", "detector", "encoding", "fold", "category", "metric", "value", "sd", "n", "unit",
+                 "images", "instances", "seeds", "sample_matched")
+
+
+@dataclass(frozen=True)
+class Stat:
+    """A mean with its sample SD over ``n`` values (folds, seeds or resamples)."""
+
+    mean: float | None
+    sd: float | None = None
+    n: int = 1
+
+    @classmethod
+    def from_mean_sd(cls, rec: Mapping[str, Any] | None) -> "Stat":
+        rec = rec or {}
+        return cls(rec.get("mean"), rec.get("sd"), int(rec.get("n") or 0))
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A point estimate with a confidence interval (e.g. a bootstrap 95 % CI of a difference)."""
+
+    value: float | None
+    low: float | None
+    high: float | None
+
+    @property
+    def excludes_zero(self) -> bool:
+        return self.low is not None and self.high is not None and (self.low > 0 or self.high < 0)
+
+
+@dataclass(frozen=True)
+class Column:
+    """``kind``: text | int | pct (fraction shown in %) | pp (difference of fractions in percentage points) |
+    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the column (bold in Markdown and HTML)."""
+
+    key: str
+    label: str
+    kind: str = "text"
+    digits: int = 1
+    best: str | None = None
+    #: columns sharing a group get one spanning header in HTML, each showing its ``short`` label under it
+    group: str | None = None
+    short: str | None = None
+
+    @property
+    def align(self) -> str:
+        return "l" if self.kind == "text" else "r"
+
+
+@dataclass
+class Table:
+    name: str
+    title: str
+    columns: list[Column]
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    records: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    #: the loud label: set when the rows were not scored on the same samples
+    warning: str | None = None
+    warning_details: list[str] = field(default_factory=list)
+
+    # ---------------------------------------------------------------------------------------------- cells
+    def cell(self, row: Mapping[str, Any], col: Column) -> str:
+        return format_value(row.get(col.key), col.kind, col.digits)
+
+    def best_rows(self, col: Column) -> set[int]:
+        """Indices of the rows holding the best value of ``col`` (ties all count; none when every row is equal;
+        summary rows never)."""
+        if not col.best:
+            return set()
+        vals = [(i, _number(r.get(col.key))) for i, r in enumerate(self.rows) if not r.get("_summary")]
+        vals = [(i, v) for i, v in vals if v is not None]
+        if len(vals) < 2:
+            return set()
+        lo, hi = min(v for _, v in vals), max(v for _, v in vals)
+        if math.isclose(lo, hi, rel_tol=1e-12, abs_tol=1e-12):
+            return set()  # all equal: nothing stands out
+        target = hi if col.best == "max" else lo
+        return {i for i, v in vals if math.isclose(v, target, rel_tol=1e-12, abs_tol=1e-12)}
+
+    # ---------------------------------------------------------------------------------------------- renderers
+    def to_text(self) -> str:
+        header = [c.label for c in self.columns]
+        body = [[self.cell(r, c) for c in self.columns] for r in self.rows]
+        out = [self.title, "=" * len(self.title)]
+        if self.warning:
+            out += [f"!!! {self.warning.upper()} !!!", *[f"!!!   {d}" for d in self.warning_details]]
+        out.append(text_table(header, body, "".join(c.align for c in self.columns)))
+        out += [f"  {n}" for n in self.notes]
+        return "\n".join(out)
+
+    def to_markdown(self) -> str:
+        out = [f"### {self.title}", ""]
+        if self.warning:
+            out += [f"> **⚠ {self.warning.upper()}**", *[f"> - {_md_escape(d)}" for d in self.warning_details], ""]
+        best = {c.key: self.best_rows(c) for c in self.columns}
+        out.append("| " + " | ".join(_md_escape(c.label) for c in self.columns) + " |")
+        out.append("|" + "|".join(":---" if c.align == "l" else "---:" for c in self.columns) + "|")
+        for i, r in enumerate(self.rows):
+            cells = []
+            for c in self.columns:
+                text = _md_escape(self.cell(r, c))
+                if i in best[c.key] and text not in ("", "-"):
+                    text = f"**{text}**"
+                elif r.get("_summary") and c is self.columns[0]:
+                    text = f"*{text}*"
+                cells.append(text)
+            out.append("| " + " | ".join(cells) + " |")
+        if self.notes:
+            out.append("")
+            out += [f"- {_md_escape(n)}" for n in self.notes]
+        return "\n".join(out)
+
+    def to_csv(self) -> str:
+        """Wide CSV with raw numbers (fractions, not %): a ``Stat`` column becomes ``<label>`` and ``<label> sd``."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        header: list[str] = []
+        for c in self.columns:
+            header.append(c.label)
+            if any(isinstance(r.get(c.key), Stat) for r in self.rows):
+                header.append(f"{c.label} sd")
+            if any(isinstance(r.get(c.key), Interval) for r in self.rows):
+                header += [f"{c.label} low", f"{c.label} high"]
+        w.writerow(header)
+        for r in self.rows:
+            line: list[Any] = []
+            for c in self.columns:
+                v = r.get(c.key)
+                has_stat = any(isinstance(x.get(c.key), Stat) for x in self.rows)
+                has_int = any(isinstance(x.get(c.key), Interval) for x in self.rows)
+                if isinstance(v, Stat):
+                    line += [_raw(v.mean), _raw(v.sd)]
+                elif isinstance(v, Interval):
+                    line += [_raw(v.value), _raw(v.low), _raw(v.high)]
+                else:
+                    line.append(_raw(v))
+                    if has_stat:
+                        line.append("")
+                    if has_int:
+                        line += ["", ""]
+            w.writerow(line)
+        return buf.getvalue()
+
+
+# -------------------------------------------------------------------------------------------------- formatting
+def _number(v: Any) -> float | None:
+    if isinstance(v, Stat):
+        v = v.mean
+    elif isinstance(v, Interval):
+        v = v.value
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(float(v)) else None
+
+
+def _raw(v: Any) -> Any:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else repr(v)
+    return v
+
+
+def format_value(v: Any, kind: str, digits: int = 1) -> str:
+    """One cell as text; ``None`` and NaN are ``-``."""
+    if v is None:
+        return "-"
+    if isinstance(v, str):
+        return v
+    scale = 100.0 if kind in ("pct", "pp") else 1.0
+
+    def num(x: float | None, signed: bool = False) -> str:
+        if x is None or not math.isfinite(float(x)):
+            return "-"
+        if kind == "int":
+            return f"{int(round(x)):,}"
+        if kind == "sig":
+            return f"{x:.3g}"
+        return f"{scale * float(x):{'+' if signed else ''}.{digits}f}"
+
+    if isinstance(v, Stat):
+        if v.mean is None:
+            return "-"
+        return num(v.mean, kind == "pp") + (f" ± {num(v.sd)}" if v.sd is not None else "")
+    if isinstance(v, Interval):
+        if v.value is None:
+            return "-"
+        ci = f" [{num(v.low, True)}, {num(v.high, True)}]" if v.low is not None and v.high is not None else ""
+        return num(v.value, kind == "pp") + ci
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int, float)):
+        return num(v, kind == "pp")
+    return str(v)
+
+
+def _md_escape(text: str) -> str:
+    return str(text).replace("|", "\\|")
+
+
+def record(table: str, metric: str, value: Any, *, dataset: str = "", detector: str = "", encoding: str = "",
+           fold: str = "", category: str = "", sd: float | None = None, n: int | None = None, unit: str = "fraction",
+           images: int | None = None, instances: int | None = None, seeds: Iterable[int] = (),
+           sample_matched: bool | None = True) -> dict[str, Any]:
+    """One tidy long-format record (the columns of ``tidy.csv``)."""
+    return {"table": table, "dataset": dataset, "detector": detector, "encoding": encoding, "fold": fold,
+            "category": category, "metric": metric, "value": value, "sd": sd, "n": n, "unit": unit, "images": images,
+            "instances": instances, "seeds": " ".join(str(s) for s in seeds), "sample_matched": sample_matched}
+
+
+def records_csv(records: Sequence[Mapping[str, Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(RECORD_FIELDS), lineterminator="\n")
+    w.writeheader()
+    for r in records:
+        w.writerow({k: _raw(r.get(k)) for k in RECORD_FIELDS})
+    return buf.getvalue()
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "-", text).strip("-").lower()
+
+
+# -------------------------------------------------------------------------------------------------- sample matching
+def match_check(metrics_by_label: Mapping[str, Mapping[str, Any]]) -> tuple[str | None, list[str]]:
+    """(loud label, detail lines) from ``harness.evaluation.check_sample_matched``; ``(None, [])`` when matched.
+
+    The metrics dicts carry their dataset and fold in ``run``; only results of the same (dataset, fold) are compared.
+    """
+    from harness.evaluation import SampleMismatchError, check_sample_matched
+
+    try:
+        check_sample_matched(dict(metrics_by_label))
+    except SampleMismatchError as exc:
+        label = check_sample_matched(dict(metrics_by_label), allow=True) or "NOT sample-matched"
+        details = [ln.strip() for ln in str(exc).splitlines()[1:] if ln.startswith("  ")]
+        return label, details
+    return None, []
+
+
+def _merge_warning(table: Table, label: str | None, details: Sequence[str]) -> None:
+    if not label:
+        return
+    table.warning = label if not table.warning else f"{table.warning}; {label.replace('NOT sample-matched: ', '')}"
+    table.warning_details.extend(details)
+
+
+def main_entries(entries: Sequence[Entry]) -> tuple[list[Entry], list[Entry], list[str]]:
+    """(rows, left out, folds) of a dataset's project-grouped tables.
+
+    The rows are the entries evaluated on every fold any entry was evaluated on; an entry covering fewer folds (an
+    encoding-ablation run on one fold, say) is left out and named in a note. When no entry covers every fold, all
+    entries are rows and the table is labelled (its means are over different folds).
+    """
+    folds: list[str] = []
+    for e in entries:
+        folds.extend(f for f in e.fold_names if f not in folds)
+    folds.sort(key=natural_key)
+    full = [e for e in entries if set(e.fold_names) == set(folds)]
+    if not full:
+        return list(entries), [], folds
+    return full, [e for e in entries if e not in full], folds
+
+
+def _fold_matching(rows: Sequence[Entry], folds: Sequence[str]) -> tuple[str | None, list[str]]:
+    """Sample-matched check of the rows' fold results, fold by fold, plus rows that miss folds or mix seeds."""
+    label, details = match_check({f"{e.label}@{f}": e.folds[f].metrics for e in rows for f in folds if f in e.folds})
+    kinds = [label] if label else []
+    missing = [f"{e.label}: not evaluated on fold(s) {', '.join(f for f in folds if f not in e.folds)}"
+               for e in rows if any(f not in e.folds for f in folds)]
+    if missing:
+        kinds.append("NOT sample-matched: rows cover different folds")
+        details = details + missing
+    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items() if fr.seed_mismatch]
+    if seed_issues:
+        kinds.append("NOT sample-matched: seeds of a fold differ")
+        details = details + seed_issues
+    if not kinds:
+        return None, []
+    merged = "NOT sample-matched: " + "; ".join(k.replace("NOT sample-matched: ", "") for k in kinds)
+    return merged, details
+
+
+def _entry_names(rows: Sequence[Entry]) -> dict[str, str]:
+    """Short row names: the detector alone when each detector appears once, else detector/encoding."""
+    dets = [e.detector for e in rows]
+    return {e.label: (e.detector if dets.count(e.detector) == 1 else e.label) for e in rows}
+
+
+def _seeds_note(rows: Sequence[Entry]) -> str:
+    seeds = sorted({s for e in rows for s in e.seeds})
+    return (f"seed(s) {', '.join(map(str, seeds))}" + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
+
+
+# -------------------------------------------------------------------------------------------------- project table
+def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None) -> Table | None:
+    """The seed's project-grouped table for ``dataset`` (None when the store has no finished runs of it)."""
+    entries = view.entries(dataset)
+    if not entries:
+        return None
+    rows_e, left_out, folds = main_entries(entries)
+    profiles = view.profiles()
+    name = f"{_slug(dataset)}-folds"
+    cols = [Column("detector", "Detector"), Column("encoding", "Encoding")]
+    for f in folds:
+        cols += [Column(f"{f}:mAP50", f"{f} mAP50", "pct", best="max", group=f, short="mAP50"),
+                 Column(f"{f}:mAP50_95", f"{f} mAP50:95", "pct", best="max", group=f, short="mAP50:95")]
+    cols += [Column("mAP50", "mAP50 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50"),
+             Column("mAP50_95", "mAP50:95 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50:95"),
+             Column("params", "Params (M)", "sig", best="min"), Column("gflops", "GFLOPs", "sig", best="min"),
+             Column("images", "Images", "int"), Column("instances", "Inst.", "int")]
+    if pareto is not None:
+        cols.append(Column("pareto", "Pareto"))
+    table = Table(name, f"{dataset}: project-grouped folds (held-out mAP, %)", cols)
+    _merge_warning(table, *_fold_matching(rows_e, folds))
+    names = _entry_names(rows_e)
+    no_profile = []
+    for e in rows_e:
+        agg = e.aggregate()["metrics"]
+        prof = profile_numbers(profiles.get(e.detector))
+        if not prof:
+            no_profile.append(e.detector)
+        row: dict[str, Any] = {"detector": names[e.label], "encoding": e.encoding,
+                               "mAP50": Stat.from_mean_sd(agg.get("mAP50")),
+                               "mAP50_95": Stat.from_mean_sd(agg.get("mAP50_95")),
+                               "params": prof.get("params_m"), "gflops": prof.get("gflops"),
+                               "images": e.images, "instances": e.instances}
+        if pareto is not None:
+            row["pareto"] = "yes" if e.label in pareto else ""
+        matched = table.warning is None
+        for f in folds:
+            fr = e.folds.get(f)
+            if fr is None:
+                continue
+            for key in ("mAP50", "mAP50_95"):
+                row[f"{f}:{key}"] = fr.metrics["metrics"].get(key)
+                table.records.append(record(name, key, row[f"{f}:{key}"], dataset=dataset, detector=e.detector,
+                                            encoding=e.encoding, fold=f, images=fr.images, instances=fr.instances,
+                                            seeds=fr.seeds, sample_matched=matched))
+        for key in ("mAP50", "mAP50_95"):
+            s = row[key]
+            table.records.append(record(name, f"{key}_mean", s.mean, sd=s.sd, n=s.n, dataset=dataset,
+                                        detector=e.detector, encoding=e.encoding, fold="mean", images=e.images,
+                                        instances=e.instances, seeds=e.seeds, sample_matched=matched))
+        for key, unit in (("params", "M"), ("gflops", "GFLOPs")):
+            if row[key] is not None:
+                table.records.append(record(name, key, row[key], dataset=dataset, detector=e.detector,
+                                            encoding=e.encoding, unit=unit, sample_matched=None))
+        table.rows.append(row)
+    if table.warning is None and rows_e:
+        ref = rows_e[0]
+        sup: dict[str, Any] = {"detector": "support", "encoding": "img / inst", "_summary": True,
+                               "images": ref.images, "instances": ref.instances, "pareto": ""}
+        for f in folds:
+            fr = ref.folds[f]
+            sup[f"{f}:mAP50"] = f"{fr.images} img"
+            sup[f"{f}:mAP50_95"] = f"{fr.instances} inst"
+        table.rows.append(sup)
+    n_folds = len(folds)
+    table.notes.append(f"Held-out folds {', '.join(folds)}; mean ± sample SD (n - 1) over the {n_folds} fold(s); "
+                       f"{_seeds_note(rows_e)}. AP is COCO box AP (mAP50: IoU 0.50; mAP50:95: IoU 0.50:0.05:0.95; "
+                       f"101 recall points, maxDets 100), in %.")
+    table.notes.append("Images and Inst.: held-out images and instances summed over the folds (each image is held out "
+                       "once); the support row gives them per fold.")
+    _profile_notes(table, rows_e, profiles, no_profile, view)
+    if left_out:
+        table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablation): "
+                           + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out))
+    if pareto is not None:
+        table.notes.append("Pareto: on the accuracy (mAP50:95) vs GFLOPs front: no other row has fewer or equal "
+                           "GFLOPs and a higher mean mAP50:95.")
+    return table
+
+
+def _profile_notes(table: Table, rows: Sequence[Entry], profiles: Mapping[str, Any], missing: Sequence[str],
+                   view: StoreView) -> None:
+    profs = [profile_numbers(profiles[d]) for d in dict.fromkeys(e.detector for e in rows) if d in profiles]
+    if profs:
+        sizes = sorted({p.get("imgsz") for p in profs if p.get("imgsz")})
+        ncls = sorted({p.get("num_classes") for p in profs if p.get("num_classes")})
+        table.notes.append(
+            f"Params (M): parameter count after BatchNorm folding; GFLOPs: 'paper' convention (BN folded, "
+            f"1 multiply-add = 2 FLOPs, forward_raw without decoding/NMS) at {'/'.join(f'{s}x{s}' for s in sizes)}, "
+            f"batch 1, both inputs for dual-stream detectors, {'/'.join(map(str, ncls))} classes; from "
+            f"`harness profile` (_profiles/<detector>.json).")
+    for d in dict.fromkeys(missing):
+        table.notes.append(f"No profile for {d}: Params and GFLOPs absent; fill with "
+                           f"`harness profile --detector {d} --store {view.root}`.")
+
+
+# -------------------------------------------------------------------------------------------------- per category
+def category_table(view: StoreView, dataset: str) -> Table | None:
+    """Per category: instances (summed over held-out folds) and AP50 / AP50:95, mean ± SD over the folds whose
+    held-out images contain the category (a fold without it is left out, not counted as zero)."""
+    entries = view.entries(dataset)
+    if not entries:
+        return None
+    rows_e, _, folds = main_entries(entries)
+    names = _entry_names(rows_e)
+    aggs = {e.label: e.aggregate() for e in rows_e}
+    cats: list[str] = []
+    for e in rows_e:
+        for m in e.fold_metrics():
+            cats.extend(c for c in m.get("per_category", {}) if c not in cats)
+    name = f"{_slug(dataset)}-categories"
+    cols = [Column("category", "Category"), Column("instances", "Instances", "int"), Column("folds", "Folds")]
+    multi = len(rows_e) > 1
+    for e in rows_e:
+        prefix = f"{names[e.label]} " if multi else ""
+        group = names[e.label] if multi else None
+        cols += [Column(f"{e.label}:AP50", f"{prefix}AP50", "pct", best="max" if not multi else None, group=group,
+                        short="AP50"),
+                 Column(f"{e.label}:AP50_95", f"{prefix}AP50:95", "pct", best="max" if not multi else None,
+                        group=group, short="AP50:95")]
+    table = Table(name, f"{dataset}: per category (AP over the folds that contain the category, %)", cols)
+    _merge_warning(table, *_fold_matching(rows_e, folds))
+    ref = aggs[rows_e[0].label]["per_category"]
+    for c in cats:
+        ref_c = ref.get(c) or {}
+        row: dict[str, Any] = {"category": c, "instances": ref_c.get("instances", 0),
+                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}"}
+        for e in rows_e:
+            pc = aggs[e.label]["per_category"].get(c) or {}
+            for key in ("AP50", "AP50_95"):
+                s = Stat.from_mean_sd(pc.get(key))
+                row[f"{e.label}:{key}"] = s
+                table.records.append(record(name, key, s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=e.detector,
+                                            encoding=e.encoding, fold="mean", category=c,
+                                            instances=int(pc.get("instances") or 0), seeds=e.seeds,
+                                            sample_matched=table.warning is None))
+        table.rows.append(row)
+    table.notes.append("Instances: ground-truth instances summed over the held-out folds; Folds: held-out folds "
+                       "containing the category / all folds. A category absent from a fold has no AP there and is "
+                       "excluded from its mean (not counted as zero); SD is the sample SD over those folds.")
+    if multi:
+        table.notes.append("Columns per detector: " + ", ".join(f"{names[e.label]} = {e.label}" for e in rows_e))
+    return table
+
+
+# -------------------------------------------------------------------------------------------------- ablation
+def _norm(name: str) -> str:
+    return re.sub(r"[\s_\-]+", " ", name.strip().lower())
+
+
+def ablation_tables(view: StoreView, dataset: str,
+                    categories: Sequence[str] = ABLATION_CATEGORIES) -> tuple[list[Table], list[str]]:
+    """One encoding-ablation table per detector run with two or more encodings on common folds.
+
+    Returns (tables, notes): notes say why a detector's encodings could not be tabulated (no common fold).
+    """
+    by_det: dict[str, list[Entry]] = {}
+    for e in view.entries(dataset):
+        by_det.setdefault(e.detector, []).append(e)
+    tables: list[Table] = []
+    notes: list[str] = []
+    for det, entries in by_det.items():
+        if len(entries) < 2:
+            continue
+        common = sorted(set.intersection(*(set(e.fold_names) for e in entries)), key=natural_key)
+        if not common:
+            notes.append(f"{det}: encodings {', '.join(e.encoding for e in entries)} share no held-out fold; "
+                         f"run them on the same fold (`harness ablate --detector {det} --dataset {dataset} "
+                         f"--encodings ... --fold F`).")
+            continue
+        tables.append(_ablation_table(dataset, det, entries, common, categories))
+    return tables, notes
+
+
+def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Sequence[str],
+                    categories: Sequence[str]) -> Table:
+    from harness.evaluation import aggregate_folds
+
+    present: list[str] = []
+    for e in entries:
+        for f in folds:
+            present.extend(c for c in e.folds[f].metrics.get("per_category", {}) if c not in present)
+    chosen, missing = [], []
+    for want in categories:
+        hit = next((c for c in present if _norm(c) == _norm(want)), None)
+        (chosen if hit else missing).append(hit or want)
+    name = f"{_slug(dataset)}-ablation-{_slug(det)}"
+    cols = [Column("encoding", "Encoding"), Column("images", "Images", "int"), Column("instances", "Inst.", "int"),
+            Column("precision", "P", "pct", best="max"), Column("recall", "R", "pct", best="max"),
+            Column("mAP50", "mAP50", "pct", best="max"), Column("mAP50_95", "mAP50:95", "pct", best="max")]
+    cols += [Column(f"cat:{c}", f"AP50 {c}", "pct", best="max") for c in chosen]
+    fold_text = ", ".join(folds)
+    table = Table(name, f"{dataset}: encoding ablation of {det} (held-out fold{'s' if len(folds) > 1 else ''} "
+                        f"{fold_text}, %)", cols)
+    _merge_warning(table, *_fold_matching(entries, folds))
+    for e in entries:
+        metrics = [e.folds[f].metrics for f in folds]
+        agg = aggregate_folds(metrics)
+        images = sum(e.folds[f].images for f in folds)
+        instances = sum(e.folds[f].instances for f in folds)
+        seeds = sorted({s for f in folds for s in e.folds[f].seeds})
+        row: dict[str, Any] = {"encoding": e.encoding, "images": images, "instances": instances}
+        for key in ("precision", "recall", "mAP50", "mAP50_95"):
+            s = Stat.from_mean_sd(agg["metrics"].get(key))
+            row[key] = s if len(folds) > 1 else s.mean
+            table.records.append(record(name, key, s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=det,
+                                        encoding=e.encoding, fold=fold_text, images=images, instances=instances,
+                                        seeds=seeds, sample_matched=table.warning is None))
+        for c in chosen:
+            pc = agg["per_category"].get(c) or {}
+            s = Stat.from_mean_sd(pc.get("AP50"))
+            row[f"cat:{c}"] = s if len(folds) > 1 else s.mean
+            table.records.append(record(name, "AP50", s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=det,
+                                        encoding=e.encoding, fold=fold_text, category=c,
+                                        instances=int(pc.get("instances") or 0), seeds=seeds,
+                                        sample_matched=table.warning is None))
+        table.rows.append(row)
+    cat_support = ", ".join(
+        f"{c} {int((aggregate_folds([entries[0].folds[f].metrics for f in folds])['per_category'].get(c) or {}).get('instances') or 0)}"
+        for c in chosen)
+    table.notes.append(f"Same detector, same held-out images, one row per encoding of the fourth channel; "
+                       f"{_seeds_note(entries)}. P and R at the confidence that maximises the mean F1 over categories "
+                       f"(IoU 0.50); AP in %." + (" Values are means over the folds." if len(folds) > 1 else ""))
+    if chosen:
+        table.notes.append(f"Instances of the AP50 columns: {cat_support}.")
+    if missing:
+        table.notes.append(f"Categories not in this dataset (no column): {', '.join(missing)}.")
+    return table
+
+
+# -------------------------------------------------------------------------------------------------- sensing
+def registration_table(result: Mapping[str, Any], dataset: str) -> Table:
+    """``harness sensing registration-error``: mean, median, P95 and max error (thermal px), overall and per scene."""
+    name = f"{_slug(dataset)}-registration-error"
+    cols = [Column("scene", "Scene"), Column("n", "Landmarks", "int"), Column("mean", "Mean (px)", "float", 2),
+            Column("median", "Median (px)", "float", 2), Column("p95", "P95 (px)", "float", 2),
+            Column("max", "Max (px)", "float", 2)]
+    table = Table(name, f"{dataset}: RGB-to-thermal registration error (thermal pixels)", cols)
+    rows = [{"scene": "all", **{k: result.get(k) for k in ("n", "mean", "median", "p95", "max")}, "_summary": True}]
+    for scene, v in (result.get("per_scene") or {}).items():
+        rows.append({"scene": scene, **{k: v.get(k) for k in ("n", "mean", "median", "p95", "max")}})
+    table.rows = rows[1:] + rows[:1] if len(rows) > 1 else rows
+    for r in table.rows:
+        for k in ("mean", "median", "p95", "max"):
+            if r.get(k) is not None:
+                table.records.append(record(name, f"registration_error_{k}", r[k], dataset=dataset,
+                                            category=r["scene"], n=r.get("n"), unit="px", sample_matched=None))
+    mode = result.get("mode", "")
+    table.notes.append(f"Error = distance between a landmark's thermal position and its RGB position mapped by the "
+                       f"homography ({mode}); Landmarks = point pairs scored.")
+    if result.get("outside_support"):
+        table.notes.append(f"{result['outside_support']} landmark(s) outside the common support left out.")
+    if result.get("groups_skipped"):
+        table.notes.append(f"Groups with too few landmarks for leave-one-out: {', '.join(result['groups_skipped'])}.")
+    if result.get("landmarks_file"):
+        table.notes.append(f"Landmarks: {result['landmarks_file']}" + (
+            f"; homographies: {result['homographies_file']}" if result.get("homographies_file") else ""))
+    return table
+
+
+def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
+    """``harness sensing displacement``: relative in-box C2 amplitude R_c(d) per class and displacement."""
+    name = f"{_slug(dataset)}-c2-displacement"
+    shifts = list(result.get("shifts") or [])[1:]
+    cols = [Column("class", "Class"), Column("boxes", "Boxes", "int"), Column("A0", "A(0)", "float", 4)]
+    cols += [Column(f"R{d}", f"R({d} px) %", "float", 1) for d in shifts]
+    table = Table(name, f"{dataset}: C2 amplitude kept under thermal displacement (R_c(d), %)", cols)
+    for cls, v in (result.get("classes") or {}).items():
+        row: dict[str, Any] = {"class": cls, "boxes": v.get("boxes", 0)}
+        A, R = v.get("A"), v.get("R")
+        if A:
+            row["A0"] = A[0]
+            for d, r in zip(shifts, (R or [])[1:]):
+                row[f"R{d}"] = r
+                table.records.append(record(name, "R", r, dataset=dataset, category=cls, fold=f"{d}px",
+                                            n=v.get("boxes"), unit="%", sample_matched=None))
+            table.records.append(record(name, "A0", A[0], dataset=dataset, category=cls, n=v.get("boxes"),
+                                        unit="|C2-0.5|", sample_matched=None))
+        table.rows.append(row)
+    mean = result.get("mean_over_classes")
+    if mean:
+        row = {"class": "mean (classes)", "boxes": result.get("boxes"), "A0": mean["A"][0], "_summary": True}
+        for d, r in zip(shifts, mean["R"][1:]):
+            row[f"R{d}"] = r
+        table.rows.append(row)
+    params = result.get("params") or {}
+    table.notes.append(f"R_c(d) = 100 A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the mean |C2 - 0.5| in "
+                       f"the box after shifting the thermal map d px ({params.get('directions', 'four directions')}, "
+                       f"C2 recomputed; sigma {params.get('sigma')}, percentile {params.get('percentile')}, floor "
+                       f"{params.get('floor')} C).")
+    table.notes.append(f"Support: {result.get('images', '-')} images, {result.get('boxes', '-')} boxes.")
+    return table
+
+
+# -------------------------------------------------------------------------------------------------- cross-dataset
+def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | None:
+    """The cross-dataset table of ``harness.compare.build_table``, restricted to the project tables' rows.
+
+    The builder aggregates every (dataset, annotation source, detector, encoding) of the store; entries evaluated on
+    fewer folds (encoding ablations) are left out here, as in the project-grouped tables, and named in a note. Rows
+    of a dataset whose entries were not scored on the same samples are marked ``!`` and the table is labelled.
+    Returns None when ``harness.compare`` is not part of this installation.
+    """
+    try:
+        from harness.compare import build_table
+    except ImportError:
+        return None
+    with_runs = [d for d in datasets if view.entries(d)]
+    if not with_runs:
+        return Table("cross-dataset", "Cross-dataset comparison", [])
+    ct = build_table(view.root, with_runs, allow_mismatched=True)
+    keep: set[tuple[str, str, str]] = set()
+    bad: set[str] = set()
+    table = Table("cross-dataset", "Cross-dataset comparison (held-out mAP, %)", [])
+    for ds in with_runs:
+        rows_e, _, folds = main_entries(view.entries(ds))
+        keep.update((ds, e.detector, e.encoding) for e in rows_e)
+        label, details = _fold_matching(rows_e, folds)
+        if label:
+            bad.add(ds)
+            _merge_warning(table, label, [f"{ds}: {d}" for d in details])
+    cols = [Column("dataset", "Dataset"), Column("source", "GT"), Column("detector", "Detector"),
+            Column("encoding", "Encoding"), Column("folds", "Folds", "int"), Column("images", "Images", "int"),
+            Column("instances", "Instances", "int"), Column("mAP50", "mAP50", "pct"),
+            Column("mAP50_95", "mAP50:95", "pct")]
+    if ct.safit:
+        cols += [Column("safit50", "SAFit-AP50", "pct"), Column("safit50_95", "SAFit-AP50:95", "pct")]
+    table.columns = cols
+    left_out = []
+    for r in ct.rows:
+        if (r.dataset, r.detector, r.encoding) not in keep:
+            left_out.append(f"{r.dataset}/{r.detector}/{r.encoding} [{', '.join(r.folds)}]")
+            continue
+        matched = r.dataset not in bad
+        row = {"dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
+               "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
+               "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds))}
+        if ct.safit:
+            row["safit50"] = Stat(r.safit50, r.safit50_sd, len(r.folds))
+            row["safit50_95"] = Stat(r.safit50_95, r.safit50_95_sd, len(r.folds))
+        table.rows.append(row)
+        for key, s in (("mAP50", row["mAP50"]), ("mAP50_95", row["mAP50_95"])):
+            table.records.append(record("cross-dataset", f"{key}_mean", s.mean, sd=s.sd, n=s.n, dataset=r.dataset,
+                                        detector=r.detector, encoding=r.encoding, fold=" ".join(r.folds),
+                                        category=f"GT {r.source}", images=r.images, instances=r.instances,
+                                        seeds=r.seeds, sample_matched=matched))
+    table.notes.append("One row per dataset, annotation source (GT: T thermal, RGB visible, - single set), detector "
+                       "and encoding, aggregated by `harness compare`; AP in %, mean ± sample SD over held-out folds; "
+                       "images and instances summed over held-out folds.")
+    if left_out:
+        table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablations): "
+                           + ", ".join(left_out))
+    return table
+
+
+# -------------------------------------------------------------------------------------------------- paired
+def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
+    """Paired comparisons (``stats.PairedComparison``): per-fold differences and paired bootstrap 95 % CIs."""
+    cols = [Column("a", "A"), Column("b", "B"), Column("folds", "Folds", "int"), Column("images", "Images", "int"),
+            Column("instances", "Inst.", "int"),
+            Column("fold_d50", "Δ mAP50 per fold", "pp"), Column("boot_d50", "Δ mAP50 [95 % CI]", "pp"),
+            Column("fold_d5095", "Δ mAP50:95 per fold", "pp"), Column("boot_d5095", "Δ mAP50:95 [95 % CI]", "pp"),
+            Column("wins", "A better (folds)"), Column("verdict", "CI excludes 0")]
+    table = Table(name, title, cols)
+    resamples = set()
+    for c in comparisons:
+        fd = c.fold_differences
+        row: dict[str, Any] = {"a": c.a, "b": c.b, "folds": len(c.folds), "images": c.images,
+                               "instances": c.instances, "fold_d50": fd["mAP50"].stat, "fold_d5095": fd["mAP50_95"].stat,
+                               "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}"}
+        verdicts = []
+        for key, col in (("mAP50", "boot_d50"), ("mAP50_95", "boot_d5095")):
+            b = (c.bootstrap or {}).get(key)
+            if b is not None:
+                row[col] = Interval(b.delta, b.ci_low, b.ci_high)
+                resamples.add((b.resamples, b.valid, b.seed))
+                verdicts.append(f"{key.replace('_', ':')} {'yes' if row[col].excludes_zero else 'no'}")
+                table.records.append(record(name, f"delta_{key}_bootstrap", b.delta, dataset=c.dataset,
+                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
+                                            instances=c.instances, n=b.valid, unit="fraction"))
+                table.records.append(record(name, f"delta_{key}_ci_low", b.ci_low, dataset=c.dataset,
+                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
+                table.records.append(record(name, f"delta_{key}_ci_high", b.ci_high, dataset=c.dataset,
+                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
+            s = fd[key].stat
+            table.records.append(record(name, f"delta_{key}_per_fold", s.mean, sd=s.sd, n=s.n, dataset=c.dataset,
+                                        detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
+                                        instances=c.instances))
+        row["verdict"] = ", ".join(verdicts) if verdicts else "no bootstrap"
+        table.rows.append(row)
+    table.notes.append("Δ = A - B in percentage points. Per fold: mean ± sample SD of the per-fold differences "
+                       "(each fold's value averaged over its seeds); 'A better': folds where A's mAP50:95 is higher.")
+    if resamples:
+        desc = "; ".join(f"{r} resamples ({v} valid), seed {s}" for r, v, s in sorted(resamples))
+        table.notes.append(f"Paired bootstrap over images: each fold's held-out images resampled with replacement "
+                           f"(same resample for A and B), both re-scored by harness.evaluation with the duplicated "
+                           f"images given new ids, statistic = mean over folds; percentile 95 % CI; {desc}.")
+    else:
+        table.notes.append("No bootstrap (resamples = 0): per-fold differences only.")
+    return table

@@ -1,0 +1,112 @@
+"""Small results stores for the report tests, written the way ``harness run`` writes them: synthetic ground truth,
+detections of a chosen quality, scored by ``harness.evaluation.evaluate`` (no hand-written metrics)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from harness.io import atomic_write_json
+from harness.store import RunKey, Store
+
+CATEGORIES = ("window", "crack", "delamination", "water_seepage")
+
+
+def make_gt(n_images: int, rng: np.random.Generator, first_id: int = 1, categories: Sequence[str] = CATEGORIES,
+            objects: tuple[int, int] = (1, 4), size: tuple[int, int] = (160, 128),
+            skip_category: str | None = None) -> dict[str, Any]:
+    """COCO ground truth in the harness's convention (category_id = label + 1)."""
+    w, h = size
+    images, anns = [], []
+    for k in range(n_images):
+        iid = first_id + k
+        images.append({"id": iid, "width": w, "height": h, "file_name": f"img{iid:04d}.jpg"})
+        for _ in range(int(rng.integers(objects[0], objects[1] + 1))):
+            label = int(rng.integers(0, len(categories)))
+            if skip_category is not None and categories[label] == skip_category:
+                label = (label + 1) % len(categories)
+            bw, bh = float(rng.uniform(12, 40)), float(rng.uniform(12, 40))
+            x, y = float(rng.uniform(0, w - bw)), float(rng.uniform(0, h - bh))
+            anns.append({"id": len(anns) + 1, "image_id": iid, "category_id": label + 1, "bbox": [x, y, bw, bh],
+                         "area": bw * bh, "iscrowd": 0})
+    return {"info": {"dataset": "synthetic", "frame": "thermal"}, "images": images, "annotations": anns,
+            "categories": [{"id": i + 1, "name": n} for i, n in enumerate(categories)]}
+
+
+def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float = 0.9, jitter: float = 1.0,
+                    false_positives: float = 1.0, label_noise: float = 0.0) -> list[dict[str, Any]]:
+    """Detections of a given quality: each GT found with probability ``recall`` (box jittered by ``jitter`` px,
+    score 0.5..1), plus on average ``false_positives`` random boxes per image (score 0..0.6)."""
+    ncat = len(gt["categories"])
+    dets = []
+    for a in gt["annotations"]:
+        if rng.random() < recall:
+            x, y, w, h = a["bbox"]
+            cat = a["category_id"] if rng.random() >= label_noise else int(rng.integers(1, ncat + 1))
+            dets.append({"image_id": a["image_id"], "category_id": cat,
+                         "bbox": [x + rng.normal(0, jitter), y + rng.normal(0, jitter), max(1.0, w + rng.normal(0, jitter)),
+                                  max(1.0, h + rng.normal(0, jitter))], "score": float(rng.uniform(0.5, 1.0))})
+    for im in gt["images"]:
+        for _ in range(int(rng.poisson(false_positives))):
+            w, h = float(rng.uniform(10, 40)), float(rng.uniform(10, 40))
+            dets.append({"image_id": im["id"], "category_id": int(rng.integers(1, ncat + 1)),
+                         "bbox": [float(rng.uniform(0, im["width"] - w)), float(rng.uniform(0, im["height"] - h)), w, h],
+                         "score": float(rng.uniform(0.0, 0.6))})
+    return dets
+
+
+def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str, Any]],
+              imgsz: int = 64) -> dict[str, Any]:
+    """Score ``dets`` against ``gt`` and write the run's folder as the engine does (status last)."""
+    from harness.evaluation import evaluate
+
+    run = store.run(key)
+    run.path.mkdir(parents=True, exist_ok=True)
+    run.set_status("running", config_hash="synthetic")
+    ev = evaluate(gt, dets)
+    atomic_write_json(run.predictions_path, dets, indent=None)
+    atomic_write_json(run.gt_path, gt, indent=None)
+    run.write_metrics({**ev, "model": {"params": 1000}, "train": {"epochs": 1, "imgsz": imgsz},
+                       "environment": {"device": "cpu", "threads": 1, "torch": "test"}})
+    run.set_status("finished", config_hash="synthetic")
+    return run.read_metrics()
+
+
+QUALITY = {
+    "strong": {"recall": 0.95, "jitter": 0.5, "false_positives": 0.3},
+    "weak": {"recall": 0.45, "jitter": 3.0, "false_positives": 2.0, "label_noise": 0.3},
+}
+
+
+def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = ("P1", "P2"), per_fold: int = 6,
+                    detectors: dict[str, str] | None = None, encodings: dict[str, Sequence[str]] | None = None,
+                    seed: int = 0, profiles: dict[str, tuple[float, float]] | None = None) -> Store:
+    """A store with ``detectors`` ({name: quality}) on every fold, optionally extra encodings of a detector on the
+    first fold (``encodings``: {detector: [enc, ...]}), and profiles ({detector: (params, gflops)})."""
+    store = Store(root)
+    detectors = detectors or {"alpha": "strong", "beta": "weak"}
+    rng = np.random.default_rng(seed)
+    gts = {}
+    first = 1
+    for f in folds:
+        gts[f] = make_gt(per_fold, rng, first_id=first, skip_category="water_seepage" if f == folds[0] else None)
+        first += per_fold
+    for i, (det, quality) in enumerate(detectors.items()):
+        for f in folds:
+            drng = np.random.default_rng([seed, i, folds.index(f)])
+            write_run(store, RunKey(dataset, det, "c2", f, 0), gts[f], make_detections(gts[f], drng, **QUALITY[quality]))
+    for det, encs in (encodings or {}).items():
+        for j, enc in enumerate(encs):
+            drng = np.random.default_rng([seed, 100 + j])
+            q = QUALITY["weak"] if j % 2 else QUALITY["strong"]
+            write_run(store, RunKey(dataset, det, enc, folds[-1], 0), gts[folds[-1]],
+                      make_detections(gts[folds[-1]], drng, **q))
+    for det, (params, gflops) in (profiles or {}).items():
+        store.write_profile(det, {"detector": det, "imgsz": 640, "num_classes": len(CATEGORIES), "input_kind": "single",
+                                  "params": {"total": params, "fused": params},
+                                  "flops": {"paper": {"gflops": gflops, "convention": "paper"},
+                                            "exact": {"gflops": gflops * 1.01, "convention": "exact"}},
+                                  "environment": {"machine": "x86_64", "torch": "test"}})
+    return store
