@@ -371,11 +371,12 @@ def sweep(spec: SweepSpec, executor: str = "local", options: ExecutorOptions | N
 
 
 def sweep_table(summary: SweepSummary) -> str:
-    from harness.runner import _fmt, format_table
+    from harness.runner import _fmt
+    from harness.textable import text_table
 
     rows = [[r.run, r.state, _fmt(r.mAP50), _fmt(r.mAP50_95), "-" if r.time_s is None else f"{r.time_s:.1f}",
              (r.error or "").splitlines()[0][:80] if r.error else ""] for r in sorted(summary.results, key=lambda r: r.run)]
-    return format_table(["run", "state", "mAP50", "mAP50:95", "time s", "error"], rows, align="llrrrl")
+    return text_table(["run", "state", "mAP50", "mAP50:95", "time s", "error"], rows, align="llrrrl")
 
 
 class _bar:
