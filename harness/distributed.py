@@ -164,6 +164,17 @@ def gather_to_main(obj: Any) -> list[Any] | None:
     return out
 
 
+def any_process(flag: bool) -> bool:
+    """True on every process when ``flag`` is true on at least one of them."""
+    if not info().active:
+        return bool(flag)
+    import torch
+
+    t = torch.tensor([1 if flag else 0], dtype=torch.int64, device=_object_device() or "cpu")
+    _dist().all_reduce(t, op=_dist().ReduceOp.MAX)
+    return bool(t.item())
+
+
 def all_reduce_mean(values: dict[str, float]) -> dict[str, float]:
     """Mean over the processes of a dict of floats (same keys everywhere), e.g. the epoch's mean losses."""
     d = info()

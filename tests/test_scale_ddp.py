@@ -76,6 +76,17 @@ class OneBoxPerImage(nn.Module):
                  "labels": torch.zeros(1, dtype=torch.long)} for _ in x]
 
 
+class WithUnused(nn.Module):
+    """A detector plus a layer its forward never uses."""
+
+    def __init__(self, inner: nn.Module):
+        super().__init__()
+        self.inner, self.spare = inner, nn.Linear(3, 3)
+
+    def forward(self, x, targets=None):
+        return self.inner(x, targets) if targets is not None else self.inner(x)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -106,10 +117,15 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
         result = Trainer(model, TrainDataset(train, 64, AugmentSettings.off()), settings, progress=False).fit()
         flat = torch.cat([p.detach().flatten() for p in model.parameters()])
         weights = hd.gather_to_main(flat)
+        # a detector with a parameter its forward never uses (as ICAFusion's layout has) still trains under DDP
+        seed_everything(0)
+        with_unused = WithUnused(tinydet_module().build_tinydet(3, in_channels=4))
+        unused_result = Trainer(with_unused, TrainDataset(train, 64, AugmentSettings.off()), settings,
+                                progress=False).fit()
         visited: list[int] = []
         dets = predict(OneBoxPerImage(rank), held_out, 64, batch=2, distributed=True, visited=visited)
         if rank == 0:
-            queue.put({"epochs": result.epochs_run, "same_weights": all(torch.equal(weights[0], w) for w in weights),
+            queue.put({"epochs": result.epochs_run, "unused_epochs": unused_result.epochs_run, "same_weights": all(torch.equal(weights[0], w) for w in weights),
                        "dets": dets, "visited": visited,
                        "expected": [held_out.image_id(k) for k in range(len(held_out))]})
         else:
@@ -136,7 +152,7 @@ def test_two_gloo_processes_train_with_ddp_and_predict_each_image_once(tmp_path)
     for _ in range(2):
         out.update(queue.get(timeout=60))
     assert "error" not in out, out["error"]
-    assert out["epochs"] == 2
+    assert out["epochs"] == 2 and out["unused_epochs"] == 2
     assert out["same_weights"]  # DDP kept the two replicas identical
     assert len(out["dets"]) == len(out["expected"]) == 7  # one detection per image: each image predicted once
     assert [d["image_id"] for d in out["dets"]] == out["visited"] == out["expected"]

@@ -219,8 +219,15 @@ class Trainer:
         if d.active:  # after resuming, so that every process wraps the same weights
             from torch.nn.parallel import DistributedDataParallel
 
+            # some detectors keep parameters their forward never uses (ICAFusion's checkpoint layout has such
+            # layers): DDP must then look for unused parameters at every step, or it waits for their gradients
+            unused = self._unused_parameters(model, loader, start_epoch, amp)
+            if unused:
+                log.info("%s: %d parameters get no gradient (e.g. %s); DDP looks for unused parameters every step",
+                         self.name, len(unused), unused[0])
             train_model = DistributedDataParallel(
-                model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+                model, device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=bool(hd.any_process(bool(unused))))
 
         t_start = time.perf_counter()
         stopped_early = False
@@ -347,6 +354,33 @@ class Trainer:
         opt.zero_grad(set_to_none=True)
         if self.ema is not None:
             self.ema.update(model)
+
+    def _unused_parameters(self, model: nn.Module, loader: Any, epoch: int, amp: bool) -> list[str]:
+        """Names of the trainable parameters that get no gradient from one training step on this process's first
+        batch, found on a copy of the model; the random generators are restored, so training is unaffected."""
+        import copy
+
+        from harness.engine.data import collate
+
+        s = self.s
+        self.dataset.set_epoch(epoch, mosaic=epoch < s.epochs - s.close_mosaic)
+        loader.sampler.set_epoch(epoch)
+        order = loader.sampler.order()[: loader.batch_size]
+        batch = collate([self.dataset[k] for k in order])
+        cpu_rng = torch.get_rng_state()
+        cuda_rng = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
+        probe = copy.deepcopy(model).train()
+        try:
+            inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last)
+            with torch.autocast(self.device.type, enabled=amp):
+                losses = probe(inputs, targets_to(batch.targets, self.device))
+            self._total(losses, epoch, 0).backward()
+            return [n for n, p in probe.named_parameters() if p.requires_grad and p.grad is None]
+        finally:
+            del probe
+            torch.set_rng_state(cpu_rng)
+            if cuda_rng is not None:
+                torch.cuda.set_rng_state_all(cuda_rng)
 
     def _validate(self) -> Mapping[str, Any]:
         m = self.eval_model
