@@ -130,3 +130,37 @@ def test_sweep_command_runs_locally_and_prints_the_table(plugins, tmp_path, cli_
     assert "shapes/tinydet/test-ir8/A/seed3  trained" in ran.output
     assert _finished_runs(tmp_path / "store") == ["shapes/tinydet/test-ir8/A/seed3"]
     assert "shapes/tinydet/test-ir8/A/seed3  skipped" in cli_runner(args).output
+
+
+FAKE_SBATCH = """#!/bin/sh
+cp "$1" "$SBATCH_COPY"
+echo "Submitted batch job 4242"
+"""
+
+
+def test_slurm_sweep_is_submitted_as_one_job_array_with_the_parameters(plugins, tmp_path, monkeypatch):
+    """With fake ``srun``/``sbatch`` on the PATH: the batch script submitit writes for the sweep."""
+    pytest.importorskip("submitit")
+    from harness.sweep import ExecutorOptions, expand, run_job, submitit_executor
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for name, text in (("srun", "#!/bin/sh\nexit 0\n"), ("sbatch", FAKE_SBATCH)):
+        (bin_dir / name).write_text(text)
+        (bin_dir / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("SBATCH_COPY", str(tmp_path / "submitted.sh"))
+    jobs = expand(spec(tmp_path, seeds=(0, 1, 2))).jobs
+    options = ExecutorOptions(partition="gpu", account="proj", timeout_min=90, mem_gb=32, cpus_per_run=8,
+                              array_parallelism=4, slurm_setup=("source /opt/venv/bin/activate",),
+                              slurm_extra=(("constraint", "a100"),))
+    ex = submitit_executor(options, tmp_path / "logs" / "%j")
+    assert ex.cluster == "slurm"
+    submitted = ex.map_array(run_job, jobs)
+    assert [j.job_id for j in submitted] == [f"4242_{i}" for i in range(6)]
+    script = (tmp_path / "submitted.sh").read_text()
+    for line in ("#SBATCH --array=0-5%4", "#SBATCH --partition=gpu", "#SBATCH --account=proj", "#SBATCH --time=90",
+                 "#SBATCH --mem=32GB", "#SBATCH --cpus-per-task=8", "#SBATCH --gpus-per-node=1",
+                 "#SBATCH --constraint=a100", "source /opt/venv/bin/activate", "submitit.core._submit"):
+        assert line in script, (line, script)
+    assert _finished_runs(tmp_path / "store") == []
