@@ -131,20 +131,22 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     # detections: by pair, then descending score, ties in input order; keep the first max_det of each pair
     d_key = pair_key(d_img, d_cat)
     order = np.lexsort((-d_score, d_key))  # lexsort is stable: ties keep input order
-    d_key_sorted = d_key[order]
+    dk, d_start, d_count = _runs(d_key[order])
     n_det = len(order)
-    starts = np.flatnonzero(np.r_[True, d_key_sorted[1:] != d_key_sorted[:-1]]) if n_det else np.zeros(0, np.int64)
-    rank = np.arange(n_det) - np.repeat(starts, np.diff(np.r_[starts, n_det]))
-    keep = rank < max_det
-    evaluated = np.zeros(n_det, dtype=bool)
-    det_order = order[keep]
-    evaluated[det_order] = True
-    dk, d_start, d_count = np.unique(d_key_sorted[keep], return_index=True, return_counts=True)
+    evaluated = np.ones(n_det, dtype=bool)
+    if n_det and d_count.max() > max_det:
+        rank = np.arange(n_det) - np.repeat(d_start, d_count)
+        keep = rank < max_det
+        evaluated[order[~keep]] = False
+        order = order[keep]
+        d_count = np.minimum(d_count, max_det)
+        d_start = np.cumsum(d_count) - d_count
+    det_order = order
 
     # GT: by pair, annotation order within a pair
     g_key = pair_key(g_img, g_cat)
     gt_order = np.argsort(g_key, kind="stable")
-    gk, g_start, g_count = np.unique(g_key[gt_order], return_index=True, return_counts=True)
+    gk, g_start, g_count = _runs(g_key[gt_order])
 
     # matrix entries of the pairs with both
     keys, di, gi = np.intersect1d(dk, gk, assume_unique=True, return_indices=True)
@@ -158,3 +160,12 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     gt = gt_order[g_start[gi][pair] + col]
     return PairLayout(img_ids, cat_ids, det_order, dk, d_start, d_count, gt_order, gk, g_start, g_count,
                       keys, rows, cols, det, gt, pair, row, col, g_box, g_crowd, g_id, evaluated)
+
+
+def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct values of a sorted array with the start and length of each run (``np.unique`` without a sort)."""
+    n = len(sorted_keys)
+    if n == 0:
+        return sorted_keys, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    start = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    return sorted_keys[start], start, np.diff(np.r_[start, n])
