@@ -354,3 +354,19 @@ def test_summarized_accumulation_equals_the_library_s_in_every_cell_it_computes(
     ev.eval = full
     ev.summarize()
     assert stats == list(ev.stats)
+
+
+def test_bulk_path_falls_back_to_the_library_s_own_when_its_internals_move(monkeypatch, caplog):
+    import faster_coco_eval.faster_eval_api_cpp as _C
+
+    gt, dets = random_coco(seed=18, crowd=0.1)
+    ref_stats, _ = pycocotools_reference(gt, dets)
+    expected = evaluate(gt, dets)
+    monkeypatch.delattr(_C, "COCOevalEvaluateImages")
+    with caplog.at_level("WARNING"):
+        result = evaluate(gt, dets)
+    assert "bulk evaluation unavailable" in caplog.text
+    assert result["metrics"]["coco_stats"] == pytest.approx(nullable(ref_stats), abs=1e-12)
+    assert result["metrics"]["coco_stats"] == expected["metrics"]["coco_stats"]
+    assert result["metrics"]["precision"] == expected["metrics"]["precision"]
+    assert result["per_category"] == expected["per_category"]

@@ -112,7 +112,6 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             except AttributeError as exc:  # the library's internals changed: do it its own way
                 log.warning("faster-coco-eval bulk evaluation unavailable (%s); using the library's own, slower "
                             "preparation", exc)
-                self.harness_inputs = None
                 self._harness_layout = self._harness_values = None
                 return self._stock_evaluate()
 
