@@ -7,7 +7,7 @@ positives). The anchor is pycocotools 2.x used the documented way (``COCO`` inde
 is timed end to end (input checks, engine, per-category AP, operating point). Both sets of statistics are compared.
 Wall time and process CPU time are both printed: on a shared machine the CPU-time ratio is the stable one.
 
-    .venv/bin/python benchmarks/bench_eval.py            # full size (about 3 minutes, ~7 GB peak RSS)
+    .venv/bin/python benchmarks/bench_eval.py            # full size (about 2.5 minutes, ~3.6 GB peak RSS)
     .venv/bin/python benchmarks/bench_eval.py --scale 0.1
 """
 

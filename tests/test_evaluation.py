@@ -323,3 +323,50 @@ def test_stock_preparation_path_gives_the_same_numbers():
     ev.accumulate()
     ev.summarize()
     assert list(ev.stats) == pytest.approx(ref_stats, abs=1e-12)
+
+
+def test_summarized_accumulation_equals_the_library_s_in_every_cell_it_computes():
+    """The bulk path accumulates area "all" at every maxDets and the other ranges at maxDets 100 only."""
+    import faster_coco_eval.faster_eval_api_cpp as _C
+    from faster_coco_eval.core.coco import COCO
+    from faster_coco_eval.core.faster_eval_api import COCOeval_faster
+
+    from harness.evaluation.engines import _accumulate_summarized, _silent
+    from harness.evaluation.inputs import prepare
+
+    gt, dets = random_coco(seed=17, crowd=0.1)
+    prep = prepare(gt, dets)
+    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt), print_function=_silent),
+                         COCO(copy.deepcopy(gt), print_function=_silent).loadRes(copy.deepcopy(dets)),
+                         iouType="bbox", print_function=_silent, separate_eval=True)
+    ev.evaluate()
+    full = _C.COCOevalAccumulate(ev._paramsEval, ev._evalImgs_cpp)
+    ours = _accumulate_summarized(_C.COCOevalAccumulate, ev._paramsEval, list(ev._evalImgs_cpp))
+    for key in ("precision", "recall", "scores"):
+        assert ours[key].shape == full[key].shape
+        assert np.array_equal(ours[key][..., :1, :], full[key][..., :1, :])  # area "all", maxDets 1, 10, 100
+        assert np.array_equal(ours[key][..., 1:, -1], full[key][..., 1:, -1])  # small/medium/large at 100
+        assert (ours[key][..., 1:, :-1] == -1).all()  # never read by summarize(): not computed
+    assert (full["precision"][..., 1:, :-1] > -1).any()
+    ev.eval = ours
+    ev.summarize()
+    stats = list(ev.stats)
+    ev.eval = full
+    ev.summarize()
+    assert stats == list(ev.stats)
+
+
+def test_bulk_path_falls_back_to_the_library_s_own_when_its_internals_move(monkeypatch, caplog):
+    import faster_coco_eval.faster_eval_api_cpp as _C
+
+    gt, dets = random_coco(seed=18, crowd=0.1)
+    ref_stats, _ = pycocotools_reference(gt, dets)
+    expected = evaluate(gt, dets)
+    monkeypatch.delattr(_C, "COCOevalEvaluateImages")
+    with caplog.at_level("WARNING"):
+        result = evaluate(gt, dets)
+    assert "bulk evaluation unavailable" in caplog.text
+    assert result["metrics"]["coco_stats"] == pytest.approx(nullable(ref_stats), abs=1e-12)
+    assert result["metrics"]["coco_stats"] == expected["metrics"]["coco_stats"]
+    assert result["metrics"]["precision"] == expected["metrics"]["precision"]
+    assert result["per_category"] == expected["per_category"]

@@ -136,7 +136,7 @@ def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) ->
         "coco_stat_names": list(COCO_STAT_NAMES),
         "engine": engine,
         "matching": matching,
-        "detections": len(prep.dets),
+        "detections": prep.n_dets,
         "dropped_detections": dict(prep.dropped),
     }
     if prep.notes:

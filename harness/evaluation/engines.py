@@ -6,13 +6,15 @@ TP flags. ``matching="safit"`` swaps the IoU matrix for SAFit's (``harness.evalu
 
 With faster-coco-eval, the Python-side work the library does one (image, category) pair at a time (filling its
 C++ datasets, the IoU matrices) is done in bulk (``harness.evaluation.pairs``); the matrices are bitwise the
-library's own and its C++ matching and accumulation are untouched. The operating point's matching at IoU 0.50 is
+library's own, the C++ datasets hold the same annotation fields in the same order, and its C++ matching and
+accumulation are untouched. The operating point's matching at IoU 0.50 is
 COCO's greedy matching, also in bulk. pycocotools is run exactly as published.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import gc
 import io
 import logging
@@ -23,7 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.evaluation.inputs import EvaluationError, PreparedEval
-from harness.evaluation.pairs import pair_layout
+from harness.evaluation.pairs import PairLayout, pair_layout
 from harness.evaluation.safit import ANCHORS, SAFIT_C, iou_elementwise, safit_elementwise, safit_xywh
 
 log = logging.getLogger(__name__)
@@ -75,48 +77,86 @@ def _safit_matrix(gt: list[dict[str, Any]], dt: list[dict[str, Any]], max_det: i
     return safit_xywh(d, g, crowd, SAFIT_C, anchor)  # type: ignore[arg-type]
 
 
+def _coco_objects(prep: PreparedEval) -> tuple[Any, Any]:
+    """faster-coco-eval ``COCO`` objects of the prepared GT and detections (only its own preparation needs them)."""
+    from faster_coco_eval.core.coco import COCO
+
+    gt = COCO(prep.gt, print_function=_silent)
+    dt = COCO(print_function=_silent)
+    dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
+    dt.createIndex()
+    return gt, dt
+
+
 def _faster_eval_class(matching: str, anchor: str) -> type:
+    import faster_coco_eval.faster_eval_api_cpp as _C
     from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
     class HarnessEvalFaster(COCOeval_faster):  # type: ignore[misc, valid-type]
         """faster-coco-eval with the Python-side work done in bulk: the IoU (or SAFit) matrices of every pair are
-        computed in one vectorised pass and the C++ datasets are filled directly. Its C++ matching and
-        accumulation are unchanged. Without ``harness_inputs`` (or if the library's internals moved) it behaves
-        as the stock class, with SAFit computed pair by pair."""
+        computed in one vectorised pass, the C++ datasets are loaded pair by pair in one call each
+        (``Dataset.load_tuple``, with only the fields the C++ code reads), and the C++ evaluate-and-accumulate is
+        called directly. Its C++ matching and accumulation are unchanged. Without ``harness_inputs`` (or if the
+        library's internals moved) it behaves as the stock class, with SAFit computed pair by pair."""
 
         harness_inputs: PreparedEval | None = None
 
-        def _prepare(self) -> None:
+        def evaluate(self) -> None:
             prep = self.harness_inputs
-            if prep is None or self.params.iouType != "bbox" or self.lvis_style or not self.params.useCats:
-                return self._stock_prepare()
+            p = self.params
+            if (prep is None or p.iouType != "bbox" or self.lvis_style or not p.useCats or self.separate_eval
+                    or self.extra_calc):
+                return self._stock_evaluate()
             try:
-                measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
-                self._harness_layout = pair_layout(prep, self.params.maxDets[-1])
-                self._harness_values = self._harness_layout.values(prep, measure)
-                self._harness_pairs = self._harness_layout.matrices(self._harness_values)
-                self.gt_dataset.clean()
-                self.dt_dataset.clean()
-                for g in prep.gt["annotations"]:
-                    self.gt_dataset.append_ref(g["image_id"], g["category_id"], g)
-                for d in prep.dets:
-                    self.dt_dataset.append_ref(d["image_id"], d["category_id"], d)
-                self._nonempty_iou_pairs = set(self._harness_pairs)
+                self._bulk_evaluate(prep)
             except AttributeError as exc:  # the library's internals changed: do it its own way
-                log.debug("faster-coco-eval bulk preparation unavailable (%s)", exc)
-                self.harness_inputs = None
-                self._harness_pairs = None
-                return self._stock_prepare()
+                log.warning("faster-coco-eval bulk evaluation unavailable (%s); using the library's own, slower "
+                            "preparation", exc)
+                self._harness_layout = self._harness_values = None
+                return self._stock_evaluate()
 
-        def _stock_prepare(self) -> None:
+        def _bulk_evaluate(self, prep: PreparedEval) -> None:
+            p = self.params
+            p.imgIds = [int(i) for i in np.unique(np.asarray(p.imgIds, dtype=np.int64))]
+            p.catIds = [int(c) for c in np.unique(np.asarray(p.catIds, dtype=np.int64))]
+            p.maxDets = sorted(p.maxDets)
+            layout = pair_layout(prep, p.maxDets[-1])
+            if layout.img_ids.tolist() != p.imgIds or layout.cat_ids.tolist() != p.catIds:
+                raise EvaluationError("internal: the evaluated image and category ids differ from the prepared ones")
+            measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
+            values = layout.values(prep, measure)
+            self._harness_layout, self._harness_values = layout, values
+            n_cat = len(p.catIds)
+            # the C++ datasets: per (image, category), what EvaluateImages reads (id, score, area, iscrowd, ignore)
+            anns = prep.gt["annotations"]
+            gt_sorted = [anns[i] for i in layout.gt_order.tolist()]
+            self.gt_dataset.load_tuple(_grouped(gt_sorted, layout.gt_keys, layout.gt_start, layout.gt_count, p, n_cat))
+            _, _, score, boxes = prep.det_columns
+            order = layout.det_order
+            area = boxes[order, 2] * boxes[order, 3]
+            dt_sorted = [{"id": j, "score": s, "area": a} for j, s, a in
+                         zip((order + 1).tolist(), score[order].tolist(), area.tolist())]
+            self.dt_dataset.load_tuple(_grouped(dt_sorted, layout.det_keys, layout.det_start, layout.det_count, p,
+                                                n_cat))
+            # the matrices, [image][category] as COCOeval_faster.evaluate passes them ([] where a pair has none)
+            ious: list[list[Any]] = [[[] for _ in range(n_cat)] for _ in range(len(p.imgIds))]
+            for k, block in zip(layout.keys.tolist(), layout.blocks(values)):
+                ious[k // n_cat][k % n_cat] = block
+            self._paramsEval = copy.deepcopy(p)
+            evaluations = _C.COCOevalEvaluateImages(p.areaRng, p.maxDets[-1], p.iouThrs, ious, self.gt_dataset,
+                                                    self.dt_dataset, p.imgIds, p.catIds, True)
+            del ious
+            self.eval = _accumulate_summarized(_C.COCOevalAccumulate, self._paramsEval, evaluations)
+
+        def _stock_evaluate(self) -> None:
+            if self.cocoGt is None and self.harness_inputs is not None:
+                self.cocoGt, self.cocoDt = _coco_objects(self.harness_inputs)
+            self.harness_inputs = None
             if not self.cocoDt.anns and self.cocoDt.dataset.get("annotations"):
                 self.cocoDt.createIndex()
-            return super()._prepare()
+            return super().evaluate()
 
         def computeIoU(self, imgId: int, catId: int) -> Any:  # noqa: N802 (COCOeval's name)
-            pairs = getattr(self, "_harness_pairs", None)
-            if pairs is not None:
-                return pairs.get((int(imgId), int(catId)), [])
             if matching == "iou":
                 return super().computeIoU(imgId, catId)
             p = self.params
@@ -126,6 +166,52 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             return _safit_matrix(gt, dt, p.maxDets[-1], anchor)
 
     return HarnessEvalFaster
+
+
+def _accumulate_summarized(accumulate: Any, params: Any, evaluations: list[Any]) -> dict[str, Any]:
+    """faster-coco-eval's C++ accumulation of only the (area range, maxDets) cells that ``summarize()`` and the
+    harness read: area "all" at every maxDets, the other area ranges at the last maxDets (100). The other cells
+    (e.g. small objects at maxDets 1) hold -1, as cells without GT do. Each computed cell is bitwise the library's
+    own; the accumulation's cost grows with the number of cells, so this halves it for COCO's 4 ranges x 3 maxDets.
+
+    ``evaluations`` is ``COCOevalEvaluateImages``' list, ordered [category][area range][image].
+    """
+    n_area, n_max = len(params.areaRng), len(params.maxDets)
+    if n_area == 1 or n_max == 1 or params.areaRngLbl[0] != "all":
+        return accumulate(params, evaluations)
+    n_img, n_cat = len(params.imgIds), len(params.catIds)
+    block = n_area * n_img
+    p_all, p_rng = copy.deepcopy(params), copy.deepcopy(params)
+    p_all.areaRng, p_all.areaRngLbl = params.areaRng[:1], params.areaRngLbl[:1]
+    p_rng.areaRng, p_rng.areaRngLbl, p_rng.maxDets = params.areaRng[1:], params.areaRngLbl[1:], params.maxDets[-1:]
+    ev_all: list[Any] = []
+    ev_rng: list[Any] = []
+    for c in range(n_cat):
+        ev_all += evaluations[c * block:c * block + n_img]
+        ev_rng += evaluations[c * block + n_img:(c + 1) * block]
+    evaluations.clear()  # the per-range lists now hold the only references
+    acc_all = accumulate(p_all, ev_all)
+    del ev_all
+    acc_rng = accumulate(p_rng, ev_rng)
+    del ev_rng
+    n_thr, n_rec = len(params.iouThrs), len(params.recThrs)
+    counts = [n_thr, n_rec, n_cat, n_area, n_max]
+    out: dict[str, Any] = {"params": params, "counts": counts, "date": acc_all.get("date")}
+    for key, shape in (("precision", counts), ("scores", counts), ("recall", [n_thr, n_cat, n_area, n_max])):
+        full = np.full(shape, -1.0)
+        full[..., :1, :] = acc_all[key]
+        full[..., 1:, n_max - 1:] = acc_rng[key]
+        out[key] = full
+    return out
+
+
+def _grouped(items: list[Any], keys: np.ndarray, start: np.ndarray, count: np.ndarray, params: Any,
+             n_cat: int) -> tuple[int, list[tuple[float, float, list[Any]]]]:
+    """``Dataset.load_tuple``'s argument: ``(pairs, [(image_id, category_id, items of the pair), ...])``."""
+    img_ids, cat_ids = params.imgIds, params.catIds
+    entries = [(float(img_ids[k // n_cat]), float(cat_ids[k % n_cat]), items[s:s + c])
+               for k, s, c in zip(keys.tolist(), start.tolist(), count.tolist())]
+    return len(entries), entries
 
 
 def _pycoco_eval_class(matching: str, anchor: str) -> type:
@@ -163,16 +249,12 @@ def run_engine(prep: PreparedEval, engine: str = "faster-coco-eval", matching: s
 
 def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Mapping[str, tuple[float, float]] | None,
                 want_op: bool) -> EngineResult:
-    from faster_coco_eval.core.coco import COCO
-
-    gt = COCO(prep.gt, print_function=_silent)
-    dt = COCO(print_function=_silent)  # indexed only if the library's own preparation is needed (see _prepare)
-    dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
     ranges = None
     if area_ranges is not None:
         ranges = {k: list(v) for k, v in area_ranges.items() if k != "all"}
     cls = _faster_eval_class(matching, anchor)
-    ev = cls(gt, dt, iouType="bbox", print_function=_silent, ranges=ranges)
+    # no COCO index objects: the bulk path reads the prepared inputs (the stock fallback builds them)
+    ev = cls(None, None, iouType="bbox", print_function=_silent, ranges=ranges)
     ev.harness_inputs = prep
     ev.params.imgIds = [im["id"] for im in prep.gt["images"]]
     ev.params.catIds = list(prep.cat_ids)
@@ -186,34 +268,24 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
         values = getattr(ev, "_harness_values", None)
         if values is None:
             values = layout.values(prep, iou_elementwise)
-        _fill_operating_inputs(result, prep, layout.greedy_match(prep, values, threshold=0.5), layout.evaluated)
+        _fill_operating_inputs(result, prep, *layout.greedy_match_indices(values, threshold=0.5), layout)
     return result
 
 
-def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, matches: dict[int, int],
-                           evaluated: np.ndarray) -> None:
-    """Evaluated detections (``evaluated``: top 100 per image and category), without those matched to crowd GT."""
-    dets = prep.dets
-    if not dets:
-        result.op_scores = np.zeros(0)
-        result.op_cat_index = np.zeros(0, dtype=np.int64)
-        result.op_is_tp = np.zeros(0, dtype=bool)
-        return
-    n = len(dets)
+def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, det_idx: np.ndarray, gt_idx: np.ndarray,
+                           layout: PairLayout) -> None:
+    """Evaluated detections (top 100 per image and category), without those matched to crowd GT."""
+    n = prep.n_dets
     _, cat, score, _ = prep.det_columns
-    matched_gt = np.zeros(n, dtype=np.int64)
-    if matches:
-        d_ids = np.fromiter(matches.keys(), dtype=np.int64, count=len(matches))
-        g_ids = np.fromiter(matches.values(), dtype=np.int64, count=len(matches))
-        matched_gt[d_ids - 1] = g_ids
+    matched = np.zeros(n, dtype=bool)
+    matched[det_idx] = True
     crowd = np.zeros(n, dtype=bool)
-    if prep.crowd_ann_ids:
-        crowd = np.isin(matched_gt, np.fromiter(prep.crowd_ann_ids, dtype=np.int64))
-    keep = evaluated & ~crowd
-    cat_index = np.searchsorted(np.asarray(prep.cat_ids), cat)
+    crowd[det_idx] = layout.gt_crowd[gt_idx]
+    keep = layout.evaluated & ~crowd
+    cat_index = np.searchsorted(np.asarray(prep.cat_ids, dtype=np.int64), cat)
     result.op_scores = score[keep]
     result.op_cat_index = cat_index[keep]
-    result.op_is_tp = (matched_gt > 0)[keep]
+    result.op_is_tp = matched[keep]
 
 
 def _run_pycocotools(prep: PreparedEval, matching: str, anchor: str,

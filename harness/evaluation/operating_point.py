@@ -33,21 +33,15 @@ class OperatingPoint:
     per_category: dict[int, tuple[float, float]] = field(default_factory=dict)
 
 
-def _pr_curves(scores: np.ndarray, is_tp: np.ndarray, n_gt: int, thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Precision and recall of one category at each threshold (detections with score >= threshold)."""
-    order = np.argsort(-scores, kind="mergesort")
-    s = scores[order]
-    cum_tp = np.concatenate([[0], np.cumsum(is_tp[order], dtype=np.int64)])
-    kept = np.searchsorted(-s, -thresholds, side="right")  # how many scores are >= each threshold
-    tp = cum_tp[kept]
-    precision = np.where(kept > 0, tp / np.maximum(kept, 1), 0.0)
-    recall = tp / n_gt
-    return precision, recall
-
-
 def _f1(p: np.ndarray, r: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(p + r > 0, 2 * p * r / (p + r), 0.0)
+
+
+def _precision_recall(kept: np.ndarray, tp: np.ndarray, n_gt: int) -> tuple[np.ndarray, np.ndarray]:
+    """``P = TP / kept`` (0 when nothing is kept) and ``R = TP / GT`` from counts."""
+    precision = np.where(kept > 0, tp / np.maximum(kept, 1), 0.0)
+    return precision, tp / n_gt
 
 
 def max_f1_operating_point(scores: np.ndarray, labels: np.ndarray, is_tp: np.ndarray, n_gt: np.ndarray) -> OperatingPoint:
@@ -55,6 +49,10 @@ def max_f1_operating_point(scores: np.ndarray, labels: np.ndarray, is_tp: np.nda
 
     ``scores``, ``labels`` (category index 0..K-1) and ``is_tp`` describe the evaluated, non-ignored detections;
     ``n_gt[k]`` is the number of non-crowd GT of category ``k``.
+
+    One sort of all detections by descending score gives every candidate threshold at once: the end of each group
+    of equal scores is the last detection kept at that threshold, and per-category running counts of kept and
+    true-positive detections there give ``P_k`` and ``R_k`` at every threshold.
     """
     scores = np.asarray(scores, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)
@@ -67,20 +65,22 @@ def max_f1_operating_point(scores: np.ndarray, labels: np.ndarray, is_tp: np.nda
     scores, labels, is_tp = scores[keep], labels[keep], is_tp[keep]
     if len(scores) == 0:
         return OperatingPoint(None, 0.0, 0.0, 0.0, {int(k): (0.0, 0.0) for k in cats})
-    thresholds = np.unique(scores)  # ascending: argmax picks the lowest threshold among ties
-    f1_sum = np.zeros(len(thresholds))
-    by_cat = {int(k): labels == k for k in cats}
+    order = np.argsort(-scores, kind="stable")
+    s, lab, tp = scores[order], labels[order], is_tp[order]
+    ends = np.r_[np.flatnonzero(s[1:] != s[:-1]), len(s) - 1]  # thresholds s[ends], descending
+    f1_sum = np.zeros(len(ends))
+    counts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for k in cats:
-        m = by_cat[int(k)]
-        p, r = _pr_curves(scores[m], is_tp[m], int(n_gt[k]), thresholds)
-        f1_sum += _f1(p, r)
-    best = int(np.argmax(f1_sum))
-    t = thresholds[best : best + 1]
+        m = lab == k
+        counts[int(k)] = (np.cumsum(m)[ends], np.cumsum(tp & m)[ends])  # kept, TP at each threshold
+        f1_sum += _f1(*_precision_recall(*counts[int(k)], int(n_gt[k])))
+    # the maximum at the lowest threshold among equal maxima (thresholds are descending here)
+    best = len(ends) - 1 - int(np.argmax(f1_sum[::-1]))
     per_cat: dict[int, tuple[float, float]] = {}
     for k in cats:
-        m = by_cat[int(k)]
-        p, r = _pr_curves(scores[m], is_tp[m], int(n_gt[k]), t)
+        kept, tp_k = counts[int(k)]
+        p, r = _precision_recall(kept[best:best + 1], tp_k[best:best + 1], int(n_gt[k]))
         per_cat[int(k)] = (float(p[0]), float(r[0]))
     ps = np.array([v[0] for v in per_cat.values()])
     rs = np.array([v[1] for v in per_cat.values()])
-    return OperatingPoint(float(t[0]), float(ps.mean()), float(rs.mean()), float(_f1(ps, rs).mean()), per_cat)
+    return OperatingPoint(float(s[ends[best]]), float(ps.mean()), float(rs.mean()), float(_f1(ps, rs).mean()), per_cat)
