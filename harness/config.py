@@ -170,6 +170,15 @@ def parse_override(item: str) -> dict[str, Any]:
     return node
 
 
+def _named_file(root: Path, kind: str, name: str, option: str) -> Path:
+    """``<root>/<kind>/<name>.yaml`` for a profile, protocol or detector name; a name that is a path (``../x``,
+    ``a/b``, an absolute path) is refused, so a name can never read a file outside the config folder."""
+    if not name or name in (".", "..") or any(c in name for c in ("/", "\\", "\x00")) or os.path.isabs(name):
+        raise ConfigError(f"{option} {name!r}: expected a plain name such as those under {root / kind} "
+                          f"(available: {', '.join(available(kind)) or 'none'}); to use your own file, pass --config FILE")
+    return root / kind / f"{name}.yaml"
+
+
 def available(kind: str) -> list[str]:
     folder = config_dir() / kind
     return sorted(p.stem for p in folder.glob("*.yaml")) if folder.exists() else []
@@ -189,17 +198,17 @@ def load_config(
     cfg = copy.deepcopy(sch)
     layers: list[tuple[str, Mapping[str, Any]]] = []
     if protocol:
-        path = root / "protocols" / f"{protocol}.yaml"
+        path = _named_file(root, "protocols", protocol, "protocol")
         if not path.exists():
             raise ConfigError(f"unknown protocol {protocol!r}: no {path} (available: {', '.join(available('protocols'))})")
         layers.append((str(path), read_yaml(path)))
     if detector_defaults:
         layers.append((f"defaults of detector {detector!r}", detector_defaults))
-    if detector and (root / "detectors" / f"{detector}.yaml").exists():
-        path = root / "detectors" / f"{detector}.yaml"
+    if detector and _named_file(root, "detectors", detector, "detector").exists():
+        path = _named_file(root, "detectors", detector, "detector")
         layers.append((str(path), read_yaml(path)))
     if profile:
-        path = root / "profiles" / f"{profile}.yaml"
+        path = _named_file(root, "profiles", profile, "--profile")
         if not path.exists():
             raise ConfigError(f"unknown profile {profile!r}: no {path} (available: {', '.join(available('profiles'))})")
         layers.append((str(path), read_yaml(path)))

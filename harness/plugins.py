@@ -59,6 +59,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",
+    "harness.commands.sweep",
     "harness.commands.report",
 )
 

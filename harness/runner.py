@@ -16,6 +16,9 @@ Everything lands in the results store (``harness.store``): ``config.yaml``, ``st
 ``checkpoints/``, ``predictions.json``, ``gt.json`` and ``metrics.json`` (support, metrics, per-category AP, model
 parameters, training summary and environment). ``ablate`` runs one fold over several encodings for the seed's
 encoding-ablation table.
+
+Under ``torchrun`` every process runs this same job (``harness.distributed``): rank 0 prepares the dataset first and
+is the only one that writes the store; training and prediction are shared by all processes.
 """
 
 from __future__ import annotations
@@ -166,8 +169,52 @@ def run_hash(cfg: Mapping[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- the job
-def run(request: RunRequest) -> RunSummary:
-    """Train and evaluate every selected fold and seed; see the module docstring."""
+@dataclass
+class PlannedRun:
+    """One (fold, seed) of a request, before anything is trained: its store folder, configuration and hash."""
+
+    fold: Any
+    seed: int
+    run: Run
+    config: dict[str, Any]
+    digest: str
+
+    @property
+    def state(self) -> str:
+        """``finished`` (same configuration: skipped), ``conflict`` (finished with another one), or ``todo``."""
+        if not self.run.is_finished():
+            return "todo"
+        return "finished" if (self.run.status() or {}).get("config_hash") == self.digest else "conflict"
+
+
+@dataclass
+class RunPlan:
+    """What ``run`` would do for a request: the resolved plugins, configuration, prepared data and runs."""
+
+    detector: Any
+    dataset: Any
+    encoding: Any
+    config: dict[str, Any]
+    init: str | None
+    store: Store
+    prepared: Any
+    runs: list[PlannedRun]
+
+    def conflicts(self) -> list[str]:
+        return [f"{p.run.key} (stored {(p.run.status() or {}).get('config_hash')}, now {p.digest})"
+                for p in self.runs if p.state == "conflict"]
+
+
+def conflict_error(conflicts: Sequence[str], store: Store) -> StoreError:
+    return StoreError(
+        "these runs already finished with a different configuration: " + "; ".join(conflicts)
+        + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
+    )
+
+
+def plan(request: RunRequest) -> RunPlan:
+    """Resolve the request (plugins, configuration, prepared dataset, folds, seeds) into its runs."""
+    from harness import distributed as hd
     from harness.plugins import get_host
 
     host = get_host()
@@ -182,36 +229,40 @@ def run(request: RunRequest) -> RunSummary:
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
 
-    prepared = prepare_dataset(ds.name, cfg)
+    with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
+        prepared = prepare_dataset(ds.name, cfg)
     folds = resolve_folds(ds, prepared, cfg, request.folds or "all")
     if not folds:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
     fingerprint = str(prepared.manifest.get("fingerprint", ""))
 
-    plan: list[tuple[Any, int, Run, dict[str, Any], str]] = []
-    conflicts = []
+    runs = []
     for fold in folds:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
             rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "val_groups": list(fold.val_groups),
                                          "train_groups": list(fold.train_groups), **init_info})
-            digest = run_hash(rcfg)
-            r = store.run(key)
-            st = r.status() or {}
-            if r.is_finished() and st.get("config_hash") != digest and not request.force:
-                conflicts.append(f"{key} (stored {st.get('config_hash')}, now {digest})")
-            plan.append((fold, seed, r, rcfg, digest))
-    if conflicts:
-        raise StoreError(
-            "these runs already finished with a different configuration: " + "; ".join(conflicts)
-            + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
-        )
+            runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
+    return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
 
-    summary = RunSummary(det.name, ds.name, enc.name, request.profile, store.root, cfg, list(prepared.categories))
-    for fold, seed, r, rcfg, digest in plan:
+
+def run(request: RunRequest) -> RunSummary:
+    """Train and evaluate every selected fold and seed; see the module docstring."""
+    from harness import distributed as hd
+
+    hd.init_from_env()
+    p = plan(request)
+    det, ds, enc, prepared, init = p.detector, p.dataset, p.encoding, p.prepared, p.init
+    conflicts = p.conflicts()
+    if conflicts and not request.force:
+        raise conflict_error(conflicts, p.store)
+
+    summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
+                         list(prepared.categories))
+    for planned in p.runs:
+        fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
-        st = r.status() or {}
-        if r.is_finished() and st.get("config_hash") == digest and not request.force:
+        if planned.state == "finished" and not request.force:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
             summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx), len(val_idx)))
             continue
@@ -227,6 +278,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
     import torch
 
+    from harness import distributed as hd
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
@@ -238,14 +290,20 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         raise ConfigError(f"fold {fold.name!r}: no training images (train groups {list(fold.train_groups)})")
     if not val_idx:
         raise ConfigError(f"fold {fold.name!r}: no held-out images (groups {list(fold.val_groups)})")
+    dist = hd.info()
+    main = dist.is_main
     st = r.status() or {}
-    fresh = force or st.get("config_hash") != digest
-    if fresh and r.path.exists():
-        for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
-            stale.unlink(missing_ok=True)
-    r.path.mkdir(parents=True, exist_ok=True)
-    r.write_config(cfg)
-    r.set_status("running", config_hash=digest, fold=fold.name, seed=seed)
+    # under torchrun rank 0 decides (before it writes the status the other processes would otherwise read)
+    fresh = hd.broadcast_object(force or st.get("config_hash") != digest)
+    if main:
+        if fresh and r.path.exists():
+            for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
+                stale.unlink(missing_ok=True)
+        r.path.mkdir(parents=True, exist_ok=True)
+        r.write_config(cfg)
+        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed,
+                     **({"world_size": dist.world_size} if dist.active else {}))
+    hd.barrier()
 
     settings = TrainSettings.from_config(cfg, seed)
     eval_cfg = cfg["eval"]
@@ -263,10 +321,12 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     init_report = ckpt.init_from(model, init, det.load_official) if init else None
     name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
-    def validate(m: Any) -> dict[str, Any]:
+    def validate(m: Any) -> dict[str, Any] | None:
         dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
                        next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       name=det.name)
+                       name=det.name, distributed=dist.active)
+        if not main:
+            return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
         res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
         out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
         out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
@@ -285,14 +345,20 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             final.load_state_dict(ckpt.load(result.best_path)["model"])
         final.eval()
         t0 = time.perf_counter()
+        visited: list[int] = []
         dets = predict(final, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
                        trainer.device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       progress=progress, name=det.name)
+                       progress=progress, name=det.name, distributed=dist.active, visited=visited)
         predict_s = time.perf_counter() - t0
+        if not main:  # rank 0 scores and writes; the others read its metrics once they are stored
+            hd.barrier()
+            return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
+                              len(val_idx))
         evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
     except BaseException as exc:
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
-        r.set_status("failed", config_hash=digest, error=reason)
+        if main:
+            reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+            r.set_status("failed", config_hash=digest, error=reason)
         raise
     support = dict(evaluation["support"])
     support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
@@ -304,7 +370,8 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
                   "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
         "train": {**result.summary(), "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
-                  "init": init_report, "predict_s": round(predict_s, 3),
+                  "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
+                  "processes": dist.world_size,
                   "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
         "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
     }
@@ -312,6 +379,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     atomic_write_json(r.gt_path, gt, indent=None)
     r.write_metrics(metrics)
     r.set_status("finished", config_hash=digest, error=None)
+    hd.barrier()
     m = evaluation["metrics"]
     log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
              m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))

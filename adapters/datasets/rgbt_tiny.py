@@ -108,6 +108,8 @@ def parse_file_name(name: str) -> tuple[str, FrameKey, str]:
     if rel.startswith("images/"):
         rel = rel[len("images/"):]
     parts = [p for p in rel.split("/") if p]
+    if ".." in parts or (parts and ":" in parts[0]):  # "a/../../x", "C:/x": the file must be under images/
+        raise ValueError(f"{name!r} leads outside the dataset's images folder; file names must stay inside it")
     if len(parts) < 3 or parts[-2] not in DIR_MODALITY or "." not in parts[-1]:
         raise ValueError(f"expected '<SEQ>/00|01/<frame>.jpg', got {name!r}")
     return "/".join(parts), FrameKey(parts[-3], parts[-1].rsplit(".", 1)[0]), parts[-2]

@@ -62,11 +62,17 @@ def register_commands(cli: click.Group) -> None:
         Example:
           harness run --detector ours --dataset m3t-synth --folds all --profile smoke
         """
+        from harness import distributed as hd
         from harness.runner import RunRequest, category_table, fold_table, run
 
-        summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=folds, seeds=seeds,
-                                 profile=profile, config_files=config_files, overrides=overrides, store=store,
-                                 force=force, init=init, progress=not no_progress))
+        try:
+            summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=folds, seeds=seeds,
+                                     profile=profile, config_files=config_files, overrides=overrides, store=store,
+                                     force=force, init=init, progress=not no_progress))
+            if not hd.is_main():  # under torchrun rank 0 prints the tables
+                return
+        finally:
+            hd.shutdown()
         click.echo(fold_table(summary))
         click.echo()
         click.echo(category_table(summary))

@@ -226,17 +226,25 @@ def targets_to(targets: list[dict[str, torch.Tensor]], device: torch.device | st
 
 
 class EpochSampler(Sampler[int]):
-    """A shuffled order that depends only on ``(seed, epoch)``; ``max_images`` keeps the first N of it."""
+    """A shuffled order that depends only on ``(seed, epoch)``; ``max_images`` keeps the first N of it.
 
-    def __init__(self, n: int, seed: int = 0, max_images: int | None = None, shuffle: bool = True):
+    Under ``torchrun`` (``world > 1``) process ``rank`` takes its share of that order
+    (``harness.distributed.shard_order``: every ``world``-th index, padded by wrapping around so that every process
+    runs the same number of iterations); together the processes see the order a single process would see.
+    """
+
+    def __init__(self, n: int, seed: int = 0, max_images: int | None = None, shuffle: bool = True,
+                 rank: int = 0, world: int = 1):
         self.n, self.seed, self.shuffle = int(n), int(seed), shuffle
         self.max_images = None if max_images is None else max(1, int(max_images))
+        self.rank, self.world = int(rank), int(world)
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
-    def order(self) -> list[int]:
+    def full_order(self) -> list[int]:
+        """The epoch's order over all processes."""
         if not self.shuffle:
             idx = list(range(self.n))
         else:
@@ -244,20 +252,30 @@ class EpochSampler(Sampler[int]):
             idx = torch.randperm(self.n, generator=g).tolist()
         return idx[: self.max_images] if self.max_images is not None else idx
 
+    def order(self) -> list[int]:
+        """This process's part of the epoch's order (all of it for a single process)."""
+        if self.world <= 1:
+            return self.full_order()
+        from harness.distributed import shard_order
+
+        return shard_order(self.full_order(), self.rank, self.world)
+
     def __iter__(self) -> Iterator[int]:
         return iter(self.order())
 
     def __len__(self) -> int:
-        return self.n if self.max_images is None else min(self.n, self.max_images)
+        total = self.n if self.max_images is None else min(self.n, self.max_images)
+        return -(-total // self.world) if self.world > 1 else total
 
 
 def train_loader(dataset: TrainDataset, batch: int, workers: int = 0, seed: int = 0,
-                 max_images: int | None = None) -> DataLoader:
-    sampler = EpochSampler(len(dataset), seed=seed, max_images=max_images)
+                 max_images: int | None = None, rank: int = 0, world: int = 1) -> DataLoader:
+    """Training batches of ``batch`` images for process ``rank`` of ``world`` (one process: the whole order)."""
+    sampler = EpochSampler(len(dataset), seed=seed, max_images=max_images, rank=rank, world=world)
     return DataLoader(dataset, batch_size=int(batch), sampler=sampler, num_workers=int(workers), collate_fn=collate,
                       drop_last=False, generator=torch.Generator().manual_seed(int(seed)),
                       persistent_workers=False)
 
 
-def eval_loader(dataset: LetterboxDataset, batch: int, workers: int = 0) -> DataLoader:
+def eval_loader(dataset: Dataset, batch: int, workers: int = 0) -> DataLoader:
     return DataLoader(dataset, batch_size=int(batch), shuffle=False, num_workers=int(workers), collate_fn=collate)

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torch.utils.data import Subset
 
 from harness.engine.data import LetterboxDataset, SampleSource, eval_loader, to_inputs
 from harness.errors import PluginError
@@ -55,17 +56,31 @@ def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: A
 def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, input_kind: str = "single",
             thermal_channels: int = 3, device: torch.device | str = "cpu", conf: float | None = None,
             iou: float | None = None, max_det: int | None = None, num_classes: int | None = None,
-            workers: int = 0, progress: bool = False, name: str = "model") -> list[dict[str, Any]]:
-    """Detections for every image of ``source`` (COCO results, see the module docstring)."""
+            workers: int = 0, progress: bool = False, name: str = "model", distributed: bool = False,
+            visited: list[int] | None = None) -> list[dict[str, Any]]:
+    """Detections for every image of ``source`` (COCO results, see the module docstring).
+
+    With ``distributed`` (under ``torchrun``) each process predicts one contiguous shard of the images
+    (``harness.distributed.inference_shard``: every image exactly once, no padding duplicates) and rank 0 receives
+    all detections, in the order a single process would produce them; the other ranks get an empty list. When
+    given, ``visited`` receives the ids of the images predicted (on rank 0: by all processes).
+    """
+    from harness import distributed as hd
+
     if conf is not None:
         configure(model, conf, iou if iou is not None else getattr(model, "iou", 0.7),
                   max_det if max_det is not None else getattr(model, "max_det", 300))
+    d = hd.info() if distributed else hd.DistInfo()
     was_training = model.training
     model.eval()
     device = torch.device(device)
-    loader = eval_loader(LetterboxDataset(source, imgsz), batch, workers)
+    dataset: Any = LetterboxDataset(source, imgsz)
+    if d.active:
+        dataset = Subset(dataset, list(hd.inference_shard(len(source), d.rank, d.world_size)))
+    loader = eval_loader(dataset, batch, workers)
     results: list[dict[str, Any]] = []
-    ctx = _bar(progress, len(source), f"predict {name}")
+    ids: list[int] = []
+    ctx = _bar(progress and d.is_main, len(dataset), f"predict {name}")
     try:
         with ctx as (bar, task):
             for b in loader:
@@ -75,10 +90,24 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
                                       f"({len(b)}), got {type(out).__name__}")
                 for det, image_id, lb in zip(out, b.image_ids, b.letterboxes):
                     results.extend(detections_to_coco(det, image_id, lb, num_classes, name))
+                ids.extend(int(i) for i in b.image_ids)
                 if bar is not None:
                     bar.update(task, advance=len(b))
     finally:
         model.train(was_training)
+    if d.active:
+        parts = hd.gather_to_main((results, ids))
+        if parts is None:
+            results, ids = [], []
+        else:
+            results = [r for part, _ in parts for r in part]
+            ids = [i for _, part in parts for i in part]
+            expected = [source.image_id(k) for k in range(len(source))]
+            if ids != expected:  # the shards must partition the images exactly
+                raise PluginError(f"distributed prediction visited {len(ids)} images ({len(set(ids))} distinct), "
+                                  f"expected each of the {len(expected)} images once")
+    if visited is not None:
+        visited.extend(ids)
     return results
 
 

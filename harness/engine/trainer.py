@@ -12,6 +12,13 @@ validation of the EMA weights through the ``validate`` callback, ``fitness = 0.1
 weights saved to ``best.pt``, a log line and a ``log.jsonl`` record, the full state saved to ``last.pt``, and early
 stopping after ``patience`` epochs without a better fitness. ``fit(resume=True)`` continues from ``last.pt`` to the
 same state an uninterrupted run would have reached.
+
+Under ``torchrun`` (``harness.distributed``) the model is wrapped in ``DistributedDataParallel``; ``train.batch`` stays
+the global batch, split evenly over the processes, each of which takes its share of the epoch's order. The summed
+loss is multiplied by the number of processes because DDP averages gradients over them, so a gradient is the same
+sum over images as on one process and the hyper-parameters (learning rate, nominal batch, weight decay) carry over.
+Validation shards the held-out images over the processes and rank 0 scores them; its metrics are broadcast so that
+every process takes the same best-epoch and early-stopping decisions. Only rank 0 writes checkpoints and logs.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import nn
 
+from harness import distributed as hd
 from harness.engine import checkpoint as ckpt
 from harness.engine import optim
 from harness.engine.data import TrainDataset, targets_to, to_inputs, train_loader
@@ -137,7 +145,10 @@ class Trainer:
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.validate, self.on_epoch, self.progress = validate, on_epoch, progress
         self.config_hash, self.name = config_hash, name
+        self.dist = hd.info()
         self.device = select_device(settings.device)
+        if self.dist.active and self.device.type == "cuda":
+            self.device = torch.device("cuda", self.dist.local_rank)
         self.ema: ModelEMA | None = None
 
     # ------------------------------------------------------------------ paths
@@ -162,7 +173,15 @@ class Trainer:
         if s.channels_last:
             model = model.to(memory_format=torch.channels_last)
         amp = bool(s.amp and self.device.type == "cuda")
-        loader = train_loader(self.dataset, s.batch, s.workers, s.seed, s.max_images)
+        d = self.dist
+        main = d.is_main
+        batch = s.batch
+        if d.active:
+            batch = max(1, s.batch // d.world_size)
+            if s.batch % d.world_size:
+                log.warning("train.batch=%d is not a multiple of %d processes; each process takes %d images",
+                            s.batch, d.world_size, batch)
+        loader = train_loader(self.dataset, batch, s.workers, s.seed, s.max_images, d.rank, d.world_size)
         nb = len(loader)
         accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
         wd = optim.scaled_weight_decay(s.weight_decay, s.batch, accumulate_target, s.nominal_batch)
@@ -196,10 +215,24 @@ class Trainer:
                                         history, resumed_from)
                 log.info("%s: resuming after epoch %d of %d", self.name, start_epoch, s.epochs)
 
+        train_model: nn.Module = model
+        if d.active:  # after resuming, so that every process wraps the same weights
+            from torch.nn.parallel import DistributedDataParallel
+
+            # some detectors keep parameters their forward never uses (ICAFusion's checkpoint layout has such
+            # layers): DDP must then look for unused parameters at every step, or it waits for their gradients
+            unused = self._unused_parameters(model, loader, start_epoch, amp)
+            if unused:
+                log.info("%s: %d parameters get no gradient (e.g. %s); DDP looks for unused parameters every step",
+                         self.name, len(unused), unused[0])
+            train_model = DistributedDataParallel(
+                model, device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=bool(hd.any_process(bool(unused))))
+
         t_start = time.perf_counter()
         stopped_early = False
         epoch = start_epoch - 1
-        bar = _progress(self.progress)
+        bar = _progress(self.progress and main)
         with bar:
             for epoch in range(start_epoch, s.epochs):
                 t0 = time.perf_counter()
@@ -226,8 +259,10 @@ class Trainer:
                     inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last)
                     targets = targets_to(batch.targets, self.device)
                     with torch.autocast(self.device.type, enabled=amp):
-                        losses = model(inputs, targets)
+                        losses = train_model(inputs, targets)
                     loss = self._total(losses, epoch, i)
+                    if d.active:  # DDP averages gradients over processes; the loss is a sum over images
+                        loss = loss * d.world_size
                     scaler.scale(loss).backward()
                     pending = True
                     for k, v in losses.items():
@@ -242,7 +277,8 @@ class Trainer:
                     last_opt_step = nb * (epoch + 1) - 1
                 bar.remove_task(task)
 
-                mean_losses = {k: v / max(nb, 1) for k, v in sums.items()}
+                mean_losses = hd.all_reduce_mean({k: v / max(nb, 1) for k, v in sums.items()})
+                seen *= d.world_size
                 metrics = None
                 validated = self.validate is not None and ((epoch + 1) % s.val_period == 0 or epoch + 1 == s.epochs)
                 if validated:
@@ -255,7 +291,7 @@ class Trainer:
                 improved = fit is not None and (best_fit is None or fit > best_fit)
                 if improved:
                     best_fit, best_epoch = fit, epoch + 1
-                    if self.best_path is not None:
+                    if self.best_path is not None and main:
                         ckpt.save(self.best_path, {"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch,
                                                    "model": _cpu_state(self.eval_model), "fitness": fit,
                                                    "config_hash": self.config_hash})
@@ -269,10 +305,11 @@ class Trainer:
                     "improved": improved,
                 }
                 history.append(record)
-                log.info(_line(record, self.name))
+                if main:
+                    log.info(_line(record, self.name))
                 stopped_early = best_epoch is not None and (epoch + 1) - best_epoch >= s.patience and epoch + 1 < s.epochs
                 done = stopped_early or epoch + 1 == s.epochs
-                if self.last_path is not None:
+                if self.last_path is not None and main:
                     ckpt.save(self.last_path, {
                         "format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch, "done": done,
                         "stopped_early": stopped_early, "model": _cpu_state(model), "optimizer": opt.state_dict(),
@@ -282,12 +319,13 @@ class Trainer:
                         "history": history, "last_opt_step": last_opt_step, "config_hash": self.config_hash,
                         "settings": asdict(s),
                     })
-                if self.on_epoch is not None:  # after the checkpoint: a resumed run never logs an epoch twice
+                if self.on_epoch is not None and main:  # after the checkpoint: a resumed run never logs an epoch twice
                     self.on_epoch(record)
                 if stopped_early:
                     log.info("%s: no better fitness for %d epochs, stopping after epoch %d (best: epoch %d)",
                              self.name, s.patience, epoch + 1, best_epoch)
                     break
+        hd.barrier()  # the other processes may now read what rank 0 wrote (best.pt)
         return self._result(epoch + 1, best_epoch, best_fit, stopped_early, time.perf_counter() - t_start, history,
                             resumed_from)
 
@@ -317,13 +355,41 @@ class Trainer:
         if self.ema is not None:
             self.ema.update(model)
 
+    def _unused_parameters(self, model: nn.Module, loader: Any, epoch: int, amp: bool) -> list[str]:
+        """Names of the trainable parameters that get no gradient from one training step on this process's first
+        batch, found on a copy of the model; the random generators are restored, so training is unaffected."""
+        import copy
+
+        from harness.engine.data import collate
+
+        s = self.s
+        self.dataset.set_epoch(epoch, mosaic=epoch < s.epochs - s.close_mosaic)
+        loader.sampler.set_epoch(epoch)
+        order = loader.sampler.order()[: loader.batch_size]
+        batch = collate([self.dataset[k] for k in order])
+        cpu_rng = torch.get_rng_state()
+        cuda_rng = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
+        probe = copy.deepcopy(model).train()
+        try:
+            inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last)
+            with torch.autocast(self.device.type, enabled=amp):
+                losses = probe(inputs, targets_to(batch.targets, self.device))
+            self._total(losses, epoch, 0).backward()
+            return [n for n, p in probe.named_parameters() if p.requires_grad and p.grad is None]
+        finally:
+            del probe
+            torch.set_rng_state(cpu_rng)
+            if cuda_rng is not None:
+                torch.cuda.set_rng_state_all(cuda_rng)
+
     def _validate(self) -> Mapping[str, Any]:
         m = self.eval_model
         was_training = m.training
         m.eval()
         try:
             assert self.validate is not None
-            return self.validate(m)
+            # under torchrun rank 0 scores the gathered predictions; every process takes its metrics
+            return hd.broadcast_object(self.validate(m))
         finally:
             m.train(was_training)
 
