@@ -23,6 +23,7 @@ is the only one that writes the store; training and prediction are shared by all
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
@@ -31,11 +32,11 @@ import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 from harness.errors import ConfigError, StoreError
 from harness.io import atomic_write_json
-from harness.store import Run, RunKey, Store, config_hash, image_ids_hash
+from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
 from harness.textable import text_table
 
 log = logging.getLogger(__name__)
@@ -266,10 +267,37 @@ def run(request: RunRequest) -> RunSummary:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
             summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx), len(val_idx)))
             continue
-        result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
-                         init=init, force=request.force, progress=request.progress)
+        with _run_lock(r):
+            st = r.status() or {}
+            if not request.force and r.is_finished() and st.get("config_hash") == digest \
+                    and not hd.info().active:  # finished by another process while this one waited its turn
+                log.info("%s: finished by another process meanwhile, skipped", r.key)
+                summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx),
+                                                  len(val_idx)))
+                continue
+            result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
+                             init=init, force=request.force, progress=request.progress)
         summary.results.append(result)
     return summary
+
+
+@contextlib.contextmanager
+def _run_lock(r: Run) -> Iterator[None]:
+    """The run's store lock, held by the process that writes the store (rank 0 under torchrun); every rank learns
+    whether it was free, so all of them stop together when another process is training that run."""
+    from harness import distributed as hd
+
+    with contextlib.ExitStack() as stack:
+        busy: str | None = None
+        if hd.is_main():
+            try:
+                stack.enter_context(r.exclusive())
+            except RunBusyError as exc:
+                busy = str(exc)
+        busy = hd.broadcast_object(busy)
+        if busy is not None:
+            raise RunBusyError(busy)
+        yield
 
 
 def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,

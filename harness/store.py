@@ -33,9 +33,11 @@ skips it rather than counting it as zero.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -81,6 +83,10 @@ def image_ids_hash(image_ids: list[int]) -> str:
     return hashlib.sha1(",".join(str(int(i)) for i in sorted(image_ids)).encode()).hexdigest()
 
 
+class RunBusyError(StoreError):
+    """Another process holds the run's lock (it is training that run now)."""
+
+
 class Run:
     """The folder of one run and typed access to its files."""
 
@@ -116,6 +122,40 @@ class Run:
     @property
     def checkpoint_dir(self) -> Path:
         return self.path / "checkpoints"
+
+    @property
+    def lock_path(self) -> Path:
+        return self.path / ".lock"
+
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the run's lock (an advisory ``flock`` on ``.lock``) while the block runs.
+
+        Two processes given the same run (two sweeps, or a sweep and a ``harness run`` on one store) cannot train it
+        at once: the second gets a ``RunBusyError`` naming the holder. The operating system drops the lock when its
+        holder exits, even after ``kill -9``, so a crashed run never leaves a stale lock behind.
+        """
+        import fcntl
+
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.lock_path, "a+", encoding="utf-8") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                f.seek(0)
+                holder = f.read().strip() or "unknown process"
+                raise RunBusyError(f"run {self.key} ({self.path}) is being trained by another process ({holder}); "
+                                   f"wait for it to finish, or use another --store") from None
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()} on {socket.gethostname()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
+            f.flush()
+            try:
+                yield
+            finally:
+                f.seek(0)
+                f.truncate()
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
     # status
     def status(self) -> dict[str, Any] | None:

@@ -104,6 +104,18 @@ def test_finished_runs_are_skipped_changed_ones_refused_and_forced(plugins, tmp_
     assert read_yaml(init.results[0].path / "config.yaml")["train"]["init"] == str(best)
 
 
+def test_a_run_another_process_is_training_is_refused_and_left_alone(plugins, tmp_path):
+    from harness.runner import run
+    from harness.store import RunBusyError, RunKey, Store
+
+    busy = Store(tmp_path / "store").run(RunKey("shapes", "tinydet", "test-ir8", "A", 0))
+    with busy.exclusive():
+        with pytest.raises(RunBusyError, match="being trained by another process"):
+            run(request(tmp_path, folds="A"))
+        assert {p.name for p in busy.path.iterdir()} == {".lock"}  # nothing of the other process's run touched
+    assert run(request(tmp_path, folds="A")).results[0].state == "trained"
+
+
 @pytest.mark.slow
 def test_an_interrupted_run_resumes_to_the_uninterrupted_result(plugins, tmp_path, monkeypatch):
     from harness.engine import trainer as trainer_mod

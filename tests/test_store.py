@@ -91,3 +91,37 @@ def test_sigkill_during_writes_never_leaves_a_truncated_file(tmp_path):
         proc.wait()
     data = json.loads(target.read_text())
     assert data["i"] >= 0 and len(data["pad"]) == 200000
+
+
+def test_a_run_is_trained_by_one_process_at_a_time(tmp_path):
+    from harness.store import RunBusyError
+
+    run = Store(tmp_path).run(RunKey("m3t", "ours", "c2", "P1", 0))
+    with run.exclusive():
+        assert f"pid {os.getpid()}" in run.lock_path.read_text()
+        with pytest.raises(RunBusyError, match=rf"m3t/ours/c2/P1/seed0.*another process \(pid {os.getpid()} on "):
+            with run.exclusive():
+                pass
+    assert run.lock_path.read_text() == ""
+    with run.exclusive():  # free again once released
+        pass
+
+
+def test_a_killed_holder_leaves_no_stale_lock(tmp_path):
+    from harness.store import RunBusyError
+
+    run = Store(tmp_path).run(RunKey("m3t", "ours", "c2", "P1", 0))
+    code = ("import sys, time; from pathlib import Path; from harness.store import Store, RunKey\n"
+            f"r = Store(Path({str(tmp_path)!r})).run(RunKey('m3t', 'ours', 'c2', 'P1', 0))\n"
+            "with r.exclusive():\n    print('locked', flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "locked"
+        with pytest.raises(RunBusyError, match=f"pid {proc.pid}"):
+            with run.exclusive():
+                pass
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    with run.exclusive():  # the operating system released the dead holder's lock
+        pass
