@@ -247,3 +247,19 @@ def test_decode_command_routes_and_overrides(tmp_path, cli_runner):
     assert res.exit_code == 0 and np.abs(c - 30.0).max() <= 1 / 32 + 1e-5
     res = cli_runner(["sensing", "decode", str(tabled), "--out", str(tmp_path / "o4"), "--distance", "40"])
     assert res.exit_code == 2 and "distance=40" in res.output and "Traceback" not in res.output
+
+
+def test_config_selects_the_route_and_keys_the_cache():
+    from harness.config import load_config
+    from harness.prepare import cache_key
+    from harness.sensing.options import SensingOptions
+
+    cfg = load_config()
+    opts = SensingOptions.from_config(cfg)
+    assert opts.decoder == "auto" and opts.measurement == {}
+    sensing = dict(cfg["sensing"])
+    custom = {**sensing, "radiometry": {**sensing["radiometry"], "emissivity": 0.9}}
+    assert SensingOptions.from_config({"sensing": custom}).measurement == {"emissivity": 0.9}
+    blackbody = {**sensing, "radiometry": {**sensing["radiometry"], "decoder": "blackbody"}}
+    keys = {cache_key("fp", s, "m3t") for s in (sensing, custom, blackbody)}
+    assert len(keys) == 3  # the decoded values differ, so do the prepared caches
