@@ -1,9 +1,11 @@
 """How far the harness's R-JPEG temperatures are from DJI's corrected ones, on the real M3T samples.
 
-Anchor: DJI Thermal SDK ``temp_c`` (reference arrays beside the files). Compared: the blackbody route the harness
-uses (``raw14 / 16 - 273.15``), and two published corrections applied to it in a ``T^4`` radiance balance with the
-file's parameters: grey body only (emissivity, reflected temperature), and grey body + the FLIR/Thermimage
-atmospheric transmission model. Also checks that ``raw14`` is reproduced bit for bit.
+Anchor: DJI Thermal SDK ``temp_c`` (reference arrays beside the files). Compared: the harness's default route
+(``dji``: DJI's correction with the file's APP5 transmission table, ``harness.sensing.dji_correction``), the
+blackbody route (``raw14 / 16 - 273.15``), and two published corrections applied to the blackbody temperature in a
+``T^4`` radiance balance with the file's parameters: grey body only (emissivity, reflected temperature), and grey
+body + the FLIR/Thermimage atmospheric transmission model. Also checks that ``raw14`` is reproduced bit for bit,
+how many pixels of the corrected route equal ``temp_c`` exactly, and the deci-C (``temp_dc``) mismatches.
 
     .venv/bin/python benchmarks/rjpeg_gap.py [--data ../shared/data/dji-m3t-rjpeg]
 """
@@ -55,9 +57,11 @@ def main(argv: list[str] | None = None) -> int:
         ref = np.load(ref_path)
         exact = bool(np.array_equal(rj.raw14, ref["raw14"]))
         p = rj.params
-        t0 = rj.temperature_c.astype(np.float64)
+        t0 = rj.blackbody_c().astype(np.float64)
+        corrected = rj.corrected_c()
         # DJI's iirp SDK uses the reflected temperature for the atmosphere as well (pre-v3 headers)
         routes = {
+            "dji correction (harness)": corrected.astype(np.float64),
             "blackbody (harness)": t0,
             "grey body": radiance_balance(t0, p["emissivity"], p["reflected"], 1.0, p["reflected"]),
             "grey body + FLIR atmosphere": radiance_balance(
@@ -68,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
             d = ref["temp_c"].astype(np.float64) - est
             print(f"{name:<8} {'exact' if exact else 'DIFF':>6} {route:<28} {d.mean():>+8.3f} {np.abs(d).mean():>9.3f} "
                   f"{np.percentile(np.abs(d), 95):>8.3f} {np.abs(d).max():>8.3f}")
+        same = float(np.mean(corrected == ref["temp_c"]))
+        dc_bad = int((rj.deci_celsius() != ref["temp_dc"]).sum())
+        print(f"{name:<8} dji correction: {same:.2%} of pixels equal temp_c bit for bit; "
+              f"deci-C mismatches vs temp_dc: {dc_bad}")
     print("d = DJI temp_c - route, degrees C; target of a full correction: |d| <= 0.05")
     return 0
 

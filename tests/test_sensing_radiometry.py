@@ -38,10 +38,10 @@ def test_real_rjpeg_reproduces_reference_raw14_exactly(name):
     assert rj.raw14.dtype == np.uint16 and rj.raw14.shape == (512, 640)
     np.testing.assert_array_equal(rj.raw14, ref["raw14"])
     expected = ref["raw14"].astype(np.float64) / 16.0 - 273.15
-    t = rj.temperature_c
+    t = rj.blackbody_c()
     assert t.dtype == np.float32
     np.testing.assert_allclose(t, expected, atol=2e-5)
-    np.testing.assert_array_equal(rj.blackbody_c(), t)
+    np.testing.assert_array_equal(read_rjpeg(REAL / f"{name}.jpg", decoder="blackbody").temperature_c, t)
 
 
 @needs_real
@@ -56,8 +56,11 @@ def test_real_rjpeg_parameters_exif_and_preview():
     preview = rj.preview()
     assert preview.shape == (512, 640, 3) and preview.dtype == np.uint8
     temp, info = read_thermal(REAL / "m3t_a.jpg")
-    assert info["format"] == "rjpeg" and info["decoder"] == "blackbody"
+    assert info["format"] == "rjpeg" and info["decoder"] == "dji" and rj.decoder == "dji"
     np.testing.assert_array_equal(temp, rj.temperature_c)
+    temp, info = read_thermal(REAL / "m3t_a.jpg", decoder="blackbody")
+    assert info["decoder"] == "blackbody" and info["unit"] == "raw14"
+    np.testing.assert_array_equal(temp, rj.blackbody_c())
 
 
 @needs_real

@@ -30,7 +30,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import numpy as np
 
 from harness.api import DatasetSpec, Fold, PrepareReport
-from harness.errors import DataError, HarnessError
+from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
 from harness.sample import AlignedSample
 
@@ -568,10 +568,14 @@ class M3TSource:
         return np.ascontiguousarray(img[:, :, ::-1])
 
     def _read_thermal(self, path: Path) -> tuple[np.ndarray, dict[str, Any]]:
+        from harness.sensing.options import SensingOptions
         from harness.sensing.radiometry import read_thermal
 
+        opts = SensingOptions.from_config(self.sensing)
         try:
-            temp, info = read_thermal(path)
+            temp, info = read_thermal(path, decoder=opts.decoder, overrides=opts.measurement)
+        except ConfigError:
+            raise  # a wrong sensing.radiometry setting is not a property of one file
         except HarnessError as exc:
             if "NaN" in str(exc) or "infinite" in str(exc):
                 raise SkipPair(f"non-finite temperatures: {exc}") from None
@@ -827,12 +831,16 @@ class RawAligner:
 
     def read_thermal(self, path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(temperature C, 8-bit preview, info). R-JPEGs give their own palette picture as the preview."""
-        from harness.sensing.radiometry import read_rjpeg
+        from harness.sensing.options import SensingOptions
+        from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature
 
         if path.suffix.lower() in (".jpg", ".jpeg"):
+            opts = SensingOptions.from_config(self.src.sensing)
             try:
-                rj = read_rjpeg(path)
-                temp = rj.temperature_c
+                rj = read_rjpeg(path, opts.decoder)
+                temp, tinfo = rjpeg_temperature(rj, opts.measurement)
+            except ConfigError:
+                raise  # a wrong sensing.radiometry setting is not a property of one file
             except HarnessError as exc:
                 raise SkipPair(f"thermal unreadable: {exc}") from None
             try:
@@ -841,7 +849,7 @@ class RawAligner:
                     ir8 = ir8_from_temperature(temp)
             except HarnessError:
                 ir8 = ir8_from_temperature(temp)
-            return temp, ir8, {"format": "rjpeg", "params": dict(rj.params)}
+            return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"]}
         temp, info = self.src._read_thermal(path)
         return temp, ir8_from_temperature(temp), info
 

@@ -63,31 +63,54 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--format", "fmt", type=click.Choice(["png", "tiff", "npy"]), default=None,
                   help="File type (default: png for centikelvin, tiff otherwise).")
     @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
-    def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool) -> None:
-        """Decode DJI R-JPEGs to temperature files (blackbody, C) with a JSON sidecar stating the unit."""
+    @click.option("--decoder", type=click.Choice(["auto", "dji", "blackbody"]), default="auto", show_default=True,
+                  help="auto: DJI's corrected temperature when the file carries its APP5 table, else blackbody; "
+                       "dji: corrected or an error; blackbody: raw14/16-273.15, uncorrected.")
+    @click.option("--blackbody", is_flag=True, help="Same as --decoder blackbody.")
+    @click.option("--emissivity", type=float, default=None, help="Override the file's emissivity (0.1-1).")
+    @click.option("--distance", type=float, default=None, help="Override the object distance, m (1-25).")
+    @click.option("--humidity", type=float, default=None, help="Override the relative humidity, % (1-100).")
+    @click.option("--reflected", type=float, default=None,
+                  help="Override the reflected temperature, C (-40..100; M3T files also use it for the air).")
+    def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool, decoder: str,
+                   blackbody: bool, emissivity: float | None, distance: float | None, humidity: float | None,
+                   reflected: float | None) -> None:
+        """Decode DJI R-JPEGs to temperature files (C) with a JSON sidecar stating the unit and the route.
+
+        By default the temperature is DJI Thermal SDK's corrected one (emissivity, reflected temperature,
+        atmospheric transmission from the file's APP5 table) at the file's measurement parameters or the ones
+        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody.
+        """
         from harness.textable import text_table as _table
-        from harness.sensing.radiometry import read_rjpeg, write_thermal
+        from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature, write_thermal
 
         fmt = fmt or ("png" if unit == "centikelvin" else "tiff")
+        decoder = "blackbody" if blackbody else decoder
+        overrides = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected}
         rows = []
         with _progress(len(inputs), "decoding") as bar:
             task = bar.add_task("decode", total=len(inputs))
             for path in inputs:
-                rj = read_rjpeg(path)
-                t = rj.temperature_c
+                rj = read_rjpeg(path, decoder)
+                t, info = rjpeg_temperature(rj, overrides)
+                used = info.get("correction", rj.params)
+                route = ("dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
+                         else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
                 target = out_dir / f"{path.stem}.{'tif' if fmt == 'tiff' else fmt}"
                 write_thermal(target, t, unit=unit, params=rj.params,
-                              extra={"source": str(path), "decoder": "blackbody raw14/16-273.15",
+                              extra={"source": str(path), "decoder": route, "decoder_route": rj.decoder,
+                                     **({"correction": info["correction"]} if "correction" in info else {}),
                                      "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))}})
                 if preview:
                     import cv2
 
                     cv2.imwrite(str(out_dir / f"{path.stem}_ir8.png"), rj.preview(grayscale=True))
-                rows.append([path.name, f"{t.shape[1]}x{t.shape[0]}", f"{t.min():.2f}", f"{t.max():.2f}",
-                             f"{t.mean():.2f}", f"{rj.params.get('emissivity', float('nan')):.2f}", target.name])
+                rows.append([path.name, f"{t.shape[1]}x{t.shape[0]}", rj.decoder, f"{t.min():.2f}", f"{t.max():.2f}",
+                             f"{t.mean():.2f}", f"{used.get('emissivity', float('nan')):.2f}",
+                             f"{used.get('distance', float('nan')):.1f}", target.name])
                 bar.advance(task)
-        click.echo(_table(["file", "size", "min C", "max C", "mean C", "emissivity", "written"], rows,
-                          align="lrrrrrl"))
+        click.echo(_table(["file", "size", "route", "min C", "max C", "mean C", "emissivity", "distance m",
+                           "written"], rows, align="lllrrrrrl"))
 
     # ------------------------------------------------------------------------------------------------ calibrate
     @sensing.command(name="calibrate")

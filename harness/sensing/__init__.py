@@ -3,7 +3,8 @@
 =================  ==========================================================================================
 module             what it does
 =================  ==========================================================================================
-``radiometry``     DJI M3T R-JPEG decoding (APP3 raw14, APP4 parameters), decoded thermal files + sidecars
+``radiometry``     DJI M3T R-JPEG decoding (APP3 raw14, APP4 parameters, APP5 correction), decoded files + sidecars
+``dji_correction`` DJI Thermal SDK correction of iirp temperatures (emissivity, reflection, APP5 tau table)
 ``calibration``    checkerboard calibration per sensor, ``CameraModel`` YAML, undistortion without black borders
 ``registration``   RGB->thermal homographies: landmarks, similarity parameters, automatic (ECC on edges), groups
 ``warp``           RGB warped into the thermal frame, common support, boxes carried through H, ``align_pair``

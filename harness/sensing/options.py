@@ -6,6 +6,10 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
 
+#: ``sensing.radiometry`` keys that override an R-JPEG's measurement parameters in DJI's correction
+MEASUREMENT_KEYS = ("emissivity", "distance", "humidity", "reflected")
+
+
 @dataclass(frozen=True)
 class RegistrationOptions:
     homographies: str | None = None
@@ -33,7 +37,8 @@ class WarpOptions:
 
 @dataclass(frozen=True)
 class SensingOptions:
-    decoder: str = "blackbody"
+    decoder: str = "auto"  # R-JPEG route: auto | dji | blackbody (harness.sensing.radiometry.read_rjpeg)
+    measurement: dict[str, float] = field(default_factory=dict)  # correction overrides (emissivity, distance, ...)
     group_gap_s: float = 300.0
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     undistort: UndistortOptions = field(default_factory=UndistortOptions)
@@ -47,8 +52,10 @@ class SensingOptions:
         reg = dict(s.get("registration", {}) or {})
         und = dict(s.get("undistort", {}) or {})
         warp = dict(s.get("warp", {}) or {})
+        rad = dict(s.get("radiometry", {}) or {})
         return cls(
-            decoder=str((s.get("radiometry") or {}).get("decoder", "blackbody")),
+            decoder=str(rad.get("decoder", "auto")),
+            measurement={k: float(rad[k]) for k in MEASUREMENT_KEYS if rad.get(k) is not None},
             group_gap_s=float((s.get("groups") or {}).get("gap_s", 300.0)),
             registration=RegistrationOptions(**{k: v for k, v in reg.items() if k in RegistrationOptions.__annotations__}),
             undistort=UndistortOptions(**{k: v for k, v in und.items() if k in UndistortOptions.__annotations__}),

@@ -16,9 +16,15 @@ Blackbody (uncorrected, emissivity 1, no atmosphere) temperature::
 
     T0 [C] = raw14 / 16 - 273.15          (resolution 1/16 K)
 
-DJI's SDK additionally corrects for emissivity, reflected temperature and atmospheric transmission; that
-correction is not reproduced here (the file's APP5 transmission table is proprietary), so ``T0`` is what the
-harness reports, with the parameters carried along for provenance. See ``docs/sensing.md`` for the measured gap.
+* APP5: a 0x100-byte header and the camera's atmospheric-transmission (tau) table. With it, the temperature is
+  DJI Thermal SDK's corrected one (emissivity, reflected/atmospheric temperature, transmission over distance
+  and humidity; ``harness.sensing.dji_correction``), bit-identical to ``dirp_measure_ex`` on the reference M3T
+  files. Decoders (``read_rjpeg(path, decoder=...)``):
+
+  ``auto`` (default)  corrected when APP5 holds a table; blackbody when the file has no table (no APP5, or a
+                      header-only APP5 as ``write_rjpeg`` writes) or one needing DJI's built-in tables
+  ``dji``             corrected, or an error saying why not
+  ``blackbody``       ``T0``, APP5 not read
 
 Decoded thermal is read from uint16 centi-Kelvin PNG/TIFF, int16 deci-Celsius TIFF, float32 TIFF or ``.npy``; a
 JSON sidecar ``<file>.json`` (e.g. ``frame.png.json``) states the unit (``read_thermal``/``write_thermal``).
@@ -35,8 +41,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from harness.errors import DataError
-from harness.sensing import jpeg
+from harness.errors import ConfigError, DataError
+from harness.sensing import dji_correction, jpeg
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +58,8 @@ PARAM_KEYS = ("ambient", "distance", "emissivity", "humidity", "reflected")
 DEFAULT_PARAMS: dict[str, float] = {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
                                     "reflected": 25.0}
 PARAM_UNITS = {"ambient": "C", "distance": "m", "emissivity": "0-1", "humidity": "%", "reflected": "C"}
+#: ``read_rjpeg`` decoders: auto (corrected when the file carries its table), dji (corrected or error), blackbody.
+DECODERS = ("auto", "dji", "blackbody")
 
 
 # ---------------------------------------------------------------------------------------------- maths
@@ -82,7 +90,9 @@ class RJpeg:
 
     ``raw14`` uint16 HxW counts; ``params`` the APP4 measurement parameters (``ambient`` C, ``distance`` m,
     ``emissivity`` 0-1, ``humidity`` %, ``reflected`` C); ``exif`` the EXIF tags; ``header`` the other APP4
-    fields (format tag, version, gain mode, sensor, width, height).
+    fields (format tag, version, gain mode, sensor, width, height); ``tau_table`` the APP5 transmission table
+    (``None`` when not read or absent); ``decoder`` the route ``temperature_c`` takes (``dji`` or ``blackbody``)
+    and ``decoder_note`` why, when it is ``blackbody``.
     """
 
     path: Path
@@ -90,15 +100,70 @@ class RJpeg:
     params: dict[str, float]
     exif: dict[str, Any] = field(default_factory=dict)
     header: dict[str, Any] = field(default_factory=dict)
+    tau_table: dji_correction.TauTable | None = None
+    decoder: str = "blackbody"
+    decoder_note: str = ""
 
     @property
     def temperature_c(self) -> np.ndarray:
-        """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW)."""
-        return raw14_to_celsius(self.raw14)
+        """Temperature in C (float32 HxW) by the file's route: ``corrected_c()`` when ``decoder == "dji"``,
+        else ``blackbody_c()``."""
+        return self.corrected_c() if self.decoder == "dji" else self.blackbody_c()
 
     def blackbody_c(self) -> np.ndarray:
-        """Same as ``temperature_c`` (named for the correction it leaves out)."""
-        return self.temperature_c
+        """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW): emissivity 1, no atmosphere."""
+        return raw14_to_celsius(self.raw14)
+
+    @property
+    def pre_v0300(self) -> bool:
+        """APP4 format before v0300 (M3T: 0x200): the SDK then takes the air temperature from the reflected one
+        whenever measurement parameters are set."""
+        version = self.header.get("version")
+        if self.header.get("format") != "iirp" or version is None:
+            return True
+        return (version & 0xFFFEFFFF) == 0x200 or version == 0x20200
+
+    def correction_params(self, emissivity: float | None = None, distance: float | None = None,
+                          humidity: float | None = None, reflected: float | None = None,
+                          ambient: float | None = None) -> dict[str, float]:
+        """The parameters ``corrected_c`` uses: the file's, with the given overrides (checked against the
+        ranges DJI's SDK accepts), plus ``atmosphere`` (C): the file's ambient temperature without overrides;
+        with overrides, the reflected temperature for pre-v0300 files (M3T), else the ambient one."""
+        table = self.tau_table
+        given = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected,
+                 "ambient": ambient}
+        over = dji_correction.check_overrides(given, table.max_distance if table else 25.0)
+        if "ambient" in over and self.pre_v0300:
+            raise ConfigError(f"{self.path}: this file's format (APP4 version {self.header.get('version', 0x100):#x}) "
+                              "takes the air temperature from the reflected temperature; set 'reflected' instead of "
+                              "'ambient'")
+        p = {k: float(self.params[k]) for k in PARAM_KEYS if k in self.params}
+        if over:
+            p.update(over)
+            if self.pre_v0300:
+                p["ambient"] = p["reflected"]
+        dji_correction.check_file_params(p, self.path)
+        p["atmosphere"] = p["ambient"]
+        return p
+
+    def corrected_c(self, emissivity: float | None = None, distance: float | None = None,
+                    humidity: float | None = None, reflected: float | None = None,
+                    ambient: float | None = None) -> np.ndarray:
+        """DJI Thermal SDK's corrected temperature in C (float32 HxW), at the file's measurement parameters or
+        the given overrides (emissivity 0.1-1, distance m, humidity %, reflected C; ``ambient`` C only for v0300
+        formats). Equations: ``harness.sensing.dji_correction``. A ``DataError`` when the file has no usable
+        transmission table (``decoder_note`` says why)."""
+        if self.tau_table is None:
+            raise DataError(f"{self.path}: no atmospheric-transmission table to correct with"
+                            f"{' (' + self.decoder_note + ')' if self.decoder_note else ''}; "
+                            "use the blackbody temperature (decoder 'blackbody')")
+        p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
+        return dji_correction.correct_temperature(self.blackbody_c(), self.tau_table, p["emissivity"],
+                                                  p["distance"], p["humidity"], p["reflected"], p["atmosphere"])
+
+    def deci_celsius(self, **overrides: float | None) -> np.ndarray:
+        """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
+        return dji_correction.deci_celsius(self.corrected_c(**overrides))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -118,12 +183,16 @@ class RJpeg:
         return img if grayscale else img[:, :, ::-1].copy()
 
 
-def read_rjpeg(path: str | Path) -> RJpeg:
-    """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1.
+def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
+    """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
+    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring).
 
     ``raw14 = (APP3 words, little-endian uint16) >> 2``. A file that is not a JPEG, has no radiometric payload
-    (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it.
+    (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it;
+    so is a damaged APP5 table (with ``auto`` and ``dji``), and with ``dji`` a file without a usable table.
     """
+    if decoder not in DECODERS:
+        raise ConfigError(f"unknown R-JPEG decoder {decoder!r}; use one of {', '.join(DECODERS)}")
     path = Path(path)
     data = jpeg._read_bytes(path)
     layout = jpeg.read_segments(data, path)
@@ -158,7 +227,33 @@ def read_rjpeg(path: str | Path) -> RJpeg:
         raise DataError(f"{path}: radiometric words have their two low bits set; not the iirp layout "
                         "(14-bit counts shifted left by 2)")
     raw14 = (words >> 2).astype(np.uint16)
-    return RJpeg(path=path, raw14=raw14, params=params, exif=exif, header=header)
+    rj = RJpeg(path=path, raw14=raw14, params=params, exif=exif, header=header)
+    if decoder != "blackbody":
+        _attach_tau_table(rj, layout.payloads(jpeg.APP5), decoder)
+    return rj
+
+
+def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str) -> None:
+    """Set ``rj.tau_table`` and ``rj.decoder`` from the file's first APP5 payload (``decoder`` auto or dji)."""
+    note = ""
+    if not app5:
+        note = "the file has no APP5 calibration segment"
+    elif len(app5[0]) == dji_correction.HEADER_BYTES:
+        note = "APP5 holds only its header, no transmission table (as write_rjpeg writes)"
+    else:
+        try:
+            rj.tau_table = dji_correction.parse_app5(app5[0], rj.header.get("version", 0x100), rj.path)
+        except dji_correction.UnsupportedCorrection as exc:
+            if decoder == "dji":
+                raise
+            note = str(exc).removeprefix(f"{rj.path}: ")
+    if rj.tau_table is None:
+        if decoder == "dji":
+            raise DataError(f"{rj.path}: cannot apply DJI's correction: {note}; use decoder 'blackbody'")
+        log.debug("%s: blackbody temperature (%s)", rj.path, note)
+        rj.decoder, rj.decoder_note = "blackbody", note
+    else:
+        rj.decoder = "dji"
 
 
 def parse_app4(payload: bytes, name: str | Path = "<APP4>") -> tuple[dict[str, Any], dict[str, float]]:
@@ -219,9 +314,12 @@ def write_rjpeg(path: str | Path, temperature_c: np.ndarray, params: Mapping[str
     """Write a DJI-layout iirp R-JPEG whose blackbody temperature is ``temperature_c`` (exact to 1/16 K).
 
     Layout: SOI, APP1 Exif (Make ``DJI``, Model ``M3T``, size, focal length 9.1 mm, plus ``exif``), APP3 chunks of
-    ``raw14 << 2`` little-endian words, APP4 (iirp header + ``params``), APP5 (header only: no transmission
-    table, so DJI's own SDK will not open the file), then the ``preview`` (uint8 HxW or HxWx3 RGB; a white-hot
-    min-max rendering when ``None``) as a baseline JPEG. ``read_rjpeg`` returns ``raw14 = round((T+273.15)*16)``.
+    ``raw14 << 2`` little-endian words, APP4 (iirp header + ``params``), APP5 (its 0x100-byte header only: no
+    transmission table, so DJI's own SDK will not open the file), then the ``preview`` (uint8 HxW or HxWx3 RGB; a
+    white-hot min-max rendering when ``None``) as a baseline JPEG. ``read_rjpeg`` returns
+    ``raw14 = round((T+273.15)*16)``, and because there is no table the file reads back by the blackbody route
+    (``decoder`` ``auto``): ``temperature_c`` is ``temperature_c`` as written, to 1/16 K, whatever ``params`` say
+    (they are carried for provenance; a camera's table cannot be synthesised).
     """
     import cv2
 
@@ -250,7 +348,7 @@ def write_rjpeg(path: str | Path, temperature_c: np.ndarray, params: Mapping[str
     words = (raw14.astype("<u2") << 2).tobytes()
     chunk = 65532  # what the camera uses; even, so no word is split across segments
     app3 = b"".join(jpeg.segment(jpeg.APP3, words[i:i + chunk]) for i in range(0, len(words), chunk))
-    app5 = jpeg.segment(jpeg.APP5, b"\x00\x00\x00\x00" + b"\xff" * 252)
+    app5 = jpeg.segment(jpeg.APP5, b"\x00\x00\x00\x00" + b"\xff" * (dji_correction.HEADER_BYTES - 4))
     out = (b"\xff\xd8" + jpeg.segment(jpeg.APP1, jpeg.build_exif(tags)) + app3
            + jpeg.segment(jpeg.APP4, build_app4(params, w, h)) + app5 + picture[2:])
     from harness.io import atomic_write_bytes
@@ -329,27 +427,49 @@ def _load_array(path: Path) -> np.ndarray:
     return arr
 
 
-def read_thermal(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
+def rjpeg_temperature(rj: RJpeg, overrides: Mapping[str, float | None] | None = None
+                      ) -> tuple[np.ndarray, dict[str, Any]]:
+    """(temperature C float32, info) of a read R-JPEG by its route (``rj.decoder``), with measurement
+    ``overrides`` for the corrected route; overrides on a blackbody-route file are a ``DataError``. ``info`` as
+    ``read_thermal`` documents it."""
+    over = {k: v for k, v in dict(overrides or {}).items() if v is not None}
+    info: dict[str, Any] = {"format": "rjpeg", "decoder": rj.decoder, "params": dict(rj.params), "exif": rj.exif,
+                            "header": rj.header, "nodata": 0}
+    if rj.decoder == "dji":
+        temp = rj.corrected_c(**over)
+        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32",
+                    correction={**rj.correction_params(**over), **rj.tau_table.summary()})  # type: ignore[union-attr]
+        return temp, info
+    if over:
+        raise DataError(f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file is "
+                        f"read by the blackbody route ({rj.decoder_note or 'decoder blackbody'}), which uses none")
+    info.update(unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16", decoder_note=rj.decoder_note)
+    return rj.blackbody_c(), info
+
+
+def read_thermal(path: str | Path, decoder: str = "auto",
+                 overrides: Mapping[str, float | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) and an info dict, from any supported thermal file.
 
-    * ``.jpg``/``.jpeg``: a DJI iirp R-JPEG, decoded to blackbody temperature (``read_rjpeg``);
+    * ``.jpg``/``.jpeg``: a DJI iirp R-JPEG (``read_rjpeg(path, decoder)``): DJI's corrected temperature when
+      the file carries its transmission table (``decoder`` ``auto``/``dji``), optionally at measurement
+      ``overrides`` (emissivity, distance, humidity, reflected; ``RJpeg.corrected_c``), else the blackbody one;
     * ``.png``/``.tif``/``.tiff``/``.npy``: ``C = value * scale + offset`` with the unit taken from the sidecar
       ``<file>.json`` (``{"unit": "centikelvin"}`` or explicit ``scale``/``offset``); without a sidecar the dtype
       decides (uint16 centi-Kelvin, int16 deci-Celsius, float Celsius) and implausible values are refused.
 
     ``info``: ``unit``, ``scale``, ``offset``, ``dtype``, ``format``, ``params`` (measurement parameters when
-    known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value, kept as they are).
+    known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value, kept as they are); for R-JPEGs also
+    ``decoder`` (the route taken: ``dji`` or ``blackbody``), ``decoder_note`` (why blackbody) and, for ``dji``,
+    ``correction`` (the parameters applied and the table's summary). ``unit``/``scale``/``offset`` describe the
+    raw counts for the blackbody route (``C = raw14 / 16 - 273.15``) and plain Celsius for the corrected one.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in THERMAL_SUFFIXES:
         raise DataError(f"{path}: unsupported thermal file type {suffix!r}; use one of {', '.join(THERMAL_SUFFIXES)}")
     if suffix in (".jpg", ".jpeg"):
-        rj = read_rjpeg(path)
-        info = {"format": "rjpeg", "unit": "raw14", "scale": 1.0 / COUNTS_PER_K, "offset": -KELVIN,
-                "dtype": "uint16", "decoder": "blackbody", "params": dict(rj.params), "exif": rj.exif,
-                "header": rj.header, "nodata": 0}
-        return rj.temperature_c, info
+        return rjpeg_temperature(read_rjpeg(path, decoder), overrides)
     arr = _load_array(path)
     side = read_sidecar(path)
     dtype = arr.dtype.name
