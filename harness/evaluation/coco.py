@@ -29,10 +29,10 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from harness.evaluation.engines import ENGINES, MATCHINGS, EngineResult, _gc_paused, run_engine
+from harness.evaluation.engines import ENGINES, MATCHINGS, EngineResult, _gc_paused, check_options, run_engine
 from harness.evaluation.inputs import EvaluationError, PreparedEval, _ids_sha1, prepare
 from harness.evaluation.operating_point import OPERATING_POINT, max_f1_operating_point
-from harness.evaluation.safit import ANCHORS, SAFIT_C, TINY_AREA_RANGES
+from harness.evaluation.safit import SAFIT_C, TINY_AREA_RANGES
 
 log = logging.getLogger(__name__)
 
@@ -100,12 +100,7 @@ def evaluate(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], eng
     ``SAFit_AP50``/``SAFit_AP50_95`` beside the standard IoU numbers (see ``harness.evaluation.safit``).
     ``strict=True`` turns dropped detections (unknown image or category) into an error.
     """
-    if engine not in ENGINES:
-        raise EvaluationError(f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)")
-    if matching not in MATCHINGS:
-        raise EvaluationError(f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)")
-    if safit_anchor not in ANCHORS:
-        raise EvaluationError(f"unknown SAFit NWD anchor {safit_anchor!r}; use one of {', '.join(ANCHORS)}")
+    check_options(engine, matching, safit_anchor)  # before the inputs are prepared: a typo fails at once
     # Millions of short-lived dicts: with the cyclic GC running, its passes over them cost a third of the time.
     # It stays paused until the private copies are released, so that no collection has to scan them.
     with _gc_paused():
