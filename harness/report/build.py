@@ -22,7 +22,7 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
 from harness.report.collect import Entry, StoreView, profile_numbers
@@ -360,28 +360,32 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
     sections.append(sec)
 
-    sec = Section("registration", "Registration error", dataset)
-    reg, problem = _read_sensing(view, dataset, "registration_error")
-    if problem:
-        sec.absent = f"{problem}; re-run `harness sensing registration-error ... --dataset {dataset} --store {root}`."
-    elif reg is None:
-        sec.absent = (f"no registration-error analysis of {dataset}; fill with `harness sensing registration-error "
-                      f"--landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} --store {root}`.")
-    else:
-        sec.tables.append(registration_table(reg, dataset))
-    sections.append(sec)
-
-    sec = Section("displacement", "C2 under thermal displacement", dataset)
-    disp, problem = _read_sensing(view, dataset, "displacement")
-    if problem:
-        sec.absent = f"{problem}; re-run `harness sensing displacement --dataset {dataset} --store {root}`."
-    elif disp is None:
-        sec.absent = (f"no displacement study of {dataset}; fill with `harness sensing displacement --dataset "
-                      f"{dataset} --store {root}`.")
-    else:
-        sec.tables.append(displacement_table(disp, dataset))
-    sections.append(sec)
+    sections.append(_sensing_section(
+        view, dataset, "registration", "Registration error", "registration_error", registration_table,
+        f"no registration-error analysis of {dataset}",
+        f"harness sensing registration-error ... --dataset {dataset} --store {root}",
+        f"harness sensing registration-error --landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} "
+        f"--store {root}"))
+    sections.append(_sensing_section(
+        view, dataset, "displacement", "C2 under thermal displacement", "displacement", displacement_table,
+        f"no displacement study of {dataset}", f"harness sensing displacement --dataset {dataset} --store {root}",
+        f"harness sensing displacement --dataset {dataset} --store {root}"))
     return sections, comps
+
+
+def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analysis: str,
+                     make_table: Callable[[Mapping[str, Any], str], Any], missing: str, rerun: str,
+                     fill: str) -> Section:
+    """The section of one stored sensing analysis: its table, or why it is absent and the command that fills it."""
+    sec = Section(key, title, dataset)
+    result, problem = _read_sensing(view, dataset, analysis)
+    if problem:
+        sec.absent = f"{problem}; re-run `{rerun}`."
+    elif result is None:
+        sec.absent = f"{missing}; fill with `{fill}`."
+    else:
+        sec.tables.append(make_table(result, dataset))
+    return sec
 
 
 # -------------------------------------------------------------------------------------------------- the report
