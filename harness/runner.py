@@ -28,6 +28,7 @@ import copy
 import logging
 import math
 import re
+import shutil
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -307,6 +308,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     import torch
 
     from harness import distributed as hd
+    from harness.complexity import measure as measure_complexity
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
@@ -323,50 +325,59 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     st = r.status() or {}
     # under torchrun rank 0 decides (before it writes the status the other processes would otherwise read)
     fresh = hd.broadcast_object(force or st.get("config_hash") != digest)
+    # a finished run is never touched by its replacement: the new attempt is built beside it and swapped in at the end
+    replacing = hd.broadcast_object(bool(fresh and r.is_finished()))
+    target = r
+    if replacing:
+        r = target.staging()
     if main:
-        if fresh and r.path.exists():
+        if replacing:
+            shutil.rmtree(r.path, ignore_errors=True)
+        elif fresh and r.path.exists():
             for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
                 stale.unlink(missing_ok=True)
         r.path.mkdir(parents=True, exist_ok=True)
         r.write_config(cfg)
-        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed,
+        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed, error=None,
                      **({"world_size": dist.world_size} if dist.active else {}))
     hd.barrier()
-
-    settings = TrainSettings.from_config(cfg, seed)
-    eval_cfg = cfg["eval"]
-    enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
-    train_src = SampleSource(prepared, train_idx, enc, enc_params)
-    val_src = SampleSource(prepared, val_idx, enc, enc_params)
-    train_src.warm()
-    aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
-    gt = prepared.coco(val_idx)
-    ncls = len(prepared.categories)
-    in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
-
-    seed_everything(seed, settings.deterministic)
-    model = build_model(det, ncls, in_channels, cfg.get("model") or {})
-    init_report = ckpt.init_from(model, init, det.load_official) if init else None
-    name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
-
-    def validate(m: Any) -> dict[str, Any] | None:
-        dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
-                       next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       name=det.name, distributed=dist.active)
-        if not main:
-            return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
-        res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
-        out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
-        out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
-        return out
-
-    def on_epoch(record: dict[str, Any]) -> None:
-        r.append_log({"fold": fold.name, "seed": seed, **record})
-
-    trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
-                      det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
-    resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
+    stored = False
     try:
+        settings = TrainSettings.from_config(cfg, seed)
+        eval_cfg = cfg["eval"]
+        enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
+        train_src = SampleSource(prepared, train_idx, enc, enc_params)
+        val_src = SampleSource(prepared, val_idx, enc, enc_params)
+        train_src.warm()
+        aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
+        gt = prepared.coco(val_idx)
+        ncls = len(prepared.categories)
+        in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
+
+        seed_everything(seed, settings.deterministic)
+        model = build_model(det, ncls, in_channels, cfg.get("model") or {})
+        init_report = ckpt.init_from(model, init, det.load_official) if init else None
+        complexity = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
+                                        cfg.get("model") or {}) if main else None
+        name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
+
+        def validate(m: Any) -> dict[str, Any] | None:
+            dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
+                           next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
+                           name=det.name, distributed=dist.active)
+            if not main:
+                return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
+            res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+            out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
+            out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
+            return out
+
+        def on_epoch(record: dict[str, Any]) -> None:
+            r.append_log({"fold": fold.name, "seed": seed, **record})
+
+        trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
+                          det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
+        resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model
         if cfg["train"].get("final", "best") == "best" and result.best_path:
@@ -383,35 +394,49 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
                               len(val_idx))
         evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+        support = dict(evaluation["support"])
+        support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
+        params = sum(p.numel() for p in model.parameters())
+        train_summary = result.summary()
+        if r is not target:  # checkpoint paths as they will be once the replacement is swapped in
+            for k in ("best_path", "last_path"):
+                if train_summary.get(k):
+                    train_summary[k] = str(target.path / Path(train_summary[k]).relative_to(r.path))
+        metrics = {
+            "support": support,
+            "metrics": evaluation["metrics"],
+            "per_category": evaluation["per_category"],
+            "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+                      "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
+            "train": {**train_summary, "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
+                      "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
+                      "processes": dist.world_size,
+                      "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
+            "complexity": complexity,
+            "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+        }
+        atomic_write_json(r.predictions_path, dets, indent=None)
+        atomic_write_json(r.gt_path, gt, indent=None)
+        r.write_metrics(metrics)
+        r.set_status("finished", config_hash=digest, error=None)
+        if r is not target:  # the finished replacement takes the old run's place in one swap
+            target.replace_with(r)
+            r = target
+        stored = True
+        hd.barrier()
+        m = evaluation["metrics"]
+        log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
+                 m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
+        return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
     except BaseException as exc:
-        if main:
+        if main and not stored:
             reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
             r.set_status("failed", config_hash=digest, error=reason)
+            if r is not target:
+                target.set_status("finished", replacement={"state": "failed", "error": reason, "path": str(r.path)})
+                log.error("%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "
+                          "attempt is in %s", target.key, reason, r.path)
         raise
-    support = dict(evaluation["support"])
-    support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
-    params = sum(p.numel() for p in model.parameters())
-    metrics = {
-        "support": support,
-        "metrics": evaluation["metrics"],
-        "per_category": evaluation["per_category"],
-        "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-                  "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
-        "train": {**result.summary(), "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
-                  "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
-                  "processes": dist.world_size,
-                  "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
-        "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
-    }
-    atomic_write_json(r.predictions_path, dets, indent=None)
-    atomic_write_json(r.gt_path, gt, indent=None)
-    r.write_metrics(metrics)
-    r.set_status("finished", config_hash=digest, error=None)
-    hd.barrier()
-    m = evaluation["metrics"]
-    log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
-             m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
-    return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
 
 
 def build_model(det: Any, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> Any:

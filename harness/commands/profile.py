@@ -35,8 +35,9 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
         flops = r["flops"]
         fv = flops.get("fvcore") or {}
         lat = r.get("latency") or {}
+        opts = ", ".join(f"{k}={v}" for k, v in sorted((r.get("model_options") or {}).items()))
         rows.append([
-            r["detector"],
+            r["detector"] + (f" [{opts}]" if opts else ""),
             "x".join(str(s[1]) for s in r["input"]["shapes"]) + "ch",
             f"{r['params']['fused'] / 1e6:.3f}",
             _fmt(ref.get("params_m"), ".2f"),
@@ -114,16 +115,22 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--fvcore/--no-fvcore", default=True, show_default=True, help="Add fvcore's count and table.")
     @click.option("--table", "show_table", is_flag=True, help="Also print fvcore's per-module table.")
     @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to write profiles into [default: results/<profile>].")
-    @click.option("--profile", "run_profile", default="paper", show_default=True,
-                  help="Run profile whose default store is used when --store is not given.")
+                  help="Results store to write profiles into [default: results/<profile>, as `harness run`].")
+    @click.option("--profile", "run_profile", default="smoke", show_default=True,
+                  help="Run profile: its model options and its default store, as `harness run`.")
+    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
+                  help="Extra YAML config file(s), applied after the profile (their model section is used).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                  help="Override one config key, e.g. --set model.scale=n (repeatable), as `harness run`.")
     @click.option("--no-store", is_flag=True, help="Do not write the results store.")
     def profile_cmd(detector: str, as_json: bool, imgsz: int, num_classes: int, in_channels: int, runs: int,
                     warmup: int, threads: int | None, device: str, latency: bool, onnx: bool, fvcore: bool,
-                    show_table: bool, store: Path | None, run_profile: str, no_store: bool) -> None:
+                    show_table: bool, store: Path | None, run_profile: str, config_files: tuple[str, ...],
+                    overrides: tuple[str, ...], no_store: bool) -> None:
         """Parameters, GFLOPs ("paper" and "exact" conventions, fvcore) and latency of detectors at IMGSZ, batch 1."""
         from rich.progress import Progress
 
+        from harness.config import load_config
         from harness.plugins import get_host
         from harness.profiling import profile_detector
         from harness.store import Store
@@ -132,8 +139,12 @@ def register_commands(cli: click.Group) -> None:
 
         host = get_host()
         names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
+        options = {}
         for name in names:
-            host.detector(name)  # unknown names fail here with the list of available ones
+            spec = host.detector(name)  # unknown names fail here with the list of available ones
+            cfg = load_config(run_profile, detector=spec.name, detector_defaults=spec.defaults, files=config_files,
+                              overrides=overrides)
+            options[name] = dict(cfg.get("model") or {})
         results = []
         with Progress(transient=True, disable=as_json) as progress:
             task = progress.add_task("profiling", total=len(names))
@@ -143,7 +154,7 @@ def register_commands(cli: click.Group) -> None:
                     results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes,
                                                     in_channels=in_channels, host=host, latency=latency, onnx=onnx,
                                                     fvcore=fvcore, warmup=warmup, runs=runs, threads=threads,
-                                                    device=device))
+                                                    device=device, model_options=options[name]))
                 except HarnessError as exc:
                     if len(names) == 1:
                         raise
