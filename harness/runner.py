@@ -43,7 +43,10 @@ from harness.textable import text_table
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch")}
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads")}
+#: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
+#: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
+LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
 
 
 @dataclass
@@ -161,13 +164,39 @@ def run_config(cfg: Mapping[str, Any], key: RunKey, extra: Mapping[str, Any]) ->
     return out
 
 
-def run_hash(cfg: Mapping[str, Any]) -> str:
-    """Hash of what determines a run's result: the config without speed-only keys and without file locations."""
+def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """What determines a run's result: the config without speed-only keys and without locations (the data is
+    identified by its prepared fingerprint, an initial checkpoint by its sha1)."""
     trimmed = copy.deepcopy(dict(cfg))
-    for section, key in HASH_EXCLUDE:
-        trimmed.get(section, {}).pop(key, None)
+    for section, key in HASH_EXCLUDE | LOCATION_KEYS:
+        if isinstance(trimmed.get(section), dict):
+            trimmed[section].pop(key, None)
     trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
-    return config_hash(trimmed)
+    return trimmed
+
+
+def run_hash(cfg: Mapping[str, Any]) -> str:
+    """Hash of ``run_identity(cfg)``."""
+    return config_hash(run_identity(cfg))
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, Mapping) or not d:
+        return {prefix: d} if prefix else {}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def identity_diff(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 8) -> list[str]:
+    """``key: old -> new`` for every setting of the run identity that differs (at most ``limit``, then a count)."""
+    a, b = _flat(run_identity(old)), _flat(run_identity(new))
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "<unset>") != b.get(k, "<unset>"))
+    out = [f"{k}: {a.get(k, '<unset>')} -> {b.get(k, '<unset>')}" for k in keys[:limit]]
+    if len(keys) > limit:
+        out.append(f"(+{len(keys) - limit} more)")
+    return out
 
 
 # ------------------------------------------------------------------------------------------------- the job
@@ -186,7 +215,26 @@ class PlannedRun:
         """``finished`` (same configuration: skipped), ``conflict`` (finished with another one), or ``todo``."""
         if not self.run.is_finished():
             return "todo"
-        return "finished" if (self.run.status() or {}).get("config_hash") == self.digest else "conflict"
+        if (self.run.status() or {}).get("config_hash") == self.digest:
+            return "finished"
+        stored = self.stored_config()  # a run stored before the identity left out locations: compare settings
+        return "finished" if stored is not None and run_hash(stored) == self.digest else "conflict"
+
+    def stored_config(self) -> dict[str, Any] | None:
+        from harness.config import read_yaml
+
+        try:
+            data = read_yaml(self.run.config_path)
+        except Exception:  # noqa: BLE001 - a missing or unreadable config.yaml: nothing to compare
+            return None
+        return data if isinstance(data, dict) else None
+
+    def differences(self) -> list[str]:
+        stored = self.stored_config()
+        if stored is None:
+            return [f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
+                    f"now {self.digest} (no readable {self.run.config_path})"]
+        return identity_diff(stored, self.config)
 
 
 @dataclass
@@ -203,8 +251,7 @@ class RunPlan:
     runs: list[PlannedRun]
 
     def conflicts(self) -> list[str]:
-        return [f"{p.run.key} (stored {(p.run.status() or {}).get('config_hash')}, now {p.digest})"
-                for p in self.runs if p.state == "conflict"]
+        return [f"{p.run.key} ({'; '.join(p.differences())})" for p in self.runs if p.state == "conflict"]
 
 
 def conflict_error(conflicts: Sequence[str], store: Store) -> StoreError:

@@ -149,3 +149,25 @@ def test_an_interrupted_swap_is_recovered(tmp_path):
     with run.exclusive():
         assert run.status()["state"] == "finished"
     assert not run.retired_path.exists()
+
+
+def test_a_dataset_given_from_another_folder_is_the_same_run(plugins, tmp_path, cli_runner):
+    from harness.runner import run
+
+    run(request(tmp_path, [f"dataset.root={tmp_path / 'here'}"]))
+    args = ["run", "--detector", "tinydet", "--dataset", "shapes", "--folds", "A", "--store", str(tmp_path / "store"),
+            "--root", str(tmp_path / "moved"), "--no-progress", *[a for s in FAST for a in ("--set", s)]]
+    res = cli_runner(args)
+    assert res.exit_code == 0, res.output
+    assert "skipped" in res.output
+
+
+def test_a_changed_configuration_is_refused_with_the_keys_that_differ(plugins, tmp_path):
+    from harness.errors import StoreError
+    from harness.runner import run
+
+    run(request(tmp_path))
+    with pytest.raises(StoreError) as err:
+        run(request(tmp_path, ["train.lr0=0.02", "augment.fliplr=0.0"]))
+    text = str(err.value)
+    assert "train.lr0: 0.002 -> 0.02" in text and "augment.fliplr: 0.5 -> 0.0" in text and "--force" in text
