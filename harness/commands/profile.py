@@ -64,8 +64,11 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         out.append(f"{r['detector']}: not profiled: {r['error']}")
     if results:
         r0 = results[0]
-        out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = BN-folded "
-                   f"parameter count; 'ref' = the detector's published figures.")
+        unfolded = [r["detector"] for r in results if not r["params"].get("bn_folded")]
+        params = ("BN-folded parameter count" if not unfolded else
+                  f"parameter count, BN-folded except {', '.join(unfolded)} (no fold declared: as built)")
+        out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = {params}; "
+                   f"'ref' = the detector's published figures.")
     for name, text in CONVENTIONS.items():
         out.append(f"GFLOPs {name}: {text}.")
     for r in results:
