@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
-from harness.errors import ConfigError, StoreError
+from harness.errors import ConfigError, HarnessError, StoreError
 from harness.io import atomic_write_json
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
 from harness.textable import text_table
@@ -277,6 +277,7 @@ def plan(request: RunRequest) -> RunPlan:
     seeds = parse_seeds(request.seeds) or [int(s) for s in cfg["protocol"].get("seeds") or [0]]
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
+    check_settings(det, ds, enc, cfg)  # bad options fail here, before any store folder is touched
 
     with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
         prepared = prepare_dataset(ds.name, cfg)
@@ -484,6 +485,23 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                 log.error("%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "
                           "attempt is in %s", target.key, reason, r.path)
         raise
+
+
+def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> None:
+    """The training settings and the model options of a request, checked by building the model once (discarded):
+    ``harness run``, ``sweep`` and ``sweep --dry-run`` refuse a bad ``--set`` before anything is stored."""
+    from harness.engine.trainer import TrainSettings
+
+    TrainSettings.from_config(cfg, 0)
+    in_channels = det.thermal_channels if det.input_kind == "dual" else 3 + int(enc.channels)
+    options = dict(cfg.get("model") or {})
+    try:
+        build_model(det, len(dataset.categories), in_channels, options)
+    except HarnessError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a plugin's own exception, named with the options that caused it
+        raise ConfigError(f"detector {det.name!r} could not be built with model options {options}: "
+                          f"{type(exc).__name__}: {exc}") from exc
 
 
 def build_model(det: Any, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> Any:

@@ -83,20 +83,29 @@ def test_profile_takes_the_run_options_and_writes_the_run_store(plugins, tmp_pat
     assert stored["params"]["total"] == sum(p.numel() for p in TinyDet(8, in_channels=4, width=8).parameters())
 
 
-def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(plugins, tmp_path):
+def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(plugins, tmp_path, monkeypatch):
+    from harness.engine.trainer import Trainer
     from harness.runner import run
 
     first = run(request(tmp_path)).results[0]
     before = _files(first.path)
     assert {"metrics.json", "log.jsonl", "checkpoints/best.pt", "checkpoints/last.pt"} <= set(before)
-    with pytest.raises(ConfigError, match="widht"):
+    with pytest.raises(ConfigError, match="widht"):  # refused while planning: nothing is touched
         run(request(tmp_path, ["model.widht=32"], force=True))
+    assert _files(first.path) == before and not (first.path.parent / ".seed0.new").exists()
+
+    def boom(self, resume=True):
+        raise RuntimeError("out of memory in epoch 1")
+
+    monkeypatch.setattr(Trainer, "fit", boom)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        run(request(tmp_path, ["model.width=8"], force=True))
     assert _files(first.path) == before
     status = json.loads((first.path / "status.json").read_text())
     assert status["state"] == "finished"
-    assert status["replacement"]["state"] == "failed" and "widht" in status["replacement"]["error"]
+    assert status["replacement"]["state"] == "failed" and "out of memory" in status["replacement"]["error"]
     staged = json.loads((first.path.parent / ".seed0.new" / "status.json").read_text())
-    assert staged["state"] == "failed" and "widht" in staged["error"]
+    assert staged["state"] == "failed" and "out of memory" in staged["error"]
 
 
 def test_force_replaces_a_finished_run_in_one_swap(plugins, tmp_path):
@@ -116,14 +125,33 @@ def test_force_replaces_a_finished_run_in_one_swap(plugins, tmp_path):
 
 
 @pytest.mark.parametrize("bad", ["model.widht=32", "protocol.imgsz=100"])
-def test_errors_while_building_never_leave_a_run_running(plugins, tmp_path, bad):
+def test_bad_settings_are_refused_before_a_run_is_started(plugins, tmp_path, bad):
     from harness.runner import run
     from harness.store import RunKey, Store
 
     with pytest.raises(ConfigError):
         run(request(tmp_path, [bad]))
+    assert Store(tmp_path / "store").run(RunKey("shapes", "tinydet", "test-ir8", "A", 0)).status() is None
+
+
+def test_an_error_while_building_the_model_in_a_run_is_recorded_as_failed(plugins, tmp_path, monkeypatch):
+    import harness.runner as runner
+    from harness.store import RunKey, Store
+
+    calls = []
+    real = runner.build_model
+
+    def flaky(*a, **kw):  # passes the planning check, fails when the run builds its model
+        calls.append(1)
+        if len(calls) > 1:
+            raise RuntimeError("cannot allocate the head")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(runner, "build_model", flaky)
+    with pytest.raises(RuntimeError, match="allocate"):
+        runner.run(request(tmp_path))
     status = Store(tmp_path / "store").run(RunKey("shapes", "tinydet", "test-ir8", "A", 0)).status()
-    assert status["state"] == "failed" and status["error"]
+    assert status["state"] == "failed" and "cannot allocate the head" in status["error"]
 
 
 def test_report_lists_a_dead_running_run_as_interrupted(tmp_path):
