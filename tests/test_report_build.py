@@ -100,6 +100,9 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
                       "--resamples", "0", "--print"])
     assert res.exit_code == 0, res.output
     assert "synth: project-grouped folds" in res.output and "Registration error: ABSENT" in res.output
+    assert not (tmp_path / "r").exists()  # --print prints instead of writing
+    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--format", "md",
+                      "--resamples", "0"])
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
     res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r2"), "--resamples", "0"])
     assert res.exit_code == 0 and "-> " in res.output and "report.html" in res.output
