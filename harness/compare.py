@@ -107,22 +107,27 @@ class CompareTable:
         widths = [max(len(c), *(len(b[i]) for b in body)) if body else len(c) for i, c in enumerate(cols)]
         right = {"folds", "images", "instances", "mAP50", "mAP50:95", "SAFit-AP50", "SAFit-AP50:95"}
 
-        def line(cells: Sequence[str]) -> str:
-            return "  ".join(c.rjust(w) if col in right else c.ljust(w) for c, w, col in zip(cells, widths, cols)).rstrip()
+        from harness.textable import column_panels, fit_text
 
-        out = [line(cols), line(["-" * w for w in widths])]
-        prev = None
-        for r, cells in zip(self.rows, body):
-            if prev is not None and (r.dataset, r.source) != prev:
-                out.append("")
-            prev = (r.dataset, r.source)
-            out.append(line(cells))
-        out.append("")
+        out: list[str] = []
+        for panel in column_panels(widths, keep=4):  # wider than the terminal: panels that repeat the row names
+            def line(cells: Sequence[str], idx: Sequence[int] = panel) -> str:
+                return "  ".join(cells[i].rjust(widths[i]) if cols[i] in right else cells[i].ljust(widths[i])
+                                 for i in idx).rstrip()
+
+            out += [line(cols), line(["-" * w for w in widths])]
+            prev = None
+            for r, cells in zip(self.rows, body):
+                if prev is not None and (r.dataset, r.source) != prev:
+                    out.append("")
+                prev = (r.dataset, r.source)
+                out.append(line(cells))
+            out.append("")
         out.append("AP in %, mean ± sample SD over held-out folds; images and instances summed over held-out folds.")
         if self.mismatches:
             out.append("! NOT SAMPLE-MATCHED: these rows were scored on different supports and must not be compared:")
             out.extend(f"  - {m}" for m in self.mismatches)
-        return "\n".join(out)
+        return fit_text("\n".join(out))
 
     def to_markdown(self) -> str:
         cols = self.columns()

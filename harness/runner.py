@@ -38,7 +38,7 @@ from typing import Any, Iterator, Mapping, Sequence
 from harness.errors import ConfigError, HarnessError, StoreError
 from harness.io import atomic_write_json
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
-from harness.textable import text_table
+from harness.textable import fit_text, text_table
 
 log = logging.getLogger(__name__)
 
@@ -497,8 +497,10 @@ def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> 
     options = dict(cfg.get("model") or {})
     try:
         build_model(det, len(dataset.categories), in_channels, options)
-    except HarnessError:
-        raise
+    except HarnessError as exc:
+        if repr(det.name) in str(exc):
+            raise
+        raise type(exc)(f"detector {det.name!r}: {exc}") from exc
     except Exception as exc:  # noqa: BLE001 - a plugin's own exception, named with the options that caused it
         raise ConfigError(f"detector {det.name!r} could not be built with model options {options}: "
                           f"{type(exc).__name__}: {exc}") from exc
@@ -607,7 +609,7 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return title + "\n" + text_table(headers, rows)
+    return fit_text(title) + "\n" + text_table(headers, rows)
 
 
 def category_table(summary: RunSummary) -> str:
@@ -623,7 +625,8 @@ def category_table(summary: RunSummary) -> str:
         a = agg.get(cat, {})
         rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
                      _pm(a.get("AP50_95", {}))])
-    return "per category (AP50 mean ± SD over the folds where the category has instances)\n" + text_table(headers, rows)
+    return ("per category (AP50 mean ± SD over the folds where the category has instances)\n"
+            + text_table(headers, rows))
 
 
 def ablation_table(ab: AblationSummary) -> str:
@@ -640,4 +643,4 @@ def ablation_table(ab: AblationSummary) -> str:
                      *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)])
     seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
     title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
-    return title + "\n" + text_table(headers, rows)
+    return fit_text(title) + "\n" + text_table(headers, rows)

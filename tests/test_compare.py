@@ -31,14 +31,28 @@ def pct(x):
     return f"{100 * x:.1f}"
 
 
+def _merged(text):
+    """Header and rows of the text table, its panels (each repeating the first four columns) joined again."""
+    panels, current = [], None
+    for line in text.splitlines():
+        if line.startswith("dataset "):
+            current = [line.split()]
+            panels.append(current)
+        elif current is not None and line and not line.startswith(("-", "AP in", "!")):
+            current.append(line.split())
+    header, *rows = panels[0]
+    for p in panels[1:]:
+        header += p[0][4:]
+        rows = [r + q[4:] for r, q in zip(rows, p[1:])]
+    return header, rows
+
+
 def test_table_lists_each_dataset_source_and_detector_with_support_and_map(trained):
     res = invoke(["compare", "--datasets", "m3fd,rgbt-tiny", "--store", str(trained["store"])])
     assert res.exit_code == 0, res.output
-    lines = res.output.splitlines()
-    header = lines[0].split()
+    header, rows = _merged(res.output)
     assert header == ["dataset", "GT", "detector", "encoding", "folds", "images", "instances", "mAP50", "mAP50:95",
                       "SAFit-AP50", "SAFit-AP50:95"]
-    rows = [line.split() for line in lines[2:] if line and not line.startswith(("AP in", "!"))]
     got = {(r[0], r[1], r[3]): r for r in rows}
     assert list(got) == [("m3fd", "-", "ir8"), ("rgbt-tiny", "RGB", "proxy8"), ("rgbt-tiny", "T", "ir8"),
                          ("rgbt-tiny", "T", "proxy8")]  # dataset order as asked, then source, then encoding

@@ -24,8 +24,8 @@ def _lat(rec: Any) -> str:
 
 def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
     """Header and rows of the profile table (one row per detector)."""
-    header = ["Detector", "Input", "Params (M)", "ref", "GFLOPs paper", "ref", "GFLOPs exact", "GFLOPs fvcore",
-              "torch ms med/p90", "ORT ms med/p90", "unused params"]
+    header = ["Detector", "Input", "Params (M)", "ref", "unused params", "GFLOPs paper", "ref", "GFLOPs exact",
+              "GFLOPs fvcore", "torch ms med/p90", "ORT ms med/p90"]
     rows = []
     for r in results:
         if "error" in r:
@@ -41,13 +41,13 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
             "x".join(str(s[1]) for s in r["input"]["shapes"]) + "ch",
             f"{r['params']['fused'] / 1e6:.3f}",
             _fmt(ref.get("params_m"), ".2f"),
+            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
             f"{flops['paper']['gflops']:.3f}",
             _fmt(ref.get("gflops"), ".2f"),
             f"{flops['exact']['gflops']:.3f}",
             _fmt(fv.get("gflops"), ".3f") if "error" not in fv else "error",
             _lat(lat.get("torch")),
             _lat(lat.get("onnxruntime")),
-            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
         ])
     return header, rows
 
@@ -96,7 +96,9 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         for key in ("onnx",):
             if isinstance(r.get(key), dict) and "error" in r[key]:
                 out.append(f"{r['detector']}: ONNX export failed: {r[key]['error']}")
-    return "\n".join(out)
+    from harness.textable import fit_text
+
+    return fit_text("\n".join(out))
 
 
 @hookimpl
