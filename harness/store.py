@@ -23,6 +23,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
                   "conf_threshold": float, "coco_stats": [12 floats], "engine": str},
       "per_category": {name: {"AP50": float | null, "AP50_95": float | null, "instances": int}},
       "model":   {"params": int, ...},               # optional
+      "complexity": {"model_options", "params", "params_fused", "bn_folded", "unused_params",
+                     "gflops": {"<imgsz>": {"paper", "exact"}, "640": {...}}, ...},   # harness.complexity
       "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...},   # optional
       "environment": {...}                           # optional: versions, device, threads
     }
