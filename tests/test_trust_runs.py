@@ -69,6 +69,10 @@ def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only
     assert row["gflops"] == comp["gflops"]["640"]["paper"]
     note = next(n for n in table.notes if n.startswith("Params (M)"))
     assert "3 class(es)" in note and "8 classes" not in note
+    from harness.compare import build_table
+
+    compared = build_table(store, ["shapes"])
+    assert compared.rows[0].options == "width=8" and "tinydet [width=8]" in compared.to_text()
 
 
 def test_profile_takes_the_run_options_and_writes_the_run_store(plugins, tmp_path, monkeypatch, cli_runner):

@@ -27,7 +27,7 @@ def wide_store(tmp_path_factory):
 def test_store_commands_fit_100_columns(wide_store, tmp_path, cli_runner):
     root = str(wide_store.root)
     commands = [
-        ["report", "--print", "--store", root, "--resamples", "10"],
+        ["report", "--print", "--store", root, "--resamples", "0"],
         ["compare-detectors", "a-rather-long-detector-name", "beta/c2", "--dataset", "synth", "--store", root,
          "--resamples", "10"],
         ["compare", "--datasets", "synth", "--store", root, "--allow-mismatched"],
