@@ -139,6 +139,8 @@ class PrepareReport:
         reasons: dict[str, int] = {}
         for _, reason in self.skipped:
             key = reason.split(":")[0]
+            if "field '" in reason:  # an invalid sample: the field and what was wrong, without the sample's name
+                key += ", " + reason[reason.index("field '"):]
             reasons[key] = reasons.get(key, 0) + 1
         return {"skipped": len(self.skipped), "skip_reasons": reasons, "notes": list(self.notes)}
 

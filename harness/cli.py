@@ -24,6 +24,9 @@ class HarnessGroup(click.Group):
         except HarnessError as exc:
             click.secho(f"error: {exc}", err=True, fg="red")
             ctx.exit(2)
+        except KeyboardInterrupt:  # Ctrl-C: the conventional 128 + SIGINT, not click's generic 1
+            click.secho("interrupted", err=True, fg="red")
+            ctx.exit(130)
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(self.commands)
@@ -51,8 +54,11 @@ def setup_logging(level: int = logging.INFO) -> None:
         root.setLevel(level)
         return
     try:
+        import rich
         from rich.logging import RichHandler
 
+        # logs and progress bars go to stderr: stdout carries only a command's output (tables, JSON)
+        rich.reconfigure(stderr=True)
         handler: logging.Handler = RichHandler(show_path=False, show_time=False, markup=False)
     except ImportError:  # pragma: no cover
         handler = logging.StreamHandler(sys.stderr)

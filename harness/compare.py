@@ -78,6 +78,8 @@ class CompareRow:
     #: False when the support differs from the other detectors of the same dataset and source
     matched: bool = True
     per_fold: list[FoldResult] = field(default_factory=list)
+    #: the model options the runs were built with (``scale=n``; "mixed: ..." when they differ between folds)
+    options: str = ""
 
 
 @dataclass
@@ -95,7 +97,8 @@ class CompareTable:
 
     def _cells(self, r: CompareRow) -> list[str]:
         mark = "" if r.matched else " !"
-        cells = [r.dataset, r.source, r.detector + mark, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
+        name = r.detector + (f" [{r.options}]" if r.options else "") + mark
+        cells = [r.dataset, r.source, name, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
                  _pct(r.map50, r.map50_sd), _pct(r.map50_95, r.map50_95_sd)]
         if self.safit:
             cells += [_pct(r.safit50, r.safit50_sd), _pct(r.safit50_95, r.safit50_95_sd)]
@@ -107,22 +110,27 @@ class CompareTable:
         widths = [max(len(c), *(len(b[i]) for b in body)) if body else len(c) for i, c in enumerate(cols)]
         right = {"folds", "images", "instances", "mAP50", "mAP50:95", "SAFit-AP50", "SAFit-AP50:95"}
 
-        def line(cells: Sequence[str]) -> str:
-            return "  ".join(c.rjust(w) if col in right else c.ljust(w) for c, w, col in zip(cells, widths, cols)).rstrip()
+        from harness.textable import column_panels, fit_text
 
-        out = [line(cols), line(["-" * w for w in widths])]
-        prev = None
-        for r, cells in zip(self.rows, body):
-            if prev is not None and (r.dataset, r.source) != prev:
-                out.append("")
-            prev = (r.dataset, r.source)
-            out.append(line(cells))
-        out.append("")
+        out: list[str] = []
+        for panel in column_panels(widths, keep=4):  # wider than the terminal: panels that repeat the row names
+            def line(cells: Sequence[str], idx: Sequence[int] = panel) -> str:
+                return "  ".join(cells[i].rjust(widths[i]) if cols[i] in right else cells[i].ljust(widths[i])
+                                 for i in idx).rstrip()
+
+            out += [line(cols), line(["-" * w for w in widths])]
+            prev = None
+            for r, cells in zip(self.rows, body):
+                if prev is not None and (r.dataset, r.source) != prev:
+                    out.append("")
+                prev = (r.dataset, r.source)
+                out.append(line(cells))
+            out.append("")
         out.append("AP in %, mean ± sample SD over held-out folds; images and instances summed over held-out folds.")
         if self.mismatches:
             out.append("! NOT SAMPLE-MATCHED: these rows were scored on different supports and must not be compared:")
             out.extend(f"  - {m}" for m in self.mismatches)
-        return "\n".join(out)
+        return fit_text("\n".join(out))
 
     def to_markdown(self) -> str:
         cols = self.columns()
@@ -188,6 +196,16 @@ def _safit_rescored(run: Run) -> dict[str, Any]:
             raise StoreError(f"{path}: missing; SAFit-AP is re-scored from a run's gt.json and predictions.json")
     result = evaluate(read_json(run.gt_path), read_json(run.predictions_path), matching="safit")
     return result["metrics"]["safit"]
+
+
+def _options(metrics: Any) -> str:
+    """The model options recorded in the runs' complexity (``scale=n``), or ``mixed: a; b`` when they differ."""
+    from harness.complexity import options_label
+
+    found = {options_label((m.get("complexity") or {}).get("model_options") or {}) for m in metrics}
+    if len(found) > 1:
+        return "mixed: " + "; ".join(sorted(o or "defaults" for o in found))
+    return next(iter(found), "")
 
 
 def _fold_result(fold: str, runs: list[Run], safit: bool) -> tuple[FoldResult, dict[str, Any]]:
@@ -299,7 +317,8 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
             row = CompareRow(ds, source, det, enc, [f.fold for f in fr], sorted({s for f in fr for s in f.seeds}),
                              agg["support"]["images"], agg["support"]["instances"],
                              m["mAP50"]["mean"], m["mAP50"]["sd"], m["mAP50_95"]["mean"], m["mAP50_95"]["sd"],
-                             matched=(det, enc) not in bad, per_fold=fr)
+                             matched=(det, enc) not in bad, per_fold=fr,
+                             options=_options(representative[(det, enc)].values()))
             if "safit_mAP50" in m and m["safit_mAP50"]["n"] == len(fr):
                 row.safit50, row.safit50_95 = m["safit_mAP50"]["mean"], m["safit_mAP50_95"]["mean"]
                 row.safit50_sd, row.safit50_95_sd = m["safit_mAP50"]["sd"], m["safit_mAP50_95"]["sd"]

@@ -125,8 +125,9 @@ class PluginHost:
             try:
                 _call_impl(impl, register=register)
             except Exception as exc:  # a broken plugin must not take the others down
-                problems.append(PluginProblem(plugin_name, hook_name, f"{type(exc).__name__}: {exc}"))
-                log.warning("plugin %r failed in %s: %s", plugin_name, hook_name, exc)
+                problems.append(PluginProblem(plugin_name, hook_name, f"{type(exc).__name__}: {exc}{where(exc)}"))
+                log.warning("plugin %r failed in %s: %s%s", plugin_name, hook_name, exc, where(exc))
+                log.debug("traceback of plugin %r in %s", plugin_name, hook_name, exc_info=exc)
                 continue
             for spec in pending:
                 if spec.name in registry:
@@ -246,6 +247,19 @@ class PluginHost:
         return out
 
 
+def where(exc: BaseException) -> str:
+    """`` (at file:line)``: the innermost frame outside the harness (the plugin's code) where ``exc`` was raised."""
+    import traceback
+
+    frames = traceback.extract_tb(exc.__traceback__)
+    own = str(Path(__file__).resolve().parent)
+    outside = [f for f in frames if not f.filename.startswith("<") and "pluggy" not in Path(f.filename).parts
+               and not str(Path(f.filename).resolve()).startswith(own)] or frames
+    if isinstance(exc, SyntaxError) and exc.filename:
+        return f" (at {exc.filename}:{exc.lineno})"
+    return f" (at {outside[-1].filename}:{outside[-1].lineno})" if outside else ""
+
+
 def _call_impl(impl: pluggy.HookImpl, **kwargs: Any) -> Any:
     """Call one hook implementation with the arguments it asks for (implementations may take fewer)."""
     return impl.function(*[kwargs[a] for a in impl.argnames])
@@ -270,8 +284,9 @@ def load_plugins() -> PluginHost:
         try:
             module = importlib.import_module(module_name)
         except Exception as exc:
-            host.load_problems.append(PluginProblem(module_name, "import", f"{type(exc).__name__}: {exc}"))
-            log.error("built-in plugin %s failed to import: %s", module_name, exc)
+            host.load_problems.append(PluginProblem(module_name, "import", f"{type(exc).__name__}: {exc}{where(exc)}"))
+            log.error("built-in plugin %s failed to import: %s%s", module_name, exc, where(exc))
+            log.debug("traceback of plugin %s", module_name, exc_info=exc)
             continue
         _safe_register(module, module_name)
     allow = os.environ.get(ENV_ALLOW)
@@ -304,8 +319,9 @@ def _load_entry_points(allow: set[str] | None) -> None:
             try:
                 plugin = ep.load()
             except Exception as exc:
-                host.load_problems.append(PluginProblem(ep.name, "import", f"{type(exc).__name__}: {exc}"))
-                log.warning("plugin %r (%s) failed to import: %s", ep.name, dist_name, exc)
+                host.load_problems.append(PluginProblem(ep.name, "import", f"{type(exc).__name__}: {exc}{where(exc)}"))
+                log.warning("plugin %r (%s) failed to import: %s%s", ep.name, dist_name, exc, where(exc))
+                log.debug("traceback of plugin %r", ep.name, exc_info=exc)
                 continue
             if _safe_register(plugin, ep.name):
                 host.distributions[ep.name] = dist
@@ -324,7 +340,8 @@ def load_plugins_dir(folder: Path) -> None:
             sys.modules[name] = module
             spec.loader.exec_module(module)  # type: ignore[union-attr]
         except Exception as exc:
-            host.load_problems.append(PluginProblem(str(path), "import", f"{type(exc).__name__}: {exc}"))
+            host.load_problems.append(PluginProblem(str(path), "import", f"{type(exc).__name__}: {exc}{where(exc)}"))
+            log.debug("traceback of plugin %s", path, exc_info=exc)
             continue
         _safe_register(module, path.stem)
 

@@ -65,8 +65,35 @@ def cache_key(fingerprint: str, sensing: Mapping[str, Any] | None, dataset: str)
     """``sha1({dataset, fingerprint, sensing, PREPARE_VERSION})`` as 16 hex digits (analysis-only sensing keys,
     such as the displacement study's shifts, are left out)."""
     payload = json.dumps({"dataset": dataset, "fingerprint": fingerprint, "sensing": preparation_sensing(sensing),
-                          "version": PREPARE_VERSION}, sort_keys=True, default=str)
+                          "version": PREPARE_VERSION, "code": plugin_code_fingerprint(dataset)},
+                         sort_keys=True, default=str)
     return hashlib.sha1(payload.encode()).hexdigest()[:16]
+
+
+def plugin_code_fingerprint(dataset: str) -> str:
+    """sha1 of the source of the registered dataset plugin: the module defining its ``open`` and the modules of
+    the same package it imports names from, so an edited plugin prepares again ("" for an unregistered name)."""
+    import sys
+
+    try:
+        from harness.plugins import get_host
+
+        opener = get_host().dataset(dataset).open
+    except Exception:  # noqa: BLE001 - a name no plugin registers (tests, analyses of a cache) has no code to key
+        return ""
+    home = inspect.getmodule(opener)
+    if home is None:
+        return ""
+    top = home.__name__.split(".")[0]
+    names = {home.__name__} | {getattr(v, "__module__", None) or getattr(v, "__name__", "")
+                               for v in vars(home).values() if inspect.ismodule(v) or inspect.isclass(v)
+                               or inspect.isfunction(v)}
+    h = hashlib.sha1()
+    for name in sorted(n for n in names if n and n.split(".")[0] == top and top != "harness"):
+        path = getattr(sys.modules.get(name), "__file__", None)
+        if path and Path(path).is_file():
+            h.update(name.encode() + b"\0" + Path(path).read_bytes())
+    return h.hexdigest()
 
 
 def _spec(dataset: str | DatasetSpec) -> DatasetSpec:

@@ -28,21 +28,25 @@ import copy
 import logging
 import math
 import re
+import shutil
 import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
-from harness.errors import ConfigError, StoreError
+from harness.errors import ConfigError, HarnessError, StoreError
 from harness.io import atomic_write_json
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
-from harness.textable import text_table
+from harness.textable import fit_text, text_table
 
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch")}
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads")}
+#: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
+#: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
+LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
 
 
 @dataclass
@@ -160,13 +164,39 @@ def run_config(cfg: Mapping[str, Any], key: RunKey, extra: Mapping[str, Any]) ->
     return out
 
 
-def run_hash(cfg: Mapping[str, Any]) -> str:
-    """Hash of what determines a run's result: the config without speed-only keys and without file locations."""
+def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """What determines a run's result: the config without speed-only keys and without locations (the data is
+    identified by its prepared fingerprint, an initial checkpoint by its sha1)."""
     trimmed = copy.deepcopy(dict(cfg))
-    for section, key in HASH_EXCLUDE:
-        trimmed.get(section, {}).pop(key, None)
+    for section, key in HASH_EXCLUDE | LOCATION_KEYS:
+        if isinstance(trimmed.get(section), dict):
+            trimmed[section].pop(key, None)
     trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
-    return config_hash(trimmed)
+    return trimmed
+
+
+def run_hash(cfg: Mapping[str, Any]) -> str:
+    """Hash of ``run_identity(cfg)``."""
+    return config_hash(run_identity(cfg))
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, Mapping) or not d:
+        return {prefix: d} if prefix else {}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def identity_diff(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 8) -> list[str]:
+    """``key: old -> new`` for every setting of the run identity that differs (at most ``limit``, then a count)."""
+    a, b = _flat(run_identity(old)), _flat(run_identity(new))
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "<unset>") != b.get(k, "<unset>"))
+    out = [f"{k}: {a.get(k, '<unset>')} -> {b.get(k, '<unset>')}" for k in keys[:limit]]
+    if len(keys) > limit:
+        out.append(f"(+{len(keys) - limit} more)")
+    return out
 
 
 # ------------------------------------------------------------------------------------------------- the job
@@ -185,7 +215,26 @@ class PlannedRun:
         """``finished`` (same configuration: skipped), ``conflict`` (finished with another one), or ``todo``."""
         if not self.run.is_finished():
             return "todo"
-        return "finished" if (self.run.status() or {}).get("config_hash") == self.digest else "conflict"
+        if (self.run.status() or {}).get("config_hash") == self.digest:
+            return "finished"
+        stored = self.stored_config()  # a run stored before the identity left out locations: compare settings
+        return "finished" if stored is not None and run_hash(stored) == self.digest else "conflict"
+
+    def stored_config(self) -> dict[str, Any] | None:
+        from harness.config import read_yaml
+
+        try:
+            data = read_yaml(self.run.config_path)
+        except Exception:  # noqa: BLE001 - a missing or unreadable config.yaml: nothing to compare
+            return None
+        return data if isinstance(data, dict) else None
+
+    def differences(self) -> list[str]:
+        stored = self.stored_config()
+        if stored is None:
+            return [f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
+                    f"now {self.digest} (no readable {self.run.config_path})"]
+        return identity_diff(stored, self.config)
 
 
 @dataclass
@@ -202,8 +251,7 @@ class RunPlan:
     runs: list[PlannedRun]
 
     def conflicts(self) -> list[str]:
-        return [f"{p.run.key} (stored {(p.run.status() or {}).get('config_hash')}, now {p.digest})"
-                for p in self.runs if p.state == "conflict"]
+        return [f"{p.run.key} ({'; '.join(p.differences())})" for p in self.runs if p.state == "conflict"]
 
 
 def conflict_error(conflicts: Sequence[str], store: Store) -> StoreError:
@@ -229,6 +277,7 @@ def plan(request: RunRequest) -> RunPlan:
     seeds = parse_seeds(request.seeds) or [int(s) for s in cfg["protocol"].get("seeds") or [0]]
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
+    check_settings(det, ds, enc, cfg)  # bad options fail here, before any store folder is touched
 
     with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
         prepared = prepare_dataset(ds.name, cfg)
@@ -307,6 +356,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     import torch
 
     from harness import distributed as hd
+    from harness.complexity import measure as measure_complexity
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
@@ -323,50 +373,59 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     st = r.status() or {}
     # under torchrun rank 0 decides (before it writes the status the other processes would otherwise read)
     fresh = hd.broadcast_object(force or st.get("config_hash") != digest)
+    # a finished run is never touched by its replacement: the new attempt is built beside it and swapped in at the end
+    replacing = hd.broadcast_object(bool(fresh and r.is_finished()))
+    target = r
+    if replacing:
+        r = target.staging()
     if main:
-        if fresh and r.path.exists():
+        if replacing:
+            shutil.rmtree(r.path, ignore_errors=True)
+        elif fresh and r.path.exists():
             for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
                 stale.unlink(missing_ok=True)
         r.path.mkdir(parents=True, exist_ok=True)
         r.write_config(cfg)
-        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed,
+        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed, error=None,
                      **({"world_size": dist.world_size} if dist.active else {}))
     hd.barrier()
-
-    settings = TrainSettings.from_config(cfg, seed)
-    eval_cfg = cfg["eval"]
-    enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
-    train_src = SampleSource(prepared, train_idx, enc, enc_params)
-    val_src = SampleSource(prepared, val_idx, enc, enc_params)
-    train_src.warm()
-    aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
-    gt = prepared.coco(val_idx)
-    ncls = len(prepared.categories)
-    in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
-
-    seed_everything(seed, settings.deterministic)
-    model = build_model(det, ncls, in_channels, cfg.get("model") or {})
-    init_report = ckpt.init_from(model, init, det.load_official) if init else None
-    name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
-
-    def validate(m: Any) -> dict[str, Any] | None:
-        dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
-                       next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       name=det.name, distributed=dist.active)
-        if not main:
-            return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
-        res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
-        out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
-        out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
-        return out
-
-    def on_epoch(record: dict[str, Any]) -> None:
-        r.append_log({"fold": fold.name, "seed": seed, **record})
-
-    trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
-                      det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
-    resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
+    stored = False
     try:
+        settings = TrainSettings.from_config(cfg, seed)
+        eval_cfg = cfg["eval"]
+        enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
+        train_src = SampleSource(prepared, train_idx, enc, enc_params)
+        val_src = SampleSource(prepared, val_idx, enc, enc_params)
+        train_src.warm()
+        aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
+        gt = prepared.coco(val_idx)
+        ncls = len(prepared.categories)
+        in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
+
+        seed_everything(seed, settings.deterministic)
+        model = build_model(det, ncls, in_channels, cfg.get("model") or {})
+        init_report = ckpt.init_from(model, init, det.load_official) if init else None
+        complexity = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
+                                        cfg.get("model") or {}) if main else None
+        name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
+
+        def validate(m: Any) -> dict[str, Any] | None:
+            dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
+                           next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
+                           name=det.name, distributed=dist.active)
+            if not main:
+                return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
+            res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+            out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
+            out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
+            return out
+
+        def on_epoch(record: dict[str, Any]) -> None:
+            r.append_log({"fold": fold.name, "seed": seed, **record})
+
+        trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
+                          det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
+        resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model
         if cfg["train"].get("final", "best") == "best" and result.best_path:
@@ -383,35 +442,68 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
                               len(val_idx))
         evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+        support = dict(evaluation["support"])
+        support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
+        params = sum(p.numel() for p in model.parameters())
+        train_summary = result.summary()
+        if r is not target:  # checkpoint paths as they will be once the replacement is swapped in
+            for k in ("best_path", "last_path"):
+                if train_summary.get(k):
+                    train_summary[k] = str(target.path / Path(train_summary[k]).relative_to(r.path))
+        metrics = {
+            "support": support,
+            "metrics": evaluation["metrics"],
+            "per_category": evaluation["per_category"],
+            "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+                      "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
+            "train": {**train_summary, "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
+                      "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
+                      "processes": dist.world_size,
+                      "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
+            "complexity": complexity,
+            "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+        }
+        atomic_write_json(r.predictions_path, dets, indent=None)
+        atomic_write_json(r.gt_path, gt, indent=None)
+        r.write_metrics(metrics)
+        r.set_status("finished", config_hash=digest, error=None)
+        if r is not target:  # the finished replacement takes the old run's place in one swap
+            target.replace_with(r)
+            r = target
+        stored = True
+        hd.barrier()
+        m = evaluation["metrics"]
+        log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
+                 m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
+        return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
     except BaseException as exc:
-        if main:
+        if main and not stored:
             reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
             r.set_status("failed", config_hash=digest, error=reason)
+            if r is not target:
+                target.set_status("finished", replacement={"state": "failed", "error": reason, "path": str(r.path)})
+                log.error("%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "
+                          "attempt is in %s", target.key, reason, r.path)
         raise
-    support = dict(evaluation["support"])
-    support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
-    params = sum(p.numel() for p in model.parameters())
-    metrics = {
-        "support": support,
-        "metrics": evaluation["metrics"],
-        "per_category": evaluation["per_category"],
-        "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-                  "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
-        "train": {**result.summary(), "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
-                  "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
-                  "processes": dist.world_size,
-                  "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
-        "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
-    }
-    atomic_write_json(r.predictions_path, dets, indent=None)
-    atomic_write_json(r.gt_path, gt, indent=None)
-    r.write_metrics(metrics)
-    r.set_status("finished", config_hash=digest, error=None)
-    hd.barrier()
-    m = evaluation["metrics"]
-    log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
-             m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
-    return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
+
+
+def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> None:
+    """The training settings and the model options of a request, checked by building the model once (discarded):
+    ``harness run``, ``sweep`` and ``sweep --dry-run`` refuse a bad ``--set`` before anything is stored."""
+    from harness.engine.trainer import TrainSettings
+
+    TrainSettings.from_config(cfg, 0)
+    in_channels = det.thermal_channels if det.input_kind == "dual" else 3 + int(enc.channels)
+    options = dict(cfg.get("model") or {})
+    try:
+        build_model(det, len(dataset.categories), in_channels, options)
+    except HarnessError as exc:
+        if repr(det.name) in str(exc):
+            raise
+        raise type(exc)(f"detector {det.name!r}: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - a plugin's own exception, named with the options that caused it
+        raise ConfigError(f"detector {det.name!r} could not be built with model options {options}: "
+                          f"{type(exc).__name__}: {exc}") from exc
 
 
 def build_model(det: Any, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> Any:
@@ -517,7 +609,7 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return title + "\n" + text_table(headers, rows)
+    return fit_text(title) + "\n" + text_table(headers, rows)
 
 
 def category_table(summary: RunSummary) -> str:
@@ -533,7 +625,8 @@ def category_table(summary: RunSummary) -> str:
         a = agg.get(cat, {})
         rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
                      _pm(a.get("AP50_95", {}))])
-    return "per category (AP50 mean ± SD over the folds where the category has instances)\n" + text_table(headers, rows)
+    return ("per category (AP50 mean ± SD over the folds where the category has instances)\n"
+            + text_table(headers, rows))
 
 
 def ablation_table(ab: AblationSummary) -> str:
@@ -550,4 +643,4 @@ def ablation_table(ab: AblationSummary) -> str:
                      *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)])
     seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
     title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
-    return title + "\n" + text_table(headers, rows)
+    return fit_text(title) + "\n" + text_table(headers, rows)

@@ -23,6 +23,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
                   "conf_threshold": float, "coco_stats": [12 floats], "engine": str},
       "per_category": {name: {"AP50": float | null, "AP50_95": float | null, "instances": int}},
       "model":   {"params": int, ...},               # optional
+      "complexity": {"model_options", "params", "params_fused", "bn_folded", "unused_params",
+                     "gflops": {"<imgsz>": {"paper", "exact"}, "640": {...}}, ...},   # harness.complexity
       "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...},   # optional
       "environment": {...}                           # optional: versions, device, threads
     }
@@ -137,6 +139,7 @@ class Run:
         """
         import fcntl
 
+        self.recover()
         self.path.mkdir(parents=True, exist_ok=True)
         with open(self.lock_path, "a+", encoding="utf-8") as f:
             try:
@@ -156,6 +159,66 @@ class Run:
                 f.seek(0)
                 f.truncate()
                 fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+    def is_held(self) -> bool:
+        """Whether a live process holds the run's lock (a ``running`` status without one is a dead run)."""
+        import fcntl
+
+        if not self.lock_path.exists():
+            return False
+        with open(self.lock_path, "r", encoding="utf-8") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+            return False
+
+    # replacement: a new attempt is built beside the run and swapped in only once it has finished
+    @property
+    def staging_path(self) -> Path:
+        """Where a replacement of this run is built (``.seed<k>.new``: not a run folder for ``Store.runs``)."""
+        return self.path.parent / f".{self.path.name}.new"
+
+    @property
+    def retired_path(self) -> Path:
+        return self.path.parent / f".{self.path.name}.old"
+
+    def staging(self) -> "Run":
+        """The run that replaces this one: same key, built in ``staging_path`` (emptied first)."""
+        staged = Run.__new__(Run)
+        staged.key, staged.path = self.key, self.staging_path
+        return staged
+
+    def replace_with(self, staged: "Run") -> None:
+        """Swap the finished ``staged`` run in place of this one, then delete the old folder.
+
+        The old folder is renamed aside and the new one renamed into place; a crash between the two renames
+        leaves the old run beside the empty slot, and ``recover`` (called by ``exclusive``) puts it back.
+        """
+        import shutil
+
+        if not staged.is_finished():
+            raise StoreError(f"{staged.path}: the replacement of run {self.key} has not finished; the old run is kept")
+        shutil.rmtree(self.retired_path, ignore_errors=True)
+        if self.path.exists():
+            os.rename(self.path, self.retired_path)
+        try:
+            os.rename(staged.path, self.path)
+        except OSError:
+            self.recover()
+            raise
+        shutil.rmtree(self.retired_path, ignore_errors=True)
+
+    def recover(self) -> None:
+        """Undo a replacement interrupted between its two renames: the old run goes back into its slot."""
+        old = self.retired_path
+        if old.is_dir() and not (self.path / "status.json").exists():
+            if self.path.exists():
+                import shutil
+
+                shutil.rmtree(self.path)
+            os.rename(old, self.path)
 
     # status
     def status(self) -> dict[str, Any] | None:

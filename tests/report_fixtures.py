@@ -57,8 +57,18 @@ def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float 
     return dets
 
 
+def complexity_record(params: float, gflops: float, options: dict[str, Any] | None = None,
+                      imgsz: int = 64) -> dict[str, Any]:
+    """A ``metrics.json`` complexity record as ``harness run`` measures it (paper/exact GFLOPs at 640 and imgsz)."""
+    return {"schema": 1, "model_options": dict(options or {}), "num_classes": len(CATEGORIES), "input_kind": "single",
+            "in_channels": 4, "imgsz": imgsz, "params": int(params), "params_fused": int(params), "bn_folded": True,
+            "trainable": int(params), "unused_params": 0,
+            "gflops": {str(imgsz): {"paper": gflops / 100, "exact": gflops / 99},
+                       "640": {"paper": gflops, "exact": gflops * 1.01}}}
+
+
 def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str, Any]],
-              imgsz: int = 64) -> dict[str, Any]:
+              imgsz: int = 64, complexity: dict[str, Any] | None = None) -> dict[str, Any]:
     """Score ``dets`` against ``gt`` and write the run's folder as the engine does (status last)."""
     from harness.evaluation import evaluate
 
@@ -69,6 +79,7 @@ def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str
     atomic_write_json(run.predictions_path, dets, indent=None)
     atomic_write_json(run.gt_path, gt, indent=None)
     run.write_metrics({**ev, "model": {"params": 1000}, "train": {"epochs": 1, "imgsz": imgsz},
+                       **({"complexity": complexity} if complexity else {}),
                        "environment": {"device": "cpu", "threads": 1, "torch": "test"}})
     run.set_status("finished", config_hash="synthetic")
     return run.read_metrics()
@@ -96,17 +107,14 @@ def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = (
     for i, (det, quality) in enumerate(detectors.items()):
         for f in folds:
             drng = np.random.default_rng([seed, i, folds.index(f)])
-            write_run(store, RunKey(dataset, det, "c2", f, 0), gts[f], make_detections(gts[f], drng, **QUALITY[quality]))
+            comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
+            write_run(store, RunKey(dataset, det, "c2", f, 0), gts[f], make_detections(gts[f], drng, **QUALITY[quality]),
+                      complexity=comp)
     for det, encs in (encodings or {}).items():
         for j, enc in enumerate(encs):
             drng = np.random.default_rng([seed, 100 + j])
             q = QUALITY["weak"] if j % 2 else QUALITY["strong"]
+            comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
             write_run(store, RunKey(dataset, det, enc, folds[-1], 0), gts[folds[-1]],
-                      make_detections(gts[folds[-1]], drng, **q))
-    for det, (params, gflops) in (profiles or {}).items():
-        store.write_profile(det, {"detector": det, "imgsz": 640, "num_classes": len(CATEGORIES), "input_kind": "single",
-                                  "params": {"total": params, "fused": params},
-                                  "flops": {"paper": {"gflops": gflops, "convention": "paper"},
-                                            "exact": {"gflops": gflops * 1.01, "convention": "exact"}},
-                                  "environment": {"machine": "x86_64", "torch": "test"}})
+                      make_detections(gts[folds[-1]], drng, **q), complexity=comp)
     return store

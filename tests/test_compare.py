@@ -31,21 +31,35 @@ def pct(x):
     return f"{100 * x:.1f}"
 
 
+def _merged(text):
+    """Header and rows of the text table, its panels (each repeating the first four columns) joined again."""
+    panels, current = [], None
+    for line in text.splitlines():
+        if line.startswith("dataset "):
+            current = [line.replace(" [", "[").split()]
+            panels.append(current)
+        elif current is not None and line and not line.startswith(("-", "AP in", "!")):
+            current.append(line.replace(" [", "[").split())
+    header, *rows = panels[0]
+    for p in panels[1:]:
+        header += p[0][4:]
+        rows = [r + q[4:] for r, q in zip(rows, p[1:])]
+    return header, rows
+
+
 def test_table_lists_each_dataset_source_and_detector_with_support_and_map(trained):
     res = invoke(["compare", "--datasets", "m3fd,rgbt-tiny", "--store", str(trained["store"])])
     assert res.exit_code == 0, res.output
-    lines = res.output.splitlines()
-    header = lines[0].split()
+    header, rows = _merged(res.output)
     assert header == ["dataset", "GT", "detector", "encoding", "folds", "images", "instances", "mAP50", "mAP50:95",
                       "SAFit-AP50", "SAFit-AP50:95"]
-    rows = [line.split() for line in lines[2:] if line and not line.startswith(("AP in", "!"))]
     got = {(r[0], r[1], r[3]): r for r in rows}
     assert list(got) == [("m3fd", "-", "ir8"), ("rgbt-tiny", "RGB", "proxy8"), ("rgbt-tiny", "T", "ir8"),
                          ("rgbt-tiny", "T", "proxy8")]  # dataset order as asked, then source, then encoding
     for (ds, src, enc), r in got.items():
         fold = {"m3fd": "val", "T": "test-T", "RGB": "test-RGB"}[ds if ds == "m3fd" else src]
         m = stored(trained, ds, enc, fold)
-        assert r[2] == "ours" and r[4] == "1"
+        assert r[2] == "ours[scale=n]" and r[4] == "1"  # labelled with the model options of its runs
         assert (int(r[5]), int(r[6])) == (m["support"]["images"], m["support"]["instances"])
         assert (r[7], r[8]) == (pct(m["metrics"]["mAP50"]), pct(m["metrics"]["mAP50_95"]))
         safit = m["metrics"].get("safit")
@@ -97,7 +111,7 @@ def test_rows_on_different_supports_are_refused_or_labelled(trained, tmp_path):
     labelled = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(store), "--allow-mismatched"])
     assert labelled.exit_code == 0
     assert "NOT SAMPLE-MATCHED" in labelled.output
-    rows = {tuple(line.split()[:5]) for line in labelled.output.splitlines()}
+    rows = {tuple(line.replace(" [scale=n]", "").split()[:5]) for line in labelled.output.splitlines()}
     # with two entries and no majority both RGB rows are suspect; the thermal rows stay unmarked
     assert ("rgbt-tiny", "RGB", "ours", "!", "ir8") in rows and ("rgbt-tiny", "RGB", "ours", "!", "proxy8") in rows
     assert ("rgbt-tiny", "T", "ours", "ir8", "1") in rows

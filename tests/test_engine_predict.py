@@ -84,7 +84,7 @@ def test_predict_validates_the_model_output(prepared):
             return [{"boxes": torch.tensor([[1.0, 1, 5, 5]]), "scores": torch.tensor([0.5]),
                      "labels": torch.tensor([7])} for _ in x]
 
-    with pytest.raises(PluginError, match="label 7 outside 0..2"):
+    with pytest.raises(PluginError, match="labels. must lie in 0..2, got 7"):
         predict(BadLabel(), src, 64, num_classes=3, name="bad")
 
 

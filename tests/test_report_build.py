@@ -56,7 +56,7 @@ def test_absent_sections_are_stated_with_the_command_that_fills_them(built):
                   "Registration error", "C2 under thermal displacement", "Accuracy versus GFLOPs",
                   "Cross-dataset comparison"):
         assert title in md, title
-    assert "No profile for beta" in md and "harness profile --detector beta" in md
+    assert "beta/c2: Params and GFLOPs absent, run(s) without a complexity record" in md
 
 
 def test_html_page_is_self_contained(built):
@@ -100,6 +100,9 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
                       "--resamples", "0", "--print"])
     assert res.exit_code == 0, res.output
     assert "synth: project-grouped folds" in res.output and "Registration error: ABSENT" in res.output
+    assert not (tmp_path / "r").exists()  # --print prints instead of writing
+    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--format", "md",
+                      "--resamples", "0"])
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
     res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r2"), "--resamples", "0"])
     assert res.exit_code == 0 and "-> " in res.output and "report.html" in res.output
@@ -114,12 +117,10 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
 def test_unreadable_files_are_skipped_and_named(tmp_path):
     store = synthetic_store(tmp_path / "s", folds=("P1", "P2"), per_fold=3, profiles={"alpha": (1e6, 1.0)})
     store.run(RunKey("synth", "beta", "c2", "P2", 0)).metrics_path.write_text("{ not json")
-    store.profile_path("beta").write_text("[1, 2")
     store.sensing_path("synth", "displacement").parent.mkdir(parents=True, exist_ok=True)
     store.sensing_path("synth", "displacement").write_text("{}x")
     report = build_report(store, out=tmp_path / "out", resamples=0)
     assert any("synth/beta/c2/P2/seed0: skipped" in p and "invalid JSON" in p for p in report.problems)
-    assert any("profile skipped" in p and "beta.json" in p for p in report.problems)
     disp = next(s for s in report.sections if s.key == "displacement")
     assert disp.absent.startswith("unreadable:") and "displacement.json" in disp.absent
     folds = report.tables[0]

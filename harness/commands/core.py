@@ -71,7 +71,9 @@ def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:
             label = f" [{r['label']}]" if r.get("label") else ""
             desc = f" - {r['description']}" if r.get("description") else ""
             lines.append(f"  {r['name']:<{width}}  {extra}{label}{desc}")
-    return "\n".join(lines)
+    from harness.textable import fit_text
+
+    return fit_text("\n".join(lines))
 
 
 @hookimpl

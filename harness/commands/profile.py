@@ -24,8 +24,8 @@ def _lat(rec: Any) -> str:
 
 def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
     """Header and rows of the profile table (one row per detector)."""
-    header = ["Detector", "Input", "Params (M)", "ref", "GFLOPs paper", "ref", "GFLOPs exact", "GFLOPs fvcore",
-              "torch ms med/p90", "ORT ms med/p90", "unused params"]
+    header = ["Detector", "Input", "Params (M)", "ref", "unused params", "GFLOPs paper", "ref", "GFLOPs exact",
+              "GFLOPs fvcore", "torch ms med/p90", "ORT ms med/p90"]
     rows = []
     for r in results:
         if "error" in r:
@@ -35,18 +35,19 @@ def profile_rows(results: list[dict[str, Any]]) -> tuple[list[str], list[list[st
         flops = r["flops"]
         fv = flops.get("fvcore") or {}
         lat = r.get("latency") or {}
+        opts = ", ".join(f"{k}={v}" for k, v in sorted((r.get("model_options") or {}).items()))
         rows.append([
-            r["detector"],
+            r["detector"] + (f" [{opts}]" if opts else ""),
             "x".join(str(s[1]) for s in r["input"]["shapes"]) + "ch",
             f"{r['params']['fused'] / 1e6:.3f}",
             _fmt(ref.get("params_m"), ".2f"),
+            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
             f"{flops['paper']['gflops']:.3f}",
             _fmt(ref.get("gflops"), ".2f"),
             f"{flops['exact']['gflops']:.3f}",
             _fmt(fv.get("gflops"), ".3f") if "error" not in fv else "error",
             _lat(lat.get("torch")),
             _lat(lat.get("onnxruntime")),
-            f"{r['params']['unreachable_count'] - r['params'].get('frozen_unreachable_count', 0):,}",
         ])
     return header, rows
 
@@ -63,8 +64,11 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         out.append(f"{r['detector']}: not profiled: {r['error']}")
     if results:
         r0 = results[0]
-        out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = BN-folded "
-                   f"parameter count; 'ref' = the detector's published figures.")
+        unfolded = [r["detector"] for r in results if not r["params"].get("bn_folded")]
+        params = ("BN-folded parameter count" if not unfolded else
+                  f"parameter count, BN-folded except {', '.join(unfolded)} (no fold declared: as built)")
+        out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = {params}; "
+                   f"'ref' = the detector's published figures.")
     for name, text in CONVENTIONS.items():
         out.append(f"GFLOPs {name}: {text}.")
     for r in results:
@@ -92,7 +96,9 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         for key in ("onnx",):
             if isinstance(r.get(key), dict) and "error" in r[key]:
                 out.append(f"{r['detector']}: ONNX export failed: {r[key]['error']}")
-    return "\n".join(out)
+    from harness.textable import fit_text
+
+    return fit_text("\n".join(out))
 
 
 @hookimpl
@@ -114,16 +120,22 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--fvcore/--no-fvcore", default=True, show_default=True, help="Add fvcore's count and table.")
     @click.option("--table", "show_table", is_flag=True, help="Also print fvcore's per-module table.")
     @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to write profiles into [default: results/<profile>].")
-    @click.option("--profile", "run_profile", default="paper", show_default=True,
-                  help="Run profile whose default store is used when --store is not given.")
+                  help="Results store to write profiles into [default: results/<profile>, as `harness run`].")
+    @click.option("--profile", "run_profile", default="smoke", show_default=True,
+                  help="Run profile: its model options and its default store, as `harness run`.")
+    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
+                  help="Extra YAML config file(s), applied after the profile (their model section is used).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                  help="Override one config key, e.g. --set model.scale=n (repeatable), as `harness run`.")
     @click.option("--no-store", is_flag=True, help="Do not write the results store.")
     def profile_cmd(detector: str, as_json: bool, imgsz: int, num_classes: int, in_channels: int, runs: int,
                     warmup: int, threads: int | None, device: str, latency: bool, onnx: bool, fvcore: bool,
-                    show_table: bool, store: Path | None, run_profile: str, no_store: bool) -> None:
+                    show_table: bool, store: Path | None, run_profile: str, config_files: tuple[str, ...],
+                    overrides: tuple[str, ...], no_store: bool) -> None:
         """Parameters, GFLOPs ("paper" and "exact" conventions, fvcore) and latency of detectors at IMGSZ, batch 1."""
         from rich.progress import Progress
 
+        from harness.config import load_config
         from harness.plugins import get_host
         from harness.profiling import profile_detector
         from harness.store import Store
@@ -132,8 +144,12 @@ def register_commands(cli: click.Group) -> None:
 
         host = get_host()
         names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
+        options = {}
         for name in names:
-            host.detector(name)  # unknown names fail here with the list of available ones
+            spec = host.detector(name)  # unknown names fail here with the list of available ones
+            cfg = load_config(run_profile, detector=spec.name, detector_defaults=spec.defaults, files=config_files,
+                              overrides=overrides)
+            options[name] = dict(cfg.get("model") or {})
         results = []
         with Progress(transient=True, disable=as_json) as progress:
             task = progress.add_task("profiling", total=len(names))
@@ -143,7 +159,7 @@ def register_commands(cli: click.Group) -> None:
                     results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes,
                                                     in_channels=in_channels, host=host, latency=latency, onnx=onnx,
                                                     fvcore=fvcore, warmup=warmup, runs=runs, threads=threads,
-                                                    device=device))
+                                                    device=device, model_options=options[name]))
                 except HarnessError as exc:
                     if len(names) == 1:
                         raise

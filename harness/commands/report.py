@@ -38,7 +38,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--format", "formats", default="md,csv,html", show_default=True,
                   help="Comma-separated formats to write: md, csv, html.")
     @click.option("--print", "print_tables", is_flag=True,
-                  help="Print every table in the terminal (aligned) instead of the list of files written.")
+                  help="Print every table in the terminal (aligned) instead of writing the report files.")
     @click.option("--resamples", type=click.IntRange(min=0), default=200, show_default=True,
                   help="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
     @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap resamples.")
@@ -66,7 +66,7 @@ def register_commands(cli: click.Group) -> None:
         fmts = [f.strip().lower() for f in formats.split(",") if f.strip()]
         target = out or Path("reports") / Path(root).resolve().name
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
-        report = build_report(root, names, out=target, formats=fmts, resamples=resamples, seed=seed,
+        report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples, seed=seed,
                               ablation_categories=cats, title=title, progress=True, workers=workers)
         if print_tables:
             click.echo(report.to_text())
@@ -78,7 +78,9 @@ def register_commands(cli: click.Group) -> None:
         if warned:
             click.secho(f"NOT sample-matched: {len(warned)} table(s) labelled: " + "; ".join(warned), fg="red", err=True)
         if absent:
-            click.echo("absent (see the report for the command that fills each): " + "; ".join(absent))
+            from harness.textable import fit_text
+
+            click.echo(fit_text("absent (see the report for the command that fills each): " + "; ".join(absent)))
         for path in report.files:
             click.echo(f"-> {path}")
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import Subset
@@ -29,17 +28,9 @@ def configure(model: nn.Module, conf: float, iou: float, max_det: int) -> None:
 def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: Any, num_classes: int | None = None,
                        name: str = "model") -> list[dict[str, Any]]:
     """One image's ``{"boxes", "scores", "labels"}`` (input pixels) -> COCO results in the original frame."""
-    try:
-        boxes = det["boxes"].detach().float().cpu().numpy().reshape(-1, 4)
-        scores = det["scores"].detach().float().cpu().numpy().reshape(-1)
-        labels = det["labels"].detach().cpu().numpy().reshape(-1).astype(np.int64)
-    except (KeyError, TypeError, AttributeError) as exc:
-        raise PluginError(f"detector {name!r}: eval-mode output must be dicts with 'boxes', 'scores' and 'labels' "
-                          f"tensors ({type(exc).__name__}: {exc})") from None
-    if not (len(boxes) == len(scores) == len(labels)):
-        raise PluginError(f"detector {name!r}: {len(boxes)} boxes, {len(scores)} scores, {len(labels)} labels for one image")
-    if num_classes is not None and len(labels) and (labels.min() < 0 or labels.max() >= num_classes):
-        raise PluginError(f"detector {name!r}: label {int(labels.max())} outside 0..{num_classes - 1}")
+    from harness.contracts import check_detections
+
+    boxes, scores, labels = check_detections(det, name, num_classes)
     if letterbox is not None:
         boxes = letterbox.to_original(boxes)
     out = []

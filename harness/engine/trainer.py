@@ -39,7 +39,7 @@ from harness.engine import optim
 from harness.engine.data import TrainDataset, targets_to, to_inputs, train_loader
 from harness.engine.ema import ModelEMA
 from harness.engine.runtime import select_device, set_threads
-from harness.errors import ConfigError, HarnessError, PluginError
+from harness.errors import ConfigError, HarnessError
 
 log = logging.getLogger(__name__)
 
@@ -331,11 +331,9 @@ class Trainer:
 
     # ------------------------------------------------------------------ pieces
     def _total(self, losses: Any, epoch: int, i: int) -> torch.Tensor:
-        if not isinstance(losses, Mapping) or not losses or not all(isinstance(v, torch.Tensor) for v in losses.values()):
-            raise PluginError(
-                f"detector {self.name!r}: in train mode model(inputs, targets) must return a dict of scalar loss "
-                f"tensors, got {type(losses).__name__}"
-            )
+        from harness.contracts import check_losses
+
+        check_losses(losses, self.name)
         loss = sum(v.sum() for v in losses.values())
         if not torch.isfinite(loss):
             bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]

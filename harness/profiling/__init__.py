@@ -117,30 +117,33 @@ def _top_level(by_module: dict[str, int]) -> dict[str, int]:
     return out
 
 
-def build_detector(name: str, num_classes: int = 8, in_channels: int = 4, host: Any = None) -> tuple[Any, Any]:
-    """(spec, model) of a registered detector, built for ``num_classes`` and the input the spec declares."""
+def build_detector(name: str, num_classes: int = 8, in_channels: int = 4, host: Any = None,
+                   model_options: dict[str, Any] | None = None) -> tuple[Any, Any]:
+    """(spec, model) of a registered detector, built for ``num_classes``, the input the spec declares and the model
+    options of a run configuration (``model`` section: ``--set model.scale=n``)."""
     from harness.plugins import get_host
 
     spec = (host or get_host()).detector(name)
     channels = spec.thermal_channels if spec.input_kind == "dual" else in_channels
+    options = dict(model_options or {})
     try:
-        model = spec.build(num_classes, in_channels=channels)
+        model = spec.build(num_classes, in_channels=channels, **options)
     except Exception as exc:
         raise ProfilingError(f"detector {name!r} could not be built (num_classes={num_classes}, "
-                             f"in_channels={channels}): {type(exc).__name__}: {exc}") from exc
+                             f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}") from exc
     return spec, model.eval()
 
 
 def profile_detector(name: str, imgsz: int = 640, num_classes: int = 8, in_channels: int = 4, host: Any = None,
-                     **kwargs: Any) -> dict[str, Any]:
+                     model_options: dict[str, Any] | None = None, **kwargs: Any) -> dict[str, Any]:
     """Build a registered detector and profile it at ``imgsz`` x ``imgsz``, batch 1, both inputs when dual-stream."""
-    spec, model = build_detector(name, num_classes, in_channels, host)
+    spec, model = build_detector(name, num_classes, in_channels, host, model_options)
     inputs = example_inputs(spec.input_kind, imgsz, 1, in_channels, spec.thermal_channels)
     result = profile_model(model, inputs, **kwargs)
     ref = spec.reference
     return {
         "detector": spec.name, "label": spec.label, "input_kind": spec.input_kind, "imgsz": imgsz,
-        "num_classes": num_classes,
+        "num_classes": num_classes, "model_options": dict(model_options or {}),
         "reference": None if ref is None else {"params_m": ref.params_m, "gflops": ref.gflops, "source": ref.source},
         **result,
     }

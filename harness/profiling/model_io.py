@@ -89,15 +89,12 @@ def example_inputs(input_kind: str, imgsz: int | Sequence[int] = 640, batch: int
 
 
 def fused_copy(model: nn.Module) -> tuple[nn.Module, bool]:
-    """An eval-mode deep copy with BatchNorm folded by the model's own ``fuse()`` (when it has one)."""
-    m = copy.deepcopy(model).eval()
-    fuse = getattr(m, "fuse", None)
-    if callable(fuse):
-        out = fuse()
-        if isinstance(out, nn.Module):
-            m = out.eval()
-        return m, True
-    return m, False
+    """An eval-mode deep copy with BatchNorm folded by the model's declared fold (``harness.contracts.fold_batchnorm``:
+    ``harness_fuse()`` or a ``fuse()`` method of its class; never an attribute that happens to be named ``fuse``)."""
+    from harness.contracts import fold_batchnorm
+
+    m, folded = fold_batchnorm(copy.deepcopy(model).eval())
+    return m.eval(), folded
 
 
 def to_meta(model: nn.Module) -> nn.Module:

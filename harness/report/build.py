@@ -20,15 +20,15 @@ from __future__ import annotations
 import logging
 import platform
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
-from harness.report.collect import Entry, StoreView, profile_numbers
+from harness.report.collect import Entry, StoreView
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
 from harness.report.tables import (
+    _entry_names,
     ABLATION_CATEGORIES,
     Table,
     ablation_tables,
@@ -41,6 +41,7 @@ from harness.report.tables import (
     records_csv,
     registration_table,
 )
+from harness.report.document import FigureOut, Report, Section
 from harness.store import Store
 
 log = logging.getLogger(__name__)
@@ -50,125 +51,26 @@ FORMATS = ("md", "csv", "html")
 REPORT_RESAMPLES = 200
 
 
-@dataclass
-class FigureOut:
-    name: str
-    title: str
-    svg: str
-    caption: str
-    files: list[Path] = field(default_factory=list)
-    points: list[PlotPoint] = field(default_factory=list)
-
-
-@dataclass
-class Section:
-    """A part of the report: tables and figures, or the reason it is absent and the command that would fill it."""
-
-    key: str
-    title: str
-    dataset: str | None = None
-    tables: list[Table] = field(default_factory=list)
-    figures: list[FigureOut] = field(default_factory=list)
-    absent: str | None = None
-    notes: list[str] = field(default_factory=list)
-
-    @property
-    def anchor(self) -> str:
-        return f"{self.dataset or 'all'}-{self.key}".replace(" ", "-").replace("/", "-").replace("+", "-")
-
-
-@dataclass
-class Report:
-    title: str
-    store: str
-    datasets: list[str]
-    generated: str
-    sections: list[Section] = field(default_factory=list)
-    comparisons: list[PairedComparison] = field(default_factory=list)
-    files: list[Path] = field(default_factory=list)
-    environment: dict[str, Any] = field(default_factory=dict)
-    #: store files that could not be read (skipped, named with the reason)
-    problems: list[str] = field(default_factory=list)
-
-    @property
-    def tables(self) -> list[Table]:
-        return [t for s in self.sections for t in s.tables]
-
-    def records(self) -> list[dict[str, Any]]:
-        return [r for t in self.tables for r in t.records]
-
-    def to_text(self) -> str:
-        """Every table and note, aligned for the terminal (``harness report --print``)."""
-        out = [self.title, f"store: {self.store}   generated: {self.generated}", ""]
-        if self.problems:
-            out += ["!!! UNREADABLE FILES IN THE STORE (skipped) !!!", *[f"!!!   {p}" for p in self.problems], ""]
-        current = None
-        for s in self.sections:
-            if s.dataset != current:
-                current = s.dataset
-                head = f"# {current}" if current else "# all datasets"
-                out += [head, ""]
-            if s.absent:
-                out += [f"{s.title}: ABSENT. {s.absent}", ""]
-                continue
-            for t in s.tables:
-                out += [t.to_text(), ""]
-            for f in s.figures:
-                where = ", ".join(str(p) for p in f.files) or "not written (no --out)"
-                out += [f"{f.title}: {where}", f"  {f.caption}", ""]
-            out += [f"  {n}" for n in s.notes]
-            if s.notes:
-                out.append("")
-        return "\n".join(out).rstrip() + "\n"
-
-    def to_markdown(self, figure_dir: str = "figures") -> str:
-        out = [f"# {self.title}", "", f"Results store `{self.store}`, generated {self.generated}.", ""]
-        if self.problems:
-            out += ["> **⚠ Unreadable files in the store (skipped)**", *[f"> - {p}" for p in self.problems], ""]
-        current = None
-        for s in self.sections:
-            if s.dataset != current:
-                current = s.dataset
-                out += [f"## {current or 'All datasets'}", ""]
-            if s.absent:
-                out += [f"### {s.title}", "", f"*Absent.* {s.absent}", ""]
-                continue
-            for t in s.tables:
-                out += [t.to_markdown(), ""]
-            for f in s.figures:
-                out += [f"### {f.title}", "", f"![{f.title}]({figure_dir}/{f.name}.png)", "", f.caption, ""]
-            if s.notes:
-                out += [f"- {n}" for n in s.notes] + [""]
-        return "\n".join(out).rstrip() + "\n"
-
-
 # -------------------------------------------------------------------------------------------------- hardware
-def _hardware(entries: Sequence[Entry], profiles: dict[str, Any]) -> str:
+def _hardware(entries: Sequence[Entry]) -> str:
     runs = set()
     for e in entries:
         env = e.environment()
         if env:
             dev = env.get("gpu") or env.get("device") or "?"
             runs.add(f"{dev}, {env.get('threads', '?')} thread(s), torch {env.get('torch', '?')}")
-    profs = {f"{p.get('machine') or '?'} CPU, torch {p.get('torch') or '?'}" for p in
-             (profile_numbers(v) for v in profiles.values()) if p}
     parts = []
     if runs:
         parts.append("runs on " + "; ".join(sorted(runs)))
-    if profs:
-        parts.append("profiles on " + "; ".join(sorted(profs)))
     return ", ".join(parts) or "hardware not recorded"
 
 
 # -------------------------------------------------------------------------------------------------- sections
-def _points(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]) -> list[PlotPoint]:
-    names = {}
-    dets = [e.detector for e in rows]
-    for e in rows:
-        names[e.label] = e.detector if dets.count(e.detector) == 1 else e.label
+def _points(dataset: str, rows: Sequence[Entry]) -> list[PlotPoint]:
+    names = _entry_names(rows)
     points = []
     for e in rows:
-        prof = profile_numbers(profiles.get(e.detector))
+        prof = e.complexity()
         if not prof or prof.get("gflops") is None:
             continue
         agg = e.aggregate()["metrics"]
@@ -181,8 +83,8 @@ def _points(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]) -> li
     return points
 
 
-def _conventions(view: StoreView, entries: Sequence[Entry], profiles: dict[str, Any]) -> str:
-    profs = [profile_numbers(profiles[d]) for d in dict.fromkeys(e.detector for e in entries) if d in profiles]
+def _conventions(view: StoreView, entries: Sequence[Entry]) -> str:
+    profs = [c for c in (e.complexity() for e in entries) if c.get("gflops") is not None]
     sizes = sorted({p["imgsz"] for p in profs if p.get("imgsz")})
     run_sizes = sorted({s for s in (e.train_imgsz() for e in entries) if s})
     folds = sorted({len(e.folds) for e in entries})
@@ -191,42 +93,41 @@ def _conventions(view: StoreView, entries: Sequence[Entry], profiles: dict[str, 
             f"inputs for dual-stream detectors, log scale. y: COCO box AP in % (mAP50:95 over IoU 0.50:0.05:0.95, "
             f"mAP50 at IoU 0.50; 101 recall points, maxDets 100), mean over {'/'.join(map(str, folds))} held-out "
             f"fold(s); error bars: ± 1 sample SD over folds. Runs trained and evaluated at "
-            f"{'/'.join(f'{s}x{s}' for s in run_sizes) or '?'} px; {_hardware(entries, profiles)}. Dashed: Pareto "
+            f"{'/'.join(f'{s}x{s}' for s in run_sizes) or '?'} px; {_hardware(entries)}. Dashed: Pareto "
             f"front. Store: {view.root}.")
 
 
 def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) -> Section:
     sec = Section("accuracy-vs-gflops", "Accuracy versus GFLOPs")
-    profiles = view.profiles()
     points: list[PlotPoint] = []
     used: list[Entry] = []
     unprofiled: list[str] = []
     for ds in datasets:
         rows, _, _ = main_entries(view.entries(ds))
         used.extend(rows)
-        points.extend(_points(ds, rows, profiles))
-        unprofiled.extend(e.detector for e in rows if e.detector not in profiles)
+        points.extend(_points(ds, rows))
+        unprofiled.extend(e.label for e in rows if e.complexity().get("gflops") is None)
     unprofiled = list(dict.fromkeys(unprofiled))
     if not used:
         sec.absent = ("no finished runs in the store; fill with `harness run --detector D --dataset X --store "
-                      f"{view.root}` and `harness profile --detector D --store {view.root}`.")
+                      f"{view.root}` (each run measures the complexity of the model it trained).")
         return sec
     if not points:
-        sec.absent = (f"no detector of the runs has a profile; fill with `harness profile --detector "
-                      f"{' / '.join(unprofiled) or 'all'} --store {view.root}`.")
+        sec.absent = (f"no run recorded the complexity of its model ({', '.join(unprofiled)}); re-run them with "
+                      f"`harness run ... --force --store {view.root}` to measure it.")
         return sec
-    conventions = _conventions(view, used, profiles)
+    conventions = _conventions(view, used)
     svg, files = accuracy_vs_gflops(points, conventions, out / "figures" / "accuracy_vs_gflops" if out else None,
                                     title="Held-out accuracy versus GFLOPs")
     sec.figures.append(FigureOut("accuracy_vs_gflops", "Accuracy versus GFLOPs", svg, conventions, files, points))
     if unprofiled:
-        sec.notes.append(f"Not plotted (no profile): {', '.join(unprofiled)}; fill with `harness profile --detector "
-                         f"NAME --store {view.root}`.")
+        sec.notes.append(f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
+                         f"them with --force to measure it.")
     return sec
 
 
-def _pareto_labels(dataset: str, rows: Sequence[Entry], profiles: dict[str, Any]) -> set[str] | None:
-    pts = [(e.label, profile_numbers(profiles.get(e.detector)).get("gflops"), e.aggregate()["metrics"].get("mAP50_95"))
+def _pareto_labels(dataset: str, rows: Sequence[Entry]) -> set[str] | None:
+    pts = [(e.label, e.complexity().get("gflops"), e.aggregate()["metrics"].get("mAP50_95"))
            for e in rows]
     pts = [(lab, g, m["mean"]) for lab, g, m in pts if g is not None and m and m.get("mean") is not None]
     if not pts:
@@ -322,13 +223,12 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     """The sections of one dataset (see the module docstring for the order)."""
     root = view.root
     entries = view.entries(dataset)
-    profiles = view.profiles()
     rows, _, _ = main_entries(entries)
     sections: list[Section] = []
     run_cmd = f"`harness run --detector D --dataset {dataset} --folds all --store {root}`"
 
     sec = Section("folds", "Project-grouped folds", dataset)
-    table = project_table(view, dataset, pareto=_pareto_labels(dataset, rows, profiles))
+    table = project_table(view, dataset, pareto=_pareto_labels(dataset, rows))
     if table is None:
         sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
     else:

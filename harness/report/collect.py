@@ -118,6 +118,28 @@ class Entry:
                     return env
         return {}
 
+    def complexity(self) -> dict[str, Any]:
+        """Params/GFLOPs measured in this entry's own runs (``metrics.json`` ``complexity``, at 640 px).
+
+        ``{}`` when no run recorded one; ``{"mixed": [labels]}`` when its runs were built with different model
+        options (their numbers would not describe one model)."""
+        from harness.complexity import numbers, options_label
+
+        found: dict[str, dict[str, Any]] = {}
+        for f in self.folds.values():
+            for r in f.runs:
+                nums = numbers(_read_metrics(r).get("complexity"))
+                if nums:
+                    found.setdefault(options_label(nums["model_options"]) + f"|{nums['params_m']}", nums)
+        if len(found) > 1:
+            return {"mixed": sorted({options_label(n["model_options"]) or "defaults" for n in found.values()})}
+        return next(iter(found.values()), {})
+
+    def unmeasured_runs(self) -> list[str]:
+        """Runs of this entry whose metrics.json holds no complexity record (made before it was measured)."""
+        return [str(r.key) for f in self.folds.values() for r in f.runs
+                if not (_read_metrics(r).get("complexity") or {}).get("gflops")]
+
     def train_imgsz(self) -> int | None:
         for f in self.folds.values():
             for r in f.runs:
@@ -218,7 +240,10 @@ class StoreView:
         for r in self.store.runs(dataset=dataset, finished_only=False):
             try:
                 if not r.is_finished():
-                    out.append((str(r.key), (r.status() or {}).get("state", "unknown")))
+                    state = (r.status() or {}).get("state", "unknown")
+                    if state == "running" and not r.is_held():  # its process is gone (killed, crashed)
+                        state = "interrupted"
+                    out.append((str(r.key), state))
             except HarnessError:
                 out.append((str(r.key), "unreadable status"))
         return out

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from html import escape
 
-from harness.report.build import Report, Section
+from harness.report.document import Report, Section
 from harness.report.plots import inline_svg
 from harness.report.tables import Table
 
@@ -27,7 +27,9 @@ nav a { color: var(--best); text-decoration: none; display: block; }
 nav a.off { color: var(--muted); }
 .table-wrap { overflow-x: auto; margin: 6px 0 4px; }
 table { border-collapse: collapse; font-variant-numeric: tabular-nums; }
-th, td { border: 1px solid var(--line); padding: 4px 8px; white-space: nowrap; }
+th, td { border: 1px solid var(--line); padding: 3px 6px; white-space: nowrap; }
+th, td.l { white-space: normal; }
+th { font-size: 12.5px; }
 th { background: var(--head); font-weight: 600; }
 th.group { text-align: center; border-bottom-color: #aeb8c2; }
 td.r, th.r { text-align: right; }

@@ -333,7 +333,9 @@ class PairedComparison:
         else:
             out.append("no bootstrap (resamples = 0)")
         out += self.notes
-        return "\n".join(out)
+        from harness.textable import fit_text
+
+        return fit_text("\n".join(out))
 
 
 def fold_differences(a: Entry, b: Entry, folds: Sequence[str]) -> dict[str, FoldDifference]:

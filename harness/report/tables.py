@@ -8,7 +8,7 @@ scored on the same samples. Renderers: aligned text (``to_text``), Markdown, wid
 Tables (builders below, all reading only the store through ``collect.StoreView``):
 
 * ``project_table``: the seed's project-grouped table: per held-out fold mAP50 and mAP50:95, their mean ± sample
-  SD over folds, Params (M) and GFLOPs from the detector's profile;
+  SD over folds, Params (M) and GFLOPs measured on the model each run trained;
 * ``category_table``: per category, instances and AP50 / AP50:95 as means over the folds that contain it;
 * ``ablation_tables``: one per detector run with several encodings on common folds: P, R, mAP50, mAP50:95 and
   AP50 of the seed's two thermal-only defects (delamination, water seepage);
@@ -29,7 +29,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
-from harness.report.collect import Entry, StoreView, natural_key, profile_numbers
+from harness.report.collect import Entry, StoreView, natural_key
 from harness.textable import text_table
 
 #: The seed's thermal-only defect categories shown in the encoding-ablation table.
@@ -324,7 +324,18 @@ def _fold_matching(rows: Sequence[Entry], folds: Sequence[str]) -> tuple[str | N
 def _entry_names(rows: Sequence[Entry]) -> dict[str, str]:
     """Short row names: the detector alone when each detector appears once, else detector/encoding."""
     dets = [e.detector for e in rows]
-    return {e.label: (e.detector if dets.count(e.detector) == 1 else e.label) for e in rows}
+    return {e.label: (e.detector if dets.count(e.detector) == 1 else e.label) + _options_suffix(e) for e in rows}
+
+
+def _options_suffix(e: Entry) -> str:
+    """`` [scale=n]``: the model options the entry's runs were built with (measured in the runs), if any."""
+    from harness.complexity import options_label
+
+    c = e.complexity()
+    if c.get("mixed"):
+        return f" [mixed: {'; '.join(c['mixed'])}]"
+    text = options_label(c.get("model_options") or {})
+    return f" [{text}]" if text else ""
 
 
 def _seeds_note(rows: Sequence[Entry]) -> str:
@@ -339,7 +350,6 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     if not entries:
         return None
     rows_e, left_out, folds = main_entries(entries)
-    profiles = view.profiles()
     name = f"{_slug(dataset)}-folds"
     cols = [Column("detector", "Detector"), Column("encoding", "Encoding")]
     for f in folds:
@@ -357,9 +367,9 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     no_profile = []
     for e in rows_e:
         agg = e.aggregate()["metrics"]
-        prof = profile_numbers(profiles.get(e.detector))
-        if not prof:
-            no_profile.append(e.detector)
+        prof = e.complexity()
+        if not prof.get("params_m"):
+            no_profile.append(e)
         row: dict[str, Any] = {"detector": names[e.label], "encoding": e.encoding,
                                "mAP50": Stat.from_mean_sd(agg.get("mAP50")),
                                "mAP50_95": Stat.from_mean_sd(agg.get("mAP50_95")),
@@ -402,7 +412,7 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
                        f"101 recall points, maxDets 100), in %.")
     table.notes.append("Images and Inst.: held-out images and instances summed over the folds (each image is held out "
                        "once); the support row gives them per fold.")
-    _profile_notes(table, rows_e, profiles, no_profile, view)
+    _profile_notes(table, rows_e, no_profile, view)
     if left_out:
         table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablation): "
                            + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out))
@@ -412,20 +422,25 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     return table
 
 
-def _profile_notes(table: Table, rows: Sequence[Entry], profiles: Mapping[str, Any], missing: Sequence[str],
-                   view: StoreView) -> None:
-    profs = [profile_numbers(profiles[d]) for d in dict.fromkeys(e.detector for e in rows) if d in profiles]
+def _profile_notes(table: Table, rows: Sequence[Entry], missing: Sequence[Entry], view: StoreView) -> None:
+    profs = [c for c in (e.complexity() for e in rows) if c.get("params_m")]
     if profs:
-        sizes = sorted({p.get("imgsz") for p in profs if p.get("imgsz")})
         ncls = sorted({p.get("num_classes") for p in profs if p.get("num_classes")})
+        folded = {p.get("bn_folded") for p in profs}
+        params = ("after BatchNorm folding" if folded == {True} else "as built (no BatchNorm fold declared)"
+                  if folded == {False} else "after BatchNorm folding where the detector declares one")
         table.notes.append(
-            f"Params (M): parameter count after BatchNorm folding; GFLOPs: 'paper' convention (BN folded, "
-            f"1 multiply-add = 2 FLOPs, forward_raw without decoding/NMS) at {'/'.join(f'{s}x{s}' for s in sizes)}, "
-            f"batch 1, both inputs for dual-stream detectors, {'/'.join(map(str, ncls))} classes; from "
-            f"`harness profile` (_profiles/<detector>.json).")
-    for d in dict.fromkeys(missing):
-        table.notes.append(f"No profile for {d}: Params and GFLOPs absent; fill with "
-                           f"`harness profile --detector {d} --store {view.root}`.")
+            f"Params (M): parameter count {params}; GFLOPs: 'paper' convention (BN folded, 1 multiply-add = 2 FLOPs, "
+            f"forward_raw without decoding/NMS) at 640x640, batch 1, both inputs for dual-stream detectors, "
+            f"{'/'.join(map(str, ncls))} class(es); measured on the model each run trained (metrics.json complexity).")
+    for e in missing:
+        mixed = e.complexity().get("mixed")
+        if mixed:
+            table.notes.append(f"{e.label}: Params and GFLOPs absent, its runs were built with different model "
+                               f"options ({'; '.join(mixed)}); re-run them with one setting.")
+        else:
+            table.notes.append(f"{e.label}: Params and GFLOPs absent, run(s) without a complexity record "
+                               f"({', '.join(e.unmeasured_runs()[:3])}); re-run with --force to measure them.")
 
 
 # -------------------------------------------------------------------------------------------------- per category

@@ -43,7 +43,7 @@ class Conv(nn.Module):
 def fuse_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
     """Fold an inference-mode BatchNorm into the preceding convolution: w' = w * g / s, b' = beta + (b - mu) * g / s."""
     fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
-                      dilation=conv.dilation, groups=conv.groups, bias=True).to(conv.weight.device)
+                      dilation=conv.dilation, groups=conv.groups, bias=True).to(conv.weight.device, conv.weight.dtype)
     scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
     fused.weight.data.copy_(conv.weight.detach() * scale.view(-1, 1, 1, 1))
     bias = conv.bias.detach() if conv.bias is not None else torch.zeros_like(bn.running_mean)
