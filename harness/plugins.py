@@ -61,6 +61,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.run",
     "harness.commands.sweep",
     "harness.commands.report",
+    "harness.commands.weights",
 )
 
 #: hook name -> (kind shown to users, spec class)
