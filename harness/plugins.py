@@ -62,6 +62,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.sweep",
     "harness.commands.report",
     "harness.commands.weights",
+    "harness.commands.score",
 )
 
 #: hook name -> (kind shown to users, spec class)

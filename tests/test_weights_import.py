@@ -62,7 +62,7 @@ def test_a_pickle_that_would_run_a_shell_command_is_refused_and_nothing_runs(tmp
     assert res.exit_code == 2 and "refused" in res.output
     assert not marker.exists() and not (tmp_path / "w.safetensors").exists()
     # the same payload is real: an ordinary unpickler does run it
-    pickle.loads(pickle.dumps(_RunsShell(marker)))
+    pickle.loads(pickle.dumps(_RunsShell(marker)))  # safety-scan: allow (control)
     assert marker.exists()
 
 
@@ -207,3 +207,23 @@ def test_yolov5_single_stream_layout_is_named(tmp_path):
     assert lay["family"] == "yolov5" and not lay["two_stream"] and lay["scale"] == "n" and lay["nc"] == 3
     assert set(sd) == set(model.state_dict()) - {k for k in model.state_dict() if k.endswith("num_batches_tracked")} \
         or set(sd) == set(model.state_dict())
+
+
+@pytest.mark.slow
+def test_pretrain_starts_from_an_imported_checkpoint(tmp_path, host, monkeypatch):
+    """`harness pretrain --init` (and so `harness run --init`) takes the import: stem inflated to 4 channels."""
+    from engine_helpers import ShapesPlugin
+    from harness.commands.pretrain import pretrain
+    from harness.plugins import temporary_plugin
+    from harness.store import RunKey, Store
+    from scale_helpers import TINY
+
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "w.safetensors"
+    import_checkpoint(save_ultralytics(_ours(nc=3, in_channels=3), tmp_path / "best.pt", NAMES), out)
+    with temporary_plugin(ShapesPlugin(), name="shapes-test"):
+        res = pretrain("ours", "shapes", fold="A", overrides=TINY + ["model.scale=n", "protocol.epochs=1"],
+                       store=tmp_path / "store", progress=False, init=out)
+    assert res.checkpoint.exists()
+    init = Store(tmp_path / "store").run(RunKey("shapes", "ours", "test-ir8", "A", 0)).read_metrics()["train"]["init"]
+    assert init["path"] == str(out) and init["loaded"] > 300 and init["stem"]["checkpoint_channels"] == 3
