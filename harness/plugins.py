@@ -61,6 +61,8 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.run",
     "harness.commands.sweep",
     "harness.commands.report",
+    "harness.commands.weights",
+    "harness.commands.score",
 )
 
 #: hook name -> (kind shown to users, spec class)

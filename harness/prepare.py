@@ -39,7 +39,7 @@ from harness.prepared import PreparedDataset, PreparedWriter
 log = logging.getLogger(__name__)
 
 #: Bumped whenever preparation changes what it writes for the same inputs (part of every cache key).
-PREPARE_VERSION = 1
+PREPARE_VERSION = 2
 ENV_CACHE = "HARNESS_CACHE"
 #: How many skipped files are listed by name in the prepared manifest (all are counted).
 MAX_LISTED_SKIPS = 2000

@@ -63,10 +63,27 @@ class RunKey:
     seed: int = 0
 
     def parts(self) -> tuple[str, str, str, str, str]:
-        return (self.dataset, self.detector, self.encoding, _safe(self.fold), f"seed{self.seed}")
+        return (self.dataset, detector_folder(self.detector), self.encoding, _safe(self.fold), f"seed{self.seed}")
 
     def __str__(self) -> str:
         return f"{self.dataset}/{self.detector}/{self.encoding}/{self.fold}/seed{self.seed}"
+
+
+#: Predictions scored from another codebase are stored as detector ``external/NAME``, in the folder ``external.NAME``.
+EXTERNAL = "external/"
+_EXTERNAL_FOLDER = "external."
+
+
+def detector_folder(detector: str) -> str:
+    """The store folder of a detector name (``external/NAME`` -> ``external.NAME``; others unchanged)."""
+    if detector.startswith(EXTERNAL):
+        return _EXTERNAL_FOLDER + _safe(detector[len(EXTERNAL):])
+    return detector
+
+
+def detector_name(folder: str) -> str:
+    """Inverse of ``detector_folder``."""
+    return EXTERNAL + folder[len(_EXTERNAL_FOLDER):] if folder.startswith(_EXTERNAL_FOLDER) else folder
 
 
 def _safe(part: str) -> str:
@@ -294,6 +311,7 @@ class Store:
             return
         for status in sorted(self.root.glob("*/*/*/*/seed*/status.json")):
             ds, det, enc, fold, seed = status.parent.relative_to(self.root).parts
+            det = detector_name(det)
             if ds.startswith("_") or (dataset and ds != dataset) or (detector and det != detector):
                 continue
             try:

@@ -53,7 +53,7 @@ def _sha1(path: Path) -> str:
 def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, fold: str | None = None,
              seed: int = 0, profile: str | None = "smoke", config_files: Sequence[str | Path] = (),
              overrides: Sequence[str] = (), store: str | Path | None = None, force: bool = False,
-             progress: bool = True, out: str | Path | None = None) -> PretrainResult:
+             progress: bool = True, out: str | Path | None = None, init: str | Path | None = None) -> PretrainResult:
     """Train ``detector`` on ``dataset``'s training groups and return the checkpoint for ``harness run --init``."""
     from harness.errors import ConfigError, StoreError
     from harness.io import atomic_write_json
@@ -72,7 +72,7 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         fold = next(iter(folds), "all")
     summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=fold, seeds=[seed],
                              profile=profile, config_files=config_files, overrides=overrides, store=store, force=force,
-                             progress=progress))
+                             progress=progress, init=init))
     if len(summary.results) != 1:
         raise ConfigError(f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected {len(summary.results)}; "
                           f"use --fold")
@@ -133,11 +133,13 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
     @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store root [default: results/<profile>].")
     @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also copy the checkpoint here.")
+    @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained).")
     @click.option("--force", is_flag=True, help="Redo the pretraining run even if it finished.")
     @click.option("--no-progress", is_flag=True, help="No progress bars.")
     def pretrain_cmd(detector: str, dataset: str, encoding: str | None, fold: str | None, seed: int, profile: str,
                      config_files: tuple[str, ...], overrides: tuple[str, ...], store: str | None, out: str | None,
-                     force: bool, no_progress: bool) -> None:
+                     init: str | None, force: bool, no_progress: bool) -> None:
         """Pretrain DETECTOR on DATASET (M3FD) and print the checkpoint to fine-tune from.
 
         \b
@@ -146,7 +148,7 @@ def register_commands(cli: click.Group) -> None:
           harness run --detector ours --dataset m3t --init <printed checkpoint>
         """
         res = pretrain(detector, dataset, encoding, fold, seed, profile, config_files, overrides, store, force,
-                       not no_progress, out)
+                       not no_progress, out, init)
         r = res.record
         click.echo(f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val images, "
                    f"encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 {_fmt(r['val_mAP50_95'])} [{res.state}]")

@@ -40,12 +40,20 @@ def load(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"{path}: checkpoint not found")
+    if path.suffix == ".safetensors":  # what `harness weights import` writes: a plain state dict
+        from safetensors.torch import load_file
+
+        try:
+            return dict(load_file(str(path)))
+        except Exception as exc:
+            raise CheckpointError(f"{path}: not a readable safetensors file ({exc})") from None
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle errors, truncated files, foreign objects
         raise CheckpointError(
             f"{path}: cannot be read as a weights-only checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0]}). "
-            f"If it pickles a whole model object, re-save its state_dict with torch.save(model.state_dict(), ...)"
+            f"If it pickles a whole model object (Ultralytics, YOLOv5, ICAFusion checkpoints), convert it safely with "
+            f"`harness weights import {path} --out weights.safetensors` and use that file"
         ) from None
     if not isinstance(obj, dict):
         raise CheckpointError(f"{path}: expected a dictionary (a state dict or a harness checkpoint), got {type(obj).__name__}")

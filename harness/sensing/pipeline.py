@@ -116,5 +116,10 @@ class SensingContext:
             b = undistort_boxes(b, self.thermal_camera, th_cam)  # type: ignore[arg-type]
         H = self.homography(group, rgb_u, th_u if th_u is not None else ir8_u, prior)
         w = self.options.warp
-        return align_pair(rgb_u, th_u, ir8_u, b, labels, H, boxes_frame=boxes_frame, crop=w.crop,
+        pair = align_pair(rgb_u, th_u, ir8_u, b, labels, H, boxes_frame=boxes_frame, crop=w.crop,
                           min_box_size=w.min_box_size, interpolation=w.interpolation, antialias=w.antialias)
+        # what maps an original image's pixels into the frame H starts from (for boxes made on the original images)
+        for sensor, cam, new in (("rgb", self.rgb_camera, rgb_cam), ("thermal", self.thermal_camera, th_cam)):
+            if cam is not None and new is not None:
+                pair.cameras[sensor] = {"camera": cam.to_dict(), "undistorted": new.to_dict()}
+        return pair

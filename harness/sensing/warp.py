@@ -14,7 +14,7 @@ edge ``x`` is the centre coordinate ``x - 0.5``; ``transform_boxes`` converts on
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -163,6 +163,8 @@ class AlignedPair:
     valid: np.ndarray  # common-support mask inside the crop
     kept: np.ndarray  # bool over the input boxes
     H: np.ndarray  # RGB -> cropped thermal frame
+    #: the undistortion applied before ``H``, per sensor: {"rgb"|"thermal": {"camera": ..., "undistorted": ...}}
+    cameras: dict[str, Any] = field(default_factory=dict)
 
     @property
     def dropped(self) -> int:
@@ -173,8 +175,11 @@ class AlignedPair:
         return float(self.valid.mean()) if self.valid.size else 0.0
 
     def meta(self) -> dict[str, Any]:
-        return {"crop_origin": list(self.origin), "crop_size": list(self.size), "H_rgb_to_frame": self.H.tolist(),
-                "support_fraction": round(self.support_fraction, 6), "boxes_dropped": self.dropped}
+        out = {"crop_origin": list(self.origin), "crop_size": list(self.size), "H_rgb_to_frame": self.H.tolist(),
+               "support_fraction": round(self.support_fraction, 6), "boxes_dropped": self.dropped}
+        if self.cameras:
+            out["cameras"] = self.cameras
+        return out
 
     def to_sample(self, image_id: int, group: str, meta: dict[str, Any] | None = None) -> AlignedSample:
         """An ``AlignedSample`` with the alignment's provenance merged into ``meta``."""

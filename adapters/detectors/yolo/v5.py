@@ -415,8 +415,8 @@ def read_weights(source: Any, name: str) -> Mapping[str, Any]:
     except Exception as exc:  # pickled model objects need the code that defined them
         raise HarnessError(
             f"detector {name!r}: {path} is not a plain state dict ({type(exc).__name__}). Official YOLOv5-style "
-            f"checkpoints pickle the whole model; convert one inside its own repository with "
-            f"`torch.save(torch.load(p)['model'].float().state_dict(), 'state_dict.pt')` and pass that file"
+            f"checkpoints pickle the whole model; convert one safely (no code from the file runs) with "
+            f"`harness weights import {path} --out weights.safetensors` and pass that file"
         ) from None
 
 

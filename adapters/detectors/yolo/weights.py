@@ -60,8 +60,8 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     except Exception as exc:
         raise HarnessError(
             f"weights file {path} cannot be read as plain tensors ({type(exc).__name__}). Checkpoints that pickle "
-            f"whole model objects are refused for safety; save the model's state dict instead, e.g. "
-            f"torch.save(model.state_dict(), 'weights.pt') or safetensors.torch.save_file(...)"
+            f"whole model objects (Ultralytics, YOLOv5) are refused for safety; convert one with "
+            f"`harness weights import {path} --out weights.safetensors` and pass that file"
         ) from None
     return unwrap_state_dict(obj, str(path))
 

@@ -1,0 +1,88 @@
+"""``harness score`` (predictions made elsewhere, scored on a fold) and ``harness export-predictions``."""
+
+from __future__ import annotations
+
+import click
+
+from harness.hookspecs import hookimpl
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{100 * float(v):.1f}"
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="score")
+    @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
+    @click.option("--fold", required=True, help="The held-out fold the predictions are for, e.g. P1.")
+    @click.option("--predictions", required=True, type=click.Path(dir_okay=False, exists=True),
+                  help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].")
+    @click.option("--name", required=True, help="Name of the external detector; stored as external/NAME.")
+    @click.option("--frame", type=click.Choice(["prepared", "thermal", "rgb"]), default="prepared",
+                  show_default=True, help="Frame of the boxes: the harness's prepared frame, or the original "
+                                          "thermal or RGB image (moved like the ground truth).")
+    @click.option("--images", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
+                       "not list count as missing.")
+    @click.option("--image-key", default="file_name", show_default=True,
+                  help="Field naming each image (in the predictions or the image list).")
+    @click.option("--category-map", default=None, metavar="THEIR=OURS,...|FILE.json",
+                  help="Their category ids or names -> the dataset's names [default: by name].")
+    @click.option("--params", type=float, default=None, help="Parameters of the external model, millions.")
+    @click.option("--gflops", type=float, default=None, help="GFLOPs of the external model at 640.")
+    @click.option("--root", default=None, help="Dataset root folder (as for prepare).")
+    @click.option("--profile", default="smoke", show_default=True, help="Profile: its store and evaluation settings.")
+    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False))
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE")
+    @click.option("--store", type=click.Path(file_okay=False), default=None,
+                  help="Results store root [default: results/<profile>].")
+    @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
+    def score_cmd(dataset, fold, predictions, name, frame, images, image_key, category_map, params, gflops, root,
+                  profile, config_files, overrides, store, force):
+        """Score predictions made by another codebase against the prepared ground truth of one fold.
+
+        \b
+        The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
+        the paired bootstrap show it beside the trained detectors.
+        Example:
+          harness score --dataset m3t --fold P1 --predictions yolo_preds.json --images val.json \\
+              --frame rgb --name yolov8s-official --params 11.13 --gflops 28.6
+        """
+        from harness.scoring.external import parse_category_map, score_external
+
+        res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
+                             category_map=parse_category_map(category_map), profile=profile,
+                             config_files=config_files, overrides=overrides, store=store, root=root,
+                             params=params, gflops=gflops, force=force)
+        for line in res.matching.lines():
+            click.echo(line, err=True)
+        m = res.metrics["metrics"]
+        s = res.metrics["support"]
+        click.echo(f"external/{name} on {dataset} fold {fold}: mAP50 {_fmt(m.get('mAP50'))}  "
+                   f"mAP50:95 {_fmt(m.get('mAP50_95'))}  P {_fmt(m.get('precision'))}  "
+                   f"R {_fmt(m.get('recall'))}  ({s['images']} images, {s['instances']} instances) [{res.state}]")
+        click.echo(f"stored: {res.run_path}")
+
+    @cli.command(name="export-predictions")
+    @click.option("--store", type=click.Path(file_okay=False), default="results/smoke", show_default=True)
+    @click.option("--dataset", default=None, help="Only runs of this dataset.")
+    @click.option("--detector", default=None, help="Only runs of this detector.")
+    @click.option("--encoding", default=None, help="Only runs with this encoding.")
+    @click.option("--folds", default=None, help="Comma-separated folds [default: all].")
+    @click.option("--seed", type=int, default=None)
+    @click.option("--frame", type=click.Choice(["thermal", "rgb", "prepared"]), default="thermal",
+                  show_default=True, help="Frame of the exported boxes.")
+    @click.option("--out", required=True, type=click.Path(),
+                  help="Output .json for one run, or a folder for several.")
+    def export_cmd(store, dataset, detector, encoding, folds, seed, frame, out):
+        """Write finished runs' held-out predictions as COCO results in an original image frame.
+
+        Each file has a companion <name>.images.json (images and categories) that `harness score --images`
+        reads back.
+        """
+        from harness.scoring.export import export_predictions
+
+        fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
+        for e in export_predictions(store, dataset, detector, encoding, fold_list, seed, frame, out):
+            click.echo(f"{e.run}: {e.detections} detections on {e.images} images -> {e.path}")

@@ -1,0 +1,111 @@
+"""``harness export-predictions``: a run's held-out predictions as COCO results in an original image frame.
+
+Each run stores its predictions in the prepared frame (``predictions.json``). Exported, every detection becomes
+``{"image_id", "file_name", "category_id", "category_name", "bbox", "score"}`` with the box moved into the
+original ``thermal`` or ``rgb`` image (``harness.scoring.frames``) or left in the ``prepared`` frame; ``image_id``
+and ``category_id`` stay the dataset's. Beside it, ``<out>.images.json`` lists the images and categories in COCO
+form, which ``harness score --images`` reads back: the round trip to other tools is closed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from harness.errors import ConfigError, StoreError
+from harness.io import atomic_write_json, read_json
+from harness.scoring.frames import FRAMES, from_prepared, image_name
+
+
+@dataclass
+class Exported:
+    run: str
+    path: Path
+    images_path: Path
+    detections: int
+    images: int
+
+
+def _prepared_of(run: Any) -> Any:
+    """The prepared dataset a finished run was trained and scored on (from its stored configuration)."""
+    from harness.config import read_yaml
+    from harness.prepare import prepare
+
+    cfg = read_yaml(run.config_path)
+    ds = run.key.dataset
+    prepared = prepare(ds, cfg, progress=False)
+    stored = (read_yaml(run.config_path).get("meta") or {}).get("prepared_fingerprint")
+    if stored and stored != prepared.manifest.get("fingerprint"):
+        raise StoreError(f"{run.key}: the dataset's prepared samples changed since the run "
+                         f"(fingerprint {stored} then, {prepared.manifest.get('fingerprint')} now)")
+    return prepared
+
+
+def export_run(run: Any, frame: str, out: Path, prepared: Any = None) -> Exported:
+    if frame not in FRAMES:
+        raise ConfigError(f"--frame {frame!r}: use one of {', '.join(FRAMES)}")
+    prepared = prepared if prepared is not None else _prepared_of(run)
+    preds = read_json(run.predictions_path)
+    gt = read_json(run.gt_path)
+    index = {int(r["image_id"]): r for r in prepared.records}
+    cats = list(prepared.categories)
+    by_image: dict[int, list[dict[str, Any]]] = {}
+    for p in preds:
+        by_image.setdefault(int(p["image_id"]), []).append(p)
+    out_dets: list[dict[str, Any]] = []
+    images: list[dict[str, Any]] = []
+    for im in gt["images"]:
+        iid = int(im["id"])
+        r = index.get(iid)
+        if r is None:
+            raise StoreError(f"{run.key}: image {iid} of gt.json is not in the prepared dataset")
+        meta = r.get("meta") or {}
+        fname = image_name(meta, frame, iid)
+        images.append({"id": iid, "file_name": fname})
+        dets = by_image.get(iid, [])
+        if not dets:
+            continue
+        b = np.array([[x, y, x + w, y + h] for x, y, w, h in (d["bbox"] for d in dets)], np.float64)
+        moved = from_prepared(b, frame, meta, where=f"image {iid}")
+        for d, (x1, y1, x2, y2) in zip(dets, moved.tolist()):
+            cid = int(d["category_id"])
+            out_dets.append({"image_id": iid, "file_name": fname, "category_id": cid,
+                             "category_name": cats[cid - 1] if 1 <= cid <= len(cats) else None,
+                             "bbox": [x1, y1, round(x2 - x1, 4), round(y2 - y1, 4)], "score": d["score"]})
+    atomic_write_json(out, out_dets, indent=None)
+    images_path = out.with_name(out.stem + ".images.json")
+    atomic_write_json(images_path, {"info": {"frame": frame, "run": str(run.key)}, "images": images,
+                                    "categories": [{"id": k + 1, "name": n} for k, n in enumerate(cats)]})
+    return Exported(str(run.key), out, images_path, len(out_dets), len(images))
+
+
+def export_predictions(store: str | Path, dataset: str | None = None, detector: str | None = None,
+                       encoding: str | None = None, folds: Sequence[str] | None = None, seed: int | None = None,
+                       frame: str = "thermal", out: str | Path = "predictions") -> list[Exported]:
+    """Export every finished run that matches; ``out`` is the file for one run, a folder for several."""
+    from harness.store import Store
+
+    st = Store(store)
+    runs = [r for r in st.runs(dataset=dataset, detector=detector)
+            if (encoding is None or r.key.encoding == encoding) and (not folds or r.key.fold in folds)
+            and (seed is None or r.key.seed == seed)]
+    if not runs:
+        raise StoreError(f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
+                         f"{encoding}, folds {list(folds or []) or 'all'})")
+    out = Path(out)
+    results, cache = [], {}
+    for r in runs:
+        if len(runs) == 1 and out.suffix == ".json":
+            target = out
+        else:
+            k = r.key
+            target = out / f"{k.dataset}_{k.detector.replace('/', '.')}_{k.encoding}_{k.fold}_seed{k.seed}.json"
+        fp = (r.key.dataset, (read_json(r.metrics_path).get("run") or {}).get("dataset"))
+        prepared = cache.get(fp)
+        if prepared is None:
+            prepared = cache[fp] = _prepared_of(r)
+        results.append(export_run(r, frame, target, prepared))
+    return results

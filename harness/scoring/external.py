@@ -1,0 +1,366 @@
+"""``harness score``: predictions made by another codebase, scored against the prepared ground truth of a fold.
+
+The predictions are COCO results (``[{"image_id", "category_id", "bbox": [x, y, w, h], "score"}, ...]``), as
+Ultralytics' ``save_json``, MMDetection, Detectron2 and YOLOv5's ``val.py`` write them. To score them on exactly the
+samples every harness detector is scored on:
+
+* **images** are matched to the fold's prepared samples by file name: each prediction's own ``file_name`` (or the
+  ``image_key`` field), else its ``image_id`` looked up in an image list (``images``: the other codebase's COCO
+  JSON, whose ``images`` give ``id`` and ``file_name``), else the harness's own image ids. A name matches a sample
+  by its relative path, else by its base name, else by its stem (only when unique). Predictions of images outside
+  the fold are left out and counted; unmatched ones are counted and listed.
+* **categories** are matched by name (the image list's ``categories``, or the prediction's ``category_name``),
+  case and separators ignored, or through an explicit ``category_map`` (their id or name -> our name); without
+  names, ids are taken as the harness's (``category_id = label + 1``). Unmatched categories are counted and shown.
+* **boxes** in the original RGB or thermal image are moved into the prepared frame by the same undistortion,
+  homography and crop as the ground truth (``harness.scoring.frames``).
+* **which images were scored**: with an image list, the fold images it does not list are *missing*: they are left
+  out of the ground truth, so the support differs from the trained detectors' and the sample-matched guard labels
+  the comparison. Without an image list, every fold image is scored and those without any prediction are counted.
+
+The result is stored as a run of detector ``external/NAME`` (``harness.store``), with ``predictions.json``,
+``gt.json`` and ``metrics.json``, so ``harness report``, ``compare-detectors`` and the paired bootstrap show it
+beside the trained detectors. Complexity is what the user gives (``params``, ``gflops``) or left empty.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from harness.errors import ConfigError, DataError, StoreError
+from harness.io import atomic_write_json, read_json
+from harness.scoring.frames import FRAMES, image_name, to_prepared
+
+log = logging.getLogger(__name__)
+
+ENCODING = "external"
+
+
+def _norm(name: Any) -> str:
+    return re.sub(r"[\s_\-]+", " ", str(name)).strip().lower()
+
+
+@dataclass
+class Matching:
+    """How the external predictions met the fold: counts and examples of what did not match."""
+
+    predictions: int = 0
+    scored: int = 0
+    fold_images: int = 0
+    images_scored: int = 0
+    missing_images: list[str] = field(default_factory=list)
+    images_without_predictions: int = 0
+    unmatched_images: Counter = field(default_factory=Counter)
+    outside_fold: int = 0
+    unmatched_categories: Counter = field(default_factory=Counter)
+    dropped_outside_frame: int = 0
+    invalid: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"predictions": self.predictions, "scored_predictions": self.scored,
+                "fold_images": self.fold_images, "images_scored": self.images_scored,
+                "missing_images": len(self.missing_images), "missing_examples": self.missing_images[:10],
+                "images_without_predictions": self.images_without_predictions,
+                "unmatched_image_predictions": sum(self.unmatched_images.values()),
+                "unmatched_image_examples": [k for k, _ in self.unmatched_images.most_common(10)],
+                "predictions_outside_fold": self.outside_fold,
+                "unmatched_category_predictions": sum(self.unmatched_categories.values()),
+                "unmatched_categories": dict(self.unmatched_categories.most_common(20)),
+                "dropped_outside_frame": self.dropped_outside_frame, "invalid_predictions": self.invalid}
+
+    def lines(self) -> list[str]:
+        out = [f"{self.scored} of {self.predictions} predictions scored on {self.images_scored} of "
+               f"{self.fold_images} fold images"]
+        if self.missing_images:
+            out.append(f"{len(self.missing_images)} fold image(s) missing from the image list (left out of the "
+                       f"ground truth: not sample-matched), e.g. {', '.join(self.missing_images[:3])}")
+        if self.images_without_predictions:
+            out.append(f"{self.images_without_predictions} scored image(s) without any prediction")
+        if self.unmatched_images:
+            ex = ", ".join(str(k) for k, _ in self.unmatched_images.most_common(3))
+            out.append(f"{sum(self.unmatched_images.values())} prediction(s) of {len(self.unmatched_images)} "
+                       f"unknown image(s) left out, e.g. {ex}")
+        if self.outside_fold:
+            out.append(f"{self.outside_fold} prediction(s) of images outside the fold left out")
+        if self.unmatched_categories:
+            ex = ", ".join(f"{k} ({v})" for k, v in self.unmatched_categories.most_common(5))
+            out.append(f"{sum(self.unmatched_categories.values())} prediction(s) of unknown categories left out: {ex}")
+        if self.dropped_outside_frame:
+            out.append(f"{self.dropped_outside_frame} box(es) fell outside the prepared frame and were left out")
+        if self.invalid:
+            out.append(f"{self.invalid} malformed prediction(s) left out")
+        return out
+
+
+@dataclass
+class ScoreResult:
+    run_path: Path
+    metrics: dict[str, Any]
+    matching: Matching
+    state: str  # "scored" or "skipped"
+
+
+class _ImageIndex:
+    """Fold samples by relative path, base name and stem."""
+
+    def __init__(self, entries: Sequence[tuple[int, Sequence[str]]]):
+        self.by: list[dict[str, set[int]]] = [{}, {}, {}]
+        for idx, names in entries:
+            for name in names:
+                p = PurePosixPath(str(name).replace("\\", "/"))
+                for level, key in enumerate((str(p), p.name, p.stem)):
+                    self.by[level].setdefault(key.lower(), set()).add(idx)
+
+    def find(self, name: str) -> int | None:
+        p = PurePosixPath(str(name).replace("\\", "/"))
+        for level, key in enumerate((str(p), p.name, p.stem)):
+            hit = self.by[level].get(key.lower())
+            if hit and len(hit) == 1:
+                return next(iter(hit))
+        return None
+
+
+def _load_predictions(path: Path) -> list[dict[str, Any]]:
+    try:
+        data = read_json(path)
+    except Exception as exc:
+        raise DataError(f"--predictions {path}: not readable JSON ({exc})") from None
+    if isinstance(data, Mapping) and isinstance(data.get("annotations"), list):
+        data = data["annotations"]  # a COCO file with detections as annotations (score required below)
+    if not isinstance(data, list):
+        raise DataError(f"--predictions {path}: expected a COCO results list [{{image_id, category_id, bbox, score}}]")
+    return data
+
+
+def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str],
+                       mapping: Mapping[str, str] | None) -> Any:
+    ours = {_norm(c): i for i, c in enumerate(categories)}
+    explicit = {str(k): v for k, v in (mapping or {}).items()}
+    for their, our in explicit.items():
+        if _norm(our) not in ours:
+            raise ConfigError(f"--category-map {their}={our}: {our!r} is not a category of the dataset "
+                              f"({', '.join(categories)})")
+
+    def resolve(det: Mapping[str, Any]) -> tuple[int | None, str]:
+        cid = det.get("category_id")
+        name = det.get("category_name")
+        if name is None and cid is not None:
+            name = names_by_id.get(cid, names_by_id.get(str(cid)))
+        for key in (str(cid) if cid is not None else None, name):
+            if key is not None and str(key) in explicit:
+                return ours[_norm(explicit[str(key)])], str(key)
+        if name is not None:
+            return ours.get(_norm(name)), str(name)
+        if isinstance(cid, int) and 1 <= cid <= len(categories):  # no names anywhere: the harness's own ids
+            return cid - 1, str(cid)
+        return None, str(cid)
+
+    return resolve
+
+
+def _sha1(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[dict[str, Any]], frame: str,
+                      images: Mapping[str, Any] | None = None, image_key: str = "file_name",
+                      category_map: Mapping[str, str] | None = None) -> tuple[list[dict[str, Any]], list[int],
+                                                                                Matching]:
+    """External predictions -> the harness's detections on the fold (prepared frame, its image and category ids),
+    the indices of the images that were scored, and the matching counts (see the module docstring)."""
+    if frame not in FRAMES:
+        raise ConfigError(f"--frame {frame!r}: use one of {', '.join(FRAMES)}")
+    records = prepared.records
+    fold = set(int(i) for i in val_idx)
+    all_entries = []
+    for i, r in enumerate(records):
+        meta = r.get("meta") or {}
+        names = [image_name(meta, frame, r["image_id"]), meta.get("file_name"), meta.get("thermal_file")]
+        all_entries.append((i, [n for n in names if n]))
+    index = _ImageIndex(all_entries)
+    by_id = {int(r["image_id"]): i for i, r in enumerate(records)}
+    m = Matching(predictions=len(predictions), fold_images=len(fold))
+
+    their_images: dict[Any, str] = {}
+    names_by_id: dict[Any, str] = {}
+    listed: set[int] | None = None
+    if images is not None:
+        listed = set()
+        for im in images.get("images") or []:
+            fname = im.get(image_key) or im.get("file_name")
+            if "id" in im and fname:
+                their_images[im["id"]] = str(fname)
+                hit = index.find(str(fname))
+                if hit is not None:
+                    listed.add(hit)
+        names_by_id = {c["id"]: c["name"] for c in images.get("categories") or [] if "id" in c and "name" in c}
+    resolve = _category_resolver(prepared.categories, names_by_id, category_map)
+
+    grouped: dict[int, list[tuple[list[float], float, int]]] = {}
+    for det in predictions:
+        try:
+            x, y, w, h = (float(v) for v in det["bbox"])
+            score = float(det["score"])
+        except (KeyError, TypeError, ValueError):
+            m.invalid += 1
+            continue
+        if not all(np.isfinite([x, y, w, h, score])):
+            m.invalid += 1
+            continue
+        name = det.get(image_key) or det.get("file_name")
+        if name is None and det.get("image_id") in their_images:
+            name = their_images[det["image_id"]]
+        if name is not None:
+            idx = index.find(str(name))
+            ref = str(name)
+        else:
+            idx = by_id.get(det.get("image_id")) if isinstance(det.get("image_id"), int) else None
+            ref = f"image_id {det.get('image_id')}"
+        if idx is None:
+            m.unmatched_images[ref] += 1
+            continue
+        if idx not in fold:
+            m.outside_fold += 1
+            continue
+        label, cref = resolve(det)
+        if label is None:
+            m.unmatched_categories[cref] += 1
+            continue
+        grouped.setdefault(idx, []).append(([x, y, x + w, y + h], score, label))
+
+    scored_idx = sorted(fold if listed is None else fold & listed)
+    if listed is not None:
+        m.missing_images = sorted(str((records[i].get("meta") or {}).get("file_name", records[i]["image_id"]))
+                                  for i in fold - listed)
+        dropped_unlisted = sum(len(v) for k, v in grouped.items() if k not in listed)
+        if dropped_unlisted:
+            log.warning("%d prediction(s) of images the image list does not name were left out", dropped_unlisted)
+            m.unmatched_images["(not in the image list)"] += dropped_unlisted
+    m.images_scored = len(scored_idx)
+    dets: list[dict[str, Any]] = []
+    for i in scored_idx:
+        r = records[i]
+        items = grouped.get(i, [])
+        if not items:
+            m.images_without_predictions += 1
+            continue
+        boxes, keep = to_prepared(np.array([b for b, _, _ in items]), frame, r.get("meta") or {},
+                                  size=(r["width"], r["height"]), where=f"image {r['image_id']}")
+        m.dropped_outside_frame += int((~keep).sum())
+        kept = [it for it, k in zip(items, keep) if k]
+        for (x1, y1, x2, y2), (_, score, label) in zip(boxes.tolist(), kept):
+            dets.append({"image_id": int(r["image_id"]), "category_id": int(label) + 1,
+                         "bbox": [x1, y1, round(x2 - x1, 4), round(y2 - y1, 4)], "score": score})
+    m.scored = len(dets)
+    return dets, scored_idx, m
+
+
+def score_external(dataset: str, fold: str, predictions: str | Path, name: str, frame: str = "prepared",
+                   images: str | Path | None = None, image_key: str = "file_name",
+                   category_map: Mapping[str, str] | None = None, profile: str | None = "smoke",
+                   config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
+                   store: str | Path | None = None, root: str | None = None, params: float | None = None,
+                   gflops: float | None = None, force: bool = False) -> ScoreResult:
+    """Score ``predictions`` on ``fold`` of ``dataset`` and store them as run ``external/NAME`` (module docstring)."""
+    from harness.config import load_config
+    from harness.evaluation import evaluate
+    from harness.plugins import get_host
+    from harness.prepare import fold_indices, prepare, resolve_folds
+    from harness.store import EXTERNAL, RunKey, Store, config_hash, image_ids_hash
+
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+\-]*", name or ""):
+        raise ConfigError(f"--name {name!r}: use letters, digits and . _ + - (it names a folder in the store)")
+    pred_path = Path(predictions)
+    if not pred_path.is_file():
+        raise DataError(f"--predictions {pred_path}: no such file")
+    host = get_host()
+    spec = host.dataset(dataset)
+    cfg = load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)
+    if root is not None:
+        cfg.setdefault("dataset", {})["root"] = root
+    prepared = prepare(spec.name, cfg)
+    folds = resolve_folds(spec, prepared, cfg, fold)
+    if len(folds) != 1:
+        raise ConfigError(f"--fold {fold!r} selects {len(folds)} folds of {dataset!r}; give exactly one")
+    f = folds[0]
+    _, val_idx = fold_indices(prepared, f)
+    image_list = None
+    if images is not None:
+        try:
+            image_list = read_json(Path(images))
+        except Exception as exc:
+            raise DataError(f"--images {images}: not readable JSON ({exc})") from None
+    dets, scored_idx, m = match_predictions(prepared, val_idx, _load_predictions(pred_path), frame, image_list,
+                                            image_key, category_map)
+    if m.scored == 0 and m.predictions:
+        raise DataError(f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
+                        "images and categories:\n  " + "\n  ".join(m.lines()))
+
+    key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
+    run = Store(store or Path("results") / (profile or "default")).run(key)
+    identity = {"predictions_sha1": _sha1(pred_path), "frame": frame, "image_key": image_key,
+                "images_sha1": _sha1(Path(images)) if images else None, "category_map": dict(category_map or {}),
+                "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
+                "val_groups": list(f.val_groups), "eval": {k: cfg["eval"][k] for k in ("engine", "matching")},
+                "params": params, "gflops": gflops}
+    digest = config_hash(identity)
+    st = run.status() or {}
+    if run.is_finished() and not force:
+        if st.get("config_hash") == digest:
+            log.info("%s: scored earlier from the same file, skipped (use --force to redo)", key)
+            return ScoreResult(run.path, run.read_metrics(), m, "skipped")
+        raise StoreError(f"{key} was scored earlier from other predictions or options; use --force to replace it, "
+                         f"or another --name")
+    gt = prepared.coco(scored_idx)
+    evaluation = evaluate(gt, dets, engine=cfg["eval"]["engine"], matching=cfg["eval"]["matching"])
+    support = dict(evaluation["support"])
+    support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
+    metrics = {
+        "support": support,
+        "metrics": evaluation["metrics"],
+        "per_category": evaluation["per_category"],
+        "model": {"params": int(params * 1e6) if params is not None else None, "gflops": gflops,
+                  "complexity_source": "given with harness score" if params is not None or gflops is not None
+                  else None, "input_kind": "external"},
+        "external": {**identity, "predictions": str(pred_path), "images": str(images) if images else None,
+                     "matching": m.to_dict()},
+    }
+    run.path.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(run.path / "score.json", {"identity": identity, "matching": m.to_dict()})
+    atomic_write_json(run.predictions_path, dets, indent=None)
+    atomic_write_json(run.gt_path, gt, indent=None)
+    run.write_metrics(metrics)
+    run.set_status("finished", config_hash=digest, error=None, fold=f.name, seed=0)
+    return ScoreResult(run.path, run.read_metrics(), m, "scored")
+
+
+def parse_category_map(text: str | None) -> dict[str, str]:
+    """``"1=window,crack=crack"`` or a JSON file ``{"1": "window"}`` -> ``{their: our}``."""
+    if not text:
+        return {}
+    p = Path(text)
+    if p.suffix == ".json" and p.is_file():
+        data = json.loads(p.read_text())
+        if not isinstance(data, dict):
+            raise ConfigError(f"--category-map {p}: expected a JSON object {{their id or name: our name}}")
+        return {str(k): str(v) for k, v in data.items()}
+    out = {}
+    for part in text.split(","):
+        if "=" not in part:
+            raise ConfigError(f"--category-map {text!r}: expected THEIR=OURS pairs separated by commas")
+        a, b = part.split("=", 1)
+        out[a.strip()] = b.strip()
+    return out
