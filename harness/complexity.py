@@ -55,16 +55,30 @@ def measure(model: Any, input_kind: str, in_channels: int, thermal_channels: int
     return rec
 
 
+def given(params_m: float | None, gflops: float | None, imgsz: int = REFERENCE_IMGSZ) -> dict[str, Any] | None:
+    """The record of a model the harness did not build (scored from a predictions file): the figures its user gave.
+
+    ``None`` when none was given. ``source: "given"`` marks it; the report shows such figures like measured ones,
+    and the run's ``external`` block says where they came from."""
+    if params_m is None and gflops is None:
+        return None
+    return {"schema": SCHEMA, "source": "given", "model_options": {}, "num_classes": None, "input_kind": "external",
+            "params": None if params_m is None else int(round(float(params_m) * 1e6)), "bn_folded": False,
+            "gflops": {} if gflops is None else {str(imgsz): {"paper": float(gflops), "exact": None}},
+            "imgsz": int(imgsz)}
+
+
 def numbers(rec: Mapping[str, Any] | None, imgsz: int = REFERENCE_IMGSZ) -> dict[str, Any]:
     """Params (M, BN-folded when folded), GFLOPs (paper, exact) at ``imgsz`` and the conditions of one record."""
-    if not rec or rec.get("error") or not rec.get("gflops"):
+    if not rec or rec.get("error") or not (rec.get("gflops") or rec.get("source") == "given"):
         return {}
     g = (rec.get("gflops") or {}).get(str(imgsz)) or {}
     count = rec.get("params_fused") if rec.get("bn_folded") else rec.get("params")
     return {"params_m": None if count is None else float(count) / 1e6, "gflops": g.get("paper"),
             "gflops_exact": g.get("exact"), "imgsz": imgsz, "bn_folded": bool(rec.get("bn_folded")),
             "num_classes": rec.get("num_classes"), "input_kind": rec.get("input_kind"),
-            "model_options": dict(rec.get("model_options") or {}), "unused_params": rec.get("unused_params")}
+            "model_options": dict(rec.get("model_options") or {}), "unused_params": rec.get("unused_params"),
+            "source": rec.get("source", "measured")}
 
 
 def options_label(options: Mapping[str, Any]) -> str:

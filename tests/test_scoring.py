@@ -196,4 +196,13 @@ def test_scored_runs_are_listed_as_external_detectors(finished_run):
     assert "external/listed" in dets and "tinydet" in dets
     run = next(r for r in Store(tmp / "store").runs(detector="external/listed"))
     assert run.path.parent.parent.parent.name == "external.listed"
-    assert run.read_metrics()["model"]["params"] == 1_500_000
+    assert run.read_metrics()["complexity"]["params"] == 1_500_000
+    from harness.report.collect import StoreView
+    from harness.report.tables import project_table
+
+    table = project_table(StoreView(Store(tmp / "store")), "framed")
+    text = table.to_markdown()
+    row = next(line for line in text.splitlines() if "external/listed" in line)
+    cells = [c.strip(" *") for c in row.split("|")]
+    assert "1.5" in cells and "2" in cells
+    assert any("as given with `harness score`" in n for n in table.notes)

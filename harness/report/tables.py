@@ -433,9 +433,16 @@ def _profile_notes(table: Table, rows: Sequence[Entry], missing: Sequence[Entry]
             f"Params (M): parameter count {params}; GFLOPs: 'paper' convention (BN folded, 1 multiply-add = 2 FLOPs, "
             f"forward_raw without decoding/NMS) at 640x640, batch 1, both inputs for dual-stream detectors, "
             f"{'/'.join(map(str, ncls))} class(es); measured on the model each run trained (metrics.json complexity).")
+    for e in rows:
+        if e.complexity().get("source") == "given":
+            table.notes.append(f"{e.label}: Params and GFLOPs as given with `harness score`, not measured by the "
+                               "harness (its predictions came from outside).")
     for e in missing:
         mixed = e.complexity().get("mixed")
-        if mixed:
+        if e.detector.startswith("external/") and not mixed:
+            table.notes.append(f"{e.label}: Params and GFLOPs not given; re-score with `harness score ... --params M "
+                               "--gflops G --force` to show them.")
+        elif mixed:
             table.notes.append(f"{e.label}: Params and GFLOPs absent, its runs were built with different model "
                                f"options ({'; '.join(mixed)}); re-run them with one setting.")
         else:

@@ -36,6 +36,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from harness.complexity import given
 from harness.errors import ConfigError, DataError, StoreError
 from harness.io import atomic_write_json, read_json
 from harness.scoring.frames import FRAMES, image_name, to_prepared
@@ -332,9 +333,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
         "support": support,
         "metrics": evaluation["metrics"],
         "per_category": evaluation["per_category"],
-        "model": {"params": int(params * 1e6) if params is not None else None, "gflops": gflops,
-                  "complexity_source": "given with harness score" if params is not None or gflops is not None
-                  else None, "input_kind": "external"},
+        "model": {"input_kind": "external"},
+        "complexity": given(params, gflops),
         "external": {**identity, "predictions": str(pred_path), "images": str(images) if images else None,
                      "matching": m.to_dict()},
     }
