@@ -142,7 +142,8 @@ def _centred_padded(t: np.ndarray, r: int) -> tuple[np.ndarray, np.float32]:
     src = np.asarray(t, dtype=np.float32)
     with np.errstate(invalid="ignore", over="ignore"):  # NaN when a pixel is missing (the caller checks)
         m = np.float32(src.mean(dtype=np.float64))
-    return cv2.copyMakeBorder(src - m, r, r, r, r, cv2.BORDER_REFLECT_101), m
+        centred = src - m
+    return cv2.copyMakeBorder(centred, r, r, r, r, cv2.BORDER_REFLECT_101), m
 
 
 def _blur_padded(xp: np.ndarray, r: int, h: int, w: int, sigma: float) -> np.ndarray:
