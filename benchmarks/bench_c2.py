@@ -9,7 +9,8 @@ grey level from rounding ties).
 Two more rows: in the same rotating rounds, the previous unmasked implementation (``prior_c2_uint8`` below, a
 frozen copy of the code before missing temperatures were handled) as the anchor that a clean map must not be
 slower than (same-run ratio, target >= 0.95 given timing noise) and must match bit for bit; and, in rounds of its
-own alternating with the clean path, the masked path on the same frame with 1 % of its pixels set to NaN (its cost relative to the clean path).
+own alternating with the clean path, the masked path on the same frame with 1 % of its pixels set to NaN (its
+cost relative to the clean path).
 
     .venv/bin/python benchmarks/bench_c2.py [--repeats 60] [--frame path/to/m3t.jpg]
 """

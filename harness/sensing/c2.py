@@ -68,7 +68,8 @@ def check_map(temperature_c: object, name: str | None = None) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise DataError(f"{what}; cannot read it as an array ({exc})") from None
     if a.dtype.kind not in "fiu":
-        kind = {"c": "complex", "b": "boolean", "O": "object", "U": "text", "S": "bytes"}.get(a.dtype.kind, a.dtype.name)
+        kinds = {"c": "complex", "b": "boolean", "O": "object", "U": "text", "S": "bytes"}
+        kind = kinds.get(a.dtype.kind, a.dtype.name)
         raise DataError(f"{what}, got {kind} values (dtype {a.dtype.name})")
     if a.ndim != 2:
         raise DataError(f"{what}, got {a.ndim}-D shape {tuple(a.shape)}")
