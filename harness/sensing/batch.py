@@ -104,13 +104,14 @@ def collect_jobs(inputs: Iterable[str | Path], out_dir: str | Path, suffix: str
     return jobs, failed
 
 
-def exact_params(data: bytes, name: str | Path) -> dict[str, float]:
+def exact_params(data: bytes, name: str | Path, layout: Any = None) -> dict[str, float]:
     """The five APP4 measurement parameters as stored (float32), each the shortest decimal that reads back to
-    the same float32; humidity in % (stored as a fraction). Empty when the file has no iirp APP4 block."""
+    the same float32; humidity in % (stored as a fraction). Empty when the file has no iirp APP4 block.
+    ``layout``: the file's ``jpeg.read_segments`` result, when already at hand."""
     from harness.sensing import jpeg
     from harness.sensing.radiometry import APP4_MAGIC
 
-    layout = jpeg.read_segments(data, name, require_eoi=False)
+    layout = layout or jpeg.read_segments(data, name, require_eoi=False)
     app4 = layout.payloads(jpeg.APP4)
     if not app4:
         return {}
@@ -128,13 +129,6 @@ def exact_params(data: bytes, name: str | Path) -> dict[str, float]:
     return out
 
 
-def has_radiometric_payload(data: bytes, name: str | Path) -> bool:
-    """Whether a JPEG carries APP3 segments (the radiometric counts); a damaged header raises ``DataError``."""
-    from harness.sensing import jpeg
-
-    return bool(jpeg.read_segments(data, name, require_eoi=False).payloads(jpeg.APP3))
-
-
 def _temporary(target: Path) -> Path:
     """A hidden name beside ``target`` with the same suffix (the writers choose the format by it)."""
     return target.with_name(f".{target.stem}.{os.getpid()}.tmp{target.suffix}")
@@ -145,20 +139,22 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
 
     Returns the table row (``{"file", "size", "route", ...}``), or ``{"passed_over": True}`` for a JPEG found in
     a folder without a radiometric payload. Errors are ``HarnessError``s naming the file."""
+    from harness.sensing import jpeg
     from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature, sidecar_path, write_thermal
 
     try:
         data = source.read_bytes()
     except OSError as exc:
         raise DataError(f"{source}: cannot read ({exc.strerror or exc})") from None
-    if from_folder and not has_radiometric_payload(data, source):
+    layout = jpeg.read_segments(data, source, require_eoi=False)  # a damaged header fails here, naming the file
+    if from_folder and not layout.payloads(jpeg.APP3):  # no radiometric counts: e.g. the visible camera's JPEG
         return {"passed_over": True}
     rj = read_rjpeg(source, options.decoder)
     t, info = rjpeg_temperature(rj, dict(options.overrides))
     used = info.get("correction", rj.params)
     route = ("dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
              else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
-    params = exact_params(data, source) or dict(rj.params)
+    params = exact_params(data, source, layout) or dict(rj.params)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(target)
     moves = [(tmp, target), (sidecar_path(tmp), sidecar_path(target))]
