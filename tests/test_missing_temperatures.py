@@ -80,3 +80,16 @@ def test_encodings_leave_missing_temperatures_out():
     assert np.abs(lin.reshape(-1)[:40].astype(int) - median).max() <= 1  # the median, not the coldest level
     with pytest.raises(DataError, match=r"^sample 3 \(frame_3\.tif\): no valid temperature"):
         encode_c2(_sample(3, all_missing=True))
+
+
+def test_registration_structure_ignores_missing_temperatures():
+    from harness.sensing.registration import structure_image
+
+    yy, xx = np.mgrid[0:60, 0:80]
+    t = (20 + 5 * ((xx > 40) & (yy > 20))).astype(np.float32)  # one warm block: edges at x=40, y=20
+    holed = t.copy()
+    holed[5:10, 5:10] = np.nan
+    s_clean, s_holed = structure_image(t), structure_image(holed)
+    assert np.isfinite(s_holed).all()
+    assert (s_holed[3:12, 3:12] == 0).all()  # no structure invented at the hole
+    assert np.allclose(s_holed[:, 30:], s_clean[:, 30:], atol=1e-6)  # the real edges are untouched
