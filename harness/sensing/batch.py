@@ -5,7 +5,8 @@
 same capture, is passed over and counted, not failed). Every readable file is decoded; each output (the
 temperature file, its sidecar and the optional preview) is written to a temporary name in the output folder and
 renamed into place, so an interrupted batch leaves whole files only. A file that cannot be decoded is recorded
-as ``(file, reason)`` and the batch goes on, unless ``fail_fast``, which raises the first error as it comes.
+as ``(file, reason)`` and the batch goes on, unless ``fail_fast``, which raises the first error as it comes; a
+``ConfigError`` (a setting wrong for every file, such as an override out of range) stops the batch either way.
 ``workers > 1`` decodes in that many processes.
 
 Outputs keep the inputs' layout: ``<out>/<stem>.<ext>`` for a file named directly, and
@@ -27,7 +28,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from harness.errors import DataError, HarnessError
+from harness.errors import ConfigError, DataError, HarnessError
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +187,8 @@ def _run(job: _Job, options: DecodeOptions) -> tuple[dict[str, Any] | None, str 
     """``decode_one`` with its error as text (what a worker process sends back)."""
     try:
         return decode_one(job.source, job.target, options, job.from_folder), None
+    except ConfigError:
+        raise  # a wrong setting (e.g. an override out of range) is not a property of one file: the batch stops
     except HarnessError as exc:
         return None, _reason(exc, job.source)
     except Exception as exc:  # a damaged file can make a decoder library raise anything; the batch goes on
