@@ -60,7 +60,9 @@ def check_map(temperature_c: object, name: str | None = None) -> np.ndarray:
 
     Accepted: a non-empty 2-D array of real numbers (float, or integers exact in float32). Refused: empty,
     1-D, 3-D, complex, boolean or object arrays, integers beyond +-2**24 and floats beyond float32's range.
-    Non-finite values are allowed here (they are missing pixels; see ``valid_mask``).
+    Non-finite values are allowed here (they are missing pixels; see ``valid_mask``). An empty map must be refused
+    before it reaches OpenCV: ``copyMakeBorder`` with a reflect-101 border never returns on a zero-length axis
+    (its reflection loop cannot land inside an empty range), which made ``c2_uint8`` hang.
     """
     what = f"{_named(name)}expected a non-empty 2-D (HxW) temperature map in C of real numbers"
     try:
