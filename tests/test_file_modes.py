@@ -69,3 +69,15 @@ def test_decoded_files_and_their_sidecars_share_the_umask_mode(umask, tmp_path):
     decode_batch([src], tmp_path / "out")
     png = tmp_path / "out" / "f.png"
     assert mode(png) == mode(sidecar_path(png)) == mode(src) == 0o666 & ~umask
+
+
+@pytest.mark.parametrize("umask", [0o002], indirect=True, ids=["umask002"])  # one umask: generation takes seconds
+def test_a_synthetic_dataset_folder_gets_the_umask_modes(umask, tmp_path):
+    from adapters.datasets.synthetic import generate
+
+    out = tmp_path / "synth"
+    generate(out, profile="tiny", seed=0, progress=False, workers=1)
+    folders = [out, *(p for p in out.rglob("*") if p.is_dir())]
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert {mode(p) for p in folders} == {0o777 & ~umask}
+    assert files and {mode(p) for p in files} == {0o666 & ~umask}
