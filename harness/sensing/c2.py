@@ -200,10 +200,12 @@ def _masked_background(src: np.ndarray, mask: np.ndarray, sigma: float) -> np.nd
     r = kernel_radius(sigma)
     h, w = src.shape
     m = np.float32(src[mask].mean(dtype=np.float64))
-    planes = np.stack([np.where(mask, src - m, np.float32(0)), mask.astype(np.float32)])
-    padded = np.stack([cv2.copyMakeBorder(p, r, r, r, r, cv2.BORDER_REFLECT_101) for p in planes])
-    hp, wp = (scipy.fft.next_fast_len(n, real=True) for n in padded.shape[1:])
-    spec = scipy.fft.rfft2(padded, s=(hp, wp), workers=1)
+    planes = (np.where(mask, src - m, np.float32(0)), mask.astype(np.float32))
+    hp, wp = (scipy.fft.next_fast_len(n + 2 * r, real=True) for n in (h, w))
+    padded = np.zeros((2, hp, wp), np.float32)  # the FFT size at once: no further copy to pad it
+    for k, plane in enumerate(planes):
+        padded[k, :h + 2 * r, :w + 2 * r] = cv2.copyMakeBorder(plane, r, r, r, r, cv2.BORDER_REFLECT_101)
+    spec = scipy.fft.rfft2(padded, workers=1)
     spec *= _kernel_spectrum(hp, wp, float(sigma))
     num, den = scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[:, r:r + h, r:r + w]
     with np.errstate(divide="ignore", invalid="ignore"):
