@@ -30,7 +30,7 @@ from harness.sensing import c2 as c2mod
 def encode_c2(sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE,
               floor: float = c2mod.FLOOR) -> np.ndarray:
     """``round(255 * C2(T))``: C2 of the temperature map in C (floor in C)."""
-    return c2mod.c2_uint8(sample.thermal, sigma=sigma, percentile=percentile, floor=floor)
+    return c2mod.c2_uint8(sample.thermal, sigma=sigma, percentile=percentile, floor=floor, name=sample.name)
 
 
 def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: float = 60.0,
@@ -40,8 +40,13 @@ def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: f
     ``mode="minmax"``: ``lo, hi`` = the image's min and max (a flat image maps to 0);
     ``"percentile"``: the image's ``percentiles`` (robust to a few hot pixels);
     ``"fixed"``: ``lo, hi = t_min, t_max`` in C, the same for every image.
+    ``lo, hi`` come from the measured pixels only; a missing temperature (NaN or inf) maps to the median of the
+    measured ones, never to 0.
     """
-    t = np.asarray(t, dtype=np.float32)
+    t = c2mod.check_map(t)
+    if not np.isfinite(t.sum(dtype=np.float64)):
+        valid = c2mod.valid_mask(t)
+        t = np.where(valid, t, np.float32(np.median(t[valid])))
     if mode == "minmax":
         lo, hi = float(t.min()), float(t.max())
     elif mode == "percentile":

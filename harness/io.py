@@ -1,6 +1,11 @@
 """Crash-safe file writing: every result file is written to a temporary file in the same folder, flushed to disk,
 then renamed over the target, so a crash at any moment leaves either the previous file or the new one, never a
-truncated mix."""
+truncated mix.
+
+Files and folders get the modes the user's umask gives, as ``open()`` and ``mkdir()`` would (``0o666 & ~umask``
+and ``0o777 & ~umask``), not the owner-only ``0600``/``0700`` of ``mkstemp``/``mkdtemp``: a cache or results
+store on a shared server stays readable by the colleagues the umask admits. ``make_temp_dir`` is ``mkdtemp`` with
+that mode, for folders built under a temporary name and renamed into place."""
 
 from __future__ import annotations
 
@@ -11,12 +16,45 @@ from pathlib import Path
 from typing import Any, Callable, IO
 
 
+def current_umask() -> int:
+    """The process's umask, read without changing it: Linux reports it in ``/proc/self/status`` (``Umask:``);
+    elsewhere it is set and restored at once (``os.umask`` has no read-only form)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def file_mode() -> int:
+    """The mode ``open()`` gives a new file: ``0o666 & ~umask``."""
+    return 0o666 & ~current_umask()
+
+
+def dir_mode() -> int:
+    """The mode ``mkdir()`` gives a new folder: ``0o777 & ~umask``."""
+    return 0o777 & ~current_umask()
+
+
+def make_temp_dir(prefix: str, suffix: str, dir: str | Path) -> Path:
+    """``tempfile.mkdtemp`` in ``dir``, with the mode a plain ``mkdir`` would give (``0o777 & ~umask``)."""
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=dir))
+    os.chmod(tmp, dir_mode())
+    return tmp
+
+
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], Any]) -> Path:
     """Call ``write(f)`` on a temporary binary file beside ``path``, fsync it, and rename it onto ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, file_mode())  # mkstemp creates 0600; the target gets what open() would give it
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()

@@ -175,6 +175,7 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
     extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": list(source.groups()), "folds": folds,
              "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
+    missing: dict[str, int] = {}
     t0 = time.perf_counter()
     writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra)
     try:
@@ -185,6 +186,8 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
                 except SampleError as exc:
                     report.skip(sample.meta.get("file_name", sample.image_id) if isinstance(sample.meta, dict)
                                 else sample.image_id, f"invalid sample: {exc}")
+                else:
+                    _count_missing(missing, sample)
                 bar.advance()
         if not writer.records:
             summary = report.summary()
@@ -194,6 +197,8 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
             source.write_artifacts(writer.tmp)
         summary = report.summary()
         summary["skipped_files"] = [list(s) for s in report.skipped[:MAX_LISTED_SKIPS]]
+        summary["missing_temperatures"] = {"samples": len(missing), "pixels": sum(missing.values()),
+                                           "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS])}
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         writer.close(summary)
     except BaseException:
@@ -201,6 +206,16 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
         raise
     log.info("prepared %d samples of %s in %s (%.1f s)", len(writer.records), spec.name, folder, summary["seconds"])
     return PreparedDataset(folder)
+
+
+def _count_missing(missing: dict[str, int], sample: Any) -> None:
+    """Record how many of a kept sample's temperatures are missing (NaN or inf), when any."""
+    if sample.thermal is not None:
+        from harness.sensing.c2 import invalid_count
+
+        n = invalid_count(sample.thermal)
+        if n:
+            missing[sample.name] = n
 
 
 def _reasons_text(reasons: Mapping[str, int]) -> str:

@@ -24,7 +24,6 @@ import hashlib
 import json
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
@@ -32,7 +31,7 @@ from typing import Any, Iterable, Iterator, Sequence
 import numpy as np
 
 from harness.errors import DataError, SampleError
-from harness.io import atomic_write, atomic_write_json, read_json
+from harness.io import atomic_write, atomic_write_json, make_temp_dir, read_json
 from harness.sample import AlignedSample, validate_sample
 
 PREPARED_SCHEMA = 1
@@ -45,7 +44,7 @@ class PreparedWriter:
                  extra: dict[str, Any] | None = None):
         self.folder = Path(folder)
         self.folder.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.folder.name}.", suffix=".tmp", dir=self.folder.parent))
+        self.tmp = make_temp_dir(prefix=f".{self.folder.name}.", suffix=".tmp", dir=self.folder.parent)
         self.dataset, self.categories = dataset, list(categories)
         self.fingerprint, self.extra = fingerprint, dict(extra or {})
         self.records: list[dict[str, Any]] = []

@@ -7,7 +7,7 @@ field       type                    meaning
 ==========  ======================  =============================================================
 image_id    int                     unique within the dataset (COCO ``image_id``)
 rgb         uint8 HxWx3             RGB warped into the thermal frame (R, G, B order)
-thermal     float32 HxW or None     temperature in degrees C (None for 8-bit-only datasets)
+thermal     float32 HxW or None     temperature in degrees C (None for 8-bit-only datasets); NaN = missing
 ir8         uint8 HxW               8-bit thermal preview (or the dataset's 8-bit thermal frame)
 boxes       float32 Nx4             xyxy pixels in the thermal frame, inside [0, W] x [0, H]
 labels      int64 N                 0-based category indices
@@ -15,7 +15,9 @@ group       str                     project (M3T) or sequence (RGBT-Tiny); folds
 meta        dict                    file names, capture time, homography, anything provenance-related
 ==========  ======================  =============================================================
 
-``validate_sample`` enforces the table and names the sample and the field in every error.
+``validate_sample`` enforces the table and names the sample and the field in every error. Missing temperatures
+(NaN or inf: masked or dead pixels) are allowed up to ``harness.sensing.c2.MAX_INVALID_FRACTION`` of the map;
+the encodings leave them out (C2 gives them the neutral value) and ``prepare`` counts them per sample.
 """
 
 from __future__ import annotations
@@ -92,8 +94,12 @@ def validate_sample(sample: AlignedSample, num_classes: int | None = None, box_t
         if th.shape != (h, w):
             raise _fail(sample, "thermal", f"expected shape {(h, w)} like ir8, got {th.shape}")
         if not np.isfinite(th).all():
+            from harness.sensing.c2 import MAX_INVALID_FRACTION
+
             bad = int((~np.isfinite(th)).sum())
-            raise _fail(sample, "thermal", f"{bad} non-finite temperature value(s) (NaN or inf)")
+            if bad > MAX_INVALID_FRACTION * th.size:
+                raise _fail(sample, "thermal", f"{bad} of {th.size} pixels are non-finite temperature values (NaN "
+                                               f"or inf), more than the {100 * MAX_INVALID_FRACTION:g} % a map may miss")
 
     boxes = _check_array(sample, "boxes", sample.boxes, np.float32, 2)
     if boxes.shape[1] != 4:

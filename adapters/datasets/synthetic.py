@@ -46,7 +46,6 @@ import logging
 import math
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -1059,7 +1058,7 @@ def generate(out: str | Path | None = None, profile: str = "small", seed: int = 
     ``workers``: processes rendering in parallel (default: up to 4, at most the CPU count; 1 renders in this
     process). The output does not depend on it: every image draws from its own seed.
     """
-    from harness.io import atomic_write_json, atomic_write_text
+    from harness.io import atomic_write_json, atomic_write_text, make_temp_dir
 
     prof = get_profile(profile)
     if thermal_format not in THERMAL_FORMATS:
@@ -1070,7 +1069,7 @@ def generate(out: str | Path | None = None, profile: str = "small", seed: int = 
     if workers is None:
         workers = 1 if prof.total <= 16 else min(4, os.cpu_count() or 1)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = make_temp_dir(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     t_start = time.perf_counter()
     try:
         summary = _generate_into(tmp, prof, seed, thermal_format, progress, max(1, int(workers)),

@@ -52,6 +52,10 @@ def prepare_summary(ds: Any) -> str:
                                                             + ")" if pairs else ""))
     lines.append(f"skipped annotations: {sum(anns.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items())
                                                                  + ")" if anns else ""))
+    missing = rep.get("missing_temperatures") or {}
+    if missing.get("pixels"):
+        lines.append(f"missing temperatures (NaN/inf, left out of the encodings): {missing['pixels']} pixels in "
+                     f"{missing['samples']} sample(s)")
     for note in rep.get("notes", []):
         lines.append(f"note: {note}")
     support = ds.support()

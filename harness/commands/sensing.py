@@ -72,45 +72,38 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--humidity", type=float, default=None, help="Override the relative humidity, % (1-100).")
     @click.option("--reflected", type=float, default=None,
                   help="Override the reflected temperature, C (-40..100; M3T files also use it for the air).")
+    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+                  help="Decode in this many processes.")
+    @click.option("--fail-fast", is_flag=True, help="Stop at the first file that cannot be decoded.")
     def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool, decoder: str,
                    blackbody: bool, emissivity: float | None, distance: float | None, humidity: float | None,
-                   reflected: float | None) -> None:
-        """Decode DJI R-JPEGs to temperature files (C) with a JSON sidecar stating the unit and the route.
+                   reflected: float | None, workers: int, fail_fast: bool) -> None:
+        """Decode DJI R-JPEGs (files, or folders searched recursively) to temperature files (C) with a JSON
+        sidecar stating the unit and the route.
 
         By default the temperature is DJI Thermal SDK's corrected one (emissivity, reflected temperature,
         atmospheric transmission from the file's APP5 table) at the file's measurement parameters or the ones
-        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody.
+        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody. Every
+        readable file is decoded; the failures are listed at the end (exit status 1 when any).
         """
+        from harness.sensing.batch import DecodeOptions, decode_batch, format_failures
         from harness.textable import text_table as _table
-        from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature, write_thermal
 
-        fmt = fmt or ("png" if unit == "centikelvin" else "tiff")
-        decoder = "blackbody" if blackbody else decoder
         overrides = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected}
-        rows = []
-        with _progress(len(inputs), "decoding") as bar:
-            task = bar.add_task("decode", total=len(inputs))
-            for path in inputs:
-                rj = read_rjpeg(path, decoder)
-                t, info = rjpeg_temperature(rj, overrides)
-                used = info.get("correction", rj.params)
-                route = ("dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
-                         else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
-                target = out_dir / f"{path.stem}.{'tif' if fmt == 'tiff' else fmt}"
-                write_thermal(target, t, unit=unit, params=rj.params,
-                              extra={"source": str(path), "decoder": route, "decoder_route": rj.decoder,
-                                     **({"correction": info["correction"]} if "correction" in info else {}),
-                                     "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))}})
-                if preview:
-                    import cv2
-
-                    cv2.imwrite(str(out_dir / f"{path.stem}_ir8.png"), rj.preview(grayscale=True))
-                rows.append([path.name, f"{t.shape[1]}x{t.shape[0]}", rj.decoder, f"{t.min():.2f}", f"{t.max():.2f}",
-                             f"{t.mean():.2f}", f"{used.get('emissivity', float('nan')):.2f}",
-                             f"{used.get('distance', float('nan')):.1f}", target.name])
-                bar.advance(task)
-        click.echo(_table(["file", "size", "route", "min C", "max C", "mean C", "emissivity", "distance m",
-                           "written"], rows, align="lllrrrrrl"))
+        options = DecodeOptions(unit=unit, fmt=fmt, preview=preview, decoder="blackbody" if blackbody else decoder,
+                                overrides=overrides)
+        with _progress(None, "decoding") as bar:
+            task = bar.add_task("decode", total=None)
+            result = decode_batch(inputs, out_dir, options, workers=workers, fail_fast=fail_fast,
+                                  progress=lambda done, total: bar.update(task, completed=done, total=total))
+        rows = [[r["file"], r["size"], r["route"], f"{r['min']:.2f}", f"{r['max']:.2f}", f"{r['mean']:.2f}",
+                 f"{r['emissivity']:.2f}", f"{r['distance']:.1f}", Path(r["written"]).name] for r in result.decoded]
+        if rows:
+            click.echo(_table(["file", "size", "route", "min C", "max C", "mean C", "emissivity", "distance m",
+                               "written"], rows, align="lllrrrrrl"))
+        click.echo(format_failures(result))
+        if not result.ok:
+            raise SystemExit(1)
 
     # ------------------------------------------------------------------------------------------------ calibrate
     @sensing.command(name="calibrate")

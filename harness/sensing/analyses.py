@@ -11,6 +11,10 @@ Displacement study (how much of the local contrast a box keeps when thermal and 
     A_c(d) = mean over the boxes of class c of A_b(d)        (every box weighs the same)
     R_c(d) = 100 * A_c(d) / A_c(0)  [%]
 
+Missing temperatures (NaN or inf) are left out: C2 is computed over the valid pixels (``harness.sensing.c2``) and
+a box's amplitude averages only its pixels with a measured temperature; the result counts them
+(``invalid_pixels``), and a map ``c2`` refuses (none valid, or too many missing) is an error naming the sample.
+
 Both analyses return plain dicts (written as JSON) and have a text formatter whose columns line up.
 """
 
@@ -47,20 +51,26 @@ def shift_replicate(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
 
 def box_amplitudes(thermal: np.ndarray, boxes: np.ndarray, shifts: Sequence[int] = SHIFTS,
                    directions: Sequence[tuple[int, int]] = DIRECTIONS, sigma: float = c2mod.SIGMA,
-                   percentile: float = c2mod.PERCENTILE, floor: float = c2mod.FLOOR) -> np.ndarray:
+                   percentile: float = c2mod.PERCENTILE, floor: float = c2mod.FLOOR,
+                   name: str | None = None) -> np.ndarray:
     """``A_b(d)`` for every box (rows) and shift ``d`` in ``(0, *shifts)`` (columns): mean ``|C2 - 0.5|`` in the
-    box, averaged over the directions; C2 is recomputed on each shifted temperature map."""
+    box, averaged over the directions; C2 is recomputed on each shifted temperature map. Pixels with a missing
+    temperature are left out of the box means (a box with none valid gets NaN); ``name`` is named in errors."""
+    thermal = c2mod.check_map(thermal, name)
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     out = np.full((len(b), 1 + len(shifts)), np.nan)
     if len(b) == 0:
         return out
-    c0 = c2mod.c2(thermal, sigma, percentile, floor)
-    out[:, 0] = [c2mod.contrast_amplitude(c0, box) for box in b]
+    clean = c2mod.invalid_count(thermal) == 0
+    c0 = c2mod.c2(thermal, sigma, percentile, floor, name)
+    valid0 = None if clean else np.isfinite(thermal)
+    out[:, 0] = [c2mod.contrast_amplitude(c0, box, valid0) for box in b]
     for k, d in enumerate(shifts, start=1):
         acc = np.zeros(len(b))
         for ux, uy in directions:
-            cd = c2mod.c2(shift_replicate(thermal, ux * d, uy * d), sigma, percentile, floor)
-            acc += [c2mod.contrast_amplitude(cd, box) for box in b]
+            td = shift_replicate(thermal, ux * d, uy * d)
+            cd = c2mod.c2(td, sigma, percentile, floor, name)
+            acc += [c2mod.contrast_amplitude(cd, box, None if clean else np.isfinite(td)) for box in b]
         out[:, k] = acc / len(directions)
     return out
 
@@ -80,15 +90,17 @@ def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[st
         raise DataError(f"displacements must be positive pixel counts, got {shifts}")
     per_class: dict[int, list[np.ndarray]] = {k: [] for k in range(len(categories))}
     images = 0
+    invalid = 0
     for sample in samples:
         if max_images is not None and images >= max_images:
             break
         if sample.thermal is None:
             raise DataError(f"{sample.name}: no radiometric thermal; the displacement study needs temperatures")
         images += 1
+        invalid += c2mod.invalid_count(sample.thermal)
         if len(sample.boxes):
-            amps = box_amplitudes(np.asarray(sample.thermal, dtype=np.float32), sample.boxes, shifts,
-                                  sigma=sigma, percentile=percentile, floor=floor)
+            amps = box_amplitudes(sample.thermal, sample.boxes, shifts, sigma=sigma, percentile=percentile,
+                                  floor=floor, name=sample.name)
             for lab, row in zip(np.asarray(sample.labels).tolist(), amps):
                 if np.isfinite(row).all():
                     per_class.setdefault(int(lab), []).append(row)
@@ -109,7 +121,7 @@ def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[st
         mean = {"A": [float(np.mean([v["A"][i] for v in present])) for i in range(len(shifts) + 1)],
                 "R": [float(np.nanmean([v["R"][i] for v in present])) for i in range(len(shifts) + 1)]}
     return {"analysis": "displacement", "shifts": [0, *shifts], "classes": classes, "mean_over_classes": mean,
-            "images": images, "boxes": int(sum(v["boxes"] for v in classes.values())),
+            "images": images, "boxes": int(sum(v["boxes"] for v in classes.values())), "invalid_pixels": invalid,
             "params": {"sigma": sigma, "percentile": percentile, "floor": floor, "directions": "right,left,down,up",
                        "border": "replicate"},
             "definition": "R_c(d) = 100 * A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the direction-averaged "

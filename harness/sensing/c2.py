@@ -17,6 +17,20 @@ Implementation notes (all exact, not approximations):
   and falls back to a full selection when the candidates might not contain them, so the value is identical
   to ``np.percentile`` at a fraction of the cost.
 * ``round`` is round-half-to-even (NumPy's ``rint``, Python's ``round``); a flat image maps to 127.5 -> 128.
+
+Missing temperatures (NaN or +-inf: masked or dead pixels) are left out, never read as zero. With the validity
+mask ``M`` (1 where ``T`` is finite), the background is the normalised convolution over valid pixels (the way
+astropy's ``convolve`` interpolates NaN)::
+
+    B(x)   = (G_sigma * (T M))(x) / (G_sigma * M)(x)
+    p_clip = max(percentile_99(|dT| over valid pixels), 0.05 C)
+    C2(x)  = 0.5 where T(x) is missing (neutral: no contrast), else as above
+
+A map whose every pixel is finite takes the unmasked code path unchanged (the test costs one mean, which the
+FFT background computes anyway), so its output is bit for bit what it was. A map with no valid pixel, or with
+more than ``MAX_INVALID_FRACTION`` of its pixels missing, is a ``DataError`` naming the map. ``check_map``
+refuses what is not a real-valued 2-D map (empty, 1-D, 3-D, complex, boolean, or integers beyond float32's
+exact range) with one message saying what was expected.
 """
 
 from __future__ import annotations
@@ -25,9 +39,83 @@ from functools import lru_cache
 
 import numpy as np
 
+from harness.errors import DataError
+
 SIGMA = 11.0
 PERCENTILE = 99.0
 FLOOR = 0.05  # C
+#: A map with more than this fraction of missing (non-finite) pixels is refused: its contrast would rest on too
+#: few measurements to compare with the others.
+MAX_INVALID_FRACTION = 0.5
+#: Integers at or below this magnitude are exact in float32.
+_FLOAT32_EXACT_INT = 2 ** 24
+
+
+def _named(name: str | None) -> str:
+    return f"{name}: " if name else ""
+
+
+def check_map(temperature_c: object, name: str | None = None) -> np.ndarray:
+    """``temperature_c`` as a float32 HxW array, or a ``DataError`` saying what was expected.
+
+    Accepted: a non-empty 2-D array of real numbers (float, or integers exact in float32). Refused: empty,
+    1-D, 3-D, complex, boolean or object arrays, integers beyond +-2**24 and floats beyond float32's range.
+    Non-finite values are allowed here (they are missing pixels; see ``valid_mask``). An empty map must be refused
+    before it reaches OpenCV: ``copyMakeBorder`` with a reflect-101 border never returns on a zero-length axis
+    (its reflection loop cannot land inside an empty range), which made ``c2_uint8`` hang.
+    """
+    what = f"{_named(name)}expected a non-empty 2-D (HxW) temperature map in C of real numbers"
+    try:
+        a = np.asarray(temperature_c)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{what}; cannot read it as an array ({exc})") from None
+    if a.dtype.kind not in "fiu":
+        kinds = {"c": "complex", "b": "boolean", "O": "object", "U": "text", "S": "bytes"}
+        kind = kinds.get(a.dtype.kind, a.dtype.name)
+        raise DataError(f"{what}, got {kind} values (dtype {a.dtype.name})")
+    if a.ndim != 2:
+        raise DataError(f"{what}, got {a.ndim}-D shape {tuple(a.shape)}")
+    if a.size == 0:
+        raise DataError(f"{what}, got the empty shape {tuple(a.shape)}")
+    if a.dtype.kind in "iu" and a.dtype.itemsize > 2:
+        lo, hi = int(a.min()), int(a.max())
+        if max(-lo, hi) > _FLOAT32_EXACT_INT:
+            raise DataError(f"{what}, got integers {lo}..{hi}, beyond float32's exact range (+-2**24); "
+                            "convert the counts to C first")
+    elif a.dtype.kind == "f" and a.dtype.itemsize > 4:
+        finite = a[np.isfinite(a)] if not np.isfinite(a.sum()) else a
+        big = float(np.abs(finite).max()) if finite.size else 0.0
+        if big > float(np.finfo(np.float32).max):
+            raise DataError(f"{what}, got a value of magnitude {big:.3g}, beyond float32's range")
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _finite_sum(a: np.ndarray) -> bool:
+    """Whether ``a`` has no NaN or inf, from one float64 sum (which a finite float32 array cannot overflow)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return bool(np.isfinite(a.sum(dtype=np.float64)))
+
+
+def valid_mask(t: np.ndarray, name: str | None = None,
+               max_invalid_fraction: float = MAX_INVALID_FRACTION) -> np.ndarray:
+    """``isfinite(t)``, after checking that at least one pixel, and at least ``1 - max_invalid_fraction`` of
+    them, is valid (else a ``DataError`` naming the map and the count)."""
+    mask = np.isfinite(t)
+    n, bad = mask.size, int(mask.size - np.count_nonzero(mask))
+    if bad == n:
+        raise DataError(f"{_named(name)}no valid temperature: all {n} pixels are NaN or infinite")
+    if bad > max_invalid_fraction * n:
+        raise DataError(f"{_named(name)}{bad} of {n} pixels ({100.0 * bad / n:.1f} %) are NaN or infinite, more than "
+                        f"the {100.0 * max_invalid_fraction:g} % a temperature map may miss")
+    return mask
+
+
+def invalid_count(temperature_c: np.ndarray) -> int:
+    """How many pixels of a temperature map are missing (NaN or infinite)."""
+    t = np.asarray(temperature_c)
+    if t.dtype.kind != "f" or _finite_sum(t):
+        return 0
+    return int(t.size - np.count_nonzero(np.isfinite(t)))
 
 
 def kernel_radius(sigma: float, truncate: float = 4.0) -> int:
@@ -55,8 +143,10 @@ def _centred_padded(t: np.ndarray, r: int) -> tuple[np.ndarray, np.float32]:
     import cv2
 
     src = np.asarray(t, dtype=np.float32)
-    m = np.float32(src.mean(dtype=np.float64))
-    return cv2.copyMakeBorder(src - m, r, r, r, r, cv2.BORDER_REFLECT_101), m
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN when a pixel is missing (the caller checks)
+        m = np.float32(src.mean(dtype=np.float64))
+        centred = src - m
+    return cv2.copyMakeBorder(centred, r, r, r, r, cv2.BORDER_REFLECT_101), m
 
 
 def _blur_padded(xp: np.ndarray, r: int, h: int, w: int, sigma: float) -> np.ndarray:
@@ -75,12 +165,15 @@ def gaussian_background(t: np.ndarray, sigma: float = SIGMA, method: str = "fft"
     ``method="fft"`` (default): the image, less its mean, is padded by the kernel radius with reflect-101
     pixels and convolved by FFT; the padding is wide enough that the periodic wrap never reaches the output, so
     this is the same linear convolution as the direct one (float32 error about 1e-6 C). ``method="direct"``:
-    OpenCV's separable ``GaussianBlur`` (float32 accumulation, error about 2e-5 C).
+    OpenCV's separable ``GaussianBlur`` (float32 accumulation, error about 2e-5 C). A map with missing pixels
+    gets the normalised convolution over its valid pixels whichever the method.
     """
-    src = np.ascontiguousarray(t, dtype=np.float32)
+    src = check_map(t)
     if sigma <= 0:
         return src.copy()
     r = kernel_radius(sigma)
+    if not _finite_sum(src):  # some pixel is missing: normalised convolution
+        return _masked_background(src, valid_mask(src), sigma)
     if method == "direct":
         import cv2
 
@@ -96,16 +189,55 @@ def gaussian_background(t: np.ndarray, sigma: float = SIGMA, method: str = "fft"
     return out
 
 
-def local_deviation(t: np.ndarray, sigma: float = SIGMA) -> np.ndarray:
-    """``dT = T - B``: the temperature minus its Gaussian background (float32)."""
-    src = np.ascontiguousarray(t, dtype=np.float32)
-    if sigma <= 0:
-        return np.zeros_like(src)
+def _masked_background(src: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """``B = G * (T M) / G * M`` (float32; meaningful where ``G * M > 0``, which holds at every valid pixel).
+
+    ``T`` is centred on the valid mean first (as in the unmasked path); both blurs share one FFT of the two stacked
+    reflect-padded planes."""
+    import cv2
+    import scipy.fft
+
     r = kernel_radius(sigma)
     h, w = src.shape
-    xp, _ = _centred_padded(src, r)
+    m = np.float32(src[mask].mean(dtype=np.float64))
+    planes = (np.where(mask, src - m, np.float32(0)), mask.astype(np.float32))
+    hp, wp = (scipy.fft.next_fast_len(n + 2 * r, real=True) for n in (h, w))
+    padded = np.zeros((2, hp, wp), np.float32)  # the FFT size at once: no further copy to pad it
+    for k, plane in enumerate(planes):
+        padded[k, :h + 2 * r, :w + 2 * r] = cv2.copyMakeBorder(plane, r, r, r, r, cv2.BORDER_REFLECT_101)
+    spec = scipy.fft.rfft2(padded, workers=1)
+    spec *= _kernel_spectrum(hp, wp, float(sigma))
+    num, den = scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[:, r:r + h, r:r + w]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = num / np.maximum(den, np.float32(1e-12))
+    out += m
+    return out.astype(np.float32, copy=False)
+
+
+def _deviation(src: np.ndarray, sigma: float, name: str | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(dT, mask)`` of a checked float32 map: ``mask`` is ``None`` when every pixel is finite (the unmasked
+    path), else the validity mask, and ``dT`` is NaN at the missing pixels."""
+    if sigma <= 0:
+        mask = None if _finite_sum(src) else valid_mask(src, name)
+        out = np.zeros_like(src)
+        if mask is not None:
+            out[~mask] = np.nan
+        return out, mask
+    r = kernel_radius(sigma)
+    h, w = src.shape
+    xp, m = _centred_padded(src, r)
+    if not np.isfinite(m):  # some pixel is missing (the mean of a finite float32 map cannot overflow in float64)
+        mask = valid_mask(src, name)
+        dt = src - _masked_background(src, mask, sigma)
+        dt[~mask] = np.nan
+        return dt, mask
     # (T - m) - G * (T - m) = T - G * T: the mean cancels (the kernel sums to 1)
-    return np.subtract(xp[r:r + h, r:r + w], _blur_padded(xp, r, h, w, sigma))
+    return np.subtract(xp[r:r + h, r:r + w], _blur_padded(xp, r, h, w, sigma)), None
+
+
+def local_deviation(t: np.ndarray, sigma: float = SIGMA, name: str | None = None) -> np.ndarray:
+    """``dT = T - B``: the temperature minus its Gaussian background (float32); NaN where ``T`` is missing."""
+    return _deviation(check_map(t, name), sigma, name)[0]
 
 
 def fast_percentile(values: np.ndarray, q: float) -> float:
@@ -145,22 +277,40 @@ def fast_percentile(values: np.ndarray, q: float) -> float:
 
 
 def clip_scale(dt: np.ndarray, percentile: float = PERCENTILE, floor: float = FLOOR) -> float:
-    """``p_clip = max(percentile_99(|dT|), floor)``."""
-    return max(fast_percentile(np.abs(dt), percentile), float(floor))
+    """``p_clip = max(percentile_99(|dT|), floor)``, the percentile over the finite values of ``dT``."""
+    a = np.abs(dt)
+    if not _finite_sum(a):
+        a = a[np.isfinite(a)]
+        if a.size == 0:
+            raise DataError("no valid temperature deviation to take the clip percentile of")
+    return max(fast_percentile(a, percentile), float(floor))
 
 
-def c2_from_deviation(dt: np.ndarray, percentile: float = PERCENTILE, floor: float = FLOOR) -> np.ndarray:
-    """``C2 = clip(dT / (2 p_clip) + 0.5, 0, 1)`` (float32) from a precomputed deviation ``dT``."""
-    p = clip_scale(dt, percentile, floor)
+def _scaled(dt: np.ndarray, p: float) -> np.ndarray:
     out = np.asarray(dt, dtype=np.float32) * np.float32(1.0 / (2.0 * p))
     out += np.float32(0.5)
     return np.clip(out, 0.0, 1.0, out=out)
 
 
+def c2_from_deviation(dt: np.ndarray, percentile: float = PERCENTILE, floor: float = FLOOR) -> np.ndarray:
+    """``C2 = clip(dT / (2 p_clip) + 0.5, 0, 1)`` (float32) from a precomputed deviation ``dT``; pixels where
+    ``dT`` is not finite (missing temperature) get the neutral 0.5."""
+    out = _scaled(dt, clip_scale(dt, percentile, floor))
+    if not _finite_sum(out):
+        out[~np.isfinite(out)] = np.float32(0.5)
+    return out
+
+
 def c2(temperature_c: np.ndarray, sigma: float = SIGMA, percentile: float = PERCENTILE,
-       floor: float = FLOOR) -> np.ndarray:
-    """C2 of a temperature map in C: float32 HxW in 0..1, neutral 0.5 (see the module docstring)."""
-    return c2_from_deviation(local_deviation(temperature_c, sigma), percentile, floor)
+       floor: float = FLOOR, name: str | None = None) -> np.ndarray:
+    """C2 of a temperature map in C: float32 HxW in 0..1, neutral 0.5 (see the module docstring); ``name`` (a
+    file or sample) is named in errors."""
+    dt, mask = _deviation(check_map(temperature_c, name), sigma, name)
+    if mask is None:
+        return _scaled(dt, max(fast_percentile(np.abs(dt), percentile), float(floor)))
+    out = _scaled(dt, max(fast_percentile(np.abs(dt[mask]), percentile), float(floor)))
+    out[~mask] = np.float32(0.5)
+    return out
 
 
 def to_uint8(c: np.ndarray) -> np.ndarray:
@@ -171,15 +321,17 @@ def to_uint8(c: np.ndarray) -> np.ndarray:
 
 
 def c2_uint8(temperature_c: np.ndarray, sigma: float = SIGMA, percentile: float = PERCENTILE,
-             floor: float = FLOOR) -> np.ndarray:
-    """``round(255 * C2)`` as uint8 HxW: what the prepared cache stores and detectors read."""
-    return to_uint8(c2(temperature_c, sigma, percentile, floor))
+             floor: float = FLOOR, name: str | None = None) -> np.ndarray:
+    """``round(255 * C2)`` as uint8 HxW: what the prepared cache stores and detectors read (missing pixels 128)."""
+    return to_uint8(c2(temperature_c, sigma, percentile, floor, name))
 
 
-def contrast_amplitude(c: np.ndarray, box: tuple[float, float, float, float] | np.ndarray) -> float:
+def contrast_amplitude(c: np.ndarray, box: tuple[float, float, float, float] | np.ndarray,
+                       valid: np.ndarray | None = None) -> float:
     """Mean ``|C2 - 0.5|`` over the pixels a box ``(x1, y1, x2, y2)`` covers (NaN when it covers none).
 
-    A pixel ``(i, j)`` is covered when its centre ``(j + 0.5, i + 0.5)`` lies inside the box.
+    A pixel ``(i, j)`` is covered when its centre ``(j + 0.5, i + 0.5)`` lies inside the box. With ``valid`` (the
+    map's validity mask) only covered pixels with a measured temperature count (NaN when none has one).
     """
     x1, y1, x2, y2 = (float(v) for v in box)
     h, w = c.shape
@@ -187,4 +339,9 @@ def contrast_amplitude(c: np.ndarray, box: tuple[float, float, float, float] | n
     i0, i1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
     if j1 <= j0 or i1 <= i0:
         return float("nan")
-    return float(np.abs(c[i0:i1, j0:j1].astype(np.float64) - 0.5).mean())
+    a = np.abs(c[i0:i1, j0:j1].astype(np.float64) - 0.5)
+    if valid is not None:
+        a = a[valid[i0:i1, j0:j1]]
+        if a.size == 0:
+            return float("nan")
+    return float(a.mean())

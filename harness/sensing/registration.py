@@ -201,11 +201,19 @@ def structure_image(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     ``g`` is the Sobel gradient magnitude of the image smoothed by ``sigma``. Works for RGB (converted to grey),
     8-bit previews and temperature maps alike: edges of the same objects coincide across modalities even where
     intensities do not, and the saturation keeps a strong edge in one modality from outweighing the others
-    (edge strength depends on colour contrast in RGB and on temperature contrast in thermal).
+    (edge strength depends on colour contrast in RGB and on temperature contrast in thermal). Missing temperatures
+    (NaN or inf) carry no structure: they and the pixels whose filter window reaches them get 0.
     """
     import cv2
 
     a = np.asarray(img)
+    valid = None
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        valid = np.isfinite(a if a.ndim == 2 else a.sum(axis=2))
+        if not valid.any():
+            return np.zeros(valid.shape, np.float32)
+        fill = np.median(a[valid])
+        a = np.where(valid if a.ndim == 2 else valid[:, :, None], a, fill).astype(np.float32)
     if a.ndim == 3:
         a = cv2.cvtColor(a if a.dtype == np.uint8 else a.astype(np.float32), cv2.COLOR_RGB2GRAY)
     a = a.astype(np.float32)
@@ -214,6 +222,9 @@ def structure_image(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT_101)
     gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT_101)
     mag = cv2.magnitude(gx, gy)
+    if valid is not None:  # the Gaussian (4 sigma) and Sobel (1 px) windows must see measured pixels only
+        k = 2 * (int(np.ceil(4 * sigma)) + 1) + 1 if sigma > 0 else 3
+        mag[cv2.erode(valid.astype(np.uint8), np.ones((k, k), np.uint8)) == 0] = 0
     c = float(np.percentile(mag, 90))
     return mag / (mag + c) if c > 0 else mag
 
