@@ -196,8 +196,13 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
              "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
     t0 = time.perf_counter()
+    bases = _reference_bases(source)
+    if bases:
+        from harness.cache_admin import folder_bytes
+
+        extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
     writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra, form=form,
-                            sources=_reference_bases(source) if form == "compact" else (),
+                            sources=bases if form == "compact" else (),
                             pixel_files=getattr(source, "pixel_files", None))
     try:
         with _Bar(progress, total, f"preparing {spec.name}") as bar:

@@ -129,3 +129,30 @@ def test_a_changed_source_file_is_an_error_naming_it(rgbt640, tmp_path):
     path.unlink()
     with pytest.raises(DataError, match=f"{path.name}: source file of a prepared sample is missing"):
         type(compact)(compact.folder)[0]
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def test_prepare_prints_sizes_and_cache_lists_verifies_and_removes(rgbt640, tmp_path, cli_runner):
+    cache = tmp_path / "c"
+    out = cli_runner(["prepare", "--dataset", "rgbt-tiny", "--root", str(rgbt640), "--cache", str(cache)]).output
+    assert "(compact form) beside" in out and "of source files" in out
+    cli_runner(["prepare", "--dataset", "rgbt-tiny", "--root", str(rgbt640), "--cache", str(cache),
+                "--cache-form", "raw"])
+    (cache / "rgbt-tiny" / ".x.tmp").mkdir()
+    os.utime(cache / "rgbt-tiny" / ".x.tmp", (0, 0))  # an interrupted preparation's leftover
+    listed = cli_runner(["cache", "list", "--cache", str(cache)]).output
+    assert max(map(len, listed.splitlines())) <= 100
+    assert "compact" in listed and "raw" in listed and "3 prepared" in listed
+    assert "ok (4 samples)" in cli_runner(["cache", "verify", "--cache", str(cache)]).output
+    dry = cli_runner(["cache", "rm", "--unused", "--dry-run", "--cache", str(cache)]).output
+    assert "would remove rgbt-tiny/.x.tmp" in dry and "raw" not in dry
+    assert (cache / "rgbt-tiny" / ".x.tmp").exists()
+    cli_runner(["cache", "rm", "--unused", "--cache", str(cache)])
+    assert not (cache / "rgbt-tiny" / ".x.tmp").exists() and len(list((cache / "rgbt-tiny").iterdir())) == 2
+    raw = next(p.name for p in (cache / "rgbt-tiny").iterdir() if p.name.endswith("-raw"))
+    assert "freed" in cli_runner(["cache", "rm", f"rgbt-tiny/{raw}", "--cache", str(cache)]).output
+    assert [p.name for p in (cache / "rgbt-tiny").iterdir()] == [raw.removesuffix("-raw")]
+    bad = cli_runner(["cache", "rm", "m3fd", "--cache", str(cache)])
+    assert bad.exit_code != 0 and "no prepared dataset 'm3fd'" in bad.output
+    bad = cli_runner(["cache", "rm", "--cache", str(cache)])
+    assert bad.exit_code != 0 and "or pass --unused" in bad.output
