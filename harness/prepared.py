@@ -57,6 +57,7 @@ class PreparedWriter:
         self.sources = [Path(p) for p in sources]
         self.pixel_files = pixel_files
         self.source_bytes = 0
+        self.codec = CF.default_u8_codec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.folder.name}.", suffix=".tmp", dir=self.folder.parent))
         self.dataset, self.categories = dataset, list(categories)
@@ -116,8 +117,8 @@ class PreparedWriter:
                 self.source_bytes += ref.pop("bytes")
                 ref["base"] = self.sources.index(ref["base"])
                 return {"src": ref}
-        out["rgb"] = self._put("rgb.pack", CF.encode_u8(sample.rgb))
-        out["ir8"] = self._put("ir8.pack", CF.encode_u8(sample.ir8))
+        out["rgb"] = self._put("rgb.pack", CF.encode_u8(sample.rgb, self.codec))
+        out["ir8"] = self._put("ir8.pack", CF.encode_u8(sample.ir8, self.codec))
         if sample.thermal is not None:
             out["thermal"] = self._put("thermal.pack", CF.encode_f32(sample.thermal))
         return out
@@ -138,6 +139,8 @@ class PreparedWriter:
             "radiometric": bool(self._has_thermal), "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "report": report or {}, "form": self.form, **self.extra,
         }
+        if self.form != "raw":
+            manifest["codec"] = {"u8": self.codec, "thermal": "table+png16"}
         if any("src" in r for r in self.records):
             manifest["sources"] = [str(p.resolve()) for p in self.sources]
             manifest["referenced_bytes"] = self.source_bytes
@@ -206,6 +209,7 @@ class PreparedDataset:
             self._ir8 = self._map("ir8.pack", np.uint8)
             self._thermal = self._map("thermal.pack", np.uint8) if self.radiometric else None
         self.sources = [Path(p) for p in self.manifest.get("sources", [])]
+        self.codec: str = (self.manifest.get("codec") or {}).get("u8", "png")
         self._verified: set[int] = set()
         self._last: tuple[int, AlignedSample] | None = None
         self._boxes = self._map("boxes.f32", np.float32)
@@ -253,12 +257,21 @@ class PreparedDataset:
             self._verified.add(i)
             return _frozen(rgb), _frozen(ir8), None
         where = f"{self.folder} sample {r['image_id']}"
-        rgb = CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where)
-        ir8 = CF.decode_u8(self._chunk(self._ir8, r["ir8"]), (h, w), where)
+        rgb = CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where, self.codec)
+        ir8 = CF.decode_u8(self._chunk(self._ir8, r["ir8"]), (h, w), where, self.codec)
         th = None
         if self._thermal is not None:
             th = CF.decode_f32(self._chunk(self._thermal, r["thermal"]), (h, w), where)
         return _frozen(rgb), _frozen(ir8), None if th is None else _frozen(th)
+
+    def rgb(self, i: int) -> np.ndarray:
+        """Sample ``i``'s RGB alone (``self[i].rgb`` without decoding the other channels of a compact cache)."""
+        r = self.records[i]
+        if self.form == "raw" or "src" in r or (self._last is not None and self._last[0] == i):
+            return self[i].rgb
+        h, w = r["height"], r["width"]
+        return _frozen(CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), f"{self.folder} sample {r['image_id']}",
+                                    self.codec))
 
     @staticmethod
     def _chunk(arr: np.ndarray, at: Sequence[int]) -> np.ndarray:
@@ -337,7 +350,7 @@ class PreparedDataset:
         pack, idx = store  # type: ignore[misc]
         at = idx[i]
         return _frozen(CF.decode_u8(pack[int(at[0]):int(at[0]) + int(at[1])], (r["height"], r["width"]),
-                                    f"{self.folder / 'enc' / key}.pack sample {r['image_id']}"))
+                                    f"{self.folder / 'enc' / key}.pack sample {r['image_id']}", self.codec))
 
     def _compact_encoded(self, key: str, encoding: Any, params: dict[str, Any], full: dict[str, Any]) -> Any:
         import time as _time
@@ -353,9 +366,9 @@ class PreparedDataset:
                 t0 = _time.perf_counter()
                 out = self._checked(s, encoding, params)
                 t1 = _time.perf_counter()
-                data = CF.encode_u8(out)
+                data = CF.encode_u8(out, self.codec)
                 t2 = _time.perf_counter()
-                CF.decode_u8(data, out.shape, key)
+                CF.decode_u8(data, out.shape, key, self.codec)
                 t_enc, t_dec = t_enc + t1 - t0, t_dec + _time.perf_counter() - t2
             store = "recompute" if t_enc <= t_dec else "pack"
             if store == "pack":
@@ -364,7 +377,7 @@ class PreparedDataset:
                 def write(f: Any) -> None:
                     pos = 0
                     for i in range(len(self)):
-                        data = CF.encode_u8(self._checked(self[i], encoding, params))
+                        data = CF.encode_u8(self._checked(self[i], encoding, params), self.codec)
                         f.write(data)
                         offsets[i] = (pos, len(data))
                         pos += len(data)

@@ -46,20 +46,30 @@ def test_temperature_codec_is_exact_bit_for_bit():
         CF.decode_f32(np.frombuffer(b"Q123", np.uint8), t.shape, "sample 7")
 
 
-def test_image_codec_is_lossless():
+@pytest.mark.parametrize("codec", CF.U8_CODECS)
+def test_image_codec_is_lossless(codec):
+    if codec == "zstd":
+        pytest.importorskip("zstandard")
     rng = np.random.default_rng(1)
     for img in (rng.integers(0, 256, (40, 56, 3), dtype=np.uint8), rng.integers(0, 256, (40, 56), dtype=np.uint8)):
-        assert np.array_equal(CF.decode_u8(CF.encode_u8(img), img.shape, "x"), img)
+        assert np.array_equal(CF.decode_u8(CF.encode_u8(img, codec), img.shape, "x", codec), img)
+    with pytest.raises(DataError, match="sample 3: damaged compressed image"):
+        CF.decode_u8(np.zeros(10, np.uint8), (40, 56), "sample 3", codec)
 
 
 # ------------------------------------------------------------------------------------------------ radiometric
-def test_compact_and_raw_forms_load_identical_samples_and_encodings(tiny, tmp_path, monkeypatch):
+@pytest.mark.parametrize("codec", CF.U8_CODECS)
+def test_compact_and_raw_forms_load_identical_samples_and_encodings(tiny, tmp_path, monkeypatch, codec):
     from harness.encodings import ENCODINGS
 
+    if codec == "zstd":
+        pytest.importorskip("zstandard")
+    monkeypatch.setattr(CF, "default_u8_codec", lambda: codec)
     cfg = synth_cfg(tiny)
     raw = prepare("m3t-synth", cfg, cache_root=tmp_path / "c", progress=False, form="raw")
     compact = prepare("m3t-synth", cfg, cache_root=tmp_path / "c", progress=False)
     assert (raw.form, compact.form) == ("raw", "compact") and raw.folder != compact.folder
+    assert compact.manifest["codec"]["u8"] == codec
     assert compact.folder.name == raw.folder.name.removesuffix("-raw")
     _same(raw, compact)
     size = lambda ds: sum(p.stat().st_size for p in ds.folder.rglob("*") if p.is_file())  # noqa: E731
