@@ -231,16 +231,20 @@ def find_reference(sample: Any, bases: Sequence[Path], files: tuple[Any, Any] | 
     return None
 
 
-def load_reference(base: Path, ref: dict[str, Any], shape: tuple[int, int], verify: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb, ir8) from the referenced files; ``verify`` compares the decoded pixels with the recorded digests."""
-    rgb_path, ir_path = base / ref["rgb"], base / ref["ir8"]
-    rgb = read_rgb_file(rgb_path)
-    ir8 = read_ir8_file(ir_path, ref["ir8_mode"])
-    for path, img, want, name in ((rgb_path, rgb, (*shape, 3), "rgb"), (ir_path, ir8, shape, "ir8")):
+def load_reference(base: Path, ref: dict[str, Any], shape: tuple[int, int], verify: bool,
+                   channels: Sequence[str] = ("rgb", "ir8")) -> list[np.ndarray]:
+    """The referenced files' pixels (``channels`` of ``rgb``, ``ir8``); ``verify`` compares them with the recorded
+    digests. A missing, unreadable or changed file is a ``DataError`` naming it."""
+    out = []
+    for name in channels:
+        path = base / ref[name]
+        img = read_rgb_file(path) if name == "rgb" else read_ir8_file(path, ref["ir8_mode"])
+        want = (*shape, 3) if name == "rgb" else shape
         if img is None:
             raise DataError(f"{path}: source file of a prepared sample is missing or unreadable; restore it or "
                             f"prepare again (`harness prepare --force`)")
         if img.shape != want or (verify and pixel_digest(img) != ref["digest"][name]):
             raise DataError(f"{path}: source file changed since it was prepared (decoded pixels differ from the "
                             f"recorded digest); restore it or prepare again (`harness prepare --force`)")
-    return rgb, ir8
+        out.append(img)
+    return out

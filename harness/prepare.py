@@ -169,6 +169,10 @@ def _check_arrays(ds: PreparedDataset) -> None:
         sizes = {"boxes.f32": nb * 16, "labels.i64": nb * 8, "rgb.pack": ends["rgb.pack"], "ir8.pack": ends["ir8.pack"]}
         if ds.radiometric:
             sizes["thermal.pack"] = ends["thermal.pack"]
+        if ds.codec == "zstd":
+            from harness.cache_forms import _zstd
+
+            _zstd(str(ds.folder))  # written where zstandard was installed: prepared again (png) when it is not here
         missing = [str(p) for p in ds.sources if not p.is_dir()]
         if missing:
             raise DataError(f"the source folder(s) its samples refer to are gone: {', '.join(missing)}")

@@ -210,7 +210,7 @@ class PreparedDataset:
             self._thermal = self._map("thermal.pack", np.uint8) if self.radiometric else None
         self.sources = [Path(p) for p in self.manifest.get("sources", [])]
         self.codec: str = (self.manifest.get("codec") or {}).get("u8", "png")
-        self._verified: set[int] = set()
+        self._verified: set[tuple[int, str]] = set()
         self._last: tuple[int, AlignedSample] | None = None
         self._boxes = self._map("boxes.f32", np.float32)
         self._labels = self._map("labels.i64", np.int64)
@@ -252,9 +252,8 @@ class PreparedDataset:
                     None if self._thermal is None else self._thermal[px:px + h * w].reshape(h, w))
         if "src" in r:
             ref = r["src"]
-            verify = i not in self._verified
-            rgb, ir8 = CF.load_reference(self.sources[ref["base"]], ref, (h, w), verify)
-            self._verified.add(i)
+            rgb, ir8 = CF.load_reference(self.sources[ref["base"]], ref, (h, w), (i, "ir8") not in self._verified)
+            self._verified.update(((i, "rgb"), (i, "ir8")))
             return _frozen(rgb), _frozen(ir8), None
         where = f"{self.folder} sample {r['image_id']}"
         rgb = CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where, self.codec)
@@ -267,11 +266,17 @@ class PreparedDataset:
     def rgb(self, i: int) -> np.ndarray:
         """Sample ``i``'s RGB alone (``self[i].rgb`` without decoding the other channels of a compact cache)."""
         r = self.records[i]
-        if self.form == "raw" or "src" in r or (self._last is not None and self._last[0] == i):
+        if self.form == "raw" or (self._last is not None and self._last[0] == i):
             return self[i].rgb
         h, w = r["height"], r["width"]
-        return _frozen(CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), f"{self.folder} sample {r['image_id']}",
-                                    self.codec))
+        if "src" in r:  # the RGB file alone (its digest checked the first time this process reads it)
+            ref = r["src"]
+            verify = (i, "rgb") not in self._verified
+            (rgb,) = CF.load_reference(self.sources[ref["base"]], ref, (h, w), verify, ("rgb",))
+            self._verified.add((i, "rgb"))
+            return _frozen(rgb)
+        where = f"{self.folder} sample {r['image_id']}"
+        return _frozen(CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where, self.codec))
 
     @staticmethod
     def _chunk(arr: np.ndarray, at: Sequence[int]) -> np.ndarray:
@@ -281,7 +286,7 @@ class PreparedDataset:
         """Decode every sample (all when None) and check referenced source files; the errors, one per sample."""
         errors = []
         for i in range(len(self)) if indices is None else indices:
-            self._verified.discard(i)
+            self._verified.difference_update(((i, "rgb"), (i, "ir8")))
             try:
                 self._pixels(i)
             except DataError as exc:
@@ -333,11 +338,12 @@ class PreparedDataset:
         out = encoding.encode(s, **params)
         if out is None or out.dtype != np.uint8 or out.shape != (s.height, s.width):
             got = None if out is None else (out.dtype, out.shape)
-            raise SampleError(f"{s.name}: encoding {encoding.name!r} returned {got}, expected uint8 {(s.height, s.width)}")
+            raise SampleError(f"{s.name}: encoding {encoding.name!r} returned {got}, "
+                              f"expected uint8 {(s.height, s.width)}")
         return out
 
     def _compact_channel(self, i: int, encoding: Any, params: dict[str, Any]) -> np.ndarray:
-        """Compact form: the encoding is either stored (PNG per sample) or recomputed from the decoded sample,
+        """Compact form: the encoding is either stored (compressed per sample) or recomputed from the decoded sample,
         whichever measured cheaper on the first samples when the encoding was first used (``enc/<key>.json``)."""
         full = {**dict(getattr(encoding, "params", {})), **params}
         key = f"{encoding.name}-{_params_hash(full)}"
@@ -353,23 +359,21 @@ class PreparedDataset:
                                     f"{self.folder / 'enc' / key}.pack sample {r['image_id']}", self.codec))
 
     def _compact_encoded(self, key: str, encoding: Any, params: dict[str, Any], full: dict[str, Any]) -> Any:
-        import time as _time
-
         info_path = self.folder / "enc" / f"{key}.json"
         pack_path = self.folder / "enc" / f"{key}.pack"
         idx_path = self.folder / "enc" / f"{key}.idx"
         if not info_path.exists():
             probe = range(min(len(self), 3))
             t_enc = t_dec = 0.0
-            for i in probe:  # measure: recompute from the decoded sample vs decode the stored PNG
+            for i in probe:  # measure: recompute from the decoded sample vs decode the stored image
                 s = self[i]
-                t0 = _time.perf_counter()
+                t0 = time.perf_counter()
                 out = self._checked(s, encoding, params)
-                t1 = _time.perf_counter()
+                t1 = time.perf_counter()
                 data = CF.encode_u8(out, self.codec)
-                t2 = _time.perf_counter()
+                t2 = time.perf_counter()
                 CF.decode_u8(data, out.shape, key, self.codec)
-                t_enc, t_dec = t_enc + t1 - t0, t_dec + _time.perf_counter() - t2
+                t_enc, t_dec = t_enc + t1 - t0, t_dec + time.perf_counter() - t2
             store = "recompute" if t_enc <= t_dec else "pack"
             if store == "pack":
                 offsets = np.zeros((len(self), 2), np.int64)
@@ -383,8 +387,8 @@ class PreparedDataset:
                         pos += len(data)
                 atomic_write(pack_path, write)
                 atomic_write(idx_path, lambda f: f.write(offsets.astype("<i8").tobytes()))
-            atomic_write_json(info_path, {"encoding": encoding.name, "params": full, "store": store,
-                                          "probe_ms": {"compute": round(t_enc * 1e3, 3), "decode": round(t_dec * 1e3, 3)}})
+            ms = {"compute": round(t_enc * 1e3, 3), "decode": round(t_dec * 1e3, 3)}
+            atomic_write_json(info_path, {"encoding": encoding.name, "params": full, "store": store, "probe_ms": ms})
         info = read_json(info_path)
         if info.get("store") == "recompute":
             return None

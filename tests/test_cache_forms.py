@@ -134,7 +134,10 @@ def test_a_changed_source_file_is_an_error_naming_it(rgbt640, tmp_path):
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))  # even with the old modification time
     reopened = type(compact)(compact.folder)
     with pytest.raises(DataError, match=f"{path.name}: source file changed since it was prepared"):
+        reopened.rgb(0)  # what the data loader reads
+    with pytest.raises(DataError, match=f"{path.name}: source file changed since it was prepared"):
         reopened[0]
+    assert reopened.rgb(1).shape == (512, 640, 3)
     assert reopened.verify() and len(reopened.verify()) == 1
     path.unlink()
     with pytest.raises(DataError, match=f"{path.name}: source file of a prepared sample is missing"):
