@@ -120,15 +120,18 @@ def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str 
     fingerprint = source.fingerprint()
     key = cache_key(fingerprint, sensing, spec.name)
     folder = form_folder(_cache_root(cache_root), spec.name, key, form)
+    ds: PreparedDataset | None = None
     if not force and (folder / "manifest.json").exists():
         try:
             ds = PreparedDataset(folder)
             _check_arrays(ds)
-            if ds.form != form:
-                raise DataError(f"holds the {ds.form} form, {form} was asked for")
         except DataError as exc:
+            ds = None
             log.warning("prepared data in %s is damaged (%s); preparing again", folder, exc)
         else:
+            if ds.form != form:  # written before cache forms existed: the raw layout in the default folder
+                log.info("prepared data in %s is in the %s form; preparing the %s form", folder, ds.form, form)
+        if ds is not None and ds.form == form:
             mark_used(folder)
             _ensure_coco(ds, resolve_folds(spec, ds, cfg))
             log.info("using prepared %s from %s", spec.name, folder)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -169,3 +170,15 @@ def test_prepare_prints_sizes_and_cache_lists_verifies_and_removes(rgbt640, tmp_
     assert bad.exit_code != 0 and "no prepared dataset 'm3fd'" in bad.output
     bad = cli_runner(["cache", "rm", "--cache", str(cache)])
     assert bad.exit_code != 0 and "or pass --unused" in bad.output
+
+
+def test_a_raw_cache_from_before_cache_forms_is_prepared_again_compact(tiny, tmp_path):
+    cfg = synth_cfg(tiny)
+    raw = prepare("m3t-synth", cfg, cache_root=tmp_path / "c", progress=False, form="raw")
+    old = raw.folder.with_name(raw.folder.name.removesuffix("-raw"))
+    raw.folder.rename(old)  # the raw layout in the default folder, as written before cache forms existed
+    manifest = json.loads((old / "manifest.json").read_text())
+    del manifest["form"]
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    ds = prepare("m3t-synth", cfg, cache_root=tmp_path / "c", progress=False)
+    assert ds.form == "compact" and not ds.from_cache and ds.folder == old and not (old / "rgb.u8").exists()
