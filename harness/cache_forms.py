@@ -222,12 +222,13 @@ def find_reference(sample: Any, bases: Sequence[Path], files: tuple[Any, Any] | 
                 try:
                     rel = (rgb_path.resolve().relative_to(b.resolve()).as_posix(),
                            ir_path.resolve().relative_to(b.resolve()).as_posix())
-                except ValueError:
+                except ValueError:  # not under this folder: perhaps under the next one
                     break
                 return {"base": b, "rgb": rel[0], "ir8": rel[1], "ir8_mode": mode,
                         "digest": {"rgb": pixel_digest(sample.rgb), "ir8": pixel_digest(sample.ir8)},
                         "bytes": rgb_path.stat().st_size + ir_path.stat().st_size}
-        break
+        if files is None:
+            break  # the pixels differ from the named files: compress them instead
     return None
 
 
