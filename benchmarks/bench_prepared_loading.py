@@ -59,7 +59,7 @@ def main() -> None:
     cfg["dataset"] = {"profile": args.profile, "seed": args.seed}
     if args.root is not None:
         cfg["dataset"]["root"] = str(args.root)
-    ds = prepare("m3t-synth", cfg, cache_root=args.cache, progress=False)
+    ds = prepare("m3t-synth", cfg, cache_root=args.cache, progress=False, form="raw")
     _, source = open_source("m3t-synth", cfg)
     n = min(len(ds), args.max_samples or len(ds))
     records = source.records[:n]

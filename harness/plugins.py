@@ -51,6 +51,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.encodings",
     "harness.commands.sensing",
     "harness.commands.data",
+    "harness.commands.cache",
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
     "adapters.detectors.ours",

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from harness.api import DatasetSpec, Fold, PrepareReport
+from harness.cache_forms import DEFAULT_FORM, ENV_FORM, check_form
 from harness.errors import ConfigError, DataError, SampleError
 from harness.io import atomic_write_json
 from harness.prepared import PreparedDataset, PreparedWriter
@@ -123,29 +124,48 @@ def open_source(dataset: str | DatasetSpec, cfg: Mapping[str, Any]) -> tuple[Dat
     return spec, source
 
 
+def cache_form(form: str | None = None) -> str:
+    """The cache form: ``form``, else ``$HARNESS_CACHE_FORM``, else ``compact`` (see ``harness.cache_forms``)."""
+    return check_form(form or os.environ.get(ENV_FORM) or DEFAULT_FORM)
+
+
+def form_folder(root: Path, dataset: str, key: str, form: str) -> Path:
+    """``<root>/<dataset>/<key>`` (compact) or ``<root>/<dataset>/<key>-raw``: both forms can sit side by side."""
+    return root / dataset / (key if form == DEFAULT_FORM else f"{key}-{form}")
+
+
 def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str | Path | None = None,
-            force: bool = False, progress: bool = True) -> PreparedDataset:
-    """Prepared, memory-mapped samples of ``dataset`` under the current config (prepared now if not cached).
+            force: bool = False, progress: bool = True, form: str | None = None) -> PreparedDataset:
+    """Prepared samples of ``dataset`` under the current config (prepared now if not cached), in cache ``form``
+    (``compact`` or ``raw``, default ``$HARNESS_CACHE_FORM`` or ``compact``): every form loads identical samples.
 
     The returned ``PreparedDataset`` has two extra attributes: ``from_cache`` (bool) and ``key``.
     """
+    form = cache_form(form)
     spec, source = open_source(dataset, cfg)
     sensing = preparation_sensing(cfg.get("sensing"))
     fingerprint = source.fingerprint()
     key = cache_key(fingerprint, sensing, spec.name)
-    folder = _cache_root(cache_root) / spec.name / key
+    folder = form_folder(_cache_root(cache_root), spec.name, key, form)
+    ds: PreparedDataset | None = None
     if not force and (folder / "manifest.json").exists():
         try:
             ds = PreparedDataset(folder)
             _check_arrays(ds)
         except DataError as exc:
+            ds = None
             log.warning("prepared data in %s is damaged (%s); preparing again", folder, exc)
         else:
+            if ds.form != form:  # written before cache forms existed: the raw layout in the default folder
+                log.info("prepared data in %s is in the %s form; preparing the %s form", folder, ds.form, form)
+        if ds is not None and ds.form == form:
+            mark_used(folder)
             _ensure_coco(ds, resolve_folds(spec, ds, cfg))
             log.info("using prepared %s from %s", spec.name, folder)
             ds.from_cache, ds.key = True, key  # type: ignore[attr-defined]
             return ds
-    ds = _build(spec, source, folder, key, fingerprint, sensing, progress)
+    ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form)
+    mark_used(folder)
     _ensure_coco(ds, resolve_folds(spec, ds, cfg))
     ds.from_cache, ds.key = False, key  # type: ignore[attr-defined]
     return ds
@@ -155,6 +175,17 @@ def _cache_root(root: str | Path | None) -> Path:
     return cache_root(root)
 
 
+USED_MARK = ".last-used"
+
+
+def mark_used(folder: Path) -> None:
+    """Touch ``<folder>/.last-used`` (what ``harness cache rm --unused`` goes by); a read-only cache is fine."""
+    try:
+        (folder / USED_MARK).touch()
+    except OSError:
+        pass
+
+
 def _check_arrays(ds: PreparedDataset) -> None:
     """The arrays hold exactly what ``samples.json`` describes (a truncated copy is caught here)."""
     px = sum(r["height"] * r["width"] for r in ds.records)
@@ -162,14 +193,37 @@ def _check_arrays(ds: PreparedDataset) -> None:
     sizes = {"rgb.u8": px * 3, "ir8.u8": px, "boxes.f32": nb * 16, "labels.i64": nb * 8}
     if ds.radiometric:
         sizes["thermal.f32"] = px * 4
+    if ds.form != "raw":
+        ends = {name: max([sum(r[ch]) for r in ds.records if ch in r], default=0)
+                for name, ch in (("rgb.pack", "rgb"), ("ir8.pack", "ir8"), ("thermal.pack", "thermal"))}
+        sizes = {"boxes.f32": nb * 16, "labels.i64": nb * 8, "rgb.pack": ends["rgb.pack"], "ir8.pack": ends["ir8.pack"]}
+        if ds.radiometric:
+            sizes["thermal.pack"] = ends["thermal.pack"]
+        if ds.codec == "zstd":
+            from harness.cache_forms import _zstd
+
+            _zstd(str(ds.folder))  # written where zstandard was installed: prepared again (png) when it is not here
+        missing = [str(p) for p in ds.sources if not p.is_dir()]
+        if missing:
+            raise DataError(f"the source folder(s) its samples refer to are gone: {', '.join(missing)}")
     for name, size in sizes.items():
         got = (ds.folder / name).stat().st_size
         if got != size:
             raise DataError(f"{ds.folder / name}: {got} bytes, expected {size}")
 
 
+def _reference_bases(source: Any) -> list[Path]:
+    """Folders an 8-bit sample's ``meta`` file names may be relative to (the dataset's image and root folders)."""
+    out: list[Path] = []
+    for attr in ("images_dir", "root", "base"):
+        value = getattr(source, attr, None)
+        if isinstance(value, (str, Path)) and Path(value).is_dir() and Path(value) not in out:
+            out.append(Path(value))
+    return out
+
+
 def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: str, sensing: dict[str, Any],
-           progress: bool) -> PreparedDataset:
+           progress: bool, form: str = DEFAULT_FORM) -> PreparedDataset:
     report = PrepareReport()
     folds = [asdict(f) for f in source.folds()]
     extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": list(source.groups()), "folds": folds,
@@ -177,7 +231,14 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
     total = len(source) if hasattr(source, "__len__") else None
     missing: dict[str, int] = {}
     t0 = time.perf_counter()
-    writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra)
+    bases = _reference_bases(source)
+    if bases:
+        from harness.cache_admin import folder_bytes
+
+        extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
+    writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra, form=form,
+                            sources=bases if form == "compact" else (),
+                            pixel_files=getattr(source, "pixel_files", None))
     try:
         with _Bar(progress, total, f"preparing {spec.name}") as bar:
             for sample in source.samples(report):

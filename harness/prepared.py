@@ -10,6 +10,11 @@ A prepared dataset is a folder::
     boxes.f32, labels.i64   all boxes (Nx4 xyxy) and labels, back to back
     enc/<name>-<hash>.u8    an encoding's channel for every sample, computed on first use and kept
 
+That is the ``raw`` form. The default ``compact`` form (``harness.cache_forms``) keeps the same records but stores
+each channel losslessly compressed in ``rgb.pack``, ``ir8.pack``, ``thermal.pack`` and ``enc/<name>-<hash>.pack``
+(per-sample offsets in ``samples.json`` and ``enc/<name>-<hash>.idx``), or, for an 8-bit sample that is exactly
+what its source files decode to, only a reference to those files with a digest of their pixels.
+
 ``PreparedWriter`` streams samples into a temporary folder and renames it into place when complete, so an
 interrupted preparation never leaves a half-written dataset behind. ``PreparedDataset`` opens the arrays with
 ``numpy.memmap``: loading a sample is a slice, not a decode.
@@ -30,6 +35,7 @@ from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from harness import cache_forms as CF
 from harness.errors import DataError, SampleError
 from harness.io import atomic_write, atomic_write_json, make_temp_dir, read_json
 from harness.sample import AlignedSample, validate_sample
@@ -41,14 +47,24 @@ class PreparedWriter:
     """Write samples into ``folder`` (created atomically on ``close``). Use as a context manager."""
 
     def __init__(self, folder: str | Path, dataset: str, categories: Sequence[str], fingerprint: str = "",
-                 extra: dict[str, Any] | None = None):
+                 extra: dict[str, Any] | None = None, form: str = "raw", sources: Sequence[str | Path] = (),
+                 pixel_files: Any = None):
+        """``form``: ``raw`` or ``compact``; ``sources``: folders whose files an 8-bit sample may reference
+        (compact form); ``pixel_files(sample) -> (rgb path, thermal path) | None``: the dataset's own answer."""
         self.folder = Path(folder)
+        self.form = CF.check_form(form)
+        self.sources = [Path(p) for p in sources]
+        self.pixel_files = pixel_files
+        self.source_bytes = 0
+        self.codec = CF.default_u8_codec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = make_temp_dir(prefix=f".{self.folder.name}.", suffix=".tmp", dir=self.folder.parent)
         self.dataset, self.categories = dataset, list(categories)
         self.fingerprint, self.extra = fingerprint, dict(extra or {})
         self.records: list[dict[str, Any]] = []
-        self._files = {name: open(self.tmp / name, "wb") for name in ("rgb.u8", "ir8.u8", "thermal.f32", "boxes.f32", "labels.i64")}
+        names = ("rgb.u8", "ir8.u8", "thermal.f32") if form == "raw" else ("rgb.pack", "ir8.pack", "thermal.pack")
+        self._files = {name: open(self.tmp / name, "wb") for name in (*names, "boxes.f32", "labels.i64")}
+        self._pos = {name: 0 for name in names}
         self._px = 0
         self._nbox = 0
         self._has_thermal: bool | None = None
@@ -65,20 +81,46 @@ class PreparedWriter:
         elif self._has_thermal != has_thermal:
             raise SampleError(f"{sample.name}: field 'thermal': some samples have radiometric thermal and some do not")
         h, w = sample.height, sample.width
-        self._files["rgb.u8"].write(np.ascontiguousarray(sample.rgb).tobytes())
-        self._files["ir8.u8"].write(np.ascontiguousarray(sample.ir8).tobytes())
-        if has_thermal:
-            self._files["thermal.f32"].write(np.ascontiguousarray(sample.thermal).tobytes())
+        packed: dict[str, Any] = {}
+        if self.form == "raw":
+            self._files["rgb.u8"].write(np.ascontiguousarray(sample.rgb).tobytes())
+            self._files["ir8.u8"].write(np.ascontiguousarray(sample.ir8).tobytes())
+            if has_thermal:
+                self._files["thermal.f32"].write(np.ascontiguousarray(sample.thermal).tobytes())
+        else:
+            packed = self._pack(sample)
         self._files["boxes.f32"].write(np.ascontiguousarray(sample.boxes).tobytes())
         self._files["labels.i64"].write(np.ascontiguousarray(sample.labels).tobytes())
         n = int(len(sample.boxes))
         self.records.append({
             "image_id": int(sample.image_id), "group": sample.group, "height": h, "width": w,
-            "px": self._px, "box": self._nbox, "n": n, "meta": sample.meta,
+            "px": self._px, "box": self._nbox, "n": n, "meta": sample.meta, **packed,
         })
         self._ids.add(int(sample.image_id))
         self._px += h * w
         self._nbox += n
+
+    def _put(self, name: str, data: bytes) -> list[int]:
+        self._files[name].write(data)
+        at = self._pos[name]
+        self._pos[name] += len(data)
+        return [at, len(data)]
+
+    def _pack(self, sample: AlignedSample) -> dict[str, Any]:
+        """Compact form: a reference to the source files when they decode to exactly these pixels, else PNG."""
+        out: dict[str, Any] = {}
+        if sample.thermal is None and self.sources:
+            files = self.pixel_files(sample) if self.pixel_files is not None else None
+            ref = CF.find_reference(sample, self.sources, files)
+            if ref is not None:
+                self.source_bytes += ref.pop("bytes")
+                ref["base"] = self.sources.index(ref["base"])
+                return {"src": ref}
+        out["rgb"] = self._put("rgb.pack", CF.encode_u8(sample.rgb, self.codec))
+        out["ir8"] = self._put("ir8.pack", CF.encode_u8(sample.ir8, self.codec))
+        if sample.thermal is not None:
+            out["thermal"] = self._put("thermal.pack", CF.encode_f32(sample.thermal))
+        return out
 
     def close(self, report: dict[str, Any] | None = None) -> Path:
         for f in self._files.values():
@@ -87,14 +129,20 @@ class PreparedWriter:
             f.close()
         if not self._has_thermal:
             (self.tmp / "thermal.f32").unlink(missing_ok=True)
+            (self.tmp / "thermal.pack").unlink(missing_ok=True)
         (self.tmp / "enc").mkdir(exist_ok=True)
         atomic_write_json(self.tmp / "samples.json", self.records, indent=None)
         manifest = {
             "schema": PREPARED_SCHEMA, "dataset": self.dataset, "categories": self.categories,
             "fingerprint": self.fingerprint, "count": len(self.records), "instances": self._nbox,
             "radiometric": bool(self._has_thermal), "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            "report": report or {}, **self.extra,
+            "report": report or {}, "form": self.form, **self.extra,
         }
+        if self.form != "raw":
+            manifest["codec"] = {"u8": self.codec, "thermal": "table+png16"}
+        if any("src" in r for r in self.records):
+            manifest["sources"] = [str(p.resolve()) for p in self.sources]
+            manifest["referenced_bytes"] = self.source_bytes
         atomic_write_json(self.tmp / "manifest.json", manifest)
         if self.folder.exists():
             old = self.folder.with_name(f".{self.folder.name}.old-{os.getpid()}")
@@ -122,6 +170,12 @@ class PreparedWriter:
             self.close()
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """Read-only, like a slice of the raw form's read-only memory map."""
+    a.flags.writeable = False
+    return a
+
+
 def _params_hash(params: dict[str, Any]) -> str:
     return hashlib.sha1(json.dumps(params, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
@@ -142,9 +196,21 @@ class PreparedDataset:
         self.name: str = self.manifest["dataset"]
         self.radiometric: bool = bool(self.manifest.get("radiometric"))
         self._index = {int(r["image_id"]): i for i, r in enumerate(self.records)}
-        self._rgb = self._map("rgb.u8", np.uint8)
-        self._ir8 = self._map("ir8.u8", np.uint8)
-        self._thermal = self._map("thermal.f32", np.float32) if self.radiometric else None
+        self.form: str = self.manifest.get("form", "raw")
+        if self.form not in CF.FORMS:
+            raise DataError(f"{manifest_path}: unknown cache form {self.form!r}; prepare again")
+        if self.form == "raw":
+            self._rgb = self._map("rgb.u8", np.uint8)
+            self._ir8 = self._map("ir8.u8", np.uint8)
+            self._thermal = self._map("thermal.f32", np.float32) if self.radiometric else None
+        else:
+            self._rgb = self._map("rgb.pack", np.uint8)
+            self._ir8 = self._map("ir8.pack", np.uint8)
+            self._thermal = self._map("thermal.pack", np.uint8) if self.radiometric else None
+        self.sources = [Path(p) for p in self.manifest.get("sources", [])]
+        self.codec: str = (self.manifest.get("codec") or {}).get("u8", "png")
+        self._verified: set[tuple[int, str]] = set()
+        self._last: tuple[int, AlignedSample] | None = None
         self._boxes = self._map("boxes.f32", np.float32)
         self._labels = self._map("labels.i64", np.int64)
         self._enc: dict[str, np.memmap] = {}
@@ -176,19 +242,75 @@ class PreparedDataset:
         wanted = set(groups)
         return [i for i, r in enumerate(self.records) if r["group"] in wanted]
 
+    def _pixels(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(rgb, ir8, thermal) of sample ``i``: memory-mapped slices (raw form) or decoded (compact form)."""
+        r = self.records[i]
+        h, w, px = r["height"], r["width"], r["px"]
+        if self.form == "raw":
+            return (self._rgb[px * 3:(px + h * w) * 3].reshape(h, w, 3), self._ir8[px:px + h * w].reshape(h, w),
+                    None if self._thermal is None else self._thermal[px:px + h * w].reshape(h, w))
+        if "src" in r:
+            ref = r["src"]
+            rgb, ir8 = CF.load_reference(self.sources[ref["base"]], ref, (h, w), (i, "ir8") not in self._verified)
+            self._verified.update(((i, "rgb"), (i, "ir8")))
+            return _frozen(rgb), _frozen(ir8), None
+        where = f"{self.folder} sample {r['image_id']}"
+        rgb = CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where, self.codec)
+        ir8 = CF.decode_u8(self._chunk(self._ir8, r["ir8"]), (h, w), where, self.codec)
+        th = None
+        if self._thermal is not None:
+            th = CF.decode_f32(self._chunk(self._thermal, r["thermal"]), (h, w), where)
+        return _frozen(rgb), _frozen(ir8), None if th is None else _frozen(th)
+
+    def rgb(self, i: int) -> np.ndarray:
+        """Sample ``i``'s RGB alone (``self[i].rgb`` without decoding the other channels of a compact cache)."""
+        r = self.records[i]
+        if self.form == "raw" or (self._last is not None and self._last[0] == i):
+            return self[i].rgb
+        h, w = r["height"], r["width"]
+        if "src" in r:  # the RGB file alone (its digest checked the first time this process reads it)
+            ref = r["src"]
+            verify = (i, "rgb") not in self._verified
+            (rgb,) = CF.load_reference(self.sources[ref["base"]], ref, (h, w), verify, ("rgb",))
+            self._verified.add((i, "rgb"))
+            return _frozen(rgb)
+        where = f"{self.folder} sample {r['image_id']}"
+        return _frozen(CF.decode_u8(self._chunk(self._rgb, r["rgb"]), (h, w, 3), where, self.codec))
+
+    @staticmethod
+    def _chunk(arr: np.ndarray, at: Sequence[int]) -> np.ndarray:
+        return arr[at[0]:at[0] + at[1]]
+
+    def verify(self, indices: Iterable[int] | None = None) -> list[str]:
+        """Decode every sample (all when None) and check referenced source files; the errors, one per sample."""
+        errors = []
+        for i in range(len(self)) if indices is None else indices:
+            self._verified.difference_update(((i, "rgb"), (i, "ir8")))
+            try:
+                self._pixels(i)
+            except DataError as exc:
+                errors.append(str(exc))
+        return errors
+
     def __getitem__(self, i: int) -> AlignedSample:
         r = self.records[i]
-        h, w, px, b, n = r["height"], r["width"], r["px"], r["box"], r["n"]
-        return AlignedSample(
+        b, n = r["box"], r["n"]
+        if self._last is not None and self._last[0] == i:
+            return self._last[1]
+        rgb, ir8, thermal = self._pixels(i)
+        sample = AlignedSample(
             image_id=int(r["image_id"]),
-            rgb=self._rgb[px * 3:(px + h * w) * 3].reshape(h, w, 3),
-            thermal=None if self._thermal is None else self._thermal[px:px + h * w].reshape(h, w),
-            ir8=self._ir8[px:px + h * w].reshape(h, w),
+            rgb=rgb,
+            thermal=thermal,
+            ir8=ir8,
             boxes=self._boxes[b * 4:(b + n) * 4].reshape(n, 4),
             labels=self._labels[b:b + n],
             group=r["group"],
             meta=r["meta"],
         )
+        if self.form != "raw":
+            self._last = (i, sample)  # the loader reads a sample's RGB and then its encoding: decode once
+        return sample
 
     def __iter__(self) -> Iterator[AlignedSample]:
         for i in range(len(self)):
@@ -205,9 +327,71 @@ class PreparedDataset:
         """The encoding's uint8 HxW channel of sample ``i`` (computed for the whole dataset on first use)."""
         if getattr(encoding, "channels", 1) == 0:
             return None
-        arr = self._encoded(encoding, params or {})
         r = self.records[i]
+        if self.form != "raw":
+            return self._compact_channel(i, encoding, params or {})
+        arr = self._encoded(encoding, params or {})
         return arr[r["px"]:r["px"] + r["height"] * r["width"]].reshape(r["height"], r["width"])
+
+    def _checked(self, s: AlignedSample, encoding: Any, params: dict[str, Any]) -> np.ndarray:
+        out = encoding.encode(s, **params)
+        if out is None or out.dtype != np.uint8 or out.shape != (s.height, s.width):
+            got = None if out is None else (out.dtype, out.shape)
+            raise SampleError(f"{s.name}: encoding {encoding.name!r} returned {got}, "
+                              f"expected uint8 {(s.height, s.width)}")
+        return out
+
+    def _compact_channel(self, i: int, encoding: Any, params: dict[str, Any]) -> np.ndarray:
+        """Compact form: the encoding is either stored (compressed per sample) or recomputed from the decoded sample,
+        whichever measured cheaper on the first samples when the encoding was first used (``enc/<key>.json``)."""
+        full = {**dict(getattr(encoding, "params", {})), **params}
+        key = f"{encoding.name}-{_params_hash(full)}"
+        if key not in self._enc:
+            self._enc[key] = self._compact_encoded(key, encoding, params, full)  # type: ignore[assignment]
+        store = self._enc[key]
+        r = self.records[i]
+        if store is None:
+            return _frozen(self._checked(self[i], encoding, params))
+        pack, idx = store  # type: ignore[misc]
+        at = idx[i]
+        return _frozen(CF.decode_u8(pack[int(at[0]):int(at[0]) + int(at[1])], (r["height"], r["width"]),
+                                    f"{self.folder / 'enc' / key}.pack sample {r['image_id']}", self.codec))
+
+    def _compact_encoded(self, key: str, encoding: Any, params: dict[str, Any], full: dict[str, Any]) -> Any:
+        info_path = self.folder / "enc" / f"{key}.json"
+        pack_path = self.folder / "enc" / f"{key}.pack"
+        idx_path = self.folder / "enc" / f"{key}.idx"
+        if not info_path.exists():
+            probe = range(min(len(self), 3))
+            t_enc = t_dec = 0.0
+            for i in probe:  # measure: recompute from the decoded sample vs decode the stored image
+                s = self[i]
+                t0 = time.perf_counter()
+                out = self._checked(s, encoding, params)
+                t1 = time.perf_counter()
+                data = CF.encode_u8(out, self.codec)
+                t2 = time.perf_counter()
+                CF.decode_u8(data, out.shape, key, self.codec)
+                t_enc, t_dec = t_enc + t1 - t0, t_dec + time.perf_counter() - t2
+            store = "recompute" if t_enc <= t_dec else "pack"
+            if store == "pack":
+                offsets = np.zeros((len(self), 2), np.int64)
+
+                def write(f: Any) -> None:
+                    pos = 0
+                    for i in range(len(self)):
+                        data = CF.encode_u8(self._checked(self[i], encoding, params), self.codec)
+                        f.write(data)
+                        offsets[i] = (pos, len(data))
+                        pos += len(data)
+                atomic_write(pack_path, write)
+                atomic_write(idx_path, lambda f: f.write(offsets.astype("<i8").tobytes()))
+            ms = {"compute": round(t_enc * 1e3, 3), "decode": round(t_dec * 1e3, 3)}
+            atomic_write_json(info_path, {"encoding": encoding.name, "params": full, "store": store, "probe_ms": ms})
+        info = read_json(info_path)
+        if info.get("store") == "recompute":
+            return None
+        return self._map(f"enc/{key}.pack", np.uint8), self._map(f"enc/{key}.idx", np.int64).reshape(-1, 2)
 
     def _encoded(self, encoding: Any, params: dict[str, Any]) -> np.ndarray:
         full = {**dict(getattr(encoding, "params", {})), **params}

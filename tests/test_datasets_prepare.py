@@ -49,13 +49,14 @@ def test_prepared_once_then_reused_and_rebuilt_when_inputs_change(tiny, tmp_path
     assert _prep(tiny, cache, force=True).from_cache is False
 
 
-def test_a_damaged_cache_is_prepared_again(tiny, tmp_path):
-    first = _prep(tiny, tmp_path / "cache")
-    with open(first.folder / "rgb.u8", "r+b") as f:
+@pytest.mark.parametrize("form,name", [("raw", "rgb.u8"), ("compact", "rgb.pack")])
+def test_a_damaged_cache_is_prepared_again(tiny, tmp_path, form, name):
+    first = _prep(tiny, tmp_path / "cache", form=form)
+    with open(first.folder / name, "r+b") as f:
         f.truncate(100)
-    again = _prep(tiny, tmp_path / "cache")
+    again = _prep(tiny, tmp_path / "cache", form=form)
     assert not again.from_cache and len(again) == len(first)
-    assert (again.folder / "rgb.u8").stat().st_size > 100
+    assert (again.folder / name).stat().st_size > 100
 
 
 def test_relative_dataset_and_cache_paths(tiny, tmp_path, monkeypatch):

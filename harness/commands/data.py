@@ -46,6 +46,9 @@ def prepare_summary(ds: Any) -> str:
     rep = m.get("report", {})
     lines = [f"{'reused' if getattr(ds, 'from_cache', False) else 'prepared'} {m['dataset']}: {m['count']} aligned "
              f"samples, {m['instances']} instances -> {ds.folder}"]
+    from harness.cache_admin import size_line
+
+    lines.append(size_line(ds))
     pairs = {k: v for k, v in rep.get("skip_reasons", {}).items() if not k.startswith("annotation")}
     anns = {k: v for k, v in rep.get("skip_reasons", {}).items() if k.startswith("annotation")}
     lines.append(f"skipped pairs: {sum(pairs.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in pairs.items())
@@ -99,13 +102,16 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="prepare")
     @_dataset_options
     @click.option("--force", is_flag=True, help="Prepare again even if a cached copy exists.")
+    @click.option("--cache-form", type=click.Choice(["compact", "raw"]), default=None,
+                  help="compact (default, lossless, 8-bit sources referenced) or raw (uncompressed, memory-mapped); "
+                       "default $HARNESS_CACHE_FORM or compact.")
     def prepare_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
-                    overrides: tuple[str, ...], force: bool) -> None:
+                    overrides: tuple[str, ...], force: bool, cache_form: str | None) -> None:
         """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
         from harness.prepare import prepare
 
         _, cfg = _config(dataset, configs, overrides, root)
-        ds = prepare(dataset, cfg, cache_root=cache, force=force)
+        ds = prepare(dataset, cfg, cache_root=cache, force=force, form=cache_form)
         click.echo(prepare_summary(ds))
 
     @cli.command(name="folds")

@@ -79,7 +79,7 @@ class SampleSource:
 
     def image(self, k: int) -> np.ndarray:
         i = self.indices[k]
-        rgb = self.prepared[i].rgb
+        rgb = self.prepared.rgb(i) if hasattr(self.prepared, "rgb") else self.prepared[i].rgb
         if not self.extra:
             return np.ascontiguousarray(rgb)
         ch = self.prepared.channel(i, self.encoding, self.params)
