@@ -149,7 +149,11 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
              "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
     t0 = time.perf_counter()
-    writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra)
+    # the source's categories win: a dataset whose categories come from its files (coco-rgbt) registers none
+    categories = tuple(getattr(source, "categories", None) or spec.categories)
+    if not categories:
+        raise DataError(f"dataset {spec.name!r}: no categories (neither the opened source nor the spec names any)")
+    writer = PreparedWriter(folder, spec.name, categories, fingerprint=fingerprint, extra=extra)
     try:
         with _Bar(progress, total, f"preparing {spec.name}") as bar:
             for sample in source.samples(report):

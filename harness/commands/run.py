@@ -48,8 +48,9 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--folds", default="all", show_default=True, help="'all' or comma-separated fold names, e.g. P1,P4+P5.")
     @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
                   help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict).")
+    @click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")
     @_common
-    def run_cmd(detector, dataset, encoding, folds, init, profile, config_files, overrides, store, seeds, force,
+    def run_cmd(detector, dataset, encoding, folds, init, root, profile, config_files, overrides, store, seeds, force,
                 no_progress):
         """Train and evaluate DETECTOR on every selected fold and seed of DATASET.
 
@@ -65,6 +66,7 @@ def register_commands(cli: click.Group) -> None:
         from harness import distributed as hd
         from harness.runner import RunRequest, category_table, fold_table, run
 
+        overrides = tuple(overrides) + ((f"dataset.root={root}",) if root else ())
         try:
             summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=folds, seeds=seeds,
                                      profile=profile, config_files=config_files, overrides=overrides, store=store,
