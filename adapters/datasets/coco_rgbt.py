@@ -318,7 +318,8 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             except DataError as exc:
                 raise SkipPair(f"thermal unreadable: {exc}") from None
             if side and ("scale" in side or "offset" in side):
-                s, o, unit = float(side.get("scale", 1.0)), float(side.get("offset", 0.0)), "sidecar"
+                s, o = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
+                unit = str(side.get("unit") or "sidecar")
             elif side and side.get("unit") in UNITS:
                 (s, o), unit = UNITS[side["unit"]], str(side["unit"])
             else:
