@@ -312,7 +312,6 @@ def test_folds_naming_an_unknown_group_are_a_clear_error(pairs, tmp_path):
 @pytest.mark.parametrize("options, message", [
     ({"thermal": "16bit"}, "option 'thermal' must be one of radiometric, 8bit"),
     ({"thermal_scale": "big"}, "option 'thermal_scale' must be a number"),
-    ({"crop": "yes"}, "option 'crop' must be true or false"),
     ({"stride": 2}, "does not take option"),
 ])
 def test_bad_options_are_config_errors(pairs_source, tmp_path, options, message):

@@ -25,8 +25,9 @@ What the loader does:
   sample carries no temperatures and the 8-bit encodings apply (``--encoding proxy8`` or ``ir8``).
 * **Registration.** An RGB image of another size than its thermal frame is warped into the thermal frame by the
   homography of its image entry, else of its group (``harness.sensing.warp.align_pair``: perspective warp,
-  common-support crop with ``dataset.crop``, boxes shifted by the crop origin). Without one the pair is a
-  counted skip (``size mismatch``) that says how to give one.
+  common-support crop, boxes shifted by the crop origin), with the ``sensing.warp`` settings of the config
+  (``crop``, ``min_box_size``, ``interpolation``, ``antialias``). Without one the pair is a counted skip
+  (``size mismatch``) that says how to give one. R-JPEGs are decoded with the ``sensing.radiometry`` settings.
 * **Folds.** One fold per group (leave one group out), unless the JSON has ``folds`` (or the config sets
   ``protocol.folds``).
 * **Bad input.** A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups are
@@ -43,7 +44,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -64,6 +65,7 @@ from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
 from harness.sample import AlignedSample
+from harness.sensing.options import SensingOptions
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +83,6 @@ OPTIONS = {
     "thermal": "radiometric (temperatures: 16-bit centi-Kelvin, float C, R-JPEG) or 8bit (default radiometric)",
     "thermal_scale": "C = value * scale + offset for integer thermal images (default: sidecar, else 0.01)",
     "thermal_offset": "see thermal_scale (default: sidecar, else -273.15)",
-    "crop": "crop warped pairs to the common support of RGB and thermal (default true)",
 }
 #: Bumped when the adapter's output changes for the same input files (part of the cache key).
 ADAPTER_VERSION = 1
@@ -282,20 +283,21 @@ def _load_thermal_array(path: Path) -> np.ndarray:
     return arr
 
 
-def read_temperature(path: Path, scale: float | None = None, offset: float | None = None
-                     ) -> tuple[np.ndarray, dict[str, Any]]:
+def read_temperature(path: Path, scale: float | None = None, offset: float | None = None,
+                     sensing: SensingOptions | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) from a radiometric thermal file, and how it was read.
 
     Integer images: ``C = value * scale + offset`` with ``scale``/``offset`` when given, else the sidecar's
     unit (``harness.sensing.radiometry.read_sidecar``), else centi-Kelvin. Float images are C. ``.jpg``: a DJI
-    R-JPEG. Raises ``SkipPair`` with the reason for an 8-bit image, unreadable file, non-finite or implausible
+    R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason for an 8-bit image, unreadable file, non-finite or implausible
     values.
     """
     from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal
 
     if path.suffix.lower() in (".jpg", ".jpeg"):
         try:
-            temp, info = read_thermal(path)
+            opts = sensing or SensingOptions()
+            temp, info = read_thermal(path, decoder=opts.decoder, overrides=opts.measurement)
         except ConfigError:
             raise
         except HarnessError as exc:
@@ -346,10 +348,12 @@ class CocoRgbtSource:
     name = DATASET
 
     def __init__(self, root: Path, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
-                 thermal_scale: float | None = None, thermal_offset: float | None = None, crop: bool = True):
+                 thermal_scale: float | None = None, thermal_offset: float | None = None,
+                 sensing: SensingOptions | None = None):
         self.root = root
         self.ann_path = safe_join(root, annotations, "dataset.annotations")
-        self.thermal, self.scale, self.offset, self.crop = thermal, thermal_scale, thermal_offset, crop
+        self.thermal, self.scale, self.offset = thermal, thermal_scale, thermal_offset
+        self.sensing = sensing or SensingOptions()
         self.coco = read_coco_rgbt(self.ann_path)
         self.categories = self.coco.categories
         self.issues = list(self.coco.issues)
@@ -382,7 +386,7 @@ class CocoRgbtSource:
 
     def fingerprint(self) -> str:
         parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.thermal, self.scale, self.offset,
-                            self.crop, hashlib.sha1(self.ann_path.read_bytes()).hexdigest()]
+                            hashlib.sha1(self.ann_path.read_bytes()).hexdigest()]
         for p in self.pairs:
             for rel in (p.file_name, p.thermal_file_name):
                 parts.append((rel, self._stat(rel)))
@@ -417,7 +421,7 @@ class CocoRgbtSource:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
         if warped:
             report.note(f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
-                        "homography" + (" and cropped to the common support" if self.crop else ""))
+                        "homography" + (" and cropped to the common support" if self.sensing.warp.crop else ""))
 
     def _path(self, rel: Any, what: str, p: PairEntry) -> Path:
         try:
@@ -439,7 +443,7 @@ class CocoRgbtSource:
             raise SkipPair(f"RGB unreadable: {exc}") from None
         info: dict[str, Any]
         if self.thermal == "radiometric":
-            temp, info = read_temperature(t_path, self.scale, self.offset)
+            temp, info = read_temperature(t_path, self.scale, self.offset, self.sensing)
             thermal: np.ndarray | None = temp
             ir8 = ir8_from_temperature(temp)
         else:
@@ -475,7 +479,10 @@ class CocoRgbtSource:
         from harness.sensing.warp import align_pair
 
         try:
-            pair = align_pair(rgb, thermal, ir8, boxes, labels, H, boxes_frame="thermal", crop=self.crop)
+            warp = self.sensing.warp
+            pair = align_pair(rgb, thermal, ir8, boxes, labels, H, boxes_frame="thermal", crop=warp.crop,
+                              min_box_size=warp.min_box_size, interpolation=warp.interpolation,
+                              antialias=warp.antialias)
         except DataError as exc:
             raise SkipPair(f"registration failed: {exc}") from None
         meta["ann_ids"] = [a for a, k in zip(ids, pair.kept) if k]
@@ -487,8 +494,9 @@ class CocoRgbtSource:
 
 def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
                    thermal_scale: float | None = None, thermal_offset: float | None = None,
-                   crop: bool = True) -> CocoRgbtSource:
-    """Open a ``coco-rgbt`` dataset (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
+                   sensing: Mapping[str, Any] | None = None) -> CocoRgbtSource:
+    """Open a ``coco-rgbt`` dataset (the options are the ``dataset:`` config keys, see ``OPTIONS``; ``sensing`` is
+    the config's ``sensing`` section, which the host passes because this function names it)."""
     if thermal not in THERMAL_KINDS:
         raise ConfigError(f"dataset {DATASET!r}: option 'thermal' must be one of {', '.join(THERMAL_KINDS)}, "
                           f"got {thermal!r}")
@@ -498,12 +506,11 @@ def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATION
             raise ConfigError(f"dataset {DATASET!r}: option {key!r} must be a number, got {value!r}")
     if thermal_scale is not None and thermal_scale == 0:
         raise ConfigError(f"dataset {DATASET!r}: option 'thermal_scale' must not be 0")
-    if not isinstance(crop, bool):
-        raise ConfigError(f"dataset {DATASET!r}: option 'crop' must be true or false, got {crop!r}")
     if not isinstance(annotations, str) or not annotations:
         raise ConfigError(f"dataset {DATASET!r}: option 'annotations' must be a file name, got {annotations!r}")
     path = resolve_root(root, ROOT_ENV, DATASET, ())
-    return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, crop)
+    return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset,
+                          SensingOptions.from_config(sensing))
 
 
 SPEC = DatasetSpec(
