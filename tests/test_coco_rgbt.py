@@ -319,6 +319,16 @@ def test_bad_options_are_config_errors(pairs_source, tmp_path, options, message)
         _prepare(pairs_source, tmp_path / "c", **options)
 
 
+def test_a_bad_warp_setting_is_a_config_error(pairs_source, tmp_path):
+    from harness.config import load_config
+    from harness.prepare import prepare
+
+    cfg = load_config(protocol="default", overrides=["sensing.warp.interpolation=bicubic"])
+    cfg["dataset"] = {"root": str(pairs_source)}
+    with pytest.raises(ConfigError, match="sensing.warp.interpolation must be one of linear"):
+        prepare("coco-rgbt", cfg, cache_root=tmp_path / "c", progress=False)
+
+
 def test_cli_prints_a_clear_error_without_traceback(pairs, tmp_path):
     from click.testing import CliRunner
 

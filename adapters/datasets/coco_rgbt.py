@@ -456,6 +456,11 @@ class CocoRgbtSource:
         if p.width is not None and p.height is not None and (p.width, p.height) != (w, h):
             raise SkipPair(f"size mismatch: the JSON says {p.width}x{p.height}, the thermal frame "
                            f"{p.thermal_file_name} is {w}x{h}")
+        H = p.homography if p.homography is not None else self.coco.homographies.get(p.group)
+        if H is None and rgb.shape[:2] != (h, w):
+            raise SkipPair(f"size mismatch: RGB {p.file_name} is {rgb.shape[1]}x{rgb.shape[0]}, thermal "
+                           f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
+                           f"images[].homography or homographies[{p.group!r}] in the JSON")
         xywh = np.asarray([b[1] for b in p.boxes], np.float64).reshape(-1, 4)
         labels = np.asarray([b[2] for b in p.boxes], np.int64)
         ids = [b[0] for b in p.boxes]
@@ -467,12 +472,7 @@ class CocoRgbtSource:
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
         meta: dict[str, Any] = {"file_name": p.file_name, "thermal_file": p.thermal_file_name, "ann_ids": ids,
                                 "thermal_unit": info.get("unit"), "thermal_format": info.get("format")}
-        H = p.homography if p.homography is not None else self.coco.homographies.get(p.group)
         if H is None:
-            if rgb.shape[:2] != (h, w):
-                raise SkipPair(f"size mismatch: RGB {p.file_name} is {rgb.shape[1]}x{rgb.shape[0]}, thermal "
-                               f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
-                               f"images[].homography or homographies[{p.group!r}] in the JSON")
             sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
                                    labels=labels, group=p.group, meta=meta)
             return sample, stats
@@ -508,9 +508,14 @@ def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATION
         raise ConfigError(f"dataset {DATASET!r}: option 'thermal_scale' must not be 0")
     if not isinstance(annotations, str) or not annotations:
         raise ConfigError(f"dataset {DATASET!r}: option 'annotations' must be a file name, got {annotations!r}")
+    from harness.sensing.warp import _INTERP
+
+    opts = SensingOptions.from_config(sensing)
+    if opts.warp.interpolation not in _INTERP:
+        raise ConfigError(f"sensing.warp.interpolation must be one of {', '.join(_INTERP)}, "
+                          f"got {opts.warp.interpolation!r}")
     path = resolve_root(root, ROOT_ENV, DATASET, ())
-    return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset,
-                          SensingOptions.from_config(sensing))
+    return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, opts)
 
 
 SPEC = DatasetSpec(
