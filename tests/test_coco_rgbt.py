@@ -179,6 +179,24 @@ def test_rgb_of_another_size_is_registered_by_the_group_homography(pairs, tmp_pa
     assert any("warped into the thermal frame" in n for n in ds.manifest["report"]["notes"])
 
 
+def test_registration_crops_to_the_common_support_and_moves_the_boxes(pairs, tmp_path):
+    import cv2
+
+    rgb = cv2.imread(str(pairs / "rgb" / "000.png"))
+    cv2.imwrite(str(pairs / "rgb" / "000.png"), rgb[:, 8:])  # 56x48: the RGB camera missed the left 8 columns
+    coco = read_json(pairs)
+    coco["images"][0]["homography"] = [[1, 0, 8], [0, 1, 0], [0, 0, 1]]  # RGB x + 8 = thermal x
+    write_json(pairs, coco)
+    ds = _prepare(pairs, tmp_path / "c")
+    s = next(ds[i] for i in range(len(ds)) if ds[i].image_id == 1)
+    assert s.rgb.shape == (H, W - 8, 3) and s.thermal.shape == (H, W - 8)
+    assert s.meta["crop_origin"] == [8, 0]
+    decoded = (centikelvin(temperature(0)).astype(np.float64) * 0.01 - 273.15).astype(np.float32)
+    np.testing.assert_array_equal(s.thermal, decoded[:, 8:])  # sliced, never resampled
+    np.testing.assert_array_equal(s.rgb, rgb[:, 8:, ::-1])
+    np.testing.assert_allclose(s.boxes, [[0, 10, 8, 20], [32, 28, 44, 40]])  # shifted by the crop origin, clipped
+
+
 # ------------------------------------------------------------------------------------------- bad inputs
 def test_missing_thermal_partner_is_a_counted_skip(pairs, tmp_path):
     (pairs / "thermal" / "000.png").unlink()
