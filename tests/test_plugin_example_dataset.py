@@ -56,9 +56,9 @@ def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
         ["site1", "site2", "site3"]
 
     sets = ["protocol.epochs=1", "model.scale=n", "train.threads=1"]
-    ran = _harness(["run", "--detector", "ours", "--dataset", "example-folders", "--root", "data", "--folds", "site2",
-                    "--profile", "smoke", "--store", "store", "--no-progress", *[a for s in sets for a in ("--set", s)]],
-                   env)
+    args = ["run", "--detector", "ours", "--dataset", "example-folders", "--root", "data", "--folds", "site2",
+            "--profile", "smoke", "--store", "store", "--no-progress", *[a for s in sets for a in ("--set", s)]]
+    ran = _harness(args, env)
     assert ran.returncode == 0, ran.stderr[-3000:]
     run_dir = tmp_path / "store" / "example-folders" / "ours" / "c2" / "site2" / "seed0"
     metrics = json.loads((run_dir / "metrics.json").read_text())

@@ -289,8 +289,8 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
 
     Integer images: ``C = value * scale + offset`` with ``scale``/``offset`` when given, else the sidecar's
     unit (``harness.sensing.radiometry.read_sidecar``), else centi-Kelvin. Float images are C. ``.jpg``: a DJI
-    R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason for an 8-bit image, unreadable file, non-finite or implausible
-    values.
+    R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
+    for an 8-bit image, an unreadable file, non-finite or implausible values.
     """
     from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal
 
