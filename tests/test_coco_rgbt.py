@@ -102,7 +102,7 @@ def test_folds_given_in_the_json_replace_one_fold_per_group(pairs, tmp_path):
         ("ab", ("site-a", "site-b"), ("site-c",)), ("c", ("site-c",), ("site-a", "site-b"))]
 
 
-def test_float_tiff_in_celsius_rjpeg_and_sidecar_units_are_read(pairs, tmp_path):
+def test_tiff_in_centikelvin_or_celsius_rjpeg_and_sidecar_units_are_read(pairs, tmp_path):
     import tifffile
 
     from harness.sensing.radiometry import write_rjpeg, write_thermal
@@ -112,7 +112,8 @@ def test_float_tiff_in_celsius_rjpeg_and_sidecar_units_are_read(pairs, tmp_path)
     tifffile.imwrite(pairs / "thermal" / "000.tif", t0)
     write_rjpeg(pairs / "thermal" / "001.jpg", t1)
     write_thermal(pairs / "thermal" / "002.tif", t2, unit="decicelsius")  # int16 + sidecar naming the unit
-    for k, ext in ((0, "tif"), (1, "jpg"), (2, "tif")):
+    tifffile.imwrite(pairs / "thermal" / "003.tif", centikelvin(temperature(3)))  # uint16, no sidecar
+    for k, ext in ((0, "tif"), (1, "jpg"), (2, "tif"), (3, "tif")):
         coco["images"][k]["thermal_file_name"] = f"thermal/{k:03d}.{ext}"
     write_json(pairs, coco)
     ds = _prepare(pairs, tmp_path / "c")
@@ -122,6 +123,8 @@ def test_float_tiff_in_celsius_rjpeg_and_sidecar_units_are_read(pairs, tmp_path)
     assert np.abs(by_id[2].thermal - t1).max() < 0.1  # R-JPEG raw14 counts: 1/16 K steps
     assert np.abs(by_id[3].thermal - t2).max() <= 0.05 + 1e-6  # deci-Celsius rounding
     assert by_id[3].meta["thermal_unit"] == "decicelsius" and by_id[2].meta["thermal_format"] == "rjpeg"
+    assert by_id[4].meta["thermal_unit"] == "centikelvin" and by_id[4].meta["thermal_format"] == "tif"
+    assert np.abs(by_id[4].thermal - temperature(3)).max() <= 0.005 + 1e-4
 
 
 def test_scale_and_offset_options_override_the_default_unit(pairs, tmp_path):
