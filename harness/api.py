@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from os import PathLike, fspath
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Literal, Mapping, Protocol, Sequence, runtime_checkable
 
-from harness.errors import PluginError
+from harness.errors import HarnessError, PluginError
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -101,11 +102,19 @@ class Fold:
 
 @runtime_checkable
 class DatasetSource(Protocol):
-    """An opened dataset: what ``DatasetSpec.open`` returns.
+    """An opened dataset: what ``DatasetSpec.open`` returns (the full contract is in docs/plugins.md).
 
-    ``samples(report)`` yields ``AlignedSample`` records in the thermal frame, one per usable image pair, in a
-    stable order; a pair that cannot be used is not raised but recorded with ``report.skip(path, reason)`` so
-    that a bad file is a counted skip and the rest of the dataset is still prepared.
+    * ``name`` and ``categories``: the categories in label order (label ``k`` is ``categories[k]``, COCO
+      ``category_id`` ``k + 1``); they may differ from ``DatasetSpec.categories`` when they come from the data.
+    * ``groups()``: every group (project, sequence, site) present; folds hold whole groups out.
+    * ``folds()``: the dataset's own folds (``Fold`` records); an empty list means leave-one-group-out, and the
+      config key ``protocol.folds`` overrides both.
+    * ``fingerprint()``: a string that changes whenever anything that changes the samples changes.
+    * ``samples(report)`` yields ``AlignedSample`` records in the thermal frame, one per usable image pair, in a
+      stable order; a pair that cannot be used is not raised but recorded with ``report.skip(path, reason)`` so
+      that a bad file is a counted skip and the rest of the dataset is still prepared.
+    * optional: ``__len__`` (a progress bar with a total) and ``write_artifacts(folder)`` (extra files written
+      into the prepared folder before it is published).
     """
 
     name: str
@@ -150,7 +159,11 @@ class DatasetSpec:
     """A dataset the harness can prepare and evaluate on.
 
     ``open(root, **options) -> DatasetSource``; ``root`` is the dataset folder (``None`` lets the plugin use its
-    default, e.g. an environment variable or a generated location).
+    default, e.g. an environment variable or a generated location). ``options`` are the other keys of the
+    config's ``dataset`` section, passed by name: a key ``open`` does not accept is a ``ConfigError`` naming it.
+    When ``open`` has a ``sensing`` parameter (or ``**kwargs``) it also receives ``sensing=`` the config's
+    ``sensing`` section (radiometric decoder, undistortion, registration, warp settings) as a dict; a dataset
+    with no sensing stage simply leaves the parameter out. See docs/plugins.md, "The dataset contract".
     """
 
     name: str
@@ -161,15 +174,34 @@ class DatasetSpec:
     thermal: Literal["radiometric", "8bit"] = "radiometric"
     #: Encoding used when a run names none.
     default_encoding: str = "c2"
-    #: Name of the evaluation protocol config under configs/protocols/ (folds, image size, epochs).
+    #: The evaluation protocol (folds, image size, epochs): a name under configs/protocols/, a YAML file shipped in
+    #: the plugin's package as ``"package:path/in/package.yaml"``, or an absolute path (``harness.protocols``).
     protocol: str = "default"
     #: Environment variable that points at the data, named in error messages.
     root_env: str | None = None
+    #: True when preparation runs a sensing stage (radiometric decoding, registration, warp): the report then shows
+    #: the sensor-level sections (registration error, C2 under displacement) with the commands that fill them.
+    sensing_stage: bool = False
 
     def __post_init__(self) -> None:
         check_name("dataset", self.name)
         if not callable(self.open):
             raise PluginError(f"dataset {self.name!r}: open must be callable")
+        if isinstance(self.protocol, PathLike):
+            object.__setattr__(self, "protocol", fspath(self.protocol))
+        if not isinstance(self.protocol, str) or not self.protocol:
+            raise PluginError(f"dataset {self.name!r}: protocol must be a name, 'package:file.yaml' or an absolute "
+                              f"path, got {self.protocol!r}")
+        from harness.protocols import protocol_form, shipped_protocol
+
+        if protocol_form(self.protocol) != "name":
+            try:
+                shipped_protocol(self.protocol)
+            except HarnessError as exc:
+                raise PluginError(f"dataset {self.name!r}: {exc}") from None
+        elif "/" in self.protocol or "\\" in self.protocol:
+            raise PluginError(f"dataset {self.name!r}: protocol {self.protocol!r} is a relative path; give a name "
+                              "under configs/protocols/, 'package:file.yaml' or an absolute path")
         if self.thermal not in ("radiometric", "8bit"):
             raise PluginError(f"dataset {self.name!r}: thermal must be 'radiometric' or '8bit'")
 

@@ -3,7 +3,8 @@
 Order of precedence (later wins):
 
 1. ``configs/default.yaml``: every known key with its default; this file *is* the schema;
-2. ``configs/protocols/<protocol>.yaml``: the evaluation protocol of the dataset (folds, image size, epochs);
+2. ``configs/protocols/<protocol>.yaml``: the evaluation protocol of the dataset (folds, image size, epochs), or
+   the YAML a dataset plugin ships in its own package (``harness.protocols``);
 3. the detector's own defaults (``DetectorSpec.defaults``) and ``configs/detectors/<detector>.yaml`` if present;
 4. ``configs/profiles/<profile>.yaml``: ``paper`` (the seed's protocol) or ``smoke`` (small and fast, for CPU);
 5. files given with ``--config FILE``;
@@ -198,7 +199,9 @@ def load_config(
     cfg = copy.deepcopy(sch)
     layers: list[tuple[str, Mapping[str, Any]]] = []
     if protocol:
-        path = _named_file(root, "protocols", protocol, "protocol")
+        from harness.protocols import shipped_protocol
+
+        path = shipped_protocol(protocol) or _named_file(root, "protocols", protocol, "protocol")
         if not path.exists():
             raise ConfigError(f"unknown protocol {protocol!r}: no {path} (available: {', '.join(available('protocols'))})")
         layers.append((str(path), read_yaml(path)))

@@ -59,7 +59,10 @@ def register_datasets(register: Callable[[DatasetSpec], None]) -> None:
     Call ``register(DatasetSpec(...))`` once per dataset. ``DatasetSpec.open(root, **options)`` returns an object
     following ``harness.api.DatasetSource``: its categories, its groups (projects or sequences), its default folds
     and a generator of ``harness.sample.AlignedSample`` records in the thermal frame. The host caches those samples
-    once (``harness prepare``) so every detector and encoding reads byte-identical inputs.
+    once (``harness prepare``) so every detector and encoding reads byte-identical inputs. ``options`` are the
+    config's ``dataset`` keys; an ``open`` that names a ``sensing`` parameter also gets the ``sensing`` section.
+    ``DatasetSpec.protocol`` may name a YAML shipped in the plugin's package (``"package:protocol.yaml"``). The
+    whole contract is in docs/plugins.md, "The dataset contract".
     """
 
 

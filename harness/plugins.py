@@ -57,6 +57,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.detectors.ours",
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
+    "adapters.datasets.coco_rgbt",
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",

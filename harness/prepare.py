@@ -231,12 +231,16 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
     total = len(source) if hasattr(source, "__len__") else None
     missing: dict[str, int] = {}
     t0 = time.perf_counter()
+    # the source's categories win: a dataset whose categories come from its files (coco-rgbt) registers none
+    categories = tuple(getattr(source, "categories", None) or spec.categories)
+    if not categories:
+        raise DataError(f"dataset {spec.name!r}: no categories (neither the opened source nor the spec names any)")
     bases = _reference_bases(source)
     if bases:
         from harness.cache_admin import folder_bytes
 
         extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
-    writer = PreparedWriter(folder, spec.name, spec.categories, fingerprint=fingerprint, extra=extra, form=form,
+    writer = PreparedWriter(folder, spec.name, categories, fingerprint=fingerprint, extra=extra, form=form,
                             sources=bases if form == "compact" else (),
                             pixel_files=getattr(source, "pixel_files", None))
     try:

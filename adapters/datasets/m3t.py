@@ -935,5 +935,5 @@ def register_datasets(register: Any) -> None:
     register(DatasetSpec(
         name="m3t", open=open_m3t, categories=M3T_CATEGORIES,
         description="DJI M3T facade captures (raw R-JPEG + wide RGB, or already aligned); set dataset.root",
-        thermal="radiometric", default_encoding="c2", protocol="m3t-4fold", root_env=ENV_ROOT,
+        thermal="radiometric", default_encoding="c2", protocol="m3t-4fold", root_env=ENV_ROOT, sensing_stage=True,
     ))

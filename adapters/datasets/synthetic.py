@@ -1419,5 +1419,5 @@ def register_datasets(register: Any) -> None:
     register(DatasetSpec(
         name="m3t-synth", open=open_synthetic, categories=M3T_CATEGORIES,
         description="synthetic M3T-like facades, generated on first use (dataset.profile small|full, dataset.seed)",
-        thermal="radiometric", default_encoding="c2", protocol="m3t-4fold",
+        thermal="radiometric", default_encoding="c2", protocol="m3t-4fold", sensing_stage=True,
     ))

@@ -65,7 +65,8 @@ def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:
             if section == "detectors":
                 extra = kinds[r["input_kind"]]
             elif section == "datasets":
-                extra = f"{r['thermal']} thermal, {len(r['categories'])} categories, encoding {r['default_encoding']}"
+                cats = f"{len(r['categories'])} categories" if r["categories"] else "categories from the data"
+                extra = f"{r['thermal']} thermal, {cats}, encoding {r['default_encoding']}"
             else:
                 extra = f"{r['channels']} channel(s) from {r['needs'] or 'nothing'}"
             label = f" [{r['label']}]" if r.get("label") else ""

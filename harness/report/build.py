@@ -260,17 +260,29 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
     sections.append(sec)
 
-    sections.append(_sensing_section(
+    sensing = [_sensing_section(
         view, dataset, "registration", "Registration error", "registration_error", registration_table,
         f"no registration-error analysis of {dataset}",
         f"harness sensing registration-error ... --dataset {dataset} --store {root}",
         f"harness sensing registration-error --landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} "
-        f"--store {root}"))
-    sections.append(_sensing_section(
+        f"--store {root}"), _sensing_section(
         view, dataset, "displacement", "C2 under thermal displacement", "displacement", displacement_table,
         f"no displacement study of {dataset}", f"harness sensing displacement --dataset {dataset} --store {root}",
-        f"harness sensing displacement --dataset {dataset} --store {root}"))
+        f"harness sensing displacement --dataset {dataset} --store {root}")]
+    # sensor-level sections belong to datasets with a sensing stage; a stored analysis is shown whatever the dataset
+    keep_absent = has_sensing_stage(dataset)
+    sections += [s for s in sensing if keep_absent or not s.absent]
     return sections, comps
+
+
+def has_sensing_stage(dataset: str) -> bool:
+    """``DatasetSpec.sensing_stage`` of ``dataset``; True when no installed plugin registers it (keep the sections)."""
+    from harness.plugins import get_host
+
+    try:
+        return bool(get_host().dataset(dataset).sensing_stage)
+    except HarnessError:
+        return True
 
 
 def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analysis: str,

@@ -1,0 +1,536 @@
+"""``coco-rgbt``: your own aligned RGB-thermal pairs, described by one COCO JSON.
+
+Layout (``dataset.root``; every path is relative to it and may not leave it)::
+
+    annotations.json          COCO detection file (dataset.annotations names another one)
+    <any folders>/...         the RGB images and thermal frames the JSON names
+
+The JSON is ordinary COCO with three keys added to each ``images[]`` entry::
+
+    {"id": 1, "file_name": "rgb/a_001.png", "thermal_file_name": "thermal/a_001.png", "group": "site-a",
+     "width": 640, "height": 512,                      # optional: the thermal frame's size, checked
+     "homography": [[...], [...], [...]]}              # optional: RGB pixels -> thermal pixels (3x3)
+
+and, at the top level, optionally ``"homographies": {group: 3x3}`` (one per group) and ``"folds": {fold name:
+[held-out groups]}``. Boxes (``annotations[].bbox``, ``[x, y, w, h]``) are in the shared frame: the thermal
+frame, which the RGB image shares when both have the same size.
+
+What the loader does:
+
+* **Thermal.** With ``dataset.thermal: radiometric`` (the default) each thermal file becomes a float32 temperature
+  map in C: 16-bit PNG/TIFF in centi-Kelvin (what ``harness sensing decode`` writes; its sidecar's unit is
+  honoured, ``dataset.thermal_scale``/``thermal_offset`` override: ``C = value * scale + offset``), float32 TIFF
+  or ``.npy`` in C, or a DJI R-JPEG (decoded by ``harness.sensing.radiometry``). The C2 encoding is then
+  computed from those temperatures. With ``dataset.thermal: 8bit`` the thermal files are 8-bit images, the
+  sample carries no temperatures and the 8-bit encodings apply (``--encoding proxy8`` or ``ir8``).
+* **Registration.** An RGB image of another size than its thermal frame is warped into the thermal frame by the
+  homography of its image entry, else of its group (``harness.sensing.warp.align_pair``: perspective warp,
+  common-support crop, boxes shifted by the crop origin), with the ``sensing.warp`` settings of the config
+  (``crop``, ``min_box_size``, ``interpolation``, ``antialias``). Without one the pair is a counted skip
+  (``size mismatch``) that says how to give one. R-JPEGs are decoded with the ``sensing.radiometry`` settings.
+* **Folds.** One fold per group (leave one group out), unless the JSON has ``folds`` (or the config sets
+  ``protocol.folds``).
+* **Bad input.** A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups are
+  ``DataError``s naming the file. A pair that cannot be used (missing partner, unreadable file, size mismatch,
+  no group, non-finite temperatures) and an annotation that cannot be used (unknown image or category id,
+  malformed box, box outside the image, duplicate id) are counted skips with their reason; boxes reaching past
+  the edge are clipped and counted in a note.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from adapters.datasets._eightbit import (
+    BoxStats,
+    ImageReadError,
+    clip_boxes,
+    file_stat,
+    read_image,
+    read_rgb,
+    read_thermal8,
+    resolve_root,
+    stat_digest,
+    xywh_to_xyxy,
+)
+from adapters.datasets.m3t import ir8_from_temperature, safe_join
+from harness.api import DatasetSpec, Fold, PrepareReport
+from harness.errors import ConfigError, DataError, HarnessError
+from harness.hookspecs import hookimpl
+from harness.sample import AlignedSample
+from harness.sensing.options import SensingOptions
+
+log = logging.getLogger(__name__)
+
+DATASET = "coco-rgbt"
+ROOT_ENV = "HARNESS_COCO_RGBT_ROOT"
+ANNOTATIONS = "annotations.json"
+THERMAL_KINDS = ("radiometric", "8bit")
+#: centi-Kelvin, what ``harness sensing decode`` writes: C = value * 0.01 - 273.15
+CENTIKELVIN = (0.01, -273.15)
+#: temperatures outside this range (C) mean the scale or offset is wrong
+PLAUSIBLE_C = (-100.0, 800.0)
+OPTIONS = {
+    "root": f"the folder the COCO JSON's paths are relative to (default: ${ROOT_ENV})",
+    "annotations": f"the COCO JSON, relative to root (default {ANNOTATIONS})",
+    "thermal": "radiometric (temperatures: 16-bit centi-Kelvin, float C, R-JPEG) or 8bit (default radiometric)",
+    "thermal_scale": "C = value * scale + offset for integer thermal images (default: sidecar, else 0.01)",
+    "thermal_offset": "see thermal_scale (default: sidecar, else -273.15)",
+}
+#: Bumped when the adapter's output changes for the same input files (part of the cache key).
+ADAPTER_VERSION = 1
+
+
+class SkipPair(Exception):
+    """A pair that cannot be used: a counted skip with this reason."""
+
+
+@dataclass
+class PairEntry:
+    """One ``images[]`` entry of the JSON and its annotations."""
+
+    image_id: int
+    file_name: str
+    thermal_file_name: str | None
+    group: str
+    width: int | None
+    height: int | None
+    homography: np.ndarray | None
+    #: (annotation id, [x, y, w, h], label)
+    boxes: list[tuple[Any, list[float], int]] = field(default_factory=list)
+
+
+@dataclass
+class CocoRgbt:
+    """What the JSON says: categories in label order, the pairs, the folds, and the counted problems."""
+
+    path: Path
+    categories: tuple[str, ...]
+    pairs: list[PairEntry]
+    folds: dict[str, tuple[str, ...]] | None
+    homographies: dict[str, np.ndarray]
+    issues: list[tuple[str, str]]
+
+
+def _homography(value: Any, where: str) -> np.ndarray:
+    """A 3x3 finite, invertible matrix from nested lists; ``DataError`` naming ``where`` otherwise."""
+    try:
+        H = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}: homography must be a 3x3 list of numbers, got {str(value)[:80]}") from None
+    if H.shape != (3, 3) or not np.isfinite(H).all():
+        raise DataError(f"{where}: homography must be a 3x3 list of finite numbers, got shape {H.shape}")
+    if abs(np.linalg.det(H)) < 1e-12:
+        raise DataError(f"{where}: homography is singular (determinant 0)")
+    return H
+
+
+def read_coco_rgbt(path: Path) -> CocoRgbt:
+    """Parse the COCO JSON of a ``coco-rgbt`` dataset (see the module docstring).
+
+    Structural problems are ``DataError``s naming the file; single bad entries are returned as ``issues``
+    (``(where, reason)``), which the source turns into counted skips.
+    """
+    from harness.io import read_json
+
+    hint = "set dataset.annotations to the COCO JSON's path relative to dataset.root"
+    if not path.is_file():
+        raise DataError(f"{path}: annotation file not found; {hint}")
+    if not path.read_bytes().strip():
+        raise DataError(f"{path}: annotation file is empty; expected a COCO JSON object with 'images', "
+                        "'annotations' and 'categories'")
+    coco = read_json(path)
+    if not isinstance(coco, dict):
+        raise DataError(f"{path}: expected a COCO JSON object, got a {type(coco).__name__}")
+    for key in ("images", "categories"):
+        if not isinstance(coco.get(key), list):
+            raise DataError(f"{path}: COCO key {key!r} is missing or not a list")
+    anns = coco.get("annotations", [])
+    if not isinstance(anns, list):
+        raise DataError(f"{path}: COCO key 'annotations' is not a list")
+
+    cats: dict[int, str] = {}
+    for cat in coco["categories"]:
+        if not isinstance(cat, dict) or isinstance(cat.get("id"), bool) or not isinstance(cat.get("id"), int) \
+                or not isinstance(cat.get("name"), str) or not cat["name"].strip():
+            raise DataError(f"{path}: every category needs an integer 'id' and a non-empty 'name', got {cat!r}")
+        if cat["id"] in cats:
+            raise DataError(f"{path}: duplicate category id {cat['id']} ({cats[cat['id']]!r} and {cat['name']!r})")
+        if cat["name"] in cats.values():
+            raise DataError(f"{path}: category name {cat['name']!r} is used by two category ids")
+        cats[cat["id"]] = cat["name"]
+    if not cats:
+        raise DataError(f"{path}: 'categories' is empty; list the categories as {{'id': 1, 'name': '...'}}")
+    order = sorted(cats)
+    label_of = {cid: k for k, cid in enumerate(order)}
+
+    group_h: dict[str, np.ndarray] = {}
+    raw_h = coco.get("homographies") or {}
+    if not isinstance(raw_h, dict):
+        raise DataError(f"{path}: 'homographies' must map group names to 3x3 matrices")
+    for g, value in raw_h.items():
+        group_h[str(g)] = _homography(value, f"{path}: homographies[{g!r}]")
+
+    pairs: dict[int, PairEntry] = {}
+    by_name: dict[str, int] = {}
+    issues: list[tuple[str, str]] = []
+    for entry in coco["images"]:
+        if not isinstance(entry, dict) or "id" not in entry or "file_name" not in entry:
+            raise DataError(f"{path}: every image needs 'id' and 'file_name', got {str(entry)[:120]}")
+        iid, fname = entry["id"], str(entry["file_name"])
+        if isinstance(iid, bool) or not isinstance(iid, int):
+            raise DataError(f"{path}: image id {iid!r} ({fname}) is not an integer")
+        if iid in pairs:
+            raise DataError(f"{path}: duplicate image id {iid} ({pairs[iid].file_name!r} and {fname!r}); "
+                            "image ids must be unique")
+        if fname in by_name:
+            raise DataError(f"{path}: file {fname!r} is listed twice (image ids {by_name[fname]} and {iid})")
+        by_name[fname] = iid
+        H = None
+        if entry.get("homography") is not None:
+            try:
+                H = _homography(entry["homography"], f"image {iid} ({fname})")
+            except DataError as exc:
+                issues.append((fname, f"homography malformed: {exc}"))
+                continue
+        w, h = entry.get("width"), entry.get("height")
+        group = entry.get("group")
+        pairs[iid] = PairEntry(iid, fname, entry.get("thermal_file_name"),
+                               str(group) if group not in (None, "") else "",
+                               int(w) if isinstance(w, (int, float)) and not isinstance(w, bool) else None,
+                               int(h) if isinstance(h, (int, float)) and not isinstance(h, bool) else None, H)
+
+    seen_ann: dict[Any, Any] = {}
+    for ann in anns:
+        aid = ann.get("id", "?") if isinstance(ann, dict) else "?"
+        where = f"{path.name}#annotation={aid}"
+        if not isinstance(ann, dict):
+            issues.append((where, "annotation malformed: not an object"))
+            continue
+        if "id" in ann:
+            if ann["id"] in seen_ann:
+                issues.append((where, f"annotation with a duplicate id: {ann['id']!r} is used twice "
+                                      f"(image ids {seen_ann[ann['id']]!r} and {ann.get('image_id')!r})"))
+                continue
+            seen_ann[ann["id"]] = ann.get("image_id")
+        pair = pairs.get(ann.get("image_id"))  # type: ignore[arg-type]
+        if pair is None:
+            issues.append((where, f"annotation for an unknown image id: {ann.get('image_id')!r}"))
+            continue
+        if ann.get("category_id") not in label_of:
+            issues.append((where, f"annotation with an unknown category id: {ann.get('category_id')!r} "
+                                  f"(the categories are {', '.join(f'{k} {v}' for k, v in sorted(cats.items()))})"))
+            continue
+        bbox = ann.get("bbox")
+        try:
+            box = [float(v) for v in bbox]  # type: ignore[union-attr]
+        except (TypeError, ValueError):
+            issues.append((where, f"annotation box malformed: {bbox!r}"))
+            continue
+        if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= 0 or box[3] <= 0:
+            issues.append((where, f"annotation box malformed: {bbox!r} (expected [x, y, w, h] with w, h > 0)"))
+            continue
+        pair.boxes.append((aid, box, label_of[ann["category_id"]]))
+
+    folds = None
+    if coco.get("folds") is not None:
+        raw = coco["folds"]
+        if not isinstance(raw, dict) or not raw:
+            raise DataError(f"{path}: 'folds' must map fold names to lists of held-out groups, got {str(raw)[:80]}")
+        present = {p.group for p in pairs.values() if p.group}
+        folds = {}
+        for name, held in raw.items():
+            held_t = (str(held),) if isinstance(held, str) else tuple(str(g) for g in (held or ()))
+            missing = [g for g in held_t if g not in present]
+            if not held_t or missing:
+                raise DataError(f"{path}: fold {name!r} holds out {', '.join(map(repr, missing)) or 'no group'}; "
+                                f"the groups of the images are {', '.join(sorted(present)) or 'none'}")
+            folds[str(name)] = held_t
+    return CocoRgbt(path, tuple(cats[c] for c in order), sorted(pairs.values(), key=lambda p: p.image_id), folds,
+                    group_h, issues)
+
+
+# ------------------------------------------------------------------------------------------------ thermal files
+def _load_thermal_array(path: Path) -> np.ndarray:
+    """The pixel array of a thermal PNG/TIFF/NPY as stored (no unit applied)."""
+    import cv2
+
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            arr = read_image(path, cv2.IMREAD_UNCHANGED)
+    except ImageReadError:
+        raise
+    except Exception as exc:  # tifffile / numpy raise many types for damaged files
+        raise ImageReadError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from None
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim != 2:
+        raise ImageReadError(f"{path}: expected a single-channel thermal image, got shape {arr.shape}")
+    return arr
+
+
+def read_temperature(path: Path, scale: float | None = None, offset: float | None = None,
+                     sensing: SensingOptions | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """Temperature in C (float32 HxW) from a radiometric thermal file, and how it was read.
+
+    Integer images: ``C = value * scale + offset`` with ``scale``/``offset`` when given, else the sidecar's
+    unit (``harness.sensing.radiometry.read_sidecar``), else centi-Kelvin. Float images are C. ``.jpg``: a DJI
+    R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
+    for an 8-bit image, an unreadable file, non-finite or implausible values.
+    """
+    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal
+
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        try:
+            opts = sensing or SensingOptions()
+            temp, info = read_thermal(path, decoder=opts.decoder, overrides=opts.measurement)
+        except ConfigError:
+            raise
+        except HarnessError as exc:
+            raise SkipPair(f"thermal unreadable: {exc}") from None
+        return temp, {"unit": info.get("unit"), "format": "rjpeg"}
+    try:
+        arr = _load_thermal_array(path)
+    except ImageReadError as exc:
+        raise SkipPair(f"thermal unreadable: {exc}") from None
+    if arr.dtype == np.uint8:
+        raise SkipPair(f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
+                       "dataset.thermal=8bit (and use --encoding proxy8 or ir8)")
+    if arr.dtype.kind in "iu":
+        if scale is not None or offset is not None:
+            s, o = (CENTIKELVIN[0] if scale is None else scale), (CENTIKELVIN[1] if offset is None else offset)
+            unit = "dataset.thermal_scale/offset"
+        else:
+            try:
+                side = read_sidecar(path)
+            except DataError as exc:
+                raise SkipPair(f"thermal unreadable: {exc}") from None
+            if side and ("scale" in side or "offset" in side):
+                s, o = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
+                unit = str(side.get("unit") or "sidecar")
+            elif side and side.get("unit") in UNITS:
+                (s, o), unit = UNITS[side["unit"]], str(side["unit"])
+            else:
+                (s, o), unit = CENTIKELVIN, "centikelvin"
+        temp = (arr.astype(np.float64) * s + o).astype(np.float32)
+    elif arr.dtype.kind == "f":
+        temp, unit = arr.astype(np.float32), "celsius"
+    else:
+        raise SkipPair(f"thermal unreadable: {path.name}: unsupported pixel type {arr.dtype}")
+    finite = np.isfinite(temp)
+    if not finite.all():
+        raise SkipPair(f"non-finite temperatures: {int((~finite).sum())} pixel(s) of {path.name}")
+    lo, hi = float(temp.min()), float(temp.max())
+    if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
+        raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
+                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")
+    return temp, {"unit": unit, "format": path.suffix.lower().lstrip(".")}
+
+
+# ------------------------------------------------------------------------------------------------ the source
+class CocoRgbtSource:
+    """An opened ``coco-rgbt`` dataset (``harness.api.DatasetSource``)."""
+
+    name = DATASET
+
+    def __init__(self, root: Path, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
+                 thermal_scale: float | None = None, thermal_offset: float | None = None,
+                 sensing: SensingOptions | None = None):
+        self.root = root
+        self.ann_path = safe_join(root, annotations, "dataset.annotations")
+        self.thermal, self.scale, self.offset = thermal, thermal_scale, thermal_offset
+        self.sensing = sensing or SensingOptions()
+        self.coco = read_coco_rgbt(self.ann_path)
+        self.categories = self.coco.categories
+        self.issues = list(self.coco.issues)
+        self.pairs: list[PairEntry] = []
+        for p in self.coco.pairs:
+            if not p.group:
+                self.issues.append((p.file_name, f"no group: image {p.image_id} has no 'group' (the unit folds "
+                                                 "hold out); give every images[] entry one"))
+                continue
+            self.pairs.append(p)
+        if self.coco.folds is not None:
+            present = {p.group for p in self.pairs}
+            for name, held in self.coco.folds.items():
+                if not set(held) & present:
+                    raise DataError(f"{self.ann_path}: fold {name!r} holds out {', '.join(held)}, which has no "
+                                    "usable image")
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def groups(self) -> list[str]:
+        return sorted({p.group for p in self.pairs})
+
+    def folds(self) -> list[Fold]:
+        groups = self.groups()
+        if self.coco.folds is None:
+            return [Fold(g, tuple(x for x in groups if x != g), (g,)) for g in groups]
+        return [Fold(name, tuple(g for g in groups if g not in held), tuple(g for g in held if g in groups))
+                for name, held in self.coco.folds.items()]
+
+    def fingerprint(self) -> str:
+        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.thermal, self.scale, self.offset,
+                            hashlib.sha1(self.ann_path.read_bytes()).hexdigest()]
+        for p in self.pairs:
+            for rel in (p.file_name, p.thermal_file_name):
+                parts.append((rel, self._stat(rel)))
+                if rel and self.thermal == "radiometric":  # a sidecar changes the unit
+                    parts.append(self._stat(f"{rel}.json"))
+        return stat_digest(parts)
+
+    def _stat(self, rel: str | None) -> Any:
+        if not rel:
+            return None
+        try:
+            return file_stat(safe_join(self.root, rel, "path"))
+        except DataError:
+            return "outside"
+
+    def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
+        for where, reason in self.issues:
+            report.skip(where, reason)
+        stats = BoxStats()
+        warped = 0
+        for p in self.pairs:
+            try:
+                sample, box_stats = self._sample(p, report)
+            except SkipPair as exc:
+                log.warning("%s: skipped %s (%s)", DATASET, p.file_name, exc)
+                report.skip(p.file_name, str(exc))
+                continue
+            stats.add(box_stats)
+            warped += "H_rgb_to_frame" in sample.meta
+            yield sample
+        if stats.clipped:
+            report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
+        if warped:
+            report.note(f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
+                        "homography" + (" and cropped to the common support" if self.sensing.warp.crop else ""))
+
+    def _path(self, rel: Any, what: str, p: PairEntry) -> Path:
+        try:
+            path = safe_join(self.root, str(rel), f"{self.ann_path.name}: image {p.image_id}")
+        except DataError as exc:
+            raise SkipPair(f"path outside the dataset root: {exc}") from None
+        if not path.is_file():
+            raise SkipPair(f"missing {what}: {rel} not found under {self.root}")
+        return path
+
+    def _sample(self, p: PairEntry, report: PrepareReport) -> tuple[AlignedSample, BoxStats]:
+        if not p.thermal_file_name:
+            raise SkipPair(f"missing thermal partner: image {p.image_id} has no 'thermal_file_name'")
+        rgb_path = self._path(p.file_name, "RGB image", p)
+        t_path = self._path(p.thermal_file_name, "thermal partner", p)
+        try:
+            rgb = read_rgb(rgb_path)
+        except ImageReadError as exc:
+            raise SkipPair(f"RGB unreadable: {exc}") from None
+        info: dict[str, Any]
+        if self.thermal == "radiometric":
+            temp, info = read_temperature(t_path, self.scale, self.offset, self.sensing)
+            thermal: np.ndarray | None = temp
+            ir8 = ir8_from_temperature(temp)
+        else:
+            try:
+                ir8, colour = read_thermal8(t_path)
+            except ImageReadError as exc:
+                raise SkipPair(f"thermal unreadable: {exc}") from None
+            thermal, info = None, {"unit": None, "format": "8bit", "colour": colour}
+        h, w = ir8.shape
+        if p.width is not None and p.height is not None and (p.width, p.height) != (w, h):
+            raise SkipPair(f"size mismatch: the JSON says {p.width}x{p.height}, the thermal frame "
+                           f"{p.thermal_file_name} is {w}x{h}")
+        H = p.homography if p.homography is not None else self.coco.homographies.get(p.group)
+        if H is None and rgb.shape[:2] != (h, w):
+            raise SkipPair(f"size mismatch: RGB {p.file_name} is {rgb.shape[1]}x{rgb.shape[0]}, thermal "
+                           f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
+                           f"images[].homography or homographies[{p.group!r}] in the JSON")
+        xywh = np.asarray([b[1] for b in p.boxes], np.float64).reshape(-1, 4)
+        labels = np.asarray([b[2] for b in p.boxes], np.int64)
+        ids = [b[0] for b in p.boxes]
+        boxes, keep, clipped = clip_boxes(xywh_to_xyxy(xywh), w, h)
+        for i in np.nonzero(~keep)[0]:
+            report.skip(f"{self.ann_path.name}#annotation={ids[i]}",
+                        f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame")
+        boxes, labels, ids = boxes[keep], labels[keep], [a for a, k in zip(ids, keep) if k]
+        stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
+        meta: dict[str, Any] = {"file_name": p.file_name, "thermal_file": p.thermal_file_name, "ann_ids": ids,
+                                "thermal_unit": info.get("unit"), "thermal_format": info.get("format")}
+        if H is None:
+            sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
+                                   labels=labels, group=p.group, meta=meta)
+            return sample, stats
+        from harness.sensing.warp import align_pair
+
+        try:
+            warp = self.sensing.warp
+            pair = align_pair(rgb, thermal, ir8, boxes, labels, H, boxes_frame="thermal", crop=warp.crop,
+                              min_box_size=warp.min_box_size, interpolation=warp.interpolation,
+                              antialias=warp.antialias)
+        except DataError as exc:
+            raise SkipPair(f"registration failed: {exc}") from None
+        meta["ann_ids"] = [a for a, k in zip(ids, pair.kept) if k]
+        dropped = int((~pair.kept).sum())
+        if dropped:
+            report.note(f"{p.file_name}: {dropped} box(es) outside the common support of RGB and thermal dropped")
+        return pair.to_sample(p.image_id, p.group, meta), stats
+
+
+def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
+                   thermal_scale: float | None = None, thermal_offset: float | None = None,
+                   sensing: Mapping[str, Any] | None = None) -> CocoRgbtSource:
+    """Open a ``coco-rgbt`` dataset (the options are the ``dataset:`` config keys, see ``OPTIONS``; ``sensing`` is
+    the config's ``sensing`` section, which the host passes because this function names it)."""
+    if thermal not in THERMAL_KINDS:
+        raise ConfigError(f"dataset {DATASET!r}: option 'thermal' must be one of {', '.join(THERMAL_KINDS)}, "
+                          f"got {thermal!r}")
+    for key, value in (("thermal_scale", thermal_scale), ("thermal_offset", thermal_offset)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not math.isfinite(value)):
+            raise ConfigError(f"dataset {DATASET!r}: option {key!r} must be a number, got {value!r}")
+    if thermal_scale is not None and thermal_scale == 0:
+        raise ConfigError(f"dataset {DATASET!r}: option 'thermal_scale' must not be 0")
+    if not isinstance(annotations, str) or not annotations:
+        raise ConfigError(f"dataset {DATASET!r}: option 'annotations' must be a file name, got {annotations!r}")
+    from harness.sensing.warp import _INTERP
+
+    opts = SensingOptions.from_config(sensing)
+    if opts.warp.interpolation not in _INTERP:
+        raise ConfigError(f"sensing.warp.interpolation must be one of {', '.join(_INTERP)}, "
+                          f"got {opts.warp.interpolation!r}")
+    path = resolve_root(root, ROOT_ENV, DATASET, ())
+    return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, opts)
+
+
+SPEC = DatasetSpec(
+    name=DATASET,
+    open=open_coco_rgbt,
+    categories=(),  # from the COCO JSON
+    description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
+    thermal="radiometric",
+    default_encoding="c2",
+    protocol="default",
+    root_env=ROOT_ENV,
+)
+
+
+@hookimpl
+def register_datasets(register: Any) -> None:
+    register(SPEC)
+
