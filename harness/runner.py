@@ -496,7 +496,8 @@ def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> 
     in_channels = det.thermal_channels if det.input_kind == "dual" else 3 + int(enc.channels)
     options = dict(cfg.get("model") or {})
     try:
-        build_model(det, len(dataset.categories), in_channels, options)
+        # a dataset whose categories come from its files (coco-rgbt) registers none: any count checks the options
+        build_model(det, len(dataset.categories) or 1, in_channels, options)
     except HarnessError as exc:
         if repr(det.name) in str(exc):
             raise
