@@ -933,8 +933,10 @@ class Frame:
     vignette_c: float
 
 
-def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndarray, np.ndarray], look: Look,
+def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndarray, np.ndarray] | None, look: Look,
                  rng: np.random.Generator, drift_c: float) -> Frame:
+    """One capture. ``maps=None`` renders the thermal side only (the RGB is then an empty array): the same scene,
+    the same random draws for everything the thermal camera sees."""
     import cv2
 
     ppm = rig.k_thermal[0, 0] / session.distance_m
@@ -985,6 +987,9 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
     meas = meas + drift_c + vig * _radius2((th, tw)) + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32) \
         + 0.05 * rng.standard_normal((th, tw), dtype=np.float32)
 
+    if maps is None:
+        return Frame(np.zeros((0, 0, 3), np.uint8), meas.astype(np.float32), true_t.astype(np.float32), objects,
+                     float(drift_c), float(vig))
     # --- RGB: sample the canvas through the rig geometry and lens distortion, then the camera
     img = cv2.remap(layers.albedo, maps[0], maps[1], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     rh, rw = img.shape[:2]
