@@ -13,7 +13,7 @@ import pytest
 from adapters.datasets import synthetic as S
 from adapters.datasets.m3t import M3T_CATEGORIES
 
-FRAMES_PER_PROJECT = 6
+FRAMES_PER_PROJECT = 12
 
 
 @pytest.fixture(scope="module")

@@ -153,7 +153,7 @@ LOOKS: dict[str, Look] = {
 #: Object sizes on the facade in metres: (min, max) of width and height (cracks: length and angle below).
 SIZES_M = {
     "ac_unit": ((0.75, 0.95), (0.50, 0.62)),
-    "vent": ((0.18, 0.34), None),  # square or round: height = width
+    "vent": ((0.25, 0.45), None),  # square or round: height = width (wall grilles and exhaust outlets)
     "paint_peeling": ((0.25, 0.75), (0.22, 0.70)),
     "efflorescence": ((0.30, 0.85), (0.40, 1.05)),
     "delamination": ((0.40, 1.00), (0.36, 0.95)),
@@ -621,21 +621,25 @@ def paint_vent(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gene
     if round_:
         d = np.sqrt((u - cx) ** 2 + (v - cy) ** 2)
         inside = d < s / 2
-        slat = inside & ((d / (0.018 * ppm)) % 2 < 0.8) & (d < s / 2 - 0.02 * ppm)
-        rim = inside & (d > s / 2 - 0.02 * ppm)
+        slat = inside & ((d / (0.03 * ppm)) % 2 < 0.9) & (d < s / 2 - 0.025 * ppm)
+        rim = inside & (d > s / 2 - 0.025 * ppm)
     else:
         inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
-        rim = inside & ((u < x0 + 0.02 * ppm) | (u > x1 - 0.02 * ppm) | (v < y0 + 0.02 * ppm) | (v > y1 - 0.02 * ppm))
-        slat = inside & ~rim & (((v - y0) / (0.022 * ppm)) % 2 < 0.9)
+        rim = inside & ((u < x0 + 0.025 * ppm) | (u > x1 - 0.025 * ppm) | (v < y0 + 0.025 * ppm)
+                        | (v > y1 - 0.025 * ppm))
+        slat = inside & ~rim & (((v - y0) / (0.03 * ppm)) % 2 < 0.9)  # louvre gaps, 60 mm pitch
     metal = np.array([0.86, 0.86, 0.84], np.float32) * rng.uniform(0.85, 1.05)
     alb = layers.albedo[ys, xs]
     alb = np.where(inside[..., None], metal, alb)
-    alb = np.where(slat[..., None], metal * 0.35, alb)
+    alb = np.where(slat[..., None], np.float32(0.12), alb)  # the duct behind the louvres is in deep shadow
     alb = np.where(rim[..., None], metal * 0.7, alb)
+    below = (u > x0) & (u < x1) & (v >= y1)  # the grille's lip shades the wall under it
+    alb = alb * np.where(below, 1 - 0.3 * np.exp(-(v - y1) / (0.03 * ppm)), 1.0)[..., None]
     layers.albedo[ys, xs] = alb
+    # exhaust air from a heated interior: warm in the gaps, the blades a little less, a plume rising above
     hot = rng.uniform(2.5, 6.0)
     plume = 0.45 * hot * np.exp(-(((u - cx) / (0.5 * s)) ** 2 + ((v - (y0 - 0.3 * s)) / (0.7 * s)) ** 2))
-    layers.dtemp[ys, xs] += np.where(inside, hot, plume)
+    layers.dtemp[ys, xs] += np.where(inside, np.where(slat, hot, 0.75 * hot), plume)
     obj.attrs.update(hot_c=round(hot, 2))
 
 
