@@ -22,10 +22,12 @@ with ``px_per_m = f_T / Z``):
   ``T_amb + sun_load * (1 + 0.4 * (a - a_wall) / a_wall)`` with the absorptivity ``a = 1 - 0.7 * luminance`` spread
   laterally by conduction (Gaussian, 8 cm), a vertical gradient, slow blotches and warm floor-slab bridges.
 * **Categories** (names and order of ``adapters.datasets.m3t.M3T_CATEGORIES``):
-  window (cold sky-reflecting glass, warm frame), ac_unit (hot fan grille, warm housing and plume), vent (warm
-  grille and plume), crack (thin dark polyline, faint in thermal), paint_peeling and efflorescence (visible
-  texture, a few tenths of a degree through absorptivity), delamination (compact patch +-0.5..3 C with a sharp rim,
-  1-2 % albedo change), water_seepage (diffuse cooler region, 0.5..2 C, smooth profile, faint stain).
+  window (cold sky-reflecting glass, warm frame), ac_unit (hot fan grille, warm housing and plume), vent (louvred
+  grille with dark duct gaps, warm exhaust and plume), crack (thin dark polyline, faint in thermal), paint_peeling
+  and efflorescence (visible texture, a few tenths of a degree through absorptivity), delamination (a debonded
+  render layer: uniform +-0.5..3 C patch whose rim is as wide as the layer is thick, 1-2 % albedo change),
+  water_seepage (a damp zone reaching past its faint stain, mottled evaporative cooling of 0.5..2 C, smooth
+  drying front).
 * **Sensors.** Thermal: the scene rendered on a 2x supersampled canvas and block-averaged to the sensor grid, a
   0.55 px optical blur, a per-frame offset drift (shutter-calibration sawtooth within -0.8..+2.2 C), radial
   vignetting, column fixed-pattern noise and NETD noise, stored at the R-JPEG's 1/16 K resolution. RGB: exposure,
@@ -34,7 +36,10 @@ with ``px_per_m = f_T / Z``):
   outline projected into the distorted RGB frame, rounded to 0.01 px. The true thermal-frame box of each object is
   its extent on the canvas (snapped to the canvas grid, so it is exact).
 * **Landmarks** are corners of windows, AC units and vents, spread over the frame, clicked on the undistorted
-  wide image and on the thermal image with a click noise of 0.8 RGB px and 0.35 thermal px (1 sigma per axis).
+  wide image (nearly exact) and on the thermal image, where a corner is a soft transition a few pixels wide and a
+  person's click lands anywhere across it (``click_landmarks``; the ``tiny`` test profile clicks precisely).
+
+The sources of each modelling choice are listed in ``docs/datasets.md`` (the synthetic generator's section).
 
 Everything is deterministic in ``seed``: each image draws from its own ``SeedSequence((seed, project, index))``.
 """
