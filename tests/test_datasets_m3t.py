@@ -292,3 +292,22 @@ def test_no_root_names_the_setting_and_the_synthetic_alternative(monkeypatch):
     monkeypatch.delenv("HARNESS_M3T_ROOT", raising=False)
     with pytest.raises(DataError, match="dataset.root.*HARNESS_M3T_ROOT.*m3t-synth"):
         open_m3t(None)
+
+
+def test_registration_error_with_the_truth_beside_it(tiny, tmp_path, cli_runner):
+    """`--truth`: the landmarks' error under the true homographies and the fitted ones' distance from them."""
+    lm = tiny / "registration" / "landmarks.json"
+    truth = tiny / "ground_truth" / "homographies.yaml"
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--truth", str(truth),
+                      "--out", str(tmp_path / "r.json")])
+    assert res.exit_code == 0, res.output
+    assert "landmarks, true homography" in res.output and "fitted vs true homography" in res.output
+    r = json.loads((tmp_path / "r.json").read_text())["truth"]
+    assert r["landmarks_on_true"]["n"] == json.loads((tmp_path / "r.json").read_text())["n"] > 50
+    assert 0.3 < r["landmarks_on_true"]["mean"] < 1.0  # the tiny profile's precise clicks
+    assert 0 < r["fitted_vs_true"]["mean"] < 2.0 and r["fitted_vs_true"]["n"] == 81 * 5  # 9x9 grid, 5 groups
+    # the truth given as the evaluated homographies: the fitted-vs-true distance is zero
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies", str(truth),
+                      "--truth", str(truth), "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "t.json").read_text())["truth"]["fitted_vs_true"]["mean"] < 1e-6

@@ -201,8 +201,10 @@ def plane_homography(k_rgb: np.ndarray, k_thermal: np.ndarray, rot: np.ndarray, 
 def apply_homography(hmat: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Map Nx2 points through a 3x3 homography."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-    ph = np.c_[pts, np.ones(len(pts))] @ np.asarray(hmat, dtype=np.float64).T
-    return ph[:, :2] / ph[:, 2:3]
+    h = np.asarray(hmat, dtype=np.float64)
+    x, y = pts[:, 0], pts[:, 1]
+    w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    return np.stack([(h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w, (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w], axis=1)
 
 
 def distort_points(pts: np.ndarray, k: np.ndarray, dist: Sequence[float]) -> np.ndarray:
