@@ -118,3 +118,26 @@ def test_precise_clicks_stay_for_the_test_profile():
 def test_categories_are_the_m3t_order():
     assert M3T_CATEGORIES == ("window", "ac_unit", "vent", "crack", "paint_peeling", "efflorescence",
                               "delamination", "water_seepage")
+
+
+def test_no_import_circle_between_the_generator_and_the_commands():
+    """The generator imports no command module, and `harness/` imports nothing from `adapters/`."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+
+    def imports(path: Path) -> set[str]:
+        out = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                out.add(node.module)
+            elif isinstance(node, ast.Import):
+                out.update(a.name for a in node.names)
+        return out
+
+    gen = imports(root / "adapters" / "datasets" / "synthetic.py")
+    assert not any(m.startswith("harness.commands") for m in gen), gen
+    offenders = {str(p.relative_to(root)): sorted(m for m in imports(p) if m.split(".")[0] == "adapters")
+                 for p in (root / "harness").rglob("*.py")}
+    assert not {k: v for k, v in offenders.items() if v}
