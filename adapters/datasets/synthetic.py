@@ -166,7 +166,7 @@ SIZES_M = {
 }
 CRACK_LENGTH_M = (0.35, 1.10)
 #: A seepage's damp zone reaches this far past its visible stain (its fringe and drying front): nothing else is
-#: placed in it, and it keeps this far from the windows beside it.
+#: placed in it, and it keeps this far from the windows beside it (60 % of it from those below).
 DAMP_FRINGE_M = 0.45
 
 
@@ -811,9 +811,9 @@ def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     """Water seepage: a large, diffuse cold region; the box is the visible stain inside it.
 
     Moisture spreads in the wall by capillary diffusion, so the damp zone is wider than the stain an annotator sees
-    (a capillary fringe of 0.25-0.45 m around it) and its boundary is a smooth, centimetre-to-decimetre ramp. The
-    surface cools by evaporation in proportion to its moisture content (0.5-2 C at saturation), and moisture in a
-    porous wall is mottled (joints, pores, salts: 0.1-0.3 m), so the in-box contrast that a high-pass sees is that
+    (damp but unstained for 0.15-0.3 m around it, then a Gaussian drying front of 0.3-0.5 m). The surface cools
+    by evaporation in proportion to its moisture content (0.5-2 C at saturation), and moisture in a porous wall
+    is mottled (joints, pores, salts: 0.2 m cells), so the in-box contrast that a high-pass sees is that
     mottling, which looks the same wherever a box of the stain's size sits on it. Lateral conduction in the
     surface layer (30 mm) smooths the temperature further.
     """
@@ -918,7 +918,7 @@ def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
                 ih = min(box[3], th) - max(box[1], 0)
                 if iw <= 0 or ih <= 0 or iw * ih < 0.6 * w * h:
                     continue
-                # a seepage's damp fringe (~0.3 m around its stain) is part of it: nothing else sits in it
+                # a seepage's damp zone (DAMP_FRINGE_M around its stain) is part of it: nothing else sits in it
                 gap = (DAMP_FRINGE_M if cat == "water_seepage" else 0.05) * ppm
                 side = np.array([box[0] - gap, box[1], box[2] + gap, box[3] + 0.6 * gap])  # hangs from a sill above
                 if (_overlaps(side, sills, 0.05 * ppm) or _overlaps(box, occupied, gap)
