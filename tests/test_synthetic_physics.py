@@ -141,3 +141,22 @@ def test_no_import_circle_between_the_generator_and_the_commands():
     offenders = {str(p.relative_to(root)): sorted(m for m in imports(p) if m.split(".")[0] == "adapters")
                  for p in (root / "harness").rglob("*.py")}
     assert not {k: v for k, v in offenders.items() if v}
+
+
+def test_a_new_generator_version_regenerates_and_changes_the_cache_key(tmp_path, monkeypatch):
+    import json
+
+    from harness.errors import DataError
+
+    monkeypatch.setenv(S.ENV_DATA, str(tmp_path / "data"))
+    first = S.open_synthetic(profile="tiny", seed=0).fingerprint()
+    marker = S.default_root("tiny", 0) / S.MARKER
+    info = json.loads(marker.read_text())
+    assert info["generator_version"] == S.GENERATOR_VERSION
+    marker.write_text(json.dumps({**info, "generator_version": S.GENERATOR_VERSION - 1}))
+    second = S.open_synthetic(profile="tiny", seed=0).fingerprint()  # the default folder is regenerated
+    assert json.loads(marker.read_text())["generator_version"] == S.GENERATOR_VERSION
+    assert second != first
+    marker.write_text(json.dumps({**info, "generator_version": S.GENERATOR_VERSION - 1}))
+    with pytest.raises(DataError, match="regenerate it with `harness synth"):
+        S.open_synthetic(S.default_root("tiny", 0), profile="tiny")  # a folder the user named is not replaced
