@@ -311,3 +311,10 @@ def test_registration_error_with_the_truth_beside_it(tiny, tmp_path, cli_runner)
                       "--truth", str(truth), "--out", str(tmp_path / "t.json")])
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "t.json").read_text())["truth"]["fitted_vs_true"]["mean"] < 1e-6
+    # a synthetic set's own landmarks: its ground truth is found beside them
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm)])
+    assert res.exit_code == 0 and "landmarks, true homography" in res.output, res.output
+    (tmp_path / "elsewhere").mkdir()
+    shutil.copy(lm, tmp_path / "elsewhere" / "landmarks.json")
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(tmp_path / "elsewhere" / "landmarks.json")])
+    assert res.exit_code == 0 and "true homography" not in res.output, res.output
