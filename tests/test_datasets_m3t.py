@@ -108,7 +108,7 @@ def test_fitted_homographies_are_saved_with_the_prepared_data(tiny, tmp_path):
     true = load_homographies(tiny / "ground_truth" / "homographies.yaml")
     assert set(fitted) == set(true)
     for g in true:
-        assert corner_error(fitted[g], true[g], (160, 128)).mean() < 1.5
+        assert corner_error(fitted[g], true[g], (160, 128)).mean() < 2.0  # extrapolated to the frame's corners
 
 
 def test_registration_error_command_on_the_synthetic_landmarks(tiny, tmp_path, cli_runner):
@@ -190,9 +190,9 @@ def test_displacement_delamination_response_falls_and_seepage_does_not(tiny_sour
     r = displacement_study(iter(ds), ds.categories, [2, 5, 10])
     delam, seep = r["classes"]["delamination"], r["classes"]["water_seepage"]
     assert delam["boxes"] >= 5 and seep["boxes"] >= 3
-    assert delam["R"][2] < 85 and delam["R"][3] < 75  # 5 px and 10 px, in % of the aligned response
+    assert delam["R"][3] < 97  # 10 px, in % of the aligned response (the ranges: test_synthetic_physics.py)
     assert delam["R"][1] > delam["R"][2] > delam["R"][3]
-    assert min(seep["R"][1:]) >= 95
+    assert 95 <= min(seep["R"][1:]) and max(seep["R"][1:]) <= 110
 
 
 # ------------------------------------------------------------------------------------------------ aligned form
@@ -292,3 +292,29 @@ def test_no_root_names_the_setting_and_the_synthetic_alternative(monkeypatch):
     monkeypatch.delenv("HARNESS_M3T_ROOT", raising=False)
     with pytest.raises(DataError, match="dataset.root.*HARNESS_M3T_ROOT.*m3t-synth"):
         open_m3t(None)
+
+
+def test_registration_error_with_the_truth_beside_it(tiny, tmp_path, cli_runner):
+    """`--truth`: the landmarks' error under the true homographies and the fitted ones' distance from them."""
+    lm = tiny / "registration" / "landmarks.json"
+    truth = tiny / "ground_truth" / "homographies.yaml"
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--truth", str(truth),
+                      "--out", str(tmp_path / "r.json")])
+    assert res.exit_code == 0, res.output
+    assert "landmarks, true homography" in res.output and "fitted vs true homography" in res.output
+    r = json.loads((tmp_path / "r.json").read_text())["truth"]
+    assert r["landmarks_on_true"]["n"] == json.loads((tmp_path / "r.json").read_text())["n"] > 50
+    assert 0.3 < r["landmarks_on_true"]["mean"] < 1.0  # the tiny profile's precise clicks
+    assert 0 < r["fitted_vs_true"]["mean"] < 2.0 and r["fitted_vs_true"]["n"] == 81 * 5  # 9x9 grid, 5 groups
+    # the truth given as the evaluated homographies: the fitted-vs-true distance is zero
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies", str(truth),
+                      "--truth", str(truth), "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "t.json").read_text())["truth"]["fitted_vs_true"]["mean"] < 1e-6
+    # a synthetic set's own landmarks: its ground truth is found beside them
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm)])
+    assert res.exit_code == 0 and "landmarks, true homography" in res.output, res.output
+    (tmp_path / "elsewhere").mkdir()
+    shutil.copy(lm, tmp_path / "elsewhere" / "landmarks.json")
+    res = cli_runner(["sensing", "registration-error", "--landmarks", str(tmp_path / "elsewhere" / "landmarks.json")])
+    assert res.exit_code == 0 and "true homography" not in res.output, res.output

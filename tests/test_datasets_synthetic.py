@@ -177,7 +177,7 @@ def _box_contrast(img: np.ndarray, box: list[float], ring: int = 3) -> tuple[flo
 
 
 def test_category_signatures_in_the_true_temperature(tiny_source):
-    """AC units and vents are warm, delamination a compact +-0.5..3 C patch, water seepage cooler, paint peeling
+    """AC units and vents are warm, delamination a compact +-0.5..3 C patch, water seepage diffuse, paint peeling
     and efflorescence weak: measured on the true temperature maps inside the true boxes."""
     from harness.sensing.radiometry import read_thermal
 
@@ -202,7 +202,8 @@ def test_category_signatures_in_the_true_temperature(tiny_source):
                 if o["category"] in ("paint_peeling", "efflorescence"):
                     assert abs(o["delta_c"]) <= 0.3
     assert all(d > 1.0 for d in deltas["ac_unit"] + deltas["vent"]), deltas
-    assert deltas["water_seepage"] and all(d < 0 for d in deltas["water_seepage"])
+    # water seepage is diffuse: its cooling reaches well past the stain, so the ring around the box is about as cold
+    assert deltas["water_seepage"] and all(abs(d) < 0.4 for d in deltas["water_seepage"]), deltas["water_seepage"]
     assert deltas["delamination"] and max(abs(d) for d in deltas["delamination"]) > 0.3
 
 

@@ -22,10 +22,12 @@ with ``px_per_m = f_T / Z``):
   ``T_amb + sun_load * (1 + 0.4 * (a - a_wall) / a_wall)`` with the absorptivity ``a = 1 - 0.7 * luminance`` spread
   laterally by conduction (Gaussian, 8 cm), a vertical gradient, slow blotches and warm floor-slab bridges.
 * **Categories** (names and order of ``adapters.datasets.m3t.M3T_CATEGORIES``):
-  window (cold sky-reflecting glass, warm frame), ac_unit (hot fan grille, warm housing and plume), vent (warm
-  grille and plume), crack (thin dark polyline, faint in thermal), paint_peeling and efflorescence (visible
-  texture, a few tenths of a degree through absorptivity), delamination (compact patch +-0.5..3 C with a sharp rim,
-  1-2 % albedo change), water_seepage (diffuse cooler region, 0.5..2 C, smooth profile, faint stain).
+  window (cold sky-reflecting glass, warm frame), ac_unit (hot fan grille, warm housing and plume), vent (louvred
+  grille with dark duct gaps, warm exhaust and plume), crack (thin dark polyline, faint in thermal), paint_peeling
+  and efflorescence (visible texture, a few tenths of a degree through absorptivity), delamination (a debonded
+  render layer: uniform +-0.5..3 C patch whose rim is as wide as the layer is thick, 1-2 % albedo change),
+  water_seepage (a damp zone reaching past its faint stain, mottled evaporative cooling of 0.5..2 C, smooth
+  drying front).
 * **Sensors.** Thermal: the scene rendered on a 2x supersampled canvas and block-averaged to the sensor grid, a
   0.55 px optical blur, a per-frame offset drift (shutter-calibration sawtooth within -0.8..+2.2 C), radial
   vignetting, column fixed-pattern noise and NETD noise, stored at the R-JPEG's 1/16 K resolution. RGB: exposure,
@@ -34,7 +36,10 @@ with ``px_per_m = f_T / Z``):
   outline projected into the distorted RGB frame, rounded to 0.01 px. The true thermal-frame box of each object is
   its extent on the canvas (snapped to the canvas grid, so it is exact).
 * **Landmarks** are corners of windows, AC units and vents, spread over the frame, clicked on the undistorted
-  wide image and on the thermal image with a click noise of 0.8 RGB px and 0.35 thermal px (1 sigma per axis).
+  wide image (nearly exact) and on the thermal image, where a corner is a soft transition a few pixels wide and a
+  person's click lands anywhere across it (``click_landmarks``; the ``tiny`` test profile clicks precisely).
+
+The sources of each modelling choice are listed in ``docs/datasets.md`` (the synthetic generator's section).
 
 Everything is deterministic in ``seed``: each image draws from its own ``SeedSequence((seed, project, index))``.
 """
@@ -61,7 +66,7 @@ from harness.hookspecs import hookimpl
 log = logging.getLogger(__name__)
 
 #: Bumped whenever the generator's output changes for the same profile and seed.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 #: File at the root of a generated dataset: generator version, profile, seed, counts (the adapter ignores it).
 MARKER = "synth.json"
 PROJECTS = ("P1", "P2", "P3", "P4", "P5")
@@ -80,6 +85,7 @@ class Profile:
     sessions: tuple[int, int, int, int, int]
     jpeg_quality: int = 92
     description: str = ""
+    clicks: str = "human"  # landmark clicking: "human" (a few thermal px off) or "precise" (sub-pixel, for tests)
 
     @property
     def total(self) -> int:
@@ -88,7 +94,8 @@ class Profile:
 
 PROFILES: dict[str, Profile] = {
     "tiny": Profile("tiny", (2, 2, 2, 1, 1), (160, 128), (480, 360), (1, 1, 1, 1, 1),
-                    description="8 pairs, for tests"),
+                    description="8 pairs, for tests (precise landmark clicks: the geometry is checked to < 1 px)",
+                    clicks="precise"),
     "small": Profile("small", (32, 20, 28, 16, 16), (320, 256), (960, 720), (2, 2, 2, 1, 1),
                      description="112 pairs, thermal 320x256, RGB 960x720: the demo and CPU runs"),
     "full": Profile("full", (256, 87, 201, 70, 60), (640, 512), (2000, 1500), (4, 2, 3, 2, 2),
@@ -150,13 +157,16 @@ LOOKS: dict[str, Look] = {
 #: Object sizes on the facade in metres: (min, max) of width and height (cracks: length and angle below).
 SIZES_M = {
     "ac_unit": ((0.75, 0.95), (0.50, 0.62)),
-    "vent": ((0.18, 0.34), None),  # square or round: height = width
+    "vent": ((0.25, 0.45), None),  # square or round: height = width (wall grilles and exhaust outlets)
     "paint_peeling": ((0.25, 0.75), (0.22, 0.70)),
     "efflorescence": ((0.30, 0.85), (0.40, 1.05)),
-    "delamination": ((0.20, 0.55), (0.18, 0.50)),
-    "water_seepage": ((0.55, 1.30), (0.75, 1.70)),
+    "delamination": ((0.40, 1.00), (0.36, 0.95)),
+    "water_seepage": ((0.70, 1.50), (0.60, 1.10)),
 }
 CRACK_LENGTH_M = (0.35, 1.10)
+#: A seepage's damp zone reaches this far past its visible stain (its fringe and drying front): nothing else is
+#: placed in it, and it keeps this far from the windows beside it (60 % of it from those below).
+DAMP_FRINGE_M = 0.45
 
 
 # ----------------------------------------------------------------------------------------------- geometry
@@ -190,8 +200,10 @@ def plane_homography(k_rgb: np.ndarray, k_thermal: np.ndarray, rot: np.ndarray, 
 def apply_homography(hmat: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Map Nx2 points through a 3x3 homography."""
     pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-    ph = np.c_[pts, np.ones(len(pts))] @ np.asarray(hmat, dtype=np.float64).T
-    return ph[:, :2] / ph[:, 2:3]
+    h = np.asarray(hmat, dtype=np.float64)
+    x, y = pts[:, 0], pts[:, 1]
+    w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    return np.stack([(h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w, (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w], axis=1)
 
 
 def distort_points(pts: np.ndarray, k: np.ndarray, dist: Sequence[float]) -> np.ndarray:
@@ -615,21 +627,25 @@ def paint_vent(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gene
     if round_:
         d = np.sqrt((u - cx) ** 2 + (v - cy) ** 2)
         inside = d < s / 2
-        slat = inside & ((d / (0.018 * ppm)) % 2 < 0.8) & (d < s / 2 - 0.02 * ppm)
-        rim = inside & (d > s / 2 - 0.02 * ppm)
+        slat = inside & ((d / (0.03 * ppm)) % 2 < 0.9) & (d < s / 2 - 0.025 * ppm)
+        rim = inside & (d > s / 2 - 0.025 * ppm)
     else:
         inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
-        rim = inside & ((u < x0 + 0.02 * ppm) | (u > x1 - 0.02 * ppm) | (v < y0 + 0.02 * ppm) | (v > y1 - 0.02 * ppm))
-        slat = inside & ~rim & (((v - y0) / (0.022 * ppm)) % 2 < 0.9)
+        rim = inside & ((u < x0 + 0.025 * ppm) | (u > x1 - 0.025 * ppm) | (v < y0 + 0.025 * ppm)
+                        | (v > y1 - 0.025 * ppm))
+        slat = inside & ~rim & (((v - y0) / (0.03 * ppm)) % 2 < 0.9)  # louvre gaps, 60 mm pitch
     metal = np.array([0.86, 0.86, 0.84], np.float32) * rng.uniform(0.85, 1.05)
     alb = layers.albedo[ys, xs]
     alb = np.where(inside[..., None], metal, alb)
-    alb = np.where(slat[..., None], metal * 0.35, alb)
+    alb = np.where(slat[..., None], np.float32(0.12), alb)  # the duct behind the louvres is in deep shadow
     alb = np.where(rim[..., None], metal * 0.7, alb)
+    below = (u > x0) & (u < x1) & (v >= y1)  # the grille's lip shades the wall under it
+    alb = alb * np.where(below, 1 - 0.3 * np.exp(-(v - y1) / (0.03 * ppm)), 1.0)[..., None]
     layers.albedo[ys, xs] = alb
+    # exhaust air from a heated interior: warm in the gaps, the blades a little less, a plume rising above
     hot = rng.uniform(2.5, 6.0)
     plume = 0.45 * hot * np.exp(-(((u - cx) / (0.5 * s)) ** 2 + ((v - (y0 - 0.3 * s)) / (0.7 * s)) ** 2))
-    layers.dtemp[ys, xs] += np.where(inside, hot, plume)
+    layers.dtemp[ys, xs] += np.where(inside, np.where(slat, hot, 0.75 * hot), plume)
     obj.attrs.update(hot_c=round(hot, 2))
 
 
@@ -754,6 +770,13 @@ def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.ra
 
 
 def paint_delamination(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> np.ndarray | None:
+    """A debonded render layer over an air gap: compact, near-uniform excess temperature, sharp rim.
+
+    The air gap insulates the outer layer from the wall's mass, so under sun load it runs warmer (in the morning
+    cooler) by the same amount everywhere the layer is detached: the interior is uniform to +-5 %. At the rim the
+    layer is bonded again; heat spreads sideways only over about the layer's thickness (10-20 mm render), so the
+    edge falls off within that distance and is otherwise blurred only by the thermal optics (applied later).
+    """
     win = layers.window(obj.box, pad_m=0.0)
     if win is None:
         return None
@@ -769,9 +792,10 @@ def paint_delamination(layers: Layers, obj: SceneObject, look: Look, rng: np.ran
     amp = look.delamination_sign * rng.uniform(0.5, 3.0)
     if rng.random() < 0.15:
         amp = -amp
-    rim_px = 0.6 * c.k  # ~0.6 thermal px: the debonded layer ends abruptly
-    profile = np.clip((1 - d) * min(rx, ry) * c.k / rim_px, 0, 1)
-    inner = 1 + 0.2 * value_noise(d.shape, max(1.0, 0.3 * min(rx, ry) * c.k), rng)
+    layer_px = rng.uniform(0.010, 0.020) * layers.ppm  # render thickness -> width of the rim, thermal px
+    inside_px = (1 - d) * min(rx, ry)  # ~distance inside the rim, thermal px
+    profile = smoothstep(inside_px / max(layer_px, 0.5 / c.k) + 0.5)
+    inner = 1 + 0.05 * value_noise(d.shape, max(1.0, 0.5 * min(rx, ry) * c.k), rng)  # gap thickness varies
     layers.dtemp[ys, xs] += amp * profile * inner
     layers.albedo[ys, xs] *= (1 - rng.uniform(0.008, 0.02) * mask)[..., None]
     if rng.random() < 0.4:  # a faint hairline along part of the rim
@@ -783,30 +807,49 @@ def paint_delamination(layers: Layers, obj: SceneObject, look: Look, rng: np.ran
 
 
 def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> np.ndarray | None:
-    """Diffuse damp patch: smooth Gaussian-like profile, cooler by evaporation; the box is the visible stain."""
+    """Water seepage: a large, diffuse cold region; the box is the visible stain inside it.
+
+    Moisture spreads in the wall by capillary diffusion, so the damp zone is wider than the stain an annotator sees
+    (damp but unstained for 0.15-0.3 m around it, then a Gaussian drying front of 0.3-0.5 m). The surface cools
+    by evaporation in proportion to its moisture content (0.5-2 C at saturation), and moisture in a porous wall
+    is mottled (joints, pores, salts: 0.2 m cells), so the in-box contrast that a high-pass sees is that
+    mottling, which looks the same wherever a box of the stain's size sits on it. Lateral conduction in the
+    surface layer (30 mm) smooths the temperature further.
+    """
+    import cv2
+
     x0, y0, x1, y1 = obj.box
     w, h = x1 - x0, y1 - y0
-    win = layers.window(obj.box, pad_m=0.5 * max(w, h) / layers.ppm)
+    ppm = layers.ppm
+    fringe = rng.uniform(0.15, 0.30) * ppm  # damp but not stained: full cooling
+    tail = rng.uniform(0.30, 0.50) * ppm  # the drying front: a Gaussian tail of the moisture profile
+    win = layers.window(obj.box, pad_m=(fringe + 3 * tail) / ppm)
     if win is None:
         return None
     ys, xs, u, v = win
     c = layers.canvas
-    cx, cy = (x0 + x1) / 2, y0 + 0.4 * h
-    sx, sy = 0.42 * w, 0.5 * h
-    warp = 0.25 * value_noise((v.shape[0], u.shape[1]), max(2.0, 0.25 * w * c.k), rng)
-    prof = np.exp(-0.5 * (((u - cx) / sx) ** 2 + ((v - cy) / sy) ** 2)) * (1 + warp)
-    prof = np.clip(prof, 0, None)
-    inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
-    stain_region = (prof > 0.32) & inside
-    if not stain_region.any():
-        return None
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    shape = (v.shape[0], u.shape[1])
+    # distance outside the stain's outline (thermal px), the fringe's width wandering by +-40 %
+    qx = np.maximum(np.abs(u - cx) - w / 2, 0.0)
+    qy = np.maximum(np.abs(v - cy) - h / 2, 0.0)
+    reach = fringe * (1 + 0.4 * np.tanh(value_noise(shape, max(2.0, 0.4 * ppm * c.k), rng)))
+    outside = np.maximum(np.sqrt(qx * qx + qy * qy) - reach, 0.0)
+    envelope = np.exp(-0.5 * (outside / tail) ** 2)
+    mottle = 1 + 0.6 * fbm(shape, 0.2 * ppm * c.k, rng, octaves=3)
+    moisture = np.clip(envelope * mottle, 0.0, None).astype(np.float32)
     amp = -rng.uniform(0.5, 2.0)
-    layers.dtemp[ys, xs] += amp * prof
+    cooled = cv2.GaussianBlur(moisture, (0, 0), max(0.5, 0.03 * ppm * c.k))
+    layers.dtemp[ys, xs] += amp * cooled
+    inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
     stain = rng.uniform(0.07, 0.14)  # faint: a damp patch darkens the surface by a few per cent
-    tide = np.exp(-((prof - 0.34) / 0.03) ** 2) * inside  # the drying edge leaves a slightly darker line
-    layers.albedo[ys, xs] *= (1 - stain * np.clip(prof, 0, 1) * inside - 0.05 * tide)[..., None]
+    wet = np.clip(moisture, 0, 1.5) * inside
+    tide = np.exp(-((np.minimum(np.minimum(u - x0, x1 - u), np.minimum(v - y0, y1 - v))) / (0.02 * ppm)) ** 2) * inside
+    layers.albedo[ys, xs] *= (1 - stain * wet - 0.04 * tide)[..., None]
     obj.attrs.update(delta_c=round(amp, 2))
-    rows, cols = np.nonzero(stain_region)
+    rows, cols = np.nonzero(inside)
+    if len(rows) == 0:
+        return None
     return c.extent_box(rows + ys.start, cols + xs.start)
 
 
@@ -842,10 +885,12 @@ def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
     """Equipment and defects on free wall, mostly inside the thermal footprint (some straddle its edge)."""
     c, ppm = layers.canvas, layers.ppm
     tw, th = c.thermal_size
-    occupied = [np.array([o.box[0] - 0.06 * ppm, o.box[1], o.box[2] + 0.06 * ppm, o.box[3] + 0.22 * ppm])
-                for o in windows]  # windows with their sills
+    sills = [np.array([o.box[0] - 0.06 * ppm, o.box[1], o.box[2] + 0.06 * ppm, o.box[3] + 0.22 * ppm])
+             for o in windows]  # windows with their sills
+    occupied: list[np.ndarray] = []
     out: list[SceneObject] = []
-    order = ["ac_unit", "water_seepage", "efflorescence", "vent", "paint_peeling", "delamination", "crack"]
+    damp: list[np.ndarray] = []
+    order = ["water_seepage", "ac_unit", "efflorescence", "vent", "paint_peeling", "delamination", "crack"]
     for cat in order:
         n = min(3, int(rng.poisson(look.rates[cat])))
         for _ in range(n):
@@ -872,11 +917,15 @@ def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
                 ih = min(box[3], th) - max(box[1], 0)
                 if iw <= 0 or ih <= 0 or iw * ih < 0.6 * w * h:
                     continue
-                if _overlaps(box, occupied, 0.05 * ppm):
+                # a seepage's damp zone (DAMP_FRINGE_M around its stain) is part of it: nothing else sits in it
+                gap = (DAMP_FRINGE_M if cat == "water_seepage" else 0.05) * ppm
+                side = np.array([box[0] - gap, box[1], box[2] + gap, box[3] + 0.6 * gap])  # hangs from a sill above
+                if (_overlaps(side, sills, 0.05 * ppm) or _overlaps(box, occupied, gap)
+                        or _overlaps(box, damp, DAMP_FRINGE_M * ppm)):
                     continue
                 attrs = {"round": bool(rng.random() < 0.35)} if cat == "vent" else {}
                 out.append(SceneObject(cat, box, attrs))
-                occupied.append(box)
+                (damp if cat == "water_seepage" else occupied).append(box)
                 break
     return out
 
@@ -894,8 +943,10 @@ class Frame:
     vignette_c: float
 
 
-def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndarray, np.ndarray], look: Look,
+def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndarray, np.ndarray] | None, look: Look,
                  rng: np.random.Generator, drift_c: float) -> Frame:
+    """One capture. ``maps=None`` renders the thermal side only (the RGB is then an empty array): the same scene,
+    the same random draws for everything the thermal camera sees."""
     import cv2
 
     ppm = rig.k_thermal[0, 0] / session.distance_m
@@ -946,6 +997,9 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
     meas = meas + drift_c + vig * _radius2((th, tw)) + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32) \
         + 0.05 * rng.standard_normal((th, tw), dtype=np.float32)
 
+    if maps is None:
+        return Frame(np.zeros((0, 0, 3), np.uint8), meas.astype(np.float32), true_t.astype(np.float32), objects,
+                     float(drift_c), float(vig))
     # --- RGB: sample the canvas through the rig geometry and lens distortion, then the camera
     img = cv2.remap(layers.albedo, maps[0], maps[1], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     rh, rw = img.shape[:2]
@@ -980,12 +1034,12 @@ class SynthSummary:
     seconds: float
 
     def table(self) -> str:
-        from harness.commands.data import format_table
+        from harness.textable import text_table
 
         cats = list(self.annotations)
-        rows = [[c, self.annotations[c], self.thermal_instances.get(c, 0)] for c in cats]
-        rows.append(["total", sum(self.annotations.values()), sum(self.thermal_instances.values())])
-        return format_table(["category", "RGB annotations", "in thermal frame"], rows)
+        rows = [[c, f"{self.annotations[c]:,}", f"{self.thermal_instances.get(c, 0):,}"] for c in cats]
+        rows.append(["total", f"{sum(self.annotations.values()):,}", f"{sum(self.thermal_instances.values()):,}"])
+        return text_table(["category", "RGB annotations", "in thermal frame"], rows, "lrr")
 
 
 THERMAL_FORMATS = ("rjpeg", "centikelvin")
@@ -1021,7 +1075,8 @@ def _round_box(box: Iterable[float]) -> list[float]:
     return [round(x0, 2), round(y0, 2), round(x1 - x0, 2), round(y1 - y0, 2)]
 
 
-def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generator, limit: int) -> list[dict[str, Any]]:
+def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generator, limit: int,
+               clicks: str = "human") -> list[dict[str, Any]]:
     """Corners of windows, AC units and vents (sharp in both images) inside the thermal frame, spread out by
     farthest-point selection as a careful annotator would, clicked in both images with a little noise."""
     tw, th = rig.thermal_size
@@ -1045,10 +1100,39 @@ def _landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generato
         dist = np.minimum(dist, np.linalg.norm(cand - cand[nxt], axis=1))
     thermal = cand[chosen]
     rgb = apply_homography(np.linalg.inv(session.homography), thermal)  # undistorted wide image (camera K)
-    thermal_click = thermal + rng.normal(0, 0.35, thermal.shape)
-    rgb_click = rgb + rng.normal(0, 0.8, rgb.shape)
     return [{"rgb": [round(float(a), 2), round(float(b), 2)], "thermal": [round(float(c), 2), round(float(d), 2)]}
-            for (a, b), (c, d) in zip(rgb_click, thermal_click)]
+            for (a, b), (c, d) in zip(*click_landmarks(rgb, thermal, rig, rng, clicks))]
+
+
+#: Landmark clicking, a human-factors model (see docs/datasets.md): in the thermal image a corner is a soft
+#: transition about this many pixels wide (optics spot ~2 px at F1.0 and 12 um pitch, the pixel itself, the warm
+#: frame's halo, the palette's rendering), and the click lands anywhere across it.
+THERMAL_CORNER_PX = 8.0
+#: Hand jitter of a click on the zoomed image, px (1 sigma per axis); clicks snap to whole pixels.
+CLICK_JITTER_PX = 1.0
+#: A corner in the wide camera's native 4000x3000 frame is sharp: 1.5 native px (1 sigma per axis).
+RGB_CLICK_NATIVE_PX = 1.5
+#: Share of clicks that take the neighbouring edge of the frame (glass corner for outer corner): 2-5 px off.
+MISPICK_RATE = 0.1
+
+
+def click_landmarks(rgb: np.ndarray, thermal: np.ndarray, rig: Rig, rng: np.random.Generator,
+                    clicks: str = "human") -> tuple[np.ndarray, np.ndarray]:
+    """Where a person clicks true corresponding points (Nx2 each): RGB nearly exact, thermal a few px off.
+
+    ``clicks="precise"``: sub-pixel clicks (0.8 RGB px, 0.35 thermal px), for the test profile.
+    """
+    if clicks == "precise":
+        return rgb + rng.normal(0, 0.8, rgb.shape), thermal + rng.normal(0, 0.35, thermal.shape)
+    if clicks != "human":
+        raise ValueError(f"unknown click model {clicks!r}")
+    n = len(thermal)
+    t_err = rng.uniform(-THERMAL_CORNER_PX / 2, THERMAL_CORNER_PX / 2, (n, 2)) + rng.normal(0, CLICK_JITTER_PX, (n, 2))
+    mis = rng.random(n) < MISPICK_RATE
+    t_err[mis] += rng.uniform(2.0, 5.0, (int(mis.sum()), 1)) * rng.choice([-1.0, 1.0], (int(mis.sum()), 2))
+    thermal_click = np.round(thermal + t_err)
+    rgb_click = rgb + rng.normal(0, RGB_CLICK_NATIVE_PX * rig.rgb_size[0] / 4000, rgb.shape)
+    return rgb_click, thermal_click
 
 
 def generate(out: str | Path | None = None, profile: str = "small", seed: int = 0, thermal_format: str = "rjpeg",
@@ -1184,7 +1268,7 @@ def _render_chunk(task: _Chunk) -> list[dict[str, Any]]:
         out.append({"k": k, "project": task.project, "group": session.name, "stem": stem, "when": when,
                     "rgb_rel": f"{task.project}/{stem}_W.JPG", "thermal_rel": thermal_rel, "objects": objects,
                     "drift_c": frame.drift_c, "vignette_c": frame.vignette_c,
-                    "landmarks": _landmarks(frame, session, rig, rng, limit=12)})
+                    "landmarks": _landmarks(frame, session, rig, rng, limit=12, clicks=prof.clicks)})
     return out
 
 
@@ -1410,6 +1494,13 @@ def open_synthetic(root: str | Path | None = None, profile: str = "small", seed:
     with _generation_lock(folder):  # two runs starting together generate once
         _ensure_generated(folder, root is not None, profile, seed, thermal_format)
     return open_m3t(folder, sensing=sensing, name="m3t-synth", **overrides)
+
+
+@hookimpl
+def register_commands(cli: Any) -> None:
+    from adapters.datasets.synth_command import add_synth_command
+
+    add_synth_command(cli)
 
 
 @hookimpl

@@ -211,8 +211,12 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", default=None, help="Dataset name: also write <store>/<dataset>/_sensing/registration_error.json.")
     @click.option("--store", default=DEFAULT_STORE, show_default=True, help="Results store root.")
     @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
+    @click.option("--truth", type=click.Path(exists=True, path_type=Path), default=None,
+                  help="True per-group homographies: also report the landmarks' error under them and the fitted "
+                       "homographies' distance from them (default: ground_truth/homographies.yaml of a synthetic set "
+                       "when the landmarks are its registration/landmarks.json).")
     def registration_error_cmd(landmarks: Path, homographies: Path | None, method: str, dataset: str | None,
-                               store: str, out: Path | None) -> None:
+                               store: str, out: Path | None, truth: Path | None) -> None:
         """Registration error on landmark pairs: mean, median, P95 and per-scene mean, in thermal pixels."""
         from harness.sensing.analyses import format_registration_error, registration_error_study
         from harness.sensing.registration import load_homography_entries, read_landmarks, support_boxes
@@ -227,6 +231,17 @@ def register_commands(cli: click.Group) -> None:
         result.update({"analysis": "registration_error", "landmarks_file": str(landmarks),
                        "homographies_file": str(homographies) if homographies else None})
         click.echo(format_registration_error(result))
+        beside = landmarks.parent.parent / "ground_truth" / "homographies.yaml"  # a synthetic set's layout
+        truth = truth if truth is not None else (beside if beside.is_file() else None)
+        if truth is not None:
+            from harness.sensing.registration_truth import against_truth, format_against_truth
+
+            true_entries = load_homography_entries(truth)
+            sizes = {tuple(e.thermal_size) for e in true_entries.values() if e.thermal_size}
+            result["truth"] = against_truth(lm, {g: e.H for g, e in true_entries.items()}, Hs,
+                                            next(iter(sizes)) if len(sizes) == 1 else None, method=method)
+            result["truth_file"] = str(truth)
+            click.echo("\n" + format_against_truth(result["truth"], result))
         for path in _write_result(result, "registration_error", dataset, store, out):
             click.echo(f"-> {path}")
 
