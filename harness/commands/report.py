@@ -47,9 +47,11 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
                   help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
     @click.option("--title", default=None, help="Title of the report.")
+    @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
+                  help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
                    print_tables: bool, resamples: int, seed: int, workers: int, ablation_categories: str,
-                   title: str | None) -> None:
+                   title: str | None, log_to: str | None = None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         \b
@@ -81,6 +83,11 @@ def register_commands(cli: click.Group) -> None:
             click.echo("absent (see the report for the command that fills each): " + "; ".join(absent))
         for path in report.files:
             click.echo(f"-> {path}")
+        if log_to:
+            from harness.tracking import log_report, parse_names
+
+            for problem in log_report(parse_names(log_to), root, report.files, report.title):
+                click.secho(problem, fg="red", err=True)
 
     @cli.command(name="compare-detectors")
     @click.argument("a")
