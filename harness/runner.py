@@ -265,7 +265,7 @@ def run(request: RunRequest) -> RunSummary:
     summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
                          list(prepared.categories))
     todo = [x for x in p.runs if x.state != "finished" or request.force]
-    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=request.progress and hd.is_main())
+    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main())
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)

@@ -26,6 +26,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
 from harness.report.collect import Entry, StoreView, profile_numbers
+from harness.report.curves import curves_section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
 from harness.report.tables import (
@@ -456,6 +457,7 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
         for ds in chosen:
             sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers)
             report.sections += sections
+            report.sections.append(curves_section(view, ds, out_dir))
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
     report.sections.append(_cross_section(view, chosen))
