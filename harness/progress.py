@@ -35,7 +35,8 @@ class OverallProgress:
         self._now = now or time.perf_counter
         self.t0 = self._now()
         self.done_runs = 0
-        self.done_epochs = 0  # epochs finished in completed runs plus the current one
+        self.done_epochs = 0  # epochs no longer to do: trained, or left out by early stopping
+        self.trained_epochs = 0  # epochs trained in this call (the rate the ETA uses)
         self._run_epochs = 0  # epochs of the current run counted so far
         self.label = ""
 
@@ -48,12 +49,12 @@ class OverallProgress:
         self._run_epochs = 0
 
     def eta(self) -> float | None:
-        """Seconds left: the mean time per epoch so far times the epochs left (``None`` before the first epoch)."""
-        if self.done_epochs <= 0:
+        """Seconds left: the mean time per epoch trained so far times the epochs left (``None`` before the first)."""
+        if self.trained_epochs <= 0:
             return None
         elapsed = self._now() - self.t0
         left = max(self.total_epochs - self.done_epochs, 0)
-        return elapsed / self.done_epochs * left
+        return elapsed / self.trained_epochs * left
 
     def line(self, epoch: int | None = None, epochs: int | None = None) -> str:
         run_no = min(self.done_runs + 1, self.runs)
@@ -73,6 +74,7 @@ class OverallProgress:
         new = max(int(epoch) - self._run_epochs, 0)
         self._run_epochs = int(epoch)
         self.done_epochs += new
+        self.trained_epochs += 1
         self._print(self.line(epoch, epochs))
 
     def finish_run(self) -> None:
