@@ -34,7 +34,7 @@ def _common(f):
         click.option("--no-progress", is_flag=True, help="No progress bars (log lines only)."),
         click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
                      help="Also log runs to these trackers, e.g. mlflow,tensorboard (same as --set "
-                          "tracking.loggers=[...]; see `harness list`)."),
+                          "tracking.loggers=[...]; built in: tensorboard, mlflow)."),
     ]
     f = _with_log_to(f)
     for option in reversed(options):
