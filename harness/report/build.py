@@ -3,7 +3,8 @@ written as Markdown, CSV and one self-contained HTML page.
 
 The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
 table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
-and the C2 displacement table; then the cross-dataset table. A section whose data the store does not hold is kept
+and the C2 displacement table; then the cross-dataset table; last, the training curves of each dataset
+(``harness.report.curves``). A section whose data the store does not hold is kept
 and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
 loud label (and the list of differences) in every format.
 
@@ -13,6 +14,7 @@ Output folder (``out``)::
     tidy.csv                                    every number as one long-format record, with its support
     csv/<table>.csv                             each table, wide, raw numbers (fractions)
     figures/accuracy_vs_gflops.png / .svg       the figure
+    figures/training_curves_<dataset>.png / .svg
 """
 
 from __future__ import annotations
@@ -457,10 +459,10 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
         for ds in chosen:
             sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers)
             report.sections += sections
-            report.sections.append(curves_section(view, ds, out_dir))
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
     report.sections.append(_cross_section(view, chosen))
+    report.sections += [curves_section(view, ds, out_dir) for ds in chosen]  # diagnostics, after the results
     report.problems = list(view.problems)
     if out_dir is not None:
         report.files += write_report(report, out_dir, formats)
