@@ -32,6 +32,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import click
 
     from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
+    from harness.tracking import LoggerSpec
 
 PROJECT = "harness"
 
@@ -74,6 +75,18 @@ def register_encodings(register: Callable[[EncodingSpec], None]) -> None:
     HxW array in the thermal frame (or ``None`` for an encoding that adds no channel, such as RGB-only ``none``);
     ``needs`` says which field of the sample it reads (``"thermal"`` for radiometric encodings such as ``c2``,
     ``"ir8"`` for 8-bit ones), so the host can refuse, with a clear message, an encoding a dataset cannot feed.
+    """
+
+
+@hookspec
+def register_loggers(register: Callable[[LoggerSpec], None]) -> None:
+    """Declare experiment trackers (loggers that mirror runs into a tracking tool, beside ``log.jsonl``).
+
+    Call ``register(LoggerSpec(name=..., create=...))`` once per tracker; ``create(TrackingOptions)`` returns an
+    object with ``start(name, params, tags)``, ``log_epoch(step, metrics)``, ``log_final(metrics)``,
+    ``log_artifact(path)`` and ``finish(status)`` (``harness.tracking.RunLogger``). ``requires`` names the packages
+    it imports, so a missing one is reported before any run starts. Runs use the trackers named in
+    ``tracking.loggers`` (``--log-to``).
     """
 
 

@@ -33,6 +33,7 @@ import pluggy
 from harness import hookspecs
 from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
 from harness.errors import PluginError, UnknownNameError
+from harness.tracking import LoggerSpec
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,8 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.report",
     "harness.commands.weights",
     "harness.commands.score",
+    "harness.tracking.tensorboard_logger",
+    "harness.tracking.mlflow_logger",
 )
 
 #: hook name -> (kind shown to users, spec class)
@@ -72,6 +75,7 @@ _REGISTRATION_HOOKS: dict[str, tuple[str, type]] = {
     "register_detectors": ("detector", DetectorSpec),
     "register_datasets": ("dataset", DatasetSpec),
     "register_encodings": ("encoding", EncodingSpec),
+    "register_loggers": ("logger", LoggerSpec),
 }
 
 
@@ -177,6 +181,12 @@ class PluginHost:
 
     def encodings(self) -> dict[str, EncodingSpec]:
         return {n: s for n, (s, _) in self._registry("register_encodings").items()}
+
+    def loggers(self) -> dict[str, LoggerSpec]:
+        return {n: s for n, (s, _) in self._registry("register_loggers").items()}
+
+    def logger(self, name: str) -> LoggerSpec:
+        return self._get("register_loggers", name)
 
     def detector(self, name: str) -> DetectorSpec:
         return self._get("register_detectors", name)

@@ -35,7 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
+from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
+from harness.progress import OverallProgress
 from harness.io import atomic_write_json
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
 from harness.textable import fit_text, text_table
@@ -172,6 +174,7 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
         if isinstance(trimmed.get(section), dict):
             trimmed[section].pop(key, None)
     trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
+    trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
     return trimmed
 
 
@@ -278,6 +281,7 @@ def plan(request: RunRequest) -> RunPlan:
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
     check_settings(det, ds, enc, cfg)  # bad options fail here, before any store folder is touched
+    tracking.resolve((cfg.get("tracking") or {}).get("loggers") or [])  # unknown or uninstalled: stop before work
 
     with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
         prepared = prepare_dataset(ds.name, cfg)
@@ -309,6 +313,8 @@ def run(request: RunRequest) -> RunSummary:
 
     summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
                          list(prepared.categories))
+    todo = [x for x in p.runs if x.state != "finished" or request.force]
+    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main())
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
@@ -324,8 +330,10 @@ def run(request: RunRequest) -> RunSummary:
                 summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx),
                                                   len(val_idx)))
                 continue
+            overall.start_run(str(r.key))
             result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
-                             init=init, force=request.force, progress=request.progress)
+                             init=init, force=request.force, progress=request.progress, overall=overall)
+            overall.finish_run()
         summary.results.append(result)
     return summary
 
@@ -351,7 +359,7 @@ def _run_lock(r: Run) -> Iterator[None]:
 
 def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,
             train_idx: Sequence[int], val_idx: Sequence[int], init: str | Path | None = None, force: bool = False,
-            progress: bool = True) -> FoldResult:
+            progress: bool = True, overall: OverallProgress | None = None) -> FoldResult:
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
     import torch
 
@@ -390,6 +398,9 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                      **({"world_size": dist.world_size} if dist.active else {}))
     hd.barrier()
     stored = False
+    tracker = tracking.for_run(cfg, r.path.parents[len(r.key.parts()) - 1]) if main else tracking.Tracker()
+    tracker.start(str(r.key), tracking.flatten_params(cfg), {"detector": det.name, "dataset": r.key.dataset,
+                                                              "encoding": enc.name, "fold": fold.name, "seed": str(seed)})
     try:
         settings = TrainSettings.from_config(cfg, seed)
         eval_cfg = cfg["eval"]
@@ -422,6 +433,9 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
 
         def on_epoch(record: dict[str, Any]) -> None:
             r.append_log({"fold": fold.name, "seed": seed, **record})
+            tracker.log_epoch(int(record["epoch"]), tracking.epoch_metrics(record))
+            if overall is not None:
+                overall.epoch_done(int(record["epoch"]), int(record["epochs"]))
 
         trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
                           det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
@@ -471,6 +485,11 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             target.replace_with(r)
             r = target
         stored = True
+        tracker.log_final(tracking.final_metrics(metrics))
+        for artefact in (r.config_path, r.metrics_path, r.log_path):
+            if artefact.exists():
+                tracker.log_artifact(artefact)
+        tracker.finish("FINISHED")
         hd.barrier()
         m = evaluation["metrics"]
         log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
@@ -480,6 +499,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         if main and not stored:
             reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
             r.set_status("failed", config_hash=digest, error=reason)
+            tracker.finish("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
             if r is not target:
                 target.set_status("finished", replacement={"state": "failed", "error": reason, "path": str(r.path)})
                 log.error("%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "

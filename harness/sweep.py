@@ -365,7 +365,11 @@ def sweep(spec: SweepSpec, executor: str = "local", options: ExecutorOptions | N
     planned = expand(spec)
     log.info("sweep: %d runs to do, %d finished earlier, %d combinations left out", len(planned.jobs),
              len(planned.skipped), len(planned.invalid))
-    results = execute(planned.jobs, executor, options, progress=progress) if planned.jobs else []
+    from harness.progress import SweepProgress
+
+    overall = SweepProgress(len(planned.jobs), enabled=progress)
+    results = execute(planned.jobs, executor, options, progress=progress,
+                      on_result=lambda r: overall.job_done(r.state != "failed")) if planned.jobs else []
     assert planned.store is not None
     return SweepSummary(planned.store, [*planned.skipped, *results], planned.invalid)
 

@@ -72,6 +72,21 @@ def test_hook_register_encodings(host):
     assert "undo-enc" not in host.encodings()
 
 
+def test_hook_register_loggers(host):
+    from harness.plugins import temporary_plugin
+    from harness.tracking import LoggerSpec
+
+    class Plugin:
+        @hookimpl
+        def register_loggers(self, register):
+            register(LoggerSpec(name="undo-logger", create=lambda options: None))
+
+    with temporary_plugin(Plugin(), name="undo-logger-plugin"):
+        assert host.logger("undo-logger").name == "undo-logger"
+        assert {"mlflow", "tensorboard"} <= set(host.loggers())
+    assert "undo-logger" not in host.loggers()
+
+
 def test_hook_register_commands(host):
     from harness.plugins import temporary_plugin
 
@@ -248,7 +263,8 @@ def test_every_hook_is_documented_and_tested():
 
     hooks = sorted(n for n in dir(hookspecs) if hasattr(getattr(hookspecs, n), "harness_spec"))
     assert set(hooks) <= set(dir(pm.hook))
-    assert hooks == ["register_commands", "register_datasets", "register_detectors", "register_encodings"]
+    assert hooks == ["register_commands", "register_datasets", "register_detectors", "register_encodings",
+                     "register_loggers"]
     guide = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
     this_file = Path(__file__).read_text()
     for name in hooks:

@@ -47,9 +47,14 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
                   help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
     @click.option("--title", default=None, help="Title of the report.")
+    @click.option("--reference", default="ours", show_default=True,
+                  help="Detector compared with each other one in the paired comparisons (the most accurate when it "
+                       "was not run).")
+    @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
+                  help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
                    print_tables: bool, resamples: int, seed: int, workers: int, ablation_categories: str,
-                   title: str | None) -> None:
+                   title: str | None, reference: str, log_to: str | None = None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         \b
@@ -67,7 +72,8 @@ def register_commands(cli: click.Group) -> None:
         target = out or Path("reports") / Path(root).resolve().name
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
         report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples, seed=seed,
-                              ablation_categories=cats, title=title, progress=True, workers=workers)
+                              ablation_categories=cats, title=title, progress=True, workers=workers,
+                              reference=reference)
         if print_tables:
             click.echo(report.to_text())
             return
@@ -83,6 +89,11 @@ def register_commands(cli: click.Group) -> None:
             click.echo(fit_text("absent (see the report for the command that fills each): " + "; ".join(absent)))
         for path in report.files:
             click.echo(f"-> {path}")
+        if log_to:
+            from harness.tracking import log_report, parse_names
+
+            for problem in log_report(parse_names(log_to), root, report.files, report.title):
+                click.secho(problem, fg="red", err=True)
 
     @cli.command(name="compare-detectors")
     @click.argument("a")

@@ -32,10 +32,27 @@ def _common(f):
                      help="Results store root [default: results/<profile>]."),
         click.option("--force", is_flag=True, help="Redo runs that already finished."),
         click.option("--no-progress", is_flag=True, help="No progress bars (log lines only)."),
+        click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
+                     help="Also log runs to these trackers, e.g. mlflow,tensorboard (same as --set "
+                          "tracking.loggers=[...]; built in: tensorboard, mlflow)."),
     ]
+    f = _with_log_to(f)
     for option in reversed(options):
         f = option(f)
     return f
+
+
+def _with_log_to(f):
+    """``--log-to A,B`` becomes the override ``tracking.loggers=[A,B]`` appended to ``--set``."""
+    import functools
+
+    @functools.wraps(f)
+    def wrapper(*args, log_to=None, overrides=(), **kwargs):
+        from harness.tracking import log_to_overrides
+
+        return f(*args, overrides=(*overrides, *log_to_overrides(log_to)), **kwargs)
+
+    return wrapper
 
 
 @hookimpl

@@ -3,7 +3,8 @@ written as Markdown, CSV and one self-contained HTML page.
 
 The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
 table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
-and the C2 displacement table; then the cross-dataset table. A section whose data the store does not hold is kept
+and the C2 displacement table; then the cross-dataset table; last, the training curves of each dataset
+(``harness.report.curves``). A section whose data the store does not hold is kept
 and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
 loud label (and the list of differences) in every format.
 
@@ -13,6 +14,7 @@ Output folder (``out``)::
     tidy.csv                                    every number as one long-format record, with its support
     csv/<table>.csv                             each table, wide, raw numbers (fractions)
     figures/accuracy_vs_gflops.png / .svg       the figure
+    figures/training_curves_<dataset>.png / .svg
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
 from harness.report.collect import Entry, StoreView
+from harness.report.curves import curves_section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
 from harness.report.tables import (
@@ -45,6 +48,9 @@ from harness.report.document import FigureOut, Report, Section
 from harness.store import Store
 
 log = logging.getLogger(__name__)
+
+#: the detector whose entry the paired comparisons hold against every other detector's
+REFERENCE = "ours"
 
 FORMATS = ("md", "csv", "html")
 #: Bootstrap resamples per paired comparison in a report (``harness compare-detectors`` defaults to 1000).
@@ -137,7 +143,9 @@ def _pareto_labels(dataset: str, rows: Sequence[Entry]) -> set[str] | None:
 
 
 def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamples: int, seed: int, progress: Any,
-                    workers: int = 1) -> tuple[Section, list[PairedComparison]]:
+                    workers: int = 1, reference: str | None = REFERENCE) -> tuple[Section, list[PairedComparison]]:
+    """Paired comparisons: the ``reference`` detector's main entry against every other detector's (the most accurate
+    entry when the reference was not run), then, within one detector, its best encoding against the others."""
     sec = Section("paired", "Paired comparisons", dataset)
     entries = view.entries(dataset)
     pairs: list[tuple[Entry, Entry]] = []
@@ -147,7 +155,7 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamp
         return max(candidates, key=lambda e: (e.aggregate()["metrics"].get("mAP50_95") or {}).get("mean") or -1.0)
 
     if len(rows) >= 2:
-        ref = best(rows)
+        ref = next((e for e in rows if e.detector == reference), None) or best(rows)
         pairs += [(ref, e) for e in rows if e is not ref]
     by_det: dict[str, list[Entry]] = {}
     for e in entries:
@@ -219,7 +227,8 @@ def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[st
 
 
 def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
-                     progress: Any = None, workers: int = 1) -> tuple[list[Section], list[PairedComparison]]:
+                     progress: Any = None, workers: int = 1,
+                     reference: str | None = REFERENCE) -> tuple[list[Section], list[PairedComparison]]:
     """The sections of one dataset (see the module docstring for the order)."""
     root = view.root
     entries = view.entries(dataset)
@@ -257,7 +266,7 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
     sections.append(sec)
 
-    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
+    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
     sections.append(sec)
 
     sensing = [_sensing_section(
@@ -336,11 +345,12 @@ class _Progress:
 def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,
                  formats: Sequence[str] = FORMATS, resamples: int = REPORT_RESAMPLES, seed: int = 0,
                  ablation_categories: Sequence[str] = ABLATION_CATEGORIES, title: str | None = None,
-                 progress: bool = False, workers: int = 1) -> Report:
+                 progress: bool = False, workers: int = 1, reference: str | None = REFERENCE) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
-    differences only); ``workers``: processes for the bootstrap. Returns the ``Report`` (its ``files`` lists what was
+    differences only); ``workers``: processes for the bootstrap; ``reference``: the detector compared with each
+    other one (the most accurate when absent). Returns the ``Report`` (its ``files`` lists what was
     written).
     """
     bad = [f for f in formats if f not in FORMATS]
@@ -366,11 +376,12 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
                     environment={"python": platform.python_version(), "machine": platform.machine()})
     with _Progress(progress) as bar:
         for ds in chosen:
-            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers)
+            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers, reference)
             report.sections += sections
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
     report.sections.append(_cross_section(view, chosen))
+    report.sections += [curves_section(view, ds, out_dir) for ds in chosen]  # diagnostics, after the results
     report.problems = list(view.problems)
     if out_dir is not None:
         report.files += write_report(report, out_dir, formats)
