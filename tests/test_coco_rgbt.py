@@ -290,18 +290,24 @@ def test_image_without_a_group_or_with_an_escaping_path_is_a_counted_skip(pairs,
     assert len(ds) == 10 and _skips(ds) == {"no group": 1, "path outside the dataset root": 1}
 
 
-def test_unreadable_and_non_finite_thermal_are_counted_skips(pairs, tmp_path):
+def test_unreadable_and_mostly_missing_thermal_are_counted_skips_a_few_holes_are_kept(pairs, tmp_path):
     import tifffile
 
     (pairs / "thermal" / "000.png").write_bytes(b"not a png")
-    t = temperature(1)
-    t[3, 3] = np.nan
-    tifffile.imwrite(pairs / "thermal" / "001.tif", t)
+    holed = temperature(1)
+    holed[3, 3], holed[5, 7] = np.nan, np.inf
+    tifffile.imwrite(pairs / "thermal" / "001.tif", holed)
+    mostly = temperature(2)
+    mostly[: mostly.shape[0] * 3 // 4] = np.nan
+    tifffile.imwrite(pairs / "thermal" / "002.tif", mostly)
     coco = read_json(pairs)
     coco["images"][1]["thermal_file_name"] = "thermal/001.tif"
+    coco["images"][2]["thermal_file_name"] = "thermal/002.tif"
     write_json(pairs, coco)
     ds = _prepare(pairs, tmp_path / "c")
     assert _skips(ds) == {"thermal unreadable": 1, "non-finite temperatures": 1}
+    missing = ds.manifest["report"]["missing_temperatures"]
+    assert missing["samples"] == 1 and missing["pixels"] == 2  # the holed frame is kept, its two holes counted
 
 
 @pytest.mark.parametrize("content, message", [

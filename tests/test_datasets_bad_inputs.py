@@ -79,13 +79,20 @@ def test_thermal_size_mismatch_is_a_counted_skip(tiny, tmp_path):
     assert "80x64, expected 160x128" in ds.manifest["report"]["skipped_files"][0][1]
 
 
-def test_nan_temperatures_are_a_counted_skip(tiny, tmp_path):
+def test_a_few_missing_temperatures_are_kept_and_counted_mostly_missing_is_a_counted_skip(tiny, tmp_path):
     _, thermal = _first_pair(tiny)
     temp = np.full((128, 160), 21.5, np.float32)
     temp[10:12, 20:30] = np.nan
     thermal.unlink()
     np.save(thermal.with_suffix(".npy"), temp)
     ds = _prepare(tiny, tmp_path / "c")
+    assert len(ds) == 8 and not _skips(ds)
+    missing = ds.manifest["report"]["missing_temperatures"]
+    assert missing["samples"] == 1 and missing["pixels"] >= 20  # undistortion may widen the holes
+
+    temp[:100] = np.nan
+    np.save(thermal.with_suffix(".npy"), temp)
+    ds = _prepare(tiny, tmp_path / "d")
     assert len(ds) == 7 and _skips(ds) == {"non-finite temperatures": 1}
 
 

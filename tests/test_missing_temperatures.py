@@ -93,3 +93,39 @@ def test_registration_structure_ignores_missing_temperatures():
     assert np.isfinite(s_holed).all()
     assert (s_holed[3:12, 3:12] == 0).all()  # no structure invented at the hole
     assert np.allclose(s_holed[:, 30:], s_clean[:, 30:], atol=1e-6)  # the real edges are untouched
+
+
+def test_a_float_tiff_with_masked_pixels_reads_them_as_missing(tmp_path):
+    """A float TIFF another tool exported with NaN/inf holes, and a PNG whose sidecar names a nodata value: the holes
+    come back as NaN (counted), the other pixels unchanged; a file of mostly holes is an error naming it."""
+    import cv2
+
+    from harness.sensing.radiometry import read_thermal, write_thermal
+
+    rng = np.random.default_rng(3)
+    t = (25 + rng.normal(0, 1.0, (H, W))).astype(np.float32)
+    holes = t.copy()
+    holes[3, 4], holes[10, 11], holes[20, 30] = np.nan, np.inf, -np.inf
+    assert cv2.imwrite(str(tmp_path / "holes.tif"), holes)
+    got, info = read_thermal(tmp_path / "holes.tif")
+    bad = ~np.isfinite(holes)
+    assert info["missing"] == 3 and np.isnan(got[bad]).all() and np.array_equal(got[~bad], t[~bad])
+
+    png = write_thermal(tmp_path / "masked.png", t, unit="centikelvin")
+    side = png.with_name(png.name + ".json")
+    import json
+
+    meta = json.loads(side.read_text())
+    raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    raw[0, :5] = 0
+    assert cv2.imwrite(str(png), raw)
+    side.write_text(json.dumps({**meta, "nodata": 0}))
+    got, info = read_thermal(png)
+    assert info["nodata"] == 5 and info["missing"] == 5 and np.isnan(got[0, :5]).all()
+    assert np.isfinite(got[1:]).all()
+
+    mostly = np.full((H, W), np.nan, np.float32)
+    mostly[:2] = 20.0
+    assert cv2.imwrite(str(tmp_path / "mostly.tif"), mostly)
+    with pytest.raises(DataError, match="mostly.tif"):
+        read_thermal(tmp_path / "mostly.tif")

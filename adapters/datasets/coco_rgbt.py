@@ -332,9 +332,15 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     else:
         raise SkipPair(f"thermal unreadable: {path.name}: unsupported pixel type {arr.dtype}")
     finite = np.isfinite(temp)
-    if not finite.all():
-        raise SkipPair(f"non-finite temperatures: {int((~finite).sum())} pixel(s) of {path.name}")
-    lo, hi = float(temp.min()), float(temp.max())
+    if not finite.all():  # a few missing pixels stay NaN, left out downstream; mostly missing is a counted skip
+        from harness.sensing.c2 import valid_mask
+
+        try:
+            valid_mask(temp, path.name)
+        except HarnessError as exc:
+            raise SkipPair(f"non-finite temperatures: {exc}") from None
+        temp = np.where(finite, temp, np.float32(np.nan))
+    lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
     if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
         raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
                        "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")

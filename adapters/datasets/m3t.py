@@ -580,9 +580,7 @@ class M3TSource:
             if "NaN" in str(exc) or "infinite" in str(exc):
                 raise SkipPair(f"non-finite temperatures: {exc}") from None
             raise SkipPair(f"thermal unreadable: {exc}") from None
-        if not np.isfinite(temp).all():
-            raise SkipPair(f"non-finite temperatures: {int((~np.isfinite(temp)).sum())} pixel(s)")
-        return temp, info
+        return temp, info  # a few missing pixels stay NaN (read_thermal refuses a map of mostly missing ones)
 
     def _expected_thermal_size(self) -> tuple[int, int] | None:
         return self.manifest.thermal_size
@@ -704,10 +702,28 @@ def _find_partner(folder: Path, stem: str) -> Path | None:
 
 
 def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:
-    """An 8-bit rendering of a temperature map: a percentile stretch (``low``..``high``) to 0..255."""
-    lo, hi = np.percentile(temp, [low, high])
+    """An 8-bit rendering of a temperature map: a percentile stretch (``low``..``high``) to 0..255, over the measured
+    pixels; a missing one (NaN or inf) shows the median's level, like ``linear16``."""
+    finite = np.isfinite(temp)
+    if finite.all():
+        lo, hi = np.percentile(temp, [low, high])
+    else:
+        lo, hi = np.percentile(temp[finite], [low, high])
+        temp = np.where(finite, temp, np.median(temp[finite]))
     scale = 255.0 / max(float(hi - lo), 1e-3)
     return np.clip(np.rint((temp - lo) * scale), 0, 255).astype(np.uint8)
+
+
+def _check_missing(temp: np.ndarray, path: Path) -> None:
+    """A map may miss a few temperatures (they stay NaN and are left out downstream); one of mostly missing ones, or
+    none measured, is a counted skip naming the file."""
+    if not np.isfinite(temp).all():
+        from harness.sensing.c2 import valid_mask
+
+        try:
+            valid_mask(temp, path.name)
+        except HarnessError as exc:
+            raise SkipPair(f"non-finite temperatures: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------------------ raw alignment
@@ -859,8 +875,7 @@ class RawAligner:
         tpath = src.thermal_partner(rec)
         rgb = src._read_rgb(src.base / rec.file_name)
         temp, ir8, info = self.read_thermal(tpath)
-        if not np.isfinite(temp).all():
-            raise SkipPair(f"non-finite temperatures: {int((~np.isfinite(temp)).sum())} pixel(s) are NaN or infinite")
+        _check_missing(temp, tpath)
         th, tw = temp.shape
         if self.thermal_size is None:
             self.thermal_size = (tw, th)

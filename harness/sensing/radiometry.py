@@ -459,7 +459,9 @@ def read_thermal(path: str | Path, decoder: str = "auto",
       decides (uint16 centi-Kelvin, int16 deci-Celsius, float Celsius) and implausible values are refused.
 
     ``info``: ``unit``, ``scale``, ``offset``, ``dtype``, ``format``, ``params`` (measurement parameters when
-    known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value, kept as they are); for R-JPEGs also
+    known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value), ``missing`` (pixels returned as NaN: the
+    nodata ones and any NaN or infinite value; more than ``c2.MAX_INVALID_FRACTION`` of them is an error naming the
+    file, fewer are treated as missing by C2 and every analysis); for R-JPEGs also
     ``decoder`` (the route taken: ``dji`` or ``blackbody``), ``decoder_note`` (why blackbody) and, for ``dji``,
     ``correction`` (the parameters applied and the table's summary). ``unit``/``scale``/``offset`` describe the
     raw counts for the blackbody route (``C = raw14 / 16 - 273.15``) and plain Celsius for the corrected one.
@@ -490,17 +492,22 @@ def read_thermal(path: str | Path, decoder: str = "auto",
         scale, offset = UNITS[unit]
     temp = (arr.astype(np.float64) * scale + offset).astype(np.float32)
     nodata_value = side.get("nodata") if side else None
-    nodata = int((arr == nodata_value).sum()) if nodata_value is not None else 0
-    finite = np.isfinite(temp)
-    if not finite.all():
-        raise DataError(f"{path}: {int((~finite).sum())} NaN or infinite temperature value(s)")
+    masked = arr == nodata_value if nodata_value is not None else np.zeros(arr.shape, bool)
+    nodata = int(masked.sum())
+    # masked pixels (the sidecar's nodata value, NaN or inf in a float file) are missing: NaN, never a temperature
+    missing = masked | ~np.isfinite(temp)
+    if missing.any():
+        from harness.sensing.c2 import valid_mask
+
+        temp[missing] = np.nan
+        valid_mask(temp, str(path))  # no valid pixel, or too many missing: an error naming the file
     if side is None:
-        lo, hi = float(temp.min()), float(temp.max())
+        lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
         if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
             raise DataError(f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
                             f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
     info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
-            "params": dict(side.get("params", {})) if side else {}, "nodata": nodata,
+            "params": dict(side.get("params", {})) if side else {}, "nodata": nodata, "missing": int(missing.sum()),
             "sidecar": side.get("_path") if side else None}
     return temp, info
 
