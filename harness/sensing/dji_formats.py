@@ -83,3 +83,26 @@ def original_raw(words: np.ndarray, fmt: str) -> np.ndarray:
     shifted left by 2), the words as stored for the other layouts."""
     words = np.asarray(words, dtype=np.uint16)
     return (words >> 2).astype(np.uint16) if fmt == "iirp" else words.copy()
+
+
+def read_original_raw(path: str | Path) -> tuple[str, str, np.ndarray]:
+    """(format, EXIF model, ``dirp_get_original_raw``) of any DJI R-JPEG, including the layouts whose
+    temperatures are refused (hirp, girp); a file without the APP3 payload of its frame is a ``DataError``."""
+    from harness.sensing import jpeg
+
+    path = Path(path)
+    layout = jpeg.read_segments(jpeg._read_bytes(path), path, require_eoi=False)
+    exif: dict = {}
+    for payload in layout.payloads(jpeg.APP1):
+        exif = jpeg.parse_exif(payload)
+        if exif:
+            break
+    model = str(exif.get("Model") or "").strip()
+    app4 = layout.payloads(jpeg.APP4)
+    fmt = detect(app4[0] if app4 else None, model)
+    raw = b"".join(layout.payloads(jpeg.APP3))
+    w, h = layout.width, layout.height
+    if len(raw) != w * h * 2:
+        raise DataError(f"{path}: radiometric payload (APP3) holds {len(raw)} bytes, expected {w * h * 2} for "
+                        f"{w}x{h} 16-bit words ({model or 'unnamed camera'}, format {fmt or 'unknown'!r})")
+    return fmt, model, original_raw(np.frombuffer(raw, dtype="<u2").reshape(h, w), fmt)
