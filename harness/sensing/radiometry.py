@@ -1,5 +1,7 @@
 """Radiometric decoding: DJI M3T R-JPEGs and decoded temperature maps, to temperature in degrees C.
 
+Other DJI cameras: ``dji_formats`` tells the layouts apart; H20T (dirp) files are decoded by ``dji_dirp``.
+
 DJI M3T R-JPEG ("iirp" family: M3T, M30T, M3TD, H20N, H30T, M4T, Mavic 2 Enterprise Advanced), as laid out in the
 file (see ``docs/sensing.md``)::
 
@@ -195,7 +197,9 @@ class RJpeg:
 
 def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
-    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring).
+    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring). A dirp (H20T) file
+    is read by ``dji_dirp`` (``fmt == "dirp"``, corrected route only); other layouts are refused with the camera
+    model and the format named (``dji_formats.UnsupportedFormat``).
 
     ``raw14 = (APP3 words, little-endian uint16) >> 2``. A file that is not a JPEG, has no radiometric payload
     (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it;
