@@ -155,7 +155,8 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     rj = read_rjpeg(source, options.decoder)
     t, info = rjpeg_temperature(rj, dict(options.overrides))
     used = info.get("correction", rj.params)
-    route = ("dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
+    route = ("dji: dirp curve, corrected (emissivity, reflected)" if rj.fmt == "dirp"
+             else "dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
              else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
     params = exact_params(data, source, layout) or dict(rj.params)
     target.parent.mkdir(parents=True, exist_ok=True)
