@@ -1,7 +1,7 @@
 """Other DJI thermal cameras than the M3T: H20T (dirp) and M2EA (iirp without the APP4 tag) decode like DJI's
 Thermal SDK; layouts whose temperatures need tables or code the file does not carry (hirp, the M4T's
 emissivity re-mapping) are refused with the camera model and the format named; the correction's lookup table
-gives the same float32 values as the per-value correction."""
+gives the same float32 values as the per-value correction; the M3T dataset adapter reads these files too."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from harness.sensing import dji_formats, jpeg
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
 
 from conftest import SHARED
+from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 
 CAMERAS = SHARED / "data" / "dji-rjpeg-cameras"
 M3T = SHARED / "data" / "dji-m3t-rjpeg"
@@ -124,3 +125,15 @@ def test_temperatures_past_the_filled_table_rows_are_missing_not_invented():
     out = dc.correct_raw14(raw, table, p["emissivity"], p["distance"], p["humidity"], p["reflected"],
                            p["atmosphere"])
     assert np.isfinite(out[0, 0]) and np.isnan(out[0, 1])
+
+
+@needs_cameras
+def test_m3t_dataset_adapter_reads_other_cameras_thermal(tiny_source):
+    from adapters.datasets.m3t import RawAligner, SkipPair, open_m3t
+
+    aligner = RawAligner(open_m3t(tiny_source))
+    temp, ir8, info = aligner.read_thermal(CAMERAS / "h20t_dirp.jpg")
+    assert info["decoder"] == "dji" and ir8.shape == temp.shape == (512, 640)
+    np.testing.assert_array_equal(temp, np.load(CAMERAS / "h20t_dirp_reference.npz")["temp_c"])
+    with pytest.raises(SkipPair, match="camera 'M3TD', DJI R-JPEG format 'hirp'"):
+        aligner.read_thermal(CAMERAS / "m3td_hirp_b.jpg")
