@@ -171,10 +171,10 @@ def test_other_dji_formats_are_refused(tmp_path):
     data = bytearray(write_rjpeg(tmp_path / "ok.jpg", _temperature()).read_bytes())
     layout = jpeg.read_segments(bytes(data))
     app4 = [s for s in layout.segments if s.marker == jpeg.APP4][0]
-    data[app4.offset + 8:app4.offset + 12] = b"dirp"
-    other = tmp_path / "h20t.jpg"
+    data[app4.offset + 8:app4.offset + 12] = b"girp"
+    other = tmp_path / "m30t.jpg"
     other.write_bytes(bytes(data))
-    with pytest.raises(DataError, match="'dirp' is not supported"):
+    with pytest.raises(DataError, match="camera 'M3T', DJI R-JPEG format 'girp': temperatures are not decoded"):
         read_rjpeg(other)
 
 

@@ -83,8 +83,9 @@ def register_commands(cli: click.Group) -> None:
 
         By default the temperature is DJI Thermal SDK's corrected one (emissivity, reflected temperature,
         atmospheric transmission from the file's APP5 table) at the file's measurement parameters or the ones
-        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody. Every
-        readable file is decoded; the failures are listed at the end (exit status 1 when any).
+        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody. Cameras:
+        M3T and the other iirp models, M2EA, H20T (dirp); docs/sensing.md has the table. Every readable file is
+        decoded; the failures are listed at the end, naming camera and format where unknown (exit status 1).
         """
         from harness.sensing.batch import DecodeOptions, decode_batch, format_failures
         from harness.textable import text_table as _table

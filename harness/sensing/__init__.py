@@ -5,6 +5,8 @@ module             what it does
 =================  ==========================================================================================
 ``radiometry``     DJI M3T R-JPEG decoding (APP3 raw14, APP4 parameters, APP5 correction), decoded files + sidecars
 ``dji_correction`` DJI Thermal SDK correction of iirp temperatures (emissivity, reflection, APP5 tau table)
+``dji_dirp``       DJI dirp (Zenmuse H20T) R-JPEGs: calibration block and curve to temperatures
+``dji_formats``    which DJI R-JPEG layout a file uses (by EXIF model and APP4 tag); refusals naming both
 ``calibration``    checkerboard calibration per sensor, ``CameraModel`` YAML, undistortion without black borders
 ``registration``   RGB->thermal homographies: landmarks, similarity parameters, automatic (ECC on edges), groups
 ``warp``           RGB warped into the thermal frame, common support, boxes carried through H, ``align_pair``

@@ -109,7 +109,7 @@ def exact_params(data: bytes, name: str | Path, layout: Any = None) -> dict[str,
     """The five APP4 measurement parameters as stored (float32), each the shortest decimal that reads back to
     the same float32; humidity in % (stored as a fraction). Empty when the file has no iirp APP4 block.
     ``layout``: the file's ``jpeg.read_segments`` result, when already at hand."""
-    from harness.sensing import jpeg
+    from harness.sensing import dji_dirp, jpeg
     from harness.sensing.radiometry import APP4_MAGIC
 
     layout = layout or jpeg.read_segments(data, name, require_eoi=False)
@@ -117,6 +117,8 @@ def exact_params(data: bytes, name: str | Path, layout: Any = None) -> dict[str,
     if not app4:
         return {}
     payload = app4[0]
+    if dji_dirp.is_dirp_block(payload):  # H20T: the block's own parameters (the decoder's ``params``)
+        return {}
     base = 32 if payload.startswith(APP4_MAGIC) else 0
     if base and payload[4:8].split(b"\x00", 1)[0] != b"iirp":
         return {}
@@ -153,7 +155,8 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     rj = read_rjpeg(source, options.decoder)
     t, info = rjpeg_temperature(rj, dict(options.overrides))
     used = info.get("correction", rj.params)
-    route = ("dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
+    route = ("dji: dirp curve, corrected (emissivity, reflected)" if rj.fmt == "dirp"
+             else "dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
              else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
     params = exact_params(data, source, layout) or dict(rj.params)
     target.parent.mkdir(parents=True, exist_ok=True)

@@ -154,11 +154,21 @@ class TauTable:
     humidity: int
     reflection: bool
     max_distance: float
+    valid_rows: int = 0  # leading temperature rows holding Q14 values (0: all rows)
+
+    @property
+    def valid_below_k(self) -> float:
+        """Target temperatures (K) at or above this need rows past ``valid_rows`` (inf when all rows are valid)."""
+        if not self.valid_rows or self.valid_rows >= len(self.temps_k):
+            return math.inf
+        return float(self.temps_k[self.valid_rows - 1])
 
     def summary(self) -> dict[str, Any]:
+        rows = self.valid_rows or len(self.temps_k)
         return {"table_version": self.version, "shape": list(self.tau.shape), "humidity_version": self.humidity,
-                "separate_reflection": self.reflection, "tau_range": [int(self.tau.min()), int(self.tau.max())],
-                "max_distance_m": self.max_distance}
+                "separate_reflection": self.reflection, "tau_range": [int(self.tau[:rows].min()),
+                                                                      int(self.tau[:rows].max())],
+                "max_distance_m": self.max_distance, "valid_up_to_c": round(self.valid_below_k - KELVIN, 2)}
 
 
 def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "<APP5>") -> TauTable:
@@ -179,11 +189,7 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     old = ((format_version - 0x100) & 0xFFFFFEFF) == 0
     size = OLD_TABLE_BYTES if old else TABLE_BYTES
     max_distance = 25.0 if old or struct.unpack_from("<H", head, 2)[0] <= 0x3F else 300.0
-    if len(payload) < HEADER_BYTES + size:
-        raise DataError(f"{name}: APP5 holds {len(payload) - HEADER_BYTES} table bytes after its header, expected "
-                        f"{size:#x} for APP4 format version {format_version:#x}; the transmission table is cut "
-                        "short (decode the file with the blackbody decoder)")
-    words = np.frombuffer(payload[:HEADER_BYTES + size], dtype="<u2")
+    words = np.frombuffer(payload[:(min(len(payload), HEADER_BYTES + size) // 2) * 2], dtype="<u2")
     h = words[:HEADER_BYTES // 2]
     if h[2] == 0xFFFF and h[3] == 0xFFFF:
         version, ems_on, hum_on, hum_ver, refl_on, refl_ver = (int(h[k]) for k in (1, 4, 6, 7, 10, 11))
@@ -202,15 +208,22 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     temps, dists = tau_axes(version)
     n = len(temps) * len(dists)
     if table.size < n:
-        raise DataError(f"{name}: APP5 table version {version:#x} needs {len(temps)}x{len(dists)} words, the "
-                        f"segment holds {table.size}")
+        raise DataError(f"{name}: APP5 holds {table.size} table words, table version {version:#x} needs "
+                        f"{len(temps)}x{len(dists)} = {n} (APP4 format version {format_version:#x}); the "
+                        "transmission table is cut short (decode the file with the blackbody decoder)")
     tau = table[:n].reshape(len(temps), len(dists)).copy()
-    if tau.min() < 1 or tau.max() > Q14:
+    # Some cameras (M2EA) fill only the rows up to their measuring range; the rest of the read holds other data.
+    # Those rows are never used for temperatures below them; temperatures that would use them come out NaN.
+    good = ((tau >= 1) & (tau <= Q14)).all(axis=1)
+    valid_rows = len(temps) if good.all() else int(np.argmin(good))
+    if valid_rows < 2:
         raise DataError(f"{name}: APP5 transmission values span {int(tau.min())}..{int(tau.max())}, outside the "
-                        f"Q14 range 1..{Q14}; the table is damaged (decode the file with the blackbody decoder)")
+                        f"Q14 range 1..{Q14} from the first rows on; the table is damaged (decode the file with "
+                        "the blackbody decoder)")
     tau.flags.writeable = False
     return TauTable(tau=tau, temps_k=temps, distances_m=dists, version=version, humidity=hum,
-                    reflection=refl_on == 1, max_distance=max_distance)
+                    reflection=refl_on == 1, max_distance=max_distance,
+                    valid_rows=0 if valid_rows == len(temps) else valid_rows)
 
 
 # ---------------------------------------------------------------------------------------------- maths
@@ -327,13 +340,46 @@ def correct_temperature(t0_c: Any, table: TauTable, emissivity: float, distance_
         raise ConfigError(f"emissivity {emissivity} is too small to correct for")
     t0 = np.asarray(t0_c, dtype=F32)
     values, inverse = np.unique(t0, return_inverse=True)
+    out = _correct_values(values, table, emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
+    return out[inverse.reshape(-1)].reshape(t0.shape)
+
+
+def _correct_values(values: np.ndarray, table: TauTable, emissivity: float, distance_m: float,
+                    humidity_pct: float, reflected_c: float, atmosphere_c: float) -> np.ndarray:
+    """The two-pass correction of the blackbody temperatures ``values`` (1-D float32), element by element."""
     refl = reflected_c if table.reflection else None
     t1 = radiance_balance(values, interpolate_tau(table, values, distance_m), emissivity, atmosphere_c, refl)
     tau2 = humidity_adjusted_tau(interpolate_tau(table, t1, distance_m), t1, humidity_pct / 100.0, atmosphere_c,
                                  distance_m, table.humidity)
     tau2 = np.maximum(tau2, 1.0)  # a zero transmission leaves nothing to measure; keep the division defined
     out = radiance_balance(values, tau2, emissivity, atmosphere_c, refl)
-    return out[inverse.reshape(-1)].reshape(t0.shape)
+    limit = table.valid_below_k
+    if limit < math.inf:
+        unusable = (_kelvin(values) >= limit) | (_kelvin(t1) >= limit)
+        if unusable.any():
+            out = np.where(unusable, np.float32(np.nan), out).astype(F32)
+    return out
+
+
+def correct_raw14(raw14: Any, table: TauTable, emissivity: float, distance_m: float,
+                  humidity_pct: float, reflected_c: float, atmosphere_c: float) -> np.ndarray:
+    """``correct_temperature`` of the blackbody temperatures ``raw14 / 16 - 273.15`` by a lookup table.
+
+    A raw count is an integer, so the correction is evaluated once for each count between the frame's smallest
+    and largest (a few hundred for a facade scene) and the frame indexes that table: the same float32 values as
+    ``correct_temperature``, without sorting the frame. Temperatures the table cannot correct are NaN.
+    """
+    if not emissivity >= 1e-4:
+        raise ConfigError(f"emissivity {emissivity} is too small to correct for")
+    raw = np.asarray(raw14)
+    if raw.size == 0:
+        return np.zeros(raw.shape, dtype=F32)
+    lo, hi = int(raw.min()), int(raw.max())
+    counts = np.arange(lo, hi + 1, dtype=np.float64)
+    t0 = (counts / 16.0 - KELVIN).astype(F32)  # the blackbody temperature, as ``radiometry.raw14_to_celsius``
+    lut = _correct_values(t0, table, emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
+    index = raw.astype(np.intp, copy=False) - lo if lo else raw
+    return lut[index]
 
 
 def deci_celsius(temperature_c: np.ndarray) -> np.ndarray:

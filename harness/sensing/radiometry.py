@@ -1,5 +1,7 @@
 """Radiometric decoding: DJI M3T R-JPEGs and decoded temperature maps, to temperature in degrees C.
 
+Other DJI cameras: ``dji_formats`` tells the layouts apart; H20T (dirp) files are decoded by ``dji_dirp``.
+
 DJI M3T R-JPEG ("iirp" family: M3T, M30T, M3TD, H20N, H30T, M4T, Mavic 2 Enterprise Advanced), as laid out in the
 file (see ``docs/sensing.md``)::
 
@@ -42,7 +44,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.errors import ConfigError, DataError
-from harness.sensing import dji_correction, jpeg
+from harness.sensing import dji_correction, dji_dirp, dji_formats, jpeg
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +54,7 @@ COUNTS_PER_K = 16.0
 IIRP_TAG = b"iirp"
 APP4_MAGIC = b"\xff\xd2\xd1\xff"
 #: EXIF models whose R-JPEGs use the iirp layout (used when APP4 carries no format tag).
-IIRP_MODELS = ("M3T", "M30T", "M3TD", "ZH20N", "H30T", "M4T", "MAVIC2-ENTERPRISE-ADVANCED")
+IIRP_MODELS = dji_formats.IIRP_MODELS
 PARAM_KEYS = ("ambient", "distance", "emissivity", "humidity", "reflected")
 #: Measurement parameters of the public M3T samples; used by ``write_rjpeg`` when none are given.
 DEFAULT_PARAMS: dict[str, float] = {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
@@ -103,6 +105,8 @@ class RJpeg:
     tau_table: dji_correction.TauTable | None = None
     decoder: str = "blackbody"
     decoder_note: str = ""
+    fmt: str = "iirp"  # the DJI layout (``dji_formats``): iirp, or dirp (then ``dirp`` holds its calibration)
+    dirp: dji_dirp.DirpCalibration | None = None
 
     @property
     def temperature_c(self) -> np.ndarray:
@@ -112,6 +116,9 @@ class RJpeg:
 
     def blackbody_c(self) -> np.ndarray:
         """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW): emissivity 1, no atmosphere."""
+        if self.fmt != "iirp":
+            raise DataError(f"{self.path}: {self.exif.get('Model', 'this camera')} ({self.fmt}) raw counts are "
+                            "not blackbody counts; only the corrected temperature (decoder 'auto' or 'dji') exists")
         return raw14_to_celsius(self.raw14)
 
     @property
@@ -132,6 +139,8 @@ class RJpeg:
         table = self.tau_table
         given = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected,
                  "ambient": ambient}
+        if self.fmt == "dirp":
+            return dji_dirp.measurement_params(given)
         over = dji_correction.check_overrides(given, table.max_distance if table else 25.0)
         if "ambient" in over and self.pre_v0300:
             raise ConfigError(f"{self.path}: this file's format (APP4 version {self.header.get('version', 0x100):#x}) "
@@ -153,13 +162,16 @@ class RJpeg:
         the given overrides (emissivity 0.1-1, distance m, humidity %, reflected C; ``ambient`` C only for v0300
         formats). Equations: ``harness.sensing.dji_correction``. A ``DataError`` when the file has no usable
         transmission table (``decoder_note`` says why)."""
+        if self.dirp is not None:
+            p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
+            return dji_dirp.measure(self.raw14, self.dirp, p, self.path)
         if self.tau_table is None:
             raise DataError(f"{self.path}: no atmospheric-transmission table to correct with"
                             f"{' (' + self.decoder_note + ')' if self.decoder_note else ''}; "
                             "use the blackbody temperature (decoder 'blackbody')")
         p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
-        return dji_correction.correct_temperature(self.blackbody_c(), self.tau_table, p["emissivity"],
-                                                  p["distance"], p["humidity"], p["reflected"], p["atmosphere"])
+        return dji_correction.correct_raw14(self.raw14, self.tau_table, p["emissivity"], p["distance"],
+                                            p["humidity"], p["reflected"], p["atmosphere"])
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
         """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
@@ -185,7 +197,9 @@ class RJpeg:
 
 def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
-    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring).
+    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring). A dirp (H20T) file
+    is read by ``dji_dirp`` (``fmt == "dirp"``, corrected route only); other layouts are refused with the camera
+    model and the format named (``dji_formats.UnsupportedFormat``).
 
     ``raw14 = (APP3 words, little-endian uint16) >> 2``. A file that is not a JPEG, has no radiometric payload
     (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it;
@@ -202,14 +216,15 @@ def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
         if exif:
             break
     app4 = layout.payloads(jpeg.APP4)
+    model = str(exif.get("Model") or "").strip()
+    fmt = dji_formats.detect(app4[0] if app4 else None, model)
+    if fmt not in dji_formats.DECODED:
+        raise dji_formats.refusal(path, fmt, model)
+    if fmt == "dirp":
+        return _read_dirp(path, layout, exif, model, decoder)
     header, params = parse_app4(app4[0], path) if app4 else ({}, {})
-    tag = header.get("format")
-    if tag is not None and tag != "iirp":
-        raise DataError(f"{path}: DJI radiometric format {tag!r} is not supported; only the iirp family "
-                        f"({', '.join(IIRP_MODELS)}) is decoded")
-    if tag is None and exif.get("Model") and str(exif["Model"]).upper() not in IIRP_MODELS:
-        raise DataError(f"{path}: camera model {exif['Model']!r} does not write iirp R-JPEGs; "
-                        f"supported models: {', '.join(IIRP_MODELS)}")
+    if app4 and "format" not in header:  # no tag (M2EA): the SDK reads the table as format version 0x100
+        header["version"] = 0x100
     chunks = layout.payloads(jpeg.APP3)
     if not chunks:
         raise DataError(f"{path}: no radiometric payload (APP3 segments): this is a plain JPEG, not a DJI R-JPEG; "
@@ -233,6 +248,24 @@ def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     return rj
 
 
+def _read_dirp(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, decoder: str) -> RJpeg:
+    """A dirp (class D, H20T) file: raw words from APP3, calibration from APP4, curve from APP5."""
+    if decoder == "blackbody":
+        raise DataError(f"{path}: camera {model or 'unknown'!r} writes DJI's dirp format, whose raw counts are not "
+                        "blackbody counts; use decoder 'auto' or 'dji'")
+    app5 = layout.payloads(jpeg.APP5)
+    cal = dji_dirp.parse(layout.payloads(jpeg.APP4)[0], app5[0] if app5 else None, path)
+    raw = b"".join(layout.payloads(jpeg.APP3))
+    w, h = layout.width, layout.height
+    if len(raw) != w * h * 2:
+        raise DataError(f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
+                        "16-bit words; the file is damaged")
+    words = np.frombuffer(raw, dtype="<u2").reshape(h, w)
+    header = {"format": "dirp", "version": cal.header_version, "width": w, "height": h}
+    return RJpeg(path=path, raw14=dji_formats.original_raw(words, "dirp"), params=dict(cal.stored_params),
+                 exif=exif, header=header, decoder="dji", fmt="dirp", dirp=cal)
+
+
 def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str) -> None:
     """Set ``rj.tau_table`` and ``rj.decoder`` from the file's first APP5 payload (``decoder`` auto or dji)."""
     note = ""
@@ -244,9 +277,12 @@ def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str) -> None:
         try:
             rj.tau_table = dji_correction.parse_app5(app5[0], rj.header.get("version", 0x100), rj.path)
         except dji_correction.UnsupportedCorrection as exc:
+            model = rj.exif.get("Model", "unnamed camera")
+            text = f"{model} (iirp, APP4 format version {rj.header.get('version', 0x100):#x}): " + \
+                str(exc).removeprefix(f"{rj.path}: ")
             if decoder == "dji":
-                raise
-            note = str(exc).removeprefix(f"{rj.path}: ")
+                raise dji_correction.UnsupportedCorrection(f"{rj.path}: {text}") from None
+            note = text
     if rj.tau_table is None:
         if decoder == "dji":
             raise DataError(f"{rj.path}: cannot apply DJI's correction: {note}; use decoder 'blackbody'")
@@ -437,8 +473,9 @@ def rjpeg_temperature(rj: RJpeg, overrides: Mapping[str, float | None] | None = 
                             "header": rj.header, "nodata": 0}
     if rj.decoder == "dji":
         temp = rj.corrected_c(**over)
+        table = rj.dirp if rj.dirp is not None else rj.tau_table
         info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32",
-                    correction={**rj.correction_params(**over), **rj.tau_table.summary()})  # type: ignore[union-attr]
+                    correction={**rj.correction_params(**over), **table.summary()})  # type: ignore[union-attr]
         return temp, info
     if over:
         raise DataError(f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file is "
