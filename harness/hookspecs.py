@@ -32,7 +32,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import click
 
     from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
-    from harness.tracking import LoggerSpec
+    from harness.tracking.spec import LoggerSpec
 
 PROJECT = "harness"
 

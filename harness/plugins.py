@@ -33,7 +33,7 @@ import pluggy
 from harness import hookspecs
 from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
 from harness.errors import PluginError, UnknownNameError
-from harness.tracking import LoggerSpec
+from harness.tracking.spec import LoggerSpec
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.cache",
     "adapters.datasets.m3t",
     "adapters.datasets.synthetic",
+    "adapters.datasets.synth_command",
     "adapters.detectors.ours",
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",

@@ -1,10 +1,12 @@
-"""``harness synth``: the synthetic generator's command, registered by the ``m3t-synth`` plugin itself."""
+"""``harness synth``: the synthetic generator's command, a plugin of its own beside the ``m3t-synth`` dataset."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import click
+
+from harness.hookspecs import hookimpl
 
 
 def add_synth_command(cli: click.Group) -> None:
@@ -31,3 +33,8 @@ def add_synth_command(cli: click.Group) -> None:
         click.echo("images per project: " + ", ".join(f"{p} {n}" for p, n in s.images.items()))
         click.echo(f"inspection groups: {len(s.groups)}")
         click.echo(s.table())
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    add_synth_command(cli)

@@ -1497,13 +1497,6 @@ def open_synthetic(root: str | Path | None = None, profile: str = "small", seed:
 
 
 @hookimpl
-def register_commands(cli: Any) -> None:
-    from adapters.datasets.synth_command import add_synth_command
-
-    add_synth_command(cli)
-
-
-@hookimpl
 def register_datasets(register: Any) -> None:
     from adapters.datasets.m3t import M3T_CATEGORIES
 

@@ -171,8 +171,8 @@ def _draw(ax: Any, curve: Curve, color: str, label: str, scale: float = 1.0) -> 
 
 
 def curves_section(view: Any, dataset: str, out: Path | None) -> Any:
-    """The report section of ``dataset``'s training curves (a ``harness.report.build.Section``)."""
-    from harness.report.build import FigureOut, Section
+    """The report section of ``dataset``'s training curves (a ``harness.report.document.Section``)."""
+    from harness.report.document import FigureOut, Section
 
     sec = Section("curves", "Training curves", dataset)
     curves, problems = collect(view, dataset)
