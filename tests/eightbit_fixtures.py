@@ -104,7 +104,8 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
     """Write ``M3FD_Detection/{Annotation,Ir,Vis}`` under ``root``; return the boxes per frame number.
 
     Frame 120 is 72x40 (per-image sizes); class names are written with the dataset's capitals and, once, with a
-    trailing space and lower case.
+    trailing space and lower case. The XMLs hold 1-based inclusive pixel indices, as labelImg writes them; the
+    returned boxes are the 0-based corners of the drawn blobs.
     """
     rng = np.random.default_rng(seed)
     sizes = {120: (72, 40), **(sizes or {})}
@@ -120,21 +121,23 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
         cv2.imwrite(str(base / "Vis" / f"{stem}.png"), vis)
         cv2.imwrite(str(base / "Ir" / f"{stem}.png"), cv2.merge([th, th, th]))
         names = [M3FD_NAMES[c] if not (k == 1 and j == 0) else f"{M3FD_NAMES[c].lower()} " for j, (*_, c) in enumerate(objs)]
+        # labelImg's convention: 1-based inclusive pixel indices (pixels x .. x+bw-1 are written x+1 .. x+bw)
         write_voc(base / "Annotation" / f"{stem}.xml", f"{stem}.png", w, h,
-                  [(nm, x, y, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
+                  [(nm, x + 1, y + 1, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
         expected[n] = [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs]
     return expected
 
 
-def write_voc(path: Path, filename: str, w: int, h: int, objects) -> None:
+def write_voc(path: Path, filename: str, w: int, h: int, objects, folder: str = "M3FD") -> None:
+    """A labelImg-style VOC XML; ``objects`` are ``(name, xmin, ymin, xmax, ymax[, difficult])`` as written."""
     obj_xml = "".join(
         f"  <object>\n    <name>{name}</name>\n    <pose>Unspecified</pose>\n    <truncated>0</truncated>\n"
-        f"    <difficult>0</difficult>\n    <bndbox>\n      <xmin>{x0}</xmin>\n      <ymin>{y0}</ymin>\n"
-        f"      <xmax>{x1}</xmax>\n      <ymax>{y1}</ymax>\n    </bndbox>\n  </object>\n"
-        for name, x0, y0, x1, y1 in objects
+        f"    <difficult>{int(bool(rest[0])) if rest else 0}</difficult>\n    <bndbox>\n      <xmin>{x0}</xmin>\n"
+        f"      <ymin>{y0}</ymin>\n      <xmax>{x1}</xmax>\n      <ymax>{y1}</ymax>\n    </bndbox>\n  </object>\n"
+        for name, x0, y0, x1, y1, *rest in objects
     )
     path.write_text(
-        f"<annotation>\n  <folder>M3FD</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
+        f"<annotation>\n  <folder>{folder}</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
         f"    <height>{h}</height>\n    <depth>3</depth>\n  </size>\n{obj_xml}</annotation>\n"
     )
 
