@@ -38,8 +38,11 @@ def _frame_boxes(rng: np.random.Generator, w: int, h: int, n: int) -> list[tuple
 
 
 def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_seqs=("DJI_0101_1",), frames: int = 3,
-                    size: tuple[int, int] = (64, 48), split_files: bool = True, seed: int = 0) -> dict:
+                    size: tuple[int, int] = (64, 48), split_files: bool = True, seed: int = 0, flat: bool = False) -> dict:
     """Write ``images/``, ``annotations_coco/`` and ``data_split/`` under ``root``; return what was written.
+
+    ``flat=True`` writes what unzipping the three release archives into ``root`` gives: the sequence folders, the
+    JSON files and the split lists side by side (the archives have no top-level folder).
 
     The visible and thermal JSONs number images differently (thermal 1, 2, ...; visible 5000 + reversed order),
     list the categories in a shuffled order with the official 0-based ids, and their boxes differ: the visible boxes
@@ -48,6 +51,8 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
     rng = np.random.default_rng(seed)
     w, h = size
     root = Path(root)
+    images, annotations, splits = (root, root, root) if flat else (root / "images", root / "annotations_coco",
+                                                                  root / "data_split")
     cats = [{"id": i, "name": n} for i, n in enumerate(RGBT_CLASSES)]
     cats = [cats[i] for i in (3, 0, 6, 1, 5, 2, 4)]
     expected: dict = {"frames": {}, "thermal_boxes": {}, "visible_boxes": {}}
@@ -61,7 +66,7 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
                 objs = _frame_boxes(rng, w, h, 2)
                 vis, th = _draw(h, w, [o[:4] for o in objs], rng)
                 for m, img in (("00", vis), ("01", th)):
-                    p = root / "images" / seq / m / f"{frame}.jpg"
+                    p = images / seq / m / f"{frame}.jpg"
                     p.parent.mkdir(parents=True, exist_ok=True)
                     cv2.imwrite(str(p), img if m == "00" else cv2.merge([img, img, img]), [cv2.IMWRITE_JPEG_QUALITY, 95])
                 t_boxes = [(float(x), float(y), float(bw), float(bh), c) for x, y, bw, bh, c in objs]
@@ -83,12 +88,12 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
         # visible images listed in reverse order, as another tool might write them
         docs["00"]["images"].reverse()
         for m in ("00", "01"):
-            p = root / "annotations_coco" / f"instances_{m}_{split}2017.json"
+            p = annotations / f"instances_{m}_{split}2017.json"
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_text(json.dumps(docs[m], indent=1))
         if split_files:
-            d = root / "data_split"
-            d.mkdir(exist_ok=True)
+            d = splits
+            d.mkdir(parents=True, exist_ok=True)
             (d / f"{split}.txt").write_text("".join(f"{s}/00/{fr}\n" for s, fr in keys))
             for m in ("00", "01"):
                 (d / f"{m}_{split}.txt").write_text("".join(f"{s}/{m}/{fr}\n" for s, fr in keys))
