@@ -2,7 +2,7 @@
 written as Markdown, CSV and one self-contained HTML page.
 
 The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
-table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
+table, the object sizes (boxes per SAFit size bin, ``report/sizes.py``), the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
 and the C2 displacement table; then the cross-dataset table. A section whose data the store does not hold is kept
 and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
 loud label (and the list of differences) in every format.
@@ -345,6 +345,13 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
     else:
         sec.tables.append(table)
+    sections.append(sec)
+
+    from harness.report.sizes import size_tables
+
+    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset))
+    if not sec.tables:
+        sec.absent = f"no finished run of {dataset} stored its ground truth (gt.json); fill with {run_cmd}."
     sections.append(sec)
 
     sec = Section("ablation", "Encoding ablation", dataset)
