@@ -57,6 +57,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
     "adapters.datasets.coco_rgbt",
+    "adapters.datasets.llvip",
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",
