@@ -58,6 +58,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.m3fd",
     "adapters.datasets.coco_rgbt",
     "adapters.datasets.llvip",
+    "adapters.datasets.flir_aligned",
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",
