@@ -79,7 +79,8 @@ def test_one_class_variant_and_option_errors(release, tmp_path, monkeypatch):
     assert sorted(s.meta["frame"] for s in samples) == persons_only  # a car or bicycle id is out of range
     assert report.summary()["skip_reasons"] == {"malformed labels": 5 - len(persons_only)}
     one = next(s for s in samples if s.meta["frame"] == "FLIR_00002")
-    np.testing.assert_allclose(one.boxes, [[30, 24, 50, 40]]) and one.labels.tolist() == [0]
+    np.testing.assert_allclose(one.boxes, [[30, 24, 50, 40]])
+    assert one.labels.tolist() == [0]
     monkeypatch.delenv(flir_aligned.ROOT_ENV, raising=False)
     with pytest.raises(DataError, match="missing visible, infrared"):
         flir_aligned.open_flir_aligned(tmp_path / "FLIR-align-3class" / "visible")
