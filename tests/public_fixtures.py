@@ -78,3 +78,29 @@ def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int =
                 (folder / "labels" / f"{name}.txt").write_text("\n".join(lines) + "\n")
             expected[n] = (boxes["visible"], boxes["infrared"])
     return expected
+
+
+def write_flir_release(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0) -> dict:
+    """Write the authors' release layout ``align/{JPEGImages,Annotations}`` + ``align_{train,validation}.txt`` with
+    the same frames and the same thermal boxes as ``write_flir_aligned(seed=seed)``; VOC XMLs of the thermal image in
+    labelImg's 1-based inclusive convention. Returns what ``write_flir_aligned`` returns."""
+    import shutil
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        expected = write_flir_aligned(Path(tmp), size=size, seed=seed)
+        src = Path(tmp) / "FLIR-align-3class"
+        base = Path(root) / "align"
+        (base / "JPEGImages").mkdir(parents=True, exist_ok=True)
+        (base / "Annotations").mkdir(parents=True, exist_ok=True)
+        w, h = size
+        for split, numbers in FLIR_FRAMES.items():
+            for n in numbers:
+                for modality, name in (("visible", f"FLIR_{n}_RGB.jpg"), ("infrared", f"FLIR_{n}_PreviewData.jpeg")):
+                    shutil.copy(src / modality / split / "images" / name, base / "JPEGImages" / name)
+                write_voc(base / "Annotations" / f"FLIR_{n}_PreviewData.xml", f"FLIR_{n}_PreviewData.jpeg", w, h,
+                          [(FLIR_CLASSES[c], x1 + 1, y1 + 1, x2, y2) for x1, y1, x2, y2, c in expected[n][1]],
+                          folder="JPEGImages")
+            listing = "align_train.txt" if split == "train" else "align_validation.txt"
+            (base / listing).write_text("".join(f"FLIR_{n}_PreviewData\n" for n in numbers))
+    return expected

@@ -96,3 +96,39 @@ def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
     cfg = load_config(protocol="flir-aligned", overrides=[f"dataset.root={root}"])
     ds = prepare("flir-aligned", cfg, cache_root=tmp_path / "cache", progress=False)
     assert len(ds) == 5 and ds.manifest["instances"] == 15 and sorted(set(ds.groups)) == ["test", "train"]
+
+
+# ------------------------------------------------------------------ the authors' release layout (align/, VOC)
+def test_release_layout_gives_the_thermal_boxes_of_the_yolo_layout(tmp_path):
+    from public_fixtures import write_flir_release
+
+    write_flir_release(tmp_path / "release")
+    write_flir_aligned(tmp_path / "yolo")
+    release = flir_aligned.open_flir_aligned(tmp_path / "release")
+    assert release.layout == "release" and release.labels == "infrared" and release.root.name == "align"
+    (a, ra), (b, _) = collect(release), collect(flir_aligned.open_flir_aligned(tmp_path / "yolo", labels="infrared"))
+    assert not ra.skipped and len(a) == len(b) == 5
+    for s, t in zip(a, b):
+        assert (s.group, s.meta["frame"]) == (t.group, t.meta["frame"]) and s.labels.tolist() == t.labels.tolist()
+        np.testing.assert_allclose(s.boxes, t.boxes, atol=1e-3)
+        np.testing.assert_array_equal(s.ir8, t.ir8)
+    assert any("(xmin - 1, ymin - 1, xmax, ymax)" in n for n in ra.notes)
+    assert [f.name for f in release.folds()] == ["test"]
+    with pytest.raises(ConfigError, match="set dataset.labels=infrared"):
+        flir_aligned.open_flir_aligned(tmp_path / "release", labels="visible")
+
+
+def test_release_layout_missing_list_or_frame_and_unknown_class(tmp_path):
+    from eightbit_fixtures import write_voc
+    from public_fixtures import write_flir_release
+
+    write_flir_release(tmp_path)
+    base = tmp_path / "align"
+    (base / "JPEGImages" / "FLIR_00003_RGB.jpg").unlink()
+    write_voc(base / "Annotations" / "FLIR_08863_PreviewData.xml", "x.jpeg", 80, 64, [("dog", 1, 1, 9, 9)])
+    samples, report = collect(flir_aligned.open_flir_aligned(tmp_path))
+    assert len(samples) == 3
+    assert report.summary()["skip_reasons"] == {"missing visible frame": 1, "unknown class": 1}
+    (base / "align_validation.txt").rename(base / "val.txt")
+    with pytest.raises(DataError, match="split list align_validation.txt not found"):
+        flir_aligned.open_flir_aligned(tmp_path)

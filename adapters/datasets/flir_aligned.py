@@ -25,6 +25,17 @@ What the loader does:
   ``FLIR-align`` variant) gives the names of label ids 0, 1, ...
 * **The official split**: groups ``train`` and ``test``; the one fold ``test`` holds ``test`` out.
 * No radiometric thermal (``thermal=None``); ``ir8`` is the thermal image.
+
+The release as its authors distribute it (``align/``) is read too::
+
+    align/JPEGImages/FLIR_00002_RGB.jpg, FLIR_00002_PreviewData.jpeg     the pair, side by side
+    align/Annotations/FLIR_00002_PreviewData.xml                         Pascal VOC, labels of the thermal image
+    align/align_train.txt, align_validation.txt                          one name per line (also under
+                                                                         ImageSets/Main/); validation = test
+
+There the boxes come from the VOC XMLs of the thermal image (``labels: infrared``, the default for this layout)
+through the shared VOC reader (``voc_convention``, ``difficult``), and a class outside ``classes`` skips the pair
+(counted, ``unknown class``).
 """
 
 from __future__ import annotations
@@ -47,6 +58,7 @@ from adapters.datasets._eightbit import (
     resolve_root,
     stat_digest,
 )
+from adapters.datasets.voc import VocStats, normalise_convention, normalise_difficult, parse_voc, to_xyxy
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError
 from harness.hookspecs import hookimpl
@@ -65,10 +77,14 @@ FOLDER_NAMES = ("FLIR-align-3class", "FLIR-align", "FLIR_aligned", "FLIR-aligned
 _SUFFIX = re.compile(r"_(RGB|PreviewData)$", re.IGNORECASE)
 OPTIONS = {
     "root": f"FLIR-align-3class/ or the folder holding it (default: ${ROOT_ENV})",
-    "labels": "visible (default, as ICAFusion trains) or infrared: whose YOLO labels are the boxes",
+    "labels": "visible (default in ICAFusion's layout) or infrared (default and only choice in the release layout)",
     "classes": "names of the label ids 0, 1, ... (default person, car, bicycle)",
     "strict": "raise instead of skipping a pair that cannot be used (default false)",
+    "voc_convention": "release layout (align/) only: one-based (VOC, default) or zero-based VOC boxes",
+    "difficult": "release layout (align/) only: drop (default) or keep <difficult>1</difficult> boxes",
 }
+#: Split lists of the release layout, and the group each names.
+RELEASE_SPLITS = {"train": "align_train.txt", "test": "align_validation.txt"}
 ADAPTER_VERSION = 1
 
 
@@ -126,12 +142,18 @@ class FlirAlignedSource:
 
     name = DATASET
 
-    def __init__(self, root: Path, labels: str = "visible", classes: Sequence[str] = CATEGORIES, strict: bool = False):
+    def __init__(self, root: Path, labels: str = "visible", classes: Sequence[str] = CATEGORIES, strict: bool = False,
+                 voc_convention: str = "one-based", difficult: str = "drop"):
         self.root, self.labels, self.categories, self.strict = root, labels, tuple(classes), strict
+        self.voc_convention, self.difficult = voc_convention, difficult
+        #: "yolo" (ICAFusion's folders) or "release" (align/JPEGImages + Annotations)
+        self.layout = "release" if (root / "JPEGImages").is_dir() else "yolo"
         #: (split, key, visible image, infrared image)
         self.frames: list[tuple[str, str, Path, Path]] = []
         self.dropped: list[tuple[str, str]] = []
-        for split in SPLITS:
+        if self.layout == "release":
+            self._release_frames()
+        for split in SPLITS if self.layout == "yolo" else ():
             vis, ir = (_images(root / m / split) for m in MODALITIES)
             for key in sorted(set(vis) | set(ir)):
                 if key not in ir:
@@ -143,7 +165,8 @@ class FlirAlignedSource:
                     self.frames.append((split, key, vis[key], ir[key]))
         if not self.frames:
             raise DataError(f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
-                            f"visible/{{train,test}}/images/FLIR_<n>_RGB.jpg and infrared/.../FLIR_<n>_PreviewData.jpeg)")
+                            f"visible/{{train,test}}/images/FLIR_<n>_RGB.jpg and "
+                            f"infrared/.../FLIR_<n>_PreviewData.jpeg)")
         counts = {s: sum(f[0] == s for f in self.frames) for s in SPLITS}
         self.notes = [f"{counts['train']} train / {counts['test']} test pairs, {len(self.dropped)} dropped; "
                       f"boxes from the {labels} labels; classes {', '.join(self.categories)}"]
@@ -152,6 +175,31 @@ class FlirAlignedSource:
             if strict:
                 path, reason = self.dropped[0]
                 raise DataError(f"dataset {DATASET!r} (strict): {path}: {reason}")
+
+    def _release_frames(self) -> None:
+        if self.labels != "infrared":
+            raise ConfigError(f"dataset {DATASET!r}: {self.root} is the release layout (JPEGImages/, Annotations/), "
+                              f"whose labels belong to the thermal images; set dataset.labels=infrared")
+        images = self.root / "JPEGImages"
+        for split, name in RELEASE_SPLITS.items():
+            listed = [self.root / name, self.root / "ImageSets" / "Main" / name]
+            path = next((q for q in listed if q.is_file()), None)
+            if path is None:
+                raise DataError(f"dataset {DATASET!r}: split list {name} not found (looked for "
+                                f"{', '.join(str(q) for q in listed)})")
+            keys = [frame_key(Path(line.strip()).stem if "." in line.strip() else line.strip())
+                    for line in path.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()]
+            for key in keys:
+                vis, ir, xml = (images / f"{key}_RGB.jpg", images / f"{key}_PreviewData.jpeg",
+                                self.root / "Annotations" / f"{key}_PreviewData.xml")
+                if not ir.is_file():
+                    self.dropped.append((str(ir), f"missing infrared frame: {ir.name} not found ({name})"))
+                elif not vis.is_file():
+                    self.dropped.append((str(vis), f"missing visible frame: {vis.name} not found ({name})"))
+                elif not xml.is_file():
+                    self.dropped.append((str(xml), f"no annotation: Annotations/{xml.name} not found"))
+                else:
+                    self.frames.append((split, key, vis, ir))
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -163,10 +211,13 @@ class FlirAlignedSource:
         return [Fold("test", ("train",), ("test",))] if self.groups() == list(SPLITS) else []
 
     def _label_file(self, vis: Path, ir: Path) -> Path:
+        if self.layout == "release":
+            return self.root / "Annotations" / f"{ir.stem}.xml"
         return label_path(vis if self.labels == "visible" else ir)
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.labels, self.categories, self.strict]
+        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.labels, self.categories,
+                            self.strict, self.layout, self.voc_convention, self.difficult]
         parts += [(s, k, file_stat(v), file_stat(i), file_stat(self._label_file(v, i))) for s, k, v, i in self.frames]
         return stat_digest(parts)
 
@@ -176,6 +227,7 @@ class FlirAlignedSource:
         for note in self.notes:
             report.note(note)
         stats, unlabelled = BoxStats(), 0
+        self._voc = VocStats(self.voc_convention, self.difficult)
         try:
             for k, frame in enumerate(self.frames):
                 out = self._sample(k, frame, report)
@@ -187,6 +239,8 @@ class FlirAlignedSource:
             report.note(f"boxes: {stats.kept} kept, {stats.clipped} clipped to the frame, "
                         f"{stats.degenerate} dropped with no area inside the frame; {unlabelled} image(s) without a "
                         f"label file (no objects)")
+            if self.layout == "release":
+                report.note(self._voc.note())
 
     def _skip(self, report: PrepareReport, path: Path, reason: str) -> None:
         if self.strict:
@@ -209,12 +263,18 @@ class FlirAlignedSource:
             return None
         lab = self._label_file(vis_path, ir_path)
         missing = not lab.is_file()
-        try:
-            xyxy, labels = (np.zeros((0, 4)), np.zeros(0, np.int64)) if missing else parse_yolo(
-                lab, len(self.categories), w, h)
-        except DataError as exc:
-            self._skip(report, lab, f"malformed labels: {exc}")
-            return None
+        if self.layout == "release":
+            out = self._voc_boxes(lab, w, h, report)
+            if out is None:
+                return None
+            xyxy, labels = out
+        else:
+            try:
+                xyxy, labels = (np.zeros((0, 4)), np.zeros(0, np.int64)) if missing else parse_yolo(
+                    lab, len(self.categories), w, h)
+            except DataError as exc:
+                self._skip(report, lab, f"malformed labels: {exc}")
+                return None
         boxes, keep, clipped = clip_boxes(xyxy, w, h)
         sample = AlignedSample(
             image_id=k + 1, rgb=rgb, thermal=None, ir8=ir8, boxes=np.ascontiguousarray(boxes[keep]),
@@ -226,14 +286,35 @@ class FlirAlignedSource:
         return sample, BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum())), missing
 
 
+    def _voc_boxes(self, xml: Path, w: int, h: int, report: PrepareReport) -> tuple[np.ndarray, np.ndarray] | None:
+        try:
+            ann = parse_voc(xml)
+        except DataError as exc:
+            self._skip(report, xml, f"malformed annotation: {exc}")
+            return None
+        names = [c.lower() for c in self.categories]
+        unknown = sorted({o.name for o in ann.objects if o.name.strip().lower() not in names})
+        if unknown:
+            self._skip(report, xml, f"unknown class: {', '.join(map(repr, unknown))} is not one of "
+                                    f"{', '.join(self.categories)} (dataset.classes)")
+            return None
+        if ann.width and ann.height and (ann.width, ann.height) != (w, h):
+            self._skip(report, xml, f"size mismatch: <size> says {ann.width}x{ann.height}, images are {w}x{h}")
+            return None
+        self._voc.add(ann.objects)
+        objects = [o for o in ann.objects if not (o.difficult and self.difficult == "drop")]
+        labels = np.array([names.index(o.name.strip().lower()) for o in objects], np.int64)
+        return to_xyxy(objects, self.voc_convention), labels
+
+
 def find_root(root: str | Path | None) -> Path:
-    """Accept the dataset folder (holding ``visible/`` and ``infrared/``) or the folder that holds it."""
+    """Accept the dataset folder (ICAFusion's ``visible/`` + ``infrared/``, or the release's ``JPEGImages/`` +
+    ``Annotations/``) or the folder that holds it (``FLIR-align-3class/``, ``align/`` ...)."""
     path = resolve_root(root, ROOT_ENV, DATASET, ())
-    if all((path / m).is_dir() for m in MODALITIES):
-        return path
-    for name in FOLDER_NAMES:
-        if all((path / name / m).is_dir() for m in MODALITIES):
-            return path / name
+    layouts = (MODALITIES, ("JPEGImages", "Annotations"))
+    for folder in (path, *(path / n for n in (*FOLDER_NAMES, "align"))):
+        if any(all((folder / d).is_dir() for d in need) for need in layouts):
+            return folder
     return resolve_root(path, ROOT_ENV, DATASET, MODALITIES)  # raises, naming what is missing
 
 
@@ -244,16 +325,23 @@ def _classes(value: Any) -> tuple[str, ...]:
     return tuple(names)
 
 
-def open_flir_aligned(root: str | Path | None = None, labels: str = "visible", classes: Any = CATEGORIES,
-                      strict: bool = False) -> FlirAlignedSource:
-    """Open a FLIR-aligned copy (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
+def open_flir_aligned(root: str | Path | None = None, labels: str | None = None, classes: Any = CATEGORIES,
+                      strict: bool = False, voc_convention: str = "one-based",
+                      difficult: str = "drop") -> FlirAlignedSource:
+    """Open a FLIR-aligned copy (the options are the ``dataset:`` config keys, see ``OPTIONS``); ``labels``
+    defaults to ``visible`` in ICAFusion's layout and ``infrared`` in the release layout."""
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
+    path = find_root(root)
+    if labels is None:
+        labels = "infrared" if (path / "JPEGImages").is_dir() else "visible"
     side = str(labels).strip().lower()
     side = {"rgb": "visible", "ir": "infrared", "thermal": "infrared"}.get(side, side)
     if side not in MODALITIES:
         raise ConfigError(f"dataset {DATASET!r}: option 'labels' must be visible or infrared, got {labels!r}")
-    return FlirAlignedSource(find_root(root), labels=side, classes=_classes(classes), strict=strict)
+    return FlirAlignedSource(path, labels=side, classes=_classes(classes), strict=strict,
+                             voc_convention=normalise_convention(DATASET, voc_convention),
+                             difficult=normalise_difficult(DATASET, difficult))
 
 
 SPEC = DatasetSpec(

@@ -85,7 +85,8 @@ class LlvipSource:
             ir, vis = _index(root / "infrared" / split), _index(root / "visible" / split)
             for stem in sorted(set(ir) | set(vis)):
                 if stem not in ir:
-                    self.dropped.append((str(vis[stem]), f"missing infrared frame: infrared/{split}/{stem}.jpg not found"))
+                    self.dropped.append((str(vis[stem]),
+                                         f"missing infrared frame: infrared/{split}/{stem}.jpg not found"))
                 elif stem not in vis:
                     self.dropped.append((str(ir[stem]), f"missing visible frame: visible/{split}/{stem}.jpg not found"))
                 elif stem not in self.xml:
