@@ -17,7 +17,8 @@ What the loader does:
   ``Annotations/<stem>.xml``. A frame missing any of the three is a counted drop.
 * **Boxes through the shared VOC reader** (``adapters.datasets.voc``): 1-based inclusive pixel indices become
   ``(xmin - 1, ymin - 1, xmax, ymax)``; ``voc_convention`` and ``difficult`` as for M3FD. A class other than
-  ``person`` skips the pair (counted, ``unknown class``).
+  ``person`` skips the pair (counted, ``unknown class``). The authors' YOLO conversion script reads the integer
+  coordinates as written; ``voc_convention: zero-based`` reproduces those boxes.
 * **The official split**: the groups are the two folders ``train`` and ``test``; the one fold ``test`` trains on
   ``train`` and holds ``test`` out.
 * No radiometric thermal (``thermal=None``); ``ir8`` is the infrared image.
