@@ -2,7 +2,7 @@
 written as Markdown, CSV and one self-contained HTML page.
 
 The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
-table, the object sizes (boxes per SAFit size bin, ``report/sizes.py``), the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
+table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
 and the C2 displacement table; then the cross-dataset table. A section whose data the store does not hold is kept
 and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
 loud label (and the list of differences) in every format.
@@ -347,13 +347,6 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         sec.tables.append(table)
     sections.append(sec)
 
-    from harness.report.sizes import size_tables
-
-    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset))
-    if not sec.tables:
-        sec.absent = f"no finished run of {dataset} stored its ground truth (gt.json); fill with {run_cmd}."
-    sections.append(sec)
-
     sec = Section("ablation", "Encoding ablation", dataset)
     abl, notes = ablation_tables(view, dataset, ablation_categories)
     sec.tables += abl
@@ -362,6 +355,13 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
                       f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --fold F "
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
+    sections.append(sec)
+
+    from harness.report.sizes import size_tables
+
+    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset))
+    if not sec.tables:
+        sec.absent = f"no finished run of {dataset} stored its ground truth (gt.json); fill with {run_cmd}."
     sections.append(sec)
 
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers)
