@@ -14,6 +14,13 @@ def test_bins_are_the_safit_area_ranges_with_the_lower_edge_included():
     assert [bin_label(k) for k in range(5)] == ["ET <8", "T 8-16", "S 16-32", "M 32-96", "L >=96"]
 
 
+def test_bins_have_the_edges_the_safit_evaluation_scores():
+    safit = pytest.importorskip("harness.evaluation.safit")
+    ranges = [v for k, v in safit.TINY_AREA_RANGES.items() if k != "all"]
+    assert [lo for _, _, lo, _ in SIZE_BINS] == [lo for lo, _ in ranges]
+    assert [hi for _, _, _, hi in SIZE_BINS[:-1]] == [hi for _, hi in ranges[:-1]]
+
+
 def test_counts_per_category_and_bin_by_hand():
     s = SizeSummary(["car", "person"])
     s.add(np.array([[0, 0, 7, 9], [10, 10, 18, 18], [0, 0, 100, 100], [5, 5, 45, 30]]), np.array([0, 1, 1, 0]))
