@@ -49,8 +49,8 @@ def size_table(dataset: str, summary: SizeSummary, folds: list[str]) -> Table:
                                         category=row[0], unit="boxes", images=summary.images,
                                         instances=summary.total))
     table.notes.append(summary.headline() + ".")
-    table.notes.append("SAFit size bins on the box side sqrt(w*h) in px of the prepared frame (ET < 8 <= T < 16 <= S < 32 "
-                       "<= M < 96 <= L); the scored ground truth (gt.json) of each held-out fold, counted once.")
+    table.notes.append("SAFit bins on the box side sqrt(w*h), px of the prepared frame; each held-out fold's "
+                       "scored ground truth (gt.json) counted once.")
     return table
 
 
