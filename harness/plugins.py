@@ -60,6 +60,8 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "adapters.datasets.rgbt_tiny",
     "adapters.datasets.m3fd",
     "adapters.datasets.coco_rgbt",
+    "adapters.datasets.llvip",
+    "adapters.datasets.flir_aligned",
     "harness.commands.compare",
     "harness.commands.pretrain",
     "harness.commands.run",

@@ -38,8 +38,11 @@ def _frame_boxes(rng: np.random.Generator, w: int, h: int, n: int) -> list[tuple
 
 
 def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_seqs=("DJI_0101_1",), frames: int = 3,
-                    size: tuple[int, int] = (64, 48), split_files: bool = True, seed: int = 0) -> dict:
+                    size: tuple[int, int] = (64, 48), split_files: bool = True, seed: int = 0, flat: bool = False) -> dict:
     """Write ``images/``, ``annotations_coco/`` and ``data_split/`` under ``root``; return what was written.
+
+    ``flat=True`` writes what unzipping the three release archives into ``root`` gives: the sequence folders, the
+    JSON files and the split lists side by side (the archives have no top-level folder).
 
     The visible and thermal JSONs number images differently (thermal 1, 2, ...; visible 5000 + reversed order),
     list the categories in a shuffled order with the official 0-based ids, and their boxes differ: the visible boxes
@@ -48,6 +51,8 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
     rng = np.random.default_rng(seed)
     w, h = size
     root = Path(root)
+    images, annotations, splits = (root, root, root) if flat else (root / "images", root / "annotations_coco",
+                                                                  root / "data_split")
     cats = [{"id": i, "name": n} for i, n in enumerate(RGBT_CLASSES)]
     cats = [cats[i] for i in (3, 0, 6, 1, 5, 2, 4)]
     expected: dict = {"frames": {}, "thermal_boxes": {}, "visible_boxes": {}}
@@ -61,7 +66,7 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
                 objs = _frame_boxes(rng, w, h, 2)
                 vis, th = _draw(h, w, [o[:4] for o in objs], rng)
                 for m, img in (("00", vis), ("01", th)):
-                    p = root / "images" / seq / m / f"{frame}.jpg"
+                    p = images / seq / m / f"{frame}.jpg"
                     p.parent.mkdir(parents=True, exist_ok=True)
                     cv2.imwrite(str(p), img if m == "00" else cv2.merge([img, img, img]), [cv2.IMWRITE_JPEG_QUALITY, 95])
                 t_boxes = [(float(x), float(y), float(bw), float(bh), c) for x, y, bw, bh, c in objs]
@@ -83,12 +88,12 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
         # visible images listed in reverse order, as another tool might write them
         docs["00"]["images"].reverse()
         for m in ("00", "01"):
-            p = root / "annotations_coco" / f"instances_{m}_{split}2017.json"
+            p = annotations / f"instances_{m}_{split}2017.json"
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_text(json.dumps(docs[m], indent=1))
         if split_files:
-            d = root / "data_split"
-            d.mkdir(exist_ok=True)
+            d = splits
+            d.mkdir(parents=True, exist_ok=True)
             (d / f"{split}.txt").write_text("".join(f"{s}/00/{fr}\n" for s, fr in keys))
             for m in ("00", "01"):
                 (d / f"{m}_{split}.txt").write_text("".join(f"{s}/{m}/{fr}\n" for s, fr in keys))
@@ -104,7 +109,8 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
     """Write ``M3FD_Detection/{Annotation,Ir,Vis}`` under ``root``; return the boxes per frame number.
 
     Frame 120 is 72x40 (per-image sizes); class names are written with the dataset's capitals and, once, with a
-    trailing space and lower case.
+    trailing space and lower case. The XMLs hold 1-based inclusive pixel indices, as labelImg writes them; the
+    returned boxes are the 0-based corners of the drawn blobs.
     """
     rng = np.random.default_rng(seed)
     sizes = {120: (72, 40), **(sizes or {})}
@@ -120,21 +126,23 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
         cv2.imwrite(str(base / "Vis" / f"{stem}.png"), vis)
         cv2.imwrite(str(base / "Ir" / f"{stem}.png"), cv2.merge([th, th, th]))
         names = [M3FD_NAMES[c] if not (k == 1 and j == 0) else f"{M3FD_NAMES[c].lower()} " for j, (*_, c) in enumerate(objs)]
+        # labelImg's convention: 1-based inclusive pixel indices (pixels x .. x+bw-1 are written x+1 .. x+bw)
         write_voc(base / "Annotation" / f"{stem}.xml", f"{stem}.png", w, h,
-                  [(nm, x, y, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
+                  [(nm, x + 1, y + 1, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
         expected[n] = [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs]
     return expected
 
 
-def write_voc(path: Path, filename: str, w: int, h: int, objects) -> None:
+def write_voc(path: Path, filename: str, w: int, h: int, objects, folder: str = "M3FD") -> None:
+    """A labelImg-style VOC XML; ``objects`` are ``(name, xmin, ymin, xmax, ymax[, difficult])`` as written."""
     obj_xml = "".join(
         f"  <object>\n    <name>{name}</name>\n    <pose>Unspecified</pose>\n    <truncated>0</truncated>\n"
-        f"    <difficult>0</difficult>\n    <bndbox>\n      <xmin>{x0}</xmin>\n      <ymin>{y0}</ymin>\n"
-        f"      <xmax>{x1}</xmax>\n      <ymax>{y1}</ymax>\n    </bndbox>\n  </object>\n"
-        for name, x0, y0, x1, y1 in objects
+        f"    <difficult>{int(bool(rest[0])) if rest else 0}</difficult>\n    <bndbox>\n      <xmin>{x0}</xmin>\n"
+        f"      <ymin>{y0}</ymin>\n      <xmax>{x1}</xmax>\n      <ymax>{y1}</ymax>\n    </bndbox>\n  </object>\n"
+        for name, x0, y0, x1, y1, *rest in objects
     )
     path.write_text(
-        f"<annotation>\n  <folder>M3FD</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
+        f"<annotation>\n  <folder>{folder}</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
         f"    <height>{h}</height>\n    <depth>3</depth>\n  </size>\n{obj_xml}</annotation>\n"
     )
 

@@ -119,7 +119,7 @@ def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
               [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)])
     samples, report = collect(m3fd.open_m3fd(root))
     s = samples[0]
-    np.testing.assert_array_equal(s.boxes, [[0, 2, 20, 48]])
+    np.testing.assert_array_equal(s.boxes, [[0, 1, 20, 48]])  # (xmin - 1, ymin - 1, xmax, ymax), then clipped
     assert s.labels.tolist() == [m3fd.CATEGORIES.index("truck")]
     assert any("1 clipped to the frame, 1 dropped" in n for n in report.notes)
 
@@ -174,3 +174,79 @@ def test_prepared_manifest_records_the_split(release, tmp_path):
     assert fold == {"name": "val", "train_groups": ["00000-00099", "00100-00199"], "val_groups": ["00400-00499", "00900-00999"]}
     (resolved,) = resolve_folds("m3fd", ds, cfg)
     assert resolved.name == "val" and len(ds.indices(resolved.val_groups)) == 3
+
+
+# ------------------------------------------------------------------ the VOC pixel convention and the nine sizes
+#: The nine image sizes of the 4,200 M3FD pairs (width, height) and how many pairs have each.
+M3FD_SIZES = {(1024, 768): 3926, (880, 520): 49, (740, 400): 43, (780, 420): 41, (800, 480): 36, (480, 360): 34,
+              (440, 320): 32, (400, 280): 23, (440, 280): 16}
+
+
+def test_size_table_adds_up_to_the_release_and_is_documented():
+    assert sum(M3FD_SIZES.values()) == 4200
+    doc = (REPO / "docs" / "datasets.md").read_text()
+    for (w, h), n in M3FD_SIZES.items():
+        assert f"{w}x{h}" in doc and f"{n:,}" in doc, (w, h)
+
+
+def _one_pair(root: Path, w: int, h: int, objects) -> Path:
+    import cv2
+
+    base = root / "M3FD_Detection"
+    for d in ("Annotation", "Ir", "Vis"):
+        (base / d).mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(base / "Vis" / "00007.png"), np.full((h, w, 3), 90, np.uint8))
+    cv2.imwrite(str(base / "Ir" / "00007.png"), np.full((h, w), 40, np.uint8))
+    write_voc(base / "Annotation" / "00007.xml", "00007.png", w, h, objects)
+    return root
+
+
+@pytest.mark.parametrize("size", list(M3FD_SIZES), ids=[f"{w}x{h}" for w, h in M3FD_SIZES])
+def test_every_release_size_prepares_with_labelimg_edges(tmp_path, size):
+    """A labelImg box from pixel 1 to the last column/row covers the frame exactly: [0, y, W, y2]."""
+    w, h = size
+    root = _one_pair(tmp_path, w, h, [("Car", 1, 5, w, 20), ("People", 3, 1, 9, h), ("Lamp", 1, 1, w, h)])
+    (s,), report = collect(m3fd.open_m3fd(root))
+    validate_sample(s, num_classes=6)
+    assert (s.width, s.height) == (w, h) and not report.skipped
+    np.testing.assert_array_equal(s.boxes, [[0, 4, w, 20], [2, 0, 9, h], [0, 0, w, h]])
+    assert any("1-based inclusive" in n and "(xmin - 1, ymin - 1, xmax, ymax)" in n for n in report.notes)
+
+
+def test_fixture_boxes_follow_the_voc_rule_exactly(release):
+    """Every prepared box equals (xmin - 1, ymin - 1, xmax, ymax) of the XML on disk, with no clipping needed."""
+    import xml.etree.ElementTree as ET
+
+    root, _ = release
+    samples, _ = collect(m3fd.open_m3fd(root))
+    checked = 0
+    for s in samples:
+        xml = ET.parse(root / "M3FD_Detection" / s.meta["annotation"]).getroot()
+        want = [[float(o.findtext(f"bndbox/{t}")) - d for t, d in (("xmin", 1), ("ymin", 1), ("xmax", 0), ("ymax", 0))]
+                for o in xml.findall("object")]
+        assert s.boxes.tolist() == want
+        checked += len(want)
+    assert checked == 16
+
+
+def test_zero_based_option_reads_corners_as_written(tmp_path):
+    root = _one_pair(tmp_path, 64, 48, [("Car", 0, 5, 64, 20)])
+    (s,), report = collect(m3fd.open_m3fd(root, voc_convention="zero-based"))
+    np.testing.assert_array_equal(s.boxes, [[0, 5, 64, 20]])
+    assert any("0-based corners, as written" in n for n in report.notes)
+    with pytest.raises(ConfigError, match="voc_convention"):
+        m3fd.open_m3fd(root, voc_convention="two-based")
+
+
+def test_float_coordinates_and_difficult_boxes(tmp_path):
+    root = _one_pair(tmp_path, 64, 48, [("Car", 10.5, 5, 30.25, 20), ("Bus", 2, 2, 12, 12, 1)])
+    (s,), report = collect(m3fd.open_m3fd(root))
+    np.testing.assert_allclose(s.boxes, [[9.5, 4, 30.25, 20]])  # the difficult bus is out of targets and GT
+    assert s.labels.tolist() == [m3fd.CATEGORIES.index("car")]
+    note = next(n for n in report.notes if "VOC boxes" in n)
+    assert "2 boxes read, 1 with fractional coordinates; 1 difficult box(es) left out" in note
+    (kept,), _ = collect(m3fd.open_m3fd(root, difficult="keep"))
+    np.testing.assert_allclose(kept.boxes, [[9.5, 4, 30.25, 20], [1, 1, 12, 12]])
+    assert m3fd.open_m3fd(root).fingerprint() != m3fd.open_m3fd(root, difficult="keep").fingerprint()
+    with pytest.raises(ConfigError, match="'difficult' must be drop"):
+        m3fd.open_m3fd(root, difficult="ignore")

@@ -256,6 +256,42 @@ def test_root_from_environment_or_a_clear_error(release, monkeypatch, tmp_path):
         rgbt_tiny.open_rgbt_tiny(tmp_path)
 
 
+# ------------------------------------------------------------------ the two ways of unpacking the three archives
+def _sample_fields(samples):
+    return [(s.image_id, s.group, s.rgb.tobytes(), s.ir8.tobytes(), s.boxes.tobytes(), s.labels.tolist(), s.meta)
+            for s in samples]
+
+
+def test_flat_unzip_prepares_the_same_samples_as_the_folder_layout(tmp_path):
+    folders, flat = tmp_path / "folders", tmp_path / "flat"
+    assert write_rgbt_tiny(folders) == write_rgbt_tiny(flat, flat=True)
+    assert not (flat / "images").exists() and (flat / "instances_01_test2017.json").is_file()
+    assert (flat / "DJI_0001_1" / "01" / "00000.jpg").is_file() and (flat / "test.txt").is_file()
+    a, b = rgbt_tiny.open_rgbt_tiny(folders), rgbt_tiny.open_rgbt_tiny(flat)
+    assert (a.layout.kind, b.layout.kind) == ("folders", "flat")
+    (sa, ra), (sb, rb) = collect(a), collect(b)
+    assert len(sa) == 9 and _sample_fields(sa) == _sample_fields(sb)
+    assert a.folds() == b.folds() and not ra.skipped and not rb.skipped
+    assert not any("in no annotation file" in n for n in rb.notes)  # the flat root's other entries are not sequences
+    # the split lists beside the JSON files are still cross-checked
+    (flat / "train.txt").write_text("DJI_0101_1/00/00000\n")
+    with pytest.raises(DataError, match="train.txt: lists frames of sequence.*DJI_0101_1"):
+        rgbt_tiny.open_rgbt_tiny(flat)
+
+
+def test_unrecognised_layout_names_the_folders_and_the_unzip_commands(tmp_path):
+    root = tmp_path / "rgbt"
+    write_rgbt_tiny(root, train_seqs=("DJI_0001_1",), test_seqs=("DJI_0101_1",), frames=1)
+    (root / "annotations_coco").rename(root / "labels")
+    with pytest.raises(DataError) as err:
+        rgbt_tiny.open_rgbt_tiny(root)
+    text = str(err.value)
+    assert "missing annotations_coco" in text and "found: data_split, images, labels" in text
+    for archive in ("images", "annotations_coco", "data_split"):
+        assert f"unzip {archive}.zip -d {root / archive}" in text  # each archive into its own folder
+        assert text.count(f"unzip {archive}.zip -d {root}") == 2  # ... or all three into the root
+
+
 def test_registered_with_the_8bit_defaults(host):
     spec = host.dataset("rgbt-tiny")
     assert spec.thermal == "8bit" and spec.default_encoding == "proxy8" and spec.protocol == "rgbt-tiny"

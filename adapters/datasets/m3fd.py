@@ -8,8 +8,13 @@ Layout (``dataset.root`` or ``$HARNESS_M3FD`` points at ``M3FD_Detection/`` or a
 
 What the loader does, and why:
 
-* **Per-image sizes.** Most pairs are 1024x768 but not all (780x420, 740x400, 880x520 occur): every pair is read
-  at its own size and the ``<size>`` of its XML is checked against the images.
+* **Per-image sizes.** The 4,200 pairs come in nine sizes: 1024x768 (3,926 pairs), 880x520 (49), 740x400 (43),
+  780x420 (41), 800x480 (36), 480x360 (34), 440x320 (32), 400x280 (23) and 440x280 (16). Every pair is read at its
+  own size and the ``<size>`` of its XML is checked against the images.
+* **VOC pixel convention.** The XMLs were written by labelImg: 1-based inclusive pixel indices (``xmin`` is never
+  0, ``xmax`` reaches the image width). Boxes become ``(xmin - 1, ymin - 1, xmax, ymax)`` through the shared VOC
+  reader (``adapters.datasets.voc``); ``dataset.voc_convention: zero-based`` reads files known to hold 0-based
+  corners as written, and ``<difficult>`` boxes are left out (``dataset.difficult: keep`` keeps them).
 * **Six classes mapped by name** (case and surrounding spaces ignored), in our fixed order ``CATEGORIES``;
   projects disagree on the class order, so ids from elsewhere are never trusted. An XML naming any other class is
   a **counted skip of the whole pair** (reason ``unknown class``): dropping only that box would leave an unlabelled
@@ -28,9 +33,6 @@ What the loader does, and why:
 from __future__ import annotations
 
 import logging
-import math
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -46,6 +48,7 @@ from adapters.datasets._eightbit import (
     resolve_root,
     stat_digest,
 )
+from adapters.datasets.voc import VocStats, normalise_convention, normalise_difficult, parse_voc, to_xyxy
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError
 from harness.hookspecs import hookimpl
@@ -66,8 +69,10 @@ FOLD = "val"
 OPTIONS = {
     "root": f"M3FD_Detection/ or the folder holding it (default: ${ROOT_ENV})",
     "strict": "raise instead of skipping a pair that cannot be used (default false)",
+    "voc_convention": "one-based (VOC/labelImg pixel indices, default) or zero-based (corners taken as written)",
+    "difficult": "drop (left out of training and scoring, default) or keep <difficult>1</difficult> boxes",
 }
-ADAPTER_VERSION = 1
+ADAPTER_VERSION = 2
 
 
 def block_of(number: int) -> str:
@@ -88,50 +93,6 @@ def recorded_split(count: int = 4200) -> dict[str, list[str]]:
     return {"train": [g for g in groups if not is_val_block(g)], "val": [g for g in groups if is_val_block(g)]}
 
 
-@dataclass
-class VocAnnotation:
-    width: int | None
-    height: int | None
-    #: (name as written, xmin, ymin, xmax, ymax)
-    objects: list[tuple[str, float, float, float, float]]
-
-
-def parse_voc(path: Path) -> VocAnnotation:
-    """Read a Pascal-VOC XML; a malformed file or field is a ``DataError`` naming the file (and line/column)."""
-    try:
-        tree = ET.parse(path)
-    except ET.ParseError as exc:
-        line, col = exc.position
-        raise DataError(f"{path}: malformed XML at line {line} column {col + 1}") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
-    root = tree.getroot()
-
-    def number(node: ET.Element | None, tag: str, where: str) -> float:
-        text = node.findtext(tag) if node is not None else None
-        try:
-            value = float(str(text).strip())
-        except ValueError:
-            raise DataError(f"{path}: {where}: <{tag}> must be a number, got {text!r}") from None
-        if not math.isfinite(value):
-            raise DataError(f"{path}: {where}: <{tag}> is not finite")
-        return value
-
-    size = root.find("size")
-    width = height = None
-    if size is not None and size.findtext("width") not in (None, "") and size.findtext("height") not in (None, ""):
-        width, height = int(number(size, "width", "<size>")), int(number(size, "height", "<size>"))
-    objects = []
-    for i, obj in enumerate(root.findall("object")):
-        name = (obj.findtext("name") or "").strip()
-        box = obj.find("bndbox")
-        where = f"object {i} ({name or 'no name'})"
-        if box is None:
-            raise DataError(f"{path}: {where}: no <bndbox>")
-        objects.append((name, *(number(box, t, where) for t in ("xmin", "ymin", "xmax", "ymax"))))
-    return VocAnnotation(width, height, objects)
-
-
 def _index(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
     out: dict[str, Path] = {}
     for p in sorted(folder.iterdir()):
@@ -146,8 +107,9 @@ class M3fdSource:
     name = DATASET
     categories = CATEGORIES
 
-    def __init__(self, root: Path, strict: bool = False):
+    def __init__(self, root: Path, strict: bool = False, voc_convention: str = "one-based", difficult: str = "drop"):
         self.root, self.strict = root, strict
+        self.voc_convention, self.difficult = voc_convention, difficult
         self.xml = _index(root / "Annotation", (".xml",))
         self.ir = _index(root / "Ir", IMAGE_EXTS)
         self.vis = _index(root / "Vis", IMAGE_EXTS)
@@ -195,7 +157,8 @@ class M3fdSource:
         return [Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY]
+        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY,
+                            self.voc_convention, self.difficult]
         for s in self.stems:
             parts.append((s, file_stat(self.xml[s]), file_stat(self.ir[s]), file_stat(self.vis[s])))
         return stat_digest(parts)
@@ -206,9 +169,10 @@ class M3fdSource:
         for note in self.notes:
             report.note(note)
         stats, colour = BoxStats(), 0
+        voc = VocStats(self.voc_convention, self.difficult)
         try:
             for s in self.stems:
-                out = self._sample(s, report)
+                out = self._sample(s, report, voc)
                 if out is None:
                     continue
                 sample, box_stats, was_colour = out
@@ -218,6 +182,7 @@ class M3fdSource:
         finally:
             report.note(f"boxes: {stats.kept} kept, {stats.clipped} clipped to the frame, "
                         f"{stats.degenerate} dropped with no area inside the frame")
+            report.note(voc.note())
             if colour:
                 report.note(f"{colour} infrared image(s) were colour and were converted to luminance")
 
@@ -227,14 +192,14 @@ class M3fdSource:
         log.warning("M3FD: skipped %s (%s)", path, reason)
         report.skip(path, reason)
 
-    def _sample(self, stem: str, report: PrepareReport) -> tuple[AlignedSample, BoxStats, bool] | None:
+    def _sample(self, stem: str, report: PrepareReport, voc: VocStats) -> tuple[AlignedSample, BoxStats, bool] | None:
         xml_path = self.xml[stem]
         try:
             ann = parse_voc(xml_path)
         except DataError as exc:
             self._skip(report, xml_path, f"malformed annotation: {exc}")
             return None
-        unknown = sorted({name for name, *_ in ann.objects if name.strip().lower() not in CATEGORIES})
+        unknown = sorted({o.name for o in ann.objects if o.name.strip().lower() not in CATEGORIES})
         if unknown:
             self._skip(report, xml_path, f"unknown class: {', '.join(map(repr, unknown))} is not one of {', '.join(CATEGORIES)}")
             return None
@@ -251,8 +216,10 @@ class M3fdSource:
         if ann.width is not None and (ann.width, ann.height) != (w, h) and (ann.width, ann.height) != (0, 0):
             self._skip(report, xml_path, f"size mismatch: <size> says {ann.width}x{ann.height}, images are {w}x{h}")
             return None
-        xyxy = np.array([o[1:] for o in ann.objects], dtype=np.float64).reshape(-1, 4)
-        labels = np.array([CATEGORIES.index(o[0].strip().lower()) for o in ann.objects], dtype=np.int64)
+        voc.add(ann.objects)
+        objects = [o for o in ann.objects if not (o.difficult and self.difficult == "drop")]
+        xyxy = to_xyxy(objects, self.voc_convention)
+        labels = np.array([CATEGORIES.index(o.name.strip().lower()) for o in objects], dtype=np.int64)
         boxes, keep, clipped = clip_boxes(xyxy, w, h)
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum()))
         number = int(stem)
@@ -285,11 +252,13 @@ def find_root(root: str | Path | None) -> Path:
     return resolve_root(path, ROOT_ENV, DATASET, SUBDIRS)  # raises, naming what is missing
 
 
-def open_m3fd(root: str | Path | None = None, strict: bool = False) -> M3fdSource:
+def open_m3fd(root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based",
+              difficult: str = "drop") -> M3fdSource:
     """Open an M3FD detection release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
-    return M3fdSource(find_root(root), strict=strict)
+    convention, difficult = normalise_convention(DATASET, voc_convention), normalise_difficult(DATASET, difficult)
+    return M3fdSource(find_root(root), strict=strict, voc_convention=convention, difficult=difficult)
 
 
 SPEC = DatasetSpec(

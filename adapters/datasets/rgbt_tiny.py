@@ -8,6 +8,11 @@ Release layout (``dataset.root`` or ``$HARNESS_RGBT_TINY`` points at the folder 
     annotations_coco/instances_01_{train,test}2017.json    thermal ground truth (COCO)
     data_split/{train,test,00_train,...}.txt               optional frame lists (also accepted flattened in the root)
 
+The release ships three archives (``images.zip``, ``annotations_coco.zip``, ``data_split.zip``) that unpack without
+a top-level folder. Both ways of unpacking them are read (``find_layout``): each into its own folder
+(``unzip images.zip -d images`` ..., the tree above), or all three into one folder ("flat": the sequence folders,
+the ``instances_*.json`` files and the split lists side by side). Both give the same samples.
+
 What the loader does, and why:
 
 * **Pairs frames by file name** (``<SEQ>/00/<n>`` <-> ``<SEQ>/01/<n>``). The two modalities' JSON files number their
@@ -94,8 +99,56 @@ class FrameKey:
         return f"{self.sequence}/{self.frame}"
 
 
-def annotation_path(root: Path, modality: str, split: str) -> Path:
-    return root / "annotations_coco" / f"instances_{MODALITY_DIR[modality]}_{split}2017.json"
+def annotation_path(folder: Path, modality: str, split: str) -> Path:
+    """The annotation file of ``modality`` and ``split`` in ``folder`` (``annotations_coco/`` or a flat root)."""
+    return folder / f"instances_{MODALITY_DIR[modality]}_{split}2017.json"
+
+
+ARCHIVES = ("images", "annotations_coco", "data_split")
+
+
+def _has_annotations(folder: Path) -> bool:
+    return any(annotation_path(folder, m, s).is_file() for m in MODALITY_DIR for s in SPLITS)
+
+
+def _sequence_dirs(folder: Path) -> list[Path]:
+    """Sub-folders of ``folder`` that look like sequences (they hold a ``00`` or ``01`` folder)."""
+    if not folder.is_dir():
+        return []
+    return [p for p in sorted(folder.iterdir()) if p.is_dir() and any((p / d).is_dir() for d in DIR_MODALITY)]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where an unpacked release keeps its images and annotation files."""
+
+    images: Path
+    annotations: Path
+    #: "folders" (each archive in its own folder), "flat" (all three in one folder) or "mixed"
+    kind: str
+
+
+def find_layout(root: Path) -> Layout:
+    """The images and annotation folders of the release under ``root``, in either unpacked layout.
+
+    Raises ``DataError`` naming the folders expected and the ``unzip`` commands that produce them."""
+    images = root / "images" if (root / "images").is_dir() else (root if _sequence_dirs(root) else None)
+    annotations = root / "annotations_coco" if (root / "annotations_coco").is_dir() else (
+        root if _has_annotations(root) else None)
+    if images is None or annotations is None:
+        missing = [name for name, found in (("images", images), ("annotations_coco", annotations)) if found is None]
+        found = sorted(p.name for p in root.iterdir())[:12]
+        commands = "; ".join(f"unzip {a}.zip -d {root / a}" for a in ARCHIVES)
+        flat = "; ".join(f"unzip {a}.zip -d {root}" for a in ARCHIVES)
+        raise DataError(
+            f"dataset {DATASET!r}: {root} is not an unpacked RGBT-Tiny release: missing {', '.join(missing)} "
+            f"(found: {', '.join(found) or 'nothing'}). Expected either the folders images/<SEQ>/00|01/, "
+            f"annotations_coco/instances_0{{0,1}}_{{train,test}}2017.json and data_split/ ({commands}), or all three "
+            f"archives unzipped into one folder, with the sequence folders and the JSON files side by side ({flat}); "
+            f"point dataset.root or {ROOT_ENV} at that folder"
+        )
+    kind = {(True, True): "folders", (False, False): "flat"}.get((images != root, annotations != root), "mixed")
+    return Layout(images, annotations, kind)
 
 
 def parse_file_name(name: str) -> tuple[str, FrameKey, str]:
@@ -330,18 +383,20 @@ class RgbtTinySource:
     def __init__(self, root: Path, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
                  strict: bool = False):
         self.root = root
-        self.images_dir = root / "images"
+        self.layout = find_layout(root)
+        self.images_dir = self.layout.images
         self.gt = gt
         self.strides = {"train": train_stride, "test": test_stride}
         self.strict = strict
         self.notes: list[str] = []
-        missing = [annotation_path(root, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(root, m, s).is_file()]
+        ann = self.layout.annotations
+        missing = [annotation_path(ann, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(ann, m, s).is_file()]
         if missing:
             raise DataError(
                 f"dataset {DATASET!r}: annotation file(s) missing: {', '.join(str(p) for p in missing)}; the release "
                 f"ships annotations_coco/instances_{{00,01}}_{{train,test}}2017.json"
             )
-        self.coco = {(m, s): load_coco_file(annotation_path(root, m, s), m, s) for s in SPLITS for m in MODALITY_DIR}
+        self.coco = {(m, s): load_coco_file(annotation_path(ann, m, s), m, s) for s in SPLITS for m in MODALITY_DIR}
         self.pairing = {s: pair_frames(self.coco["visible", s], self.coco["thermal", s], self.images_dir) for s in SPLITS}
 
         seqs = {s: {p.key.sequence for p in self.pairing[s].pairs} for s in SPLITS}
@@ -387,12 +442,15 @@ class RgbtTinySource:
                 kept = sum(1 for p in self.pairs if p.split == s)
                 self.notes.append(f"{s}: every {self.strides[s]}th frame of each sequence kept ({kept} of {len(sp.pairs)} pairs); "
                                   f"not the official protocol")
+        self.notes.append({"folders": "layout: images/, annotations_coco/ and data_split/ folders",
+                           "flat": "layout: the three archives unzipped into one folder (flat)",
+                           "mixed": "layout: images and annotation files in different places (mixed)"}[self.layout.kind])
         src = self.gt
         self.notes.append(f"annotation source: {src} ({SOURCE_LABEL[src]}), from instances_{MODALITY_DIR[src]}_*2017.json")
         self._check_split_files()
         listed = {k.sequence for c in self.coco.values() for k in c.images}
         if self.images_dir.is_dir():
-            on_disk = {p.name for p in self.images_dir.iterdir() if p.is_dir()}
+            on_disk = {p.name for p in _sequence_dirs(self.images_dir)}
             extra = sorted(on_disk - listed)
             if extra:
                 self.notes.append(f"{len(extra)} sequence folder(s) under images/ are in no annotation file and are not used: "
@@ -520,7 +578,7 @@ class RgbtTinySource:
 def open_rgbt_tiny(root: str | Path | None = None, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
                    strict: bool = False) -> RgbtTinySource:
     """Open an RGBT-Tiny release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
-    path = resolve_root(root, ROOT_ENV, DATASET, ("images", "annotations_coco"))
+    path = resolve_root(root, ROOT_ENV, DATASET, ())
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
     return RgbtTinySource(

@@ -62,8 +62,11 @@ def prepare_summary(ds: Any) -> str:
                      f"{missing['samples']} sample(s)")
     for note in rep.get("notes", []):
         lines.append(f"note: {note}")
-    support = ds.support()
-    lines.append(format_table(["category", "instances"], [[c, n] for c, n in support["categories"].items()]))
+    from harness.summary import SizeSummary
+
+    sizes = SizeSummary.of_prepared(ds)
+    lines += [sizes.headline(), "boxes per category and size bin (SAFit bins, box side sqrt(w*h) in px):",
+              sizes.to_text()]
     return "\n".join(lines)
 
 

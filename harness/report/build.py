@@ -29,6 +29,7 @@ from harness.errors import HarnessError
 from harness.report.collect import Entry, StoreView
 from harness.report.curves import curves_section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
+from harness.report.sizes import size_tables
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
 from harness.report.tables import (
     _entry_names,
@@ -264,6 +265,11 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
                       f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --fold F "
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
+    sections.append(sec)
+
+    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset))
+    if not sec.tables:
+        sec.absent = f"no finished run of {dataset} stored its ground truth (gt.json); fill with {run_cmd}."
     sections.append(sec)
 
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
