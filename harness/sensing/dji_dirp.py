@@ -177,10 +177,12 @@ def temperature_table(cal: DirpCalibration, params: Mapping[str, float],
         index = np.where(g < 0, 0, np.where(u >= 0xFFFE, 0x3FFF, np.floor(u * 0.25 + 0.5))).astype(np.int64)
         index = np.clip(index, 0, 0x3FFF)
         tc = (curve[index].astype(F) / F(10.0)).astype(F)
-        r4 = np.power(F(F(F(refl10) / F(10.0)) + F(273.0)), F(4.0))
-        t4 = np.power((tc + F(273.0)).astype(F), F(4.0))
+        # powf as the SDK's libm gives it: the power in double, rounded once to float32. NumPy's float32 power
+        # takes a SIMD path whose last bits depend on the CPU (AVX-512 or not), which broke bit-exactness.
+        r4 = F(np.power(np.float64(F(F(F(refl10) / F(10.0)) + F(273.0))), 4.0))
+        t4 = np.power((tc + F(273.0)).astype(F).astype(np.float64), 4.0).astype(F)
         q = ((((t4 - r4).astype(F) * F(100.0)).astype(F) / F(ems_pct)).astype(F) + r4).astype(F)
-        tt = np.power(np.maximum(q, F(0.0)), F(0.25)).astype(F)
+        tt = np.power(np.maximum(q, F(0.0)).astype(np.float64), 0.25).astype(F)
         kj, db = F(cal.u16(0x54)), F(F(cal.i16(0x56)) / F(10.0))
         out = (db + ((tt - F(273.0)).astype(F) * kj).astype(F) / F(100.0)).astype(F)
     return out
