@@ -21,7 +21,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import logging
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,7 +30,6 @@ from harness.errors import HarnessError, StoreError
 from harness.io import read_json
 from harness.store import Run, Store
 
-log = logging.getLogger(__name__)
 
 #: Short names of annotation sources, as the seed's tables write them.
 SOURCE_LABELS = {"thermal": "T", "t": "T", "ir": "T", "01": "T", "visible": "RGB", "rgb": "RGB", "vis": "RGB", "00": "RGB"}
@@ -329,8 +327,6 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
             "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
             + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows marked '!'"
         )
-    for m in mismatches:
-        log.info("not sample-matched (printed, marked '!'): %s", m)
     return table
 
 

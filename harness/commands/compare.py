@@ -3,11 +3,14 @@ source) from the results store."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
 
 from harness.hookspecs import hookimpl
+
+log = logging.getLogger(__name__)
 
 
 def default_store(profile: str | None) -> Path:
@@ -43,6 +46,8 @@ def register_commands(cli: click.Group) -> None:
 
         names = [d.strip() for d in datasets.split(",") if d.strip()]
         table = build_table(store or default_store(profile), names, allow_mismatched=allow_mismatched, safit=safit)
+        for m in table.mismatches:  # the report selects its rows itself and says so in its own notes
+            log.info("not sample-matched (printed, marked '!'): %s", m)
         text = table.render(fmt)
         click.echo(text)
         if out is not None:
