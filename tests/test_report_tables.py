@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("harness.evaluation")
 
 from harness.report.collect import StoreView  # noqa: E402
-from harness.report.plots import pareto_front, pareto_steps  # noqa: E402
+from harness.report.plots import LABEL_SLOTS, _short_labels, pareto_front, pareto_steps, place_labels  # noqa: E402
 from harness.report.tables import (  # noqa: E402
     Column,
     Interval,
@@ -64,6 +64,24 @@ def test_pareto_front_keeps_points_no_cheaper_point_beats():
     xs, ys = pareto_steps(costs, values, x_max=10.0)
     assert xs == [1.0, 2.0, 4.0, 10.0] and ys == [0.2, 0.5, 0.6, 0.6]
     assert pareto_front([], []) == []
+
+
+def test_figure_labels_of_close_points_take_slots_that_do_not_cover_each_other():
+    # two markers 6 pt apart, labels 40 x 10 pt: the second label cannot sit right-above like the first one
+    slots = place_labels([(100.0, 100.0), (104.0, 95.0)], [(40.0, 10.0), (40.0, 10.0)])
+    assert slots[0] == LABEL_SLOTS[0] and slots[1] != LABEL_SLOTS[0]
+    # far apart, both keep the preferred slot
+    assert place_labels([(0.0, 0.0), (300.0, 0.0)], [(40.0, 10.0)] * 2) == [LABEL_SLOTS[0]] * 2
+    # a point with no free slot takes the one covering least (here: any; the result is still one slot per point)
+    crowded = place_labels([(0.0, 0.0)] * 6, [(40.0, 10.0)] * 6)
+    assert len(crowded) == 6 and set(crowded) <= set(LABEL_SLOTS)
+
+
+def test_figure_labels_drop_model_options_unless_two_would_read_the_same():
+    short = _short_labels(["ours [scale=n]", "icafusion [scale=n, tokens=[8, 4, 2]]", "eme"])
+    assert short == {"ours [scale=n]": "ours", "icafusion [scale=n, tokens=[8, 4, 2]]": "icafusion", "eme": "eme"}
+    both = _short_labels(["ours [scale=n]", "ours [scale=s]"])
+    assert both == {"ours [scale=n]": "ours [scale=n]", "ours [scale=s]": "ours [scale=s]"}
 
 
 def test_project_table_reports_each_fold_the_mean_and_sample_sd_and_the_profile(store):

@@ -66,6 +66,54 @@ def pareto_steps(costs: Sequence[float], values: Sequence[float], x_max: float |
     return xs, ys
 
 
+LABEL_FONT_PT = 8
+LABEL_CHAR_PT = 0.56 * LABEL_FONT_PT  # average advance of a character of the default sans-serif font
+LABEL_LINE_PT = 1.25 * LABEL_FONT_PT
+#: where a point's label may sit, as (dx, dy) offset in points from the marker and horizontal alignment, in order of
+#: preference: right and above, right and below, left and above, left and below
+LABEL_SLOTS = ((6.0, 5.0, "left"), (6.0, -13.0, "left"), (-6.0, 5.0, "right"), (-6.0, -13.0, "right"))
+MARKER_HALF_PT = 5.0
+
+
+def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> float:
+    """Area shared by two (x0, y0, x1, y1) boxes."""
+    return max(0.0, min(a[2], b[2]) - max(a[0], b[0])) * max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+
+
+def place_labels(anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[float, float]],
+                 slots: Sequence[tuple[float, float, str]] = LABEL_SLOTS) -> list[tuple[float, float, str]]:
+    """A slot (dx, dy, ha) for each point's label: anchors are marker positions and sizes label extents (width,
+    height), both in points. Labels are placed from left to right; each takes the first slot that covers no label
+    placed before it and no marker, or the slot covering the least area of them."""
+    markers = [(x - MARKER_HALF_PT, y - MARKER_HALF_PT, x + MARKER_HALF_PT, y + MARKER_HALF_PT) for x, y in anchors]
+    placed: list[tuple[float, float, float, float]] = []
+    chosen: list[tuple[float, float, str]] = [slots[0]] * len(anchors)
+    for i in sorted(range(len(anchors)), key=lambda k: (anchors[k][0], -anchors[k][1], k)):
+        (x, y), (w, h) = anchors[i], sizes[i]
+        best, best_cost = None, math.inf
+        for dx, dy, ha in slots:
+            x0 = x + dx if ha == "left" else x + dx - w
+            box = (x0, y + dy, x0 + w, y + dy + h)
+            cost = sum(_overlap(box, o) for o in placed) + sum(_overlap(box, m) for j, m in enumerate(markers) if j != i)
+            if cost < best_cost:
+                best, best_cost = ((dx, dy, ha), box), cost
+            if cost == 0.0:
+                break
+        chosen[i] = best[0]
+        placed.append(best[1])
+    return chosen
+
+
+def _short_labels(labels: Sequence[str]) -> dict[str, str]:
+    """What a marker is labelled with: the legend's label without its bracketed model options (the legend keeps
+    them), unless two labels would then read the same."""
+    short = {lab: re.sub(r"\s*\[.*\]$", "", lab) for lab in labels}
+    counts: dict[str, int] = {}
+    for v in short.values():
+        counts[v] = counts.get(v, 0) + 1
+    return {lab: (v if counts[v] == 1 else lab) for lab, v in short.items()}
+
+
 def _style(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
     from matplotlib import colormaps
 
@@ -101,6 +149,7 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
         xs_all = [p.gflops for p in points]
         lo, hi = min(xs_all), max(xs_all)
         x_lo, x_hi = lo / 1.8, hi * 1.8
+        panels: list[tuple[object, list[PlotPoint]]] = []
         for r, ds in enumerate(datasets):
             for c, metric in enumerate(metrics):
                 ax = axes[r][c]
@@ -110,8 +159,6 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                     yerr = None if p.sd is None else 100 * p.sd
                     ax.errorbar(p.gflops, 100 * p.value, yerr=yerr, fmt=marker, color=color, markersize=8,
                                 capsize=3, elinewidth=1, markeredgecolor="black", markeredgewidth=0.6, zorder=3)
-                    ax.annotate(p.label, (p.gflops, 100 * p.value), textcoords="offset points", xytext=(6, 5),
-                                fontsize=8, zorder=4)
                 if pts:
                     sx, sy = pareto_steps([p.gflops for p in pts], [100 * p.value for p in pts], x_hi)
                     ax.step(sx, sy, where="post", linestyle="--", color="0.35", linewidth=1.2, zorder=2)
@@ -131,6 +178,7 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 ax.set_ylabel(METRIC_LABELS[metric])
                 if r == nrows - 1:
                     ax.set_xlabel("GFLOPs (log scale)")
+                panels.append((ax, pts))
         handles = [Line2D([], [], marker=style[lab][0], color=style[lab][1], linestyle="none", markersize=8,
                           markeredgecolor="black", markeredgewidth=0.6, label=lab) for lab in labels]
         handles.append(Line2D([], [], linestyle="--", color="0.35", label="Pareto front"))
@@ -139,6 +187,15 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
         bottom = caption_h / height
         fig.text(0.01, 0.01, "\n".join(caption), fontsize=7.5, ha="left", va="bottom", color="0.2")
         fig.get_layout_engine().set(rect=(0, bottom, 1, 1 - bottom))
+        fig.draw_without_rendering()  # lay the panels out, so that marker positions in points are final
+        names = _short_labels(labels)
+        to_pt = 72.0 / fig.dpi
+        for ax, pts in panels:
+            anchors = [tuple(v * to_pt for v in ax.transData.transform((p.gflops, 100 * p.value))) for p in pts]
+            sizes = [(LABEL_CHAR_PT * len(names[p.label]), LABEL_LINE_PT) for p in pts]
+            for p, (dx, dy, ha) in zip(pts, place_labels(anchors, sizes)):
+                ax.annotate(names[p.label], (p.gflops, 100 * p.value), textcoords="offset points", xytext=(dx, dy),
+                            ha=ha, fontsize=LABEL_FONT_PT, zorder=4)
 
         buf = io.StringIO()
         fig.savefig(buf, format="svg", metadata={"Date": None})
