@@ -65,7 +65,8 @@ def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:
             if section == "detectors":
                 extra = kinds[r["input_kind"]]
             elif section == "datasets":
-                cats = f"{len(r['categories'])} categories" if r["categories"] else "categories from the data"
+                n = len(r["categories"])
+                cats = f"{n} categor{'y' if n == 1 else 'ies'}" if n else "categories from the data"
                 extra = f"{r['thermal']} thermal, {cats}, encoding {r['default_encoding']}"
             else:
                 extra = f"{r['channels']} channel(s) from {r['needs'] or 'nothing'}"
