@@ -35,11 +35,21 @@ def check_name(kind: str, name: str) -> None:
 
 @dataclass(frozen=True)
 class Reference:
-    """A published figure to print beside the harness's own measurement (e.g. the seed paper's table)."""
+    """A published figure to print beside the harness's own measurement (e.g. the seed paper's table).
+
+    It applies to the configuration it was published for: the detector's default model options, ``num_classes``
+    classes (None: any) and ``imgsz`` x ``imgsz`` input; beside any other model the profile shows no reference."""
 
     params_m: float | None = None
     gflops: float | None = None
     source: str = ""
+    num_classes: int | None = None
+    imgsz: int = 640
+
+    def applies(self, num_classes: int, imgsz: int, model_options: dict[str, Any] | None = None) -> bool:
+        """Whether the figures describe a model built with these classes, input size and model options."""
+        return (not model_options and imgsz == self.imgsz
+                and (self.num_classes is None or num_classes == self.num_classes))
 
 
 @dataclass(frozen=True)

@@ -201,7 +201,7 @@ class _TinyPlugin:
     @hookimpl
     def register_detectors(self, register):
         register(DetectorSpec(name="tiny-attn", build=lambda num_classes, in_channels=4, **kw: TinyAttentionDetector(),
-                              reference=Reference(params_m=0.0006, gflops=0.00007, source="hand count")))
+                              reference=Reference(params_m=0.0006, gflops=0.00007, source="hand count", imgsz=16)))
         register(DetectorSpec(name="tiny-dual", build=lambda num_classes, in_channels=1, **kw: TinyDualDetector(),
                               input_kind="dual", thermal_channels=1))
         register(DetectorSpec(name="tiny-broken", build=_broken))
@@ -209,6 +209,14 @@ class _TinyPlugin:
 
 def _broken(num_classes, **kw):
     raise ValueError("no weights for this width")
+
+
+def test_published_figures_stand_only_beside_the_configuration_they_describe():
+    ref = Reference(params_m=11.13, gflops=28.5, source="paper", num_classes=8)
+    assert ref.applies(8, 640) and ref.applies(8, 640, {})
+    assert not ref.applies(8, 640, {"scale": "n"})  # another model
+    assert not ref.applies(1, 640) and not ref.applies(8, 320)  # other classes, other input size
+    assert Reference(params_m=1.0).applies(3, 640)  # no class count published: any
 
 
 def test_cli_profile_and_export(cli_runner, tmp_path):

@@ -48,7 +48,7 @@ def register_detectors(register):
             build=build,
             input_kind="single",
             description=DESCRIPTION,
-            reference=Reference(params_m=11.13, gflops=28.5, source="seed paper"),
+            reference=Reference(params_m=11.13, gflops=28.5, source="seed paper", num_classes=8),
             load_official=load_official,
         )
     )

@@ -68,7 +68,8 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         params = ("BN-folded parameter count" if not unfolded else
                   f"parameter count, BN-folded except {', '.join(unfolded)} (no fold declared: as built)")
         out.append(f"at {r0['imgsz']}x{r0['imgsz']}, batch 1, {r0['num_classes']} classes; Params = {params}; "
-                   f"'ref' = the detector's published figures.")
+                   f"'ref' = the detector's published figures, shown only beside the configuration they were "
+                   f"published for (its default model options, classes and input size).")
     for name, text in CONVENTIONS.items():
         out.append(f"GFLOPs {name}: {text}.")
     for r in results:

@@ -144,7 +144,8 @@ def profile_detector(name: str, imgsz: int = 640, num_classes: int = 8, in_chann
     return {
         "detector": spec.name, "label": spec.label, "input_kind": spec.input_kind, "imgsz": imgsz,
         "num_classes": num_classes, "model_options": dict(model_options or {}),
-        "reference": None if ref is None else {"params_m": ref.params_m, "gflops": ref.gflops, "source": ref.source},
+        "reference": (None if ref is None or not ref.applies(num_classes, imgsz, model_options) else
+                      {"params_m": ref.params_m, "gflops": ref.gflops, "source": ref.source}),
         **result,
     }
 
