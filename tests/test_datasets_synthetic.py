@@ -97,6 +97,27 @@ def test_full_profile_has_the_seeds_fold_sizes():
         "P1": (418, 256), "P2": (587, 87), "P3": (473, 201), "P4+P5": (544, 130)}
 
 
+def test_a_seepage_wider_than_its_window_still_hangs_from_the_sill():
+    """The full profile's narrow P5 windows (0.9 m) under a wide stain (up to 1.5 m) once had no room to place it
+    (numpy refused uniform(low > high)): such a stain now spans the whole sill."""
+    import dataclasses
+
+    canvas = S.Canvas(2, 20, 20, (640, 512))
+    ppm = 80.0
+    layers = S.Layers(canvas, np.zeros((canvas.height, canvas.width, 3), np.float32),
+                      np.zeros((canvas.height, canvas.width), np.float32),
+                      np.full((canvas.height, canvas.width), np.nan, np.float32), ppm)
+    window = S.SceneObject("window", np.array([300.0, 100.0, 300.0 + 0.6 * ppm, 100.0 + 1.2 * ppm]))
+    rates = {c: 0.0 for c in S.BASE_RATES} | {"water_seepage": 3.0}
+    look = dataclasses.replace(S.LOOKS["P5"], rates=rates)
+    placed = []
+    for seed in range(20):
+        placed += S.place_objects(layers, look, [window], np.random.default_rng(seed))
+    assert placed and all(o.category == "water_seepage" for o in placed)
+    under = [o.box for o in placed if abs(o.box[1] - (window.box[3] + 0.23 * ppm)) < 1.0]
+    assert under and all(b[0] <= window.box[2] and b[2] >= window.box[0] for b in under)
+
+
 def test_unknown_profile_is_a_clear_error():
     from harness.errors import DataError
 

@@ -906,7 +906,8 @@ def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
             for attempt in range(40):
                 if cat in ("water_seepage", "efflorescence") and windows and attempt < 10 and rng.random() < 0.6:
                     win = windows[int(rng.integers(len(windows)))].box  # damp runs down from a sill
-                    x0 = rng.uniform(win[0] - 0.2 * w, win[2] - 0.8 * w)
+                    lo, hi = win[0] - 0.2 * w, win[2] - 0.8 * w  # at least a fifth of it under the sill
+                    x0 = rng.uniform(min(lo, hi), max(lo, hi))  # a stain wider than the sill spans all of it
                     y0 = win[3] + 0.23 * ppm
                 else:
                     x0 = rng.uniform(-0.15 * w, tw - 0.85 * w)
