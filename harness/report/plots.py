@@ -19,6 +19,7 @@ import logging
 import math
 import re
 import textwrap
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -108,9 +109,7 @@ def _short_labels(labels: Sequence[str]) -> dict[str, str]:
     """What a marker is labelled with: the legend's label without its bracketed model options (the legend keeps
     them), unless two labels would then read the same."""
     short = {lab: re.sub(r"\s*\[.*\]$", "", lab) for lab in labels}
-    counts: dict[str, int] = {}
-    for v in short.values():
-        counts[v] = counts.get(v, 0) + 1
+    counts = Counter(short.values())
     return {lab: (v if counts[v] == 1 else lab) for lab, v in short.items()}
 
 
