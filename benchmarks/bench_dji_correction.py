@@ -54,13 +54,16 @@ def main(argv: list[str] | None = None) -> int:
     from harness.sensing import dji_correction as dc
     from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature
 
+    def correction_args(rj) -> tuple:
+        p = rj.correction_params()
+        return rj.tau_table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"]
+
     steps: dict[str, tuple] = {}
     for f in files:
         rj = read_rjpeg(f)
         if rj.tau_table is None:
             continue  # dirp files have no iirp correction step; they take part in the decode timing only
-        p = rj.correction_params()
-        args_ = (rj.tau_table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"])
+        args_ = correction_args(rj)
         old = dc.correct_temperature(rj.blackbody_c(), *args_)
         new = dc.correct_raw14(rj.raw14, *args_)
         if not np.array_equal(old, new, equal_nan=True):
@@ -70,9 +73,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def previous_decode(f: Path) -> np.ndarray:
         rj = read_rjpeg(f)
-        p = rj.correction_params()
-        return dc.correct_temperature(rj.blackbody_c(), rj.tau_table, p["emissivity"], p["distance"], p["humidity"],
-                                      p["reflected"], p["atmosphere"])
+        return dc.correct_temperature(rj.blackbody_c(), *correction_args(rj))
     corrected = [f for f in files if f.name in steps]
 
     runs = {

@@ -109,8 +109,7 @@ def test_a_stain_wider_than_a_window_is_placed_and_damp_stays_clear_of_every_sil
                       np.zeros((canvas.height, canvas.width), np.float32),
                       np.full((canvas.height, canvas.width), np.nan, np.float32), ppm)
     window = S.SceneObject("window", np.array([300.0, 100.0, 300.0 + 0.6 * ppm, 100.0 + 1.2 * ppm]))
-    sill = np.array([window.box[0] - 0.06 * ppm, window.box[1], window.box[2] + 0.06 * ppm,
-                     window.box[3] + 0.22 * ppm])
+    sill = S.sill_box(window.box, ppm)
     look = dataclasses.replace(S.LOOKS["P5"], rates={c: 0.0 for c in S.BASE_RATES} | {"water_seepage": 3.0})
     placed = []
     for seed in range(20):

@@ -880,13 +880,17 @@ def _overlaps(box: np.ndarray, others: Iterable[np.ndarray], gap: float) -> bool
     return False
 
 
+def sill_box(window: Sequence[float], ppm: float) -> np.ndarray:
+    """A window with its sill: 6 cm wider on each side, reaching 22 cm below the glass."""
+    return np.array([window[0] - 0.06 * ppm, window[1], window[2] + 0.06 * ppm, window[3] + 0.22 * ppm])
+
+
 def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
                   rng: np.random.Generator) -> list[SceneObject]:
     """Equipment and defects on free wall, mostly inside the thermal footprint (some straddle its edge)."""
     c, ppm = layers.canvas, layers.ppm
     tw, th = c.thermal_size
-    sills = [np.array([o.box[0] - 0.06 * ppm, o.box[1], o.box[2] + 0.06 * ppm, o.box[3] + 0.22 * ppm])
-             for o in windows]  # windows with their sills
+    sills = [sill_box(o.box, ppm) for o in windows]
     occupied: list[np.ndarray] = []
     out: list[SceneObject] = []
     damp: list[np.ndarray] = []

@@ -47,5 +47,6 @@ def load_reconstruction_weights(model: Any, state_dict: Mapping[str, Any] | Any)
 @hookimpl
 def register_detectors(register):
     register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              reference=Reference(params_m=33.47, gflops=33.67, source="seed paper", num_classes=8), nms_iou=0.6,
+                              reference=Reference(params_m=33.47, gflops=33.67, source="seed paper", num_classes=8),
+                              nms_iou=0.6,
                               load_official=None))  # no official checkpoint exists

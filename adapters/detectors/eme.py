@@ -49,5 +49,6 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 @hookimpl
 def register_detectors(register):
     register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              reference=Reference(params_m=46.15, gflops=109.2, source="seed paper", num_classes=8), nms_iou=0.6,
+                              reference=Reference(params_m=46.15, gflops=109.2, source="seed paper", num_classes=8),
+                              nms_iou=0.6,
                               load_official=load_official))

@@ -95,7 +95,8 @@ def place_labels(anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[f
         for dx, dy, ha in slots:
             x0 = x + dx if ha == "left" else x + dx - w
             box = (x0, y + dy, x0 + w, y + dy + h)
-            cost = sum(_overlap(box, o) for o in placed) + sum(_overlap(box, m) for j, m in enumerate(markers) if j != i)
+            cost = (sum(_overlap(box, o) for o in placed)
+                    + sum(_overlap(box, m) for j, m in enumerate(markers) if j != i))
             if cost < best_cost:
                 best, best_cost = ((dx, dy, ha), box), cost
             if cost == 0.0:
