@@ -21,12 +21,18 @@ from harness.errors import DataError
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
 
 
+def project_points(H: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """N x 2 points through ``H``: the dehomogenised points (float64 N x 2) and each one's homogeneous ``w``
+    (``w <= 0``: the point lies behind the plane at infinity)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    hom = np.hstack([pts, np.ones((len(pts), 1))]) @ np.asarray(H, dtype=np.float64).reshape(3, 3).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return hom[:, :2] / hom[:, 2:3], hom[:, 2]
+
+
 def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(u, v) = (H [x, y, 1]^T)`` dehomogenised, for N x 2 points (float64 N x 2)."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    hom = np.hstack([pts, np.ones((len(pts), 1))]) @ np.asarray(H, dtype=np.float64).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return hom[:, :2] / hom[:, 2:3]
+    return project_points(H, points)[0]
 
 
 def image_center(size: tuple[int, int]) -> tuple[float, float]:
