@@ -81,6 +81,11 @@ class Layers:
             return None
         return slice(i0, i1), slice(j0, j1), c.u(np.arange(j0, j1))[None, :], c.v(np.arange(i0, i1))[:, None]
 
+    def extent(self, mask: np.ndarray, ys: slice, xs: slice) -> np.ndarray | None:
+        """Edge-coordinate box of the ``True`` pixels of a ``window``'s mask (None when there are none)."""
+        rows, cols = np.nonzero(mask)
+        return self.canvas.extent_box(rows + ys.start, cols + xs.start) if len(rows) else None
+
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
@@ -250,12 +255,12 @@ def paint_ac_unit(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
 
 
 def paint_vent(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> None:
-    x0, y0, x1, y1 = obj.box
-    ppm = layers.ppm
     win = layers.window(obj.box, pad_m=0.4)
     if win is None:
         return
     ys, xs, u, v = win
+    x0, y0, x1, y1 = obj.box
+    ppm = layers.ppm
     s = x1 - x0
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     round_ = bool(obj.attrs.get("round"))
@@ -323,14 +328,14 @@ def paint_crack(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gen
         cv2.polylines(mask, [np.c_[bx, by].reshape(-1, 1, 2)], False, 160, thickness=1, lineType=cv2.LINE_AA,
                       shift=shift)
     m = mask.astype(np.float32) / 255.0
-    rows, cols = np.nonzero(m > 0.3)
-    if len(rows) == 0:
+    extent = layers.extent(m > 0.3, ys, xs)
+    if extent is None:
         return None
     layers.albedo[ys, xs] *= (1 - 0.7 * m)[..., None]
     dt = rng.uniform(0.15, 0.4) * rng.choice([-1.0, 1.0])
     layers.dtemp[ys, xs] += dt * cv2.GaussianBlur(m, (0, 0), 1.0) * 2.0
     obj.attrs.update(delta_c=round(dt, 2))
-    return c.extent_box(rows + ys.start, cols + xs.start)
+    return extent
 
 
 def blob_mask(u: np.ndarray, v: np.ndarray, box: Sequence[float], rng: np.random.Generator, roughness: float,
@@ -351,8 +356,7 @@ def paint_peeling(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     if win is None:
         return None
     ys, xs, u, v = win
-    c = layers.canvas
-    cell = 0.08 * layers.ppm * c.k
+    cell = 0.08 * layers.ppm * layers.canvas.k
     mask = blob_mask(u, v, obj.box, rng, roughness=0.45, cell=cell)
     if not mask.any():
         return None
@@ -370,8 +374,7 @@ def paint_peeling(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     dt = rng.uniform(0.1, 0.3)
     layers.dtemp[ys, xs] += dt * mask
     obj.attrs.update(delta_c=round(dt, 2))
-    rows, cols = np.nonzero(mask | (edge > 0))
-    return c.extent_box(rows + ys.start, cols + xs.start)
+    return layers.extent(mask | (edge > 0), ys, xs)
 
 
 def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> np.ndarray | None:
@@ -381,7 +384,6 @@ def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.ra
     if win is None:
         return None
     ys, xs, u, v = win
-    c = layers.canvas
     x0, y0, x1, y1 = obj.box
     ax, ay = (u - x0) / (x1 - x0), (v - y0) / (y1 - y0)
     h, w = ay.shape[0], ax.shape[1]
@@ -389,7 +391,7 @@ def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.ra
                             interpolation=cv2.INTER_LINEAR)
     across = 1 - np.abs(2 * ax - 1) ** 3
     alpha = np.clip(1 - ay / streak_len, 0, 1) * across
-    alpha *= 0.6 + 0.4 * np.clip(value_noise((h, w), max(1.0, 0.02 * layers.ppm * c.k), rng), -1, 1)
+    alpha *= 0.6 + 0.4 * np.clip(value_noise((h, w), max(1.0, 0.02 * layers.ppm * layers.canvas.k), rng), -1, 1)
     alpha = np.clip(alpha, 0, 1) * rng.uniform(0.45, 0.7)
     mask = alpha > 0.12
     if not mask.any():
@@ -400,8 +402,7 @@ def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.ra
     dt = -rng.uniform(0.1, 0.3)
     layers.dtemp[ys, xs] += dt * alpha / max(alpha.max(), 1e-6)
     obj.attrs.update(delta_c=round(dt, 2))
-    rows, cols = np.nonzero(mask)
-    return c.extent_box(rows + ys.start, cols + xs.start)
+    return layers.extent(mask, ys, xs)
 
 
 def paint_delamination(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> np.ndarray | None:
@@ -437,8 +438,7 @@ def paint_delamination(layers: Layers, obj: SceneObject, look: Look, rng: np.ran
         arc = mask & (d > 0.93) & (np.arctan2(v - cy, u - cx) % (2 * np.pi) < rng.uniform(1.0, 3.0))
         layers.albedo[ys, xs] *= (1 - 0.05 * arc)[..., None]
     obj.attrs.update(delta_c=round(amp, 2))
-    rows, cols = np.nonzero(mask)
-    return c.extent_box(rows + ys.start, cols + xs.start)
+    return layers.extent(mask, ys, xs)
 
 
 def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Generator) -> np.ndarray | None:
@@ -482,10 +482,7 @@ def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     tide = np.exp(-((np.minimum(np.minimum(u - x0, x1 - u), np.minimum(v - y0, y1 - v))) / (0.02 * ppm)) ** 2) * inside
     layers.albedo[ys, xs] *= (1 - stain * wet - 0.04 * tide)[..., None]
     obj.attrs.update(delta_c=round(amp, 2))
-    rows, cols = np.nonzero(inside)
-    if len(rows) == 0:
-        return None
-    return c.extent_box(rows + ys.start, cols + xs.start)
+    return layers.extent(inside, ys, xs)
 
 
 def paint_downpipe(layers: Layers, x: float, width: float, rng: np.random.Generator) -> None:
