@@ -40,9 +40,9 @@ def _homography(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Boxes through ``H`` the way the sensing pipeline moves them (corners, OpenCV pixel-centre convention)."""
     from harness.sensing.registration.homography import project_points
 
-    moved, w = project_points(H, _corners(b) - 0.5)
+    moved, depth = project_points(H, _corners(b) - 0.5)
     out = moved + 0.5
-    out[np.repeat((w <= 1e-12).reshape(-1, 4).any(axis=1), 4)] = np.nan
+    out[np.repeat((depth <= 1e-12).reshape(-1, 4).any(axis=1), 4)] = np.nan
     return _bbox(out)
 
 

@@ -43,7 +43,8 @@ from harness.sensing.registration.files import (
 from harness.sensing.registration.groups import capture_time, group_by_capture_time
 from harness.sensing.registration.homography import (
     FULL_FRAME_DIAGONAL_MM, apply_homography, change_camera, corner_error, focal_length_px, focal_prior,
-    homography_from_focal_lengths, homography_from_similarity, image_center, normalize, plane_homography, project_points,
+    homography_from_focal_lengths, homography_from_similarity, image_center, normalize, plane_homography,
+    project_points,
     reprojection_errors, similarity_from_homography,
 )
 from harness.sensing.registration.landmarks import (

@@ -84,9 +84,9 @@ def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str,
     w = warp.astype(np.float32)
     w = w if motion == "homography" else w[:2].copy()
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps)
-    rho, w = cv2.findTransformECC(template, image, w, mt, crit, mask, 1)
+    rho, found = cv2.findTransformECC(template, image, w, mt, crit, mask, 1)  # type: ignore[arg-type]  # None: no mask
     out = np.eye(3)
-    out[:w.shape[0]] = w
+    out[:found.shape[0]] = found
     return float(rho), out
 
 

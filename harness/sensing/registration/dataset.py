@@ -22,6 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.errors import HarnessError
+from harness.sensing.calibration import CameraModel, undistort_points, undistorted_camera
 from harness.sensing.pipeline import SensingContext
 from harness.sensing.registration.files import HomographyEntry, load_homographies, save_homographies
 from harness.sensing.registration.homography import apply_homography, change_camera, focal_prior
@@ -50,37 +51,40 @@ class DatasetRegistration:
         self.landmarks_rgb = landmarks_rgb
         self.group_of = dict(group_of)
         self.focal_35mm = focal_35mm
-        self._new_cam: Any = None
+        self._new_cam: CameraModel | None = None
         self._tried: set[str] = set()
 
     # ---------------------------------------------------------------- frames
     @property
-    def new_cam(self) -> Any:
-        """The camera of ``undistort_image``'s output (None without an RGB calibration)."""
-        if self._new_cam is None and self.ctx.rgb_camera is not None:
-            from harness.sensing.calibration import undistorted_camera
-
-            self._new_cam, _ = undistorted_camera(self.ctx.rgb_camera, float(self.ctx.options.undistort.alpha))
-        return self._new_cam
+    def cameras(self) -> tuple[CameraModel, CameraModel] | None:
+        """(the RGB calibration's camera ``K``, the camera of ``undistort_image``'s output ``K'``), or None without
+        an RGB calibration."""
+        cam = self.ctx.rgb_camera
+        if cam is None:
+            return None
+        if self._new_cam is None:
+            self._new_cam, _ = undistorted_camera(cam, float(self.ctx.options.undistort.alpha))
+        return cam, self._new_cam
 
     def to_frame(self, h_k: np.ndarray) -> np.ndarray:
         """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``K'``)."""
-        return h_k if self.new_cam is None else change_camera(h_k, self.ctx.rgb_camera.K, self.new_cam.K)
+        cams = self.cameras
+        return h_k if cams is None else change_camera(h_k, cams[0].K, cams[1].K)
 
     def to_k(self, h_new: np.ndarray) -> np.ndarray:
-        return h_new if self.new_cam is None else change_camera(h_new, self.new_cam.K, self.ctx.rgb_camera.K)
+        cams = self.cameras
+        return h_new if cams is None else change_camera(h_new, cams[1].K, cams[0].K)
 
     def _landmark_points(self, idx: list[int]) -> np.ndarray:
         """The landmarks' RGB points in the frame of ``undistort_image``'s output."""
         assert self.landmarks is not None
         pts = self.landmarks.rgb[idx]
-        if self.new_cam is None:
+        cams = self.cameras
+        if cams is None:
             return pts
         if self.landmarks_rgb == "raw":
-            from harness.sensing.calibration import undistort_points
-
-            return undistort_points(pts, self.ctx.rgb_camera, self.new_cam)
-        return apply_homography(self.new_cam.K @ np.linalg.inv(self.ctx.rgb_camera.K), pts)
+            return undistort_points(pts, cams[0], cams[1])
+        return apply_homography(cams[1].K @ np.linalg.inv(cams[0].K), pts)
 
     # ---------------------------------------------------------------- per group
     def register_group(self, group: str) -> None:
@@ -107,9 +111,10 @@ class DatasetRegistration:
     def prior(self, rgb_size: tuple[int, int], thermal_size: tuple[int, int]) -> np.ndarray:
         """Centres aligned, scale = thermal / RGB focal length; ``rgb_size`` is the image's before undistortion
         (the calibrated camera's focal length and frame replace it where there is one)."""
-        if self.new_cam is None:
+        cams = self.cameras
+        if cams is None:
             return focal_prior(rgb_size, thermal_size, self.focal_35mm)
-        return focal_prior(self.new_cam.image_size, thermal_size, self.focal_35mm, f_rgb_px=self.new_cam.fx)
+        return focal_prior(cams[1].image_size, thermal_size, self.focal_35mm, f_rgb_px=cams[1].fx)
 
     # ---------------------------------------------------------------- records
     @property
