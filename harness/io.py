@@ -124,3 +124,20 @@ def read_json(path: str | Path) -> Any:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise DataError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+
+
+def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
+    """``root / rel``, refused with a ``DataError`` when the path written in a manifest or annotation file leaves
+    ``root``: an absolute path, or ``..`` steps climbing out. The check is on the path as written (``..`` folded),
+    so symbolic links the user placed inside the dataset folder (images kept on another disk) are followed."""
+    from harness.errors import DataError
+
+    rel_s = str(rel)
+    if not rel_s or "\x00" in rel_s:
+        raise DataError(f"{what}: empty or invalid path {rel_s!r}")
+    root_a = Path(os.path.abspath(root))
+    target = Path(os.path.normpath(root_a / rel_s))
+    if os.path.isabs(rel_s) or (target != root_a and root_a not in target.parents):
+        raise DataError(f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "
+                        "paths in the manifest and the annotation files must stay inside the dataset folder")
+    return target

@@ -274,18 +274,13 @@ def test_manifest_maps_folder_names_and_categories(tiny):
 
 
 def test_manifest_unknown_key_and_bad_values_are_errors(tiny):
-    (tiny / "m3t.yaml").write_text("format: raw\nimage_dir: images\n")
-    with pytest.raises(DataError, match="unknown manifest key.*'image_dir'"):
-        load_manifest(tiny)
-    (tiny / "m3t.yaml").write_text("format: stacked\n")
-    with pytest.raises(DataError, match="'format' expects 'raw' or 'aligned'"):
-        load_manifest(tiny)
-    (tiny / "m3t.yaml").write_text("thermal_size: 640\n")
-    with pytest.raises(DataError, match="thermal_size"):
-        load_manifest(tiny)
-    (tiny / "m3t.yaml").write_text("categories: {cracks: fissure}\n")
-    with pytest.raises(DataError, match="neither one of"):
-        load_manifest(tiny)
+    for text, match in (("format: raw\nimage_dir: images\n", "unknown manifest key.*'image_dir'"),
+                        ("format: stacked\n", "'format' expects 'raw' or 'aligned'"),
+                        ("thermal_size: 640\n", "thermal_size"),
+                        ("categories: {cracks: fissure}\n", "neither one of")):
+        (tiny / "m3t.yaml").write_text(text)
+        with pytest.raises(DataError, match=match):
+            load_manifest(tiny)
 
 
 def test_no_root_names_the_setting_and_the_synthetic_alternative(monkeypatch):

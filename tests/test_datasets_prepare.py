@@ -160,15 +160,16 @@ def test_concurrent_first_use_generates_once(tmp_path, monkeypatch):
     import threading
 
     from adapters.datasets import synthetic
+    from adapters.datasets.synthetic import generation
 
     calls = []
-    real = synthetic.generate
+    real = generation.generate
 
     def counting(*args, **kw):
         calls.append(args[0])
         return real(*args, **{**kw, "progress": False})
 
-    monkeypatch.setattr(synthetic, "generate", counting)
+    monkeypatch.setattr(generation, "generate", counting)
     monkeypatch.setenv("HARNESS_DATA", str(tmp_path / "data"))
     results = []
     threads = [threading.Thread(target=lambda: results.append(len(synthetic.open_synthetic(profile="tiny", seed=5))))

@@ -12,6 +12,9 @@ import pytest
 
 from adapters.datasets import synthetic as S
 from adapters.datasets.m3t import M3T_CATEGORIES
+from adapters.datasets.synthetic.generation import _sawtooth
+from adapters.datasets.synthetic.painting import _overlaps
+from harness.sensing.registration import apply_homography, plane_homography
 from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 
 
@@ -32,11 +35,11 @@ def test_m3t_optics_put_thermal_footprint_in_the_central_part_of_rgb():
 def test_plane_homography_without_rotation_or_baseline_is_the_focal_ratio():
     kw = S.camera_matrix((400, 300), 24.0)
     kt = S.camera_matrix((160, 128), 40.0)
-    h = S.plane_homography(kw, kt, np.eye(3), np.zeros(3), np.array([0, 0, 1.0]), 10.0)
+    h = plane_homography(kw, kt, np.eye(3), np.zeros(3), np.array([0, 0, 1.0]), 10.0)
     s = kt[0, 0] / kw[0, 0]
     assert np.allclose(h[:2, :2], np.eye(2) * s)
     # the RGB principal point lands on the thermal principal point
-    assert np.allclose(S.apply_homography(h, [[kw[0, 2], kw[1, 2]]]), [[kt[0, 2], kt[1, 2]]])
+    assert np.allclose(apply_homography(h, [[kw[0, 2], kw[1, 2]]]), [[kt[0, 2], kt[1, 2]]])
 
 
 def test_baseline_parallax_falls_with_distance():
@@ -44,8 +47,8 @@ def test_baseline_parallax_falls_with_distance():
     kt = S.camera_matrix((160, 128), 40.0)
     t = np.array([0.03, 0.0, 0.0])
     n = np.array([0, 0, 1.0])
-    shift = [S.plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2]
-             - S.plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2] for d in (5.0, 10.0)]
+    shift = [plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2]
+             - plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2] for d in (5.0, 10.0)]
     # f_T * B / Z: halves when the distance doubles
     assert shift[0] == pytest.approx(kt[0, 0] * 0.03 / 5.0)
     assert shift[1] == pytest.approx(shift[0] / 2)
@@ -83,7 +86,7 @@ def test_canvas_extent_box_is_exact_on_the_canvas_grid():
 
 
 def test_sawtooth_drift_stays_in_range_and_resets():
-    vals = [S._sawtooth(i, 5, 0, -0.8, 2.2) for i in range(10)]
+    vals = [_sawtooth(i, 5, 0, -0.8, 2.2) for i in range(10)]
     assert min(vals) == pytest.approx(-0.8) and max(vals) == pytest.approx(2.2)
     assert vals[4] > vals[5]  # shutter recalibration resets the ramp
 
@@ -116,7 +119,7 @@ def test_a_stain_wider_than_a_window_is_placed_and_damp_stays_clear_of_every_sil
         placed += S.place_objects(layers, look, [window], np.random.default_rng(seed))
     assert len(placed) >= 20 and all(o.category == "water_seepage" for o in placed)
     assert max(o.box[2] - o.box[0] for o in placed) > window.box[2] - window.box[0]  # wider than the window
-    assert not any(S._overlaps(o.box, [sill], 0.05 * ppm) for o in placed)
+    assert not any(_overlaps(o.box, [sill], 0.05 * ppm) for o in placed)
 
 
 def test_unknown_profile_is_a_clear_error():

@@ -48,7 +48,8 @@ def test_landmarks_ransac_ignores_outliers_that_break_least_squares():
     rgb, th = _landmarks(30, seed=1)
     th_bad = th.copy()
     th_bad[:6] += np.array([[40, -25], [-30, 60], [80, 5], [-50, -50], [25, 90], [70, -40]])
-    H, inliers = homography_from_landmarks(rgb, th_bad, "ransac", ransac_threshold=2.0, return_inliers=True)
+    fit = reg.fit_landmarks(rgb, th_bad, "ransac", ransac_threshold=2.0)
+    H, inliers = fit.H, fit.inliers
     assert not inliers[:6].any() and inliers[6:].all()
     test_rgb, test_th = _landmarks(50, seed=9)
     assert reg.reprojection_errors(H, test_rgb, test_th).max() < 0.1

@@ -60,12 +60,13 @@ from adapters.datasets._eightbit import (
     stat_digest,
     xywh_to_xyxy,
 )
-from adapters.datasets.m3t import ir8_from_temperature, safe_join
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
+from harness.io import safe_join
 from harness.sample import AlignedSample
 from harness.sensing.options import SensingOptions
+from harness.sensing.pipeline import ir8_from_temperature
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,9 @@ import numpy as np
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
+from harness.io import safe_join
 from harness.sample import AlignedSample
+from harness.sensing.pipeline import ir8_from_temperature
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +47,8 @@ SUPERCATEGORY = {"window": "opening", "ac_unit": "equipment", "vent": "equipment
                  "water_seepage": "defect"}
 #: The seed's project-grouped folds: each held out in turn, trained on the rest.
 M3T_FOLDS: dict[str, tuple[str, ...]] = {"P1": ("P1",), "P2": ("P2",), "P3": ("P3",), "P4+P5": ("P4", "P5")}
+#: 35-mm-equivalent focal lengths of the M3T's wide (RGB) and thermal cameras: the registration prior's scale.
+M3T_FOCAL_35MM = (24.0, 40.0)
 ENV_ROOT = "HARNESS_M3T_ROOT"
 MANIFEST_NAMES = ("m3t.yaml", "m3t.yml", "m3t.json")
 #: Bumped when the adapter's output changes for the same input files (part of the cache key).
@@ -102,21 +106,6 @@ class Manifest:
         rel = self.annotations or ("annotations/instances_rgb.json" if self.format == "raw"
                                    else "annotations/instances_thermal.json")
         return safe_join(self.root, rel, "manifest key 'annotations'")
-
-
-def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
-    """``root / rel``, refused with a ``DataError`` when the path written in a manifest or annotation file leaves
-    ``root``: an absolute path, or ``..`` steps climbing out. The check is on the path as written (``..`` folded),
-    so symbolic links the user placed inside the dataset folder (images kept on another disk) are followed."""
-    rel_s = str(rel)
-    if not rel_s or "\x00" in rel_s:
-        raise DataError(f"{what}: empty or invalid path {rel_s!r}")
-    root_a = Path(os.path.abspath(root))
-    target = Path(os.path.normpath(root_a / rel_s))
-    if os.path.isabs(rel_s) or (target != root_a and root_a not in target.parents):
-        raise DataError(f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "
-                        "paths in the manifest and the annotation files must stay inside the dataset folder")
-    return target
 
 
 def _manifest_fields() -> dict[str, Any]:
@@ -661,17 +650,8 @@ class M3TSource:
         """Called by ``harness.prepare`` before the prepared folder is published: the homographies the raw form
         used (one per inspection group, full-frame undistorted RGB -> thermal), for registration studies."""
         aligner = getattr(self, "_aligner", None)
-        if aligner is None or not aligner.fitted:
-            return
-        from harness.sensing.registration import HomographyEntry, save_homographies
-
-        entries = {g: HomographyEntry(h, method=str(aligner.how(g).get("source", "")),
-                                      quality={k: v for k, v in aligner.how(g).items() if k != "source"})
-                   for g, h in sorted(aligner.fitted.items())}
-        save_homographies(Path(folder) / "homographies.yaml", entries,
-                          meta={"frame": "undistorted wide-camera pixels (calibration K) -> thermal pixels"
-                                if aligner.ctx.rgb_camera is not None else "RGB pixels -> thermal pixels",
-                                "dataset": self.name})
+        if aligner is not None:
+            aligner.registration.save(Path(folder) / "homographies.yaml", self.name)
 
     def thermal_partner(self, rec: ImageRecord) -> Path:
         m = self.manifest
@@ -701,19 +681,6 @@ def _find_partner(folder: Path, stem: str) -> Path | None:
     return None
 
 
-def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:
-    """An 8-bit rendering of a temperature map: a percentile stretch (``low``..``high``) to 0..255, over the measured
-    pixels; a missing one (NaN or inf) shows the median's level, like ``linear16``."""
-    finite = np.isfinite(temp)
-    if finite.all():
-        lo, hi = np.percentile(temp, [low, high])
-    else:
-        lo, hi = np.percentile(temp[finite], [low, high])
-        temp = np.where(finite, temp, np.median(temp[finite]))
-    scale = 255.0 / max(float(hi - lo), 1e-3)
-    return np.clip(np.rint((temp - lo) * scale), 0, 255).astype(np.uint8)
-
-
 def _check_missing(temp: np.ndarray, path: Path) -> None:
     """A map may miss a few temperatures (they stay NaN and are left out downstream); one of mostly missing ones, or
     none measured, is a counted skip naming the file."""
@@ -730,21 +697,16 @@ def _check_missing(temp: np.ndarray, path: Path) -> None:
 class RawAligner:
     """The sensing pipeline for one raw M3T dataset, through ``harness.sensing.pipeline.SensingContext``.
 
-    The context undistorts both sensors, picks the group's homography and runs ``align_pair``; this class adds
-    what the dataset brings: its calibration files (manifest ``rgb_camera``/``thermal_camera``, used when the
-    ``sensing.undistort`` section names none) and its per-group registration (manifest ``homographies``, else the
-    group's ``landmarks``). A homography file named in ``sensing.registration.homographies`` wins over both.
-
-    Dataset convention: a shipped homography maps *undistorted* wide-camera pixels of the calibration's camera
-    matrix ``K`` (full frame, OpenCV pixel centres) to thermal pixels, whatever ``sensing.undistort.alpha`` crops;
-    without a calibration, raw RGB pixels. It is converted here to the frame of ``undistort_image``'s output.
-    Groups with neither fall back to ``sensing.registration.method`` (``auto``: ECC on edges, quality-checked;
-    ``focal``: the 40 mm / 24 mm focal-length prior; ``file``: the pair is skipped).
+    The context undistorts both sensors and runs ``align_pair``; this class reads the pair's files and adds what the
+    dataset brings: its calibration files (manifest ``rgb_camera``/``thermal_camera``, used when the
+    ``sensing.undistort`` section names none) and its registration files (manifest ``homographies`` and
+    ``landmarks``), whose per-group policy is ``harness.sensing.registration.dataset.DatasetRegistration``.
     """
 
     def __init__(self, source: M3TSource):
         from harness.sensing.calibration import CameraModel
         from harness.sensing.pipeline import SensingContext
+        from harness.sensing.registration.dataset import DatasetRegistration
 
         self.src = source
         m = source.manifest
@@ -754,96 +716,11 @@ class RawAligner:
             self.ctx.rgb_camera = CameraModel.load(m.optional("rgb_camera"))  # type: ignore[arg-type]
         if self.ctx.thermal_camera is None and m.optional("thermal_camera") is not None:
             self.ctx.thermal_camera = CameraModel.load(m.optional("thermal_camera"))  # type: ignore[arg-type]
-        self.homographies: dict[str, np.ndarray] = {}
-        hpath = m.optional("homographies")
-        if hpath is not None:
-            from harness.sensing.registration import load_homographies
-
-            self.homographies = load_homographies(hpath)
-        self.landmarks = None
-        lpath = m.optional("landmarks")
-        if lpath is not None:
-            from harness.sensing.registration import read_landmarks
-
-            self.landmarks = read_landmarks(lpath)
-        self.group_of = {r.file_name: r.group for r in source.records}
+        self.registration = DatasetRegistration(self.ctx, m.optional("homographies"), m.optional("landmarks"),
+                                                m.landmarks_rgb, {r.file_name: r.group for r in source.records},
+                                                M3T_FOCAL_35MM)
         self.thermal_size: tuple[int, int] | None = m.thermal_size
-        self._new_cam: Any = None
-        self._tried: set[str] = set()
         self.dropped = 0
-
-    # ---------------------------------------------------------------- frames
-    @property
-    def new_cam(self) -> Any:
-        """The camera of ``undistort_image``'s output (None without an RGB calibration)."""
-        if self._new_cam is None and self.ctx.rgb_camera is not None:
-            from harness.sensing.calibration import undistorted_camera
-
-            self._new_cam, _ = undistorted_camera(self.ctx.rgb_camera, float(self.opts.undistort.alpha))
-        return self._new_cam
-
-    def to_frame(self, h_k: np.ndarray) -> np.ndarray:
-        """H on full-frame undistorted pixels (camera K) -> H on ``undistort_image``'s output (``K'``): a pixel
-        ``p'`` of the new camera is the ray ``K'^-1 p'``, i.e. the pixel ``K K'^-1 p'`` of camera K."""
-        if self.new_cam is None:
-            return h_k
-        h = h_k @ self.ctx.rgb_camera.K @ np.linalg.inv(self.new_cam.K)
-        return h / h[2, 2]
-
-    def to_k(self, h_new: np.ndarray) -> np.ndarray:
-        if self.new_cam is None:
-            return h_new
-        h = h_new @ self.new_cam.K @ np.linalg.inv(self.ctx.rgb_camera.K)
-        return h / h[2, 2]
-
-    def _landmark_points(self, idx: list[int]) -> np.ndarray:
-        """The landmarks' RGB points in the frame of ``undistort_image``'s output."""
-        assert self.landmarks is not None
-        pts = self.landmarks.rgb[idx]
-        if self.new_cam is None:
-            return pts
-        if self.src.manifest.landmarks_rgb == "raw":
-            from harness.sensing.calibration import undistort_points
-
-            return undistort_points(pts, self.ctx.rgb_camera, self.new_cam)
-        from harness.sensing.registration import apply_homography
-
-        return apply_homography(self.new_cam.K @ np.linalg.inv(self.ctx.rgb_camera.K), pts)
-
-    def register_group(self, group: str) -> None:
-        """Put the dataset's own registration of ``group`` (file, else landmarks) into the context, once."""
-        from harness.sensing.registration import HomographyEntry, homography_from_landmarks, reprojection_errors
-
-        if group in self._tried or group in self.ctx.entries:
-            return
-        self._tried.add(group)
-        if group in self.homographies:
-            self.ctx.entries[group] = HomographyEntry(self.to_frame(self.homographies[group]), "dataset file")
-            return
-        if self.landmarks is None:
-            return
-        lm = self.landmarks
-        idx = [i for i, (scene, g) in enumerate(zip(lm.scene, lm.group)) if self.group_of.get(scene, g) == group]
-        if len(idx) < 4:
-            return
-        rgb_pts = self._landmark_points(idx)
-        try:
-            h = homography_from_landmarks(rgb_pts, lm.thermal[idx], method="lsq")
-        except HarnessError as exc:
-            log.warning("inspection group %s: landmarks give no homography (%s)", group, exc)
-            return
-        err = reprojection_errors(h, rgb_pts, lm.thermal[idx])  # type: ignore[arg-type]
-        self.ctx.entries[group] = HomographyEntry(h, "landmarks",  # type: ignore[arg-type]
-                                                  quality={"pairs": len(idx),
-                                                           "rms_px": round(float(np.sqrt(np.mean(err ** 2))), 4)})
-
-    def prior(self, rgb_size: tuple[int, int], thermal_size: tuple[int, int]) -> np.ndarray:
-        """Centres aligned, scale = thermal / wide focal length (M3T: 40 mm and 24 mm 35-mm equivalents)."""
-        from harness.sensing.registration import focal_length_px, homography_from_focal_lengths
-
-        f_rgb = self.new_cam.fx if self.new_cam is not None else focal_length_px(focal_35mm=24.0, image_size=rgb_size)
-        return homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=40.0, image_size=thermal_size),
-                                             rgb_size, thermal_size)
 
     def read_thermal(self, path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(temperature C, 8-bit preview, info). R-JPEGs give their own palette picture as the preview."""
@@ -892,8 +769,8 @@ class RawAligner:
             raise SkipPair(f"RGB size mismatch: the camera calibration is for {cam.image_size[0]}x{cam.image_size[1]}, "
                            f"the image is {rw}x{rh}")
         boxes, labels, ids = src._boxes_in(rec, rw, rh, report)
-        self.register_group(rec.group)
-        prior = self.prior((self.new_cam.image_size if self.new_cam is not None else (rw, rh)), (tw, th))
+        self.registration.register_group(rec.group)
+        prior = self.registration.prior((rw, rh), (tw, th))
         try:
             pair = self.ctx.align_capture(rgb, temp, ir8, boxes, labels, rec.group, boxes_frame="rgb", prior=prior)
         except HarnessError as exc:
@@ -907,25 +784,13 @@ class RawAligner:
             "ann_ids": kept_ids, "thermal_format": info.get("format"),
         })
 
-    @property
-    def fitted(self) -> dict[str, np.ndarray]:
-        """group -> the homography used, on full-frame undistorted pixels (camera K)."""
-        return {g: self.to_k(e.H) for g, e in self.ctx.entries.items()}
-
-    def how(self, group: str) -> dict[str, Any]:
-        e = self.ctx.entries.get(group)
-        if e is None:
-            return {}
-        q = {k: v for k, v in (e.quality or {}).items() if k in ("pairs", "rms_px", "correlation")}
-        return {"source": e.method, **q}
-
     def finish(self, report: PrepareReport) -> None:
         if self.dropped:
             report.note(f"{self.dropped} RGB-frame box(es) fell outside the thermal frame (or below "
                         f"{self.opts.warp.min_box_size} px) after registration and were left out")
-        for group in sorted(self.ctx.entries):
-            self.src.registration[group] = self.how(group)
-            report.note(f"registration of {group}: " + ", ".join(f"{k} {v}" for k, v in self.how(group).items()))
+        self.src.registration.update({g: self.registration.how(g) for g in sorted(self.ctx.entries)})
+        for line in self.registration.notes():
+            report.note(line)
 
 
 # ------------------------------------------------------------------------------------------------ opening

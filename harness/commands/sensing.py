@@ -152,8 +152,6 @@ def register_commands(cli: click.Group) -> None:
                      auto_pairs: tuple[str, ...], init_file: Path | None, rgb_size: str | None,
                      thermal_size: str | None, min_correlation: float) -> None:
         """Compute per-group RGB->thermal homographies and save them in an editable YAML file."""
-        import numpy as np
-
         from harness.errors import DataError
         from harness.sensing import registration as reg
         from harness.textable import text_table as _table
@@ -165,17 +163,13 @@ def register_commands(cli: click.Group) -> None:
         rows = []
         rs, ts = _size(rgb_size, "--rgb-size"), _size(thermal_size, "--thermal-size")
         if landmarks:
-            lm = reg.read_landmarks(landmarks)
-            for group in lm.groups():
-                sub = lm.by_group(group)
-                try:
-                    H, inl = reg.homography_from_landmarks(sub.rgb, sub.thermal, method, threshold, return_inliers=True)
-                except DataError as exc:
-                    raise DataError(f"{landmarks}: group {group!r}: {exc}") from None
-                err = reg.reprojection_errors(H, sub.rgb[inl], sub.thermal[inl])
-                entries[group] = reg.HomographyEntry(H, "landmarks", None, rs, ts, quality={
-                    "landmarks": len(sub), "inliers": int(inl.sum()), "fit_rmse_px": float(np.sqrt(np.mean(err ** 2)))})
-                rows.append([group, "landmarks", f"{int(inl.sum())}/{len(sub)} pts, rmse {np.sqrt(np.mean(err ** 2)):.2f} px"])
+            try:
+                fits = reg.fit_groups(reg.read_landmarks(landmarks), method, threshold)
+            except DataError as exc:
+                raise DataError(f"{landmarks}: {exc}") from None
+            for group, fit in fits.items():
+                entries[group] = fit.entry(rs, ts)
+                rows.append([group, "landmarks", f"{int(fit.inliers.sum())}/{fit.pairs} pts, rmse {fit.rms_px:.2f} px"])
         for item in similarities:
             group, _, vals = item.partition("=")
             try:
@@ -190,14 +184,14 @@ def register_commands(cli: click.Group) -> None:
                 rgb_path, thermal_path = (Path(v) for v in files.split(","))
             except ValueError:
                 raise click.BadParameter(f"--auto {item!r}: expected GROUP=RGB,THERMAL") from None
-            res, rgb_shape, th_shape = reg.register_files(rgb_path, thermal_path, init=starts.get(group, entries.get(group)),
+            res, rgb_shape, th_shape = reg.register_files(rgb_path, thermal_path,
+                                                          init=starts.get(group, entries.get(group)),
                                                           min_correlation=min_correlation)
             status = "ok" if res.ok else f"REJECTED ({res.reason})"
             if res.ok:
-                entries[group] = reg.HomographyEntry(res.H, "auto", None, rgb_shape, th_shape, quality={
-                    "correlation": round(res.correlation, 4), "initial_correlation": round(res.initial_correlation, 4),
-                    "corner_shift_px": round(res.corner_shift_px, 2)})
-            rows.append([group, "auto", f"correlation {res.correlation:.3f} (from {res.initial_correlation:.3f}), {status}"])
+                entries[group] = res.entry(rgb_shape, th_shape)
+            rows.append([group, "auto",
+                         f"correlation {res.correlation:.3f} (from {res.initial_correlation:.3f}), {status}"])
         reg.save_homographies(out, entries)
         click.echo(_table(["group", "method", "result"], rows, align="lll"))
         click.echo(f"-> {out} ({len(entries)} group(s))")
@@ -235,7 +229,7 @@ def register_commands(cli: click.Group) -> None:
         beside = landmarks.parent.parent / "ground_truth" / "homographies.yaml"  # a synthetic set's layout
         truth = truth if truth is not None else (beside if beside.is_file() else None)
         if truth is not None:
-            from harness.sensing.registration_truth import against_truth, format_against_truth
+            from harness.sensing.registration.truth import against_truth, format_against_truth
 
             true_entries = load_homography_entries(truth)
             sizes = {tuple(e.thermal_size) for e in true_entries.values() if e.thermal_size}

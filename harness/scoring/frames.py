@@ -38,11 +38,11 @@ def _bbox(points: np.ndarray) -> np.ndarray:
 
 def _homography(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Boxes through ``H`` the way the sensing pipeline moves them (corners, OpenCV pixel-centre convention)."""
-    pts = _corners(b) - 0.5
-    hom = np.hstack([pts, np.ones((len(pts), 1))]) @ np.asarray(H, np.float64).reshape(3, 3).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = hom[:, :2] / hom[:, 2:3] + 0.5
-    out[np.repeat((hom[:, 2] <= 1e-12).reshape(-1, 4).any(axis=1), 4)] = np.nan
+    from harness.sensing.registration.homography import project_points
+
+    moved, depth = project_points(H, _corners(b) - 0.5)
+    out = moved + 0.5
+    out[np.repeat((depth <= 1e-12).reshape(-1, 4).any(axis=1), 4)] = np.nan
     return _bbox(out)
 
 

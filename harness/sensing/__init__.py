@@ -8,12 +8,13 @@ module             what it does
 ``dji_dirp``       DJI dirp (Zenmuse H20T) R-JPEGs: calibration block and curve to temperatures
 ``dji_formats``    which DJI R-JPEG layout a file uses (by EXIF model and APP4 tag); refusals naming both
 ``calibration``    checkerboard calibration per sensor, ``CameraModel`` YAML, undistortion without black borders
-``registration``   RGB->thermal homographies: landmarks, similarity parameters, automatic (ECC on edges), groups
+``registration``   (package) RGB->thermal homographies: their maths and focal priors, landmark fits, automatic
+                   registration (ECC on edges), files, groups, a raw dataset's per-group policy, truth
 ``warp``           RGB warped into the thermal frame, common support, boxes carried through H, ``align_pair``
 ``c2``             the signed local radiometric contrast channel C2
 ``analyses``       registration error on landmarks, displacement study of C2 around boxes
 ``options``        the ``sensing:`` config section as typed records
-``pipeline``       ``SensingContext``: one capture through undistortion, registration and alignment
+``pipeline``       ``SensingContext``: one capture through undistortion, registration and alignment; the ir8 preview
 =================  ==========================================================================================
 
 Every function is a small, pure array-in/array-out step; the CLI (``harness sensing ...``) and the dataset

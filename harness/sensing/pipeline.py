@@ -100,7 +100,7 @@ class SensingContext:
             raise DataError(f"group {group!r}: automatic registration rejected ({res.reason}); register the group "
                             "with landmarks or similarity parameters (`harness sensing register`)")
         log.info("group %s registered automatically (structure correlation %.3f)", group, res.correlation)
-        self.entries[group] = reg.HomographyEntry(res.H, "auto", quality=res.to_dict())
+        self.entries[group] = res.entry()
         return res.H
 
     def align_capture(self, rgb: np.ndarray, thermal: np.ndarray | None, ir8: np.ndarray, boxes: np.ndarray,
@@ -123,3 +123,16 @@ class SensingContext:
             if cam is not None and new is not None:
                 pair.cameras[sensor] = {"camera": cam.to_dict(), "undistorted": new.to_dict()}
         return pair
+
+
+def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:
+    """An 8-bit rendering of a temperature map: a percentile stretch (``low``..``high``) to 0..255, over the measured
+    pixels; a missing one (NaN or inf) shows the median's level, like ``linear16``."""
+    finite = np.isfinite(temp)
+    if finite.all():
+        lo, hi = np.percentile(temp, [low, high])
+    else:
+        lo, hi = np.percentile(temp[finite], [low, high])
+        temp = np.where(finite, temp, np.median(temp[finite]))
+    scale = 255.0 / max(float(hi - lo), 1e-3)
+    return np.clip(np.rint((temp - lo) * scale), 0, 255).astype(np.uint8)

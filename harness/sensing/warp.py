@@ -21,6 +21,7 @@ import numpy as np
 
 from harness.errors import DataError
 from harness.sample import AlignedSample
+from harness.sensing.registration.homography import project_points
 
 _INTERP = {"linear": 1, "nearest": 0, "cubic": 2, "area": 3}
 
@@ -126,16 +127,15 @@ def transform_boxes(boxes: np.ndarray, H: np.ndarray | None, origin: tuple[float
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     if len(b) == 0:
         return np.zeros((0, 4), np.float32), np.zeros(0, dtype=bool)
+    finite: np.ndarray
     if H is None:
         out = b.copy()
         finite = np.ones(len(b), dtype=bool)
     else:
-        Hm = np.asarray(H, dtype=np.float64).reshape(3, 3)
         corners = np.stack([b[:, [0, 1]], b[:, [2, 1]], b[:, [2, 3]], b[:, [0, 3]]], axis=1).reshape(-1, 2) - 0.5
-        hom = np.hstack([corners, np.ones((len(corners), 1))]) @ Hm.T
-        finite = (hom[:, 2] > 1e-12).reshape(-1, 4).all(axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pts = (hom[:, :2] / hom[:, 2:3]).reshape(-1, 4, 2) + 0.5
+        moved, depth = project_points(H, corners)
+        finite = np.asarray((depth > 1e-12).reshape(-1, 4).all(axis=1))
+        pts = moved.reshape(-1, 4, 2) + 0.5
         out = np.concatenate([pts.min(axis=1), pts.max(axis=1)], axis=1)
         out[~finite] = 0.0
     out[:, [0, 2]] -= origin[0]

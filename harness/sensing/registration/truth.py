@@ -16,6 +16,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.errors import DataError
+from harness.sensing.registration.homography import apply_homography
+from harness.sensing.registration.landmarks import Landmarks, fit_groups, registration_error
 from harness.textable import text_table
 
 #: Grid points per axis over the thermal frame for the fitted-vs-true comparison.
@@ -38,21 +40,19 @@ def frame_grid(thermal_size: tuple[int, int], n: int = GRID) -> np.ndarray:
     return np.c_[xs.ravel(), ys.ravel()]
 
 
-def against_truth(landmarks: Any, true_h: Mapping[str, np.ndarray], fitted_h: Mapping[str, np.ndarray] | None,
+def against_truth(landmarks: Landmarks, true_h: Mapping[str, np.ndarray], fitted_h: Mapping[str, np.ndarray] | None,
                   thermal_size: tuple[int, int] | None, method: str = "lsq") -> dict[str, Any]:
     """The landmarks' error under ``true_h`` and, per group, the distance between ``fitted_h`` (default: a fit of
     each group's landmarks) and ``true_h`` over a grid of the thermal frame. Thermal pixels throughout.
 
     ``thermal_size`` is the frame the grid covers; without it the landmarks' own thermal extent is used.
     """
-    from harness.sensing import registration as reg
-
     missing = sorted(set(landmarks.groups()) - set(true_h))
     if missing:
         raise DataError(f"the true homographies have no group {', '.join(map(repr, missing))} "
                         f"(have: {', '.join(sorted(true_h)) or 'none'})")
-    on_true = reg.registration_error(landmarks, dict(true_h))
-    fitted = dict(fitted_h) if fitted_h is not None else reg.fit_group_homographies(landmarks, method)
+    on_true = registration_error(landmarks, dict(true_h))
+    fitted = dict(fitted_h) if fitted_h is not None else {g: f.H for g, f in fit_groups(landmarks, method).items()}
     per_group: dict[str, dict[str, float]] = {}
     dists = []
     for group in landmarks.groups():
@@ -65,8 +65,8 @@ def against_truth(landmarks: Any, true_h: Mapping[str, np.ndarray], fitted_h: Ma
             lo, hi = t.min(axis=0), t.max(axis=0)
             xs, ys = np.meshgrid(np.linspace(lo[0], hi[0], GRID), np.linspace(lo[1], hi[1], GRID))
             pts = np.c_[xs.ravel(), ys.ravel()]
-        rgb = reg.apply_homography(np.linalg.inv(true_h[group]), pts)
-        d = np.linalg.norm(reg.apply_homography(fitted[group], rgb) - pts, axis=1)
+        rgb = apply_homography(np.linalg.inv(true_h[group]), pts)
+        d = np.linalg.norm(apply_homography(fitted[group], rgb) - pts, axis=1)
         per_group[group] = _stats(d)
         dists.append(d)
     grid = _stats(np.concatenate(dists)) if dists else _stats(np.array([]))
