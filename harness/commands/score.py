@@ -38,8 +38,11 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--store", type=click.Path(file_okay=False), default=None,
                   help="Results store root [default: results/<profile>].")
     @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
+    @click.option("--allow-implausible", is_flag=True,
+                  help="Score predictions that look misread (unknown images or categories, shifted ids) as read, "
+                       "and label the stored result, instead of refusing.")
     def score_cmd(dataset, fold, predictions, name, frame, images, image_key, category_map, params, gflops, root,
-                  profile, config_files, overrides, store, force):
+                  profile, config_files, overrides, store, force, allow_implausible):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
         \b
@@ -54,7 +57,7 @@ def register_commands(cli: click.Group) -> None:
         res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
                              category_map=parse_category_map(category_map), profile=profile,
                              config_files=config_files, overrides=overrides, store=store, root=root,
-                             params=params, gflops=gflops, force=force)
+                             params=params, gflops=gflops, force=force, allow_implausible=allow_implausible)
         for line in res.matching.lines():
             click.echo(line, err=True)
         m = res.metrics["metrics"]

@@ -74,7 +74,7 @@ def export_run(run: Any, frame: str, out: Path, prepared: Any = None) -> Exporte
             cid = int(d["category_id"])
             out_dets.append({"image_id": iid, "file_name": fname, "category_id": cid,
                              "category_name": cats[cid - 1] if 1 <= cid <= len(cats) else None,
-                             "bbox": [x1, y1, round(x2 - x1, 4), round(y2 - y1, 4)], "score": d["score"]})
+                             "bbox": [x1, y1, x2 - x1, y2 - y1], "score": d["score"]})
     atomic_write_json(out, out_dets, indent=None)
     images_path = out.with_name(out.stem + ".images.json")
     atomic_write_json(images_path, {"info": {"frame": frame, "run": str(run.key)}, "images": images,
