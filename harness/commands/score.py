@@ -81,11 +81,13 @@ def register_commands(cli: click.Group) -> None:
     def export_cmd(store, dataset, detector, encoding, folds, seed, frame, out):
         """Write finished runs' held-out predictions as COCO results in an original image frame.
 
-        Each file has a companion <name>.images.json (images and categories) that `harness score --images`
-        reads back.
+        Beside each X.json goes X.images.json (images and categories) that `harness score --images` reads
+        back; scoring the export gives the run's metrics to the last digit.
         """
         from harness.scoring.export import export_predictions
 
         fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
         for e in export_predictions(store, dataset, detector, encoding, fold_list, seed, frame, out):
-            click.echo(f"{e.run}: {e.detections} detections on {e.images} images -> {e.path}")
+            inexact = f", {e.inexact} inexact" if e.inexact else ""
+            click.echo(f"{e.run}: {e.detections} detections{inexact} on {e.images} images -> {e.path} "
+                       f"(image list {e.images_path.name})")

@@ -454,7 +454,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                         "images and categories:\n  " + "\n  ".join(m.lines()))
     if m.findings and not allow_implausible:
         raise DataError(f"--predictions {pred_path}: implausible as read for fold {f.name} of {spec.name}, nothing "
-                        f"was stored:\n  " + "\n  ".join(str(x) for x in m.findings)
+                        f"was stored:\n  " + "\n  ".join(f"- {x}" for x in m.findings)
+                        + "\nAs read:\n  " + "\n  ".join(m.lines())
                         + "\nFix the mapping as suggested, or pass --allow-implausible to score them as read "
                           "(the stored result is labelled).")
 
