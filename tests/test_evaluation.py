@@ -42,6 +42,23 @@ def test_equals_pycocotools_on_randomized_fixtures(case, engine):
     assert 0 < result["metrics"]["mAP50_95"] < result["metrics"]["mAP50"] < 1
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_detections_in_any_order_score_the_same(engine):
+    """pycocotools matches detections of equal score in the order they are listed, so another codebase's order
+    changes the numbers; the evaluator scores the canonical order, whatever order it is given."""
+    gt, dets = random_coco(seed=21)
+    for d in dets:
+        d["score"] = round(d["score"], 1)  # many equal scores within an image and category
+    rng = np.random.default_rng(3)
+    orders = [dets, dets[::-1], *([dets[i] for i in rng.permutation(len(dets))] for _ in range(3))]
+    raw = {tuple(pycocotools_reference(gt, o, in_canonical_order=False)[0]) for o in orders}
+    assert len(raw) > 1, "the fixture must make plain pycocotools order-dependent"
+    results = [evaluate(gt, o, engine=engine) for o in orders]
+    assert all(r == results[0] for r in results[1:])
+    ref_stats, ref_cat = pycocotools_reference(gt, dets)  # the reference: pycocotools on the canonical order
+    _assert_matches_reference(results[0], ref_stats, ref_cat, gt)
+
+
 def test_support_and_categories_without_gt():
     gt, dets = random_coco(seed=3)
     r = evaluate(gt, dets)

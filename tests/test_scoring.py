@@ -411,3 +411,36 @@ def test_mmdetection_own_image_ids_without_the_image_list_stop(finished_run):
     assert "--images" in text
     res = _score(tmp, "mmdet", tmp / "results.bbox.json", frame="thermal", images=tmp / "mmdet_test.json")
     assert res.metrics["metrics"]["mAP50"] == 1.0 and not res.matching.findings
+
+
+@pytest.mark.slow
+def test_compare_detectors_addresses_external_runs(finished_run, cli_runner):
+    from harness.report import compare_detectors
+
+    tmp, result = finished_run
+    _score(tmp, "paired", result.path / "predictions.json")
+    for name in ("external/paired", "external/paired/external"):
+        comp = compare_detectors(tmp / "store", "framed", "tinydet", name, resamples=0)
+        assert comp.b == "external/paired/external" and comp.folds == ["A"]
+        assert comp.fold_differences["mAP50_95"].diffs == [0.0]  # the run's own predictions, scored as external
+    res = cli_runner(["compare-detectors", "tinydet", "external/paired", "--dataset", "framed", "--store",
+                      str(tmp / "store"), "--resamples", "0"])
+    assert res.exit_code == 0, res.output
+    assert "external/paired" in res.stdout
+
+
+@pytest.mark.slow
+def test_a_refused_pair_suggests_the_command_line_option_not_the_api_one(finished_run, cli_runner):
+    from harness.scoring.export import export_predictions
+
+    tmp, _ = finished_run
+    [e] = export_predictions(tmp / "store", "framed", "tinydet", frame="prepared", out=tmp / "fewer.json")
+    images = json.loads(e.images_path.read_text())
+    images["images"].pop(0)
+    (tmp / "fewer.images.json").write_text(json.dumps(images))
+    _score(tmp, "fewer", e.path, images=tmp / "fewer.images.json")
+    res = cli_runner(["compare-detectors", "tinydet", "external/fewer", "--dataset", "framed", "--store",
+                      str(tmp / "store"), "--resamples", "0"])
+    assert res.exit_code == 2
+    assert "refusing to compare" in res.output and "--allow-mismatched" in res.output
+    assert "allow=True" not in res.output
