@@ -45,9 +45,12 @@ def register_commands(cli: click.Group) -> None:
                   profile, config_files, overrides, store, force, allow_implausible):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
-        \b
         The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
-        the paired bootstrap show it beside the trained detectors.
+        the paired bootstrap show it beside the trained detectors. Predictions that look misread (on unknown
+        images or categories, or with ids that fit only shifted by one) are refused with what was seen, unless
+        --allow-implausible.
+
+        \b
         Example:
           harness score --dataset m3t --fold P1 --predictions yolo_preds.json --images val.json \\
               --frame rgb --name yolov8s-official --params 11.13 --gflops 28.6
