@@ -182,8 +182,12 @@ def average_seeds(dataset: str, fold: str, metrics: Sequence[Mapping[str, Any]])
         rec: dict[str, Any] = {k: _mean(e.get(k) for e in entries) for k in SEED_CATEGORY_METRICS}
         rec["instances"] = int(entries[0].get("instances") or 0)
         per_category[name] = rec
-    return {"run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
-            "support": first.get("support") or {}, "metrics": head, "per_category": per_category}
+    out = {"run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
+           "support": first.get("support") or {}, "metrics": head, "per_category": per_category}
+    labels = [lab for m in metrics for lab in m.get("labels") or []]
+    if labels:  # a risk accepted when a seed was stored (harness score --allow-implausible, eval.allow_degenerate)
+        out["labels"] = list(dict.fromkeys(labels))
+    return out
 
 
 class StoreView:
