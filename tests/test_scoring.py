@@ -145,6 +145,20 @@ def test_a_box_too_thin_for_the_rotation_is_counted_and_stays_close():
     assert 40 * np.tan(np.deg2rad(3.0)) - 0.1 < width < 40 * np.tan(np.deg2rad(3.0)) + 0.1
 
 
+def test_boxes_outside_the_prepared_frame_are_clipped_or_dropped():
+    b, keep = to_prepared(np.array([[-20.0, -20.0, -10.0, -10.0], [70.0, 60.0, 120.0, 90.0]]), "prepared", META)
+    assert keep.tolist() == [False, True] and b.tolist() == [[70.0, 60.0, 80.0, 64.0]]
+
+
+def test_image_names_match_by_path_name_stem_and_numeric_stem():
+    from harness.scoring.external import _ImageIndex
+
+    index = _ImageIndex([(0, ["day/010001.jpg", "ir/010001_T.jpg"]), (1, ["day/010002.jpg"]), (2, ["A/IMG_7_T.JPG"])])
+    assert index.find("day/010001.jpg") == 0 and index.find("010002.jpg") == 1 and index.find("img_7_t") == 2
+    assert index.find(10001) == 0 and index.find("10002") == 1  # Ultralytics' int(stem)
+    assert index.find("nowhere.jpg") is None
+
+
 # ------------------------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory, one_torch_thread):

@@ -26,7 +26,8 @@ def register_commands(cli: click.Group) -> None:
                   help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
                        "not list count as missing.")
     @click.option("--image-key", default="file_name", show_default=True,
-                  help="Field naming each image (in the predictions or the image list).")
+                  help="Field naming each image (in the predictions or the image list); image_id reads the "
+                       "numeric file stems Ultralytics writes as ids.")
     @click.option("--category-map", default=None, metavar="THEIR=OURS,...|FILE.json",
                   help="Their category ids or names -> the dataset's names [default: by name].")
     @click.option("--params", type=float, default=None, help="Parameters of the external model, millions.")
