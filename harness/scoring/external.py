@@ -6,14 +6,18 @@ samples every harness detector is scored on:
 
 * **images** are matched to the fold's prepared samples by file name: each prediction's own ``file_name`` (or the
   ``image_key`` field), else its ``image_id`` looked up in an image list (``images``: the other codebase's COCO
-  JSON, whose ``images`` give ``id`` and ``file_name``), else the harness's own image ids. A name matches a sample
-  by its relative path, else by its base name, else by its stem (only when unique). Predictions of images outside
-  the fold are left out and counted; unmatched ones are counted and listed.
+  JSON, whose ``images`` give ``id`` and ``file_name``), else a non-numeric ``image_id`` as a file stem (Ultralytics
+  writes the stem), else a numeric one as the harness's own image id. A name matches a sample by its relative path,
+  else by its base name, else by its stem (only when unique), else by a numeric stem as a number. Predictions of
+  images outside the fold are left out and counted; unmatched ones are counted and listed.
 * **categories** are matched by name (the image list's ``categories``, or the prediction's ``category_name``),
   case and separators ignored, or through an explicit ``category_map`` (their id or name -> our name); without
   names, ids are taken as the harness's (``category_id = label + 1``). Unmatched categories are counted and shown.
 * **boxes** in the original RGB or thermal image are moved into the prepared frame by the same undistortion,
-  homography and crop as the ground truth (``harness.scoring.frames``).
+  homography and crop as the ground truth (``harness.scoring.frames``); only boxes wholly outside are dropped.
+* **plausibility**: before anything is scored, ids that look misread (many predictions on unknown images or in
+  unknown categories, ids that fit only shifted by one) stop with what was seen (``harness.scoring.plausibility``),
+  unless ``allow_implausible`` (``--allow-implausible``), which labels the stored result.
 * **which images were scored**: with an image list, the fold images it does not list are *missing*: they are left
   out of the ground truth, so the support differs from the trained detectors' and the sample-matched guard labels
   the comparison. Without an image list, every fold image is scored and those without any prediction are counted.
@@ -122,7 +126,7 @@ class ScoreResult:
 
 
 class _ImageIndex:
-    """Fold samples by relative path, base name and stem."""
+    """Fold samples by relative path, base name, stem and numeric stem (``010001.jpg`` is also ``10001``)."""
 
     def __init__(self, entries: Sequence[tuple[int, Sequence[str]]]):
         self.by: list[dict[str, set[int]]] = [{}, {}, {}, {}]
