@@ -32,7 +32,7 @@ class HarnessGroup(click.Group):
         return sorted(self.commands)
 
 
-@click.group(cls=HarnessGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
+@click.group(cls=HarnessGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="harness")
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
@@ -41,7 +41,7 @@ def cli(verbose: int, quiet: bool) -> None:
 
     \b
     Start here:
-      harness list                                   what detectors, datasets and encodings are installed
+      harness list              what detectors, datasets and encodings are installed
       harness run --detector ours --dataset m3t-synth --profile smoke
     """
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)

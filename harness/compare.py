@@ -212,9 +212,10 @@ def _fold_result(fold: str, runs: list[Run], safit: bool) -> tuple[FoldResult, d
 
     metrics = {str(r.key): r.read_metrics() for r in runs}
     try:
-        check_sample_matched(metrics)
+        check_sample_matched(metrics, hint="Re-run the odd seed on the current prepared data (harness run ... --seeds "
+                                           "N --force).")
     except HarnessError as exc:
-        raise SupportMismatch(f"the seeds of one fold were scored on different samples; re-run the odd seed. {exc}") from None
+        raise SupportMismatch(f"the seeds of one fold were scored on different samples: {exc}") from None
     first = next(iter(metrics.values()))
     sup = first["support"]
     out = FoldResult(fold, sorted(r.key.seed for r in runs), int(sup["images"]), int(sup["instances"]),

@@ -1,7 +1,8 @@
 """Plugin outputs checked at the boundary: every error names the plugin, the field and what was expected.
 
 * ``check_detections(det, detector, num_classes)``: one image's eval-mode output ``{"boxes" [K, 4] float,
-  "scores" [K] float, "labels" [K] int in 0..num_classes-1}``, all finite;
+  "scores" [K] float, finite, "labels" [K] int in 0..num_classes-1}``; degenerate boxes (NaN, inverted) pass here
+  and are counted and dropped by ``harness.engine.predict``;
 * ``check_losses(losses, detector)``: the train-mode output, a non-empty dict of scalar (one-element) tensors;
 * ``fold_batchnorm(model)``: the host's call of a detector's BatchNorm fold. The host looks for the namespaced
   ``harness_fuse()`` first, then a ``fuse()`` *method defined on the model's class*; an attribute, a sub-module or
@@ -53,10 +54,8 @@ def check_detections(det: Any, detector: str, num_classes: int | None = None) ->
     b = boxes.detach().float().cpu().numpy()
     s = scores.detach().float().cpu().numpy()
     lab = labels.detach().cpu().numpy().astype(np.int64)
-    for name, arr in (("boxes", b), ("scores", s)):
-        if not np.isfinite(arr).all():
-            raise PluginError(f"{where} field {name!r} must be finite, got {int((~np.isfinite(arr)).sum())} "
-                              f"NaN/inf value(s)")
+    if not np.isfinite(s).all():  # a NaN or inf box is a degenerate box: the caller counts and drops it
+        raise PluginError(f"{where} field 'scores' must be finite, got {int((~np.isfinite(s)).sum())} NaN/inf value(s)")
     if num_classes is not None and k and (lab.min() < 0 or lab.max() >= num_classes):
         bad = int(lab.min()) if lab.min() < 0 else int(lab.max())
         raise PluginError(f"{where} field 'labels' must lie in 0..{num_classes - 1}, got {bad}")

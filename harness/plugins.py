@@ -9,7 +9,11 @@ Order of loading (``load_plugins``, idempotent):
    of distribution names (comma separated, empty for none) that is honoured even when auto-loading is off;
 3. ``*.py`` files in the folders named by ``HARNESS_PLUGINS_DIR`` (``os.pathsep`` separated), for plugins that
    are not packaged;
-4. ``check_pending()``: a plugin implementing a hook that does not exist (a typo) is reported and dropped.
+4. ``check_pending()``: a plugin implementing a hook that does not exist (a typo) is reported with the nearest
+   hook name and dropped; asking for a name it would have registered says so.
+
+A plugin with a function named like a hook but without ``@hookimpl`` (which the harness never calls) is reported
+by name, with a warning.
 
 A plugin that fails to import, to validate or to register is recorded in ``host.problems`` with its name and the
 error; the others still load. No code outside this module calls ``pm.hook`` directly: it goes through ``host``.
@@ -18,6 +22,7 @@ error; the others still load. No code outside this module calls ``pm.hook`` dire
 from __future__ import annotations
 
 import contextlib
+import difflib
 import importlib
 import importlib.metadata
 import importlib.util
@@ -89,6 +94,8 @@ class PluginProblem:
     plugin: str
     stage: str  # "import", "validate", a hook name, or "conflict"
     message: str
+    #: for a misspelled hook: the hook it was most likely meant to be
+    hook: str | None = None
 
     def __str__(self) -> str:
         return f"plugin {self.plugin!r} ({self.stage}): {self.message}"
@@ -170,9 +177,13 @@ class PluginHost:
             )
         if name not in registry:
             broken = [p.plugin for p in self._hook_problems[hook_name] if p.stage == hook_name]
+            misspelled = [p for p in self.load_problems if p.hook == hook_name]
             err = UnknownNameError(kind, name, list(registry))
             if broken:
                 err.args = (err.args[0] + f" (plugins that failed to register: {', '.join(broken)})",)
+            if misspelled:
+                err.args = (err.args[0] + " Possibly why: " + "; ".join(f"plugin {p.plugin!r}: {p.message}"
+                                                                         for p in misspelled),)
             raise err
         return registry[name][0]
 
@@ -370,7 +381,53 @@ def _safe_register(plugin: Any, name: str) -> bool:
         host.load_problems.append(PluginProblem(name, "validate", f"{type(exc).__name__}: {exc}"))
         log.warning("plugin %r rejected: %s", name, exc)
         return False
+    _check_unmarked(plugin, name)
     return True
+
+
+def hook_names() -> list[str]:
+    """The hooks the host defines (``harness.hookspecs``)."""
+    marker = f"{hookspecs.PROJECT}_spec"
+    return sorted(n for n in dir(hookspecs) if hasattr(getattr(hookspecs, n), marker))
+
+
+def nearest_hook(name: str) -> str | None:
+    """The defined hook a misspelled ``name`` most likely means."""
+    close = difflib.get_close_matches(name, hook_names(), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
+def _check_unmarked(plugin: Any, name: str) -> None:
+    """Warn about functions named like a hook (or nearly) that lack ``@hookimpl``: the harness never calls them."""
+    marker = f"{hookspecs.PROJECT}_impl"
+    for attr in sorted(a for a in dir(plugin) if a.startswith("register_")):
+        try:
+            fn = getattr(plugin, attr)
+        except Exception:  # noqa: BLE001 - a property that fails is not a hook
+            continue
+        hook = attr if attr in hook_names() else difflib.get_close_matches(attr, hook_names(), n=1, cutoff=0.85)
+        hook = hook if isinstance(hook, str) else (hook[0] if hook else None)
+        if hook is None or not callable(fn) or hasattr(fn, marker):
+            continue
+        msg = (f"function {attr!r} looks like the hook {hook!r} but has no @hookimpl, so the harness never calls "
+               f"it; decorate it with @harness.hookimpl")
+        host.load_problems.append(PluginProblem(name, "validate", msg, hook))
+        log.warning("plugin %r: %s", name, msg)
+
+
+def _unknown_hooks(plugin: Any) -> list[str]:
+    return sorted(hc.name for hc in pm.get_hookcallers(plugin) or [] if not hc.has_spec())
+
+
+def _pending_problem(plugin: Any, name: str) -> PluginProblem:
+    """A plugin implementing hooks the host does not define, with the nearest hook for each."""
+    parts, nearest = [], None
+    for hook in _unknown_hooks(plugin) or ["?"]:
+        near = nearest_hook(hook)
+        nearest = nearest or near
+        parts.append(f"unknown hook {hook!r}, " + (f"did you mean {near!r}?" if near else
+                                                     f"the hooks are {', '.join(hook_names())}"))
+    return PluginProblem(name, "validate", "not loaded: " + "; ".join(parts), nearest)
 
 
 def _check_pending() -> None:
@@ -381,17 +438,27 @@ def _check_pending() -> None:
             return
         except pluggy.PluginValidationError as exc:
             name = pm.get_name(exc.plugin) or repr(exc.plugin)
-            host.load_problems.append(PluginProblem(name, "validate", str(exc)))
+            problem = _pending_problem(exc.plugin, name)
+            host.load_problems.append(problem)
+            log.warning("plugin %r %s", name, problem.message)
             pm.unregister(exc.plugin)
 
 
 def register_plugin(plugin: Any, name: str | None = None) -> str:
-    """Register a plugin object at run time (tests, notebooks); returns its name."""
+    """Register a plugin object at run time (tests, notebooks); returns its name. A misspelled hook is a
+    ``PluginError`` naming the plugin and the nearest hook (the plugin is not kept)."""
     load_plugins()
     pm.register(plugin, name=name)
-    pm.check_pending()
+    registered = pm.get_name(plugin) or repr(plugin)
+    try:
+        pm.check_pending()
+    except pluggy.PluginValidationError:
+        problem = _pending_problem(plugin, registered)
+        pm.unregister(plugin)
+        raise PluginError(str(problem)) from None
+    _check_unmarked(plugin, registered)
     host.refresh()
-    return pm.get_name(plugin)  # type: ignore[return-value]
+    return registered
 
 
 def unregister_plugin(name: str) -> None:

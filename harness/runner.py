@@ -45,7 +45,8 @@ from harness.textable import fit_text, text_table
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads")}
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"),
+                ("eval", "allow_degenerate")}  # decides only whether a run is stored (labelled), not its numbers
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
 #: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
 LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
@@ -367,7 +368,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     from harness.complexity import measure as measure_complexity
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
-    from harness.engine.predict import predict
+    from harness.engine.predict import DegenerateBoxes, predict
     from harness.engine.runtime import environment, seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
     from harness.evaluation import evaluate
@@ -447,15 +448,21 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         final.eval()
         t0 = time.perf_counter()
         visited: list[int] = []
+        degenerate = DegenerateBoxes()
         dets = predict(final, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
                        trainer.device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       progress=progress, name=det.name, distributed=dist.active, visited=visited)
+                       progress=progress, name=det.name, distributed=dist.active, visited=visited,
+                       degenerate=degenerate)
         predict_s = time.perf_counter() - t0
         if not main:  # rank 0 scores and writes; the others read its metrics once they are stored
             hd.barrier()
             return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
                               len(val_idx))
+        # most boxes malformed (e.g. x, y, w, h returned): stop naming the detector, unless accepted (then labelled)
+        degenerate_note = degenerate.check(det.name, bool(eval_cfg.get("allow_degenerate", False)))
         evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+        if degenerate_note:
+            log.warning("%s", degenerate_note)
         support = dict(evaluation["support"])
         support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
         params = sum(p.numel() for p in model.parameters())
@@ -476,7 +483,10 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                       "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
             "complexity": complexity,
             "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+            "degenerate_detections": degenerate.to_dict(),
         }
+        if degenerate_note:
+            metrics["labels"] = [degenerate_note]
         atomic_write_json(r.predictions_path, dets, indent=None)
         atomic_write_json(r.gt_path, gt, indent=None)
         r.write_metrics(metrics)

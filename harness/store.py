@@ -6,7 +6,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         config.yaml          the fully resolved configuration of the run
         status.json          {"state": "running" | "finished" | "failed", "config_hash", "started", "updated", ...}
         metrics.json         evaluation of the held-out fold (schema below)
-        predictions.json     COCO-format detections on the held-out images (category ids as in the GT)
+        predictions.json     COCO-format detections on the held-out images (category ids as in the GT), at the
+                             full precision they were scored at
         gt.json              the COCO ground truth the predictions were scored against (for re-scoring, bootstrap)
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
@@ -26,7 +27,11 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
       "complexity": {"model_options", "params", "params_fused", "bn_folded", "unused_params",
                      "gflops": {"<imgsz>": {"paper", "exact"}, "640": {...}}, ...},   # harness.complexity
       "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...},   # optional
-      "environment": {...}                           # optional: versions, device, threads
+      "environment": {...},                          # optional: versions, device, threads
+      "degenerate_detections": {"returned", "non_finite", "inverted", "zero_size", "outside_image", "examples"},
+                                                     # trained runs: boxes the detector returned, those dropped
+      "external": {...},                             # runs of `harness score`: identity and matching counts
+      "labels": [str, ...]                           # optional: a risk accepted when the result was stored
     }
 
 Numbers are fractions in 0..1. A category with no ground truth in the fold has ``AP50 = null``; fold aggregation

@@ -55,8 +55,19 @@ def random_coco(seed: int, n_images: int = 40, n_cats: int = 4, absent_cat: bool
     return {"info": {}, "images": images, "annotations": anns, "categories": cats}, dets
 
 
-def pycocotools_reference(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[list[float], dict[int, tuple]]:
-    """Stats and per-category (AP50, AP50:95) by plain pycocotools, the way its documentation uses it."""
+def canonical(dets: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The detections in the evaluator's canonical order (image, category, descending score, then x, y, w, h),
+    sorted here independently of the harness's code. pycocotools matches equal scores in input order, so this is
+    the order in which plain pycocotools is the reference."""
+    return sorted(dets, key=lambda d: (d["image_id"], d["category_id"], -d["score"], *d["bbox"]))
+
+
+def pycocotools_reference(gt: dict[str, Any], dets: list[dict[str, Any]],
+                          in_canonical_order: bool = True) -> tuple[list[float], dict[int, tuple]]:
+    """Stats and per-category (AP50, AP50:95) by plain pycocotools, the way its documentation uses it, on the
+    detections in canonical order (or as given)."""
+    if in_canonical_order:
+        dets = canonical(dets)
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 

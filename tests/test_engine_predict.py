@@ -47,7 +47,8 @@ def test_letterbox_is_undone_exactly():
     det = {"boxes": torch.tensor([[10.0, 26.0, 30.0, 46.0], [90.0, 40.0, 120.0, 60.0]]),
            "scores": torch.tensor([0.9, 0.4]), "labels": torch.tensor([2, 0])}
     out = detections_to_coco(det, 7, lb)
-    assert out[0] == {"image_id": 7, "category_id": 3, "bbox": [20.0, 20.0, 40.0, 40.0], "score": 0.9}
+    # the score at the model's full float32 precision (not rounded to 5 decimals)
+    assert out[0] == {"image_id": 7, "category_id": 3, "bbox": [20.0, 20.0, 40.0, 40.0], "score": float(np.float32(0.9))}
     assert out[1]["bbox"] == [180.0, 48.0, 20.0, 16.0]  # clipped to the 200 x 64 frame
     assert out[1]["category_id"] == 1
 

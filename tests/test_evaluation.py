@@ -9,7 +9,7 @@ import io
 import numpy as np
 import pytest
 
-from evaluation_fixtures import nullable, pycocotools_reference, random_coco
+from evaluation_fixtures import canonical, nullable, pycocotools_reference, random_coco
 from harness.evaluation import ENGINES, EvaluationError, evaluate, max_f1_operating_point
 
 CASES = {
@@ -40,6 +40,23 @@ def test_equals_pycocotools_on_randomized_fixtures(case, engine):
     _assert_matches_reference(result, ref_stats, ref_cat, gt)
     assert gt == gt_before and dets == dets_before, "inputs must not be modified"
     assert 0 < result["metrics"]["mAP50_95"] < result["metrics"]["mAP50"] < 1
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_detections_in_any_order_score_the_same(engine):
+    """pycocotools matches detections of equal score in the order they are listed, so another codebase's order
+    changes the numbers; the evaluator scores the canonical order, whatever order it is given."""
+    gt, dets = random_coco(seed=21)
+    for d in dets:
+        d["score"] = round(d["score"], 1)  # many equal scores within an image and category
+    rng = np.random.default_rng(3)
+    orders = [dets, dets[::-1], *([dets[i] for i in rng.permutation(len(dets))] for _ in range(3))]
+    raw = {tuple(pycocotools_reference(gt, o, in_canonical_order=False)[0]) for o in orders}
+    assert len(raw) > 1, "the fixture must make plain pycocotools order-dependent"
+    results = [evaluate(gt, o, engine=engine) for o in orders]
+    assert all(r == results[0] for r in results[1:])
+    ref_stats, ref_cat = pycocotools_reference(gt, dets)  # the reference: pycocotools on the canonical order
+    _assert_matches_reference(results[0], ref_stats, ref_cat, gt)
 
 
 def test_support_and_categories_without_gt():
@@ -274,7 +291,8 @@ def test_bulk_greedy_matching_equals_cocoeval(seed):
     # exact ties: a duplicated GT box (COCO gives the detection to the later one) and a crowd copy of a GT
     a = gt["annotations"][0]
     gt["annotations"] += [dict(a, id=10_001), dict(a, id=10_002, iscrowd=1)]
-    dets.append({"image_id": a["image_id"], "category_id": a["category_id"], "bbox": list(a["bbox"]), "score": 0.999})
+    exact = {"image_id": a["image_id"], "category_id": a["category_id"], "bbox": list(a["bbox"]), "score": 0.999}
+    dets = canonical(dets + [exact])  # detections numbered 1..N in the evaluator's canonical order
     ref = _pycocotools_matches_at_50(gt, dets)
     renumbered = {x["id"]: k + 1 for k, x in enumerate(gt["annotations"])}  # the harness numbers GT 1..N in order
     ref = {d: renumbered[g] for d, g in ref.items()}
@@ -282,7 +300,7 @@ def test_bulk_greedy_matching_equals_cocoeval(seed):
     layout = pair_layout(prep, 100)
     got = layout.greedy_match(prep, layout.values(prep, iou_elementwise), threshold=0.5)
     assert len(ref) > 50 and got == ref
-    assert got[len(dets)] == renumbered[10_001]  # of two identical GT boxes, the later one (crowd comes last)
+    assert got[dets.index(exact) + 1] == renumbered[10_001]  # of two identical GT boxes, the later one (crowd comes last)
 
 
 def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
@@ -297,7 +315,7 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     prep = prepare(gt, dets)
     layout = pair_layout(prep, 100)
     ours = layout.matrices(layout.values(prep, iou_elementwise))
-    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt)), COCO(copy.deepcopy(gt)).loadRes(copy.deepcopy(dets)),
+    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt)), COCO(copy.deepcopy(gt)).loadRes(canonical(dets)),
                          iouType="bbox")
     ev.evaluate()  # the library's own per-pair IoU matrices, dense 1 image at a time
     theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}

@@ -246,6 +246,52 @@ def test_misspelled_hook_is_reported_by_check_pending(fresh_plugins, monkeypatch
     assert "dir-enc" in host.encodings()
 
 
+def test_a_hook_name_typo_names_the_plugin_and_the_nearest_hook(fresh_plugins, monkeypatch, tmp_path, caplog):
+    from harness.errors import UnknownNameError
+
+    (tmp_path / "typo_det.py").write_text(
+        "from harness import hookimpl, DetectorSpec\n\n@hookimpl\ndef register_detector(register):\n"
+        "    register(DetectorSpec(name='mydet', build=lambda n, **k: None, input_kind='single'))\n")
+    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
+    with caplog.at_level("WARNING", logger="harness.plugins"):
+        host = fresh_plugins.load_plugins()
+    [problem] = [p for p in host.problems if p.plugin == "typo_det"]
+    assert "unknown hook 'register_detector', did you mean 'register_detectors'?" in problem.message
+    assert "typo_det" in caplog.text and "did you mean 'register_detectors'" in caplog.text
+    with pytest.raises(UnknownNameError) as err:
+        host.detector("mydet")
+    assert "plugin 'typo_det'" in str(err.value) and "did you mean 'register_detectors'" in str(err.value)
+
+
+def test_registering_an_object_with_a_hook_typo_is_a_plugin_error(host):
+    from harness.errors import PluginError
+    from harness.plugins import pm, register_plugin
+
+    class Typo:
+        @hookimpl
+        def register_dataset(self, register):
+            pass
+
+    before = len(pm.list_name_plugin())
+    with pytest.raises(PluginError, match=r"plugin 'typo-object'.*'register_dataset', did you mean 'register_datasets'"):
+        register_plugin(Typo(), name="typo-object")
+    assert len(pm.list_name_plugin()) == before  # not kept
+
+
+def test_a_hook_like_function_without_hookimpl_is_reported(fresh_plugins, monkeypatch, tmp_path, caplog):
+    (tmp_path / "forgot_marker.py").write_text(
+        "from harness import DetectorSpec\n\ndef register_detectors(register):\n"
+        "    register(DetectorSpec(name='unmarked', build=lambda n, **k: None, input_kind='single'))\n")
+    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
+    with caplog.at_level("WARNING", logger="harness.plugins"):
+        host = fresh_plugins.load_plugins()
+    assert "forgot_marker" in caplog.text and "@hookimpl" in caplog.text
+    assert any(p.plugin == "forgot_marker" and "no @hookimpl" in p.message for p in host.problems)
+    assert not [p for p in host.problems if p.plugin.startswith(("harness.", "adapters."))]  # built-ins are clean
+    with pytest.raises(Exception, match=r"unknown detector 'unmarked'.*forgot_marker.*no @hookimpl"):
+        host.detector("unmarked")
+
+
 def test_load_plugins_is_idempotent(host):
     from harness.plugins import load_plugins, pm
 

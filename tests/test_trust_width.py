@@ -66,3 +66,31 @@ def test_text_tables_split_into_panels_that_keep_the_row_names():
     assert len(panels) > 1 and all(p.splitlines()[0].startswith("name") for p in panels)
     assert sum(p.splitlines()[0].count("column") for p in panels) == 20
     assert text_table(header, rows, width=None).count("\n") == 3  # one table when asked
+
+
+def _help_pages():
+    """Every command's ``--help`` argv, sub-commands of groups included."""
+    import click
+
+    from harness.cli import get_cli
+
+    def walk(cmd, path):
+        yield path + ["--help"]
+        if isinstance(cmd, click.Group):
+            ctx = click.Context(cmd)
+            for name in cmd.list_commands(ctx):
+                yield from walk(cmd.get_command(ctx, name), path + [name])
+
+    return list(walk(get_cli(), []))
+
+
+@pytest.mark.parametrize("columns", [100, 250])
+def test_every_help_page_fits_100_columns(host, cli_runner, columns):
+    """Wide terminal or not: click wraps help text to at most 100 columns, and the unwrapped blocks (examples) fit."""
+    pages = _help_pages()
+    assert len(pages) > 25
+    for args in pages:
+        res = cli_runner(args, env={"COLUMNS": str(columns)})
+        assert res.exit_code == 0, (args, res.output)
+        long = [line for line in res.output.splitlines() if len(line) > WIDTH]
+        assert not long, f"harness {' '.join(args)}: {len(long)} line(s) wider than {WIDTH}: {long[0]!r}"

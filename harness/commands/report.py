@@ -57,7 +57,6 @@ def register_commands(cli: click.Group) -> None:
                    title: str | None, reference: str, log_to: str | None = None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
-        \b
         Per dataset: the project-grouped folds table (per-fold mAP50 and mAP50:95, mean ± sample SD, Params,
         GFLOPs), the per-category table, the encoding ablation, paired comparisons (per-fold differences and a
         paired bootstrap over images), the registration-error and C2-displacement tables; then the accuracy-versus-

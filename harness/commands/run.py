@@ -71,7 +71,6 @@ def register_commands(cli: click.Group) -> None:
                 no_progress):
         """Train and evaluate DETECTOR on every selected fold and seed of DATASET.
 
-        \b
         Finished runs with the same configuration are skipped, interrupted ones resume from their last checkpoint.
         Prints the per-fold table (mean ± sample SD) and the per-category table; everything is written to the
         results store (results/<profile>/<dataset>/<detector>/<encoding>/<fold>/seed<k>/).
@@ -110,7 +109,6 @@ def register_commands(cli: click.Group) -> None:
                    force, no_progress):
         """The encoding ablation: train DETECTOR on one fold once per encoding and compare.
 
-        \b
         Prints P, R, mAP50, mAP50:95 and the AP50 of the chosen categories per encoding (the seed's ablation
         table). The runs are ordinary runs in the results store, so finished ones are reused.
 

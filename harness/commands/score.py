@@ -26,7 +26,8 @@ def register_commands(cli: click.Group) -> None:
                   help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
                        "not list count as missing.")
     @click.option("--image-key", default="file_name", show_default=True,
-                  help="Field naming each image (in the predictions or the image list).")
+                  help="Field naming each image (in the predictions or the image list); image_id reads the "
+                       "numeric file stems Ultralytics writes as ids.")
     @click.option("--category-map", default=None, metavar="THEIR=OURS,...|FILE.json",
                   help="Their category ids or names -> the dataset's names [default: by name].")
     @click.option("--params", type=float, default=None, help="Parameters of the external model, millions.")
@@ -38,13 +39,19 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--store", type=click.Path(file_okay=False), default=None,
                   help="Results store root [default: results/<profile>].")
     @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
+    @click.option("--allow-implausible", is_flag=True,
+                  help="Score predictions that look misread (unknown images or categories, shifted ids) as read, "
+                       "and label the stored result, instead of refusing.")
     def score_cmd(dataset, fold, predictions, name, frame, images, image_key, category_map, params, gflops, root,
-                  profile, config_files, overrides, store, force):
+                  profile, config_files, overrides, store, force, allow_implausible):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
-        \b
         The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
-        the paired bootstrap show it beside the trained detectors.
+        the paired bootstrap show it beside the trained detectors. Predictions that look misread (on unknown
+        images or categories, or with ids that fit only shifted by one) are refused with what was seen, unless
+        --allow-implausible.
+
+        \b
         Example:
           harness score --dataset m3t --fold P1 --predictions yolo_preds.json --images val.json \\
               --frame rgb --name yolov8s-official --params 11.13 --gflops 28.6
@@ -54,7 +61,7 @@ def register_commands(cli: click.Group) -> None:
         res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
                              category_map=parse_category_map(category_map), profile=profile,
                              config_files=config_files, overrides=overrides, store=store, root=root,
-                             params=params, gflops=gflops, force=force)
+                             params=params, gflops=gflops, force=force, allow_implausible=allow_implausible)
         for line in res.matching.lines():
             click.echo(line, err=True)
         m = res.metrics["metrics"]
@@ -78,11 +85,13 @@ def register_commands(cli: click.Group) -> None:
     def export_cmd(store, dataset, detector, encoding, folds, seed, frame, out):
         """Write finished runs' held-out predictions as COCO results in an original image frame.
 
-        Each file has a companion <name>.images.json (images and categories) that `harness score --images`
-        reads back.
+        Beside each X.json goes X.images.json (images and categories) that `harness score --images` reads
+        back; scoring the export gives the run's metrics to the last digit.
         """
         from harness.scoring.export import export_predictions
 
         fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
         for e in export_predictions(store, dataset, detector, encoding, fold_list, seed, frame, out):
-            click.echo(f"{e.run}: {e.detections} detections on {e.images} images -> {e.path}")
+            inexact = f", {e.inexact} inexact" if e.inexact else ""
+            click.echo(f"{e.run}: {e.detections} detections{inexact} on {e.images} images -> {e.path} "
+                       f"(image list {e.images_path.name})")

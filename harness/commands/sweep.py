@@ -63,7 +63,6 @@ def register_commands(cli: click.Group) -> None:
                   force, no_progress):
         """Run every combination of DETECTORS x DATASETS x ENCODINGS x FOLDS x SEEDS into one results store.
 
-        \b
         Each run is an ordinary `harness run` of one fold and seed: finished runs with the same configuration are
         skipped (unless --force), interrupted ones resume from their last checkpoint, and reports see each result
         as soon as its run is done. See docs/scaling.md.
@@ -72,7 +71,8 @@ def register_commands(cli: click.Group) -> None:
         Examples:
           harness sweep --detectors ours,eme,icafusion,cmadet --datasets m3t --folds all --seeds 0,1,2
           harness sweep --detectors ours --datasets m3t --encodings none,ir8,linear16,c2 --executor ray
-          harness sweep --detectors ours,eme --datasets m3t --seeds 0,1,2 --executor slurm --slurm-partition gpu
+          harness sweep --detectors ours,eme --datasets m3t --seeds 0,1,2 --executor slurm \\
+              --slurm-partition gpu
         """
         from harness.runner import parse_seeds
         from harness.sweep import ExecutorOptions, SweepSpec, expand, sweep, sweep_table

@@ -2,14 +2,23 @@
 
 The model sees each held-out image letterboxed to the protocol size, exactly as in training; its boxes are mapped
 back through the letterbox (``x = (x_input - pad) / ratio``), clipped to the image, and written as COCO results:
-``{"image_id", "category_id": label + 1, "bbox": [x, y, w, h], "score"}`` in thermal-frame pixels.
+``{"image_id", "category_id": label + 1, "bbox": [x, y, w, h], "score"}`` in thermal-frame pixels, at the full
+precision of the model's float32 output (``x``, ``y`` and the score are float32 values, ``w = x2 - x1`` and
+``h = y2 - y1`` their exact differences), so that what is stored is exactly what was scored.
+
+Degenerate boxes are dropped and counted by kind (``DEGENERATE``): ``non_finite`` (NaN or inf), ``inverted``
+(``x2 < x1`` or ``y2 < y1``: e.g. ``x, y, w, h`` returned instead of ``x1, y1, x2, y2``), ``zero_size``
+(``x2 == x1`` or ``y2 == y1``), and ``outside_image`` (nothing left after clipping to the image).
 """
 
 from __future__ import annotations
 
 import logging
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import Subset
@@ -25,21 +34,107 @@ def configure(model: nn.Module, conf: float, iou: float, max_det: int) -> None:
     model.conf, model.iou, model.max_det = float(conf), float(iou), int(max_det)
 
 
+#: The kinds of degenerate boxes a detector can return, in the order they are checked (module docstring).
+DEGENERATE = ("non_finite", "inverted", "zero_size", "outside_image")
+#: The kinds that mean the detector's boxes are malformed (``outside_image`` can be an honest, poor prediction).
+MALFORMED = ("non_finite", "inverted", "zero_size")
+
+
+def degenerate_kinds(boxes: np.ndarray) -> np.ndarray:
+    """Per box (xyxy), the index into ``DEGENERATE`` of the first check it fails before clipping, or -1."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    kind = np.full(len(b), -1, dtype=np.int64)
+    finite = np.isfinite(b).all(axis=1)
+    kind[~finite] = 0
+    with np.errstate(invalid="ignore"):
+        inverted = finite & ((b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1]))
+        kind[inverted] = 1
+        kind[finite & ~inverted & ((b[:, 2] == b[:, 0]) | (b[:, 3] == b[:, 1]))] = 2
+    return kind
+
+
+@dataclass
+class DegenerateBoxes:
+    """Boxes a detector returned and the degenerate ones left out, by kind, with up to three examples of each."""
+
+    returned: int = 0
+    counts: Counter = field(default_factory=Counter)
+    examples: dict[str, list[list[float]]] = field(default_factory=dict)
+
+    def add(self, kind: str, box: list[float]) -> None:
+        self.counts[kind] += 1
+        shown = self.examples.setdefault(kind, [])
+        if len(shown) < 3:
+            shown.append([round(float(v), 2) for v in box])
+
+    def merge(self, other: DegenerateBoxes) -> None:
+        self.returned += other.returned
+        self.counts.update(other.counts)
+        for kind, boxes in other.examples.items():
+            self.examples[kind] = (self.examples.get(kind, []) + boxes)[:3]
+
+    @property
+    def malformed(self) -> int:
+        return sum(self.counts[k] for k in MALFORMED)
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``metrics.json`` records (``metrics.degenerate_detections``)."""
+        return {"returned": self.returned, **{k: int(self.counts[k]) for k in DEGENERATE},
+                "examples": {k: v for k, v in self.examples.items()}}
+
+    def check(self, detector: str, allow: bool = False) -> str | None:
+        """Stop (``PluginError`` naming the detector) when most of the returned boxes were malformed
+        (``MALFORMED``); with ``allow``, return a note that labels the result instead. ``None`` when plausible."""
+        bad = self.malformed
+        if self.returned == 0 or 2 * bad <= self.returned:
+            return None
+        seen = ", ".join(f"{self.counts[k]} {k.replace('_', ' ')}" for k in MALFORMED if self.counts[k])
+        shown = "; ".join(f"{k} {', '.join(map(str, v))}" for k, v in self.examples.items() if k in MALFORMED)
+        text = (f"detector {detector!r}: {bad} of the {self.returned} boxes it returned in eval mode were degenerate "
+                f"({seen}; e.g. {shown})")
+        if allow:
+            return text + "; stored anyway because eval.allow_degenerate is set"
+        raise PluginError(text + ". Eval-mode boxes must be x1, y1, x2, y2 in input pixels (not x, y, w, h): fix the "
+                          "detector, or set eval.allow_degenerate=true to store the run labelled")
+
+
+def degenerate_kinds(boxes: np.ndarray) -> np.ndarray:
+    """Per box (xyxy), the index into ``DEGENERATE`` of the first check it fails before clipping, or -1."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    kind = np.full(len(b), -1, dtype=np.int64)
+    finite = np.isfinite(b).all(axis=1)
+    kind[~finite] = 0
+    with np.errstate(invalid="ignore"):
+        inverted = finite & ((b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1]))
+        kind[inverted] = 1
+        kind[finite & ~inverted & ((b[:, 2] == b[:, 0]) | (b[:, 3] == b[:, 1]))] = 2
+    return kind
+
+
 def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: Any, num_classes: int | None = None,
-                       name: str = "model") -> list[dict[str, Any]]:
-    """One image's ``{"boxes", "scores", "labels"}`` (input pixels) -> COCO results in the original frame."""
+                       name: str = "model", degenerate: DegenerateBoxes | None = None) -> list[dict[str, Any]]:
+    """One image's ``{"boxes", "scores", "labels"}`` (input pixels) -> COCO results in the original frame.
+
+    Degenerate boxes are left out and, when ``degenerate`` is given, counted there."""
     from harness.contracts import check_detections
 
     boxes, scores, labels = check_detections(det, name, num_classes)
+    kind = degenerate_kinds(boxes)
+    raw = boxes
     if letterbox is not None:
-        boxes = letterbox.to_original(boxes)
+        boxes = letterbox.to_original(np.where(np.isfinite(boxes), boxes, 0.0))
     out = []
-    for (x1, y1, x2, y2), s, lab in zip(boxes.tolist(), scores.tolist(), labels.tolist()):
+    for k, ((x1, y1, x2, y2), s, lab) in enumerate(zip(boxes.tolist(), scores.tolist(), labels.tolist())):
         w, h = x2 - x1, y2 - y1
-        if w <= 0 or h <= 0:
+        if kind[k] < 0 and (w <= 0 or h <= 0):
+            kind[k] = DEGENERATE.index("outside_image")
+        if kind[k] >= 0:
             continue
-        out.append({"image_id": int(image_id), "category_id": int(lab) + 1,
-                    "bbox": [round(x1, 2), round(y1, 2), round(w, 2), round(h, 2)], "score": round(float(s), 5)})
+        out.append({"image_id": int(image_id), "category_id": int(lab) + 1, "bbox": [x1, y1, w, h], "score": s})
+    if degenerate is not None:
+        degenerate.returned += len(kind)
+        for k in np.flatnonzero(kind >= 0).tolist():
+            degenerate.add(DEGENERATE[kind[k]], raw[k].tolist())
     return out
 
 
@@ -48,13 +143,14 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
             thermal_channels: int = 3, device: torch.device | str = "cpu", conf: float | None = None,
             iou: float | None = None, max_det: int | None = None, num_classes: int | None = None,
             workers: int = 0, progress: bool = False, name: str = "model", distributed: bool = False,
-            visited: list[int] | None = None) -> list[dict[str, Any]]:
+            visited: list[int] | None = None, degenerate: DegenerateBoxes | None = None) -> list[dict[str, Any]]:
     """Detections for every image of ``source`` (COCO results, see the module docstring).
 
     With ``distributed`` (under ``torchrun``) each process predicts one contiguous shard of the images
     (``harness.distributed.inference_shard``: every image exactly once, no padding duplicates) and rank 0 receives
     all detections, in the order a single process would produce them; the other ranks get an empty list. When
-    given, ``visited`` receives the ids of the images predicted (on rank 0: by all processes).
+    given, ``visited`` receives the ids of the images predicted (on rank 0: by all processes), and ``degenerate``
+    the counts of degenerate boxes left out (``detections_to_coco``; on rank 0: of all processes).
     """
     from harness import distributed as hd
 
@@ -71,6 +167,7 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
     loader = eval_loader(dataset, batch, workers)
     results: list[dict[str, Any]] = []
     ids: list[int] = []
+    counts = DegenerateBoxes()
     ctx = _bar(progress and d.is_main, len(dataset), f"predict {name}")
     try:
         with ctx as (bar, task):
@@ -80,25 +177,30 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
                     raise PluginError(f"detector {name!r}: in eval mode model(inputs) must return one dict per image "
                                       f"({len(b)}), got {type(out).__name__}")
                 for det, image_id, lb in zip(out, b.image_ids, b.letterboxes):
-                    results.extend(detections_to_coco(det, image_id, lb, num_classes, name))
+                    results.extend(detections_to_coco(det, image_id, lb, num_classes, name, counts))
                 ids.extend(int(i) for i in b.image_ids)
                 if bar is not None:
                     bar.update(task, advance=len(b))
     finally:
         model.train(was_training)
     if d.active:
-        parts = hd.gather_to_main((results, ids))
+        parts = hd.gather_to_main((results, ids, counts))
         if parts is None:
             results, ids = [], []
         else:
-            results = [r for part, _ in parts for r in part]
-            ids = [i for _, part in parts for i in part]
+            results = [r for part, _, _ in parts for r in part]
+            ids = [i for _, part, _ in parts for i in part]
+            counts = DegenerateBoxes()
+            for _, _, c in parts:
+                counts.merge(c)
             expected = [source.image_id(k) for k in range(len(source))]
             if ids != expected:  # the shards must partition the images exactly
                 raise PluginError(f"distributed prediction visited {len(ids)} images ({len(set(ids))} distinct), "
                                   f"expected each of the {len(expected)} images once")
     if visited is not None:
         visited.extend(ids)
+    if degenerate is not None:
+        degenerate.merge(counts)
     return results
 
 

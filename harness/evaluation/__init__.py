@@ -4,7 +4,7 @@ Public API (``docs/evaluation.md`` has the definitions)::
 
     evaluate(gt, detections, engine="faster-coco-eval", matching="iou") -> {"support", "metrics", "per_category"}
     aggregate_folds(list_of_metrics) -> per-fold values, mean and sample SD
-    check_sample_matched(results, allow=False) -> None | label   (raises SampleMismatchError)
+    check_sample_matched(results, allow=False, hint=None) -> None | label   (raises SampleMismatchError)
     COCOEvaluator(gt).reset() / .process(image_ids, outputs) / .evaluate()
 """
 

@@ -77,13 +77,19 @@ def _differences(items: list[tuple[str, Mapping[str, Any]]]) -> tuple[list[str],
     return kinds, details
 
 
-def check_sample_matched(results: Any, allow: bool = False) -> str | None:
+#: What the refusal suggests when the caller names no other way (the Python API's own option).
+API_HINT = ("Re-evaluate every detector on the same prepared split, or allow the comparison explicitly "
+            "(allow=True) so that every table showing these numbers is labelled as not sample-matched.")
+
+
+def check_sample_matched(results: Any, allow: bool = False, hint: str | None = None) -> str | None:
     """Refuse (``SampleMismatchError``) to compare results measured on different samples.
 
     ``results``: a list of metrics dicts (``evaluate`` output or metrics.json contents), a ``{label: metrics}``
     mapping, or results-store ``Run`` objects. Results are compared within each (dataset, fold) of their ``run``
     section. Returns ``None`` when everything matches; with ``allow=True`` a mismatch returns a label such as
-    ``"NOT sample-matched: image count, instance count differ"`` instead of raising.
+    ``"NOT sample-matched: image count, instance count differ"`` instead of raising. ``hint`` replaces the
+    refusal's last sentence (what to do), so that a command can name its own option instead of ``allow=True``.
     """
     items = _as_items(results)
     groups: dict[tuple[str, str], list[tuple[str, Mapping[str, Any]]]] = {}
@@ -104,8 +110,5 @@ def check_sample_matched(results: Any, allow: bool = False) -> str | None:
         return None
     if allow:
         return "NOT sample-matched: " + ", ".join(all_kinds) + " differ"
-    raise SampleMismatchError(
-        "refusing to compare results evaluated on different samples:\n  " + "\n  ".join(lines)
-        + "\nRe-evaluate every detector on the same prepared split, or allow the comparison explicitly "
-          "(allow=True) so that every table showing these numbers is labelled as not sample-matched."
-    )
+    raise SampleMismatchError("refusing to compare results evaluated on different samples:\n  " + "\n  ".join(lines)
+                              + "\n" + (hint or API_HINT))

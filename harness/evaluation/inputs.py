@@ -7,6 +7,13 @@ record so that an error can name the record.
 
 Detections are kept as columns (numpy arrays); the per-detection COCO dicts that pycocotools needs are built only
 when ``PreparedEval.dets`` is first read (the faster-coco-eval path never reads it).
+
+The kept detections are put in one **canonical order** (``canonical_order``): by image and category, then
+descending score, then box ``x, y, w, h`` ascending. COCO sorts the detections of each (image, category) by score with a
+stable sort, so detections of equal score would otherwise be matched, and cut at ``maxDets``, in the order the
+caller happened to list them; in canonical order the result depends only on the set of detections, and both
+engines see the same order. For input already in that order (or without equal scores in an image and category)
+this is exactly pycocotools' result.
 """
 
 from __future__ import annotations
@@ -83,8 +90,8 @@ def _box(value: Any, where: str) -> list[float]:
 class PreparedEval:
     """Ground truth and detections after checking, with internal integer image ids.
 
-    Detection ``j`` (0-based, in the caller's order after dropping unknown images and categories) has the COCO
-    result id ``j + 1``; its fields are ``det_columns[...][j]``.
+    Detection ``j`` (0-based, in canonical order after dropping unknown images and categories) has the COCO result
+    id ``j + 1``; its fields are ``det_columns[...][j]``; ``det_source[j]`` is its index in the caller's list.
     """
 
     gt: dict[str, Any]
@@ -100,6 +107,8 @@ class PreparedEval:
     gt_columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     dropped: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: index of each kept detection in the caller's list (``det_columns`` are in canonical order)
+    det_source: np.ndarray | None = None
 
     @property
     def n_dets(self) -> int:
@@ -183,10 +192,37 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
         log.warning(msg)
         notes.append(msg)
 
-    columns, dropped = _prepare_detections(detections, key_to_internal, all_int, cat_names, strict)
+    columns, dropped, source = _prepare_detections(detections, key_to_internal, all_int, cat_names, strict)
+    order = canonical_order(*columns)
+    columns = tuple(c[order] for c in columns)  # type: ignore[assignment]
     prepared_gt = {"info": {"description": "harness evaluation"}, "images": images, "annotations": anns, "categories": cats}
     return PreparedEval(prepared_gt, sorted(cat_names), cat_names, keys, n_gt, n_crowd, crowd_ids, columns, gt_columns,
-                        dropped, notes)
+                        dropped, notes, source[order])
+
+
+def canonical_order(image_ids: np.ndarray, category_ids: np.ndarray, scores: np.ndarray,
+                    boxes: np.ndarray) -> np.ndarray:
+    """The permutation that puts detections in canonical order: by image id, then category id, then descending
+    score, then box ``x, y, w, h`` ascending (detections equal in all of these are interchangeable).
+
+    Three stable sorts give the (image, category, score) order; only runs of equal (image, category, score), usually
+    few, are sorted by box."""
+    n = len(scores)
+    if n < 2:
+        return np.arange(n)
+    score = np.asarray(scores, dtype=np.float64)
+    order = np.argsort(-score, kind="stable")
+    order = order[np.argsort(category_ids[order], kind="stable")]
+    order = order[np.argsort(image_ids[order], kind="stable")]
+    i, c, s = image_ids[order], category_ids[order], score[order]
+    tie = (s[1:] == s[:-1]) & (c[1:] == c[:-1]) & (i[1:] == i[:-1])
+    if tie.any():
+        pos = np.flatnonzero(np.r_[tie, False] | np.r_[False, tie])
+        run = np.cumsum(np.r_[True, ~tie])[pos]
+        sub = order[pos]
+        b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)[sub]
+        order[pos] = sub[np.lexsort((b[:, 3], b[:, 2], b[:, 1], b[:, 0], run))]
+    return order
 
 
 def _gt_columns(anns: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -259,13 +295,15 @@ def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[i
 
 
 def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal: dict, all_int: bool,
-                        cat_names: dict[int, str], strict: bool) -> tuple[tuple, dict[str, int]]:
+                        cat_names: dict[int, str], strict: bool) -> tuple[tuple, dict[str, int], np.ndarray]:
     """Vectorised checks of COCO results (a million detections take well under a second); returns the kept
-    detections as columns (image_id, category_id, score, boxes) and the counts of dropped ones."""
+    detections as columns (image_id, category_id, score, boxes), the counts of dropped ones and the kept ones'
+    indices in ``detections``."""
     n = len(detections)
     dropped = {"unknown_category": 0, "unknown_image": 0}
     if n == 0:
-        return (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4))), dropped
+        return ((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4))), dropped,
+                np.zeros(0, dtype=np.int64))
     try:
         img_raw = [d["image_id"] for d in detections]
         cat_raw = [d["category_id"] for d in detections]
@@ -342,8 +380,8 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
         log.warning("%s: dropped, not scored", msg)
         dropped = {"unknown_category": n_bad_cat, "unknown_image": n_bad_img}
         keep = known_img & known_cat
-        return (imgs[keep], cats[keep], scores[keep], boxes[keep]), dropped
-    return (imgs, cats, scores, boxes), dropped
+        return (imgs[keep], cats[keep], scores[keep], boxes[keep]), dropped, np.flatnonzero(keep)
+    return (imgs, cats, scores, boxes), dropped, np.arange(n)
 
 
 def _box_array(box_raw: list) -> np.ndarray | None:

@@ -182,8 +182,12 @@ def average_seeds(dataset: str, fold: str, metrics: Sequence[Mapping[str, Any]])
         rec: dict[str, Any] = {k: _mean(e.get(k) for e in entries) for k in SEED_CATEGORY_METRICS}
         rec["instances"] = int(entries[0].get("instances") or 0)
         per_category[name] = rec
-    return {"run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
-            "support": first.get("support") or {}, "metrics": head, "per_category": per_category}
+    out = {"run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
+           "support": first.get("support") or {}, "metrics": head, "per_category": per_category}
+    labels = [lab for m in metrics for lab in m.get("labels") or []]
+    if labels:  # a risk accepted when a seed was stored (harness score --allow-implausible, eval.allow_degenerate)
+        out["labels"] = list(dict.fromkeys(labels))
+    return out
 
 
 class StoreView:
@@ -272,14 +276,19 @@ class StoreView:
         return entries
 
     def entry(self, dataset: str, spec: str) -> Entry:
-        """The entry named ``DETECTOR`` or ``DETECTOR/ENCODING``; ambiguity and unknown names are clear errors."""
-        det, _, enc = spec.partition("/")
+        """The entry named ``DETECTOR`` or ``DETECTOR/ENCODING``; ambiguity and unknown names are clear errors.
+
+        A detector name may itself hold a ``/`` (``external/NAME``, scored with ``harness score``): the whole name
+        is tried as a detector first, then the part after the last ``/`` as the encoding."""
         entries = self.entries(dataset)
-        found = [e for e in entries if e.detector == det and (not enc or e.encoding == enc)]
+        found = [e for e in entries if e.detector == spec] or [e for e in entries if e.label == spec]
         available = ", ".join(e.label for e in entries) or "none"
         if not found:
+            det = spec if spec.startswith("external/") else spec.partition("/")[0]
+            how = (f"harness score --dataset {dataset} --name {det.partition('/')[2]} ..."
+                   if det.startswith("external/") else f"harness run --detector {det} --dataset {dataset}")
             raise StoreError(f"{self.root}: no finished runs of {spec!r} on dataset {dataset!r} (available: "
-                             f"{available}); run `harness run --detector {det} --dataset {dataset}` into this store")
+                             f"{available}); run `{how}` into this store")
         if len(found) > 1:
             raise HarnessError(f"{spec!r} has runs with several encodings on {dataset!r} "
                                f"({', '.join(e.label for e in found)}); name one as DETECTOR/ENCODING")

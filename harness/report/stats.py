@@ -360,12 +360,20 @@ def common_folds(a: Entry, b: Entry) -> list[str]:
     return folds
 
 
+#: What a refused pair can do: a paired comparison has no meaning on different images, so there is no option to
+#: force it; the side-by-side table can show the rows, labelled.
+PAIR_HINT = ("A paired comparison needs both scored on the same held-out images: re-run them on the same prepared "
+             "split. To see their rows side by side, labelled as not sample-matched: "
+             "`harness compare --datasets DATASET --allow-mismatched` or `harness report`.")
+
+
 def check_pair_matched(a: Entry, b: Entry, folds: Sequence[str]) -> None:
     """Refuse (``SampleMismatchError``) a pair scored on different samples in any of ``folds``."""
     from harness.evaluation import check_sample_matched
 
     for f in folds:
-        check_sample_matched({f"{a.label}@{f}": a.folds[f].metrics, f"{b.label}@{f}": b.folds[f].metrics})
+        check_sample_matched({f"{a.label}@{f}": a.folds[f].metrics, f"{b.label}@{f}": b.folds[f].metrics},
+                             hint=PAIR_HINT)
         for e in (a, b):
             if e.folds[f].seed_mismatch:
                 from harness.evaluation import SampleMismatchError

@@ -413,6 +413,9 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     table.notes.append("Images and Inst.: held-out images and instances summed over the folds (each image is held out "
                        "once); the support row gives them per fold.")
     _profile_notes(table, rows_e, no_profile, view)
+    for e in rows_e:  # results stored with an accepted risk carry its label into every table that shows them
+        for f, fr in e.folds.items():
+            table.notes.extend(f"LABELLED {e.label} {f}: {lab}" for lab in fr.metrics.get("labels") or [])
     if left_out:
         table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablation): "
                            + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out))

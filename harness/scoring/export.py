@@ -2,9 +2,12 @@
 
 Each run stores its predictions in the prepared frame (``predictions.json``). Exported, every detection becomes
 ``{"image_id", "file_name", "category_id", "category_name", "bbox", "score"}`` with the box moved into the
-original ``thermal`` or ``rgb`` image (``harness.scoring.frames``) or left in the ``prepared`` frame; ``image_id``
-and ``category_id`` stay the dataset's. Beside it, ``<out>.images.json`` lists the images and categories in COCO
-form, which ``harness score --images`` reads back: the round trip to other tools is closed.
+original ``thermal`` or ``rgb`` image (``harness.scoring.frames``: the exact preimage of the way ``harness score``
+moves it back) or left in the ``prepared`` frame; ``image_id`` and ``category_id`` stay the dataset's; boxes and
+scores keep their full precision. Beside ``X.json``, ``X.images.json`` lists the images and categories in COCO
+form, which ``harness score --images`` reads back: the round trip to other tools is closed, and scoring the export
+gives the run's metrics to the last digit, in any order of the predictions and with the image and category ids
+renumbered (given the renumbered image list).
 """
 
 from __future__ import annotations
@@ -13,11 +16,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import logging
+
 import numpy as np
 
 from harness.errors import ConfigError, StoreError
 from harness.io import atomic_write_json, read_json
-from harness.scoring.frames import FRAMES, from_prepared, image_name
+from harness.scoring.frames import FRAMES, image_name, preimage
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -27,6 +34,8 @@ class Exported:
     images_path: Path
     detections: int
     images: int
+    #: boxes too thin for the frame's homography or lens to have an exact preimage (``harness.scoring.frames``)
+    inexact: int = 0
 
 
 def _prepared_of(run: Any) -> Any:
@@ -57,6 +66,7 @@ def export_run(run: Any, frame: str, out: Path, prepared: Any = None) -> Exporte
         by_image.setdefault(int(p["image_id"]), []).append(p)
     out_dets: list[dict[str, Any]] = []
     images: list[dict[str, Any]] = []
+    inexact = 0
     for im in gt["images"]:
         iid = int(im["id"])
         r = index.get(iid)
@@ -69,17 +79,27 @@ def export_run(run: Any, frame: str, out: Path, prepared: Any = None) -> Exporte
         if not dets:
             continue
         b = np.array([[x, y, x + w, y + h] for x, y, w, h in (d["bbox"] for d in dets)], np.float64)
-        moved = from_prepared(b, frame, meta, where=f"image {iid}")
-        for d, (x1, y1, x2, y2) in zip(dets, moved.tolist()):
+        moved = preimage(b, frame, meta, where=f"image {iid}")
+        inexact += moved.inexact
+        for d, (x1, y1, x2, y2) in zip(dets, moved.boxes.tolist()):
             cid = int(d["category_id"])
             out_dets.append({"image_id": iid, "file_name": fname, "category_id": cid,
                              "category_name": cats[cid - 1] if 1 <= cid <= len(cats) else None,
-                             "bbox": [x1, y1, round(x2 - x1, 4), round(y2 - y1, 4)], "score": d["score"]})
+                             "bbox": [x1, y1, x2 - x1, y2 - y1], "score": d["score"]})
     atomic_write_json(out, out_dets, indent=None)
-    images_path = out.with_name(out.stem + ".images.json")
+    images_path = companion_path(out)
     atomic_write_json(images_path, {"info": {"frame": frame, "run": str(run.key)}, "images": images,
                                     "categories": [{"id": k + 1, "name": n} for k, n in enumerate(cats)]})
-    return Exported(str(run.key), out, images_path, len(out_dets), len(images))
+    if inexact:
+        log.warning("%s: %d of %d box(es) are too thin for the %s frame's homography or lens to have an exact "
+                    "preimage; exported as the closest box, they score back slightly wider", run.key, inexact,
+                    len(out_dets), frame)
+    return Exported(str(run.key), out, images_path, len(out_dets), len(images), inexact)
+
+
+def companion_path(out: Path) -> Path:
+    """The image list written beside an export: ``X.images.json`` for ``X.json``."""
+    return out.with_name(out.stem + ".images.json")
 
 
 def export_predictions(store: str | Path, dataset: str | None = None, detector: str | None = None,

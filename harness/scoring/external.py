@@ -6,14 +6,18 @@ samples every harness detector is scored on:
 
 * **images** are matched to the fold's prepared samples by file name: each prediction's own ``file_name`` (or the
   ``image_key`` field), else its ``image_id`` looked up in an image list (``images``: the other codebase's COCO
-  JSON, whose ``images`` give ``id`` and ``file_name``), else the harness's own image ids. A name matches a sample
-  by its relative path, else by its base name, else by its stem (only when unique). Predictions of images outside
-  the fold are left out and counted; unmatched ones are counted and listed.
+  JSON, whose ``images`` give ``id`` and ``file_name``), else a non-numeric ``image_id`` as a file stem (Ultralytics
+  writes the stem), else a numeric one as the harness's own image id. A name matches a sample by its relative path,
+  else by its base name, else by its stem (only when unique), else by a numeric stem as a number. Predictions of
+  images outside the fold are left out and counted; unmatched ones are counted and listed.
 * **categories** are matched by name (the image list's ``categories``, or the prediction's ``category_name``),
   case and separators ignored, or through an explicit ``category_map`` (their id or name -> our name); without
   names, ids are taken as the harness's (``category_id = label + 1``). Unmatched categories are counted and shown.
 * **boxes** in the original RGB or thermal image are moved into the prepared frame by the same undistortion,
-  homography and crop as the ground truth (``harness.scoring.frames``).
+  homography and crop as the ground truth (``harness.scoring.frames``); only boxes wholly outside are dropped.
+* **plausibility**: before anything is scored, ids that look misread (many predictions on unknown images or in
+  unknown categories, ids that fit only shifted by one) stop with what was seen (``harness.scoring.plausibility``),
+  unless ``allow_implausible`` (``--allow-implausible``), which labels the stored result.
 * **which images were scored**: with an image list, the fold images it does not list are *missing*: they are left
   out of the ground truth, so the support differs from the trained detectors' and the sample-matched guard labels
   the comparison. Without an image list, every fold image is scored and those without any prediction are counted.
@@ -40,10 +44,12 @@ from harness.complexity import given
 from harness.errors import ConfigError, DataError, StoreError
 from harness.io import atomic_write_json, read_json
 from harness.scoring.frames import FRAMES, image_name, to_prepared
+from harness.scoring.plausibility import Finding, agreement, pct, shift_found, too_many
 
 log = logging.getLogger(__name__)
 
 ENCODING = "external"
+NOT_LISTED = "(not in the image list)"
 
 
 def _norm(name: Any) -> str:
@@ -65,6 +71,14 @@ class Matching:
     unmatched_categories: Counter = field(default_factory=Counter)
     dropped_outside_frame: int = 0
     invalid: int = 0
+    #: predictions of fold images that the image list leaves out (also in ``unmatched_images``; not a misreading)
+    not_listed: int = 0
+    #: predictions whose image was found by reading their ``image_id`` as the harness's own image id
+    by_harness_id: int = 0
+    #: of those, predictions on images of other folds
+    outside_fold_by_id: int = 0
+    #: why the matching looks like a misreading of the ids (``harness.scoring.plausibility``)
+    findings: list[Finding] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {"predictions": self.predictions, "scored_predictions": self.scored,
@@ -76,7 +90,8 @@ class Matching:
                 "predictions_outside_fold": self.outside_fold,
                 "unmatched_category_predictions": sum(self.unmatched_categories.values()),
                 "unmatched_categories": dict(self.unmatched_categories.most_common(20)),
-                "dropped_outside_frame": self.dropped_outside_frame, "invalid_predictions": self.invalid}
+                "dropped_outside_frame": self.dropped_outside_frame, "invalid_predictions": self.invalid,
+                "by_harness_image_id": self.by_harness_id, "implausible": [f.kind for f in self.findings]}
 
     def lines(self) -> list[str]:
         out = [f"{self.scored} of {self.predictions} predictions scored on {self.images_scored} of "
@@ -111,20 +126,25 @@ class ScoreResult:
 
 
 class _ImageIndex:
-    """Fold samples by relative path, base name and stem."""
+    """Fold samples by relative path, base name, stem and numeric stem (``010001.jpg`` is also ``10001``)."""
 
     def __init__(self, entries: Sequence[tuple[int, Sequence[str]]]):
-        self.by: list[dict[str, set[int]]] = [{}, {}, {}]
+        self.by: list[dict[str, set[int]]] = [{}, {}, {}, {}]
         for idx, names in entries:
             for name in names:
-                p = PurePosixPath(str(name).replace("\\", "/"))
-                for level, key in enumerate((str(p), p.name, p.stem)):
-                    self.by[level].setdefault(key.lower(), set()).add(idx)
+                for level, key in enumerate(self._keys(name)):
+                    if key is not None:
+                        self.by[level].setdefault(key, set()).add(idx)
 
-    def find(self, name: str) -> int | None:
+    @staticmethod
+    def _keys(name: Any) -> tuple[str | None, ...]:
+        """Relative path, base name, stem, and a numeric stem as a number (Ultralytics writes ``int(stem)``)."""
         p = PurePosixPath(str(name).replace("\\", "/"))
-        for level, key in enumerate((str(p), p.name, p.stem)):
-            hit = self.by[level].get(key.lower())
+        return (str(p).lower(), p.name.lower(), p.stem.lower(), str(int(p.stem)) if p.stem.isdigit() else None)
+
+    def find(self, name: Any) -> int | None:
+        for level, key in enumerate(self._keys(name)):
+            hit = self.by[level].get(key) if key is not None else None
             if hit and len(hit) == 1:
                 return next(iter(hit))
         return None
@@ -142,8 +162,22 @@ def _load_predictions(path: Path) -> list[dict[str, Any]]:
     return data
 
 
+def _as_int(value: Any) -> int | None:
+    """``12``, ``12.0`` and ``"12"`` as 12; anything else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str) and re.fullmatch(r"[+-]?\d+", value.strip()):
+        return int(value)
+    return None
+
+
 def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str],
                        mapping: Mapping[str, str] | None) -> Any:
+    """``resolve(det) -> (label or None, reference shown to the user, the id when it was read as the harness's)``."""
     ours = {_norm(c): i for i, c in enumerate(categories)}
     explicit = {str(k): v for k, v in (mapping or {}).items()}
     for their, our in explicit.items():
@@ -151,19 +185,20 @@ def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str]
             raise ConfigError(f"--category-map {their}={our}: {our!r} is not a category of the dataset "
                               f"({', '.join(categories)})")
 
-    def resolve(det: Mapping[str, Any]) -> tuple[int | None, str]:
+    def resolve(det: Mapping[str, Any]) -> tuple[int | None, str, int | None]:
         cid = det.get("category_id")
         name = det.get("category_name")
         if name is None and cid is not None:
             name = names_by_id.get(cid, names_by_id.get(str(cid)))
         for key in (str(cid) if cid is not None else None, name):
             if key is not None and str(key) in explicit:
-                return ours[_norm(explicit[str(key)])], str(key)
+                return ours[_norm(explicit[str(key)])], str(key), None
         if name is not None:
-            return ours.get(_norm(name)), str(name)
-        if isinstance(cid, int) and 1 <= cid <= len(categories):  # no names anywhere: the harness's own ids
-            return cid - 1, str(cid)
-        return None, str(cid)
+            return ours.get(_norm(name)), str(name), None
+        bare = _as_int(cid)  # no names anywhere: the harness's own ids (category_id = label + 1)
+        if bare is not None and 1 <= bare <= len(categories):
+            return bare - 1, str(cid), bare
+        return None, str(cid), bare
 
     return resolve
 
@@ -181,7 +216,8 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
                       category_map: Mapping[str, str] | None = None) -> tuple[list[dict[str, Any]], list[int],
                                                                                 Matching]:
     """External predictions -> the harness's detections on the fold (prepared frame, its image and category ids),
-    the indices of the images that were scored, and the matching counts (see the module docstring)."""
+    the indices of the images that were scored, and the matching counts with the plausibility findings (see the
+    module docstring)."""
     if frame not in FRAMES:
         raise ConfigError(f"--frame {frame!r}: use one of {', '.join(FRAMES)}")
     records = prepared.records
@@ -210,7 +246,10 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         names_by_id = {c["id"]: c["name"] for c in images.get("categories") or [] if "id" in c and "name" in c}
     resolve = _category_resolver(prepared.categories, names_by_id, category_map)
 
-    grouped: dict[int, list[tuple[list[float], float, int]]] = {}
+    # per fold image: (box in `frame`, score, label or None, category id read as the harness's or None)
+    grouped: dict[int, list[tuple[list[float], float, int | None, int | None]]] = {}
+    # predictions whose image id was read as the harness's: (that id, box, score, label or None)
+    by_harness_id: list[tuple[int, list[float], float, int | None]] = []
     for det in predictions:
         try:
             x, y, w, h = (float(v) for v in det["bbox"])
@@ -221,26 +260,45 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         if not all(np.isfinite([x, y, w, h, score])):
             m.invalid += 1
             continue
+        box = [x, y, x + w, y + h]
+        image_id = det.get("image_id")
         name = det.get(image_key) or det.get("file_name")
-        if name is None and det.get("image_id") in their_images:
-            name = their_images[det["image_id"]]
+        if name is None and image_id in their_images:
+            name = their_images[image_id]
+        if name is None and isinstance(image_id, str) and _as_int(image_id) is None:
+            name = image_id  # a file stem as image id (Ultralytics writes the stem when it is not a number)
+        label, cref, bare_cat = resolve(det)
         if name is not None:
             idx = index.find(str(name))
             ref = str(name)
         else:
-            idx = by_id.get(det.get("image_id")) if isinstance(det.get("image_id"), int) else None
-            ref = f"image_id {det.get('image_id')}"
+            number = _as_int(image_id)
+            idx = by_id.get(number) if number is not None else None
+            ref = f"image_id {image_id}"
+            if number is not None:
+                m.by_harness_id += 1
+                by_harness_id.append((number, box, score, label))
         if idx is None:
             m.unmatched_images[ref] += 1
             continue
         if idx not in fold:
             m.outside_fold += 1
+            m.outside_fold_by_id += name is None
             continue
-        label, cref = resolve(det)
         if label is None:
             m.unmatched_categories[cref] += 1
-            continue
-        grouped.setdefault(idx, []).append(([x, y, x + w, y + h], score, label))
+        grouped.setdefault(idx, []).append((box, score, label, bare_cat))
+
+    # every fold image's predictions in the prepared frame (also those of unknown categories, for the guard)
+    moved: dict[int, list[tuple[list[float], float, int | None, int | None]]] = {}
+    for i, items in grouped.items():
+        r = records[i]
+        boxes, keep = to_prepared(np.array([b for b, _, _, _ in items]), frame, r.get("meta") or {},
+                                  size=(r["width"], r["height"]), min_size=None, where=f"image {r['image_id']}")
+        moved[i] = [(b, score, label, bare) for b, (_, score, label, bare) in
+                    zip(boxes.tolist(), (it for it, k in zip(items, keep) if k))]
+        if listed is None or i in listed:
+            m.dropped_outside_frame += int((~keep).sum())
 
     scored_idx = sorted(fold if listed is None else fold & listed)
     if listed is not None:
@@ -249,24 +307,110 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         dropped_unlisted = sum(len(v) for k, v in grouped.items() if k not in listed)
         if dropped_unlisted:
             log.warning("%d prediction(s) of images the image list does not name were left out", dropped_unlisted)
-            m.unmatched_images["(not in the image list)"] += dropped_unlisted
+            m.unmatched_images[NOT_LISTED] += dropped_unlisted
+            m.not_listed = dropped_unlisted
     m.images_scored = len(scored_idx)
     dets: list[dict[str, Any]] = []
     for i in scored_idx:
-        r = records[i]
-        items = grouped.get(i, [])
-        if not items:
+        items = [it for it in moved.get(i, []) if it[2] is not None]
+        if not grouped.get(i):
             m.images_without_predictions += 1
-            continue
-        boxes, keep = to_prepared(np.array([b for b, _, _ in items]), frame, r.get("meta") or {},
-                                  size=(r["width"], r["height"]), where=f"image {r['image_id']}")
-        m.dropped_outside_frame += int((~keep).sum())
-        kept = [it for it, k in zip(items, keep) if k]
-        for (x1, y1, x2, y2), (_, score, label) in zip(boxes.tolist(), kept):
-            dets.append({"image_id": int(r["image_id"]), "category_id": int(label) + 1,
-                         "bbox": [x1, y1, round(x2 - x1, 4), round(y2 - y1, 4)], "score": score})
+        for (x1, y1, x2, y2), score, label, _ in items:
+            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,
+                         "bbox": [x1, y1, x2 - x1, y2 - y1], "score": score})
     m.scored = len(dets)
+    m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)
     return dets, scored_idx, m
+
+
+Moved = Mapping[int, list[tuple[list[float], float, "int | None", "int | None"]]]
+
+
+def _findings(prepared: Any, m: Matching, moved: Moved, by_harness_id: list[tuple[int, list[float], float, int | None]],
+              by_id: Mapping[int, int], fold: set[int], frame: str) -> list[Finding]:
+    """What makes the matching implausible (``harness.scoring.plausibility``), with counts and examples."""
+    out: list[Finding] = []
+    n = m.predictions
+    unknown = sum(m.unmatched_images.values()) - m.not_listed
+    if too_many(unknown, n):
+        ex = ", ".join(str(k) for k, v in m.unmatched_images.most_common(4) if k != NOT_LISTED)
+        hint = ("; their image_id values were read as the harness's image ids: give the other codebase's image list "
+                "with --images (for MMDetection, the annotation file it was tested on)" if m.by_harness_id else
+                "; check --image-key and --images")
+        out.append(Finding("unknown_images", f"{unknown} of {n} predictions ({pct(unknown, n)}) are on images the "
+                                             f"dataset does not have, e.g. {ex}{hint}"))
+    other = m.outside_fold_by_id
+    if too_many(other, n):
+        out.append(Finding("other_folds_by_id", f"{other} of {n} predictions ({pct(other, n)}) name images of other "
+                                                f"folds by the harness's image ids; if these are the other codebase's "
+                                                f"own ids, give its image list with --images"))
+    on_fold = sum(len(v) for v in moved.values())
+    unknown_cat = sum(m.unmatched_categories.values())
+    many_unknown_cat = too_many(unknown_cat, on_fold)
+    if many_unknown_cat:
+        ex = ", ".join(f"{k} ({v})" for k, v in m.unmatched_categories.most_common(4))
+        out.append(Finding("unknown_categories", f"{unknown_cat} of {on_fold} predictions on the fold's images "
+                                                 f"({pct(unknown_cat, on_fold)}) are in categories the dataset does "
+                                                 f"not have: {ex}"))
+    out += _category_shift(prepared, moved, sorted(fold), many_unknown_cat)
+    if by_harness_id:
+        out += _image_shift(prepared, by_harness_id, by_id, fold, frame)
+    return out
+
+
+def _category_shift(prepared: Any, moved: Moved, fold: list[int], many_unknown: bool) -> list[Finding]:
+    """Category ids read as the harness's that fit, or agree with the ground truth, only shifted by one."""
+    cats = list(prepared.categories)
+    bare = [(i, b, s, c) for i, items in moved.items() for b, s, _, c in items if c is not None]
+    ids = sorted({c for _, _, _, c in bare})
+    if not ids:
+        return []
+
+    def read(shift: int) -> list[tuple[int, list[float], float, int | None]]:
+        return [(i, b, s, c - 1 + shift if 0 <= c - 1 + shift < len(cats) else None) for i, b, s, c in bare]
+
+    given = agreement(read(0), prepared.targets, fold)
+    for shift in (1, -1):
+        shifted = agreement(read(shift), prepared.targets, fold)
+        fits_only_shifted = (ids[0] < 1 or ids[-1] > len(cats)) and all(1 <= c + shift <= len(cats) for c in ids)
+        if shift_found(given, shifted) or (fits_only_shifted and many_unknown):
+            mapping = ",".join(f"{k + 1 - shift}={c}" for k, c in enumerate(cats))
+            seen = f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
+            guess = "0-based class ids, as Ultralytics 8.0 writes them? " if shift == 1 else ""
+            return [Finding("category_shift", f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} "
+                                              f"only after a shift of {shift:+d}{seen} ({guess}map them: "
+                                              f"--category-map {mapping})")]
+    return []
+
+
+def _image_shift(prepared: Any, by_harness_id: list[tuple[int, list[float], float, int | None]],
+                 by_id: Mapping[int, int], fold: set[int], frame: str) -> list[Finding]:
+    """Image ids read as the harness's whose predictions agree with the ground truth only shifted by one."""
+
+    def place(shift: int) -> list[tuple[int, list[float], float, int | None]]:
+        groups: dict[int, list[tuple[list[float], float, int | None]]] = {}
+        for number, b, s, label in by_harness_id:
+            idx = by_id.get(number + shift)
+            if idx is not None and idx in fold:
+                groups.setdefault(idx, []).append((b, s, label))
+        out: list[tuple[int, list[float], float, int | None]] = []
+        for idx, items in groups.items():
+            r = prepared.records[idx]
+            boxes, keep = to_prepared(np.array([b for b, _, _ in items]), frame, r.get("meta") or {},
+                                      size=(r["width"], r["height"]), min_size=None)
+            kept = (it for it, k in zip(items, keep) if k)
+            out += [(idx, b, s, lab) for b, (_, s, lab) in zip(boxes.tolist(), kept)]
+        return out
+
+    given = agreement(place(0), prepared.targets, sorted(fold))
+    for shift in (1, -1):
+        shifted = agreement(place(shift), prepared.targets, sorted(fold))
+        if shift_found(given, shifted):
+            return [Finding("image_shift", f"image ids read as the harness's match the fold's images only after a "
+                                           f"shift of {shift:+d} (recall at IoU 0.50 {given or 0:.0%} as read, "
+                                           f"{shifted:.0%} shifted): are they the other codebase's own ids? give its "
+                                           f"image list with --images")]
+    return []
 
 
 def score_external(dataset: str, fold: str, predictions: str | Path, name: str, frame: str = "prepared",
@@ -274,8 +418,11 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                    category_map: Mapping[str, str] | None = None, profile: str | None = "smoke",
                    config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
                    store: str | Path | None = None, root: str | None = None, params: float | None = None,
-                   gflops: float | None = None, force: bool = False) -> ScoreResult:
-    """Score ``predictions`` on ``fold`` of ``dataset`` and store them as run ``external/NAME`` (module docstring)."""
+                   gflops: float | None = None, force: bool = False, allow_implausible: bool = False) -> ScoreResult:
+    """Score ``predictions`` on ``fold`` of ``dataset`` and store them as run ``external/NAME`` (module docstring).
+
+    Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
+    ``allow_implausible``: then they are scored as read and the stored result is labelled."""
     from harness.config import load_config
     from harness.evaluation import evaluate
     from harness.plugins import get_host
@@ -309,6 +456,12 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     if m.scored == 0 and m.predictions:
         raise DataError(f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
                         "images and categories:\n  " + "\n  ".join(m.lines()))
+    if m.findings and not allow_implausible:
+        raise DataError(f"--predictions {pred_path}: implausible as read for fold {f.name} of {spec.name}, nothing "
+                        f"was stored:\n  " + "\n  ".join(f"- {x}" for x in m.findings)
+                        + "\nAs read:\n  " + "\n  ".join(m.lines())
+                        + "\nFix the mapping as suggested, or pass --allow-implausible to score them as read "
+                          "(the stored result is labelled).")
 
     key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
     run = Store(store or Path("results") / (profile or "default")).run(key)
@@ -338,6 +491,10 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
         "external": {**identity, "predictions": str(pred_path), "images": str(images) if images else None,
                      "matching": m.to_dict()},
     }
+    if m.findings:
+        metrics["labels"] = [f"implausible predictions scored as read (--allow-implausible): {x}" for x in m.findings]
+        for label in metrics["labels"]:
+            log.warning("%s", label)
     run.path.mkdir(parents=True, exist_ok=True)
     atomic_write_json(run.path / "score.json", {"identity": identity, "matching": m.to_dict()})
     atomic_write_json(run.predictions_path, dets, indent=None)
