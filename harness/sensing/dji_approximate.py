@@ -71,8 +71,8 @@ APPROXIMATIONS: dict[str, Approximation] = {
         left_out="DJI's emissivity re-mapping tables (the file's own transmission table is used)",
         measured_on="5 H30T and 2 Matrice 4T files",
         emissivity=(0.6, 0.98),
-        bands=((30.0, 0.08), (60.0, 0.13), (100.0, 0.72), (180.0, 5.9)),
-        bands_high_emissivity=((30.0, 0.004), (60.0, 0.034), (100.0, 0.18), (180.0, 0.87)),
+        bands=((30.0, 0.08), (60.0, 0.13), (100.0, 0.72), (180.0, 3.2)),
+        bands_high_emissivity=((30.0, 0.009), (60.0, 0.038), (100.0, 0.2), (180.0, 0.87)),
         high_emissivity=0.95,
     ),
     "builtin-tau-unity": Approximation(
@@ -80,7 +80,7 @@ APPROXIMATIONS: dict[str, Approximation] = {
         left_out="the camera's built-in transmission table (transmission taken as 1)",
         measured_on="4 Mavic 2 Enterprise Advanced files",
         emissivity=(0.6, 0.95),
-        bands=((30.0, 0.79), (65.0, 4.4)),
+        bands=((30.0, 0.8), (63.0, 4.4)),
     ),
 }
 #: UnsupportedCorrection.kind -> the approximation that stands in for it

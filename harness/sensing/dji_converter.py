@@ -72,13 +72,13 @@ def _find_dji_irp(setting: str | None) -> Path:
         candidates = [p / n for n in names] if p.is_dir() else [p]
         for c in candidates:
             if c.is_file():
-                return c
+                return c.resolve()
         raise ConfigError(f"DJI Thermal SDK's dji_irp not found at {setting} (sensing.radiometry.dji_irp / "
                           "--dji-irp: the program or its folder)")
     for n in names:
         found = shutil.which(n)
         if found:
-            return Path(found)
+            return Path(found).resolve()
     raise ConfigError("the converter 'dji_irp' was asked for, but DJI Thermal SDK's dji_irp is not on PATH; install "
                       "DJI Thermal SDK (a download from DJI; its utility/bin/<os>/release_x64/ folder holds dji_irp) "
                       "and put that folder on PATH, or give its path with --dji-irp "
