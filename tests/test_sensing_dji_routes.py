@@ -278,6 +278,12 @@ def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path
     assert marks and all(m == " ~" for m in marks)
     assert "~ measured on approximate temperatures (within 0.2 C" in printed
     assert "~ measured on approximate temperatures" in run_categories(summary)
+    from harness.compare import build_table
+
+    compared = build_table(store.root, ["synth"], allow_mismatched=True).to_text()
+    alpha = next(line for line in compared.splitlines() if " alpha " in line and " c2 " in line)
+    beta = next(line for line in compared.splitlines() if " beta " in line)
+    assert alpha.count(" ~") == 2 and "~" not in beta and "~ measured on approximate temperatures" in compared
     (abl,), _ = ablation_tables(view, "synth", ["window"])
     by_enc = {r["encoding"]: r for r in abl.rows}
     m50 = next(c for c in abl.columns if c.key == "mAP50")
