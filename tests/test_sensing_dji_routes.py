@@ -116,6 +116,11 @@ def test_decode_command_labels_approximate_files_in_the_table_and_the_sidecar(tm
     side = json.loads((tmp_path / "o" / "a.png.json").read_text())
     assert side["temperatures"] == "approximate temperatures" and side["approximate"]["bound_c"] == 0.009
     assert side["decoder_route"] == "approximate" and side["decoder"].startswith("approximate: approximate tem")
+    from harness.sensing.radiometry import route_meta
+
+    _, info = read_thermal(tmp_path / "o" / "a.png")  # read back (as a dataset would): still labelled
+    assert route_meta(info) == {"thermal_route": "approximate", "temperatures": "approximate temperatures",
+                                "temperature_bound_c": 0.009, "approximation": "emissivity-remap-skipped"}
 
 
 # ---------------------------------------------------------------------------------------------- batches

@@ -292,7 +292,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
     for an 8-bit image, an unreadable file, non-finite or implausible values.
     """
-    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal, route_meta
+    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal, route_meta, sidecar_route
 
     if path.suffix.lower() in (".jpg", ".jpeg"):
         try:
@@ -344,7 +344,11 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
         raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
                        "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")
-    return temp, {"unit": unit, "format": path.suffix.lower().lstrip(".")}
+    try:  # a file decoded by the approximate or converter route stays labelled
+        route = route_meta(sidecar_route(read_sidecar(path)))
+    except DataError:
+        route = {}
+    return temp, {"unit": unit, "format": path.suffix.lower().lstrip("."), **route}
 
 
 # ------------------------------------------------------------------------------------------------ the source

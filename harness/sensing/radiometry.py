@@ -596,6 +596,19 @@ def route_label(info: Mapping[str, Any]) -> str:
     return f"blackbody raw14/16-273.15, uncorrected{' (' + note + ')' if note else ''}"
 
 
+def sidecar_route(side: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The route a decoded file's sidecar records (``harness sensing decode``): ``decoder`` and, for the approximate
+    route, its ``approximate`` record; empty for DJI's correction and files written otherwise. Files decoded with
+    approximate temperatures stay labelled when a dataset reads them back."""
+    route = (side or {}).get("decoder_route")
+    if route in (None, "dji"):
+        return {}
+    out: dict[str, Any] = {"decoder": route}
+    if isinstance((side or {}).get("approximate"), dict):
+        out["approximate"] = dict(side["approximate"])  # type: ignore[index]
+    return out
+
+
 #: the keys ``route_meta`` may set in a sample's ``meta``
 ROUTE_META_KEYS = ("thermal_route", "temperatures", "temperature_bound_c", "approximation")
 
@@ -720,7 +733,7 @@ def read_thermal(path: str | Path, decoder: str = "auto",
                             f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
     info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
             "params": dict(side.get("params", {})) if side else {}, "nodata": nodata, "missing": int(missing.sum()),
-            "sidecar": side.get("_path") if side else None}
+            "sidecar": side.get("_path") if side else None, **sidecar_route(side)}
     return temp, info
 
 
