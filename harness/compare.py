@@ -78,6 +78,8 @@ class CompareRow:
     per_fold: list[FoldResult] = field(default_factory=list)
     #: the model options the runs were built with (``scale=n``; "mixed: ..." when they differ between folds)
     options: str = ""
+    #: set when the runs' thermal input rests on approximate temperatures (``metrics.json`` ``temperatures``)
+    temperatures: dict[str, Any] | None = None
 
 
 @dataclass
@@ -96,11 +98,21 @@ class CompareTable:
     def _cells(self, r: CompareRow) -> list[str]:
         mark = "" if r.matched else " !"
         name = r.detector + (f" [{r.options}]" if r.options else "") + mark
+        approx = " ~" if r.temperatures else ""  # beside every number that rests on approximate temperatures
         cells = [r.dataset, r.source, name, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
-                 _pct(r.map50, r.map50_sd), _pct(r.map50_95, r.map50_95_sd)]
+                 _pct(r.map50, r.map50_sd) + approx, _pct(r.map50_95, r.map50_95_sd) + approx]
         if self.safit:
-            cells += [_pct(r.safit50, r.safit50_sd), _pct(r.safit50_95, r.safit50_95_sd)]
+            cells += [_pct(r.safit50, r.safit50_sd) + approx, _pct(r.safit50_95, r.safit50_95_sd) + approx]
         return cells
+
+    def approximate_note(self) -> str | None:
+        """What ``~`` means, when a row rests on approximate temperatures."""
+        found = [r for r in self.rows if r.temperatures]
+        if not found:
+            return None
+        worst = max(float(r.temperatures.get("bound_c") or 0.0) for r in found)  # type: ignore[union-attr]
+        return (f"~ measured on approximate temperatures ({', '.join(f'{r.detector}/{r.encoding}' for r in found)}: "
+                f"within {worst:g} C of DJI's SDK at worst; docs/sensing.md)")
 
     def to_text(self) -> str:
         cols = self.columns()
@@ -125,6 +137,8 @@ class CompareTable:
                 out.append(line(cells))
             out.append("")
         out.append("AP in %, mean ± sample SD over held-out folds; images and instances summed over held-out folds.")
+        if self.approximate_note():
+            out.append(self.approximate_note())  # type: ignore[arg-type]
         if self.mismatches:
             out.append("! NOT SAMPLE-MATCHED: these rows were scored on different supports and must not be compared:")
             out.extend(f"  - {m}" for m in self.mismatches)
@@ -134,6 +148,8 @@ class CompareTable:
         cols = self.columns()
         out = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
         out += ["| " + " | ".join(self._cells(r)) + " |" for r in self.rows]
+        if self.approximate_note():
+            out += ["", str(self.approximate_note())]
         if self.mismatches:
             out.append("")
             out += [f"**Not sample-matched:** {m}" for m in self.mismatches]
@@ -317,7 +333,9 @@ def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatche
                              agg["support"]["images"], agg["support"]["instances"],
                              m["mAP50"]["mean"], m["mAP50"]["sd"], m["mAP50_95"]["mean"], m["mAP50_95"]["sd"],
                              matched=(det, enc) not in bad, per_fold=fr,
-                             options=_options(representative[(det, enc)].values()))
+                             options=_options(representative[(det, enc)].values()),
+                             temperatures=next((m["temperatures"] for m in representative[(det, enc)].values()
+                                                if isinstance(m.get("temperatures"), dict)), None))
             if "safit_mAP50" in m and m["safit_mAP50"]["n"] == len(fr):
                 row.safit50, row.safit50_95 = m["safit_mAP50"]["mean"], m["safit_mAP50_95"]["mean"]
                 row.safit50_sd, row.safit50_95_sd = m["safit_mAP50"]["sd"], m["safit_mAP50_95"]["sd"]

@@ -230,6 +230,7 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
              "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
     missing: dict[str, int] = {}
+    routes: dict[str, Any] = {}
     t0 = time.perf_counter()
     # the source's categories win: a dataset whose categories come from its files (coco-rgbt) registers none
     categories = tuple(getattr(source, "categories", None) or spec.categories)
@@ -253,6 +254,7 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
                                 else sample.image_id, f"invalid sample: {exc}")
                 else:
                     _count_missing(missing, sample)
+                    _count_route(routes, sample)
                 bar.advance()
         if not writer.records:
             summary = report.summary()
@@ -264,6 +266,13 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
         summary["skipped_files"] = [list(s) for s in report.skipped[:MAX_LISTED_SKIPS]]
         summary["missing_temperatures"] = {"samples": len(missing), "pixels": sum(missing.values()),
                                            "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS])}
+        if routes:
+            summary.update(routes)
+            if "approximate_temperatures" in routes:
+                a = routes["approximate_temperatures"]
+                report.note(f"{a['samples']} sample(s) hold approximate temperatures (within {a['bound_c']:g} C of "
+                            f"DJI's SDK at worst: {', '.join(a['approximations'])}); results on them say so")
+                summary["notes"] = list(report.notes)
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         writer.close(summary)
     except BaseException:
@@ -281,6 +290,23 @@ def _count_missing(missing: dict[str, int], sample: Any) -> None:
         n = invalid_count(sample.thermal)
         if n:
             missing[sample.name] = n
+
+
+def _count_route(routes: dict[str, Any], sample: Any) -> None:
+    """Record a kept sample's thermal route when it is not DJI's own correction: ``approximate_temperatures``
+    (samples, worst bound, approximations) and ``converted_temperatures`` (samples)."""
+    meta = sample.meta if isinstance(sample.meta, dict) else {}
+    route = meta.get("thermal_route")
+    if route == "approximate":
+        a = routes.setdefault("approximate_temperatures", {"label": "approximate temperatures", "samples": 0,
+                                                           "bound_c": 0.0, "approximations": []})
+        a["samples"] += 1
+        a["bound_c"] = max(a["bound_c"], float(meta.get("temperature_bound_c") or 0.0))
+        if meta.get("approximation") and meta["approximation"] not in a["approximations"]:
+            a["approximations"].append(meta["approximation"])
+    elif route:
+        c = routes.setdefault(f"{route}_temperatures", {"samples": 0})
+        c["samples"] += 1
 
 
 def _reasons_text(reasons: Mapping[str, int]) -> str:

@@ -487,6 +487,9 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         }
         if degenerate_note:
             metrics["labels"] = [degenerate_note]
+        approx = (prepared.manifest.get("report") or {}).get("approximate_temperatures")
+        if approx:  # the thermal input rests on approximate temperatures: every table built on this run says so
+            metrics["temperatures"] = dict(approx)
         atomic_write_json(r.predictions_path, dets, indent=None)
         atomic_write_json(r.gt_path, gt, indent=None)
         r.write_metrics(metrics)
@@ -640,7 +643,30 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return fit_text(title) + "\n" + text_table(headers, rows)
+    return fit_text(title) + "\n" + text_table(headers, _marked(summary, rows, 5, 9)) + _approximate_line(summary)
+
+
+def _approximate_record(summary: RunSummary) -> dict[str, Any] | None:
+    found = [r.metrics.get("temperatures") for r in summary.results if isinstance(r.metrics.get("temperatures"), dict)]
+    return max(found, key=lambda t: float(t.get("bound_c") or 0.0)) if found else None
+
+
+def _marked(summary: RunSummary, rows: list[list[str]], first: int, last: int | None) -> list[list[str]]:
+    """``rows`` with `` ~`` beside each number in columns ``first`` to ``last`` (exclusive), when the runs used
+    approximate temperatures."""
+    if _approximate_record(summary) is None:
+        return rows
+    end = last if last is not None else max((len(r) for r in rows), default=0)
+    return [row[:first] + [c + " ~" if c not in ("", "-") and c[:1].isdigit() else c for c in row[first:end]]
+            + row[end:] for row in rows]
+
+
+def _approximate_line(summary: RunSummary) -> str:
+    rec = _approximate_record(summary)
+    if rec is None:
+        return ""
+    return "\n" + fit_text(f"~ measured on approximate temperatures (within {float(rec.get('bound_c') or 0):g} C "
+                           f"of DJI's SDK at worst; {', '.join(rec.get('approximations') or [])}; docs/sensing.md)")
 
 
 def category_table(summary: RunSummary) -> str:
@@ -657,7 +683,7 @@ def category_table(summary: RunSummary) -> str:
         rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
                      _pm(a.get("AP50_95", {}))])
     return ("per category (AP50 mean ± SD over the folds where the category has instances)\n"
-            + text_table(headers, rows))
+            + text_table(headers, _marked(summary, rows, 2, None)) + _approximate_line(summary))
 
 
 def ablation_table(ab: AblationSummary) -> str:

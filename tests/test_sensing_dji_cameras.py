@@ -1,7 +1,8 @@
 """Other DJI thermal cameras than the M3T: H20T (dirp) and M2EA (iirp without the APP4 tag) decode like DJI's
 Thermal SDK; layouts whose temperatures need tables or code the file does not carry (hirp, the M4T's
-emissivity re-mapping) are refused with the camera model and the format named; the correction's lookup table
-gives the same float32 values as the per-value correction; the M3T dataset adapter reads these files too."""
+emissivity re-mapping) are refused by default with the camera model, the format and both options (converter,
+approximate) named; the correction's lookup table gives the same float32 values as the per-value correction;
+the M3T dataset adapter reads these files too."""
 
 from __future__ import annotations
 
@@ -51,17 +52,24 @@ def test_original_raw_of_every_camera_is_exact(name):
 @pytest.mark.parametrize("decoder", ["auto", "dji", "blackbody"])
 def test_hirp_is_refused_naming_camera_and_format(decoder):
     with pytest.raises(dji_formats.UnsupportedFormat, match=r"m3td_hirp_a\.jpg: camera 'M3TD', DJI R-JPEG "
-                                                            r"format 'hirp'.*DJI Thermal SDK"):
+                                                            r"format 'hirp'.*--converter dji_irp.*no approximate"):
         read_rjpeg(CAMERAS / "m3td_hirp_a.jpg", decoder)
+    with pytest.raises(dji_formats.UnsupportedFormat, match=r"format 'hirp'.*no approximate route"):
+        read_rjpeg(CAMERAS / "m3td_hirp_a.jpg", approximate=True)
 
 
 @needs_cameras
-def test_m4t_emissivity_tables_are_named_and_auto_falls_back_to_blackbody():
+def test_m4t_is_refused_by_default_naming_camera_format_and_both_options():
     path = CAMERAS / "m4t_iirp.jpg"
-    with pytest.raises(dc.UnsupportedCorrection, match=r"M4T \(iirp, APP4 format version 0x300\).*emissivity"):
+    with pytest.raises(dc.UnsupportedCorrection, match=r"camera 'M4T', DJI R-JPEG format 'iirp' \(APP4 format "
+                                                       r"version 0x300\).*emissivity.*--converter dji_irp"):
         read_rjpeg(path, decoder="dji")
-    rj = read_rjpeg(path)
-    assert rj.decoder == "blackbody" and rj.decoder_note.startswith("M4T (iirp")
+    with pytest.raises(dc.UnsupportedCorrection, match=r"m4t_iirp\.jpg: camera 'M4T', DJI R-JPEG format 'iirp'.*"
+                                                       r"--converter dji_irp.*--approximate") as err:
+        read_rjpeg(path)
+    assert err.value.kind == "emissivity-remap"
+    rj = read_rjpeg(path, decoder="blackbody")  # uncorrected only when asked for
+    assert rj.decoder == "blackbody"
     np.testing.assert_array_equal(rj.raw14, np.load(CAMERAS / "m4t_iirp_reference.npz")["raw14"])
 
 
@@ -84,8 +92,10 @@ def test_dirp_overrides_follow_the_sdk_ranges():
 def test_decode_command_decodes_what_it_can_and_names_the_rest(tmp_path, cli_runner):
     result = cli_runner(["sensing", "decode", str(CAMERAS), "--out", str(tmp_path)])
     assert result.exit_code == 1
-    for name in ("h20t_dirp", "m2ea_iirp", "m4t_iirp"):
+    for name in ("h20t_dirp", "m2ea_iirp"):
         assert (tmp_path / f"{name}.png").is_file()
+    assert not (tmp_path / "m4t_iirp.png").exists()  # no silent uncorrected fallback
+    assert "m4t_iirp.jpg: camera 'M4T', DJI R-JPEG format 'iirp'" in result.output
     for name in ("m3td_hirp_a", "m3td_hirp_b", "m3td_hirp_c"):
         assert f"{name}.jpg: camera 'M3TD', DJI R-JPEG format 'hirp'" in result.output
     t, _ = read_thermal(tmp_path / "h20t_dirp.png")  # centi-kelvin: within 0.005 C of the reference

@@ -122,14 +122,21 @@ def test_damaged_or_missing_app5_is_a_clear_error(tmp_path):
     default.write_bytes(_with_app5(src, b"\xff" * 4 + app5[4:]))
     with pytest.raises(dc.UnsupportedCorrection, match="default.jpg"):
         read_rjpeg(default, decoder="dji")
-    rj = read_rjpeg(default)  # auto: falls back to blackbody and says why
-    assert rj.decoder == "blackbody" and "default" in rj.decoder_note
+    with pytest.raises(dc.UnsupportedCorrection, match=r"default\.jpg: camera 'M3T'.*built-in default.*"
+                                                       r"--converter.*--approximate"):
+        read_rjpeg(default)  # auto: refused, no silent blackbody
+    rj = read_rjpeg(default, approximate=True)  # the labelled approximate route, on request
+    assert rj.decoder == "approximate" and rj.approximation.name == "builtin-tau-unity"
     none = tmp_path / "no_app5.jpg"
     none.write_bytes(_with_app5(src, None))
-    rj = read_rjpeg(none)
-    assert rj.decoder == "blackbody" and "no APP5" in rj.decoder_note
+    with pytest.raises(dc.UnsupportedCorrection, match=r"no_app5\.jpg.*no APP5.*--converter"):
+        read_rjpeg(none)
+    with pytest.raises(dc.UnsupportedCorrection, match=r"no_app5\.jpg.*no APP5.*no approximate route"):
+        read_rjpeg(none, approximate=True)
     with pytest.raises(DataError, match=r"no_app5\.jpg.*no APP5"):
         read_rjpeg(none, decoder="dji")
+    rj = read_rjpeg(none, decoder="blackbody")
+    assert rj.decoder == "blackbody"
     with pytest.raises(DataError, match=r"no_app5\.jpg.*no atmospheric-transmission table"):
         rj.corrected_c()
     with pytest.raises(ConfigError, match="decoder"):

@@ -293,17 +293,17 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
     for an 8-bit image, an unreadable file, non-finite or implausible values.
     """
-    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal
+    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal, route_meta, sidecar_route
 
     if path.suffix.lower() in (".jpg", ".jpeg"):
         try:
             opts = sensing or SensingOptions()
-            temp, info = read_thermal(path, decoder=opts.decoder, overrides=opts.measurement)
+            temp, info = read_thermal(path, **opts.thermal_kwargs())
         except ConfigError:
             raise
         except HarnessError as exc:
             raise SkipPair(f"thermal unreadable: {exc}") from None
-        return temp, {"unit": info.get("unit"), "format": "rjpeg"}
+        return temp, {"unit": info.get("unit"), "format": "rjpeg", **route_meta(info)}
     try:
         arr = _load_thermal_array(path)
     except ImageReadError as exc:
@@ -345,7 +345,11 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
         raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
                        "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")
-    return temp, {"unit": unit, "format": path.suffix.lower().lstrip(".")}
+    try:  # a file decoded by the approximate or converter route stays labelled
+        route = route_meta(sidecar_route(read_sidecar(path)))
+    except DataError:
+        route = {}
+    return temp, {"unit": unit, "format": path.suffix.lower().lstrip("."), **route}
 
 
 # ------------------------------------------------------------------------------------------------ the source
@@ -477,8 +481,11 @@ class CocoRgbtSource:
                         f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame")
         boxes, labels, ids = boxes[keep], labels[keep], [a for a, k in zip(ids, keep) if k]
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
+        from harness.sensing.radiometry import ROUTE_META_KEYS
+
         meta: dict[str, Any] = {"file_name": p.file_name, "thermal_file": p.thermal_file_name, "ann_ids": ids,
-                                "thermal_unit": info.get("unit"), "thermal_format": info.get("format")}
+                                "thermal_unit": info.get("unit"), "thermal_format": info.get("format"),
+                                **{k: v for k, v in info.items() if k in ROUTE_META_KEYS}}
         if H is None:
             sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
                                    labels=labels, group=p.group, meta=meta)

@@ -562,7 +562,7 @@ class M3TSource:
 
         opts = SensingOptions.from_config(self.sensing)
         try:
-            temp, info = read_thermal(path, decoder=opts.decoder, overrides=opts.measurement)
+            temp, info = read_thermal(path, **opts.thermal_kwargs())
         except ConfigError:
             raise  # a wrong sensing.radiometry setting is not a property of one file
         except HarnessError as exc:
@@ -594,6 +594,8 @@ class M3TSource:
 
     # -------------------------------------------------------------- aligned form
     def _aligned_samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
+        from harness.sensing.radiometry import route_meta
+
         tdir = self.manifest.path("thermal")
         for rec in self.records:
             try:
@@ -618,7 +620,7 @@ class M3TSource:
                 labels=labels, group=rec.project,
                 meta={"file_name": rec.file_name, "thermal_file": str(tpath.relative_to(self.root)),
                       "project": rec.project, "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
-                      "ann_ids": ids, "origin": [0, 0], "thermal_unit": info.get("unit")})
+                      "ann_ids": ids, "origin": [0, 0], "thermal_unit": info.get("unit"), **route_meta(info)})
         if self._clipped:
             report.note(f"{self._clipped} box(es) reaching past the image edge were clipped to it")
 
@@ -730,7 +732,7 @@ class RawAligner:
         if path.suffix.lower() in (".jpg", ".jpeg"):
             opts = SensingOptions.from_config(self.src.sensing)
             try:
-                rj = read_rjpeg(path, opts.decoder)
+                rj = read_rjpeg(path, opts.decoder, opts.approximate, opts.converter_spec())
                 temp, tinfo = rjpeg_temperature(rj, opts.measurement)
             except ConfigError:
                 raise  # a wrong sensing.radiometry setting is not a property of one file
@@ -742,12 +744,15 @@ class RawAligner:
                     ir8 = ir8_from_temperature(temp)
             except HarnessError:
                 ir8 = ir8_from_temperature(temp)
-            return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"]}
+            return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"],
+                               **{k: tinfo[k] for k in ("approximate", "converter") if k in tinfo}}
         temp, info = self.src._read_thermal(path)
         return temp, ir8_from_temperature(temp), info
 
     # ---------------------------------------------------------------- one pair
     def sample(self, rec: ImageRecord, report: PrepareReport) -> AlignedSample:
+        from harness.sensing.radiometry import route_meta
+
         src = self.src
         tpath = src.thermal_partner(rec)
         rgb = src._read_rgb(src.base / rec.file_name)
@@ -781,7 +786,7 @@ class RawAligner:
         return pair.to_sample(rec.image_id, rec.project, {
             "file_name": rec.file_name, "thermal_file": str(tpath.relative_to(src.root)), "project": rec.project,
             "inspection_group": rec.group, "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
-            "ann_ids": kept_ids, "thermal_format": info.get("format"),
+            "ann_ids": kept_ids, "thermal_format": info.get("format"), **route_meta(info),
         })
 
     def finish(self, report: PrepareReport) -> None:

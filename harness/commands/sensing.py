@@ -38,6 +38,22 @@ def _write_result(result: dict[str, Any], analysis: str, dataset: str | None, st
     return written
 
 
+def _route_cell(row: dict[str, Any]) -> str:
+    """The route of one decoded file, short: ``dji``, ``approx. +-0.034 C``, ``dji_irp``, ``blackbody``."""
+    route = row["route"]
+    if route == "approximate" and row.get("approximate"):
+        return f"approx. +-{row['approximate']['bound_c']:g} C"
+    if route == "converter":
+        return "dji_irp" if "dji_irp" in row.get("route_label", "") else "converter"
+    return "blackbody (uncorr.)" if route == "blackbody" else route
+
+
+def _num(value: float, digits: int) -> str:
+    import math
+
+    return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
+
+
 def _progress(total: int | None, label: str) -> Any:
     """A rich progress bar on stderr (hidden when stderr is not a terminal), so tables on stdout stay clean."""
     from rich.console import Console
@@ -64,9 +80,19 @@ def register_commands(cli: click.Group) -> None:
                   help="File type (default: png for centikelvin, tiff otherwise).")
     @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
     @click.option("--decoder", type=click.Choice(["auto", "dji", "blackbody"]), default="auto", show_default=True,
-                  help="auto: DJI's corrected temperature when the file carries its APP5 table, else blackbody; "
-                       "dji: corrected or an error; blackbody: raw14/16-273.15, uncorrected.")
+                  help="auto: DJI's corrected temperature, or the route chosen below for files the harness cannot "
+                       "correct, else an error; dji: corrected or an error; blackbody: raw14/16-273.15, uncorrected.")
     @click.option("--blackbody", is_flag=True, help="Same as --decoder blackbody.")
+    @click.option("--approximate", is_flag=True,
+                  help="Accept approximate temperatures, each with its measured bound, for files whose exact "
+                       "correction needs DJI's own tables (M4T, H30T, some M2EA); labelled in every output.")
+    @click.option("--converter", default=None, metavar="dji_irp|TEMPLATE",
+                  help="Decode the files the harness cannot correct with DJI's own SDK (dji_irp, on PATH or "
+                       "--dji-irp) or a command template holding {input} and {output}.")
+    @click.option("--dji-irp", "dji_irp", default=None, metavar="PATH",
+                  help="DJI Thermal SDK's dji_irp (the program or its folder); implies --converter dji_irp.")
+    @click.option("--converter-timeout", type=click.FloatRange(min=0, min_open=True), default=None,
+                  help="Seconds one converter run may take (default 120).")
     @click.option("--emissivity", type=float, default=None, help="Override the file's emissivity (0.1-1).")
     @click.option("--distance", type=float, default=None, help="Override the object distance, m (1-25).")
     @click.option("--humidity", type=float, default=None, help="Override the relative humidity, % (1-100).")
@@ -76,29 +102,33 @@ def register_commands(cli: click.Group) -> None:
                   help="Decode in this many processes.")
     @click.option("--fail-fast", is_flag=True, help="Stop at the first file that cannot be decoded.")
     def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool, decoder: str,
-                   blackbody: bool, emissivity: float | None, distance: float | None, humidity: float | None,
-                   reflected: float | None, workers: int, fail_fast: bool) -> None:
+                   blackbody: bool, approximate: bool, converter: str | None, dji_irp: str | None,
+                   converter_timeout: float | None, emissivity: float | None, distance: float | None,
+                   humidity: float | None, reflected: float | None, workers: int, fail_fast: bool) -> None:
         """Decode DJI R-JPEGs (files, or folders searched recursively) to temperature files (C) with a JSON
         sidecar stating the unit and the route.
 
         By default the temperature is DJI Thermal SDK's corrected one (emissivity, reflected temperature,
         atmospheric transmission from the file's APP5 table) at the file's measurement parameters or the ones
-        given here; files without a table (e.g. written by the synthetic generator) decode as blackbody. Cameras:
-        M3T and the other iirp models, M2EA, H20T (dirp); docs/sensing.md has the table. Every readable file is
-        decoded; the failures are listed at the end, naming camera and format where unknown (exit status 1).
+        given here; files the harness wrote itself (the synthetic generator) decode as blackbody. Files it cannot
+        correct (hirp, girp, XT S, and tables only DJI's SDK holds) are refused naming camera and format, unless
+        --converter or --approximate is given. docs/sensing.md has the camera table. Every readable file is
+        decoded; the failures are listed at the end (exit status 1).
         """
         from harness.sensing.batch import DecodeOptions, decode_batch, format_failures
+        from harness.sensing.dji_converter import resolve
         from harness.textable import text_table as _table
 
         overrides = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected}
         options = DecodeOptions(unit=unit, fmt=fmt, preview=preview, decoder="blackbody" if blackbody else decoder,
-                                overrides=overrides)
+                                overrides=overrides, approximate=approximate,
+                                converter=resolve(converter, dji_irp, converter_timeout))
         with _progress(None, "decoding") as bar:
             task = bar.add_task("decode", total=None)
             result = decode_batch(inputs, out_dir, options, workers=workers, fail_fast=fail_fast,
                                   progress=lambda done, total: bar.update(task, completed=done, total=total))
-        rows = [[r["file"], r["size"], r["route"], f"{r['min']:.2f}", f"{r['max']:.2f}", f"{r['mean']:.2f}",
-                 f"{r['emissivity']:.2f}", f"{r['distance']:.1f}", Path(r["written"]).name] for r in result.decoded]
+        rows = [[r["file"], r["size"], _route_cell(r), f"{r['min']:.2f}", f"{r['max']:.2f}", f"{r['mean']:.2f}",
+                 _num(r["emissivity"], 2), _num(r["distance"], 1), Path(r["written"]).name] for r in result.decoded]
         if rows:
             click.echo(_table(["file", "size", "route", "min C", "max C", "mean C", "emissivity", "distance m",
                                "written"], rows, align="lllrrrrrl"))

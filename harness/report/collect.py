@@ -109,6 +109,12 @@ class Entry:
 
         return aggregate_folds(self.fold_metrics())
 
+    def temperatures(self) -> dict[str, Any] | None:
+        """How far the thermal input of this entry's runs is from DJI's own temperatures: ``None`` for exact ones;
+        for runs on approximate temperatures (``metrics.json`` ``temperatures``) the record with the worst bound."""
+        found = [m["temperatures"] for m in self.fold_metrics() if isinstance(m.get("temperatures"), dict)]
+        return max(found, key=lambda t: float(t.get("bound_c") or 0.0)) if found else None
+
     def environment(self) -> dict[str, Any]:
         """The environment record of the first run that has one (device, threads, versions)."""
         for f in self.folds.values():

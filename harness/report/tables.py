@@ -100,7 +100,11 @@ class Table:
 
     # ---------------------------------------------------------------------------------------------- cells
     def cell(self, row: Mapping[str, Any], col: Column) -> str:
-        return format_value(row.get(col.key), col.kind, col.digits)
+        text = format_value(row.get(col.key), col.kind, col.digits)
+        approximate = row.get("_approximate") or (col.key.split(":", 1)[0] in row.get("_approximate_keys", ()))
+        if approximate and col.kind != "text" and col.kind != "int" and text not in ("", "-"):
+            text += f" {APPROXIMATE_MARK}"
+        return text
 
     def best_rows(self, col: Column) -> set[int]:
         """Indices of the rows holding the best value of ``col`` (ties all count; none when every row is equal;
@@ -278,6 +282,23 @@ def match_check(metrics_by_label: Mapping[str, Mapping[str, Any]]) -> tuple[str 
     return None, []
 
 
+#: beside a number that rests on approximate temperatures (``harness.sensing.dji_approximate``)
+APPROXIMATE_MARK = "~"
+
+
+def _approximate_note(table: Table, entries: Sequence[Entry]) -> dict[str, dict[str, Any]]:
+    """The entries whose runs used approximate temperatures (label -> record); a note on the table says what the
+    ``~`` beside their numbers means."""
+    found = {e.label: t for e in entries if (t := e.temperatures()) is not None}
+    if found:
+        worst = max(float(t.get("bound_c") or 0.0) for t in found.values())
+        kinds = sorted({a for t in found.values() for a in t.get("approximations", [])})
+        table.notes.append(f"{APPROXIMATE_MARK} beside a number: measured on approximate temperatures "
+                           f"({', '.join(sorted(found))}: within {worst:g} C of DJI's SDK at worst; "
+                           f"{', '.join(kinds) or 'approximate route'}; docs/sensing.md).")
+    return found
+
+
 def _merge_warning(table: Table, label: str | None, details: Sequence[str]) -> None:
     if not label:
         return
@@ -364,6 +385,7 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     table = Table(name, f"{dataset}: project-grouped folds (held-out mAP, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
     names = _entry_names(rows_e)
+    approx = _approximate_note(table, rows_e)
     no_profile = []
     for e in rows_e:
         agg = e.aggregate()["metrics"]
@@ -377,6 +399,7 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
                                "images": e.images, "instances": e.instances}
         if pareto is not None:
             row["pareto"] = "yes" if e.label in pareto else ""
+        row["_approximate"] = e.label in approx
         matched = table.warning is None
         for f in folds:
             fr = e.folds.get(f)
@@ -479,11 +502,12 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
                         group=group, short="AP50:95")]
     table = Table(name, f"{dataset}: per category (AP over the folds that contain the category, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
+    approx = _approximate_note(table, rows_e)
     ref = aggs[rows_e[0].label]["per_category"]
     for c in cats:
         ref_c = ref.get(c) or {}
         row: dict[str, Any] = {"category": c, "instances": ref_c.get("instances", 0),
-                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}"}
+                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}", "_approximate_keys": approx}
         for e in rows_e:
             pc = aggs[e.label]["per_category"].get(c) or {}
             for key in ("AP50", "AP50_95"):
@@ -552,13 +576,15 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
     table = Table(name, f"{dataset}: encoding ablation of {det} (held-out fold{'s' if len(folds) > 1 else ''} "
                         f"{fold_text}, %)", cols)
     _merge_warning(table, *_fold_matching(entries, folds))
+    approx = _approximate_note(table, entries)
     for e in entries:
         metrics = [e.folds[f].metrics for f in folds]
         agg = aggregate_folds(metrics)
         images = sum(e.folds[f].images for f in folds)
         instances = sum(e.folds[f].instances for f in folds)
         seeds = sorted({s for f in folds for s in e.folds[f].seeds})
-        row: dict[str, Any] = {"encoding": e.encoding, "images": images, "instances": instances}
+        row: dict[str, Any] = {"encoding": e.encoding, "images": images, "instances": instances,
+                               "_approximate": e.label in approx}
         for key in ("precision", "recall", "mAP50", "mAP50_95"):
             s = Stat.from_mean_sd(agg["metrics"].get(key))
             row[key] = s if len(folds) > 1 else s.mean

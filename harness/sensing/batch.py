@@ -6,8 +6,14 @@ same capture, is passed over and counted, not failed). Every readable file is de
 temperature file, its sidecar and the optional preview) is written to a temporary name in the output folder and
 renamed into place, so an interrupted batch leaves whole files only. A file that cannot be decoded is recorded
 as ``(file, reason)`` and the batch goes on, unless ``fail_fast``, which raises the first error as it comes; a
-``ConfigError`` (a setting wrong for every file, such as an override out of range) stops the batch either way.
-``workers > 1`` decodes in that many processes.
+``ConfigError`` (a setting wrong for every file, such as an override out of range or a converter that cannot be
+started) stops the batch either way. A value wrong in one file (an emissivity of about 0 in its APP4 block) is that
+file's failure. A folder without any ``.jpg``/``.jpeg`` file is a failure too, and a batch that decodes nothing is
+not a success. ``workers > 1`` decodes in that many processes.
+
+Each file's route (``radiometry.route_label``: DJI's correction, the converter, the labelled approximate route, or
+blackbody when asked for) is in its table row and its sidecar (``decoder``, ``decoder_route``, and ``approximate``
+or ``converter`` with what was applied).
 
 Outputs keep the inputs' layout: ``<out>/<stem>.<ext>`` for a file named directly, and
 ``<out>/<path below the folder>/<stem>.<ext>`` for a file found in a folder, so two flights' ``DJI_0001_T.JPG``
@@ -46,6 +52,8 @@ class DecodeOptions:
     preview: bool = False
     decoder: str = "auto"
     overrides: Mapping[str, float | None] = field(default_factory=dict)
+    approximate: bool = False  # allow the labelled approximate route (``dji_approximate``)
+    converter: Any = None  # a ``dji_converter.Converter`` for the files the harness cannot correct
 
     @property
     def suffix(self) -> str:
@@ -63,7 +71,7 @@ class BatchResult:
 
     @property
     def ok(self) -> bool:
-        return not self.failed
+        return not self.failed and bool(self.decoded)
 
 
 @dataclass(frozen=True)
@@ -94,7 +102,8 @@ def collect_jobs(inputs: Iterable[str | Path], out_dir: str | Path, suffix: str
         if p.is_dir():
             found = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in RJPEG_SUFFIXES)
             if not found:
-                log.warning("%s: no .jpg/.jpeg file in this folder", p)
+                failed.append((str(p), "a folder without any .jpg/.jpeg file (give R-JPEG files or folders "
+                                       "holding them)"))
             for f in found:
                 rel = f.relative_to(p)
                 add(f, out_dir / rel.parent / f"{f.stem}.{suffix}", True)
@@ -152,12 +161,11 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     layout = jpeg.read_segments(data, source, require_eoi=False)  # a damaged header fails here, naming the file
     if from_folder and not layout.payloads(jpeg.APP3):  # no radiometric counts: e.g. the visible camera's JPEG
         return {"passed_over": True}
-    rj = read_rjpeg(source, options.decoder)
+    rj = read_rjpeg(source, options.decoder, options.approximate, options.converter)
     t, info = rjpeg_temperature(rj, dict(options.overrides))
-    used = info.get("correction", rj.params)
-    route = ("dji: dirp curve, corrected (emissivity, reflected)" if rj.fmt == "dirp"
-             else "dji: corrected (emissivity, reflected, atmosphere)" if rj.decoder == "dji"
-             else f"blackbody raw14/16-273.15{' (' + rj.decoder_note + ')' if rj.decoder_note else ''}")
+    # the parameters the route applied: none for blackbody (the columns would show values that were not used)
+    used = info.get("correction") or (info["converter"]["params"] if "converter" in info else {})
+    route = info["route"]
     params = exact_params(data, source, layout) or dict(rj.params)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(target)
@@ -165,7 +173,9 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     try:
         write_thermal(tmp, t, unit=options.unit, params=params,
                       extra={"source": str(source), "decoder": route, "decoder_route": rj.decoder,
-                             **({"correction": info["correction"]} if "correction" in info else {}),
+                             **({"decoder_note": rj.decoder_note} if rj.decoder_note else {}),
+                             **{k: info[k] for k in ("correction", "approximate", "converter") if k in info},
+                             **({"temperatures": info["approximate"]["label"]} if "approximate" in info else {}),
                              "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))}})
         if options.preview:
             import cv2
@@ -181,7 +191,8 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
         for a, _ in moves:
             a.unlink(missing_ok=True)
     return {"file": source.name, "source": str(source), "size": f"{t.shape[1]}x{t.shape[0]}", "route": rj.decoder,
-            "min": float(t.min()), "max": float(t.max()), "mean": float(t.mean()),
+            "route_label": route, "approximate": info.get("approximate"),
+            "min": float(np.nanmin(t)), "max": float(np.nanmax(t)), "mean": float(np.nanmean(t)),
             "emissivity": float(used.get("emissivity", float("nan"))),
             "distance": float(used.get("distance", float("nan"))), "written": str(target)}
 
@@ -266,12 +277,20 @@ def decode_batch(inputs: Iterable[str | Path], out_dir: str | Path, options: Dec
 
 
 def format_failures(result: BatchResult) -> str:
-    """``decoded N of M file(s); K failed:`` then one ``file: reason`` line per failure."""
+    """``decoded N of M file(s); K failed:`` then one ``file: reason`` line per failure; a batch that decoded
+    nothing says so."""
     n = len(result.decoded)
     total = n + len(result.failed)
     head = f"decoded {n} of {total} file(s)"
     if result.passed_over:
         head += f"; {len(result.passed_over)} JPEG(s) without a radiometric payload passed over"
+    approx = [r for r in result.decoded if r.get("approximate")]
+    if approx:
+        worst = max(r["approximate"]["bound_c"] for r in approx)
+        head += (f"; {len(approx)} with approximate temperatures (within {worst:g} C of DJI's SDK at worst; "
+                 "see each sidecar)")
+    if not n and not result.failed:
+        return head + ": nothing to decode (no R-JPEG among the inputs)"
     if not result.failed:
         return head
     return head + f"; {len(result.failed)} failed:\n" + "\n".join(f"  {f}: {r}" for f, r in result.failed)

@@ -56,7 +56,9 @@ reflected temperature in its place, as the SDK does.
 
 Tables the SDK does not take from the file are not reproduced: an APP5 header starting ``FF FF FF FF`` (the SDK
 substitutes built-in default tau tables) and the emissivity re-mapping tables (flag set or table version 0x101)
-raise ``UnsupportedCorrection``; read such files with the blackbody decoder.
+raise ``UnsupportedCorrection`` (its ``kind`` says which: ``builtin-tau`` or ``emissivity-remap``). Such files are
+decoded exactly by DJI's own SDK through the converter route, or, on request, by the labelled approximate route
+(``harness.sensing.dji_approximate``: ``parse_app5(..., skip_emissivity_remap=True)`` and ``unity_table()``).
 """
 
 from __future__ import annotations
@@ -91,7 +93,13 @@ OVERRIDE_UNITS = {"distance": "m", "humidity": "%", "emissivity": "0-1", "reflec
 
 
 class UnsupportedCorrection(DataError):
-    """The file's correction needs tables DJI's SDK carries itself (not in the file); blackbody decoding works."""
+    """The file's correction needs tables DJI's SDK carries itself (not in the file). ``kind``: ``builtin-tau``
+    (the camera's default transmission table), ``emissivity-remap`` (DJI's emissivity re-mapping tables) or
+    ``unknown`` (a table version this module does not know)."""
+
+    def __init__(self, message: str, kind: str = "unknown"):
+        super().__init__(message)
+        self.kind = kind
 
 
 # ---------------------------------------------------------------------------------------------- axes
@@ -155,6 +163,8 @@ class TauTable:
     reflection: bool
     max_distance: float
     valid_rows: int = 0  # leading temperature rows holding Q14 values (0: all rows)
+    #: what the table leaves out of DJI's correction (``dji_approximate``): "" exact, else the approximation's name
+    approximation: str = ""
 
     @property
     def valid_below_k(self) -> float:
@@ -168,16 +178,20 @@ class TauTable:
         return {"table_version": self.version, "shape": list(self.tau.shape), "humidity_version": self.humidity,
                 "separate_reflection": self.reflection, "tau_range": [int(self.tau[:rows].min()),
                                                                       int(self.tau[:rows].max())],
-                "max_distance_m": self.max_distance, "valid_up_to_c": round(self.valid_below_k - KELVIN, 2)}
+                "max_distance_m": self.max_distance, "valid_up_to_c": round(self.valid_below_k - KELVIN, 2),
+                **({"approximation": self.approximation} if self.approximation else {})}
 
 
-def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "<APP5>") -> TauTable:
+def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "<APP5>",
+               skip_emissivity_remap: bool = False) -> TauTable:
     """Parse an iirp APP5 payload (header + tau table) into a ``TauTable``; layout in the module docstring.
 
     ``format_version`` is the APP4 format version (``header["version"]``, 0x200 in M3T files; 0x100 when the
     APP4 block has no magic): 0x100 and 0x200 carry a 0x1C00-byte table, others a 0x1F00-byte one. A payload too
     short for its header or table, a table too small for its axes, or Q14 values outside 1..16384 is a
     ``DataError`` naming ``name``; tables the SDK would replace by built-in data are ``UnsupportedCorrection``.
+    ``skip_emissivity_remap``: read a table that asks for DJI's emissivity re-mapping anyway and use it without the
+    re-mapping (the approximate route; the table's ``approximation`` says so).
     """
     if len(payload) < HEADER_BYTES:
         raise DataError(f"{name}: APP5 calibration segment is {len(payload)} bytes, shorter than its "
@@ -185,7 +199,7 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     head = payload[:HEADER_BYTES]
     if head[:4] == b"\xff\xff\xff\xff":
         raise UnsupportedCorrection(f"{name}: APP5 says the camera's built-in default transmission table applies, "
-                                    "which the file does not carry; use the blackbody decoder")
+                                    "which the file does not carry", kind="builtin-tau")
     old = ((format_version - 0x100) & 0xFFFFFEFF) == 0
     size = OLD_TABLE_BYTES if old else TABLE_BYTES
     max_distance = 25.0 if old or struct.unpack_from("<H", head, 2)[0] <= 0x3F else 300.0
@@ -197,9 +211,10 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     else:  # no header fields: the table is read from the start of the payload
         version, ems_on, hum_on, hum_ver, refl_on, refl_ver = 0, 0, 0, 0, 0, 0
         table = words
-    if ems_on == 1 or version == 0x101:
+    remap = ems_on == 1 or version == 0x101
+    if remap and not skip_emissivity_remap:
         raise UnsupportedCorrection(f"{name}: APP5 table version {version:#x} asks for DJI's emissivity re-mapping "
-                                    "tables, which the file does not carry; use the blackbody decoder")
+                                    "tables, which the file does not carry", kind="emissivity-remap")
     if refl_on == 1 and refl_ver != 1:
         raise UnsupportedCorrection(f"{name}: APP5 reflected-temperature table version {refl_ver} is not known")
     hum = humidity_version(version, hum_on, hum_ver)
@@ -223,7 +238,8 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     tau.flags.writeable = False
     return TauTable(tau=tau, temps_k=temps, distances_m=dists, version=version, humidity=hum,
                     reflection=refl_on == 1, max_distance=max_distance,
-                    valid_rows=0 if valid_rows == len(temps) else valid_rows)
+                    valid_rows=0 if valid_rows == len(temps) else valid_rows,
+                    approximation="emissivity-remap-skipped" if remap else "")
 
 
 # ---------------------------------------------------------------------------------------------- maths
@@ -409,12 +425,19 @@ def check_overrides(overrides: Mapping[str, float | None], max_distance: float =
     return out
 
 
+#: the smallest emissivity the correction divides by; a file stating less (about 0) is physically impossible
+MIN_EMISSIVITY = 1e-4
+
+
 def check_file_params(params: Mapping[str, float], name: str | Path = "<APP4>") -> None:
-    """The file's own parameters must be in the range the SDK measures with, else ``DataError`` naming ``name``."""
-    limits = {"emissivity": (0.0, 1.0, ""), "humidity": (0.0, 100.0, " %"), "distance": (0.0, 1000.0, " m"),
-              "ambient": (-KELVIN, 100.0, " C"), "reflected": (-KELVIN, 100.0, " C")}
+    """The file's own parameters must be in the range the SDK measures with, else ``DataError`` naming ``name``
+    (a property of that file: a batch lists it and decodes the others)."""
+    limits = {"emissivity": (MIN_EMISSIVITY, 1.0, ""), "humidity": (0.0, 100.0, " %"),
+              "distance": (0.0, 1000.0, " m"), "ambient": (-KELVIN, 100.0, " C"), "reflected": (-KELVIN, 100.0, " C")}
     for key, (lo, hi, unit) in limits.items():
         v = params.get(key)
         if v is None or not (lo <= float(v) <= hi):
-            raise DataError(f"{name}: APP4 measurement parameter {key}={v}{unit} is outside {lo:g}..{hi:g}; "
+            what = (" (a surface that emits nothing cannot be measured)" if key == "emissivity" and v is not None
+                    and float(v) < lo else "")
+            raise DataError(f"{name}: APP4 measurement parameter {key}={v}{unit} is outside {lo:g}..{hi:g}{what}; "
                             "give it explicitly or use the blackbody decoder")

@@ -24,6 +24,7 @@ APP0, APP1, APP2, APP3, APP4, APP5 = 0xE0, 0xE1, 0xE2, 0xE3, 0xE4, 0xE5
 SOF_MARKERS = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 #: The largest payload one marker segment can carry (the 16-bit length counts itself).
 MAX_SEGMENT_PAYLOAD = 65533
+TRUNCATED_PICTURE = "truncated JPEG: the picture data has no end-of-image marker; the file was cut short"
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,12 @@ class JpegLayout:
     height: int
     components: int
     end: int  # offset just past the main image's EOI marker
+    complete: bool = True  # False when read with ``require_eoi=False`` and the picture has no EOI
+
+    def check_complete(self, name: str | Path) -> None:
+        """The ``DataError`` ``read_segments(require_eoi=True)`` raises, when the picture has no end marker."""
+        if not self.complete:
+            raise DataError(f"{name}: {TRUNCATED_PICTURE}")
 
     def payloads(self, marker: int) -> list[bytes]:
         return [s.payload for s in self.segments if s.marker == marker]
@@ -102,11 +109,12 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     if not width or not height:
         raise DataError(f"{name}: corrupt JPEG: no frame header (SOF) before the scan")
     eoi = _find_eoi(data, i)
-    if eoi < 0:
+    complete = eoi >= 0
+    if not complete:
         if require_eoi:
-            raise DataError(f"{name}: truncated JPEG: the picture data has no end-of-image marker; the file was cut short")
+            raise DataError(f"{name}: {TRUNCATED_PICTURE}")
         eoi = n - 2
-    return JpegLayout(tuple(segments), int(width), int(height), int(components), eoi + 2)
+    return JpegLayout(tuple(segments), int(width), int(height), int(components), eoi + 2, complete)
 
 
 def _find_eoi(data: bytes, start: int) -> int:

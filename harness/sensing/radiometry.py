@@ -21,12 +21,19 @@ Blackbody (uncorrected, emissivity 1, no atmosphere) temperature::
 * APP5: a 0x100-byte header and the camera's atmospheric-transmission (tau) table. With it, the temperature is
   DJI Thermal SDK's corrected one (emissivity, reflected/atmospheric temperature, transmission over distance
   and humidity; ``harness.sensing.dji_correction``), bit-identical to ``dirp_measure_ex`` on the reference M3T
-  files. Decoders (``read_rjpeg(path, decoder=...)``):
+  files. Routes (``read_rjpeg(path, decoder=..., approximate=..., converter=...)``; ``RJpeg.decoder`` says which
+  one a file took):
 
-  ``auto`` (default)  corrected when APP5 holds a table; blackbody when the file has no table (no APP5, or a
-                      header-only APP5 as ``write_rjpeg`` writes) or one needing DJI's built-in tables
-  ``dji``             corrected, or an error saying why not
-  ``blackbody``       ``T0``, APP5 not read
+  ``dji``          DJI's correction, computed here (iirp with its table; dirp)
+  ``converter``    DJI's own SDK (``dji_irp``) or the user's converter, run per file (``dji_converter``), for the
+                   formats and tables this module cannot correct, when a converter is given
+  ``approximate``  opt-in (``approximate=True``) for iirp files whose table is DJI's own: a named approximation
+                   with its measured bound (``dji_approximate``); every output says "approximate temperatures"
+  ``blackbody``    ``T0``, uncorrected: only when asked for (``decoder="blackbody"``), or for files ``write_rjpeg``
+                   wrote (APP5 header only: their raw counts are the temperatures written)
+
+  A file that cannot be corrected and has no route chosen for it is refused, naming the camera, the format and
+  both options; uncorrected temperatures are never the default for a camera's file.
 
 Decoded thermal is read from uint16 centi-Kelvin PNG/TIFF, int16 deci-Celsius TIFF, float32 TIFF or ``.npy``; a
 JSON sidecar ``<file>.json`` (e.g. ``frame.png.json``) states the unit (``read_thermal``/``write_thermal``).
@@ -44,7 +51,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.errors import ConfigError, DataError
-from harness.sensing import dji_correction, dji_dirp, dji_formats, jpeg
+from harness.sensing import dji_approximate, dji_converter, dji_correction, dji_dirp, dji_formats, jpeg
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +67,12 @@ PARAM_KEYS = ("ambient", "distance", "emissivity", "humidity", "reflected")
 DEFAULT_PARAMS: dict[str, float] = {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
                                     "reflected": 25.0}
 PARAM_UNITS = {"ambient": "C", "distance": "m", "emissivity": "0-1", "humidity": "%", "reflected": "C"}
-#: ``read_rjpeg`` decoders: auto (corrected when the file carries its table), dji (corrected or error), blackbody.
+#: the parameters a converter is handed (DJI's ``dji_irp`` takes these four)
+CONVERTER_KEYS = ("emissivity", "distance", "humidity", "reflected")
+#: ``read_rjpeg`` decoders: auto (corrected, or the chosen route, else refused), dji (corrected or error), blackbody.
 DECODERS = ("auto", "dji", "blackbody")
+#: the APP5 ``write_rjpeg`` writes: the header alone, no table (its files read back by the blackbody route)
+WRITTEN_APP5 = b"\x00\x00\x00\x00" + b"\xff" * (dji_correction.HEADER_BYTES - 4)
 
 
 # ---------------------------------------------------------------------------------------------- maths
@@ -93,8 +104,11 @@ class RJpeg:
     ``raw14`` uint16 HxW counts; ``params`` the APP4 measurement parameters (``ambient`` C, ``distance`` m,
     ``emissivity`` 0-1, ``humidity`` %, ``reflected`` C); ``exif`` the EXIF tags; ``header`` the other APP4
     fields (format tag, version, gain mode, sensor, width, height); ``tau_table`` the APP5 transmission table
-    (``None`` when not read or absent); ``decoder`` the route ``temperature_c`` takes (``dji`` or ``blackbody``)
-    and ``decoder_note`` why, when it is ``blackbody``.
+    (``None`` when not read or absent); ``decoder`` the route ``temperature_c`` takes (``dji``, ``approximate``,
+    ``converter`` or ``blackbody``, module docstring) and ``decoder_note`` why the file's own correction does not
+    apply (for the other routes than ``dji``); ``approximation`` the approximation of the ``approximate`` route;
+    ``converter`` the converter of the ``converter`` route. For the formats only a converter decodes (hirp, girp,
+    XT S), ``raw14`` holds the stored words (``dirp_get_original_raw``) and ``params`` what the file states.
     """
 
     path: Path
@@ -107,12 +121,22 @@ class RJpeg:
     decoder_note: str = ""
     fmt: str = "iirp"  # the DJI layout (``dji_formats``): iirp, or dirp (then ``dirp`` holds its calibration)
     dirp: dji_dirp.DirpCalibration | None = None
+    approximation: dji_approximate.Approximation | None = None
+    converter: dji_converter.Converter | None = None
 
     @property
     def temperature_c(self) -> np.ndarray:
-        """Temperature in C (float32 HxW) by the file's route: ``corrected_c()`` when ``decoder == "dji"``,
-        else ``blackbody_c()``."""
-        return self.corrected_c() if self.decoder == "dji" else self.blackbody_c()
+        """Temperature in C (float32 HxW) by the file's route: ``corrected_c()`` for ``dji`` and ``approximate``,
+        ``converted_c()`` for ``converter``, else ``blackbody_c()``."""
+        if self.decoder in ("dji", "approximate"):
+            return self.corrected_c()
+        if self.decoder == "converter":
+            return self.converted_c()[0]
+        return self.blackbody_c()
+
+    @property
+    def model(self) -> str:
+        return str(self.exif.get("Model") or "").strip()
 
     def blackbody_c(self) -> np.ndarray:
         """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW): emissivity 1, no atmosphere."""
@@ -169,9 +193,53 @@ class RJpeg:
             raise DataError(f"{self.path}: no atmospheric-transmission table to correct with"
                             f"{' (' + self.decoder_note + ')' if self.decoder_note else ''}; "
                             "use the blackbody temperature (decoder 'blackbody')")
+        if self.approximation is not None:
+            return self.approximate_c(emissivity, distance, humidity, reflected, ambient)[0]
         p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
         return dji_correction.correct_raw14(self.raw14, self.tau_table, p["emissivity"], p["distance"],
                                             p["humidity"], p["reflected"], p["atmosphere"])
+
+    def approximate_c(self, emissivity: float | None = None, distance: float | None = None,
+                      humidity: float | None = None, reflected: float | None = None,
+                      ambient: float | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """(temperature C, record) of the ``approximate`` route: DJI's correction with the file's stand-in table
+        (``dji_approximate``); temperatures above the measured range are missing (NaN); the record names the
+        approximation and its measured bound for this frame. An emissivity outside the measured range is a
+        ``DataError``."""
+        approx, table = self.approximation, self.tau_table
+        if approx is None or table is None:
+            raise DataError(f"{self.path}: this file was not read by the approximate route")
+        p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
+        dji_approximate.check_emissivity(approx, p["emissivity"], self.path)
+        t = dji_correction.correct_raw14(self.raw14, table, p["emissivity"], p["distance"], p["humidity"],
+                                         p["reflected"], p["atmosphere"])
+        return dji_approximate.apply(t, approx, p["emissivity"])
+
+    def converter_params(self, overrides: Mapping[str, float | None] | None = None) -> dict[str, float]:
+        """The measurement parameters handed to the converter: the file's (as this module reads them) with the
+        given overrides (checked against DJI's ranges). A pre-v0300 iirp file whose ambient and reflected
+        temperatures differ is passed none of its own (DJI's SDK then reads them itself, as setting them would
+        make it take the air temperature from the reflected one); a file emissivity of about 0 is a ``DataError``."""
+        over = dji_correction.check_overrides({k: v for k, v in dict(overrides or {}).items()
+                                               if k in CONVERTER_KEYS}, 25.0)
+        own = {k: float(self.params[k]) for k in CONVERTER_KEYS if k in self.params}
+        if not over and self.fmt == "iirp" and self.pre_v0300 and \
+                self.params.get("ambient") != self.params.get("reflected"):
+            own = {}
+        p = {**own, **over}
+        e = p.get("emissivity")
+        if e is not None and not e >= dji_correction.MIN_EMISSIVITY:
+            raise DataError(f"{self.path}: measurement parameter emissivity={e:g} is physically impossible (a "
+                            "surface that emits nothing cannot be measured); give --emissivity")
+        return p
+
+    def converted_c(self, **overrides: float | None) -> tuple[np.ndarray, dict[str, Any]]:
+        """(temperature C, record) of the ``converter`` route: the converter run on the file
+        (``dji_converter.convert``) with ``converter_params(overrides)``."""
+        if self.converter is None:
+            raise DataError(f"{self.path}: no converter was given for this file")
+        h, w = self.raw14.shape
+        return dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
         """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
@@ -195,11 +263,16 @@ class RJpeg:
         return img if grayscale else img[:, :, ::-1].copy()
 
 
-def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
-    """Decode a DJI iirp R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
-    transmission table from APP5 (``decoder`` ``auto`` or ``dji``; see the module docstring). A dirp (H20T) file
-    is read by ``dji_dirp`` (``fmt == "dirp"``, corrected route only); other layouts are refused with the camera
-    model and the format named (``dji_formats.UnsupportedFormat``).
+def read_rjpeg(path: str | Path, decoder: str = "auto", approximate: bool = False,
+               converter: dji_converter.Converter | None = None) -> RJpeg:
+    """Decode a DJI R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
+    transmission table from APP5, and choose its route (module docstring). A dirp (H20T) file is read by
+    ``dji_dirp`` (``fmt == "dirp"``, corrected route only).
+
+    A file this module cannot correct takes the ``converter`` route when a ``converter`` is given (any layout,
+    hirp, girp and the XT S included), else the ``approximate`` route when ``approximate`` and the file has one
+    (``decoder`` ``auto`` only), else it is refused with the camera model, the format and both options named
+    (``dji_formats.UnsupportedFormat`` or ``dji_correction.UnsupportedCorrection``).
 
     ``raw14 = (APP3 words, little-endian uint16) >> 2``. A file that is not a JPEG, has no radiometric payload
     (a plain JPEG), is cut short, or whose payload size does not match the frame is a ``DataError`` naming it;
@@ -207,9 +280,11 @@ def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     """
     if decoder not in DECODERS:
         raise ConfigError(f"unknown R-JPEG decoder {decoder!r}; use one of {', '.join(DECODERS)}")
+    if approximate and decoder != "auto":
+        raise ConfigError(f"the approximate route applies to decoder 'auto' only, not {decoder!r}")
     path = Path(path)
     data = jpeg._read_bytes(path)
-    layout = jpeg.read_segments(data, path)
+    layout = jpeg.read_segments(data, path, require_eoi=False)  # the format first: a refusal names it
     exif: dict[str, Any] = {}
     for payload in layout.payloads(jpeg.APP1):
         exif = jpeg.parse_exif(payload)
@@ -219,7 +294,10 @@ def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     model = str(exif.get("Model") or "").strip()
     fmt = dji_formats.detect(app4[0] if app4 else None, model)
     if fmt not in dji_formats.DECODED:
+        if converter is not None and decoder != "blackbody":
+            return _read_for_converter(path, layout, exif, model, fmt, converter)
         raise dji_formats.refusal(path, fmt, model)
+    layout.check_complete(path)
     if fmt == "dirp":
         return _read_dirp(path, layout, exif, model, decoder)
     header, params = parse_app4(app4[0], path) if app4 else ({}, {})
@@ -244,8 +322,22 @@ def read_rjpeg(path: str | Path, decoder: str = "auto") -> RJpeg:
     raw14 = (words >> 2).astype(np.uint16)
     rj = RJpeg(path=path, raw14=raw14, params=params, exif=exif, header=header)
     if decoder != "blackbody":
-        _attach_tau_table(rj, layout.payloads(jpeg.APP5), decoder)
+        _attach_tau_table(rj, layout.payloads(jpeg.APP5), decoder, approximate, converter)
     return rj
+
+
+def _read_for_converter(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, fmt: str,
+                        converter: dji_converter.Converter) -> RJpeg:
+    """A file only a converter decodes: its stored words (for the frame size) and the parameters it states."""
+    words = dji_formats.frame_words(layout, fmt, model, path)
+    app4 = layout.payloads(jpeg.APP4)
+    params: dict[str, float] = {}
+    header: dict[str, Any] = {"format": fmt or "unknown", "width": int(words.shape[1]), "height": int(words.shape[0])}
+    if fmt == "hirp" and app4:
+        params = dji_formats.hirp_params(app4[0])
+    note = str(dji_formats.refusal(path, fmt, model)).removeprefix(f"{path}: ").split("; ")[0]
+    return RJpeg(path=path, raw14=dji_formats.original_raw(words, fmt), params=params, exif=exif, header=header,
+                 decoder="converter", decoder_note=note, fmt=fmt or "unknown", converter=converter)
 
 
 def _read_dirp(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, decoder: str) -> RJpeg:
@@ -266,30 +358,55 @@ def _read_dirp(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model:
                  exif=exif, header=header, decoder="dji", fmt="dirp", dirp=cal)
 
 
-def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str) -> None:
-    """Set ``rj.tau_table`` and ``rj.decoder`` from the file's first APP5 payload (``decoder`` auto or dji)."""
-    note = ""
+def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str, approximate: bool = False,
+                      converter: dji_converter.Converter | None = None) -> None:
+    """Set ``rj.tau_table`` and ``rj.decoder`` from the file's first APP5 payload (``decoder`` auto or dji): DJI's
+    correction when the file carries its table; the blackbody route for the files ``write_rjpeg`` writes; else
+    the converter, the approximate route or a refusal (``read_rjpeg``)."""
+    version = rj.header.get("version", 0x100)
+    what = f"{dji_formats.camera_text(rj.model)}, DJI R-JPEG format 'iirp' (APP4 format version {version:#x})"
+    kind, note = "missing", ""
     if not app5:
-        note = "the file has no APP5 calibration segment"
-    elif len(app5[0]) == dji_correction.HEADER_BYTES:
+        note = "the file has no APP5 calibration segment, so no transmission table"
+    elif app5[0] == WRITTEN_APP5:
         note = "APP5 holds only its header, no transmission table (as write_rjpeg writes)"
-    else:
-        try:
-            rj.tau_table = dji_correction.parse_app5(app5[0], rj.header.get("version", 0x100), rj.path)
-        except dji_correction.UnsupportedCorrection as exc:
-            model = rj.exif.get("Model", "unnamed camera")
-            text = f"{model} (iirp, APP4 format version {rj.header.get('version', 0x100):#x}): " + \
-                str(exc).removeprefix(f"{rj.path}: ")
-            if decoder == "dji":
-                raise dji_correction.UnsupportedCorrection(f"{rj.path}: {text}") from None
-            note = text
-    if rj.tau_table is None:
         if decoder == "dji":
             raise DataError(f"{rj.path}: cannot apply DJI's correction: {note}; use decoder 'blackbody'")
         log.debug("%s: blackbody temperature (%s)", rj.path, note)
         rj.decoder, rj.decoder_note = "blackbody", note
+        return
+    elif len(app5[0]) == dji_correction.HEADER_BYTES:
+        note = "APP5 holds only its header, no transmission table"
     else:
-        rj.decoder = "dji"
+        try:
+            rj.tau_table = dji_correction.parse_app5(app5[0], version, rj.path)
+            rj.decoder = "dji"
+            return
+        except dji_correction.UnsupportedCorrection as exc:
+            kind, note = exc.kind, str(exc).removeprefix(f"{rj.path}: ")
+    rj.decoder_note = f"{rj.model or 'unnamed camera'} (iirp, APP4 format version {version:#x}): {note}"
+    if converter is not None:
+        rj.decoder, rj.converter = "converter", converter
+        return
+    approx = dji_approximate.for_kind(kind)
+    if approximate and decoder == "auto":
+        if approx is None:
+            raise dji_correction.UnsupportedCorrection(
+                f"{rj.path}: {what}: {note}; there is no approximate route for it (no measured stand-in); "
+                f"{dji_formats.CONVERTER_HINT}", kind=kind)
+        if kind == "emissivity-remap":
+            rj.tau_table = dji_correction.parse_app5(app5[0], version, rj.path, skip_emissivity_remap=True)
+        else:
+            rj.tau_table = dji_approximate.unity_table()
+        rj.decoder, rj.approximation = "approximate", approx
+        return
+    if decoder == "dji":
+        raise dji_correction.UnsupportedCorrection(f"{rj.path}: {what}: cannot apply DJI's correction: {note}; "
+                                                   f"{dji_formats.CONVERTER_HINT}", kind=kind)
+    raise dji_correction.UnsupportedCorrection(
+        f"{rj.path}: {what}: temperatures are not decoded by default: {note}; "
+        f"{dji_formats.options_text(approx, 'nothing measured stands in for it')}; uncorrected (blackbody) "
+        "temperatures only with --decoder blackbody", kind=kind)
 
 
 def parse_app4(payload: bytes, name: str | Path = "<APP4>") -> tuple[dict[str, Any], dict[str, float]]:
@@ -463,34 +580,102 @@ def _load_array(path: Path) -> np.ndarray:
     return arr
 
 
+def route_label(info: Mapping[str, Any]) -> str:
+    """One line naming the route of a decoded R-JPEG (from ``rjpeg_temperature``'s info), for tables and sidecars."""
+    decoder = info.get("decoder")
+    if decoder == "dji":
+        return ("dji: dirp curve, corrected (emissivity, reflected)" if info.get("format_dji") == "dirp"
+                else "dji: corrected (emissivity, reflected, atmosphere)")
+    if decoder == "approximate":
+        return "approximate: " + dji_approximate.describe(info["approximate"])
+    if decoder == "converter":
+        conv = info.get("converter", {})
+        return ("converter: DJI Thermal SDK dji_irp" if conv.get("converter") == dji_converter.DJI_IRP
+                else "converter: user command")
+    note = info.get("decoder_note")
+    return f"blackbody raw14/16-273.15, uncorrected{' (' + note + ')' if note else ''}"
+
+
+def sidecar_route(side: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The route a decoded file's sidecar records (``harness sensing decode``): ``decoder`` and, for the approximate
+    route, its ``approximate`` record; empty for DJI's correction and files written otherwise. Files decoded with
+    approximate temperatures stay labelled when a dataset reads them back."""
+    route = (side or {}).get("decoder_route")
+    if route in (None, "dji"):
+        return {}
+    out: dict[str, Any] = {"decoder": route}
+    if isinstance((side or {}).get("approximate"), dict):
+        out["approximate"] = dict(side["approximate"])  # type: ignore[index]
+    return out
+
+
+#: the keys ``route_meta`` may set in a sample's ``meta``
+ROUTE_META_KEYS = ("thermal_route", "temperatures", "temperature_bound_c", "approximation")
+
+
+def route_meta(info: Mapping[str, Any]) -> dict[str, Any]:
+    """What a prepared sample's ``meta`` records of its thermal route: nothing for DJI's own correction and for
+    non-R-JPEG files; ``thermal_route`` otherwise, and for the approximate route ``temperatures`` ("approximate
+    temperatures"), ``temperature_bound_c`` and ``approximation`` (read back by ``harness.prepare``)."""
+    decoder = info.get("decoder")
+    if decoder in (None, "dji"):
+        return {}
+    out: dict[str, Any] = {"thermal_route": decoder}
+    if decoder == "approximate":
+        rec = info["approximate"]
+        out.update(temperatures=rec["label"], temperature_bound_c=rec["bound_c"], approximation=rec["approximation"])
+    return out
+
+
 def rjpeg_temperature(rj: RJpeg, overrides: Mapping[str, float | None] | None = None
                       ) -> tuple[np.ndarray, dict[str, Any]]:
     """(temperature C float32, info) of a read R-JPEG by its route (``rj.decoder``), with measurement
-    ``overrides`` for the corrected route; overrides on a blackbody-route file are a ``DataError``. ``info`` as
-    ``read_thermal`` documents it."""
+    ``overrides`` for the corrected, approximate and converter routes; overrides on a blackbody-route file are a
+    ``DataError``. ``info`` as ``read_thermal`` documents it, plus ``route`` (``route_label``)."""
     over = {k: v for k, v in dict(overrides or {}).items() if v is not None}
-    info: dict[str, Any] = {"format": "rjpeg", "decoder": rj.decoder, "params": dict(rj.params), "exif": rj.exif,
-                            "header": rj.header, "nodata": 0}
+    info: dict[str, Any] = {"format": "rjpeg", "format_dji": rj.fmt, "decoder": rj.decoder, "params": dict(rj.params),
+                            "exif": rj.exif, "header": rj.header, "nodata": 0}
     if rj.decoder == "dji":
         temp = rj.corrected_c(**over)
         table = rj.dirp if rj.dirp is not None else rj.tau_table
         info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32",
                     correction={**rj.correction_params(**over), **table.summary()})  # type: ignore[union-attr]
-        return temp, info
-    if over:
-        raise DataError(f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file is "
-                        f"read by the blackbody route ({rj.decoder_note or 'decoder blackbody'}), which uses none")
-    info.update(unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16", decoder_note=rj.decoder_note)
-    return rj.blackbody_c(), info
+    elif rj.decoder == "approximate":
+        temp, record = rj.approximate_c(**over)
+        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32", decoder_note=rj.decoder_note,
+                    approximate=record,
+                    correction={**rj.correction_params(**over), **rj.tau_table.summary()})  # type: ignore[union-attr]
+    elif rj.decoder == "converter":
+        temp, record = rj.converted_c(**over)
+        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32", decoder_note=rj.decoder_note,
+                    converter=record)
+    else:
+        if over:
+            raise DataError(f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file "
+                            f"is read by the blackbody route ({rj.decoder_note or 'decoder blackbody'}), which uses "
+                            "none")
+        info.update(unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16",
+                    decoder_note=rj.decoder_note)
+        temp = rj.blackbody_c()
+    missing = ~np.isfinite(temp)
+    if missing.any():  # the converter's "not measured", or temperatures above an approximation's measured range
+        from harness.sensing.c2 import valid_mask
+
+        info["missing"] = int(missing.sum())
+        valid_mask(temp, str(rj.path))
+    info["route"] = route_label(info)
+    return temp, info
 
 
 def read_thermal(path: str | Path, decoder: str = "auto",
-                 overrides: Mapping[str, float | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+                 overrides: Mapping[str, float | None] | None = None, approximate: bool = False,
+                 converter: dji_converter.Converter | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) and an info dict, from any supported thermal file.
 
-    * ``.jpg``/``.jpeg``: a DJI iirp R-JPEG (``read_rjpeg(path, decoder)``): DJI's corrected temperature when
-      the file carries its transmission table (``decoder`` ``auto``/``dji``), optionally at measurement
-      ``overrides`` (emissivity, distance, humidity, reflected; ``RJpeg.corrected_c``), else the blackbody one;
+    * ``.jpg``/``.jpeg``: a DJI R-JPEG (``read_rjpeg(path, decoder, approximate, converter)``): DJI's corrected
+      temperature when the file carries its transmission table (``decoder`` ``auto``/``dji``), optionally at
+      measurement ``overrides`` (emissivity, distance, humidity, reflected; ``RJpeg.corrected_c``); else the
+      route chosen for files that cannot be corrected here (converter, approximate), else an error;
     * ``.png``/``.tif``/``.tiff``/``.npy``: ``C = value * scale + offset`` with the unit taken from the sidecar
       ``<file>.json`` (``{"unit": "centikelvin"}`` or explicit ``scale``/``offset``); without a sidecar the dtype
       decides (uint16 centi-Kelvin, int16 deci-Celsius, float Celsius) and implausible values are refused.
@@ -499,16 +684,19 @@ def read_thermal(path: str | Path, decoder: str = "auto",
     known), ``nodata`` (pixels equal to the sidecar's ``nodata`` value), ``missing`` (pixels returned as NaN: the
     nodata ones and any NaN or infinite value; more than ``c2.MAX_INVALID_FRACTION`` of them is an error naming the
     file, fewer are treated as missing by C2 and every analysis); for R-JPEGs also
-    ``decoder`` (the route taken: ``dji`` or ``blackbody``), ``decoder_note`` (why blackbody) and, for ``dji``,
-    ``correction`` (the parameters applied and the table's summary). ``unit``/``scale``/``offset`` describe the
-    raw counts for the blackbody route (``C = raw14 / 16 - 273.15``) and plain Celsius for the corrected one.
+    ``decoder`` (the route taken: ``dji``, ``approximate``, ``converter`` or ``blackbody``), ``route`` (one line
+    naming it), ``decoder_note`` (why the file's own correction does not apply), for ``dji`` and ``approximate``
+    ``correction`` (the parameters applied and the table's summary), for ``approximate`` ``approximate`` (label,
+    approximation, measured bound ``bound_c``), for ``converter`` ``converter`` (what ran, with which parameters).
+    ``unit``/``scale``/``offset`` describe the raw counts for the blackbody route (``C = raw14 / 16 - 273.15``)
+    and plain Celsius for the others.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in THERMAL_SUFFIXES:
         raise DataError(f"{path}: unsupported thermal file type {suffix!r}; use one of {', '.join(THERMAL_SUFFIXES)}")
     if suffix in (".jpg", ".jpeg"):
-        return rjpeg_temperature(read_rjpeg(path, decoder), overrides)
+        return rjpeg_temperature(read_rjpeg(path, decoder, approximate, converter), overrides)
     arr = _load_array(path)
     side = read_sidecar(path)
     dtype = arr.dtype.name
@@ -545,7 +733,7 @@ def read_thermal(path: str | Path, decoder: str = "auto",
                             f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
     info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
             "params": dict(side.get("params", {})) if side else {}, "nodata": nodata, "missing": int(missing.sum()),
-            "sidecar": side.get("_path") if side else None}
+            "sidecar": side.get("_path") if side else None, **sidecar_route(side)}
     return temp, info
 
 
