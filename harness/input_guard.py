@@ -106,20 +106,21 @@ def _parts(prepared: Any, folds: Iterable[Any]) -> list[tuple[str, list[int]]]:
 def inspect(prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT_MAX_UNLABELLED) -> list[Finding]:
     """Every finding on ``prepared`` and its ``folds`` (see the module docstring), in a fixed order."""
     records = prepared.records
-    no_labels: list[Finding] = []
-    unlabelled: list[Finding] = []
-    for what, idx in _parts(prepared, folds):
-        if not idx:
-            continue
-        empty = [i for i in idx if int(records[i]["n"]) == 0]
-        names = [_name(records[i]) for i in empty]
-        if len(empty) == len(idx):
-            no_labels.append(_finding("no-labels", f"{what}: {len(idx)} image(s) and not one box", names))
-        elif len(empty) / len(idx) > max_unlabelled and len(empty) >= MIN_UNLABELLED:
-            unlabelled.append(_finding("unlabelled-images", f"{what}: {len(empty)} of {len(idx)} images "
-                                                             f"({len(empty) / len(idx):.0%}) have no box, more than "
-                                                             f"{max_unlabelled:.0%}", names))
-    out = no_labels + unlabelled
+    out: list[Finding] = []
+    covered: set[int] = set()  # images of the parts without labels: not counted again as unlabelled elsewhere
+    parts = [(what, idx) for what, idx in _parts(prepared, folds) if idx]
+    for what, idx in parts:
+        if all(int(records[i]["n"]) == 0 for i in idx):
+            out.append(_finding("no-labels", f"{what}: {len(idx)} image(s) and not one box",
+                                [_name(records[i]) for i in idx]))
+            covered.update(idx)
+    for what, idx in parts:
+        rest = [i for i in idx if i not in covered]
+        empty = [i for i in rest if int(records[i]["n"]) == 0]
+        if rest and len(empty) / len(rest) > max_unlabelled and len(empty) >= MIN_UNLABELLED:
+            out.append(_finding("unlabelled-images", f"{what}: {len(empty)} of {len(rest)} images "
+                                                     f"({len(empty) / len(rest):.0%}) have no box, more than "
+                                                     f"{max_unlabelled:.0%}", [_name(records[i]) for i in empty]))
     report = prepared.manifest.get("report") or {}
     dropped = {k: v for k, v in (report.get("skip_reasons") or {}).items() if k.startswith("annotation")}
     if dropped:

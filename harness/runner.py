@@ -47,8 +47,12 @@ log = logging.getLogger(__name__)
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
 HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads")}
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
-#: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
+#: (``meta.prepared_fingerprint``) and cache key (``meta.prepared_key``, which also hashes the dataset plugin's code,
+#: the sensing settings and the preparation version) and an initial checkpoint by its content (``meta.init_sha1``).
 LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
+#: Keys that decide whether a run may use its samples, not what it computes (the plausibility guard's ``inputs``
+#: section and the accepted findings it labels the run with): left out of the identity.
+GUARD_KEYS = {("meta", "input_risks")}
 
 
 @dataclass
@@ -173,8 +177,10 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
     for section, key in HASH_EXCLUDE | LOCATION_KEYS:
         if isinstance(trimmed.get(section), dict):
             trimmed[section].pop(key, None)
-    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
+    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items()
+                       if k != "sources" and ("meta", k) not in GUARD_KEYS}
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
+    trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
 
 
@@ -289,12 +295,19 @@ def plan(request: RunRequest) -> RunPlan:
     if not folds:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
     fingerprint = str(prepared.manifest.get("fingerprint", ""))
+    # the cache key hashes what produced the samples: fingerprint, sensing settings, preparation version and the
+    # dataset plugin's code, so a finished run on other samples is never reused as "same configuration"
+    prepared_key = str(getattr(prepared, "key", None) or prepared.manifest.get("key", ""))
+    risks = [f"{r['kind']}: {r['message']}" for r in getattr(prepared, "input_risks", None) or []]
+    if risks:
+        cfg["meta"] = {**cfg.get("meta", {}), "input_risks": risks}
 
     runs = []
     for fold in folds:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
-            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "val_groups": list(fold.val_groups),
+            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "prepared_key": prepared_key,
+                                         "val_groups": list(fold.val_groups),
                                          "train_groups": list(fold.train_groups), **init_info})
             runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
     return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
@@ -476,6 +489,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                       "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
             "complexity": complexity,
             "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+            "input_risks": list((cfg.get("meta") or {}).get("input_risks") or []),  # accepted by inputs.accept
         }
         atomic_write_json(r.predictions_path, dets, indent=None)
         atomic_write_json(r.gt_path, gt, indent=None)
@@ -630,7 +644,9 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return fit_text(title) + "\n" + text_table(headers, rows)
+    risks = list(dict.fromkeys(x for r in summary.results for x in r.metrics.get("input_risks") or []))
+    label = "".join("\n" + fit_text(f"accepted input risk: {x}") for x in risks)
+    return fit_text(title) + "\n" + text_table(headers, rows) + label
 
 
 def category_table(summary: RunSummary) -> str:

@@ -342,6 +342,19 @@ class CocoRgbtSource:
         except DataError:
             return "outside"
 
+    def pixel_files(self, sample: AlignedSample) -> tuple[Path, Path] | None:
+        """The RGB and thermal files an 8-bit sample's pixels come from, so that the compact cache references them
+        instead of copying them (the cache checks that they decode to exactly these pixels); ``None`` for a warped
+        pair or radiometric thermal, whose pixels are not a file's."""
+        meta = sample.meta if isinstance(sample.meta, dict) else {}
+        if self.thermal != "8bit" or "H_rgb_to_frame" in meta:
+            return None
+        try:
+            return (safe_join(self.root, str(meta["file_name"]), "file_name"),
+                    safe_join(self.root, str(meta["thermal_file"]), "thermal_file_name"))
+        except (KeyError, DataError):
+            return None
+
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
         for where, reason in self.issues:
             report.skip(where, reason)
