@@ -30,11 +30,15 @@ What the loader does:
   (``size mismatch``) that says how to give one. R-JPEGs are decoded with the ``sensing.radiometry`` settings.
 * **Folds.** One fold per group (leave one group out), unless the JSON has ``folds`` (or the config sets
   ``protocol.folds``).
-* **Bad input.** A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups are
-  ``DataError``s naming the file. A pair that cannot be used (missing partner, unreadable file, size mismatch,
-  no group, non-finite temperatures) and an annotation that cannot be used (unknown image or category id,
-  malformed box, box outside the image, duplicate id) are counted skips with their reason; boxes reaching past
+* **Bad input.** The shared COCO checks apply (``adapters.datasets._coco``: ids as the evaluation reads them,
+  ``"100"`` is image 100). A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups
+  are ``DataError``s naming the file. A pair that cannot be used (missing partner, unreadable file, size mismatch,
+  no group, mostly non-finite temperatures) is a counted skip with its reason. An annotation that cannot be used
+  (unknown image or category id, malformed box, box outside the image, duplicate id) is a counted skip too, which
+  the preparation's plausibility guard then refuses unless accepted (``harness.input_guard``); boxes reaching past
   the edge are clipped and counted in a note.
+* **Disk.** An 8-bit pair that is not warped names its two files (``pixel_files``): the compact cache references
+  them instead of copying their pixels.
 """
 
 from __future__ import annotations
