@@ -211,8 +211,9 @@ def check_values(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str
             continue
         bad = isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
         if not bad:
-            bad = (integer and float(value) != int(value)) or (low is not None and (value < low if low_in else value <= low)) \
-                or (high is not None and (value > high if high_in else value >= high))
+            below = low is not None and (value < low if low_in else value <= low)
+            above = high is not None and (value > high if high_in else value >= high)
+            bad = (integer and float(value) != int(value)) or below or above
         if bad:
             source = next((src for src, layer in reversed(list(layers))
                            if isinstance(layer.get(section), Mapping) and key in layer[section]), "the configuration")

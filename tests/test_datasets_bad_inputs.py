@@ -17,7 +17,7 @@ def _prepare(root: Path, cache: Path, accept: tuple[str, ...] = ()):
     from harness.prepare import prepare
 
     cfg = synth_cfg(root)
-    cfg["inputs"]["accept"] = list(accept)
+    cfg.setdefault("inputs", {})["accept"] = list(accept)
     return prepare("m3t", cfg, cache_root=cache, progress=False)
 
 

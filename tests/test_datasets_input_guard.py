@@ -183,14 +183,18 @@ def _prepare_coco(root, tmp_path, **options):
     return prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
 
 
-def test_numeric_string_ids_are_read_as_the_evaluation_reads_them(tmp_path):
-    from coco_rgbt_helpers import read_json, write_json
-
-    from harness.evaluation.inputs import _norm_id
+def test_coco_ids_follow_the_evaluation_rule():
     from adapters.datasets._coco import coco_id
+    from harness.evaluation.inputs import _norm_id
 
     for value in (12, "12", " 12", 12.0, "+12", "a_001", "-3"):
         assert coco_id(value) == _norm_id(value, "test")
+    assert coco_id(True) is coco_id("") is coco_id(1.5) is None
+
+
+def test_numeric_string_ids_are_read_as_the_evaluation_reads_them(tmp_path):
+    from coco_rgbt_helpers import read_json, write_json
+
     root = _coco_rgbt(tmp_path)
     coco = read_json(root)
     for im in coco["images"]:

@@ -166,8 +166,8 @@ def read_images(path: Path, coco: dict[str, Any]) -> tuple[list[CocoImage], bool
         fname = str(entry["file_name"])
         if key in by_id:
             first = by_id[key]
-            raise DataError(f"{path}: duplicate image id {key!r} ({first.file_name!r} and {fname!r}); image ids must be "
-                            f"unique (12, \"12\" and 12.0 are the same id)")
+            raise DataError(f"{path}: duplicate image id {key!r} ({first.file_name!r} and {fname!r}); image ids must "
+                            f"be unique (12, \"12\" and 12.0 are the same id)")
         if fname in by_name:
             raise DataError(f"{path}: file {fname!r} is listed twice (image ids {by_name[fname].original_id!r} and "
                             f"{entry['id']!r})")
@@ -215,8 +215,8 @@ def read_coco(path: Path, hint: str = "") -> CocoFile:
             issues.append((where, f"annotation box malformed: {str(ann.get('bbox'))[:80]} (expected [x, y, w, h] "
                                   f"with w, h > 0)"))
             continue
-        anns.append(CocoAnnotation(coco_id(ann["id"]) if "id" in ann else None, image_id, int(cid), box,  # type: ignore[arg-type]
-                                   ann))
+        aid_key = coco_id(ann["id"]) if "id" in ann else None
+        anns.append(CocoAnnotation(aid_key, image_id, int(cid), box, ann))  # type: ignore[arg-type]
     return CocoFile(path, images, cats, anns, issues, renumbered, coco)
 
 

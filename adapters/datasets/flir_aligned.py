@@ -87,8 +87,8 @@ _SUFFIX = re.compile(r"_(RGB|PreviewData)$", re.IGNORECASE)
 OPTIONS = {
     "root": f"FLIR-align-3class/ or the folder holding it (default: ${ROOT_ENV})",
     "labels": "visible (default in the YOLO layouts) or infrared (default and only choice in the release layout)",
-    "layout": "auto (default: found from the folders), icafusion (labels/<split>/), yolov5 (<modality>/<split>/labels/) "
-              "or release (align/JPEGImages + Annotations)",
+    "layout": "auto (default: found from the folders), icafusion (labels/<split>/), "
+              "yolov5 (<modality>/<split>/labels/) or release (align/JPEGImages + Annotations)",
     "classes": "names of the label ids 0, 1, ... (default person, car, bicycle)",
     "strict": "raise instead of skipping a pair that cannot be used (default false)",
     "voc_convention": "release layout (align/) only: one-based (VOC, default) or zero-based VOC boxes",
