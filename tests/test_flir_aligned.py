@@ -164,3 +164,22 @@ def test_release_layout_missing_list_or_frame_and_unknown_class(tmp_path):
     (base / "align_validation.txt").rename(base / "val.txt")
     with pytest.raises(DataError, match="split list align_validation.txt not found"):
         flir_aligned.open_flir_aligned(tmp_path)
+
+
+def test_labels_where_the_adapter_does_not_find_them_stop_the_preparation(tmp_path):
+    """ICAFusion's tree without its labels/ folder reads as 'no objects': the guard stops instead of training on
+    nothing, and names the images; with the folder the same tree prepares every box."""
+    import shutil
+
+    from harness.config import load_config
+    from harness.prepare import prepare
+
+    write_flir_aligned(tmp_path, layout="icafusion")
+    labels = tmp_path / "FLIR-align-3class" / "labels"
+    shutil.move(str(labels), str(tmp_path / "elsewhere"))
+    cfg = load_config(protocol="flir-aligned", overrides=[f"dataset.root={tmp_path}"])
+    with pytest.raises(DataError, match=r"no-labels: the dataset: 5 image\(s\) and not one box"):
+        prepare("flir-aligned", cfg, cache_root=tmp_path / "cache", progress=False)
+    shutil.move(str(tmp_path / "elsewhere"), str(labels))
+    ds = prepare("flir-aligned", cfg, cache_root=tmp_path / "cache", progress=False)
+    assert ds.manifest["instances"] == 15 and ds.input_risks == []
