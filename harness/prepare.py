@@ -7,15 +7,19 @@ plugin's own options) and the ``sensing`` section, and looks for a finished prep
         manifest.json  samples.json  rgb.u8  ir8.u8  thermal.f32  boxes.f32  labels.i64   (harness.prepared)
         coco/all.json  coco/<fold>-train.json  coco/<fold>-val.json                        (thermal frame)
 
-``key = sha1(source fingerprint, sensing config, PREPARE_VERSION)[:16]``: the fingerprint changes with the input
-files (names, sizes, modification times, annotation and registration contents) and the dataset's options, so a
-changed input or a changed sensing setting prepares again and never reuses stale samples. The samples are
+``key = sha1(source fingerprint, sensing config, PREPARE_VERSION, plugin code)[:16]``: the fingerprint changes with
+the input files (names, sizes, modification times, annotation and registration contents) and the dataset's options,
+so a changed input, a changed sensing setting or an edited plugin prepares again and never reuses stale samples. The samples are
 written through ``PreparedWriter`` (a temporary folder renamed into place), so an interrupted preparation leaves
 nothing behind; a damaged cache folder is prepared again. Every run, detector and encoding reads the same
 prepared arrays: comparisons are sample-matched by construction.
 
 A pair the dataset cannot use is a counted skip (``PrepareReport``), not an error; the counts, reasons and
-notes are stored in ``manifest.json`` under ``report`` and printed by ``harness prepare``.
+notes are stored in ``manifest.json`` under ``report`` and printed by ``harness prepare``. Every prepared (or
+reused) dataset then passes the plausibility guard (``harness.input_guard``: a fold without labels, mostly
+unlabelled images, dropped annotations stop unless ``inputs.accept`` names them). An exception a dataset plugin's
+code raises is a ``PluginError`` naming the plugin; two samples with one ``image_id`` are a ``DataError``; nothing is
+cached in either case.
 """
 
 from __future__ import annotations
@@ -435,6 +439,10 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
     if not val:
         raise DataError(f"fold {fold.name!r}: no prepared images in the held-out group(s) "
                         f"{', '.join(fold.val_groups)}")
+    if not train and not fold.train_groups:
+        raise DataError(f"fold {fold.name!r} holds out every group of the prepared data "
+                        f"({', '.join(fold.val_groups)}): nothing is left to train on; give the dataset a second "
+                        f"group or set protocol.folds")
     if not train:
         raise DataError(f"fold {fold.name!r}: no prepared images to train on (groups {', '.join(fold.train_groups)})")
     return train, val

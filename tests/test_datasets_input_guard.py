@@ -279,3 +279,18 @@ def test_the_datasets_table_says_what_happens_to_a_few_missing_temperatures():
     row = next(line for line in doc.splitlines() if line.startswith("| a few NaN or infinite temperatures"))
     assert "kept as missing" in row and "never zero" in row
     assert "| more than half of the temperatures NaN or infinite | skip `non-finite temperatures` |" in doc
+
+
+def test_a_fold_that_holds_out_every_group_says_so(tmp_path):
+    class OneGroup(_Source):
+        def groups(self):
+            return ["a"]
+
+        def folds(self):
+            return []
+
+    spec = DatasetSpec("guard-test", lambda root=None, **kw: OneGroup([_sample(1, "a"), _sample(2, "a")]), ("x",),
+                       thermal="8bit")
+    with pytest.raises(DataError, match=r"fold 'a' holds out every group of the prepared data \(a\): nothing is "
+                                        r"left to train on"):
+        _prepare(spec, tmp_path)
