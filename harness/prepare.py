@@ -9,9 +9,9 @@ plugin's own options) and the ``sensing`` section, and looks for a finished prep
 
 ``key = sha1(source fingerprint, sensing config, PREPARE_VERSION, plugin code)[:16]``: the fingerprint changes with
 the input files (names, sizes, modification times, annotation and registration contents) and the dataset's options,
-so a changed input, a changed sensing setting or an edited plugin prepares again and never reuses stale samples. The samples are
-written through ``PreparedWriter`` (a temporary folder renamed into place), so an interrupted preparation leaves
-nothing behind; a damaged cache folder is prepared again. Every run, detector and encoding reads the same
+so a changed input, a changed sensing setting or an edited plugin prepares again and never reuses stale samples.
+The samples are written through ``PreparedWriter`` (a temporary folder renamed into place), so an interrupted
+preparation leaves nothing behind; a damaged cache folder is prepared again. Every run, detector and encoding reads the same
 prepared arrays: comparisons are sample-matched by construction.
 
 A pair the dataset cannot use is a counted skip (``PrepareReport``), not an error; the counts, reasons and
