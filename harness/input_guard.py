@@ -19,7 +19,7 @@ the option reads them from the cache.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
 from harness.errors import ConfigError, DataError
