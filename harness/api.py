@@ -157,11 +157,23 @@ class PrepareReport:
     def summary(self) -> dict[str, Any]:
         reasons: dict[str, int] = {}
         for _, reason in self.skipped:
-            key = reason.split(":")[0]
-            if "field '" in reason:  # an invalid sample: the field and what was wrong, without the sample's name
-                key += ", " + reason[reason.index("field '"):]
+            key = reason_label(reason)
             reasons[key] = reasons.get(key, 0) + 1
         return {"skipped": len(self.skipped), "skip_reasons": reasons, "notes": list(self.notes)}
+
+
+_BOX_DETAIL = re.compile(r"box \d+ \[[^\]]*\]")
+_FRAME_SIZE = re.compile(r"the \d+x\d+ frame")
+
+
+def reason_label(reason: str) -> str:
+    """What a skip is counted by: the label before the first colon; for an invalid sample, the field and what was
+    wrong, without the sample's name or the offending values (one count for every box outside its frame)."""
+    key = reason.split(":")[0]
+    if "field '" in reason:
+        detail = _FRAME_SIZE.sub("its frame", _BOX_DETAIL.sub("a box", reason[reason.index("field '"):]))
+        key += ", " + detail
+    return key
 
 
 @dataclass(frozen=True)

@@ -171,6 +171,56 @@ def parse_override(item: str) -> dict[str, Any]:
     return node
 
 
+#: Ranges of the numeric keys the harness reads itself: (low, high, low included, high included, integer); None is
+#: unbounded. Checked once the layers are merged, so a bad value stops before anything is prepared or trained.
+_RANGES: dict[tuple[str, str], tuple[float | None, float | None, bool, bool, bool]] = {
+    **{("protocol", k): (1, None, True, True, True) for k in ("imgsz", "epochs")},
+    ("protocol", "patience"): (0, None, True, True, True),
+    **{("train", k): (1, None, True, True, True) for k in ("batch", "nominal_batch", "val_period", "threads",
+                                                             "max_images")},
+    **{("train", k): (0, None, False, True, False) for k in ("lr0", "lrf", "ema_tau")},
+    **{("train", k): (0, None, True, True, False) for k in ("weight_decay", "warmup_epochs", "warmup_bias_lr",
+                                                              "clip_grad")},
+    **{("train", k): (0, None, True, True, True) for k in ("warmup_min_iters", "close_mosaic", "workers")},
+    **{("train", k): (0, 1, True, False, False) for k in ("momentum", "ema_decay")},
+    ("train", "warmup_momentum"): (0, 1, True, True, False),
+    **{("augment", k): (0, 1, True, True, False) for k in ("mosaic", "hsv_h", "hsv_s", "hsv_v", "fliplr", "flipud")},
+    **{("augment", k): (0, 1, True, False, False) for k in ("translate", "scale")},
+    **{("augment", k): (0, None, True, True, False) for k in ("degrees", "shear", "perspective")},
+    ("eval", "conf"): (0, 1, True, True, False),
+    ("eval", "iou"): (0, 1, False, True, False),
+    **{("eval", k): (1, None, True, True, True) for k in ("max_det", "batch")},
+}
+
+
+def _range_text(low: float | None, high: float | None, low_in: bool, high_in: bool, integer: bool) -> str:
+    kind = "an integer" if integer else "a number"
+    if high is None:
+        return f"{kind} {'>=' if low_in else '>'} {low:g}"
+    return f"{kind} in {'[' if low_in else '('}{low:g}, {high:g}{']' if high_in else ')'}"
+
+
+def check_values(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str, Any]]] = ()) -> None:
+    """Every numeric key the harness reads is finite and in its range (``_RANGES``); a value out of range is a
+    ``ConfigError`` naming the key, the value, the range and the layer that set it (``--set``, a file)."""
+    import math
+
+    for (section, key), (low, high, low_in, high_in, integer) in _RANGES.items():
+        value = (cfg.get(section) or {}).get(key) if isinstance(cfg.get(section), Mapping) else None
+        if value is None:
+            continue
+        bad = isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+        if not bad:
+            below = low is not None and (value < low if low_in else value <= low)
+            above = high is not None and (value > high if high_in else value >= high)
+            bad = (integer and float(value) != int(value)) or below or above
+        if bad:
+            source = next((src for src, layer in reversed(list(layers))
+                           if isinstance(layer.get(section), Mapping) and key in layer[section]), "the configuration")
+            raise ConfigError(f"{source}: {section}.{key}={value!r} must be "
+                              f"{_range_text(low, high, low_in, high_in, integer)}")
+
+
 def _named_file(root: Path, kind: str, name: str, option: str) -> Path:
     """``<root>/<kind>/<name>.yaml`` for a profile, protocol or detector name; a name that is a path (``../x``,
     ``a/b``, an absolute path) is refused, so a name can never read a file outside the config folder."""
@@ -221,6 +271,7 @@ def load_config(
         layers.append((f"--set {item}", parse_override(item)))
     for source, layer in layers:
         cfg = merge(cfg, layer, sch, source)
+    check_values(cfg, layers)
     cfg.setdefault("meta", {})
     cfg["meta"] = {**cfg.get("meta", {}), "profile": profile, "protocol": protocol, "sources": [s for s, _ in layers]}
     return cfg

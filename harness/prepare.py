@@ -7,15 +7,19 @@ plugin's own options) and the ``sensing`` section, and looks for a finished prep
         manifest.json  samples.json  rgb.u8  ir8.u8  thermal.f32  boxes.f32  labels.i64   (harness.prepared)
         coco/all.json  coco/<fold>-train.json  coco/<fold>-val.json                        (thermal frame)
 
-``key = sha1(source fingerprint, sensing config, PREPARE_VERSION)[:16]``: the fingerprint changes with the input
-files (names, sizes, modification times, annotation and registration contents) and the dataset's options, so a
-changed input or a changed sensing setting prepares again and never reuses stale samples. The samples are
-written through ``PreparedWriter`` (a temporary folder renamed into place), so an interrupted preparation leaves
-nothing behind; a damaged cache folder is prepared again. Every run, detector and encoding reads the same
+``key = sha1(source fingerprint, sensing config, PREPARE_VERSION, plugin code)[:16]``: the fingerprint changes with
+the input files (names, sizes, modification times, annotation and registration contents) and the dataset's options,
+so a changed input, a changed sensing setting or an edited plugin prepares again and never reuses stale samples.
+The samples are written through ``PreparedWriter`` (a temporary folder renamed into place), so an interrupted
+preparation leaves nothing behind; a damaged cache folder is prepared again. Every run, detector and encoding reads the same
 prepared arrays: comparisons are sample-matched by construction.
 
 A pair the dataset cannot use is a counted skip (``PrepareReport``), not an error; the counts, reasons and
-notes are stored in ``manifest.json`` under ``report`` and printed by ``harness prepare``.
+notes are stored in ``manifest.json`` under ``report`` and printed by ``harness prepare``. Every prepared (or
+reused) dataset then passes the plausibility guard (``harness.input_guard``: a fold without labels, mostly
+unlabelled images, dropped annotations stop unless ``inputs.accept`` names them). An exception a dataset plugin's
+code raises is a ``PluginError`` naming the plugin; two samples with one ``image_id`` are a ``DataError``; nothing is
+cached in either case.
 """
 
 from __future__ import annotations
@@ -120,7 +124,7 @@ def open_source(dataset: str | DatasetSpec, cfg: Mapping[str, Any]) -> tuple[Dat
         known = [p for p in params if p not in ("root", "self") and params[p].kind is not inspect.Parameter.VAR_KEYWORD]
         raise ConfigError(f"dataset {spec.name!r} does not take option(s) {', '.join(map(repr, unknown))} "
                           f"(dataset.<option>); it takes: root, {', '.join(known) or 'nothing else'}")
-    source = spec.open(root, **options)
+    source = plugin_call(spec, "open()", spec.open, root, **options)
     return spec, source
 
 
@@ -144,7 +148,7 @@ def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str 
     form = cache_form(form)
     spec, source = open_source(dataset, cfg)
     sensing = preparation_sensing(cfg.get("sensing"))
-    fingerprint = source.fingerprint()
+    fingerprint = plugin_call(spec, "fingerprint()", source.fingerprint)
     key = cache_key(fingerprint, sensing, spec.name)
     folder = form_folder(_cache_root(cache_root), spec.name, key, form)
     ds: PreparedDataset | None = None
@@ -160,14 +164,27 @@ def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str 
                 log.info("prepared data in %s is in the %s form; preparing the %s form", folder, ds.form, form)
         if ds is not None and ds.form == form:
             mark_used(folder)
-            _ensure_coco(ds, resolve_folds(spec, ds, cfg))
             log.info("using prepared %s from %s", spec.name, folder)
-            ds.from_cache, ds.key = True, key  # type: ignore[attr-defined]
-            return ds
+            return _checked(spec, ds, cfg, key, from_cache=True)
     ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form)
     mark_used(folder)
-    _ensure_coco(ds, resolve_folds(spec, ds, cfg))
-    ds.from_cache, ds.key = False, key  # type: ignore[attr-defined]
+    return _checked(spec, ds, cfg, key, from_cache=False)
+
+
+def _checked(spec: DatasetSpec, ds: PreparedDataset, cfg: Mapping[str, Any], key: str,
+             from_cache: bool) -> PreparedDataset:
+    """The COCO files of the folds written, the plausibility guard passed (``harness.input_guard``: an unaccepted
+    finding is a ``DataError``), and the extra attributes set: ``from_cache``, ``key`` and ``input_risks`` (the
+    accepted findings, as dicts, that label every result on these samples)."""
+    from harness import input_guard
+
+    folds = resolve_folds(spec, ds, cfg)
+    _ensure_coco(ds, folds)
+    risks = input_guard.check(ds, folds, cfg)
+    for line in input_guard.describe(risks):
+        log.warning("%s: %s", spec.name, line)
+    ds.from_cache, ds.key = from_cache, key  # type: ignore[attr-defined]
+    ds.input_risks = [f.as_dict() for f in risks]  # type: ignore[attr-defined]
     return ds
 
 
@@ -225,8 +242,9 @@ def _reference_bases(source: Any) -> list[Path]:
 def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: str, sensing: dict[str, Any],
            progress: bool, form: str = DEFAULT_FORM) -> PreparedDataset:
     report = PrepareReport()
-    folds = [asdict(f) for f in source.folds()]
-    extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": list(source.groups()), "folds": folds,
+    folds = [asdict(f) for f in plugin_call(spec, "folds()", source.folds)]
+    groups = list(plugin_call(spec, "groups()", source.groups))
+    extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": groups, "folds": folds,
              "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
     missing: dict[str, int] = {}
@@ -244,14 +262,17 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
     writer = PreparedWriter(folder, spec.name, categories, fingerprint=fingerprint, extra=extra, form=form,
                             sources=bases if form == "compact" else (),
                             pixel_files=getattr(source, "pixel_files", None))
+    seen: dict[Any, str] = {}
     try:
         with _Bar(progress, total, f"preparing {spec.name}") as bar:
-            for sample in source.samples(report):
+            for sample in _plugin_samples(spec, source, report):
+                where = sample.meta.get("file_name", sample.image_id) if isinstance(sample.meta, dict) \
+                    else sample.image_id
+                _check_unique(spec, seen, sample, str(where))
                 try:
                     writer.add(sample)
                 except SampleError as exc:
-                    report.skip(sample.meta.get("file_name", sample.image_id) if isinstance(sample.meta, dict)
-                                else sample.image_id, f"invalid sample: {exc}")
+                    report.skip(where, f"invalid sample: {exc}")
                 else:
                     _count_missing(missing, sample)
                     _count_route(routes, sample)
@@ -280,6 +301,60 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
         raise
     log.info("prepared %d samples of %s in %s (%.1f s)", len(writer.records), spec.name, folder, summary["seconds"])
     return PreparedDataset(folder)
+
+
+def plugin_label(spec: DatasetSpec) -> str:
+    """``dataset 'NAME' (plugin P)``: how an error names a dataset and the plugin that registered it."""
+    try:
+        from harness.plugins import get_host
+
+        owner = get_host().owner("dataset", spec.name)
+    except Exception:  # noqa: BLE001 - a spec no plugin registered (tests, the API) has no owner to name
+        owner = getattr(spec.open, "__module__", None)
+    return f"dataset {spec.name!r}" + (f" (plugin {owner})" if owner else "")
+
+
+def plugin_call(spec: DatasetSpec, what: str, func: Any, *args: Any, **kwargs: Any) -> Any:
+    """``func(*args, **kwargs)`` of a dataset plugin; an exception its code raises becomes a ``PluginError`` naming the
+    dataset, its plugin, the call (``what``) and where it was raised. A ``HarnessError`` passes unchanged."""
+    from harness.errors import HarnessError, PluginError
+    from harness.plugins import where
+
+    try:
+        return func(*args, **kwargs)
+    except (HarnessError, KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise PluginError(f"{plugin_label(spec)}: {what} raised {type(exc).__name__}: {exc}{where(exc)}") from exc
+
+
+def _plugin_samples(spec: DatasetSpec, source: Any, report: PrepareReport) -> Iterable[Any]:
+    """``source.samples(report)``, with an exception the plugin's code raises turned into a ``PluginError`` that names
+    the dataset, its plugin and where it was raised (a ``HarnessError`` it raises on purpose passes unchanged)."""
+    from harness.errors import HarnessError, PluginError
+    from harness.plugins import where
+
+    try:
+        yield from source.samples(report)
+    except (HarnessError, KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise PluginError(f"{plugin_label(spec)}: samples() raised {type(exc).__name__}: {exc}{where(exc)}; "
+                          f"nothing was cached") from exc
+
+
+def _check_unique(spec: DatasetSpec, seen: dict[Any, str], sample: Any, where: str) -> None:
+    """Two samples with one ``image_id`` are a ``DataError`` (not a skip: keeping the first would publish a cache
+    without the others and every result on it would be wrong)."""
+    import numbers
+
+    iid = getattr(sample, "image_id", None)
+    if isinstance(iid, numbers.Integral) and not isinstance(iid, bool):
+        iid = int(iid)
+        if iid in seen:
+            raise DataError(f"{plugin_label(spec)}: image_id {iid!r} is given to two samples ({seen[iid]} and "
+                            f"{where}); every sample needs its own image_id. Nothing was cached")
+        seen[iid] = where
 
 
 def _count_missing(missing: dict[str, int], sample: Any) -> None:
@@ -390,6 +465,10 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
     if not val:
         raise DataError(f"fold {fold.name!r}: no prepared images in the held-out group(s) "
                         f"{', '.join(fold.val_groups)}")
+    if not train and not fold.train_groups:
+        raise DataError(f"fold {fold.name!r} holds out every group of the prepared data "
+                        f"({', '.join(fold.val_groups)}): nothing is left to train on; give the dataset a second "
+                        f"group or set protocol.folds")
     if not train:
         raise DataError(f"fold {fold.name!r}: no prepared images to train on (groups {', '.join(fold.train_groups)})")
     return train, val

@@ -48,8 +48,12 @@ log = logging.getLogger(__name__)
 HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"),
                 ("eval", "allow_degenerate")}  # decides only whether a run is stored (labelled), not its numbers
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
-#: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
+#: (``meta.prepared_fingerprint``) and cache key (``meta.prepared_key``, which also hashes the dataset plugin's code,
+#: the sensing settings and the preparation version) and an initial checkpoint by its content (``meta.init_sha1``).
 LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
+#: Keys that decide whether a run may use its samples, not what it computes (the plausibility guard's ``inputs``
+#: section and the accepted findings it labels the run with): left out of the identity.
+GUARD_KEYS = {("meta", "input_risks")}
 
 
 @dataclass
@@ -174,8 +178,10 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
     for section, key in HASH_EXCLUDE | LOCATION_KEYS:
         if isinstance(trimmed.get(section), dict):
             trimmed[section].pop(key, None)
-    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items() if k != "sources"}
+    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items()
+                       if k != "sources" and ("meta", k) not in GUARD_KEYS}
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
+    trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
 
 
@@ -290,12 +296,19 @@ def plan(request: RunRequest) -> RunPlan:
     if not folds:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
     fingerprint = str(prepared.manifest.get("fingerprint", ""))
+    # the cache key hashes what produced the samples: fingerprint, sensing settings, preparation version and the
+    # dataset plugin's code, so a finished run on other samples is never reused as "same configuration"
+    prepared_key = str(getattr(prepared, "key", None) or prepared.manifest.get("key", ""))
+    risks = [f"{r['kind']}: {r['message']}" for r in getattr(prepared, "input_risks", None) or []]
+    if risks:
+        cfg["meta"] = {**cfg.get("meta", {}), "input_risks": risks}
 
     runs = []
     for fold in folds:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
-            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "val_groups": list(fold.val_groups),
+            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "prepared_key": prepared_key,
+                                         "val_groups": list(fold.val_groups),
                                          "train_groups": list(fold.train_groups), **init_info})
             runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
     return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
@@ -484,6 +497,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             "complexity": complexity,
             "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
             "degenerate_detections": degenerate.to_dict(),
+            "input_risks": list((cfg.get("meta") or {}).get("input_risks") or []),  # accepted by inputs.accept
         }
         if degenerate_note:
             metrics["labels"] = [degenerate_note]
@@ -643,7 +657,10 @@ def fold_table(summary: RunSummary) -> str:
                      "", ""])
     title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
              f"(best epoch / epochs run)")
-    return fit_text(title) + "\n" + text_table(headers, _marked(summary, rows, 5, 9)) + _approximate_line(summary)
+    risks = list(dict.fromkeys(x for r in summary.results for x in r.metrics.get("input_risks") or []))
+    label = "".join("\n" + fit_text(f"accepted input risk: {x}") for x in risks)
+    return (fit_text(title) + "\n" + text_table(headers, _marked(summary, rows, 5, 9)) + _approximate_line(summary)
+            + label)
 
 
 def _approximate_record(summary: RunSummary) -> dict[str, Any] | None:

@@ -162,8 +162,14 @@ class Run:
         import fcntl
 
         self.recover()
-        self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.lock_path, "a+", encoding="utf-8") as f:
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            lock = open(self.lock_path, "a+", encoding="utf-8")
+        except OSError as exc:
+            raise StoreError(f"cannot write run {self.key} into the results store: {exc.strerror or exc} "
+                             f"({exc.filename or self.path}); make the store writable or choose another --store"
+                             ) from None
+        with lock as f:
             try:
                 fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

@@ -3,10 +3,12 @@
 LLVIP: ``LLVIP/{Annotations,infrared/{train,test},visible/{train,test}}`` with six-digit names (train ``01...``,
 test ``19...``) and labelImg-style VOC XMLs (1-based inclusive pixel indices, ``<difficult>0</difficult>``).
 
-FLIR-aligned, as ICAFusion's data files name it (``FLIR-align-3class/{visible,infrared}/{train,test}``, YOLO-style
-``images/`` and ``labels/`` folders found by replacing ``/images/`` with ``/labels/``): visible
-``FLIR_<n>_RGB.jpg``, infrared ``FLIR_<n>_PreviewData.jpeg``, labels ``<class> <cx> <cy> <w> <h>`` normalised to
-the image size, classes ``person, car, bicycle``.
+FLIR-aligned in three layouts, each as the code that reads it expects: ICAFusion's (``FLIR-align-3class/
+{visible,infrared}/{train,test}/`` holding the images, the labels in ``FLIR-align-3class/labels/{train,test}/``,
+where ICAFusion's ``img2label_paths`` finds them by replacing the modality folder with ``labels``), YOLOv5's (an
+``images/`` and a ``labels/`` folder in each modality's split, found by replacing ``/images/`` with ``/labels/``)
+and the authors' release (``align/``). Visible ``FLIR_<n>_RGB.jpg``, infrared ``FLIR_<n>_PreviewData.jpeg``,
+labels ``<class> <cx> <cy> <w> <h>`` normalised to the image size, classes ``person, car, bicycle``.
 """
 
 from __future__ import annotations
@@ -54,9 +56,12 @@ def write_llvip(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0) -> 
     return expected
 
 
-def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0) -> dict:
-    """Write ``FLIR-align-3class/`` under ``root``; return {number: (visible boxes, infrared boxes)} where each box
-    is (x1, y1, x2, y2, class index) in pixels. The infrared labels are the visible ones shifted by 1 px."""
+def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0,
+                       layout: str = "yolov5") -> dict:
+    """Write ``FLIR-align-3class/`` under ``root`` in YOLOv5's layout (``<modality>/<split>/images|labels/``) or,
+    with ``layout="icafusion"``, ICAFusion's (images in ``<modality>/<split>/``, labels in ``labels/<split>/``);
+    return {number: (visible boxes, infrared boxes)} where each box is (x1, y1, x2, y2, class index) in pixels. The
+    infrared labels are the visible ones shifted by 1 px."""
     rng = np.random.default_rng(seed)
     w, h = size
     base = Path(root) / "FLIR-align-3class"
@@ -68,14 +73,17 @@ def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int =
             boxes = {"visible": [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs],
                      "infrared": [(x + 1, y + 1, x + 1 + bw, y + 1 + bh, c) for x, y, bw, bh, c in objs]}
             for modality, name, img in (("visible", f"FLIR_{n}_RGB", vis), ("infrared", f"FLIR_{n}_PreviewData", th)):
-                folder = base / modality / split
-                (folder / "images").mkdir(parents=True, exist_ok=True)
-                (folder / "labels").mkdir(parents=True, exist_ok=True)
+                if layout == "icafusion":
+                    images, labels = base / modality / split, base / "labels" / split
+                else:
+                    images, labels = base / modality / split / "images", base / modality / split / "labels"
+                images.mkdir(parents=True, exist_ok=True)
+                labels.mkdir(parents=True, exist_ok=True)
                 ext = ".jpg" if modality == "visible" else ".jpeg"
-                cv2.imwrite(str(folder / "images" / f"{name}{ext}"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+                cv2.imwrite(str(images / f"{name}{ext}"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
                 lines = [f"{c} {(x1 + x2) / 2 / w:.6f} {(y1 + y2) / 2 / h:.6f} {(x2 - x1) / w:.6f} {(y2 - y1) / h:.6f}"
                          for x1, y1, x2, y2, c in boxes[modality]]
-                (folder / "labels" / f"{name}.txt").write_text("\n".join(lines) + "\n")
+                (labels / f"{name}.txt").write_text("\n".join(lines) + "\n")
             expected[n] = (boxes["visible"], boxes["infrared"])
     return expected
 

@@ -234,26 +234,55 @@ def test_size_mismatch_without_a_homography_is_a_counted_skip_naming_the_fix(pai
     assert "the JSON says 640x48" in reasons["rgb/001.png"]
 
 
-def test_unknown_category_id_is_a_counted_skip_naming_the_categories(pairs, tmp_path):
+def _prepare_accepting(root: Path, cache: Path, kind: str, **options):
+    """Prepare with ``inputs.accept=[kind]`` (the guard's option that accepts the finding)."""
+    from harness.config import load_config
+    from harness.prepare import prepare
+
+    cfg = load_config(protocol="default", overrides=[f"inputs.accept=[{kind}]"])
+    cfg["dataset"] = {"root": str(root), **options}
+    return prepare("coco-rgbt", cfg, cache_root=cache, progress=False)
+
+
+def test_a_category_missing_from_the_file_stops_instead_of_dropping_its_boxes(pairs, tmp_path):
     coco = read_json(pairs)
-    coco["annotations"][0]["category_id"] = 7
+    for a in coco["annotations"]:
+        if a["category_id"] == 2:
+            a["category_id"] = 7  # 'window' left out of the categories: its boxes would be dropped
     write_json(pairs, coco)
-    ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 12 and _skips(ds) == {"annotation with an unknown category id": 1}
+    with pytest.raises(DataError) as err:
+        _prepare(pairs, tmp_path / "c")
+    lines = str(err.value).splitlines()
+    assert " ".join(x.strip() for x in lines[1:3]) == ("dropped-annotations: 12 annotation(s) dropped, 12 kept "
+                                                       "(annotation with an unknown category id: 12)")
+    assert lines[3].startswith("    e.g. annotations.json#annotation=") and lines[5].endswith("(and 9 more)")
+    assert all(len(line) <= 100 for line in lines[1:6])
+    assert "inputs.accept=[dropped-annotations]" in lines[7]
+    ds = _prepare_accepting(pairs, tmp_path / "c", "dropped-annotations")
+    assert len(ds) == 12 and _skips(ds) == {"annotation with an unknown category id": 12}
     assert "1 hot_spot, 2 window" in _skipped(ds)[0][1]
-    assert ds.manifest["instances"] == 23
+    assert ds.manifest["instances"] == 12
+    assert [r["kind"] for r in ds.input_risks] == ["dropped-annotations"]
 
 
-def test_box_outside_the_image_is_a_counted_skip_and_partial_boxes_are_clipped(pairs, tmp_path):
+def test_box_outside_the_image_stops_with_a_summary_and_partial_boxes_are_clipped(pairs, tmp_path):
     coco = read_json(pairs)
-    coco["annotations"][0]["bbox"] = [500.0, 10.0, 10.0, 10.0]
-    coco["annotations"][1]["bbox"] = [50.0, 30.0, 30.0, 10.0]  # reaches past x = 64
+    for a in coco["annotations"][:5]:
+        a["bbox"] = [500.0 + a["id"], 10.0, 10.0, 10.0]
+    coco["annotations"][5]["bbox"] = [50.0, 30.0, 30.0, 10.0]  # reaches past x = 64
     write_json(pairs, coco)
-    ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 12 and _skips(ds) == {"annotation box outside the image": 1}
+    with pytest.raises(DataError) as err:
+        _prepare(pairs, tmp_path / "c")
+    lines = str(err.value).splitlines()  # counts and three examples, not one reason per box on one line
+    assert lines[1] == "  dropped-annotations: 5 annotation(s) dropped, 19 kept (annotation box outside the image: 5)"
+    assert lines[2].startswith("    e.g. annotations.json#annotation=1: annotation box outside the image: [501.0,")
+    assert lines[4].endswith("(and 2 more)") and all(len(line) <= 100 for line in lines[1:5])
+    ds = _prepare_accepting(pairs, tmp_path / "c", "all")
+    assert len(ds) == 12 and _skips(ds) == {"annotation box outside the image": 5}
     assert _skipped(ds)[0][0] == "annotations.json#annotation=1"
     assert any("1 box(es) reaching past the image edge were clipped" in n for n in ds.manifest["report"]["notes"])
-    np.testing.assert_allclose(ds[0].boxes, [[50, 30, 64, 40]])
+    clipped = next(ds[i] for i in range(len(ds)) if ds[i].image_id == coco["annotations"][5]["image_id"])
+    assert [50, 30, 64, 40] in clipped.boxes.tolist()
 
 
 def test_duplicate_image_ids_are_a_clear_error(pairs, tmp_path):
@@ -273,11 +302,13 @@ def test_duplicate_category_ids_are_a_clear_error(pairs, tmp_path):
         _prepare(pairs, tmp_path / "c")
 
 
-def test_duplicate_annotation_ids_are_a_counted_skip(pairs, tmp_path):
+def test_duplicate_annotation_ids_are_dropped_annotations(pairs, tmp_path):
     coco = read_json(pairs)
     coco["annotations"][3]["id"] = coco["annotations"][0]["id"]
     write_json(pairs, coco)
-    ds = _prepare(pairs, tmp_path / "c")
+    with pytest.raises(DataError, match="dropped-annotations: 1 annotation"):
+        _prepare(pairs, tmp_path / "c")
+    ds = _prepare_accepting(pairs, tmp_path / "c", "dropped-annotations")
     assert _skips(ds) == {"annotation with a duplicate id": 1} and ds.manifest["instances"] == 23
 
 

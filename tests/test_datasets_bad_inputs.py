@@ -13,10 +13,12 @@ from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtur
 from harness.errors import DataError
 
 
-def _prepare(root: Path, cache: Path):
+def _prepare(root: Path, cache: Path, accept: tuple[str, ...] = ()):
     from harness.prepare import prepare
 
-    return prepare("m3t", synth_cfg(root), cache_root=cache, progress=False)
+    cfg = synth_cfg(root)
+    cfg.setdefault("inputs", {})["accept"] = list(accept)
+    return prepare("m3t", cfg, cache_root=cache, progress=False)
 
 
 def _coco(root: Path) -> dict:
@@ -104,24 +106,28 @@ def test_rgb_size_differing_from_the_annotation_file_is_a_counted_skip(tiny, tmp
     assert _skips(ds) == {"RGB size mismatch": 1}
 
 
-def test_box_outside_the_image_is_a_counted_skip_and_partial_boxes_are_clipped(tiny, tmp_path):
+def test_box_outside_the_image_is_counted_and_stops_unless_accepted_partial_boxes_are_clipped(tiny, tmp_path):
     coco = _coco(tiny)
     coco["annotations"][0]["bbox"] = [5000.0, 10.0, 20.0, 20.0]
     coco["annotations"][1]["bbox"] = [-30.0, 10.0, 40.0, 20.0]
     _write_coco(tiny, coco)
-    ds = _prepare(tiny, tmp_path / "c")
+    with pytest.raises(DataError, match=r"dropped-annotations: 1 annotation\(s\) dropped"):
+        _prepare(tiny, tmp_path / "c")  # a dropped box would be an unlabelled object: the guard stops
+    ds = _prepare(tiny, tmp_path / "c", accept=("dropped-annotations",))
     assert len(ds) == 8 and _skips(ds) == {"annotation box outside the image": 1}
     assert any("clipped" in n for n in ds.manifest["report"]["notes"])
 
 
-def test_malformed_annotations_are_counted_skips(tiny, tmp_path):
+def test_malformed_annotations_are_counted_and_stop_unless_accepted(tiny, tmp_path):
     coco = _coco(tiny)
     coco["annotations"][0]["category_id"] = 99
     coco["annotations"][1]["image_id"] = 12345
     coco["annotations"][2]["bbox"] = [1, 2, 0, 5]
     coco["annotations"][3]["bbox"] = "wide"
     _write_coco(tiny, coco)
-    ds = _prepare(tiny, tmp_path / "c")
+    with pytest.raises(DataError, match=r"dropped-annotations: 4 annotation\(s\) dropped"):
+        _prepare(tiny, tmp_path / "c")
+    ds = _prepare(tiny, tmp_path / "c", accept=("dropped-annotations",))
     assert _skips(ds) == {"annotation with an unknown category id": 1, "annotation for an unknown image id": 1,
                           "annotation box malformed": 2}
 

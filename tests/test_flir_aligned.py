@@ -1,4 +1,5 @@
-"""FLIR-aligned adapter on a few pairs written by the test in ICAFusion's layout (visible|infrared/split/images|labels)."""
+"""FLIR-aligned adapter on a few pairs written by the tests in each layout its docs name: ICAFusion's (labels in
+``labels/<split>/``), YOLOv5's (``<modality>/<split>/images|labels/``) and the authors' release (``align/``)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,10 @@ def collect(source):
 def test_label_path_follows_the_yolo_rule():
     img = flir_aligned.Path("/d/FLIR-align-3class/visible/train/images/FLIR_00002_RGB.jpg")
     assert flir_aligned.label_path(img).as_posix() == "/d/FLIR-align-3class/visible/train/labels/FLIR_00002_RGB.txt"
+    root = flir_aligned.Path("/d/FLIR-align-3class")
+    for image, label in (("visible/train/FLIR_00002_RGB.jpg", "labels/train/FLIR_00002_RGB.txt"),
+                         ("infrared/test/FLIR_08863_PreviewData.jpeg", "labels/test/FLIR_08863_PreviewData.txt")):
+        assert flir_aligned.icafusion_label_path(root / image, root) == root / label  # ICAFusion's img2label_paths
     assert flir_aligned.frame_key("FLIR_00002_PreviewData") == flir_aligned.frame_key("FLIR_00002_RGB") == "FLIR_00002"
 
 
@@ -86,6 +91,33 @@ def test_one_class_variant_and_option_errors(release, tmp_path, monkeypatch):
         flir_aligned.open_flir_aligned(tmp_path / "FLIR-align-3class" / "visible")
 
 
+@pytest.mark.parametrize("side, index", [("visible", 0), ("infrared", 1)])
+def test_icafusion_layout_reads_the_labels_where_icafusion_finds_them(tmp_path, side, index):
+    expected = write_flir_aligned(tmp_path, layout="icafusion")
+    base = tmp_path / "FLIR-align-3class"
+    assert (base / "labels" / "train" / "FLIR_00002_RGB.txt").is_file()
+    assert not (base / "visible" / "train" / "labels").exists()
+    source = flir_aligned.open_flir_aligned(tmp_path, labels=side)
+    samples, report = collect(source)
+    assert source.layout == "icafusion" and not report.skipped and len(samples) == 5
+    assert any("0 image(s) without a label file" in n for n in report.notes)
+    for s in samples:
+        n = s.meta["frame"].split("_")[1]
+        assert s.meta["rgb_file"] == f"visible/{s.group}/FLIR_{n}_RGB.jpg"
+        np.testing.assert_allclose(s.boxes, [b[:4] for b in expected[n][index]], atol=1e-3)
+        assert s.labels.tolist() == [b[4] for b in expected[n][index]]
+
+
+def test_a_tree_with_both_kinds_of_label_folder_must_name_its_layout(tmp_path):
+    write_flir_aligned(tmp_path)
+    (tmp_path / "FLIR-align-3class" / "labels" / "train").mkdir(parents=True)
+    with pytest.raises(ConfigError, match="set dataset.layout=icafusion or dataset.layout=yolov5"):
+        flir_aligned.open_flir_aligned(tmp_path)
+    assert flir_aligned.open_flir_aligned(tmp_path, layout="yolov5").layout == "yolov5"
+    with pytest.raises(ConfigError, match="option 'layout'"):
+        flir_aligned.open_flir_aligned(tmp_path, layout="voc")
+
+
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
     from harness.config import load_config
     from harness.prepare import prepare
@@ -132,3 +164,22 @@ def test_release_layout_missing_list_or_frame_and_unknown_class(tmp_path):
     (base / "align_validation.txt").rename(base / "val.txt")
     with pytest.raises(DataError, match="split list align_validation.txt not found"):
         flir_aligned.open_flir_aligned(tmp_path)
+
+
+def test_labels_where_the_adapter_does_not_find_them_stop_the_preparation(tmp_path):
+    """ICAFusion's tree without its labels/ folder reads as 'no objects': the guard stops instead of training on
+    nothing, and names the images; with the folder the same tree prepares every box."""
+    import shutil
+
+    from harness.config import load_config
+    from harness.prepare import prepare
+
+    write_flir_aligned(tmp_path, layout="icafusion")
+    labels = tmp_path / "FLIR-align-3class" / "labels"
+    shutil.move(str(labels), str(tmp_path / "elsewhere"))
+    cfg = load_config(protocol="flir-aligned", overrides=[f"dataset.root={tmp_path}"])
+    with pytest.raises(DataError, match=r"no-labels: the dataset: 5 image\(s\) and not one box"):
+        prepare("flir-aligned", cfg, cache_root=tmp_path / "cache", progress=False)
+    shutil.move(str(tmp_path / "elsewhere"), str(labels))
+    ds = prepare("flir-aligned", cfg, cache_root=tmp_path / "cache", progress=False)
+    assert ds.manifest["instances"] == 15 and ds.input_risks == []

@@ -189,3 +189,56 @@ def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
     res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--fold", "B",
                       "--categories", "delamination", "--store", store, "--no-progress", *sets])
     assert res.exit_code == 2 and "category 'delamination' is not in the dataset" in res.output
+
+
+PLUGIN_CODE = '''
+"""A dataset plugin whose code a test edits: the shapes dataset under another name."""
+from engine_helpers import CATEGORIES, ShapesSource
+from harness.api import DatasetSpec
+from harness.hookspecs import hookimpl
+
+SKIP = 0  # samples left out: the edit changes what is yielded, not what fingerprint() says
+
+
+class Edited(ShapesSource):
+    def samples(self, report):
+        for k, s in enumerate(super().samples(report)):
+            if k >= SKIP:
+                yield s
+
+
+@hookimpl
+def register_datasets(register):
+    register(DatasetSpec(name="edited-shapes", open=lambda root=None, **o: Edited(), categories=CATEGORIES,
+                         default_encoding="test-ir8"))
+'''
+
+
+def test_a_finished_run_is_not_reused_once_its_dataset_plugins_code_changed(plugins, tmp_path, monkeypatch):
+    """The plugin's code changes what it yields while its fingerprint() stays the same: the cache key changes with
+    the code, and so does the run's identity, so the finished run is refused, not skipped as the same run."""
+    import importlib
+
+    from harness.runner import plan, run
+
+    folder = tmp_path / "plug"
+    folder.mkdir()
+    (folder / "edited_shapes.py").write_text(PLUGIN_CODE)
+    monkeypatch.syspath_prepend(str(folder))
+    module = importlib.import_module("edited_shapes")
+    with temporary_plugin(module, name="edited-shapes-plugin"):
+        first = plan(request(tmp_path, dataset="edited-shapes", folds="A")).runs[0]
+        first.run.path.mkdir(parents=True)
+        first.run.write_config(first.config)
+        first.run.write_metrics({"metrics": {}, "support": {}})  # what a finished run leaves behind
+        first.run.set_status("finished", config_hash=first.digest)
+        assert plan(request(tmp_path, dataset="edited-shapes", folds="A")).runs[0].state == "finished"
+
+        (folder / "edited_shapes.py").write_text(PLUGIN_CODE.replace("SKIP = 0", "SKIP = 1"))
+        module.SKIP = 1  # the edited code, as a new process would import it
+        again = plan(request(tmp_path, dataset="edited-shapes", folds="A")).runs[0]
+        assert again.config["meta"]["prepared_fingerprint"] == first.config["meta"]["prepared_fingerprint"]
+        assert again.state == "conflict"
+        assert any(d.startswith("meta.prepared_key: ") for d in again.differences())
+        with pytest.raises(StoreError, match="different configuration.*meta.prepared_key"):
+            run(request(tmp_path, dataset="edited-shapes", folds="A"))

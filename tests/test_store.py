@@ -125,3 +125,24 @@ def test_a_killed_holder_leaves_no_stale_lock(tmp_path):
         proc.wait()
     with run.exclusive():  # the operating system released the dead holder's lock
         pass
+
+
+def test_a_new_run_in_a_read_only_store_is_a_clear_error(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    store = Store(tmp_path / "store")
+    run = store.run(RunKey("m3t-synth", "ours", "c2", "P9", 0))
+    real_mkdir = Path.mkdir
+
+    def read_only(self, *args, **kwargs):  # what a store on a read-only mount (or without write permission) does
+        if str(self).startswith(str(store.root)):
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    with pytest.raises(StoreError, match=r"cannot write run m3t-synth/ours/c2/P9/seed0 into the results store: "
+                                         r"Permission denied \(.*P9/seed0\); make the store writable or choose "
+                                         r"another --store"):
+        with run.exclusive():
+            pass

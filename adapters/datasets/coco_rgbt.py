@@ -30,11 +30,15 @@ What the loader does:
   (``size mismatch``) that says how to give one. R-JPEGs are decoded with the ``sensing.radiometry`` settings.
 * **Folds.** One fold per group (leave one group out), unless the JSON has ``folds`` (or the config sets
   ``protocol.folds``).
-* **Bad input.** A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups are
-  ``DataError``s naming the file. A pair that cannot be used (missing partner, unreadable file, size mismatch,
-  no group, non-finite temperatures) and an annotation that cannot be used (unknown image or category id,
-  malformed box, box outside the image, duplicate id) are counted skips with their reason; boxes reaching past
+* **Bad input.** The shared COCO checks apply (``adapters.datasets._coco``: ids as the evaluation reads them,
+  ``"100"`` is image 100). A malformed JSON, duplicate image, file or category ids, and folds naming unknown groups
+  are ``DataError``s naming the file. A pair that cannot be used (missing partner, unreadable file, size mismatch,
+  no group, mostly non-finite temperatures) is a counted skip with its reason. An annotation that cannot be used
+  (unknown image or category id, malformed box, box outside the image, duplicate id) is a counted skip too, which
+  the preparation's plausibility guard then refuses unless accepted (``harness.input_guard``); boxes reaching past
   the edge are clipped and counted in a note.
+* **Disk.** An 8-bit pair that is not warped names its two files (``pixel_files``): the compact cache references
+  them instead of copying their pixels.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from adapters.datasets._coco import read_coco
 from adapters.datasets._eightbit import (
     BoxStats,
     ImageReadError,
@@ -134,39 +139,14 @@ def _homography(value: Any, where: str) -> np.ndarray:
 
 
 def read_coco_rgbt(path: Path) -> CocoRgbt:
-    """Parse the COCO JSON of a ``coco-rgbt`` dataset (see the module docstring).
+    """Parse the COCO JSON of a ``coco-rgbt`` dataset (see the module docstring), through the shared COCO checks
+    (``adapters.datasets._coco``: ids, duplicates, unusable annotations).
 
     Structural problems are ``DataError``s naming the file; single bad entries are returned as ``issues``
     (``(where, reason)``), which the source turns into counted skips.
     """
-    from harness.io import read_json
-
-    hint = "set dataset.annotations to the COCO JSON's path relative to dataset.root"
-    if not path.is_file():
-        raise DataError(f"{path}: annotation file not found; {hint}")
-    if not path.read_bytes().strip():
-        raise DataError(f"{path}: annotation file is empty; expected a COCO JSON object with 'images', "
-                        "'annotations' and 'categories'")
-    coco = read_json(path)
-    if not isinstance(coco, dict):
-        raise DataError(f"{path}: expected a COCO JSON object, got a {type(coco).__name__}")
-    for key in ("images", "categories"):
-        if not isinstance(coco.get(key), list):
-            raise DataError(f"{path}: COCO key {key!r} is missing or not a list")
-    anns = coco.get("annotations", [])
-    if not isinstance(anns, list):
-        raise DataError(f"{path}: COCO key 'annotations' is not a list")
-
-    cats: dict[int, str] = {}
-    for cat in coco["categories"]:
-        if not isinstance(cat, dict) or isinstance(cat.get("id"), bool) or not isinstance(cat.get("id"), int) \
-                or not isinstance(cat.get("name"), str) or not cat["name"].strip():
-            raise DataError(f"{path}: every category needs an integer 'id' and a non-empty 'name', got {cat!r}")
-        if cat["id"] in cats:
-            raise DataError(f"{path}: duplicate category id {cat['id']} ({cats[cat['id']]!r} and {cat['name']!r})")
-        if cat["name"] in cats.values():
-            raise DataError(f"{path}: category name {cat['name']!r} is used by two category ids")
-        cats[cat["id"]] = cat["name"]
+    checked = read_coco(path, "set dataset.annotations to the COCO JSON's path relative to dataset.root")
+    coco, cats = checked.raw, checked.categories
     if not cats:
         raise DataError(f"{path}: 'categories' is empty; list the categories as {{'id': 1, 'name': '...'}}")
     order = sorted(cats)
@@ -180,65 +160,23 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
         group_h[str(g)] = _homography(value, f"{path}: homographies[{g!r}]")
 
     pairs: dict[int, PairEntry] = {}
-    by_name: dict[str, int] = {}
-    issues: list[tuple[str, str]] = []
-    for entry in coco["images"]:
-        if not isinstance(entry, dict) or "id" not in entry or "file_name" not in entry:
-            raise DataError(f"{path}: every image needs 'id' and 'file_name', got {str(entry)[:120]}")
-        iid, fname = entry["id"], str(entry["file_name"])
-        if isinstance(iid, bool) or not isinstance(iid, int):
-            raise DataError(f"{path}: image id {iid!r} ({fname}) is not an integer")
-        if iid in pairs:
-            raise DataError(f"{path}: duplicate image id {iid} ({pairs[iid].file_name!r} and {fname!r}); "
-                            "image ids must be unique")
-        if fname in by_name:
-            raise DataError(f"{path}: file {fname!r} is listed twice (image ids {by_name[fname]} and {iid})")
-        by_name[fname] = iid
+    issues: list[tuple[str, str]] = list(checked.issues)
+    for image in checked.images:
+        entry, iid, fname = image.entry, image.id, image.file_name
         H = None
         if entry.get("homography") is not None:
             try:
-                H = _homography(entry["homography"], f"image {iid} ({fname})")
+                H = _homography(entry["homography"], f"image {image.original_id!r} ({fname})")
             except DataError as exc:
                 issues.append((fname, f"homography malformed: {exc}"))
                 continue
-        w, h = entry.get("width"), entry.get("height")
         group = entry.get("group")
         pairs[iid] = PairEntry(iid, fname, entry.get("thermal_file_name"),
-                               str(group) if group not in (None, "") else "",
-                               int(w) if isinstance(w, (int, float)) and not isinstance(w, bool) else None,
-                               int(h) if isinstance(h, (int, float)) and not isinstance(h, bool) else None, H)
-
-    seen_ann: dict[Any, Any] = {}
-    for ann in anns:
-        aid = ann.get("id", "?") if isinstance(ann, dict) else "?"
-        where = f"{path.name}#annotation={aid}"
-        if not isinstance(ann, dict):
-            issues.append((where, "annotation malformed: not an object"))
-            continue
-        if "id" in ann:
-            if ann["id"] in seen_ann:
-                issues.append((where, f"annotation with a duplicate id: {ann['id']!r} is used twice "
-                                      f"(image ids {seen_ann[ann['id']]!r} and {ann.get('image_id')!r})"))
-                continue
-            seen_ann[ann["id"]] = ann.get("image_id")
-        pair = pairs.get(ann.get("image_id"))  # type: ignore[arg-type]
-        if pair is None:
-            issues.append((where, f"annotation for an unknown image id: {ann.get('image_id')!r}"))
-            continue
-        if ann.get("category_id") not in label_of:
-            issues.append((where, f"annotation with an unknown category id: {ann.get('category_id')!r} "
-                                  f"(the categories are {', '.join(f'{k} {v}' for k, v in sorted(cats.items()))})"))
-            continue
-        bbox = ann.get("bbox")
-        try:
-            box = [float(v) for v in bbox]  # type: ignore[union-attr]
-        except (TypeError, ValueError):
-            issues.append((where, f"annotation box malformed: {bbox!r}"))
-            continue
-        if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= 0 or box[3] <= 0:
-            issues.append((where, f"annotation box malformed: {bbox!r} (expected [x, y, w, h] with w, h > 0)"))
-            continue
-        pair.boxes.append((aid, box, label_of[ann["category_id"]]))
+                               str(group) if group not in (None, "") else "", image.width, image.height, H)
+    for ann in checked.annotations:
+        pair = pairs.get(ann.image_id)
+        if pair is not None:  # not an image left out above for its malformed homography
+            pair.boxes.append((ann.id, ann.bbox, label_of[ann.category_id]))
 
     folds = None
     if coco.get("folds") is not None:
@@ -412,6 +350,19 @@ class CocoRgbtSource:
             return file_stat(safe_join(self.root, rel, "path"))
         except DataError:
             return "outside"
+
+    def pixel_files(self, sample: AlignedSample) -> tuple[Path, Path] | None:
+        """The RGB and thermal files an 8-bit sample's pixels come from, so that the compact cache references them
+        instead of copying them (the cache checks that they decode to exactly these pixels); ``None`` for a warped
+        pair or radiometric thermal, whose pixels are not a file's."""
+        meta = sample.meta if isinstance(sample.meta, dict) else {}
+        if self.thermal != "8bit" or "H_rgb_to_frame" in meta:
+            return None
+        try:
+            return (safe_join(self.root, str(meta["file_name"]), "file_name"),
+                    safe_join(self.root, str(meta["thermal_file"]), "thermal_file_name"))
+        except (KeyError, DataError):
+            return None
 
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
         for where, reason in self.issues:

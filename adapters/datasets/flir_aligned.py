@@ -1,17 +1,25 @@
-"""FLIR-aligned: the aligned subset of the FLIR ADAS dataset (Zhang et al., ICIP 2020), in the layout ICAFusion and
-the other YOLOv5-based multispectral detectors train on.
+"""FLIR-aligned: the aligned subset of the FLIR ADAS dataset (Zhang et al., ICIP 2020), in the layouts the
+YOLOv5-based multispectral detectors train on, and as its authors distribute it.
 
-Layout (``dataset.root`` or ``$HARNESS_FLIR_ALIGNED`` points at ``FLIR-align-3class/`` or the folder holding it)::
+``dataset.root`` or ``$HARNESS_FLIR_ALIGNED`` points at ``FLIR-align-3class/`` or the folder holding it.
+ICAFusion's layout (its ``data/multispectral/FLIR-align-3class.yaml`` names ``visible/train`` and
+``infrared/train``; its ``img2label_paths`` replaces the ``visible`` or ``infrared`` folder with ``labels``)::
 
-    FLIR-align-3class/visible/train/images/FLIR_00002_RGB.jpg ...          visible, aligned to the thermal frame
-    FLIR-align-3class/visible/train/labels/FLIR_00002_RGB.txt ...          YOLO labels of the visible image
-    FLIR-align-3class/infrared/train/images/FLIR_00002_PreviewData.jpeg    thermal, 8-bit
-    FLIR-align-3class/infrared/train/labels/FLIR_00002_PreviewData.txt
+    FLIR-align-3class/visible/train/FLIR_00002_RGB.jpg ...             visible, aligned to the thermal frame
+    FLIR-align-3class/infrared/train/FLIR_00002_PreviewData.jpeg ...   thermal, 8-bit
+    FLIR-align-3class/labels/train/FLIR_00002_RGB.txt ...              YOLO labels of the visible image
+    FLIR-align-3class/labels/train/FLIR_00002_PreviewData.txt ...      ... and of the infrared image
     ... the same under test/
 
-4,129 train and 1,013 test pairs, 640x512, classes ``person, car, bicycle`` (label ids 0, 1, 2). A label file is
-found as YOLOv5 finds it: the image path with its last ``/images/`` replaced by ``/labels/`` and the extension by
-``.txt``; each line is ``<class> <cx> <cy> <w> <h>``, the box centre and size divided by the image width and height.
+YOLOv5's layout (each modality folder has ``images/`` and ``labels/``; YOLOv5's ``img2label_paths`` replaces the
+last ``/images/`` with ``/labels/``)::
+
+    FLIR-align-3class/visible/train/images/FLIR_00002_RGB.jpg, visible/train/labels/FLIR_00002_RGB.txt
+    FLIR-align-3class/infrared/train/images/FLIR_00002_PreviewData.jpeg, infrared/train/labels/...txt
+
+A ``labels/`` folder at the root selects ICAFusion's layout (``dataset.layout`` names one explicitly). 4,129 train
+and 1,013 test pairs, 640x512, classes ``person, car, bicycle`` (label ids 0, 1, 2). Each label line is
+``<class> <cx> <cy> <w> <h>``, the box centre and size divided by the image width and height.
 
 What the loader does:
 
@@ -19,8 +27,9 @@ What the loader does:
   removed, never by list position. A frame present in one modality only is a counted drop.
 * **Which labels**: ``dataset.labels: visible`` (default: ICAFusion trains and evaluates on the visible side's
   labels, applied to both images) or ``infrared``. A missing label file is an image without objects (YOLO's rule),
-  counted in the prepare report; a malformed line (wrong column count, class out of range, coordinates outside
-  0..1) skips the pair, counted, naming the file and line.
+  counted in the prepare report (and refused by the preparation's plausibility guard when it is more than a small
+  share of the images); a malformed line (wrong column count, class out of range, coordinates outside 0..1) skips
+  the pair, counted, naming the file and line.
 * **Classes**: ``dataset.classes`` (default ``person, car, bicycle``; ``[person]`` for the one-class
   ``FLIR-align`` variant) gives the names of label ids 0, 1, ...
 * **The official split**: groups ``train`` and ``test``; the one fold ``test`` holds ``test`` out.
@@ -77,7 +86,9 @@ FOLDER_NAMES = ("FLIR-align-3class", "FLIR-align", "FLIR_aligned", "FLIR-aligned
 _SUFFIX = re.compile(r"_(RGB|PreviewData)$", re.IGNORECASE)
 OPTIONS = {
     "root": f"FLIR-align-3class/ or the folder holding it (default: ${ROOT_ENV})",
-    "labels": "visible (default in ICAFusion's layout) or infrared (default and only choice in the release layout)",
+    "labels": "visible (default in the YOLO layouts) or infrared (default and only choice in the release layout)",
+    "layout": "auto (default: found from the folders), icafusion (labels/<split>/), "
+              "yolov5 (<modality>/<split>/labels/) or release (align/JPEGImages + Annotations)",
     "classes": "names of the label ids 0, 1, ... (default person, car, bicycle)",
     "strict": "raise instead of skipping a pair that cannot be used (default false)",
     "voc_convention": "release layout (align/) only: one-based (VOC, default) or zero-based VOC boxes",
@@ -85,7 +96,9 @@ OPTIONS = {
 }
 #: Split lists of the release layout, and the group each names.
 RELEASE_SPLITS = {"train": "align_train.txt", "test": "align_validation.txt"}
-ADAPTER_VERSION = 1
+#: Where the labels are: ICAFusion's rule, YOLOv5's rule, or the authors' VOC release.
+LAYOUTS = ("icafusion", "yolov5", "release")
+ADAPTER_VERSION = 2
 
 
 def frame_key(stem: str) -> str:
@@ -101,6 +114,28 @@ def label_path(image: Path) -> Path:
             parts[i] = "labels"
             break
     return Path(*parts).with_suffix(".txt")
+
+
+def icafusion_label_path(image: Path, root: Path) -> Path:
+    """ICAFusion's rule: the modality folder (``visible`` or ``infrared``, the first folder under the dataset root)
+    becomes ``labels``, the extension ``.txt``: ``visible/train/X.jpg`` -> ``labels/train/X.txt``."""
+    rel = image.relative_to(root).parts
+    return root.joinpath("labels", *rel[1:]).with_suffix(".txt")
+
+
+def detect_layout(root: Path) -> str:
+    """``release`` (``JPEGImages/``), ``icafusion`` (a ``labels/`` folder beside ``visible/`` and ``infrared/``) or
+    ``yolov5``; a tree holding both kinds of label folder is a ``ConfigError`` asking for ``dataset.layout``."""
+    if (root / "JPEGImages").is_dir():
+        return "release"
+    if not (root / "labels").is_dir():
+        return "yolov5"
+    nested = sorted(str(p.relative_to(root)) for m in MODALITIES for s in SPLITS for p in [root / m / s / "labels"]
+                    if p.is_dir())
+    if nested:
+        raise ConfigError(f"dataset {DATASET!r}: {root} holds labels in ICAFusion's layout (labels/) and in YOLOv5's "
+                          f"({', '.join(nested)}); set dataset.layout=icafusion or dataset.layout=yolov5")
+    return "icafusion"
 
 
 def parse_yolo(path: Path, num_classes: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -143,17 +178,17 @@ class FlirAlignedSource:
     name = DATASET
 
     def __init__(self, root: Path, labels: str = "visible", classes: Sequence[str] = CATEGORIES, strict: bool = False,
-                 voc_convention: str = "one-based", difficult: str = "drop"):
+                 voc_convention: str = "one-based", difficult: str = "drop", layout: str | None = None):
         self.root, self.labels, self.categories, self.strict = root, labels, tuple(classes), strict
         self.voc_convention, self.difficult = voc_convention, difficult
-        #: "yolo" (ICAFusion's folders) or "release" (align/JPEGImages + Annotations)
-        self.layout = "release" if (root / "JPEGImages").is_dir() else "yolo"
+        #: "icafusion" (labels/<split>/), "yolov5" (<modality>/<split>/labels/) or "release" (align/)
+        self.layout = layout or detect_layout(root)
         #: (split, key, visible image, infrared image)
         self.frames: list[tuple[str, str, Path, Path]] = []
         self.dropped: list[tuple[str, str]] = []
         if self.layout == "release":
             self._release_frames()
-        for split in SPLITS if self.layout == "yolo" else ():
+        for split in SPLITS if self.layout != "release" else ():
             vis, ir = (_images(root / m / split) for m in MODALITIES)
             for key in sorted(set(vis) | set(ir)):
                 if key not in ir:
@@ -165,11 +200,11 @@ class FlirAlignedSource:
                     self.frames.append((split, key, vis[key], ir[key]))
         if not self.frames:
             raise DataError(f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
-                            f"visible/{{train,test}}/images/FLIR_<n>_RGB.jpg and "
-                            f"infrared/.../FLIR_<n>_PreviewData.jpeg)")
+                            f"visible/{{train,test}}/[images/]FLIR_<n>_RGB.jpg and "
+                            f"infrared/.../[images/]FLIR_<n>_PreviewData.jpeg)")
         counts = {s: sum(f[0] == s for f in self.frames) for s in SPLITS}
         self.notes = [f"{counts['train']} train / {counts['test']} test pairs, {len(self.dropped)} dropped; "
-                      f"boxes from the {labels} labels; classes {', '.join(self.categories)}"]
+                      f"boxes from the {labels} labels ({self.layout} layout); classes {', '.join(self.categories)}"]
         if self.dropped:
             log.warning("FLIR-aligned: %s", self.notes[0])
             if strict:
@@ -213,7 +248,8 @@ class FlirAlignedSource:
     def _label_file(self, vis: Path, ir: Path) -> Path:
         if self.layout == "release":
             return self.root / "Annotations" / f"{ir.stem}.xml"
-        return label_path(vis if self.labels == "visible" else ir)
+        image = vis if self.labels == "visible" else ir
+        return icafusion_label_path(image, self.root) if self.layout == "icafusion" else label_path(image)
 
     def fingerprint(self) -> str:
         parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.labels, self.categories,
@@ -327,28 +363,34 @@ def _classes(value: Any) -> tuple[str, ...]:
 
 def open_flir_aligned(root: str | Path | None = None, labels: str | None = None, classes: Any = CATEGORIES,
                       strict: bool = False, voc_convention: str = "one-based",
-                      difficult: str = "drop") -> FlirAlignedSource:
+                      difficult: str = "drop", layout: str = "auto") -> FlirAlignedSource:
     """Open a FLIR-aligned copy (the options are the ``dataset:`` config keys, see ``OPTIONS``); ``labels``
-    defaults to ``visible`` in ICAFusion's layout and ``infrared`` in the release layout."""
+    defaults to ``visible`` in the YOLO layouts and ``infrared`` in the release layout."""
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
+    if layout not in ("auto", *LAYOUTS):
+        raise ConfigError(f"dataset {DATASET!r}: option 'layout' must be auto, {', '.join(LAYOUTS)}; got {layout!r}")
     path = find_root(root)
+    chosen = detect_layout(path) if layout == "auto" else layout
+    if chosen == "release" and not (path / "JPEGImages").is_dir():
+        raise ConfigError(f"dataset {DATASET!r}: dataset.layout=release needs {path / 'JPEGImages'}")
     if labels is None:
-        labels = "infrared" if (path / "JPEGImages").is_dir() else "visible"
+        labels = "infrared" if chosen == "release" else "visible"
     side = str(labels).strip().lower()
     side = {"rgb": "visible", "ir": "infrared", "thermal": "infrared"}.get(side, side)
     if side not in MODALITIES:
         raise ConfigError(f"dataset {DATASET!r}: option 'labels' must be visible or infrared, got {labels!r}")
     return FlirAlignedSource(path, labels=side, classes=_classes(classes), strict=strict,
                              voc_convention=normalise_convention(DATASET, voc_convention),
-                             difficult=normalise_difficult(DATASET, difficult))
+                             difficult=normalise_difficult(DATASET, difficult), layout=chosen)
 
 
 SPEC = DatasetSpec(
     name=DATASET,
     open=open_flir_aligned,
     categories=CATEGORIES,
-    description="FLIR-aligned visible/infrared pairs (ICAFusion's YOLO layout), 3 classes, 8-bit IR; train/test",
+    description="FLIR-aligned visible/infrared pairs (ICAFusion's, YOLOv5's or the release layout), 3 classes, "
+                "8-bit IR; train/test",
     thermal="8bit",
     default_encoding="proxy8",
     protocol="flir-aligned",

@@ -240,42 +240,23 @@ def read_coco_annotations(path: Path, category_map: Mapping[str, str] | None = N
                           categories: Sequence[str] = M3T_CATEGORIES) -> Annotations:
     """Parse a COCO detection file into image records with labels in ``categories`` order.
 
-    A missing, empty or invalid file, a file without ``images``, an image id that is not an integer or appears
-    twice, and a category name that is neither known nor mapped in the manifest are ``DataError``s. A single bad
-    annotation (unknown image or category id, malformed box) is a counted skip.
+    The shared COCO checks apply (``adapters.datasets._coco``): a missing, empty or invalid file, a file without
+    ``images``, a malformed or duplicate image id and a file listed twice are ``DataError``s; so is a category name
+    that is neither known nor mapped in the manifest. A single bad annotation (unknown image or category id,
+    malformed box, duplicate id) is returned as an issue (a counted skip, stopped by the plausibility guard).
     """
-    from harness.io import read_json
+    from adapters.datasets._coco import read_coco
 
-    if not path.exists():
-        raise DataError(f"{path}: annotation file not found; put the COCO file there or name it with the manifest "
-                        "key 'annotations'")
-    if path.is_dir():
-        raise DataError(f"{path}: is a folder; the manifest key 'annotations' must name a COCO JSON file")
-    if path.stat().st_size == 0 or not path.read_bytes().strip():
-        raise DataError(f"{path}: annotation file is empty; expected a COCO JSON object with 'images', "
-                        "'annotations' and 'categories'")
-    coco = read_json(path)
-    if not isinstance(coco, dict):
-        raise DataError(f"{path}: expected a COCO JSON object, got a {type(coco).__name__}")
-    for key in ("images", "categories"):
-        if not isinstance(coco.get(key), list):
-            raise DataError(f"{path}: COCO key {key!r} is missing or not a list")
-    anns = coco.get("annotations", [])
-    if not isinstance(anns, list):
-        raise DataError(f"{path}: COCO key 'annotations' is not a list")
-
+    checked = read_coco(path, "put the COCO file there or name it with the manifest key 'annotations'")
     cmap = dict(category_map or {})
-    label_of: dict[Any, int | None] = {}
+    label_of: dict[int, int | None] = {}
     unknown: list[str] = []
-    for cat in coco["categories"]:
-        if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
-            raise DataError(f"{path}: every category needs 'id' and 'name', got {cat!r}")
-        name = str(cat["name"])
+    for cid, name in checked.categories.items():
         target = cmap.get(name, name)
         if target == "ignore":
-            label_of[cat["id"]] = None
+            label_of[cid] = None
         elif target in categories:
-            label_of[cat["id"]] = categories.index(target)
+            label_of[cid] = categories.index(target)
         else:
             unknown.append(name)
     if unknown:
@@ -284,55 +265,19 @@ def read_coco_annotations(path: Path, category_map: Mapping[str, str] | None = N
                         f"'categories', e.g. categories: {{{unknown[0]!r}: crack}}")
 
     images: dict[int, ImageRecord] = {}
-    by_name: dict[str, int] = {}
-    for entry in coco["images"]:
-        if not isinstance(entry, dict) or "id" not in entry or "file_name" not in entry:
-            raise DataError(f"{path}: every image needs 'id' and 'file_name', got {str(entry)[:120]}")
-        iid = entry["id"]
-        if isinstance(iid, bool) or not isinstance(iid, int):
-            raise DataError(f"{path}: image id {iid!r} ({entry['file_name']}) is not an integer")
-        if iid in images:
-            raise DataError(f"{path}: duplicate image id {iid} ({images[iid].file_name!r} and {entry['file_name']!r}); "
-                            "image ids must be unique")
-        fname = str(entry["file_name"])
-        if fname in by_name:
-            raise DataError(f"{path}: file {fname!r} is listed twice (image ids {by_name[fname]} and {iid})")
-        by_name[fname] = iid
-        w, h = entry.get("width"), entry.get("height")
-        images[iid] = ImageRecord(iid, fname, int(w) if isinstance(w, (int, float)) else None,
-                                  int(h) if isinstance(h, (int, float)) else None,
-                                  project=str(entry.get("project", "")),
-                                  captured=parse_time(entry.get("date_captured")),
-                                  thermal_file=entry.get("thermal_file_name"))
-
-    issues: list[tuple[str, str]] = []
+    for im in checked.images:
+        images[im.id] = ImageRecord(im.id, im.file_name, im.width, im.height,
+                                    project=str(im.entry.get("project", "")),
+                                    captured=parse_time(im.entry.get("date_captured")),
+                                    thermal_file=im.entry.get("thermal_file_name"))
     ignored = 0
-    for ann in anns:
-        where = f"{path.name}#annotation={ann.get('id', '?') if isinstance(ann, dict) else '?'}"
-        if not isinstance(ann, dict):
-            issues.append((where, "annotation malformed: not an object"))
-            continue
-        rec = images.get(ann.get("image_id"))  # type: ignore[arg-type]
-        if rec is None:
-            issues.append((where, f"annotation for an unknown image id: {ann.get('image_id')!r}"))
-            continue
-        if ann.get("category_id") not in label_of:
-            issues.append((where, f"annotation with an unknown category id: {ann.get('category_id')!r}"))
-            continue
-        label = label_of[ann["category_id"]]
+    for ann in checked.annotations:
+        label = label_of[ann.category_id]
         if label is None:
             ignored += 1
             continue
-        bbox = ann.get("bbox")
-        try:
-            box = [float(v) for v in bbox]  # type: ignore[union-attr]
-        except (TypeError, ValueError):
-            issues.append((where, f"annotation box malformed: {bbox!r}"))
-            continue
-        if len(box) != 4 or not np.isfinite(box).all() or box[2] <= 0 or box[3] <= 0:
-            issues.append((where, f"annotation box malformed: {bbox!r} (expected [x, y, w, h] with w, h > 0)"))
-            continue
-        rec.boxes.append((int(ann.get("id", -1)), box, label))
+        images[ann.image_id].boxes.append((ann.id, ann.bbox, label))
+    issues = list(checked.issues)
     return Annotations(sorted(images.values(), key=lambda r: r.file_name), issues, ignored)
 
 

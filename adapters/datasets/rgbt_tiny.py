@@ -58,6 +58,7 @@ from adapters.datasets._eightbit import (
     xywh_to_xyxy,
 )
 from harness.api import DatasetSpec, Fold, PrepareReport
+from adapters.datasets._coco import coco_id
 from harness.errors import ConfigError, DataError
 from harness.hookspecs import hookimpl
 from harness.io import read_json
@@ -178,7 +179,7 @@ def normalise_gt(value: Any) -> str:
 # ---------------------------------------------------------------------------------------------- COCO files
 @dataclass
 class ImageEntry:
-    id: int
+    id: int | str  # as the annotation file numbers it (only used to join its annotations)
     file_name: str
     width: int | None
     height: int | None
@@ -215,6 +216,9 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
     label_of: dict[int, int] = {}
     for i, cat in enumerate(data["categories"]):
         cid, name = _field(path, f"categories[{i}]", cat, "id"), _field(path, f"categories[{i}]", cat, "name")
+        if not isinstance(coco_id(cid), int):
+            raise DataError(f"{path}: categories[{i}]: category id {cid!r} is not an integer")
+        cid = coco_id(cid)
         norm = str(name).strip().lower()
         if norm not in CATEGORIES:
             raise DataError(
@@ -228,10 +232,12 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
 
     want_dir = MODALITY_DIR[modality]
     images: dict[FrameKey, ImageEntry] = {}
-    ids: set[int] = set()
+    ids: set[int | str] = set()
     for i, im in enumerate(data["images"]):
         where = f"images[{i}]"
-        iid = _field(path, where, im, "id")
+        iid = coco_id(_field(path, where, im, "id"))  # 12, "12" and 12.0 are one id, as in the evaluation
+        if iid is None:
+            raise DataError(f"{path}: {where}: image id {im['id']!r} is neither an integer nor a non-empty string")
         try:
             rel, key, mdir = parse_file_name(_field(path, where, im, "file_name"))
         except ValueError as exc:
@@ -247,17 +253,18 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
             raise DataError(f"{path}: {where}: frame {key} is listed twice (ids {images[key].id} and {iid})")
         ids.add(iid)
         w, h = im.get("width"), im.get("height")
-        images[key] = ImageEntry(int(iid), rel, int(w) if w is not None else None, int(h) if h is not None else None)
+        images[key] = ImageEntry(iid, rel, int(w) if w is not None else None, int(h) if h is not None else None)
 
     per_image: dict[int, list[tuple[list[float], int, bool]]] = defaultdict(list)
     for i, ann in enumerate(data["annotations"]):
         where = f"annotations[{i}]"
-        iid, cid = _field(path, where, ann, "image_id"), _field(path, where, ann, "category_id")
+        raw_iid, raw_cid = _field(path, where, ann, "image_id"), _field(path, where, ann, "category_id")
+        iid, cid = coco_id(raw_iid), coco_id(raw_cid)
         bbox = _field(path, where, ann, "bbox")
         if iid not in ids:
-            raise DataError(f"{path}: {where}: image_id {iid!r} is not in 'images'")
+            raise DataError(f"{path}: {where}: image_id {raw_iid!r} is not in 'images'")
         if cid not in label_of:
-            raise DataError(f"{path}: {where}: category_id {cid!r} is not in 'categories' (ids {sorted(label_of)})")
+            raise DataError(f"{path}: {where}: category_id {raw_cid!r} is not in 'categories' (ids {sorted(label_of)})")
         if (not isinstance(bbox, (list, tuple)) or len(bbox) != 4
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in bbox)):
             raise DataError(f"{path}: {where}: bbox must be four finite numbers [x, y, w, h], got {bbox!r}")

@@ -56,6 +56,12 @@ def prepare_summary(ds: Any) -> str:
                                                             + ")" if pairs else ""))
     lines.append(f"skipped annotations: {sum(anns.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items())
                                                                  + ")" if anns else ""))
+    for where, reason in (rep.get("skipped_files") or [])[:3]:
+        lines.append(_cut(f"  e.g. {where}: {reason}"))
+    from harness.input_guard import describe
+    from harness.textable import fit_text
+
+    lines += [fit_text(line) for line in describe(getattr(ds, "input_risks", None) or [])]
     missing = rep.get("missing_temperatures") or {}
     if missing.get("pixels"):
         lines.append(f"missing temperatures (NaN/inf, left out of the encodings): {missing['pixels']} pixels in "
@@ -68,6 +74,11 @@ def prepare_summary(ds: Any) -> str:
     lines += [sizes.headline(), "boxes per category and size bin (SAFit bins, box side sqrt(w*h) in px):",
               sizes.to_text()]
     return "\n".join(lines)
+
+
+def _cut(line: str, width: int = 100) -> str:
+    """``line`` cut to ``width`` characters (an example of a long reason: its start says what it is)."""
+    return line if len(line) <= width else line[:width - 3] + "..."
 
 
 def folds_table(ds: Any, folds: Sequence[Any]) -> str:
@@ -110,3 +121,9 @@ def register_commands(cli: click.Group) -> None:
         click.echo(f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "
                    f"{', '.join(sorted(set(ds.groups)))}")
         click.echo(folds_table(ds, folds))
+        from harness.input_guard import describe
+
+        from harness.textable import fit_text
+
+        for line in describe(getattr(ds, "input_risks", None) or []):
+            click.echo(fit_text(line))

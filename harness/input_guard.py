@@ -1,0 +1,160 @@
+"""The plausibility guard at the dataset input boundary: implausible labels stop a preparation with what was seen.
+
+The sample-matched guard checks what goes out of a run; this one checks what comes in. After a dataset is prepared
+(or read back from the cache), ``check(prepared, folds, cfg)`` looks for three findings:
+
+* ``no-labels``: the dataset, or the training or held-out part of a fold, holds no box at all;
+* ``unlabelled-images``: more than ``inputs.max_unlabelled`` (default 20 %), and at least 5, of the images of the
+  dataset or of a fold part have no box (a wrong label layout reads as "images without objects");
+* ``dropped-annotations``: annotations the dataset's files state but the adapter could not use (unknown image or
+  category id, malformed box, box outside the image, duplicate id: the prepare report's skips whose label starts
+  with ``annotation``). A dropped box leaves an unlabelled object, which training learns as background.
+
+Each finding is a line with the counts and a few examples. An unaccepted one raises a ``DataError`` listing them all
+and naming the option; ``inputs.accept`` (a list of kinds, or ``all``) accepts them, and the accepted findings are
+returned so that the caller labels the result (``PreparedDataset.input_risks``, the run's ``meta.input_risks`` and
+``metrics.json`` ``input_risks``, and the printed tables). The prepared samples are kept either way: rerunning with
+the option reads them from the cache.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, Sequence
+
+from harness.errors import ConfigError, DataError
+
+KINDS = ("no-labels", "unlabelled-images", "dropped-annotations")
+#: Share of images without any box above which a dataset or fold part is implausible...
+DEFAULT_MAX_UNLABELLED = 0.2
+#: ... once at least this many of its images have none (a share of a handful of images says little).
+MIN_UNLABELLED = 5
+#: How many examples a finding quotes.
+EXAMPLES = 3
+#: Columns of an example line (the rest is cut with an ellipsis).
+WIDTH = 100
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One implausible property of a prepared dataset: its kind, a line with the counts, and a few examples."""
+
+    kind: str
+    message: str
+    examples: tuple[str, ...] = ()
+    more: int = 0  # examples not quoted
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "message": self.message}
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.message}"
+
+    def lines(self, indent: str = "  ") -> list[str]:
+        """The finding, then one ``e.g.`` line per example (each cut to ``WIDTH`` columns)."""
+        from harness.textable import fit_text
+
+        out = fit_text(f"{indent}{self}", WIDTH).splitlines()
+        for k, ex in enumerate(self.examples):
+            tail = f" (and {self.more} more)" if self.more and k == len(self.examples) - 1 else ""
+            out.append(_cut(f"{indent}  e.g. {ex}", WIDTH - len(tail)) + tail)
+        return out
+
+
+def settings(cfg: Mapping[str, Any] | None) -> tuple[set[str], float]:
+    """(accepted kinds, max share of unlabelled images) from the config's ``inputs`` section; a bad value is a
+    ``ConfigError`` naming the key."""
+    section = dict((cfg or {}).get("inputs") or {})
+    raw = section.get("accept") or []
+    items = [raw] if isinstance(raw, str) else list(raw)
+    kinds = {str(k).strip() for k in items if str(k).strip()}
+    if "all" in kinds:
+        kinds = set(KINDS)
+    unknown = sorted(kinds - set(KINDS))
+    if unknown:
+        raise ConfigError(f"inputs.accept: unknown finding(s) {', '.join(map(repr, unknown))}; use any of "
+                          f"{', '.join(KINDS)}, or all")
+    share = section.get("max_unlabelled", DEFAULT_MAX_UNLABELLED)
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
+        raise ConfigError(f"inputs.max_unlabelled must be a share between 0 and 1, got {share!r}")
+    return kinds, float(share)
+
+
+def _cut(text: str, width: int) -> str:
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _finding(kind: str, message: str, examples: Sequence[str]) -> Finding:
+    return Finding(kind, message, tuple(examples[:EXAMPLES]), max(0, len(examples) - EXAMPLES))
+
+
+def _name(record: Mapping[str, Any]) -> str:
+    meta = record.get("meta") if isinstance(record.get("meta"), dict) else {}
+    return str(meta.get("file_name") or f"image {record['image_id']}")
+
+
+def _parts(prepared: Any, folds: Iterable[Any]) -> list[tuple[str, list[int]]]:
+    """(what, sample indices): the whole dataset, then the training and held-out part of every fold."""
+    parts = [("the dataset", list(range(len(prepared.records))))]
+    for f in folds:
+        parts.append((f"fold {f.name!r} training part ({'+'.join(f.train_groups) or 'no group'})",
+                      prepared.indices(f.train_groups)))
+        parts.append((f"fold {f.name!r} held-out part ({'+'.join(f.val_groups)})", prepared.indices(f.val_groups)))
+    return parts
+
+
+def inspect(prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT_MAX_UNLABELLED) -> list[Finding]:
+    """Every finding on ``prepared`` and its ``folds`` (see the module docstring), in a fixed order."""
+    records = prepared.records
+    out: list[Finding] = []
+    covered: set[int] = set()  # images of the parts without labels: not counted again as unlabelled elsewhere
+    parts = [(what, idx) for what, idx in _parts(prepared, folds) if idx]
+    for what, idx in parts:
+        if all(int(records[i]["n"]) == 0 for i in idx):
+            out.append(_finding("no-labels", f"{what}: {len(idx)} image(s) and not one box",
+                                [_name(records[i]) for i in idx]))
+            covered.update(idx)
+    for what, idx in parts:
+        rest = [i for i in idx if i not in covered]
+        empty = [i for i in rest if int(records[i]["n"]) == 0]
+        if rest and len(empty) / len(rest) > max_unlabelled and len(empty) >= MIN_UNLABELLED:
+            out.append(_finding("unlabelled-images", f"{what}: {len(empty)} of {len(rest)} images "
+                                                     f"({len(empty) / len(rest):.0%}) have no box, more than "
+                                                     f"{max_unlabelled:.0%}", [_name(records[i]) for i in empty]))
+    report = prepared.manifest.get("report") or {}
+    dropped = {k: v for k, v in (report.get("skip_reasons") or {}).items() if k.startswith("annotation")}
+    if dropped:
+        total = sum(dropped.values())
+        listed = [f"{where}: {reason}" for where, reason in report.get("skipped_files") or []
+                  if reason.startswith("annotation")]
+        counts = ", ".join(f"{k}: {v}" for k, v in sorted(dropped.items(), key=lambda kv: -kv[1]))
+        kept = int(prepared.manifest.get("instances", 0))
+        finding = _finding("dropped-annotations", f"{total} annotation(s) dropped, {kept} kept ({counts})", listed)
+        out.append(Finding(finding.kind, finding.message, finding.examples, total - len(finding.examples)))
+    return out
+
+
+def check(prepared: Any, folds: Iterable[Any], cfg: Mapping[str, Any] | None) -> list[Finding]:
+    """The accepted findings on ``prepared``; unaccepted ones raise a ``DataError`` that lists every finding with its
+    counts and examples and names the option that accepts them."""
+    accept, share = settings(cfg)
+    findings = inspect(prepared, folds, share)
+    refused = [f for f in findings if f.kind not in accept]
+    if refused:
+        kinds = sorted({f.kind for f in refused})
+        lines = "\n".join(line for f in refused for line in f.lines())
+        raise DataError(
+            f"dataset {prepared.name!r}: implausible labels in {prepared.folder}:\n{lines}\n"
+            f"Check the dataset's layout and annotation files (docs/datasets.md). To use these samples anyway,\n"
+            f"accept the risk with --set 'inputs.accept=[{', '.join(kinds)}]' (the results are labelled with it;\n"
+            f"the prepared samples are kept).")
+    return findings
+
+
+def describe(findings: Sequence[Finding | Mapping[str, Any] | str]) -> list[str]:
+    """One ``accepted input risk: ...`` line per finding (what the printed tables add under a labelled result)."""
+    out = []
+    for f in findings:
+        text = str(f) if not isinstance(f, Mapping) else f"{f.get('kind')}: {f.get('message')}"
+        out.append(f"accepted input risk: {text}")
+    return out
