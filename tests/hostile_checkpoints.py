@@ -337,6 +337,11 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
                   "a member whose central directory declares 6 GB"),
               _with_model(lambda p: p.raw(b"N")), {"0": W_BYTES, "1": bytes(1 << 20)}, compress={"1": 9},
               claim={"1": 6_000_000_000})
+    with zipfile.ZipFile(add("zip_20000_entries", None, "20,000 empty archive members besides a model"), "w") as z:
+        z.writestr("archive/data.pkl", Pk().dict_of(("model", _w)).stop())
+        z.writestr("archive/data/0", W_BYTES)
+        for i in range(20_000):
+            z.writestr(f"archive/junk/{i}", b"")
     cut = add("zip_cut", r"not a PyTorch checkpoint|not a readable|holds \d+ of", "an archive cut in the middle")
     data = torch_zip(cut, _with_model(lambda p: p.raw(b"N")), {"0": W_BYTES}).read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -362,6 +367,9 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
         p.raw(b"u")
     torch_zip(add("expand_many_views", r"add up to .*refused", "1,000 zero-stride views of one float, 40 KB each"),
               Pk().dict_of(("model", many_views)).stop(), {"0": W_BYTES})
+    torch_zip(add("tensor_65_dims", r"at most 64 ints", "a tensor of 65 dimensions"),
+              Pk().dict_of(("model", lambda p: p.dict_of(("w", lambda q: q.tensor("0", 4, (1,) * 65, (1,) * 65))))
+                           ).stop(), {"0": W_BYTES})
     torch_zip(add("negative_stride", r"negative", "a negative stride"),
               Pk().dict_of(("model", lambda p: p.dict_of(("w", lambda q: q.tensor("0", 4, (4,), (-1,)))))).stop(),
               {"0": W_BYTES})
@@ -385,6 +393,12 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
               b"\x80\x04\x95" + struct.pack("<Q", 2**62) + b"N.")
     torch_zip(add("empty_set_flood", r"needs more than .*refused", "320 KB of EMPTY_SET: 70 MB of sets", plain=False),
               b"\x80\x04](" + b"\x8f" * 320_000 + b"e.")
+    def class_flood(p: Pk) -> None:
+        p.raw(b"]")
+        for i in range(40_000):
+            p.glob("evil", f"C{i}").raw(b"a")
+    torch_zip(add("stub_class_flood", r"needs more than .*refused", "40,000 distinct class names: a class each",
+                  plain=False), _with_model(class_flood), {"0": W_BYTES})
     torch_zip(add("memo_flood", r"needs more than .*refused|no model found", "600 KB of MEMOIZE: 60 MB of memo", plain=False),
               b"\x80\x04N" + b"\x94" * 600_000 + b".")
     # --- shared and nested structures ------------------------------------------------------------------------------
@@ -411,6 +425,10 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
     torch_zip(add("deep_module_tree_3000", None, "a module tree 3,000 deep (Ultralytics classes)"),
               _deep_modules(3000), {"0": W_BYTES})
     torch_zip(add("module_cycle", None, "a module that is its own child"), _cyclic_module(), {"0": W_BYTES})
+    torch_zip(add("module_dag_doubled", None, "a module tree doubled 40 times (each level holds its child twice)"),
+              _doubled_modules(40), {"0": W_BYTES})
+    torch_zip(add("class_name_1mb", None, "a placeholder class with a 1 MB name in the metadata"),
+              _with_model(lambda p: p.glob("evil", "C" * (1 << 20)).raw(b")\x81")), {"0": W_BYTES})
     torch_zip(add("deep_tuple_key", r"dict key or set item holds more than", "a dict key nested 200,000 deep "
                   "(hashing it crashes CPython)", plain=False),
               _with_model(lambda p: p.raw(b"}").raw(b")" + b"\x85" * 200_000).i(1).raw(b"s")), {"0": W_BYTES})
@@ -485,6 +503,21 @@ def _cyclic_module() -> bytes:
     p.glob("ultralytics.nn.tasks", "DetectionModel").raw(b")\x81").put(500)
     p.raw(b"}(").s("_parameters").dict_of(("weight", lambda q: q.tensor("0", 4, (4,), (1,))))
     p.s("_buffers").raw(b"}").s("_modules").raw(b"}").s("self").get(500).raw(b"s").raw(b"ub")
+    return p.raw(b"u").stop()
+
+
+def _doubled_modules(levels: int) -> bytes:
+    """``ema``: a module whose ``_modules`` hold the level below twice, ``levels`` times; a weight at the bottom."""
+    p = Pk().raw(b"}(").s("ema")
+    _module_level(p, None, lambda q: q.dict_of(("weight", lambda r: r.tensor("0", 4, (4,), (1,)))),
+                  "ultralytics.nn.modules.conv.Conv")
+    p.put(2_000_000)
+    for k in range(1, levels + 1):
+        p.raw(b"0")
+        cls = "ultralytics.nn.tasks.DetectionModel" if k == levels else "torch.nn.modules.container.Sequential"
+        p.glob(*cls.rsplit(".", 1)).raw(b")\x81").raw(b"}(").s("_parameters").raw(b"}").s("_buffers").raw(b"}")
+        p.s("_modules").raw(b"}(").s("a").get(2_000_000 + k - 1).s("b").get(2_000_000 + k - 1).raw(b"uub")
+        p.put(2_000_000 + k)
     return p.raw(b"u").stop()
 
 

@@ -74,6 +74,8 @@ def _problems(r: dict, case, expect_from_case: bool) -> list[str]:
     if expect_from_case:
         if case.expect is None and r["outcome"] != "ok":
             out.append(f"should import, got: {r.get('message', '')[:200]}")
+        if r["outcome"] == "ok" and r.get("sidecar_bytes", 0) > 64_000:
+            out.append(f"wrote a sidecar of {r['sidecar_bytes']} bytes")
         if case.expect is not None and (r["outcome"] != "error" or not re.search(case.expect, r["message"])):
             out.append(f"should fail matching {case.expect!r}, got {r['outcome']}: {r.get('message', '')[:200]}")
     if r["seconds"] > SECONDS:

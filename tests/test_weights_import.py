@@ -253,3 +253,17 @@ def test_the_import_written_one_tensor_at_a_time_reads_back_as_the_safetensors_l
             assert ours[k].dtype == lib[k].dtype and ours[k].shape == lib[k].shape and torch.equal(ours[k], lib[k]), k
         with safe_open(str(res.weights), "pt") as f:
             assert f.metadata() == meta
+
+
+def test_tensors_are_written_in_pieces_that_cover_them_in_row_major_order():
+    from harness.weights import _pieces
+
+    g = torch.Generator().manual_seed(0)
+    tensors = [torch.randn(7, 5, 3, generator=g), torch.randn(6, 4, generator=g).t(), torch.randn(1).expand(9, 4),
+               torch.randn(3, 1, 5, generator=g).expand(3, 4, 5), torch.arange(50.0), torch.tensor(3.0),
+               torch.zeros(0, 4)]
+    for t in tensors:
+        for limit in (1, 12, 40, 10_000):
+            pieces = list(_pieces(t, limit))
+            assert torch.equal(torch.cat([p.reshape(-1) for p in pieces]), t.reshape(-1)), (t.shape, limit)
+            assert all(p.numel() * 4 <= limit or p.numel() == 1 for p in pieces), (t.shape, limit)

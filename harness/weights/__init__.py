@@ -4,8 +4,8 @@
 no code from the file runs, no package of the codebase that wrote it is needed), finds the model (EMA weights when
 present, ``harness.weights.tree``), extracts its parameters and persistent buffers as a state dict (half precision
 cast to float32), describes the layout (``harness.weights.layout``: YOLOv8 scale, classes, input channels; YOLOv5
-scale; two input streams), and writes ``DST.safetensors`` one tensor at a time with a JSON sidecar ``DST.json`` of
-what was found. The work is bounded by the file's size (``harness.weights.unpickle``): the tensors and their names
+scale; two input streams), and writes ``DST.safetensors`` in pieces of at most 16 MiB with a JSON sidecar
+``DST.json`` of what was found. The work is bounded by the file's size (``harness.weights.unpickle``): the tensors and their names
 as float32 may take at most ``SIZE_MULTIPLE`` (4) x the file's bytes, the sidecar's copy of the metadata is
 bounded (``harness.weights.layout``), and an allocation that fails anyway is a one-line error naming the file.
 
@@ -30,8 +30,8 @@ from harness.errors import HarnessError
 from harness.io import atomic_write, atomic_write_json
 from harness.weights.layout import checkpoint_info, detect_layout
 from harness.weights.tree import find_model, is_state_dict, module_state_dict, to_float32
-from harness.weights.unpickle import (CheckpointFormatError, CheckpointLimitError, ForeignObjectError, Limits,
-                                      UnsafeCheckpointError, human, load_checkpoint, load_plain, out_itemsize)
+from harness.weights.unpickle import (PIECE_BYTES, CheckpointFormatError, CheckpointLimitError, ForeignObjectError,
+                                      Limits, UnsafeCheckpointError, human, load_checkpoint, load_plain, out_itemsize)
 
 __all__ = ["ImportResult", "import_checkpoint", "read_checkpoint_weights", "write_safetensors",
            "CheckpointFormatError", "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError",
@@ -115,8 +115,8 @@ def _read_raw(src: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         "source_dtypes": sorted({c.split(": ")[1] for c in cast}),
         "layout": layout,
         "checkpoint": checkpoint_info(obj),
-        "placeholders": names[:MAX_PLACEHOLDER_NAMES] + ([f"... and {len(names) - MAX_PLACEHOLDER_NAMES} more"]
-                                                          if len(names) > MAX_PLACEHOLDER_NAMES else []),
+        "placeholders": [n[:200] for n in names[:MAX_PLACEHOLDER_NAMES]]
+        + ([f"... and {len(names) - MAX_PLACEHOLDER_NAMES} more"] if len(names) > MAX_PLACEHOLDER_NAMES else []),
     }
     return raw, info
 
@@ -156,9 +156,22 @@ _ST_DTYPES = {torch.float32: "F32", torch.float64: "F64", torch.float16: "F16", 
               torch.bool: "BOOL", torch.complex64: "C64"}
 
 
+def _pieces(t: torch.Tensor, limit: int) -> Iterator[torch.Tensor]:
+    """Views of ``t`` that cover it in row-major order, each at most ``limit`` bytes as float32 (or one element):
+    a tensor is converted and written piece by piece, whatever its strides."""
+    stack = [t]
+    while stack:
+        p = stack.pop()
+        if p.dim() == 0 or p.numel() * 4 <= limit:
+            yield p
+            continue
+        step = max(1, limit // max(p[0].numel() * 4, 1))  # slices along the first dimension per piece
+        stack.extend(reversed(p.unbind(0) if step == 1 else p.split(step)))
+
+
 def write_safetensors(f: BinaryIO, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
-    """Write ``tensors`` (floating ones cast to float32) in the safetensors format, one tensor at a time: the
-    import never holds more than one converted tensor besides the file's own storages."""
+    """Write ``tensors`` (floating ones cast to float32) in the safetensors format, one piece of at most
+    ``PIECE_BYTES`` at a time: the import holds no converted copy of a whole tensor besides the file's storages."""
     header: dict[str, Any] = {"__metadata__": metadata}
     offset = 0
     for name, t in tensors.items():
@@ -175,6 +188,6 @@ def write_safetensors(f: BinaryIO, tensors: dict[str, torch.Tensor], metadata: d
     for t in tensors.values():
         if t.numel() == 0:
             continue
-        t = t.detach()
-        t = (t.float() if t.dtype != torch.float32 else t) if t.is_floating_point() else t
-        f.write(t.contiguous().reshape(-1).view(torch.uint8).numpy().data)
+        for piece in _pieces(t.detach(), PIECE_BYTES):
+            piece = piece.float() if piece.is_floating_point() and piece.dtype != torch.float32 else piece
+            f.write(piece.contiguous().reshape(-1).view(torch.uint8).numpy().data)

@@ -24,9 +24,9 @@ _TOP = re.compile(r"^model\.(\d{1,9})\.")
 
 
 #: Bounds of what the sidecar copies from a checkpoint's metadata (a hostile file can hold anything there).
-DESCRIBE_VALUES = 10_000
+DESCRIBE_VALUES = 2_000
 DESCRIBE_DEPTH = 32
-DESCRIBE_STRING = 1_000
+DESCRIBE_STRING = 500
 _SMALL = 16
 
 
@@ -41,7 +41,7 @@ def _leaf(value: Any) -> Any:
     if isinstance(value, torch.Tensor):
         return f"<tensor {tuple(value.shape)}>"
     if isinstance(value, Stub):
-        return f"<{value.stub_name}>"
+        return f"<{value.stub_name[:200]}>"
     if isinstance(value, (np.generic, datetime.date, datetime.timedelta, torch.dtype, torch.device, complex)):
         return str(value)
     if isinstance(value, np.ndarray):
@@ -132,12 +132,12 @@ def _stems(sd: Mapping[str, torch.Tensor]) -> list[tuple[int, torch.Tensor, bool
     return [c for c in convs if int(c[1].shape[1]) == cin0 and cin0 <= 12]
 
 
-MAX_NAMES = 100_000
+MAX_NAMES = 10_000
 
 
 def _names(names: Any) -> list[str] | None:
     """Class names from a ``{index: name}`` mapping (Ultralytics) or a list (YOLOv5); ``None`` when they are
-    anything else (names longer than ``DESCRIBE_STRING`` characters are cut)."""
+    anything else (at most ``MAX_NAMES`` names, each cut at 200 characters)."""
     if isinstance(names, Mapping) and len(names) <= MAX_NAMES:
         index = {}
         for k in names:
@@ -154,14 +154,14 @@ def _names(names: Any) -> list[str] | None:
     if not all(isinstance(v, (str, int)) and not isinstance(v, bool) and (not isinstance(v, int) or
                                                                           v.bit_length() < 64) for v in values):
         return None
-    return [_leaf(str(v)) for v in values]
+    return [str(v)[:200] for v in values]
 
 
 def detect_layout(model: Any, sd: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     """``{"family", "scale", "nc", "in_channels", "two_stream", "head_index", "names", "suggested_detector", ...}``."""
     yaml = model.state.get("yaml") if isinstance(model, Stub) else None
     yaml = yaml if isinstance(yaml, Mapping) else {}
-    cls = model.stub_name if isinstance(model, Stub) else None
+    cls = model.stub_name[:200] if isinstance(model, Stub) else None
     tops = sorted({int(m.group(1)) for k in sd for m in [_TOP.match(k)] if m})
     head = tops[-1] if tops else None
     out: dict[str, Any] = {"family": "unknown", "model_class": cls, "layers": len(tops), "head_index": head,

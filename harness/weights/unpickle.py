@@ -19,16 +19,17 @@ command. ``load_checkpoint`` reads the same files with a restricted unpickler:
   create instances; calling a placeholder class (``REDUCE``: "call this with these arguments") is the refusal.
 
 A hostile file can also try to exhaust memory or time instead of running code. Everything the reader builds is
-bounded by the file's own size F (see :class:`Limits`), and a file that asks for more is refused with a one-line
-:class:`CheckpointLimitError` before the memory is taken:
+bounded by the file's own size F (the numbers live in ``harness.weights.bounds``), and a file that asks for more is
+refused with a one-line :class:`CheckpointLimitError` before the memory is taken:
 
-* archive members: their declared uncompressed sizes together at most ``SIZE_MULTIPLE`` (4) x F, checked before
-  any is read (a deflate bomb is refused up front); a legacy file's storages together at most F, checked before
-  they are allocated, and a storage the file leaves out is refused (it would read as uninitialised memory);
-* each tensor: at most 4 x F bytes once materialised as float32 (zero-stride ``expand`` tricks are refused);
-* the Python objects the pickle rebuilds: at most ``METADATA_FLOOR`` (48 MiB) + ``METADATA_MULTIPLE`` (2) x F,
-  charged opcode by opcode as they are made; allowed calls such as ``bytearray(n)`` or ``list(range(n))`` are
-  charged before they allocate;
+* archive members: their declared uncompressed sizes together at most ``ARCHIVE_MULTIPLE`` (2) x F, checked
+  before any is read (a deflate bomb is refused up front); a legacy file's storages together at most F, checked
+  before they are allocated, and a storage the file leaves out is refused (it would read as uninitialised memory);
+* each tensor: at most ``SIZE_MULTIPLE`` (4) x F bytes once materialised as float32 (zero-stride ``expand`` tricks
+  are refused);
+* the Python objects the pickle rebuilds, with the archive's entry records: at most ``METADATA_FLOOR`` (48 MiB) +
+  ``METADATA_MULTIPLE`` (2) x F, charged opcode by opcode as they are made; allowed calls such as ``bytearray(n)``
+  or ``list(range(n))`` are charged before they allocate;
 * dict keys and set items: small (hashing a deep or shared tuple takes exponential time or crashes the
   interpreter), and at most ``RISKY_KEYS`` keys whose hash a file can choose (numbers beyond 2**61, floats, tuples);
 * nothing is walked recursively: the unpickler is a stack machine over ``pickle``'s pure-Python opcode handlers,
@@ -43,16 +44,12 @@ from __future__ import annotations
 
 import _compat_pickle
 import collections
-import datetime
 import io
 import math
-import operator
-import pathlib
 import pickle
 import struct
 import zipfile
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
@@ -60,494 +57,17 @@ import numpy as np
 import torch
 
 from harness.errors import HarnessError
-
-
-class CheckpointFormatError(HarnessError):
-    """The file is not a readable PyTorch checkpoint."""
-
-
-class UnsafeCheckpointError(CheckpointFormatError):
-    """The checkpoint asks for a call outside the tensor-rebuild list (possibly code execution)."""
-
-
-class ForeignObjectError(UnsafeCheckpointError):
-    """A plain read (``load_plain``) met a class outside the rebuild list: the file pickles objects, not tensors."""
-
-
-class CheckpointLimitError(CheckpointFormatError):
-    """The file asks for more memory or work than its own size allows."""
-
-
-# ------------------------------------------------------------------------------------------------ bounds
-MiB = 1 << 20
-#: decompressed members, each tensor as float32, and the imported output: at most this many times the file's bytes
-SIZE_MULTIPLE = 4
-#: the Python objects the pickle rebuilds: at most METADATA_FLOOR + METADATA_MULTIPLE x the file's bytes
-METADATA_FLOOR = 48 * MiB
-METADATA_MULTIPLE = 2
-#: elements of one dict key or set item (a tuple key nested or shared beyond this is refused)
-KEY_NODES = 64
-#: What the whole import is held to (the tests measure it on every hostile file): peak memory above the
-#: interpreter's at most PEAK_FLOOR + PEAK_MULTIPLE x the file's bytes. It follows from the bounds above: the
-#: rebuilt objects (48 MiB + 2 F), the storages (F), one tensor being converted (4 F), and a few MiB of working room.
-PEAK_FLOOR = 64 * MiB
-PEAK_MULTIPLE = 8
-#: keys whose hash the file can choose (ints beyond +-2**61, floats, tuples): at most this many per file
-RISKY_KEYS = 1000
-MAX_DIMS = 64
-
-
-def human(n: int | float) -> str:
-    """``1536 -> '1.5 KiB'``."""
-    n = float(n)
-    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if abs(n) < 1024 or unit == "PiB":
-            return f"{int(n)} bytes" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    raise AssertionError  # pragma: no cover
-
-
-def brief(obj: Any, width: int = 60) -> str:
-    """A short description of any object that never walks into it (``repr`` of a hostile structure can take
-    exponential time, recurse without bound or fail on a huge integer)."""
-    if isinstance(obj, str):
-        return repr(obj if len(obj) <= width else obj[:width] + "...")
-    if isinstance(obj, bool) or obj is None:
-        return repr(obj)
-    if isinstance(obj, int):
-        return repr(obj) if obj.bit_length() <= 64 else f"<int of {obj.bit_length()} bits>"
-    if isinstance(obj, float):
-        return repr(obj)
-    if isinstance(obj, (bytes, bytearray)):
-        return f"<{type(obj).__name__} of {len(obj)}>"
-    if isinstance(obj, (list, tuple, dict, set, frozenset)):
-        return f"<{type(obj).__name__} of {len(obj)} items>"
-    if isinstance(obj, Stub):
-        return f"<{obj.stub_name}>"
-    if isinstance(obj, type) and issubclass(obj, Stub):
-        return obj.__stub_name__
-    if isinstance(obj, _Global):
-        return obj.name
-    if isinstance(obj, torch.Tensor):
-        return f"<tensor {tuple(obj.shape)}>"
-    return f"<{type(obj).__name__}>"
-
-
-@dataclass(frozen=True)
-class Limits:
-    """The bounds of one read, from the file's size (module docstring)."""
-
-    file_bytes: int
-
-    @property
-    def tensor_bytes(self) -> int:
-        """One tensor materialised as float32, the archive's members together, and the imported output."""
-        return SIZE_MULTIPLE * max(self.file_bytes, 1)
-
-    @property
-    def metadata_bytes(self) -> int:
-        return METADATA_FLOOR + METADATA_MULTIPLE * self.file_bytes
-
-    def of_file(self, multiple: int = SIZE_MULTIPLE) -> str:
-        return f"{multiple} x the file's {human(self.file_bytes)}"
-
-
-class _Budget:
-    """Memory the rebuilt Python objects may take; ``charge`` refuses the step that would exceed it."""
-
-    def __init__(self, limits: Limits):
-        self.limits, self.left = limits, limits.metadata_bytes
-
-    def charge(self, nbytes: int) -> None:
-        self.left -= nbytes
-        if self.left < 0:
-            raise CheckpointLimitError(
-                f"rebuilding the checkpoint's objects needs more than {human(self.limits.metadata_bytes)} of memory "
-                f"(the limit is {human(METADATA_FLOOR)} + {self.limits.of_file(METADATA_MULTIPLE)}); refused")
-
-
-# ------------------------------------------------------------------------------------------------ placeholders
-class _StubMeta(type):
-    """Metaclass of placeholder classes: calling one (pickle's REDUCE) is refused."""
-
-    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
-        raise UnsafeCheckpointError(
-            f"the checkpoint asks to call {cls.__stub_name__}(...); only tensors, containers and inert objects are "
-            f"rebuilt, so this call is refused and nothing from the file was run"
-        )
-
-
-class Stub(metaclass=_StubMeta):
-    """An inert stand-in for an instance of a class named in the checkpoint: its name, arguments and state."""
-
-    __stub_name__ = "Stub"
-
-    def __new__(cls, *args: Any, **kwargs: Any) -> "Stub":
-        obj = object.__new__(cls)
-        object.__setattr__(obj, "__stub_args__", args)
-        object.__setattr__(obj, "__stub_state__", None)
-        object.__setattr__(obj, "__stub_merged__", None)
-        return obj
-
-    def __setstate__(self, state: Any) -> None:
-        object.__setattr__(self, "__stub_state__", state)
-        object.__setattr__(self, "__stub_merged__", None)
-
-    def __reduce__(self) -> Any:  # never pickled back out
-        raise TypeError("placeholders from a restricted checkpoint read cannot be pickled")
-
-    def __repr__(self) -> str:
-        return f"<{self.__stub_name__} (placeholder)>"
-
-    @property
-    def stub_name(self) -> str:
-        return type(self).__stub_name__
-
-    @property
-    def state(self) -> dict[str, Any]:
-        """The recorded state as a dict (``{}`` when the file gave none or gave a non-dict state); built once."""
-        merged = self.__stub_merged__  # type: ignore[attr-defined]
-        if merged is None:
-            st = self.__stub_state__  # type: ignore[attr-defined]
-            if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):  # (dict, slotstate)
-                merged = {**st[0], **(st[1] if isinstance(st[1], dict) else {})}
-            else:
-                merged = st if isinstance(st, dict) else {}
-            object.__setattr__(self, "__stub_merged__", merged)
-        return merged
-
-    def get(self, key: str, default: Any = None) -> Any:
-        return self.state.get(key, default)
-
-
-def _stub_class(module: str, name: str) -> type:
-    qual = f"{module}.{name}"
-    return _StubMeta(name, (Stub,), {"__stub_name__": qual, "__module__": "harness.weights.stubs"})
-
-
-def stub_class(module: str, name: str) -> type:
-    """A placeholder class for a qualified name (each read makes its own, one per name, so names compare equal
-    across a file and nothing is kept between files)."""
-    return _stub_class(module, name)
-
-
-# ------------------------------------------------------------------------------------------------ the rebuild list
-class _Global:
-    """What an allowed global name resolves to: a token (``torch.Tensor`` as ``_rebuild_from_type_v2``'s type
-    argument), optionally with a checked implementation run when the file calls it."""
-
-    def __init__(self, name: str, call: Callable[..., Any] | None = None, value: Any = None):
-        self.name, self.call, self.value = name, call, value
-
-    def __repr__(self) -> str:
-        return f"<global {self.name}>"
-
-
-_STORAGE_DTYPES = {
-    "DoubleStorage": torch.float64, "FloatStorage": torch.float32, "HalfStorage": torch.float16,
-    "BFloat16Storage": torch.bfloat16, "LongStorage": torch.int64, "IntStorage": torch.int32,
-    "ShortStorage": torch.int16, "CharStorage": torch.int8, "ByteStorage": torch.uint8, "BoolStorage": torch.bool,
-    "ComplexFloatStorage": torch.complex64, "ComplexDoubleStorage": torch.complex128,
-    "UntypedStorage": torch.uint8,
-}
-_DTYPES = {name: getattr(torch, name) for name in (
-    "float64", "float32", "float16", "bfloat16", "int64", "int32", "int16", "int8", "uint8", "bool",
-    "complex64", "complex128", "double", "float", "half", "long", "int", "short")}
-
-
-class _StorageType:
-    """What a ``torch.XStorage`` name stands for here: just its dtype."""
-
-    def __init__(self, name: str):
-        self.name, self.dtype = name, _STORAGE_DTYPES[name]
-        self.itemsize = 1 if name == "UntypedStorage" else self.dtype.itemsize
-
-    def __repr__(self) -> str:
-        return f"torch.{self.name}"
-
-
-_ATOMS = (str, bytes, int, float, bool, complex, type(None))
-
-
-def _atoms(args: tuple, what: str) -> tuple:
-    for a in args:
-        if not isinstance(a, _ATOMS):
-            raise UnsafeCheckpointError(f"the checkpoint calls {what} with {brief(a)}; refused")
-        if isinstance(a, int) and a.bit_length() > 4096:
-            raise CheckpointLimitError(f"the checkpoint calls {what} with {brief(a)}; refused")
-    return args
-
-
-def _dims(value: Any, what: str) -> tuple[int, ...]:
-    if not isinstance(value, (tuple, list)) or len(value) > MAX_DIMS:
-        raise CheckpointFormatError(f"a tensor's {what} is {brief(value)}, not a tuple of at most {MAX_DIMS} ints")
-    try:
-        dims = tuple(operator.index(v) for v in value)
-    except TypeError:
-        raise CheckpointFormatError(f"a tensor's {what} holds a non-integer ({brief(value)})") from None
-    if any(d < 0 for d in dims):
-        raise CheckpointFormatError(f"a tensor's {what} {brief(dims)} is negative")
-    return dims
-
-
-def out_itemsize(dtype: torch.dtype) -> int:
-    """Bytes per element once imported (floating tensors become float32)."""
-    return 4 if dtype.is_floating_point else dtype.itemsize
-
-
-def _view(u: "_Unpickler", storage: Any, offset: Any, size: Any, stride: Any) -> torch.Tensor:
-    if not isinstance(storage, torch.Tensor):
-        raise CheckpointFormatError(f"a tensor is rebuilt from {brief(storage)}, not from a storage")
-    size, stride = _dims(size, "size"), _dims(stride, "stride")
-    try:
-        offset = operator.index(offset)
-    except TypeError:
-        raise CheckpointFormatError(f"a tensor's storage offset is {brief(offset)}") from None
-    if len(size) != len(stride) or offset < 0:
-        raise CheckpointFormatError(f"a tensor of size {size} has stride {stride} and offset {offset}")
-    numel = math.prod(size)
-    nbytes = numel * max(storage.element_size(), out_itemsize(storage.dtype))
-    if nbytes > u.limits.tensor_bytes:
-        raise CheckpointLimitError(
-            f"a tensor of size {size} (stride {stride}) expands to {human(nbytes)}, over {u.limits.of_file()}; "
-            f"refused")
-    if numel == 0:
-        return storage.new_empty(size)
-    need = offset + sum((s - 1) * st for s, st in zip(size, stride)) + 1
-    if need > storage.numel():
-        raise CheckpointFormatError(f"a tensor of size {size} reaches element {need} of a storage of {storage.numel()}")
-    # a view: legacy files fill their storages after the object pickle, and views see the bytes once they land
-    return storage.as_strided(size, stride, offset)
-
-
-def _rebuild_tensor(u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (),
-                    *rest: Any) -> torch.Tensor:
-    return _view(u, storage, offset, size, stride)
-
-
-def _rebuild_tensor_v3(u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (),
-                       requires_grad: Any = False, hooks: Any = None, dtype: Any = None, *rest: Any) -> torch.Tensor:
-    t = storage
-    if isinstance(t, torch.Tensor) and isinstance(dtype, torch.dtype) and t.dtype != dtype:
-        t = t.view(torch.uint8).view(dtype)
-    return _view(u, t, offset, size, stride)
-
-
-def _rebuild_parameter(u: "_Unpickler", data: Any = None, requires_grad: Any = True, *rest: Any) -> torch.Tensor:
-    if not isinstance(data, torch.Tensor):
-        raise CheckpointFormatError(f"a parameter is rebuilt from {brief(data)}, not from a tensor")
-    return torch.nn.Parameter(data, requires_grad=bool(requires_grad) and data.is_floating_point())
-
-
-def _rebuild_from_type_v2(u: "_Unpickler", func: Any = None, new_type: Any = None, args: Any = (),
-                          state: Any = None) -> Any:
-    if func not in (G_REBUILD_TENSOR, G_REBUILD_TENSOR_V2, G_REBUILD_TENSOR_V3, G_REBUILD_PARAMETER) \
-            or not isinstance(args, tuple):
-        raise UnsafeCheckpointError("the checkpoint rebuilds a tensor subclass through a function outside the "
-                                    "rebuild list; refused")
-    t = func.call(u, *args)
-    return torch.nn.Parameter(t, requires_grad=t.is_floating_point()) if new_type is G_PARAMETER else t
-
-
-def _items(u: "_Unpickler", iterable: Any, what: str) -> list:
-    """The items of an iterable argument, charged before they are made; only containers and ranges."""
-    if isinstance(iterable, range):
-        try:
-            n = len(iterable)
-        except OverflowError:
-            n = u.limits.metadata_bytes
-        u.budget.charge(40 * n)  # a list slot and an int object per item
-        return list(iterable)
-    if isinstance(iterable, (list, tuple, set, frozenset, str, bytes, bytearray)):
-        u.budget.charge(8 * len(iterable) + 56)
-        return list(iterable)
-    if isinstance(iterable, dict):
-        u.budget.charge(8 * len(iterable) + 56)
-        return list(iterable.items())
-    raise UnsafeCheckpointError(f"the checkpoint calls {what} on {brief(iterable)}; refused")
-
-
-def _pairs(u: "_Unpickler", arg: Any, what: str) -> list[tuple[Any, Any]]:
-    pairs = _items(u, arg, what)
-    if isinstance(arg, dict):
-        return pairs
-    for p in pairs:
-        if not isinstance(p, (tuple, list)) or len(p) != 2:
-            raise CheckpointFormatError(f"the checkpoint calls {what} with an item that is not a pair ({brief(p)})")
-        u.check_key(p[0])
-    u.budget.charge(104 * len(pairs))
-    return [tuple(p) for p in pairs]  # type: ignore[misc]
-
-
-def _call_list(u: "_Unpickler", iterable: Any = ()) -> list:
-    return _items(u, iterable, "list()")
-
-
-def _call_tuple(u: "_Unpickler", iterable: Any = ()) -> tuple:
-    return tuple(_items(u, iterable, "tuple()"))
-
-
-def _call_set(u: "_Unpickler", iterable: Any = ()) -> set:
-    items = _items(u, iterable, "set()")
-    for k in items:
-        u.check_key(k)
-    u.budget.charge(104 * len(items))
-    return set(items)
-
-
-def _call_frozenset(u: "_Unpickler", iterable: Any = ()) -> frozenset:
-    return frozenset(_call_set(u, iterable))
-
-
-def _call_dict(u: "_Unpickler", arg: Any = ()) -> dict:
-    return dict(_pairs(u, arg, "dict()"))
-
-
-def _call_ordered_dict(u: "_Unpickler", arg: Any = ()) -> collections.OrderedDict:
-    return collections.OrderedDict(_pairs(u, arg, "OrderedDict()"))
-
-
-def _call_defaultdict(u: "_Unpickler", factory: Any = None, arg: Any = ()) -> collections.defaultdict:
-    factories = {None: None, G_LIST: list, G_DICT: dict, G_INT: int, G_FLOAT: float, G_SET: set, G_STR: str,
-                 G_TUPLE: tuple}
-    if not (factory is None or isinstance(factory, _Global)) or factory not in factories:
-        raise UnsafeCheckpointError(f"the checkpoint builds a defaultdict with factory {brief(factory)}; refused")
-    return collections.defaultdict(factories[factory], _pairs(u, arg, "defaultdict()"))
-
-
-def _sized(u: "_Unpickler", ctor: type, args: tuple, what: str) -> Any:
-    """``bytes``/``bytearray`` from a size, a string and encoding, bytes, or a list or range of ints."""
-    if len(args) >= 1 and isinstance(args[0], int) and not isinstance(args[0], bool):
-        u.budget.charge(args[0] + 64)  # before the allocation: bytearray(8e9) is refused here
-        return ctor(args[0])
-    if len(args) >= 1 and isinstance(args[0], (list, tuple, range)):
-        return ctor(_items(u, args[0], what))
-    _atoms(args, what)
-    u.budget.charge(sum(len(a) for a in args if isinstance(a, (str, bytes))) * 4 + 64)
-    return ctor(*args)
-
-
-def _call_bytes(u: "_Unpickler", *args: Any) -> bytes:
-    return _sized(u, bytes, args, "bytes()")
-
-
-def _call_bytearray(u: "_Unpickler", *args: Any) -> bytearray:
-    return _sized(u, bytearray, args, "bytearray()")
-
-
-def _atomic(ctor: Callable[..., Any], what: str) -> Callable[..., Any]:
-    def call(u: "_Unpickler", *args: Any) -> Any:
-        _atoms(args, what)
-        u.budget.charge(sum(len(a) for a in args if isinstance(a, (str, bytes))) * 4 + 64)
-        return ctor(*args)
-    return call
-
-
-def _call_range(u: "_Unpickler", *args: Any) -> range:
-    _atoms(args, "range()")
-    return range(*args)
-
-
-def _call_slice(u: "_Unpickler", *args: Any) -> slice:
-    return slice(*_atoms(args, "slice()"))
-
-
-def _call_size(u: "_Unpickler", iterable: Any = ()) -> torch.Size:
-    items = _items(u, iterable, "torch.Size()")
-    return torch.Size(_dims(items, "torch.Size"))
-
-
-def _numpy_scalar(u: "_Unpickler", dtype: Any = None, data: Any = b"") -> Any:
-    if not isinstance(dtype, np.dtype) or dtype.hasobject or not isinstance(data, bytes) \
-            or len(data) < dtype.itemsize:
-        raise CheckpointFormatError(f"a NumPy scalar is rebuilt from {brief(dtype)} and {brief(data)}")
-    return np.frombuffer(data, dtype=dtype, count=1)[0].copy()
-
-
-def _numpy_dtype(u: "_Unpickler", spec: Any = None, *rest: Any) -> np.dtype:
-    if not isinstance(spec, str) or len(spec) > 64:
-        raise CheckpointFormatError(f"a NumPy dtype is rebuilt from {brief(spec)}")
-    dt = np.dtype(spec)
-    if dt.hasobject or dt.itemsize > u.limits.tensor_bytes:
-        raise UnsafeCheckpointError(f"the checkpoint builds the NumPy dtype {spec!r}; refused")
-    return dt
-
-
-def _numpy_reconstruct(u: "_Unpickler", cls: Any = None, *rest: Any) -> np.ndarray:
-    if cls is not G_NDARRAY:
-        raise UnsafeCheckpointError(f"the checkpoint rebuilds a NumPy array of class {brief(cls)}; refused")
-    return np.ndarray.__new__(np.ndarray, (0,), np.uint8)  # filled by BUILD (checked in _Unpickler._build)
-
-
-def _path(u: "_Unpickler", *parts: Any) -> str:
-    if not all(isinstance(p, str) for p in parts):
-        raise CheckpointFormatError("a path is rebuilt from something other than strings")
-    u.budget.charge(sum(len(p) for p in parts) + 64)
-    return str(pathlib.PurePosixPath(*parts))
-
-
-def _latin1_bytes(u: "_Unpickler", text: Any = None, encoding: Any = "latin1") -> bytes:
-    """Protocol-2 pickles write ``bytes`` as ``_codecs.encode(text, 'latin1')``: only that form is rebuilt."""
-    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
-        raise UnsafeCheckpointError("the checkpoint calls _codecs.encode with other than a latin1 string; refused")
-    u.budget.charge(len(text) + 64)
-    return text.encode("latin1")
-
-
-def _device(u: "_Unpickler", *args: Any) -> torch.device:
-    return torch.device(*_atoms(args, "torch.device()"))
-
-
-G_REBUILD_TENSOR = _Global("torch._utils._rebuild_tensor", _rebuild_tensor)
-G_REBUILD_TENSOR_V2 = _Global("torch._utils._rebuild_tensor_v2", _rebuild_tensor)
-G_REBUILD_TENSOR_V3 = _Global("torch._utils._rebuild_tensor_v3", _rebuild_tensor_v3)
-G_REBUILD_PARAMETER = _Global("torch._utils._rebuild_parameter", _rebuild_parameter)
-G_PARAMETER = _Global("torch.nn.parameter.Parameter")  # a token: calling it is refused
-G_TENSOR = _Global("torch.Tensor")
-G_NDARRAY = _Global("numpy.ndarray")
-G_LIST, G_TUPLE, G_SET = _Global("builtins.list", _call_list), _Global("builtins.tuple", _call_tuple), \
-    _Global("builtins.set", _call_set)
-G_DICT, G_INT, G_FLOAT, G_STR = _Global("builtins.dict", _call_dict), _Global("builtins.int", _atomic(int, "int()")), \
-    _Global("builtins.float", _atomic(float, "float()")), _Global("builtins.str", _atomic(str, "str()"))
-
-#: Every global the unpickler resolves to something real (others become placeholders, and calling them is refused).
-REBUILD: dict[tuple[str, str], Any] = {
-    ("torch._utils", "_rebuild_tensor"): G_REBUILD_TENSOR,
-    ("torch._utils", "_rebuild_tensor_v2"): G_REBUILD_TENSOR_V2,
-    ("torch._utils", "_rebuild_tensor_v3"): G_REBUILD_TENSOR_V3,
-    ("torch._utils", "_rebuild_parameter"): G_REBUILD_PARAMETER,
-    ("torch._utils", "_rebuild_parameter_with_state"): _Global("torch._utils._rebuild_parameter_with_state",
-                                                               _rebuild_parameter),
-    ("torch._tensor", "_rebuild_from_type_v2"): _Global("torch._tensor._rebuild_from_type_v2", _rebuild_from_type_v2),
-    ("torch.nn.parameter", "Parameter"): G_PARAMETER,
-    ("torch", "Tensor"): G_TENSOR,
-    ("torch", "Size"): _Global("torch.Size", _call_size),
-    ("torch", "device"): _Global("torch.device", _device),
-    ("collections", "OrderedDict"): _Global("collections.OrderedDict", _call_ordered_dict),
-    ("collections", "defaultdict"): _Global("collections.defaultdict", _call_defaultdict),
-    ("_codecs", "encode"): _Global("_codecs.encode", _latin1_bytes),
-    ("builtins", "set"): G_SET, ("builtins", "frozenset"): _Global("builtins.frozenset", _call_frozenset),
-    ("builtins", "list"): G_LIST, ("builtins", "tuple"): G_TUPLE, ("builtins", "dict"): G_DICT,
-    ("builtins", "int"): G_INT, ("builtins", "float"): G_FLOAT, ("builtins", "str"): G_STR,
-    ("builtins", "bytes"): _Global("builtins.bytes", _call_bytes),
-    ("builtins", "bytearray"): _Global("builtins.bytearray", _call_bytearray),
-    ("builtins", "bool"): _Global("builtins.bool", _atomic(bool, "bool()")),
-    ("builtins", "complex"): _Global("builtins.complex", _atomic(complex, "complex()")),
-    ("builtins", "slice"): _Global("builtins.slice", _call_slice),
-    ("builtins", "range"): _Global("builtins.range", _call_range),
-    ("datetime", "datetime"): _Global("datetime.datetime", _atomic(datetime.datetime, "datetime()")),
-    ("datetime", "date"): _Global("datetime.date", _atomic(datetime.date, "date()")),
-    ("datetime", "timedelta"): _Global("datetime.timedelta", _atomic(datetime.timedelta, "timedelta()")),
-    ("numpy", "dtype"): _Global("numpy.dtype", _numpy_dtype), ("numpy", "ndarray"): G_NDARRAY,
-    **{(m, "scalar"): _Global(f"{m}.scalar", _numpy_scalar) for m in ("numpy.core.multiarray",
-                                                                       "numpy._core.multiarray")},
-    **{(m, "_reconstruct"): _Global(f"{m}._reconstruct", _numpy_reconstruct) for m in ("numpy.core.multiarray",
-                                                                                         "numpy._core.multiarray")},
-    **{("pathlib", n): _Global(f"pathlib.{n}", _path) for n in ("Path", "PosixPath", "WindowsPath", "PurePath",
-                                                                 "PurePosixPath", "PureWindowsPath")},
-    **{("torch", n): _StorageType(n) for n in _STORAGE_DTYPES},
-    **{("torch", n): d for n, d in _DTYPES.items()},
-}
+from harness.weights.bounds import (ARCHIVE_MULTIPLE, KEY_NODES, METADATA_FLOOR, METADATA_MULTIPLE, PEAK_FLOOR,
+                                    PEAK_MULTIPLE, PIECE_BYTES, RISKY_KEYS, SIZE_MULTIPLE, ZIP_ENTRY_BYTES, Budget,
+                                    CheckpointFormatError, CheckpointLimitError, ForeignObjectError, Limits, MiB,
+                                    UnsafeCheckpointError, brief, human)
+from harness.weights.rebuild import (REBUILD, StorageType, Stub, Token, out_itemsize, stub_class,
+                                     tensor_dims)
+
+__all__ = ["load_checkpoint", "load_plain", "Stub", "stub_class", "REBUILD", "CheckpointFormatError",
+           "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError", "Limits", "brief", "human",
+           "out_itemsize", "MiB", "SIZE_MULTIPLE", "ARCHIVE_MULTIPLE", "METADATA_FLOOR", "METADATA_MULTIPLE",
+           "PEAK_FLOOR", "PEAK_MULTIPLE", "PIECE_BYTES", "KEY_NODES", "RISKY_KEYS"]
 
 
 # ------------------------------------------------------------------------------------------------ the unpickler
@@ -605,7 +125,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
 
     dispatch = dict(pickle._Unpickler.dispatch)
 
-    def __init__(self, source: _Source, load_storage: Callable[[tuple], torch.Tensor] | None, budget: _Budget,
+    def __init__(self, source: _Source, load_storage: Callable[[tuple], torch.Tensor] | None, budget: Budget,
                  placeholders: bool = True):
         super().__init__(source)
         self._source, self._load_storage, self.budget = source, load_storage, budget
@@ -676,7 +196,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         cls = self._classes.get(qual)
         if cls is None:
             self.budget.charge(2048 + 2 * len(qual))
-            cls = self._classes[qual] = _stub_class(module, name)
+            cls = self._classes[qual] = stub_class(module, name)
             self.stubs.add(qual)
         return cls
 
@@ -833,7 +353,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
     def _call(self, func: Any, args: Any) -> Any:
         if isinstance(func, type) and issubclass(func, Stub):
             func()  # refuses, naming the class
-        if not isinstance(func, _Global) or func.call is None:
+        if not isinstance(func, Token) or func.call is None:
             raise UnsafeCheckpointError(f"the checkpoint asks to call {brief(func)}(...); only the tensor-rebuild "
                                         f"list is called, so this call is refused and nothing from the file was run")
         if not isinstance(args, tuple):
@@ -859,7 +379,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         """``cls.__new__(cls, *args)``: a placeholder records its arguments; ``complex`` and the like are called."""
         if isinstance(cls, type) and issubclass(cls, Stub) and isinstance(args, tuple) and isinstance(kwargs, dict):
             return cls.__new__(cls, *args)
-        if isinstance(cls, _Global) and cls.call is not None and not kwargs:
+        if isinstance(cls, Token) and cls.call is not None and not kwargs:
             return self._call(cls, args)
         raise UnsafeCheckpointError(f"the checkpoint asks to create {brief(cls)} with __new__; refused")
 
@@ -916,16 +436,16 @@ def _set_array_state(arr: np.ndarray, state: Any) -> None:
     if not (isinstance(state, tuple) and len(state) == 5 and isinstance(state[2], np.dtype)
             and not state[2].hasobject and isinstance(state[4], bytes)):
         raise CheckpointFormatError(f"a NumPy array gets the state {brief(state)}")
-    shape = _dims(state[1], "NumPy shape")
+    shape = tensor_dims(state[1], "NumPy shape")
     if math.prod(shape) * state[2].itemsize != len(state[4]):
         raise CheckpointFormatError(f"a NumPy array of shape {shape} comes with {human(len(state[4]))}")
     arr.__setstate__(state)
 
 
 # ------------------------------------------------------------------------------------------------ the two formats
-def _storage_key(pid: tuple, where: str) -> tuple[_StorageType, str, int | None]:
+def _storage_key(pid: tuple, where: str) -> tuple[StorageType, str, int | None]:
     _, storage_type, key, _location, numel = (list(pid) + [None] * 5)[:5]
-    if not isinstance(storage_type, _StorageType):
+    if not isinstance(storage_type, StorageType):
         raise CheckpointFormatError(f"{where}: a storage of unknown type {brief(storage_type)}")
     if not isinstance(key, (str, int)) or isinstance(key, bool) or len(str(key)) > 256:
         raise CheckpointFormatError(f"{where}: a storage key {brief(key)}")
@@ -951,7 +471,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> bytearray:
             view[pos:pos + len(chunk)] = chunk
             pos += len(chunk)
     if pos != len(buf):
-        raise CheckpointFormatError(f"archive member {info.filename} holds {pos} of its {info.file_size} bytes")
+        raise CheckpointFormatError(f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} bytes")
     return buf
 
 
@@ -961,12 +481,15 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
         if _unsafe_member(info.filename):
             raise CheckpointFormatError(f"{path}: archive member {brief(info.filename, 100)} points outside the "
                                         f"archive; refused")
+    budget = Budget(limits)
+    budget.charge(sum(ZIP_ENTRY_BYTES + len(i.filename) + len(i.extra) + len(i.comment) for i in infos))
     declared = sum(info.file_size for info in infos)
-    if declared > limits.tensor_bytes:
+    if declared > limits.archive_bytes:
         big = max(infos, key=lambda i: i.file_size)
         raise CheckpointLimitError(
-            f"{path}: its archive members expand to {human(declared)} ({big.filename}: {human(big.file_size)} from "
-            f"{human(big.compress_size)}), over {limits.of_file()}; refused before decompressing")
+            f"{path}: its archive members expand to {human(declared)} ({brief(big.filename, 80)[1:-1]}: "
+            f"{human(big.file_size)} from {human(big.compress_size)}), over {limits.of_file(ARCHIVE_MULTIPLE)}; "
+            f"refused before decompressing")
     names = {info.filename: info for info in infos}
     pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
     if not pkl:
@@ -993,7 +516,7 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
         return cache[key]
 
     data = bytes(_read_member(zf, names[pkl[0]]))
-    unpickler = _Unpickler(_Source(io.BytesIO(data), len(data)), load_storage, _Budget(limits), placeholders)
+    unpickler = _Unpickler(_Source(io.BytesIO(data), len(data)), load_storage, budget, placeholders)
     obj = unpickler.load()
     return obj, unpickler.stubs
 
@@ -1006,7 +529,7 @@ def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) ->
 
     Storages are allocated when the object pickle names them, so their declared sizes together must fit in the
     file's bytes; every storage named must then be filled from the file, or the read is refused."""
-    source, budget = _Source(f, limits.file_bytes), _Budget(limits)
+    source, budget = _Source(f, limits.file_bytes), Budget(limits)
 
     def plain() -> Any:
         return _Unpickler(source, None, budget, placeholders=False).load()
