@@ -399,7 +399,8 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
             p.glob("evil", f"C{i}").raw(b"a")
     torch_zip(add("stub_class_flood", r"needs more than .*refused", "40,000 distinct class names: a class each",
                   plain=False), _with_model(class_flood), {"0": W_BYTES})
-    torch_zip(add("memo_flood", r"needs more than .*refused|no model found", "600 KB of MEMOIZE: 60 MB of memo", plain=False),
+    torch_zip(add("memo_flood", r"needs more than .*refused|no model found", "600 KB of MEMOIZE: 60 MB of memo",
+                  plain=False),
               b"\x80\x04N" + b"\x94" * 600_000 + b".")
     # --- shared and nested structures ------------------------------------------------------------------------------
     kind[0] = "shared and nested"
@@ -470,7 +471,8 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
     # --- not checkpoints at all --------------------------------------------------------------------------------
     kind[0] = "not checkpoints"
     add("empty_file", r"not a (readable )?PyTorch checkpoint", "an empty file").write_bytes(b"")
-    add("random_bytes", r"not a (readable )?PyTorch checkpoint", "random bytes").write_bytes(random.Random(0).randbytes(4096))
+    add("random_bytes", r"not a (readable )?PyTorch checkpoint", "random bytes").write_bytes(
+        random.Random(0).randbytes(4096))
     return cases
 
 

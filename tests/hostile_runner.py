@@ -2,14 +2,14 @@
 
 ``python tests/hostile_runner.py CASES.json`` reads ``[{"name", "path", "mode"}, ...]`` (mode ``import``:
 ``import_checkpoint``; ``cli``: ``harness weights import`` through the command line; ``plain``: what ``--init``
-does, which is also how a run resumes from ``last.pt``),
-imports the harness once, then forks a worker that sets ``RLIMIT_AS`` to its address space plus ``--allowance``
-bytes and runs the cases one after another. For each it reports the outcome (``ok``, ``error`` for a
-``HarnessError``, ``exception`` for anything else), the message, the time and the peak resident memory above the
-resident memory the case started with (freed memory is handed back with ``malloc_trim`` and Linux's peak,
-``VmHWM`` = ``getrusage().ru_maxrss``, is reset through ``/proc/self/clear_refs`` before each case). A case still running after ``--timeout`` seconds is killed (``hang``),
-one that kills the worker is a ``crash``; either way a new worker goes on with the next case. One JSON list goes to
-stdout.
+does, which is also how a run resumes from ``last.pt``), imports the harness once, then forks a worker that sets
+``RLIMIT_AS`` to its address space plus ``--allowance`` bytes and runs the cases one after another. For each it
+reports the outcome (``ok``, ``error`` for a ``HarnessError``, ``exception`` for anything else), the message, the
+time and the peak resident memory above the resident memory the case started with (freed memory is handed back
+with ``malloc_trim``, and Linux's peak, ``VmHWM`` = ``getrusage().ru_maxrss``, is reset through
+``/proc/self/clear_refs`` before each case). A case still running after ``--timeout`` seconds is killed
+(``hang``), one that kills the worker is a ``crash``; either way a new worker goes on with the next case. One JSON
+list goes to stdout.
 """
 
 from __future__ import annotations

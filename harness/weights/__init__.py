@@ -5,9 +5,10 @@ no code from the file runs, no package of the codebase that wrote it is needed),
 present, ``harness.weights.tree``), extracts its parameters and persistent buffers as a state dict (half precision
 cast to float32), describes the layout (``harness.weights.layout``: YOLOv8 scale, classes, input channels; YOLOv5
 scale; two input streams), and writes ``DST.safetensors`` in pieces of at most 16 MiB with a JSON sidecar
-``DST.json`` of what was found. The work is bounded by the file's size (``harness.weights.unpickle``): the tensors and their names
-as float32 may take at most ``SIZE_MULTIPLE`` (4) x the file's bytes, the sidecar's copy of the metadata is
-bounded (``harness.weights.layout``), and an allocation that fails anyway is a one-line error naming the file.
+``DST.json`` of what was found. The work is bounded by the file's size (``harness.weights.unpickle``): the tensors
+and their names as float32 may take at most ``SIZE_MULTIPLE`` (4) x the file's bytes, the sidecar's copy of the
+metadata is bounded (``harness.weights.layout``), and an allocation that fails anyway is a one-line error naming
+the file.
 
 The result is a plain state dict in the codebase's own key layout, which ``harness run --init``, the
 ``model.weights`` option of the detectors and ``harness pretrain --init`` read through each detector's importer.

@@ -32,8 +32,8 @@ class _StubMeta(type):
 
     def __call__(cls, *args: Any, **kwargs: Any) -> Any:
         raise UnsafeCheckpointError(
-            f"the checkpoint asks to call {cls.__stub_name__[:100]}(...); only tensors, containers and inert objects are "
-            f"rebuilt, so this call is refused and nothing from the file was run"
+            f"the checkpoint asks to call {cls.__stub_name__[:100]}(...); only tensors, containers and inert objects "
+            f"are rebuilt, so this call is refused and nothing from the file was run"
         )
 
 

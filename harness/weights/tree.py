@@ -42,7 +42,7 @@ def module_state_dict(root: Stub, max_bytes: int | None = None) -> dict[str, tor
         seen.add(id(m))
         st = m.state
         skip = st.get("_non_persistent_buffers_set")
-        skip = skip if isinstance(skip, (set, frozenset, list, tuple)) else ()
+        skip = {s for s in skip if isinstance(s, str)} if isinstance(skip, (set, frozenset, list, tuple)) else set()
         for group in ("_parameters", "_buffers"):
             entries = st.get(group)
             for name, value in (entries.items() if isinstance(entries, Mapping) else ()):

@@ -471,7 +471,8 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> bytearray:
             view[pos:pos + len(chunk)] = chunk
             pos += len(chunk)
     if pos != len(buf):
-        raise CheckpointFormatError(f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} bytes")
+        raise CheckpointFormatError(f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} "
+                                    f"bytes")
     return buf
 
 
