@@ -321,6 +321,8 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
                                "ICAFusion checkpoint + os.system in opt"), extra={"opt": _Shell(marker)})
     _ultralytics(add("ultralytics_clean", None, "control: a genuine Ultralytics checkpoint"), model)
     save_yolov5_style(ica, add("icafusion_clean", None, "control: a genuine ICAFusion checkpoint"))
+    torch.save({"model": {"w": torch.ones(4), "big": torch.zeros(1 << 21)}},
+               add("plain_state_dict", None, "control: an 8 MB plain state dict"))
     # --- archive tricks -------------------------------------------------------------------------------------------
     kind[0] = "archive"
     torch_zip(add("zip_traversal_names", r"points outside the archive", "member names ../data.pkl, ../data/0"),

@@ -1,6 +1,6 @@
 """Run checkpoint reads under a memory limit in a forked worker, and report what each did.
 
-``python tests/hostile_runner.py CASES.json`` reads ``[{"name", "path", "mode"}, ...]`` (mode ``import``:
+``python tests/hostile_runner.py CASES.json`` reads ``[{"name", "path", "mode"[, "allowance"]}, ...]`` (mode ``import``:
 ``import_checkpoint``; ``cli``: ``harness weights import`` through the command line; ``plain``: what ``--init``
 does, which is also how a run resumes from ``last.pt``), imports the harness once, then forks a worker that sets
 ``RLIMIT_AS`` to its address space plus ``--allowance`` bytes and runs the cases one after another. For each it
@@ -88,6 +88,8 @@ def _worker(cases: list[dict], allowance: int, w: int) -> None:
     limit = _status()["VmSize"] + allowance
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     for case in cases:
+        soft = min(_status()["VmSize"] + case["allowance"], limit) if "allowance" in case else limit
+        resource.setrlimit(resource.RLIMIT_AS, (soft, limit))  # a case may ask for less room than the others
         try:
             line = json.dumps(_case(case))
         except BaseException as exc:  # pragma: no cover

@@ -31,6 +31,7 @@ PEAK_FLOOR, PEAK_MULTIPLE = 64 * MiB, 8  # the stated bound (docs/detectors.md):
 SECONDS = 5.0  # a read that takes longer counts as a hang (the runner kills one at 30 s)
 KINDS = ("code execution", "persistent_load", "genuine checkpoints", "archive", "tensor sizes",
          "allowed calls and floods", "shared and nested", "legacy format", "not checkpoints")
+ROOM_MIB = (1, 4, 16)  # address space left to reads of genuine files: allocations fail at different places
 CLI_CASES = ("reduce_os_system", "ultralytics_payload_in_model", "zip_deflate_bomb", "expand_40gb", "bytearray_8e9",
              "doubled_40_small_file", "deep_module_tree_3000", "legacy_missing_storage", "ultralytics_clean")
 
@@ -43,6 +44,10 @@ def corpus(tmp_path_factory):
     runs = [{"name": c.name, "path": str(c.path), "mode": "import"} for c in cases]
     runs += [{"name": c.name, "path": str(c.path), "mode": "plain"} for c in cases if c.plain]
     runs += [{"name": c.name, "path": str(c.path), "mode": "cli"} for c in cases if c.name in CLI_CASES]
+    # first, while the worker's address space has little free room inside it: reads with too little memory left
+    genuine, plain = (next(c for c in cases if c.name == n) for n in ("ultralytics_clean", "plain_state_dict"))
+    runs = [{"name": f"{c.name}@{m}", "path": str(c.path), "mode": mode, "allowance": m * MiB}
+            for c, mode in ((genuine, "import"), (plain, "plain")) for m in ROOM_MIB] + runs
     spec = folder / "runs.json"
     spec.write_text(json.dumps(runs))
     allowance = PEAK_FLOOR + PEAK_MULTIPLE * max(c.path.stat().st_size for c in cases) + 256 * MiB
@@ -188,3 +193,17 @@ def test_resuming_from_a_last_checkpoint_that_does_not_fit_is_a_one_line_error(t
     with pytest.raises(ckpt.CheckpointError, match=r"last\.pt: cannot resume from it \(") as err:
         trainer.fit(resume=True)
     assert "\n" not in str(err.value)
+
+
+def test_an_allocation_that_fails_is_a_one_line_error_naming_the_file(corpus):
+    """Genuine files read with too little memory left: wherever the allocation fails (reading the archive,
+    rebuilding objects, converting or writing tensors), the result is a one-line error naming the file."""
+    for name, mode in (("ultralytics_clean", "import"), ("plain_state_dict", "plain")):
+        path = str(corpus["cases"][name].path)
+        results = [corpus["results"][(f"{name}@{m}", mode)] for m in ROOM_MIB]
+        for r in results:
+            assert r["outcome"] in ("ok", "error"), r
+            if r["outcome"] == "error":
+                assert "\n" not in r["message"].strip() and path in r["message"], r["message"]
+        failed = [r for r in results if r["outcome"] == "error"]
+        assert failed and all("memory" in r["message"] for r in failed), [r["message"] for r in failed]

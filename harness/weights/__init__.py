@@ -142,9 +142,9 @@ def import_checkpoint(src: str | Path, out: str | Path) -> ImportResult:
         meta = {"format": "rgbt-harness-import", "family": str(lay["family"]),
                 "source_sha256": info["source_sha256"]}
         atomic_write(out, lambda f: write_safetensors(f, raw, meta))
-    sidecar = out.with_suffix(".json")
-    info["weights"] = str(out)
-    atomic_write_json(sidecar, info)
+        sidecar = out.with_suffix(".json")
+        info["weights"] = str(out)
+        atomic_write_json(sidecar, info)
     log.debug("%s: %d tensors (%s, scale %s, nc %s, %s input channel(s)%s) -> %s", src, info["tensors"],
               lay["family"], lay["scale"], lay["nc"], lay["in_channels"], ", two streams" if lay["two_stream"] else "",
               out)
