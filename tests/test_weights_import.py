@@ -227,3 +227,43 @@ def test_pretrain_starts_from_an_imported_checkpoint(tmp_path, host, monkeypatch
     assert res.checkpoint.exists()
     init = Store(tmp_path / "store").run(RunKey("shapes", "ours", "test-ir8", "A", 0)).read_metrics()["train"]["init"]
     assert init["path"] == str(out) and init["loaded"] > 300 and init["stem"]["checkpoint_channels"] == 3
+
+
+def test_the_import_written_one_tensor_at_a_time_reads_back_as_the_safetensors_library_writes_it(tmp_path):
+    """The import streams its output (``write_safetensors``) instead of building it in memory; the file holds
+    exactly what the safetensors library writes for the same float32 state dict."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save
+
+    g = torch.Generator().manual_seed(0)
+    odd = {"model": {"half": torch.randn(3, 4, generator=g).half(), "bf16": torch.randn(5, generator=g).bfloat16(),
+                     "f64": torch.randn(2, 2, generator=g).double(), "mask": torch.tensor([True, False, True]),
+                     "steps": torch.tensor(7), "empty": torch.zeros(0, 3), "codes": torch.arange(6, dtype=torch.int8),
+                     "strided": torch.arange(12.0).reshape(3, 4).t()}}
+    torch.save(odd, tmp_path / "odd.pt")
+    for src in (save_ultralytics(_ours(), tmp_path / "best.pt", NAMES), tmp_path / "odd.pt"):
+        res = import_checkpoint(src, tmp_path / "w.safetensors")
+        sd, info = read_checkpoint_weights(src)
+        meta = {"format": "rgbt-harness-import", "family": info["layout"]["family"],
+                "source_sha256": info["source_sha256"]}
+        (tmp_path / "lib.safetensors").write_bytes(save(sd, metadata=meta))
+        ours, lib = load_file(str(res.weights)), load_file(str(tmp_path / "lib.safetensors"))
+        assert ours.keys() == lib.keys() == sd.keys()
+        for k in lib:
+            assert ours[k].dtype == lib[k].dtype and ours[k].shape == lib[k].shape and torch.equal(ours[k], lib[k]), k
+        with safe_open(str(res.weights), "pt") as f:
+            assert f.metadata() == meta
+
+
+def test_tensors_are_written_in_pieces_that_cover_them_in_row_major_order():
+    from harness.weights import _pieces
+
+    g = torch.Generator().manual_seed(0)
+    tensors = [torch.randn(7, 5, 3, generator=g), torch.randn(6, 4, generator=g).t(), torch.randn(1).expand(9, 4),
+               torch.randn(3, 1, 5, generator=g).expand(3, 4, 5), torch.arange(50.0), torch.tensor(3.0),
+               torch.zeros(0, 4)]
+    for t in tensors:
+        for limit in (1, 12, 40, 10_000):
+            pieces = list(_pieces(t, limit))
+            assert torch.equal(torch.cat([p.reshape(-1) for p in pieces]), t.reshape(-1)), (t.shape, limit)
+            assert all(p.numel() * 4 <= limit or p.numel() == 1 for p in pieces), (t.shape, limit)

@@ -32,9 +32,11 @@ def register_commands(cli: click.Group) -> None:
     def import_cmd(src: str, out: str, as_json: bool) -> None:
         """Convert a pickled checkpoint SRC into DST.safetensors plus DST.json, executing nothing from SRC.
 
-        Reads Ultralytics (.pt from its trainer or YOLO.save()), YOLOv5 and ICAFusion checkpoints: tensors and
-        containers are rebuilt, every other class becomes an inert placeholder, and any other call the file asks
-        for is refused. EMA weights are taken when present; half precision is cast to float32.
+        \b
+        Reads Ultralytics (.pt from its trainer or YOLO.save()), YOLOv5 and ICAFusion checkpoints:
+        tensors and containers are rebuilt, every other class becomes an inert placeholder, any other
+        call the file asks for is refused, and every size is bounded by the file's own (a hostile file
+        gets a one-line error). EMA weights are taken when present; half precision is cast to float32.
         Use the result with `harness run --init DST.safetensors` or `--set model.weights=DST.safetensors`.
         """
         from harness.weights import import_checkpoint

@@ -1,10 +1,13 @@
-"""Checkpoints: written atomically (``harness.io``), read with ``weights_only=True``, resumable to the same state.
+"""Checkpoints: written atomically (``harness.io``), read weights-only and bounded, resumable to the same state.
 
 A training checkpoint (``last.pt``) holds everything a resumed run needs to continue exactly where the
 interrupted one stopped: model and EMA weights, optimiser (and AMP scaler) state, the position in the schedule, the
 random-number generators of Python, NumPy and torch, the best fitness so far and the per-epoch history. The best
 checkpoint (``best.pt``) holds the weights that scored the best fitness. Both are plain dictionaries of tensors and
-built-in types, so ``torch.load(..., weights_only=True)`` reads them without unpickling arbitrary objects.
+built-in types. ``load`` reads them (and ``--init`` files) with the harness's restricted unpickler in its plain mode
+(``harness.weights.unpickle.load_plain``): what ``torch.load(..., weights_only=True)`` accepts, without unpickling
+arbitrary objects, and with every size bounded by the file's own (a hostile file gets a one-line error, never a hang
+or an allocation it cannot fill).
 """
 
 from __future__ import annotations
@@ -47,17 +50,27 @@ def load(path: str | Path) -> dict[str, Any]:
             return dict(load_file(str(path)))
         except Exception as exc:
             raise CheckpointError(f"{path}: not a readable safetensors file ({exc})") from None
+    from harness.weights.unpickle import UnsafeCheckpointError, load_plain
+
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle errors, truncated files, foreign objects
+        obj = load_plain(path)
+    except UnsafeCheckpointError as exc:  # a pickled object or a call outside the tensor-rebuild list
         raise CheckpointError(
-            f"{path}: cannot be read as a weights-only checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0]}). "
+            f"{path}: cannot be read as a weights-only checkpoint ({_reason(exc, path)}). "
             f"If it pickles a whole model object (Ultralytics, YOLOv5, ICAFusion checkpoints), convert it safely with "
             f"`harness weights import {path} --out weights.safetensors` and use that file"
         ) from None
+    except HarnessError as exc:  # unreadable, truncated, or asking for more than the file's size allows
+        raise CheckpointError(str(exc)) from None
     if not isinstance(obj, dict):
         raise CheckpointError(f"{path}: expected a dictionary (a state dict or a harness checkpoint), got {type(obj).__name__}")
     return obj
+
+
+def _reason(exc: Exception, path: Path) -> str:
+    """An error's message without the file name it starts with (the caller's message names the file)."""
+    text = str(exc)
+    return text[len(str(path)) + 2:] if text.startswith(f"{path}: ") else text
 
 
 def rng_state() -> dict[str, Any]:
@@ -118,7 +131,10 @@ def init_from(model: nn.Module, path: str | Path,
               load_official: Callable[[nn.Module, Mapping[str, Any]], dict] | None = None) -> dict[str, Any]:
     """Initialise ``model`` from a checkpoint (``--init``): the detector's own importer when it has one (it knows
     its official layout, e.g. inflating a 3-channel stem to 4 channels), else every tensor matching by name and shape."""
-    state = state_dict_of(load(path))
+    try:
+        state = state_dict_of(load(path))
+    except CheckpointError as exc:
+        raise CheckpointError(exc.args[0] if str(path) in str(exc) else f"{path}: {exc}") from None
     if load_official is not None:
         report = dict(load_official(model, state) or {})
         report.setdefault("importer", "detector")

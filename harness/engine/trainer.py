@@ -197,17 +197,25 @@ class Trainer:
             if state.get("config_hash", "") != self.config_hash:
                 log.warning("%s was written by a different configuration; starting this run again", self.last_path)
             else:
-                model.load_state_dict(state["model"])
-                opt.load_state_dict(state["optimizer"])
-                if state.get("scaler"):
-                    scaler.load_state_dict(state["scaler"])
-                if self.ema is not None and state.get("ema"):
-                    self.ema.load_state_dict(state["ema"])
-                ckpt.set_rng_state(state["rng"])
-                start_epoch = int(state["epoch"]) + 1
-                best_fit, best_epoch = state.get("best_fitness"), state.get("best_epoch")
-                history = list(state.get("history", []))
-                last_opt_step = int(state.get("last_opt_step", start_epoch * nb - 1))
+                try:  # a last.pt that reads as plain tensors may still not fit: a clear error, not a traceback
+                    model.load_state_dict(state["model"])
+                    opt.load_state_dict(state["optimizer"])
+                    if state.get("scaler"):
+                        scaler.load_state_dict(state["scaler"])
+                    if self.ema is not None and state.get("ema"):
+                        self.ema.load_state_dict(state["ema"])
+                    ckpt.set_rng_state(state["rng"])
+                    start_epoch = int(state["epoch"]) + 1
+                    best_fit, best_epoch = state.get("best_fitness"), state.get("best_epoch")
+                    history = list(state.get("history", []))
+                    if not all(isinstance(h, dict) for h in history):
+                        raise TypeError("its history is not a list of epoch records")
+                    last_opt_step = int(state.get("last_opt_step", start_epoch * nb - 1))
+                except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as exc:
+                    raise ckpt.CheckpointError(
+                        f"{self.last_path}: cannot resume from it ({type(exc).__name__}: "
+                        f"{(str(exc).splitlines() or [''])[0][:160]}); delete it to train this run from the start"
+                    ) from None
                 resumed_from = start_epoch
                 if state.get("done"):
                     log.info("%s: training already complete (%d epochs)", self.name, start_epoch)

@@ -13,7 +13,7 @@ from typing import Any, Mapping
 import torch
 
 from harness.errors import HarnessError
-from harness.weights.unpickle import Stub
+from harness.weights.unpickle import CheckpointFormatError, CheckpointLimitError, Stub, brief, human, out_itemsize
 
 #: Checkpoint keys that hold a model, most preferred first (EMA weights are what the trainers evaluate and ship).
 MODEL_KEYS = ("ema", "model", "state_dict", "model_state_dict", "net", "module")
@@ -24,27 +24,44 @@ def is_module(obj: Any) -> bool:
         and isinstance(obj.state.get("_parameters"), Mapping)
 
 
-def module_state_dict(root: Stub) -> dict[str, torch.Tensor]:
-    """``prefix.name -> tensor`` for every parameter and persistent buffer of the placeholder module tree."""
-    out: dict[str, torch.Tensor] = {}
+def module_state_dict(root: Stub, max_bytes: int | None = None) -> dict[str, torch.Tensor]:
+    """``prefix.name -> tensor`` for every parameter and persistent buffer of the placeholder module tree.
 
-    def walk(m: Stub, prefix: str, seen: set[int]) -> None:
-        if id(m) in seen:  # a module shared at two places is listed at its first one, as state_dict() does
-            return
+    The tree is walked with an explicit stack (a file can nest modules thousands deep), each module once (a module
+    shared at two places, or one that contains itself, is listed at its first place, as ``state_dict()`` does).
+    ``max_bytes`` bounds what the result would take as an imported file (key characters plus float32 tensor bytes):
+    :class:`CheckpointLimitError` is raised as soon as the walk passes it."""
+    out: dict[str, torch.Tensor] = {}
+    seen: set[int] = set()
+    stack: list[tuple[Stub, str]] = [(root, "")]
+    total = 0
+    while stack:
+        m, prefix = stack.pop()
+        if id(m) in seen:
+            continue
         seen.add(id(m))
         st = m.state
-        for name, value in (st.get("_parameters") or {}).items():
-            if isinstance(value, torch.Tensor):
-                out[prefix + name] = value
-        skip = set(st.get("_non_persistent_buffers_set") or ())
-        for name, value in (st.get("_buffers") or {}).items():
-            if isinstance(value, torch.Tensor) and name not in skip:
-                out[prefix + name] = value
-        for name, child in (st.get("_modules") or {}).items():
+        skip = st.get("_non_persistent_buffers_set")
+        skip = {s for s in skip if isinstance(s, str)} if isinstance(skip, (set, frozenset, list, tuple)) else set()
+        for group in ("_parameters", "_buffers"):
+            entries = st.get(group)
+            for name, value in (entries.items() if isinstance(entries, Mapping) else ()):
+                if not isinstance(value, torch.Tensor) or (group == "_buffers" and name in skip):
+                    continue
+                if not isinstance(name, str):
+                    raise CheckpointFormatError(f"module {prefix or '<root>'} names a tensor {brief(name)}, "
+                                                f"not a string")
+                key = prefix + name
+                total += len(key) + value.numel() * out_itemsize(value.dtype)
+                if max_bytes is not None and total > max_bytes:
+                    raise CheckpointLimitError(f"its model's tensors and names add up to more than {human(max_bytes)}"
+                                               f" as float32 (reached at {brief(key, 80)}); refused")
+                out[key] = value
+        children = st.get("_modules")
+        children = list(children.items()) if isinstance(children, Mapping) else []
+        for name, child in reversed(children):  # reversed onto the stack: visited in their own order
             if is_module(child):
-                walk(child, f"{prefix}{name}.", seen)
-
-    walk(root, "", set())
+                stack.append((child, f"{prefix}{name if isinstance(name, str) else brief(name)}."))
     return out
 
 
@@ -70,7 +87,12 @@ def find_model(obj: Any, where: str) -> tuple[Any, str]:
                 return value, key
             if is_module(getattr(value, "state", {}).get("module") if isinstance(value, Stub) else None):
                 return value.state["module"], f"{key}.module"  # type: ignore[union-attr]
-    kinds = sorted(obj) if isinstance(obj, Mapping) else type(obj).__name__
+    if isinstance(obj, Mapping):
+        keys = sorted(k if isinstance(k, str) else brief(k) for k in list(obj)[:1000])
+        kinds = ", ".join(brief(k, 40)[1:-1] for k in keys[:12]) + (f" and {len(obj) - 12} more" if len(obj) > 12
+                                                                    else "")
+    else:
+        kinds = brief(obj)
     raise HarnessError(f"{where}: no model found (looked for a module or a state dict at the top level and under "
                        f"{', '.join(MODEL_KEYS)}; the file holds {kinds})")
 

@@ -1,4 +1,4 @@
-"""Reading pickled PyTorch checkpoints without executing any code from the file.
+"""Reading pickled PyTorch checkpoints without executing any code from the file, with work bounded by its size.
 
 A ``torch.save`` file is a zip archive (``<name>/data.pkl`` plus one raw storage per tensor under ``<name>/data/``)
 or, before PyTorch 1.6, a stream of pickles followed by the raw storages. The pickle describes how to rebuild
@@ -11,23 +11,45 @@ command. ``load_checkpoint`` reads the same files with a restricted unpickler:
 * **every other class** becomes an inert :class:`Stub` that records its qualified name, the arguments it was
   created with and the state the file gives it. Nothing of the named class is imported, so a checkpoint of
   Ultralytics' ``DetectionModel`` or YOLOv5's ``Model`` reads without those packages, and their modules'
-  parameters and buffers can be found in the recorded state (``harness.weights.tree``);
-* **every other callable** is refused: a file that asks to call ``posix.system``, ``builtins.eval`` or any name
-  outside the rebuild list raises :class:`UnsafeCheckpointError` naming it, before anything is called.
+  parameters and buffers can be found in the recorded state (``harness.weights.tree``). With
+  ``placeholders=False`` (``load_plain``: ``--init``, resuming, ``model.weights``) such a class is refused instead;
+* **every other callable** is refused: a file that asks to call ``posix.system``, ``builtins.eval``,
+  ``torch.Tensor`` or any name outside the rebuild list raises :class:`UnsafeCheckpointError` naming it, before
+  anything is called. Placeholders are created with ``NEWOBJ`` (``cls.__new__``), which is how protocol-2 pickles
+  create instances; calling a placeholder class (``REDUCE``: "call this with these arguments") is the refusal.
 
-Placeholders are created with ``NEWOBJ`` (``cls.__new__``), which is how protocol-2 pickles create instances;
-calling a placeholder class (the ``REDUCE`` opcode: "call this with these arguments") is the refusal.
+A hostile file can also try to exhaust memory or time instead of running code. Everything the reader builds is
+bounded by the file's own size F (the numbers live in ``harness.weights.bounds``), and a file that asks for more is
+refused with a one-line :class:`CheckpointLimitError` before the memory is taken:
+
+* archive members: their declared uncompressed sizes together at most ``ARCHIVE_MULTIPLE`` (2) x F, checked
+  before any is read (a deflate bomb is refused up front); a legacy file's storages together at most F, checked
+  before they are allocated, and a storage the file leaves out is refused (it would read as uninitialised memory);
+* each tensor: at most ``SIZE_MULTIPLE`` (4) x F bytes once materialised as float32 (zero-stride ``expand`` tricks
+  are refused);
+* the Python objects the pickle rebuilds, with the archive's entry records: at most ``METADATA_FLOOR`` (48 MiB) +
+  ``METADATA_MULTIPLE`` (2) x F, charged opcode by opcode as they are made; allowed calls such as ``bytearray(n)``
+  or ``list(range(n))`` are charged before they allocate;
+* dict keys and set items: small (hashing a deep or shared tuple takes exponential time or crashes the
+  interpreter), and at most ``RISKY_KEYS`` keys whose hash a file can choose (numbers beyond 2**61, floats, tuples);
+* nothing is walked recursively: the unpickler is a stack machine over ``pickle``'s pure-Python opcode handlers,
+  and the walks over its result (``harness.weights.tree``, ``harness.weights.layout``) are iterative and visit a
+  shared object once.
+
+With these, a whole import stays within ``PEAK_FLOOR`` (64 MiB) + ``PEAK_MULTIPLE`` (8) x F of memory above the
+interpreter's own (``tests/test_weights_hostile.py`` measures it on a corpus of hostile files).
 """
 
 from __future__ import annotations
 
 import _compat_pickle
 import collections
-import datetime
 import io
-import pathlib
+import math
 import pickle
+import struct
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
@@ -35,209 +57,130 @@ import numpy as np
 import torch
 
 from harness.errors import HarnessError
+from harness.weights.bounds import (ARCHIVE_MULTIPLE, KEY_NODES, METADATA_FLOOR, METADATA_MULTIPLE, PEAK_FLOOR,
+                                    PEAK_MULTIPLE, PIECE_BYTES, RISKY_KEYS, SIZE_MULTIPLE, ZIP_ENTRY_BYTES, Budget,
+                                    CheckpointFormatError, CheckpointLimitError, ForeignObjectError, Limits, MiB,
+                                    UnsafeCheckpointError, brief, human)
+from harness.weights.rebuild import (REBUILD, StorageType, Stub, Token, out_itemsize, stub_class,
+                                     tensor_dims)
+
+__all__ = ["load_checkpoint", "load_plain", "Stub", "stub_class", "REBUILD", "CheckpointFormatError",
+           "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError", "Limits", "brief", "human",
+           "out_itemsize", "MiB", "SIZE_MULTIPLE", "ARCHIVE_MULTIPLE", "METADATA_FLOOR", "METADATA_MULTIPLE",
+           "PEAK_FLOOR", "PEAK_MULTIPLE", "PIECE_BYTES", "KEY_NODES", "RISKY_KEYS"]
 
 
-class UnsafeCheckpointError(HarnessError):
-    """The checkpoint asks for a call outside the tensor-rebuild list (possibly code execution)."""
+# ------------------------------------------------------------------------------------------------ the unpickler
+class _Done(Exception):
+    def __init__(self, value: Any):
+        self.value = value
 
 
-class CheckpointFormatError(HarnessError):
-    """The file is not a readable PyTorch checkpoint."""
+class _Source:
+    """The pickle's bytes: reads past the end are refused before anything is allocated for them."""
+
+    def __init__(self, f: BinaryIO, nbytes: int):
+        self.f, self.left = f, nbytes
+
+    def read(self, n: int = -1) -> bytes:
+        if n < 0 or n > self.left:
+            raise CheckpointFormatError(f"the pickle asks for {human(max(n, 0))} where {human(self.left)} remain")
+        data = self.f.read(n)
+        self.left -= len(data)
+        return data
+
+    def readline(self) -> bytes:
+        line = self.f.readline(self.left)
+        self.left -= len(line)
+        return line
+
+    def readinto(self, buf: Any) -> int:
+        view = memoryview(buf).cast("B")
+        if len(view) > self.left:
+            raise CheckpointFormatError(f"the pickle asks for {human(len(view))} where {human(self.left)} remain")
+        n = self.f.readinto(view)
+        self.left -= n
+        return n
 
 
-# ------------------------------------------------------------------------------------------------ placeholders
-class _StubMeta(type):
-    """Metaclass of placeholder classes: calling one (pickle's REDUCE) is refused."""
+_OP = {name: getattr(pickle, name)[0] for name in (
+    "MARK", "EMPTY_LIST", "LIST", "EMPTY_DICT", "DICT", "EMPTY_SET", "FROZENSET", "TUPLE", "TUPLE1", "TUPLE2",
+    "TUPLE3", "NEWOBJ", "NEWOBJ_EX", "OBJ", "INST", "BUILD", "PUT", "BINPUT", "LONG_BINPUT", "MEMOIZE", "GLOBAL",
+    "STACK_GLOBAL", "REDUCE", "APPEND", "APPENDS", "SETITEM", "SETITEMS", "ADDITEMS", "STOP", "FRAME", "BINBYTES8",
+    "BINUNICODE8", "BYTEARRAY8", "EXT1", "EXT2", "EXT4")}
 
-    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
-        raise UnsafeCheckpointError(
-            f"the checkpoint asks to call {cls.__stub_name__}(...); only tensors, containers and inert objects are "
-            f"rebuilt, so this call is refused and nothing from the file was run"
-        )
-
-
-class Stub(metaclass=_StubMeta):
-    """An inert stand-in for an instance of a class named in the checkpoint: its name, arguments and state."""
-
-    __stub_name__ = "Stub"
-
-    def __new__(cls, *args: Any, **kwargs: Any) -> "Stub":
-        obj = object.__new__(cls)
-        object.__setattr__(obj, "__stub_args__", args)
-        object.__setattr__(obj, "__stub_state__", None)
-        return obj
-
-    def __setstate__(self, state: Any) -> None:
-        object.__setattr__(self, "__stub_state__", state)
-
-    def __reduce__(self) -> Any:  # never pickled back out
-        raise TypeError("placeholders from a restricted checkpoint read cannot be pickled")
-
-    def __repr__(self) -> str:
-        return f"<{self.__stub_name__} (placeholder)>"
-
-    @property
-    def stub_name(self) -> str:
-        return type(self).__stub_name__
-
-    @property
-    def state(self) -> dict[str, Any]:
-        """The recorded state as a dict (``{}`` when the file gave none or gave a non-dict state)."""
-        st = self.__stub_state__  # type: ignore[attr-defined]
-        if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):  # (dict, slotstate)
-            return {**st[0], **(st[1] or {})}
-        return st if isinstance(st, dict) else {}
-
-    def get(self, key: str, default: Any = None) -> Any:
-        return self.state.get(key, default)
+#: A bound on the bytes of Python objects each opcode makes (variable parts are charged where they are known).
+_COST = {_OP[k]: v for k, v in {
+    "MARK": 88, "EMPTY_LIST": 72, "LIST": 72, "EMPTY_DICT": 240, "DICT": 240, "EMPTY_SET": 232, "FROZENSET": 232,
+    "TUPLE": 56, "TUPLE1": 64, "TUPLE2": 72, "TUPLE3": 80, "NEWOBJ": 400, "NEWOBJ_EX": 400, "OBJ": 400, "INST": 400,
+    "BUILD": 64, "PUT": 128, "BINPUT": 128, "LONG_BINPUT": 128, "MEMOIZE": 128, "GLOBAL": 64, "STACK_GLOBAL": 64,
+    "REDUCE": 64, "APPEND": 16, "SETITEM": 104}.items()}
+_DEFAULT_COST = 40
+_FREE_INT = (1 << 61) - 1  # ints below this hash to themselves: a file cannot make them collide
 
 
-_STUBS: dict[str, type] = {}
+class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack machine, no recursion
+    """The restricted, bounded unpickler (module docstring). ``load_storage`` resolves ``('storage', ...)``
+    persistent ids; ``placeholders=False`` refuses classes outside the rebuild list instead of making stubs."""
 
+    dispatch = dict(pickle._Unpickler.dispatch)
 
-def stub_class(module: str, name: str) -> type:
-    """One placeholder class per qualified name (so identical names compare equal across a file)."""
-    qual = f"{module}.{name}"
-    cls = _STUBS.get(qual)
-    if cls is None:
-        cls = _StubMeta(name, (Stub,), {"__stub_name__": qual, "__module__": "harness.weights.stubs"})
-        _STUBS[qual] = cls
-    return cls
-
-
-# ------------------------------------------------------------------------------------------------ rebuilders
-_STORAGE_DTYPES = {
-    "DoubleStorage": torch.float64, "FloatStorage": torch.float32, "HalfStorage": torch.float16,
-    "BFloat16Storage": torch.bfloat16, "LongStorage": torch.int64, "IntStorage": torch.int32,
-    "ShortStorage": torch.int16, "CharStorage": torch.int8, "ByteStorage": torch.uint8, "BoolStorage": torch.bool,
-    "ComplexFloatStorage": torch.complex64, "ComplexDoubleStorage": torch.complex128,
-    "UntypedStorage": torch.uint8,
-}
-_DTYPES = {name: getattr(torch, name) for name in (
-    "float64", "float32", "float16", "bfloat16", "int64", "int32", "int16", "int8", "uint8", "bool",
-    "complex64", "complex128", "double", "float", "half", "long", "int", "short")}
-
-
-class _StorageType:
-    """What a ``torch.XStorage`` name stands for here: just its dtype."""
-
-    def __init__(self, name: str):
-        self.name, self.dtype = name, _STORAGE_DTYPES[name]
-
-
-def _view(storage: torch.Tensor, offset: int, size: Any, stride: Any) -> torch.Tensor:
-    if not isinstance(storage, torch.Tensor):
-        raise CheckpointFormatError(f"a tensor is rebuilt from {type(storage).__name__}, not from a storage")
-    size, stride = tuple(int(s) for s in size), tuple(int(s) for s in stride)
-    need = int(offset) + sum((s - 1) * st for s, st in zip(size, stride)) + 1 if all(size) else 0
-    if need > storage.numel():
-        raise CheckpointFormatError(f"a tensor of size {size} reaches element {need} of a storage of {storage.numel()}")
-    # a view: legacy files fill their storages after the object pickle, and views see the bytes once they land
-    return storage.as_strided(size, stride, int(offset)) if all(size) else storage.new_empty(size)
-
-
-def _rebuild_tensor(storage: Any, offset: int, size: Any, stride: Any, *rest: Any) -> torch.Tensor:
-    return _view(storage, offset, size, stride)
-
-
-def _rebuild_tensor_v3(storage: Any, offset: int, size: Any, stride: Any, requires_grad: Any, hooks: Any,
-                       dtype: Any, *rest: Any) -> torch.Tensor:
-    t = storage
-    if isinstance(dtype, torch.dtype) and t.dtype != dtype:
-        t = t.view(torch.uint8).view(dtype)
-    return _view(t, offset, size, stride)
-
-
-def _rebuild_parameter(data: Any, requires_grad: Any = True, *rest: Any) -> torch.Tensor:
-    if not isinstance(data, torch.Tensor):
-        raise CheckpointFormatError(f"a parameter is rebuilt from {type(data).__name__}, not from a tensor")
-    return torch.nn.Parameter(data, requires_grad=bool(requires_grad))
-
-
-def _rebuild_from_type_v2(func: Any, new_type: Any, args: Any, state: Any) -> Any:
-    if func not in (_rebuild_tensor, _rebuild_tensor_v3, _rebuild_parameter):
-        raise UnsafeCheckpointError("the checkpoint rebuilds a tensor subclass through a function outside the "
-                                    "rebuild list; refused")
-    t = func(*args)
-    return torch.nn.Parameter(t) if new_type is torch.nn.Parameter else t
-
-
-def _ordered_dict(*args: Any) -> collections.OrderedDict:
-    return collections.OrderedDict(*args)
-
-
-def _numpy_scalar(dtype: Any, data: bytes = b"") -> Any:
-    return np.frombuffer(data, dtype=np.dtype(dtype))[0].copy()
-
-
-def _numpy_dtype(spec: Any, *rest: Any) -> np.dtype:
-    if not isinstance(spec, str):
-        raise CheckpointFormatError(f"a NumPy dtype is rebuilt from {type(spec).__name__}")
-    return np.dtype(spec)
-
-
-def _numpy_reconstruct(cls: Any, shape: Any, dtype_code: Any) -> np.ndarray:
-    if cls is not np.ndarray:
-        raise UnsafeCheckpointError(f"the checkpoint rebuilds a NumPy array of class {cls!r}; refused")
-    return np.ndarray.__new__(np.ndarray, (0,), np.uint8)  # filled by BUILD (ndarray.__setstate__: data only)
-
-
-def _path(*parts: Any) -> str:
-    return str(pathlib.PurePosixPath(*[str(p) for p in parts]))
-
-
-def _latin1_bytes(text: Any, encoding: Any = "latin1") -> bytes:
-    """Protocol-2 pickles write ``bytes`` as ``_codecs.encode(text, 'latin1')``: only that form is rebuilt."""
-    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
-        raise UnsafeCheckpointError("the checkpoint calls _codecs.encode with other than a latin1 string; refused")
-    return text.encode("latin1")
-
-
-def _defaultdict(factory: Any = None, *rest: Any) -> collections.defaultdict:
-    if factory not in (None, list, dict, int, float, set, str, tuple):
-        raise UnsafeCheckpointError(f"the checkpoint builds a defaultdict with factory {factory!r}; refused")
-    return collections.defaultdict(factory, *rest)
-
-
-#: Every global the unpickler resolves to something real (others become placeholders, and calling them is refused).
-REBUILD: dict[tuple[str, str], Any] = {
-    ("torch._utils", "_rebuild_tensor"): _rebuild_tensor,
-    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
-    ("torch._utils", "_rebuild_tensor_v3"): _rebuild_tensor_v3,
-    ("torch._utils", "_rebuild_parameter"): _rebuild_parameter,
-    ("torch._utils", "_rebuild_parameter_with_state"): _rebuild_parameter,
-    ("torch._tensor", "_rebuild_from_type_v2"): _rebuild_from_type_v2,
-    ("torch.nn.parameter", "Parameter"): torch.nn.Parameter,
-    ("torch", "Tensor"): torch.Tensor,
-    ("torch", "Size"): torch.Size,
-    ("torch", "device"): torch.device,
-    ("collections", "OrderedDict"): _ordered_dict,
-    ("_codecs", "encode"): _latin1_bytes,
-    ("collections", "defaultdict"): _defaultdict,
-    ("builtins", "set"): set, ("builtins", "frozenset"): frozenset, ("builtins", "list"): list,
-    ("builtins", "dict"): dict, ("builtins", "tuple"): tuple, ("builtins", "int"): int, ("builtins", "float"): float,
-    ("builtins", "str"): str, ("builtins", "bytes"): bytes, ("builtins", "bytearray"): bytearray,
-    ("builtins", "bool"): bool, ("builtins", "complex"): complex, ("builtins", "slice"): slice,
-    ("builtins", "range"): range,
-    ("datetime", "datetime"): datetime.datetime, ("datetime", "date"): datetime.date,
-    ("datetime", "timedelta"): datetime.timedelta,
-    ("numpy", "dtype"): _numpy_dtype, ("numpy", "ndarray"): np.ndarray,
-    ("numpy.core.multiarray", "scalar"): _numpy_scalar, ("numpy._core.multiarray", "scalar"): _numpy_scalar,
-    ("numpy.core.multiarray", "_reconstruct"): _numpy_reconstruct,
-    ("numpy._core.multiarray", "_reconstruct"): _numpy_reconstruct,
-    **{("pathlib", n): _path for n in ("Path", "PosixPath", "WindowsPath", "PurePath", "PurePosixPath",
-                                       "PureWindowsPath")},
-    **{("torch", n): _StorageType(n) for n in _STORAGE_DTYPES},
-    **{("torch", n): d for n, d in _DTYPES.items()},
-}
-
-
-class _RestrictedUnpickler(pickle.Unpickler):
-    def __init__(self, file: BinaryIO, load_storage: Callable[[tuple], torch.Tensor], where: str):
-        super().__init__(file)
-        self._load_storage, self._where = load_storage, where
+    def __init__(self, source: _Source, load_storage: Callable[[tuple], torch.Tensor] | None, budget: Budget,
+                 placeholders: bool = True):
+        super().__init__(source)
+        self._source, self._load_storage, self.budget = source, load_storage, budget
+        self.limits, self.placeholders = budget.limits, placeholders
         self.stubs: set[str] = set()
+        self._classes: dict[str, type] = {}
+        self._risky = 0
 
+    # -------------------------------------------------------------------- the loop
+    def load(self) -> Any:
+        unframer = pickle._Unframer(self._source.read, self._source.readline)
+        self._unframer = unframer
+        consumed = [0]
+
+        def read(n: int) -> bytes:
+            data = unframer.read(n)
+            consumed[0] += len(data)
+            return data
+
+        def readline() -> bytes:
+            data = unframer.readline()
+            consumed[0] += len(data)
+            return data
+
+        def readinto(buf: Any) -> int:
+            n = unframer.readinto(buf)
+            consumed[0] += n
+            return n
+
+        self.read, self.readline, self.readinto = read, readline, readinto
+        self.metastack, self.stack = [], []
+        self.append = self.stack.append
+        self.proto = 0
+        dispatch, charge, cost = self.dispatch, self.budget.charge, _COST
+        try:
+            while True:
+                key = read(1)
+                if not key:
+                    raise EOFError("the pickle ends before its STOP opcode")
+                op = key[0]
+                handler = dispatch.get(op)
+                if handler is None:
+                    raise pickle.UnpicklingError(f"unknown pickle opcode 0x{op:02x}")
+                start = consumed[0]
+                handler(self)
+                charge(cost.get(op, _DEFAULT_COST) + 2 * (consumed[0] - start))
+        except _Done as done:
+            return done.value
+
+    def _stop(self) -> None:
+        raise _Done(self.stack.pop())
+
+    dispatch[_OP["STOP"]] = _stop
+
+    # -------------------------------------------------------------------- names
     def find_class(self, module: str, name: str) -> Any:
         # protocol-2 files name Python 2 modules (``__builtin__.set``); map them as pickle's own find_class does
         if (module, name) in _compat_pickle.NAME_MAPPING:
@@ -247,52 +190,334 @@ class _RestrictedUnpickler(pickle.Unpickler):
         target = REBUILD.get((module, name))
         if target is not None:
             return target
-        self.stubs.add(f"{module}.{name}")
-        return stub_class(module, name)
+        qual = f"{module}.{name}"
+        if not self.placeholders:
+            raise ForeignObjectError(f"it pickles {qual[:100]}, not only tensors and plain containers")
+        cls = self._classes.get(qual)
+        if cls is None:
+            self.budget.charge(2048 + 2 * len(qual))
+            cls = self._classes[qual] = stub_class(module, name)
+            self.stubs.add(qual)
+        return cls
+
+    def _ext(self) -> None:
+        raise UnsafeCheckpointError("the checkpoint uses pickle extension codes (never written by torch.save); "
+                                    "refused")
+
+    for _name in ("EXT1", "EXT2", "EXT4"):
+        dispatch[_OP[_name]] = _ext
 
     def persistent_load(self, pid: Any) -> Any:
-        if not isinstance(pid, tuple) or not pid or pid[0] != "storage":
-            raise CheckpointFormatError(f"{self._where}: unknown persistent id {str(pid)[:80]}")
+        if not isinstance(pid, tuple) or not pid or pid[0] != "storage" or self._load_storage is None:
+            raise CheckpointFormatError(f"unknown persistent id {brief(pid)}")
         return self._load_storage(pid)
 
+    # -------------------------------------------------------------------- lengths read before they are allocated
+    def _length(self, what: str) -> int:
+        (n,) = struct.unpack("<Q", self.read(8))
+        if n > self._source.left + self._frame_left():
+            raise CheckpointFormatError(f"{what} of {human(n)} in a pickle with {human(self._source.left)} left")
+        self.budget.charge(n)
+        return n
 
-def _storage_from_bytes(raw: bytes, storage_type: Any, numel: Any, where: str) -> torch.Tensor:
-    if not isinstance(storage_type, _StorageType):
-        raise CheckpointFormatError(f"{where}: a storage of unknown type {storage_type!r}")
-    dtype = storage_type.dtype
-    itemsize = torch.empty((), dtype=dtype).element_size()
-    if storage_type.name == "UntypedStorage":
-        itemsize = 1
-    count = len(raw) // itemsize
-    if numel is not None and int(numel) * itemsize > len(raw):
-        raise CheckpointFormatError(f"{where}: a storage of {numel} elements has only {len(raw)} bytes")
-    if count == 0:
-        return torch.empty(0, dtype=dtype)
-    return torch.frombuffer(bytearray(raw[: count * itemsize]), dtype=dtype)
+    def _frame_left(self) -> int:
+        frame = self._unframer.current_frame
+        return 0 if frame is None else len(frame.getbuffer()) - frame.tell()
+
+    def _frame(self) -> None:
+        n = self._length("a pickle frame")
+        self._unframer.load_frame(n)
+
+    def _binbytes8(self) -> None:
+        self.append(self.read(self._length("a bytes object")))
+
+    def _binunicode8(self) -> None:
+        self.append(str(self.read(self._length("a string")), "utf-8", "surrogatepass"))
+
+    def _bytearray8(self) -> None:
+        n = self._length("a bytearray")
+        b = bytearray(n)
+        self.readinto(b)
+        self.append(b)
+
+    dispatch[_OP["FRAME"]] = _frame
+    dispatch[_OP["BINBYTES8"]] = _binbytes8
+    dispatch[_OP["BINUNICODE8"]] = _binunicode8
+    dispatch[_OP["BYTEARRAY8"]] = _bytearray8
+
+    # -------------------------------------------------------------------- keys
+    def check_key(self, key: Any) -> None:
+        """Refuse dict keys and set items whose hashing a file could make exponential, crash the interpreter
+        (deep tuples) or flood with collisions (numbers and tuples: their hashes are not randomised)."""
+        kind = type(key)
+        if kind is str or kind is bytes or kind is bool or key is None:
+            return
+        if kind is int and -_FREE_INT < key < _FREE_INT:
+            return
+        if kind not in (int, float, complex, tuple, frozenset, torch.Size):
+            return  # placeholders, tokens and dtypes hash by identity
+        self._risky += 1
+        if self._risky > RISKY_KEYS:
+            raise CheckpointLimitError(f"more than {RISKY_KEYS} dict keys or set items are numbers beyond 2**61, "
+                                       f"floats or tuples (their hashes can be made to collide); refused")
+        stack, nodes = [key], 0
+        while stack:
+            k = stack.pop()
+            nodes += 1
+            if nodes > KEY_NODES:
+                raise CheckpointLimitError(f"a dict key or set item holds more than {KEY_NODES} elements; refused")
+            if isinstance(k, int) and k.bit_length() > 4096:
+                raise CheckpointLimitError(f"a dict key or set item is an integer of {k.bit_length()} bits; refused")
+            if isinstance(k, tuple):
+                stack.extend(k)
+            elif isinstance(k, frozenset):
+                nodes += len(k)  # its hash is cached from its items' hashes, which were checked when it was made
+
+    # -------------------------------------------------------------------- containers
+    def _append(self) -> None:
+        value = self.stack.pop()
+        target = self.stack[-1]
+        if type(target) is not list:
+            raise CheckpointFormatError(f"the pickle appends to {brief(target)}, not to a list")
+        target.append(value)
+
+    def _appends(self) -> None:
+        items = self.pop_mark()
+        target = self.stack[-1]
+        if type(target) is not list:
+            raise CheckpointFormatError(f"the pickle appends to {brief(target)}, not to a list")
+        self.budget.charge(16 * len(items))
+        target.extend(items)
+
+    def _setitem(self) -> None:
+        value = self.stack.pop()
+        key = self.stack.pop()
+        self._put_items(self.stack[-1], [key, value])
+
+    def _setitems(self) -> None:
+        items = self.pop_mark()
+        self._put_items(self.stack[-1], items)
+
+    def _put_items(self, target: Any, items: list) -> None:
+        if not isinstance(target, dict) or len(items) % 2:
+            raise CheckpointFormatError(f"the pickle sets items on {brief(target)}, not on a dict")
+        self.budget.charge(104 * (len(items) // 2))
+        for i in range(0, len(items), 2):
+            self.check_key(items[i])
+            target[items[i]] = items[i + 1]
+
+    def _additems(self) -> None:
+        items = self.pop_mark()
+        target = self.stack[-1]
+        if type(target) is not set:
+            raise CheckpointFormatError(f"the pickle adds items to {brief(target)}, not to a set")
+        self.budget.charge(104 * len(items))
+        for k in items:
+            self.check_key(k)
+        target.update(items)
+
+    def _frozenset(self) -> None:
+        items = self.pop_mark()
+        self.budget.charge(104 * len(items))
+        for k in items:
+            self.check_key(k)
+        self.append(frozenset(items))
+
+    def _dict(self) -> None:
+        items = self.pop_mark()
+        d: dict = {}
+        self._put_items(d, items)
+        self.append(d)
+
+    def _list(self) -> None:
+        items = self.pop_mark()
+        self.budget.charge(16 * len(items))
+        self.append(items)
+
+    def _tuple(self) -> None:
+        items = self.pop_mark()
+        self.budget.charge(8 * len(items))
+        self.append(tuple(items))
+
+    dispatch[_OP["APPEND"]] = _append
+    dispatch[_OP["APPENDS"]] = _appends
+    dispatch[_OP["SETITEM"]] = _setitem
+    dispatch[_OP["SETITEMS"]] = _setitems
+    dispatch[_OP["ADDITEMS"]] = _additems
+    dispatch[_OP["FROZENSET"]] = _frozenset
+    dispatch[_OP["DICT"]] = _dict
+    dispatch[_OP["LIST"]] = _list
+    dispatch[_OP["TUPLE"]] = _tuple
+
+    # -------------------------------------------------------------------- calls and instances
+    def _call(self, func: Any, args: Any) -> Any:
+        if isinstance(func, type) and issubclass(func, Stub):
+            func()  # refuses, naming the class
+        if not isinstance(func, Token) or func.call is None:
+            raise UnsafeCheckpointError(f"the checkpoint asks to call {brief(func)}(...); only the tensor-rebuild "
+                                        f"list is called, so this call is refused and nothing from the file was run")
+        if not isinstance(args, tuple):
+            raise CheckpointFormatError(f"the arguments of {func.name} are {brief(args)}, not a tuple")
+        return func.call(self, *args)
+
+    def _reduce(self) -> None:
+        args = self.stack.pop()
+        self.stack[-1] = self._call(self.stack[-1], args)
+
+    def _newobj(self) -> None:
+        args = self.stack.pop()
+        cls = self.stack.pop()
+        self.append(self._new(cls, args, {}))
+
+    def _newobj_ex(self) -> None:
+        kwargs = self.stack.pop()
+        args = self.stack.pop()
+        cls = self.stack.pop()
+        self.append(self._new(cls, args, kwargs))
+
+    def _new(self, cls: Any, args: Any, kwargs: Any) -> Any:
+        """``cls.__new__(cls, *args)``: a placeholder records its arguments; ``complex`` and the like are called."""
+        if isinstance(cls, type) and issubclass(cls, Stub) and isinstance(args, tuple) and isinstance(kwargs, dict):
+            return cls.__new__(cls, *args)
+        if isinstance(cls, Token) and cls.call is not None and not kwargs:
+            return self._call(cls, args)
+        raise UnsafeCheckpointError(f"the checkpoint asks to create {brief(cls)} with __new__; refused")
+
+    def _obj(self) -> None:
+        args = self.pop_mark()
+        cls = args.pop(0)
+        self.append(self._instantiate_checked(cls, tuple(args)))
+
+    def _inst(self) -> None:
+        module = self.readline()[:-1].decode("ascii")
+        name = self.readline()[:-1].decode("ascii")
+        cls = self.find_class(module, name)
+        self.append(self._instantiate_checked(cls, tuple(self.pop_mark())))
+
+    def _instantiate_checked(self, cls: Any, args: tuple) -> Any:
+        if isinstance(cls, type) and issubclass(cls, Stub) and not args:
+            return cls.__new__(cls)
+        return self._call(cls, args)
+
+    def _build(self) -> None:
+        state = self.stack.pop()
+        inst = self.stack[-1]
+        if isinstance(inst, Stub):
+            inst.__setstate__(state)
+        elif type(inst) is np.ndarray:
+            _set_array_state(inst, state)
+        elif type(inst) is np.dtype or isinstance(inst, np.dtype):
+            if not isinstance(state, tuple) or len(state) > 9 or not all(isinstance(s, (str, int, type(None)))
+                                                                            for s in state):
+                raise CheckpointFormatError(f"a NumPy dtype gets the state {brief(state)}")
+            inst.__setstate__(state)
+        elif type(inst) is collections.OrderedDict and isinstance(state, dict) \
+                and all(type(k) is str for k in state):
+            inst.__dict__.update(state)  # a state dict's ``_metadata``
+        else:
+            raise UnsafeCheckpointError(f"the checkpoint sets the state of {brief(inst)}; refused")
+
+    def _ignore_buffers(self) -> None:
+        raise CheckpointFormatError("the pickle refers to out-of-band buffers (never written by torch.save)")
+
+    dispatch[_OP["REDUCE"]] = _reduce
+    dispatch[_OP["NEWOBJ"]] = _newobj
+    dispatch[_OP["NEWOBJ_EX"]] = _newobj_ex
+    dispatch[_OP["OBJ"]] = _obj
+    dispatch[_OP["INST"]] = _inst
+    dispatch[_OP["BUILD"]] = _build
+    dispatch[pickle.NEXT_BUFFER[0]] = _ignore_buffers
+    dispatch[pickle.READONLY_BUFFER[0]] = _ignore_buffers
+    del _name
 
 
-def _load_zip(path: Path, zf: zipfile.ZipFile) -> tuple[Any, set[str]]:
-    names = zf.namelist()
+def _set_array_state(arr: np.ndarray, state: Any) -> None:
+    """``ndarray.__setstate__`` for plain numeric arrays whose bytes are all in the file."""
+    if not (isinstance(state, tuple) and len(state) == 5 and isinstance(state[2], np.dtype)
+            and not state[2].hasobject and isinstance(state[4], bytes)):
+        raise CheckpointFormatError(f"a NumPy array gets the state {brief(state)}")
+    shape = tensor_dims(state[1], "NumPy shape")
+    if math.prod(shape) * state[2].itemsize != len(state[4]):
+        raise CheckpointFormatError(f"a NumPy array of shape {shape} comes with {human(len(state[4]))}")
+    arr.__setstate__(state)
+
+
+# ------------------------------------------------------------------------------------------------ the two formats
+def _storage_key(pid: tuple, where: str) -> tuple[StorageType, str, int | None]:
+    _, storage_type, key, _location, numel = (list(pid) + [None] * 5)[:5]
+    if not isinstance(storage_type, StorageType):
+        raise CheckpointFormatError(f"{where}: a storage of unknown type {brief(storage_type)}")
+    if not isinstance(key, (str, int)) or isinstance(key, bool) or len(str(key)) > 256:
+        raise CheckpointFormatError(f"{where}: a storage key {brief(key)}")
+    if numel is not None and (not isinstance(numel, int) or numel < 0):
+        raise CheckpointFormatError(f"{where}: a storage of {brief(numel)} elements")
+    return storage_type, str(key), numel
+
+
+def _unsafe_member(name: str) -> bool:
+    parts = name.replace("\\", "/").split("/")
+    return name.startswith(("/", "\\")) or ".." in parts or ":" in parts[0] or "\x00" in name
+
+
+def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> bytearray:
+    """A member's bytes into one buffer of its declared size (checked against the limits before this is called)."""
+    buf = bytearray(info.file_size)
+    view, pos = memoryview(buf), 0
+    with zf.open(info) as m:
+        while pos < len(buf):
+            chunk = m.read(min(1 << 22, len(buf) - pos))
+            if not chunk:
+                break
+            view[pos:pos + len(chunk)] = chunk
+            pos += len(chunk)
+    if pos != len(buf):
+        raise CheckpointFormatError(f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} "
+                                    f"bytes")
+    return buf
+
+
+def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: bool) -> tuple[Any, set[str]]:
+    infos = zf.infolist()
+    for info in infos:
+        if _unsafe_member(info.filename):
+            raise CheckpointFormatError(f"{path}: archive member {brief(info.filename, 100)} points outside the "
+                                        f"archive; refused")
+    budget = Budget(limits)
+    budget.charge(sum(ZIP_ENTRY_BYTES + len(i.filename) + len(i.extra) + len(i.comment) for i in infos))
+    declared = sum(info.file_size for info in infos)
+    if declared > limits.archive_bytes:
+        big = max(infos, key=lambda i: i.file_size)
+        raise CheckpointLimitError(
+            f"{path}: its archive members expand to {human(declared)} ({brief(big.filename, 80)[1:-1]}: "
+            f"{human(big.file_size)} from {human(big.compress_size)}), over {limits.of_file(ARCHIVE_MULTIPLE)}; "
+            f"refused before decompressing")
+    names = {info.filename: info for info in infos}
     pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
     if not pkl:
         raise CheckpointFormatError(f"{path}: a zip file without <archive>/data.pkl; not a torch.save checkpoint")
     prefix = pkl[0][: -len("data.pkl")]
     byteorder = prefix + "byteorder"
-    if byteorder in names and zf.read(byteorder).strip() not in (b"little", b""):
+    if byteorder in names and bytes(_read_member(zf, names[byteorder])).strip() not in (b"little", b""):
         raise CheckpointFormatError(f"{path}: big-endian checkpoints are not supported")
     cache: dict[str, torch.Tensor] = {}
 
     def load_storage(pid: tuple) -> torch.Tensor:
-        _, storage_type, key, _location, numel = (list(pid) + [None] * 5)[:5]
-        key = str(key)
+        storage_type, key, numel = _storage_key(pid, str(path))
         if key not in cache:
-            member = f"{prefix}data/{key}"
-            if member not in names:
+            member = names.get(f"{prefix}data/{key}")
+            if member is None:
                 raise CheckpointFormatError(f"{path}: storage {key} is missing from the archive")
-            cache[key] = _storage_from_bytes(zf.read(member), storage_type, numel, str(path))
+            raw = _read_member(zf, member)
+            itemsize = storage_type.itemsize
+            if numel is not None and numel * itemsize > len(raw):
+                raise CheckpointFormatError(f"{path}: a storage of {numel} elements has only {len(raw)} bytes")
+            count = len(raw) // itemsize
+            cache[key] = torch.frombuffer(raw, dtype=storage_type.dtype, count=count) if count \
+                else torch.empty(0, dtype=storage_type.dtype)
         return cache[key]
 
-    unpickler = _RestrictedUnpickler(io.BytesIO(zf.read(pkl[0])), load_storage, str(path))
+    data = bytes(_read_member(zf, names[pkl[0]]))
+    unpickler = _Unpickler(_Source(io.BytesIO(data), len(data)), load_storage, budget, placeholders)
     obj = unpickler.load()
     return obj, unpickler.stubs
 
@@ -300,60 +525,96 @@ def _load_zip(path: Path, zf: zipfile.ZipFile) -> tuple[Any, set[str]]:
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 
 
-def _load_legacy(path: Path, f: BinaryIO) -> tuple[Any, set[str]]:
-    """The pre-1.6 format: magic, protocol, sys info, the object, the storage keys, then each storage's bytes."""
-    def plain() -> Any:
-        u = _RestrictedUnpickler(f, lambda pid: None, str(path))  # type: ignore[arg-type,return-value]
-        return u.load()
+def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) -> tuple[Any, set[str]]:
+    """The pre-1.6 format: magic, protocol, sys info, the object, the storage keys, then each storage's bytes.
 
-    if plain() != _LEGACY_MAGIC:
+    Storages are allocated when the object pickle names them, so their declared sizes together must fit in the
+    file's bytes; every storage named must then be filled from the file, or the read is refused."""
+    source, budget = _Source(f, limits.file_bytes), Budget(limits)
+
+    def plain() -> Any:
+        return _Unpickler(source, None, budget, placeholders=False).load()
+
+    try:
+        magic = plain()
+    except (HarnessError, *_READ_ERRORS):
+        magic = None
+    if type(magic) is not int or magic != _LEGACY_MAGIC:
         raise CheckpointFormatError(f"{path}: not a PyTorch checkpoint (no zip archive, no legacy magic number)")
     plain()  # protocol version
     plain()  # sys info
     loaded: dict[str, torch.Tensor] = {}
+    declared = [0]
 
     def load_storage(pid: tuple) -> torch.Tensor:
-        _, storage_type, key, _location, numel = (list(pid) + [None] * 5)[:5]
-        key = str(key)
+        storage_type, key, numel = _storage_key(pid, str(path))
         if key not in loaded:
-            if not isinstance(storage_type, _StorageType):
-                raise CheckpointFormatError(f"{path}: a storage of unknown type {storage_type!r}")
+            nbytes = (numel or 0) * storage_type.itemsize
+            declared[0] += nbytes
+            if declared[0] > limits.file_bytes:
+                raise CheckpointLimitError(f"{path}: its storages declare {human(declared[0])}, more than the file's "
+                                           f"{human(limits.file_bytes)}; refused before allocating")
             loaded[key] = torch.empty(int(numel or 0), dtype=storage_type.dtype)
         return loaded[key]
 
-    unpickler = _RestrictedUnpickler(f, load_storage, str(path))
+    unpickler = _Unpickler(source, load_storage, budget, placeholders)
     obj = unpickler.load()
     keys = plain()
+    if not isinstance(keys, (list, tuple)) or not all(isinstance(k, str) for k in keys):
+        raise CheckpointFormatError(f"{path}: the storage key list is {brief(keys)}, not a list of names")
+    filled: set[str] = set()
     for key in keys:
-        raw_numel = int.from_bytes(f.read(8), "little")
-        target = loaded.get(str(key))
-        if target is None or raw_numel != target.numel():
-            raise CheckpointFormatError(f"{path}: storage {key} does not match the checkpoint's references")
-        nbytes = raw_numel * target.element_size()
-        data = f.read(nbytes)
-        if len(data) != nbytes:
+        raw = source.read(8)
+        target = loaded.get(key)
+        if len(raw) != 8 or target is None or key in filled \
+                or int.from_bytes(raw, "little") != target.numel():
+            raise CheckpointFormatError(f"{path}: storage {brief(key)} does not match the checkpoint's references")
+        flat = target.view(-1).view(torch.uint8) if target.numel() else target
+        if target.numel() and source.readinto(flat.numpy()) != flat.numel():
             raise CheckpointFormatError(f"{path}: truncated storage {key}")
-        if nbytes:
-            target.copy_(torch.frombuffer(bytearray(data), dtype=target.dtype))
+        filled.add(key)
+    missing = sorted(set(loaded) - filled)
+    if missing:
+        raise CheckpointFormatError(
+            f"{path}: storage {brief(missing[0])} is referenced but its bytes are not in the file ({len(missing)} "
+            f"missing); refused (it would read as uninitialised memory)")
     return obj, unpickler.stubs
 
 
-def load_checkpoint(path: str | Path) -> tuple[Any, set[str]]:
-    """Read a ``torch.save`` file with the restricted unpickler; returns ``(object, placeholder class names)``."""
+_READ_ERRORS = (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, KeyError, IndexError,
+                RuntimeError, zipfile.BadZipFile, zlib.error, struct.error, OverflowError, NotImplementedError,
+                UnicodeError, LookupError)
+
+
+def load_checkpoint(path: str | Path, placeholders: bool = True) -> tuple[Any, set[str]]:
+    """Read a ``torch.save`` file with the restricted, bounded unpickler; returns ``(object, placeholder class
+    names)``. Every failure is a one-line :class:`CheckpointFormatError` (or subclass) naming the file."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointFormatError(f"checkpoint {path} does not exist")
+    limits = Limits(path.stat().st_size)
     try:
         if zipfile.is_zipfile(path):
             with zipfile.ZipFile(path) as zf:
-                return _load_zip(path, zf)
+                return _load_zip(path, zf, limits, placeholders)
         with open(path, "rb") as f:
-            return _load_legacy(path, f)
+            return _load_legacy(path, f, limits, placeholders)
     except HarnessError as exc:
         if str(path) in str(exc):
             raise
         raise type(exc)(f"{path}: {exc}") from None
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, KeyError, IndexError,
-            RuntimeError, zipfile.BadZipFile) as exc:
+    except MemoryError:
+        raise CheckpointLimitError(f"{path}: ran out of memory while reading it ({human(limits.file_bytes)} on "
+                                   f"disk); refused") from None
+    except RecursionError:
+        raise CheckpointFormatError(f"{path}: nested too deeply to read") from None
+    except _READ_ERRORS as exc:
         raise CheckpointFormatError(f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__}: "
-                                    f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+                                    f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
+
+
+def load_plain(path: str | Path) -> Any:
+    """A checkpoint of tensors and plain containers only (what ``torch.load(weights_only=True)`` accepts), read
+    with the same bounds; a class outside the rebuild list raises :class:`ForeignObjectError`."""
+    obj, _ = load_checkpoint(path, placeholders=False)
+    return obj

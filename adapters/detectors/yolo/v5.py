@@ -409,15 +409,23 @@ def read_weights(source: Any, name: str) -> Mapping[str, Any]:
     if path.suffix == ".safetensors":
         from safetensors.torch import load_file
 
-        return load_file(str(path))
+        try:
+            return load_file(str(path))
+        except Exception as exc:  # the library's own errors for a malformed header or truncated data
+            raise HarnessError(f"detector {name!r}: weights file {path}: not a readable safetensors file "
+                               f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+    from harness.weights.unpickle import UnsafeCheckpointError, load_plain
+
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickled model objects need the code that defined them
+        return load_plain(path)
+    except UnsafeCheckpointError as exc:  # pickled model objects need the code that defined them
         raise HarnessError(
             f"detector {name!r}: {path} is not a plain state dict ({type(exc).__name__}). Official YOLOv5-style "
             f"checkpoints pickle the whole model; convert one safely (no code from the file runs) with "
             f"`harness weights import {path} --out weights.safetensors` and pass that file"
         ) from None
+    except HarnessError as exc:
+        raise HarnessError(f"detector {name!r}: {exc}") from None
 
 
 def set_inference_options(model: AnchorDetector, conf: float | None = None, iou: float | None = None,

@@ -21,7 +21,8 @@ Initialising extra input channels (the C2 channel when RGB weights are loaded in
   inflation rule): a grey image replicated into all ``C`` channels gives the same response as before.
 * ``"random"``: keep the model's fresh random init for the new filters (what the public trainer does).
 
-Files are read with ``torch.load(weights_only=True)`` or safetensors only; nothing is unpickled.
+Files are read as safetensors or with the harness's bounded weights-only reader (``harness.weights.unpickle.load_plain``:
+tensors and plain containers only, as ``torch.load(weights_only=True)`` accepts); nothing else is unpickled.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ _STEM_WIDTH_TO_SCALE = {16: "n", 32: "s", 48: "m", 64: "l", 80: "x"}
 
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
-    """Read a plain state dict from ``.safetensors`` or a ``torch.save`` file of tensors (``weights_only=True``)."""
+    """Read a plain state dict from ``.safetensors`` or a ``torch.save`` file of tensors (weights-only, bounded)."""
     path = Path(path)
     if not path.is_file():
         raise HarnessError(f"weights file {path} does not exist")
@@ -55,14 +56,18 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
             return dict(load_file(str(path)))
         except Exception as exc:
             raise HarnessError(f"weights file {path}: not a readable safetensors file ({exc})") from None
+    from harness.weights.unpickle import UnsafeCheckpointError, load_plain
+
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
+        obj = load_plain(path)
+    except UnsafeCheckpointError as exc:
         raise HarnessError(
             f"weights file {path} cannot be read as plain tensors ({type(exc).__name__}). Checkpoints that pickle "
             f"whole model objects (Ultralytics, YOLOv5) are refused for safety; convert one with "
             f"`harness weights import {path} --out weights.safetensors` and pass that file"
         ) from None
+    except HarnessError as exc:
+        raise HarnessError(f"weights file {exc}") from None
     return unwrap_state_dict(obj, str(path))
 
 
