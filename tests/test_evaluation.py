@@ -289,6 +289,7 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     from faster_coco_eval.core.coco import COCO
     from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
+    from harness.evaluation.bulk import iou_values
     from harness.evaluation.inputs import prepare
     from harness.evaluation.pairs import pair_layout
     from harness.evaluation.safit import iou_elementwise
@@ -303,6 +304,9 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}
     assert set(ours) == set(theirs) and len(ours) > 50
     assert all(np.array_equal(ours[k], theirs[k]) for k in ours)
+    # the bulk path computes IoU only where boxes overlap horizontally: the same values, bit for bit
+    values = layout.values(prep, iou_elementwise)
+    assert np.array_equal(iou_values(layout, prep), values) and (values == 0).any() and (values > 0).any()
 
 
 def test_stock_preparation_path_gives_the_same_numbers():

@@ -32,6 +32,7 @@ import numpy as np
 
 from harness.evaluation.inputs import PreparedEval
 from harness.evaluation.pairs import PairLayout
+from harness.evaluation.safit import iou_elementwise
 
 
 @dataclass
@@ -55,6 +56,23 @@ def gt_ignored(gt_area: np.ndarray, gt_ignore: np.ndarray, area_ranges: Sequence
     lo = np.array([float(r[0]) for r in area_ranges])[:, None]
     hi = np.array([float(r[1]) for r in area_ranges])[:, None]
     return gt_ignore[None, :] | (gt_area[None, :] < lo) | (gt_area[None, :] > hi)
+
+
+def iou_values(layout: PairLayout, prep: PreparedEval) -> np.ndarray:
+    """``layout.values(prep, iou_elementwise)``, bitwise, computed only where the boxes overlap horizontally: the
+    others have no intersection, hence IoU 0 (as ``iou_elementwise`` gives them), and they are most entries."""
+    boxes = prep.det_columns[3]
+    if len(layout.det) == 0:
+        return np.zeros(0)
+    d_x, d_x2 = boxes[:, 0], boxes[:, 0] + boxes[:, 2]
+    g_x, g_x2 = layout.gt_box[:, 0], layout.gt_box[:, 0] + layout.gt_box[:, 2]
+    det, gt = layout.det, layout.gt
+    iw = np.minimum(d_x2[det], g_x2[gt]) - np.maximum(d_x[det], g_x[gt])  # as iou_elementwise computes it
+    overlap = np.flatnonzero(iw > 0)
+    values = np.zeros(len(det))
+    d, g = det[overlap], gt[overlap]
+    values[overlap] = iou_elementwise(boxes[d], layout.gt_box[g], layout.gt_crowd[g])
+    return values
 
 
 def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float], ignored: np.ndarray) -> Matches:

@@ -25,7 +25,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from harness.evaluation.bulk import Matches, accumulate, gt_ignored, match_all
+from harness.evaluation.bulk import Matches, accumulate, gt_ignored, iou_values, match_all
 from harness.evaluation.inputs import EvaluationError, PreparedEval
 from harness.evaluation.pairs import PairLayout, pair_layout
 from harness.evaluation.safit import ANCHORS, SAFIT_C, iou_elementwise, safit_elementwise, safit_xywh
@@ -126,8 +126,10 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             layout = pair_layout(prep, max_dets[-1])
             if layout.img_ids.tolist() != img_ids or layout.cat_ids.tolist() != cat_ids:
                 raise EvaluationError("internal: the evaluated image and category ids differ from the prepared ones")
-            measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
-            values = layout.values(prep, measure)
+            if matching == "iou":
+                values = iou_values(layout, prep)
+            else:
+                values = layout.values(prep, partial(safit_elementwise, c=SAFIT_C, anchor=anchor))
             anns = prep.gt["annotations"]
             gt_area = np.fromiter((a["area"] for a in anns), dtype=np.float64, count=len(anns))
             # a GT is ignored where it is crowd (prepare sets COCO's "ignore" to "iscrowd") or outside the range
