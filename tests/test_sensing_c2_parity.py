@@ -55,7 +55,7 @@ def assert_same_as_reference(t: np.ndarray, sigma: float = 11.0) -> None:
     assert np.array_equal(c2mod.gaussian_background(t, sigma), ref.gaussian_background(t, sigma))
 
 
-@pytest.mark.parametrize("shape, seed", [((128, 160), 0), ((97, 131), 1), ((40, 30), 2)])
+@pytest.mark.parametrize("shape, seed", [((128, 160), 0), ((97, 131), 1), ((60, 75), 3), ((40, 30), 2)])
 def test_synthetic_frames_byte_for_byte_clean_and_masked(shape, seed):
     for name, t in variants(scene(*shape, seed=seed)).items():
         for sigma in (11.0, 3.0):
@@ -76,14 +76,16 @@ def test_real_dji_frames_byte_for_byte_clean_and_masked():
 
 
 def test_recurring_and_changing_masks_use_the_right_normaliser():
-    """``G * M`` is kept for the last mask: a second frame with the same mask, a frame with another mask, the first
-    mask again and another frame size in between all give the reference bytes."""
+    """``G * M`` is kept for the last few masks: a second frame with the same mask, frames with other masks (more
+    than are kept), the first mask again and another frame size in between all give the reference bytes."""
     a, b = scene(seed=3), scene(seed=4)
     rng = np.random.default_rng(7)
     m1, m2 = rng.random(a.shape) < 0.01, rng.random(a.shape) < 0.01
     small = scene(60, 70, seed=5)
     small[3, 4] = np.nan
-    for t, m in ((a, m1), (b, m1), (b, m2), (small, None), (a, m1), (a, None), (b, m2)):
+    more = [rng.random(a.shape) < 0.01 for _ in range(c2mod.KEPT_MASKS + 2)]  # more masks than are kept
+    for t, m in ((a, m1), (b, m1), (b, m2), (small, None), (a, m1), (a, None), (b, m2), *((a, x) for x in more),
+                 *((b, x) for x in more), (a, m1)):
         x = t.copy()
         if m is not None:
             x[m] = np.nan
