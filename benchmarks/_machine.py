@@ -65,7 +65,7 @@ def machine_lines() -> list[str]:
         import torch
 
         parts.append(f"torch {torch.backends.cpu.get_cpu_capability()}")
-    env = " ".join(f"{k}={os.environ[k]}" for k in PROFILE_VARS if k in os.environ) or "none"
+    env = ", ".join(f"{k}={os.environ[k]}" for k in PROFILE_VARS if k in os.environ) or "none"
     load = " ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
     return [f"CPU: {model}, {os.cpu_count()} logical cores, {hw} hardware; dispatch: {', '.join(parts)}",
             f"ISA restrictions: {env}",

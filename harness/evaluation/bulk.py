@@ -126,7 +126,8 @@ def accumulate(prep: PreparedEval, layout: PairLayout, matches: Matches, ignored
     max_dets = [int(m) for m in params.maxDets]
     area_ranges = [(float(r[0]), float(r[1])) for r in params.areaRng]
     cat_ids = np.asarray(params.catIds, dtype=np.int64)
-    n_thr, n_rec, n_cat, n_area, n_max = len(params.iouThrs), len(rec_thrs), len(cat_ids), len(area_ranges), len(max_dets)
+    n_thr, n_rec, n_cat = len(params.iouThrs), len(rec_thrs), len(cat_ids)
+    n_area, n_max = len(area_ranges), len(max_dets)
     counts = [n_thr, n_rec, n_cat, n_area, n_max]
     precision = np.full(counts, -1.0)
     scores = np.full(counts, -1.0)
@@ -188,7 +189,8 @@ def accumulate(prep: PreparedEval, layout: PairLayout, matches: Matches, ignored
 
 
 def _cell(seq: np.ndarray, score: np.ndarray, inside: np.ndarray | None, place: np.ndarray, thr: np.ndarray,
-          ignored: np.ndarray, n_gt: int, n_thr: int, rec_thrs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          ignored: np.ndarray, n_gt: int, n_thr: int, rec_thrs: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One (category, area range, maxDets) cell: precision and scores ``[T, R]`` and recall ``[T]``.
 
     ``seq``: the cell's detections in ranking order; ``inside``: whether each lies inside the area range (``None``:
