@@ -131,9 +131,10 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             else:
                 values = layout.values(prep, partial(safit_elementwise, c=SAFIT_C, anchor=anchor))
             anns = prep.gt["annotations"]
+            # the fields the library's C++ reads: "area", and "ignore" (prepare sets it to "iscrowd")
             gt_area = np.fromiter((a["area"] for a in anns), dtype=np.float64, count=len(anns))
-            # a GT is ignored where it is crowd (prepare sets COCO's "ignore" to "iscrowd") or outside the range
-            ignored = gt_ignored(gt_area, prep.gt_columns[3], area_rng)
+            gt_ignore = np.fromiter((bool(a.get("ignore", 0)) for a in anns), dtype=bool, count=len(anns))
+            ignored = gt_ignored(gt_area, gt_ignore, area_rng)
             matches = match_all(layout, values, iou_thrs, ignored)
             p.imgIds, p.catIds, p.maxDets = img_ids, cat_ids, max_dets
             self._harness_layout, self._harness_values, self._harness_matches = layout, values, matches
