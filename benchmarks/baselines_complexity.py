@@ -21,12 +21,15 @@ from harness.profiling.flops import exact_flops, paper_flops
 from harness.profiling.params import reachable_parameters
 
 SEED = {"icafusion": (120.24, 191.68), "eme": (46.15, 109.20), "cmadet": (33.47, 33.67)}
+#: The rebuilt baselines' parameters and paper-convention GFLOPs against the seed's table (relative difference).
+TARGET_DIFF = 0.01
 BUILD = {"icafusion": icafusion.build, "eme": eme.build, "cmadet": cmadet.build}
 
 
 def complexity() -> None:
     print(f"{'detector':<10} {'params (M)':>11} {'seed':>7} {'diff':>7} {'GFLOPs paper':>13} {'seed':>7} {'diff':>7} "
           f"{'GFLOPs exact':>13} {'unused (M)':>11}")
+    worst = 0.0
     for name, build in BUILD.items():
         with torch.device("meta"):
             model = build(8).eval().fuse()
@@ -38,6 +41,9 @@ def complexity() -> None:
         sp, sg = SEED[name]
         print(f"{name:<10} {params:>11.3f} {sp:>7.2f} {100 * (params / sp - 1):>+6.2f}% {paper:>13.3f} {sg:>7.2f} "
               f"{100 * (paper / sg - 1):>+6.2f}% {exact:>13.3f} {unused:>11.3f}")
+        worst = max(worst, abs(params / sp - 1), abs(paper / sg - 1))
+    print(f"target: params and paper GFLOPs within {TARGET_DIFF:.0%} of the seed's -> "
+          f"{'met' if worst <= TARGET_DIFF else 'NOT met'} (largest difference {100 * worst:.2f} %)")
 
 
 def timing(steps: int, scale: str) -> None:

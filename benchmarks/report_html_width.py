@@ -59,7 +59,9 @@ def main() -> None:
     rows = json.loads(m.group(1).replace("&quot;", '"'))
     for title, px in rows:
         print(f"{px:5d} px  {title.strip()[:80]}")
-    print(f"widest overflow at {args.width} px: {max((px for _, px in rows), default=0)} px over {len(rows)} tables")
+    widest = max((px for _, px in rows), default=0)
+    print(f"widest overflow at {args.width} px: {widest} px over {len(rows)} tables")
+    print(f"target: no table scrolls horizontally at {args.width} px (0 px) -> {'met' if widest <= 0 else 'NOT met'}")
 
 
 if __name__ == "__main__":

@@ -307,6 +307,7 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     from faster_coco_eval.core.coco import COCO
     from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
+    from harness.evaluation.bulk import iou_values
     from harness.evaluation.inputs import prepare
     from harness.evaluation.pairs import pair_layout
     from harness.evaluation.safit import iou_elementwise
@@ -321,6 +322,9 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}
     assert set(ours) == set(theirs) and len(ours) > 50
     assert all(np.array_equal(ours[k], theirs[k]) for k in ours)
+    # the bulk path computes IoU only where boxes overlap horizontally: the same values, bit for bit
+    values = layout.values(prep, iou_elementwise)
+    assert np.array_equal(iou_values(layout, prep), values) and (values == 0).any() and (values > 0).any()
 
 
 def test_stock_preparation_path_gives_the_same_numbers():
@@ -343,44 +347,72 @@ def test_stock_preparation_path_gives_the_same_numbers():
     assert list(ev.stats) == pytest.approx(ref_stats, abs=1e-12)
 
 
-def test_summarized_accumulation_equals_the_library_s_in_every_cell_it_computes():
-    """The bulk path accumulates area "all" at every maxDets and the other ranges at maxDets 100 only."""
+def _library_evaluation(prep, gt, dets, matching, ranges=None):
+    """faster-coco-eval's own evaluation (C++ matching and full accumulation) of the prepared inputs."""
     import faster_coco_eval.faster_eval_api_cpp as _C
     from faster_coco_eval.core.coco import COCO
-    from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
-    from harness.evaluation.engines import _accumulate_summarized, _silent
+    from harness.evaluation.engines import _faster_eval_class, _silent
+
+    ev = _faster_eval_class(matching, "center")(COCO(copy.deepcopy(prep.gt), print_function=_silent),
+                                                 COCO(copy.deepcopy(gt), print_function=_silent).loadRes(
+                                                     copy.deepcopy(dets)),
+                                                 iouType="bbox", print_function=_silent, separate_eval=True,
+                                                 ranges=ranges)
+    ev.evaluate()  # no harness_inputs: the library's own path (SAFit matrices pair by pair)
+    return ev, _C.COCOevalAccumulate(ev._paramsEval, ev._evalImgs_cpp)
+
+
+@pytest.mark.parametrize("seed, matching, tiny", [(17, "iou", False), (19, "iou", False), (20, "safit", True)])
+def test_bulk_matching_and_accumulation_equal_the_library_s_in_every_cell_it_computes(seed, matching, tiny):
+    """The bulk path's precision, recall and scores are bitwise the library's C++ in every cell ``summarize()``
+    reads (area "all" at every maxDets, the other ranges at the last); the cells it never reads hold -1."""
+    from harness.evaluation.engines import _faster_eval_class, _silent
     from harness.evaluation.inputs import prepare
+    from harness.evaluation.safit import TINY_AREA_RANGES
 
-    gt, dets = random_coco(seed=17, crowd=0.1)
+    gt, dets = random_coco(seed=seed, crowd=0.15)
+    a = gt["annotations"][0]  # exact ties: a duplicated GT box and a crowd copy of it, a detection on it
+    gt["annotations"] += [dict(a, id=10_001), dict(a, id=10_002, iscrowd=1)]
+    dets.append({"image_id": a["image_id"], "category_id": a["category_id"], "bbox": list(a["bbox"]), "score": 0.999})
     prep = prepare(gt, dets)
-    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt), print_function=_silent),
-                         COCO(copy.deepcopy(gt), print_function=_silent).loadRes(copy.deepcopy(dets)),
-                         iouType="bbox", print_function=_silent, separate_eval=True)
+    ranges = {k: list(v) for k, v in TINY_AREA_RANGES.items() if k != "all"} if tiny else None
+    lib, full = _library_evaluation(prep, gt, dets, matching, ranges)
+    ev = _faster_eval_class(matching, "center")(None, None, iouType="bbox", print_function=_silent, ranges=ranges)
+    ev.harness_inputs = prep
+    ev.params.imgIds = [im["id"] for im in prep.gt["images"]]
+    ev.params.catIds = list(prep.cat_ids)
     ev.evaluate()
-    full = _C.COCOevalAccumulate(ev._paramsEval, ev._evalImgs_cpp)
-    ours = _accumulate_summarized(_C.COCOevalAccumulate, ev._paramsEval, list(ev._evalImgs_cpp))
+    assert ev._harness_matches is not None  # the bulk path ran
+    ours = ev.eval
     for key in ("precision", "recall", "scores"):
         assert ours[key].shape == full[key].shape
-        assert np.array_equal(ours[key][..., :1, :], full[key][..., :1, :])  # area "all", maxDets 1, 10, 100
-        assert np.array_equal(ours[key][..., 1:, -1], full[key][..., 1:, -1])  # small/medium/large at 100
+        assert np.array_equal(ours[key][..., :1, :], full[key][..., :1, :])  # area "all", every maxDets
+        assert np.array_equal(ours[key][..., 1:, -1], full[key][..., 1:, -1])  # the other ranges at the last
         assert (ours[key][..., 1:, :-1] == -1).all()  # never read by summarize(): not computed
-    assert (full["precision"][..., 1:, :-1] > -1).any()
-    ev.eval = ours
+    assert (full["precision"][..., 1:, :-1] > -1).any() and (ours["precision"] > 0).any()
     ev.summarize()
-    stats = list(ev.stats)
-    ev.eval = full
-    ev.summarize()
-    assert stats == list(ev.stats)
+    lib.eval = full
+    lib.summarize()
+    assert list(ev.stats) == list(lib.stats)
+    if matching == "iou":  # the operating point's matches are the bulk matching's at 0.50, area "all"
+        layout, values = ev._harness_layout, ev._harness_values
+        d0, g0 = ev._harness_matches.at(0, 0)
+        d1, g1 = layout.greedy_match_indices(values, threshold=0.5)
+        assert sorted(zip(d0.tolist(), g0.tolist())) == sorted(zip(d1.tolist(), g1.tolist()))
 
 
-def test_bulk_path_falls_back_to_the_library_s_own_when_its_internals_move(monkeypatch, caplog):
-    import faster_coco_eval.faster_eval_api_cpp as _C
+def test_bulk_path_falls_back_to_the_library_s_own_when_its_parameters_move(monkeypatch, caplog):
+    from harness.evaluation import engines
 
     gt, dets = random_coco(seed=18, crowd=0.1)
     ref_stats, _ = pycocotools_reference(gt, dets)
     expected = evaluate(gt, dets)
-    monkeypatch.delattr(_C, "COCOevalEvaluateImages")
+
+    def moved(*_args, **_kwargs):
+        raise AttributeError("'Params' object has no attribute 'areaRng'")
+
+    monkeypatch.setattr(engines, "gt_ignored", moved)
     with caplog.at_level("WARNING"):
         result = evaluate(gt, dets)
     assert "bulk evaluation unavailable" in caplog.text

@@ -4,11 +4,12 @@ Both get the same prepared inputs (``harness.evaluation.inputs``) and return the
 stats, COCOeval's precision array, and, for the operating point, the evaluated detections at IoU 0.50 with their
 TP flags. ``matching="safit"`` swaps the IoU matrix for SAFit's (``harness.evaluation.safit``) in either engine.
 
-With faster-coco-eval, the Python-side work the library does one (image, category) pair at a time (filling its
-C++ datasets, the IoU matrices) is done in bulk (``harness.evaluation.pairs``); the matrices are bitwise the
-library's own, the C++ datasets hold the same annotation fields in the same order, and its C++ matching and
-accumulation are untouched. The operating point's matching at IoU 0.50 is
-COCO's greedy matching, also in bulk. pycocotools is run exactly as published.
+With faster-coco-eval, the work the library does one (image, category) pair at a time is done in bulk with numpy
+for every pair at once: the IoU matrices (``harness.evaluation.pairs``, bitwise the library's own), and its matching
+at every IoU threshold and area range and its accumulation (``harness.evaluation.bulk``, the same arithmetic as its
+C++ ``COCOevalEvaluateImages`` and ``COCOevalAccumulate``; the tests compare every computed cell). The library's
+parameters and ``summarize()`` give the statistics; its own, slower path runs wherever the bulk one does not apply.
+The operating point reads the bulk matching at IoU 0.50, area "all". pycocotools is run exactly as published.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from harness.evaluation.bulk import Matches, accumulate, gt_ignored, iou_values, match_all
 from harness.evaluation.inputs import EvaluationError, PreparedEval
 from harness.evaluation.pairs import PairLayout, pair_layout
 from harness.evaluation.safit import ANCHORS, SAFIT_C, iou_elementwise, safit_elementwise, safit_xywh
@@ -89,64 +91,55 @@ def _coco_objects(prep: PreparedEval) -> tuple[Any, Any]:
 
 
 def _faster_eval_class(matching: str, anchor: str) -> type:
-    import faster_coco_eval.faster_eval_api_cpp as _C
     from faster_coco_eval.core.faster_eval_api import COCOeval_faster
 
     class HarnessEvalFaster(COCOeval_faster):  # type: ignore[misc, valid-type]
-        """faster-coco-eval with the Python-side work done in bulk: the IoU (or SAFit) matrices of every pair are
-        computed in one vectorised pass, the C++ datasets are loaded pair by pair in one call each
-        (``Dataset.load_tuple``, with only the fields the C++ code reads), and the C++ evaluate-and-accumulate is
-        called directly. Its C++ matching and accumulation are unchanged. Without ``harness_inputs`` (or if the
-        library's internals moved) it behaves as the stock class, with SAFit computed pair by pair."""
+        """faster-coco-eval with the per-pair work done in bulk: the IoU (or SAFit) matrices of every pair in one
+        vectorised pass, then COCO's matching at every IoU threshold and area range and the accumulation of the
+        cells ``summarize()`` reads (``harness.evaluation.bulk``), bitwise what the library's C++ computes. Without
+        ``harness_inputs``, for other evaluation modes, or if the library's parameters moved, it behaves as the
+        stock class, with SAFit computed pair by pair."""
 
         harness_inputs: PreparedEval | None = None
 
         def evaluate(self) -> None:
             prep = self.harness_inputs
-            p = self.params
-            if (prep is None or p.iouType != "bbox" or self.lvis_style or not p.useCats or self.separate_eval
-                    or self.extra_calc):
-                return self._stock_evaluate()
             try:
+                p = self.params
+                if (prep is None or p.iouType != "bbox" or self.lvis_style or not p.useCats or self.separate_eval
+                        or self.extra_calc):
+                    return self._stock_evaluate()
                 self._bulk_evaluate(prep)
-            except AttributeError as exc:  # the library's internals changed: do it its own way
+            except AttributeError as exc:  # the library's parameters changed: do it its own way
                 log.warning("faster-coco-eval bulk evaluation unavailable (%s); using the library's own, slower "
-                            "preparation", exc)
-                self._harness_layout = self._harness_values = None
+                            "evaluation", exc)
+                self._harness_layout = self._harness_values = self._harness_matches = None
                 return self._stock_evaluate()
 
         def _bulk_evaluate(self, prep: PreparedEval) -> None:
             p = self.params
-            p.imgIds = [int(i) for i in np.unique(np.asarray(p.imgIds, dtype=np.int64))]
-            p.catIds = [int(c) for c in np.unique(np.asarray(p.catIds, dtype=np.int64))]
-            p.maxDets = sorted(p.maxDets)
-            layout = pair_layout(prep, p.maxDets[-1])
-            if layout.img_ids.tolist() != p.imgIds or layout.cat_ids.tolist() != p.catIds:
+            img_ids = [int(i) for i in np.unique(np.asarray(p.imgIds, dtype=np.int64))]
+            cat_ids = [int(c) for c in np.unique(np.asarray(p.catIds, dtype=np.int64))]
+            max_dets = sorted(p.maxDets)
+            area_rng, iou_thrs = [list(r) for r in p.areaRng], np.asarray(p.iouThrs, dtype=np.float64)
+            _ = p.recThrs, p.areaRngLbl  # read by the accumulation: fail here, before anything is changed
+            layout = pair_layout(prep, max_dets[-1])
+            if layout.img_ids.tolist() != img_ids or layout.cat_ids.tolist() != cat_ids:
                 raise EvaluationError("internal: the evaluated image and category ids differ from the prepared ones")
-            measure = iou_elementwise if matching == "iou" else partial(safit_elementwise, c=SAFIT_C, anchor=anchor)
-            values = layout.values(prep, measure)
-            self._harness_layout, self._harness_values = layout, values
-            n_cat = len(p.catIds)
-            # the C++ datasets: per (image, category), what EvaluateImages reads (id, score, area, iscrowd, ignore)
+            if matching == "iou":
+                values = iou_values(layout, prep)
+            else:
+                values = layout.values(prep, partial(safit_elementwise, c=SAFIT_C, anchor=anchor))
             anns = prep.gt["annotations"]
-            gt_sorted = [anns[i] for i in layout.gt_order.tolist()]
-            self.gt_dataset.load_tuple(_grouped(gt_sorted, layout.gt_keys, layout.gt_start, layout.gt_count, p, n_cat))
-            _, _, score, boxes = prep.det_columns
-            order = layout.det_order
-            area = boxes[order, 2] * boxes[order, 3]
-            dt_sorted = [{"id": j, "score": s, "area": a} for j, s, a in
-                         zip((order + 1).tolist(), score[order].tolist(), area.tolist())]
-            self.dt_dataset.load_tuple(_grouped(dt_sorted, layout.det_keys, layout.det_start, layout.det_count, p,
-                                                n_cat))
-            # the matrices, [image][category] as COCOeval_faster.evaluate passes them ([] where a pair has none)
-            ious: list[list[Any]] = [[[] for _ in range(n_cat)] for _ in range(len(p.imgIds))]
-            for k, block in zip(layout.keys.tolist(), layout.blocks(values)):
-                ious[k // n_cat][k % n_cat] = block
+            # the fields the library's C++ reads: "area", and "ignore" (prepare sets it to "iscrowd")
+            gt_area = np.fromiter((a["area"] for a in anns), dtype=np.float64, count=len(anns))
+            gt_ignore = np.fromiter((bool(a.get("ignore", 0)) for a in anns), dtype=bool, count=len(anns))
+            ignored = gt_ignored(gt_area, gt_ignore, area_rng)
+            matches = match_all(layout, values, iou_thrs, ignored)
+            p.imgIds, p.catIds, p.maxDets = img_ids, cat_ids, max_dets
+            self._harness_layout, self._harness_values, self._harness_matches = layout, values, matches
             self._paramsEval = copy.deepcopy(p)
-            evaluations = _C.COCOevalEvaluateImages(p.areaRng, p.maxDets[-1], p.iouThrs, ious, self.gt_dataset,
-                                                    self.dt_dataset, p.imgIds, p.catIds, True)
-            del ious
-            self.eval = _accumulate_summarized(_C.COCOevalAccumulate, self._paramsEval, evaluations)
+            self.eval = accumulate(prep, layout, matches, ignored, self._paramsEval)
 
         def _stock_evaluate(self) -> None:
             if self.cocoGt is None and self.harness_inputs is not None:
@@ -166,52 +159,6 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             return _safit_matrix(gt, dt, p.maxDets[-1], anchor)
 
     return HarnessEvalFaster
-
-
-def _accumulate_summarized(accumulate: Any, params: Any, evaluations: list[Any]) -> dict[str, Any]:
-    """faster-coco-eval's C++ accumulation of only the (area range, maxDets) cells that ``summarize()`` and the
-    harness read: area "all" at every maxDets, the other area ranges at the last maxDets (100). The other cells
-    (e.g. small objects at maxDets 1) hold -1, as cells without GT do. Each computed cell is bitwise the library's
-    own; the accumulation's cost grows with the number of cells, so this halves it for COCO's 4 ranges x 3 maxDets.
-
-    ``evaluations`` is ``COCOevalEvaluateImages``' list, ordered [category][area range][image].
-    """
-    n_area, n_max = len(params.areaRng), len(params.maxDets)
-    if n_area == 1 or n_max == 1 or params.areaRngLbl[0] != "all":
-        return accumulate(params, evaluations)
-    n_img, n_cat = len(params.imgIds), len(params.catIds)
-    block = n_area * n_img
-    p_all, p_rng = copy.deepcopy(params), copy.deepcopy(params)
-    p_all.areaRng, p_all.areaRngLbl = params.areaRng[:1], params.areaRngLbl[:1]
-    p_rng.areaRng, p_rng.areaRngLbl, p_rng.maxDets = params.areaRng[1:], params.areaRngLbl[1:], params.maxDets[-1:]
-    ev_all: list[Any] = []
-    ev_rng: list[Any] = []
-    for c in range(n_cat):
-        ev_all += evaluations[c * block:c * block + n_img]
-        ev_rng += evaluations[c * block + n_img:(c + 1) * block]
-    evaluations.clear()  # the per-range lists now hold the only references
-    acc_all = accumulate(p_all, ev_all)
-    del ev_all
-    acc_rng = accumulate(p_rng, ev_rng)
-    del ev_rng
-    n_thr, n_rec = len(params.iouThrs), len(params.recThrs)
-    counts = [n_thr, n_rec, n_cat, n_area, n_max]
-    out: dict[str, Any] = {"params": params, "counts": counts, "date": acc_all.get("date")}
-    for key, shape in (("precision", counts), ("scores", counts), ("recall", [n_thr, n_cat, n_area, n_max])):
-        full = np.full(shape, -1.0)
-        full[..., :1, :] = acc_all[key]
-        full[..., 1:, n_max - 1:] = acc_rng[key]
-        out[key] = full
-    return out
-
-
-def _grouped(items: list[Any], keys: np.ndarray, start: np.ndarray, count: np.ndarray, params: Any,
-             n_cat: int) -> tuple[int, list[tuple[float, float, list[Any]]]]:
-    """``Dataset.load_tuple``'s argument: ``(pairs, [(image_id, category_id, items of the pair), ...])``."""
-    img_ids, cat_ids = params.imgIds, params.catIds
-    entries = [(float(img_ids[k // n_cat]), float(cat_ids[k % n_cat]), items[s:s + c])
-               for k, s, c in zip(keys.tolist(), start.tolist(), count.tolist())]
-    return len(entries), entries
 
 
 def _pycoco_eval_class(matching: str, anchor: str) -> type:
@@ -269,12 +216,21 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
     result = EngineResult(list(map(float, ev.stats[:12])), np.asarray(ev.eval["precision"]),
                           np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl))
     if want_op:
-        layout = getattr(ev, "_harness_layout", None) or pair_layout(prep, ev.params.maxDets[-1])
-        values = getattr(ev, "_harness_values", None)
-        if values is None:
-            values = layout.values(prep, iou_elementwise)
-        _fill_operating_inputs(result, prep, *layout.greedy_match_indices(values, threshold=0.5), layout)
+        _fill_operating_inputs(result, prep, *_matches_at_50(ev, prep), getattr(ev, "_harness_layout", None)
+                               or pair_layout(prep, ev.params.maxDets[-1]))
     return result
+
+
+def _matches_at_50(ev: Any, prep: PreparedEval) -> tuple[np.ndarray, np.ndarray]:
+    """(detection index, GT index) of COCO's matches at threshold 0.50, area "all": from the bulk matching where it
+    ran (with the run's measure), else matched afresh on IoU."""
+    matches: Matches | None = getattr(ev, "_harness_matches", None)
+    layout = getattr(ev, "_harness_layout", None)
+    thrs = np.asarray(ev.params.iouThrs, dtype=np.float64)
+    if matches is not None and ev.params.areaRngLbl[0] == "all" and np.any(thrs == 0.5):
+        return matches.at(int(np.flatnonzero(thrs == 0.5)[0]), 0)
+    layout = layout or pair_layout(prep, ev.params.maxDets[-1])
+    return layout.greedy_match_indices(layout.values(prep, iou_elementwise), threshold=0.5)
 
 
 def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, det_idx: np.ndarray, gt_idx: np.ndarray,
