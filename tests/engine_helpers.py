@@ -7,14 +7,15 @@ temperature (+4 C / -4 C), so only a detector that reads the fourth channel can 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
 from harness import AlignedSample, DatasetSpec, EncodingSpec, Fold, hookimpl
-from harness.prepared import PreparedDataset, PreparedWriter
+from harness.cache import PreparedDataset, PreparedWriter
 
 REPO = Path(__file__).resolve().parent.parent
 PLUGIN_SRC = REPO / "plugins" / "harness-tinydet" / "src"
@@ -28,6 +29,19 @@ def tinydet_module():
     import harness_tinydet.model as m
 
     return m
+
+
+@contextlib.contextmanager
+def shapes_and_tinydet(tag: str) -> Iterator[None]:
+    """The shapes dataset with the test encodings and the example TinyDet plugin, registered for a ``with`` block
+    (as ``shapes-<tag>`` and ``tinydet-<tag>``)."""
+    from harness.testing import temporary_plugin
+
+    tinydet_module()
+    import harness_tinydet.plugin as tinydet_plugin
+
+    with temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"), temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"):
+        yield
 
 
 def make_sample(image_id: int, group: str, rng: np.random.Generator, size: tuple[int, int] = (64, 80),
@@ -141,3 +155,25 @@ def write_plugin_dir(folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "shapes_plugin.py").write_text(PLUGIN_FILE.format(tests=str(Path(__file__).resolve().parent)))
     return folder
+
+
+def install_plugin(folder: str, tmp_path: Path) -> tuple[Path, Path]:
+    """``plugins/<folder>`` copied to ``tmp_path/src`` and pip-installed (no dependencies, no index, no build
+    isolation) into ``tmp_path/site``: (the copy, the site folder to put on ``PYTHONPATH``)."""
+    import shutil
+    import subprocess
+
+    src, site = tmp_path / "src", tmp_path / "site"
+    shutil.copytree(REPO / "plugins" / folder, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr
+    return src, site
+
+
+def run_plugin_tests(src: Path, env: dict[str, str]) -> Any:
+    """The plugin's own ``tests/`` run by pytest in a subprocess, with the fixtures of ``harness.testing``."""
+    import subprocess
+
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "harness.testing",
+                           str(src / "tests")], env=env, cwd=src, capture_output=True, text=True, timeout=600)

@@ -14,8 +14,8 @@ import pytest
 from harness import hookspecs
 from harness.api import DatasetSource, DatasetSpec, Fold, PrepareReport
 from harness.errors import PluginError
-from harness.plugins import temporary_plugin
-from harness.sample import AlignedSample
+from harness.testing import temporary_plugin
+from harness.api import AlignedSample
 
 DOCS = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
 
@@ -116,7 +116,7 @@ def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypat
 # ------------------------------------------------------------------------------------------- open and prepare
 def test_sensing_is_passed_only_to_an_open_that_takes_it_and_source_categories_win(tmp_path):
     from harness.config import load_config
-    from harness.prepare import open_source, prepare, resolve_folds
+    from harness.cache import open_source, prepare, resolve_folds
 
     cfg = load_config(protocol="default", overrides=["sensing.warp.crop=false"])
     with_sensing = DatasetSpec("contract-test", open=lambda root=None, sensing=None: _Source(sensing), categories=())

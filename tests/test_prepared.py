@@ -7,8 +7,8 @@ import pytest
 
 from harness.api import EncodingSpec
 from harness.errors import SampleError
-from harness.prepared import PreparedDataset, PreparedWriter
-from harness.sample import AlignedSample
+from harness.cache import PreparedDataset, PreparedWriter
+from harness.api import AlignedSample
 
 
 def sample(i, h=12, w=16, n=2, group="P1", thermal=True):
