@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+import pytest
 
 from harness import AlignedSample, DatasetSpec, EncodingSpec, Fold, hookimpl
 from harness.cache import PreparedDataset, PreparedWriter
@@ -31,6 +32,22 @@ def tinydet_module():
     return m
 
 
+def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
+    """``--set`` overrides for a tiny CPU run of TinyDet on the shapes dataset (64 px, batch 8, one thread)."""
+    return ["protocol.imgsz=64", f"protocol.epochs={epochs}", "protocol.patience=10", "train.batch=8",
+            "train.nominal_batch=8", "train.warmup_epochs=0.5", "train.warmup_min_iters=0",
+            f"train.close_mosaic={close_mosaic}", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+
+
+@pytest.fixture
+def shapes_run_plugins(host: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
+    """The shapes dataset, the test encodings and the example TinyDet plugin registered for one test, with a cache
+    of its own (import it into a test module as the fixture ``plugins``)."""
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    with shapes_and_tinydet("run"):
+        yield host
+
+
 @contextlib.contextmanager
 def shapes_and_tinydet(tag: str) -> Iterator[None]:
     """The shapes dataset with the test encodings and the example TinyDet plugin, registered for a ``with`` block
@@ -40,7 +57,8 @@ def shapes_and_tinydet(tag: str) -> Iterator[None]:
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
 
-    with temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"), temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"):
+    with temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"), \
+            temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"):
         yield
 
 
@@ -123,6 +141,31 @@ class ShapesSource:
             for _ in range(self.per_group):
                 yield make_sample(k, g, rng, self.size)
                 k += 1
+
+
+class ContractSource:
+    """The smallest dataset source: groups ``a`` (two samples) and ``b`` (one), 8 x 8 at 20 C, one box each."""
+
+    name = "contract-test"
+    categories = ("thing", "other")
+
+    def __init__(self, sensing: Any = None):
+        self.sensing = sensing
+
+    def groups(self) -> list[str]:
+        return ["a", "b"]
+
+    def folds(self) -> list[Fold]:
+        return []
+
+    def fingerprint(self) -> str:
+        return "fixed"
+
+    def samples(self, report: Any):
+        for i, g in enumerate(["a", "a", "b"], start=1):
+            t = np.full((8, 8), 20.0, np.float32)
+            yield AlignedSample(i, np.zeros((8, 8, 3), np.uint8), t, np.zeros((8, 8), np.uint8),
+                                np.array([[1, 1, 4, 4]], np.float32), np.array([1], np.int64), g, {})
 
 
 class ShapesPlugin:

@@ -11,8 +11,8 @@ import pytest
 
 from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
 from harness.cache import forms as CF
-from harness.errors import DataError
 from harness.cache import prepare
+from harness.errors import DataError
 
 
 def _same(a, b) -> None:

@@ -13,7 +13,8 @@ import click
 import numpy as np
 import pytest
 
-from harness import AlignedSample, DatasetSpec, DetectorSpec, EncodingSpec, Fold, hookimpl
+from engine_helpers import ContractSource as _Good
+from harness import DatasetSpec, DetectorSpec, EncodingSpec, Fold, hookimpl
 from harness.errors import PluginError
 
 
@@ -69,13 +70,8 @@ class _CommandPlugin:
 
     @hookimpl
     def register_commands(self, cli):
-        @cli.command(name="list")
-        def shadow():
-            click.echo("the plugin's list")
-
-        @cli.command(name="undo-own")
-        def own():
-            click.echo("own")
+        cli.add_command(click.Command("list", callback=lambda: click.echo("the plugin's list")))
+        cli.add_command(click.Command("undo-own", callback=lambda: click.echo("own")))
 
 
 def test_a_plugin_command_named_like_a_builtin_is_a_conflict_naming_both(harness_host, harness_plugin):
@@ -173,25 +169,6 @@ def test_a_logger_name_follows_the_rule_of_every_other_name():
 
 
 # ------------------------------------------------------------------------------------------- opened datasets
-class _Good:
-    name = "undo-src"
-    categories = ("thing",)
-
-    def groups(self):
-        return ["a", "b"]
-
-    def folds(self):
-        return []
-
-    def fingerprint(self):
-        return "fixed"
-
-    def samples(self, report):
-        for i, g in enumerate("ab", start=1):
-            yield AlignedSample(i, np.zeros((8, 8, 3), np.uint8), None, np.zeros((8, 8), np.uint8),
-                                np.array([[1, 1, 4, 4]], np.float32), np.array([0], np.int64), g, {})
-
-
 class _NoSamples(_Good):
     samples = None  # type: ignore[assignment]
 
@@ -238,7 +215,7 @@ def test_a_source_that_yields_something_else_than_a_sample_gets_a_counted_skip(t
 
     spec = DatasetSpec("undo-src", open=lambda root=None: Mixed(), categories=("thing",))
     ds = prepare(spec, load_config(protocol="default"), cache_root=tmp_path, progress=False)
-    assert len(ds) == 2
+    assert len(ds) == 3
     assert ds.manifest["report"]["skip_reasons"] == {"invalid sample": 1}
     assert ds.manifest["report"]["skipped_files"] == [["dict", "invalid sample: expected an AlignedSample, got dict"]]
 
@@ -261,14 +238,15 @@ def test_an_encodings_output_is_checked_once_for_both_cache_forms(tmp_path, form
     harness_plugin(Plugin(), name="undo-enc-plugin")
     from harness.plugins import get_host
 
-    with PreparedWriter(tmp_path / "ds", "undo-src", ("thing",), form=form) as writer:
+    with PreparedWriter(tmp_path / "ds", "undo-src", _Good.categories, form=form) as writer:
         for sample in _Good().samples(None):
             writer.add(sample)
     from harness.cache import PreparedDataset
 
     ds = PreparedDataset(tmp_path / "ds")
-    with pytest.raises(PluginError, match=rf"encoding 'undo-bad-enc' \(plugin undo-enc-plugin\): sample 1: fn "
-                                          rf"returned {re.escape(got)}, expected a uint8 numpy array of shape \(8, 8\)"):
+    expected = f"encoding 'undo-bad-enc' (plugin undo-enc-plugin): sample 1: fn returned {got}, expected a uint8 " \
+               "numpy array of shape (8, 8)"
+    with pytest.raises(PluginError, match=re.escape(expected)):
         ds.channel(0, get_host().encoding("undo-bad-enc"))
 
 

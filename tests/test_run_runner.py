@@ -10,22 +10,13 @@ import pytest
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import CATEGORIES, shapes_and_tinydet
+from engine_helpers import CATEGORIES, fast_overrides
+from engine_helpers import shapes_run_plugins as plugins  # noqa: F401 - the fixture
 from harness.config import read_yaml
 from harness.errors import ConfigError, StoreError
 from harness.testing import temporary_plugin
 
-FAST = ["protocol.imgsz=64", "protocol.epochs=3", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=1", "train.threads=1",
-        "train.device=cpu", "eval.batch=16"]
-
-
-@pytest.fixture
-def plugins(host, tmp_path, monkeypatch):
-    """The shapes dataset, the test encodings and the example TinyDet plugin, registered for one test."""
-    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
-    with shapes_and_tinydet("test"):
-        yield host
+FAST = fast_overrides(epochs=3, close_mosaic=1)
 
 
 def request(tmp_path, **kw):
