@@ -27,21 +27,17 @@ import re
 from dataclasses import dataclass, field
 from os import PathLike, fspath
 from pathlib import Path
-from typing import (TYPE_CHECKING, Any, Callable, Iterator, Literal, Mapping, Protocol, Sequence, TypeAlias,
-                    runtime_checkable)
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Literal, Mapping, Protocol, Sequence, runtime_checkable
 
 from harness import contracts
 
 if TYPE_CHECKING:  # pragma: no cover
-    import click
     import numpy as np
     import torch
 
 #: How a detector takes its input: one stacked tensor ("single") or an (RGB, thermal) pair ("dual").
 InputKind = Literal["single", "dual"]
 INPUT_KINDS: tuple[str, ...] = ("single", "dual")
-#: What the ``register_commands`` hook is handed: the top-level ``click.Group`` of the ``harness`` command.
-CommandGroup: TypeAlias = "click.Group"
 
 
 # ------------------------------------------------------------------------------------------------ detectors
@@ -370,6 +366,26 @@ class LoggerSpec:
         import importlib.util
 
         return [m for m in self.requires if importlib.util.find_spec(m) is None]
+
+
+# ------------------------------------------------------------------------------------------------ commands
+@runtime_checkable
+class CommandGroup(Protocol):
+    """What ``register_commands(cli)`` is handed: the top-level ``click.Group`` of the ``harness`` command line.
+
+    Add commands with ``@cli.command(name=...)``, groups with ``@cli.group()``, or ``cli.add_command(command)``;
+    ``cli.commands`` maps the names taken so far to their commands. A name another plugin (or the harness) already
+    added is a conflict naming both plugins: the first command stays listed and running it is a ``PluginError``
+    until one of them is removed. Keep commands thin: parse, call one library function, print.
+    """
+
+    commands: dict[str, Any]
+
+    def command(self, *args: Any, **kwargs: Any) -> Callable[..., Any]: ...
+
+    def group(self, *args: Any, **kwargs: Any) -> Callable[..., Any]: ...
+
+    def add_command(self, cmd: Any, name: str | None = None) -> None: ...
 
 
 #: The record each registration hook takes: hook name -> (the kind users see, the record class).

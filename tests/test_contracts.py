@@ -286,3 +286,11 @@ def test_commands_added_again_after_a_host_reset_are_no_conflict(harness_host):
 
     assert CliRunner().invoke(group, ["list", "--json"]).exit_code == 0
     assert host.owner("command", "list") == "harness.commands.core"
+
+
+def test_the_cli_group_handed_to_plugins_follows_the_command_contract():
+    from harness import CommandGroup
+    from harness.cli import get_cli
+
+    assert isinstance(get_cli(), CommandGroup) and isinstance(click.Group(), CommandGroup)
+    assert not isinstance(object(), CommandGroup)
