@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cache_forms as CF  # noqa: E402
+from harness.cache import forms as CF  # noqa: E402
 
 
 #: The run profiles' image sizes (configs/profiles/*.yaml: protocol.imgsz).
@@ -71,7 +71,7 @@ def _datasets(data: Path, cache: Path):
     from adapters.datasets import synthetic as S
     from eightbit_fixtures import write_rgbt_tiny
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     S.PROFILES.setdefault("bench640", S.Profile("bench640", (4, 4, 4, 2, 2), (640, 512), (2000, 1500),
                                                 (1, 1, 1, 1, 1), description="loader benchmark: 16 pairs"))

@@ -55,7 +55,7 @@ def main() -> None:
 
     from harness.api import PrepareReport
     from harness.config import load_config
-    from harness.prepare import open_source, prepare
+    from harness.cache import open_source, prepare
     from harness.sensing.radiometry import read_thermal
 
     cv2.setNumThreads(1)

@@ -46,7 +46,7 @@ def write_samples(folder: Path, n: int, size: tuple[int, int], categories: int, 
     import numpy as np
 
     from harness import AlignedSample
-    from harness.prepared import PreparedDataset, PreparedWriter
+    from harness.cache import PreparedDataset, PreparedWriter
 
     rng = np.random.default_rng(seed)
     h, w = size

@@ -1,5 +1,21 @@
-"""Plugin outputs checked at the boundary: every error names the plugin, the field and what was expected.
+"""Every boundary check of the plugin contracts (``harness.api``): where a plugin's record or output enters the
+harness, it is checked here, and every error names the plugin, the field and what was expected.
 
+Records, when they are built (``__post_init__``):
+
+* ``check_name(kind, name)``: names are lower-case identifiers, safe as folders of the results store;
+* ``check_detector_spec``, ``check_dataset_spec`` (with its ``protocol`` file), ``check_encoding_spec``,
+  ``check_logger_spec``, ``check_fold``;
+* ``check_registered(spec, record_class)``: what a plugin hands a ``register`` callback.
+
+What a plugin's code returns:
+
+* ``check_source(source, label)``: what ``DatasetSpec.open`` returned has the ``DatasetSource`` methods, and
+  ``check_groups``, ``check_folds``, ``check_fingerprint`` what they return;
+* ``validate_sample(sample, num_classes)``: an ``AlignedSample`` against its table (a failing sample is a counted
+  skip when a dataset is prepared);
+* ``check_encoding_input`` / ``check_encoding_output``: an encoding gets the field it needs and returns a uint8
+  array of the sample's size (``EncodingSpec.encode`` calls both);
 * ``check_detections(det, detector, num_classes)``: one image's eval-mode output ``{"boxes" [K, 4] float,
   "scores" [K] float, finite, "labels" [K] int in 0..num_classes-1}``; degenerate boxes (NaN, inverted) pass here
   and are counted and dropped by ``harness.engine.predict``;
@@ -8,20 +24,293 @@
   ``harness_fuse()`` first, then a ``fuse()`` *method defined on the model's class*; an attribute, a sub-module or
   anything else a plugin happens to call ``fuse`` is never called.
 
-Dataset samples are checked by ``harness.sample.validate_sample`` when they are prepared.
+``plugin_call(label, what, func, ...)`` runs a plugin's function and turns an exception its code raises (not a
+``HarnessError`` it raises on purpose) into a ``PluginError`` naming the plugin, the call and where it was raised.
 """
 
 from __future__ import annotations
 
 import inspect
-from typing import Any, Mapping
+import numbers
+import re
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
-from harness.errors import PluginError
+from harness.errors import HarnessError, PluginError, SampleError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
+
+    from harness.api import AlignedSample, DatasetSpec, DetectorSpec, EncodingSpec, Fold, LoggerSpec
 
 #: The namespaced name of the BatchNorm fold the host calls on a model (``fuse`` is accepted as a class method).
 FUSE_HOOK = "harness_fuse"
+#: What an opened dataset must answer (``harness.api.DatasetSource``).
+SOURCE_METHODS = ("groups", "folds", "fingerprint", "samples")
+_NAME = re.compile(r"^[a-z0-9][a-z0-9_.+-]*$")
 
 
+# ------------------------------------------------------------------------------------------------ who is speaking
+def plugin_label(kind: str, name: str, fallback: Any = None) -> str:
+    """``dataset 'NAME' (plugin P)``: how an error names a registered record and the plugin that registered it.
+    ``fallback``: a function of the plugin, whose module is named when no loaded plugin registered ``name``."""
+    try:
+        from harness.plugins import get_host
+
+        owner: str | None = get_host().owner(kind, name)
+    except Exception:  # noqa: BLE001 - a record no plugin registered (tests, the API) has no owner to name
+        owner = getattr(fallback, "__module__", None)
+    return f"{kind} {name!r}" + (f" (plugin {owner})" if owner else "")
+
+
+def plugin_call(label: str | Callable[[], str], what: str, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """``func(*args, **kwargs)`` of a plugin; an exception its code raises becomes a ``PluginError`` naming ``label``
+    (or what ``label()`` returns, worked out only then), the call (``what``) and where it was raised. A
+    ``HarnessError`` passes unchanged."""
+    try:
+        return func(*args, **kwargs)
+    except (HarnessError, KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        from harness.plugins import where
+
+        text = label() if callable(label) else label
+        raise PluginError(f"{text}: {what} raised {type(exc).__name__}: {exc}{where(exc)}") from exc
+
+
+# ------------------------------------------------------------------------------------------------ records
+def check_name(kind: str, name: str) -> None:
+    """Names are lower-case identifiers that are safe as directory names in the results store."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise PluginError(
+            f"invalid {kind} name {name!r}: use lower-case letters, digits and '._+-', starting with a letter or digit"
+        )
+
+
+def check_registered(spec: Any, record: type) -> Any:
+    """What a plugin passed to a ``register`` callback: an instance of the hook's record class."""
+    if not isinstance(spec, record):
+        raise PluginError(f"register() expects a {record.__name__}, got {type(spec).__name__}")
+    return spec
+
+
+def check_detector_spec(spec: DetectorSpec) -> None:
+    from harness.api import INPUT_KINDS
+
+    check_name("detector", spec.name)
+    if spec.input_kind not in INPUT_KINDS:
+        raise PluginError(f"detector {spec.name!r}: input_kind must be one of {INPUT_KINDS}, got {spec.input_kind!r}")
+    if not callable(spec.build):
+        raise PluginError(f"detector {spec.name!r}: build must be callable")
+
+
+def check_fold(fold: Fold) -> None:
+    overlap = set(fold.train_groups) & set(fold.val_groups)
+    if overlap:
+        raise PluginError(f"fold {fold.name!r}: groups {sorted(overlap)} are both trained on and held out")
+
+
+def check_dataset_spec(spec: DatasetSpec) -> None:
+    """Name, ``open``, ``thermal`` and ``protocol``: a shipped protocol file must exist when the plugin registers."""
+    check_name("dataset", spec.name)
+    if not callable(spec.open):
+        raise PluginError(f"dataset {spec.name!r}: open must be callable")
+    if not isinstance(spec.protocol, str) or not spec.protocol:
+        raise PluginError(f"dataset {spec.name!r}: protocol must be a name, 'package:file.yaml' or an absolute "
+                          f"path, got {spec.protocol!r}")
+    from harness.protocols import protocol_form, shipped_protocol
+
+    if protocol_form(spec.protocol) != "name":
+        try:
+            shipped_protocol(spec.protocol)
+        except HarnessError as exc:
+            raise PluginError(f"dataset {spec.name!r}: {exc}") from None
+    elif "/" in spec.protocol or "\\" in spec.protocol:
+        raise PluginError(f"dataset {spec.name!r}: protocol {spec.protocol!r} is a relative path; give a name "
+                          "under configs/protocols/, 'package:file.yaml' or an absolute path")
+    if spec.thermal not in ("radiometric", "8bit"):
+        raise PluginError(f"dataset {spec.name!r}: thermal must be 'radiometric' or '8bit'")
+
+
+def check_encoding_spec(spec: EncodingSpec) -> None:
+    check_name("encoding", spec.name)
+    if spec.channels not in (0, 1):
+        raise PluginError(f"encoding {spec.name!r}: channels must be 0 or 1")
+    if spec.needs not in ("thermal", "ir8", None):
+        raise PluginError(f"encoding {spec.name!r}: needs must be 'thermal', 'ir8' or None")
+    if not callable(spec.fn):
+        raise PluginError(f"encoding {spec.name!r}: fn must be callable")
+
+
+def check_logger_spec(spec: LoggerSpec) -> None:
+    check_name("logger", spec.name)
+    if not callable(spec.create):
+        raise PluginError(f"logger {spec.name!r}: create must be callable")
+
+
+# ------------------------------------------------------------------------------------------------ datasets
+def check_source(source: Any, label: str) -> Any:
+    """What ``DatasetSpec.open`` returned: an object with ``groups()``, ``folds()``, ``fingerprint()`` and
+    ``samples(report)``, and ``categories`` (when it has them) a sequence of strings; else a ``PluginError``."""
+    missing = [m for m in SOURCE_METHODS if not callable(getattr(source, m, None))]
+    if missing:
+        raise PluginError(f"{label}: open() returned {type(source).__name__}, which has no "
+                          f"{', '.join(m + '()' for m in missing)}; it must return a DatasetSource (groups(), folds(), "
+                          f"fingerprint(), samples(report); docs/plugins.md, 'The dataset contract')")
+    categories = getattr(source, "categories", None)
+    if categories is not None and (isinstance(categories, (str, bytes)) or not isinstance(categories, Sequence)
+                                   or not all(isinstance(c, str) and c for c in categories)):
+        raise PluginError(f"{label}: the opened source's categories must be a sequence of non-empty strings in label "
+                          f"order, got {categories!r}")
+    return source
+
+
+def check_groups(groups: Any, label: str) -> list[str]:
+    """``groups()``: a list (or tuple) of non-empty strings."""
+    if isinstance(groups, (str, bytes)) or not isinstance(groups, Sequence) \
+            or not all(isinstance(g, str) and g for g in groups):
+        raise PluginError(f"{label}: groups() must return a list of non-empty strings, got {groups!r}")
+    return list(groups)
+
+
+def check_folds(folds: Any, label: str) -> list[Fold]:
+    """``folds()``: a list (or tuple) of ``harness.api.Fold`` records (empty: leave one group out)."""
+    from harness.api import Fold
+
+    if isinstance(folds, (str, bytes)) or not isinstance(folds, Sequence):
+        raise PluginError(f"{label}: folds() must return a list of Fold records, got {type(folds).__name__}")
+    bad = [f for f in folds if not isinstance(f, Fold)]
+    if bad:
+        raise PluginError(f"{label}: folds() must return Fold records (harness.Fold(name, train_groups, "
+                          f"val_groups)), got {type(bad[0]).__name__} {bad[0]!r}")
+    return list(folds)
+
+
+def check_fingerprint(fingerprint: Any, label: str) -> str:
+    """``fingerprint()``: a non-empty string (it keys the prepared cache: anything else would key it on nothing)."""
+    if not isinstance(fingerprint, str) or not fingerprint:
+        raise PluginError(f"{label}: fingerprint() must return a non-empty string that changes whenever the samples "
+                          f"would, got {fingerprint!r}")
+    return fingerprint
+
+
+def _fail(sample: Any, field_name: str, message: str) -> SampleError:
+    from harness.api import AlignedSample
+
+    name = sample.name if isinstance(sample, AlignedSample) else f"sample {getattr(sample, 'image_id', '?')}"
+    return SampleError(f"{name}: field {field_name!r}: {message}")
+
+
+def _check_array(sample: AlignedSample, name: str, value: Any, dtype: Any, ndim: int) -> np.ndarray:
+    import numpy as np
+
+    if not isinstance(value, np.ndarray):
+        raise _fail(sample, name, f"expected a numpy array, got {type(value).__name__}")
+    if value.dtype != dtype:
+        raise _fail(sample, name, f"expected dtype {np.dtype(dtype).name}, got {value.dtype.name}")
+    if value.ndim != ndim:
+        raise _fail(sample, name, f"expected {ndim} dimensions, got shape {tuple(value.shape)}")
+    return value
+
+
+def validate_sample(sample: AlignedSample, num_classes: int | None = None,
+                    box_tolerance: float = 1e-3) -> AlignedSample:
+    """Check ``sample`` against the contract; return it unchanged or raise ``SampleError`` naming the field."""
+    import numpy as np
+
+    from harness.api import AlignedSample
+
+    if not isinstance(sample, AlignedSample):
+        raise SampleError(f"expected an AlignedSample, got {type(sample).__name__}")
+    if isinstance(sample.image_id, (bool, np.bool_)) or not isinstance(sample.image_id, (int, np.integer)):
+        raise _fail(sample, "image_id", f"expected an int, got {type(sample.image_id).__name__}")
+    if not isinstance(sample.group, str) or not sample.group:
+        raise _fail(sample, "group", "expected a non-empty string (project or sequence)")
+    if not isinstance(sample.meta, dict):
+        raise _fail(sample, "meta", f"expected a dict, got {type(sample.meta).__name__}")
+
+    ir8 = _check_array(sample, "ir8", sample.ir8, np.uint8, 2)
+    h, w = ir8.shape
+    if h < 1 or w < 1:
+        raise _fail(sample, "ir8", f"empty image of shape {ir8.shape}")
+    rgb = _check_array(sample, "rgb", sample.rgb, np.uint8, 3)
+    if rgb.shape != (h, w, 3):
+        raise _fail(sample, "rgb", f"expected shape {(h, w, 3)} (thermal frame, 3 channels), got {rgb.shape}")
+    if sample.thermal is not None:
+        th = _check_array(sample, "thermal", sample.thermal, np.float32, 2)
+        if th.shape != (h, w):
+            raise _fail(sample, "thermal", f"expected shape {(h, w)} like ir8, got {th.shape}")
+        if not np.isfinite(th).all():
+            from harness.sensing.c2 import MAX_INVALID_FRACTION
+
+            bad = int((~np.isfinite(th)).sum())
+            if bad > MAX_INVALID_FRACTION * th.size:
+                raise _fail(sample, "thermal", f"{bad} of {th.size} pixels are non-finite temperature values (NaN or "
+                            f"inf), more than the {100 * MAX_INVALID_FRACTION:g} % a map may miss")
+
+    boxes = _check_array(sample, "boxes", sample.boxes, np.float32, 2)
+    if boxes.shape[1] != 4:
+        raise _fail(sample, "boxes", f"expected shape (N, 4) xyxy, got {boxes.shape}")
+    labels = _check_array(sample, "labels", sample.labels, np.int64, 1)
+    if labels.shape[0] != boxes.shape[0]:
+        raise _fail(sample, "labels", f"{labels.shape[0]} labels for {boxes.shape[0]} boxes")
+    if len(boxes):
+        if not np.isfinite(boxes).all():
+            raise _fail(sample, "boxes", "non-finite coordinates")
+        x1, y1, x2, y2 = boxes.T
+        if (x2 <= x1).any() or (y2 <= y1).any():
+            i = int(np.nonzero((x2 <= x1) | (y2 <= y1))[0][0])
+            raise _fail(sample, "boxes", f"box {i} {boxes[i].tolist()} has zero or negative width/height")
+        tol = box_tolerance
+        outside = (x1 < -tol) | (y1 < -tol) | (x2 > w + tol) | (y2 > h + tol)
+        if outside.any():
+            i = int(np.nonzero(outside)[0][0])
+            raise _fail(sample, "boxes", f"box {i} {boxes[i].tolist()} lies outside the {w}x{h} frame")
+        if (labels < 0).any() or (num_classes is not None and (labels >= num_classes).any()):
+            bad = labels[(labels < 0) | ((labels >= num_classes) if num_classes is not None else False)]
+            raise _fail(sample, "labels", f"label {int(bad[0])} outside 0..{(num_classes or 0) - 1}")
+    return sample
+
+
+def check_unique_id(seen: dict[int, str], sample: Any, where: str, label: str) -> None:
+    """Two samples with one ``image_id`` are a ``DataError`` (not a skip: keeping the first would publish a cache
+    without the others and every result on it would be wrong). ``seen`` maps the ids so far to where they came from."""
+    from harness.errors import DataError
+
+    iid = getattr(sample, "image_id", None)
+    if isinstance(iid, numbers.Integral) and not isinstance(iid, bool):
+        iid = int(iid)
+        if iid in seen:
+            raise DataError(f"{label}: image_id {iid!r} is given to two samples ({seen[iid]} and {where}); every "
+                            f"sample needs its own image_id. Nothing was cached")
+        seen[iid] = where
+
+
+# ------------------------------------------------------------------------------------------------ encodings
+def check_encoding_input(spec: EncodingSpec, sample: AlignedSample) -> None:
+    """A radiometric encoding asked of a sample that has only 8-bit thermal is a ``PluginError`` saying what to use."""
+    if spec.needs == "thermal" and sample.thermal is None:
+        raise PluginError(
+            f"encoding {spec.name!r} needs radiometric thermal, but sample {sample.image_id} has only 8-bit "
+            f"thermal; use an 8-bit encoding such as 'proxy8' or 'ir8'"
+        )
+
+
+def check_encoding_output(spec: EncodingSpec, sample: AlignedSample, out: Any) -> np.ndarray | None:
+    """What ``fn`` returned: ``None`` for a zero-channel encoding, else a uint8 numpy array of the sample's height and
+    width; anything else is a ``PluginError`` naming the encoding, its plugin, the sample and what came back."""
+    import numpy as np
+
+    if spec.channels == 0 and out is None:
+        return None
+    want = (sample.height, sample.width)
+    if isinstance(out, np.ndarray) and out.dtype == np.uint8 and out.shape == want:
+        return out
+    got = f"a {out.dtype} array of shape {tuple(out.shape)}" if isinstance(out, np.ndarray) else type(out).__name__
+    raise PluginError(f"{plugin_label('encoding', spec.name, spec.fn)}: {sample.name}: fn returned {got}, expected a "
+                      f"uint8 numpy array of shape {want}" + (" or None" if spec.channels == 0 else ""))
+
+
+# ------------------------------------------------------------------------------------------------ detectors
 def _shape(t: Any) -> str:
     return str(list(t.shape)) if hasattr(t, "shape") else type(t).__name__
 
@@ -96,3 +385,4 @@ def fold_batchnorm(model: Any) -> tuple[Any, bool]:
     if out is not None and hasattr(out, "parameters"):
         return out, True
     return model, True
+

@@ -23,7 +23,7 @@ import numpy as np
 from harness.api import EncodingSpec
 from harness.errors import PluginError
 from harness.hookspecs import hookimpl
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 from harness.sensing import c2 as c2mod
 
 

@@ -1,4 +1,5 @@
-"""The plugin API of the harness: every hook a plugin may implement, documented here and nowhere else.
+"""The plugin API of the harness: every hook a plugin may implement, documented here and nowhere else (the records
+the hooks pass are documented in ``harness.api``, their checks in ``harness.contracts``).
 
 Hooks are *registration calls* (the shape of ``llm`` and ``tox``): the host hands each plugin a ``register``
 callback, the plugin declares what it provides, and the host owns names, conflicts and error messages. A plugin is
@@ -29,10 +30,7 @@ from typing import TYPE_CHECKING, Callable
 import pluggy
 
 if TYPE_CHECKING:  # pragma: no cover
-    import click
-
-    from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
-    from harness.tracking.spec import LoggerSpec
+    from harness.api import CommandGroup, DatasetSpec, DetectorSpec, EncodingSpec, LoggerSpec
 
 PROJECT = "harness"
 
@@ -59,7 +57,7 @@ def register_datasets(register: Callable[[DatasetSpec], None]) -> None:
 
     Call ``register(DatasetSpec(...))`` once per dataset. ``DatasetSpec.open(root, **options)`` returns an object
     following ``harness.api.DatasetSource``: its categories, its groups (projects or sequences), its default folds
-    and a generator of ``harness.sample.AlignedSample`` records in the thermal frame. The host caches those samples
+    and a generator of ``harness.api.AlignedSample`` records in the thermal frame. The host caches those samples
     once (``harness prepare``) so every detector and encoding reads byte-identical inputs. ``options`` are the
     config's ``dataset`` keys; an ``open`` that names a ``sensing`` parameter also gets the ``sensing`` section.
     ``DatasetSpec.protocol`` may name a YAML shipped in the plugin's package (``"package:protocol.yaml"``). The
@@ -84,17 +82,19 @@ def register_loggers(register: Callable[[LoggerSpec], None]) -> None:
 
     Call ``register(LoggerSpec(name=..., create=...))`` once per tracker; ``create(TrackingOptions)`` returns an
     object with ``start(name, params, tags)``, ``log_epoch(step, metrics)``, ``log_final(metrics)``,
-    ``log_artifact(path)`` and ``finish(status)`` (``harness.tracking.RunLogger``). ``requires`` names the packages
+    ``log_artifact(path)`` and ``finish(status)`` (``harness.api.RunLogger``). ``requires`` names the packages
     it imports, so a missing one is reported before any run starts. Runs use the trackers named in
     ``tracking.loggers`` (``--log-to``).
     """
 
 
 @hookspec
-def register_commands(cli: click.Group) -> None:
+def register_commands(cli: CommandGroup) -> None:
     """Add sub-commands to the ``harness`` command line.
 
-    ``cli`` is the top-level ``click.Group``; decorate functions with ``@cli.command()`` or add groups with
-    ``cli.add_command(...)``. Keep commands thin: parse, call one library function, print. Built-in commands are
-    registered through this same hook.
+    ``cli`` is the top-level ``click.Group`` (``harness.api.CommandGroup``); decorate functions with
+    ``@cli.command()`` or add groups with ``cli.add_command(...)``. Keep commands thin: parse, call one library
+    function, print. Built-in commands are registered through this same hook, first. A command name another plugin
+    (or the harness) already added is a conflict naming both plugins: the first command stays, and running the name
+    is an error until one plugin is uninstalled or excluded.
     """

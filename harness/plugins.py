@@ -16,12 +16,14 @@ A plugin with a function named like a hook but without ``@hookimpl`` (which the 
 by name, with a warning.
 
 A plugin that fails to import, to validate or to register is recorded in ``host.problems`` with its name and the
-error; the others still load. No code outside this module calls ``pm.hook`` directly: it goes through ``host``.
+error; the others still load. A name registered twice (a detector, dataset, encoding, logger, command, or the plugin
+name itself) is a conflict naming both plugins: the first registration stays, and asking for the name is a
+``PluginError`` until one of them is removed. No code outside this module calls ``pm.hook`` directly: it goes
+through ``host``. Fixtures for tests (throwaway plugins, a fresh host) are in ``harness.testing``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import difflib
 import importlib
 import importlib.metadata
@@ -31,14 +33,14 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import pluggy
 
 from harness import hookspecs
-from harness.api import DatasetSpec, DetectorSpec, EncodingSpec
+from harness.api import REGISTRATIONS, DatasetSpec, DetectorSpec, EncodingSpec, LoggerSpec
+from harness.contracts import check_registered
 from harness.errors import PluginError, UnknownNameError
-from harness.tracking.spec import LoggerSpec
 
 log = logging.getLogger(__name__)
 
@@ -78,13 +80,16 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.tracking.mlflow_logger",
 )
 
-#: hook name -> (kind shown to users, spec class)
-_REGISTRATION_HOOKS: dict[str, tuple[str, type]] = {
-    "register_detectors": ("detector", DetectorSpec),
-    "register_datasets": ("dataset", DatasetSpec),
-    "register_encodings": ("encoding", EncodingSpec),
-    "register_loggers": ("logger", LoggerSpec),
-}
+#: hook name -> (kind shown to users, record class): the registries (commands are kept by their click group)
+_REGISTRATION_HOOKS: dict[str, tuple[str, type]] = REGISTRATIONS
+
+
+def conflict_message(kind: str, name: str, owners: list[str]) -> str:
+    """``detector name 'x' is registered by more than one plugin: 'a', 'b'`` (or twice by one plugin)."""
+    distinct = list(dict.fromkeys(owners))
+    if len(distinct) == 1:
+        return f"{kind} name {name!r} is registered {len(owners)} times by plugin {distinct[0]!r}"
+    return f"{kind} name {name!r} is registered by more than one plugin: {', '.join(repr(o) for o in distinct)}"
 
 
 @dataclass(frozen=True)
@@ -117,6 +122,8 @@ class PluginHost:
         self._hook_problems: dict[str, list[PluginProblem]] = {}
         self._commands_added: set[int] = set()
         self._command_owners: dict[str, str] = {}
+        #: command name -> every plugin that added it, in order (only names added more than once)
+        self._command_conflicts: dict[str, list[str]] = {}
 
     # ----------------------------------------------------------------- registries
     def refresh(self) -> None:
@@ -135,10 +142,8 @@ class PluginHost:
             plugin_name = impl.plugin_name
             pending: list[Any] = []
 
-            def register(spec: Any, _pending: list = pending, _kind: str = kind, _cls: type = spec_cls) -> None:
-                if not isinstance(spec, _cls):
-                    raise PluginError(f"register() expects a {_cls.__name__}, got {type(spec).__name__}")
-                _pending.append(spec)
+            def register(spec: Any, _pending: list = pending, _cls: type = spec_cls) -> None:
+                _pending.append(check_registered(spec, _cls))
 
             try:
                 _call_impl(impl, register=register)
@@ -154,13 +159,7 @@ class PluginHost:
                     continue
                 registry[spec.name] = (spec, plugin_name)
         for name, owners in conflicts.items():
-            problems.append(
-                PluginProblem(
-                    owners[-1],
-                    "conflict",
-                    f"{kind} name {name!r} is registered by more than one plugin: {', '.join(repr(o) for o in owners)}",
-                )
-            )
+            problems.append(PluginProblem(owners[-1], "conflict", conflict_message(kind, name, owners)))
         self._registries[hook_name] = registry
         self._conflicts[hook_name] = conflicts
         self._hook_problems[hook_name] = problems
@@ -171,10 +170,8 @@ class PluginHost:
         registry = self._registry(hook_name)
         owners = self._conflicts[hook_name].get(name)
         if owners:
-            raise PluginError(
-                f"{kind} name {name!r} is registered by more than one plugin ({', '.join(owners)}); "
-                f"uninstall one of them or restrict loading with {ENV_ALLOW}"
-            )
+            raise PluginError(f"{conflict_message(kind, name, owners)}; uninstall one of them or restrict loading "
+                              f"with {ENV_ALLOW}")
         if name not in registry:
             broken = [p.plugin for p in self._hook_problems[hook_name] if p.stage == hook_name]
             misspelled = [p for p in self.load_problems if p.hook == hook_name]
@@ -224,24 +221,63 @@ class PluginHost:
         for hook in _REGISTRATION_HOOKS:
             self._registry(hook)
             out.extend(self._hook_problems[hook])
+        out.extend(PluginProblem(owners[-1], "conflict", conflict_message("command", name, owners))
+                   for name, owners in self._command_conflicts.items())
         return out
+
+    def conflicts(self) -> dict[str, dict[str, list[str]]]:
+        """``{kind: {name: [plugins that registered it, in order]}}`` for every name registered more than once."""
+        out: dict[str, dict[str, list[str]]] = {}
+        for hook, (kind, _) in _REGISTRATION_HOOKS.items():
+            self._registry(hook)
+            if self._conflicts[hook]:
+                out[kind] = dict(self._conflicts[hook])
+        if self._command_conflicts:
+            out["command"] = dict(self._command_conflicts)
+        return out
+
+    def forget(self, plugin_name: str) -> None:
+        """Drop what the host recorded about a plugin that was unregistered (its problems and command names)."""
+        self.load_problems = [p for p in self.load_problems if p.plugin != plugin_name]
+        self._command_owners = {n: o for n, o in self._command_owners.items() if o != plugin_name}
+        self._command_conflicts = {n: o for n, o in self._command_conflicts.items() if plugin_name not in o}
+        self.refresh()
 
     # ----------------------------------------------------------------- commands
     def add_commands(self, cli: Any) -> None:
-        """Let every plugin add its sub-commands to ``cli`` (once per group object)."""
+        """Let every plugin add its sub-commands to ``cli`` (once per group object), built-ins first.
+
+        A plugin that raises contributes no command. A name that is already taken is a conflict naming both plugins
+        (``problems``): the command added first is kept in the listing, and running it is a ``PluginError`` until one
+        of the plugins is uninstalled or excluded, as for any other name two plugins register.
+        """
         if id(cli) in self._commands_added:
             return
         self._commands_added.add(id(cli))
         for impl in self.pm.hook.register_commands.get_hookimpls():
-            before = set(cli.commands)
+            before = dict(cli.commands)
             try:
                 _call_impl(impl, cli=cli)
             except Exception as exc:
-                self.load_problems.append(PluginProblem(impl.plugin_name, "register_commands", f"{type(exc).__name__}: {exc}"))
-                log.warning("plugin %r failed in register_commands: %s", impl.plugin_name, exc)
+                cli.commands.clear()
+                cli.commands.update(before)
+                self.load_problems.append(PluginProblem(impl.plugin_name, "register_commands",
+                                                        f"{type(exc).__name__}: {exc}{where(exc)}"))
+                log.warning("plugin %r failed in register_commands: %s%s", impl.plugin_name, exc, where(exc))
                 continue
-            for name in set(cli.commands) - before:
-                self._command_owners[name] = impl.plugin_name
+            for name, command in list(cli.commands.items()):
+                if before.get(name) is command:
+                    continue
+                first = getattr(before.get(name), _OWNER, None) or self._command_owners.get(name, "harness")
+                if name not in before or first == impl.plugin_name:  # new, or its own again (host reset)
+                    setattr(command, _OWNER, impl.plugin_name)
+                    self._command_owners[name] = impl.plugin_name
+                    continue
+                owners = self._command_conflicts.setdefault(name, [first])
+                if impl.plugin_name not in owners[1:]:  # the same plugin seen again by another group
+                    owners.append(impl.plugin_name)
+                cli.commands[name] = _conflicted(before[name], first, conflict_message("command", name, owners))
+                log.warning("plugin %r: %s", impl.plugin_name, conflict_message("command", name, owners))
 
     # ----------------------------------------------------------------- listing
     def plugin_info(self, hook: str | None = None) -> list[dict[str, Any]]:
@@ -254,6 +290,11 @@ class PluginHost:
                 names_by_plugin.setdefault(owner, {}).setdefault(kind + "s", []).append(name)
         for name, owner in self._command_owners.items():
             names_by_plugin.setdefault(owner, {}).setdefault("commands", []).append(name)
+        clashes_by_plugin: dict[str, dict[str, list[str]]] = {}
+        for kind, names in self.conflicts().items():
+            for name, owners in names.items():
+                for owner in dict.fromkeys(owners):
+                    clashes_by_plugin.setdefault(owner, {}).setdefault(kind + "s", []).append(name)
         out = []
         for plugin_name, plugin in self.pm.list_name_plugin():
             if plugin is None or plugin_name in ("harness.hookspecs",):
@@ -271,6 +312,8 @@ class PluginHost:
                 "hooks": hooks,
                 "registered": {k: sorted(v) for k, v in sorted(names_by_plugin.get(plugin_name, {}).items())},
             }
+            if plugin_name in clashes_by_plugin:  # names it shares with another plugin: errors until one goes
+                record["conflicts"] = {k: sorted(v) for k, v in sorted(clashes_by_plugin[plugin_name].items())}
             out.append(record)
         return out
 
@@ -291,6 +334,24 @@ def where(exc: BaseException) -> str:
 def _call_impl(impl: pluggy.HookImpl, **kwargs: Any) -> Any:
     """Call one hook implementation with the arguments it asks for (implementations may take fewer)."""
     return impl.function(*[kwargs[a] for a in impl.argnames])
+
+
+#: Attribute naming the plugin that added a command (set by the host on every command it adds).
+_OWNER = "harness_plugin"
+
+
+def _conflicted(command: Any, owner: str, message: str) -> Any:
+    """A stand-in for a command two plugins added: listed like the first one, and an error naming both when run."""
+    import click
+
+    def refuse(**_: Any) -> None:
+        raise PluginError(f"{message}; uninstall one of them or restrict loading with {ENV_ALLOW}")
+
+    stand_in = click.Command(command.name, callback=refuse, help=command.help, short_help=command.short_help,
+                             context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+                             add_help_option=False, hidden=command.hidden)
+    setattr(stand_in, _OWNER, owner)
+    return stand_in
 
 
 # ------------------------------------------------------------------------------------------ the manager
@@ -335,15 +396,18 @@ def _normalise(name: str) -> str:
 
 def _load_entry_points(allow: set[str] | None) -> None:
     allow_n = {_normalise(a) for a in allow} if allow is not None else None
-    seen: set[str] = set()
+    seen: dict[str, str] = {}  # entry-point name -> the distribution that declared it first
     for dist in importlib.metadata.distributions():
         dist_name = dist.metadata["Name"] or ""
         if allow_n is not None and _normalise(dist_name) not in allow_n:
             continue
         for ep in dist.entry_points:
-            if ep.group != ENTRY_POINT_GROUP or ep.name in seen or pm.has_plugin(ep.name) or pm.is_blocked(ep.name):
+            if ep.group != ENTRY_POINT_GROUP or pm.is_blocked(ep.name) or seen.get(ep.name) == dist_name:
                 continue
-            seen.add(ep.name)
+            if ep.name in seen or pm.has_plugin(ep.name):
+                _name_taken(ep.name, f"distribution {dist_name!r}", seen.get(ep.name))
+                continue
+            seen[ep.name] = dist_name
             try:
                 plugin = ep.load()
             except Exception as exc:
@@ -374,7 +438,29 @@ def load_plugins_dir(folder: Path) -> None:
         _safe_register(module, path.stem)
 
 
+def _name_taken(name: str, newcomer: str, first: str | None = None) -> None:
+    """Record that ``newcomer`` (a distribution or a file) declares a plugin name another plugin already has."""
+    holder = f"distribution {first!r}" if first else _holder(name)
+    msg = (f"plugin name {name!r} is declared by more than one plugin: {holder} and {newcomer}; only the first is "
+           f"loaded (rename one, or restrict loading with {ENV_ALLOW})")
+    host.load_problems.append(PluginProblem(name, "conflict", msg))
+    log.warning("%s", msg)
+
+
+def _holder(name: str) -> str:
+    """How a registered plugin is named in a conflict: its distribution, file or module."""
+    dist = host.distributions.get(name)
+    if dist is not None:
+        return f"distribution {dist.metadata['Name']!r}"
+    plugin = pm.get_plugin(name)
+    where_from = getattr(plugin, "__file__", None) or getattr(plugin, "__name__", None) or type(plugin).__name__
+    return f"{where_from!r}"
+
+
 def _safe_register(plugin: Any, name: str) -> bool:
+    if pm.has_plugin(name):
+        _name_taken(name, repr(getattr(plugin, "__file__", None) or getattr(plugin, "__name__", name)))
+        return False
     try:
         pm.register(plugin, name=name)
     except Exception as exc:  # PluginValidationError (bad signature) or ValueError (name taken)
@@ -448,6 +534,8 @@ def register_plugin(plugin: Any, name: str | None = None) -> str:
     """Register a plugin object at run time (tests, notebooks); returns its name. A misspelled hook is a
     ``PluginError`` naming the plugin and the nearest hook (the plugin is not kept)."""
     load_plugins()
+    if name is not None and pm.has_plugin(name):
+        raise PluginError(f"plugin name {name!r} is already registered ({_holder(name)}); choose another name")
     pm.register(plugin, name=name)
     registered = pm.get_name(plugin) or repr(plugin)
     try:
@@ -462,32 +550,33 @@ def register_plugin(plugin: Any, name: str | None = None) -> str:
 
 
 def unregister_plugin(name: str) -> None:
+    """Unregister a plugin by name and forget what the host recorded about it."""
     if pm.has_plugin(name):
         pm.unregister(name=name)
-    host.refresh()
+    host.forget(name)
 
 
-@contextlib.contextmanager
-def temporary_plugin(plugin: Any, name: str | None = None) -> Iterator[str]:
-    """Register ``plugin`` for the duration of a ``with`` block, then unregister it, whatever happens."""
-    registered = register_plugin(plugin, name)
-    try:
-        yield registered
-    finally:
-        unregister_plugin(registered)
+def unload_plugins() -> None:
+    """Unregister every plugin and forget every record, so that the next ``load_plugins`` starts again."""
+    global _loaded
+    for _, plugin in list(pm.list_name_plugin()):
+        if plugin is not None:
+            pm.unregister(plugin)
+    host.__init__(pm)  # type: ignore[misc]
+    _loaded = False
 
 
 def get_host() -> PluginHost:
     return load_plugins()
 
 
-def reset_for_tests(loader: Callable[[], Any] | None = None) -> None:
-    """Forget everything registered so ``load_plugins`` starts again (test helper)."""
-    global _loaded
-    for name, plugin in list(pm.list_name_plugin()):
-        if plugin is not None:
-            pm.unregister(plugin)
-    host.__init__(pm)  # type: ignore[misc]
-    _loaded = False
-    if loader is not None:
-        loader()
+def __getattr__(name: str) -> Any:
+    """``temporary_plugin`` and ``reset_for_tests`` moved to ``harness.testing``; the old names still work."""
+    if name in ("temporary_plugin", "reset_for_tests"):
+        import warnings
+
+        from harness import testing
+
+        warnings.warn(f"harness.plugins.{name} moved to harness.testing", DeprecationWarning, stacklevel=2)
+        return testing.temporary_plugin if name == "temporary_plugin" else testing.reset_plugins
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

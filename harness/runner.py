@@ -2,7 +2,7 @@
 
 ``run(RunRequest(detector=..., dataset=...))`` resolves the detector, dataset and encoding through the plugin
 host, resolves the configuration (``harness.config.load_config``: default < protocol < detector defaults < profile
-< files < ``--set``), prepares the dataset once (``harness.prepare.prepare``: every detector and encoding reads the
+< files < ``--set``), prepares the dataset once (``harness.cache.prepare``: every detector and encoding reads the
 same cached, aligned samples), resolves the folds, and then for each fold and seed:
 
 * a run that already **finished** with the same configuration hash is skipped (its stored metrics are reused);
@@ -109,20 +109,20 @@ class RunSummary:
 
 # ------------------------------------------------------------------------------------------------- resolution
 def prepare_dataset(dataset: str, cfg: Mapping[str, Any]) -> Any:
-    """The dataset's prepared samples (``harness.prepare.prepare``: computed once, then read from the cache)."""
-    from harness.prepare import prepare
+    """The dataset's prepared samples (``harness.cache.prepare``: computed once, then read from the cache)."""
+    from harness.cache import prepare
 
     return prepare(dataset, dict(cfg))
 
 
 def resolve_folds(dataset_spec: Any, prepared: Any, cfg: Mapping[str, Any], selection: str) -> list[Any]:
-    from harness.prepare import resolve_folds as _resolve
+    from harness.cache import resolve_folds as _resolve
 
     return _resolve(dataset_spec, prepared, dict(cfg), selection)
 
 
 def fold_indices(prepared: Any, fold: Any) -> tuple[list[int], list[int]]:
-    from harness.prepare import fold_indices as _indices
+    from harness.cache import fold_indices as _indices
 
     train_idx, val_idx = _indices(prepared, fold)
     return list(train_idx), list(val_idx)
@@ -425,7 +425,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
         gt = prepared.coco(val_idx)
         ncls = len(prepared.categories)
-        in_channels = det.thermal_channels if det.input_kind == "dual" else train_src.channels
+        in_channels = det.model_channels(train_src.channels)
 
         seed_everything(seed, settings.deterministic)
         model = build_model(det, ncls, in_channels, cfg.get("model") or {})
@@ -540,7 +540,7 @@ def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> 
     from harness.engine.trainer import TrainSettings
 
     TrainSettings.from_config(cfg, 0)
-    in_channels = det.thermal_channels if det.input_kind == "dual" else 3 + int(enc.channels)
+    in_channels = det.model_channels(3 + int(enc.channels))
     options = dict(cfg.get("model") or {})
     try:
         # a dataset whose categories come from its files (coco-rgbt) registers none: any count checks the options

@@ -124,7 +124,7 @@ class ExecutorOptions:
 # ------------------------------------------------------------------------------------------------- expansion
 def job_env() -> tuple[tuple[str, str], ...]:
     """The ``HARNESS_*`` variables of this process, with the prepared-dataset cache as an absolute path."""
-    from harness.prepare import cache_root
+    from harness.cache import cache_root
 
     env = {k: v for k, v in os.environ.items() if k.startswith(JOB_ENV_PREFIX)}
     env["HARNESS_CACHE"] = str(cache_root().resolve())

@@ -1,5 +1,6 @@
 """Shared fixtures. Installed third-party plugins are never auto-loaded in tests (results must not depend on what
-else is installed): ``HARNESS_DISABLE_PLUGIN_AUTOLOAD`` is set before the harness is imported."""
+else is installed): ``HARNESS_DISABLE_PLUGIN_AUTOLOAD`` is set before the harness loads any plugin. The plugin
+fixtures are the ones the harness ships for plugin authors (``harness.testing``)."""
 
 from __future__ import annotations
 
@@ -13,27 +14,22 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
+pytest_plugins = ["harness.testing", "pytester"]
+
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
 
 
 @pytest.fixture
-def host():
+def host(harness_host):
     """The plugin host with the built-in plugins loaded."""
-    from harness.plugins import load_plugins
-
-    return load_plugins()
+    return harness_host
 
 
 @pytest.fixture
-def fresh_plugins(monkeypatch):
+def fresh_plugins(fresh_harness):
     """Start the plugin manager from scratch for this test and restore the normal state afterwards."""
-    from harness import plugins
-
-    plugins.reset_for_tests()
-    yield plugins
-    plugins.reset_for_tests()
-    plugins.load_plugins()
+    return fresh_harness
 
 
 @pytest.fixture

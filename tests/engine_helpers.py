@@ -7,14 +7,16 @@ temperature (+4 C / -4 C), so only a detector that reads the fourth channel can 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
+import pytest
 
 from harness import AlignedSample, DatasetSpec, EncodingSpec, Fold, hookimpl
-from harness.prepared import PreparedDataset, PreparedWriter
+from harness.cache import PreparedDataset, PreparedWriter
 
 REPO = Path(__file__).resolve().parent.parent
 PLUGIN_SRC = REPO / "plugins" / "harness-tinydet" / "src"
@@ -28,6 +30,36 @@ def tinydet_module():
     import harness_tinydet.model as m
 
     return m
+
+
+def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
+    """``--set`` overrides for a tiny CPU run of TinyDet on the shapes dataset (64 px, batch 8, one thread)."""
+    return ["protocol.imgsz=64", f"protocol.epochs={epochs}", "protocol.patience=10", "train.batch=8",
+            "train.nominal_batch=8", "train.warmup_epochs=0.5", "train.warmup_min_iters=0",
+            f"train.close_mosaic={close_mosaic}", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+
+
+@pytest.fixture
+def shapes_run_plugins(host: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
+    """The shapes dataset, the test encodings and the example TinyDet plugin registered for one test, with a cache
+    of its own (import it into a test module as the fixture ``plugins``)."""
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    with shapes_and_tinydet("run"):
+        yield host
+
+
+@contextlib.contextmanager
+def shapes_and_tinydet(tag: str) -> Iterator[None]:
+    """The shapes dataset with the test encodings and the example TinyDet plugin, registered for a ``with`` block
+    (as ``shapes-<tag>`` and ``tinydet-<tag>``)."""
+    from harness.testing import temporary_plugin
+
+    tinydet_module()
+    import harness_tinydet.plugin as tinydet_plugin
+
+    with temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"), \
+            temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"):
+        yield
 
 
 def make_sample(image_id: int, group: str, rng: np.random.Generator, size: tuple[int, int] = (64, 80),
@@ -111,6 +143,31 @@ class ShapesSource:
                 k += 1
 
 
+class ContractSource:
+    """The smallest dataset source: groups ``a`` (two samples) and ``b`` (one), 8 x 8 at 20 C, one box each."""
+
+    name = "contract-test"
+    categories = ("thing", "other")
+
+    def __init__(self, sensing: Any = None):
+        self.sensing = sensing
+
+    def groups(self) -> list[str]:
+        return ["a", "b"]
+
+    def folds(self) -> list[Fold]:
+        return []
+
+    def fingerprint(self) -> str:
+        return "fixed"
+
+    def samples(self, report: Any):
+        for i, g in enumerate(["a", "a", "b"], start=1):
+            t = np.full((8, 8), 20.0, np.float32)
+            yield AlignedSample(i, np.zeros((8, 8, 3), np.uint8), t, np.zeros((8, 8), np.uint8),
+                                np.array([[1, 1, 4, 4]], np.float32), np.array([1], np.int64), g, {})
+
+
 class ShapesPlugin:
     """Registers the test encodings and the ``shapes`` dataset."""
 
@@ -141,3 +198,25 @@ def write_plugin_dir(folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "shapes_plugin.py").write_text(PLUGIN_FILE.format(tests=str(Path(__file__).resolve().parent)))
     return folder
+
+
+def install_plugin(folder: str, tmp_path: Path) -> tuple[Path, Path]:
+    """``plugins/<folder>`` copied to ``tmp_path/src`` and pip-installed (no dependencies, no index, no build
+    isolation) into ``tmp_path/site``: (the copy, the site folder to put on ``PYTHONPATH``)."""
+    import shutil
+    import subprocess
+
+    src, site = tmp_path / "src", tmp_path / "site"
+    shutil.copytree(REPO / "plugins" / folder, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr
+    return src, site
+
+
+def run_plugin_tests(src: Path, env: dict[str, str]) -> Any:
+    """The plugin's own ``tests/`` run by pytest in a subprocess, with the fixtures of ``harness.testing``."""
+    import subprocess
+
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "harness.testing",
+                           str(src / "tests")], env=env, cwd=src, capture_output=True, text=True, timeout=600)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
-from harness import cache_forms as CF
+from harness.cache import forms as CF
+from harness.cache import prepare
 from harness.errors import DataError
-from harness.prepare import prepare
 
 
 def _same(a, b) -> None:

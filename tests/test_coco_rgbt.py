@@ -27,7 +27,7 @@ def pairs(pairs_source, tmp_path) -> Path:
 
 def _prepare(root: Path, cache: Path, **options):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = load_config(protocol="default")
     cfg["dataset"] = {"root": str(root), **options}
@@ -91,7 +91,7 @@ def test_thermal_is_the_decoded_temperature_and_c2_is_computed_from_it(pairs_sou
 
 def test_folds_given_in_the_json_replace_one_fold_per_group(pairs, tmp_path):
     from harness.config import load_config
-    from harness.prepare import resolve_folds
+    from harness.cache import resolve_folds
 
     coco = read_json(pairs)
     coco["folds"] = {"ab": ["site-a", "site-b"], "c": ["site-c"]}
@@ -237,7 +237,7 @@ def test_size_mismatch_without_a_homography_is_a_counted_skip_naming_the_fix(pai
 def _prepare_accepting(root: Path, cache: Path, kind: str, **options):
     """Prepare with ``inputs.accept=[kind]`` (the guard's option that accepts the finding)."""
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = load_config(protocol="default", overrides=[f"inputs.accept=[{kind}]"])
     cfg["dataset"] = {"root": str(root), **options}
@@ -379,7 +379,7 @@ def test_bad_options_are_config_errors(pairs_source, tmp_path, options, message)
 
 def test_a_bad_warp_setting_is_a_config_error(pairs_source, tmp_path):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = load_config(protocol="default", overrides=["sensing.warp.interpolation=bicubic"])
     cfg["dataset"] = {"root": str(pairs_source)}

@@ -8,14 +8,13 @@ import dataclasses
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
 
+from engine_helpers import ContractSource as _Source
 from harness import hookspecs
-from harness.api import DatasetSource, DatasetSpec, Fold, PrepareReport
+from harness.api import AlignedSample, DatasetSource, DatasetSpec, Fold, PrepareReport
 from harness.errors import PluginError
-from harness.plugins import temporary_plugin
-from harness.sample import AlignedSample
+from harness.testing import temporary_plugin
 
 DOCS = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
 
@@ -54,29 +53,6 @@ def test_the_sensing_argument_and_shipped_protocols_are_documented():
 
 
 # ------------------------------------------------------------------------------------------- protocols
-class _Source:
-    name = "contract-test"
-    categories = ("thing", "other")
-
-    def __init__(self, sensing=None):
-        self.sensing = sensing
-
-    def groups(self):
-        return ["a", "b"]
-
-    def folds(self):
-        return []
-
-    def fingerprint(self):
-        return "fixed"
-
-    def samples(self, report):
-        for i, g in enumerate(["a", "a", "b"], start=1):
-            t = np.full((8, 8), 20.0, np.float32)
-            yield AlignedSample(i, np.zeros((8, 8, 3), np.uint8), t, np.zeros((8, 8), np.uint8),
-                                np.array([[1, 1, 4, 4]], np.float32), np.array([1], np.int64), g, {})
-
-
 def _package(tmp_path, monkeypatch, name="contract_pkg", protocol="protocol:\n  name: from-package\n  imgsz: 96\n"):
     pkg = tmp_path / "pkgs" / name
     pkg.mkdir(parents=True)
@@ -116,7 +92,7 @@ def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypat
 # ------------------------------------------------------------------------------------------- open and prepare
 def test_sensing_is_passed_only_to_an_open_that_takes_it_and_source_categories_win(tmp_path):
     from harness.config import load_config
-    from harness.prepare import open_source, prepare, resolve_folds
+    from harness.cache import open_source, prepare, resolve_folds
 
     cfg = load_config(protocol="default", overrides=["sensing.warp.crop=false"])
     with_sensing = DatasetSpec("contract-test", open=lambda root=None, sensing=None: _Source(sensing), categories=())

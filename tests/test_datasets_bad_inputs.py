@@ -14,7 +14,7 @@ from harness.errors import DataError
 
 
 def _prepare(root: Path, cache: Path, accept: tuple[str, ...] = ()):
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = synth_cfg(root)
     cfg.setdefault("inputs", {})["accept"] = list(accept)

@@ -12,7 +12,7 @@ import pytest
 
 from harness.api import DatasetSpec, Fold
 from harness.errors import ConfigError, DataError, PluginError
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 
 H, W = 24, 32
 
@@ -52,7 +52,7 @@ def _spec(samples, fail=None) -> DatasetSpec:
 
 def _prepare(spec, tmp_path, *overrides):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = load_config(protocol="default", overrides=list(overrides))
     return prepare(spec, cfg, cache_root=tmp_path / "cache", progress=False)
@@ -139,7 +139,7 @@ def test_a_plugin_whose_samples_raise_is_named(tmp_path):
 
 def test_a_plugin_error_through_the_cli_is_one_clear_line(host, tmp_path, cli_runner, monkeypatch):
     from harness.hookspecs import hookimpl
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     class Broken:
         @hookimpl
@@ -176,7 +176,7 @@ def _coco_rgbt(tmp_path) -> Path:
 
 def _prepare_coco(root, tmp_path, **options):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = load_config(protocol="default")
     cfg["dataset"] = {"root": str(root), **options}
@@ -260,7 +260,7 @@ def test_the_m3t_adapter_uses_the_same_coco_checks(tmp_path):
 def test_an_eight_bit_coco_rgbt_cache_references_its_sources(tmp_path):
     import cv2
 
-    from harness.cache_admin import folder_bytes
+    from harness.cache.admin import folder_bytes
 
     root = _coco_rgbt(tmp_path)
     rng = np.random.default_rng(0)

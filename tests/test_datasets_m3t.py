@@ -17,7 +17,7 @@ from harness.errors import DataError
 
 
 def _prepare(root: Path, cache: Path, **dataset):
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     return prepare("m3t-synth", synth_cfg(root, **dataset), cache_root=cache, progress=False)
 

@@ -10,7 +10,7 @@ import pytest
 
 from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
 from harness.errors import ConfigError, DataError
-from harness.prepare import cache_key, coco_path, fold_indices, prepare, resolve_folds
+from harness.cache import cache_key, coco_path, fold_indices, prepare, resolve_folds
 
 
 def _prep(root: Path, cache: Path, cfg: dict | None = None, **kw):
@@ -78,7 +78,7 @@ def test_unknown_dataset_option_is_a_config_error(tiny, tmp_path):
 
 
 def test_samples_satisfy_the_contract_and_keep_provenance(tiny, tmp_path):
-    from harness.sample import validate_sample
+    from harness.contracts import validate_sample
 
     ds = _prep(tiny, tmp_path / "c")
     for s in ds:

@@ -14,7 +14,7 @@ from harness import DetectorSpec, hookimpl
 from harness.engine.augment import Letterbox
 from harness.engine.predict import DegenerateBoxes, detections_to_coco
 from harness.errors import PluginError
-from harness.plugins import temporary_plugin
+from harness.testing import temporary_plugin
 from scale_helpers import TINY
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

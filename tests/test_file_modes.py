@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from harness.io import atomic_write_json, atomic_write_text, current_umask, make_temp_dir
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 
 
 @pytest.fixture(params=[0o022, 0o002], ids=["umask022", "umask002"])
@@ -49,7 +49,7 @@ def test_temporary_folders_get_the_mode_mkdir_would_give(umask, tmp_path):
 
 
 def test_a_prepared_folder_and_its_files_get_the_umask_modes(umask, tmp_path):
-    from harness.prepared import PreparedWriter
+    from harness.cache import PreparedWriter
 
     w = PreparedWriter(tmp_path / "cache" / "key", "toy", ["car"])
     h, wd = 8, 10

@@ -9,7 +9,7 @@ import pytest
 from adapters.datasets import flir_aligned
 from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
-from harness.sample import validate_sample
+from harness.contracts import validate_sample
 from public_fixtures import FLIR_FRAMES, write_flir_aligned
 
 
@@ -120,7 +120,7 @@ def test_a_tree_with_both_kinds_of_label_folder_must_name_its_layout(tmp_path):
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     spec = host.dataset("flir-aligned")
     assert spec.categories == ("person", "car", "bicycle") and spec.protocol == "flir-aligned"
@@ -172,7 +172,7 @@ def test_labels_where_the_adapter_does_not_find_them_stop_the_preparation(tmp_pa
     import shutil
 
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     write_flir_aligned(tmp_path, layout="icafusion")
     labels = tmp_path / "FLIR-align-3class" / "labels"

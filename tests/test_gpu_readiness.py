@@ -80,10 +80,10 @@ def test_detector_gives_the_same_losses_in_channels_last(name):
 def test_training_with_workers_and_channels_last_matches_the_plain_run(host, tmp_path, monkeypatch):
     """The same run with two data-loader worker processes and channels-last memory: the same batches (augmentation
     is seeded per sample), so the same losses up to the float rounding of the memory format."""
-    pytest.importorskip("harness.prepare")
+    pytest.importorskip("harness.cache")
     from engine_helpers import ShapesPlugin, tinydet_module
 
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
     from harness.runner import RunRequest, run
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))

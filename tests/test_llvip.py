@@ -9,7 +9,7 @@ from adapters.datasets import llvip
 from eightbit_fixtures import write_voc
 from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
-from harness.sample import validate_sample
+from harness.contracts import validate_sample
 from public_fixtures import LLVIP_FRAMES, write_llvip
 
 
@@ -84,7 +84,7 @@ def test_layout_errors(tmp_path, monkeypatch):
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
     from harness.config import load_config
-    from harness.prepare import prepare, resolve_folds
+    from harness.cache import prepare, resolve_folds
 
     spec = host.dataset("llvip")
     assert spec.categories == ("person",) and spec.thermal == "8bit" and spec.protocol == "llvip"

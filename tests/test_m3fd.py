@@ -11,7 +11,7 @@ from adapters.datasets import m3fd
 from eightbit_fixtures import write_m3fd, write_voc
 from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
-from harness.sample import validate_sample
+from harness.contracts import validate_sample
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -165,7 +165,7 @@ def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
 
 def test_prepared_manifest_records_the_split(release, tmp_path):
     from harness.config import load_config
-    from harness.prepare import prepare, resolve_folds
+    from harness.cache import prepare, resolve_folds
 
     root, _ = release
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])

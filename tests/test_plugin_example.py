@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
 import pytest
 
 # the whole job needs the dataset cache and the evaluation (skipped cleanly on a checkout without them)
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 pytest.importorskip("setuptools")  # the plugin is built without build isolation, with the environment's setuptools
 
-from engine_helpers import REPO, write_plugin_dir
-
-PLUGIN = REPO / "plugins" / "harness-tinydet"
+from engine_helpers import install_plugin, run_plugin_tests, write_plugin_dir
 
 
 def _env(site, **extra):
@@ -36,12 +33,7 @@ def _harness(args, env, timeout=300):
 
 @pytest.mark.slow
 def test_example_plugin_installs_lists_and_runs(tmp_path):
-    src = tmp_path / "src"
-    shutil.copytree(PLUGIN, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
-    site = tmp_path / "site"
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
-    assert pip.returncode == 0, pip.stderr
+    src, site = install_plugin("harness-tinydet", tmp_path)
     assert (site / "harness_tinydet" / "plugin.py").exists()
 
     env = _env(site, HARNESS_PLUGINS_DIR=write_plugin_dir(tmp_path / "dir_plugins"), HARNESS_CACHE=tmp_path / "cache",
@@ -65,3 +57,6 @@ def test_example_plugin_installs_lists_and_runs(tmp_path):
     assert "tinydet on shapes, encoding test-ir8" in ran.stdout
     metrics = json.loads((store / "shapes" / "tinydet" / "test-ir8" / "A" / "seed0" / "metrics.json").read_text())
     assert metrics["train"]["epochs_run"] == 2 and metrics["support"]["images"] == 8
+
+    own = run_plugin_tests(src, _env(site))  # its own tests, with the fixtures the harness ships
+    assert own.returncode == 0 and "3 passed" in own.stdout, own.stdout[-3000:] + own.stderr[-2000:]

@@ -5,19 +5,16 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 pytest.importorskip("setuptools")  # the plugin is built without build isolation, with the environment's setuptools
 
-from engine_helpers import REPO  # noqa: E402
-
-PLUGIN = REPO / "plugins" / "harness-example-dataset"
+from engine_helpers import install_plugin, run_plugin_tests  # noqa: E402
 
 
 def _harness(args, env):
@@ -27,12 +24,7 @@ def _harness(args, env):
 
 @pytest.mark.slow
 def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
-    src = tmp_path / "src"
-    shutil.copytree(PLUGIN, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
-    site = tmp_path / "site"
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
-    assert pip.returncode == 0, pip.stderr
+    src, site = install_plugin("harness-example-dataset", tmp_path)
     assert (site / "harness_example_dataset" / "protocol.yaml").exists()  # package data travels with the wheel
 
     env = dict(os.environ)
@@ -66,3 +58,6 @@ def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
     config = (run_dir / "config.yaml").read_text()
     # the protocol came from the plugin's package; the smoke profile's imgsz (160) overrides its 64
     assert "name: example-folders" in config and str(site / "harness_example_dataset" / "protocol.yaml") in config
+
+    own = run_plugin_tests(src, env)  # its own tests, with the fixtures the harness ships
+    assert own.returncode == 0 and "2 passed" in own.stdout, own.stdout[-3000:] + own.stderr[-2000:]

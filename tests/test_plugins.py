@@ -34,7 +34,7 @@ def make_detector_plugin(*names, name="undo-plugin", raise_after=None):
 
 # ------------------------------------------------------------------ one test per hook
 def test_hook_register_detectors(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     with temporary_plugin(make_detector_plugin("undo-det"), name="undo-det-plugin"):
         spec = host.detector("undo-det")
@@ -45,7 +45,7 @@ def test_hook_register_detectors(host):
 
 
 def test_hook_register_datasets(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     class Plugin:
         @hookimpl
@@ -60,7 +60,7 @@ def test_hook_register_datasets(host):
 def test_hook_register_encodings(host):
     import numpy as np
 
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     class Plugin:
         @hookimpl
@@ -73,7 +73,7 @@ def test_hook_register_encodings(host):
 
 
 def test_hook_register_loggers(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
     from harness.tracking import LoggerSpec
 
     class Plugin:
@@ -88,7 +88,7 @@ def test_hook_register_loggers(host):
 
 
 def test_hook_register_commands(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     class Plugin:
         @hookimpl
@@ -109,7 +109,7 @@ def test_hook_register_commands(host):
 
 # ------------------------------------------------------------------ conflicts and broken plugins
 def test_duplicate_name_is_an_error_naming_both_plugins(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     with temporary_plugin(make_detector_plugin("undo-twin"), name="first-plugin"), \
             temporary_plugin(make_detector_plugin("undo-twin", "undo-other"), name="second-plugin"):
@@ -123,7 +123,7 @@ def test_duplicate_name_is_an_error_naming_both_plugins(host):
 
 
 def test_plugin_raising_at_registration_is_reported_and_others_load(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     with temporary_plugin(make_detector_plugin("undo-a", "undo-b", raise_after=1), name="broken-plugin"), \
             temporary_plugin(make_detector_plugin("undo-good"), name="good-plugin"):
@@ -137,7 +137,7 @@ def test_plugin_raising_at_registration_is_reported_and_others_load(host):
 
 
 def test_register_rejects_wrong_record_type(host):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     class Plugin:
         @hookimpl
@@ -322,7 +322,7 @@ def test_every_hook_is_documented_and_tested():
 
 # ------------------------------------------------------------------ CLI listings
 def test_cli_list_and_plugins(cli_runner):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     with temporary_plugin(make_detector_plugin("undo-cli-det"), name="undo-cli-plugin"):
         result = cli_runner(["list"])

@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.api import EncodingSpec
+from harness.api import AlignedSample, EncodingSpec
+from harness.cache import PreparedDataset, PreparedWriter
 from harness.errors import SampleError
-from harness.prepared import PreparedDataset, PreparedWriter
-from harness.sample import AlignedSample
 
 
 def sample(i, h=12, w=16, n=2, group="P1", thermal=True):

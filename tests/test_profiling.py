@@ -220,7 +220,7 @@ def test_published_figures_stand_only_beside_the_configuration_they_describe():
 
 
 def test_cli_profile_and_export(cli_runner, tmp_path):
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
     from harness.store import Store
 
     with temporary_plugin(_TinyPlugin(), name="tiny-profiling-plugin"):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
 from harness.report.curves import METRICS, entry_curves, read_log
@@ -48,7 +48,7 @@ def curves_report(tmp_path_factory):
     dataset, 3 epochs each, and the report of that store."""
     from engine_helpers import ShapesPlugin, tinydet_module
 
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
     from harness.report import build_report
     from harness.runner import RunRequest, run
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-for _module in ("harness.evaluation", "harness.runner", "harness.prepare", "harness.profiling"):
+for _module in ("harness.evaluation", "harness.runner", "harness.cache", "harness.profiling"):
     pytest.importorskip(_module)
 
 REPO = Path(__file__).resolve().parent.parent
@@ -58,7 +58,7 @@ def real_store(tmp_path_factory):
     import torch
 
     threads = torch.get_num_threads()
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     import harness_tinydet.plugin as tinydet
 

@@ -163,7 +163,7 @@ def test_rows_scored_on_different_samples_are_labelled_loudly(tmp_path):
 
 
 def test_sensing_tables_from_the_analyses(tmp_path):
-    from harness.sample import AlignedSample
+    from harness.api import AlignedSample
     from harness.sensing.analyses import displacement_study, nan_to_none
     from harness.sensing.registration import registration_error
 

@@ -13,8 +13,8 @@ from adapters.datasets._eightbit import clip_boxes, read_thermal8
 from eightbit_fixtures import RGBT_CLASSES, rgbt_json, write_rgbt_tiny
 from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
-from harness.prepared import PreparedDataset, PreparedWriter
-from harness.sample import validate_sample
+from harness.cache import PreparedDataset, PreparedWriter
+from harness.contracts import validate_sample
 
 
 @pytest.fixture(scope="module")
@@ -362,7 +362,7 @@ def test_harness_run_ours_on_rgbt_tiny_end_to_end(trained):
 # ------------------------------------------------------------------ through the prepared-sample cache
 def test_prepare_records_drops_folds_and_options(copy_release, tmp_path):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     root, expected = copy_release
     (root / "images" / "DJI_0101_1" / "01" / "00001.jpg").unlink()

@@ -7,28 +7,16 @@ import json
 import pytest
 
 # the whole job needs the dataset cache and the evaluation (skipped cleanly on a checkout without them)
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import CATEGORIES, ShapesPlugin, tinydet_module
+from engine_helpers import CATEGORIES, fast_overrides
+from engine_helpers import shapes_run_plugins as plugins  # noqa: F401 - the fixture
 from harness.config import read_yaml
 from harness.errors import ConfigError, StoreError
-from harness.plugins import temporary_plugin
+from harness.testing import temporary_plugin
 
-FAST = ["protocol.imgsz=64", "protocol.epochs=3", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=1", "train.threads=1",
-        "train.device=cpu", "eval.batch=16"]
-
-
-@pytest.fixture
-def plugins(host, tmp_path, monkeypatch):
-    """The shapes dataset, the test encodings and the example TinyDet plugin, registered for one test."""
-    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
-    tinydet_module()
-    import harness_tinydet.plugin as tinydet_plugin
-
-    with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-test"):
-        yield host
+FAST = fast_overrides(epochs=3, close_mosaic=1)
 
 
 def request(tmp_path, **kw):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from harness.errors import SampleError
-from harness.sample import AlignedSample, validate_sample
+from harness import AlignedSample, validate_sample
 
 
 def good(**over):

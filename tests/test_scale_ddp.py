@@ -103,7 +103,7 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
     from harness.engine.predict import predict
     from harness.engine.runtime import seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
-    from harness.prepared import PreparedDataset
+    from harness.cache import PreparedDataset
 
     try:
         assert hd.init_from_env() == DistInfo(rank, world, rank)

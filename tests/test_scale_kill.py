@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
 from scale_helpers import harness_cmd, sets, subprocess_env

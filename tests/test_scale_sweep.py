@@ -9,12 +9,11 @@ import sys
 
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import ShapesPlugin, tinydet_module
+from engine_helpers import shapes_and_tinydet
 from harness.errors import ConfigError, StoreError
-from harness.plugins import temporary_plugin
 from scale_helpers import TINY, plugin_dir
 
 
@@ -25,10 +24,7 @@ def plugins(host, tmp_path, monkeypatch):
     monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(plugin_dir(tmp_path / "plugins")))
     monkeypatch.setenv("HARNESS_DISABLE_PLUGIN_AUTOLOAD", "1")
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    tinydet_module()
-    import harness_tinydet.plugin as tinydet_plugin
-
-    with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-test"):
+    with shapes_and_tinydet("test"):
         yield host
 
 

@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 
 from engine_helpers import CATEGORIES, ShapesSource, tinydet_module
 from harness import DatasetSpec, hookimpl
 from harness.errors import DataError
-from harness.plugins import temporary_plugin
+from harness.testing import temporary_plugin
 from harness.scoring.frames import from_prepared, to_prepared
 from harness.sensing.warp import transform_boxes
 from scale_helpers import TINY

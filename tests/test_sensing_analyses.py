@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from harness.errors import DataError
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 from harness.sensing.analyses import box_amplitudes, displacement_study, format_displacement, shift_replicate
 from harness.sensing.c2 import c2, contrast_amplitude
 
@@ -100,7 +100,7 @@ def test_displacement_study_refuses_8bit_samples_and_bad_shifts():
 
 
 def _prepared(tmp_path):
-    from harness.prepared import PreparedWriter
+    from harness.cache import PreparedWriter
 
     folder = tmp_path / "prepared"
     with PreparedWriter(folder, "toy", CATS) as w:

@@ -174,7 +174,7 @@ def test_a_command_template_names_any_other_converter(standin, tmp_path):
 
 def test_decode_command_and_dataset_prepare_use_the_converter(standin, tmp_path, cli_runner):
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
 

@@ -258,7 +258,7 @@ def test_decode_command_routes_and_overrides(tmp_path, cli_runner):
 
 def test_config_selects_the_route_and_keys_the_cache():
     from harness.config import load_config
-    from harness.prepare import cache_key
+    from harness.cache import cache_key
     from harness.sensing.options import SensingOptions
 
     cfg = load_config()

@@ -220,7 +220,7 @@ def test_a_dataset_prepared_on_approximate_temperatures_says_so(tmp_path):
     import cv2
 
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
 

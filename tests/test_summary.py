@@ -37,7 +37,7 @@ def test_coco_and_prepared_views_agree(tmp_path):
     from adapters.datasets import m3fd
     from eightbit_fixtures import write_m3fd
     from harness.config import load_config
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     write_m3fd(tmp_path / "m3fd")
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={tmp_path / 'm3fd'}"])

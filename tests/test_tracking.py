@@ -8,13 +8,13 @@ import math
 
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import ShapesPlugin, tinydet_module
+from engine_helpers import shapes_and_tinydet
 from harness import hookimpl
 from harness.errors import ConfigError
-from harness.plugins import temporary_plugin
+from harness.testing import temporary_plugin
 from harness.tracking import LoggerSpec, Tracker, epoch_metrics, final_metrics, flatten_params, log_to_overrides
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -37,10 +37,7 @@ needs_tensorboard = pytest.mark.skipif(not _has("tensorboard"),
 def plugins(host, tmp_path, monkeypatch):
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    tinydet_module()
-    import harness_tinydet.plugin as tinydet_plugin
-
-    with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-test"):
+    with shapes_and_tinydet("test"):
         yield host
 
 

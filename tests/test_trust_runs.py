@@ -6,26 +6,14 @@ import json
 
 import pytest
 
-pytest.importorskip("harness.prepare")
+pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import CATEGORIES, ShapesPlugin, tinydet_module  # noqa: E402
+from engine_helpers import CATEGORIES, fast_overrides  # noqa: E402
+from engine_helpers import shapes_run_plugins as plugins  # noqa: E402, F401 - the fixture
 from harness.errors import ConfigError  # noqa: E402
-from harness.plugins import temporary_plugin  # noqa: E402
 
-FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=0", "train.threads=1",
-        "train.device=cpu", "eval.batch=16"]
-
-
-@pytest.fixture
-def plugins(host, tmp_path, monkeypatch):
-    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
-    tinydet_module()
-    import harness_tinydet.plugin as tinydet_plugin
-
-    with temporary_plugin(ShapesPlugin(), name="shapes-trust"), temporary_plugin(tinydet_plugin, name="tinydet-trust"):
-        yield host
+FAST = fast_overrides(epochs=1, close_mosaic=0)
 
 
 def request(tmp_path, extra=(), **kw):

@@ -42,7 +42,7 @@ def test_store_commands_fit_100_columns(wide_store, tmp_path, cli_runner):
 def test_listing_and_profile_fit_100_columns(host, cli_runner):
     from engine_helpers import tinydet_module
 
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin

@@ -47,7 +47,7 @@ def prepare_summary(ds: Any) -> str:
     rep = m.get("report", {})
     lines = [f"{'reused' if getattr(ds, 'from_cache', False) else 'prepared'} {m['dataset']}: {m['count']} aligned "
              f"samples, {m['instances']} instances -> {ds.folder}"]
-    from harness.cache_admin import size_line
+    from harness.cache.admin import size_line
 
     lines.append(size_line(ds))
     pairs = {k: v for k, v in rep.get("skip_reasons", {}).items() if not k.startswith("annotation")}
@@ -82,7 +82,7 @@ def _cut(line: str, width: int = 100) -> str:
 
 
 def folds_table(ds: Any, folds: Sequence[Any]) -> str:
-    from harness.prepare import fold_support
+    from harness.cache import fold_support
 
     rows = []
     for s in fold_support(ds, folds):
@@ -101,7 +101,7 @@ def register_commands(cli: click.Group) -> None:
     def prepare_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
                     overrides: tuple[str, ...], force: bool, cache_form: str | None) -> None:
         """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
-        from harness.prepare import prepare
+        from harness.cache import prepare
 
         _, cfg = _config(dataset, configs, overrides, root)
         ds = prepare(dataset, cfg, cache_root=cache, force=force, form=cache_form)
@@ -113,7 +113,7 @@ def register_commands(cli: click.Group) -> None:
     def folds_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
                   overrides: tuple[str, ...], selection: str) -> None:
         """Print train/val image and instance counts per fold (prepares the dataset if needed)."""
-        from harness.prepare import prepare, resolve_folds
+        from harness.cache import prepare, resolve_folds
 
         spec, cfg = _config(dataset, configs, overrides, root)
         ds = prepare(dataset, cfg, cache_root=cache)

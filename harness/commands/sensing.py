@@ -295,14 +295,14 @@ def register_commands(cli: click.Group) -> None:
         shift_list = [int(v) for v in shifts.split(",")] if shifts else list(opts.displacement_shifts)
         c2_params = {"sigma": 11.0, "percentile": 99.0, "floor": 0.05, **dict(cfg.get("encoding", {}).get("c2", {}) or {})}
         if prepared is not None:
-            from harness.prepared import PreparedDataset
+            from harness.cache import PreparedDataset
 
             data = PreparedDataset(prepared)
         else:
             try:
-                from harness.prepare import prepare
+                from harness.cache import prepare
             except ImportError:
-                raise HarnessError("this installation has no dataset preparation (harness.prepare); "
+                raise HarnessError("this installation has no dataset preparation (harness.cache); "
                                    "prepare the dataset elsewhere and pass --prepared DIR") from None
             data = prepare(dataset, cfg)
         n = len(data) if max_images is None else min(len(data), max_images)

@@ -1,6 +1,6 @@
 """The data pipeline: prepared samples + an encoding -> augmented, letterboxed tensors in the model contract.
 
-``SampleSource`` reads a subset of a ``harness.prepared.PreparedDataset`` (memory-mapped) and stacks each
+``SampleSource`` reads a subset of a ``harness.cache.PreparedDataset`` (memory-mapped) and stacks each
 sample's RGB with the encoding's channel: ``uint8 H x W x (3 + k)``, channels ``[R, G, B, enc]`` (``k = 0`` for RGB-only
 encodings such as ``none``). ``TrainDataset`` augments (mosaic, random affine, flips on every channel, HSV on RGB
 only) and letterboxes to the protocol size; ``LetterboxDataset`` only letterboxes (evaluation). ``collate`` stacks a

@@ -2,7 +2,7 @@
 
 ``outputs`` are what a detector returns in eval mode, one dict per image with ``boxes`` (xyxy pixels of the
 ground truth's frame), ``scores`` and ``labels`` (0-based); they become COCO results with
-``category_id = label + 1`` (the harness's convention, see ``harness/prepared.py``). Every image is processed at
+``category_id = label + 1`` (the harness's convention, see ``harness/cache/reader.py``). Every image is processed at
 most once; an image the ground truth does not know is an error, and GT images never processed are counted.
 """
 

@@ -124,7 +124,7 @@ def build_detector(name: str, num_classes: int = 8, in_channels: int = 4, host: 
     from harness.plugins import get_host
 
     spec = (host or get_host()).detector(name)
-    channels = spec.thermal_channels if spec.input_kind == "dual" else in_channels
+    channels = spec.model_channels(in_channels)
     options = dict(model_options or {})
     try:
         model = spec.build(num_classes, in_channels=channels, **options)

@@ -41,7 +41,7 @@ class Exported:
 def _prepared_of(run: Any) -> Any:
     """The prepared dataset a finished run was trained and scored on (from its stored configuration)."""
     from harness.config import read_yaml
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     cfg = read_yaml(run.config_path)
     ds = run.key.dataset

@@ -426,7 +426,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     from harness.config import load_config
     from harness.evaluation import evaluate
     from harness.plugins import get_host
-    from harness.prepare import fold_indices, prepare, resolve_folds
+    from harness.cache import fold_indices, prepare, resolve_folds
     from harness.store import EXTERNAL, RunKey, Store, config_hash, image_ids_hash
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+\-]*", name or ""):

@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from harness.errors import DataError
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 from harness.sensing import c2 as c2mod
 from harness.textable import text_table
 

@@ -616,7 +616,7 @@ ROUTE_META_KEYS = ("thermal_route", "temperatures", "temperature_bound_c", "appr
 def route_meta(info: Mapping[str, Any]) -> dict[str, Any]:
     """What a prepared sample's ``meta`` records of its thermal route: nothing for DJI's own correction and for
     non-R-JPEG files; ``thermal_route`` otherwise, and for the approximate route ``temperatures`` ("approximate
-    temperatures"), ``temperature_bound_c`` and ``approximation`` (read back by ``harness.prepare``)."""
+    temperatures"), ``temperature_bound_c`` and ``approximation`` (read back by ``harness.cache``)."""
     decoder = info.get("decoder")
     if decoder in (None, "dji"):
         return {}

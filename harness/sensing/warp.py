@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from harness.errors import DataError
-from harness.sample import AlignedSample
+from harness.api import AlignedSample
 from harness.sensing.registration.homography import project_points
 
 _INTERP = {"linear": 1, "nearest": 0, "cubic": 2, "area": 3}

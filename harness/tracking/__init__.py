@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from harness.errors import ConfigError
-from harness.tracking.spec import LoggerSpec, RunLogger, TrackingOptions  # re-exported for plugins
+from harness.api import LoggerSpec, RunLogger, TrackingOptions  # re-exported for plugins
 
 log = logging.getLogger(__name__)
 

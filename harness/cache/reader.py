@@ -1,23 +1,11 @@
-"""Prepared samples on disk: the sensing pipeline's output, written once, memory-mapped by every run.
+"""Reading a prepared dataset: ``PreparedDataset`` opens a cache folder read-only and hands out samples, encoded
+channels, COCO ground truth and support counts.
 
-A prepared dataset is a folder::
-
-    manifest.json      dataset name, categories, fingerprint, count, skipped-file summary, creation time
-    samples.json       one record per sample: image_id, group, height, width, offsets, box count, meta
-    rgb.u8             every sample's RGB (HxWx3 uint8) back to back
-    ir8.u8             every sample's 8-bit thermal (HxW uint8)
-    thermal.f32        every sample's temperature in C (HxW float32); absent for 8-bit-only datasets
-    boxes.f32, labels.i64   all boxes (Nx4 xyxy) and labels, back to back
-    enc/<name>-<hash>.u8    an encoding's channel for every sample, computed on first use and kept
-
-That is the ``raw`` form. The default ``compact`` form (``harness.cache_forms``) keeps the same records but stores
-each channel losslessly compressed in ``rgb.pack``, ``ir8.pack``, ``thermal.pack`` and ``enc/<name>-<hash>.pack``
-(per-sample offsets in ``samples.json`` and ``enc/<name>-<hash>.idx``), or, for an 8-bit sample that is exactly
-what its source files decode to, only a reference to those files with a digest of their pixels.
-
-``PreparedWriter`` streams samples into a temporary folder and renames it into place when complete, so an
-interrupted preparation never leaves a half-written dataset behind. ``PreparedDataset`` opens the arrays with
-``numpy.memmap``: loading a sample is a slice, not a decode.
+The raw form's arrays are opened with ``numpy.memmap`` (loading a sample is a slice, not a decode); the compact
+form's are decoded per sample (``harness.cache.forms``), and an 8-bit sample recorded as a reference is read from
+its source files and checked against the recorded digest the first time a process loads it. Every form returns the
+same arrays. An encoding's channel is computed for the whole dataset on first use and kept under ``enc/``: raw
+uint8 (raw form), or compressed per sample or recomputed, whichever measured cheaper (compact form).
 
 COCO ground truth is derived from the same arrays (``coco()``): category ``id = label + 1``, boxes in the thermal
 frame, ``area = w * h``, ``iscrowd = 0``.
@@ -27,147 +15,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from harness import cache_forms as CF
-from harness.errors import DataError, SampleError
-from harness.io import atomic_write, atomic_write_json, make_temp_dir, read_json
-from harness.sample import AlignedSample, validate_sample
-
-PREPARED_SCHEMA = 1
-
-
-class PreparedWriter:
-    """Write samples into ``folder`` (created atomically on ``close``). Use as a context manager."""
-
-    def __init__(self, folder: str | Path, dataset: str, categories: Sequence[str], fingerprint: str = "",
-                 extra: dict[str, Any] | None = None, form: str = "raw", sources: Sequence[str | Path] = (),
-                 pixel_files: Any = None):
-        """``form``: ``raw`` or ``compact``; ``sources``: folders whose files an 8-bit sample may reference
-        (compact form); ``pixel_files(sample) -> (rgb path, thermal path) | None``: the dataset's own answer."""
-        self.folder = Path(folder)
-        self.form = CF.check_form(form)
-        self.sources = [Path(p) for p in sources]
-        self.pixel_files = pixel_files
-        self.source_bytes = 0
-        self.codec = CF.default_u8_codec()
-        self.folder.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = make_temp_dir(prefix=f".{self.folder.name}.", suffix=".tmp", dir=self.folder.parent)
-        self.dataset, self.categories = dataset, list(categories)
-        self.fingerprint, self.extra = fingerprint, dict(extra or {})
-        self.records: list[dict[str, Any]] = []
-        names = ("rgb.u8", "ir8.u8", "thermal.f32") if form == "raw" else ("rgb.pack", "ir8.pack", "thermal.pack")
-        self._files = {name: open(self.tmp / name, "wb") for name in (*names, "boxes.f32", "labels.i64")}
-        self._pos = {name: 0 for name in names}
-        self._px = 0
-        self._nbox = 0
-        self._has_thermal: bool | None = None
-        self._ids: set[int] = set()
-        self._closed = False
-
-    def add(self, sample: AlignedSample) -> None:
-        validate_sample(sample, num_classes=len(self.categories))
-        if sample.image_id in self._ids:
-            raise SampleError(f"{sample.name}: duplicate image_id {sample.image_id}")
-        has_thermal = sample.thermal is not None
-        if self._has_thermal is None:
-            self._has_thermal = has_thermal
-        elif self._has_thermal != has_thermal:
-            raise SampleError(f"{sample.name}: field 'thermal': some samples have radiometric thermal and some do not")
-        h, w = sample.height, sample.width
-        packed: dict[str, Any] = {}
-        if self.form == "raw":
-            self._files["rgb.u8"].write(np.ascontiguousarray(sample.rgb).tobytes())
-            self._files["ir8.u8"].write(np.ascontiguousarray(sample.ir8).tobytes())
-            if has_thermal:
-                self._files["thermal.f32"].write(np.ascontiguousarray(sample.thermal).tobytes())
-        else:
-            packed = self._pack(sample)
-        self._files["boxes.f32"].write(np.ascontiguousarray(sample.boxes).tobytes())
-        self._files["labels.i64"].write(np.ascontiguousarray(sample.labels).tobytes())
-        n = int(len(sample.boxes))
-        self.records.append({
-            "image_id": int(sample.image_id), "group": sample.group, "height": h, "width": w,
-            "px": self._px, "box": self._nbox, "n": n, "meta": sample.meta, **packed,
-        })
-        self._ids.add(int(sample.image_id))
-        self._px += h * w
-        self._nbox += n
-
-    def _put(self, name: str, data: bytes) -> list[int]:
-        self._files[name].write(data)
-        at = self._pos[name]
-        self._pos[name] += len(data)
-        return [at, len(data)]
-
-    def _pack(self, sample: AlignedSample) -> dict[str, Any]:
-        """Compact form: a reference to the source files when they decode to exactly these pixels, else PNG."""
-        out: dict[str, Any] = {}
-        if sample.thermal is None and self.sources:
-            files = self.pixel_files(sample) if self.pixel_files is not None else None
-            ref = CF.find_reference(sample, self.sources, files)
-            if ref is not None:
-                self.source_bytes += ref.pop("bytes")
-                ref["base"] = self.sources.index(ref["base"])
-                return {"src": ref}
-        out["rgb"] = self._put("rgb.pack", CF.encode_u8(sample.rgb, self.codec))
-        out["ir8"] = self._put("ir8.pack", CF.encode_u8(sample.ir8, self.codec))
-        if sample.thermal is not None:
-            out["thermal"] = self._put("thermal.pack", CF.encode_f32(sample.thermal))
-        return out
-
-    def close(self, report: dict[str, Any] | None = None) -> Path:
-        for f in self._files.values():
-            f.flush()
-            os.fsync(f.fileno())
-            f.close()
-        if not self._has_thermal:
-            (self.tmp / "thermal.f32").unlink(missing_ok=True)
-            (self.tmp / "thermal.pack").unlink(missing_ok=True)
-        (self.tmp / "enc").mkdir(exist_ok=True)
-        atomic_write_json(self.tmp / "samples.json", self.records, indent=None)
-        manifest = {
-            "schema": PREPARED_SCHEMA, "dataset": self.dataset, "categories": self.categories,
-            "fingerprint": self.fingerprint, "count": len(self.records), "instances": self._nbox,
-            "radiometric": bool(self._has_thermal), "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            "report": report or {}, "form": self.form, **self.extra,
-        }
-        if self.form != "raw":
-            manifest["codec"] = {"u8": self.codec, "thermal": "table+png16"}
-        if any("src" in r for r in self.records):
-            manifest["sources"] = [str(p.resolve()) for p in self.sources]
-            manifest["referenced_bytes"] = self.source_bytes
-        atomic_write_json(self.tmp / "manifest.json", manifest)
-        if self.folder.exists():
-            old = self.folder.with_name(f".{self.folder.name}.old-{os.getpid()}")
-            os.replace(self.folder, old)
-            os.replace(self.tmp, self.folder)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(self.tmp, self.folder)
-        self._closed = True
-        return self.folder
-
-    def abort(self) -> None:
-        for f in self._files.values():
-            f.close()
-        shutil.rmtree(self.tmp, ignore_errors=True)
-        self._closed = True
-
-    def __enter__(self) -> "PreparedWriter":
-        return self
-
-    def __exit__(self, exc_type: Any, *_: Any) -> None:
-        if exc_type is not None and not self._closed:
-            self.abort()
-        elif not self._closed:
-            self.close()
+from harness.api import AlignedSample
+from harness.cache import forms as CF
+from harness.cache.forms import PREPARED_SCHEMA
+from harness.errors import DataError
+from harness.io import atomic_write, atomic_write_json, read_json
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -176,8 +34,11 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _params_hash(params: dict[str, Any]) -> str:
-    return hashlib.sha1(json.dumps(params, sort_keys=True, default=str).encode()).hexdigest()[:10]
+def _encoding_key(encoding: Any, params: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """(``<name>-<hash of its full parameters>``, the full parameters): where an encoding's channel is kept."""
+    full = {**dict(getattr(encoding, "params", {})), **params}
+    digest = hashlib.sha1(json.dumps(full, sort_keys=True, default=str).encode()).hexdigest()[:10]
+    return f"{encoding.name}-{digest}", full
 
 
 class PreparedDataset:
@@ -190,7 +51,8 @@ class PreparedDataset:
             raise DataError(f"{self.folder}: not a prepared dataset (no manifest.json); run `harness prepare`")
         self.manifest = read_json(manifest_path)
         if self.manifest.get("schema") != PREPARED_SCHEMA:
-            raise DataError(f"{manifest_path}: prepared-data schema {self.manifest.get('schema')}, expected {PREPARED_SCHEMA}; prepare again")
+            raise DataError(f"{manifest_path}: prepared-data schema {self.manifest.get('schema')}, expected "
+                            f"{PREPARED_SCHEMA}; prepare again")
         self.records: list[dict[str, Any]] = read_json(self.folder / "samples.json")
         self.categories: list[str] = list(self.manifest["categories"])
         self.name: str = self.manifest["dataset"]
@@ -222,6 +84,31 @@ class PreparedDataset:
         if path.stat().st_size == 0:
             return np.zeros(0, dtype=dtype)
         return np.memmap(path, dtype=dtype, mode="r")
+
+    def check_sizes(self) -> None:
+        """The arrays hold exactly what ``samples.json`` describes (a truncated copy is a ``DataError`` naming the
+        file), and what a compact cache needs is here: its codec's package and its referenced source folders."""
+        px = sum(r["height"] * r["width"] for r in self.records)
+        nb = sum(r["n"] for r in self.records)
+        sizes = {"rgb.u8": px * 3, "ir8.u8": px, "boxes.f32": nb * 16, "labels.i64": nb * 8}
+        if self.radiometric:
+            sizes["thermal.f32"] = px * 4
+        if self.form != "raw":
+            ends = {name: max([sum(r[ch]) for r in self.records if ch in r], default=0)
+                    for name, ch in (("rgb.pack", "rgb"), ("ir8.pack", "ir8"), ("thermal.pack", "thermal"))}
+            sizes = {"boxes.f32": nb * 16, "labels.i64": nb * 8, "rgb.pack": ends["rgb.pack"],
+                     "ir8.pack": ends["ir8.pack"]}
+            if self.radiometric:
+                sizes["thermal.pack"] = ends["thermal.pack"]
+            if self.codec == "zstd":
+                CF.zstd_module(str(self.folder))  # written with zstandard: a DataError (so prepared again) without it
+            missing = [str(p) for p in self.sources if not p.is_dir()]
+            if missing:
+                raise DataError(f"the source folder(s) its samples refer to are gone: {', '.join(missing)}")
+        for name, size in sizes.items():
+            got = (self.folder / name).stat().st_size
+            if got != size:
+                raise DataError(f"{self.folder / name}: {got} bytes, expected {size}")
 
     # ------------------------------------------------------------------ samples
     def __len__(self) -> int:
@@ -333,25 +220,16 @@ class PreparedDataset:
         arr = self._encoded(encoding, params or {})
         return arr[r["px"]:r["px"] + r["height"] * r["width"]].reshape(r["height"], r["width"])
 
-    def _checked(self, s: AlignedSample, encoding: Any, params: dict[str, Any]) -> np.ndarray:
-        out = encoding.encode(s, **params)
-        if out is None or out.dtype != np.uint8 or out.shape != (s.height, s.width):
-            got = None if out is None else (out.dtype, out.shape)
-            raise SampleError(f"{s.name}: encoding {encoding.name!r} returned {got}, "
-                              f"expected uint8 {(s.height, s.width)}")
-        return out
-
     def _compact_channel(self, i: int, encoding: Any, params: dict[str, Any]) -> np.ndarray:
         """Compact form: the encoding is either stored (compressed per sample) or recomputed from the decoded sample,
         whichever measured cheaper on the first samples when the encoding was first used (``enc/<key>.json``)."""
-        full = {**dict(getattr(encoding, "params", {})), **params}
-        key = f"{encoding.name}-{_params_hash(full)}"
+        key, full = _encoding_key(encoding, params)
         if key not in self._enc:
             self._enc[key] = self._compact_encoded(key, encoding, params, full)  # type: ignore[assignment]
         store = self._enc[key]
         r = self.records[i]
         if store is None:
-            return _frozen(self._checked(self[i], encoding, params))
+            return _frozen(encoding.encode(self[i], **params))
         pack, idx = store  # type: ignore[misc]
         at = idx[i]
         return _frozen(CF.decode_u8(pack[int(at[0]):int(at[0]) + int(at[1])], (r["height"], r["width"]),
@@ -367,7 +245,7 @@ class PreparedDataset:
             for i in probe:  # measure: recompute from the decoded sample vs decode the stored image
                 s = self[i]
                 t0 = time.perf_counter()
-                out = self._checked(s, encoding, params)
+                out = encoding.encode(s, **params)
                 t1 = time.perf_counter()
                 data = CF.encode_u8(out, self.codec)
                 t2 = time.perf_counter()
@@ -380,7 +258,7 @@ class PreparedDataset:
                 def write(f: Any) -> None:
                     pos = 0
                     for i in range(len(self)):
-                        data = CF.encode_u8(self._checked(self[i], encoding, params), self.codec)
+                        data = CF.encode_u8(encoding.encode(self[i], **params), self.codec)
                         f.write(data)
                         offsets[i] = (pos, len(data))
                         pos += len(data)
@@ -394,19 +272,14 @@ class PreparedDataset:
         return self._map(f"enc/{key}.pack", np.uint8), self._map(f"enc/{key}.idx", np.int64).reshape(-1, 2)
 
     def _encoded(self, encoding: Any, params: dict[str, Any]) -> np.ndarray:
-        full = {**dict(getattr(encoding, "params", {})), **params}
-        key = f"{encoding.name}-{_params_hash(full)}"
+        key, full = _encoding_key(encoding, params)
         if key in self._enc:
             return self._enc[key]
         path = self.folder / "enc" / f"{key}.u8"
         if not path.exists():
             def write(f: Any) -> None:
                 for s in self:
-                    out = encoding.encode(s, **params)
-                    if out is None or out.dtype != np.uint8 or out.shape != (s.height, s.width):
-                        got = None if out is None else (out.dtype, out.shape)
-                        raise SampleError(f"{s.name}: encoding {encoding.name!r} returned {got}, expected uint8 {(s.height, s.width)}")
-                    f.write(np.ascontiguousarray(out).tobytes())
+                    f.write(np.ascontiguousarray(encoding.encode(s, **params)).tobytes())
             atomic_write(path, write)
             atomic_write_json(path.with_suffix(".json"), {"encoding": encoding.name, "params": full})
         self._enc[key] = self._map(f"enc/{key}.u8", np.uint8)
@@ -429,7 +302,8 @@ class PreparedDataset:
                              "bbox": [x1, y1, w, h], "area": w * h, "iscrowd": 0})
                 ann_id += 1
         cats = [{"id": k + 1, "name": n} for k, n in enumerate(self.categories)]
-        return {"info": {"dataset": self.name, "frame": "thermal"}, "images": images, "annotations": anns, "categories": cats}
+        return {"info": {"dataset": self.name, "frame": "thermal"}, "images": images, "annotations": anns,
+                "categories": cats}
 
     def support(self, indices: Sequence[int] | None = None) -> dict[str, Any]:
         """Images and instances (per category) of a subset: the 'support' recorded with every number."""

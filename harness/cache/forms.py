@@ -1,4 +1,5 @@
-"""How a prepared dataset stores its pixels: the lossless codecs of the compact cache and source references.
+"""How a prepared dataset stores its pixels: the cache forms, the lossless codecs of the compact form and source
+references.
 
 Forms (``manifest.json`` key ``form``; a manifest without it is ``raw``):
 
@@ -39,6 +40,8 @@ import numpy as np
 
 from harness.errors import DataError
 
+#: Version of the folder layout (``manifest.json`` ``schema``); a cache of another schema is prepared again.
+PREPARED_SCHEMA = 1
 FORMS = ("compact", "raw")
 DEFAULT_FORM = "compact"
 ENV_FORM = "HARNESS_CACHE_FORM"
@@ -56,7 +59,7 @@ def default_u8_codec() -> str:
     return "zstd"
 
 
-def _zstd(where: str) -> Any:
+def zstd_module(where: str) -> Any:
     try:
         import zstandard
     except ImportError:
@@ -79,7 +82,7 @@ def encode_u8(img: np.ndarray, codec: str = "png") -> bytes:
     if codec == "zstd":
         img = np.ascontiguousarray(img)
         delta = np.diff(img, axis=1, prepend=np.zeros_like(img[:, :1]))
-        return _zstd("zstd").ZstdCompressor(level=ZSTD_LEVEL).compress(delta.tobytes())
+        return zstd_module("zstd").ZstdCompressor(level=ZSTD_LEVEL).compress(delta.tobytes())
 
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
     if not ok:  # pragma: no cover - OpenCV always encodes uint8 PNG
@@ -91,7 +94,7 @@ def decode_u8(data: np.ndarray | bytes, shape: tuple[int, ...], where: str, code
     import cv2
 
     if codec == "zstd":
-        z = _zstd(where)
+        z = zstd_module(where)
         try:
             flat = np.frombuffer(z.ZstdDecompressor().decompress(memoryview(np.ascontiguousarray(data))), np.uint8)
             return np.cumsum(flat.reshape(shape), axis=1, dtype=np.uint8)

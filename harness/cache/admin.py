@@ -1,9 +1,10 @@
-"""What is in the prepared-sample cache, how big it is, and removing what is no longer used (``harness cache``).
+"""Housekeeping of the prepared-sample cache: what is in it, how big it is, and removing what is no longer used
+(``harness cache``).
 
-The cache holds ``<root>/<dataset>/<folder>/manifest.json`` (``harness.prepare``). A prepared dataset is *unused*
-when it has not been used (prepared or reused, ``.last-used``) for ``days`` days, when it refers to source files
-whose folder is gone, or when it is a half-written leftover (``.<name>.*.tmp`` / ``.old-*``) of an interrupted
-preparation older than an hour.
+The cache holds ``<root>/<dataset>/<folder>/manifest.json`` (``harness.cache.preparation``). A prepared dataset
+is *unused* when it has not been used (prepared or reused, ``.last-used``) for ``days`` days, when it refers to
+source files whose folder is gone, or when it is a half-written leftover (``.<name>.*.tmp`` / ``.old-*``) of an
+interrupted preparation older than an hour.
 """
 
 from __future__ import annotations
@@ -18,6 +19,16 @@ from typing import Any
 from harness.errors import DataError
 
 LEFTOVER_AGE_S = 3600.0
+#: Touched whenever a prepared dataset is prepared or reused.
+USED_MARK = ".last-used"
+
+
+def mark_used(folder: Path) -> None:
+    """Touch ``<folder>/.last-used`` (what ``harness cache rm --unused`` goes by); a read-only cache is fine."""
+    try:
+        (folder / USED_MARK).touch()
+    except OSError:
+        pass
 
 
 def folder_bytes(path: Path) -> int:
@@ -86,7 +97,7 @@ def entries(root: Path, days: float = 30.0, now: float | None = None) -> list[En
                     e.why_unused = "no manifest.json (not a prepared dataset)"
                 out.append(e)
                 continue
-            mark = folder / ".last-used"
+            mark = folder / USED_MARK
             used = mark.stat().st_mtime if mark.exists() else (folder / "manifest.json").stat().st_mtime
             e = Entry(ds_dir.name, folder.name, folder, manifest.get("form", "raw"), int(manifest.get("count", 0)),
                       folder_bytes(folder), manifest.get("source_bytes"), str(manifest.get("created", "-"))[:10], used)

@@ -1,0 +1,131 @@
+"""The folds of a prepared dataset and the COCO ground truth of their splits, written into its cache folder.
+
+``resolve_folds`` reads the config's ``protocol.folds`` or the folds recorded at preparation; ``fold_indices`` the
+samples of a fold's training and held-out groups; ``coco_path`` the COCO file (thermal frame) of a split, written
+on first use under ``<prepared folder>/coco/``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from harness.api import DatasetSpec, Fold
+from harness.cache.reader import PreparedDataset
+from harness.errors import ConfigError, DataError
+from harness.io import atomic_write_json
+
+
+def resolve_folds(dataset_spec: DatasetSpec | str, prepared: PreparedDataset, cfg: Mapping[str, Any],
+                  selection: str | Sequence[str] | None = "all") -> list[Fold]:
+    """The evaluation folds: ``cfg["protocol"]["folds"]`` (``{fold name: [held-out groups]}``, training on every
+    other group present) when set, else the dataset's own folds recorded at preparation. ``selection``: ``"all"``,
+    a fold name, a comma-separated list of names, or a list of names."""
+    name = dataset_spec.name if isinstance(dataset_spec, DatasetSpec) else str(dataset_spec)
+    present = sorted(set(prepared.groups))
+    spec_folds = (cfg.get("protocol") or {}).get("folds")
+    folds: list[Fold] = []
+    if spec_folds:
+        if not isinstance(spec_folds, Mapping):
+            raise ConfigError(f"protocol.folds must map fold names to lists of held-out groups, got {spec_folds!r}")
+        for fold_name, held in spec_folds.items():
+            held_t = (held,) if isinstance(held, str) else tuple(held or ())
+            missing = [g for g in held_t if g not in present]
+            if missing:
+                raise ConfigError(f"protocol.folds: fold {fold_name!r} holds out {', '.join(map(repr, missing))}, "
+                                  f"which dataset {name!r} does not have; its groups are {', '.join(present)}")
+            if not held_t:
+                raise ConfigError(f"protocol.folds: fold {fold_name!r} holds out no group")
+            folds.append(Fold(str(fold_name), tuple(g for g in present if g not in held_t), held_t))
+    else:
+        recorded = prepared.manifest.get("folds") or []
+        for f in recorded:
+            val = tuple(g for g in f["val_groups"] if g in present)
+            if val:
+                folds.append(Fold(f["name"], tuple(g for g in f["train_groups"] if g in present), val))
+        if not folds:  # nothing recorded: leave one group out
+            folds = [Fold(g, tuple(x for x in present if x != g), (g,)) for g in present]
+    return select_folds(folds, selection)
+
+
+def select_folds(folds: list[Fold], selection: str | Sequence[str] | None) -> list[Fold]:
+    if selection is None or selection == "all" or selection == ["all"]:
+        return folds
+    names = [s.strip() for s in selection.split(",")] if isinstance(selection, str) else [str(s) for s in selection]
+    by_name = {f.name: f for f in folds}
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise ConfigError(f"unknown fold(s) {', '.join(map(repr, unknown))}; available: "
+                          f"{', '.join(by_name)} (or 'all')")
+    return [by_name[n] for n in names]
+
+
+def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list[int]]:
+    """Sample indices (into ``prepared``) of the fold's training and held-out groups."""
+    train, val = prepared.indices(fold.train_groups), prepared.indices(fold.val_groups)
+    if not val:
+        raise DataError(f"fold {fold.name!r}: no prepared images in the held-out group(s) "
+                        f"{', '.join(fold.val_groups)}")
+    if not train and not fold.train_groups:
+        raise DataError(f"fold {fold.name!r} holds out every group of the prepared data "
+                        f"({', '.join(fold.val_groups)}): nothing is left to train on; give the dataset a second "
+                        f"group or set protocol.folds")
+    if not train:
+        raise DataError(f"fold {fold.name!r}: no prepared images to train on (groups {', '.join(fold.train_groups)})")
+    return train, val
+
+
+@dataclass
+class FoldSupport:
+    fold: str
+    train_groups: tuple[str, ...]
+    val_groups: tuple[str, ...]
+    train_images: int
+    train_instances: int
+    val_images: int
+    val_instances: int
+    val_categories: dict[str, int]
+
+
+def fold_support(prepared: PreparedDataset, folds: Iterable[Fold]) -> list[FoldSupport]:
+    """Images and instances of each fold's training and held-out parts (what ``harness folds`` prints)."""
+    out = []
+    for f in folds:
+        tr, va = fold_indices(prepared, f)
+        st, sv = prepared.support(tr), prepared.support(va)
+        out.append(FoldSupport(f.name, f.train_groups, f.val_groups, st["images"], st["instances"], sv["images"],
+                               sv["instances"], sv["categories"]))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ COCO
+_SAFE = re.compile(r"[^A-Za-z0-9_.+-]")
+
+
+def coco_path(prepared: PreparedDataset, fold: Fold | None = None, split: str = "val") -> Path:
+    """The COCO ground-truth file (thermal frame) of a fold's split, written when missing; ``fold=None``: all."""
+    if fold is None:
+        path = prepared.folder / "coco" / "all.json"
+        idx = None
+    else:
+        if split not in ("train", "val"):
+            raise ValueError(f"split must be 'train' or 'val', got {split!r}")
+        path = prepared.folder / "coco" / f"{_SAFE.sub('_', fold.name)}-{split}.json"
+        tr, va = fold_indices(prepared, fold)
+        idx = tr if split == "train" else va
+    if not path.exists():
+        coco = prepared.coco(idx)
+        coco["info"].update({"fold": None if fold is None else fold.name, "split": split if fold else "all",
+                             "key": prepared.manifest.get("key")})
+        atomic_write_json(path, coco, indent=None)
+    return path
+
+
+def ensure_coco(prepared: PreparedDataset, folds: Iterable[Fold]) -> None:
+    """The COCO files of every split of ``folds`` (and of all samples) written."""
+    coco_path(prepared)
+    for f in folds:
+        for split in ("train", "val"):
+            coco_path(prepared, f, split)

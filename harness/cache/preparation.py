@@ -1,0 +1,286 @@
+"""Preparing a dataset: run its sensing pipeline once, keep the aligned samples in the cache, check them.
+
+``prepare(dataset, cfg)`` opens the dataset plugin with the ``dataset`` config section (``root`` and the
+plugin's own options) and the ``sensing`` section, and looks for a finished preparation under::
+
+    <cache>/<dataset>/<key>/        (harness.cache.key: where, and the key)
+        manifest.json  samples.json  rgb.pack  ir8.pack  thermal.pack  boxes.f32  labels.i64   (harness.cache.writer)
+        coco/all.json  coco/<fold>-train.json  coco/<fold>-val.json          (harness.cache.folds, thermal frame)
+
+What the plugin returns is checked where it enters (``harness.contracts``: the opened source, its groups, folds and
+fingerprint, every sample). The samples are written through ``PreparedWriter`` (a temporary folder renamed into
+place), so an interrupted preparation leaves nothing behind; a damaged cache folder is prepared again. Every run,
+detector and encoding reads the same prepared arrays: comparisons are sample-matched by construction.
+
+A pair the dataset cannot use is a counted skip (``PrepareReport``), not an error; the counts, reasons and
+notes are stored in ``manifest.json`` under ``report`` and printed by ``harness prepare``. Every prepared (or
+reused) dataset then passes the plausibility guard (``harness.input_guard``: a fold without labels, mostly
+unlabelled images, dropped annotations stop unless ``inputs.accept`` names them). An exception a dataset plugin's
+code raises is a ``PluginError`` naming the plugin; two samples with one ``image_id`` are a ``DataError``; nothing is
+cached in either case.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from harness import contracts
+from harness.api import DatasetSpec, PrepareReport
+from harness.cache.admin import folder_bytes, mark_used
+from harness.cache.folds import ensure_coco, resolve_folds
+from harness.cache.forms import DEFAULT_FORM
+from harness.cache.key import PREPARE_VERSION, cache_form, cache_key, cache_root, form_folder, preparation_sensing
+from harness.cache.reader import PreparedDataset
+from harness.cache.writer import PreparedWriter
+from harness.errors import ConfigError, DataError, SampleError
+
+log = logging.getLogger(__name__)
+
+#: How many skipped files are listed by name in the prepared manifest (all are counted).
+MAX_LISTED_SKIPS = 2000
+
+
+def _spec(dataset: str | DatasetSpec) -> DatasetSpec:
+    if isinstance(dataset, DatasetSpec):
+        return dataset
+    from harness.plugins import get_host
+
+    return get_host().dataset(dataset)
+
+
+def open_source(dataset: str | DatasetSpec, cfg: Mapping[str, Any]) -> tuple[DatasetSpec, Any]:
+    """Open ``dataset`` with the ``dataset`` config section (``root`` + options) and, when the plugin's ``open``
+    takes it, the ``sensing`` section. An option ``open`` does not accept is a ``ConfigError`` naming it."""
+    spec = _spec(dataset)
+    options = dict(cfg.get("dataset") or {})
+    root = options.pop("root", None)
+    params = inspect.signature(spec.open).parameters
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    if "sensing" in params or takes_any:
+        options.setdefault("sensing", dict(cfg.get("sensing") or {}))
+    unknown = [k for k in options if k not in params and not takes_any]
+    if unknown:
+        known = [p for p in params if p not in ("root", "self") and params[p].kind is not inspect.Parameter.VAR_KEYWORD]
+        raise ConfigError(f"dataset {spec.name!r} does not take option(s) {', '.join(map(repr, unknown))} "
+                          f"(dataset.<option>); it takes: root, {', '.join(known) or 'nothing else'}")
+    label = plugin_label(spec)
+    source = contracts.plugin_call(label, "open()", spec.open, root, **options)
+    return spec, contracts.check_source(source, label)
+
+
+def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str | Path | None = None,
+            force: bool = False, progress: bool = True, form: str | None = None) -> PreparedDataset:
+    """Prepared samples of ``dataset`` under the current config (prepared now if not cached), in cache ``form``
+    (``compact`` or ``raw``, default ``$HARNESS_CACHE_FORM`` or ``compact``): every form loads identical samples.
+
+    The returned ``PreparedDataset`` has two extra attributes: ``from_cache`` (bool) and ``key``.
+    """
+    form = cache_form(form)
+    spec, source = open_source(dataset, cfg)
+    sensing = preparation_sensing(cfg.get("sensing"))
+    label = plugin_label(spec)
+    fingerprint = contracts.check_fingerprint(contracts.plugin_call(label, "fingerprint()", source.fingerprint), label)
+    key = cache_key(fingerprint, sensing, spec.name)
+    folder = form_folder(_cache_root(cache_root), spec.name, key, form)
+    ds: PreparedDataset | None = None
+    if not force and (folder / "manifest.json").exists():
+        try:
+            ds = PreparedDataset(folder)
+            ds.check_sizes()
+        except DataError as exc:
+            ds = None
+            log.warning("prepared data in %s is damaged (%s); preparing again", folder, exc)
+        else:
+            if ds.form != form:  # written before cache forms existed: the raw layout in the default folder
+                log.info("prepared data in %s is in the %s form; preparing the %s form", folder, ds.form, form)
+        if ds is not None and ds.form == form:
+            mark_used(folder)
+            log.info("using prepared %s from %s", spec.name, folder)
+            return _checked(spec, ds, cfg, key, from_cache=True)
+    ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form)
+    mark_used(folder)
+    return _checked(spec, ds, cfg, key, from_cache=False)
+
+
+def _checked(spec: DatasetSpec, ds: PreparedDataset, cfg: Mapping[str, Any], key: str,
+             from_cache: bool) -> PreparedDataset:
+    """The COCO files of the folds written, the plausibility guard passed (``harness.input_guard``: an unaccepted
+    finding is a ``DataError``), and the extra attributes set: ``from_cache``, ``key`` and ``input_risks`` (the
+    accepted findings, as dicts, that label every result on these samples)."""
+    from harness import input_guard
+
+    folds = resolve_folds(spec, ds, cfg)
+    ensure_coco(ds, folds)
+    risks = input_guard.check(ds, folds, cfg)
+    for line in input_guard.describe(risks):
+        log.warning("%s: %s", spec.name, line)
+    ds.from_cache, ds.key = from_cache, key  # type: ignore[attr-defined]
+    ds.input_risks = [f.as_dict() for f in risks]  # type: ignore[attr-defined]
+    return ds
+
+
+def _cache_root(root: str | Path | None) -> Path:
+    return cache_root(root)
+
+
+def _reference_bases(source: Any) -> list[Path]:
+    """Folders an 8-bit sample's ``meta`` file names may be relative to (the dataset's image and root folders)."""
+    out: list[Path] = []
+    for attr in ("images_dir", "root", "base"):
+        value = getattr(source, attr, None)
+        if isinstance(value, (str, Path)) and Path(value).is_dir() and Path(value) not in out:
+            out.append(Path(value))
+    return out
+
+
+def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: str, sensing: dict[str, Any],
+           progress: bool, form: str = DEFAULT_FORM) -> PreparedDataset:
+    report = PrepareReport()
+    label = plugin_label(spec)
+    folds = [asdict(f) for f in contracts.check_folds(contracts.plugin_call(label, "folds()", source.folds), label)]
+    groups = contracts.check_groups(contracts.plugin_call(label, "groups()", source.groups), label)
+    extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": groups, "folds": folds,
+             "sensing": sensing}
+    total = len(source) if hasattr(source, "__len__") else None
+    missing: dict[str, int] = {}
+    routes: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    # the source's categories win: a dataset whose categories come from its files (coco-rgbt) registers none
+    categories = tuple(getattr(source, "categories", None) or spec.categories)
+    if not categories:
+        raise DataError(f"dataset {spec.name!r}: no categories (neither the opened source nor the spec names any)")
+    bases = _reference_bases(source)
+    if bases:
+        extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
+    writer = PreparedWriter(folder, spec.name, categories, fingerprint=fingerprint, extra=extra, form=form,
+                            sources=bases if form == "compact" else (),
+                            pixel_files=getattr(source, "pixel_files", None))
+    seen: dict[int, str] = {}
+    try:
+        with _Bar(progress, total, f"preparing {spec.name}") as bar:
+            for sample in _plugin_samples(label, source, report):
+                where = _sample_where(sample)
+                contracts.check_unique_id(seen, sample, str(where), label)
+                try:
+                    writer.add(sample)
+                except SampleError as exc:
+                    report.skip(where, f"invalid sample: {exc}")
+                else:
+                    _count_missing(missing, sample)
+                    _count_route(routes, sample)
+                bar.advance()
+        if not writer.records:
+            summary = report.summary()
+            raise DataError(f"dataset {spec.name!r}: no usable image pairs ({summary['skipped']} skipped: "
+                            f"{_reasons_text(summary['skip_reasons'])}); nothing was cached")
+        if hasattr(source, "write_artifacts"):
+            contracts.plugin_call(label, "write_artifacts()", source.write_artifacts, writer.tmp)
+        summary = report.summary()
+        summary["skipped_files"] = [list(s) for s in report.skipped[:MAX_LISTED_SKIPS]]
+        summary["missing_temperatures"] = {"samples": len(missing), "pixels": sum(missing.values()),
+                                           "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS])}
+        if routes:
+            summary.update(routes)
+            if "approximate_temperatures" in routes:
+                a = routes["approximate_temperatures"]
+                report.note(f"{a['samples']} sample(s) hold approximate temperatures (within {a['bound_c']:g} C of "
+                            f"DJI's SDK at worst: {', '.join(a['approximations'])}); results on them say so")
+                summary["notes"] = list(report.notes)
+        summary["seconds"] = round(time.perf_counter() - t0, 3)
+        writer.close(summary)
+    except BaseException:
+        writer.abort()
+        raise
+    log.info("prepared %d samples of %s in %s (%.1f s)", len(writer.records), spec.name, folder, summary["seconds"])
+    return PreparedDataset(folder)
+
+
+def plugin_label(spec: DatasetSpec) -> str:
+    """``dataset 'NAME' (plugin P)``: how an error names a dataset and the plugin that registered it."""
+    return contracts.plugin_label("dataset", spec.name, spec.open)
+
+
+def _plugin_samples(label: str, source: Any, report: PrepareReport) -> Iterable[Any]:
+    """``source.samples(report)``, with an exception the plugin's code raises turned into a ``PluginError`` that names
+    the dataset, its plugin and where it was raised (a ``HarnessError`` it raises on purpose passes unchanged)."""
+    from harness.errors import HarnessError, PluginError
+    from harness.plugins import where
+
+    try:
+        yield from source.samples(report)
+    except (HarnessError, KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise PluginError(f"{label}: samples() raised {type(exc).__name__}: {exc}{where(exc)}; "
+                          f"nothing was cached") from exc
+
+
+def _sample_where(sample: Any) -> Any:
+    """How a skip names a sample: its file name, else its image id (whatever the plugin yielded)."""
+    meta = getattr(sample, "meta", None)
+    iid = getattr(sample, "image_id", None)
+    if isinstance(meta, dict):
+        return meta.get("file_name", iid)
+    return iid if iid is not None else type(sample).__name__
+
+
+def _count_missing(missing: dict[str, int], sample: Any) -> None:
+    """Record how many of a kept sample's temperatures are missing (NaN or inf), when any."""
+    if sample.thermal is not None:
+        from harness.sensing.c2 import invalid_count
+
+        n = invalid_count(sample.thermal)
+        if n:
+            missing[sample.name] = n
+
+
+def _count_route(routes: dict[str, Any], sample: Any) -> None:
+    """Record a kept sample's thermal route when it is not DJI's own correction: ``approximate_temperatures``
+    (samples, worst bound, approximations) and ``converted_temperatures`` (samples)."""
+    meta = sample.meta if isinstance(sample.meta, dict) else {}
+    route = meta.get("thermal_route")
+    if route == "approximate":
+        a = routes.setdefault("approximate_temperatures", {"label": "approximate temperatures", "samples": 0,
+                                                           "bound_c": 0.0, "approximations": []})
+        a["samples"] += 1
+        a["bound_c"] = max(a["bound_c"], float(meta.get("temperature_bound_c") or 0.0))
+        if meta.get("approximation") and meta["approximation"] not in a["approximations"]:
+            a["approximations"].append(meta["approximation"])
+    elif route:
+        c = routes.setdefault(f"{route}_temperatures", {"samples": 0})
+        c["samples"] += 1
+
+
+def _reasons_text(reasons: Mapping[str, int]) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])) or "none"
+
+
+class _Bar:
+    """A rich progress bar (or nothing when disabled)."""
+
+    def __init__(self, enabled: bool, total: int | None, description: str):
+        self.enabled, self.total, self.description = enabled, total, description
+        self.bar: Any = None
+
+    def __enter__(self) -> "_Bar":
+        if self.enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                TimeRemainingColumn())
+            self.task = self.bar.add_task(self.description, total=self.total)
+            self.bar.start()
+        return self
+
+    def advance(self) -> None:
+        if self.bar is not None:
+            self.bar.advance(self.task)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.bar is not None:
+            self.bar.stop()
