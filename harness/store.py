@@ -9,6 +9,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         predictions.json     COCO-format detections on the held-out images (category ids as in the GT), at the
                              full precision they were scored at
         gt.json              the COCO ground truth the predictions were scored against (for re-scoring, bootstrap)
+        analysis.json        error analysis of the held-out predictions (``ANALYSIS_SCHEMA`` below), computed once
+                             when the run is scored; absent for runs stored before it existed
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
@@ -54,6 +56,7 @@ from harness.errors import StoreError
 from harness.io import atomic_write_json, atomic_write_text, read_json
 
 METRICS_SCHEMA = 1
+ANALYSIS_SCHEMA = 1  # harness.evaluation.analysis.ANALYSIS_SCHEMA
 STATES = ("running", "finished", "failed")
 
 
@@ -278,6 +281,24 @@ class Run:
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         metrics = {"schema": METRICS_SCHEMA, "run": asdict(self.key), **metrics}
         atomic_write_json(self.metrics_path, metrics)
+
+    @property
+    def analysis_path(self) -> Path:
+        return self.path / "analysis.json"
+
+    def write_analysis(self, analysis: dict[str, Any]) -> None:
+        """Write ``analysis.json`` (compact JSON: it holds per-image and per-GT arrays)."""
+        atomic_write_json(self.analysis_path, {"run": asdict(self.key), **analysis}, indent=None)
+
+    def read_analysis(self) -> dict[str, Any] | None:
+        """The stored error analysis, or None for a run stored before the analysis existed."""
+        if not self.analysis_path.exists():
+            return None
+        data = read_json(self.analysis_path)
+        if not isinstance(data, dict) or data.get("schema") != ANALYSIS_SCHEMA:
+            raise StoreError(f"{self.analysis_path}: analysis schema {data.get('schema') if isinstance(data, dict) else None!r}, "
+                             f"expected {ANALYSIS_SCHEMA}")
+        return data
 
     def read_metrics(self) -> dict[str, Any]:
         if not self.metrics_path.exists():
