@@ -93,6 +93,19 @@ def relative_detections(records: Sequence[dict[str, Any]], width: int, height: i
     return out
 
 
+def _run_fingerprint(run: Any) -> str | None:
+    """The prepared-data fingerprint a run was scored on (``config.yaml``, or ``score.json`` for external runs)."""
+    from harness.config import read_yaml
+    from harness.io import read_json
+
+    if run.config_path.is_file():
+        return (read_yaml(run.config_path).get("meta") or {}).get("prepared_fingerprint")
+    score = run.path / "score.json"
+    if score.is_file():
+        return (read_json(score).get("identity") or {}).get("prepared_fingerprint")
+    return None
+
+
 def _write_slices(prepared: Any, index: int, encoding: Any, params: dict[str, Any], out: Path) -> dict[str, str]:
     from PIL import Image
 
@@ -127,12 +140,21 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     if not runs:
         raise StoreError(f"no finished run of {dataset} in {st.root} (folds {list(folds or []) or 'all'}, seed "
                          f"{'all' if seed is None else seed})")
-    prepared = _prepared_of(runs[0])
-    fingerprint = prepared.manifest.get("fingerprint")
     host = get_host()
-    enc_name = encoding or host.dataset(dataset).default_encoding
+    spec = host.dataset(dataset)
+    configured = [r for r in runs if r.config_path.is_file()]  # runs of `harness score` store no config.yaml
+    if configured:
+        prepared = _prepared_of(configured[0])
+        cfg = read_yaml(configured[0].config_path)
+    else:
+        from harness.config import load_config
+        from harness.prepare import prepare
+
+        cfg = load_config(protocol=spec.protocol)
+        prepared = prepare(spec.name, cfg, progress=False)
+    fingerprint = prepared.manifest.get("fingerprint")
+    enc_name = encoding or spec.default_encoding
     enc = host.encoding(enc_name) if enc_name and enc_name != "none" else None
-    cfg = read_yaml(runs[0].config_path)
     params = dict(((cfg.get("encoding") or {}).get(enc_name) or {})) if enc_name else {}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -141,8 +163,8 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     records: dict[int, GroupRecord] = {}
     fields: dict[str, dict[str, Any]] = {}
     for run in runs:
-        stored = ((read_yaml(run.config_path).get("meta") or {}).get("prepared_fingerprint"))
-        if stored and fingerprint and stored != fingerprint and run.key.encoding != "external":
+        stored = _run_fingerprint(run)
+        if stored and fingerprint and stored != fingerprint:
             notes.append(f"{run.key}: left out (prepared on other samples: fingerprint {stored}, now {fingerprint})")
             continue
         gt = read_json(run.gt_path)
@@ -184,15 +206,8 @@ def import_fiftyone() -> Any:
     return fiftyone
 
 
-def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool = False,
-                persistent: bool = True) -> str:
-    """Build the grouped FiftyOne dataset of ``export`` (module docstring); returns its name."""
-    fo = import_fiftyone()
-    name = name or f"harness-{export.dataset}"
-    if fo.dataset_exists(name) and not overwrite:
-        raise StoreError(f"FiftyOne dataset {name!r} exists; pass --overwrite to replace it, or --name")
-    ds = fo.Dataset(name, overwrite=overwrite)
-    ds.add_group_field("group", default="rgb")
+def fiftyone_samples(export: FiftyOneExport, fo: Any) -> list[Any]:
+    """The ``fiftyone.Sample``s of ``export``: one per slice, the slices of a held-out image in one ``Group``."""
     samples = []
     for rec in export.records:
         group = fo.Group()
@@ -203,7 +218,19 @@ def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool
             for fname, dets in rec.fields.items():
                 s[fname] = fo.Detections(detections=[fo.Detection(**d) for d in dets])
             samples.append(s)
-    ds.add_samples(samples)
+    return samples
+
+
+def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool = False,
+                persistent: bool = True) -> str:
+    """Build the grouped FiftyOne dataset of ``export`` (module docstring); returns its name."""
+    fo = import_fiftyone()
+    name = name or f"harness-{export.dataset}"
+    if fo.dataset_exists(name) and not overwrite:
+        raise StoreError(f"FiftyOne dataset {name!r} exists; pass --overwrite to replace it, or --name")
+    ds = fo.Dataset(name, overwrite=overwrite)
+    ds.add_group_field("group", default="rgb")
+    ds.add_samples(fiftyone_samples(export, fo))
     ds.info = {"harness_dataset": export.dataset, "operating_points": export.fields}
     ds.persistent = persistent
     ds.save()
