@@ -7,11 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from evaluation_fixtures import random_coco
+from evaluation_fixtures import canonical, random_coco
 from harness.evaluation import evaluate
 from harness.evaluation import analysis as A
 from harness.evaluation.analysis import NO_ANALYSIS, analyse, analysis_of, store_analysis
-from harness.evaluation.engines import run_engine
 from harness.evaluation.inputs import prepare
 from harness.store import RunKey, Store
 
@@ -101,6 +100,24 @@ def test_hand_computed_worst_misses_and_false_positives():
         (14, "missed", [0.0, 0.0, 20.0, 20.0])]
 
 
+def _pycocotools_eval(gt, dets):
+    import contextlib
+    import copy
+    import io
+
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        g = COCO()
+        g.dataset = copy.deepcopy(gt)
+        g.createIndex()
+        ev = COCOeval(g, g.loadRes(copy.deepcopy(canonical(dets))), "bbox")
+        ev.evaluate()
+        ev.accumulate()
+    return ev.eval
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_analysis_uses_the_evaluator_s_matching_and_numbers(seed):
     gt, dets = random_coco(seed)  # crowd GT, a category without GT, ties, more than 100 detections on one image
@@ -109,12 +126,15 @@ def test_the_analysis_uses_the_evaluator_s_matching_and_numbers(seed):
     assert an["tide"]["mAP50"] == ev["metrics"]["mAP50"]  # the same number, to the last bit
     assert an["conf_threshold"] == ev["metrics"]["conf_threshold"]
     prep = prepare(gt, dets)
-    precision = run_engine(prep).precision  # COCOeval's own [T, R, K, A, M] array
+    coco = _pycocotools_eval(gt, dets)  # plain COCOeval's precision and score arrays [T, R, K, A, M]
     for k, cid in enumerate(prep.cat_ids):
         name = prep.cat_names[cid]
         assert an["pr"]["categories"][name]["AP50"] == ev["per_category"][name]["AP50"]
-        if ev["per_category"][name]["AP50"] is not None:
-            np.testing.assert_allclose(an["pr"]["categories"][name]["precision"], precision[0, :, k, 0, -1], atol=1e-6)
+        if ev["per_category"][name]["AP50"] is not None:  # stored to 6 decimals
+            np.testing.assert_allclose(an["pr"]["categories"][name]["precision"], coco["precision"][0, :, k, 0, -1],
+                                       atol=6e-7)
+            np.testing.assert_allclose(an["pr"]["categories"][name]["scores"], coco["scores"][0, :, k, 0, -1],
+                                       atol=6e-7)
     # confusion matrix: the diagonal is the operating point's true positives, columns sum to the instances,
     # and diagonal / row sum is each category's precision at the operating point
     mat = np.array(an["confusion"]["matrix"])

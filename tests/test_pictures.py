@@ -132,7 +132,8 @@ def _fake_run(store, fold: str = "A", detector: str = "det"):
     run = Store(store).run(RunKey("shapes", detector, "test-ir8", fold, 0))
     run.path.mkdir(parents=True)
     if detector.startswith("external/"):  # as `harness score` stores it: no config.yaml, its identity in score.json
-        atomic_write_json(run.path / "score.json", {"identity": {"prepared_fingerprint": prepared.manifest["fingerprint"]}})
+        identity = {"prepared_fingerprint": prepared.manifest["fingerprint"]}
+        atomic_write_json(run.path / "score.json", {"identity": identity})
     else:
         cfg["meta"] = {"prepared_fingerprint": prepared.manifest["fingerprint"]}
         run.write_config(cfg)

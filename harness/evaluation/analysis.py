@@ -174,7 +174,7 @@ class _Matched:
 
 
 # ------------------------------------------------------------------------------------------------ AP and TIDE
-def _map50(m: _Matched, cat: np.ndarray, score: np.ndarray, tp: np.ndarray, fp: np.ndarray, seq: np.ndarray,
+def _map50(cat: np.ndarray, score: np.ndarray, tp: np.ndarray, fp: np.ndarray, seq: np.ndarray,
            n_gt: np.ndarray, cats: np.ndarray) -> float | None:
     """mAP50 over the categories ``cats`` (indices) of the data points given (COCO's AP of each, see the module
     docstring); a category whose GT count fell to 0 scores 0 if it still has detections and is left out otherwise
@@ -244,7 +244,7 @@ def _tide(m: _Matched) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarr
     seq = m.seq[pts]
     fp_pos = np.searchsorted(pts, fps)  # fps is a subset of pts, both ascending
     cats = np.flatnonzero(m.n_gt > 0)
-    base = _map50(m, cat, score, tp, ~tp, seq, m.n_gt, cats)
+    base = _map50(cat, score, tp, ~tp, seq, m.n_gt, cats)
 
     def fixed(error: int) -> float | None:
         keep = np.ones(len(pts), dtype=bool)
@@ -261,7 +261,7 @@ def _tide(m: _Matched) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarr
             n_gt -= np.bincount(m.g_cat_index[missed], minlength=len(n_gt))
         else:
             keep[fp_pos[code == error]] = False
-        return _map50(m, c[keep], score[keep], t[keep], ~t[keep], seq[keep], n_gt, cats)
+        return _map50(c[keep], score[keep], t[keep], ~t[keep], seq[keep], n_gt, cats)
 
     d_ap: dict[str, float | None] = {}
     for k, name in enumerate(ERROR_TYPES):
@@ -271,9 +271,9 @@ def _tide(m: _Matched) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarr
     if base is not None:
         # every TP scored 1 and every FP 0 (recall unchanged); the GT count reduced to the TPs (precision unchanged)
         # (not clipped at 0, as in tidecv)
-        special["false_positives"] = (_map50(m, cat, tp.astype(float), tp, ~tp, seq, m.n_gt, cats) or 0.0) - base
+        special["false_positives"] = (_map50(cat, tp.astype(float), tp, ~tp, seq, m.n_gt, cats) or 0.0) - base
         tp_per_cat = np.bincount(cat[tp], minlength=len(m.n_gt))
-        special["false_negatives"] = (_map50(m, cat, score, tp, ~tp, seq, tp_per_cat, cats) or 0.0) - base
+        special["false_negatives"] = (_map50(cat, score, tp, ~tp, seq, tp_per_cat, cats) or 0.0) - base
     else:
         special = {k: None for k in SPECIAL_TYPES}
 

@@ -106,7 +106,8 @@ def colour_map(values: np.ndarray) -> np.ndarray:
     return cv2.applyColorMap(np.asarray(values, dtype=np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
 
 
-def thermal_panel(thermal: np.ndarray, span: tuple[float, float] | None = None) -> tuple[np.ndarray, tuple[float, float]]:
+def thermal_panel(thermal: np.ndarray,
+                  span: tuple[float, float] | None = None) -> tuple[np.ndarray, tuple[float, float]]:
     """Temperature in °C as an RGB colour-mapped image (missing pixels grey) and the range it maps."""
     t = np.asarray(thermal, dtype=np.float32)
     span = span or thermal_range(t) or (0.0, 1.0)

@@ -63,7 +63,8 @@ def _names_match(meta: Mapping[str, Any], name: str) -> bool:
     return False
 
 
-def fourth_channel(prepared: Any, index: int, encoding: Any, params: Mapping[str, Any] | None = None) -> np.ndarray | None:
+def fourth_channel(prepared: Any, index: int, encoding: Any,
+                   params: Mapping[str, Any] | None = None) -> np.ndarray | None:
     """The encoding's channel of sample ``index`` (None for an encoding that adds no channel)."""
     if encoding is None or getattr(encoding, "channels", 0) == 0:
         return None
