@@ -193,7 +193,7 @@ def test_fiftyone_records_hold_every_slice_and_every_run_s_predictions(shapes, t
     assert len(stored["records"]) == len(export.records) and stored["fields"]["det_test_ir8_s0"]["conf_threshold"]
 
 
-def test_fiftyone_missing_is_a_clear_error(shapes, tmp_path, monkeypatch):
+def test_fiftyone_missing_is_a_clear_error(shapes, tmp_path, monkeypatch, cli_runner):
     import builtins
 
     from harness.report.fiftyone_export import FiftyOneMissing, export_fiftyone
@@ -210,8 +210,14 @@ def test_fiftyone_missing_is_a_clear_error(shapes, tmp_path, monkeypatch):
     with pytest.raises(FiftyOneMissing, match=r"rgbt-harness\[fiftyone\]"):
         export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo")
     assert not (tmp_path / "fo").exists()  # nothing written before the check
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
+                      str(tmp_path / "fo2")])
+    assert res.exit_code == 2 and "rgbt-harness[fiftyone]" in res.output and "Traceback" not in res.output
     export = export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo", records_only=True)
     assert export.records_path.is_file() and export.name is None
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
+                      str(tmp_path / "fo2"), "--records-only"])
+    assert res.exit_code == 0 and res.stdout.strip() == str(tmp_path / "fo2" / "records.json")
 
 
 def test_fiftyone_samples_are_grouped_slices_when_fiftyone_is_installed(shapes, tmp_path):

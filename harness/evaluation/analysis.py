@@ -144,9 +144,7 @@ class _Matched:
         self.g_img, self.g_cat, self.g_box, self.g_crowd = g_img, g_cat, g_box, g_crowd
         self.cat_ids = np.asarray(prep.cat_ids, dtype=np.int64)
         layout = pair_layout(prep, MAX_DETS)
-        self.layout = layout
-        self.values = layout.values(prep, iou_elementwise)
-        d_idx, g_idx = layout.greedy_match_indices(self.values, threshold=IOU_FG)
+        d_idx, g_idx = layout.greedy_match_indices(layout.values(prep, iou_elementwise), threshold=IOU_FG)
         n, g = prep.n_dets, len(g_img)
         self.evaluated = layout.evaluated
         self.match = np.full(n, -1, dtype=np.int64)  # GT index each detection matched (crowd included)
