@@ -231,3 +231,17 @@ def test_fiftyone_samples_are_grouped_slices_when_fiftyone_is_installed(shapes, 
     first = samples[:3]
     assert [s.group.name for s in first] == ["rgb", "thermal", "fourth"] and len({s.group.id for s in first}) == 1
     assert first[0]["det_test_ir8_s0"].detections[0].confidence in (0.9, 0.1)
+
+
+def test_harness_show_draws_inline_in_a_terminal_that_draws_images(shapes, monkeypatch, capsys):
+    from harness.config import load_config
+    from harness.plugins import get_host
+    from harness.report.show import show
+
+    monkeypatch.delenv("TERM_PROGRAM", raising=False)
+    monkeypatch.delenv("LC_TERMINAL", raising=False)
+    monkeypatch.setenv("TERM", "xterm-kitty")
+    shown = show("shapes", load_config(protocol=get_host().dataset("shapes").protocol), index=1, inline=True)
+    assert shown.path is None and shown.protocol == "kitty" and shown.image_id == 2
+    out = capsys.readouterr().out
+    assert out.startswith("\033_Ga=T,f=100,") and out.rstrip("\n").endswith("\033\\")
