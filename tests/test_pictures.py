@@ -164,7 +164,8 @@ def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path,
     assert (np.abs(pic.astype(int) - PRED_COLOURS[0]).sum(axis=2) < 30).any()
     # without --out and without an image-drawing terminal: a file in the current folder, named after the sample
     res = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--encoding", "test-none"])
-    assert res.exit_code == 0 and res.stdout.strip() == "show_shapes_1.png" and (tmp_path / "show_shapes_1.png").is_file()
+    assert res.exit_code == 0 and res.stdout.strip() == "show_shapes_1.png"
+    assert (tmp_path / "show_shapes_1.png").is_file()
     bad = cli_runner(["show", "--dataset", "shapes", "--image-id", "999"])
     assert bad.exit_code == 2 and "--image-id 999: not a sample of shapes" in bad.output
     none = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--store", str(tmp_path / "store"),
