@@ -76,6 +76,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.report",
     "harness.commands.weights",
     "harness.commands.score",
+    "harness.commands.evidence",
     "harness.tracking.tensorboard_logger",
     "harness.tracking.mlflow_logger",
 )

@@ -385,6 +385,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     from harness.engine.runtime import environment, seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
     from harness.evaluation import evaluate
+    from harness.evaluation.analysis import store_analysis
 
     if not train_idx:
         raise ConfigError(f"fold {fold.name!r}: no training images (train groups {list(fold.train_groups)})")
@@ -404,7 +405,8 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         if replacing:
             shutil.rmtree(r.path, ignore_errors=True)
         elif fresh and r.path.exists():
-            for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path):
+            for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path,
+                          r.analysis_path):
                 stale.unlink(missing_ok=True)
         r.path.mkdir(parents=True, exist_ok=True)
         r.write_config(cfg)
@@ -506,6 +508,8 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
             metrics["temperatures"] = dict(approx)
         atomic_write_json(r.predictions_path, dets, indent=None)
         atomic_write_json(r.gt_path, gt, indent=None)
+        # the error analysis (TIDE, confusion, PR, size bins, per-image evidence), stored once beside the metrics
+        store_analysis(r, gt, dets, cfg, evaluation["metrics"].get("conf_threshold"))
         r.write_metrics(metrics)
         r.set_status("finished", config_hash=digest, error=None)
         if r is not target:  # the finished replacement takes the old run's place in one swap

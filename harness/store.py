@@ -9,6 +9,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         predictions.json     COCO-format detections on the held-out images (category ids as in the GT), at the
                              full precision they were scored at
         gt.json              the COCO ground truth the predictions were scored against (for re-scoring, bootstrap)
+        analysis.json        error analysis of the held-out predictions (``ANALYSIS_SCHEMA`` below), computed once
+                             when the run is scored; absent for runs stored before it existed
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
@@ -36,6 +38,37 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
 
 Numbers are fractions in 0..1. A category with no ground truth in the fold has ``AP50 = null``; fold aggregation
 skips it rather than counting it as zero.
+
+``analysis.json`` (``ANALYSIS_SCHEMA``; ``harness.evaluation.analysis``, definitions in docs/evaluation.md 4c),
+compact JSON; IoU 0.50, COCO's matching, the operating point of ``metrics.conf_threshold``::
+
+    {
+      "schema": 1,
+      "run": {"dataset", "detector", "encoding", "fold", "seed"},
+      "conf_threshold": float | null, "operating_point": str, "categories": [name, ...],
+      "tide": {"mAP50": float | null,                          # = metrics.mAP50
+               "dAP50": {"classification", "localisation", "both", "duplicate", "background", "missed": float},
+               "special": {"false_positives", "false_negatives": float},
+               "counts": {type: int}, "counts_per_category": {name: {type: int}},
+               "iou_foreground": 0.5, "iou_background": 0.1, "false_positives", "true_positives", "instances": int},
+      "confusion": {"rows": "predicted", "columns": "ground truth", "labels": [name, ..., "background"],
+                    "matrix": [[int]], "iou": 0.5, "conf_threshold": float | null},
+      "pr": {"iou": 0.5, "recall": [101 floats], "definition": str,
+             "categories": {name: {"instances", "detections": int, "AP50": float | null, "max_recall": float | null,
+                                   "precision": [101 floats] | null, "scores": [101 floats] | null}}},
+      "sizes": {"matching": "iou", "area": str,
+                "coco": {"ranges": {bin: [lo, hi]}, "AP50": {bin: float | null}, "AP50_95": {...},
+                         "instances": {bin: int}, "per_category": {name: {"AP50", "AP50_95", "instances"}}},
+                "safit": {...}},                             # tiny-object datasets only
+      "images": {"image_id": [...], "gt": [int], "tp": [int], "fp": [int], "fn": [int]},   # gt.json image order
+      "gt_found": [1 | 0 | -1, ...],                         # gt.json annotation order: found, missed, crowd
+      "worst": {name: {"misses": [{"image_id", "annotation_id", "bbox", "area", "reason", "best_iou", "score"}],
+                       "false_positives": [{"image_id", "bbox", "score", "error", "iou", "kept", "gt_category",
+                                            "annotation_id"}]}}
+    }
+
+or ``{"schema": 1, "run": {...}, "error": str}`` when the analysis failed (the run itself is stored). Runs stored
+before the analysis existed have no ``analysis.json``: ``Run.read_analysis()`` returns None.
 """
 
 from __future__ import annotations
@@ -54,6 +87,7 @@ from harness.errors import StoreError
 from harness.io import atomic_write_json, atomic_write_text, read_json
 
 METRICS_SCHEMA = 1
+ANALYSIS_SCHEMA = 1  # harness.evaluation.analysis.ANALYSIS_SCHEMA
 STATES = ("running", "finished", "failed")
 
 
@@ -278,6 +312,24 @@ class Run:
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         metrics = {"schema": METRICS_SCHEMA, "run": asdict(self.key), **metrics}
         atomic_write_json(self.metrics_path, metrics)
+
+    @property
+    def analysis_path(self) -> Path:
+        return self.path / "analysis.json"
+
+    def write_analysis(self, analysis: dict[str, Any]) -> None:
+        """Write ``analysis.json`` (compact JSON: it holds per-image and per-GT arrays)."""
+        atomic_write_json(self.analysis_path, {"run": asdict(self.key), **analysis}, indent=None)
+
+    def read_analysis(self) -> dict[str, Any] | None:
+        """The stored error analysis, or None for a run stored before the analysis existed."""
+        if not self.analysis_path.exists():
+            return None
+        data = read_json(self.analysis_path)
+        if not isinstance(data, dict) or data.get("schema") != ANALYSIS_SCHEMA:
+            found = data.get("schema") if isinstance(data, dict) else None
+            raise StoreError(f"{self.analysis_path}: analysis schema {found!r}, expected {ANALYSIS_SCHEMA}")
+        return data
 
     def read_metrics(self) -> dict[str, Any]:
         if not self.metrics_path.exists():

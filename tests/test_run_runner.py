@@ -58,6 +58,10 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
         assert all(p["image_id"] in gt_ids and 1 <= p["category_id"] <= 3 and len(p["bbox"]) == 4 for p in preds)
         log = [json.loads(line) for line in (r.path / "log.jsonl").read_text().splitlines()]
         assert [rec["epoch"] for rec in log] == [1, 2, 3] and all(rec["fold"] == r.key.fold for rec in log)
+        analysis = json.loads((r.path / "analysis.json").read_text())  # stored once, beside the metrics
+        assert analysis["run"] == m["run"] and analysis["tide"]["mAP50"] == m["metrics"]["mAP50"]
+        assert analysis["conf_threshold"] == m["metrics"]["conf_threshold"]
+        assert sum(map(sum, analysis["confusion"]["matrix"])) >= m["support"]["instances"]
         cfg = read_yaml(r.path / "config.yaml")
         assert cfg["train"]["batch"] == 8
         # the detector's defaults are a layer of the resolved config, below the profile (which sets lr0 itself)

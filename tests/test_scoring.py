@@ -216,6 +216,11 @@ def test_exported_predictions_scored_again_reproduce_the_run_exactly(finished_ru
     from harness.evaluation import check_sample_matched
 
     assert check_sample_matched([result.metrics, res.metrics]) is None
+    # the scored run stores its error analysis too, and it is the trained run's own
+    trained = json.loads((result.path / "analysis.json").read_text())
+    scored = json.loads((res.run_path / "analysis.json").read_text())
+    assert scored["run"]["detector"] == f"external/roundtrip-{frame}"
+    assert {k: v for k, v in scored.items() if k != "run"} == {k: v for k, v in trained.items() if k != "run"}
 
 
 @pytest.mark.slow

@@ -425,6 +425,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     ``allow_implausible``: then they are scored as read and the stored result is labelled."""
     from harness.config import load_config
     from harness.evaluation import evaluate
+    from harness.evaluation.analysis import store_analysis
     from harness.plugins import get_host
     from harness.cache import fold_indices, prepare, resolve_folds
     from harness.store import EXTERNAL, RunKey, Store, config_hash, image_ids_hash
@@ -499,6 +500,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     atomic_write_json(run.path / "score.json", {"identity": identity, "matching": m.to_dict()})
     atomic_write_json(run.predictions_path, dets, indent=None)
     atomic_write_json(run.gt_path, gt, indent=None)
+    store_analysis(run, gt, dets, cfg, evaluation["metrics"].get("conf_threshold"))
     run.write_metrics(metrics)
     run.set_status("finished", config_hash=digest, error=None, fold=f.name, seed=0)
     return ScoreResult(run.path, run.read_metrics(), m, "scored")

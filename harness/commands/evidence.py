@@ -1,0 +1,80 @@
+"""``harness show`` (one prepared sample, drawn) and ``harness export-fiftyone`` (held-out samples and every
+detector's predictions as a FiftyOne grouped dataset)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from harness.hookspecs import hookimpl
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    from harness.commands.data import _config, _dataset_options
+
+    @cli.command(name="show")
+    @_dataset_options
+    @click.option("--image-id", type=int, default=None, help="The sample's image id.")
+    @click.option("--index", type=int, default=None, help="The sample's position in the prepared dataset [0].")
+    @click.option("--name", default=None, help="The sample's file name (RGB or thermal; base name or stem).")
+    @click.option("--encoding", default=None,
+                  help="Encoding drawn as the fourth channel [default: the dataset's]; 'none' for none.")
+    @click.option("--store", type=click.Path(file_okay=False), default=None,
+                  help="Results store to read --detector predictions from.")
+    @click.option("--detector", "detectors", multiple=True,
+                  help="Draw this detector's predictions (finished runs holding the image, at their operating "
+                       "point); repeatable.")
+    @click.option("--height", type=click.IntRange(64, 4000), default=400, show_default=True,
+                  help="Height of each panel in pixels.")
+    @click.option("--out", type=click.Path(dir_okay=False), default=None,
+                  help="Write the picture here (.png or .jpg) [default: inline in an iTerm2 or kitty terminal, "
+                       "else show_<dataset>_<id>.png].")
+    def show_cmd(dataset, root, cache, configs, overrides, image_id, index, name, encoding, store, detectors, height,
+                 out):
+        """Draw one prepared sample: RGB, thermal (°C colour map with a scale bar, or grey levels for 8-bit
+        data) and the fourth channel side by side, with its boxes (and predictions from a results store).
+
+        \b
+        Examples:
+          harness show --dataset m3t-synth --index 3 --out sample.png
+          harness show --dataset m3t-synth --image-id 12 --store results/smoke --detector ours
+        """
+        from harness.report.show import show
+
+        _, cfg = _config(dataset, configs, overrides, root)
+        shown = show(dataset, cfg, image_id=image_id, index=index, name=name, encoding=encoding, store=store,
+                     detectors=detectors, height=height, out=out, cache_root=cache)
+        if shown.path is not None:
+            click.echo(str(shown.path))
+            click.echo(f"sample {shown.image_id} drawn to {shown.path}", err=True)
+
+    @cli.command(name="export-fiftyone")
+    @click.option("--store", type=click.Path(file_okay=False), default="results/smoke", show_default=True)
+    @click.option("--dataset", required=True, help="Dataset whose finished runs are exported.")
+    @click.option("--folds", default=None, help="Comma-separated held-out folds [default: all].")
+    @click.option("--seed", type=int, default=None, help="Only runs of this seed [default: all].")
+    @click.option("--encoding", default=None,
+                  help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.")
+    @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
+                  help="Folder for the slice images (FiftyOne reads samples from files).")
+    @click.option("--name", default=None, help="FiftyOne dataset name [default: harness-<dataset>].")
+    @click.option("--overwrite", is_flag=True, help="Replace a FiftyOne dataset of the same name.")
+    @click.option("--records-only", is_flag=True,
+                  help="Write the images and records.json without FiftyOne (no import needed).")
+    def export_fiftyone_cmd(store, dataset, folds, seed, encoding, out, name, overwrite, records_only):
+        """Export held-out samples and every detector's predictions to a FiftyOne grouped dataset.
+
+        Each held-out image is a group with slices rgb, thermal and fourth (the encoding's channel), its ground
+        truth and each run's predictions as Detections fields. Needs the optional extra:
+        pip install 'rgbt-harness[fiftyone]'.
+        """
+        from harness.report.fiftyone_export import export_fiftyone
+
+        fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
+        result = export_fiftyone(store, dataset, out, folds=fold_list, seed=seed, encoding=encoding, name=name,
+                                 overwrite=overwrite, records_only=records_only)
+        for line in result.lines():
+            click.echo(line, err=True)
+        click.echo(result.name or str(result.records_path))

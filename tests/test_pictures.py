@@ -1,0 +1,250 @@
+"""Pictures of prepared samples (``harness show``, the gallery's drawing) and the FiftyOne export's records."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+
+import numpy as np
+import pytest
+
+from engine_helpers import CATEGORIES, ShapesPlugin
+from harness.plugins import temporary_plugin
+from harness.report.pictures import (GT_COLOUR, PRED_COLOURS, TITLE_H, BoxSet, coco_boxes, draw_sample, encode_image,
+                                     inline_image, save_image, terminal_protocol, thermal_range)
+from harness.sample import AlignedSample
+
+
+def _sample(radiometric: bool = True) -> AlignedSample:
+    h, w = 40, 60
+    rgb = np.full((h, w, 3), 100, np.uint8)
+    thermal = np.linspace(10.0, 30.0, h * w, dtype=np.float32).reshape(h, w)
+    thermal[0, 0] = np.nan  # a missing temperature
+    ir8 = np.tile(np.arange(w, dtype=np.uint8) * 4, (h, 1))
+    return AlignedSample(1, rgb, thermal if radiometric else None, ir8, np.array([[10, 10, 30, 20]], np.float32),
+                         np.array([1], np.int64), "g", {"file_name": "a.jpg"})
+
+
+def _panel(img: np.ndarray, k: int, width: int, height: int) -> np.ndarray:
+    """Panel ``k`` (0 RGB, 1 thermal, ...) of a picture whose panels are ``width`` wide (4 px gaps), no scale bar."""
+    x0 = k * (width + 4)
+    return img[TITLE_H:TITLE_H + height, x0:x0 + width]
+
+
+def test_draw_sample_puts_boxes_on_every_panel_at_the_panel_scale():
+    s = _sample(radiometric=False)
+    fourth = np.full((40, 60), 200, np.uint8)
+    pred = BoxSet([[40, 25, 55, 35]], [0], [0.87], "det")
+    img = draw_sample(s, fourth=fourth, fourth_name="c2", categories=CATEGORIES, predictions=[pred], height=80)
+    assert img.dtype == np.uint8 and img.shape[2] == 3
+    assert img.shape[1] == 3 * 120 + 2 * 4  # three panels, twice the sample's size, 4 px apart
+    for k in range(3):
+        panel = _panel(img, k, 120, 80)
+        # the GT box [10, 10, 30, 20] drawn at twice the size: its left edge at x = 20, its top at y = 20
+        assert tuple(panel[30, 20]) == GT_COLOUR and tuple(panel[20, 40]) == GT_COLOUR
+        assert tuple(panel[60, 80]) == PRED_COLOURS[0]  # the prediction's left edge (x 80, y 50..70)
+    thermal = _panel(img, 1, 120, 80)[2:10, 90:118]  # 8-bit thermal (away from boxes): grey, no colour map
+    assert (thermal[..., 0] == thermal[..., 1]).all() and (thermal[..., 1] == thermal[..., 2]).all()
+
+
+def test_radiometric_thermal_is_a_colour_map_with_a_scale_bar():
+    s = _sample(radiometric=True)
+    assert thermal_range(s.thermal) == pytest.approx((np.nanpercentile(s.thermal, 1), np.nanpercentile(s.thermal, 99)))
+    with_bar = draw_sample(s, gt=None, height=80)
+    plain = draw_sample(_sample(radiometric=False), gt=None, height=80)
+    assert with_bar.shape[1] > plain.shape[1]  # the scale bar beside the thermal panel
+    panel = with_bar[TITLE_H:TITLE_H + 80, 124:244]
+    assert not (panel[..., 0] == panel[..., 2]).all()  # colours, not grey levels
+    assert tuple(panel[0, 0]) == (128, 128, 128)  # the missing temperature is grey
+    # hot (bottom rows) is brighter than cold (top rows) in the inferno colour map
+    assert panel[70:, 30:90].astype(int).sum() > panel[5:15, 30:90].astype(int).sum()
+
+
+def test_coco_boxes_and_thresholds():
+    records = [{"image_id": 3, "category_id": 2, "bbox": [1, 2, 3, 4], "score": 0.9},
+               {"image_id": 3, "category_id": 1, "bbox": [5, 5, 5, 5], "score": 0.2},
+               {"image_id": 4, "category_id": 1, "bbox": [0, 0, 1, 1], "score": 0.5}]
+    b = coco_boxes(records, 3, "x")
+    assert b.boxes.tolist() == [[1, 2, 4, 6], [5, 5, 10, 10]] and b.labels.tolist() == [1, 0]
+    assert len(b.above(0.5)) == 1 and len(b.above(None)) == 2
+    assert coco_boxes([{"image_id": 3, "category_id": 1, "bbox": [0, 0, 1, 1]}], 3).scores is None
+
+
+def test_pictures_are_compressed_jpeg_or_palette_png(tmp_path):
+    from PIL import Image
+
+    img = draw_sample(_sample(), height=120)
+    png8 = encode_image(img, "png", palette=True)
+    full = encode_image(img, "png")
+    jpeg = encode_image(img, "jpeg", quality=70)
+    assert Image.open(io.BytesIO(png8)).mode == "P" and len(png8) < len(full)
+    assert jpeg[:2] == b"\xff\xd8"
+    path = save_image(img, tmp_path / "x.jpg")
+    assert Image.open(path).size == (img.shape[1], img.shape[0])
+    from harness.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="png or .jpg"):
+        save_image(img, tmp_path / "x.gif")
+
+
+def test_terminal_image_protocols():
+    assert terminal_protocol({"TERM_PROGRAM": "iTerm.app"}) == "iterm2"
+    assert terminal_protocol({"LC_TERMINAL": "iTerm2"}) == "iterm2"
+    assert terminal_protocol({"TERM": "xterm-kitty"}) == "kitty"
+    assert terminal_protocol({"TERM": "xterm-256color"}) is None
+    png = encode_image(np.zeros((4, 4, 3), np.uint8), "png")
+    seq = inline_image(png, "iterm2")
+    assert seq.startswith("\033]1337;File=inline=1;size=") and seq.rstrip("\n").endswith("\a")
+    assert base64.b64decode(seq.split(":", 1)[1].rstrip("\a\n")) == png
+    big = bytes(range(256)) * 30  # 10,240 base64 characters: kitty takes 4,096 at a time, m=1 until the last
+    chunks = inline_image(big, "kitty").rstrip("\n").split("\033\\")[:-1]
+    assert len(chunks) == 3 and chunks[0].startswith("\033_Ga=T,f=100,m=1;") and chunks[-1].startswith("\033_Gm=0;")
+    assert base64.b64decode("".join(c.split(";", 1)[1] for c in chunks)) == big
+
+
+# ------------------------------------------------------------------------------------- harness show, FiftyOne
+@pytest.fixture
+def shapes(host, tmp_path, monkeypatch):
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    with temporary_plugin(ShapesPlugin(), name="shapes-test"):
+        yield host
+
+
+def _fake_run(store, fold: str = "A", detector: str = "det"):
+    """A finished run of the shapes dataset made by hand: its held-out GT, one prediction per GT box (shifted by
+    one pixel) and one confident false positive per image."""
+    from harness.config import load_config
+    from harness.evaluation import evaluate
+    from harness.io import atomic_write_json
+    from harness.plugins import get_host
+    from harness.prepare import prepare
+    from harness.store import RunKey, Store
+
+    spec = get_host().dataset("shapes")
+    cfg = load_config(protocol=spec.protocol)
+    prepared = prepare("shapes", cfg)
+    idx = prepared.indices([fold])
+    gt = prepared.coco(idx)
+    dets = [{"image_id": a["image_id"], "category_id": a["category_id"], "score": 0.9,
+             "bbox": [a["bbox"][0] + 1, a["bbox"][1], a["bbox"][2], a["bbox"][3]]} for a in gt["annotations"]]
+    dets += [{"image_id": im["id"], "category_id": 1, "score": 0.1, "bbox": [0, 0, 5, 5]} for im in gt["images"]]
+    run = Store(store).run(RunKey("shapes", detector, "test-ir8", fold, 0))
+    run.path.mkdir(parents=True)
+    if detector.startswith("external/"):  # as `harness score` stores it: no config.yaml, its identity in score.json
+        identity = {"prepared_fingerprint": prepared.manifest["fingerprint"]}
+        atomic_write_json(run.path / "score.json", {"identity": identity})
+    else:
+        cfg["meta"] = {"prepared_fingerprint": prepared.manifest["fingerprint"]}
+        run.write_config(cfg)
+    atomic_write_json(run.gt_path, gt)
+    atomic_write_json(run.predictions_path, dets)
+    ev = evaluate(gt, dets)
+    run.write_metrics({k: ev[k] for k in ("support", "metrics", "per_category")})
+    run.set_status("finished")
+    return prepared, gt, ev
+
+
+def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path, cli_runner, monkeypatch):
+    from PIL import Image
+
+    monkeypatch.chdir(tmp_path)  # the picture without --out lands in the current folder
+
+    prepared, gt, ev = _fake_run(tmp_path / "store")
+    iid = gt["images"][0]["id"]
+    out = tmp_path / "s.png"
+    res = cli_runner(["show", "--dataset", "shapes", "--image-id", str(iid), "--store", str(tmp_path / "store"),
+                      "--detector", "det", "--height", "128", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.strip() == str(out)
+    pic = np.asarray(Image.open(out).convert("RGB"))
+    assert pic.shape[0] > 128 and pic.shape[1] >= 2 * 160  # RGB, thermal (8-bit here), test-ir8 channel
+    # the prediction set is drawn in its own colour (its boxes at the operating point: the 0.9 ones)
+    assert ev["metrics"]["conf_threshold"] == 0.9
+    assert (np.abs(pic.astype(int) - PRED_COLOURS[0]).sum(axis=2) < 30).any()
+    # without --out and without an image-drawing terminal: a file in the current folder, named after the sample
+    res = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--encoding", "test-none"])
+    assert res.exit_code == 0 and res.stdout.strip() == "show_shapes_1.png"
+    assert (tmp_path / "show_shapes_1.png").is_file()
+    bad = cli_runner(["show", "--dataset", "shapes", "--image-id", "999"])
+    assert bad.exit_code == 2 and "--image-id 999: not a sample of shapes" in bad.output
+    none = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--store", str(tmp_path / "store"),
+                       "--detector", "other"])
+    assert none.exit_code == 2 and "no finished run of other on shapes" in none.output
+
+
+def test_fiftyone_records_hold_every_slice_and_every_run_s_predictions(shapes, tmp_path):
+    from harness.report.fiftyone_export import build_records
+
+    prepared, gt, _ = _fake_run(tmp_path / "store", "A", "det")
+    _fake_run(tmp_path / "store", "B", "det")
+    _fake_run(tmp_path / "store", "A", "external/x")
+    export = build_records(tmp_path / "store", "shapes", tmp_path / "fo")
+    assert len(export.records) == len(prepared)  # both held-out folds
+    assert set(export.fields) == {"det_test_ir8_s0", "external_x_test_ir8_s0"}
+    first = export.records[0]
+    assert set(first.slices) == {"rgb", "thermal", "fourth"} and all(
+        (tmp_path / "fo" / p).is_file() for p in first.slices.values())
+    assert set(first.fields) == {"ground_truth", "det_test_ir8_s0", "external_x_test_ir8_s0"}
+    ann = next(a for a in gt["annotations"] if a["image_id"] == first.image_id)
+    x, y, w, h = ann["bbox"]
+    box = first.fields["ground_truth"][0]
+    assert box["label"] == CATEGORIES[ann["category_id"] - 1] and "confidence" not in box
+    assert box["bounding_box"] == pytest.approx([x / first.width, y / first.height, w / first.width, h / first.height])
+    assert first.fields["det_test_ir8_s0"][0]["confidence"] in (0.9, 0.1)
+    stored = json.loads((tmp_path / "fo" / "records.json").read_text())
+    assert len(stored["records"]) == len(export.records) and stored["fields"]["det_test_ir8_s0"]["conf_threshold"]
+
+
+def test_fiftyone_missing_is_a_clear_error(shapes, tmp_path, monkeypatch, cli_runner):
+    import builtins
+
+    from harness.report.fiftyone_export import FiftyOneMissing, export_fiftyone
+
+    real = builtins.__import__
+
+    def no_fiftyone(name, *a, **kw):
+        if name == "fiftyone" or name.startswith("fiftyone."):
+            raise ImportError("No module named 'fiftyone'")
+        return real(name, *a, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", no_fiftyone)
+    _fake_run(tmp_path / "store")
+    with pytest.raises(FiftyOneMissing, match=r"rgbt-harness\[fiftyone\]"):
+        export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo")
+    assert not (tmp_path / "fo").exists()  # nothing written before the check
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
+                      str(tmp_path / "fo2")])
+    assert res.exit_code == 2 and "rgbt-harness[fiftyone]" in res.output and "Traceback" not in res.output
+    export = export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo", records_only=True)
+    assert export.records_path.is_file() and export.name is None
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
+                      str(tmp_path / "fo2"), "--records-only"])
+    assert res.exit_code == 0 and res.stdout.strip() == str(tmp_path / "fo2" / "records.json")
+
+
+def test_fiftyone_samples_are_grouped_slices_when_fiftyone_is_installed(shapes, tmp_path):
+    fo = pytest.importorskip("fiftyone")  # the optional extra; its database is not needed to build samples
+    from harness.report.fiftyone_export import build_records, fiftyone_samples
+
+    _fake_run(tmp_path / "store")
+    export = build_records(tmp_path / "store", "shapes", tmp_path / "fo")
+    samples = fiftyone_samples(export, fo)
+    assert len(samples) == 3 * len(export.records)
+    first = samples[:3]
+    assert [s.group.name for s in first] == ["rgb", "thermal", "fourth"] and len({s.group.id for s in first}) == 1
+    assert first[0]["det_test_ir8_s0"].detections[0].confidence in (0.9, 0.1)
+
+
+def test_harness_show_draws_inline_in_a_terminal_that_draws_images(shapes, monkeypatch, capsys):
+    from harness.config import load_config
+    from harness.plugins import get_host
+    from harness.report.show import show
+
+    monkeypatch.delenv("TERM_PROGRAM", raising=False)
+    monkeypatch.delenv("LC_TERMINAL", raising=False)
+    monkeypatch.setenv("TERM", "xterm-kitty")
+    shown = show("shapes", load_config(protocol=get_host().dataset("shapes").protocol), index=1, inline=True)
+    assert shown.path is None and shown.protocol == "kitty" and shown.image_id == 2
+    out = capsys.readouterr().out
+    assert out.startswith("\033_Ga=T,f=100,") and out.rstrip("\n").endswith("\033\\")
