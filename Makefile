@@ -32,6 +32,7 @@ $(STAMP): pyproject.toml setup.py constraints.txt
 
 $(DEV_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -c constraints.txt -e '.[dev]'
+	$(BIN)/python -m pip install --no-deps 'tidecv==1.0.1'
 	@touch $@
 
 demo: $(STAMP)
