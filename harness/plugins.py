@@ -69,6 +69,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.report",
     "harness.commands.weights",
     "harness.commands.score",
+    "harness.commands.screen",
     "harness.tracking.tensorboard_logger",
     "harness.tracking.mlflow_logger",
 )
