@@ -15,6 +15,7 @@ end adds at most 30 % to the model's time. A second table splits the registratio
 thread, and times ``--rgb-decode full`` against the reduced decode (with the mean difference of the model inputs).
 
     .venv/bin/python benchmarks/bench_screen.py [--copies 3] [--threads 2] [--scales s,n] [--backends torch,onnx]
+                                                [--workers 2]
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ def weights_file(folder: Path, scale: str) -> Path:
 
 
 def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str, threads: int, cam: Path,
-               rgb_decode: str = "auto") -> dict:
+               rgb_decode: str = "auto", workers: int = 1) -> dict:
     from harness.screen import ScreenRequest, screen
 
     stamps: list[float] = []
@@ -135,7 +136,7 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
     req = ScreenRequest(flight=flight, out=out, weights=weights, detector="ours", dataset="m3t", profile="paper",
                         overrides=[f"model.scale={scale}", "eval.batch=1"], backend=backend, threads=threads,
                         rgb_camera=cam, rgb_decode=rgb_decode, progress=False, overlays=False, force=True,
-                        conf=0.5)
+                        conf=0.5, workers=workers)
     screen(req, on_frame=on_frame)
     steady = records[1:]
     med = {k: statistics.median(r["timings"][k] for r in steady) for k in ("decode", "align", "encode", "model")}
@@ -223,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--scales", default="s,n")
     ap.add_argument("--backends", default="torch,onnx")
+    ap.add_argument("--workers", type=int, default=2, help="also time the first scale with this many front-end "
+                    "processes (1: skip)")
     ap.add_argument("--keep", type=Path, default=None, help="build the flight here and keep it")
     args = ap.parse_args(argv)
     if not REAL.is_dir():
@@ -244,8 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         size = statistics.median(p.stat().st_size for p in flight.glob("*_W.JPG")) / 1e6
         print(f"flight: {n} captures (640x512 real M3T R-JPEGs, 4000x3000 wide JPEGs of {size:.1f} MB), built in "
               f"{time.perf_counter() - t0:.0f} s")
-        print(f"CPU: {cpu_name()}, {os.cpu_count()} logical cores; model threads {args.threads}, front end in the "
-              "main process; torch " + torch.__version__)
+        print(f"CPU: {cpu_name()}, {os.cpu_count()} logical cores (load average {os.getloadavg()[0]:.1f} at the "
+              f"start); model threads {args.threads}, front end in the main process; torch {torch.__version__}")
         header = (f"{'model':<8} {'backend':<8} {'frames/s':>8} {'decode':>7} {'reg+warp':>9} {'C2':>5} "
                   f"{'front':>6} {'model':>6} {'front/model':>11}  target <= {TARGET:.0%}")
         print("\nper frame, ms (medians, steady state)\n" + header + "\n" + "-" * len(header))
@@ -261,12 +264,19 @@ def main(argv: list[str] | None = None) -> int:
                       f"{1e3 * m['model']:>6.0f} {ratio:>10.0%}   {'met' if ratio <= TARGET else 'NOT met'}")
                 sys.stdout.flush()
         print(f"routes: {', '.join(sorted(r['routes']))}; wide JPEG decoded at 1/{max(r['reduction'])}")
+        if args.workers > 1:
+            scale = args.scales.split(",")[0].strip()
+            r = run_screen(flight, work / f"out-{scale}-workers", work / f"ours-{scale}.pt", scale, "torch",
+                           args.threads, cam, workers=args.workers)
+            print(f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
+                  f"{r['fps']:.2f} frames/s")
         split = stage_split(flight, cam)
         print("\nfront-end steps on one thread, ms per frame (medians):")
         print("  " + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in split.items()))
         d_rgb, d_c2, red = input_difference(flight, cam)
         print(f"reduced decode (1/{red}) vs full: model input differs by mean |d| {d_rgb:.2f} grey levels in RGB, "
               f"{d_c2:.2f} in C2 (same homography)")
+        print(f"load average at the end {os.getloadavg()[0]:.1f} (other work on the machine slows every figure)")
     finally:
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)

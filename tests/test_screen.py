@@ -305,6 +305,13 @@ def test_a_rerun_skips_frames_done_and_refuses_other_settings(trained, screened,
                                                 "--force")
 
 
+def test_workers_give_the_same_findings(trained, screened, tmp_path):
+    flight, out, _ = screened
+    _screen(trained, flight, tmp_path / "two", *_file_route(trained), "--conf", trained.eval_conf, "--workers", "2")
+    one, two = _frames(out), _frames(tmp_path / "two")
+    assert {n: r["findings"] for n, r in one.items()} == {n: r["findings"] for n, r in two.items()}
+
+
 def test_a_rejected_registration_is_listed(trained, tmp_path):
     """The wide image of another project beside a P1 thermal frame: the automatic registration's check fails."""
     flight = tmp_path / "flight"

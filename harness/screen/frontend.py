@@ -11,7 +11,9 @@ Every step is the one the raw datasets use (``harness.sensing``), driven by the 
      holds: full-frame undistorted wide pixels of the calibration's ``K`` -> thermal pixels);
    * ``auto``: automatic registration (ECC) from the factory prior, with its quality check
      (``sensing.registration``); when the check rejects it the frame is listed and, by ``fallback``, screened with
-     the prior (``prior (automatic registration rejected)``) or not screened at all;
+     the prior (``prior (automatic registration rejected)``) or not screened at all. An accepted registration
+     (``Frame.registered``) is handed to the later captures of its inspection group (``given``), as the datasets
+     register one homography per group;
    * ``prior``: the cameras' factory prior (35-mm focal lengths from the EXIF, centres aligned), when the run's
      ``sensing.registration.method`` is ``focal``;
 
@@ -25,8 +27,8 @@ halving per octave. A JPEG can be decoded straight at 1/2, 1/4 or 1/8 of its siz
 those pyramid levels. ``rgb_decode="auto"`` does so only where the warp would have halved the image anyway: by
 ``r = 2^k``, the largest with ``f / r >= 1.1`` (and the image size divisible by ``r``), where ``f`` is the wide
 pixels per thermal pixel at the thermal centre under the file's homography or the factory prior. The whole
-chain then runs on the reduced image (the calibration through ``CameraModel.scaled``, the homography through
-the scale change), so only the pyramid filter differs (the DCT's block filter instead of the 5-tap Gaussian):
+chain then runs on the reduced image (the calibration through ``CameraModel.scaled``, the homography and the
+prior, both defined on the full image, through the change of pixel grid), so only the pyramid filter differs (the DCT's block filter instead of the 5-tap Gaussian):
 findings agree within the tolerance ``docs/screening.md`` states; ``rgb_decode="full"`` is bit-identical to the
 training data. A frame the warp shrinks by less than 2.2x (the synthetic M3T profiles: 1.7x) is always decoded
 in full.

@@ -159,12 +159,15 @@ def resolve_cameras(req: ScreenRequest, sm: ScreenModel) -> tuple[dict[str, Any]
             if recorded is None:
                 raise ConfigError(
                     "the run's prepared data is not in the cache (HARNESS_CACHE, now "
-                    f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the lens calibration its training undistorted "
-                    "the images with is unknown: give it with --rgb-camera FILE (e.g. the dataset's "
+                    f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the lens calibration its training "
+                    "undistorted the images with is unknown: give it with --rgb-camera FILE (e.g. the dataset's "
                     "calibration/wide_camera.yaml), or --no-undistort if its dataset had none")
             cams[sensor] = recorded[0 if sensor == "rgb" else 1]
             source[sensor] = f"the run's prepared data ({recorded[2]})" if cams[sensor] else \
                 "none (the run's prepared data used none)"
+    if cams["rgb"] is None and source["rgb"] == "none configured":
+        log.warning("no wide-camera calibration (--rgb-camera, sensing.undistort.rgb_camera): the wide images are "
+                    "not undistorted; give the one the model's training data was undistorted with")
     return cams["rgb"], cams["thermal"], source
 
 
@@ -264,9 +267,15 @@ def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups
     registered = dict(registered or {})
     pool = None
     if workers > 1 and len(caps) > 1:
-        method = "fork" if "fork" in mp.get_all_start_methods() else None
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(caps)),
-                                   mp_context=mp.get_context(method) if method else None,
+        import pickle
+
+        try:
+            pickle.dumps((fe.settings, fe.encoding))
+        except Exception as exc:  # noqa: BLE001 - e.g. an encoding function defined as a lambda
+            raise ConfigError(f"--workers {workers}: encoding {fe.encoding.name!r} cannot be sent to worker "
+                              f"processes ({type(exc).__name__}: {exc}); use --workers 1") from None
+        # spawned, not forked: a process forked while the model's threads hold a lock can hang for good
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(caps)), mp_context=mp.get_context("spawn"),
                                    initializer=_init_worker, initargs=(fe.settings, fe.encoding))
 
     def submit(cap: Capture, i: int, given: dict[str, Any] | None) -> Any:
