@@ -69,7 +69,8 @@ def map_svg(frames: Sequence[dict[str, Any]], width: int = 640, height: int = 42
         colour = "#7a8691" if n == 0 else "#c62828"
         dots.append(f"<circle cx='{x:.1f}' cy='{y:.1f}' r='{r:.1f}' fill='{colour}' fill-opacity='0.8'>"
                     f"<title>{escape(name)}: {n} finding(s)</title></circle>")
-    bar_m = 10 ** math.floor(math.log10(max(span / 4, 1e-3)))
+    unit = 10 ** math.floor(math.log10(max(span / 4, 1e-3)))
+    bar_m = max(k * unit for k in (1, 2, 5) if k * unit <= max(span / 4, 1e-3))
     bar = f"<line x1='{pad}' y1='{height - 12}' x2='{pad + bar_m * s:.1f}' y2='{height - 12}' stroke='#1d2329' " \
           f"stroke-width='2'/><text x='{pad}' y='{height - 16}' font-size='11'>{bar_m:g} m</text>"
     return (f"<svg class='map' viewBox='0 0 {width} {height}' width='{width}' height='{height}' "

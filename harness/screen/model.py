@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from harness.errors import ConfigError, HarnessError, PluginError, StoreError
+from harness.errors import ConfigError, PluginError, StoreError
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ class Predictor:
         session = ort_session(path, threads)
         with torch.no_grad():
             raw = sm.model.forward_raw(inputs)
-        return OrtModel(sm.model, session, det.input_kind == "dual", raw, det.name)
+        return ort_model(sm.model, session, det.input_kind == "dual", raw, det.name)
 
     def __call__(self, images: Sequence[np.ndarray]) -> list[list[dict[str, Any]]]:
         from harness.engine.predict import predict
@@ -253,59 +253,42 @@ class Predictor:
         return out
 
 
-def _module_base() -> type:
+def ort_model(model: Any, session: Any, dual: bool, example_raw: Any, name: str) -> Any:
+    """``model`` with its raw forward answered by an ONNX Runtime ``session`` (see the module docstring); a
+    ``torch.nn.Module`` that ``predict`` drives like the model itself."""
+    import torch
     from torch import nn
+    from torch.utils import _pytree
 
-    return nn.Module
+    leaves, spec = _pytree.tree_flatten(example_raw)
+    if not all(isinstance(t, torch.Tensor) for t in leaves):
+        raise PluginError(f"detector {name!r}: forward_raw returns non-tensor values; the ONNX backend needs "
+                          "tensors only")
+    input_names = [i.name for i in session.get_inputs()]
 
+    class OrtModel(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
 
-class OrtModel(_module_base()):  # type: ignore[misc]
-    """The model with its raw forward answered by an ONNX Runtime session (see the module docstring)."""
+        def forward(self, inputs: Any) -> Any:
+            tensors = tuple(inputs) if dual else (inputs,)
+            feeds = {n: t.detach().cpu().numpy() for n, t in zip(input_names, tensors)}
+            raw = _pytree.tree_unflatten([torch.from_numpy(o) for o in session.run(None, feeds)], spec)
+            called: list[bool] = []
 
-    def __init__(self, model: Any, session: Any, dual: bool, example_raw: Any, name: str):
-        from torch.utils import _pytree
+            def forward_raw(_inputs: Any) -> Any:
+                called.append(True)
+                return raw
 
-        super().__init__()
-        self.model = model
-        self.session = session
-        self.dual = dual
-        self.name = name
-        self.input_names = [i.name for i in session.get_inputs()]
-        leaves, self.spec = _pytree.tree_flatten(example_raw)
-        import torch
+            self.model.forward_raw = forward_raw  # the instance attribute answers the model's own call
+            try:
+                out = self.model(inputs)
+            finally:
+                del self.model.forward_raw
+            if not called:
+                raise PluginError(f"detector {name!r}: its eval forward does not call self.forward_raw, so the ONNX "
+                                  "backend cannot run its decoding and NMS on the graph's outputs; use --backend torch")
+            return out
 
-        if not all(isinstance(t, torch.Tensor) for t in leaves):
-            raise PluginError(f"detector {name!r}: forward_raw returns non-tensor values; the ONNX backend needs "
-                              "tensors only")
-
-    def forward(self, inputs: Any) -> Any:
-        import torch
-        from torch.utils import _pytree
-
-        tensors = tuple(inputs) if self.dual else (inputs,)
-        feeds = {n: t.detach().cpu().numpy() for n, t in zip(self.input_names, tensors)}
-        outs = [torch.from_numpy(o) for o in self.session.run(None, feeds)]
-        raw = _pytree.tree_unflatten(outs, self.spec)
-        called: list[bool] = []
-
-        def forward_raw(_inputs: Any) -> Any:
-            called.append(True)
-            return raw
-
-        self.model.forward_raw = forward_raw  # the instance attribute answers the model's own call
-        try:
-            out = self.model(inputs)
-        finally:
-            del self.model.forward_raw
-        if not called:
-            raise PluginError(f"detector {self.name!r}: its eval forward does not call self.forward_raw, so the "
-                              "ONNX backend cannot run its decoding and NMS on the graph's outputs; use --backend "
-                              "torch")
-        return out
-
-
-def check_backend_inputs(sm: ScreenModel) -> None:
-    """Refuse a model whose encoding adds no channel to a dual-stream detector (what ``harness run`` refuses)."""
-    if sm.detector.input_kind == "dual" and int(sm.encoding.channels) == 0:
-        raise HarnessError(f"detector {sm.detector.name!r} is dual-stream; encoding {sm.encoding.name!r} adds no "
-                           "channel")
+    return OrtModel()
