@@ -404,14 +404,23 @@ def _prepare_out(folder: Path, key: str, force: bool) -> None:
 
 def screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None = None) -> ScreenResult:
     """Screen ``req.flight`` into ``req.out``; see the package docstring. Bad files are listed in the result (and
-    with ``fail_fast`` the first one raises a ``DataError`` after the frames before it are written)."""
+    with ``fail_fast`` the first one raises a ``DataError`` after the frames before it are written).
+    ``on_frame(record)`` is called after each frame is written."""
     import torch
 
+    threads = torch.get_num_threads()
+    if req.threads:
+        torch.set_num_threads(int(req.threads))
+    try:
+        return _screen(req, on_frame)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None) -> ScreenResult:
     from harness import __version__
 
     t_start = time.perf_counter()
-    if req.threads:
-        torch.set_num_threads(int(req.threads))
     if req.workers < 1:
         raise ConfigError(f"--workers {req.workers}: give at least 1")
     flight = find_captures(req.flight)
