@@ -124,6 +124,7 @@ class Frame:
     position: Position
     fingerprints: dict[str, str]
     thermal_decoder: str
+    #: seconds per step: wall clock (``decode``, ``align``, ``encode``) and CPU time of the process (``*_cpu``)
     timings: dict[str, float] = field(default_factory=dict)
     #: an accepted automatic registration (full-frame undistorted wide pixels of K -> thermal), for the other
     #: captures of its inspection group; None for every other route
@@ -263,7 +264,7 @@ class FrontEnd:
         from harness.sensing.pipeline import read_capture_thermal
         from harness.sensing.registration import HomographyEntry, normalize
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         rgb_data = _read(cap.rgb)
         layout = jpeg.read_segments(rgb_data, cap.rgb)  # a cut file is an error here, not a half-grey image
         rgb_size = (layout.width, layout.height)
@@ -306,7 +307,7 @@ class FrontEnd:
         if self.settings.rgb_decode == "auto":
             reduction = reduction_for(source_scale(H_full, (tw, th)), rgb_size)
         rgb = decode_rgb(rgb_data, cap.rgb, reduction)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
 
         ctx, dreg = self._context(reduction, rgb_size)
         prior = prior_full
@@ -340,7 +341,7 @@ class FrontEnd:
             ctx.entries[group] = HomographyEntry(normalize(prior), "focal")  # type: ignore[arg-type]
             pair = ctx.align_capture(rgb, temp, ir8, boxes, labels, group, boxes_frame="thermal", prior=prior)
             route = "prior (automatic registration rejected)"
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
 
         sample = pair.to_sample(image_id, group, {"file_name": cap.rgb.name})
         channel = self.encoding.encode(sample, **dict(self.settings.encoding_params))
@@ -351,11 +352,12 @@ class FrontEnd:
                 raise HarnessError(f"encoding {self.encoding.name!r} returned {channel.dtype} {channel.shape}, "
                                    f"expected uint8 {(sample.height, sample.width)}")
             image = np.dstack((sample.rgb, channel))
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         thermal = pair.thermal if pair.thermal is not None else np.full(pair.ir8.shape, np.nan, np.float32)
         return Frame(capture=cap, image=image, thermal=thermal, origin=pair.origin, H=pair.H, cameras=pair.cameras,
                      reduction=reduction, rgb_size=rgb_size, thermal_size=(tw, th), route=route,
                      registration=quality, position=position,
                      fingerprints={"rgb": sha1_bytes(rgb_data), "thermal": sha1_bytes(thermal_data)},
                      thermal_decoder=str(info.get("decoder") or info.get("format") or ""),
-                     timings={"decode": t1 - t0, "align": t2 - t1, "encode": t3 - t2}, registered=registered)
+                     timings={"decode": t1 - t0, "align": t2 - t1, "encode": t3 - t2, "decode_cpu": c1 - c0,
+                              "align_cpu": c2 - c1, "encode_cpu": c3 - c2}, registered=registered)

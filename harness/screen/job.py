@@ -344,7 +344,7 @@ class _Bar:
 
 
 def _frame_record(frame: Frame, findings: list[dict[str, Any]], key: str, flight: Path, overlay: str | None,
-                  model_s: float) -> dict[str, Any]:
+                  model_s: float, model_cpu: float) -> dict[str, Any]:
     return {"key": key, "frame": frame.capture.name, "status": "screened",
             "rgb_file": str(frame.capture.rgb.relative_to(flight)),
             "thermal_file": str(frame.capture.thermal.relative_to(flight)), "fingerprints": frame.fingerprints,
@@ -354,7 +354,8 @@ def _frame_record(frame: Frame, findings: list[dict[str, Any]], key: str, flight
             "H_rgb_to_aligned": frame.H.tolist(), "thermal_decoder": frame.thermal_decoder,
             "position": frame.position.to_dict(), "registered": frame.registered, "overlay": overlay,
             "findings": findings,
-            "timings": {**{k: round(v, 6) for k, v in frame.timings.items()}, "model": round(model_s, 6)}}
+            "timings": {**{k: round(v, 6) for k, v in frame.timings.items()}, "model": round(model_s, 6),
+                        "model_cpu": round(model_cpu, 6)}}
 
 
 def _done_frames(folder: Path, key: str, caps: Sequence[Capture]) -> dict[str, dict[str, Any]]:
@@ -457,13 +458,14 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     def flush(bar: _Bar) -> None:
         if not batch:
             return
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         dets = predictor([f.image for f in batch])
         model_s = (time.perf_counter() - t0) / len(batch)
+        model_cpu = (time.process_time() - c0) / len(batch)
         for frame, d in zip(batch, dets):
             found = frame_findings(frame, d, sm.categories, sm.threshold)
             overlay = _write_pictures(folder, frame, found) if (found and req.overlays) else None
-            rec = _frame_record(frame, found, key, Path(req.flight), overlay, model_s)
+            rec = _frame_record(frame, found, key, Path(req.flight), overlay, model_s, model_cpu)
             out.write_json(folder / "frames" / f"{out.safe_name(frame.capture.name)}.json", rec)
             records[frame.capture.name] = rec
             for k in ("decode", "align", "encode"):
