@@ -89,10 +89,11 @@ def _build(det: Any, categories: Sequence[str], enc: Any, cfg: dict[str, Any], w
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
-        first = str(exc).strip().splitlines()
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        what = " ".join(lines[1:2])[:300] or (lines[0] if lines else str(exc))
         raise ConfigError(f"{weights}: its weights do not fit detector {det.name!r} with {len(categories)} classes "
-                          f"and {in_channels} input channels ({first[0] if first else exc}); is it a checkpoint of "
-                          f"this detector, dataset and encoding?") from None
+                          f"and {in_channels} input channels ({what}); is it a checkpoint of this detector, dataset "
+                          f"and encoding?") from None
     return model.eval()
 
 
