@@ -114,6 +114,18 @@ def test_captures_pair_by_name_and_other_files_are_ignored(tmp_path):
     assert flight.ignored == 3  # the zoom capture, the video, the notes
 
 
+def test_distort_points_undoes_undistort_points():
+    from harness.sensing.calibration import CameraModel, distort_points, undistort_points, undistorted_camera
+
+    cam = CameraModel.ideal(900.0, (1200, 900))
+    cam.dist[:2] = (-0.12, 0.05)
+    new_cam, _ = undistorted_camera(cam, 0.0)
+    pts = np.random.default_rng(0).uniform((50, 40), (1150, 860), (200, 2))
+    back = distort_points(undistort_points(pts, cam, new_cam), new_cam, cam)
+    assert np.abs(back - pts).max() < 1e-3
+    assert distort_points(np.zeros((0, 2)), new_cam, cam).shape == (0, 2)
+
+
 # ------------------------------------------------------------------------------------------------ no skew
 def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
     """Same captures, same model: the boxes and scores of the run's stored P1 predictions, to the last digit."""
