@@ -77,6 +77,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.weights",
     "harness.commands.score",
     "harness.commands.evidence",
+    "harness.commands.screen",
     "harness.tracking.tensorboard_logger",
     "harness.tracking.mlflow_logger",
 )

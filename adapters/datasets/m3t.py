@@ -672,25 +672,15 @@ class RawAligner:
     def read_thermal(self, path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(temperature C, 8-bit preview, info). R-JPEGs give their own palette picture as the preview."""
         from harness.sensing.options import SensingOptions
-        from harness.sensing.radiometry import read_rjpeg, rjpeg_temperature
+        from harness.sensing.pipeline import read_capture_thermal
 
-        if path.suffix.lower() in (".jpg", ".jpeg"):
-            opts = SensingOptions.from_config(self.src.sensing)
+        if path.suffix.lower() in (".jpg", ".jpeg"):  # the reading `harness screen` shares
             try:
-                rj = read_rjpeg(path, opts.decoder, opts.approximate, opts.converter_spec())
-                temp, tinfo = rjpeg_temperature(rj, opts.measurement)
+                return read_capture_thermal(path, SensingOptions.from_config(self.src.sensing))
             except ConfigError:
                 raise  # a wrong sensing.radiometry setting is not a property of one file
             except HarnessError as exc:
                 raise SkipPair(f"thermal unreadable: {exc}") from None
-            try:
-                ir8 = rj.preview(grayscale=True)
-                if ir8.shape != temp.shape:
-                    ir8 = ir8_from_temperature(temp)
-            except HarnessError:
-                ir8 = ir8_from_temperature(temp)
-            return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"],
-                               **{k: tinfo[k] for k in ("approximate", "converter") if k in tinfo}}
         temp, info = self.src._read_thermal(path)
         return temp, ir8_from_temperature(temp), info
 

@@ -298,6 +298,20 @@ def undistort_points(points: np.ndarray, cam: CameraModel, new_cam: CameraModel)
     return cv2.undistortPoints(pts, cam.K, cam.dist, P=new_cam.K).reshape(-1, 2)
 
 
+def distort_points(points: np.ndarray, new_cam: CameraModel, cam: CameraModel) -> np.ndarray:
+    """The inverse of ``undistort_points``: pixel coordinates (N x 2) of the undistorted image of ``new_cam`` back
+    to the image as shot by ``cam`` (its lens distortion applied again)."""
+    import cv2
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    rays = np.linalg.solve(new_cam.K, np.vstack([pts.T, np.ones(len(pts))])).T
+    rays = rays / rays[:, 2:3]
+    moved, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    return moved.reshape(-1, 2)
+
+
 def undistort_boxes(boxes: np.ndarray, cam: CameraModel, new_cam: CameraModel) -> np.ndarray:
     """Boxes (N x 4 xyxy) through ``undistort_points``: the bounding box of each box's four moved corners."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)

@@ -125,6 +125,38 @@ class SensingContext:
         return pair
 
 
+def read_capture_thermal(path: str | Path, options: SensingOptions | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(temperature C float32, 8-bit preview, info) of a raw capture's thermal file, as the raw datasets and
+    ``harness screen`` read it.
+
+    An R-JPEG is decoded by ``options.decoder`` with ``options.measurement`` (``read_rjpeg``, ``rjpeg_temperature``)
+    and its own palette picture is the preview, unless that picture is missing, undecodable or of another size (then
+    ``ir8_from_temperature``); info: ``format``, ``params`` (the file's measurement parameters), ``decoder`` (the
+    route taken), and ``approximate`` / ``converter`` where the file took one of those routes (``options``: its
+    ``approximate`` flag and converter, as ``read_thermal`` takes them). Any other thermal file goes through ``read_thermal`` and its preview is ``ir8_from_temperature``.
+    Errors are ``HarnessError``s naming the file (``ConfigError`` for a bad ``sensing.radiometry`` setting).
+    """
+    from harness.errors import HarnessError
+    from harness.sensing.radiometry import read_rjpeg, read_thermal, rjpeg_temperature
+
+    opts = options or SensingOptions()
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        temp, info = read_thermal(path, **opts.thermal_kwargs())
+        return temp, ir8_from_temperature(temp), info
+    rj = read_rjpeg(path, opts.decoder, opts.approximate, opts.converter_spec())
+    temp, tinfo = rjpeg_temperature(rj, opts.measurement)
+    try:
+        ir8 = rj.preview(grayscale=True)
+        if ir8.shape != temp.shape:
+            ir8 = ir8_from_temperature(temp)
+    except HarnessError:
+        ir8 = ir8_from_temperature(temp)
+    return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"],
+                       **{k: tinfo[k] for k in ("approximate", "converter") if k in tinfo}}
+
+
 def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:
     """An 8-bit rendering of a temperature map: a percentile stretch (``low``..``high``) to 0..255, over the measured
     pixels; a missing one (NaN or inf) shows the median's level, like ``linear16``."""

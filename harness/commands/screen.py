@@ -1,0 +1,125 @@
+"""``harness screen``: a finished run's detector over a new flight's raw captures (``harness.screen``)."""
+
+from __future__ import annotations
+
+import os
+
+import click
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `harness run`: shared CPUs, before torch is imported
+
+from harness.hookspecs import hookimpl
+
+
+def _focal(text: str | None) -> tuple[float, float] | None:
+    if not text:
+        return None
+    try:
+        wide, thermal = (float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: expected WIDE,THERMAL in mm, e.g. 24,40") from None
+    return wide, thermal
+
+
+def summary_lines(res) -> list[str]:
+    """What the command prints: counts per class, timings, failures and the frames registered by the prior."""
+    from harness.textable import text_table
+
+    lines = [f"screened {res.screened} frame(s) now, {res.skipped_done} earlier; {res.with_findings} with findings "
+             f"(threshold {res.threshold:g}: {res.threshold_source})"]
+    if res.findings:
+        rows = [[c, str(n)] for c, n in sorted(res.findings.items(), key=lambda kv: -kv[1])]
+        lines.append(text_table(["class", "findings"], rows, "lr"))
+    t = res.timings.get("per_frame_s") or {}
+    if res.screened and t.get("model"):
+        ms = {k: 1000 * (v or 0.0) for k, v in t.items()}
+        lines.append(f"per frame: decode {ms['decode']:.0f} ms, undistort+register+warp {ms['align']:.0f} ms, "
+                     f"fourth channel {ms['encode']:.0f} ms, model {ms['model']:.0f} ms; front end = "
+                     f"{100 * res.timings['frontend_over_model']:.0f} % of the model's time; "
+                     f"{res.timings['frames_per_s']:.2f} frames/s overall")
+    for frame, why in res.rejected:
+        lines.append(f"registration check failed, screened with the factory prior: {frame} ({why})")
+    if res.failures:
+        lines.append(f"{len(res.failures)} bad file(s), skipped:")
+        lines += [f"  {path}: {reason}" for path, reason in res.failures]
+    lines.append(f"results: {res.out} (findings.csv, findings.geojson, index.html, manifest.json)")
+    return lines
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.command(name="screen")
+    @click.argument("flight", type=click.Path(file_okay=False, path_type=str))
+    @click.option("--run", "run_dir", type=click.Path(file_okay=False, exists=True), default=None,
+                  help="A finished run's folder in the results store: its model, sensing and encoding are used.")
+    @click.option("--weights", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="A checkpoint instead of a run (with --detector and --dataset).")
+    @click.option("--detector", default=None, help="With --weights: the detector the checkpoint is of.")
+    @click.option("--dataset", default=None, help="With --weights: its categories, protocol and encoding.")
+    @click.option("--encoding", default=None, help="With --weights: the encoding [default: the dataset's].")
+    @click.option("--profile", default="smoke", show_default=True, help="With --weights: the run profile.")
+    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
+                  help="With --weights: extra YAML config file(s).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="With --weights: config overrides.")
+    @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
+    @click.option("--backend", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
+                  help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).")
+    @click.option("--device", default="cpu", show_default=True, help="Torch device (cpu, cuda).")
+    @click.option("--conf", type=float, default=None,
+                  help="Report findings scoring at least this [default: the run's operating point].")
+    @click.option("--homography", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="A homographies YAML (undistorted wide pixels of the calibration K -> thermal pixels) used for "
+                       "every frame instead of automatic registration.")
+    @click.option("--group", default=None, help="The entry of --homography to use when it holds several.")
+    @click.option("--rgb-camera", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="Wide camera calibration [default: the run's, from its config or prepared data].")
+    @click.option("--thermal-camera", type=click.Path(dir_okay=False, exists=True), default=None,
+                  help="Thermal camera calibration [default: the run's].")
+    @click.option("--no-undistort", is_flag=True, help="No lens undistortion (a run whose data had none).")
+    @click.option("--focal-35mm", default=None, metavar="WIDE,THERMAL",
+                  help="35-mm focal lengths for the factory prior when the EXIF lacks them, e.g. 24,40.")
+    @click.option("--fallback", type=click.Choice(["prior", "skip"]), default="prior", show_default=True,
+                  help="A frame whose automatic registration fails its check: screened with the factory prior and "
+                       "listed, or listed and not screened.")
+    @click.option("--rgb-decode", type=click.Choice(["auto", "full"]), default="auto", show_default=True,
+                  help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it that much anyway; "
+                       "full: always in full (bit-identical to the training data).")
+    @click.option("--register", type=click.Choice(["group", "frame"]), default="group", show_default=True,
+                  help="Automatic registration once per inspection group (captures within the run's "
+                       "sensing.groups.gap_s of each other; as the datasets register), or for every frame.")
+    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+                  help="Processes for the front end (decode, register, warp, fourth channel).")
+    @click.option("--threads", type=click.IntRange(min=1), default=None,
+                  help="Threads for the model (torch and ONNX Runtime) [default: torch's].")
+    @click.option("--fail-fast", is_flag=True, help="Stop at the first bad file.")
+    @click.option("--force", is_flag=True, help="Replace a screen in --out made with another model or settings.")
+    @click.option("--no-overlays", is_flag=True, help="No overlay and thumbnail pictures.")
+    @click.option("--no-progress", is_flag=True, help="No progress bar.")
+    def screen_cmd(flight, run_dir, weights, detector, dataset, encoding, profile, config_files, overrides, out,
+                   backend, device, conf, homography, group, rgb_camera, thermal_camera, no_undistort, focal_35mm,
+                   fallback, rgb_decode, register, workers, threads, fail_fast, force, no_overlays, no_progress):
+        """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
+
+        \b
+        Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
+        undistort, register, warp, crop, fourth channel), then its model. Writes findings.csv and
+        findings.geojson (class, score, boxes in thermal and RGB pixels, box temperatures and contrast, GPS and
+        gimbal), an overlay per frame with findings, index.html and manifest.json. A re-run skips frames done.
+        Bad files are listed and skipped (exit status 1).
+        Example:
+          harness screen flights/2024-06-03 --run results/paper/m3t/ours/c2/P1/seed0 --out screens/2024-06-03
+        """
+        from harness.screen import ScreenRequest, screen
+
+        req = ScreenRequest(flight=flight, out=out, run=run_dir, weights=weights, detector=detector, dataset=dataset,
+                            encoding=encoding, profile=profile, config_files=config_files, overrides=overrides,
+                            backend=backend, device=device, conf=conf, homography=homography, group=group,
+                            rgb_camera=rgb_camera, thermal_camera=thermal_camera, no_undistort=no_undistort,
+                            focal_35mm=_focal(focal_35mm), fallback=fallback, rgb_decode=rgb_decode,
+                            register=register, workers=workers, threads=threads, fail_fast=fail_fast, force=force,
+                            progress=not no_progress, overlays=not no_overlays)
+        res = screen(req)
+        for line in summary_lines(res):
+            click.echo(line)
+        if not res.ok:
+            raise SystemExit(1)

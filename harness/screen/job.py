@@ -1,0 +1,575 @@
+"""``screen(request)``: a flight through a run's sensing, encoding and model, into findings (the package docstring
+describes the whole)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+from harness.errors import ConfigError, DataError, HarnessError
+from harness.screen.findings import frame_findings
+from harness.screen.flight import Capture, Flight, find_captures, inspection_groups
+from harness.screen.frontend import Frame, FrontEnd, FrontEndSettings, RegistrationRejected
+from harness.screen.model import Predictor, ScreenModel, file_sha1, from_run, from_weights
+from harness.screen import outputs as out
+
+log = logging.getLogger(__name__)
+
+SCHEMA = 1
+
+
+@dataclass
+class ScreenRequest:
+    """What ``harness screen`` asks for (see ``harness screen --help``)."""
+
+    flight: str | Path
+    out: str | Path
+    run: str | Path | None = None
+    weights: str | Path | None = None
+    detector: str | None = None
+    dataset: str | None = None
+    encoding: str | None = None
+    profile: str | None = "smoke"
+    config_files: Sequence[str | Path] = ()
+    overrides: Sequence[str] = ()
+    backend: str = "torch"
+    device: str = "cpu"
+    conf: float | None = None
+    homography: str | Path | None = None
+    group: str | None = None
+    rgb_camera: str | Path | None = None
+    thermal_camera: str | Path | None = None
+    no_undistort: bool = False
+    focal_35mm: tuple[float, float] | None = None
+    fallback: str = "prior"
+    rgb_decode: str = "auto"
+    register: str = "group"
+    workers: int = 1
+    threads: int | None = None
+    fail_fast: bool = False
+    force: bool = False
+    progress: bool = True
+    overlays: bool = True
+
+
+@dataclass
+class ScreenResult:
+    """What a screen did: the counts, the failures and where everything is."""
+
+    out: Path
+    frames: int  # captures in the flight
+    screened: int  # screened now
+    skipped_done: int  # screened by an earlier call with the same settings
+    with_findings: int
+    findings: dict[str, int]
+    failures: list[tuple[str, str]] = field(default_factory=list)
+    rejected: list[tuple[str, str]] = field(default_factory=list)  # (frame, route and reason) not by auto or file
+    timings: dict[str, float] = field(default_factory=dict)
+    threshold: float = 0.0
+    threshold_source: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+
+# ------------------------------------------------------------------------------------------------ settings
+def load_model(req: ScreenRequest) -> ScreenModel:
+    if (req.run is None) == (req.weights is None):
+        raise ConfigError("give either --run RUN_DIR (a finished run) or --weights FILE with --detector and --dataset")
+    if req.run is not None:
+        if req.detector or req.dataset or req.encoding or req.config_files or req.overrides:
+            raise ConfigError("--run takes everything from the run's stored configuration; --detector, --dataset, "
+                              "--encoding, --config and --set go with --weights only")
+        return from_run(req.run, req.conf)
+    if not req.detector or not req.dataset:
+        raise ConfigError("--weights needs --detector NAME and --dataset NAME (its categories, protocol and encoding)")
+    return from_weights(req.weights, req.detector, req.dataset, req.encoding, req.profile,  # type: ignore[arg-type]
+                        req.config_files, req.overrides, req.conf)
+
+
+def recorded_cameras(sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, Any] | None, str] | None:
+    """The cameras the run's prepared data was undistorted with (``AlignedSample.meta["cameras"]``), from the cache
+    (``$HARNESS_CACHE``), found by the run's prepared fingerprint; None when that data is not there."""
+    from harness.io import read_json
+    from harness.prepare import cache_root, preparation_sensing
+
+    meta = sm.config.get("meta") or {}
+    fingerprint, dataset = meta.get("prepared_fingerprint"), meta.get("dataset")
+    if not fingerprint or not dataset:
+        return None
+    sensing = json.loads(json.dumps(preparation_sensing(sm.config.get("sensing")), default=str))
+    for manifest in sorted((cache_root() / str(dataset)).glob("*/manifest.json")):
+        try:
+            m = read_json(manifest)
+        except HarnessError:
+            continue
+        if m.get("fingerprint") != fingerprint or m.get("sensing") != sensing:
+            continue
+        samples = read_json(manifest.parent / "samples.json")
+        seen: dict[str, dict[str, Any] | None] = {}
+        for sensor in ("rgb", "thermal"):
+            cams = {json.dumps((s.get("meta", {}).get("cameras") or {}).get(sensor, {}).get("camera"), sort_keys=True)
+                    for s in samples}
+            if len(cams) > 1:
+                raise ConfigError(f"{manifest.parent}: the run's data was undistorted with {len(cams)} different "
+                                  f"{sensor} calibrations; give the flight's with --{sensor}-camera FILE")
+            seen[sensor] = json.loads(cams.pop()) if cams else None
+        return seen["rgb"], seen["thermal"], str(manifest.parent)
+    return None
+
+
+def resolve_cameras(req: ScreenRequest, sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, Any] | None,
+                                                                  dict[str, str]]:
+    """(wide camera, thermal camera, where each came from): ``--rgb-camera``/``--thermal-camera``, else the
+    configuration's ``sensing.undistort``, else (a run) the cameras its prepared data records; ``--no-undistort``
+    for none."""
+    from harness.sensing.calibration import CameraModel
+    from harness.sensing.options import SensingOptions
+
+    und = SensingOptions.from_config(sm.sensing).undistort
+    given = {"rgb": req.rgb_camera, "thermal": req.thermal_camera}
+    configured = {"rgb": und.rgb_camera, "thermal": und.thermal_camera}
+    cams: dict[str, dict[str, Any] | None] = {}
+    source: dict[str, str] = {}
+    recorded: Any = "unread"
+    for sensor in ("rgb", "thermal"):
+        if given[sensor] is not None:
+            cams[sensor], source[sensor] = CameraModel.load(given[sensor]).to_dict(), str(given[sensor])
+        elif req.no_undistort:
+            cams[sensor], source[sensor] = None, "--no-undistort"
+        elif configured[sensor]:
+            path = Path(str(configured[sensor])).expanduser()
+            cams[sensor] = CameraModel.load(path).to_dict()
+            source[sensor] = f"sensing.undistort.{sensor}_camera ({path})"
+        elif req.run is None:
+            cams[sensor], source[sensor] = None, "none configured"
+        else:
+            if recorded == "unread":
+                recorded = recorded_cameras(sm)
+            if recorded is None:
+                raise ConfigError(
+                    "the run's prepared data is not in the cache (HARNESS_CACHE, now "
+                    f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the lens calibration its training "
+                    "undistorted the images with is unknown: give it with --rgb-camera FILE (e.g. the dataset's "
+                    "calibration/wide_camera.yaml), or --no-undistort if its dataset had none")
+            cams[sensor] = recorded[0 if sensor == "rgb" else 1]
+            source[sensor] = f"the run's prepared data ({recorded[2]})" if cams[sensor] else \
+                "none (the run's prepared data used none)"
+    if cams["rgb"] is None and source["rgb"] == "none configured":
+        log.warning("no wide-camera calibration (--rgb-camera, sensing.undistort.rgb_camera): the wide images are "
+                    "not undistorted; give the one the model's training data was undistorted with")
+    return cams["rgb"], cams["thermal"], source
+
+
+def load_homography(path: str | Path | None, group: str | None) -> dict[str, Any] | None:
+    from harness.sensing.registration import load_homography_entries
+
+    if path is None:
+        if group is not None:
+            raise ConfigError("--group picks an entry of --homography FILE; give the file too")
+        return None
+    entries = load_homography_entries(path)
+    if group is None:
+        if len(entries) != 1:
+            raise ConfigError(f"{path} holds {len(entries)} homographies ({', '.join(sorted(entries))}); pick one "
+                              "with --group NAME")
+        group = next(iter(entries))
+    if group not in entries:
+        raise ConfigError(f"{path}: no group {group!r}; it holds {', '.join(sorted(entries))}")
+    e = entries[group]
+    return {"H": e.H.tolist(), "method": e.method, "source": str(path), "group": group, "sha1": file_sha1(Path(path))}
+
+
+def screen_key(sm: ScreenModel, settings: FrontEndSettings, backend: str) -> str:
+    """What makes two screens of the same files give the same findings."""
+    ev = sm.config.get("eval") or {}
+    payload = {"weights": sm.weights_sha1, "detector": sm.detector.name, "backend": backend,
+               "threshold": sm.threshold, "imgsz": sm.imgsz, "nms": [ev.get("conf"), ev.get("iou"), ev.get("max_det")],
+               "model": sm.config.get("model") or {}, "frontend": asdict(settings), "schema": SCHEMA}
+    return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+# ------------------------------------------------------------------------------------------------ front end in workers
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(settings: FrontEndSettings, encoding: Any) -> None:
+    import cv2
+
+    cv2.setNumThreads(1)  # one process per core: no threads competing inside each
+    _WORKER["frontend"] = FrontEnd(settings, encoding)
+
+
+def _work(cap: Capture, image_id: int, given: dict[str, Any] | None) -> tuple[Frame | None, str | None, bool]:
+    return _run_frontend(_WORKER["frontend"], cap, image_id, given)
+
+
+def _run_frontend(fe: FrontEnd, cap: Capture, image_id: int, given: dict[str, Any] | None = None
+                  ) -> tuple[Frame | None, str | None, bool]:
+    """(frame, error, rejected): a bad file's error as text, naming the file."""
+    try:
+        return fe.process(cap, image_id, given), None, False
+    except ConfigError:
+        raise
+    except RegistrationRejected as exc:
+        return None, str(exc), True
+    except HarnessError as exc:
+        return None, str(exc), False
+    except Exception as exc:  # noqa: BLE001 - a damaged file can make a decoder library raise anything
+        return None, f"{cap.rgb}: {type(exc).__name__}: {exc}", False
+
+
+class _Now:
+    """A future computed when its result is asked for (the one-process path)."""
+
+    def __init__(self, fn: Callable[[], Any]):
+        self.fn = fn
+
+    def result(self) -> Any:
+        return self.fn()
+
+    def cancel(self) -> bool:
+        return True
+
+
+def group_registrations(fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
+                        ) -> dict[str, dict[str, Any]]:
+    """The registrations earlier calls accepted, per group (what a re-run's remaining frames reuse)."""
+    out: dict[str, dict[str, Any]] = {}
+    for name, rec in done.items():
+        reg = rec.get("registered")
+        if groups is not None and reg and name in groups:
+            out.setdefault(groups[name], reg)
+    return out
+
+
+def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups: dict[str, str] | None = None,
+                     registered: dict[str, dict[str, Any]] | None = None
+                     ) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
+    """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each).
+
+    With ``groups`` (``{capture: inspection group}``) a group is registered once: its first capture whose automatic
+    registration passes the check registers it, and its later captures reuse that homography (until one passes,
+    each capture registers on its own), as the datasets register one homography per group."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    registered = dict(registered or {})
+    pool = None
+    if workers > 1 and len(caps) > 1:
+        import pickle
+
+        try:
+            pickle.dumps((fe.settings, fe.encoding))
+        except Exception as exc:  # noqa: BLE001 - e.g. an encoding function defined as a lambda
+            raise ConfigError(f"--workers {workers}: encoding {fe.encoding.name!r} cannot be sent to worker "
+                              f"processes ({type(exc).__name__}: {exc}); use --workers 1") from None
+        # spawned, not forked: a process forked while the model's threads hold a lock can hang for good
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(caps)), mp_context=mp.get_context("spawn"),
+                                   initializer=_init_worker, initargs=(fe.settings, fe.encoding))
+
+    def submit(cap: Capture, i: int, given: dict[str, Any] | None) -> Any:
+        if pool is None:
+            return _Now(lambda: _run_frontend(fe, cap, i, given))
+        return pool.submit(_work, cap, i, given)
+
+    queue: deque = deque()  # (capture, future, group, registers its group)
+    k = 0
+    try:
+        while k < len(caps) or queue:
+            while k < len(caps) and len(queue) < 2 * max(1, workers):
+                cap = caps[k]
+                group = groups.get(cap.name) if groups is not None else None
+                given = None
+                if group is not None and group in registered:
+                    reg = registered[group]
+                    given = {"H": reg["H"], "registration": {**reg["registration"], "from": reg["capture"]},
+                             "route": f"auto (group {group})"}
+                elif group is not None and any(g == group for _, _, g, _ in queue):
+                    break  # the group's registration is pending: wait for it before its next capture
+                queue.append((cap, submit(cap, k, given), group, given is None and group is not None))
+                k += 1
+            cap, fut, group, leads = queue.popleft()
+            frame, error, rejected = fut.result()
+            if leads and frame is not None and frame.registered is not None:
+                registered.setdefault(group, frame.registered)
+            yield cap, frame, error, rejected
+    finally:
+        for item in queue:
+            item[1].cancel()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+# ------------------------------------------------------------------------------------------------ the job
+class _Bar:
+    """The overall progress bar on stderr: frames done of the flight, elapsed, ETA, findings and failures."""
+
+    def __init__(self, enabled: bool, total: int, done: int):
+        self.enabled, self.total, self.done = enabled, total, done
+        self.progress: Any = None
+        self.task: Any = None
+
+    def __enter__(self) -> "_Bar":
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                       TimeRemainingColumn)
+
+            self.progress = Progress(TextColumn("screening"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+                                     TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                                     TextColumn("{task.fields[note]}"), console=Console(file=sys.stderr),
+                                     transient=False)
+            self.progress.__enter__()
+            self.task = self.progress.add_task("screen", total=self.total, completed=self.done, note="")
+        return self
+
+    def advance(self, n: int, note: str) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, advance=n, note=note)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.progress is not None:
+            self.progress.__exit__(*exc)
+
+
+def _frame_record(frame: Frame, findings: list[dict[str, Any]], key: str, flight: Path, overlay: str | None,
+                  model_s: float, model_cpu: float) -> dict[str, Any]:
+    return {"key": key, "frame": frame.capture.name, "status": "screened",
+            "rgb_file": str(frame.capture.rgb.relative_to(flight)),
+            "thermal_file": str(frame.capture.thermal.relative_to(flight)), "fingerprints": frame.fingerprints,
+            "route": frame.route, "registration": frame.registration, "reduction": frame.reduction,
+            "crop_origin": list(frame.origin), "aligned_size": [int(frame.image.shape[1]), int(frame.image.shape[0])],
+            "rgb_size": list(frame.rgb_size), "thermal_size": list(frame.thermal_size),
+            "H_rgb_to_aligned": frame.H.tolist(), "thermal_decoder": frame.thermal_decoder,
+            "position": frame.position.to_dict(), "registered": frame.registered, "overlay": overlay,
+            "findings": findings,
+            "timings": {**{k: round(v, 6) for k, v in frame.timings.items()}, "model": round(model_s, 6),
+                        "model_cpu": round(model_cpu, 6)}}
+
+
+def _done_frames(folder: Path, key: str, caps: Sequence[Capture]) -> dict[str, dict[str, Any]]:
+    """Frame records of an earlier call with the same key whose input files are unchanged."""
+    from harness.io import read_json
+    from harness.screen.frontend import sha1_bytes
+
+    done: dict[str, dict[str, Any]] = {}
+    for cap in caps:
+        path = folder / "frames" / f"{out.safe_name(cap.name)}.json"
+        if not path.exists():
+            continue
+        try:
+            rec = read_json(path)
+        except HarnessError:
+            continue
+        if rec.get("key") != key or rec.get("status") != "screened":
+            continue
+        fp = rec.get("fingerprints") or {}
+        try:
+            same = fp.get("rgb") == sha1_bytes(cap.rgb.read_bytes()) and \
+                fp.get("thermal") == sha1_bytes(cap.thermal.read_bytes())
+        except OSError:
+            same = False
+        if same:
+            done[cap.name] = rec
+    return done
+
+
+def _prepare_out(folder: Path, key: str, force: bool) -> None:
+    from harness.io import read_json
+
+    manifest = folder / "manifest.json"
+    if folder.exists() and any(folder.iterdir()):
+        if not manifest.exists() and not (folder / "frames").is_dir():
+            raise ConfigError(f"--out {folder}: the folder holds other files; give an empty or new folder")
+        old = read_json(manifest).get("key") if manifest.exists() else None
+        if old is not None and old != key:
+            if not force:
+                raise ConfigError(f"--out {folder} holds a screen with another model or other settings (key {old}, "
+                                  f"now {key}); use another --out, or --force to replace it")
+        if force:
+            for sub in ("frames", "overlays", "crops"):
+                shutil.rmtree(folder / sub, ignore_errors=True)
+    folder.mkdir(parents=True, exist_ok=True)
+
+
+def screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None = None) -> ScreenResult:
+    """Screen ``req.flight`` into ``req.out``; see the package docstring. Bad files are listed in the result (and
+    with ``fail_fast`` the first one raises a ``DataError`` after the frames before it are written).
+    ``on_frame(record)`` is called after each frame is written."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if req.threads:
+        torch.set_num_threads(int(req.threads))
+    try:
+        return _screen(req, on_frame)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None) -> ScreenResult:
+    from harness import __version__
+
+    t_start = time.perf_counter()
+    if req.workers < 1:
+        raise ConfigError(f"--workers {req.workers}: give at least 1")
+    flight = find_captures(req.flight)
+    if req.fail_fast and flight.bad:
+        raise DataError(f"{flight.bad[0][0]}: {flight.bad[0][1]}")
+    sm = load_model(req)
+    rgb_cam, th_cam, cam_source = resolve_cameras(req, sm)
+    settings = FrontEndSettings(sensing=sm.sensing, encoding=sm.encoding.name, encoding_params=sm.encoding_params,
+                                rgb_camera=rgb_cam, thermal_camera=th_cam,
+                                homography=load_homography(req.homography, req.group), fallback=req.fallback,
+                                rgb_decode=req.rgb_decode, focal_35mm=req.focal_35mm, register=req.register)
+    fe = FrontEnd(settings, sm.encoding)
+    key = screen_key(sm, settings, req.backend)
+    folder = Path(req.out)
+    _prepare_out(folder, key, req.force)
+    predictor = Predictor(sm, req.backend, req.device, folder, req.threads)
+    done = _done_frames(folder, key, flight.captures)
+    todo = [c for c in flight.captures if c.name not in done]
+    if done:
+        log.info("%d of %d frames were screened earlier with the same settings: skipped", len(done),
+                 len(flight.captures))
+    base = {"schema": SCHEMA, "key": key, "harness_version": __version__, "flight": str(Path(req.flight).resolve()),
+            "model": {**sm.describe(), "backend": req.backend, "device": req.device, "onnx": predictor.onnx or None},
+            "frontend": {**asdict(settings), "cameras_from": cam_source}, "config": sm.config}
+    out.write_json(folder / "manifest.json", {**base, "state": "running"})
+
+    failures: list[tuple[str, str]] = list(flight.bad)
+    rejected_skipped: list[tuple[str, str]] = []
+    records: dict[str, dict[str, Any]] = dict(done)
+    batch: list[Frame] = []
+    timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0}
+    stop: str | None = None
+
+    def flush(bar: _Bar) -> None:
+        if not batch:
+            return
+        t0, c0 = time.perf_counter(), time.process_time()
+        dets = predictor([f.image for f in batch])
+        model_s = (time.perf_counter() - t0) / len(batch)
+        model_cpu = (time.process_time() - c0) / len(batch)
+        for frame, d in zip(batch, dets):
+            found = frame_findings(frame, d, sm.categories, sm.threshold)
+            overlay = _write_pictures(folder, frame, found) if (found and req.overlays) else None
+            rec = _frame_record(frame, found, key, Path(req.flight), overlay, model_s, model_cpu)
+            out.write_json(folder / "frames" / f"{out.safe_name(frame.capture.name)}.json", rec)
+            records[frame.capture.name] = rec
+            for k in ("decode", "align", "encode"):
+                timings[k] += frame.timings[k]
+            timings["model"] += model_s
+            if on_frame is not None:
+                on_frame(rec)
+        n = len(batch)
+        batch.clear()
+        bar.advance(n, _note(records, failures))
+
+    groups = None
+    if settings.register == "group" and settings.homography is None and fe.options.registration.method == "auto":
+        groups = inspection_groups(flight.captures, fe.options.group_gap_s)
+    results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done))
+    with _Bar(req.progress, len(flight.captures), len(done)) as bar:
+        for cap, frame, error, rejected in results:
+            if frame is None:
+                (rejected_skipped if rejected else failures).append(_named(cap, error or "unknown error"))
+                bar.advance(1, _note(records, failures))
+                if req.fail_fast and not rejected:
+                    stop = error
+                    break
+                continue
+            batch.append(frame)
+            if len(batch) >= predictor.batch:
+                flush(bar)
+        results.close()  # a stop leaves no worker behind
+        flush(bar)
+    screened = len(records) - len(done)
+    failures += rejected_skipped
+    result = _finish(folder, base, flight, records, failures, sm, timings, screened, len(done), req,
+                     time.perf_counter() - t_start, state="stopped" if stop else "finished")
+    if stop is not None:
+        raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
+    return result
+
+
+def _named(cap: Capture, error: str) -> tuple[str, str]:
+    """(the bad file, the reason) from an error text that starts with the file's path."""
+    for path in (cap.thermal, cap.rgb):
+        if error.startswith(f"{path}: "):
+            return str(path), error[len(str(path)) + 2:]
+    return str(cap.rgb), error
+
+
+def _note(records: dict[str, dict[str, Any]], failures: list[tuple[str, str]]) -> str:
+    n = sum(len(r.get("findings") or []) for r in records.values())
+    return f"{n} findings" + (f", {len(failures)} failed" if failures else "")
+
+
+def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) -> str:
+    name = out.safe_name(frame.capture.name)
+    rel = f"overlays/{name}.jpg"
+    out.write_jpeg(folder / rel, out.overlay(frame.rgb, frame.thermal, findings))
+    for k, f in enumerate(findings):
+        crop_rel = f"crops/{name}_{k:03d}.jpg"
+        out.write_jpeg(folder / crop_rel, out.crop(frame.rgb, frame.thermal, f["box_aligned"]), quality=85)
+        f["crop"] = crop_rel
+        f["overlay"] = rel
+    return rel
+
+
+def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[str, dict[str, Any]],
+            failures: list[tuple[str, str]], sm: ScreenModel, timings: dict[str, float], screened: int,
+            skipped_done: int, req: ScreenRequest, seconds: float, state: str) -> ScreenResult:
+    from harness import __version__
+    from harness.screen.gallery import render
+
+    frames = [records[c.name] for c in flight.captures if c.name in records]
+    findings = []
+    for r in frames:
+        for f in r.get("findings") or []:
+            findings.append({**f, "rgb_file": r["rgb_file"], "thermal_file": r["thermal_file"]})
+    out.write_csv(folder / "findings.csv", findings)
+    out.write_geojson(folder / "findings.geojson", findings)
+    counts = Counter(f["class"] for f in findings)
+    routes = Counter(r["route"] for r in frames)
+    rejected = [(r["frame"], str((r.get("registration") or {}).get("reason", ""))) for r in frames
+                if str(r["route"]).startswith("prior (")]
+    per = {k: (v / screened if screened else None) for k, v in timings.items()}
+    front = sum(v for k, v in per.items() if k != "model" and v is not None) if screened else None
+    timing = {"seconds": round(seconds, 3), "frames_per_s": round(screened / seconds, 3) if screened else None,
+              "per_frame_s": {k: (round(v, 6) if v is not None else None) for k, v in per.items()},
+              "frontend_over_model": round(front / per["model"], 4) if screened and per["model"] else None,
+              "workers": req.workers, "threads": req.threads}
+    summary = [f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
+               f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
+               "ignored",
+               f"model {sm.detector.name} ({base['model']['backend']}), encoding {sm.encoding.name}, threshold "
+               f"{sm.threshold:g} ({sm.threshold_source})",
+               "registration routes: " + ", ".join(f"{k} {v}" for k, v in sorted(routes.items()))]
+    html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, failures, summary, __version__)
+    from harness.io import atomic_write_text
+
+    atomic_write_text(folder / "index.html", html)
+    inputs = [{"frame": r["frame"], "rgb": r["rgb_file"], "thermal": r["thermal_file"], **{
+        f"{k}_sha1": v for k, v in (r.get("fingerprints") or {}).items()}} for r in frames]
+    manifest = {**base, "state": state, "frames": {"captures": len(flight.captures), "screened": len(frames),
+                                                   "with_findings": sum(1 for r in frames if r.get("findings")),
+                                                   "failed": len(failures), "ignored_files": flight.ignored},
+                "findings": dict(counts), "routes": dict(routes), "failures": [list(f) for f in failures],
+                "registration_rejected": [list(r) for r in rejected], "inputs": inputs, "timings": timing}
+    out.write_json(folder / "manifest.json", manifest)
+    return ScreenResult(folder, len(flight.captures), screened, skipped_done,
+                        sum(1 for r in frames if r.get("findings")), dict(counts), failures, rejected, timing,
+                        sm.threshold, sm.threshold_source)
