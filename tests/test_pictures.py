@@ -118,7 +118,7 @@ def _fake_run(store, fold: str = "A", detector: str = "det"):
     from harness.evaluation import evaluate
     from harness.io import atomic_write_json
     from harness.plugins import get_host
-    from harness.prepare import prepare
+    from harness.cache import prepare
     from harness.store import RunKey, Store
 
     spec = get_host().dataset("shapes")

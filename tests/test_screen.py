@@ -148,7 +148,7 @@ def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
 def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):
     """Below the findings: the front end's [R, G, B, C2] and temperature map are the run's prepared samples."""
     from harness.plugins import get_host
-    from harness.prepared import PreparedDataset
+    from harness.cache import PreparedDataset
     from harness.screen.flight import find_captures
     from harness.screen.job import ScreenRequest, load_homography, load_model, resolve_cameras
     from harness.screen.frontend import FrontEnd, FrontEndSettings

@@ -148,7 +148,7 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
         cfg = read_yaml(configured[0].config_path)
     else:
         from harness.config import load_config
-        from harness.prepare import prepare
+        from harness.cache import prepare
 
         cfg = load_config(protocol=spec.protocol)
         prepared = prepare(spec.name, cfg, progress=False)

@@ -130,7 +130,7 @@ def show(dataset: str, cfg: Mapping[str, Any], *, image_id: int | None = None, i
     """Draw one prepared sample (module docstring). Without ``out``, a terminal that draws images gets it inline
     (``inline=None``: when stdout is such a terminal); otherwise it is written to ``show_<dataset>_<id>.png``."""
     from harness.plugins import get_host
-    from harness.prepare import prepare
+    from harness.cache import prepare
 
     host = get_host()
     spec = host.dataset(dataset)

@@ -101,7 +101,7 @@ def recorded_cameras(sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, 
     """The cameras the run's prepared data was undistorted with (``AlignedSample.meta["cameras"]``), from the cache
     (``$HARNESS_CACHE``), found by the run's prepared fingerprint; None when that data is not there."""
     from harness.io import read_json
-    from harness.prepare import cache_root, preparation_sensing
+    from harness.cache.key import cache_root, preparation_sensing
 
     meta = sm.config.get("meta") or {}
     fingerprint, dataset = meta.get("prepared_fingerprint"), meta.get("dataset")
