@@ -12,7 +12,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
-    _profiles/<detector>.json                parameters, FLOPs, latency of a detector
+    _profiles/<detector>.json                `harness profile`: parameters, FLOPs, latency of a detector (reports
+                                             read the complexity each run recorded, not these files)
 
 ``metrics.json`` (``METRICS_SCHEMA``)::
 
@@ -31,8 +32,13 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
       "degenerate_detections": {"returned", "non_finite", "inverted", "zero_size", "outside_image", "examples"},
                                                      # trained runs: boxes the detector returned, those dropped
       "external": {...},                             # runs of `harness score`: identity and matching counts
-      "labels": [str, ...]                           # optional: a risk accepted when the result was stored
+      "labels": [str, ...],                          # optional: a risk accepted when the result was stored
+      "input_risks": [str, ...],                     # trained runs: dataset input risks accepted (inputs.accept)
+      "temperatures": {"label", "samples", "bound_c", "approximations"}   # optional: approximate temperatures
     }
+
+The last three are read as one concept, a result's labels (``harness.report.reader.ResultLabel``), shown beside
+the numbers they concern in every table.
 
 Numbers are fractions in 0..1. A category with no ground truth in the fold has ``AP50 = null``; fold aggregation
 skips it rather than counting it as zero.
@@ -345,7 +351,3 @@ class Store:
 
     def write_profile(self, detector: str, result: dict[str, Any]) -> Path:
         return atomic_write_json(self.profile_path(detector), result)
-
-    def read_profiles(self) -> dict[str, dict[str, Any]]:
-        folder = self.root / "_profiles"
-        return {p.stem: read_json(p) for p in sorted(folder.glob("*.json"))} if folder.exists() else {}

@@ -227,7 +227,7 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
 def test_paired_comparisons_hold_the_reference_detector_against_each_other(real_store, reference):
     """Whichever is more accurate, the reference detector is side A of the detectors' pair."""
     from harness.report.build import dataset_sections
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
 
     _, comps = dataset_sections(StoreView(real_store), DATASET, 0, 0, ["delamination"], reference=reference)
     across = [c for c in comps if c.a.split("/")[0] != c.b.split("/")[0]]

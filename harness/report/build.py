@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
-from harness.report.collect import Entry, StoreView
+from harness.report.reader import Entry, StoreView, label_notes
 from harness.report.curves import curves_section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
 from harness.report.sizes import size_tables
@@ -130,6 +130,7 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
     if unprofiled:
         sec.notes.append(f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
                          f"them with --force to measure it.")
+    sec.notes += label_notes([e.notes_item(f"{e.dataset} {e.label}") for e in used if e.complexity().get("gflops")])
     return sec
 
 
@@ -206,9 +207,7 @@ def _cross_section(view: StoreView, datasets: Sequence[str]) -> Section:
     except HarnessError as exc:
         sec.absent = f"the cross-dataset table could not be built: {exc}"
         return sec
-    if table is None:
-        sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
-    elif not table.rows:
+    if not table.rows:
         sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
                       f"{view.root}` for each dataset.")
     else:

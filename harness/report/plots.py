@@ -1,13 +1,13 @@
 """Accuracy versus complexity: held-out mAP against GFLOPs, one panel per dataset (rows) and metric (columns).
 
-* x: GFLOPs of the detector's profile (``_profiles/<detector>.json``, the "paper" convention unless asked), on a
-  **log** axis shared by all panels;
+* x: GFLOPs each entry's runs measured on the model they trained (``metrics.json`` ``complexity``, the "paper"
+  convention at 640), on a **log** axis shared by all panels;
 * y: mAP in %, the mean over held-out folds, with error bars of ± one sample SD over the folds;
 * one marker (shape and colour) per detector, the same in every panel, labelled with its short name;
 * the **Pareto front** (points that no other point beats with fewer or equal GFLOPs and a higher mAP) drawn as a
   dashed step line: the best accuracy reachable at a given cost;
-* the conventions printed on the figure: FLOP convention, input size and batch of the profile, the metric and how
-  it is aggregated, and the hardware the runs and profiles were measured on.
+* the conventions printed on the figure: FLOP convention, input size and batch of the measurement, the metric and
+  how it is aggregated, and the hardware the runs were measured on.
 
 matplotlib with the Agg canvas only (no pyplot, no display), written as PNG and SVG.
 """
