@@ -299,11 +299,13 @@ def build_table(store: StoreView | str | Path, datasets: Sequence[str], allow_mi
             for i, row in enumerate(found):
                 row.matched = i not in bad
             rows.extend(found)
-    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows), store=str(view.root))
+    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows),
+                         store=str(view.root))
     if mismatches and not allow_mismatched:
         raise SupportMismatch(
             "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
-            + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows marked '!'"
+            + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows "
+              "marked '!'"
         )
     return table
 

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
 
 from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
-from harness.io import atomic_write_json
+from harness.io import atomic_write_json, file_digest
 from harness.progress import OverallProgress
 from harness.report.reader import StoredRun, read_run
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
@@ -138,9 +138,10 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
 def choose_encoding(detector: DetectorSpec, dataset: DatasetSpec, requested: str | None,
                     host: PluginHost) -> EncodingSpec:
     """The encoding a run uses: the requested one, else the detector's (dual-stream) or the dataset's default."""
-    name = requested or (detector.default_thermal_encoding if detector.input_kind == "dual" else dataset.default_encoding)
+    dual = detector.input_kind == "dual"
+    name = requested or (detector.default_thermal_encoding if dual else dataset.default_encoding)
     enc = host.encoding(name)
-    if detector.input_kind == "dual" and enc.channels == 0:
+    if dual and enc.channels == 0:
         raise ConfigError(
             f"detector {detector.name!r} is dual-stream and needs a thermal encoding, but {name!r} adds no channel; "
             f"use e.g. --encoding {detector.default_thermal_encoding}"
@@ -567,23 +568,17 @@ def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg
         return det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
     except TypeError as exc:
         if "keyword argument" in str(exc):
-            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}") from None
+            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: "
+                              f"{exc}") from None
         raise
 
 
 def _init_info(init: str | Path | None) -> dict[str, Any]:
     if not init:
         return {}
-    import hashlib
-
-    path = Path(init)
-    if not path.is_file():
+    if not Path(init).is_file():
         raise ConfigError(f"train.init / --init {init}: no such checkpoint file")
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return {"init_sha1": h.hexdigest()}
+    return {"init_sha1": file_digest(init)}
 
 
 # ------------------------------------------------------------------------------------------------- ablation

@@ -117,6 +117,16 @@ class RunBusyError(StoreError):
     """Another process holds the run's lock (it is training that run now)."""
 
 
+class _RunFile:
+    """A file (or folder) of a run's folder, as a read-only attribute: ``run.metrics_path``."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __get__(self, run: Run, owner: type | None = None) -> Path:
+        return run.path / self.name
+
+
 class Run:
     """The folder of one run and typed access to its files."""
 
@@ -125,37 +135,14 @@ class Run:
         self.path = Path(root).joinpath(*key.parts())
 
     # paths
-    @property
-    def config_path(self) -> Path:
-        return self.path / "config.yaml"
-
-    @property
-    def status_path(self) -> Path:
-        return self.path / "status.json"
-
-    @property
-    def metrics_path(self) -> Path:
-        return self.path / "metrics.json"
-
-    @property
-    def predictions_path(self) -> Path:
-        return self.path / "predictions.json"
-
-    @property
-    def gt_path(self) -> Path:
-        return self.path / "gt.json"
-
-    @property
-    def log_path(self) -> Path:
-        return self.path / "log.jsonl"
-
-    @property
-    def checkpoint_dir(self) -> Path:
-        return self.path / "checkpoints"
-
-    @property
-    def lock_path(self) -> Path:
-        return self.path / ".lock"
+    config_path = _RunFile("config.yaml")
+    status_path = _RunFile("status.json")
+    metrics_path = _RunFile("metrics.json")
+    predictions_path = _RunFile("predictions.json")
+    gt_path = _RunFile("gt.json")
+    log_path = _RunFile("log.jsonl")
+    checkpoint_dir = _RunFile("checkpoints")
+    lock_path = _RunFile(".lock")
 
     @contextlib.contextmanager
     def exclusive(self) -> Iterator[None]:
@@ -322,7 +309,8 @@ class Store:
     def run(self, key: RunKey) -> Run:
         return Run(self.root, key)
 
-    def runs(self, dataset: str | None = None, detector: str | None = None, finished_only: bool = True) -> Iterator[Run]:
+    def runs(self, dataset: str | None = None, detector: str | None = None,
+             finished_only: bool = True) -> Iterator[Run]:
         """Every run in the store (sorted), optionally filtered; only finished ones unless asked."""
         if not self.root.exists():
             return

@@ -4,7 +4,6 @@ the shared COCO checks (ids as the evaluation reads them, duplicates), plugin fa
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np

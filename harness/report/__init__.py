@@ -29,6 +29,7 @@ from harness.report.tables import Column, Interval, Stat, Table
 
 __all__ = [
     "FORMATS", "BootstrapResult", "BootstrapScorer", "Column", "Entry", "FoldResult", "Interval", "PairedComparison",
-    "Report", "ResultLabel", "Section", "Stat", "StoredRun", "StoreView", "Table", "build_report", "compare_detectors", "paired_comparison",
+    "Report", "ResultLabel", "Section", "Stat", "StoredRun", "StoreView", "Table", "build_report", "compare_detectors",
+    "paired_comparison",
     "pareto_front", "resample_coco",
 ]

@@ -34,7 +34,6 @@ from harness.report.stats import BootstrapScorer, PairedComparison, paired_compa
 from harness.report.tables import (
     _entry_names,
     ABLATION_CATEGORIES,
-    Table,
     ablation_tables,
     category_table,
     cross_dataset_table,

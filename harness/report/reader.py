@@ -163,32 +163,12 @@ def label_notes(items: Sequence[tuple[str | None, Sequence[ResultLabel], Sequenc
 
 
 # ---------------------------------------------------------------------------------------------------- runs
-@dataclass
-class StoredRun:
-    """One finished run as stored: its folder, its ``metrics.json`` and the labels it carries."""
+class StoredRun(Run):
+    """One finished run as stored: its folder (a ``Run``), its ``metrics.json`` and the labels it carries."""
 
-    run: Run
-    metrics: dict[str, Any]
-
-    @property
-    def key(self) -> Any:
-        return self.run.key
-
-    @property
-    def path(self) -> Path:
-        return self.run.path
-
-    @property
-    def gt_path(self) -> Path:
-        return self.run.gt_path
-
-    @property
-    def predictions_path(self) -> Path:
-        return self.run.predictions_path
-
-    @property
-    def log_path(self) -> Path:
-        return self.run.log_path
+    def __init__(self, run: Run, metrics: dict[str, Any]):
+        self.key, self.path = run.key, run.path
+        self.metrics = metrics
 
     @property
     def name(self) -> str:
@@ -202,11 +182,11 @@ class StoredRun:
     @cached_property
     def config(self) -> dict[str, Any]:
         """The run's resolved configuration (``config.yaml``), ``{}`` when the run has none."""
-        if not self.run.config_path.exists():
+        if not self.config_path.exists():
             return {}
         from harness.config import read_yaml
 
-        cfg = read_yaml(self.run.config_path)
+        cfg = read_yaml(self.config_path)
         return cfg if isinstance(cfg, dict) else {}
 
     @cached_property

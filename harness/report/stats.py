@@ -332,7 +332,8 @@ class PairedComparison:
                 for i, f in enumerate(self.folds)]
         sd = lambda s: "" if s.sd is None else f" ± {100 * s.sd:.1f}"  # noqa: E731
         rows.append(["mean ± SD", "", "", pp(f50.stat.mean) + sd(f50.stat), "", "", pp(f95.stat.mean) + sd(f95.stat)])
-        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} images, "
+        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} "
+               f"images, "
                f"{self.instances} instances; AP in %, Δ = A - B in percentage points",
                text_table(header, rows), "",
                f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s)."]
@@ -344,8 +345,10 @@ class PairedComparison:
             brows = []
             for key, b in self.bootstrap.items():
                 brows.append([key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
-                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta), f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
-                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}", "yes" if b.excludes_zero else "no"])
+                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta),
+                              f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
+                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}",
+                              "yes" if b.excludes_zero else "no"])
             out.append(text_table(bh, brows))
         else:
             out.append("no bootstrap (resamples = 0)")
@@ -364,7 +367,8 @@ def fold_differences(a: Entry, b: Entry, folds: Sequence[str]) -> dict[str, Fold
         vb = [b.folds[f].metrics["metrics"].get(key) for f in folds]
         diffs = [None if x is None or y is None else float(x) - float(y) for x, y in zip(va, vb)]
         stat = Stat.from_mean_sd(mean_sd(diffs))
-        out[key] = FoldDifference(key, list(folds), va, vb, diffs, stat, sum(1 for d in diffs if d is not None and d > 0))
+        wins = sum(1 for d in diffs if d is not None and d > 0)
+        out[key] = FoldDifference(key, list(folds), va, vb, diffs, stat, wins)
     return out
 
 

@@ -72,7 +72,8 @@ class Interval:
 @dataclass(frozen=True)
 class Column:
     """``kind``: text | int | pct (fraction shown in %) | pp (difference of fractions in percentage points) |
-    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the column (bold in Markdown and HTML)."""
+    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the
+    column (bold in Markdown and HTML)."""
 
     key: str
     label: str
@@ -328,7 +329,8 @@ def _fold_matching(rows: Sequence[Entry], folds: Sequence[str]) -> tuple[str | N
     if missing:
         kinds.append("NOT sample-matched: rows cover different folds")
         details = details + missing
-    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items() if fr.seed_mismatch]
+    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items()
+                   if fr.seed_mismatch]
     if seed_issues:
         kinds.append("NOT sample-matched: seeds of a fold differ")
         details = details + seed_issues
@@ -357,7 +359,8 @@ def _options_suffix(e: Entry) -> str:
 
 def _seeds_note(rows: Sequence[Entry]) -> str:
     seeds = sorted({s for e in rows for s in e.seeds})
-    return (f"seed(s) {', '.join(map(str, seeds))}" + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
+    return (f"seed(s) {', '.join(map(str, seeds))}"
+            + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
 
 
 # -------------------------------------------------------------------------------------------------- project table
@@ -592,9 +595,8 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
                                         instances=int(pc.get("instances") or 0), seeds=seeds,
                                         sample_matched=table.warning is None))
         table.rows.append(row)
-    cat_support = ", ".join(
-        f"{c} {int((aggregate_folds([entries[0].folds[f].metrics for f in folds])['per_category'].get(c) or {}).get('instances') or 0)}"
-        for c in chosen)
+    first = aggregate_folds([entries[0].folds[f].metrics for f in folds])["per_category"]
+    cat_support = ", ".join(f"{c} {int((first.get(c) or {}).get('instances') or 0)}" for c in chosen)
     table.notes.append(f"Same detector, same held-out images, one row per encoding of the fourth channel; "
                        f"{_seeds_note(entries)}. P and R at the confidence that maximises the mean F1 over categories "
                        f"(IoU 0.50); AP in %." + (" Values are means over the folds." if len(folds) > 1 else ""))
@@ -709,10 +711,11 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
             continue
         shown.append(r)
         matched = r.dataset not in bad
-        row = {"dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
-               "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
-               "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds)),
-               "_marks": _marks(("mAP50", "mAP50_95", "safit50", "safit50_95"), r.labels)}
+        row: dict[str, Any] = {
+            "dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
+            "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
+            "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds)),
+            "_marks": _marks(("mAP50", "mAP50_95", "safit50", "safit50_95"), r.labels)}
         if ct.safit:
             row["safit50"] = Stat(r.safit50, r.safit50_sd, len(r.folds))
             row["safit50_95"] = Stat(r.safit50_95, r.safit50_95_sd, len(r.folds))
@@ -745,7 +748,8 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
     for c in comparisons:
         fd = c.fold_differences
         row: dict[str, Any] = {"a": c.a, "b": c.b, "folds": len(c.folds), "images": c.images,
-                               "instances": c.instances, "fold_d50": fd["mAP50"].stat, "fold_d5095": fd["mAP50_95"].stat,
+                               "instances": c.instances, "fold_d50": fd["mAP50"].stat,
+                               "fold_d5095": fd["mAP50_95"].stat,
                                "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}"}
         shown = "".join(c.fold_marks.get("a", []) + c.fold_marks.get("b", []))  # a difference rests on both sides
         m = "".join(ch for ch in dict.fromkeys(MARKS.values()) if ch in shown)

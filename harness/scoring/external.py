@@ -29,7 +29,6 @@ beside the trained detectors. Complexity is what the user gives (``params``, ``g
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -42,7 +41,7 @@ import numpy as np
 
 from harness.complexity import given
 from harness.errors import ConfigError, DataError, StoreError
-from harness.io import atomic_write_json, read_json
+from harness.io import atomic_write_json, file_digest, read_json
 from harness.report.reader import normalise_category, read_run
 from harness.scoring.frames import FRAMES, image_name, to_prepared
 from harness.scoring.plausibility import Finding, agreement, pct, shift_found, too_many
@@ -198,14 +197,6 @@ def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str]
         return None, str(cid), bare
 
     return resolve
-
-
-def _sha1(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[dict[str, Any]], frame: str,
@@ -462,8 +453,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
 
     key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
     run = Store(store or Path("results") / (profile or "default")).run(key)
-    identity = {"predictions_sha1": _sha1(pred_path), "frame": frame, "image_key": image_key,
-                "images_sha1": _sha1(Path(images)) if images else None, "category_map": dict(category_map or {}),
+    identity = {"predictions_sha1": file_digest(pred_path), "frame": frame, "image_key": image_key,
+                "images_sha1": file_digest(images) if images else None, "category_map": dict(category_map or {}),
                 "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
                 "val_groups": list(f.val_groups), "eval": {k: cfg["eval"][k] for k in ("engine", "matching")},
                 "params": params, "gflops": gflops}

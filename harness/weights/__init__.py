@@ -12,7 +12,6 @@ The result is a plain state dict in the codebase's own key layout, which ``harne
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -22,7 +21,7 @@ from typing import Any
 import torch
 
 from harness.errors import HarnessError
-from harness.io import atomic_write, atomic_write_json
+from harness.io import atomic_write, atomic_write_json, file_digest
 from harness.weights.layout import checkpoint_info, detect_layout
 from harness.weights.tree import find_model, is_state_dict, module_state_dict, to_float32
 from harness.weights.unpickle import CheckpointFormatError, UnsafeCheckpointError, load_checkpoint
@@ -40,14 +39,6 @@ class ImportResult:
     info: dict[str, Any]
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def read_checkpoint_weights(src: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """The model's float32 state dict in a checkpoint and a JSON-ready description of what was found."""
     src = Path(src)
@@ -60,7 +51,7 @@ def read_checkpoint_weights(src: str | Path) -> tuple[dict[str, torch.Tensor], d
     layout = detect_layout(model, sd)
     info = {
         "source": str(src),
-        "source_sha256": _sha256(src),
+        "source_sha256": file_digest(src, "sha256"),
         "weights_from": where,
         "tensors": len(sd),
         "parameters": int(sum(t.numel() for t in sd.values() if t.is_floating_point())),
