@@ -333,6 +333,8 @@ def run(request: RunRequest) -> RunSummary:
     conflicts = p.conflicts()
     if conflicts and not request.force:
         raise conflict_error(conflicts, p.store)
+    if hd.is_main():
+        p.store.write_dataset(ds)
 
     summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
                          list(prepared.categories))

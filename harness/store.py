@@ -12,6 +12,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
+    <dataset>/_dataset.json                  {"dataset", "thermal", "sensing_stage"}: written with the runs, so that
+                                             a report knows the dataset without its plugin
     _profiles/<detector>.json                `harness profile`: parameters, FLOPs, latency of a detector (reports
                                              read the complexity each run recorded, not these files)
 
@@ -330,6 +332,14 @@ class Store:
 
     def sensing_path(self, dataset: str, analysis: str) -> Path:
         return self.root / dataset / "_sensing" / f"{analysis}.json"
+
+    def dataset_path(self, dataset: str) -> Path:
+        return self.root / _safe(dataset) / "_dataset.json"
+
+    def write_dataset(self, spec: Any) -> Path:
+        """``<dataset>/_dataset.json``: what a report needs to know about a dataset (written with its runs)."""
+        return atomic_write_json(self.dataset_path(spec.name), {"dataset": spec.name, "thermal": spec.thermal,
+                                                                "sensing_stage": bool(spec.sensing_stage)})
 
     def profile_path(self, detector: str) -> Path:
         return self.root / "_profiles" / f"{detector}.json"

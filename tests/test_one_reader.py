@@ -214,3 +214,17 @@ def test_seeds_are_averaged_once_for_every_command(labelled_store):
     assert row["P1:mAP50"] == compared.per_fold[0]["map50"] == alpha.folds["P1"].metrics["metrics"]["mAP50"]
     assert row["mAP50"].mean == compared.map50 and row["mAP50"].sd == compared.map50_sd
     assert compared.seeds == [0, 1] and compared.per_fold[0]["seeds"] == [0, 1]
+
+
+@pytest.mark.parametrize("sensing_stage", [False, True])
+def test_the_report_knows_a_datasets_sensing_stage_from_the_store(labelled_store, sensing_stage):
+    """``synth`` is registered by no plugin: what its runs recorded (``<dataset>/_dataset.json``) decides whether the
+    report keeps the absent registration and displacement sections (the report used to ask the plugin host)."""
+    from harness.io import atomic_write_json
+    from harness.report.build import dataset_sections
+
+    atomic_write_json(labelled_store.dataset_path("synth"),
+                      {"dataset": "synth", "thermal": "radiometric", "sensing_stage": sensing_stage})
+    sections, _ = dataset_sections(StoreView(labelled_store), "synth", 0, 0, ["window"])
+    keys = {s.key for s in sections}
+    assert ({"registration", "displacement"} <= keys) is sensing_stage

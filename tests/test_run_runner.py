@@ -76,6 +76,8 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
         # the detector's defaults are a layer of the resolved config, below the profile (which sets lr0 itself)
         assert "defaults of detector 'tinydet'" in cfg["meta"]["sources"] and cfg["train"]["lr0"] == 0.002
         assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
+    assert json.loads((tmp_path / "store" / "shapes" / "_dataset.json").read_text()) == {
+        "dataset": "shapes", "thermal": "radiometric", "sensing_stage": False}  # what a report reads, not the plugin
     table = fold_table(summary)
     assert "mean ± SD" in table and table.count("trained") == 2
     lines = category_table(summary).splitlines()

@@ -283,19 +283,9 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         f"no displacement study of {dataset}", f"harness sensing displacement --dataset {dataset} --store {root}",
         f"harness sensing displacement --dataset {dataset} --store {root}")]
     # sensor-level sections belong to datasets with a sensing stage; a stored analysis is shown whatever the dataset
-    keep_absent = has_sensing_stage(dataset)
+    keep_absent = view.sensing_stage(dataset)
     sections += [s for s in sensing if keep_absent or not s.absent]
     return sections, comps
-
-
-def has_sensing_stage(dataset: str) -> bool:
-    """``DatasetSpec.sensing_stage`` of ``dataset``; True when no installed plugin registers it (keep the sections)."""
-    from harness.plugins import get_host
-
-    try:
-        return bool(get_host().dataset(dataset).sensing_stage)
-    except HarnessError:
-        return True
 
 
 def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analysis: str,

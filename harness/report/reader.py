@@ -130,12 +130,6 @@ def marks(labels: Iterable[ResultLabel]) -> str:
     return "".join(m for m in dict.fromkeys(MARKS.values()) if m in found)
 
 
-def with_marks(text: str, labels: Iterable[ResultLabel]) -> str:
-    """``text`` with the marks of ``labels`` beside it (``"51.2 ~"``)."""
-    m = marks(labels)
-    return f"{text} {m}" if m else text
-
-
 def label_notes(items: Sequence[tuple[str | None, Sequence[ResultLabel], Sequence[str]]]) -> list[str]:
     """The footnotes of the labels of a table's rows, one per label (approximate temperatures: one for all rows).
 
@@ -203,16 +197,21 @@ class StoredRun(Run):
         return NO_SOURCE
 
 
-_METRICS_CACHE: dict[Path, tuple[float, dict[str, Any]]] = {}
+_METRICS_CACHE: dict[Path, tuple[tuple[int, int], dict[str, Any]]] = {}
 
 
 def read_run(run: Run) -> StoredRun:
-    """The stored run of ``run`` (``metrics.json`` cached by modification time: tables read the same file often)."""
+    """The stored run of ``run`` (``metrics.json`` cached by modification time and size: tables read the same file
+    often)."""
     path = run.metrics_path
-    mtime = path.stat().st_mtime if path.exists() else -1.0
+    try:
+        st = path.stat()
+        stamp = (st.st_mtime_ns, st.st_size)
+    except OSError:
+        stamp = (-1, -1)
     hit = _METRICS_CACHE.get(path)
-    if not hit or hit[0] != mtime:
-        hit = (mtime, run.read_metrics())
+    if not hit or hit[0] != stamp:
+        hit = (stamp, run.read_metrics())
         _METRICS_CACHE[path] = hit
     return StoredRun(run, hit[1])
 
@@ -485,6 +484,27 @@ class StoreView:
         return found[0]
 
     # ------------------------------------------------------------------------------------------ other files
+    def sensing_stage(self, dataset: str) -> bool:
+        """Whether ``dataset`` has a sensing stage (registration, warp), as its runs recorded it
+        (``<dataset>/_dataset.json``). A store written before runs recorded it: the installed plugin's
+        ``DatasetSpec.sensing_stage``; True when neither knows (the report then keeps the sensing sections)."""
+        from harness.io import read_json
+
+        path = self.store.dataset_path(dataset)
+        try:
+            info = read_json(path) if path.exists() else None
+        except HarnessError as exc:
+            self.problem(f"{path}: unreadable ({exc})")
+            info = None
+        if isinstance(info, dict) and isinstance(info.get("sensing_stage"), bool):
+            return info["sensing_stage"]
+        from harness.plugins import get_host
+
+        try:
+            return bool(get_host().dataset(dataset).sensing_stage)
+        except HarnessError:
+            return True
+
     def sensing(self, dataset: str, analysis: str) -> dict[str, Any] | None:
         """``<dataset>/_sensing/<analysis>.json`` or None; an unreadable file raises a ``DataError`` naming it."""
         from harness.errors import DataError

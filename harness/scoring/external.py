@@ -113,6 +113,15 @@ class Matching:
         return out
 
 
+#: ``eval`` settings that change a score, with the value that leaves a stored identity as it was before they counted.
+EVAL_IDENTITY = {"engine": None, "matching": None, "safit_anchor": "center", "strict": False}
+
+
+def _eval_identity(ev: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``eval`` settings of a score's identity: engine and matching, the others where they are not the default."""
+    return {k: ev.get(k) for k, default in EVAL_IDENTITY.items() if default is None or ev.get(k, default) != default}
+
+
 @dataclass
 class ScoreResult:
     run_path: Path
@@ -452,11 +461,12 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                           "(the stored result is labelled).")
 
     key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
-    run = Store(store or Path("results") / (profile or "default")).run(key)
+    results = Store(store or Path("results") / (profile or "default"))
+    run = results.run(key)
     identity = {"predictions_sha1": file_digest(pred_path), "frame": frame, "image_key": image_key,
                 "images_sha1": file_digest(images) if images else None, "category_map": dict(category_map or {}),
                 "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
-                "val_groups": list(f.val_groups), "eval": {k: cfg["eval"][k] for k in ("engine", "matching")},
+                "val_groups": list(f.val_groups), "eval": _eval_identity(cfg["eval"]),
                 "params": params, "gflops": gflops}
     digest = config_hash(identity)
     st = run.status() or {}
@@ -489,6 +499,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     atomic_write_json(run.gt_path, gt, indent=None)
     run.write_metrics(metrics)
     run.set_status("finished", config_hash=digest, error=None, fold=f.name, seed=0)
+    results.write_dataset(spec)
     return ScoreResult(run.path, read_run(run).metrics, m, "scored")
 
 
