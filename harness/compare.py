@@ -68,9 +68,9 @@ class CompareRow:
     labels: list[ResultLabel] = field(default_factory=list)
     runs: list[str] = field(default_factory=list)
 
-    def notes_item(self) -> tuple[str, list[ResultLabel], list[str]]:
-        """This row's part of ``label_notes``."""
-        return f"{self.detector}/{self.encoding}", self.labels, self.runs
+    def notes_item(self, with_dataset: bool = False) -> tuple[str, list[ResultLabel], list[str]]:
+        """This row's part of ``label_notes`` (named with its dataset in a table of several)."""
+        return f"{self.dataset + ' ' if with_dataset else ''}{self.detector}/{self.encoding}", self.labels, self.runs
 
 
 @dataclass
@@ -98,7 +98,8 @@ class CompareTable:
 
     def label_notes(self) -> list[str]:
         """What the marks beside the numbers mean (``harness.report.reader.label_notes``)."""
-        return label_notes([r.notes_item() for r in self.rows])
+        several = len({r.dataset for r in self.rows}) > 1
+        return label_notes([r.notes_item(several) for r in self.rows])
 
     def to_text(self) -> str:
         cols = self.columns()

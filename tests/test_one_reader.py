@@ -101,10 +101,11 @@ def test_labels_of_several_runs_merge_and_their_notes_name_the_runs_they_concern
                            *run_labels({"labels": OLD_METRICS["labels"]}, "B/seed0")])
     assert [(lab.kind, lab.runs) for lab in merged] == [(ACCEPTED, ("A/seed0", "B/seed0")), (INPUT_RISK, ("A/seed0",)),
                                                          (APPROXIMATE, ("A/seed0", "A/seed1"))]
-    assert merged[2].bound_c == 0.5
+    assert merged[2].bound_c == 0.5 and merged[2].record["approximations"] == ["emissivity-remap-skipped",
+                                                                              "builtin-table"]
     notes = label_notes([("det/c2", merged, ["A/seed0", "A/seed1", "B/seed0"])])
     assert notes[0] == ("~ measured on approximate temperatures (det/c2: within 0.5 C of DJI's SDK at worst; "
-                        "builtin-table; docs/sensing.md)")
+                        "builtin-table, emissivity-remap-skipped; docs/sensing.md)")
     assert notes[1] == f"† accepted risk (det/c2, runs A/seed0, B/seed0): {OLD_METRICS['labels'][0]}"
     assert notes[2] == f"† accepted input risk (det/c2, run A/seed0): {OLD_METRICS['input_risks'][0]}"
     # a label of every run of the row names the row only; a table of one row names nothing
@@ -172,6 +173,11 @@ def test_every_table_shows_the_labels_of_a_seed_beside_the_numbers_it_concerns(l
     assert res.exit_code == 0, res.output
     p1 = next(line for line in res.stdout.splitlines() if line.startswith("P1"))
     assert "†" in p1 and "~" not in p1 and ACCEPTED_NOTE.split(":")[0] in res.stdout
+    res = cli_runner(["compare-detectors", "alpha/c2", "beta", "--dataset", "synth", "--store",
+                      str(labelled_store.root), "--resamples", "0", "--json"])
+    paired = json.loads(res.stdout)
+    assert [lab["kind"] for lab in paired["labels"]["a"]] == [ACCEPTED, APPROXIMATE] and paired["labels"]["b"] == []
+    assert paired["fold_marks"] == {"a": ["†", "~"], "b": ["", ""]}
     res = cli_runner(["compare-detectors", "beta", "alpha/ir8", "--dataset", "synth", "--store",
                       str(labelled_store.root), "--resamples", "0", "--json"])
     assert "label_notes" not in json.loads(res.stdout)  # a pair without labels is written as before

@@ -110,7 +110,8 @@ def run_labels(metrics: Mapping[str, Any], run: str = "") -> list[ResultLabel]:
 
 
 def merge_labels(labels: Iterable[ResultLabel]) -> list[ResultLabel]:
-    """One label per (kind, text), with the runs of all; approximate temperatures keep the worst bound."""
+    """One label per (kind, text), with the runs of all; approximate temperatures keep the record with the worst
+    bound, listing every approximation met."""
     merged: dict[tuple[str, str], ResultLabel] = {}
     for lab in labels:
         key = (lab.kind, "" if lab.kind == APPROXIMATE else lab.text)
@@ -119,7 +120,11 @@ def merge_labels(labels: Iterable[ResultLabel]) -> list[ResultLabel]:
             merged[key] = lab
             continue
         runs = old.runs + tuple(r for r in lab.runs if r not in old.runs)
-        record = lab.record if lab.bound_c > old.bound_c else old.record
+        record = old.record
+        if lab.kind == APPROXIMATE:
+            worst = lab.record if lab.bound_c > old.bound_c else old.record
+            kinds = [a for r in (old.record, lab.record) for a in (r or {}).get("approximations") or []]
+            record = {**(worst or {}), "approximations": list(dict.fromkeys(kinds))}
         merged[key] = replace(old, runs=runs, record=record)
     return list(merged.values())
 

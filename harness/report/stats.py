@@ -41,7 +41,7 @@ import numpy as np
 
 from harness.errors import StoreError
 from harness.evaluation import mean_sd
-from harness.report.reader import Entry, StoreView, label_notes, marks, natural_key
+from harness.report.reader import Entry, ResultLabel, StoreView, label_notes, marks, natural_key
 from harness.report.tables import Stat, text_table
 
 log = logging.getLogger(__name__)
@@ -299,20 +299,20 @@ class PairedComparison:
     fold_differences: dict[str, FoldDifference]
     bootstrap: dict[str, BootstrapResult] | None = None
     notes: list[str] = field(default_factory=list)
-    #: the marks of A's and B's labels per fold (``{"a": [...], "b": [...]}``) and what they mean
-    #: (``harness.report.reader``): empty when neither rests on a labelled result
+    #: A's and B's labels on the compared folds (``{"a": [...], "b": [...]}``, ``harness.report.reader``), their
+    #: marks per fold and what the marks mean: empty when neither rests on a labelled result
+    labels: dict[str, list[ResultLabel]] = field(default_factory=dict)
     fold_marks: dict[str, list[str]] = field(default_factory=dict)
     label_notes: list[str] = field(default_factory=list)
 
-    @property
-    def labelled(self) -> bool:
-        return bool(self.label_notes)
-
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
-        if not self.labelled:  # the keys appear only where there is something to say
-            d.pop("fold_marks")
-            d.pop("label_notes")
+        for key in ("labels", "fold_marks", "label_notes"):  # the keys appear only where there is something to say
+            d.pop(key)
+        if self.label_notes:
+            d["labels"] = {side: [{"kind": lab.kind, "text": lab.text, "runs": list(lab.runs)} for lab in labs]
+                           for side, labs in self.labels.items()}
+            d["fold_marks"], d["label_notes"] = self.fold_marks, self.label_notes
         return d
 
     def to_text(self) -> str:
@@ -415,6 +415,7 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
     shown = [a.restricted(folds), b.restricted(folds)]
     comp.label_notes = label_notes([e.notes_item() for e in shown])
     if comp.label_notes:
+        comp.labels = {k: e.labels for k, e in zip("ab", shown)}
         comp.fold_marks = {k: [marks(e.folds[f].labels) for f in folds] for k, e in zip("ab", shown)}
     if resamples <= 0:
         return comp

@@ -731,7 +731,7 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
     if left_out:
         table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablations): "
                            + ", ".join(left_out))
-    table.notes[:0] = label_notes([r.notes_item() for r in shown])
+    table.notes[:0] = label_notes([r.notes_item(len(with_runs) > 1) for r in shown])
     return table
 
 
