@@ -32,7 +32,7 @@ def main() -> None:
 
     from report_fixtures import make_detections, make_gt, write_run
 
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.stats import BootstrapScorer
     from harness.store import RunKey, Store
 

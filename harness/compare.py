@@ -1,5 +1,5 @@
 """Cross-dataset comparison: the seed's table of images, instances, mAP50 and mAP50:95 per dataset, annotation
-source and detector, built from the results store alone.
+source and detector, read from the results store through its one reader (``harness.report.reader``).
 
 One row per (dataset, annotation source, detector, encoding). A row aggregates the finished runs of that
 combination: the support is summed over its held-out folds (each fold's images and instances, once per fold), and
@@ -24,35 +24,18 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Mapping, Sequence
 
 from harness.errors import HarnessError, StoreError
 from harness.io import read_json
-from harness.store import Run, Store
-
-
-#: Short names of annotation sources, as the seed's tables write them.
-SOURCE_LABELS = {"thermal": "T", "t": "T", "ir": "T", "01": "T", "visible": "RGB", "rgb": "RGB", "vis": "RGB", "00": "RGB"}
-NO_SOURCE = "-"
+from harness.report.reader import (
+    APPROXIMATE, Entry, FoldResult, ResultLabel, StoredRun, StoreView, label_notes, marks,
+)
+from harness.report.tables import Stat, format_value
 
 
 class SupportMismatch(HarnessError):
     """Detectors of one dataset and annotation source were scored on different samples."""
-
-
-@dataclass
-class FoldResult:
-    """One held-out fold of one (detector, encoding): support and metrics, averaged over its seeds."""
-
-    fold: str
-    seeds: list[int]
-    images: int
-    instances: int
-    image_ids_sha1: str
-    map50: float | None
-    map50_95: float | None
-    safit50: float | None = None
-    safit50_95: float | None = None
 
 
 @dataclass
@@ -75,11 +58,19 @@ class CompareRow:
     safit50_95_sd: float | None = None
     #: False when the support differs from the other detectors of the same dataset and source
     matched: bool = True
-    per_fold: list[FoldResult] = field(default_factory=list)
+    #: per held-out fold: fold, seeds, images, instances, image_ids_sha1 and the seed-averaged numbers
+    per_fold: list[dict[str, Any]] = field(default_factory=list)
     #: the model options the runs were built with (``scale=n``; "mixed: ..." when they differ between folds)
     options: str = ""
     #: set when the runs' thermal input rests on approximate temperatures (``metrics.json`` ``temperatures``)
     temperatures: dict[str, Any] | None = None
+    #: what the numbers rest on (``harness.report.reader.ResultLabel``), and the runs behind the row
+    labels: list[ResultLabel] = field(default_factory=list)
+    runs: list[str] = field(default_factory=list)
+
+    def notes_item(self, with_dataset: bool = False) -> tuple[str, list[ResultLabel], list[str]]:
+        """This row's part of ``label_notes`` (named with its dataset in a table of several)."""
+        return f"{self.dataset + ' ' if with_dataset else ''}{self.detector}/{self.encoding}", self.labels, self.runs
 
 
 @dataclass
@@ -98,21 +89,17 @@ class CompareTable:
     def _cells(self, r: CompareRow) -> list[str]:
         mark = "" if r.matched else " !"
         name = r.detector + (f" [{r.options}]" if r.options else "") + mark
-        approx = " ~" if r.temperatures else ""  # beside every number that rests on approximate temperatures
-        cells = [r.dataset, r.source, name, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
-                 _pct(r.map50, r.map50_sd) + approx, _pct(r.map50_95, r.map50_95_sd) + approx]
+        labelled = f" {m}" if (m := marks(r.labels)) else ""  # beside every number the labels concern
+        values = [(r.map50, r.map50_sd), (r.map50_95, r.map50_95_sd)]
         if self.safit:
-            cells += [_pct(r.safit50, r.safit50_sd) + approx, _pct(r.safit50_95, r.safit50_95_sd) + approx]
-        return cells
+            values += [(r.safit50, r.safit50_sd), (r.safit50_95, r.safit50_95_sd)]
+        return [r.dataset, r.source, name, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
+                *(format_value(Stat(v, sd), "pct") + labelled for v, sd in values)]
 
-    def approximate_note(self) -> str | None:
-        """What ``~`` means, when a row rests on approximate temperatures."""
-        found = [r for r in self.rows if r.temperatures]
-        if not found:
-            return None
-        worst = max(float(r.temperatures.get("bound_c") or 0.0) for r in found)  # type: ignore[union-attr]
-        return (f"~ measured on approximate temperatures ({', '.join(f'{r.detector}/{r.encoding}' for r in found)}: "
-                f"within {worst:g} C of DJI's SDK at worst; docs/sensing.md)")
+    def label_notes(self) -> list[str]:
+        """What the marks beside the numbers mean (``harness.report.reader.label_notes``)."""
+        several = len({r.dataset for r in self.rows}) > 1
+        return label_notes([r.notes_item(several) for r in self.rows])
 
     def to_text(self) -> str:
         cols = self.columns()
@@ -137,8 +124,7 @@ class CompareTable:
                 out.append(line(cells))
             out.append("")
         out.append("AP in %, mean ± sample SD over held-out folds; images and instances summed over held-out folds.")
-        if self.approximate_note():
-            out.append(self.approximate_note())  # type: ignore[arg-type]
+        out += self.label_notes()
         if self.mismatches:
             out.append("! NOT SAMPLE-MATCHED: these rows were scored on different supports and must not be compared:")
             out.extend(f"  - {m}" for m in self.mismatches)
@@ -148,8 +134,8 @@ class CompareTable:
         cols = self.columns()
         out = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
         out += ["| " + " | ".join(self._cells(r)) + " |" for r in self.rows]
-        if self.approximate_note():
-            out += ["", str(self.approximate_note())]
+        if self.label_notes():
+            out += ["", *self.label_notes()]
         if self.mismatches:
             out.append("")
             out += [f"**Not sample-matched:** {m}" for m in self.mismatches]
@@ -169,95 +155,87 @@ class CompareTable:
 
     def to_json(self) -> str:
         return json.dumps({"store": self.store, "safit": self.safit, "mismatches": self.mismatches,
-                           "rows": [asdict(r) for r in self.rows]}, indent=2)
+                           "rows": [_json_row(r) for r in self.rows]}, indent=2)
 
     def render(self, fmt: str) -> str:
         return {"text": self.to_text, "markdown": self.to_markdown, "csv": self.to_csv, "json": self.to_json}[fmt]()
 
 
-def _pct(value: float | None, sd: float | None = None) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    return f"{100 * value:.1f}" + (f" ± {100 * sd:.1f}" if sd is not None else "")
+def _json_row(r: CompareRow) -> dict[str, Any]:
+    """A row as JSON: its labels (kind, text, runs) only when it has any."""
+    d = asdict(r)
+    d.pop("runs")
+    labels = d.pop("labels")
+    if labels:
+        d["labels"] = [{k: lab[k] for k in ("kind", "text", "runs")} for lab in labels]
+    return d
 
 
 # ---------------------------------------------------------------------------------------------- reading the store
-def annotation_source(run: Run) -> str:
-    """The annotation source of a run: ``dataset.gt`` of its resolved config, else the ``-T``/``-RGB`` suffix a
-    dataset gives its fold names (RGBT-Tiny), else ``-`` (the dataset has a single annotation set)."""
-    gt = None
-    if run.config_path.exists():
-        from harness.config import read_yaml
-
-        cfg = read_yaml(run.config_path)
-        ds = cfg.get("dataset") if isinstance(cfg, dict) else None
-        gt = ds.get("gt") if isinstance(ds, dict) else None
-    if gt is not None:
-        return SOURCE_LABELS.get(str(gt).strip().lower(), str(gt))
-    fold = run.key.fold
-    for suffix in ("T", "RGB"):
-        if fold.endswith(f"-{suffix}"):
-            return suffix
-    return NO_SOURCE
-
-
-def _safit_rescored(run: Run) -> dict[str, Any]:
-    """The SAFit block of a run, re-scored by the one evaluator from its stored predictions and ground truth."""
-    from harness.evaluation import evaluate
+def _safit_rescored(run: StoredRun) -> dict[str, Any]:
+    """The SAFit block of a run, re-scored by the one evaluator from its stored predictions and ground truth, with
+    the run's own evaluation settings (``eval`` of its config: engine, SAFit anchor)."""
+    from harness.evaluation import evaluate_with_config
 
     for path in (run.gt_path, run.predictions_path):
         if not path.exists():
             raise StoreError(f"{path}: missing; SAFit-AP is re-scored from a run's gt.json and predictions.json")
-    result = evaluate(read_json(run.gt_path), read_json(run.predictions_path), matching="safit")
+    settings = {**(run.config.get("eval") or {}), "matching": "safit"}
+    result = evaluate_with_config(read_json(run.gt_path), read_json(run.predictions_path), {"eval": settings})
     return result["metrics"]["safit"]
 
 
-def _options(metrics: Any) -> str:
-    """The model options recorded in the runs' complexity (``scale=n``), or ``mixed: a; b`` when they differ."""
-    from harness.complexity import options_label
-
-    found = {options_label((m.get("complexity") or {}).get("model_options") or {}) for m in metrics}
-    if len(found) > 1:
-        return "mixed: " + "; ".join(sorted(o or "defaults" for o in found))
-    return next(iter(found), "")
+def _finite(value: Any) -> float | None:
+    return None if value is None or not math.isfinite(float(value)) else float(value)
 
 
-def _fold_result(fold: str, runs: list[Run], safit: bool) -> tuple[FoldResult, dict[str, Any]]:
-    """The fold's seeds averaged, and one representative metrics dict (for the sample-matched guard)."""
+def _fold_record(fr: FoldResult, safit: bool) -> dict[str, Any]:
+    """One fold of a row as ``per_fold`` shows it: support and its seed-averaged numbers (SAFit when every seed has
+    a SAFit block, or re-scored ones with ``safit``). Seeds scored on different samples are refused."""
     from harness.evaluation import check_sample_matched, mean_sd
 
-    metrics = {str(r.key): r.read_metrics() for r in runs}
-    try:
-        check_sample_matched(metrics, hint="Re-run the odd seed on the current prepared data (harness run ... --seeds "
-                                           "N --force).")
-    except HarnessError as exc:
-        raise SupportMismatch(f"the seeds of one fold were scored on different samples: {exc}") from None
-    first = next(iter(metrics.values()))
-    sup = first["support"]
-    out = FoldResult(fold, sorted(r.key.seed for r in runs), int(sup["images"]), int(sup["instances"]),
-                     str(sup.get("image_ids_sha1", "")),
-                     mean_sd([m["metrics"].get("mAP50") for m in metrics.values()])["mean"],
-                     mean_sd([m["metrics"].get("mAP50_95") for m in metrics.values()])["mean"])
+    if fr.seed_mismatch:
+        try:
+            check_sample_matched({str(r.key): r.metrics for r in fr.runs},
+                                 hint="Re-run the odd seed on the current prepared data (harness run ... --seeds N "
+                                      "--force).")
+        except HarnessError as exc:
+            raise SupportMismatch(f"the seeds of one fold were scored on different samples: {exc}") from None
+    head = fr.metrics["metrics"]
+    out: dict[str, Any] = {"fold": fr.fold, "seeds": fr.seeds, "images": fr.images, "instances": fr.instances,
+                           "image_ids_sha1": str(fr.support.get("image_ids_sha1", "")),
+                           "map50": _finite(head.get("mAP50")), "map50_95": _finite(head.get("mAP50_95")),
+                           "safit50": None, "safit50_95": None}
     blocks = []
-    for run, m in zip(runs, metrics.values()):
-        block = m["metrics"].get("safit")
-        if block is None and safit:
-            block = _safit_rescored(run)
-        blocks.append(block)
+    for run in fr.runs:
+        block = run.metrics["metrics"].get("safit")
+        blocks.append(_safit_rescored(run) if block is None and safit else block)
     if all(b is not None for b in blocks):
-        out.safit50 = mean_sd([b.get("mAP50") for b in blocks])["mean"]
-        out.safit50_95 = mean_sd([b.get("mAP50_95") for b in blocks])["mean"]
-    return out, first
-
-
-def collect(store: Store, datasets: Iterable[str]) -> dict[tuple[str, str], dict[tuple[str, str], dict[str, list[Run]]]]:
-    """``{(dataset, source): {(detector, encoding): {fold: [runs]}}}`` over finished runs."""
-    out: dict[tuple[str, str], dict[tuple[str, str], dict[str, list[Run]]]] = {}
-    for ds in datasets:
-        for run in store.runs(dataset=ds):
-            key = (ds, annotation_source(run))
-            out.setdefault(key, {}).setdefault((run.key.detector, run.key.encoding), {}).setdefault(run.key.fold, []).append(run)
+        out["safit50"] = mean_sd([b.get("mAP50") for b in blocks])["mean"]
+        out["safit50_95"] = mean_sd([b.get("mAP50_95") for b in blocks])["mean"]
     return out
+
+
+def _row(source: str, entry: Entry, safit: bool, matched: bool) -> CompareRow:
+    """The row of one entry (its folds of one annotation source): support summed, mean ± sample SD over folds."""
+    from harness.evaluation import mean_sd
+
+    per_fold = [_fold_record(fr, safit) for fr in entry.folds.values()]
+
+    def over_folds(key: str) -> dict[str, Any]:
+        return mean_sd([f[key] for f in per_fold])
+
+    m50, m95 = over_folds("map50"), over_folds("map50_95")
+    approx = next((lab for lab in entry.labels if lab.kind == APPROXIMATE), None)
+    row = CompareRow(entry.dataset, source, entry.detector, entry.encoding, entry.fold_names, entry.seeds,
+                     sum(f["images"] for f in per_fold), sum(f["instances"] for f in per_fold),
+                     m50["mean"], m50["sd"], m95["mean"], m95["sd"], matched=matched, per_fold=per_fold,
+                     options=entry.options_label(), temperatures=dict(approx.record or {}) if approx else None,
+                     labels=entry.labels, runs=[r.name for r in entry.runs()])
+    s50, s95 = over_folds("safit50"), over_folds("safit50_95")
+    if s50["n"] == len(per_fold):
+        row.safit50, row.safit50_95, row.safit50_sd, row.safit50_95_sd = s50["mean"], s95["mean"], s50["sd"], s95["sd"]
+    return row
 
 
 def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict[str, dict[str, Any]]]) -> list[str]:
@@ -287,85 +265,60 @@ def check_matched(dataset: str, source: str, entries: dict[tuple[str, str], dict
     return problems
 
 
-def _support_signature(folds: dict[str, FoldResult]) -> str:
-    return json.dumps({f: [r.images, r.instances, r.image_ids_sha1] for f, r in sorted(folds.items())}, sort_keys=True)
+def _support_signature(folds: Sequence[Mapping[str, Any]]) -> str:
+    return json.dumps({f["fold"]: [f["images"], f["instances"], f["image_ids_sha1"]] for f in folds}, sort_keys=True)
 
 
-def build_table(store_root: str | Path, datasets: Sequence[str], allow_mismatched: bool = False,
+def build_table(store: StoreView | str | Path, datasets: Sequence[str], allow_mismatched: bool = False,
                 safit: bool = False) -> CompareTable:
-    """The cross-dataset table for ``datasets`` from the store at ``store_root`` (see the module docstring).
+    """The cross-dataset table for ``datasets`` from the store at ``store`` (see the module docstring).
 
     SAFit columns appear when the runs were evaluated with ``eval.matching=safit`` (their metrics carry a SAFit
     block) or when ``safit=True`` (runs without the block are re-scored from their stored predictions).
     """
-    from harness.evaluation import aggregate_folds
-
-    store = Store(store_root)
-    if not store.root.is_dir():
-        raise StoreError(f"{store.root}: no results store here; pass --store (the folder `harness run` wrote into)")
-    found = collect(store, datasets)
-    missing = [d for d in datasets if not any(k[0] == d for k in found)]
+    view = store if isinstance(store, StoreView) else StoreView(store)
+    missing = [d for d in datasets if not view.entries(d)]
     if missing:
-        present = sorted({r.key.dataset for r in store.runs()})
+        present = [d for d in view.datasets() if view.entries(d)]
         raise StoreError(
-            f"{store.root}: no finished runs for dataset(s) {', '.join(missing)}; run `harness run --dataset NAME ...` "
+            f"{view.root}: no finished runs for dataset(s) {', '.join(missing)}; run `harness run --dataset NAME ...` "
             f"into this store first (finished runs found for: {', '.join(present) or 'none'})"
         )
     rows: list[CompareRow] = []
     mismatches: list[str] = []
-    order = {d: i for i, d in enumerate(datasets)}
-    for (ds, source), entries in sorted(found.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
-        results: dict[tuple[str, str], dict[str, FoldResult]] = {}
-        representative: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
-        for k, folds in entries.items():
-            for fold, runs in folds.items():
-                fr, metrics = _fold_result(fold, runs, safit)
-                results.setdefault(k, {})[fold] = fr
-                representative.setdefault(k, {})[fold] = metrics
-        problems = check_matched(ds, source, representative)
-        mismatches.extend(problems)
-        bad = _mismatched_entries(results) if problems else set()
-        for (det, enc), folds in sorted(results.items()):
-            fr = [folds[f] for f in sorted(folds)]
-            agg = aggregate_folds([_fold_metrics(ds, f) for f in fr])
-            m = agg["metrics"]
-            row = CompareRow(ds, source, det, enc, [f.fold for f in fr], sorted({s for f in fr for s in f.seeds}),
-                             agg["support"]["images"], agg["support"]["instances"],
-                             m["mAP50"]["mean"], m["mAP50"]["sd"], m["mAP50_95"]["mean"], m["mAP50_95"]["sd"],
-                             matched=(det, enc) not in bad, per_fold=fr,
-                             options=_options(representative[(det, enc)].values()),
-                             temperatures=next((m["temperatures"] for m in representative[(det, enc)].values()
-                                                if isinstance(m.get("temperatures"), dict)), None))
-            if "safit_mAP50" in m and m["safit_mAP50"]["n"] == len(fr):
-                row.safit50, row.safit50_95 = m["safit_mAP50"]["mean"], m["safit_mAP50_95"]["mean"]
-                row.safit50_sd, row.safit50_95_sd = m["safit_mAP50"]["sd"], m["safit_mAP50_95"]["sd"]
-            rows.append(row)
-    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows), store=str(store.root))
+    for ds in dict.fromkeys(datasets):
+        by_source: dict[str, list[Entry]] = {}
+        for entry in view.entries(ds):
+            for source, part in entry.by_source().items():
+                by_source.setdefault(source, []).append(part)
+        for source, entries in sorted(by_source.items()):
+            problems = check_matched(ds, source, {(e.detector, e.encoding): {f: fr.metrics for f, fr in e.folds.items()}
+                                                  for e in entries})
+            mismatches.extend(problems)
+            found = [_row(source, e, safit, True) for e in entries]
+            bad = _mismatched_rows(found) if problems else set()
+            for i, row in enumerate(found):
+                row.matched = i not in bad
+            rows.extend(found)
+    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows),
+                         store=str(view.root))
     if mismatches and not allow_mismatched:
         raise SupportMismatch(
             "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
-            + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows marked '!'"
+            + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows "
+              "marked '!'"
         )
     return table
 
 
-def _fold_metrics(dataset: str, f: FoldResult) -> dict[str, Any]:
-    """A fold's seed-averaged numbers in the shape ``aggregate_folds`` reads."""
-    metrics: dict[str, Any] = {"mAP50": f.map50, "mAP50_95": f.map50_95}
-    if f.safit50 is not None:
-        metrics["safit"] = {"mAP50": f.safit50, "mAP50_95": f.safit50_95}
-    return {"run": {"dataset": dataset, "fold": f.fold}, "metrics": metrics, "per_category": {},
-            "support": {"images": f.images, "instances": f.instances, "image_ids_sha1": f.image_ids_sha1}}
-
-
-def _mismatched_entries(results: dict[tuple[str, str], dict[str, FoldResult]]) -> set[tuple[str, str]]:
-    """Entries whose support differs from the most common support of their dataset and source."""
-    sigs = {k: _support_signature(v) for k, v in results.items()}
+def _mismatched_rows(rows: Sequence[CompareRow]) -> set[int]:
+    """Rows whose support differs from the most common support of their dataset and source."""
+    sigs = [_support_signature(r.per_fold) for r in rows]
     counts: dict[str, int] = {}
-    for s in sigs.values():
+    for s in sigs:
         counts[s] = counts.get(s, 0) + 1
     best = max(counts.values())
     majority = [s for s, c in counts.items() if c == best]
-    if len(majority) > 1:  # no majority: every entry is suspect
-        return set(results)
-    return {k for k, s in sigs.items() if s != majority[0]}
+    if len(majority) > 1:  # no majority: every row is suspect
+        return set(range(len(rows)))
+    return {i for i, s in enumerate(sigs) if s != majority[0]}

@@ -109,6 +109,17 @@ def atomic_write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Pat
     return atomic_write_text(path, dumps_json(obj, indent))
 
 
+def file_digest(path: str | Path, algorithm: str = "sha1") -> str:
+    """The hex digest of a file's bytes (read in 1 MiB chunks)."""
+    import hashlib
+
+    h = hashlib.new(algorithm)
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def read_json(path: str | Path) -> Any:
     """Read JSON; a malformed file is a ``DataError`` naming the file and the position."""
     from harness.errors import DataError

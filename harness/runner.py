@@ -26,21 +26,25 @@ from __future__ import annotations
 import contextlib
 import copy
 import logging
-import math
-import re
 import shutil
-import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
 
 from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
+from harness.io import atomic_write_json, file_digest
 from harness.progress import OverallProgress
-from harness.io import atomic_write_json
+from harness.report.reader import StoredRun, read_run
 from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
-from harness.textable import fit_text, text_table
+
+if TYPE_CHECKING:
+    import torch
+
+    from harness.api import DatasetSpec, DetectorSpec, EncodingSpec, Fold
+    from harness.plugins import PluginHost
+    from harness.cache import PreparedDataset
 
 log = logging.getLogger(__name__)
 
@@ -75,15 +79,26 @@ class RunRequest:
 
 
 @dataclass
-class FoldResult:
-    """One (fold, seed) run: where it is stored and what it scored."""
+class RunOutcome:
+    """One (fold, seed) run of a request: what the store holds for it (read back through the store's reader) and
+    what this request did with it."""
 
-    key: RunKey
-    path: Path
-    metrics: dict[str, Any]
+    stored: StoredRun
     state: str  # "trained", "resumed" or "skipped" (finished earlier with the same configuration)
     train_images: int = 0
     val_images: int = 0
+
+    @property
+    def key(self) -> RunKey:
+        return self.stored.key
+
+    @property
+    def path(self) -> Path:
+        return self.stored.path
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        return self.stored.metrics
 
 
 @dataclass
@@ -95,44 +110,38 @@ class RunSummary:
     store: Path
     config: dict[str, Any]
     categories: list[str]
-    results: list[FoldResult] = field(default_factory=list)
-
-    @property
-    def metrics(self) -> list[dict[str, Any]]:
-        return [r.metrics for r in self.results]
-
-    def aggregate(self) -> dict[str, Any]:
-        from harness.evaluation import aggregate_folds
-
-        return aggregate_folds(self.metrics)
+    results: list[RunOutcome] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------------------------------------- resolution
-def prepare_dataset(dataset: str, cfg: Mapping[str, Any]) -> Any:
+def prepare_dataset(dataset: str, cfg: Mapping[str, Any]) -> PreparedDataset:
     """The dataset's prepared samples (``harness.cache.prepare``: computed once, then read from the cache)."""
     from harness.cache import prepare
 
     return prepare(dataset, dict(cfg))
 
 
-def resolve_folds(dataset_spec: Any, prepared: Any, cfg: Mapping[str, Any], selection: str) -> list[Any]:
+def resolve_folds(dataset_spec: DatasetSpec, prepared: PreparedDataset, cfg: Mapping[str, Any],
+                  selection: str) -> list[Fold]:
     from harness.cache import resolve_folds as _resolve
 
     return _resolve(dataset_spec, prepared, dict(cfg), selection)
 
 
-def fold_indices(prepared: Any, fold: Any) -> tuple[list[int], list[int]]:
+def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list[int]]:
     from harness.cache import fold_indices as _indices
 
     train_idx, val_idx = _indices(prepared, fold)
     return list(train_idx), list(val_idx)
 
 
-def choose_encoding(detector: Any, dataset: Any, requested: str | None, host: Any) -> Any:
+def choose_encoding(detector: DetectorSpec, dataset: DatasetSpec, requested: str | None,
+                    host: PluginHost) -> EncodingSpec:
     """The encoding a run uses: the requested one, else the detector's (dual-stream) or the dataset's default."""
-    name = requested or (detector.default_thermal_encoding if detector.input_kind == "dual" else dataset.default_encoding)
+    dual = detector.input_kind == "dual"
+    name = requested or (detector.default_thermal_encoding if dual else dataset.default_encoding)
     enc = host.encoding(name)
-    if detector.input_kind == "dual" and enc.channels == 0:
+    if dual and enc.channels == 0:
         raise ConfigError(
             f"detector {detector.name!r} is dual-stream and needs a thermal encoding, but {name!r} adds no channel; "
             f"use e.g. --encoding {detector.default_thermal_encoding}"
@@ -145,7 +154,7 @@ def choose_encoding(detector: Any, dataset: Any, requested: str | None, host: An
     return enc
 
 
-def resolve_config(request: RunRequest, detector: Any, dataset: Any) -> dict[str, Any]:
+def resolve_config(request: RunRequest, detector: DetectorSpec, dataset: DatasetSpec) -> dict[str, Any]:
     from harness.config import load_config
 
     return load_config(request.profile, protocol=dataset.protocol, detector=detector.name,
@@ -214,7 +223,7 @@ def identity_diff(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 8
 class PlannedRun:
     """One (fold, seed) of a request, before anything is trained: its store folder, configuration and hash."""
 
-    fold: Any
+    fold: Fold
     seed: int
     run: Run
     config: dict[str, Any]
@@ -251,13 +260,13 @@ class PlannedRun:
 class RunPlan:
     """What ``run`` would do for a request: the resolved plugins, configuration, prepared data and runs."""
 
-    detector: Any
-    dataset: Any
-    encoding: Any
+    detector: DetectorSpec
+    dataset: DatasetSpec
+    encoding: EncodingSpec
     config: dict[str, Any]
     init: str | None
     store: Store
-    prepared: Any
+    prepared: PreparedDataset
     runs: list[PlannedRun]
 
     def conflicts(self) -> list[str]:
@@ -324,6 +333,8 @@ def run(request: RunRequest) -> RunSummary:
     conflicts = p.conflicts()
     if conflicts and not request.force:
         raise conflict_error(conflicts, p.store)
+    if hd.is_main():
+        p.store.write_dataset(ds)
 
     summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
                          list(prepared.categories))
@@ -334,15 +345,14 @@ def run(request: RunRequest) -> RunSummary:
         train_idx, val_idx = fold_indices(prepared, fold)
         if planned.state == "finished" and not request.force:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
-            summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx), len(val_idx)))
+            summary.results.append(RunOutcome(read_run(r), "skipped", len(train_idx), len(val_idx)))
             continue
         with _run_lock(r):
             st = r.status() or {}
             if not request.force and r.is_finished() and st.get("config_hash") == digest \
                     and not hd.info().active:  # finished by another process while this one waited its turn
                 log.info("%s: finished by another process meanwhile, skipped", r.key)
-                summary.results.append(FoldResult(r.key, r.path, r.read_metrics(), "skipped", len(train_idx),
-                                                  len(val_idx)))
+                summary.results.append(RunOutcome(read_run(r), "skipped", len(train_idx), len(val_idx)))
                 continue
             overall.start_run(str(r.key))
             result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
@@ -371,9 +381,10 @@ def _run_lock(r: Run) -> Iterator[None]:
         yield
 
 
-def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,
-            train_idx: Sequence[int], val_idx: Sequence[int], init: str | Path | None = None, force: bool = False,
-            progress: bool = True, overall: OverallProgress | None = None) -> FoldResult:
+def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fold: Fold, seed: int, r: Run,
+            cfg: dict[str, Any], digest: str, train_idx: Sequence[int], val_idx: Sequence[int],
+            init: str | Path | None = None, force: bool = False, progress: bool = True,
+            overall: OverallProgress | None = None) -> RunOutcome:
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
     import torch
 
@@ -384,7 +395,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
     from harness.engine.predict import DegenerateBoxes, predict
     from harness.engine.runtime import environment, seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
-    from harness.evaluation import evaluate
+    from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
 
     if not train_idx:
@@ -442,7 +453,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
                            name=det.name, distributed=dist.active)
             if not main:
                 return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
-            res = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+            res = evaluate_with_config(gt, dets, cfg)
             out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
             out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
             return out
@@ -471,11 +482,10 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         predict_s = time.perf_counter() - t0
         if not main:  # rank 0 scores and writes; the others read its metrics once they are stored
             hd.barrier()
-            return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx),
-                              len(val_idx))
+            return RunOutcome(read_run(r), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
         # most boxes malformed (e.g. x, y, w, h returned): stop naming the detector, unless accepted (then labelled)
         degenerate_note = degenerate.check(det.name, bool(eval_cfg.get("allow_degenerate", False)))
-        evaluation = evaluate(gt, dets, engine=eval_cfg["engine"], matching=eval_cfg["matching"])
+        evaluation = evaluate_with_config(gt, dets, cfg)
         if degenerate_note:
             log.warning("%s", degenerate_note)
         support = dict(evaluation["support"])
@@ -525,7 +535,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         m = evaluation["metrics"]
         log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
                  m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
-        return FoldResult(r.key, r.path, r.read_metrics(), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
+        return RunOutcome(read_run(r), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
     except BaseException as exc:
         if main and not stored:
             reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
@@ -538,7 +548,7 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         raise
 
 
-def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> None:
+def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, cfg: Mapping[str, Any]) -> None:
     """The training settings and the model options of a request, checked by building the model once (discarded):
     ``harness run``, ``sweep`` and ``sweep --dry-run`` refuse a bad ``--set`` before anything is stored."""
     from harness.engine.trainer import TrainSettings
@@ -558,29 +568,23 @@ def check_settings(det: Any, dataset: Any, enc: Any, cfg: Mapping[str, Any]) -> 
                           f"{type(exc).__name__}: {exc}") from exc
 
 
-def build_model(det: Any, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> Any:
+def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> torch.nn.Module:
     """``det.build(num_classes, in_channels=..., **model_cfg)`` with bad options reported as a config error."""
     try:
         return det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
     except TypeError as exc:
         if "keyword argument" in str(exc):
-            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}") from None
+            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: "
+                              f"{exc}") from None
         raise
 
 
 def _init_info(init: str | Path | None) -> dict[str, Any]:
     if not init:
         return {}
-    import hashlib
-
-    path = Path(init)
-    if not path.is_file():
+    if not Path(init).is_file():
         raise ConfigError(f"train.init / --init {init}: no such checkpoint file")
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return {"init_sha1": h.hexdigest()}
+    return {"init_sha1": file_digest(init)}
 
 
 # ------------------------------------------------------------------------------------------------- ablation
@@ -614,111 +618,11 @@ def ablate(detector: str, dataset: str, encodings: Sequence[str], fold: str, see
     return AblationSummary(detector, dataset, fold, [match_category(c, first.categories) for c in categories], runs)
 
 
-def _norm(name: str) -> str:
-    return re.sub(r"[\s_\-]+", " ", name.strip().lower())
-
-
 def match_category(wanted: str, categories: Sequence[str]) -> str:
     """``"water seepage"`` finds ``water_seepage`` or ``Water-Seepage``; an unknown name is a clear error."""
-    for c in categories:
-        if _norm(c) == _norm(wanted):
-            return c
-    raise ConfigError(f"category {wanted!r} is not in the dataset (categories: {', '.join(categories)})")
+    from harness.report.reader import find_category
 
-
-# ------------------------------------------------------------------------------------------------- tables
-def _fmt(v: float | None, digits: int = 3) -> str:
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
-def _mean_sd(values: Sequence[float | None]) -> tuple[float | None, float | None]:
-    present = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    mean = statistics.fmean(present) if present else None
-    sd = statistics.stdev(present) if len(present) >= 2 else None
-    return mean, sd
-
-
-def _pm(stats: Mapping[str, Any] | tuple[float | None, float | None]) -> str:
-    mean, sd = (stats.get("mean"), stats.get("sd")) if isinstance(stats, Mapping) else stats
-    if mean is None:
-        return "-"
-    return f"{mean:.3f} ± {sd:.3f}" if sd is not None else f"{mean:.3f}"
-
-
-def fold_table(summary: RunSummary) -> str:
-    """Per fold (and seed): support, P, R, mAP50, mAP50:95, epochs; then mean ± sample SD over the rows."""
-    headers = ["fold", "seed", "train", "val", "inst", "P", "R", "mAP50", "mAP50:95", "epochs", "state"]
-    rows = []
-    for r in summary.results:
-        m, tr = r.metrics["metrics"], r.metrics.get("train") or {}
-        epochs = f"{tr.get('best_epoch') or '-'}/{tr.get('epochs_run', '-')}"
-        rows.append([r.key.fold, str(r.key.seed), str(r.train_images), str(r.val_images),
-                     str(r.metrics["support"].get("instances", "-")), _fmt(m.get("precision")), _fmt(m.get("recall")),
-                     _fmt(m.get("mAP50")), _fmt(m.get("mAP50_95")), epochs, r.state])
-    if len(summary.results) > 1:
-        agg = summary.aggregate()["metrics"]
-        rows.append(["mean ± SD", "", "", "", "", *(_pm(agg.get(k, {})) for k in ("precision", "recall", "mAP50", "mAP50_95")),
-                     "", ""])
-    title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
-             f"(best epoch / epochs run)")
-    risks = list(dict.fromkeys(x for r in summary.results for x in r.metrics.get("input_risks") or []))
-    label = "".join("\n" + fit_text(f"accepted input risk: {x}") for x in risks)
-    return (fit_text(title) + "\n" + text_table(headers, _marked(summary, rows, 5, 9)) + _approximate_line(summary)
-            + label)
-
-
-def _approximate_record(summary: RunSummary) -> dict[str, Any] | None:
-    found = [r.metrics.get("temperatures") for r in summary.results if isinstance(r.metrics.get("temperatures"), dict)]
-    return max(found, key=lambda t: float(t.get("bound_c") or 0.0)) if found else None
-
-
-def _marked(summary: RunSummary, rows: list[list[str]], first: int, last: int | None) -> list[list[str]]:
-    """``rows`` with `` ~`` beside each number in columns ``first`` to ``last`` (exclusive), when the runs used
-    approximate temperatures."""
-    if _approximate_record(summary) is None:
-        return rows
-    end = last if last is not None else max((len(r) for r in rows), default=0)
-    return [row[:first] + [c + " ~" if c not in ("", "-") and c[:1].isdigit() else c for c in row[first:end]]
-            + row[end:] for row in rows]
-
-
-def _approximate_line(summary: RunSummary) -> str:
-    rec = _approximate_record(summary)
-    if rec is None:
-        return ""
-    return "\n" + fit_text(f"~ measured on approximate temperatures (within {float(rec.get('bound_c') or 0):g} C "
-                           f"of DJI's SDK at worst; {', '.join(rec.get('approximations') or [])}; docs/sensing.md)")
-
-
-def category_table(summary: RunSummary) -> str:
-    """Per category: AP50 in each fold, then AP50 and AP50:95 as mean ± sample SD over the folds with instances."""
-    labels = [f"{r.key.fold}" + (f"/s{r.key.seed}" if len({x.key.seed for x in summary.results}) > 1 else "")
-              for r in summary.results]
-    agg = summary.aggregate()["per_category"] if summary.results else {}
-    headers = ["category", "inst", *[f"AP50 {lab}" for lab in labels], "AP50", "AP50:95"]
-    rows = []
-    for cat in summary.categories:
-        per = [r.metrics["per_category"].get(cat) or {} for r in summary.results]
-        inst = sum(int(p.get("instances") or 0) for p in per)
-        a = agg.get(cat, {})
-        rows.append([cat, str(inst), *(_fmt(p.get("AP50")) for p in per), _pm(a.get("AP50", {})),
-                     _pm(a.get("AP50_95", {}))])
-    return ("per category (AP50 mean ± SD over the folds where the category has instances)\n"
-            + text_table(headers, _marked(summary, rows, 2, None)) + _approximate_line(summary))
-
-
-def ablation_table(ab: AblationSummary) -> str:
-    """The seed's encoding-ablation table: P, R, mAP50, mAP50:95 and AP50 of the chosen categories."""
-    headers = ["encoding", "P", "R", "mAP50", "mAP50:95", *[f"AP50 {c}" for c in ab.categories]]
-    rows = []
-    for enc, summary in ab.runs.items():
-        ms = summary.metrics
-
-        def col(get: Any) -> str:
-            return _pm(_mean_sd([get(m) for m in ms])) if len(ms) > 1 else _fmt(get(ms[0]))
-
-        rows.append([enc, *(col(lambda m, k=k: m["metrics"].get(k)) for k in ("precision", "recall", "mAP50", "mAP50_95")),
-                     *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)])
-    seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
-    title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
-    return fit_text(title) + "\n" + text_table(headers, rows)
+    found = find_category(wanted, categories)
+    if found is None:
+        raise ConfigError(f"category {wanted!r} is not in the dataset (categories: {', '.join(categories)})")
+    return found

@@ -14,7 +14,10 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
-    _profiles/<detector>.json                parameters, FLOPs, latency of a detector
+    <dataset>/_dataset.json                  {"dataset", "thermal", "sensing_stage"}: written with the runs, so that
+                                             a report knows the dataset without its plugin
+    _profiles/<detector>.json                `harness profile`: parameters, FLOPs, latency of a detector (reports
+                                             read the complexity each run recorded, not these files)
 
 ``metrics.json`` (``METRICS_SCHEMA``)::
 
@@ -33,8 +36,13 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
       "degenerate_detections": {"returned", "non_finite", "inverted", "zero_size", "outside_image", "examples"},
                                                      # trained runs: boxes the detector returned, those dropped
       "external": {...},                             # runs of `harness score`: identity and matching counts
-      "labels": [str, ...]                           # optional: a risk accepted when the result was stored
+      "labels": [str, ...],                          # optional: a risk accepted when the result was stored
+      "input_risks": [str, ...],                     # trained runs: dataset input risks accepted (inputs.accept)
+      "temperatures": {"label", "samples", "bound_c", "approximations"}   # optional: approximate temperatures
     }
+
+The last three are read as one concept, a result's labels (``harness.report.reader.ResultLabel``), shown beside
+the numbers they concern in every table.
 
 Numbers are fractions in 0..1. A category with no ground truth in the fold has ``AP50 = null``; fold aggregation
 skips it rather than counting it as zero.
@@ -145,6 +153,16 @@ class RunBusyError(StoreError):
     """Another process holds the run's lock (it is training that run now)."""
 
 
+class _RunFile:
+    """A file (or folder) of a run's folder, as a read-only attribute: ``run.metrics_path``."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __get__(self, run: Run, owner: type | None = None) -> Path:
+        return run.path / self.name
+
+
 class Run:
     """The folder of one run and typed access to its files."""
 
@@ -153,37 +171,14 @@ class Run:
         self.path = Path(root).joinpath(*key.parts())
 
     # paths
-    @property
-    def config_path(self) -> Path:
-        return self.path / "config.yaml"
-
-    @property
-    def status_path(self) -> Path:
-        return self.path / "status.json"
-
-    @property
-    def metrics_path(self) -> Path:
-        return self.path / "metrics.json"
-
-    @property
-    def predictions_path(self) -> Path:
-        return self.path / "predictions.json"
-
-    @property
-    def gt_path(self) -> Path:
-        return self.path / "gt.json"
-
-    @property
-    def log_path(self) -> Path:
-        return self.path / "log.jsonl"
-
-    @property
-    def checkpoint_dir(self) -> Path:
-        return self.path / "checkpoints"
-
-    @property
-    def lock_path(self) -> Path:
-        return self.path / ".lock"
+    config_path = _RunFile("config.yaml")
+    status_path = _RunFile("status.json")
+    metrics_path = _RunFile("metrics.json")
+    predictions_path = _RunFile("predictions.json")
+    gt_path = _RunFile("gt.json")
+    log_path = _RunFile("log.jsonl")
+    checkpoint_dir = _RunFile("checkpoints")
+    lock_path = _RunFile(".lock")
 
     @contextlib.contextmanager
     def exclusive(self) -> Iterator[None]:
@@ -368,7 +363,8 @@ class Store:
     def run(self, key: RunKey) -> Run:
         return Run(self.root, key)
 
-    def runs(self, dataset: str | None = None, detector: str | None = None, finished_only: bool = True) -> Iterator[Run]:
+    def runs(self, dataset: str | None = None, detector: str | None = None,
+             finished_only: bool = True) -> Iterator[Run]:
         """Every run in the store (sorted), optionally filtered; only finished ones unless asked."""
         if not self.root.exists():
             return
@@ -389,6 +385,14 @@ class Store:
     def sensing_path(self, dataset: str, analysis: str) -> Path:
         return self.root / dataset / "_sensing" / f"{analysis}.json"
 
+    def dataset_path(self, dataset: str) -> Path:
+        return self.root / _safe(dataset) / "_dataset.json"
+
+    def write_dataset(self, spec: Any) -> Path:
+        """``<dataset>/_dataset.json``: what a report needs to know about a dataset (written with its runs)."""
+        return atomic_write_json(self.dataset_path(spec.name), {"dataset": spec.name, "thermal": spec.thermal,
+                                                                "sensing_stage": bool(spec.sensing_stage)})
+
     def profile_path(self, detector: str) -> Path:
         return self.root / "_profiles" / f"{detector}.json"
 
@@ -397,7 +401,3 @@ class Store:
 
     def write_profile(self, detector: str, result: dict[str, Any]) -> Path:
         return atomic_write_json(self.profile_path(detector), result)
-
-    def read_profiles(self) -> dict[str, dict[str, Any]]:
-        folder = self.root / "_profiles"
-        return {p.stem: read_json(p) for p in sorted(folder.glob("*.json"))} if folder.exists() else {}

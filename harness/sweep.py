@@ -133,6 +133,7 @@ def job_env() -> tuple[tuple[str, str], ...]:
 
 def expand(spec: SweepSpec) -> SweepPlan:
     """The sweep's runs, checked against the results store (see the module docstring)."""
+    from harness.report.reader import read_run
     from harness.runner import RunRequest, conflict_error, plan
 
     if not spec.detectors or not spec.datasets:
@@ -161,7 +162,7 @@ def expand(spec: SweepSpec) -> SweepPlan:
                 for planned in p.runs:
                     key = planned.run.key
                     if planned.state == "finished" and not spec.force:
-                        m = planned.run.read_metrics().get("metrics", {})
+                        m = read_run(planned.run).metrics.get("metrics", {})
                         out.skipped.append(JobResult(str(key), "skipped", str(planned.run.path), m.get("mAP50"),
                                                      m.get("mAP50_95")))
                         continue
@@ -375,11 +376,12 @@ def sweep(spec: SweepSpec, executor: str = "local", options: ExecutorOptions | N
 
 
 def sweep_table(summary: SweepSummary) -> str:
-    from harness.runner import _fmt
+    from harness.report.tables import format_value
     from harness.textable import text_table
 
-    rows = [[r.run, r.state, _fmt(r.mAP50), _fmt(r.mAP50_95), "-" if r.time_s is None else f"{r.time_s:.1f}",
-             (r.error or "").splitlines()[0][:80] if r.error else ""] for r in sorted(summary.results, key=lambda r: r.run)]
+    rows = [[r.run, r.state, format_value(r.mAP50, "float", 3), format_value(r.mAP50_95, "float", 3),
+             "-" if r.time_s is None else f"{r.time_s:.1f}", (r.error or "").splitlines()[0][:80] if r.error else ""]
+            for r in sorted(summary.results, key=lambda r: r.run)]
     return text_table(["run", "state", "mAP50", "mAP50:95", "time s", "error"], rows, align="llrrrl")
 
 

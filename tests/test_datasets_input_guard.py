@@ -4,7 +4,6 @@ the shared COCO checks (ids as the evaluation reads them, duplicates), plugin fa
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -108,16 +107,21 @@ def test_an_accepted_risk_labels_the_run_but_is_not_part_of_its_identity():
     assert run_hash(base) != run_hash({**base, "meta": {"prepared_key": "other"}})
 
 
-def test_the_run_table_shows_an_accepted_risk():
-    from harness.runner import FoldResult, RunSummary, fold_table
-    from harness.store import RunKey
+def test_the_run_table_shows_an_accepted_risk(tmp_path):
+    from harness.report.reader import read_run
+    from harness.report.run_tables import fold_table
+    from harness.runner import RunOutcome, RunSummary
+    from harness.store import RunKey, Store
 
-    metrics = {"metrics": {"mAP50": 0.5}, "support": {"instances": 3}, "train": {},
-               "input_risks": ["no-labels: fold 'b' held-out part (b): 6 image(s) and not one box"]}
-    summary = RunSummary("det", "guard-test", "ir8", "smoke", Path("s"), {}, ["thing"],
-                         [FoldResult(RunKey("guard-test", "det", "ir8", "b", 0), Path("r"), metrics, "trained")])
-    assert fold_table(summary).splitlines()[-1] == ("accepted input risk: no-labels: fold 'b' held-out part (b): 6 "
-                                                    "image(s) and not one box")
+    risk = "no-labels: fold 'b' held-out part (b): 6 image(s) and not one box"
+    run = Store(tmp_path).run(RunKey("guard-test", "det", "ir8", "b", 0))
+    run.write_metrics({"metrics": {"mAP50": 0.5}, "support": {"instances": 3}, "per_category": {}, "train": {},
+                       "input_risks": [risk]})
+    summary = RunSummary("det", "guard-test", "ir8", "smoke", tmp_path, {}, ["thing"],
+                         [RunOutcome(read_run(run), "trained")])
+    lines = fold_table(summary).splitlines()
+    assert lines[-1] == f"† accepted input risk: {risk}"
+    assert next(line for line in lines if line.startswith("b ")).split()[-5:] == ["0.500", "†", "-", "-/-", "trained"]
 
 
 # ------------------------------------------------------------------------------------------- plugin failures

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from evaluation_fixtures import random_coco
-from harness.evaluation import (COCOEvaluator, EvaluationError, SampleMismatchError, aggregate_folds,
-                                check_sample_matched, evaluate)
+from harness.evaluation import EvaluationError, SampleMismatchError, aggregate_folds, check_sample_matched, evaluate
 from harness.store import RunKey, Store
 
 
@@ -99,36 +98,31 @@ def test_guard_reads_runs_from_the_store(tmp_path):
         check_sample_matched(runs)
 
 
-@pytest.mark.parametrize("as_tensor", [False, True])
-def test_coco_evaluator_process_equals_evaluate(as_tensor):
+def test_the_runners_path_from_model_outputs_scores_exactly_what_evaluate_scores():
+    """A run turns the detector's eval-mode outputs (xyxy tensors, 0-based labels) into COCO results with
+    ``detections_to_coco`` and scores them with ``evaluate``: the same numbers, to the last bit, as ``evaluate`` on
+    those detections written by hand; predictions on an image outside the ground truth are refused there."""
     import torch
 
+    from harness.engine.predict import detections_to_coco
+
     gt, dets = random_coco(seed=33, dense_image=False)
-    ev = COCOEvaluator(gt)
-    ev.reset()
-    by_image = {}
+    by_image: dict[int, list] = {}
     for d in dets:
         by_image.setdefault(d["image_id"], []).append(d)
-    ids = [im["id"] for im in gt["images"]]
-    for start in range(0, len(ids), 8):  # batches of 8 images
-        batch_ids, outputs = ids[start:start + 8], []
-        for i in batch_ids:
-            ds = by_image.get(i, [])
-            boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (d["bbox"] for d in ds)]).reshape(-1, 4)
-            out = {"boxes": boxes, "scores": np.array([d["score"] for d in ds]),
-                   "labels": np.array([d["category_id"] - 1 for d in ds], dtype=np.int64)}
-            if as_tensor:
-                out = {k: torch.as_tensor(v) for k, v in out.items()}
-            outputs.append(out)
-        ev.process(batch_ids, outputs)
-    got = ev.evaluate()
-    # xyxy -> xywh round trip changes the last bits of the boxes, so compare to a tolerance
-    assert got["metrics"]["coco_stats"] == pytest.approx(evaluate(gt, dets)["metrics"]["coco_stats"], abs=1e-9)
-    assert got["metrics"]["unprocessed_images"] == 0
-    assert len(ev.detections) == len(dets)
-    with pytest.raises(EvaluationError, match="processed twice"):
-        ev.process([ids[0]], [outputs[0]])
+    converted, by_hand = [], []
+    for im in gt["images"]:
+        ds = by_image.get(im["id"], [])
+        xyxy = np.array([[x, y, x + w, y + h] for x, y, w, h in (d["bbox"] for d in ds)], np.float32).reshape(-1, 4)
+        scores = np.array([d["score"] for d in ds], np.float32)
+        out = {"boxes": torch.from_numpy(xyxy), "scores": torch.from_numpy(scores),
+               "labels": torch.tensor([d["category_id"] - 1 for d in ds], dtype=torch.int64)}
+        converted += detections_to_coco(out, im["id"], None, len(gt["categories"]))
+        by_hand += [{"image_id": im["id"], "category_id": d["category_id"], "score": float(s),
+                     "bbox": [float(b[0]), float(b[1]), float(b[2]) - float(b[0]), float(b[3]) - float(b[1])]}
+                    for d, b, s in zip(ds, xyxy, scores)]
+    assert len(converted) == len(dets) == len(by_hand)
+    assert evaluate(gt, converted) == evaluate(gt, by_hand)
+    stray = {**converted[0], "image_id": 99999}
     with pytest.raises(EvaluationError, match="not in the ground truth"):
-        ev.process([99999], [outputs[0]])
-    ev.reset()
-    assert ev.evaluate()["metrics"]["unprocessed_images"] == len(ids)
+        evaluate(gt, converted + [stray], strict=True)

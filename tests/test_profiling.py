@@ -232,7 +232,8 @@ def test_cli_profile_and_export(cli_runner, tmp_path):
         assert row.split()[2:5] == ["0.001", "0.00", "32"]  # fused params (M), ref, unused
         assert "GFLOPs paper: BatchNorm folded" in res.output
         assert "never take part in the forward pass: dead, unused.weight, unused.bias" in res.output
-        stored = Store(tmp_path / "store").read_profiles()
+        folder = Store(tmp_path / "store").profile_path("x").parent
+        stored = {p.stem: json.loads(p.read_text()) for p in folder.glob("*.json")}
         assert set(stored) == {"tiny-attn", "tiny-dual"}
         assert stored["tiny-attn"]["flops"]["exact"]["flops"] == 2 * (CONV + LINEARS + ATTN + HEAD)
         assert stored["tiny-attn"]["reference"]["source"] == "hand count"

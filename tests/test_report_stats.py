@@ -97,7 +97,7 @@ RESAMPLES = 40
 
 
 def _compare(store, a, b, scorer):
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.stats import paired_comparison
 
     view = StoreView(store)
@@ -146,7 +146,7 @@ def test_a_clearly_better_detector_excludes_zero_and_the_observed_delta_is_the_t
 def test_same_seed_same_interval_and_scores_are_cached(pair_store):
     calls = []
     scorer = BootstrapScorer(10, 5, progress=calls.append)
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.stats import paired_comparison
 
     view = StoreView(pair_store)

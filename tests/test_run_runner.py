@@ -29,7 +29,8 @@ def request(tmp_path, **kw):
 
 @pytest.mark.slow
 def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
-    from harness.runner import category_table, fold_table, run
+    from harness.report.run_tables import category_table, fold_table
+    from harness.runner import run
     from harness.store import METRICS_SCHEMA
 
     summary = run(request(tmp_path))
@@ -67,10 +68,39 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
         # the detector's defaults are a layer of the resolved config, below the profile (which sets lr0 itself)
         assert "defaults of detector 'tinydet'" in cfg["meta"]["sources"] and cfg["train"]["lr0"] == 0.002
         assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
+    assert json.loads((tmp_path / "store" / "shapes" / "_dataset.json").read_text()) == {
+        "dataset": "shapes", "thermal": "radiometric", "sensing_stage": False}  # what a report reads, not the plugin
     table = fold_table(summary)
     assert "mean ± SD" in table and table.count("trained") == 2
     lines = category_table(summary).splitlines()
     assert any(line.startswith("warm") for line in lines) and "AP50 A" in lines[1]
+
+
+@pytest.mark.slow
+def test_a_run_is_scored_with_every_setting_of_its_eval_section(plugins, tmp_path, monkeypatch):
+    """Validation and the final evaluation call the one evaluation path with the run's ``eval`` section: the SAFit
+    anchor and ``strict`` reach the evaluator (the runner used to pass engine and matching only)."""
+    import harness.evaluation
+    import harness.evaluation.coco as coco
+    from harness.runner import run
+
+    real, seen = coco.evaluate, []
+
+    def spy(gt, dets, *args, **kwargs):
+        seen.append(kwargs)
+        return real(gt, dets, *args, **kwargs)
+
+    monkeypatch.setattr(coco, "evaluate", spy)
+    monkeypatch.setattr(harness.evaluation, "evaluate", spy)
+    summary = run(request(tmp_path, folds="A", overrides=[*FAST, "protocol.epochs=1", "eval.matching=safit",
+                                                          "eval.safit_anchor=topleft", "eval.strict=true"]))
+    assert len(seen) == 2  # one validation, the final evaluation
+    assert all((kw.get("matching"), kw.get("safit_anchor"), kw.get("strict")) == ("safit", "topleft", True)
+               for kw in seen)
+    r = summary.results[0]
+    gt, preds = (json.loads((r.path / name).read_text()) for name in ("gt.json", "predictions.json"))
+    expected = real(gt, preds, matching="safit", safit_anchor="topleft")["metrics"]["safit"]
+    assert r.metrics["metrics"]["safit"] == expected
 
 
 @pytest.mark.slow

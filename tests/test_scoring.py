@@ -317,7 +317,7 @@ def test_scored_runs_are_listed_as_external_detectors(finished_run):
     run = next(r for r in Store(tmp / "store").runs(detector="external/listed"))
     assert run.path.parent.parent.parent.name == "external.listed"
     assert run.read_metrics()["complexity"]["params"] == 1_500_000
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.tables import project_table
 
     table = project_table(StoreView(Store(tmp / "store")), "framed")
@@ -414,12 +414,12 @@ def test_accepting_implausible_predictions_labels_the_stored_result(finished_run
     assert any("--allow-implausible" in lab and "shift of +1" in lab for lab in stored["labels"])
     assert set(stored["external"]["matching"]["implausible"]) == {"unknown_categories", "category_shift"}
     assert stored["metrics"]["mAP50"] < 0.5  # scored as read: the classes are shifted
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.tables import project_table
     from harness.store import Store
 
     notes = project_table(StoreView(Store(tmp / "store")), "framed").notes
-    assert any(n.startswith("LABELLED external/yolo-accepted/external A: implausible") for n in notes)
+    assert any(n.startswith("† accepted risk (external/yolo-accepted/external): implausible") for n in notes)
 
 
 @pytest.mark.slow

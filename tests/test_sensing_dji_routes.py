@@ -246,15 +246,17 @@ def test_a_dataset_prepared_on_approximate_temperatures_says_so(tmp_path):
 
 
 def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path):
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView, read_run
+    from harness.report.run_tables import category_table as run_categories, fold_table
     from harness.report.tables import ablation_tables, category_table, project_table
-    from harness.runner import FoldResult, RunSummary, category_table as run_categories, fold_table
+    from harness.runner import RunOutcome, RunSummary
     from harness.store import RunKey
 
     from report_fixtures import synthetic_store
 
     store = synthetic_store(tmp_path / "store", folds=("P1", "P2"), per_fold=4,
-                            detectors={"alpha": "strong", "beta": "weak"}, encodings={"alpha": ["ir8"]})
+                            detectors={"alpha": "strong", "beta": "weak"}, encodings={"alpha": ["ir8"]},
+                            profiles={"alpha": (2.0e6, 5.0), "beta": (1.0e6, 3.0)})
     approx = {"label": "approximate temperatures", "samples": 8, "bound_c": 0.2,
               "approximations": ["emissivity-remap-skipped"]}
     for fold in ("P1", "P2"):
@@ -267,7 +269,9 @@ def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path
     mean = table.cell(rows["alpha"], next(c for c in table.columns if c.key == "mAP50"))
     assert mean.endswith(" ~") and not table.cell(rows["beta"], next(c for c in table.columns
                                                                      if c.key == "mAP50")).endswith("~")
-    assert "~ beside a number: measured on approximate temperatures (alpha/c2: within 0.2 C" in text
+    assert "~ measured on approximate temperatures (alpha/c2: within 0.2 C" in text
+    params = next(c for c in table.columns if c.key == "params")  # the model's size rests on no temperature
+    assert table.cell(rows["alpha"], params) == "2"
     assert "~" in table.to_markdown()
     cats = category_table(view, "synth")
     row = cats.rows[0]
@@ -276,7 +280,7 @@ def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path
     summary = RunSummary("alpha", "synth", "c2", "test", store.root, {}, ["window", "crack"])
     for fold in ("P1", "P2"):
         run = store.run(RunKey("synth", "alpha", "c2", fold, 0))
-        summary.results.append(FoldResult(run.key, run.path, run.read_metrics(), "skipped", 4, 4))
+        summary.results.append(RunOutcome(read_run(run), "skipped", 4, 4))
     printed = fold_table(summary)
     body = [line for line in printed.splitlines() if line.startswith("P1")][0]
     marks = re.findall(r"\d\.\d{3}( ~)?", body)  # P, R, mAP50, mAP50:95 (those the run scored)

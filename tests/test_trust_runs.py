@@ -31,7 +31,7 @@ def _files(path):
 
 
 def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only_that(plugins, tmp_path):
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.report.tables import project_table
     from harness.runner import run
     from harness_tinydet.model import TinyDet
@@ -147,7 +147,7 @@ def test_an_error_while_building_the_model_in_a_run_is_recorded_as_failed(plugin
 
 
 def test_report_lists_a_dead_running_run_as_interrupted(tmp_path):
-    from harness.report.collect import StoreView
+    from harness.report.reader import StoreView
     from harness.store import RunKey, Store
 
     store = Store(tmp_path / "s")

@@ -12,7 +12,6 @@ what the input channels meant, because that changes at fine-tuning (docs/dataset
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import shutil
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from typing import Any, Sequence
 import click
 
 from harness.hookspecs import hookimpl
+from harness.io import file_digest
 
 log = logging.getLogger(__name__)
 
@@ -40,14 +40,6 @@ class PretrainResult:
     checkpoint: Path
     record: dict[str, Any]
     state: str
-
-
-def _sha1(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, fold: str | None = None,
@@ -97,7 +89,7 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         "val_mAP50": metrics.get("mAP50"),
         "val_mAP50_95": metrics.get("mAP50_95"),
         "checkpoint": str(checkpoint),
-        "checkpoint_sha1": _sha1(checkpoint),
+        "checkpoint_sha1": file_digest(checkpoint),
         "fine_tuning": (
             f"`harness run --init {checkpoint}` loads it through the detector's importer (else by tensor name and "
             f"shape): backbone, neck and box regression carry over; the class outputs, sized for "

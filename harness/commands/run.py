@@ -80,7 +80,8 @@ def register_commands(cli: click.Group) -> None:
           harness run --detector ours --dataset m3t-synth --folds all --profile smoke
         """
         from harness import distributed as hd
-        from harness.runner import RunRequest, category_table, fold_table, run
+        from harness.report.run_tables import category_table, fold_table
+        from harness.runner import RunRequest, run
 
         try:
             overrides = (*overrides, *([f"dataset.root={root}"] if root else []))
@@ -116,7 +117,8 @@ def register_commands(cli: click.Group) -> None:
         Example:
           harness ablate --detector ours --dataset m3t-synth --encodings none,ir8,linear16,c2 --fold P4+P5
         """
-        from harness.runner import ablate, ablation_table, parse_seeds
+        from harness.report.run_tables import ablation_table
+        from harness.runner import ablate, parse_seeds
 
         ab = ablate(detector, dataset, _split(encodings), fold, seeds=parse_seeds(seeds), profile=profile,
                     config_files=config_files, overrides=overrides, store=store, force=force,

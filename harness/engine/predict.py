@@ -98,19 +98,6 @@ class DegenerateBoxes:
                           "detector, or set eval.allow_degenerate=true to store the run labelled")
 
 
-def degenerate_kinds(boxes: np.ndarray) -> np.ndarray:
-    """Per box (xyxy), the index into ``DEGENERATE`` of the first check it fails before clipping, or -1."""
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    kind = np.full(len(b), -1, dtype=np.int64)
-    finite = np.isfinite(b).all(axis=1)
-    kind[~finite] = 0
-    with np.errstate(invalid="ignore"):
-        inverted = finite & ((b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1]))
-        kind[inverted] = 1
-        kind[finite & ~inverted & ((b[:, 2] == b[:, 0]) | (b[:, 3] == b[:, 1]))] = 2
-    return kind
-
-
 def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: Any, num_classes: int | None = None,
                        name: str = "model", degenerate: DegenerateBoxes | None = None) -> list[dict[str, Any]]:
     """One image's ``{"boxes", "scores", "labels"}`` (input pixels) -> COCO results in the original frame.

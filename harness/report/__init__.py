@@ -4,16 +4,18 @@ Public API (``docs/reports.md`` has the definitions)::
 
     build_report(store, datasets=None, out=None, formats=("md", "csv", "html"), resamples=200, seed=0) -> Report
     compare_detectors(store, dataset, "A[/ENC]", "B[/ENC]", resamples=1000, seed=0) -> PairedComparison
-    StoreView(store).entries(dataset) -> [Entry]     finished runs as (detector, encoding) rows, seeds averaged
+    StoreView(store).entries(dataset) -> [Entry]     finished runs as (detector, encoding) rows, seeds averaged,
+                                                     each with its labels (``Entry.labels``, ``ResultLabel``)
     pareto_front(costs, values) -> indices
     resample_coco(gt, image_ids, detections) -> (gt, detections)   duplicates kept under new unique ids
 
-Reports read only the store: ``metrics.json``, ``predictions.json`` and ``gt.json`` of finished runs,
-``_profiles/<detector>.json`` and ``<dataset>/_sensing/<analysis>.json``.
+Reports read only the store, through its one reader (``harness.report.reader``, shared with ``harness compare`` and
+the tables ``harness run`` prints): ``metrics.json``, ``predictions.json`` and ``gt.json`` of finished runs, and
+``<dataset>/_sensing/<analysis>.json``.
 """
 
 from harness.report.build import FORMATS, Report, Section, build_report
-from harness.report.collect import Entry, FoldResult, StoreView
+from harness.report.reader import Entry, FoldResult, ResultLabel, StoredRun, StoreView
 from harness.report.plots import pareto_front
 from harness.report.stats import (
     BootstrapResult,
@@ -27,6 +29,7 @@ from harness.report.tables import Column, Interval, Stat, Table
 
 __all__ = [
     "FORMATS", "BootstrapResult", "BootstrapScorer", "Column", "Entry", "FoldResult", "Interval", "PairedComparison",
-    "Report", "Section", "Stat", "StoreView", "Table", "build_report", "compare_detectors", "paired_comparison",
+    "Report", "ResultLabel", "Section", "Stat", "StoredRun", "StoreView", "Table", "build_report", "compare_detectors",
+    "paired_comparison",
     "pareto_front", "resample_coco",
 ]

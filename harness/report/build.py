@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
-from harness.report.collect import Entry, StoreView
+from harness.report.reader import Entry, StoreView, label_notes
 from harness.report.curves import curves_section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
 from harness.report.sizes import size_tables
@@ -34,7 +34,6 @@ from harness.report.stats import BootstrapScorer, PairedComparison, paired_compa
 from harness.report.tables import (
     _entry_names,
     ABLATION_CATEGORIES,
-    Table,
     ablation_tables,
     category_table,
     cross_dataset_table,
@@ -130,6 +129,7 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
     if unprofiled:
         sec.notes.append(f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
                          f"them with --force to measure it.")
+    sec.notes += label_notes([e.notes_item(f"{e.dataset} {e.label}") for e in used if e.complexity().get("gflops")])
     return sec
 
 
@@ -206,9 +206,7 @@ def _cross_section(view: StoreView, datasets: Sequence[str]) -> Section:
     except HarnessError as exc:
         sec.absent = f"the cross-dataset table could not be built: {exc}"
         return sec
-    if table is None:
-        sec.absent = "this installation has no cross-dataset table builder (harness.compare)."
-    elif not table.rows:
+    if not table.rows:
         sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
                       f"{view.root}` for each dataset.")
     else:
@@ -285,19 +283,9 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         f"no displacement study of {dataset}", f"harness sensing displacement --dataset {dataset} --store {root}",
         f"harness sensing displacement --dataset {dataset} --store {root}")]
     # sensor-level sections belong to datasets with a sensing stage; a stored analysis is shown whatever the dataset
-    keep_absent = has_sensing_stage(dataset)
+    keep_absent = view.sensing_stage(dataset)
     sections += [s for s in sensing if keep_absent or not s.absent]
     return sections, comps
-
-
-def has_sensing_stage(dataset: str) -> bool:
-    """``DatasetSpec.sensing_stage`` of ``dataset``; True when no installed plugin registers it (keep the sections)."""
-    from harness.plugins import get_host
-
-    try:
-        return bool(get_host().dataset(dataset).sensing_stage)
-    except HarnessError:
-        return True
 
 
 def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analysis: str,

@@ -12,7 +12,6 @@ matplotlib with the Agg canvas only, written as PNG and SVG like the accuracy-ve
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import math
@@ -120,6 +119,8 @@ def training_curves(curves: Sequence[EntryCurves], out_base: Path | None = None,
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
+    from harness.report.plots import save_figure
+
     if not curves:
         raise ValueError("no curves to draw")
     with matplotlib.rc_context({"svg.hashsalt": "harness-report", "font.size": 8.5, "axes.titlesize": 9.5}):
@@ -148,18 +149,7 @@ def training_curves(curves: Sequence[EntryCurves], out_base: Path | None = None,
                 if r == rows - 1:
                     ax.set_xlabel("epoch")
         fig.suptitle(f"{title}: mean over folds (and seeds); band: min to max", fontsize=10.5)
-        buf = io.StringIO()
-        fig.savefig(buf, format="svg", metadata={"Date": None})
-        svg = buf.getvalue()
-        written: list[Path] = []
-        if out_base is not None:
-            from harness.io import atomic_write_bytes, atomic_write_text
-
-            png = io.BytesIO()
-            fig.savefig(png, format="png", dpi=120, metadata={"Software": None})
-            written.append(atomic_write_bytes(out_base.with_suffix(".png"), png.getvalue()))
-            written.append(atomic_write_text(out_base.with_suffix(".svg"), svg))
-    return svg, written
+        return save_figure(fig, out_base, dpi=120)
 
 
 def _draw(ax: Any, curve: Curve, color: str, label: str, scale: float = 1.0) -> None:

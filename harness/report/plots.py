@@ -1,13 +1,13 @@
 """Accuracy versus complexity: held-out mAP against GFLOPs, one panel per dataset (rows) and metric (columns).
 
-* x: GFLOPs of the detector's profile (``_profiles/<detector>.json``, the "paper" convention unless asked), on a
-  **log** axis shared by all panels;
+* x: GFLOPs each entry's runs measured on the model they trained (``metrics.json`` ``complexity``, the "paper"
+  convention at 640), on a **log** axis shared by all panels;
 * y: mAP in %, the mean over held-out folds, with error bars of ± one sample SD over the folds;
 * one marker (shape and colour) per detector, the same in every panel, labelled with its short name;
 * the **Pareto front** (points that no other point beats with fewer or equal GFLOPs and a higher mAP) drawn as a
   dashed step line: the best accuracy reachable at a given cost;
-* the conventions printed on the figure: FLOP convention, input size and batch of the profile, the metric and how
-  it is aggregated, and the hardware the runs and profiles were measured on.
+* the conventions printed on the figure: FLOP convention, input size and batch of the measurement, the metric and
+  how it is aggregated, and the hardware the runs were measured on.
 
 matplotlib with the Agg canvas only (no pyplot, no display), written as PNG and SVG.
 """
@@ -22,7 +22,7 @@ import textwrap
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,8 @@ def pareto_front(costs: Sequence[float], values: Sequence[float]) -> list[int]:
     return front
 
 
-def pareto_steps(costs: Sequence[float], values: Sequence[float], x_max: float | None = None) -> tuple[list[float], list[float]]:
+def pareto_steps(costs: Sequence[float], values: Sequence[float],
+                 x_max: float | None = None) -> tuple[list[float], list[float]]:
     """Vertices of the front's step line (post-steps: the value holds until the next front point's cost)."""
     idx = pareto_front(costs, values)
     xs = [costs[i] for i in idx]
@@ -197,17 +198,22 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 ax.annotate(names[p.label], (p.gflops, 100 * p.value), textcoords="offset points", xytext=(dx, dy),
                             ha=ha, fontsize=LABEL_FONT_PT, zorder=4)
 
-        buf = io.StringIO()
-        fig.savefig(buf, format="svg", metadata={"Date": None})
-        svg = buf.getvalue()
-        written: list[Path] = []
-        if out_base is not None:
-            from harness.io import atomic_write_bytes, atomic_write_text
+        return save_figure(fig, out_base, dpi=150)
 
-            png = io.BytesIO()
-            fig.savefig(png, format="png", dpi=150, metadata={"Software": None})
-            written.append(atomic_write_bytes(out_base.with_suffix(".png"), png.getvalue()))
-            written.append(atomic_write_text(out_base.with_suffix(".svg"), svg))
+
+def save_figure(fig: Any, out_base: Path | None, dpi: int) -> tuple[str, list[Path]]:
+    """The figure as SVG text (no date: deterministic), and written as ``out_base`` .png and .svg when given."""
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg", metadata={"Date": None})
+    svg = buf.getvalue()
+    written: list[Path] = []
+    if out_base is not None:
+        from harness.io import atomic_write_bytes, atomic_write_text
+
+        png = io.BytesIO()
+        fig.savefig(png, format="png", dpi=dpi, metadata={"Software": None})
+        written.append(atomic_write_bytes(out_base.with_suffix(".png"), png.getvalue()))
+        written.append(atomic_write_text(out_base.with_suffix(".svg"), svg))
     return svg, written
 
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from harness.errors import HarnessError
 from harness.io import read_json
-from harness.report.collect import StoreView, natural_key
+from harness.report.reader import StoreView, natural_key
 from harness.report.tables import Column, Table, _slug, record
 from harness.summary import SIZE_BINS, SizeSummary, bin_label
 
@@ -26,7 +26,7 @@ def _fold_ground_truth(view: StoreView, dataset: str) -> dict[str, dict[str, Any
         try:
             gt = read_json(run.gt_path)
         except HarnessError as exc:
-            view._problem(f"{run.key}: object sizes skip {run.gt_path} ({exc})")
+            view.problem(f"{run.key}: object sizes skip {run.gt_path} ({exc})")
             continue
         if isinstance(gt, dict) and isinstance(gt.get("annotations"), list):
             out[run.key.fold] = gt

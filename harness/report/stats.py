@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import statistics
 import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -41,7 +40,8 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from harness.errors import StoreError
-from harness.report.collect import Entry, StoreView, natural_key
+from harness.evaluation import mean_sd
+from harness.report.reader import Entry, ResultLabel, StoreView, label_notes, marks, natural_key
 from harness.report.tables import Stat, text_table
 
 log = logging.getLogger(__name__)
@@ -203,8 +203,7 @@ class BootstrapScorer:
             if not path.exists():
                 raise StoreError(f"{path}: missing; the paired bootstrap re-scores a run's predictions.json against "
                                  f"its gt.json. Re-run this fold with `harness run ... --force` to write them")
-        metrics = run.read_metrics()
-        engine = (metrics.get("metrics") or {}).get("engine") or "faster-coco-eval"
+        engine = (run.metrics.get("metrics") or {}).get("engine") or "faster-coco-eval"
         return IndexedRun.from_coco(read_json(run.gt_path), read_json(run.predictions_path)), engine
 
     def _fold_images(self, dataset: str, fold: str, indexed: IndexedRun, where: str) -> None:
@@ -300,9 +299,21 @@ class PairedComparison:
     fold_differences: dict[str, FoldDifference]
     bootstrap: dict[str, BootstrapResult] | None = None
     notes: list[str] = field(default_factory=list)
+    #: A's and B's labels on the compared folds (``{"a": [...], "b": [...]}``, ``harness.report.reader``), their
+    #: marks per fold and what the marks mean: empty when neither rests on a labelled result
+    labels: dict[str, list[ResultLabel]] = field(default_factory=dict)
+    fold_marks: dict[str, list[str]] = field(default_factory=dict)
+    label_notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        for key in ("labels", "fold_marks", "label_notes"):  # the keys appear only where there is something to say
+            d.pop(key)
+        if self.label_notes:
+            d["labels"] = {side: [{"kind": lab.kind, "text": lab.text, "runs": list(lab.runs)} for lab in labs]
+                           for side, labs in self.labels.items()}
+            d["fold_marks"], d["label_notes"] = self.fold_marks, self.label_notes
+        return d
 
     def to_text(self) -> str:
         """Per-fold table and bootstrap summary, aligned."""
@@ -311,11 +322,18 @@ class PairedComparison:
         header = ["fold", f"{self.a} mAP50", f"{self.b} mAP50", "Δ mAP50", f"{self.a} mAP50:95", f"{self.b} mAP50:95",
                   "Δ mAP50:95"]
         f50, f95 = self.fold_differences["mAP50"], self.fold_differences["mAP50_95"]
-        rows = [[f, pct(f50.a[i]), pct(f50.b[i]), pp(f50.diffs[i]), pct(f95.a[i]), pct(f95.b[i]), pp(f95.diffs[i])]
+        ma, mb = (self.fold_marks.get(k) or [""] * len(self.folds) for k in ("a", "b"))
+
+        def mark(text: str, m: str) -> str:
+            return f"{text} {m}" if m and text != "-" else text
+
+        rows = [[f, mark(pct(f50.a[i]), ma[i]), mark(pct(f50.b[i]), mb[i]), pp(f50.diffs[i]),
+                 mark(pct(f95.a[i]), ma[i]), mark(pct(f95.b[i]), mb[i]), pp(f95.diffs[i])]
                 for i, f in enumerate(self.folds)]
         sd = lambda s: "" if s.sd is None else f" ± {100 * s.sd:.1f}"  # noqa: E731
         rows.append(["mean ± SD", "", "", pp(f50.stat.mean) + sd(f50.stat), "", "", pp(f95.stat.mean) + sd(f95.stat)])
-        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} images, "
+        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} "
+               f"images, "
                f"{self.instances} instances; AP in %, Δ = A - B in percentage points",
                text_table(header, rows), "",
                f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s)."]
@@ -327,11 +345,14 @@ class PairedComparison:
             brows = []
             for key, b in self.bootstrap.items():
                 brows.append([key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
-                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta), f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
-                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}", "yes" if b.excludes_zero else "no"])
+                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta),
+                              f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
+                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}",
+                              "yes" if b.excludes_zero else "no"])
             out.append(text_table(bh, brows))
         else:
             out.append("no bootstrap (resamples = 0)")
+        out += self.label_notes
         out += self.notes
         from harness.textable import fit_text
 
@@ -345,10 +366,9 @@ def fold_differences(a: Entry, b: Entry, folds: Sequence[str]) -> dict[str, Fold
         va = [a.folds[f].metrics["metrics"].get(key) for f in folds]
         vb = [b.folds[f].metrics["metrics"].get(key) for f in folds]
         diffs = [None if x is None or y is None else float(x) - float(y) for x, y in zip(va, vb)]
-        present = [d for d in diffs if d is not None]
-        stat = Stat(statistics.fmean(present) if present else None,
-                    statistics.stdev(present) if len(present) >= 2 else None, len(present))
-        out[key] = FoldDifference(key, list(folds), va, vb, diffs, stat, sum(1 for d in present if d > 0))
+        stat = Stat.from_mean_sd(mean_sd(diffs))
+        wins = sum(1 for d in diffs if d is not None and d > 0)
+        out[key] = FoldDifference(key, list(folds), va, vb, diffs, stat, wins)
     return out
 
 
@@ -392,6 +412,11 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
     images = sum(a.folds[f].images for f in folds)
     instances = sum(a.folds[f].instances for f in folds)
     comp = PairedComparison(a.dataset, a.label, b.label, folds, images, instances, fold_differences(a, b, folds))
+    shown = [a.restricted(folds), b.restricted(folds)]
+    comp.label_notes = label_notes([e.notes_item() for e in shown])
+    if comp.label_notes:
+        comp.labels = {k: e.labels for k, e in zip("ab", shown)}
+        comp.fold_marks = {k: [marks(e.folds[f].labels) for f in folds] for k, e in zip("ab", shown)}
     if resamples <= 0:
         return comp
     scorer = scorer or BootstrapScorer(resamples, seed)
@@ -420,7 +445,7 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
 def _stored_mean(entry: Entry, folds: Sequence[str], key: str) -> float | None:
     """The stored metric of ``entry`` as the bootstrap statistic defines it: mean over folds of the seed means."""
     values = [entry.folds[f].metrics["metrics"].get(key) for f in folds]
-    return None if any(v is None for v in values) else statistics.fmean(values)
+    return None if any(v is None for v in values) else mean_sd(values)["mean"]
 
 
 def _f(x: Any) -> float | None:

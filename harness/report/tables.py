@@ -5,7 +5,7 @@ behind them (one per number: dataset, detector, encoding, fold, category, metric
 support it was measured on), notes that make the numbers unambiguous, and a loud ``warning`` when its rows were not
 scored on the same samples. Renderers: aligned text (``to_text``), Markdown, wide CSV; ``html.py`` renders HTML.
 
-Tables (builders below, all reading only the store through ``collect.StoreView``):
+Tables (builders below, all reading only the store through ``reader.StoreView``):
 
 * ``project_table``: the seed's project-grouped table: per held-out fold mAP50 and mAP50:95, their mean ± sample
   SD over folds, Params (M) and GFLOPs measured on the model each run trained;
@@ -29,7 +29,9 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
-from harness.report.collect import Entry, StoreView, natural_key
+from harness.report.reader import (
+    MARKS, Entry, ResultLabel, StoreView, find_category, label_notes, marks, natural_key,
+)
 from harness.textable import text_table
 
 #: The seed's thermal-only defect categories shown in the encoding-ablation table.
@@ -70,7 +72,8 @@ class Interval:
 @dataclass(frozen=True)
 class Column:
     """``kind``: text | int | pct (fraction shown in %) | pp (difference of fractions in percentage points) |
-    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the column (bold in Markdown and HTML)."""
+    float (``digits`` decimals) | sig (3 significant digits). ``best``: "max" or "min" to mark the best value of the
+    column (bold in Markdown and HTML)."""
 
     key: str
     label: str
@@ -101,9 +104,9 @@ class Table:
     # ---------------------------------------------------------------------------------------------- cells
     def cell(self, row: Mapping[str, Any], col: Column) -> str:
         text = format_value(row.get(col.key), col.kind, col.digits)
-        approximate = row.get("_approximate") or (col.key.split(":", 1)[0] in row.get("_approximate_keys", ()))
-        if approximate and col.kind != "text" and col.kind != "int" and text not in ("", "-"):
-            text += f" {APPROXIMATE_MARK}"
+        mark = (row.get("_marks") or {}).get(col.key)  # the labels of the results behind this number
+        if mark and col.kind not in ("text", "int") and text not in ("", "-"):
+            text += f" {mark}"
         return text
 
     def best_rows(self, col: Column) -> set[int]:
@@ -282,21 +285,15 @@ def match_check(metrics_by_label: Mapping[str, Mapping[str, Any]]) -> tuple[str 
     return None, []
 
 
-#: beside a number that rests on approximate temperatures (``harness.sensing.dji_approximate``)
-APPROXIMATE_MARK = "~"
+def _marks(keys: Iterable[str], labels: Sequence[ResultLabel]) -> dict[str, str]:
+    """``row["_marks"]``: the marks of ``labels`` beside the numbers of columns ``keys`` (``Table.cell``)."""
+    m = marks(labels)
+    return {k: m for k in keys} if m else {}
 
 
-def _approximate_note(table: Table, entries: Sequence[Entry]) -> dict[str, dict[str, Any]]:
-    """The entries whose runs used approximate temperatures (label -> record); a note on the table says what the
-    ``~`` beside their numbers means."""
-    found = {e.label: t for e in entries if (t := e.temperatures()) is not None}
-    if found:
-        worst = max(float(t.get("bound_c") or 0.0) for t in found.values())
-        kinds = sorted({a for t in found.values() for a in t.get("approximations", [])})
-        table.notes.append(f"{APPROXIMATE_MARK} beside a number: measured on approximate temperatures "
-                           f"({', '.join(sorted(found))}: within {worst:g} C of DJI's SDK at worst; "
-                           f"{', '.join(kinds) or 'approximate route'}; docs/sensing.md).")
-    return found
+def _label_notes(table: Table, entries: Sequence[Entry]) -> None:
+    """One note per label of the entries' results, first among the table's notes (``reader.label_notes``)."""
+    table.notes[:0] = label_notes([e.notes_item() for e in entries])
 
 
 def _merge_warning(table: Table, label: str | None, details: Sequence[str]) -> None:
@@ -332,7 +329,8 @@ def _fold_matching(rows: Sequence[Entry], folds: Sequence[str]) -> tuple[str | N
     if missing:
         kinds.append("NOT sample-matched: rows cover different folds")
         details = details + missing
-    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items() if fr.seed_mismatch]
+    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items()
+                   if fr.seed_mismatch]
     if seed_issues:
         kinds.append("NOT sample-matched: seeds of a fold differ")
         details = details + seed_issues
@@ -361,7 +359,8 @@ def _options_suffix(e: Entry) -> str:
 
 def _seeds_note(rows: Sequence[Entry]) -> str:
     seeds = sorted({s for e in rows for s in e.seeds})
-    return (f"seed(s) {', '.join(map(str, seeds))}" + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
+    return (f"seed(s) {', '.join(map(str, seeds))}"
+            + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
 
 
 # -------------------------------------------------------------------------------------------------- project table
@@ -385,7 +384,6 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     table = Table(name, f"{dataset}: project-grouped folds (held-out mAP, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
     names = _entry_names(rows_e)
-    approx = _approximate_note(table, rows_e)
     no_profile = []
     for e in rows_e:
         agg = e.aggregate()["metrics"]
@@ -399,12 +397,13 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
                                "images": e.images, "instances": e.instances}
         if pareto is not None:
             row["pareto"] = "yes" if e.label in pareto else ""
-        row["_approximate"] = e.label in approx
+        row["_marks"] = _marks(("mAP50", "mAP50_95"), e.labels)
         matched = table.warning is None
         for f in folds:
             fr = e.folds.get(f)
             if fr is None:
                 continue
+            row["_marks"].update(_marks((f"{f}:mAP50", f"{f}:mAP50_95"), fr.labels))
             for key in ("mAP50", "mAP50_95"):
                 row[f"{f}:{key}"] = fr.metrics["metrics"].get(key)
                 table.records.append(record(name, key, row[f"{f}:{key}"], dataset=dataset, detector=e.detector,
@@ -436,15 +435,13 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     table.notes.append("Images and Inst.: held-out images and instances summed over the folds (each image is held out "
                        "once); the support row gives them per fold.")
     _profile_notes(table, rows_e, no_profile, view)
-    for e in rows_e:  # results stored with an accepted risk carry its label into every table that shows them
-        for f, fr in e.folds.items():
-            table.notes.extend(f"LABELLED {e.label} {f}: {lab}" for lab in fr.metrics.get("labels") or [])
     if left_out:
         table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablation): "
                            + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out))
     if pareto is not None:
         table.notes.append("Pareto: on the accuracy (mAP50:95) vs GFLOPs front: no other row has fewer or equal "
                            "GFLOPs and a higher mean mAP50:95.")
+    _label_notes(table, rows_e)
     return table
 
 
@@ -502,13 +499,13 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
                         group=group, short="AP50:95")]
     table = Table(name, f"{dataset}: per category (AP over the folds that contain the category, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
-    approx = _approximate_note(table, rows_e)
     ref = aggs[rows_e[0].label]["per_category"]
     for c in cats:
         ref_c = ref.get(c) or {}
         row: dict[str, Any] = {"category": c, "instances": ref_c.get("instances", 0),
-                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}", "_approximate_keys": approx}
+                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}", "_marks": {}}
         for e in rows_e:
+            row["_marks"].update(_marks((f"{e.label}:AP50", f"{e.label}:AP50_95"), e.labels))
             pc = aggs[e.label]["per_category"].get(c) or {}
             for key in ("AP50", "AP50_95"):
                 s = Stat.from_mean_sd(pc.get(key))
@@ -523,14 +520,11 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
                        "excluded from its mean (not counted as zero); SD is the sample SD over those folds.")
     if multi:
         table.notes.append("Columns per detector: " + ", ".join(f"{names[e.label]} = {e.label}" for e in rows_e))
+    _label_notes(table, rows_e)
     return table
 
 
 # -------------------------------------------------------------------------------------------------- ablation
-def _norm(name: str) -> str:
-    return re.sub(r"[\s_\-]+", " ", name.strip().lower())
-
-
 def ablation_tables(view: StoreView, dataset: str,
                     categories: Sequence[str] = ABLATION_CATEGORIES) -> tuple[list[Table], list[str]]:
     """One encoding-ablation table per detector run with two or more encodings on common folds.
@@ -565,7 +559,7 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
             present.extend(c for c in e.folds[f].metrics.get("per_category", {}) if c not in present)
     chosen, missing = [], []
     for want in categories:
-        hit = next((c for c in present if _norm(c) == _norm(want)), None)
+        hit = find_category(want, present)
         (chosen if hit else missing).append(hit or want)
     name = f"{_slug(dataset)}-ablation-{_slug(det)}"
     cols = [Column("encoding", "Encoding"), Column("images", "Images", "int"), Column("instances", "Inst.", "int"),
@@ -576,15 +570,16 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
     table = Table(name, f"{dataset}: encoding ablation of {det} (held-out fold{'s' if len(folds) > 1 else ''} "
                         f"{fold_text}, %)", cols)
     _merge_warning(table, *_fold_matching(entries, folds))
-    approx = _approximate_note(table, entries)
-    for e in entries:
+    shown = [e.restricted(folds) for e in entries]  # the labels of the folds in this table
+    for e, s_e in zip(entries, shown):
         metrics = [e.folds[f].metrics for f in folds]
         agg = aggregate_folds(metrics)
         images = sum(e.folds[f].images for f in folds)
         instances = sum(e.folds[f].instances for f in folds)
         seeds = sorted({s for f in folds for s in e.folds[f].seeds})
         row: dict[str, Any] = {"encoding": e.encoding, "images": images, "instances": instances,
-                               "_approximate": e.label in approx}
+                               "_marks": _marks(("precision", "recall", "mAP50", "mAP50_95",
+                                                 *(f"cat:{c}" for c in chosen)), s_e.labels)}
         for key in ("precision", "recall", "mAP50", "mAP50_95"):
             s = Stat.from_mean_sd(agg["metrics"].get(key))
             row[key] = s if len(folds) > 1 else s.mean
@@ -600,9 +595,8 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
                                         instances=int(pc.get("instances") or 0), seeds=seeds,
                                         sample_matched=table.warning is None))
         table.rows.append(row)
-    cat_support = ", ".join(
-        f"{c} {int((aggregate_folds([entries[0].folds[f].metrics for f in folds])['per_category'].get(c) or {}).get('instances') or 0)}"
-        for c in chosen)
+    first = aggregate_folds([entries[0].folds[f].metrics for f in folds])["per_category"]
+    cat_support = ", ".join(f"{c} {int((first.get(c) or {}).get('instances') or 0)}" for c in chosen)
     table.notes.append(f"Same detector, same held-out images, one row per encoding of the fourth channel; "
                        f"{_seeds_note(entries)}. P and R at the confidence that maximises the mean F1 over categories "
                        f"(IoU 0.50); AP in %." + (" Values are means over the folds." if len(folds) > 1 else ""))
@@ -610,6 +604,7 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
         table.notes.append(f"Instances of the AP50 columns: {cat_support}.")
     if missing:
         table.notes.append(f"Categories not in this dataset (no column): {', '.join(missing)}.")
+    _label_notes(table, shown)
     return table
 
 
@@ -678,22 +673,19 @@ def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
 
 
 # -------------------------------------------------------------------------------------------------- cross-dataset
-def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | None:
+def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
     """The cross-dataset table of ``harness.compare.build_table``, restricted to the project tables' rows.
 
     The builder aggregates every (dataset, annotation source, detector, encoding) of the store; entries evaluated on
     fewer folds (encoding ablations) are left out here, as in the project-grouped tables, and named in a note. Rows
     of a dataset whose entries were not scored on the same samples are marked ``!`` and the table is labelled.
-    Returns None when ``harness.compare`` is not part of this installation.
     """
-    try:
-        from harness.compare import build_table
-    except ImportError:
-        return None
+    from harness.compare import build_table
+
     with_runs = [d for d in datasets if view.entries(d)]
     if not with_runs:
         return Table("cross-dataset", "Cross-dataset comparison", [])
-    ct = build_table(view.root, with_runs, allow_mismatched=True)
+    ct = build_table(view, with_runs, allow_mismatched=True)
     keep: set[tuple[str, str, str]] = set()
     bad: set[str] = set()
     table = Table("cross-dataset", "Cross-dataset comparison (held-out mAP, %)", [])
@@ -712,14 +704,18 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | Non
         cols += [Column("safit50", "SAFit-AP50", "pct"), Column("safit50_95", "SAFit-AP50:95", "pct")]
     table.columns = cols
     left_out = []
+    shown = []
     for r in ct.rows:
         if (r.dataset, r.detector, r.encoding) not in keep:
             left_out.append(f"{r.dataset}/{r.detector}/{r.encoding} [{', '.join(r.folds)}]")
             continue
+        shown.append(r)
         matched = r.dataset not in bad
-        row = {"dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
-               "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
-               "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds))}
+        row: dict[str, Any] = {
+            "dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
+            "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
+            "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds)),
+            "_marks": _marks(("mAP50", "mAP50_95", "safit50", "safit50_95"), r.labels)}
         if ct.safit:
             row["safit50"] = Stat(r.safit50, r.safit50_sd, len(r.folds))
             row["safit50_95"] = Stat(r.safit50_95, r.safit50_95_sd, len(r.folds))
@@ -735,6 +731,7 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table | Non
     if left_out:
         table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablations): "
                            + ", ".join(left_out))
+    table.notes[:0] = label_notes([r.notes_item(len(with_runs) > 1) for r in shown])
     return table
 
 
@@ -751,8 +748,12 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
     for c in comparisons:
         fd = c.fold_differences
         row: dict[str, Any] = {"a": c.a, "b": c.b, "folds": len(c.folds), "images": c.images,
-                               "instances": c.instances, "fold_d50": fd["mAP50"].stat, "fold_d5095": fd["mAP50_95"].stat,
+                               "instances": c.instances, "fold_d50": fd["mAP50"].stat,
+                               "fold_d5095": fd["mAP50_95"].stat,
                                "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}"}
+        shown = "".join(c.fold_marks.get("a", []) + c.fold_marks.get("b", []))  # a difference rests on both sides
+        m = "".join(ch for ch in dict.fromkeys(MARKS.values()) if ch in shown)
+        row["_marks"] = {k: m for k in ("fold_d50", "boot_d50", "fold_d5095", "boot_d5095")} if m else {}
         verdicts = []
         for key, col in (("mAP50", "boot_d50"), ("mAP50_95", "boot_d5095")):
             b = (c.bootstrap or {}).get(key)
@@ -782,4 +783,5 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
                            f"images given new ids, statistic = mean over folds; percentile 95 % CI; {desc}.")
     else:
         table.notes.append("No bootstrap (resamples = 0): per-fold differences only.")
+    table.notes[:0] = list(dict.fromkeys(n for c in comparisons for n in c.label_notes))
     return table

@@ -106,6 +106,7 @@ def export_predictions(store: str | Path, dataset: str | None = None, detector: 
                        encoding: str | None = None, folds: Sequence[str] | None = None, seed: int | None = None,
                        frame: str = "thermal", out: str | Path = "predictions") -> list[Exported]:
     """Export every finished run that matches; ``out`` is the file for one run, a folder for several."""
+    from harness.report.reader import read_run
     from harness.store import Store
 
     st = Store(store)
@@ -123,7 +124,7 @@ def export_predictions(store: str | Path, dataset: str | None = None, detector: 
         else:
             k = r.key
             target = out / f"{k.dataset}_{k.detector.replace('/', '.')}_{k.encoding}_{k.fold}_seed{k.seed}.json"
-        fp = (r.key.dataset, (read_json(r.metrics_path).get("run") or {}).get("dataset"))
+        fp = (r.key.dataset, (read_run(r).metrics.get("run") or {}).get("dataset"))
         prepared = cache.get(fp)
         if prepared is None:
             prepared = cache[fp] = _prepared_of(r)

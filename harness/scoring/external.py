@@ -29,7 +29,6 @@ beside the trained detectors. Complexity is what the user gives (``params``, ``g
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -42,7 +41,8 @@ import numpy as np
 
 from harness.complexity import given
 from harness.errors import ConfigError, DataError, StoreError
-from harness.io import atomic_write_json, read_json
+from harness.io import atomic_write_json, file_digest, read_json
+from harness.report.reader import normalise_category, read_run
 from harness.scoring.frames import FRAMES, image_name, to_prepared
 from harness.scoring.plausibility import Finding, agreement, pct, shift_found, too_many
 
@@ -50,10 +50,6 @@ log = logging.getLogger(__name__)
 
 ENCODING = "external"
 NOT_LISTED = "(not in the image list)"
-
-
-def _norm(name: Any) -> str:
-    return re.sub(r"[\s_\-]+", " ", str(name)).strip().lower()
 
 
 @dataclass
@@ -117,6 +113,15 @@ class Matching:
         return out
 
 
+#: ``eval`` settings that change a score, with the value that leaves a stored identity as it was before they counted.
+EVAL_IDENTITY = {"engine": None, "matching": None, "safit_anchor": "center", "strict": False}
+
+
+def _eval_identity(ev: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``eval`` settings of a score's identity: engine and matching, the others where they are not the default."""
+    return {k: ev.get(k) for k, default in EVAL_IDENTITY.items() if default is None or ev.get(k, default) != default}
+
+
 @dataclass
 class ScoreResult:
     run_path: Path
@@ -178,10 +183,10 @@ def _as_int(value: Any) -> int | None:
 def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str],
                        mapping: Mapping[str, str] | None) -> Any:
     """``resolve(det) -> (label or None, reference shown to the user, the id when it was read as the harness's)``."""
-    ours = {_norm(c): i for i, c in enumerate(categories)}
+    ours = {normalise_category(c): i for i, c in enumerate(categories)}
     explicit = {str(k): v for k, v in (mapping or {}).items()}
     for their, our in explicit.items():
-        if _norm(our) not in ours:
+        if normalise_category(our) not in ours:
             raise ConfigError(f"--category-map {their}={our}: {our!r} is not a category of the dataset "
                               f"({', '.join(categories)})")
 
@@ -192,23 +197,15 @@ def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str]
             name = names_by_id.get(cid, names_by_id.get(str(cid)))
         for key in (str(cid) if cid is not None else None, name):
             if key is not None and str(key) in explicit:
-                return ours[_norm(explicit[str(key)])], str(key), None
+                return ours[normalise_category(explicit[str(key)])], str(key), None
         if name is not None:
-            return ours.get(_norm(name)), str(name), None
+            return ours.get(normalise_category(name)), str(name), None
         bare = _as_int(cid)  # no names anywhere: the harness's own ids (category_id = label + 1)
         if bare is not None and 1 <= bare <= len(categories):
             return bare - 1, str(cid), bare
         return None, str(cid), bare
 
     return resolve
-
-
-def _sha1(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[dict[str, Any]], frame: str,
@@ -424,7 +421,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
     ``allow_implausible``: then they are scored as read and the stored result is labelled."""
     from harness.config import load_config
-    from harness.evaluation import evaluate
+    from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
     from harness.plugins import get_host
     from harness.cache import fold_indices, prepare, resolve_folds
@@ -465,22 +462,23 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                           "(the stored result is labelled).")
 
     key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
-    run = Store(store or Path("results") / (profile or "default")).run(key)
-    identity = {"predictions_sha1": _sha1(pred_path), "frame": frame, "image_key": image_key,
-                "images_sha1": _sha1(Path(images)) if images else None, "category_map": dict(category_map or {}),
+    results = Store(store or Path("results") / (profile or "default"))
+    run = results.run(key)
+    identity = {"predictions_sha1": file_digest(pred_path), "frame": frame, "image_key": image_key,
+                "images_sha1": file_digest(images) if images else None, "category_map": dict(category_map or {}),
                 "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
-                "val_groups": list(f.val_groups), "eval": {k: cfg["eval"][k] for k in ("engine", "matching")},
+                "val_groups": list(f.val_groups), "eval": _eval_identity(cfg["eval"]),
                 "params": params, "gflops": gflops}
     digest = config_hash(identity)
     st = run.status() or {}
     if run.is_finished() and not force:
         if st.get("config_hash") == digest:
             log.info("%s: scored earlier from the same file, skipped (use --force to redo)", key)
-            return ScoreResult(run.path, run.read_metrics(), m, "skipped")
+            return ScoreResult(run.path, read_run(run).metrics, m, "skipped")
         raise StoreError(f"{key} was scored earlier from other predictions or options; use --force to replace it, "
                          f"or another --name")
     gt = prepared.coco(scored_idx)
-    evaluation = evaluate(gt, dets, engine=cfg["eval"]["engine"], matching=cfg["eval"]["matching"])
+    evaluation = evaluate_with_config(gt, dets, cfg)
     support = dict(evaluation["support"])
     support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
     metrics = {
@@ -503,7 +501,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     store_analysis(run, gt, dets, cfg, evaluation["metrics"].get("conf_threshold"))
     run.write_metrics(metrics)
     run.set_status("finished", config_hash=digest, error=None, fold=f.name, seed=0)
-    return ScoreResult(run.path, run.read_metrics(), m, "scored")
+    results.write_dataset(spec)
+    return ScoreResult(run.path, read_run(run).metrics, m, "scored")
 
 
 def parse_category_map(text: str | None) -> dict[str, str]:

@@ -17,7 +17,6 @@ The result is a plain state dict in the codebase's own key layout, which ``harne
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import struct
@@ -28,7 +27,7 @@ from typing import Any, BinaryIO, Iterator
 import torch
 
 from harness.errors import HarnessError
-from harness.io import atomic_write, atomic_write_json
+from harness.io import atomic_write, atomic_write_json, file_digest
 from harness.weights.layout import checkpoint_info, detect_layout
 from harness.weights.tree import find_model, is_state_dict, module_state_dict, to_float32
 from harness.weights.unpickle import (PIECE_BYTES, CheckpointFormatError, CheckpointLimitError, ForeignObjectError,
@@ -46,14 +45,6 @@ class ImportResult:
     weights: Path
     sidecar: Path
     info: dict[str, Any]
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 MAX_PLACEHOLDER_NAMES = 200
@@ -108,7 +99,7 @@ def _read_raw(src: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     names = sorted(stubs)
     info = {
         "source": str(src),
-        "source_sha256": _sha256(src),
+        "source_sha256": file_digest(src, "sha256"),
         "weights_from": where,
         "tensors": len(raw),
         "parameters": int(sum(t.numel() for t in raw.values() if t.is_floating_point())),
