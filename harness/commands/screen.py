@@ -100,14 +100,15 @@ def register_commands(cli: click.Group) -> None:
                    fallback, rgb_decode, register, workers, threads, fail_fast, force, no_overlays, no_progress):
         """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
 
-        \b
         Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
         undistort, register, warp, crop, fourth channel), then its model. Writes findings.csv and
-        findings.geojson (class, score, boxes in thermal and RGB pixels, box temperatures and contrast, GPS and
-        gimbal), an overlay per frame with findings, index.html and manifest.json. A re-run skips frames done.
-        Bad files are listed and skipped (exit status 1).
+        findings.geojson (class, score, boxes in thermal and RGB pixels, box temperatures and contrast, GPS
+        and gimbal), an overlay per frame with findings, index.html and manifest.json. A re-run skips frames
+        done. Bad files are listed and skipped (exit status 1).
+
+        \b
         Example:
-          harness screen flights/2024-06-03 --run results/paper/m3t/ours/c2/P1/seed0 --out screens/2024-06-03
+          harness screen flights/0603 --run results/paper/m3t/ours/c2/P1/seed0 --out screens/0603
         """
         from harness.screen import ScreenRequest, screen
 

@@ -132,10 +132,11 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     from harness.io import atomic_write_json, read_json
     from harness.plugins import get_host
     from harness.scoring.export import _prepared_of
-    from harness.store import Store
+    from harness.report.reader import StoreView
 
-    st = Store(store)
-    runs = [r for r in st.runs(dataset=dataset) if not folds or r.key.fold in folds]
+    view = StoreView(store)
+    st = view.store
+    runs = [r for r in view.finished_runs(dataset) if not folds or r.key.fold in folds]
     runs = [r for r in runs if seed is None or r.key.seed == seed]
     if not runs:
         raise StoreError(f"no finished run of {dataset} in {st.root} (folds {list(folds or []) or 'all'}, seed "
@@ -168,7 +169,7 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
             notes.append(f"{run.key}: left out (prepared on other samples: fingerprint {stored}, now {fingerprint})")
             continue
         gt = read_json(run.gt_path)
-        conf = (read_json(run.metrics_path).get("metrics") or {}).get("conf_threshold")
+        conf = (run.metrics.get("metrics") or {}).get("conf_threshold")
         by_image: dict[int, list[dict[str, Any]]] = {}
         for p in read_json(run.predictions_path):
             by_image.setdefault(int(p["image_id"]), []).append(p)

@@ -91,10 +91,11 @@ def run_predictions(store: str | Path, dataset: str, detector: str, image_id: in
     """Predictions of ``detector``'s finished runs on ``image_id`` at each run's operating point, one set per run
     whose held-out images include it. None found is an error naming what the store holds."""
     from harness.io import read_json
-    from harness.store import Store
+    from harness.report.reader import StoreView
 
-    st = Store(store)
-    runs = list(st.runs(dataset=dataset, detector=detector))
+    view = StoreView(store)
+    st = view.store
+    runs = [r for r in view.finished_runs(dataset) if r.key.detector == detector]
     if not runs:
         raise StoreError(f"no finished run of {detector} on {dataset} in {st.root}")
     out = []
@@ -102,7 +103,7 @@ def run_predictions(store: str | Path, dataset: str, detector: str, image_id: in
         gt = read_json(run.gt_path) if run.gt_path.is_file() else {}
         if int(image_id) not in {int(im["id"]) for im in gt.get("images") or []}:
             continue
-        conf = (read_json(run.metrics_path).get("metrics") or {}).get("conf_threshold")
+        conf = (run.metrics.get("metrics") or {}).get("conf_threshold")
         boxes = coco_boxes(read_json(run.predictions_path), int(image_id), name=f"{run.key.detector}/"
                            f"{run.key.encoding}/{run.key.fold}/seed{run.key.seed}").above(conf)
         if conf is not None:
