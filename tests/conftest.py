@@ -38,7 +38,7 @@ def fresh_plugins(monkeypatch):
 
 @pytest.fixture
 def cli_runner():
-    """Invoke the CLI in-process: ``cli_runner(["list", "--json"])`` -> click Result."""
+    """Invoke the CLI in-process: ``cli_runner(["list", "--format", "json"])`` -> click Result."""
     from click.testing import CliRunner
 
     from harness.cli import get_cli
