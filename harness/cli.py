@@ -141,12 +141,12 @@ class _LazyRichHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         if self._inner is None:
             try:
-                import rich
                 from rich.logging import RichHandler
 
-                # logs and progress bars go to stderr: stdout carries only a command's output (tables, JSON)
-                rich.reconfigure(stderr=True)
-                self._inner = RichHandler(show_path=False, show_time=False, markup=False)
+                from harness.progress import console
+
+                # logs and progress bars share one console on stderr: stdout carries only a command's output
+                self._inner = RichHandler(console=console(), show_path=False, show_time=False, markup=False)
             except ImportError:  # pragma: no cover
                 self._inner = logging.StreamHandler(sys.stderr)
         self._inner.emit(record)

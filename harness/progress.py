@@ -57,6 +57,20 @@ def switched_off() -> Iterator[None]:
         switch_back(token)
 
 
+_CONSOLE: Any = None
+
+
+def console() -> Any:
+    """The one rich console on stderr that bars and log lines share (so logs print above a live bar, and a bar
+    started inside another one stays silent instead of fighting it)."""
+    global _CONSOLE
+    if _CONSOLE is None:
+        from rich.console import Console
+
+        _CONSOLE = Console(stderr=True)
+    return _CONSOLE
+
+
 def stderr_is_terminal() -> bool:
     try:
         return sys.stderr.isatty()
@@ -82,7 +96,6 @@ class Bar:
 
     def __enter__(self) -> "Bar":
         if self.shown:
-            from rich.console import Console
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn,
                                        TimeElapsedColumn, TimeRemainingColumn)
 
@@ -94,7 +107,7 @@ class Bar:
                 columns.append(TextColumn("{task.fields[note]}"))
             from rich.errors import LiveError
 
-            progress = Progress(*columns, console=Console(stderr=True), transient=self._transient)
+            progress = Progress(*columns, console=console(), transient=self._transient)
             try:
                 progress.start()
             except LiveError:  # another bar is showing (a nested one): this one stays silent
