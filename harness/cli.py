@@ -108,7 +108,7 @@ def report_bug(ctx: click.Context, exc: Exception) -> NoReturn:
                f"{REPORT_BUGS} with the command line and the traceback, which `harness -v ...` prints.", err=True)
     if verbose:
         click.echo("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip(), err=True)
-    ctx.exit(ExitCode.BUG)
+    raise click.exceptions.Exit(ExitCode.BUG)
 
 
 @click.group(cls=HarnessGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

@@ -36,8 +36,9 @@ one release: the CLI rewrites them to the new ones before parsing and prints one
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence, TypeVar
+from typing import Any, TypeVar
 
 import click
 

@@ -83,7 +83,8 @@ def register_commands(cli: click.Group) -> None:
         parsed = parse_seeds(seeds)
         spec = SweepSpec(detectors=tuple(_split(detectors)), datasets=tuple(_split(datasets)), folds=folds,
                          seeds=tuple(parsed) if parsed is not None else None, encodings=tuple(_split(encodings)),
-                         profile=profile, config_files=tuple(config_files), overrides=tuple(overrides), store=store,
+                         profile=profile, config_files=tuple(config_files), overrides=tuple(overrides),
+                         store=None if store is None else str(store),
                          force=force)
         if dry_run:
             planned = expand(spec)
