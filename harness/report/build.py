@@ -263,7 +263,7 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sec.notes += notes
     if not abl:
         sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
-                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --fold F "
+                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --folds F "
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
     sections.append(sec)
 
