@@ -95,13 +95,14 @@ def folds_option(*, one: bool = False, required: bool = False, default: str | No
                   callback=check, metavar="FOLD" if one else "FOLDS", help=text)
 
 
-def seeds_option(*, one: bool = False, default: str | None = None, help: str | None = None,
+def seeds_option(*, one: bool = False, default: str | int | None = None, help: str | None = None,
                  old: Sequence[str] = ()) -> Callable[[F], F]:
-    """``--seeds`` -> parameter ``seeds``: training seeds, a comma-separated string (``None``: the protocol's).
-    ``one=True``: exactly one seed, as an ``int``."""
+    """``--seeds`` -> parameter ``seeds``: training seeds, a comma-separated string (``None``: the protocol's, or all
+    runs' for a filter). ``one=True``: one seed, as an ``int`` (or ``None`` when not given and no ``default``)."""
     if one:
-        return option("--seeds", "seeds", shared="seeds", old=old, type=int, default=int(default or 0),
-                      show_default=True, metavar="SEED", help=help or "The training seed.")
+        return option("--seeds", "seeds", shared="seeds", old=old, type=int,
+                      default=None if default is None else int(default), show_default=default is not None,
+                      metavar="SEED", help=help or "The training seed.")
     return option("--seeds", "seeds", shared="seeds", old=old, default=default, show_default=default is not None,
                   metavar="SEEDS",
                   help=help or "Training seeds, comma-separated, e.g. 0,1,2 [default: protocol.seeds].")

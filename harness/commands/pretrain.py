@@ -131,7 +131,7 @@ def register_commands(cli: click.Group) -> None:
                   help="Extra-channel encoding [default: the dataset's, ir8 for m3fd; proxy8 is closer to c2].")
     @opt.folds_option(one=True, default=None, old=("--fold",),
                       help="Held-out fold to select the checkpoint on [default: the protocol's only fold].")
-    @opt.seeds_option(one=True, old=("--seed",), help="The training seed of the pretraining run.")
+    @opt.seeds_option(one=True, default=0, old=("--seed",), help="The training seed of the pretraining run.")
     @opt.profile_option()
     @opt.config_options()
     @opt.store_option()
