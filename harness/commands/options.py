@@ -161,12 +161,12 @@ def no_progress_option() -> Callable[[F], F]:
                   help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).")
 
 
-def profile_option(*, uses_config: bool = True, param: str = "profile") -> Callable[[F], F]:
+def profile_option(*, uses_config: bool = True, param: str = "profile", help: str | None = None) -> Callable[[F], F]:
     """``--profile`` (default ``smoke``) -> parameter ``profile`` (or ``param``). ``uses_config=False``: the command
     uses the profile only for its default store."""
-    text = ("Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also names the "
-            "default store, results/<profile>." if uses_config else
-            "Run profile whose results store (results/<profile>) is used when --store is not given.")
+    text = help or ("Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also "
+                    "names the default store, results/<profile>." if uses_config else
+                    "Run profile whose results store (results/<profile>) is used when --store is not given.")
     return option("--profile", param, shared="profile", default=DEFAULT_PROFILE, show_default=True, help=text)
 
 
