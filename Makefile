@@ -44,7 +44,7 @@ demo: $(STAMP)
 	lane P3,P4+P5 $(BIN)/harness run --detector ours --encoding none --folds P1 $(DEMO_RUN) \
 	  --config configs/demo/ours.yaml --no-progress > /dev/null & b=$$!; \
 	fail=0; wait $$a || fail=1; wait $$b || fail=1; exit $$fail
-	$(BIN)/harness ablate --detector ours --encodings none,c2 --fold P1 $(DEMO_RUN) --config configs/demo/ours.yaml \
+	$(BIN)/harness ablate --detector ours --encodings none,c2 --folds P1 $(DEMO_RUN) --config configs/demo/ours.yaml \
 		--no-progress
 	$(BIN)/harness sensing registration-error --dataset m3t-synth --store $(DEMO_STORE) \
 		--landmarks "$(DEMO_DATA)/registration/landmarks.json"

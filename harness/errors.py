@@ -45,3 +45,20 @@ class DataError(HarnessError):
 
 class StoreError(HarnessError):
     """The results store holds something unexpected (a conflicting finished run, a corrupt file)."""
+
+
+class PartlyDone(Exception):
+    """A batch command finished what it could and listed what failed (the message says how many): exit status 1.
+
+    Not a ``HarnessError``: the work that succeeded is done and kept. Raised by commands, after their output.
+    """
+
+
+class ExitCode:
+    """The exit statuses of ``harness`` (README, "Exit status"; the same for plugin commands)."""
+
+    DONE = 0  #: everything asked for was done
+    PARTLY_DONE = 1  #: a batch finished what it could; what failed is listed (``PartlyDone``)
+    USAGE = 2  #: a usage or input error (bad option, ``HarnessError``, unreadable file), said in one line
+    BUG = 70  #: an unexpected exception: a bug in the harness or a plugin (EX_SOFTWARE of sysexits.h)
+    INTERRUPTED = 130  #: Ctrl-C (128 + SIGINT); finished runs are kept and interrupted ones resume

@@ -1,17 +1,157 @@
-"""Overall progress of long work, as one line on stderr: runs done out of those to do, epochs, elapsed time, ETA.
+"""Progress of long work, on stderr only: one helper for every bar, and the overall one-line progress of run and sweep.
 
-``harness run`` prints it after every epoch (``run 2/4 ours/c2/P2 epoch 3/6 | 9/24 epochs | 0:41 elapsed, ETA
-1:10``) and ``harness sweep`` after every run (``sweep 3/16 runs (1 failed) | 2:05 elapsed, ETA 9:00``), beside the
-per-epoch bar. The ETA assumes the remaining epochs (or runs) take as long as those done so far in this call; early
-stopping can only make it shorter. ``enabled=False`` (``--no-progress``, or any process but the first under
-``torchrun``) prints nothing.
+Bars. Every progress bar of the harness comes from ``bar()`` (a rich bar on stderr, so stdout carries only a
+command's output). A bar shows only when three things hold: its caller enabled it, progress is switched on for this
+invocation (the CLI's ``--no-progress`` switches it off, see ``switched_off()``), and stderr is a terminal: in a log
+file or a pipe a bar would be noise, so it prints nothing there. Library code asks for a bar where it has work to
+count and leaves these decisions here::
+
+    from harness.progress import bar
+
+    with bar("decoding", total=len(files), enabled=progress) as b:
+        for f in files:
+            ...
+            b.advance()
+
+Lines. ``harness run`` prints ``OverallProgress`` after every epoch (``run 2/4 ours/c2/P2 epoch 3/6 | 9/24 epochs |
+0:41 elapsed, ETA 1:10``) and ``harness sweep`` prints ``SweepProgress`` after every run (``sweep 3/16 runs (1
+failed) | 2:05 elapsed, ETA 9:00``), beside the per-epoch bar. These are log lines: they go to stderr also when it is
+not a terminal (a Slurm log keeps them), and ``--no-progress`` silences them too. The ETA assumes the remaining
+epochs (or runs) take as long as those done so far in this call; early stopping can only make it shorter.
+``enabled=False`` (any process but the first under ``torchrun``) prints nothing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
-from typing import Callable, TextIO
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar, Token
+from typing import Any, TextIO
+
+#: Whether progress is shown in this invocation (``--no-progress`` sets it to False for the command it runs).
+_SWITCH: ContextVar[bool] = ContextVar("harness_progress", default=True)
+
+
+def progress_on() -> bool:
+    """False after ``--no-progress`` (or inside ``switched_off()``): no bars and no progress lines."""
+    return _SWITCH.get()
+
+
+def switch_off() -> Token[bool]:
+    """Switch progress off until ``switch_back(token)`` (what ``--no-progress`` does for one command)."""
+    return _SWITCH.set(False)
+
+
+def switch_back(token: Token[bool]) -> None:
+    _SWITCH.reset(token)
+
+
+@contextlib.contextmanager
+def switched_off() -> Iterator[None]:
+    """No bars and no progress lines inside the ``with`` block."""
+    token = switch_off()
+    try:
+        yield
+    finally:
+        switch_back(token)
+
+
+_CONSOLE: Any = None
+
+
+def console() -> Any:
+    """The one rich console on stderr that bars and log lines share (so logs print above a live bar, and a bar
+    started inside another one stays silent instead of fighting it)."""
+    global _CONSOLE
+    if _CONSOLE is None:
+        from rich.console import Console
+
+        _CONSOLE = Console(stderr=True)
+    return _CONSOLE
+
+
+def stderr_is_terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stream
+        return False
+
+
+class Bar:
+    """One progress bar on stderr, or nothing (see the module docstring for when it shows).
+
+    ``eta`` adds the time remaining, ``note`` a free text after the bar (the trainer's running losses), and
+    ``transient=False`` leaves the finished bar on the terminal. ``restart()`` replaces the counted task with a new
+    one in the same display (one bar per epoch).
+    """
+
+    def __init__(self, description: str, total: float | None = None, *, enabled: bool = True, eta: bool = False,
+                 note: bool = False, transient: bool = True):
+        self.description, self.total = description, total
+        self.shown = bool(enabled) and progress_on() and stderr_is_terminal()
+        self._eta, self._note, self._transient = eta, note, transient
+        self._progress: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> Bar:
+        if self.shown:
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                ProgressColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
+            columns: list[ProgressColumn] = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                             TimeElapsedColumn()]
+            if self._eta:
+                columns.append(TimeRemainingColumn())
+            if self._note:
+                columns.append(TextColumn("{task.fields[note]}"))
+            from rich.errors import LiveError
+
+            progress = Progress(*columns, console=console(), transient=self._transient)
+            try:
+                progress.start()
+            except LiveError:  # another bar is showing (a nested one): this one stays silent
+                self.shown = False
+                return self
+            self._progress = progress
+            self._task = self._progress.add_task(self.description, total=self.total, note="")
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def advance(self, k: float = 1, note: str | None = None) -> None:
+        if self._progress is not None:
+            self._progress.update(self._task, advance=k, **({} if note is None else {"note": note}))
+
+    def update(self, *, completed: float | None = None, total: float | None = None, description: str | None = None,
+               note: str | None = None) -> None:
+        if self._progress is not None:
+            fields = {} if note is None else {"note": note}
+            self._progress.update(self._task, completed=completed, total=total, description=description, **fields)
+
+    def restart(self, description: str, total: float | None = None) -> None:
+        """Count a new task (``description``, ``total``) in place of the current one."""
+        self.description, self.total = description, total
+        if self._progress is not None:
+            self._progress.remove_task(self._task)
+            self._task = self._progress.add_task(description, total=total, note="")
+
+
+def bar(description: str, total: float | None = None, *, enabled: bool = True, eta: bool = False, note: bool = False,
+        transient: bool = True) -> Bar:
+    """A progress bar on stderr (a context manager): ``with bar("preparing m3t", total=n) as b: ... b.advance()``."""
+    return Bar(description, total, enabled=enabled, eta=eta, note=note, transient=transient)
 
 
 def clock(seconds: float | None) -> str:
@@ -65,7 +205,7 @@ class OverallProgress:
                 f"ETA {clock(self.eta())}")
 
     def _print(self, text: str) -> None:
-        if self.enabled:
+        if self.enabled and progress_on():
             stream = self.stream or sys.stderr
             print(text, file=stream, flush=True)
 
@@ -108,5 +248,5 @@ class SweepProgress:
     def job_done(self, ok: bool = True) -> None:
         self.done += 1
         self.failed += 0 if ok else 1
-        if self.enabled:
+        if self.enabled and progress_on():
             print(self.line(), file=self.stream or sys.stderr, flush=True)

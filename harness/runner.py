@@ -339,7 +339,8 @@ def run(request: RunRequest) -> RunSummary:
     summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
                          list(prepared.categories))
     todo = [x for x in p.runs if x.state != "finished" or request.force]
-    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main())
+    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]),
+                              enabled=hd.is_main() and request.progress)
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
@@ -608,7 +609,7 @@ def ablate(detector: str, dataset: str, encodings: Sequence[str], fold: str, see
     if not encodings:
         raise ConfigError("--encodings: name at least one encoding, e.g. none,ir8,linear16,c2")
     if "," in fold or fold == "all":
-        raise ConfigError(f"--fold {fold!r}: the ablation uses one fold, e.g. P4+P5")
+        raise ConfigError(f"--folds {fold!r}: the ablation uses one fold, e.g. P4+P5")
     runs: dict[str, RunSummary] = {}
     for enc in encodings:
         runs[enc] = run(RunRequest(detector=detector, dataset=dataset, encoding=enc, folds=fold, seeds=seeds,

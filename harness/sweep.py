@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from harness.errors import ConfigError, HarnessError
+from harness.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +259,7 @@ def run_ray(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool =
         log.info("sweep: %d Ray tasks submitted (%d CPU, %d GPU each)", len(refs), options.cpus_per_run, gpus)
         by_ref: dict[Any, JobResult] = {}
         pending = list(refs)
-        with _bar(progress, len(refs), "sweep (ray)") as advance:
+        with progress_bar("sweep (ray)", len(refs), enabled=progress) as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 for ref in done:
@@ -268,7 +269,7 @@ def run_ray(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool =
                         by_ref[ref] = _failed(refs[ref], exc)
                     if on_result:
                         on_result(by_ref[ref])
-                    advance()
+                    bar.advance()
         return [by_ref[ref] for ref in refs]
     finally:
         if started:
@@ -318,7 +319,7 @@ def run_submitit(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: b
     log.info("sweep: %d jobs submitted to %s (logs in %s): %s", len(submitted), ex.cluster, folder,
              ", ".join(str(j.job_id) for j in submitted[:5]) + (" ..." if len(submitted) > 5 else ""))
     results: list[JobResult | None] = [None] * len(submitted)
-    with _bar(progress, len(submitted), f"sweep ({ex.cluster})") as advance:
+    with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=progress) as bar:
         waiting = set(range(len(submitted)))
         while waiting:
             for i in sorted(waiting):
@@ -331,7 +332,7 @@ def run_submitit(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: b
                 waiting.discard(i)
                 if on_result:
                     on_result(results[i])  # type: ignore[arg-type]
-                advance()
+                bar.advance()
             if waiting:
                 time.sleep(0.5)
     return [r for r in results if r is not None]
@@ -383,29 +384,6 @@ def sweep_table(summary: SweepSummary) -> str:
              "-" if r.time_s is None else f"{r.time_s:.1f}", (r.error or "").splitlines()[0][:80] if r.error else ""]
             for r in sorted(summary.results, key=lambda r: r.run)]
     return text_table(["run", "state", "mAP50", "mAP50:95", "time s", "error"], rows, align="llrrrl")
-
-
-class _bar:
-    """A rich progress bar over jobs (``advance()`` once per finished job), or nothing."""
-
-    def __init__(self, enabled: bool, total: int, description: str):
-        self.enabled, self.total, self.description = enabled, total, description
-        self.progress: Any = None
-
-    def __enter__(self) -> Callable[[], None]:
-        if not self.enabled:
-            return lambda: None
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn())
-        self.progress.__enter__()
-        task = self.progress.add_task(self.description, total=self.total)
-        return lambda: self.progress.update(task, advance=1)
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.progress is not None:
-            self.progress.__exit__(*exc)
 
 
 __all__ = ["EXECUTORS", "ExecutorError", "ExecutorOptions", "JobResult", "SweepJob", "SweepPlan", "SweepSpec",

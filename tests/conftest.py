@@ -9,6 +9,9 @@ import os
 os.environ["HARNESS_DISABLE_PLUGIN_AUTOLOAD"] = "1"
 os.environ.pop("HARNESS_LOAD_PLUGINS", None)
 os.environ.pop("HARNESS_PLUGINS_DIR", None)
+# An unexpected exception in a command propagates with its traceback (the CLI would print a short `bug:` line and
+# exit 70): tests of that path unset it.
+os.environ["HARNESS_DEBUG"] = "1"
 
 from pathlib import Path  # noqa: E402
 
@@ -34,7 +37,7 @@ def fresh_plugins(fresh_harness):
 
 @pytest.fixture
 def cli_runner():
-    """Invoke the CLI in-process: ``cli_runner(["list", "--json"])`` -> click Result."""
+    """Invoke the CLI in-process: ``cli_runner(["list", "--format", "json"])`` -> click Result."""
     from click.testing import CliRunner
 
     from harness.cli import get_cli

@@ -80,7 +80,7 @@ def test_json_and_markdown_formats(trained, tmp_path):
     row = next(r for r in data["rows"] if r["source"] == "T" and r["encoding"] == "ir8")
     m = stored(trained, "rgbt-tiny", "ir8", "test-T")
     assert row["map50_95"] == m["metrics"]["mAP50_95"] and row["safit50"] == m["metrics"]["safit"]["mAP50"]
-    md = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(trained["store"]), "--format", "markdown"]).output
+    md = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(trained["store"]), "--format", "md"]).output
     assert md.startswith("| dataset | GT | detector |") and md.count("\n| rgbt-tiny |") == 3
 
 

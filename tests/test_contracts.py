@@ -85,7 +85,7 @@ def test_a_plugin_command_named_like_a_builtin_is_a_conflict_naming_both(harness
     assert len(clash) == 1
     assert "harness.commands.core" in clash[0].message and "undo-shadow-plugin" in clash[0].message
     assert harness_host.owner("command", "list") == "harness.commands.core"  # the first stays the owner
-    result = CliRunner().invoke(group, ["list", "--json"])
+    result = CliRunner().invoke(group, ["list", "--format", "json"])
     assert result.exit_code != 0 and "the plugin's list" not in result.output
     assert isinstance(result.exception, PluginError)
     assert "harness.commands.core" in str(result.exception) and "undo-shadow-plugin" in str(result.exception)
@@ -284,7 +284,7 @@ def test_commands_added_again_after_a_host_reset_are_no_conflict(harness_host):
     assert not [p for p in host.problems if p.stage == "conflict"]
     from click.testing import CliRunner
 
-    assert CliRunner().invoke(group, ["list", "--json"]).exit_code == 0
+    assert CliRunner().invoke(group, ["list", "--format", "json"]).exit_code == 0
     assert host.owner("command", "list") == "harness.commands.core"
 
 

@@ -38,7 +38,7 @@ def test_example_plugin_installs_lists_and_runs(tmp_path):
 
     env = _env(site, HARNESS_PLUGINS_DIR=write_plugin_dir(tmp_path / "dir_plugins"), HARNESS_CACHE=tmp_path / "cache",
                HARNESS_TEST_CWD=tmp_path)
-    listed = _harness(["list", "--json"], env)
+    listed = _harness(["list", "--format", "json"], env)
     assert listed.returncode == 0, listed.stderr
     detectors = {d["name"]: d for d in json.loads(listed.stdout)["detectors"]}
     assert detectors["tinydet"]["plugin"] == "tinydet" and detectors["tinydet"]["input_kind"] == "single"

@@ -33,7 +33,7 @@ def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
                HARNESS_LOAD_PLUGINS="harness-example-dataset", HARNESS_CACHE=str(tmp_path / "cache"),
                HARNESS_TEST_CWD=str(tmp_path))
 
-    listed = json.loads(_harness(["list", "--json"], env).stdout)
+    listed = json.loads(_harness(["list", "--format", "json"], env).stdout)
     mine = next(d for d in listed["datasets"] if d["name"] == "example-folders")
     assert mine["plugin"] == "example-folders" and mine["protocol"] == "harness_example_dataset:protocol.yaml"
 

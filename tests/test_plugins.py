@@ -328,7 +328,7 @@ def test_cli_list_and_plugins(cli_runner):
         result = cli_runner(["list"])
         assert result.exit_code == 0
         assert "undo-cli-det" in result.output and "single-stream" in result.output
-        data = json.loads(cli_runner(["list", "--json"]).stdout)
+        data = json.loads(cli_runner(["list", "--format", "json"]).stdout)
         assert any(d["name"] == "undo-cli-det" and d["plugin"] == "undo-cli-plugin" for d in data["detectors"])
         plugins = json.loads(cli_runner(["plugins"]).stdout)["plugins"]
         rec = next(p for p in plugins if p["name"] == "undo-cli-plugin")

@@ -96,12 +96,12 @@ def test_unmatched_rows_get_a_loud_label_everywhere(tmp_path):
 
 def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, tmp_path):
     store, _, _ = built
-    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--format", "md",
+    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md",
                       "--resamples", "0", "--print"])
     assert res.exit_code == 0, res.output
     assert "synth: project-grouped folds" in res.output and "Registration error: ABSENT" in res.output
     assert not (tmp_path / "r").exists()  # --print prints instead of writing
-    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--format", "md",
+    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md",
                       "--resamples", "0"])
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
     res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r2"), "--resamples", "0"])
@@ -110,8 +110,8 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
     assert res.exit_code == 2 and "no results store here" in res.output
     res = cli_runner(["report", "--store", str(store.root), "--dataset", "m3t", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "nothing stored for dataset(s) m3t" in res.output and "synth" in res.output
-    res = cli_runner(["report", "--store", str(store.root), "--format", "pdf", "--out", str(tmp_path / "x")])
-    assert res.exit_code == 2 and "unknown report format(s) pdf" in res.output
+    res = cli_runner(["report", "--store", str(store.root), "--file-types", "pdf", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "unknown file type(s) pdf" in res.output
 
 
 def test_unreadable_files_are_skipped_and_named(tmp_path):

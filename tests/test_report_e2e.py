@@ -70,7 +70,7 @@ def real_store(tmp_path_factory):
             _cli(["run", "--detector", "tinydet-dual", "--dataset", DATASET, "--folds", "all", "--store", str(store),
                   *sets])
             _cli(["ablate", "--detector", "tinydet", "--dataset", DATASET, "--encodings", "c2,ir8,none",
-                  "--fold", "P4+P5", "--store", str(store), *sets])
+                  "--folds", "P4+P5", "--store", str(store), *sets])
             for det in ("tinydet", "tinydet-dual"):
                 _cli(["run", "--detector", det, "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "all",
                       "--store", str(store), *sets[:-2]])
@@ -160,7 +160,7 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
 @pytest.mark.slow
 def test_report_command_prints_every_table_of_the_real_store(real_store, tmp_path):
     out = _cli(["report", "--store", str(real_store), "--out", str(tmp_path / "r"), "--resamples", "0",
-                "--format", "csv", "--print"])
+                "--file-types", "csv", "--print"])
     for title in ("project-grouped folds", "per category", "encoding ablation of tinydet", "paired comparisons",
                   "registration error", "C2 amplitude kept under thermal displacement"):
         assert title in out, title

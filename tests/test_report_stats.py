@@ -210,7 +210,7 @@ def test_compare_detectors_command(cli_runner, pair_store):
     assert any(line.startswith("mean ± SD") for line in lines)
     assert "20 resamples (20 valid), seed 0" in res.output
     res = cli_runner(["compare-detectors", "strong", "weak", "--dataset", "synth", "--store", str(pair_store.root),
-                      "--resamples", "0", "--json"])
+                      "--resamples", "0", "--format", "json"])
     data = json.loads(res.output)
     assert data["bootstrap"] is None and data["folds"] == ["P1", "P2"]
     res = cli_runner(["compare-detectors", "strong", "nope", "--dataset", "synth", "--store", str(pair_store.root)])

@@ -200,7 +200,7 @@ def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
     assert len(header) == len(rule.rstrip())  # the columns line up under their headers
 
     res = cli_runner(["ablate", "--detector", "tinydet", "--dataset", "shapes", "--encodings", "test-none,test-ir8",
-                      "--fold", "B", "--categories", "warm,cold", "--store", store, "--no-progress", *sets])
+                      "--folds", "B", "--categories", "warm,cold", "--store", store, "--no-progress", *sets])
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
     lines = lines[next(i for i, line in enumerate(lines) if line.startswith("encoding ablation:")):]
@@ -208,7 +208,7 @@ def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
     assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
     assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]
 
-    res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--fold", "B",
+    res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--folds", "B",
                       "--categories", "delamination", "--store", store, "--no-progress", *sets])
     assert res.exit_code == 2 and "category 'delamination' is not in the dataset" in res.output
 

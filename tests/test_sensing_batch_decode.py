@@ -51,7 +51,8 @@ def test_a_flight_with_three_bad_files_decodes_the_other_hundred_and_names_the_f
     assert len(written) == 100 and written[0] == "DJI_0000_T.png" and written[-1] == "DJI_0099_T.png"
     assert len(list(out.glob("*.png.json"))) == 100
     assert not list(out.glob(".*"))  # no temporary file left behind
-    tail = res.output[res.output.index("decoded 100 of 103 file(s)"):]
+    tail = res.stdout[res.stdout.index("decoded 100 of 103 file(s)"):]
+    assert "partly done: 3 of 103 file(s) could not be decoded" in res.stderr
     assert "1 JPEG(s) without a radiometric payload passed over; 3 failed:" in tail
     lines = tail.splitlines()[1:]
     assert len(lines) == 3

@@ -66,7 +66,7 @@ def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only
 def test_profile_takes_the_run_options_and_writes_the_run_store(plugins, tmp_path, monkeypatch, cli_runner):
     monkeypatch.chdir(tmp_path)
     res = cli_runner(["profile", "--detector", "tinydet", "--set", "model.width=8", "--imgsz", "64", "--no-latency",
-                      "--no-onnx", "--no-fvcore", "--json"])
+                      "--no-onnx", "--no-fvcore", "--format", "json"])
     assert res.exit_code == 0, res.output
     stored = json.loads((tmp_path / "results" / "smoke" / "_profiles" / "tinydet.json").read_text())
     from harness_tinydet.model import TinyDet

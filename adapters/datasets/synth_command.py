@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -17,11 +18,13 @@ def add_synth_command(cli: click.Group) -> None:
                   help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.")
     @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
                   help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<profile>-seed<seed>).")
-    @click.option("--seed", type=int, default=0, show_default=True)
+    @click.option("--seed", type=int, default=0, show_default=True,
+                  help="Seed of the generator (part of the folder name); the same seed gives the same files.")
     @click.option("--thermal-format", type=click.Choice(["rjpeg", "centikelvin"]), default="rjpeg", show_default=True,
                   help="Thermal files as DJI R-JPEGs (_T.JPG) or 16-bit centi-Kelvin PNGs with sidecars.")
     @click.option("--force", is_flag=True, help="Replace an existing output folder.")
     @click.option("--workers", type=int, default=None, help="Rendering processes (default: up to 4, CPU count).")
+    @opt.no_progress_option()
     def synth_cmd(profile: str, out: Path | None, seed: int, thermal_format: str, force: bool,
                   workers: int | None) -> None:
         """Generate the synthetic M3T-like dataset (raw M3T layout + ground truth). Deterministic in --seed."""

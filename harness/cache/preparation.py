@@ -38,6 +38,7 @@ from harness.cache.key import PREPARE_VERSION, cache_form, cache_key, cache_root
 from harness.cache.reader import PreparedDataset
 from harness.cache.writer import PreparedWriter
 from harness.errors import ConfigError, DataError, SampleError
+from harness.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
                             pixel_files=getattr(source, "pixel_files", None))
     seen: dict[int, str] = {}
     try:
-        with _Bar(progress, total, f"preparing {spec.name}") as bar:
+        with progress_bar(f"preparing {spec.name}", total, enabled=progress, eta=True, transient=False) as bar:
             for sample in _plugin_samples(label, source, report):
                 where = _sample_where(sample)
                 contracts.check_unique_id(seen, sample, str(where), label)
@@ -258,29 +259,3 @@ def _count_route(routes: dict[str, Any], sample: Any) -> None:
 
 def _reasons_text(reasons: Mapping[str, int]) -> str:
     return ", ".join(f"{k}: {v}" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])) or "none"
-
-
-class _Bar:
-    """A rich progress bar (or nothing when disabled)."""
-
-    def __init__(self, enabled: bool, total: int | None, description: str):
-        self.enabled, self.total, self.description = enabled, total, description
-        self.bar: Any = None
-
-    def __enter__(self) -> "_Bar":
-        if self.enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                TimeRemainingColumn())
-            self.task = self.bar.add_task(self.description, total=self.total)
-            self.bar.start()
-        return self
-
-    def advance(self) -> None:
-        if self.bar is not None:
-            self.bar.advance(self.task)
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.bar is not None:
-            self.bar.stop()

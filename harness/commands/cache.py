@@ -58,7 +58,7 @@ def register_commands(cli: click.Group) -> None:
     def verify_cmd(names: tuple[str, ...], cache: Path | None) -> None:
         """Decode every sample of the prepared datasets (all when none named) and check referenced source files."""
         from harness.cache.admin import entries, select
-        from harness.errors import DataError
+        from harness.errors import PartlyDone
         from harness.cache import PreparedDataset
         from harness.cache import cache_root
 
@@ -71,4 +71,4 @@ def register_commands(cli: click.Group) -> None:
             for msg in errors[:20]:
                 click.echo(f"  {msg}", err=True)
         if failed:
-            raise DataError(f"{failed} prepared dataset(s) failed verification; prepare them again with --force")
+            raise PartlyDone(f"{failed} prepared dataset(s) failed verification; prepare them again with --force")

@@ -8,29 +8,23 @@ from pathlib import Path
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
-
-
-def default_store(profile: str | None) -> Path:
-    """Where ``harness run`` writes when given no ``--store``: ``results/<profile>``."""
-    return Path("results") / (profile or "default")
 
 
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="compare")
     @click.option("--datasets", required=True, help="Comma-separated datasets, in table order (e.g. m3t,rgbt-tiny).")
-    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to read (default: results/<profile>).")
-    @click.option("--profile", default="smoke", show_default=True,
-                  help="Profile whose default store (results/<profile>) to read when --store is not given.")
-    @click.option("--safit", is_flag=True, help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions.")
+    @opt.store_option(reads=True)
+    @opt.profile_option(uses_config=False)
+    @click.option("--safit", is_flag=True,
+                  help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions.")
     @click.option("--allow-mismatched", is_flag=True,
                   help="Print rows scored on different supports, marked '!', instead of refusing.")
-    @click.option("--format", "fmt", type=click.Choice(["text", "markdown", "csv", "json"]), default="text",
-                  show_default=True)
+    @opt.format_option("text", "json", "md", "csv", aliases={"markdown": "md"})
     @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
                   help="Also write the table to this file.")
     def compare_cmd(datasets: str, store: Path | None, profile: str | None, safit: bool, allow_mismatched: bool,
@@ -45,10 +39,10 @@ def register_commands(cli: click.Group) -> None:
         from harness.io import atomic_write_text
 
         names = [d.strip() for d in datasets.split(",") if d.strip()]
-        table = build_table(store or default_store(profile), names, allow_mismatched=allow_mismatched, safit=safit)
+        table = build_table(opt.resolve_store(store, profile), names, allow_mismatched=allow_mismatched, safit=safit)
         for m in table.mismatches:  # the report selects its rows itself and says so in its own notes
             log.info("not sample-matched (printed, marked '!'): %s", m)
-        text = table.render(fmt)
+        text = table.render("markdown" if fmt == "md" else fmt)
         click.echo(text)
         if out is not None:
             atomic_write_text(out, text + ("" if text.endswith("\n") else "\n"))

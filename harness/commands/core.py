@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -16,7 +17,7 @@ def _warn_problems(host: Any) -> None:
 
 
 def listing(host: Any) -> dict[str, list[dict[str, Any]]]:
-    """Detectors, datasets and encodings as plain records (what ``harness list --json`` prints)."""
+    """Detectors, datasets and encodings as plain records (what ``harness list --format json`` prints)."""
     detectors = [
         {
             "name": s.name,
@@ -50,7 +51,8 @@ def listing(host: Any) -> dict[str, list[dict[str, Any]]]:
         for s in host.encodings().values()
     ]
     key = lambda r: r["name"]  # noqa: E731
-    return {"detectors": sorted(detectors, key=key), "datasets": sorted(datasets, key=key), "encodings": sorted(encodings, key=key)}
+    return {"detectors": sorted(detectors, key=key), "datasets": sorted(datasets, key=key),
+            "encodings": sorted(encodings, key=key)}
 
 
 def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:
@@ -81,15 +83,15 @@ def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="list")
-    @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
-    def list_cmd(as_json: bool) -> None:
+    @opt.format_option("text", "json", old_json=True)
+    def list_cmd(fmt: str) -> None:
         """List the detectors, datasets and encodings that the loaded plugins provide."""
         from harness.plugins import get_host
 
         host = get_host()
         data = listing(host)
         _warn_problems(host)
-        click.echo(json.dumps(data, indent=2) if as_json else format_listing(data))
+        click.echo(json.dumps(data, indent=2) if fmt == "json" else format_listing(data))
 
     @cli.command(name="plugins")
     @click.option("--hook", default=None, help="Only plugins that implement this hook.")

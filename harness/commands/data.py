@@ -8,6 +8,7 @@ from typing import Any, Sequence
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -30,10 +31,9 @@ def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root
 
 
 def _dataset_options(func: Any) -> Any:
-    func = click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
-                        help="Override a config key, e.g. dataset.profile=full or sensing.warp.crop=false.")(func)
-    func = click.option("--config", "configs", multiple=True, type=click.Path(dir_okay=False),
-                        help="Extra config YAML file(s).")(func)
+    func = opt.no_progress_option()(func)
+    func = opt.config_options(after_profile=False, help_set="Override a config key, e.g. --set dataset.profile=full "
+                                                            "or --set sensing.warp.crop=false (repeatable).")(func)
     func = click.option("--cache", type=click.Path(file_okay=False, path_type=Path), default=None,
                         help="Cache folder (default: $HARNESS_CACHE or ./cache).")(func)
     func = click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")(func)
@@ -98,29 +98,29 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--cache-form", type=click.Choice(["compact", "raw"]), default=None,
                   help="compact (default, lossless, 8-bit sources referenced) or raw (uncompressed, memory-mapped); "
                        "default $HARNESS_CACHE_FORM or compact.")
-    def prepare_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
+    def prepare_cmd(dataset: str, root: str | None, cache: Path | None, config_files: tuple[str, ...],
                     overrides: tuple[str, ...], force: bool, cache_form: str | None) -> None:
         """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
         from harness.cache import prepare
 
-        _, cfg = _config(dataset, configs, overrides, root)
+        _, cfg = _config(dataset, config_files, overrides, root)
         ds = prepare(dataset, cfg, cache_root=cache, force=force, form=cache_form)
         click.echo(prepare_summary(ds))
 
     @cli.command(name="folds")
     @_dataset_options
-    @click.option("--folds", "selection", default="all", show_default=True, help="Fold name(s), comma-separated.")
-    def folds_cmd(dataset: str, root: str | None, cache: Path | None, configs: tuple[str, ...],
-                  overrides: tuple[str, ...], selection: str) -> None:
+    @opt.folds_option()
+    def folds_cmd(dataset: str, root: str | None, cache: Path | None, config_files: tuple[str, ...],
+                  overrides: tuple[str, ...], folds: str) -> None:
         """Print train/val image and instance counts per fold (prepares the dataset if needed)."""
         from harness.cache import prepare, resolve_folds
 
-        spec, cfg = _config(dataset, configs, overrides, root)
+        spec, cfg = _config(dataset, config_files, overrides, root)
         ds = prepare(dataset, cfg, cache_root=cache)
-        folds = resolve_folds(spec, ds, cfg, selection)
+        selected = resolve_folds(spec, ds, cfg, folds)
         click.echo(f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "
                    f"{', '.join(sorted(set(ds.groups)))}")
-        click.echo(folds_table(ds, folds))
+        click.echo(folds_table(ds, selected))
         from harness.input_guard import describe
 
         from harness.textable import fit_text

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -21,8 +22,9 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--name", default=None, help="The sample's file name (RGB or thermal; base name or stem).")
     @click.option("--encoding", default=None,
                   help="Encoding drawn as the fourth channel [default: the dataset's]; 'none' for none.")
-    @click.option("--store", type=click.Path(file_okay=False), default=None,
-                  help="Results store to read --detector predictions from.")
+    @opt.profile_option(uses_config=False)
+    @opt.store_option(reads=True, help="Results store to read --detector predictions from "
+                                       "[default: results/<profile>].")
     @click.option("--detector", "detectors", multiple=True,
                   help="Draw this detector's predictions (finished runs holding the image, at their operating "
                        "point); repeatable.")
@@ -31,8 +33,8 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--out", type=click.Path(dir_okay=False), default=None,
                   help="Write the picture here (.png or .jpg) [default: inline in an iTerm2 or kitty terminal, "
                        "else show_<dataset>_<id>.png].")
-    def show_cmd(dataset, root, cache, configs, overrides, image_id, index, name, encoding, store, detectors, height,
-                 out):
+    def show_cmd(dataset, root, cache, config_files, overrides, image_id, index, name, encoding, profile, store,
+                 detectors, height, out):
         """Draw one prepared sample: RGB, thermal (°C colour map with a scale bar, or grey levels for 8-bit
         data) and the fourth channel side by side, with its boxes (and predictions from a results store).
 
@@ -43,7 +45,8 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.report.show import show
 
-        _, cfg = _config(dataset, configs, overrides, root)
+        _, cfg = _config(dataset, config_files, overrides, root)
+        store = opt.resolve_store(store, profile) if detectors else store
         shown = show(dataset, cfg, image_id=image_id, index=index, name=name, encoding=encoding, store=store,
                      detectors=detectors, height=height, out=out, cache_root=cache)
         if shown.path is not None:
@@ -51,10 +54,11 @@ def register_commands(cli: click.Group) -> None:
             click.echo(f"sample {shown.image_id} drawn to {shown.path}", err=True)
 
     @cli.command(name="export-fiftyone")
-    @click.option("--store", type=click.Path(file_okay=False), default="results/smoke", show_default=True)
+    @opt.profile_option(uses_config=False)
+    @opt.store_option(reads=True)
     @click.option("--dataset", required=True, help="Dataset whose finished runs are exported.")
-    @click.option("--folds", default=None, help="Comma-separated held-out folds [default: all].")
-    @click.option("--seed", type=int, default=None, help="Only runs of this seed [default: all].")
+    @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
+    @opt.seeds_option(one=True, old=("--seed",), help="Only runs of this training seed [default: all].")
     @click.option("--encoding", default=None,
                   help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.")
     @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -63,7 +67,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--overwrite", is_flag=True, help="Replace a FiftyOne dataset of the same name.")
     @click.option("--records-only", is_flag=True,
                   help="Write the images and records.json without FiftyOne (no import needed).")
-    def export_fiftyone_cmd(store, dataset, folds, seed, encoding, out, name, overwrite, records_only):
+    def export_fiftyone_cmd(profile, store, dataset, folds, seeds, encoding, out, name, overwrite, records_only):
         """Export held-out samples and every detector's predictions to a FiftyOne grouped dataset.
 
         Each held-out image is a group with slices rgb, thermal and fourth (the encoding's channel), its ground
@@ -72,8 +76,8 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.report.fiftyone_export import export_fiftyone
 
-        fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
-        result = export_fiftyone(store, dataset, out, folds=fold_list, seed=seed, encoding=encoding, name=name,
+        result = export_fiftyone(opt.resolve_store(store, profile), dataset, out, folds=opt.split_list(folds) or None,
+                                 seed=seeds, encoding=encoding, name=name,
                                  overwrite=overwrite, records_only=records_only)
         for line in result.lines():
             click.echo(line, err=True)

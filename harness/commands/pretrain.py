@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 from harness.io import file_digest
 
@@ -60,14 +61,15 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         folds = (load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)
                  ["protocol"].get("folds") or {})
         if len(folds) > 1:
-            raise ConfigError(f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with --fold")
+            raise ConfigError(f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with "
+                              f"--folds")
         fold = next(iter(folds), "all")
     summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=fold, seeds=[seed],
                              profile=profile, config_files=config_files, overrides=overrides, store=store, force=force,
                              progress=progress, init=init))
     if len(summary.results) != 1:
-        raise ConfigError(f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected {len(summary.results)}; "
-                          f"use --fold")
+        raise ConfigError(f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected "
+                          f"{len(summary.results)}; use --folds")
     result = summary.results[0]
     ckpt_dir = Path(result.path) / "checkpoints"
     checkpoint = next((p for p in (ckpt_dir / "best.pt", ckpt_dir / "last.pt") if p.exists()), None)
@@ -106,7 +108,8 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         tmp = out.with_name(f".{out.name}.tmp")
         shutil.copyfile(checkpoint, tmp)
         tmp.replace(out)
-        atomic_write_json(out.with_name(out.name + ".json"), {**record, "copied_from": str(checkpoint), "checkpoint": str(out)})
+        atomic_write_json(out.with_name(out.name + ".json"),
+                          {**record, "copied_from": str(checkpoint), "checkpoint": str(out)})
         checkpoint = out
     return PretrainResult(checkpoint, record, result.state)
 
@@ -118,20 +121,20 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", default="m3fd", show_default=True, help="Pretraining dataset.")
     @click.option("--encoding", default=None,
                   help="Extra-channel encoding [default: the dataset's, ir8 for m3fd; proxy8 is closer to c2].")
-    @click.option("--fold", default=None, help="Held-out fold to select the checkpoint on [default: the protocol's only fold].")
-    @click.option("--seed", default=0, show_default=True, type=int)
-    @click.option("--profile", default="smoke", show_default=True, help="Run profile: smoke or paper.")
-    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False), help="Extra YAML config file(s).")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config key (repeatable).")
-    @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store root [default: results/<profile>].")
+    @opt.folds_option(one=True, default=None, old=("--fold",),
+                      help="Held-out fold to select the checkpoint on [default: the protocol's only fold].")
+    @opt.seeds_option(one=True, default=0, old=("--seed",), help="The training seed of the pretraining run.")
+    @opt.profile_option()
+    @opt.config_options()
+    @opt.store_option()
     @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also copy the checkpoint here.")
     @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
                   help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained).")
     @click.option("--force", is_flag=True, help="Redo the pretraining run even if it finished.")
-    @click.option("--no-progress", is_flag=True, help="No progress bars.")
-    def pretrain_cmd(detector: str, dataset: str, encoding: str | None, fold: str | None, seed: int, profile: str,
-                     config_files: tuple[str, ...], overrides: tuple[str, ...], store: str | None, out: str | None,
-                     init: str | None, force: bool, no_progress: bool) -> None:
+    @opt.no_progress_option()
+    def pretrain_cmd(detector: str, dataset: str, encoding: str | None, folds: str | None, seeds: int, profile: str,
+                     config_files: tuple[str, ...], overrides: tuple[str, ...], store: Path | None, out: str | None,
+                     init: str | None, force: bool) -> None:
         """Pretrain DETECTOR on DATASET (M3FD) and print the checkpoint to fine-tune from.
 
         \b
@@ -139,11 +142,14 @@ def register_commands(cli: click.Group) -> None:
           harness pretrain --detector ours --dataset m3fd --profile paper
           harness run --detector ours --dataset m3t --init <printed checkpoint>
         """
-        res = pretrain(detector, dataset, encoding, fold, seed, profile, config_files, overrides, store, force,
-                       not no_progress, out, init)
+        from harness.progress import progress_on
+
+        res = pretrain(detector, dataset, encoding, folds, seeds, profile, config_files, overrides, store, force,
+                       progress_on(), out, init)
         r = res.record
-        click.echo(f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val images, "
-                   f"encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 {_fmt(r['val_mAP50_95'])} [{res.state}]")
+        click.echo(f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val "
+                   f"images, encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 "
+                   f"{_fmt(r['val_mAP50_95'])} [{res.state}]")
         click.echo(f"checkpoint: {res.checkpoint}")
         click.echo(f"fine-tune:  harness run --detector {r['detector']} --dataset m3t --init {res.checkpoint}")
         record_path = Path(r["checkpoint"]).parent.parent / "pretrain.json"

@@ -8,6 +8,7 @@ from typing import Any
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 from harness.textable import text_table
 
@@ -78,9 +79,9 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
         lat = r.get("latency") or {}
         t, o = lat.get("torch") or {}, lat.get("onnxruntime") or {}
         if "median_ms" in t:
+            ort = f", onnxruntime {o['threads']} thread(s) ({o['provider']})" if "median_ms" in o else ""
             out.append(f"{r['detector']}: latency over {t['runs']} runs after {t['warmup']} warm-up, torch "
-                       f"{t['threads']} thread(s) on {t['device']}" + (f", onnxruntime {o['threads']} thread(s) "
-                                                                        f"({o['provider']})" if "median_ms" in o else ""))
+                       f"{t['threads']} thread(s) on {t['device']}" + ort)
         p = r["params"]
         frozen = set(p.get("frozen_unreachable", []))
         unused = [n for n in p["unreachable"] if n not in frozen]
@@ -107,41 +108,36 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="profile")
     @click.option("--detector", required=True,
                   help="Detector name, several separated by commas, or 'all' for every registered detector.")
-    @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of the table.")
+    @opt.format_option("text", "json", old_json=True)
     @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size.")
-    @click.option("--num-classes", type=int, default=8, show_default=True)
+    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
     @click.option("--in-channels", type=int, default=4, show_default=True,
                   help="Channels of a single-stream detector's input (3 + encoding channels).")
     @click.option("--runs", type=int, default=30, show_default=True, help="Timed runs per latency back-end.")
     @click.option("--warmup", type=int, default=5, show_default=True, help="Untimed warm-up runs.")
     @click.option("--threads", type=int, default=None, help="Threads for torch and onnxruntime [default: torch's].")
     @click.option("--device", default="cpu", show_default=True, help="Device for torch latency (cpu, cuda).")
-    @click.option("--latency/--no-latency", default=True, show_default=True)
+    @click.option("--latency/--no-latency", default=True, show_default=True, help="Time the torch forward pass.")
     @click.option("--onnx/--no-onnx", default=True, show_default=True, help="Export and time onnxruntime.")
     @click.option("--fvcore/--no-fvcore", default=True, show_default=True, help="Add fvcore's count and table.")
     @click.option("--table", "show_table", is_flag=True, help="Also print fvcore's per-module table.")
-    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to write profiles into [default: results/<profile>, as `harness run`].")
-    @click.option("--profile", "run_profile", default="smoke", show_default=True,
-                  help="Run profile: its model options and its default store, as `harness run`.")
-    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
-                  help="Extra YAML config file(s), applied after the profile (their model section is used).")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-                  help="Override one config key, e.g. --set model.scale=n (repeatable), as `harness run`.")
+    @opt.store_option(help="Results store to write profiles into [default: results/<profile>].")
+    @opt.profile_option(param="run_profile")
+    @opt.config_options(help_set="Override one config key, e.g. --set model.scale=n (repeatable); the model "
+                                 "section is used.")
     @click.option("--no-store", is_flag=True, help="Do not write the results store.")
-    def profile_cmd(detector: str, as_json: bool, imgsz: int, num_classes: int, in_channels: int, runs: int,
+    @opt.no_progress_option()
+    def profile_cmd(detector: str, fmt: str, imgsz: int, num_classes: int, in_channels: int, runs: int,
                     warmup: int, threads: int | None, device: str, latency: bool, onnx: bool, fvcore: bool,
                     show_table: bool, store: Path | None, run_profile: str, config_files: tuple[str, ...],
                     overrides: tuple[str, ...], no_store: bool) -> None:
         """Parameters, GFLOPs ("paper" and "exact" conventions, fvcore) and latency of detectors at IMGSZ, batch 1."""
-        from rich.progress import Progress
-
         from harness.config import load_config
+        from harness.errors import HarnessError, PartlyDone
         from harness.plugins import get_host
         from harness.profiling import profile_detector
+        from harness.progress import bar
         from harness.store import Store
-
-        from harness.errors import HarnessError
 
         host = get_host()
         names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
@@ -152,10 +148,9 @@ def register_commands(cli: click.Group) -> None:
                               overrides=overrides)
             options[name] = dict(cfg.get("model") or {})
         results = []
-        with Progress(transient=True, disable=as_json) as progress:
-            task = progress.add_task("profiling", total=len(names))
+        with bar("profiling", total=len(names)) as progress:
             for name in names:
-                progress.update(task, description=f"profiling {name}")
+                progress.update(description=f"profiling {name}")
                 try:
                     results.append(profile_detector(name, imgsz=imgsz, num_classes=num_classes,
                                                     in_channels=in_channels, host=host, latency=latency, onnx=onnx,
@@ -165,14 +160,14 @@ def register_commands(cli: click.Group) -> None:
                     if len(names) == 1:
                         raise
                     results.append({"detector": name, "error": str(exc)})  # the others are still profiled
-                progress.advance(task)
+                progress.advance()
+        root = opt.resolve_store(store, run_profile)
         if not no_store:
-            root = store or Path("results") / run_profile
             for r in results:
                 if "error" not in r:
                     Store(root).write_profile(r["detector"], r)
         failed = [r["detector"] for r in results if "error" in r]
-        if as_json:
+        if fmt == "json":
             click.echo(json.dumps(results, indent=2, default=str))
         else:
             click.echo(format_profiles(results))
@@ -181,18 +176,19 @@ def register_commands(cli: click.Group) -> None:
                 table = (r.get("flops", {}).get("fvcore") or {}).get("table")
                 if table:
                     click.echo(f"\n{r['detector']}: {table}")
-        if not no_store and not as_json:
-            click.echo(f"\nprofiles written to {(store or Path('results') / run_profile) / '_profiles'}")
+        if not no_store and fmt != "json":
+            click.echo(f"\nprofiles written to {root / '_profiles'}")
         if failed:
-            raise click.ClickException(f"could not profile {', '.join(failed)} (see above)")
+            raise PartlyDone(f"could not profile {', '.join(failed)} (see above)")
 
     @cli.command(name="export")
     @click.option("--detector", required=True, help="Detector name.")
     @click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
                   help="Output .onnx file.")
-    @click.option("--imgsz", type=int, default=640, show_default=True)
-    @click.option("--num-classes", type=int, default=8, show_default=True)
-    @click.option("--in-channels", type=int, default=4, show_default=True)
+    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size of the traced graph.")
+    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
+    @click.option("--in-channels", type=int, default=4, show_default=True,
+                  help="Channels of a single-stream detector's input (3 + encoding channels).")
     @click.option("--opset", type=int, default=18, show_default=True, help="ONNX opset (17 or newer).")
     @click.option("--dynamic-batch", is_flag=True, help="Make the batch dimension dynamic.")
     @click.option("--check/--no-check", default=True, show_default=True,

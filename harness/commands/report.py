@@ -7,21 +7,8 @@ from pathlib import Path
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
-
-
-def default_store(profile: str | None) -> Path:
-    """Where ``harness run`` writes when given no ``--store``: ``results/<profile>``."""
-    return Path("results") / (profile or "default")
-
-
-def _progress(label: str):  # noqa: ANN202
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    console = Console(stderr=True)
-    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True,
-                    console=console, disable=not console.is_terminal)
 
 
 @hookimpl
@@ -29,19 +16,17 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
     @click.option("--dataset", "datasets", multiple=True,
                   help="Dataset to report (repeatable or comma-separated) [default: every dataset in the store].")
-    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to read [default: results/<profile>].")
-    @click.option("--profile", default="smoke", show_default=True,
-                  help="Run profile whose default store (results/<profile>) is read when --store is not given.")
+    @opt.store_option(reads=True)
+    @opt.profile_option(uses_config=False)
     @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
                   help="Output folder [default: reports/<store folder name>].")
-    @click.option("--format", "formats", default="md,csv,html", show_default=True,
-                  help="Comma-separated formats to write: md, csv, html.")
+    @opt.option("--file-types", "formats", old=("--format",), default="md,csv,html", show_default=True,
+                help="Comma-separated file types to write: md, csv, html.")
     @click.option("--print", "print_tables", is_flag=True,
                   help="Print every table in the terminal (aligned) instead of writing the report files.")
     @click.option("--resamples", type=click.IntRange(min=0), default=200, show_default=True,
                   help="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
-    @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap resamples.")
+    @opt.bootstrap_seed_option(old=("--seed",))
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
                   help="Processes for the bootstrap's re-scoring.")
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
@@ -52,8 +37,9 @@ def register_commands(cli: click.Group) -> None:
                        "was not run).")
     @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
                   help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
+    @opt.no_progress_option()
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
-                   print_tables: bool, resamples: int, seed: int, workers: int, ablation_categories: str,
+                   print_tables: bool, resamples: int, bootstrap_seed: int, workers: int, ablation_categories: str,
                    title: str | None, reference: str, log_to: str | None = None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
@@ -64,15 +50,20 @@ def register_commands(cli: click.Group) -> None:
         rows were not scored on the same samples are labelled.
         """
         from harness.report import build_report
+        from harness.report.build import FORMATS as file_types
 
-        root = store or default_store(profile)
+        root = opt.resolve_store(store, profile)
         names = [d.strip() for item in datasets for d in item.split(",") if d.strip()] or None
-        fmts = [f.strip().lower() for f in formats.split(",") if f.strip()]
+        fmts = [f.lower() for f in opt.split_list(formats)]
+        bad = [f for f in fmts if f not in file_types]
+        if bad:
+            raise click.BadParameter(f"unknown file type(s) {', '.join(bad)}; use any of {', '.join(file_types)}",
+                                     param_hint="--file-types")
         target = out or Path("reports") / Path(root).resolve().name
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
-        report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples, seed=seed,
-                              ablation_categories=cats, title=title, progress=True, workers=workers,
-                              reference=reference)
+        report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples,
+                              seed=bootstrap_seed, ablation_categories=cats, title=title, progress=True,
+                              workers=workers, reference=reference)
         if print_tables:
             click.echo(report.to_text())
             return
@@ -81,7 +72,8 @@ def register_commands(cli: click.Group) -> None:
         click.echo(f"report of {report.store} ({', '.join(report.datasets)}): {len(report.tables)} tables, "
                    f"{sum(len(s.figures) for s in report.sections)} figure(s)")
         if warned:
-            click.secho(f"NOT sample-matched: {len(warned)} table(s) labelled: " + "; ".join(warned), fg="red", err=True)
+            click.secho(f"NOT sample-matched: {len(warned)} table(s) labelled: " + "; ".join(warned), fg="red",
+                        err=True)
         if absent:
             from harness.textable import fit_text
 
@@ -98,18 +90,17 @@ def register_commands(cli: click.Group) -> None:
     @click.argument("a")
     @click.argument("b")
     @click.option("--dataset", required=True, help="Dataset both were evaluated on.")
-    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to read [default: results/<profile>].")
-    @click.option("--profile", default="smoke", show_default=True,
-                  help="Run profile whose default store (results/<profile>) is read when --store is not given.")
+    @opt.store_option(reads=True)
+    @opt.profile_option(uses_config=False)
     @click.option("--resamples", type=click.IntRange(min=0), default=1000, show_default=True,
                   help="Paired-bootstrap resamples of the held-out images (0: per-fold differences only).")
-    @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap resamples.")
+    @opt.bootstrap_seed_option(old=("--seed",))
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
                   help="Processes for the bootstrap's re-scoring.")
-    @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of the tables.")
+    @opt.format_option("text", "json", old_json=True)
+    @opt.no_progress_option()
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
-                              seed: int, workers: int, as_json: bool) -> None:
+                              bootstrap_seed: int, workers: int, fmt: str) -> None:
         """Paired comparison of A and B (DETECTOR or DETECTOR/ENCODING) on the same held-out images.
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
@@ -119,15 +110,15 @@ def register_commands(cli: click.Group) -> None:
         """
         import json
 
+        from harness.progress import bar
         from harness.report import compare_detectors
 
-        root = store or default_store(profile)
-        with _progress("bootstrap") as bar:
-            task = bar.add_task("bootstrap", total=None)
-            comp = compare_detectors(root, dataset, a, b, resamples=resamples, seed=seed,
-                                     progress=lambda k: bar.advance(task, k),
-                                     on_total=lambda n: bar.update(task, total=n), workers=workers)
-        if as_json:
+        root = opt.resolve_store(store, profile)
+        with bar("bootstrap") as b_bar:
+            comp = compare_detectors(root, dataset, a, b, resamples=resamples, seed=bootstrap_seed,
+                                     progress=b_bar.advance, on_total=lambda n: b_bar.update(total=n),
+                                     workers=workers)
+        if fmt == "json":
             click.echo(json.dumps(comp.to_dict(), indent=2))
         else:
             click.echo(comp.to_text())

@@ -11,27 +11,21 @@ import click
 # be set before torch is first imported, which the commands below do lazily; an explicit setting is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from harness.hookspecs import hookimpl
+from harness.commands import options as opt  # noqa: E402
+from harness.hookspecs import hookimpl  # noqa: E402
 
-
-def _split(text: str | None) -> list[str]:
-    return [t.strip() for t in (text or "").split(",") if t.strip()]
+_split = opt.split_list
 
 
 def _common(f):
-    """The options ``run`` and ``ablate`` share (applied bottom-up, so they list in this order)."""
+    """The options ``run``, ``ablate`` and ``sweep`` share (applied bottom-up, so they list in this order)."""
     options = [
-        click.option("--profile", default="smoke", show_default=True,
-                     help="Run profile under configs/profiles/: smoke (small, CPU) or paper (the seed's protocol)."),
-        click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
-                     help="Extra YAML config file(s), applied after the profile."),
-        click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-                     help="Override one config key, e.g. --set protocol.epochs=5 (repeatable)."),
-        click.option("--seeds", default=None, help="Comma-separated seeds [default: protocol.seeds]."),
-        click.option("--store", type=click.Path(file_okay=False), default=None,
-                     help="Results store root [default: results/<profile>]."),
+        opt.profile_option(),
+        opt.config_options(),
+        opt.seeds_option(),
+        opt.store_option(),
         click.option("--force", is_flag=True, help="Redo runs that already finished."),
-        click.option("--no-progress", is_flag=True, help="No progress bars (log lines only)."),
+        opt.no_progress_option(),
         click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
                      help="Also log runs to these trackers, e.g. mlflow,tensorboard (same as --set "
                           "tracking.loggers=[...]; built in: tensorboard, mlflow)."),
@@ -62,13 +56,12 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
     @click.option("--encoding", default=None,
                   help="Encoding of the extra channel [default: the dataset's, or the detector's for dual-stream].")
-    @click.option("--folds", default="all", show_default=True, help="'all' or comma-separated fold names, e.g. P1,P4+P5.")
+    @opt.folds_option()
     @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
                   help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict).")
     @click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")
     @_common
-    def run_cmd(detector, dataset, encoding, folds, init, root, profile, config_files, overrides, store, seeds, force,
-                no_progress):
+    def run_cmd(detector, dataset, encoding, folds, init, root, profile, config_files, overrides, store, seeds, force):
         """Train and evaluate DETECTOR on every selected fold and seed of DATASET.
 
         Finished runs with the same configuration are skipped, interrupted ones resume from their last checkpoint.
@@ -80,6 +73,7 @@ def register_commands(cli: click.Group) -> None:
           harness run --detector ours --dataset m3t-synth --folds all --profile smoke
         """
         from harness import distributed as hd
+        from harness.progress import progress_on
         from harness.report.run_tables import category_table, fold_table
         from harness.runner import RunRequest, run
 
@@ -87,7 +81,7 @@ def register_commands(cli: click.Group) -> None:
             overrides = (*overrides, *([f"dataset.root={root}"] if root else []))
             summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=folds, seeds=seeds,
                                      profile=profile, config_files=config_files, overrides=overrides, store=store,
-                                     force=force, init=init, progress=not no_progress))
+                                     force=force, init=init, progress=progress_on()))
             if not hd.is_main():  # under torchrun rank 0 prints the tables
                 return
         finally:
@@ -102,12 +96,12 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset name.")
     @click.option("--encodings", default="none,ir8,linear16,c2", show_default=True,
                   help="Comma-separated encodings to compare.")
-    @click.option("--fold", required=True, help="The one fold to train and evaluate, e.g. P4+P5.")
+    @opt.folds_option(one=True, required=True, help="The one fold to train and evaluate, e.g. P4+P5.", old=("--fold",))
     @click.option("--categories", default="delamination,water seepage", show_default=True,
                   help="Categories whose AP50 gets a column.")
     @_common
-    def ablate_cmd(detector, dataset, encodings, fold, categories, profile, config_files, overrides, store, seeds,
-                   force, no_progress):
+    def ablate_cmd(detector, dataset, encodings, folds, categories, profile, config_files, overrides, store, seeds,
+                   force):
         """The encoding ablation: train DETECTOR on one fold once per encoding and compare.
 
         Prints P, R, mAP50, mAP50:95 and the AP50 of the chosen categories per encoding (the seed's ablation
@@ -115,12 +109,14 @@ def register_commands(cli: click.Group) -> None:
 
         \b
         Example:
-          harness ablate --detector ours --dataset m3t-synth --encodings none,ir8,linear16,c2 --fold P4+P5
+          harness ablate --detector ours --dataset m3t-synth --encodings none,ir8,linear16,c2 \\
+              --folds P4+P5
         """
+        from harness.progress import progress_on
         from harness.report.run_tables import ablation_table
         from harness.runner import ablate, parse_seeds
 
-        ab = ablate(detector, dataset, _split(encodings), fold, seeds=parse_seeds(seeds), profile=profile,
+        ab = ablate(detector, dataset, _split(encodings), folds, seeds=parse_seeds(seeds), profile=profile,
                     config_files=config_files, overrides=overrides, store=store, force=force,
-                    progress=not no_progress, categories=_split(categories))
+                    progress=progress_on(), categories=_split(categories))
         click.echo(ablation_table(ab))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -15,7 +16,8 @@ def _fmt(v) -> str:
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="score")
     @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
-    @click.option("--fold", required=True, help="The held-out fold the predictions are for, e.g. P1.")
+    @opt.folds_option(one=True, required=True, old=("--fold",),
+                      help="The held-out fold the predictions are for, e.g. P1.")
     @click.option("--predictions", required=True, type=click.Path(dir_okay=False, exists=True),
                   help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].")
     @click.option("--name", required=True, help="Name of the external detector; stored as external/NAME.")
@@ -33,16 +35,15 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--params", type=float, default=None, help="Parameters of the external model, millions.")
     @click.option("--gflops", type=float, default=None, help="GFLOPs of the external model at 640.")
     @click.option("--root", default=None, help="Dataset root folder (as for prepare).")
-    @click.option("--profile", default="smoke", show_default=True, help="Profile: its store and evaluation settings.")
-    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False))
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE")
-    @click.option("--store", type=click.Path(file_okay=False), default=None,
-                  help="Results store root [default: results/<profile>].")
+    @opt.profile_option()
+    @opt.config_options()
+    @opt.store_option()
     @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
     @click.option("--allow-implausible", is_flag=True,
                   help="Score predictions that look misread (unknown images or categories, shifted ids) as read, "
                        "and label the stored result, instead of refusing.")
-    def score_cmd(dataset, fold, predictions, name, frame, images, image_key, category_map, params, gflops, root,
+    @opt.no_progress_option()
+    def score_cmd(dataset, folds, predictions, name, frame, images, image_key, category_map, params, gflops, root,
                   profile, config_files, overrides, store, force, allow_implausible):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
@@ -53,11 +54,12 @@ def register_commands(cli: click.Group) -> None:
 
         \b
         Example:
-          harness score --dataset m3t --fold P1 --predictions yolo_preds.json --images val.json \\
+          harness score --dataset m3t --folds P1 --predictions yolo_preds.json --images val.json \\
               --frame rgb --name yolov8s-official --params 11.13 --gflops 28.6
         """
         from harness.scoring.external import parse_category_map, score_external
 
+        fold = folds
         res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
                              category_map=parse_category_map(category_map), profile=profile,
                              config_files=config_files, overrides=overrides, store=store, root=root,
@@ -72,17 +74,18 @@ def register_commands(cli: click.Group) -> None:
         click.echo(f"stored: {res.run_path}")
 
     @cli.command(name="export-predictions")
-    @click.option("--store", type=click.Path(file_okay=False), default="results/smoke", show_default=True)
+    @opt.profile_option(uses_config=False)
+    @opt.store_option(reads=True)
     @click.option("--dataset", default=None, help="Only runs of this dataset.")
     @click.option("--detector", default=None, help="Only runs of this detector.")
     @click.option("--encoding", default=None, help="Only runs with this encoding.")
-    @click.option("--folds", default=None, help="Comma-separated folds [default: all].")
-    @click.option("--seed", type=int, default=None)
+    @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
+    @opt.seeds_option(old=("--seed",), help="Only runs of these training seeds, comma-separated [default: all].")
     @click.option("--frame", type=click.Choice(["thermal", "rgb", "prepared"]), default="thermal",
                   show_default=True, help="Frame of the exported boxes.")
     @click.option("--out", required=True, type=click.Path(),
                   help="Output .json for one run, or a folder for several.")
-    def export_cmd(store, dataset, detector, encoding, folds, seed, frame, out):
+    def export_cmd(profile, store, dataset, detector, encoding, folds, seeds, frame, out):
         """Write finished runs' held-out predictions as COCO results in an original image frame.
 
         Beside each X.json goes X.images.json (images and categories) that `harness score --images` reads
@@ -90,8 +93,9 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.scoring.export import export_predictions
 
-        fold_list = [f.strip() for f in folds.split(",") if f.strip()] if folds else None
-        for e in export_predictions(store, dataset, detector, encoding, fold_list, seed, frame, out):
+        fold_list = opt.split_list(folds) or None
+        for e in export_predictions(opt.resolve_store(store, profile), dataset, detector, encoding, fold_list,
+                                    opt.parse_seeds(seeds), frame, out):
             inexact = f", {e.inexact} inexact" if e.inexact else ""
             click.echo(f"{e.run}: {e.detections} detections{inexact} on {e.images} images -> {e.path} "
                        f"(image list {e.images_path.name})")

@@ -8,6 +8,7 @@ import click
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `harness run`: shared CPUs, before torch is imported
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -57,10 +58,8 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--detector", default=None, help="With --weights: the detector the checkpoint is of.")
     @click.option("--dataset", default=None, help="With --weights: its categories, protocol and encoding.")
     @click.option("--encoding", default=None, help="With --weights: the encoding [default: the dataset's].")
-    @click.option("--profile", default="smoke", show_default=True, help="With --weights: the run profile.")
-    @click.option("--config", "config_files", multiple=True, type=click.Path(dir_okay=False),
-                  help="With --weights: extra YAML config file(s).")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="With --weights: config overrides.")
+    @opt.profile_option(help="With --weights: the run profile (configs/profiles/).")
+    @opt.config_options(help_set="With --weights: override one config key (repeatable).")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
     @click.option("--backend", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
                   help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).")
@@ -94,10 +93,10 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--fail-fast", is_flag=True, help="Stop at the first bad file.")
     @click.option("--force", is_flag=True, help="Replace a screen in --out made with another model or settings.")
     @click.option("--no-overlays", is_flag=True, help="No overlay and thumbnail pictures.")
-    @click.option("--no-progress", is_flag=True, help="No progress bar.")
+    @opt.no_progress_option()
     def screen_cmd(flight, run_dir, weights, detector, dataset, encoding, profile, config_files, overrides, out,
                    backend, device, conf, homography, group, rgb_camera, thermal_camera, no_undistort, focal_35mm,
-                   fallback, rgb_decode, register, workers, threads, fail_fast, force, no_overlays, no_progress):
+                   fallback, rgb_decode, register, workers, threads, fail_fast, force, no_overlays):
         """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
 
         Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
@@ -110,6 +109,8 @@ def register_commands(cli: click.Group) -> None:
         Example:
           harness screen flights/0603 --run results/paper/m3t/ours/c2/P1/seed0 --out screens/0603
         """
+        from harness.errors import PartlyDone
+        from harness.progress import progress_on
         from harness.screen import ScreenRequest, screen
 
         req = ScreenRequest(flight=flight, out=out, run=run_dir, weights=weights, detector=detector, dataset=dataset,
@@ -118,9 +119,9 @@ def register_commands(cli: click.Group) -> None:
                             rgb_camera=rgb_camera, thermal_camera=thermal_camera, no_undistort=no_undistort,
                             focal_35mm=_focal(focal_35mm), fallback=fallback, rgb_decode=rgb_decode,
                             register=register, workers=workers, threads=threads, fail_fast=fail_fast, force=force,
-                            progress=not no_progress, overlays=not no_overlays)
+                            progress=progress_on(), overlays=not no_overlays)
         res = screen(req)
         for line in summary_lines(res):
             click.echo(line)
         if not res.ok:
-            raise SystemExit(1)
+            raise PartlyDone(f"{len(res.failures)} bad file(s) skipped (listed above)")

@@ -7,9 +7,8 @@ from typing import Any
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
-
-DEFAULT_STORE = "results/paper"
 
 
 def _size(value: str | None, what: str) -> tuple[int, int] | None:
@@ -22,7 +21,7 @@ def _size(value: str | None, what: str) -> tuple[int, int] | None:
     return w, h
 
 
-def _write_result(result: dict[str, Any], analysis: str, dataset: str | None, store: str | None,
+def _write_result(result: dict[str, Any], analysis: str, dataset: str | None, store: Path | None,
                   out: Path | None) -> list[Path]:
     from harness.io import atomic_write_json
     from harness.sensing.analyses import nan_to_none
@@ -54,16 +53,6 @@ def _num(value: float, digits: int) -> str:
     return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
 
 
-def _progress(total: int | None, label: str) -> Any:
-    """A rich progress bar on stderr (hidden when stderr is not a terminal), so tables on stdout stay clean."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    console = Console(stderr=True)
-    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=True,
-                    console=console, disable=not console.is_terminal)
-
-
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.group(name="sensing")
@@ -76,8 +65,8 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")
     @click.option("--unit", type=click.Choice(["centikelvin", "decicelsius", "celsius"]), default="centikelvin",
                   show_default=True, help="Storage unit of the temperature file.")
-    @click.option("--format", "fmt", type=click.Choice(["png", "tiff", "npy"]), default=None,
-                  help="File type (default: png for centikelvin, tiff otherwise).")
+    @opt.option("--file-type", "fmt", old=("--format",), type=click.Choice(["png", "tiff", "npy"]), default=None,
+                help="File type of the temperature files [default: png for centikelvin, tiff otherwise].")
     @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
     @click.option("--decoder", type=click.Choice(["auto", "dji", "blackbody"]), default="auto", show_default=True,
                   help="auto: DJI's corrected temperature, or the route chosen below for files the harness cannot "
@@ -101,6 +90,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
                   help="Decode in this many processes.")
     @click.option("--fail-fast", is_flag=True, help="Stop at the first file that cannot be decoded.")
+    @opt.no_progress_option()
     def decode_cmd(inputs: tuple[Path, ...], out_dir: Path, unit: str, fmt: str | None, preview: bool, decoder: str,
                    blackbody: bool, approximate: bool, converter: str | None, dji_irp: str | None,
                    converter_timeout: float | None, emissivity: float | None, distance: float | None,
@@ -115,6 +105,8 @@ def register_commands(cli: click.Group) -> None:
         --converter or --approximate is given. docs/sensing.md has the camera table. Every readable file is
         decoded; the failures are listed at the end (exit status 1).
         """
+        from harness.errors import PartlyDone
+        from harness.progress import bar
         from harness.sensing.batch import DecodeOptions, decode_batch, format_failures
         from harness.sensing.dji_converter import resolve
         from harness.textable import text_table as _table
@@ -123,18 +115,20 @@ def register_commands(cli: click.Group) -> None:
         options = DecodeOptions(unit=unit, fmt=fmt, preview=preview, decoder="blackbody" if blackbody else decoder,
                                 overrides=overrides, approximate=approximate,
                                 converter=resolve(converter, dji_irp, converter_timeout))
-        with _progress(None, "decoding") as bar:
-            task = bar.add_task("decode", total=None)
+        with bar("decoding") as b:
             result = decode_batch(inputs, out_dir, options, workers=workers, fail_fast=fail_fast,
-                                  progress=lambda done, total: bar.update(task, completed=done, total=total))
+                                  progress=lambda done, total: b.update(completed=done, total=total))
         rows = [[r["file"], r["size"], _route_cell(r), f"{r['min']:.2f}", f"{r['max']:.2f}", f"{r['mean']:.2f}",
                  _num(r["emissivity"], 2), _num(r["distance"], 1), Path(r["written"]).name] for r in result.decoded]
         if rows:
             click.echo(_table(["file", "size", "route", "min C", "max C", "mean C", "emissivity", "distance m",
                                "written"], rows, align="lllrrrrrl"))
         click.echo(format_failures(result))
-        if not result.ok:
-            raise SystemExit(1)
+        if result.failed:
+            total = len(result.decoded) + len(result.failed)
+            raise PartlyDone(f"{len(result.failed)} of {total} file(s) could not be decoded (listed above)")
+        if not result.decoded:
+            raise PartlyDone("nothing was decoded (no R-JPEG among the inputs)")
 
     # ------------------------------------------------------------------------------------------------ calibrate
     @sensing.command(name="calibrate")
@@ -144,13 +138,15 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--thermal", is_flag=True, help="Thermal views (R-JPEG, temperature files or 8-bit frames).")
     @click.option("--name", default="", help="Camera name stored in the file.")
     @click.option("--out", type=click.Path(path_type=Path), required=True, help="Camera model YAML to write.")
-    def calibrate_cmd(images: tuple[Path, ...], pattern: str, square: float, thermal: bool, name: str, out: Path) -> None:
+    def calibrate_cmd(images: tuple[Path, ...], pattern: str, square: float, thermal: bool, name: str,
+                      out: Path) -> None:
         """Calibrate one camera from checkerboard views and write its model (intrinsics, distortion, size)."""
         from harness.sensing.calibration import calibrate_checkerboard, load_view
 
         pat = _size(pattern, "--pattern")
         views = [(str(p), load_view(p, thermal=thermal)) for p in images]
-        res = calibrate_checkerboard(views, pat, square_size=square, thermal=thermal, name=name)  # type: ignore[arg-type]
+        res = calibrate_checkerboard(views, pat, square_size=square, thermal=thermal,  # type: ignore[arg-type]
+                                     name=name)
         res.camera.save(out)
         cam = res.camera
         click.echo(f"{len(res.used)} of {len(views)} views used; RMS reprojection error {res.rms:.3f} px")
@@ -165,7 +161,8 @@ def register_commands(cli: click.Group) -> None:
                   help="Homographies YAML to write (groups already in it are kept unless replaced).")
     @click.option("--landmarks", type=click.Path(exists=True, path_type=Path), default=None,
                   help="Landmarks CSV/JSON: one homography per group from its point pairs.")
-    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True)
+    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True,
+                  help="Fit to the landmarks: least squares over all pairs, or RANSAC (outliers left out).")
     @click.option("--threshold", type=float, default=2.0, show_default=True, help="RANSAC inlier threshold, px.")
     @click.option("--similarity", "similarities", multiple=True, metavar="GROUP=TX,TY,THETA,SCALE",
                   help="A group's similarity parameters (thermal px, degrees, thermal px per RGB px). Repeatable.")
@@ -232,16 +229,19 @@ def register_commands(cli: click.Group) -> None:
                   help="Landmarks CSV (scene,group,rgb_x,rgb_y,thermal_x,thermal_y) or JSON.")
     @click.option("--homographies", type=click.Path(exists=True, path_type=Path), default=None,
                   help="Evaluate these per-group homographies; without, fit per group and score leave-one-out.")
-    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True)
-    @click.option("--dataset", default=None, help="Dataset name: also write <store>/<dataset>/_sensing/registration_error.json.")
-    @click.option("--store", default=DEFAULT_STORE, show_default=True, help="Results store root.")
+    @click.option("--method", type=click.Choice(["lsq", "ransac"]), default="lsq", show_default=True,
+                  help="Fit per group: least squares over all pairs, or RANSAC (outliers left out).")
+    @click.option("--dataset", default=None,
+                  help="Dataset name: also write <store>/<dataset>/_sensing/registration_error.json.")
+    @opt.profile_option(uses_config=False)
+    @opt.store_option()
     @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
     @click.option("--truth", type=click.Path(exists=True, path_type=Path), default=None,
                   help="True per-group homographies: also report the landmarks' error under them and the fitted "
                        "homographies' distance from them (default: ground_truth/homographies.yaml of a synthetic set "
                        "when the landmarks are its registration/landmarks.json).")
     def registration_error_cmd(landmarks: Path, homographies: Path | None, method: str, dataset: str | None,
-                               store: str, out: Path | None, truth: Path | None) -> None:
+                               profile: str, store: Path | None, out: Path | None, truth: Path | None) -> None:
         """Registration error on landmark pairs: mean, median, P95 and per-scene mean, in thermal pixels."""
         from harness.sensing.analyses import format_registration_error, registration_error_study
         from harness.sensing.registration import load_homography_entries, read_landmarks, support_boxes
@@ -267,24 +267,30 @@ def register_commands(cli: click.Group) -> None:
                                             next(iter(sizes)) if len(sizes) == 1 else None, method=method)
             result["truth_file"] = str(truth)
             click.echo("\n" + format_against_truth(result["truth"], result))
-        for path in _write_result(result, "registration_error", dataset, store, out):
+        for path in _write_result(result, "registration_error", dataset, opt.resolve_store(store, profile), out):
             click.echo(f"-> {path}")
 
     @sensing.command(name="displacement")
     @click.option("--dataset", default=None, help="Prepare (or reuse the cache of) this dataset.")
     @click.option("--prepared", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
                   help="A prepared dataset folder instead of --dataset.")
-    @click.option("--shifts", default=None, help="Comma-separated displacements in px (default: sensing.displacement.shifts).")
+    @click.option("--shifts", default=None,
+                  help="Comma-separated displacements in px [default: sensing.displacement.shifts].")
     @click.option("--max-images", type=int, default=None, help="Use at most this many images.")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Config override (e.g. encoding.c2.sigma=11).")
-    @click.option("--store", default=DEFAULT_STORE, show_default=True, help="Results store root.")
+    @opt.option("--set", "overrides", shared="set", multiple=True, metavar="KEY=VALUE",
+                help="Override one config key, e.g. --set encoding.c2.sigma=11 (repeatable).")
+    @opt.profile_option(uses_config=False)
+    @opt.store_option()
     @click.option("--no-store", is_flag=True, help="Do not write into the results store.")
     @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
+    @opt.no_progress_option()
     def displacement_cmd(dataset: str | None, prepared: Path | None, shifts: str | None, max_images: int | None,
-                         overrides: tuple[str, ...], store: str, no_store: bool, out: Path | None) -> None:
+                         overrides: tuple[str, ...], profile: str, store: Path | None, no_store: bool,
+                         out: Path | None) -> None:
         """How much C2 contrast boxes keep when the thermal map is shifted 2-15 px (R_c(d) in %)."""
         from harness.config import load_config
         from harness.errors import HarnessError
+        from harness.progress import bar
         from harness.sensing.analyses import displacement_study, format_displacement
         from harness.sensing.options import SensingOptions
 
@@ -293,7 +299,8 @@ def register_commands(cli: click.Group) -> None:
         cfg = load_config(overrides=overrides)
         opts = SensingOptions.from_config(cfg)
         shift_list = [int(v) for v in shifts.split(",")] if shifts else list(opts.displacement_shifts)
-        c2_params = {"sigma": 11.0, "percentile": 99.0, "floor": 0.05, **dict(cfg.get("encoding", {}).get("c2", {}) or {})}
+        c2_params = {"sigma": 11.0, "percentile": 99.0, "floor": 0.05,
+                     **dict(cfg.get("encoding", {}).get("c2", {}) or {})}
         if prepared is not None:
             from harness.cache import PreparedDataset
 
@@ -306,12 +313,12 @@ def register_commands(cli: click.Group) -> None:
                                    "prepare the dataset elsewhere and pass --prepared DIR") from None
             data = prepare(dataset, cfg)
         n = len(data) if max_images is None else min(len(data), max_images)
-        with _progress(n, "displacement") as bar:
-            task = bar.add_task("images", total=n)
+        with bar("displacement", total=n) as b:
             result = displacement_study(iter(data), data.categories, shift_list, max_images=max_images,
-                                        progress=lambda k: bar.advance(task, k), **c2_params)
+                                        progress=b.advance, **c2_params)
         result["dataset"] = data.name
         click.echo(format_displacement(result))
-        for path in _write_result(result, "displacement", data.name, None if no_store else store, out):
+        target = None if no_store else opt.resolve_store(store, profile)
+        for path in _write_result(result, "displacement", data.name, target, out):
             click.echo(f"-> {path}")
 

@@ -8,6 +8,7 @@ import click
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `harness run`: set before torch is first imported
 
+from harness.commands import options as opt  # noqa: E402
 from harness.commands.run import _common, _split  # noqa: E402  (the options run and ablate share)
 from harness.hookspecs import hookimpl  # noqa: E402
 
@@ -31,7 +32,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--datasets", required=True, help="Comma-separated datasets, e.g. m3t.")
     @click.option("--encodings", default=None,
                   help="Comma-separated encodings [default: each detector's / dataset's own].")
-    @click.option("--folds", default="all", show_default=True, help="'all' or comma-separated fold names.")
+    @opt.folds_option()
     @click.option("--executor", type=click.Choice(["local", "ray", "slurm"]), default="local", show_default=True,
                   help="local: one run after the other here; ray: one Ray task per run; slurm: a submitit job array.")
     @click.option("--dry-run", is_flag=True, help="List the runs the sweep would do, and stop.")
@@ -60,7 +61,7 @@ def register_commands(cli: click.Group) -> None:
     def sweep_cmd(detectors, datasets, encodings, folds, executor, dry_run, cpus_per_run, gpus_per_run, ray_address,
                   slurm_partition, slurm_account, slurm_qos, timeout_min, slurm_mem_gb, slurm_array_parallelism,
                   slurm_setup, slurm_opt, submitit_cluster, log_dir, profile, config_files, overrides, store, seeds,
-                  force, no_progress):
+                  force):
         """Run every combination of DETECTORS x DATASETS x ENCODINGS x FOLDS x SEEDS into one results store.
 
         Each run is an ordinary `harness run` of one fold and seed: finished runs with the same configuration are
@@ -74,13 +75,16 @@ def register_commands(cli: click.Group) -> None:
           harness sweep --detectors ours,eme --datasets m3t --seeds 0,1,2 --executor slurm \\
               --slurm-partition gpu
         """
+        from harness.errors import PartlyDone
+        from harness.progress import progress_on
         from harness.runner import parse_seeds
         from harness.sweep import ExecutorOptions, SweepSpec, expand, sweep, sweep_table
 
         parsed = parse_seeds(seeds)
         spec = SweepSpec(detectors=tuple(_split(detectors)), datasets=tuple(_split(datasets)), folds=folds,
                          seeds=tuple(parsed) if parsed is not None else None, encodings=tuple(_split(encodings)),
-                         profile=profile, config_files=tuple(config_files), overrides=tuple(overrides), store=store,
+                         profile=profile, config_files=tuple(config_files), overrides=tuple(overrides),
+                         store=None if store is None else str(store),
                          force=force)
         if dry_run:
             planned = expand(spec)
@@ -98,8 +102,8 @@ def register_commands(cli: click.Group) -> None:
             mem_gb=slurm_mem_gb, partition=slurm_partition, account=slurm_account, qos=slurm_qos,
             array_parallelism=slurm_array_parallelism, slurm_setup=tuple(slurm_setup),
             slurm_extra=_key_values(slurm_opt))
-        summary = sweep(spec, executor, options, progress=not no_progress)
+        summary = sweep(spec, executor, options, progress=progress_on())
         click.echo(sweep_table(summary))
         click.echo(f"\nresults: {summary.store}")
         if summary.failed:
-            raise click.ClickException(f"{len(summary.failed)} of {len(summary.results)} runs failed (see the table)")
+            raise PartlyDone(f"{len(summary.failed)} of {len(summary.results)} runs failed (see the table)")

@@ -6,6 +6,7 @@ import json
 
 import click
 
+from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
@@ -28,8 +29,8 @@ def register_commands(cli: click.Group) -> None:
     @weights_group.command(name="import")
     @click.argument("src", type=click.Path(dir_okay=False))
     @click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output DST.safetensors.")
-    @click.option("--json", "as_json", is_flag=True, help="Print the sidecar's JSON instead of a summary.")
-    def import_cmd(src: str, out: str, as_json: bool) -> None:
+    @opt.format_option("text", "json", old_json=True)
+    def import_cmd(src: str, out: str, fmt: str) -> None:
         """Convert a pickled checkpoint SRC into DST.safetensors plus DST.json, executing nothing from SRC.
 
         \b
@@ -42,7 +43,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.weights import import_checkpoint
 
         res = import_checkpoint(src, out)
-        if as_json:
+        if fmt == "json":  # the sidecar's JSON
             click.echo(json.dumps(res.info, indent=2))
             return
         lay = res.info["layout"]

@@ -25,6 +25,7 @@ from torch.utils.data import Subset
 
 from harness.engine.data import LetterboxDataset, SampleSource, eval_loader, to_inputs
 from harness.errors import PluginError
+from harness.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -155,9 +156,8 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
     results: list[dict[str, Any]] = []
     ids: list[int] = []
     counts = DegenerateBoxes()
-    ctx = _bar(progress and d.is_main, len(dataset), f"predict {name}")
     try:
-        with ctx as (bar, task):
+        with progress_bar(f"predict {name}", len(dataset), enabled=progress and d.is_main) as bar:
             for b in loader:
                 out = model(to_inputs(b.images, input_kind, thermal_channels, device))
                 if not isinstance(out, (list, tuple)) or len(out) != len(b):
@@ -166,8 +166,7 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
                 for det, image_id, lb in zip(out, b.image_ids, b.letterboxes):
                     results.extend(detections_to_coco(det, image_id, lb, num_classes, name, counts))
                 ids.extend(int(i) for i in b.image_ids)
-                if bar is not None:
-                    bar.update(task, advance=len(b))
+                bar.advance(len(b))
     finally:
         model.train(was_training)
     if d.active:
@@ -189,23 +188,3 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
     if degenerate is not None:
         degenerate.merge(counts)
     return results
-
-
-class _bar:
-    def __init__(self, enabled: bool, total: int, description: str):
-        self.enabled, self.total, self.description = enabled, total, description
-        self.progress: Any = None
-
-    def __enter__(self) -> tuple[Any, Any]:
-        if not self.enabled:
-            return None, None
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), transient=True)
-        self.progress.__enter__()
-        return self.progress, self.progress.add_task(self.description, total=self.total)
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.progress is not None:
-            self.progress.__exit__(*exc)

@@ -40,6 +40,7 @@ from harness.engine.data import TrainDataset, targets_to, to_inputs, train_loade
 from harness.engine.ema import ModelEMA
 from harness.engine.runtime import select_device, set_threads
 from harness.errors import ConfigError, HarnessError
+from harness.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -240,8 +241,7 @@ class Trainer:
         t_start = time.perf_counter()
         stopped_early = False
         epoch = start_epoch - 1
-        bar = _progress(self.progress and main)
-        with bar:
+        with progress_bar(self.name, enabled=self.progress and main, eta=True, note=True) as bar:
             for epoch in range(start_epoch, s.epochs):
                 t0 = time.perf_counter()
                 mosaic = epoch < s.epochs - s.close_mosaic
@@ -254,7 +254,7 @@ class Trainer:
                 sums: dict[str, float] = {}
                 seen = 0
                 pending = False
-                task = bar.add_task(f"{self.name} {epoch + 1}/{s.epochs}", total=nb, losses="")
+                bar.restart(f"{self.name} {epoch + 1}/{s.epochs}", total=nb)
                 for i, batch in enumerate(loader):
                     ni = i + nb * epoch
                     accumulate = accumulate_target
@@ -279,11 +279,10 @@ class Trainer:
                     if ni - last_opt_step >= accumulate:
                         self._step(model, opt, scaler)
                         last_opt_step, pending = ni, False
-                    bar.update(task, advance=1, losses=" ".join(f"{k} {v / (i + 1):.3f}" for k, v in sums.items()))
+                    bar.advance(1, note=" ".join(f"{k} {v / (i + 1):.3f}" for k, v in sums.items()))
                 if pending:  # every epoch ends on an optimiser step, so a checkpoint never holds half-summed gradients
                     self._step(model, opt, scaler)
                     last_opt_step = nb * (epoch + 1) - 1
-                bar.remove_task(task)
 
                 mean_losses = hd.all_reduce_mean({k: v / max(nb, 1) for k, v in sums.items()})
                 seen *= d.world_size
@@ -432,29 +431,3 @@ def _line(r: Mapping[str, Any], name: str) -> str:
         parts.append(f"fitness {r['fitness']:.4f}{' *' if r['improved'] else ''}")
     parts.append(f"{r['time_s']:.1f} s")
     return "  ".join(parts)
-
-
-class _NoProgress:
-    def __enter__(self) -> "_NoProgress":
-        return self
-
-    def __exit__(self, *_: Any) -> None:
-        return None
-
-    def add_task(self, *_: Any, **__: Any) -> int:
-        return 0
-
-    def update(self, *_: Any, **__: Any) -> None:
-        return None
-
-    def remove_task(self, *_: Any) -> None:
-        return None
-
-
-def _progress(enabled: bool) -> Any:
-    if not enabled:
-        return _NoProgress()
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TimeRemainingColumn(), TextColumn("{task.fields[losses]}"), transient=True)

@@ -261,7 +261,7 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sec.notes += notes
     if not abl:
         sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
-                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --fold F "
+                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --folds F "
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
     sections.append(sec)
 
@@ -305,35 +305,25 @@ def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analys
 
 # -------------------------------------------------------------------------------------------------- the report
 class _Progress:
-    """A rich progress bar for the bootstrap (hidden when stderr is not a terminal)."""
+    """The bootstrap's progress bar (``harness.progress``: on stderr, only on a terminal): one task per comparison."""
 
     def __init__(self, enabled: bool):
-        self.enabled = enabled
-        self._bar: Any = None
-        self._task: Any = None
+        from harness.progress import bar
+
+        self._bar = bar("bootstrap", enabled=enabled)
 
     def __enter__(self) -> "_Progress":
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            console = Console(stderr=True)
-            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), transient=True, console=console, disable=not console.is_terminal)
-            self._bar.__enter__()
+        self._bar.__enter__()
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        if self._bar is not None:
-            self._bar.__exit__(*exc)
+        self._bar.__exit__(*exc)
 
     def start(self, total: int, label: str) -> None:
-        if self._bar is not None:
-            self._task = self._bar.add_task(label, total=total)
+        self._bar.restart(label, total)
 
     def advance(self, k: int = 1) -> None:
-        if self._bar is not None and self._task is not None:
-            self._bar.advance(self._task, k)
+        self._bar.advance(k)
 
 
 def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,

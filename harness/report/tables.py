@@ -543,7 +543,7 @@ def ablation_tables(view: StoreView, dataset: str,
         if not common:
             notes.append(f"{det}: encodings {', '.join(e.encoding for e in entries)} share no held-out fold; "
                          f"run them on the same fold (`harness ablate --detector {det} --dataset {dataset} "
-                         f"--encodings ... --fold F`).")
+                         f"--encodings ... --folds F`).")
             continue
         tables.append(_ablation_table(dataset, det, entries, common, categories))
     return tables, notes

@@ -103,16 +103,19 @@ def companion_path(out: Path) -> Path:
 
 
 def export_predictions(store: str | Path, dataset: str | None = None, detector: str | None = None,
-                       encoding: str | None = None, folds: Sequence[str] | None = None, seed: int | None = None,
-                       frame: str = "thermal", out: str | Path = "predictions") -> list[Exported]:
-    """Export every finished run that matches; ``out`` is the file for one run, a folder for several."""
+                       encoding: str | None = None, folds: Sequence[str] | None = None,
+                       seed: int | Sequence[int] | None = None, frame: str = "thermal",
+                       out: str | Path = "predictions") -> list[Exported]:
+    """Export every finished run that matches (``seed``: one training seed or several); ``out`` is the file for one
+    run, a folder for several."""
     from harness.report.reader import read_run
     from harness.store import Store
 
     st = Store(store)
+    seeds = None if seed is None else {int(seed)} if isinstance(seed, int) else {int(s) for s in seed}
     runs = [r for r in st.runs(dataset=dataset, detector=detector)
             if (encoding is None or r.key.encoding == encoding) and (not folds or r.key.fold in folds)
-            and (seed is None or r.key.seed == seed)]
+            and (seeds is None or r.key.seed in seeds)]
     if not runs:
         raise StoreError(f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
                          f"{encoding}, folds {list(folds or []) or 'all'})")

@@ -440,7 +440,7 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     prepared = prepare(spec.name, cfg)
     folds = resolve_folds(spec, prepared, cfg, fold)
     if len(folds) != 1:
-        raise ConfigError(f"--fold {fold!r} selects {len(folds)} folds of {dataset!r}; give exactly one")
+        raise ConfigError(f"--folds {fold!r} selects {len(folds)} folds of {dataset!r}; give exactly one")
     f = folds[0]
     _, val_idx = fold_indices(prepared, f)
     image_list = None

@@ -313,34 +313,25 @@ def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups
 
 # ------------------------------------------------------------------------------------------------ the job
 class _Bar:
-    """The overall progress bar on stderr: frames done of the flight, elapsed, ETA, findings and failures."""
+    """The overall progress bar (``harness.progress``: on stderr, only on a terminal, off with ``--no-progress``):
+    frames done of the flight, elapsed, ETA, findings and failures."""
 
     def __init__(self, enabled: bool, total: int, done: int):
-        self.enabled, self.total, self.done = enabled, total, done
-        self.progress: Any = None
-        self.task: Any = None
+        from harness.progress import bar
+
+        self.done = done
+        self._bar = bar("screening frames", total, enabled=enabled, eta=True, note=True, transient=False)
 
     def __enter__(self) -> "_Bar":
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                                       TimeRemainingColumn)
-
-            self.progress = Progress(TextColumn("screening"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                                     TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                                     TextColumn("{task.fields[note]}"), console=Console(file=sys.stderr),
-                                     transient=False)
-            self.progress.__enter__()
-            self.task = self.progress.add_task("screen", total=self.total, completed=self.done, note="")
+        self._bar.__enter__()
+        self._bar.update(completed=self.done)
         return self
 
     def advance(self, n: int, note: str) -> None:
-        if self.progress is not None:
-            self.progress.update(self.task, advance=n, note=note)
+        self._bar.advance(n, note=note)
 
     def __exit__(self, *exc: Any) -> None:
-        if self.progress is not None:
-            self.progress.__exit__(*exc)
+        self._bar.__exit__(*exc)
 
 
 def _frame_record(frame: Frame, findings: list[dict[str, Any]], key: str, flight: Path, overlay: str | None,

@@ -20,6 +20,7 @@ from adapters.datasets.synthetic.geometry import (
 from adapters.datasets.synthetic.profiles import LOOKS, PROFILES, PROJECTS, Profile, get_profile
 from adapters.datasets.synthetic.rendering import pick_landmarks, render_frame
 from harness.errors import DataError
+from harness.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -229,8 +230,7 @@ def _render_chunk(task: _Chunk) -> list[dict[str, Any]]:
 
 def _run_chunks(chunks: list[_Chunk], workers: int, progress: bool, label: str) -> list[list[dict[str, Any]]]:
     results: list[list[dict[str, Any]] | None] = [None] * len(chunks)
-    bar = _progress(progress, sum(len(c.items) for c in chunks), label)
-    try:
+    with progress_bar(label, sum(len(c.items) for c in chunks), enabled=progress, eta=True, transient=False) as bar:
         if workers <= 1 or len(chunks) <= 1:
             for n, c in enumerate(chunks):
                 results[n] = _render_chunk(c)
@@ -245,8 +245,6 @@ def _run_chunks(chunks: list[_Chunk], workers: int, progress: bool, label: str) 
                 for fut in as_completed(futures):
                     results[futures[fut]] = fut.result()
                     bar.advance(len(chunks[futures[fut]].items))
-    finally:
-        bar.close()
     return [r for r in results if r is not None]
 
 
@@ -348,31 +346,6 @@ def _write_camera(path: Path, rig: Rig) -> None:
     from harness.sensing.calibration import CameraModel
 
     CameraModel(K=rig.k_rgb, dist=np.array(rig.dist_rgb), image_size=rig.rgb_size, name="M3T wide").save(path)
-
-
-class _Progress:
-    def __init__(self, bar: Any, task: Any):
-        self.bar, self.task = bar, task
-
-    def advance(self, n: int = 1) -> None:
-        if self.bar is not None:
-            self.bar.advance(self.task, n)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-
-
-def _progress(enabled: bool, total: int, description: str) -> _Progress:
-    if not enabled:
-        return _Progress(None, None)
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                   transient=False)
-    task = bar.add_task(description, total=total)
-    bar.start()
-    return _Progress(bar, task)
 
 
 _MANIFEST = """\

@@ -188,8 +188,8 @@ def register_commands(cli: Any) -> None:
 
     @cli.command(name="example-data")
     @click.argument("folder", type=click.Path(file_okay=False, path_type=Path))
-    @click.option("--sites", type=int, default=3, show_default=True)
-    @click.option("--per-site", type=int, default=4, show_default=True)
+    @click.option("--sites", type=int, default=3, show_default=True, help="Sites (groups, one fold each) to write.")
+    @click.option("--per-site", type=int, default=4, show_default=True, help="Image pairs per site.")
     def example_data(folder: Path, sites: int, per_site: int) -> None:
         """Write a small example-folders dataset to FOLDER."""
         make_example(folder, sites, per_site)
