@@ -38,7 +38,8 @@ from harness.engine import checkpoint as ckpt
 from harness.engine import optim
 from harness.engine.data import TrainDataset, targets_to, to_inputs, train_loader
 from harness.engine.ema import ModelEMA
-from harness.engine.runtime import select_device, set_threads
+from harness.engine.flat import FlatOptimizer, FlatState
+from harness.engine.runtime import keep_freed_memory, select_device, set_threads
 from harness.errors import ConfigError, HarnessError
 
 log = logging.getLogger(__name__)
@@ -150,6 +151,7 @@ class Trainer:
         if self.dist.active and self.device.type == "cuda":
             self.device = torch.device("cuda", self.dist.local_rank)
         self.ema: ModelEMA | None = None
+        self.flat: FlatState | None = None
 
     # ------------------------------------------------------------------ paths
     @property
@@ -169,6 +171,8 @@ class Trainer:
     def fit(self, resume: bool = True) -> TrainResult:
         s = self.s
         set_threads(s.threads)
+        if self.device.type == "cpu":
+            keep_freed_memory()
         model = self.model.to(self.device)
         if s.channels_last:
             model = model.to(memory_format=torch.channels_last)
@@ -185,9 +189,12 @@ class Trainer:
         nb = len(loader)
         accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
         wd = optim.scaled_weight_decay(s.weight_decay, s.batch, accumulate_target, s.nominal_batch)
-        opt = optim.build_optimizer(model, s.optimizer, s.lr0, s.momentum, wd)
+        opt: Any = optim.build_optimizer(model, s.optimizer, s.lr0, s.momentum, wd)
+        self.flat = self._flatten(model, opt, d.active)
+        if self.flat is not None:
+            opt = FlatOptimizer(opt, self.flat)
         scaler = torch.amp.GradScaler(self.device.type, enabled=amp)
-        self.ema = ModelEMA(model, s.ema_decay, s.ema_tau) if s.ema else None
+        self.ema = ModelEMA(model, s.ema_decay, s.ema_tau, flat=self.flat) if s.ema else None
         nw = optim.warmup_iterations(s.warmup_epochs, nb, s.warmup_min_iters)
 
         start_epoch, best_fit, best_epoch, history, resumed_from = 0, None, None, [], None
@@ -343,10 +350,25 @@ class Trainer:
             )
         return loss
 
-    def _step(self, model: nn.Module, opt: torch.optim.Optimizer, scaler: torch.amp.GradScaler) -> None:
+    def _flatten(self, model: nn.Module, opt: torch.optim.Optimizer, distributed: bool) -> FlatState | None:
+        """Flat buffers for the optimiser step and the EMA (``harness.engine.flat``) on a CPU in one process,
+        when the model and the optimiser allow them; None (the torch optimiser, per-tensor EMA) otherwise."""
+        if self.device.type != "cpu" or distributed:
+            return None
+        groups = [g["params"] for g in opt.param_groups]
+        why = FlatState.reason(model, groups) or FlatOptimizer.reason(opt)
+        if why:
+            log.debug("%s: per-tensor optimiser step (%s)", self.name, why)
+            return None
+        return FlatState(model, groups)
+
+    def _step(self, model: nn.Module, opt: Any, scaler: torch.amp.GradScaler) -> None:
         scaler.unscale_(opt)
         if self.s.clip_grad and self.s.clip_grad > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=self.s.clip_grad)
+            if self.flat is not None:
+                self.flat.clip_grad_norm_(self.s.clip_grad)
+            else:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=self.s.clip_grad)
         scaler.step(opt)
         scaler.update()
         opt.zero_grad(set_to_none=True)
