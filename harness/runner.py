@@ -45,7 +45,7 @@ from harness.textable import fit_text, text_table
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads")}
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"), ("train", "cache_mb")}
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
 #: (``meta.prepared_fingerprint``) and an initial checkpoint by its content (``meta.init_sha1``), not by paths.
 LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
@@ -405,8 +405,9 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         settings = TrainSettings.from_config(cfg, seed)
         eval_cfg = cfg["eval"]
         enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
-        train_src = SampleSource(prepared, train_idx, enc, enc_params)
-        val_src = SampleSource(prepared, val_idx, enc, enc_params)
+        cache_mb = float(cfg["train"].get("cache_mb") or 0)
+        train_src = SampleSource(prepared, train_idx, enc, enc_params, cache_mb=cache_mb)
+        val_src = SampleSource(prepared, val_idx, enc, enc_params, cache_mb=cache_mb)
         train_src.warm()
         aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
         gt = prepared.coco(val_idx)

@@ -86,6 +86,7 @@ class TrainSettings:
     clip_grad: float = 10.0
     val_period: int = 1
     channels_last: bool = False
+    fused_validation: bool = False
     seed: int = 0
 
     @classmethod
@@ -408,10 +409,12 @@ class Trainer:
         m.eval()
         try:
             assert self.validate is not None
+            if self.s.fused_validation:
+                m = inference_copy(m)
             # under torchrun rank 0 scores the gathered predictions; every process takes its metrics
             return hd.broadcast_object(self.validate(m))
         finally:
-            m.train(was_training)
+            self.eval_model.train(was_training)
 
     def _result(self, epochs_run: int, best_epoch: int | None, best_fit: float | None, stopped: bool, t: float,
                 history: list[dict[str, Any]], resumed_from: int | None) -> TrainResult:
@@ -422,6 +425,31 @@ class Trainer:
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
             resumed_from=resumed_from, device=str(self.device),
         )
+
+
+def inference_copy(model: nn.Module) -> nn.Module:
+    """An eval-mode copy of ``model`` with BatchNorm folded into the convolutions by the model's declared fold
+    (``harness.contracts.fold_batchnorm``), frozen; ``model`` itself when it declares no fold. The random generators
+    are left as they were (a fold that builds layers draws their initial weights)."""
+    import copy
+    import inspect
+
+    from harness.contracts import FUSE_HOOK, fold_batchnorm
+
+    declared = any(inspect.isfunction(inspect.getattr_static(type(model), n, None)) for n in (FUSE_HOOK, "fuse"))
+    if not declared or not any(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in model.modules()):
+        return model
+    cpu_rng = torch.get_rng_state()  # a fold that builds new layers draws their initial weights: training's
+    cuda_rng = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None  # dropout must not notice
+    try:
+        folded, ok = fold_batchnorm(copy.deepcopy(model).eval())
+    finally:
+        torch.set_rng_state(cpu_rng)
+        if cuda_rng is not None:
+            torch.cuda.set_rng_state_all(cuda_rng)
+    if not ok:
+        return model
+    return folded.eval().requires_grad_(False)
 
 
 def _cpu_state(model: nn.Module) -> dict[str, torch.Tensor]:
