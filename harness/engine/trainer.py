@@ -191,7 +191,7 @@ class Trainer:
         accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
         wd = optim.scaled_weight_decay(s.weight_decay, s.batch, accumulate_target, s.nominal_batch)
         opt: Any = optim.build_optimizer(model, s.optimizer, s.lr0, s.momentum, wd)
-        self.flat = self._flatten(model, opt, d.active)
+        self.flat = flat_buffers(model, opt, self.device, d.active, self.name)
         if self.flat is not None:
             opt = FlatOptimizer(opt, self.flat)
         scaler = torch.amp.GradScaler(self.device.type, enabled=amp)
@@ -351,18 +351,6 @@ class Trainer:
             )
         return loss
 
-    def _flatten(self, model: nn.Module, opt: torch.optim.Optimizer, distributed: bool) -> FlatState | None:
-        """Flat buffers for the optimiser step and the EMA (``harness.engine.flat``) on a CPU in one process,
-        when the model and the optimiser allow them; None (the torch optimiser, per-tensor EMA) otherwise."""
-        if self.device.type != "cpu" or distributed:
-            return None
-        groups = [g["params"] for g in opt.param_groups]
-        why = FlatState.reason(model, groups) or FlatOptimizer.reason(opt)
-        if why:
-            log.debug("%s: per-tensor optimiser step (%s)", self.name, why)
-            return None
-        return FlatState(model, groups)
-
     def _step(self, model: nn.Module, opt: Any, scaler: torch.amp.GradScaler) -> None:
         scaler.unscale_(opt)
         if self.s.clip_grad and self.s.clip_grad > 0:
@@ -425,6 +413,20 @@ class Trainer:
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
             resumed_from=resumed_from, device=str(self.device),
         )
+
+
+def flat_buffers(model: nn.Module, opt: torch.optim.Optimizer, device: torch.device, distributed: bool = False,
+                 name: str = "model") -> FlatState | None:
+    """Flat buffers for the optimiser step and the EMA (``harness.engine.flat``) on a CPU in one process, when the
+    model and the optimiser allow them; None (torch's optimiser and the per-tensor EMA) otherwise."""
+    if device.type != "cpu" or distributed:
+        return None
+    groups = [g["params"] for g in opt.param_groups]
+    why = FlatState.reason(model, groups) or FlatOptimizer.reason(opt)
+    if why:
+        log.debug("%s: per-tensor optimiser step (%s)", name, why)
+        return None
+    return FlatState(model, groups)
 
 
 def inference_copy(model: nn.Module) -> nn.Module:
