@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import json
 import logging
 import math
 import re
@@ -315,6 +316,7 @@ def run(request: RunRequest) -> RunSummary:
                          list(prepared.categories))
     todo = [x for x in p.runs if x.state != "finished" or request.force]
     overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main())
+    measured: dict[Any, dict[str, Any]] = {}  # complexity records of the architectures built so far (per process)
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
@@ -332,7 +334,8 @@ def run(request: RunRequest) -> RunSummary:
                 continue
             overall.start_run(str(r.key))
             result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
-                             init=init, force=request.force, progress=request.progress, overall=overall)
+                             init=init, force=request.force, progress=request.progress, overall=overall,
+                             complexity_memo=measured)
             overall.finish_run()
         summary.results.append(result)
     return summary
@@ -359,8 +362,13 @@ def _run_lock(r: Run) -> Iterator[None]:
 
 def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,
             train_idx: Sequence[int], val_idx: Sequence[int], init: str | Path | None = None, force: bool = False,
-            progress: bool = True, overall: OverallProgress | None = None) -> FoldResult:
-    """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
+            progress: bool = True, overall: OverallProgress | None = None,
+            complexity_memo: dict[Any, dict[str, Any]] | None = None) -> FoldResult:
+    """Train, predict and evaluate one (fold, seed) and write its folder in the results store.
+
+    ``complexity_memo`` keeps the complexity record of each architecture already measured (by the detector, its
+    model options, classes, input and the names and shapes of its state), so the folds and seeds of one ``run``
+    measure their common model once."""
     import torch
 
     from harness import distributed as hd
@@ -417,8 +425,16 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         seed_everything(seed, settings.deterministic)
         model = build_model(det, ncls, in_channels, cfg.get("model") or {})
         init_report = ckpt.init_from(model, init, det.load_official) if init else None
-        complexity = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
-                                        cfg.get("model") or {}) if main else None
+        complexity = None
+        if main:
+            arch = (det.name, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
+                    json.dumps(cfg.get("model") or {}, sort_keys=True, default=str),
+                    tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()))
+            memo = complexity_memo if complexity_memo is not None else {}
+            if arch not in memo:
+                memo[arch] = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
+                                                settings.imgsz, ncls, cfg.get("model") or {})
+            complexity = copy.deepcopy(memo[arch])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
         def validate(m: Any) -> dict[str, Any] | None:
