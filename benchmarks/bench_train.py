@@ -6,6 +6,8 @@ First, the train step of ``ours`` against its anchors (``--step-threads``, defau
 * ``step-ours``: the engine's step as ``harness.engine.trainer.Trainer`` runs it: forward, the YOLOv8 loss (task-
   aligned assigner, BCE, CIoU, DFL), backward, gradient clipping, SGD (Nesterov) over the three parameter groups,
   zeroing and the EMA update, with the trainer's CPU set-up (flat buffers, ``keep_freed_memory``);
+* ``step-ours-cl``: the same with ``train.channels_last`` (channels-last tensors, 1x1 convolutions on oneDNN: see
+  ``harness.engine.trainer.pointwise_convs_on_onednn``), which changes float rounding and is not the default;
 * ``step-ultralytics``: Ultralytics' YOLOv8s (``DetectionModel("yolov8s.yaml", ch=4, nc=8)``, its ``v8DetectionLoss``
   on the same boxes, the same SGD groups, torch's clipping, its ``ModelEMA``), when the ``ultralytics`` package
   imports in this environment. It is AGPL-3.0 and never a dependency of this project: install it into a
@@ -16,7 +18,7 @@ First, the train step of ``ours`` against its anchors (``--step-threads``, defau
   benchmark says so: the anchor then includes those changes.
 
 Each is measured in its own process, ``--rounds`` times in turn (the median of the rounds' medians), so a busy
-machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``.
+machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours.
 
 Then four measurements of the whole engine, each in its own process (so that each peak-memory figure is its own):
 
@@ -257,8 +259,14 @@ def build_step(kind: str, size: int, batch: int, classes: int):
     from harness.runner import build_model
 
     model = build_model(get_host().detector("ours"), classes, 4, {"scale": "s"}).train()
+    if kind == "ours-cl":
+        from harness.engine.trainer import pointwise_convs_on_onednn
+
+        model = model.to(memory_format=torch.channels_last)
+        pointwise_convs_on_onednn(model, True)
+        x = x.contiguous(memory_format=torch.channels_last)
     opt = optim.build_optimizer(model, "SGD", 0.01, 0.937, 5e-4)
-    if kind == "ours":
+    if kind in ("ours", "ours-cl"):
         from harness.engine.ema import ModelEMA
         from harness.engine.runtime import keep_freed_memory
         from harness.engine.trainer import flat_buffers
@@ -276,7 +284,8 @@ def build_step(kind: str, size: int, batch: int, classes: int):
                 flat.clip_grad_norm_(10.0)
             else:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
-        what = "ours (the engine's step" + (", flat buffers)" if flat is not None else ")")
+        what = "ours (the engine's step" + (", flat buffers" if flat is not None else "") + \
+            (", train.channels_last)" if kind == "ours-cl" else ")")
     else:
         ema = FrozenEMA(model)
 
@@ -333,7 +342,7 @@ def run_measure(what: str, args: argparse.Namespace) -> dict:
 
 
 def compare_steps(args: argparse.Namespace) -> None:
-    kinds = ["step-ours", "step-ultralytics", "step-frozen"]
+    kinds = ["step-ours", "step-ours-cl", "step-ultralytics", "step-frozen"]
     rounds: dict[str, list[dict]] = {k: [] for k in kinds}
     for _ in range(args.rounds):
         for k in kinds:
@@ -350,11 +359,11 @@ def compare_steps(args: argparse.Namespace) -> None:
             continue
         print(f"  {k:<17} {med[k]:7.3f} s  {r['description']}")
     anchor = "step-ultralytics" if "step-ultralytics" in med else "step-frozen"
-    ratio = med["step-ours"] / med[anchor]
-    print(f"ours / {anchor[5:]}: {ratio:.3f}   target <= {TARGET:.2f} x Ultralytics: "
-          f"{'met' if anchor == 'step-ultralytics' and ratio <= TARGET else 'NOT met' if anchor == 'step-ultralytics' else 'no Ultralytics here'}")
-    if anchor != "step-frozen" and "step-frozen" in med:
-        print(f"ours / frozen: {med['step-ours'] / med['step-frozen']:.3f}")
+    for ours in ("step-ours", "step-ours-cl"):
+        ratio = med[ours] / med[anchor]
+        verdict = ("met" if ratio <= TARGET else "NOT met") if anchor == "step-ultralytics" else "no Ultralytics here"
+        print(f"{ours[5:]} / {anchor[5:]}: {ratio:.3f}   target <= {TARGET:.2f} x Ultralytics: {verdict}"
+              + (f"   ({ours[5:]} / frozen: {med[ours] / med['step-frozen']:.3f})" if anchor != "step-frozen" else ""))
     changed = frozen_sources_changed()
     if changed:
         print(f"note: the frozen step runs the current {', '.join(changed)}, changed since it was frozen")

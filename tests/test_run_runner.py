@@ -40,12 +40,19 @@ def request(tmp_path, **kw):
 
 
 @pytest.mark.slow
-def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
+def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path, monkeypatch):
+    import harness.complexity
     from harness.runner import category_table, fold_table, run
     from harness.store import METRICS_SCHEMA
 
+    measured = []
+    measure = harness.complexity.measure
+    monkeypatch.setattr(harness.complexity, "measure", lambda *a, **k: measured.append(1) or measure(*a, **k))
     summary = run(request(tmp_path))
     assert [r.key.fold for r in summary.results] == ["A", "B"] and {r.state for r in summary.results} == {"trained"}
+    assert len(measured) == 1  # both folds train the same architecture: measured once, stored with each
+    records = [json.loads((r.path / "metrics.json").read_text())["complexity"] for r in summary.results]
+    assert records[0] == records[1] and records[0]["params"] > 1000
     for r in summary.results:
         files = {p.name for p in r.path.iterdir()}
         assert {"config.yaml", "status.json", "metrics.json", "predictions.json", "gt.json", "log.jsonl",

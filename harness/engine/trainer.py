@@ -170,6 +170,14 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def fit(self, resume: bool = True) -> TrainResult:
+        try:
+            return self._fit(resume)
+        finally:
+            for m in (self.model, self.ema.module if self.ema is not None else None):
+                if m is not None:
+                    pointwise_convs_on_onednn(m, False)
+
+    def _fit(self, resume: bool) -> TrainResult:
         s = self.s
         set_threads(s.threads)
         if self.device.type == "cpu":
@@ -177,6 +185,8 @@ class Trainer:
         model = self.model.to(self.device)
         if s.channels_last:
             model = model.to(memory_format=torch.channels_last)
+            if self.device.type == "cpu":
+                pointwise_convs_on_onednn(model, True)
         amp = bool(s.amp and self.device.type == "cuda")
         d = self.dist
         main = d.is_main
@@ -413,6 +423,30 @@ class Trainer:
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
             resumed_from=resumed_from, device=str(self.device),
         )
+
+
+def pointwise_convs_on_onednn(model: nn.Module, on: bool) -> int:
+    """Route the model's 1x1 convolutions through oneDNN (``on``) or back; returns how many were changed.
+
+    On one thread ATen computes a 1x1, stride-1 convolution of a batch under 16 with its own GEMM path, which takes
+    NCHW only: in channels-last training every such call converts its input and output and the backward pass its
+    gradients. A dilation means nothing to a 1x1 kernel (its one tap is the same), but a dilated convolution goes to
+    oneDNN, which works in channels-last. Measured on the YOLOv8s step at 640 px, batch 2, one thread: 0.83x the
+    NCHW step on AVX-512 with this, 0.92x without (on AVX2 channels-last does not pay: 1.03x and 1.11x). The original
+    dilation is restored when training ends."""
+    changed = 0
+    for m in model.modules():
+        if not isinstance(m, nn.Conv2d):
+            continue
+        if on and m.kernel_size == (1, 1) and m.stride == (1, 1) and m.padding in ((0, 0), "valid") \
+                and m.dilation == (1, 1) and m.padding_mode == "zeros":
+            m.dilation, m._onednn_pointwise = (2, 2), True
+            changed += 1
+        elif not on and getattr(m, "_onednn_pointwise", False):
+            m.dilation = (1, 1)
+            del m._onednn_pointwise
+            changed += 1
+    return changed
 
 
 def flat_buffers(model: nn.Module, opt: torch.optim.Optimizer, device: torch.device, distributed: bool = False,

@@ -1,4 +1,5 @@
-"""Flat-buffer optimiser step, clipping and EMA (harness.engine.flat) against torch's optimisers, bit for bit."""
+"""The CPU speed-ups of the engine: flat-buffer optimiser step, clipping and EMA (bit for bit against torch's optimisers),
+the allocator setting, the BN-folded validation copy and channels-last 1x1 convolutions on oneDNN."""
 
 from __future__ import annotations
 
@@ -133,3 +134,68 @@ def test_gradients_stay_views_of_the_flat_buffer():
         assert p.grad.data_ptr() == fs.grads.data_ptr() + s.start * 4
         assert p.data_ptr() % 64 == 0 and p.grad.data_ptr() % 64 == 0
     assert fs.touched.count(False) == 2  # the unused layer's weight and bias
+
+
+def test_keep_freed_memory_applies_on_linux_and_can_be_refused(monkeypatch):
+    import sys
+
+    from harness.engine.runtime import ENV_MALLOC, keep_freed_memory
+
+    monkeypatch.setenv(ENV_MALLOC, "default")
+    assert keep_freed_memory() is False
+    monkeypatch.delenv(ENV_MALLOC)
+    if sys.platform.startswith("linux"):
+        import ctypes.util
+
+        if "libc.so" in (ctypes.util.find_library("c") or ""):
+            assert keep_freed_memory() is True
+
+
+class Folding(nn.Module):
+    """A model whose fold builds new layers (drawing their initial weights from the global generator)."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(3, 4, 3, padding=1, bias=False)
+        self.bn = nn.BatchNorm2d(4)
+        self.drop = nn.Dropout(0.5)
+
+    def forward(self, x):
+        return self.drop(self.bn(self.conv(x)))
+
+    def fuse(self):
+        from adapters.detectors.yolo.blocks import fuse_conv_bn
+
+        self.conv, self.bn = fuse_conv_bn(self.conv, self.bn), nn.Identity()
+        return self
+
+
+def test_inference_copy_folds_a_copy_and_leaves_the_random_generators_alone():
+    from harness.engine.trainer import inference_copy
+
+    torch.manual_seed(0)
+    m = Folding()
+    m.bn.running_mean.uniform_(-1, 1)
+    m.bn.running_var.uniform_(0.5, 2)
+    m.eval()
+    state = torch.get_rng_state()
+    folded = inference_copy(m)
+    assert torch.equal(torch.get_rng_state(), state)  # training's dropout masks must not depend on validation
+    assert isinstance(m.bn, nn.BatchNorm2d) and isinstance(folded.bn, nn.Identity) and not folded.training
+    x = torch.randn(2, 3, 8, 8)
+    torch.testing.assert_close(folded(x), m(x), rtol=1e-5, atol=1e-5)
+    plain = nn.Sequential(nn.Conv2d(3, 3, 1), nn.BatchNorm2d(3))  # no declared fold: validated as it is
+    assert inference_copy(plain) is plain
+
+
+def test_pointwise_convolutions_move_to_onednn_for_channels_last_and_back():
+    from harness.engine.trainer import pointwise_convs_on_onednn
+
+    torch.manual_seed(0)
+    m = Net(channels_last=True)
+    x = torch.randn(2, 3, 16, 16).contiguous(memory_format=torch.channels_last)
+    ref = m(x)
+    assert pointwise_convs_on_onednn(m, True) == 2  # the unused and the frozen 1x1 convolutions
+    assert m.frozen.dilation == (2, 2) and m.a[0].dilation == (1, 1)
+    torch.testing.assert_close(m(x), ref, rtol=1e-5, atol=1e-5)
+    assert pointwise_convs_on_onednn(m, False) == 2 and m.frozen.dilation == (1, 1)
