@@ -187,7 +187,8 @@ def step_targets(batch: int, size: int, classes: int, boxes: int = 20, seed: int
     for _ in range(batch):
         wh = (torch.rand(boxes, 2, generator=g) * 0.25 + 0.02) * size
         c = torch.rand(boxes, 2, generator=g) * (size - wh) + wh / 2
-        out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1), "labels": torch.randint(0, classes, (boxes,), generator=g)})
+        out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
+                    "labels": torch.randint(0, classes, (boxes,), generator=g)})
     return x, out
 
 

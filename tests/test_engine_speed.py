@@ -1,5 +1,5 @@
-"""The CPU speed-ups of the engine: flat-buffer optimiser step, clipping and EMA (bit for bit against torch's optimisers),
-the allocator setting, the BN-folded validation copy and channels-last 1x1 convolutions on oneDNN."""
+"""The CPU speed-ups of the engine: flat-buffer optimiser step, clipping and EMA (bit for bit against torch's
+optimisers), the allocator setting, the BN-folded validation copy and channels-last 1x1 convolutions on oneDNN."""
 
 from __future__ import annotations
 
