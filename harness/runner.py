@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
 import json
 import logging
 import math
@@ -316,7 +317,7 @@ def run(request: RunRequest) -> RunSummary:
                          list(prepared.categories))
     todo = [x for x in p.runs if x.state != "finished" or request.force]
     overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main())
-    measured: dict[Any, dict[str, Any]] = {}  # complexity records of the architectures built so far (per process)
+    measured: dict[Any, Any] = {}  # complexity records of the architectures built so far (this process)
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
@@ -363,12 +364,12 @@ def _run_lock(r: Run) -> Iterator[None]:
 def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg: dict[str, Any], digest: str,
             train_idx: Sequence[int], val_idx: Sequence[int], init: str | Path | None = None, force: bool = False,
             progress: bool = True, overall: OverallProgress | None = None,
-            complexity_memo: dict[Any, dict[str, Any]] | None = None) -> FoldResult:
+            complexity_memo: dict[Any, Any] | None = None) -> FoldResult:
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store.
 
     ``complexity_memo`` keeps the complexity record of each architecture already measured (by the detector, its
-    model options, classes, input and the names and shapes of its state), so the folds and seeds of one ``run``
-    measure their common model once."""
+    model options, classes, input, the names and shapes of its state and the random generator's state), so the
+    folds of one ``run`` measure their common model once, with the same results as measuring it each time."""
     import torch
 
     from harness import distributed as hd
@@ -427,14 +428,22 @@ def run_one(det: Any, enc: Any, prepared: Any, fold: Any, seed: int, r: Run, cfg
         init_report = ckpt.init_from(model, init, det.load_official) if init else None
         complexity = None
         if main:
+            # measuring folds a copy of the model, and a fold that builds layers draws their initial weights from
+            # torch's generator, which training then continues from (dropout): a record is reused only from the
+            # same generator state, and the state the measurement left behind is restored with it
+            rng = torch.get_rng_state()
             arch = (det.name, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
                     json.dumps(cfg.get("model") or {}, sort_keys=True, default=str),
-                    tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()))
+                    tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()),
+                    hashlib.sha1(rng.numpy().tobytes()).hexdigest())
             memo = complexity_memo if complexity_memo is not None else {}
-            if arch not in memo:
-                memo[arch] = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
-                                                settings.imgsz, ncls, cfg.get("model") or {})
-            complexity = copy.deepcopy(memo[arch])
+            if arch in memo:
+                torch.set_rng_state(memo[arch][1])
+            else:
+                record = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
+                                            settings.imgsz, ncls, cfg.get("model") or {})
+                memo[arch] = (record, torch.get_rng_state())
+            complexity = copy.deepcopy(memo[arch][0])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
         def validate(m: Any) -> dict[str, Any] | None:
