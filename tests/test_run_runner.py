@@ -57,7 +57,8 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path, monkeypatc
         return measure(*a, **k)
 
     monkeypatch.setattr(harness.complexity, "measure", measure_drawing)
-    monkeypatch.setattr(Trainer, "fit", lambda self, *a, **k: at_fit.append(torch.get_rng_state()) or fit(self, *a, **k))
+    monkeypatch.setattr(Trainer, "fit",
+                        lambda self, *a, **k: at_fit.append(torch.get_rng_state()) or fit(self, *a, **k))
     summary = run(request(tmp_path))
     assert [r.key.fold for r in summary.results] == ["A", "B"] and {r.state for r in summary.results} == {"trained"}
     assert len(measured) == 1  # both folds train the same architecture: measured once, stored with each
