@@ -431,9 +431,9 @@ def pointwise_convs_on_onednn(model: nn.Module, on: bool) -> int:
     On one thread ATen computes a 1x1, stride-1 convolution of a batch under 16 with its own GEMM path, which takes
     NCHW only: in channels-last training every such call converts its input and output and the backward pass its
     gradients. A dilation means nothing to a 1x1 kernel (its one tap is the same), but a dilated convolution goes to
-    oneDNN, which works in channels-last. Measured on the YOLOv8s step at 640 px, batch 2, one thread: 0.83x the
-    NCHW step on AVX-512 with this, 0.92x without (on AVX2 channels-last does not pay: 1.03x and 1.11x). The original
-    dilation is restored when training ends."""
+    oneDNN, which works in channels-last. Measured on the YOLOv8s step at 640 px, batch 2, one thread: about 0.8x the
+    NCHW step with AVX-512 with this, 0.9x without (with AVX2 channels-last does not pay: 1.03x and 1.11x). The
+    original dilation is restored when training ends."""
     changed = 0
     for m in model.modules():
         if not isinstance(m, nn.Conv2d):
