@@ -1,6 +1,26 @@
 """Training and evaluation throughput of the engine, and peak memory, on CPU (default: 640 px, batch 2).
 
-Four measurements, each in its own process (so that each peak-memory figure is its own):
+First, the train step of ``ours`` against its anchors (``--step-threads``, default 1 thread; YOLOv8s, 4 channels,
+8 classes, ``--imgsz`` x ``--imgsz``, batch ``--batch``, 20 boxes per image), CPU time per step:
+
+* ``step-ours``: the engine's step as ``harness.engine.trainer.Trainer`` runs it: forward, the YOLOv8 loss (task-
+  aligned assigner, BCE, CIoU, DFL), backward, gradient clipping, SGD (Nesterov) over the three parameter groups,
+  zeroing and the EMA update, with the trainer's CPU set-up (flat buffers, ``keep_freed_memory``);
+* ``step-ours-cl``: the same with ``train.channels_last`` (channels-last tensors, 1x1 convolutions on oneDNN: see
+  ``harness.engine.trainer.pointwise_convs_on_onednn``), which changes float rounding and is not the default;
+* ``step-ultralytics``: Ultralytics' YOLOv8s (``DetectionModel("yolov8s.yaml", ch=4, nc=8)``, its ``v8DetectionLoss``
+  on the same boxes, the same SGD groups, torch's clipping, its ``ModelEMA``), when the ``ultralytics`` package
+  imports in this environment. It is AGPL-3.0 and never a dependency of this project: install it into a
+  measurement environment only (``pip install ultralytics --no-deps``; it reads torchvision's version at import);
+* ``step-frozen``: the step as the engine ran it before the flat-buffer optimiser (torch's per-tensor SGD and
+  clipping, the per-tensor EMA over ``state_dict()``, glibc's default allocator), on the project's model and loss,
+  the anchor when Ultralytics is missing. If the model or loss files changed since the anchor was frozen, the
+  benchmark says so: the anchor then includes those changes.
+
+Each is measured in its own process, ``--rounds`` times in turn (the median of the rounds' medians), so a busy
+machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours.
+
+Then four measurements of the whole engine, each in its own process (so that each peak-memory figure is its own):
 
 * ``anchor-train``: the model alone, one step = ``forward_raw`` on random input + ``sum(mean(out^2))`` + backward +
   SGD step (the model-compute cost that nothing can remove);
@@ -13,12 +33,14 @@ Ratios are engine / anchor measured in the same run on the same machine, so they
 different CPU; absolute images/s are printed for the record. Example::
 
     .venv/bin/python benchmarks/bench_train.py                       # ours, 640, batch 2, 2 threads
-    .venv/bin/python benchmarks/bench_train.py --detector tinydet --imgsz 320
+    .venv/bin/python benchmarks/bench_train.py --detector tinydet --imgsz 320 --no-step
+    .venv/bin/python benchmarks/bench_train.py --step-only --rounds 5
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import resource
@@ -28,6 +50,17 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGET = 0.85  # ours / Ultralytics, train step
+#: sha1 of the model and loss files the frozen step runs (adapters/detectors/yolo/...), when it was frozen
+FROZEN_SOURCES = {
+    "adapters/detectors/yolo/v8.py": "14790e484f79b2162bb50b453c802f78cf772a5b",
+    "adapters/detectors/yolo/blocks.py": "0f4a9b89845e7411e54ba05d2483338f0471919a",
+    "adapters/detectors/yolo/loss_v8.py": "aacf1e257382f1333b260ddcfc416c44f205afb7",
+    "adapters/detectors/yolo/tal.py": "b4e837a9bae1281a783ad8dd7a7bffa145bd08a1",
+    "harness/boxes.py": "6fe7a1d0d507ea0a807744002d8c80aedcdca2c5",
+}
 
 
 def rss_mb() -> float:
@@ -144,6 +177,199 @@ def measure(args: argparse.Namespace) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------------------------- the train step
+def step_targets(batch: int, size: int, classes: int, boxes: int = 20, seed: int = 0):
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(batch, 4, size, size, generator=g)
+    out = []
+    for _ in range(batch):
+        wh = (torch.rand(boxes, 2, generator=g) * 0.25 + 0.02) * size
+        c = torch.rand(boxes, 2, generator=g) * (size - wh) + wh / 2
+        out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
+                    "labels": torch.randint(0, classes, (boxes,), generator=g)})
+    return x, out
+
+
+class FrozenEMA:
+    """The EMA update as the engine ran it when the step was frozen: two kernels per state-dict entry."""
+
+    def __init__(self, model):
+        import copy
+
+        from harness.engine.ema import ema_decay
+
+        self.module, self.updates, self.decay = copy.deepcopy(model).eval(), 0, ema_decay
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+
+    def update(self, model) -> None:
+        import torch
+
+        with torch.no_grad():
+            self.updates += 1
+            d = self.decay(self.updates)
+            current = model.state_dict()
+            for k, v in self.module.state_dict().items():
+                if v.dtype.is_floating_point:
+                    v.mul_(d).add_(current[k].detach(), alpha=1 - d)
+                else:
+                    v.copy_(current[k])
+
+
+def build_step(kind: str, size: int, batch: int, classes: int):
+    """``(step function, description)`` of one train step of ``kind`` (see the module docstring)."""
+    import torch
+
+    from harness.engine import optim
+
+    x, targets = step_targets(batch, size, classes)
+    torch.manual_seed(0)
+    if kind == "ultralytics":
+        os.environ.setdefault("YOLO_CONFIG_DIR", tempfile.mkdtemp(prefix="bench-yolo-"))
+        os.environ.setdefault("YOLO_OFFLINE", "1")
+        import ultralytics
+        from ultralytics.nn.tasks import DetectionModel
+        from ultralytics.utils import IterableSimpleNamespace
+        from ultralytics.utils.torch_utils import ModelEMA as UltralyticsEMA
+
+        model = DetectionModel("yolov8s.yaml", ch=4, nc=classes, verbose=False).train()
+        model.args = IterableSimpleNamespace(box=7.5, cls=0.5, dfl=1.5)
+        opt = optim.build_optimizer(model, "SGD", 0.01, 0.937, 5e-4)
+        ema = UltralyticsEMA(model)
+        idx, cls, xywh = [], [], []
+        for i, t in enumerate(targets):
+            b = t["boxes"]
+            idx.append(torch.full((len(b),), float(i)))
+            cls.append(t["labels"].float().view(-1, 1))
+            xywh.append(torch.cat(((b[:, :2] + b[:, 2:]) / 2, b[:, 2:] - b[:, :2]), 1) / size)
+        data = {"img": x, "batch_idx": torch.cat(idx), "cls": torch.cat(cls), "bboxes": torch.cat(xywh)}
+
+        def step() -> None:
+            loss, _ = model.loss(data)
+            loss.sum().backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            ema.update(model)
+
+        return step, f"Ultralytics {ultralytics.__version__} YOLOv8s (v8DetectionLoss)"
+
+    from harness.plugins import get_host
+    from harness.runner import build_model
+
+    model = build_model(get_host().detector("ours"), classes, 4, {"scale": "s"}).train()
+    if kind == "ours-cl":
+        from harness.engine.trainer import pointwise_convs_on_onednn
+
+        model = model.to(memory_format=torch.channels_last)
+        pointwise_convs_on_onednn(model, True)
+        x = x.contiguous(memory_format=torch.channels_last)
+    opt = optim.build_optimizer(model, "SGD", 0.01, 0.937, 5e-4)
+    if kind in ("ours", "ours-cl"):
+        from harness.engine.ema import ModelEMA
+        from harness.engine.runtime import keep_freed_memory
+        from harness.engine.trainer import flat_buffers
+
+        keep_freed_memory()
+        flat = flat_buffers(model, opt, torch.device("cpu"))
+        if flat is not None:
+            from harness.engine.flat import FlatOptimizer
+
+            opt = FlatOptimizer(opt, flat)
+        ema = ModelEMA(model, flat=flat)
+
+        def clip() -> None:
+            if flat is not None:
+                flat.clip_grad_norm_(10.0)
+            else:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
+        what = "ours (the engine's step" + (", flat buffers" if flat is not None else "") + \
+            (", train.channels_last)" if kind == "ours-cl" else ")")
+    else:
+        ema = FrozenEMA(model)
+
+        def clip() -> None:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
+        what = "today's step, frozen (per-tensor optimiser, clipping and EMA)"
+
+    def step() -> None:
+        losses = model(x, targets)
+        sum(v.sum() for v in losses.values()).backward()
+        clip()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        ema.update(model)
+
+    return step, what
+
+
+def measure_step(args: argparse.Namespace) -> dict:
+    import torch
+
+    torch.set_num_threads(args.step_threads)
+    kind = args.measure.split("-", 1)[1]
+    try:
+        step, what = build_step(kind, args.imgsz, args.batch, args.classes)
+    except ImportError as exc:
+        return {"what": args.measure, "missing": f"{type(exc).__name__}: {exc}"}
+    step()  # warm-up: first-call allocations, lazy criterion and anchor caches
+    times = []
+    for _ in range(args.steps):
+        t0 = time.thread_time()  # CPU time of this (the only torch) thread: robust to other processes' load
+        step()
+        times.append(time.thread_time() - t0)
+    return {"what": args.measure, "description": what, "s_per_step": statistics.median(times), "times": times,
+            "peak_rss_mb": round(peak_mb(), 1)}
+
+
+def frozen_sources_changed() -> list[str]:
+    out = []
+    for rel, digest in FROZEN_SOURCES.items():
+        text = (ROOT / rel).read_text(encoding="utf-8").replace("\r\n", "\n")
+        if hashlib.sha1(text.encode()).hexdigest() != digest:
+            out.append(rel)
+    return out
+
+
+def run_measure(what: str, args: argparse.Namespace) -> dict:
+    cmd = [sys.executable, __file__, "--measure", what] + [f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items()
+                                                           if k not in ("measure", "step", "step_only")]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode:
+        sys.exit(f"{what} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def compare_steps(args: argparse.Namespace) -> None:
+    kinds = ["step-ours", "step-ours-cl", "step-ultralytics", "step-frozen"]
+    rounds: dict[str, list[dict]] = {k: [] for k in kinds}
+    for _ in range(args.rounds):
+        for k in kinds:
+            if rounds[k] and "missing" in rounds[k][0]:
+                continue
+            rounds[k].append(run_measure(k, args))
+    med = {k: statistics.median(r["s_per_step"] for r in v) for k, v in rounds.items() if v and "missing" not in v[0]}
+    print(f"train step: YOLOv8s 4-channel, {args.classes} classes, {args.imgsz} px, batch {args.batch}, "
+          f"{args.step_threads} thread(s), CPU time per step (median of {args.rounds} rounds x {args.steps} steps)")
+    for k in kinds:
+        r = rounds[k][0]
+        if "missing" in r:
+            print(f"  {k:<17} not measured: {r['missing'].splitlines()[0][:70]}")
+            continue
+        print(f"  {k:<17} {med[k]:7.3f} s  {r['description']}")
+    anchor = "step-ultralytics" if "step-ultralytics" in med else "step-frozen"
+    for ours in ("step-ours", "step-ours-cl"):
+        ratio = med[ours] / med[anchor]
+        verdict = ("met" if ratio <= TARGET else "NOT met") if anchor == "step-ultralytics" else "no Ultralytics here"
+        print(f"{ours[5:]} / {anchor[5:]}: {ratio:.3f}   target <= {TARGET:.2f} x Ultralytics: {verdict}"
+              + (f"   ({ours[5:]} / frozen: {med[ours] / med['step-frozen']:.3f})" if anchor != "step-frozen" else ""))
+    changed = frozen_sources_changed()
+    if changed:
+        print(f"note: the frozen step runs the current {', '.join(changed)}, changed since it was frozen")
+
+
 def _ir8():
     import numpy as np
 
@@ -160,21 +386,25 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=6, help="timed steps (the first is dropped)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--classes", type=int, default=8)
+    p.add_argument("--step-threads", type=int, default=1, help="torch threads of the train-step comparison")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of the train-step comparison")
+    p.add_argument("--no-step", dest="step", action="store_false", help="skip the train-step comparison")
+    p.add_argument("--step-only", action="store_true", help="only the train-step comparison")
     p.add_argument("--measure", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure:
-        print(json.dumps(measure(args)))
+        print(json.dumps(measure_step(args) if args.measure.startswith("step-") else measure(args)))
         return
     # the same OpenMP wait policy as `harness run` (see harness/commands/run.py), inherited by every measurement
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    if args.step or args.step_only:
+        compare_steps(args)
+        if args.step_only:
+            return
+        print()
     rows = {}
     for what in ("anchor-train", "engine-train", "anchor-eval", "engine-eval"):
-        cmd = [sys.executable, __file__, "--measure", what] + [f"--{k}={v}" for k, v in vars(args).items()
-                                                                if k != "measure"]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode:
-            sys.exit(f"{what} failed:\n{res.stderr[-3000:]}")
-        rows[what] = json.loads(res.stdout.strip().splitlines()[-1])
+        rows[what] = run_measure(what, args)
     r0 = rows["anchor-train"]
     print(f"detector {args.detector} ({r0['model_params']:,} params), {args.imgsz} px, batch {args.batch}, "
           f"{args.threads} threads, CPU")

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import hashlib
+import json
 import logging
 import shutil
 import time
@@ -49,8 +51,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"),
-                ("eval", "allow_degenerate")}  # decides only whether a run is stored (labelled), not its numbers
+HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"), ("train", "cache_mb"),
+                ("eval", "allow_degenerate")}  # speed only, or whether a run is stored (labelled), not its numbers
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
 #: (``meta.prepared_fingerprint``) and cache key (``meta.prepared_key``, which also hashes the dataset plugin's code,
 #: the sensing settings and the preparation version) and an initial checkpoint by its content (``meta.init_sha1``).
@@ -341,6 +343,7 @@ def run(request: RunRequest) -> RunSummary:
     todo = [x for x in p.runs if x.state != "finished" or request.force]
     overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]),
                               enabled=hd.is_main() and request.progress)
+    measured: dict[Any, Any] = {}  # complexity records of the architectures built so far (this process)
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
@@ -357,7 +360,8 @@ def run(request: RunRequest) -> RunSummary:
                 continue
             overall.start_run(str(r.key))
             result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
-                             init=init, force=request.force, progress=request.progress, overall=overall)
+                             init=init, force=request.force, progress=request.progress, overall=overall,
+                             complexity_memo=measured)
             overall.finish_run()
         summary.results.append(result)
     return summary
@@ -385,8 +389,12 @@ def _run_lock(r: Run) -> Iterator[None]:
 def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fold: Fold, seed: int, r: Run,
             cfg: dict[str, Any], digest: str, train_idx: Sequence[int], val_idx: Sequence[int],
             init: str | Path | None = None, force: bool = False, progress: bool = True,
-            overall: OverallProgress | None = None) -> RunOutcome:
-    """Train, predict and evaluate one (fold, seed) and write its folder in the results store."""
+            overall: OverallProgress | None = None, complexity_memo: dict[Any, Any] | None = None) -> RunOutcome:
+    """Train, predict and evaluate one (fold, seed) and write its folder in the results store.
+
+    ``complexity_memo`` keeps the complexity record of each architecture already measured (by the detector, its
+    model options, classes, input, the names and shapes of its state and the random generator's state), so the
+    folds of one ``run`` measure their common model once, with the same results as measuring it each time."""
     import torch
 
     from harness import distributed as hd
@@ -433,8 +441,9 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         settings = TrainSettings.from_config(cfg, seed)
         eval_cfg = cfg["eval"]
         enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
-        train_src = SampleSource(prepared, train_idx, enc, enc_params)
-        val_src = SampleSource(prepared, val_idx, enc, enc_params)
+        cache_mb = float(cfg["train"].get("cache_mb") or 0)
+        train_src = SampleSource(prepared, train_idx, enc, enc_params, cache_mb=cache_mb)
+        val_src = SampleSource(prepared, val_idx, enc, enc_params, cache_mb=cache_mb)
         train_src.warm()
         aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
         gt = prepared.coco(val_idx)
@@ -444,8 +453,24 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         seed_everything(seed, settings.deterministic)
         model = build_model(det, ncls, in_channels, cfg.get("model") or {})
         init_report = ckpt.init_from(model, init, det.load_official) if init else None
-        complexity = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
-                                        cfg.get("model") or {}) if main else None
+        complexity = None
+        if main:
+            # measuring folds a copy of the model, and a fold that builds layers draws their initial weights from
+            # torch's generator, which training then continues from (dropout): a record is reused only from the
+            # same generator state, and the state the measurement left behind is restored with it
+            rng = torch.get_rng_state()
+            arch = (det.name, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
+                    json.dumps(cfg.get("model") or {}, sort_keys=True, default=str),
+                    tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()),
+                    hashlib.sha1(rng.numpy().tobytes()).hexdigest())
+            memo = complexity_memo if complexity_memo is not None else {}
+            if arch in memo:
+                torch.set_rng_state(memo[arch][1])
+            else:
+                record = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
+                                            settings.imgsz, ncls, cfg.get("model") or {})
+                memo[arch] = (record, torch.get_rng_state())
+            complexity = copy.deepcopy(memo[arch][0])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
         def validate(m: Any) -> dict[str, Any] | None:

@@ -141,3 +141,58 @@ def test_augment_settings_from_config():
     four = AugmentSettings.from_config(section, extra_channels=1)
     assert (four.hsv_h, four.hsv_s, four.hsv_v) == (0.0, 0.0, 0.0) and four.mosaic == 0.5
     assert AugmentSettings.from_config({**section, "hsv_4ch": True}, extra_channels=1).hsv_v == 0.4
+
+
+class CountingSource(SampleSource):
+    """Counts how often each sample is decoded."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.decoded: list[int] = []
+
+    def image(self, k):
+        self.decoded.append(k)
+        return super().image(k)
+
+
+@pytest.mark.parametrize("imgsz", [64, 96])  # 96 scales the 64x80 samples up, 64 down
+def test_the_resized_image_cache_decodes_once_and_changes_nothing(prepared, imgsz):
+    aug = AugmentSettings(mosaic=0.5, degrees=10, translate=0.2, scale=0.5, shear=3, fliplr=0.5, flipud=0.5)
+    plain, cached = CountingSource(prepared, None, IR8), CountingSource(prepared, None, IR8, cache_mb=64)
+    a, b = TrainDataset(plain, imgsz, aug, seed=1), TrainDataset(cached, imgsz, aug, seed=1)
+    for epoch, mosaic in ((0, True), (1, True), (2, False)):
+        a.set_epoch(epoch, mosaic)
+        b.set_epoch(epoch, mosaic)
+        for k in range(len(a)):
+            x, y = a[k], b[k]
+            assert torch.equal(x["image"], y["image"]) and torch.equal(x["boxes"], y["boxes"])
+            assert torch.equal(x["labels"], y["labels"])
+    for _ in range(2):  # validation epochs read the same cache
+        for k in range(len(cached)):
+            x, y = LetterboxDataset(plain, imgsz)[k], LetterboxDataset(cached, imgsz)[k]
+            assert torch.equal(x["image"], y["image"]) and x["letterbox"] == y["letterbox"]
+    assert sorted(cached.decoded) == list(range(len(cached)))  # each sample decoded once
+    assert len(plain.decoded) > 3 * len(plain)
+    img, _, _ = cached.resized(0, imgsz)
+    assert not img.flags.writeable  # a consumer writing into it would corrupt every later epoch
+
+
+def test_the_cache_stops_at_its_budget(prepared):
+    src = CountingSource(prepared, None, IR8, cache_mb=64 * 80 * 4 * 2.5 / 2**20)  # room for two 64x80x4 images
+    for _ in range(2):
+        for k in range(4):
+            src.resized(k, 80)
+    assert src.decoded == [0, 1, 2, 3, 2, 3]
+
+
+def test_letterbox_is_resize_then_pad():
+    from harness.engine import augment as A
+
+    rng = np.random.default_rng(0)
+    for h, w, size in ((64, 80, 64), (64, 80, 128), (80, 80, 80), (31, 97, 64)):
+        img = rng.integers(0, 255, (h, w, 4), dtype=np.uint8)
+        ref, lb = A.letterbox(img, size)
+        resized, r = A.resize_long_side(img, size)
+        out, lb2 = A.pad_letterbox(resized, r, (h, w), size)
+        np.testing.assert_array_equal(ref, out)
+        assert lb == lb2

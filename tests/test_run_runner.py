@@ -28,13 +28,32 @@ def request(tmp_path, **kw):
 
 
 @pytest.mark.slow
-def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path):
+def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path, monkeypatch):
+    import harness.complexity
     from harness.report.run_tables import category_table, fold_table
     from harness.runner import run
     from harness.store import METRICS_SCHEMA
 
+    import torch
+
+    from harness.engine.trainer import Trainer
+
+    measured, at_fit = [], []
+    measure, fit = harness.complexity.measure, Trainer.fit
+
+    def measure_drawing(*a, **k):  # a fold that builds layers draws from torch's generator, as YOLO folds do
+        measured.append(torch.rand(3))
+        return measure(*a, **k)
+
+    monkeypatch.setattr(harness.complexity, "measure", measure_drawing)
+    monkeypatch.setattr(Trainer, "fit",
+                        lambda self, *a, **k: at_fit.append(torch.get_rng_state()) or fit(self, *a, **k))
     summary = run(request(tmp_path))
     assert [r.key.fold for r in summary.results] == ["A", "B"] and {r.state for r in summary.results} == {"trained"}
+    assert len(measured) == 1  # both folds train the same architecture: measured once, stored with each
+    assert torch.equal(at_fit[0], at_fit[1])  # and fold B trains from the generator state measuring would leave
+    records = [json.loads((r.path / "metrics.json").read_text())["complexity"] for r in summary.results]
+    assert records[0] == records[1] and records[0]["params"] > 1000
     for r in summary.results:
         files = {p.name for p in r.path.iterdir()}
         assert {"config.yaml", "status.json", "metrics.json", "predictions.json", "gt.json", "log.jsonl",

@@ -73,11 +73,19 @@ def letterbox(img: np.ndarray, size: int, scaleup: bool = True) -> tuple[np.ndar
     if (nw, nh) != (w, h):
         interp = cv2.INTER_AREA if r < 1 else cv2.INTER_LINEAR
         img = _as_hwc(cv2.resize(img, (nw, nh), interpolation=interp), img.shape[2])
+    return pad_letterbox(img, r, (h, w), size)
+
+
+def pad_letterbox(img: np.ndarray, ratio: float, shape: tuple[int, int], size: int) -> tuple[np.ndarray, Letterbox]:
+    """The second half of ``letterbox``: ``img``, already resized by ``ratio`` from an image of ``shape``
+    (e.g. by ``resize_long_side``, which resizes exactly as ``letterbox`` does), centred on a ``size x size``
+    canvas of ``PAD_VALUE``."""
+    nh, nw = img.shape[:2]
     dw, dh = (size - nw) / 2, (size - nh) / 2
     top, left = int(round(dh - 0.1)), int(round(dw - 0.1))
     out = np.full((size, size, img.shape[2]), PAD_VALUE, dtype=img.dtype)
     out[top:top + nh, left:left + nw] = img
-    return out, Letterbox(ratio=r, pad=(float(left), float(top)), shape=(h, w))
+    return out, Letterbox(ratio=ratio, pad=(float(left), float(top)), shape=(int(shape[0]), int(shape[1])))
 
 
 def scale_boxes(boxes: np.ndarray, ratio: float, pad: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:

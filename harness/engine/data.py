@@ -58,16 +58,49 @@ class AugmentSettings:
 
 
 class SampleSource:
-    """A subset of a prepared dataset seen through one encoding: images ``[R, G, B, enc]`` and their targets."""
+    """A subset of a prepared dataset seen through one encoding: images ``[R, G, B, enc]`` and their targets.
+
+    ``resized(k, size)`` is image ``k`` with its long side at ``size``, the form both augmentation (mosaic) and
+    letterboxing start from. With ``cache_mb`` it is kept, read-only, until the source holds that many megabytes,
+    so a training epoch (where mosaic reads every image about four times) and every per-epoch validation decode a
+    prepared sample once per run instead of once per use. The cache is per process (a data-loader worker fills its
+    own); what it returns is what decoding again would return.
+    """
 
     def __init__(self, prepared: Any, indices: Sequence[int] | None = None, encoding: Any = None,
-                 params: Mapping[str, Any] | None = None):
+                 params: Mapping[str, Any] | None = None, cache_mb: float = 0.0):
         self.prepared = prepared
         self.indices = list(range(len(prepared))) if indices is None else [int(i) for i in indices]
         self.encoding = encoding
         self.params = dict(params or {})
         self.extra = int(getattr(encoding, "channels", 0)) if encoding is not None else 0
         self.channels = 3 + self.extra
+        self.cache_bytes = int(max(0.0, float(cache_mb)) * 2**20)
+        self._resized: dict[tuple[int, int], tuple[np.ndarray, float, tuple[int, int]]] = {}
+        self._cached_bytes = 0
+
+    def resized(self, k: int, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
+        """``(image k resized so its long side is size, ratio, original (height, width))`` (``augment.
+        resize_long_side``); read-only when it comes from the cache."""
+        hit = self._resized.get((k, size))
+        if hit is not None:
+            return hit
+        full = self.image(k)
+        img, r = A.resize_long_side(full, size)
+        out = (img, r, (int(full.shape[0]), int(full.shape[1])))
+        if self._cached_bytes + img.nbytes <= self.cache_bytes:
+            if img is full:  # no resize: keep a copy of our own, never a view into the prepared arrays
+                img = img.copy()
+                out = (img, r, out[2])
+            img.flags.writeable = False
+            self._resized[(k, size)] = out
+            self._cached_bytes += img.nbytes
+        return out
+
+    def __getstate__(self) -> dict[str, Any]:  # a data-loader worker starts with an empty cache of its own
+        state = dict(self.__dict__)
+        state.update(_resized={}, _cached_bytes=0)
+        return state
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -134,7 +167,7 @@ class TrainDataset(Dataset):
         return np.random.default_rng((self.seed, self.epoch, int(k)))
 
     def _resized(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        img, r = A.resize_long_side(self.source.image(k), self.imgsz)
+        img, r, _ = self.source.resized(k, self.imgsz)
         boxes, labels = self.source.targets(k)
         return img, boxes * r, labels
 
@@ -149,7 +182,7 @@ class TrainDataset(Dataset):
             border = -s // 2
         else:
             boxes, labels = self.source.targets(k)
-            img, lb = A.letterbox(self.source.image(k), s)
+            img, lb = A.pad_letterbox(*self.source.resized(k, s), size=s)
             boxes = A.scale_boxes(boxes, lb.ratio, lb.pad)
             border = 0
         img, boxes, labels = A.random_affine(img, boxes, labels, rng, degrees=aug.degrees, translate=aug.translate,
@@ -173,7 +206,7 @@ class LetterboxDataset(Dataset):
         return len(self.source)
 
     def __getitem__(self, k: int) -> dict[str, Any]:
-        img, lb = A.letterbox(self.source.image(k), self.imgsz)
+        img, lb = A.pad_letterbox(*self.source.resized(k, self.imgsz), size=self.imgsz)
         boxes, labels = self.source.targets(k)
         return _item(img, A.scale_boxes(boxes, lb.ratio, lb.pad), labels, self.source.image_id(k), lb)
 

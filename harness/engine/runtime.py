@@ -51,6 +51,32 @@ def set_threads(threads: int | None) -> None:
         torch.set_num_threads(int(threads))
 
 
+#: ``HARNESS_MALLOC=default`` leaves glibc's allocator settings alone (see ``keep_freed_memory``)
+ENV_MALLOC = "HARNESS_MALLOC"
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt parameters of glibc's malloc.h
+
+
+def keep_freed_memory() -> bool:
+    """Ask glibc's malloc to keep freed memory for reuse instead of returning it to the kernel (Linux only).
+
+    A training step frees and re-allocates the same activation and gradient buffers; by default glibc maps every
+    block over a few hundred kB freshly and unmaps it when freed, so each step pays a page fault per 4 kB page and
+    the kernel zeroes the pages again (a tenth of a small detector's CPU time on two cores). With a 1 GiB trim
+    threshold and a 32 MiB mmap threshold (glibc's largest) those blocks come from and return to the heap. The peak
+    memory of a run is unchanged; it is held until the process exits. Numbers are unaffected. Returns whether the
+    settings were applied; ``HARNESS_MALLOC=default`` opts out.
+    """
+    if os.environ.get(ENV_MALLOC, "").lower() == "default" or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        mallopt = ctypes.CDLL(None).mallopt  # glibc; musl's mallopt does nothing and returns 0
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_TRIM_THRESHOLD, 1 << 30)) and bool(mallopt(_M_MMAP_THRESHOLD, 32 << 20))
+
+
 def environment(device: torch.device | None = None) -> dict[str, Any]:
     """Versions, device and threads: what a reader needs to judge whether two results are comparable."""
     import cv2
