@@ -552,7 +552,9 @@ def read_sidecar(path: str | Path) -> dict[str, Any] | None:
     return None
 
 
-def _load_array(path: Path) -> np.ndarray:
+def load_thermal_array(path: Path) -> np.ndarray:
+    """The pixel array of a thermal PNG/TIFF/NPY as stored (single channel, no unit applied); a missing, damaged or
+    multi-channel file is a ``DataError`` naming it."""
     suffix = path.suffix.lower()
     if not path.exists():
         raise DataError(f"{path}: file not found")
@@ -568,7 +570,7 @@ def _load_array(path: Path) -> np.ndarray:
 
             arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if arr is None:
-                raise DataError(f"{path}: not a readable PNG image")
+                raise DataError(f"{path}: not a decodable image (truncated or wrong format)")
     except DataError:
         raise
     except Exception as exc:  # tifffile / numpy raise many types for damaged files
@@ -697,7 +699,7 @@ def read_thermal(path: str | Path, decoder: str = "auto",
         raise DataError(f"{path}: unsupported thermal file type {suffix!r}; use one of {', '.join(THERMAL_SUFFIXES)}")
     if suffix in (".jpg", ".jpeg"):
         return rjpeg_temperature(read_rjpeg(path, decoder, approximate, converter), overrides)
-    arr = _load_array(path)
+    arr = load_thermal_array(path)
     side = read_sidecar(path)
     dtype = arr.dtype.name
     if side is not None:
