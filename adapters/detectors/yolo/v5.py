@@ -106,6 +106,16 @@ def run_backbone(layers: Sequence[nn.Module], x: torch.Tensor) -> tuple[torch.Te
     return taps[0], taps[1], x
 
 
+def run_two_backbones(rgb_layers: Sequence[nn.Module], thermal_layers: Sequence[nn.Module], inputs: Any, name: str
+                      ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                                 tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """A two-stream detector's start: ``(rgb, thermal)`` from ``inputs`` (``as_pair``, size checked), each through
+    its own backbone; returns (P3, P4, P5) of the visible stream and of the thermal stream."""
+    rgb, thermal = as_pair(inputs, name)
+    check_size(rgb.shape[-2], rgb.shape[-1], name)
+    return run_backbone(rgb_layers, rgb), run_backbone(thermal_layers, thermal)
+
+
 # ------------------------------------------------------------------------------------------------ neck
 def pan_layers(width: float = 1.0, depth: float = 1.0) -> list[nn.Module]:
     """PAN neck: layers 10-23 of the table above (14 modules), for P3/P4/P5 inputs of ``level_channels(width)``."""
