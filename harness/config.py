@@ -26,6 +26,7 @@ from typing import Any, Iterable, Mapping
 import yaml
 
 from harness.errors import ConfigError
+from harness.io import read_text
 
 ENV_CONFIG_DIR = "HARNESS_CONFIG_DIR"
 
@@ -68,12 +69,7 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _constru
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping with ``safe_load`` semantics; errors name the file and the line."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_text(path, ConfigError, "config file")
     try:
         data = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as exc:
