@@ -93,15 +93,19 @@ def run_pycocotools(gt, dets):
         g.dataset = gt
         g.createIndex()
         d = g.loadRes(dets)
-        ev = COCOeval(g, d, "bbox")
-        ev.evaluate()
-        ev.accumulate()
-        ev.summarize()
+        return _summary(COCOeval(g, d, "bbox"))
+
+
+def _summary(ev: Any) -> tuple[list[float], dict[int, tuple[float, float]]]:
+    """Run a COCOeval-like evaluator; its 12 summary stats and, per category, (AP50, AP) over all areas."""
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
     per_cat = {}
     for k, cid in enumerate(ev.params.catIds):
         p = ev.eval["precision"][:, :, k, 0, -1]
         per_cat[cid] = (float(p[0][p[0] > -1].mean()), float(p[p > -1].mean()))
-    return [float(s) for s in ev.stats], per_cat
+    return [float(s) for s in ev.stats[:12]], per_cat
 
 
 def run_library(gt, dets):
@@ -113,15 +117,7 @@ def run_library(gt, dets):
         return None
 
     g = COCO(gt, print_function=quiet)
-    ev = COCOeval_faster(g, g.loadRes(dets), "bbox", print_function=quiet)
-    ev.evaluate()
-    ev.accumulate()
-    ev.summarize()
-    per_cat = {}
-    for k, cid in enumerate(ev.params.catIds):
-        p = ev.eval["precision"][:, :, k, 0, -1]
-        per_cat[cid] = (float(p[0][p[0] > -1].mean()), float(p[p > -1].mean()))
-    return [float(s) for s in ev.stats[:12]], per_cat
+    return _summary(COCOeval_faster(g, g.loadRes(dets), "bbox", print_function=quiet))
 
 
 def peak_rss_gib() -> float:
@@ -209,9 +205,9 @@ def main() -> int:
     ref_stats: list[float] = []
     ref_cat: dict[int, tuple[float, float]] = {}
     for _ in range(max(1, args.anchor_repeats)):
-        gt_copy, dets_copy = copy.deepcopy(gt), copy.deepcopy(dets)  # loadRes mutates its input; not timed
-        (ref_stats, ref_cat), c, w = timed(lambda: run_pycocotools(gt_copy, dets_copy))
-        del gt_copy, dets_copy
+        copies = copy.deepcopy((gt, dets))  # loadRes mutates its input; not timed
+        (ref_stats, ref_cat), c, w = timed(lambda: run_pycocotools(*copies))
+        copies = None  # freed before the next copy is made
         cpu_a.append(c)
         wall_a.append(w)
 
