@@ -8,9 +8,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any, Callable
 
 import cv2
 import numpy as np
+import pytest
+
+from harness.api import PrepareReport
+from harness.errors import ConfigError, DataError
 
 RGBT_CLASSES = ("ship", "car", "cyclist", "pedestrian", "bus", "drone", "plane")
 M3FD_NAMES = ("People", "Car", "Bus", "Motorcycle", "Lamp", "Truck")
@@ -218,3 +223,23 @@ def build_trained_store(base: Path) -> dict:
         assert res.exit_code == 0, res.output
         out[name] = res.output
     return out
+
+
+def collect(source: Any) -> tuple[list[Any], PrepareReport]:
+    """Every sample of an opened dataset source, and its prepare report."""
+    report = PrepareReport()
+    return list(source.samples(report)), report
+
+
+def check_layout_errors(open_source: Callable[..., Any], env: str, folder: Path, made: str, missing: str,
+                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """No root and no ``env`` is an error naming the variable; a ``folder`` holding only ``made`` is one naming what
+    is ``missing``; ``strict="yes"`` is a ``ConfigError``."""
+    monkeypatch.delenv(env, raising=False)
+    with pytest.raises(DataError, match=env):
+        open_source()
+    (folder / made).mkdir()
+    with pytest.raises(DataError, match=f"missing {missing}"):
+        open_source(folder)
+    with pytest.raises(ConfigError, match="'strict' must be true or false"):
+        open_source(folder, strict="yes")

@@ -141,7 +141,7 @@ def test_icafusion_upsamples_tokens_nearest_in_training_and_bilinear_in_eval():
     block = TransformerFusionBlock(16, 4, 4, heads=8, attn_pdrop=0.0, resid_pdrop=0.0)
     with torch.no_grad():
         block.pos_emb_vis.normal_()
-    v, t = torch.rand(1, 16, 16, 16), torch.rand(1, 16, 16, 16)
+    v, _ = torch.rand(1, 16, 16, 16), torch.rand(1, 16, 16, 16)
     tokens = block._tokens(v, block.vis_coefficient, block.pos_emb_vis)
     block.train()
     near = block._back(tokens, v)

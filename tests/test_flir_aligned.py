@@ -7,20 +7,15 @@ import numpy as np
 import pytest
 
 from adapters.datasets import flir_aligned
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import collect
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 from public_fixtures import FLIR_FRAMES, write_flir_aligned
 
 
 @pytest.fixture
 def release(tmp_path):
     return tmp_path, write_flir_aligned(tmp_path)
-
-
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
 
 
 def test_label_path_follows_the_yolo_rule():
@@ -119,8 +114,8 @@ def test_a_tree_with_both_kinds_of_label_folder_must_name_its_layout(tmp_path):
 
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     spec = host.dataset("flir-aligned")
     assert spec.categories == ("person", "car", "bicycle") and spec.protocol == "flir-aligned"
@@ -171,8 +166,8 @@ def test_labels_where_the_adapter_does_not_find_them_stop_the_preparation(tmp_pa
     nothing, and names the images; with the folder the same tree prepares every box."""
     import shutil
 
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     write_flir_aligned(tmp_path, layout="icafusion")
     labels = tmp_path / "FLIR-align-3class" / "labels"

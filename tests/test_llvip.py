@@ -6,21 +6,15 @@ import numpy as np
 import pytest
 
 from adapters.datasets import llvip
-from eightbit_fixtures import write_voc
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import check_layout_errors, collect, write_voc
 from harness.contracts import validate_sample
+from harness.errors import DataError
 from public_fixtures import LLVIP_FRAMES, write_llvip
 
 
 @pytest.fixture
 def release(tmp_path):
     return tmp_path, write_llvip(tmp_path)
-
-
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
 
 
 def test_pairs_by_name_per_split_with_the_voc_rule(release):
@@ -72,19 +66,12 @@ def test_difficult_person_and_zero_based_option(release):
 
 
 def test_layout_errors(tmp_path, monkeypatch):
-    monkeypatch.delenv(llvip.ROOT_ENV, raising=False)
-    with pytest.raises(DataError, match="HARNESS_LLVIP"):
-        llvip.open_llvip()
-    (tmp_path / "infrared").mkdir()
-    with pytest.raises(DataError, match="missing Annotations, visible"):
-        llvip.open_llvip(tmp_path)
-    with pytest.raises(ConfigError, match="'strict' must be true or false"):
-        llvip.open_llvip(tmp_path, strict="yes")
+    check_layout_errors(llvip.open_llvip, "HARNESS_LLVIP", tmp_path, "infrared", "Annotations, visible", monkeypatch)
 
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare, resolve_folds
+    from harness.config import load_config
 
     spec = host.dataset("llvip")
     assert spec.categories == ("person",) and spec.thermal == "8bit" and spec.protocol == "llvip"

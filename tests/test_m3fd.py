@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from adapters.datasets import m3fd
-from eightbit_fixtures import write_m3fd, write_voc
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import check_layout_errors, collect, write_m3fd, write_voc
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -20,11 +19,6 @@ REPO = Path(__file__).resolve().parent.parent
 def release(tmp_path):
     expected = write_m3fd(tmp_path)
     return tmp_path, expected
-
-
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
 
 
 def test_pairs_per_image_sizes_and_classes_by_name(release):
@@ -125,14 +119,7 @@ def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
 
 
 def test_errors_for_layout_and_options(tmp_path, monkeypatch):
-    monkeypatch.delenv(m3fd.ROOT_ENV, raising=False)
-    with pytest.raises(DataError, match="HARNESS_M3FD"):
-        m3fd.open_m3fd()
-    (tmp_path / "Ir").mkdir()
-    with pytest.raises(DataError, match="missing Annotation, Vis"):
-        m3fd.open_m3fd(tmp_path)
-    with pytest.raises(ConfigError, match="'strict' must be true or false"):
-        m3fd.open_m3fd(tmp_path, strict="yes")
+    check_layout_errors(m3fd.open_m3fd, "HARNESS_M3FD", tmp_path, "Ir", "Annotation, Vis", monkeypatch)
 
 
 def test_registered_for_pretraining_with_ir8(host):
@@ -164,8 +151,8 @@ def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
 
 
 def test_prepared_manifest_records_the_split(release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare, resolve_folds
+    from harness.config import load_config
 
     root, _ = release
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])

@@ -9,10 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 from harness.api import PrepareReport
 from harness.sensing.registration import (
-    HomographyEntry, LandmarkFit, apply_homography, fit_landmarks, homography_from_similarity, load_homography_entries,
+    HomographyEntry,
+    LandmarkFit,
+    apply_homography,
+    fit_landmarks,
+    homography_from_similarity,
+    load_homography_entries,
 )
 
 #: The quality fields of a landmark fit, wherever it is recorded.

@@ -47,10 +47,9 @@ def curves_report(tmp_path_factory):
     """Two real detectors (the example TinyDet, single and dual stream), both folds of the engine tests' shapes
     dataset, 3 epochs each, and the report of that store."""
     from engine_helpers import ShapesPlugin, tinydet_module
-
-    from harness.testing import temporary_plugin
     from harness.report import build_report
     from harness.runner import RunRequest, run
+    from harness.testing import temporary_plugin
 
     root = tmp_path_factory.mktemp("curves")
     mp = pytest.MonkeyPatch()

@@ -57,9 +57,9 @@ def real_store(tmp_path_factory):
     import torch
 
     threads = torch.get_num_threads()
-    from harness.testing import temporary_plugin
-
     import harness_tinydet.plugin as tinydet
+
+    from harness.testing import temporary_plugin
 
     sets = [a for s in FAST for a in ("--set", s)]
     from engine_helpers import ShapesPlugin

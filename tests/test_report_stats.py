@@ -18,8 +18,8 @@ from harness.report.stats import (  # noqa: E402
     percentile_ci,
     resample_coco,
 )
-from report_fixtures import make_detections, make_gt, synthetic_store, write_run  # noqa: E402
 from harness.store import RunKey, Store  # noqa: E402
+from report_fixtures import make_detections, make_gt, synthetic_store, write_run  # noqa: E402
 
 
 def _two_image_case():

@@ -11,8 +11,8 @@ import pytest
 
 pytest.importorskip("harness.evaluation")
 
-from harness.report.reader import StoreView  # noqa: E402
 from harness.report.plots import LABEL_SLOTS, _short_labels, pareto_front, pareto_steps, place_labels  # noqa: E402
+from harness.report.reader import StoreView  # noqa: E402
 from harness.report.tables import (  # noqa: E402
     Column,
     Interval,

@@ -10,11 +10,12 @@ import pytest
 
 from adapters.datasets import rgbt_tiny
 from adapters.datasets._eightbit import clip_boxes, read_thermal8
-from eightbit_fixtures import RGBT_CLASSES, rgbt_json, write_rgbt_tiny
+from datasets_helpers import edited_json
+from eightbit_fixtures import RGBT_CLASSES, collect, rgbt_json, write_rgbt_tiny
 from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
 from harness.cache import PreparedDataset, PreparedWriter
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +31,6 @@ def copy_release(tmp_path):
     root = tmp_path / "RGBT-Tiny"
     expected = write_rgbt_tiny(root, train_seqs=("DJI_0001_1",), test_seqs=("DJI_0101_1",), frames=2)
     return root, expected
-
-
-def collect(source):
-    report = PrepareReport()
-    samples = list(source.samples(report))
-    return samples, report
 
 
 def xywh_to_xyxy(boxes):
@@ -129,10 +124,9 @@ def test_missing_thermal_frame_is_dropped_counted_and_reported(copy_release):
 def test_mismatched_image_counts_drop_the_unpaired_frames(copy_release, caplog):
     root, expected = copy_release
     path = rgbt_json(root, "00", "test")
-    doc = json.loads(path.read_text())
-    gone = doc["images"].pop(0)
-    doc["annotations"] = [a for a in doc["annotations"] if a["image_id"] != gone["id"]]
-    path.write_text(json.dumps(doc))
+    with edited_json(path) as doc:
+        gone = doc["images"].pop(0)
+        doc["annotations"] = [a for a in doc["annotations"] if a["image_id"] != gone["id"]]
     with caplog.at_level(logging.WARNING):
         source = rgbt_tiny.open_rgbt_tiny(root)
     assert "different numbers of images (1 vs 2)" in caplog.text
@@ -185,9 +179,8 @@ def test_extra_data_after_json_is_reported_like_the_known_release_problem(copy_r
 def test_class_name_not_in_the_list_is_an_error_naming_file_and_class(copy_release):
     root, _ = copy_release
     path = rgbt_json(root, "00", "train")
-    doc = json.loads(path.read_text())
-    doc["categories"][2]["name"] = "tractor"
-    path.write_text(json.dumps(doc))
+    with edited_json(path) as doc:
+        doc["categories"][2]["name"] = "tractor"
     with pytest.raises(DataError, match=r"instances_00_train2017.json: categories\[2\]: class 'tractor' is not an RGBT-Tiny class"):
         rgbt_tiny.open_rgbt_tiny(root)
 
@@ -361,8 +354,8 @@ def test_harness_run_ours_on_rgbt_tiny_end_to_end(trained):
 
 # ------------------------------------------------------------------ through the prepared-sample cache
 def test_prepare_records_drops_folds_and_options(copy_release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     root, expected = copy_release
     (root / "images" / "DJI_0101_1" / "01" / "00001.jpg").unlink()

@@ -99,11 +99,11 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
     torch.set_num_threads(1)
     from engine_helpers import ENCODINGS, tinydet_module
     from harness import distributed as hd
+    from harness.cache import PreparedDataset
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
     from harness.engine.runtime import seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
-    from harness.cache import PreparedDataset
 
     try:
         assert hd.init_from_env() == DistInfo(rank, world, rank)

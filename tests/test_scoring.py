@@ -12,9 +12,9 @@ pytest.importorskip("harness.cache")
 from engine_helpers import CATEGORIES, ShapesSource, tinydet_module
 from harness import DatasetSpec, hookimpl
 from harness.errors import DataError
-from harness.testing import temporary_plugin
 from harness.scoring.frames import from_prepared, to_prepared
 from harness.sensing.warp import transform_boxes
+from harness.testing import temporary_plugin
 from scale_helpers import TINY
 
 ORIGIN = (6, 4)
@@ -174,8 +174,8 @@ def finished_run(tmp_path_factory, one_torch_thread):
     os.environ["HARNESS_CACHE"] = str(tmp / "cache")
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
-    from engine_helpers import ShapesPlugin
 
+    from engine_helpers import ShapesPlugin
     from harness.runner import RunRequest, run
 
     with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-t"), \

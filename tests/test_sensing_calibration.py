@@ -9,7 +9,11 @@ import pytest
 
 from harness.errors import DataError
 from harness.sensing.calibration import (
-    CameraModel, calibrate_checkerboard, undistort_boxes, undistort_image, undistort_points,
+    CameraModel,
+    calibrate_checkerboard,
+    undistort_boxes,
+    undistort_image,
+    undistort_points,
 )
 
 SIZE = (320, 240)

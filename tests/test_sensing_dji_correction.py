@@ -10,12 +10,11 @@ import struct
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import ConfigError, DataError
 from harness.sensing import dji_correction as dc
 from harness.sensing import jpeg
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
-
-from conftest import SHARED
 
 REAL = SHARED / "data" / "dji-m3t-rjpeg"
 REAL_FILES = ["m3t_a", "m3t_b", "m3t_c"]
@@ -257,8 +256,8 @@ def test_decode_command_routes_and_overrides(tmp_path, cli_runner):
 
 
 def test_config_selects_the_route_and_keys_the_cache():
-    from harness.config import load_config
     from harness.cache import cache_key
+    from harness.config import load_config
     from harness.sensing.options import SensingOptions
 
     cfg = load_config()

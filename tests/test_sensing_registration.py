@@ -11,11 +11,20 @@ import pytest
 from harness.errors import DataError
 from harness.sensing import registration as reg
 from harness.sensing.registration import (
-    Landmarks, apply_homography, corner_error, estimate_homography_auto, group_by_capture_time,
-    homography_from_focal_lengths, homography_from_landmarks, homography_from_similarity, image_center,
-    load_homographies, read_landmarks, registration_error, save_homographies,
+    Landmarks,
+    apply_homography,
+    corner_error,
+    estimate_homography_auto,
+    group_by_capture_time,
+    homography_from_focal_lengths,
+    homography_from_landmarks,
+    homography_from_similarity,
+    image_center,
+    load_homographies,
+    read_landmarks,
+    registration_error,
+    save_homographies,
 )
-
 from sensing_scenes import render_pair
 
 RGB_SIZE, TH_SIZE = (4000, 3000), (640, 512)

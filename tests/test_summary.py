@@ -36,8 +36,8 @@ def test_counts_per_category_and_bin_by_hand():
 def test_coco_and_prepared_views_agree(tmp_path):
     from adapters.datasets import m3fd
     from eightbit_fixtures import write_m3fd
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     write_m3fd(tmp_path / "m3fd")
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={tmp_path / 'm3fd'}"])
@@ -73,10 +73,9 @@ def _areas(gt):
 
 def test_report_sums_disjoint_folds_and_splits_overlapping_ones(tmp_path):
     pytest.importorskip("harness.evaluation")
-    from report_fixtures import make_detections, make_gt, write_run
-
     from harness.report import build_report
     from harness.store import RunKey, Store
+    from report_fixtures import make_detections, make_gt, write_run
 
     store = Store(tmp_path / "store")
     rng = np.random.default_rng(3)
