@@ -3,15 +3,34 @@ detections of a chosen quality, scored by ``harness.evaluation.evaluate`` (no ha
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import pytest
 
 from harness.io import atomic_write_json
 from harness.store import RunKey, Store
 
 CATEGORIES = ("window", "crack", "delamination", "water_seepage")
+CHROMIUM = Path("/usr/bin/chromium")
+#: A test that opens a report in Debian's headless Chromium: skipped where it is not installed.
+needs_chromium = pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),
+                                    reason="Debian's chromium is not installed (apt-get install chromium; .ci/run "
+                                           "installs it)")
+
+
+def chromium_screenshot(page: Path, shot: Path, profile_dir: Path, size: str = "1400,5200"
+                        ) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """Open ``page`` headless, screenshot it into ``shot``; the finished process and the page's console messages."""
+    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           "--disable-dev-shm-usage", f"--user-data-dir={profile_dir}", "--enable-logging=stderr", "--v=0",
+           "--hide-scrollbars", f"--window-size={size}", f"--screenshot={shot}", page.resolve().as_uri()]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+    return proc, [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
 
 
 def make_gt(n_images: int, rng: np.random.Generator, first_id: int = 1, categories: Sequence[str] = CATEGORIES,
