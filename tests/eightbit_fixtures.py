@@ -231,6 +231,18 @@ def collect(source: Any) -> tuple[list[Any], PrepareReport]:
     return list(source.samples(report)), report
 
 
+def collect_with_drops(open_source: Callable[..., Any], root: Path, kept: int, reasons: dict[str, int],
+                       strict_error: str = "strict") -> tuple[list[Any], PrepareReport]:
+    """Collect the samples of ``open_source(root)``: ``kept`` of them, the skips counted by ``reasons``; opened with
+    ``strict=True`` the same release is an error matching ``strict_error``. Returns the samples and the report."""
+    samples, report = collect(open_source(root))
+    assert len(samples) == kept
+    assert report.summary()["skip_reasons"] == reasons
+    with pytest.raises(DataError, match=strict_error):
+        open_source(root, strict=True)
+    return samples, report
+
+
 def check_layout_errors(open_source: Callable[..., Any], env: str, folder: Path, made: str, missing: str,
                         monkeypatch: pytest.MonkeyPatch) -> None:
     """No root and no ``env`` is an error naming the variable; a ``folder`` holding only ``made`` is one naming what

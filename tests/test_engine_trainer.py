@@ -145,32 +145,30 @@ def test_the_fourth_channel_is_what_tells_warm_from_cold(prepared):
     assert acc["test-none"] < 0.7, acc  # RGB alone cannot do much better than guessing between the two
 
 
+class _LossStub(nn.Module):
+    """A model of one parameter ``w`` whose training forward returns ``losses(w)``, whatever the batch."""
+
+    def __init__(self, losses):
+        super().__init__()
+        self.w = nn.Parameter(torch.ones(1))
+        self.losses = losses
+
+    def forward(self, x, targets=None):
+        return self.losses(self.w)
+
+
 def test_non_finite_loss_is_a_clear_error(prepared):
-    class Exploding(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = nn.Parameter(torch.ones(1))
-
-        def forward(self, x, targets=None):
-            return {"box": self.w * float("nan"), "cls": self.w.sum()}
-
+    exploding = _LossStub(lambda w: {"box": w * float("nan"), "cls": w.sum()})
     src = SampleSource(prepared, list(range(4)), IR8)
     with pytest.raises(TrainingError, match=r"loss box became nan at epoch 1, iteration 1.*lr0"):
-        Trainer(Exploding(), TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False).fit()
+        Trainer(exploding, TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False).fit()
 
 
 def test_a_model_breaking_the_contract_is_named(prepared):
-    class ListLoss(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = nn.Parameter(torch.ones(1))
-
-        def forward(self, x, targets=None):
-            return [self.w.sum()]
-
+    list_loss = _LossStub(lambda w: [w.sum()])
     src = SampleSource(prepared, list(range(4)), IR8)
     with pytest.raises(PluginError, match="'broken'.*dict of scalar loss"):
-        Trainer(ListLoss(), TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False, name="broken").fit()
+        Trainer(list_loss, TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False, name="broken").fit()
 
 
 def test_early_stopping_after_patience_epochs(prepared):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from adapters.datasets import m3fd
-from eightbit_fixtures import check_layout_errors, collect, write_m3fd, write_voc
+from eightbit_fixtures import check_layout_errors, collect, collect_with_drops, write_m3fd, write_voc
 from harness.contracts import validate_sample
 from harness.errors import ConfigError, DataError
 
@@ -77,12 +77,7 @@ def test_missing_infrared_image_is_a_counted_drop(release):
     root, _ = release
     (root / "M3FD_Detection" / "Ir" / "00003.png").unlink()
     (root / "M3FD_Detection" / "Annotation" / "00401.xml").unlink()
-    source = m3fd.open_m3fd(root)
-    samples, report = collect(source)
-    assert len(samples) == 6
-    assert report.summary()["skip_reasons"] == {"missing thermal frame": 1, "no annotation": 1}
-    with pytest.raises(DataError, match="strict"):
-        m3fd.open_m3fd(root, strict=True)
+    collect_with_drops(m3fd.open_m3fd, root, 6, {"missing thermal frame": 1, "no annotation": 1})
 
 
 def test_malformed_xml_names_file_and_position(release):
