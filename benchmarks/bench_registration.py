@@ -36,12 +36,15 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from sensing_scenes import render_pair
-
     from harness.sensing.registration import (
-        corner_error, estimate_homography_auto, focal_length_px, homography_from_focal_lengths,
-        homography_from_similarity, image_center,
+        corner_error,
+        estimate_homography_auto,
+        focal_length_px,
+        homography_from_focal_lengths,
+        homography_from_similarity,
+        image_center,
     )
+    from sensing_scenes import render_pair
 
     if args.m3t_size:
         rgb_size, th_size, up = (4000, 3000), (640, 512), 2

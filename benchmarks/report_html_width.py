@@ -32,9 +32,8 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--old-css", action="store_true")
     args = ap.parse_args()
-    from report_fixtures import synthetic_store
-
     from harness.report import build_report
+    from report_fixtures import synthetic_store
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

@@ -20,10 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from harness.api import EncodingSpec
+from harness.api import AlignedSample, EncodingSpec
 from harness.errors import PluginError
 from harness.hookspecs import hookimpl
-from harness.api import AlignedSample
 from harness.sensing import c2 as c2mod
 
 

@@ -43,8 +43,8 @@ if TYPE_CHECKING:
     import torch
 
     from harness.api import DatasetSpec, DetectorSpec, EncodingSpec, Fold
-    from harness.plugins import PluginHost
     from harness.cache import PreparedDataset
+    from harness.plugins import PluginHost
 
 log = logging.getLogger(__name__)
 

@@ -12,11 +12,10 @@ renumbered (given the renumbered image list).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
-
-import logging
 
 import numpy as np
 
@@ -40,8 +39,8 @@ class Exported:
 
 def _prepared_of(run: Any) -> Any:
     """The prepared dataset a finished run was trained and scored on (from its stored configuration)."""
-    from harness.config import read_yaml
     from harness.cache import prepare
+    from harness.config import read_yaml
 
     cfg = read_yaml(run.config_path)
     ds = run.key.dataset

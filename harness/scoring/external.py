@@ -420,11 +420,11 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
 
     Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
     ``allow_implausible``: then they are scored as read and the stored result is labelled."""
+    from harness.cache import fold_indices, prepare, resolve_folds
     from harness.config import load_config
     from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
     from harness.plugins import get_host
-    from harness.cache import fold_indices, prepare, resolve_folds
     from harness.store import EXTERNAL, RunKey, Store, config_hash, image_ids_hash
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+\-]*", name or ""):

@@ -26,8 +26,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from harness.errors import DataError
 from harness.api import AlignedSample
+from harness.errors import DataError
 from harness.sensing import c2 as c2mod
 from harness.textable import text_table
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
-
 #: ``sensing.radiometry`` keys that override an R-JPEG's measurement parameters in DJI's correction
 MEASUREMENT_KEYS = ("emissivity", "distance", "humidity", "reflected")
 

@@ -25,8 +25,8 @@ import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from harness.errors import ConfigError
 from harness.api import LoggerSpec, RunLogger, TrackingOptions  # re-exported for plugins
+from harness.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

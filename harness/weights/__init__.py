@@ -30,8 +30,18 @@ from harness.errors import HarnessError
 from harness.io import atomic_write, atomic_write_json, file_digest
 from harness.weights.layout import checkpoint_info, detect_layout
 from harness.weights.tree import find_model, is_state_dict, module_state_dict, to_float32
-from harness.weights.unpickle import (PIECE_BYTES, CheckpointFormatError, CheckpointLimitError, ForeignObjectError,
-                                      Limits, UnsafeCheckpointError, human, load_checkpoint, load_plain, out_itemsize)
+from harness.weights.unpickle import (
+    PIECE_BYTES,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    ForeignObjectError,
+    Limits,
+    UnsafeCheckpointError,
+    human,
+    load_checkpoint,
+    load_plain,
+    out_itemsize,
+)
 
 __all__ = ["ImportResult", "import_checkpoint", "read_checkpoint_weights", "write_safetensors",
            "CheckpointFormatError", "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError",

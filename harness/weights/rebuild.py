@@ -19,8 +19,14 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 import torch
 
-from harness.weights.bounds import (MAX_DIMS, CheckpointFormatError, CheckpointLimitError, UnsafeCheckpointError,
-                                    brief, human)
+from harness.weights.bounds import (
+    MAX_DIMS,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    UnsafeCheckpointError,
+    brief,
+    human,
+)
 
 if TYPE_CHECKING:
     from harness.weights.unpickle import _Unpickler

@@ -57,12 +57,28 @@ import numpy as np
 import torch
 
 from harness.errors import HarnessError
-from harness.weights.bounds import (ARCHIVE_MULTIPLE, KEY_NODES, METADATA_FLOOR, METADATA_MULTIPLE, PEAK_FLOOR,
-                                    PEAK_MULTIPLE, PIECE_BYTES, RISKY_KEYS, SIZE_MULTIPLE, ZIP_ENTRY_BYTES, Budget,
-                                    CheckpointFormatError, CheckpointLimitError, ForeignObjectError, Limits, MiB,
-                                    UnsafeCheckpointError, brief, human)
-from harness.weights.rebuild import (REBUILD, StorageType, Stub, Token, out_itemsize, stub_class,
-                                     tensor_dims)
+from harness.weights.bounds import (
+    ARCHIVE_MULTIPLE,
+    KEY_NODES,
+    METADATA_FLOOR,
+    METADATA_MULTIPLE,
+    PEAK_FLOOR,
+    PEAK_MULTIPLE,
+    PIECE_BYTES,
+    RISKY_KEYS,
+    SIZE_MULTIPLE,
+    ZIP_ENTRY_BYTES,
+    Budget,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    ForeignObjectError,
+    Limits,
+    MiB,
+    UnsafeCheckpointError,
+    brief,
+    human,
+)
+from harness.weights.rebuild import REBUILD, StorageType, Stub, Token, out_itemsize, stub_class, tensor_dims
 
 __all__ = ["load_checkpoint", "load_plain", "Stub", "stub_class", "REBUILD", "CheckpointFormatError",
            "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError", "Limits", "brief", "human",
