@@ -11,8 +11,9 @@ Data (written once under --data, default /tmp/bench-cache-forms):
 Per worker = one process, one OpenCV and one torch thread, as a DataLoader worker runs. Figures per form:
 ``read`` = what ``SampleSource.image`` + ``targets`` hand over (RGB + the encoding's channel); ``item 160`` and
 ``item 640`` = ``TrainDataset[k]`` at the smoke and paper image sizes with the default augmentation (a mosaic reads
-four samples). Anchor: the raw form's figure measured in the same run. Then one CPU training step of "ours" (YOLOv8s, 4 channels, forward + loss +
-backward + SGD) at the smoke (160 px) and paper (640 px) image sizes, as seconds per image, and the ratio
+four samples). Anchor: the raw form's figure measured in the same run. Then one CPU training step of "ours"
+(YOLOv8s, 4 channels, forward + loss + backward + SGD) at the smoke (160 px) and paper (640 px) image sizes, as
+seconds per image, and the ratio
 "images one loader worker delivers while the CPU trains on one image".
 
     .venv/bin/python benchmarks/bench_cache_forms.py                  # the README figures

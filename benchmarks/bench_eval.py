@@ -68,7 +68,9 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
     fp_img = np.repeat(np.arange(1, n_images + 1), n_fp)
     F = len(fp_img)
     fs = np.exp(rng.normal(np.log(12), 0.8, F)).clip(2, 200)
-    fp_boxes = np.stack([rng.uniform(0, W - fs), rng.uniform(0, H - fs), fs, fs * np.exp(rng.normal(0, 0.3, F))], axis=1)
+    fp_boxes = np.stack(
+        [rng.uniform(0, W - fs), rng.uniform(0, H - fs), fs, fs * np.exp(rng.normal(0, 0.3, F))], axis=1
+    )
     fp_cat = rng.integers(1, K + 1, F)
     fp_score = rng.uniform(0.0, 0.8, F)
     boxes = np.concatenate([tp_boxes, fp_boxes]).round(2)
@@ -76,8 +78,10 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
     cats = np.concatenate([tp_cat, fp_cat])
     scores = np.concatenate([tp_score, fp_score]).round(5)
     order = np.lexsort((rng.uniform(size=len(imgs)), imgs))  # grouped by image, as a predictor writes them
-    dets = [{"image_id": int(i), "category_id": int(c), "bbox": b, "score": float(s)}
-            for i, c, b, s in zip(imgs[order].tolist(), cats[order].tolist(), boxes[order].tolist(), scores[order].tolist())]
+    dets = [
+        {"image_id": int(i), "category_id": int(c), "bbox": b, "score": float(s)}
+        for i, c, b, s in zip(imgs[order].tolist(), cats[order].tolist(), boxes[order].tolist(), scores[order].tolist())
+    ]
     gt = {"info": {"description": "synthetic RGBT-Tiny-sized set"},
           "images": [{"id": i, "width": W, "height": H, "file_name": f"{i:05d}.jpg"} for i in range(1, n_images + 1)],
           "annotations": anns, "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)]}

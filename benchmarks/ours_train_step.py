@@ -77,7 +77,8 @@ def main() -> None:
     args = p.parse_args()
     print(f"YOLOv8{args.scale} 4-channel, nc=8, {args.boxes} boxes/image, median of {args.iters} after 1 warm-up")
     print("anchor = network forward + backward + SGD step; loss = assigner + BCE + CIoU + DFL, forward + backward")
-    header = f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} {'full/anchor':>12}"
+    header = (f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} "
+              f"{'full/anchor':>12}")
     print(header)
     print("-" * len(header))
     worst = 0.0

@@ -45,8 +45,11 @@ def main() -> None:
         build_report(store, out=root / "rep", resamples=10)
         html = (root / "rep" / "report.html").read_text()
         if args.old_css:
-            html = (html.replace("th, td.l { white-space: normal; }", "").replace("padding: 3px 6px", "padding: 4px 8px")
-                    .replace("th { font-size: 12.5px; }", ""))
+            html = (
+                html.replace("th, td.l { white-space: normal; }", "")
+                .replace("padding: 3px 6px", "padding: 4px 8px")
+                .replace("th { font-size: 12.5px; }", "")
+            )
         page = root / "rep" / "probe.html"
         page.write_text(html.replace("</body>", PROBE))
         out = subprocess.run(["/usr/bin/chromium", "--headless", "--no-sandbox", "--disable-gpu",

@@ -64,15 +64,30 @@ def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float 
         if rng.random() < recall:
             x, y, w, h = a["bbox"]
             cat = a["category_id"] if rng.random() >= label_noise else int(rng.integers(1, ncat + 1))
-            dets.append({"image_id": a["image_id"], "category_id": cat,
-                         "bbox": [x + rng.normal(0, jitter), y + rng.normal(0, jitter), max(1.0, w + rng.normal(0, jitter)),
-                                  max(1.0, h + rng.normal(0, jitter))], "score": float(rng.uniform(0.5, 1.0))})
+            dets.append(
+                {
+                    "image_id": a["image_id"],
+                    "category_id": cat,
+                    "bbox": [
+                        x + rng.normal(0, jitter),
+                        y + rng.normal(0, jitter),
+                        max(1.0, w + rng.normal(0, jitter)),
+                        max(1.0, h + rng.normal(0, jitter)),
+                    ],
+                    "score": float(rng.uniform(0.5, 1.0)),
+                }
+            )
     for im in gt["images"]:
         for _ in range(int(rng.poisson(false_positives))):
             w, h = float(rng.uniform(10, 40)), float(rng.uniform(10, 40))
-            dets.append({"image_id": im["id"], "category_id": int(rng.integers(1, ncat + 1)),
-                         "bbox": [float(rng.uniform(0, im["width"] - w)), float(rng.uniform(0, im["height"] - h)), w, h],
-                         "score": float(rng.uniform(0.0, 0.6))})
+            dets.append(
+                {
+                    "image_id": im["id"],
+                    "category_id": int(rng.integers(1, ncat + 1)),
+                    "bbox": [float(rng.uniform(0, im["width"] - w)), float(rng.uniform(0, im["height"] - h)), w, h],
+                    "score": float(rng.uniform(0.0, 0.6)),
+                }
+            )
     return dets
 
 
@@ -127,8 +142,13 @@ def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = (
         for f in folds:
             drng = np.random.default_rng([seed, i, folds.index(f)])
             comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
-            write_run(store, RunKey(dataset, det, "c2", f, 0), gts[f], make_detections(gts[f], drng, **QUALITY[quality]),
-                      complexity=comp)
+            write_run(
+                store,
+                RunKey(dataset, det, "c2", f, 0),
+                gts[f],
+                make_detections(gts[f], drng, **QUALITY[quality]),
+                complexity=comp,
+            )
     for det, encs in (encodings or {}).items():
         for j, enc in enumerate(encs):
             drng = np.random.default_rng([seed, 100 + j])

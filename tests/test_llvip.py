@@ -23,7 +23,10 @@ def test_pairs_by_name_per_split_with_the_voc_rule(release):
     for s in samples:
         validate_sample(s, num_classes=1)
         stem = s.meta["file_name"].rsplit("/", 1)[1][:-4]
-        assert s.meta["file_name"] == f"infrared/{s.group}/{stem}.jpg" and s.meta["rgb_file"] == f"visible/{s.group}/{stem}.jpg"
+        assert (
+            s.meta["file_name"] == f"infrared/{s.group}/{stem}.jpg"
+            and s.meta["rgb_file"] == f"visible/{s.group}/{stem}.jpg"
+        )
         assert stem in LLVIP_FRAMES[s.group] and s.meta["split"] == s.group
         # the XML holds (x + 1, y + 1, x + bw, y + bh): prepared boxes are the drawn pixels' corners exactly
         assert s.boxes.tolist() == [list(map(float, b)) for b in expected[stem]] and s.labels.tolist() == [0, 0]

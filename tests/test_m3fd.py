@@ -141,7 +141,9 @@ def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
     # `harness run --init` on another dataset loaded it (see the RGBT-Tiny end-to-end test for the details)
     from harness.store import RunKey, Store
 
-    init = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    init = (
+        Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    )
     assert init["path"] == str(ckpt) and init["loaded"] > 0
 
 
@@ -153,7 +155,11 @@ def test_prepared_manifest_records_the_split(release, tmp_path):
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])
     ds = prepare("m3fd", cfg, cache_root=tmp_path / "cache", progress=False)
     (fold,) = ds.manifest["folds"]
-    assert fold == {"name": "val", "train_groups": ["00000-00099", "00100-00199"], "val_groups": ["00400-00499", "00900-00999"]}
+    assert fold == {
+        "name": "val",
+        "train_groups": ["00000-00099", "00100-00199"],
+        "val_groups": ["00400-00499", "00900-00999"],
+    }
     (resolved,) = resolve_folds("m3fd", ds, cfg)
     assert resolved.name == "val" and len(ds.indices(resolved.val_groups)) == 3
 

@@ -106,7 +106,9 @@ def test_duplicate_name_is_an_error_naming_both_plugins(host):
             host.detector("undo-twin")
         assert "first-plugin" in str(err.value) and "second-plugin" in str(err.value)
         conflicts = [p for p in host.problems if p.stage == "conflict"]
-        assert len(conflicts) == 1 and "first-plugin" in conflicts[0].message and "second-plugin" in conflicts[0].message
+        assert (
+            len(conflicts) == 1 and "first-plugin" in conflicts[0].message and "second-plugin" in conflicts[0].message
+        )
         # the rest of the second plugin still works
         assert host.detector("undo-other").name == "undo-other"
 
@@ -192,7 +194,10 @@ def test_autoload_switch_disables_entry_points(fresh_plugins, fake_dists, monkey
     assert "alpha-det" not in host.detectors()
 
 
-@pytest.mark.parametrize("allow, expected", [("harness-alpha", {"alpha-det"}), ("harness_beta,harness-alpha", {"alpha-det", "beta-det"}), ("", set())])
+@pytest.mark.parametrize(
+    "allow, expected",
+    [("harness-alpha", {"alpha-det"}), ("harness_beta,harness-alpha", {"alpha-det", "beta-det"}), ("", set())],
+)
 def test_allow_list(fresh_plugins, fake_dists, monkeypatch, allow, expected):
     monkeypatch.setenv("HARNESS_LOAD_PLUGINS", allow)
     monkeypatch.setenv("HARNESS_DISABLE_PLUGIN_AUTOLOAD", "1")  # the allow-list wins over the switch
@@ -257,7 +262,9 @@ def test_registering_an_object_with_a_hook_typo_is_a_plugin_error(host):
             pass
 
     before = len(pm.list_name_plugin())
-    with pytest.raises(PluginError, match=r"plugin 'typo-object'.*'register_dataset', did you mean 'register_datasets'"):
+    with pytest.raises(
+        PluginError, match=r"plugin 'typo-object'.*'register_dataset', did you mean 'register_datasets'"
+    ):
         register_plugin(Typo(), name="typo-object")
     assert len(pm.list_name_plugin()) == before  # not kept
 

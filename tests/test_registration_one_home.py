@@ -67,7 +67,9 @@ def test_the_register_command_and_the_dataset_record_the_same_fit(tiny_source, t
 
 
 def _python_files() -> list[Path]:
-    return sorted(p for folder in ("harness", "adapters", "benchmarks", "plugins") for p in (ROOT / folder).rglob("*.py"))
+    return sorted(
+        p for folder in ("harness", "adapters", "benchmarks", "plugins") for p in (ROOT / folder).rglob("*.py")
+    )
 
 
 def test_the_homography_maths_has_one_implementation_that_every_caller_uses():

@@ -57,7 +57,10 @@ def curves_report(tmp_path_factory):
 
     threads = torch.get_num_threads()
     try:
-        with temporary_plugin(ShapesPlugin(), name="shapes-curves"), temporary_plugin(tinydet_plugin, name="tiny-curves"):
+        with (
+            temporary_plugin(ShapesPlugin(), name="shapes-curves"),
+            temporary_plugin(tinydet_plugin, name="tiny-curves"),
+        ):
             for det in ("tinydet", "tinydet-dual"):
                 run(RunRequest(detector=det, dataset="shapes", encoding="test-ir8", store=root / "store",
                                overrides=RUN, progress=False))

@@ -64,7 +64,10 @@ def real_store(tmp_path_factory):
     from engine_helpers import ShapesPlugin
 
     try:
-        with temporary_plugin(tinydet, name="tinydet-report-test"), temporary_plugin(ShapesPlugin(), name="shapes-report-test"):
+        with (
+            temporary_plugin(tinydet, name="tinydet-report-test"),
+            temporary_plugin(ShapesPlugin(), name="shapes-report-test"),
+        ):
             _cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
             _cli(["run", "--detector", "tinydet-dual", "--dataset", DATASET, "--folds", "all", "--store", str(store),
                   *sets])
@@ -122,7 +125,9 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
         measured = runs[(row["detector"], enc, "P1")]["complexity"]  # measured in the run, not the profile
         assert row["gflops"] == measured["gflops"]["640"]["paper"] > 0
         assert row["params"] == pytest.approx(measured["params_fused"] / 1e6)
-    assert folds.rows[0]["images"] == sum(runs[("tinydet", "c2", f)]["support"]["images"] for f in ("P1", "P2", "P3", "P4+P5"))
+    assert folds.rows[0]["images"] == sum(
+        runs[("tinydet", "c2", f)]["support"]["images"] for f in ("P1", "P2", "P3", "P4+P5")
+    )
     # the ablation: one row per encoding, with the seed's two thermal-only defects
     ablation = report.tables[2]
     assert [r["encoding"] for r in ablation.rows] == ["c2", "ir8", "none"]

@@ -55,7 +55,10 @@ def test_frames_pair_by_file_name_and_boxes_follow_the_chosen_source(release, gt
         # the two JSONs number this frame differently; the pair still refers to the same frame
         ids = s.meta["coco_image_ids"]
         assert ids["00"] != ids["01"] and ids["00"] >= 5000
-        assert s.meta["file_name"] == f"{frame[0]}/01/{frame[1]}.jpg" and s.meta["rgb_file"] == f"{frame[0]}/00/{frame[1]}.jpg"
+        assert (
+            s.meta["file_name"] == f"{frame[0]}/01/{frame[1]}.jpg"
+            and s.meta["rgb_file"] == f"{frame[0]}/00/{frame[1]}.jpg"
+        )
         assert s.thermal is None and s.ir8.dtype == np.uint8 and s.ir8.shape == (48, 64) and s.rgb.shape == (48, 64, 3)
         assert s.group == frame[0] and s.meta["gt"] == rgbt_tiny.normalise_gt(gt)
     # the visible-only box on every first frame is class id 0 = ship, a real class (not background)
@@ -79,7 +82,11 @@ def test_split_and_groups_come_from_the_dataset_files(release):
     t = rgbt_tiny.open_rgbt_tiny(root)
     assert t.groups() == ["DJI_0001_1", "DJI_0002_1", "DJI_0101_1"]
     (fold,) = t.folds()
-    assert fold.name == "test-T" and fold.train_groups == ("DJI_0001_1", "DJI_0002_1") and fold.val_groups == ("DJI_0101_1",)
+    assert (
+        fold.name == "test-T"
+        and fold.train_groups == ("DJI_0001_1", "DJI_0002_1")
+        and fold.val_groups == ("DJI_0101_1",)
+    )
     assert rgbt_tiny.open_rgbt_tiny(root, gt="visible").folds()[0].name == "test-RGB"
 
 
@@ -181,18 +188,29 @@ def test_class_name_not_in_the_list_is_an_error_naming_file_and_class(copy_relea
     path = rgbt_json(root, "00", "train")
     with edited_json(path) as doc:
         doc["categories"][2]["name"] = "tractor"
-    with pytest.raises(DataError, match=r"instances_00_train2017.json: categories\[2\]: class 'tractor' is not an RGBT-Tiny class"):
+    with pytest.raises(
+        DataError, match=r"instances_00_train2017.json: categories\[2\]: class 'tractor' is not an RGBT-Tiny class"
+    ):
         rgbt_tiny.open_rgbt_tiny(root)
 
 
-@pytest.mark.parametrize("damage, match", [
-    (lambda d: d["annotations"][0].update(category_id=17), r"annotations\[0\]: category_id 17 is not in 'categories'"),
-    (lambda d: d["annotations"][1].update(image_id=-3), r"annotations\[1\]: image_id -3 is not in 'images'"),
-    (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), r"annotations\[0\]: bbox must be four finite numbers"),
-    (lambda d: d["images"][0].update(file_name="DJI_0001_1/00/00000.jpg"), r"images\[0\]: file_name .* folder '00' but this is the thermal"),
-    (lambda d: d["images"][1].update(file_name="flat.jpg"), r"images\[1\]: file_name: expected"),
-    (lambda d: d.pop("annotations"), r"missing or non-list field 'annotations'"),
-])
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (
+            lambda d: d["annotations"][0].update(category_id=17),
+            r"annotations\[0\]: category_id 17 is not in 'categories'",
+        ),
+        (lambda d: d["annotations"][1].update(image_id=-3), r"annotations\[1\]: image_id -3 is not in 'images'"),
+        (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), r"annotations\[0\]: bbox must be four finite numbers"),
+        (
+            lambda d: d["images"][0].update(file_name="DJI_0001_1/00/00000.jpg"),
+            r"images\[0\]: file_name .* folder '00' but this is the thermal",
+        ),
+        (lambda d: d["images"][1].update(file_name="flat.jpg"), r"images\[1\]: file_name: expected"),
+        (lambda d: d.pop("annotations"), r"missing or non-list field 'annotations'"),
+    ],
+)
 def test_inconsistent_annotation_records_name_the_record(copy_release, damage, match):
     root, _ = copy_release
     path = rgbt_json(root, "01", "train")
@@ -225,7 +243,11 @@ def test_strides_keep_every_kth_frame_per_sequence(release):
     root, _ = release
     source = rgbt_tiny.open_rgbt_tiny(root, train_stride=2)
     frames = [(p.key.sequence, p.key.frame) for p in source.pairs]
-    assert ("DJI_0001_1", "00000") in frames and ("DJI_0001_1", "00001") not in frames and ("DJI_0001_1", "00002") in frames
+    assert (
+        ("DJI_0001_1", "00000") in frames
+        and ("DJI_0001_1", "00001") not in frames
+        and ("DJI_0001_1", "00002") in frames
+    )
     assert sum(p.split == "test" for p in source.pairs) == 3 and len(source.pairs) == 7
     assert any("every 2th frame" in n and "not the official protocol" in n for n in source.notes)
 

@@ -207,8 +207,25 @@ def test_cli_run_and_ablate_print_aligned_tables(shapes_run_plugins, tmp_path, c
     assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
     assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]
 
-    res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--folds", "B",
-                      "--categories", "delamination", "--store", store, "--no-progress", *sets])
+    res = cli_runner(
+        [
+            "ablate",
+            "--dataset",
+            "shapes",
+            "--detector",
+            "tinydet",
+            "--encodings",
+            "test-ir8",
+            "--folds",
+            "B",
+            "--categories",
+            "delamination",
+            "--store",
+            store,
+            "--no-progress",
+            *sets,
+        ]
+    )
     assert res.exit_code == 2 and "category 'delamination' is not in the dataset" in res.output
 
 

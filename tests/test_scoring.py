@@ -24,8 +24,13 @@ H = [[0.5, 0.0, -3.0], [0.0, 0.5, -1.5], [0.0, 0.0, 1.0]]  # RGB at twice the th
 def rotated_homography(scale: float = 0.5, degrees: float = 2.0, shift=(-3.0, -1.5), tilt=(2e-5, -1e-5)):
     """RGB -> frame: a scale, a rotation, a shift and a little perspective, as a registration fit gives them."""
     t = np.deg2rad(degrees)
-    return np.array([[scale * np.cos(t), -scale * np.sin(t), shift[0]], [scale * np.sin(t), scale * np.cos(t), shift[1]],
-                     [tilt[0], tilt[1], 1.0]])
+    return np.array(
+        [
+            [scale * np.cos(t), -scale * np.sin(t), shift[0]],
+            [scale * np.sin(t), scale * np.cos(t), shift[1]],
+            [tilt[0], tilt[1], 1.0],
+        ]
+    )
 
 
 def lens(width: int, height: int, k1: float = -0.12, k2: float = 0.03):

@@ -144,7 +144,9 @@ def test_damaged_or_missing_app5_is_a_clear_error(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- equations
 def test_balance_hand_computed():
-    w = lambda c: (c + 273.15) ** 4
+    def w(c):
+        return (c + 273.15) ** 4
+
     # tau 1 (Q14 16384), emissivity 0.9, atmosphere 20 C: W0 = 0.9 W + 0.1 W(20)
     expect = ((w(40.0) - 0.1 * w(20.0)) / 0.9) ** 0.25 - 273.15
     got = dc.radiance_balance(np.array([40.0]), np.array([16384.0]), 0.9, 20.0)

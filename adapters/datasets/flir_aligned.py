@@ -66,8 +66,9 @@ from harness.sample import AlignedSample
 
 DATASET = "flir-aligned"
 ROOT_ENV = "HARNESS_FLIR_ALIGNED"
-DESCRIPTION = ("FLIR-aligned visible/infrared pairs (ICAFusion's, YOLOv5's or the release layout), 3 classes, 8-bit IR; "
-               "train/test")
+DESCRIPTION = (
+    "FLIR-aligned visible/infrared pairs (ICAFusion's, YOLOv5's or the release layout), 3 classes, 8-bit IR; train/test"
+)
 CATEGORIES = ("person", "car", "bicycle")
 MODALITIES = ("visible", "infrared")
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp")

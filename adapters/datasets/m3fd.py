@@ -114,7 +114,9 @@ class M3fdSource(PairedSource):
         self.stems: list[str] = []
         for s in stems:
             if s not in self.xml:
-                self.dropped.append((str(self.ir.get(s) or self.vis[s]), f"no annotation: Annotation/{s}.xml not found"))
+                self.dropped.append(
+                    (str(self.ir.get(s) or self.vis[s]), f"no annotation: Annotation/{s}.xml not found")
+                )
             elif s not in self.ir:
                 self.dropped.append((str(self.xml[s]), f"missing thermal frame: Ir/{s}.png not found"))
             elif s not in self.vis:
@@ -139,7 +141,9 @@ class M3fdSource(PairedSource):
 
     def folds(self) -> list[Fold]:
         groups = self.groups()
-        return [Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))]
+        return [
+            Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))
+        ]
 
     def fingerprint(self) -> str:
         parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY,

@@ -80,7 +80,8 @@ _GT_ALIASES = {"thermal": "thermal", "t": "thermal", "ir": "thermal", "01": "the
 OPTIONS = {
     "root": f"folder holding images/ and annotations_coco/ (default: ${ROOT_ENV})",
     "gt": "annotation source, thermal (T, default) or visible (RGB)",
-    "train_stride": "keep every k-th paired frame of each training sequence (default 1: all; not the official protocol)",
+    "train_stride": "keep every k-th paired frame of each training sequence (default 1: all; not the official "
+                    "protocol)",
     "test_stride": "keep every k-th paired frame of each test sequence (default 1: all; not the official protocol)",
     "strict": "raise instead of dropping frames whose visible and thermal sides do not match (default false)",
 }
@@ -273,7 +274,11 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
     boxes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for iid, anns in per_image.items():
         xywh = np.array([a[0] for a in anns], dtype=np.float64)
-        boxes[iid] = (xywh_to_xyxy(xywh), np.array([a[1] for a in anns], np.int64), np.array([a[2] for a in anns], bool))
+        boxes[iid] = (
+            xywh_to_xyxy(xywh),
+            np.array([a[1] for a in anns], np.int64),
+            np.array([a[2] for a in anns], bool),
+        )
     return CocoFile(path, modality, split, images, boxes, instances=len(data["annotations"]))
 
 
@@ -316,10 +321,14 @@ def pair_frames(visible: CocoFile, thermal: CocoFile, images_dir: Path) -> Split
     for key in sorted(set(visible.images) | set(thermal.images)):
         v, t = visible.images.get(key), thermal.images.get(key)
         if t is None:
-            result.dropped.append((str(images_dir / v.file_name), f"only in visible annotations: {thermal.path.name} has no frame {key}"))
+            result.dropped.append(
+                (str(images_dir / v.file_name), f"only in visible annotations: {thermal.path.name} has no frame {key}")
+            )
             continue
         if v is None:
-            result.dropped.append((str(images_dir / t.file_name), f"only in thermal annotations: {visible.path.name} has no frame {key}"))
+            result.dropped.append(
+                (str(images_dir / t.file_name), f"only in thermal annotations: {visible.path.name} has no frame {key}")
+            )
             continue
         if file_stat(images_dir / t.file_name) is None:
             result.dropped.append((str(images_dir / t.file_name), f"missing thermal frame: {t.file_name} not found"))
@@ -328,8 +337,12 @@ def pair_frames(visible: CocoFile, thermal: CocoFile, images_dir: Path) -> Split
             result.dropped.append((str(images_dir / v.file_name), f"missing visible frame: {v.file_name} not found"))
             continue
         if None not in (v.width, v.height, t.width, t.height) and (v.width, v.height) != (t.width, t.height):
-            result.dropped.append((str(images_dir / t.file_name),
-                                   f"size mismatch: visible {v.width}x{v.height}, thermal {t.width}x{t.height} in the annotations"))
+            result.dropped.append(
+                (
+                    str(images_dir / t.file_name),
+                    f"size mismatch: visible {v.width}x{v.height}, thermal {t.width}x{t.height} in the annotations",
+                )
+            )
             continue
         result.pairs.append(Pair(key, visible.split, v, t))
     return result
@@ -399,14 +412,18 @@ class RgbtTinySource(PairedSource):
         self.strict = strict
         self.notes: list[str] = []
         ann = self.layout.annotations
-        missing = [annotation_path(ann, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(ann, m, s).is_file()]
+        missing = [
+            annotation_path(ann, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(ann, m, s).is_file()
+        ]
         if missing:
             raise DataError(
                 f"dataset {DATASET!r}: annotation file(s) missing: {', '.join(str(p) for p in missing)}; the release "
                 f"ships annotations_coco/instances_{{00,01}}_{{train,test}}2017.json"
             )
         self.coco = {(m, s): load_coco_file(annotation_path(ann, m, s), m, s) for s in SPLITS for m in MODALITY_DIR}
-        self.pairing = {s: pair_frames(self.coco["visible", s], self.coco["thermal", s], self.images_dir) for s in SPLITS}
+        self.pairing = {
+            s: pair_frames(self.coco["visible", s], self.coco["thermal", s], self.images_dir) for s in SPLITS
+        }
         #: (path or frame, reason) of every frame that could not be paired
         self.dropped = [d for s in SPLITS for d in self.pairing[s].dropped]
 
@@ -428,7 +445,9 @@ class RgbtTinySource(PairedSource):
         self._describe()
         if self.strict and self.dropped:
             path, reason = self.dropped[0]
-            raise DataError(f"dataset {DATASET!r} (strict): {len(self.dropped)} frame(s) cannot be paired, first: {path}: {reason}")
+            raise DataError(
+                f"dataset {DATASET!r} (strict): {len(self.dropped)} frame(s) cannot be paired, first: {path}: {reason}"
+            )
 
     # ------------------------------------------------------------------ checks and notes
     def _drop_text(self) -> str:
@@ -447,21 +466,31 @@ class RgbtTinySource(PairedSource):
                 log.info("RGBT-Tiny %s", sp.describe())
             if self.strides[s] > 1:
                 kept = sum(1 for p in self.pairs if p.split == s)
-                self.notes.append(f"{s}: every {self.strides[s]}th frame of each sequence kept ({kept} of {len(sp.pairs)} pairs); "
-                                  f"not the official protocol")
-        self.notes.append({"folders": "layout: images/, annotations_coco/ and data_split/ folders",
-                           "flat": "layout: the three archives unzipped into one folder (flat)",
-                           "mixed": "layout: images and annotation files in different places (mixed)"}[self.layout.kind])
+                self.notes.append(
+                    f"{s}: every {self.strides[s]}th frame of each sequence kept ({kept} of {len(sp.pairs)} pairs); "
+                    f"not the official protocol"
+                )
+        self.notes.append(
+            {
+                "folders": "layout: images/, annotations_coco/ and data_split/ folders",
+                "flat": "layout: the three archives unzipped into one folder (flat)",
+                "mixed": "layout: images and annotation files in different places (mixed)",
+            }[self.layout.kind]
+        )
         src = self.gt
-        self.notes.append(f"annotation source: {src} ({SOURCE_LABEL[src]}), from instances_{MODALITY_DIR[src]}_*2017.json")
+        self.notes.append(
+            f"annotation source: {src} ({SOURCE_LABEL[src]}), from instances_{MODALITY_DIR[src]}_*2017.json"
+        )
         self._check_split_files()
         listed = {k.sequence for c in self.coco.values() for k in c.images}
         if self.images_dir.is_dir():
             on_disk = {p.name for p in _sequence_dirs(self.images_dir)}
             extra = sorted(on_disk - listed)
             if extra:
-                self.notes.append(f"{len(extra)} sequence folder(s) under images/ are in no annotation file and are not used: "
-                                  f"{', '.join(extra[:5])}{' ...' if len(extra) > 5 else ''}")
+                self.notes.append(
+                    f"{len(extra)} sequence folder(s) under images/ are in no annotation file and are not used: "
+                    f"{', '.join(extra[:5])}{' ...' if len(extra) > 5 else ''}"
+                )
 
     def _check_split_files(self) -> None:
         for split, files in find_split_files(self.root).items():

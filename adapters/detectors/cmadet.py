@@ -2,9 +2,9 @@
 ``adapters.detectors.cmadet_net``.
 
 Model options (config section ``model``): ``scale`` (trunk size, default s) or explicit ``width``/``depth``,
-``align_width``, ``hidden``, ``reduce``, ``grid``, ``flow_gain`` (alignment network), ``reduction`` (BFCFM), ``osr`` (object search
-rectification on/off), ``osr_weight``, ``tv_weight``, ``osr_points``, ``osr_radius``, ``osr_temperature``,
-``prior_bias``, ``weights`` (a state dict of this reconstruction), and the NMS settings.
+``align_width``, ``hidden``, ``reduce``, ``grid``, ``flow_gain`` (alignment network), ``reduction`` (BFCFM),
+``osr`` (object search rectification on/off), ``osr_weight``, ``tv_weight``, ``osr_points``, ``osr_radius``,
+``osr_temperature``, ``prior_bias``, ``weights`` (a state dict of this reconstruction), and the NMS settings.
 """
 
 from __future__ import annotations
@@ -19,6 +19,9 @@ DESCRIPTION = ("CMA-Det: dual YOLOv5s backbones, alignment network warping the v
                "frame (global FC field + residual refinement at P5/P4/P3), object search rectification (training "
                "only), bi-directional channel/spatial correction fusion, YOLOv5 PAN neck and anchor head")
 LABEL = "reconstructed from the paper"
+#: Options of the network itself (``CMADet``), beyond the trunk size, the weights and the NMS settings.
+NET_OPTIONS = ("align_width", "hidden", "reduce", "grid", "flow_gain", "reduction", "osr", "osr_weight", "tv_weight",
+               "osr_points", "osr_radius", "osr_temperature", "prior_bias")
 
 
 def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float | None = None,
@@ -28,8 +31,7 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float
     from adapters.detectors.cmadet_net import CMADet
     from adapters.detectors.yolo.v5 import check_options, resolve_scale
 
-    check_options(NAME, options, ("align_width", "hidden", "reduce", "grid", "flow_gain", "reduction", "osr", "osr_weight",
-                                  "tv_weight", "osr_points", "osr_radius", "osr_temperature", "prior_bias"))
+    check_options(NAME, options, NET_OPTIONS)
     w, d = resolve_scale(NAME, scale, width, depth)
     model = CMADet(num_classes, in_channels, width=w, depth=d, **options)
     return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)

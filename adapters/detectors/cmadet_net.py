@@ -45,7 +45,8 @@ P3_STRIDE = 8
 
 # ------------------------------------------------------------------------------------------------ flow maths
 def warp(feat: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """Backward warp: out(x) = feat(x + flow(x)), bilinear, zero outside; ``flow`` ``[B, 2, H, W]`` in cells (dx, dy)."""
+    """Backward warp: out(x) = feat(x + flow(x)), bilinear, zero outside; ``flow`` ``[B, 2, H, W]`` in cells
+    (dx, dy)."""
     _, _, h, w = feat.shape
     ys = torch.arange(h, device=feat.device, dtype=feat.dtype).view(1, h, 1)
     xs = torch.arange(w, device=feat.device, dtype=feat.dtype).view(1, 1, w)
@@ -225,11 +226,26 @@ class CMADet(v5.AnchorDetector):
 
     name = "cmadet"
 
-    def __init__(self, nc: int, in_channels: int = 3, width: float = 0.5, depth: float = 0.33,
-                 align_width: int | None = None, hidden: int | None = None, reduce: int | None = None,
-                 grid: int = 20, flow_gain: float = 0.1, reduction: float = 1.0, osr: bool = True, osr_weight: float = 0.1,
-                 tv_weight: float = 0.01, osr_points: int = 5, osr_radius: int = 3, osr_temperature: float = 0.1,
-                 prior_bias: bool = True):
+    def __init__(
+        self,
+        nc: int,
+        in_channels: int = 3,
+        width: float = 0.5,
+        depth: float = 0.33,
+        align_width: int | None = None,
+        hidden: int | None = None,
+        reduce: int | None = None,
+        grid: int = 20,
+        flow_gain: float = 0.1,
+        reduction: float = 1.0,
+        osr: bool = True,
+        osr_weight: float = 0.1,
+        tv_weight: float = 0.01,
+        osr_points: int = 5,
+        osr_radius: int = 3,
+        osr_temperature: float = 0.1,
+        prior_bias: bool = True,
+    ):
         super().__init__(nc)
         chans = v5.level_channels(width)
         self.backbone_rgb = nn.ModuleList(v5.backbone_layers(3, width, depth))

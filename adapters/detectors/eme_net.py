@@ -50,7 +50,9 @@ def gaussian_kernel(size: int = 7, sigma: float = 1.5, dtype: torch.dtype = torc
     return g[:, None] * g[None, :]
 
 
-def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 7, sigma: float = 1.5, max_val: float = 1.0) -> torch.Tensor:
+def ssim_map(
+    a: torch.Tensor, b: torch.Tensor, window: int = 7, sigma: float = 1.5, max_val: float = 1.0
+) -> torch.Tensor:
     """Per-pixel SSIM of two ``[B, 1, H, W]`` maps (reflect padding, same size):
 
     SSIM = (2 mu_a mu_b + C1)(2 s_ab + C2) / ((mu_a^2 + mu_b^2 + C1)(s_a^2 + s_b^2 + C2)),

@@ -141,8 +141,16 @@ class CrossAttention(nn.Module):
     def forward(self, vis: torch.Tensor, ir: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b, n, c = vis.shape
         xv, xt = self.LN1(vis), self.LN2(ir)
-        q_v, k_v, v_v = self._heads(self.que_proj_vis(xv)), self._heads(self.key_proj_vis(xv)), self._heads(self.val_proj_vis(xv))
-        q_t, k_t, v_t = self._heads(self.que_proj_ir(xt)), self._heads(self.key_proj_ir(xt)), self._heads(self.val_proj_ir(xt))
+        q_v, k_v, v_v = (
+            self._heads(self.que_proj_vis(xv)),
+            self._heads(self.key_proj_vis(xv)),
+            self._heads(self.val_proj_vis(xv)),
+        )
+        q_t, k_t, v_t = (
+            self._heads(self.que_proj_ir(xt)),
+            self._heads(self.key_proj_ir(xt)),
+            self._heads(self.val_proj_ir(xt)),
+        )
         scale = 1.0 / math.sqrt(self.d_k)
         att_v = self.attn_drop(torch.softmax(q_t @ k_v.transpose(-2, -1) * scale, -1))  # thermal queries, visible keys
         att_t = self.attn_drop(torch.softmax(q_v @ k_t.transpose(-2, -1) * scale, -1))  # visible queries, thermal keys

@@ -147,7 +147,9 @@ def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) ->
         block, safit_cat = _safit_block(prep, engine, safit_anchor)
         metrics["safit"] = block
         for cid in prep.cat_ids:
-            per_category[prep.cat_names[cid]]["SAFit_AP50"], per_category[prep.cat_names[cid]]["SAFit_AP50_95"] = safit_cat[cid]
+            per_category[prep.cat_names[cid]]["SAFit_AP50"], per_category[prep.cat_names[cid]]["SAFit_AP50_95"] = (
+                safit_cat[cid]
+            )
 
     support: dict[str, Any] = {
         "images": len(prep.image_keys),

@@ -183,15 +183,27 @@ def _pycoco_eval_class(matching: str, anchor: str) -> type:
 def check_options(engine: str, matching: str, anchor: str) -> None:
     """Refuse an unknown engine, matching or SAFit anchor, naming the config key that sets it."""
     if engine not in ENGINES:
-        raise EvaluationError(f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)")
+        raise EvaluationError(
+            f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)"
+        )
     if matching not in MATCHINGS:
-        raise EvaluationError(f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)")
+        raise EvaluationError(
+            f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)"
+        )
     if anchor not in ANCHORS:
-        raise EvaluationError(f"unknown SAFit NWD anchor {anchor!r}; use one of {', '.join(ANCHORS)} (config eval.safit_anchor)")
+        raise EvaluationError(
+            f"unknown SAFit NWD anchor {anchor!r}; use one of {', '.join(ANCHORS)} (config eval.safit_anchor)"
+        )
 
 
-def run_engine(prep: PreparedEval, engine: str = "faster-coco-eval", matching: str = "iou", anchor: str = "center",
-               area_ranges: Mapping[str, tuple[float, float]] | None = None, operating_point: bool = True) -> EngineResult:
+def run_engine(
+    prep: PreparedEval,
+    engine: str = "faster-coco-eval",
+    matching: str = "iou",
+    anchor: str = "center",
+    area_ranges: Mapping[str, tuple[float, float]] | None = None,
+    operating_point: bool = True,
+) -> EngineResult:
     """Run one engine on prepared inputs. ``area_ranges`` replaces COCO's small/medium/large (first must be 'all')."""
     check_options(engine, matching, anchor)
     if engine == "faster-coco-eval":

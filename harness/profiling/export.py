@@ -147,7 +147,9 @@ def check_onnx(path: str | Path, inputs: tuple[torch.Tensor, ...], expected: tup
     for i, (a, b) in enumerate(zip(got, expected)):
         b_np = b.detach().cpu().numpy()
         if a.shape != b_np.shape:
-            raise ExportError(f"{path}: output{i} has shape {list(a.shape)} in onnxruntime, {list(b_np.shape)} in torch")
+            raise ExportError(
+                f"{path}: output{i} has shape {list(a.shape)} in onnxruntime, {list(b_np.shape)} in torch"
+            )
         diffs.append(float(np.max(np.abs(a.astype(np.float64) - b_np.astype(np.float64)))) if a.size else 0.0)
     worst = max(diffs) if diffs else 0.0
     if worst > atol:

@@ -107,7 +107,8 @@ PAPER_RULES: dict[type, Callable[[nn.Module, torch.Tensor, torch.Tensor], int]] 
     nn.MaxPool1d: _zero, nn.MaxPool2d: _zero, nn.MaxPool3d: _zero,
     nn.AdaptiveMaxPool1d: _zero, nn.AdaptiveMaxPool2d: _zero, nn.AdaptiveMaxPool3d: _zero,
     nn.AvgPool1d: _avgpool, nn.AvgPool2d: _avgpool, nn.AvgPool3d: _avgpool,
-    nn.AdaptiveAvgPool1d: _adaptive_avgpool, nn.AdaptiveAvgPool2d: _adaptive_avgpool, nn.AdaptiveAvgPool3d: _adaptive_avgpool,
+    nn.AdaptiveAvgPool1d: _adaptive_avgpool, nn.AdaptiveAvgPool2d: _adaptive_avgpool,
+    nn.AdaptiveAvgPool3d: _adaptive_avgpool,
     nn.Linear: _linear, nn.Dropout: _zero,
     nn.Upsample: _upsample, nn.UpsamplingBilinear2d: _upsample, nn.UpsamplingNearest2d: _upsample,
     nn.Sequential: _zero, nn.PixelShuffle: _zero,
@@ -203,7 +204,8 @@ def exact_flops(model: nn.Module, example_inputs: Any) -> FlopReport:
         with counter, torch.no_grad():
             wrapper(*inputs)
     except Exception as exc:
-        raise ProfilingError(f"forward_raw failed on the meta device under FlopCounterMode: {type(exc).__name__}: {exc}") from exc
+        raise ProfilingError(f"forward_raw failed on the meta device under FlopCounterMode: "
+                             f"{type(exc).__name__}: {exc}") from exc
     by_module = {}
     for name, counts in counter.get_flop_counts().items():
         short = name.split(".", 1)[1] if "." in name else ""

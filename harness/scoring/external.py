@@ -372,7 +372,9 @@ def _category_shift(prepared: Any, moved: Moved, fold: list[int], many_unknown: 
         fits_only_shifted = (ids[0] < 1 or ids[-1] > len(cats)) and all(1 <= c + shift <= len(cats) for c in ids)
         if shift_found(given, shifted) or (fits_only_shifted and many_unknown):
             mapping = ",".join(f"{k + 1 - shift}={c}" for k, c in enumerate(cats))
-            seen = f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
+            seen = (
+                f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
+            )
             guess = "0-based class ids, as Ultralytics 8.0 writes them? " if shift == 1 else ""
             return [Finding("category_shift", f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} "
                                               f"only after a shift of {shift:+d}{seen} ({guess}map them: "

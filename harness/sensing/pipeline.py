@@ -134,7 +134,8 @@ def read_capture_thermal(path: str | Path, options: SensingOptions | None = None
     and its own palette picture is the preview, unless that picture is missing, undecodable or of another size (then
     ``ir8_from_temperature``); info: ``format``, ``params`` (the file's measurement parameters), ``decoder`` (the
     route taken), and ``approximate`` / ``converter`` where the file took one of those routes (``options``: its
-    ``approximate`` flag and converter, as ``read_thermal`` takes them). Any other thermal file goes through ``read_thermal`` and its preview is ``ir8_from_temperature``.
+    ``approximate`` flag and converter, as ``read_thermal`` takes them). Any other thermal file goes through
+    ``read_thermal`` and its preview is ``ir8_from_temperature``.
     Errors are ``HarnessError``s naming the file (``ConfigError`` for a bad ``sensing.radiometry`` setting).
     """
     from harness.errors import HarnessError

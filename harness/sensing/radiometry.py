@@ -5,7 +5,8 @@ Other DJI cameras: ``dji_formats`` tells the layouts apart; H20T (dirp) files ar
 DJI M3T R-JPEG ("iirp" family: M3T, M30T, M3TD, H20N, H30T, M4T, Mavic 2 Enterprise Advanced), as laid out in the
 file (see ``docs/sensing.md``)::
 
-    SOI  APP1 Exif  APP2 MPF  APP3 x N  APP4 (256 B)  APP5 (tau table)  APP7 ...  APP0 JFIF ... SOS <palette preview> EOI
+    SOI  APP1 Exif  APP2 MPF  APP3 x N  APP4 (256 B)  APP5 (tau table)  APP7 ...  APP0 JFIF ...
+    SOS <palette preview> EOI
 
 * APP3: the payloads concatenated in file order are W*H little-endian uint16 words; each word is a 14-bit count
   shifted left by 2, so ``raw14 = word >> 2`` (the two low bits are always zero).

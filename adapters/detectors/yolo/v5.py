@@ -164,7 +164,9 @@ class Detect(nn.Module):
                  strides: Sequence[int] = STRIDES, anchor_grid_buffer: bool = False):
         super().__init__()
         if len(anchors) != len(ch) or len(strides) != len(ch):
-            raise HarnessError(f"Detect: {len(ch)} input levels but {len(anchors)} anchor sets and {len(strides)} strides")
+            raise HarnessError(
+                f"Detect: {len(ch)} input levels but {len(anchors)} anchor sets and {len(strides)} strides"
+            )
         self.nc = nc
         self.no = nc + 5
         self.nl = len(anchors)
@@ -261,7 +263,8 @@ def check_size(h: int, w: int, name: str, multiple: int = 32) -> None:
 
 
 def targets_to_tensor(targets: Sequence[Mapping[str, torch.Tensor]], device: torch.device, name: str) -> torch.Tensor:
-    """Harness targets (per image ``boxes`` xyxy pixels, ``labels``) to YOLO rows ``[n, 6]``: image, class, cx, cy, w, h.
+    """Harness targets (per image ``boxes`` xyxy pixels, ``labels``) to YOLO rows ``[n, 6]``: image, class, cx, cy,
+    w, h.
 
     Boxes with zero width or height are dropped (no anchor can match them).
     """
@@ -365,7 +368,9 @@ def load_state_dict_report(model: nn.Module, state_dict: Mapping[str, Any], name
     if isinstance(sd, nn.Module):
         sd = sd.state_dict()
     if not isinstance(sd, Mapping):
-        raise HarnessError(f"detector {name!r}: load_official expects a state dict (name -> tensor), got {type(sd).__name__}")
+        raise HarnessError(
+            f"detector {name!r}: load_official expects a state dict (name -> tensor), got {type(sd).__name__}"
+        )
     own = model.state_dict()
     if any(k.endswith(".bn.weight") for k in sd) and not any(k.endswith(".bn.weight") for k in own):
         raise HarnessError(f"detector {name!r}: the model's BatchNorm is already folded (fuse()); load weights "
