@@ -469,7 +469,8 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
                 overall.epoch_done(int(record["epoch"]), int(record["epochs"]))
 
         trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
-                          det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
+                          det.thermal_channels, r.checkpoint_dir, validate,  # type: ignore[arg-type]
+                          on_epoch, progress, digest, name)
         resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model

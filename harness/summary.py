@@ -51,7 +51,7 @@ class SizeSummary:
     """Boxes per category (rows, label order) and per size bin (columns, ``SIZE_BINS`` order)."""
 
     categories: list[str]
-    counts: np.ndarray = field(default=None)  # type: ignore[assignment]
+    counts: np.ndarray = field(default=None)  # type: ignore[arg-type]
     images: int = 0
 
     def __post_init__(self) -> None:

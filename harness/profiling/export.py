@@ -90,7 +90,7 @@ def _export_dynamo(wrapper: nn.Module, inputs: tuple, path: Path, names_in: list
         warnings.simplefilter("ignore")
         program = torch.onnx.export(wrapper, inputs, dynamo=True, input_names=names_in, output_names=names_out,
                                     opset_version=opset, verbose=False, **kwargs)
-        program.save(str(path))
+        program.save(str(path))  # type: ignore[union-attr]
 
 
 @contextlib.contextmanager

@@ -119,7 +119,8 @@ def export_predictions(store: str | Path, dataset: str | None = None, detector: 
         raise StoreError(f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
                          f"{encoding}, folds {list(folds or []) or 'all'})")
     out = Path(out)
-    results, cache = [], {}
+    results: list[Any] = []
+    cache: dict[Any, Any] = {}
     for r in runs:
         if len(runs) == 1 and out.suffix == ".json":
             target = out

@@ -313,7 +313,7 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         if not grouped.get(i):
             m.images_without_predictions += 1
         for (x1, y1, x2, y2), score, label, _ in items:
-            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,
+            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,  # type: ignore[arg-type]
                          "bbox": [x1, y1, x2 - x1, y2 - y1], "score": score})
     m.scored = len(dets)
     m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)

@@ -50,8 +50,10 @@ class SensingContext:
             q = Path(p).expanduser()
             return q if q.is_absolute() or base is None else Path(base) / q
 
-        rgb_cam = CameraModel.load(path(opts.undistort.rgb_camera)) if opts.undistort.rgb_camera else None
-        th_cam = CameraModel.load(path(opts.undistort.thermal_camera)) if opts.undistort.thermal_camera else None
+        rgb_file = path(opts.undistort.rgb_camera) if opts.undistort.rgb_camera else None
+        th_file = path(opts.undistort.thermal_camera) if opts.undistort.thermal_camera else None
+        rgb_cam = CameraModel.load(rgb_file) if rgb_file else None
+        th_cam = CameraModel.load(th_file) if th_file else None
         hfile = path(opts.registration.homographies)
         entries = reg.load_homography_entries(hfile) if hfile else {}
         return cls(opts, rgb_cam, th_cam, entries)

@@ -762,7 +762,7 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
     values = (t - offset) / scale
     if dtype.kind in "iu":
         values = np.rint(values)
-        info = np.iinfo(dtype)
+        info = np.iinfo(dtype)  # type: ignore[type-var]
         if values.min() < info.min or values.max() > info.max:
             raise DataError(f"{path}: temperatures {t.min():.2f}..{t.max():.2f} C do not fit {unit} ({dtype.name})")
     arr = values.astype(dtype)

@@ -36,6 +36,8 @@ if TYPE_CHECKING:
 class _StubMeta(type):
     """Metaclass of placeholder classes: calling one (pickle's REDUCE) is refused."""
 
+    __stub_name__: str
+
     def __call__(cls, *args: Any, **kwargs: Any) -> Any:
         raise UnsafeCheckpointError(
             f"the checkpoint asks to call {cls.__stub_name__[:100]}(...); only tensors, containers and inert objects "

@@ -181,7 +181,8 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             return n
 
         self.read, self.readline, self.readinto = read, readline, readinto
-        self.metastack, self.stack = [], []
+        self.metastack: list[list[Any]] = []
+        self.stack: list[Any] = []
         self.append = self.stack.append
         self.proto = 0
         dispatch, charge, cost = self.dispatch, self.budget.charge, _COST
@@ -195,7 +196,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
                 if handler is None:
                     raise pickle.UnpicklingError(f"unknown pickle opcode 0x{op:02x}")
                 start = consumed[0]
-                handler(self)
+                handler(self)  # type: ignore[arg-type]
                 charge(cost.get(op, _DEFAULT_COST) + 2 * (consumed[0] - start))
         except _Done as done:
             return done.value
