@@ -1,6 +1,7 @@
 """What the sources of paired visible/thermal releases share (LLVIP, M3FD, FLIR-aligned, RGBT-Tiny, coco-rgbt).
 
-* ``SkipPair``: a pair that cannot be used, raised by a source's ``_sample`` and turned into a counted skip.
+* ``SkipPair``: a pair that cannot be used, raised by a source's ``_sample`` and turned into a counted skip (the M3T
+  adapter raises it too).
 * ``PairedSource``: the skeleton of such a source: the pairs dropped while opening and the opening notes go to the
   prepare report first, then one sample per item, a ``SkipPair`` becoming a counted skip (an error in strict mode),
   and the closing notes (``BoxStats``) even when the preparation stops early.
