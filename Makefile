@@ -1,13 +1,15 @@
 # Two entry points that do all the set-up themselves on a fresh machine (Python 3.11+, nothing installed):
 #   make demo   creates .venv on first use, then runs the main job on the built-in synthetic data
 #   make test   creates .venv on first use, then runs the test suite
+#   make lint   creates .venv on first use, then runs ruff (lint) over the tree and mypy over harness/
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 # The stamp changes whenever the dependency files change, so `make` re-installs exactly when needed.
 HASH   := $(shell cat pyproject.toml setup.py constraints.txt | sha1sum | cut -c1-12)
 STAMP  := $(VENV)/.installed-$(HASH)
-# `make test` also needs the dev extra (pytest, ray, submitit, the trackers); `make demo` only the harness itself
+# `make test` and `make lint` also need the dev extra (pytest, ray, submitit, the trackers, ruff, mypy); `make demo`
+# only the harness itself
 DEV_STAMP := $(VENV)/.installed-dev-$(HASH)
 
 # The demo benchmark: four detectors at the demo sizes (configs/profiles/demo.yaml, configs/demo/<detector>.yaml) on
@@ -21,7 +23,7 @@ DEMO_OUT       ?= reports/demo
 DEMO_RUN       := --dataset m3t-synth --profile demo --store $(DEMO_STORE)
 DEMO_DATA      := $${HARNESS_DATA:-data}/m3t-synth-small-seed0
 
-.PHONY: demo test venv clean-venv
+.PHONY: demo test lint venv clean-venv
 
 venv: $(DEV_STAMP)
 
@@ -54,6 +56,11 @@ demo: $(STAMP)
 
 test: $(DEV_STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# settings: [tool.ruff] and [tool.mypy] in pyproject.toml
+lint: $(DEV_STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/mypy harness
 
 clean-venv:
 	rm -rf $(VENV)

@@ -30,11 +30,10 @@ def main() -> None:
     ap.add_argument("--workers", default="2", help="comma-separated worker counts to compare with the anchor")
     args = ap.parse_args()
 
-    from report_fixtures import make_detections, make_gt, write_run
-
     from harness.report.reader import StoreView
     from harness.report.stats import BootstrapScorer
     from harness.store import RunKey, Store
+    from report_fixtures import make_detections, make_gt, write_run
 
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(tmp)

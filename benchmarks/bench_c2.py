@@ -85,7 +85,6 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     import c2_reference as previous
     from _machine import machine_lines
-
     from harness.sensing.c2 import c2_uint8
 
     t, what = load_frame(args.frame)

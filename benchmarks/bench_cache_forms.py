@@ -11,8 +11,9 @@ Data (written once under --data, default /tmp/bench-cache-forms):
 Per worker = one process, one OpenCV and one torch thread, as a DataLoader worker runs. Figures per form:
 ``read`` = what ``SampleSource.image`` + ``targets`` hand over (RGB + the encoding's channel); ``item 160`` and
 ``item 640`` = ``TrainDataset[k]`` at the smoke and paper image sizes with the default augmentation (a mosaic reads
-four samples). Anchor: the raw form's figure measured in the same run. Then one CPU training step of "ours" (YOLOv8s, 4 channels, forward + loss +
-backward + SGD) at the smoke (160 px) and paper (640 px) image sizes, as seconds per image, and the ratio
+four samples). Anchor: the raw form's figure measured in the same run. Then one CPU training step of "ours"
+(YOLOv8s, 4 channels, forward + loss + backward + SGD) at the smoke (160 px) and paper (640 px) image sizes, as
+seconds per image, and the ratio
 "images one loader worker delivers while the CPU trains on one image".
 
     .venv/bin/python benchmarks/bench_cache_forms.py                  # the README figures
@@ -24,32 +25,18 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import statistics
-import sys
-import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import median_time, on_path
+
+on_path("tests", "benchmarks")
 
 from harness.cache import forms as CF  # noqa: E402
-
 
 #: The run profiles' image sizes (configs/profiles/*.yaml: protocol.imgsz).
 SIZES = {"smoke": 160, "paper": 640}
 #: A compact form's rate of paper-size (640) training items against the raw form's (0.41x-0.87x when introduced).
 TARGET_VS_RAW = 0.4
-
-
-def _timed(fn, repeat: int) -> float:
-    fn()  # warm-up: page cache filled, encodings computed, references verified once
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def _size(folder: Path) -> int:
@@ -70,8 +57,8 @@ def _codec(codec: str):
 def _datasets(data: Path, cache: Path):
     from adapters.datasets import synthetic as S
     from eightbit_fixtures import write_rgbt_tiny
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     S.PROFILES.setdefault("bench640", S.Profile("bench640", (4, 4, 4, 2, 2), (640, 512), (2000, 1500),
                                                 (1, 1, 1, 1, 1), description="loader benchmark: 16 pairs"))
@@ -137,7 +124,7 @@ def main() -> None:
                     source.image(k)
                     source.targets(k)
 
-            t = {"read": _timed(read, args.repeat)}
+            t = {"read": median_time(read, args.repeat)}
             for size in SIZES.values():
                 train = TrainDataset(source, size, AugmentSettings(), seed=0)
 
@@ -145,7 +132,7 @@ def main() -> None:
                     for k in range(n):
                         train[k]
 
-                t[size] = _timed(items, args.repeat)
+                t[size] = median_time(items, args.repeat)
             if form == "raw":
                 anchor = t
             nbytes = _size(ds.folder)

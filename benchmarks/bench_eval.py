@@ -68,7 +68,9 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
     fp_img = np.repeat(np.arange(1, n_images + 1), n_fp)
     F = len(fp_img)
     fs = np.exp(rng.normal(np.log(12), 0.8, F)).clip(2, 200)
-    fp_boxes = np.stack([rng.uniform(0, W - fs), rng.uniform(0, H - fs), fs, fs * np.exp(rng.normal(0, 0.3, F))], axis=1)
+    fp_boxes = np.stack(
+        [rng.uniform(0, W - fs), rng.uniform(0, H - fs), fs, fs * np.exp(rng.normal(0, 0.3, F))], axis=1
+    )
     fp_cat = rng.integers(1, K + 1, F)
     fp_score = rng.uniform(0.0, 0.8, F)
     boxes = np.concatenate([tp_boxes, fp_boxes]).round(2)
@@ -76,8 +78,10 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
     cats = np.concatenate([tp_cat, fp_cat])
     scores = np.concatenate([tp_score, fp_score]).round(5)
     order = np.lexsort((rng.uniform(size=len(imgs)), imgs))  # grouped by image, as a predictor writes them
-    dets = [{"image_id": int(i), "category_id": int(c), "bbox": b, "score": float(s)}
-            for i, c, b, s in zip(imgs[order].tolist(), cats[order].tolist(), boxes[order].tolist(), scores[order].tolist())]
+    dets = [
+        {"image_id": int(i), "category_id": int(c), "bbox": b, "score": float(s)}
+        for i, c, b, s in zip(imgs[order].tolist(), cats[order].tolist(), boxes[order].tolist(), scores[order].tolist())
+    ]
     gt = {"info": {"description": "synthetic RGBT-Tiny-sized set"},
           "images": [{"id": i, "width": W, "height": H, "file_name": f"{i:05d}.jpg"} for i in range(1, n_images + 1)],
           "annotations": anns, "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)]}
@@ -93,15 +97,19 @@ def run_pycocotools(gt, dets):
         g.dataset = gt
         g.createIndex()
         d = g.loadRes(dets)
-        ev = COCOeval(g, d, "bbox")
-        ev.evaluate()
-        ev.accumulate()
-        ev.summarize()
+        return _summary(COCOeval(g, d, "bbox"))
+
+
+def _summary(ev: Any) -> tuple[list[float], dict[int, tuple[float, float]]]:
+    """Run a COCOeval-like evaluator; its 12 summary stats and, per category, (AP50, AP) over all areas."""
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
     per_cat = {}
     for k, cid in enumerate(ev.params.catIds):
         p = ev.eval["precision"][:, :, k, 0, -1]
         per_cat[cid] = (float(p[0][p[0] > -1].mean()), float(p[p > -1].mean()))
-    return [float(s) for s in ev.stats], per_cat
+    return [float(s) for s in ev.stats[:12]], per_cat
 
 
 def run_library(gt, dets):
@@ -113,15 +121,7 @@ def run_library(gt, dets):
         return None
 
     g = COCO(gt, print_function=quiet)
-    ev = COCOeval_faster(g, g.loadRes(dets), "bbox", print_function=quiet)
-    ev.evaluate()
-    ev.accumulate()
-    ev.summarize()
-    per_cat = {}
-    for k, cid in enumerate(ev.params.catIds):
-        p = ev.eval["precision"][:, :, k, 0, -1]
-        per_cat[cid] = (float(p[0][p[0] > -1].mean()), float(p[p > -1].mean()))
-    return [float(s) for s in ev.stats[:12]], per_cat
+    return _summary(COCOeval_faster(g, g.loadRes(dets), "bbox", print_function=quiet))
 
 
 def peak_rss_gib() -> float:
@@ -209,9 +209,9 @@ def main() -> int:
     ref_stats: list[float] = []
     ref_cat: dict[int, tuple[float, float]] = {}
     for _ in range(max(1, args.anchor_repeats)):
-        gt_copy, dets_copy = copy.deepcopy(gt), copy.deepcopy(dets)  # loadRes mutates its input; not timed
-        (ref_stats, ref_cat), c, w = timed(lambda: run_pycocotools(gt_copy, dets_copy))
-        del gt_copy, dets_copy
+        copies = copy.deepcopy((gt, dets))  # loadRes mutates its input; not timed
+        (ref_stats, ref_cat), c, w = timed(lambda: run_pycocotools(*copies))
+        copies = None  # freed before the next copy is made
         cpu_a.append(c)
         wall_a.append(w)
 

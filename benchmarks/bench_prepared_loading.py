@@ -16,25 +16,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from _common import median_time, on_path
 
-
-def _timed(fn, repeat: int) -> float:
-    """Median seconds of ``repeat`` calls after one warm-up call (page cache filled for both sides)."""
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+on_path()
 
 
 #: Loading a prepared sample against decoding its raw files (41x and 63x when the cache was introduced).
@@ -54,8 +42,8 @@ def main() -> None:
     import cv2
 
     from harness.api import PrepareReport
-    from harness.config import load_config
     from harness.cache import open_source, prepare
+    from harness.config import load_config
     from harness.sensing.radiometry import read_thermal
 
     cv2.setNumThreads(1)
@@ -86,9 +74,9 @@ def main() -> None:
             for a in (s.rgb, s.thermal, s.ir8, s.boxes, s.labels):
                 np.array(a)  # copy out of the memory map: the bytes a data loader hands on
 
-    t_anchor = _timed(raw_decode, args.repeat)
-    t_align = _timed(raw_align, max(1, args.repeat - 1))
-    t_prep = _timed(prepared, args.repeat)
+    t_anchor = median_time(raw_decode, args.repeat)
+    t_align = median_time(raw_align, max(1, args.repeat - 1))
+    t_prep = median_time(prepared, args.repeat)
     s0 = ds[0]
     rh, rw = cv2.imread(str(pairs[0][0])).shape[:2]
     print(f"m3t-synth {args.profile}: {n} samples; raw: RGB {rw}x{rh} JPEG + thermal {pairs[0][1].suffix} file; "

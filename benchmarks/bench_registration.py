@@ -36,12 +36,15 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    from sensing_scenes import render_pair
-
     from harness.sensing.registration import (
-        corner_error, estimate_homography_auto, focal_length_px, homography_from_focal_lengths,
-        homography_from_similarity, image_center,
+        corner_error,
+        estimate_homography_auto,
+        focal_length_px,
+        homography_from_focal_lengths,
+        homography_from_similarity,
+        image_center,
     )
+    from sensing_scenes import render_pair
 
     if args.m3t_size:
         rgb_size, th_size, up = (4000, 3000), (640, 512), 2
@@ -76,8 +79,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{'accepted!' if bad.ok else 'rejected':>10} {times[-1] * 1e3:>7.0f}")
     acc = np.array(accepted)
     print(f"\nprior (anchor): median corner error {prior_err:.2f} px")
+    median, worst = (float(np.median(acc)), float(acc.max())) if len(acc) else (float("nan"), float("nan"))
     print(f"accepted {len(acc)} / {args.scenes} true pairs; of those {int((acc < 1).sum())} under 1 px "
-          f"(median {np.median(acc) if len(acc) else float('nan'):.2f} px, worst {acc.max() if len(acc) else float('nan'):.2f} px)")
+          f"(median {median:.2f} px, worst {worst:.2f} px)")
     print(f"true pairs rejected: {rejected_good}; scrambled pairs accepted: {false_accept} / {args.scenes}")
     print(f"time per registration: median {statistics.median(times) * 1e3:.0f} ms "
           f"({th_size[0]}x{th_size[1]} thermal, {rgb_size[0]}x{rgb_size[1]} RGB, 1 thread)")

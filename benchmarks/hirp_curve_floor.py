@@ -26,15 +26,15 @@ shared values, so the steps belong to DJI's fixed-point temperature arithmetic, 
 
 from __future__ import annotations
 
-import argparse
 import struct
 import sys
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-DATA = REPO.parent / "shared" / "data" / "dji-rjpeg-cameras"
+from _common import SHARED_DATA, reference_arrays
+
+DATA = SHARED_DATA / "dji-rjpeg-cameras"
 APP4_PARAMS = 0x48        # measurement-parameter block inside the hirp APP4 payload
 CALIB_TYPE = 7            # HIDR block holding the 0x3800-byte calibration (payload 0x1C bytes into the block)
 
@@ -101,16 +101,9 @@ def planck_fit(raw: np.ndarray, temp: np.ndarray, weight: np.ndarray, info: dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=DATA)
-    args = ap.parse_args(argv)
-    refs = sorted(args.data.glob("*hirp*_reference.npz"))
-    if not refs:
-        print(f"no hirp reference arrays in {args.data}", file=sys.stderr)
-        return 1
-    for ref_path in refs:
+    for ref_path in reference_arrays(argv, __doc__.splitlines()[0], DATA, "*hirp*_reference.npz"):
         name = ref_path.name.replace("_reference.npz", "")
-        info = layout(args.data / f"{name}.jpg")
+        info = layout(ref_path.with_name(f"{name}.jpg"))
         ref = np.load(ref_path)
         raw = ref["raw14"].ravel().astype(np.int64)
         temp = ref["temp_c"].ravel().astype(np.float64)

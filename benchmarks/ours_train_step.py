@@ -12,13 +12,11 @@ printed as a ratio to the anchor.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
 
+from _common import median_time
 from adapters.detectors.yolo.v8 import build_yolov8
-
 
 #: The loss with its assigner, forward + backward, as a share of the network's step (1-2 % when measured).
 TARGET_LOSS = 0.05
@@ -33,17 +31,6 @@ def random_targets(batch: int, size: int, boxes: int, nc: int, seed: int = 0) ->
         out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
                     "labels": torch.randint(0, nc, (boxes,), generator=g)})
     return out
-
-
-def median_time(fn, iters: int, warmup: int = 1) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(iters):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def measure(size: int, batch: int, threads: int, boxes: int, iters: int, scale: str, nc: int = 8) -> dict[str, float]:
@@ -90,7 +77,8 @@ def main() -> None:
     args = p.parse_args()
     print(f"YOLOv8{args.scale} 4-channel, nc=8, {args.boxes} boxes/image, median of {args.iters} after 1 warm-up")
     print("anchor = network forward + backward + SGD step; loss = assigner + BCE + CIoU + DFL, forward + backward")
-    header = f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} {'full/anchor':>12}"
+    header = (f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} "
+              f"{'full/anchor':>12}")
     print(header)
     print("-" * len(header))
     worst = 0.0

@@ -32,9 +32,8 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--old-css", action="store_true")
     args = ap.parse_args()
-    from report_fixtures import synthetic_store
-
     from harness.report import build_report
+    from report_fixtures import synthetic_store
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -46,8 +45,11 @@ def main() -> None:
         build_report(store, out=root / "rep", resamples=10)
         html = (root / "rep" / "report.html").read_text()
         if args.old_css:
-            html = (html.replace("th, td.l { white-space: normal; }", "").replace("padding: 3px 6px", "padding: 4px 8px")
-                    .replace("th { font-size: 12.5px; }", ""))
+            html = (
+                html.replace("th, td.l { white-space: normal; }", "")
+                .replace("padding: 3px 6px", "padding: 4px 8px")
+                .replace("th { font-size: 12.5px; }", "")
+            )
         page = root / "rep" / "probe.html"
         page.write_text(html.replace("</body>", PROBE))
         out = subprocess.run(["/usr/bin/chromium", "--headless", "--no-sandbox", "--disable-gpu",

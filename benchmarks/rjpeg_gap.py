@@ -12,15 +12,14 @@ how many pixels of the corrected route equal ``temp_c`` exactly, and the deci-C 
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-DATA = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
+from _common import SHARED_DATA, reference_arrays
+
+DATA = SHARED_DATA / "dji-m3t-rjpeg"
 
 
 def flir_tau(distance_m: float, humidity_pct: float, t_atm_c: float) -> float:
@@ -41,19 +40,13 @@ def radiance_balance(t0_c: np.ndarray, emissivity: float, reflected_c: float, ta
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=DATA)
-    args = ap.parse_args(argv)
     from harness.sensing.radiometry import read_rjpeg
 
-    files = sorted(args.data.glob("*_reference.npz"))
-    if not files:
-        print(f"no reference arrays in {args.data}")
-        return 1
+    files = reference_arrays(argv, __doc__.splitlines()[0], DATA, "*_reference.npz")
     print(f"{'file':<8} {'raw14':>6} {'route':<28} {'mean d':>8} {'mean |d|':>9} {'P95 |d|':>8} {'max |d|':>8}")
     for ref_path in files:
         name = ref_path.name.replace("_reference.npz", "")
-        rj = read_rjpeg(args.data / f"{name}.jpg")
+        rj = read_rjpeg(ref_path.with_name(f"{name}.jpg"))
         ref = np.load(ref_path)
         exact = bool(np.array_equal(rj.raw14, ref["raw14"]))
         p = rj.params

@@ -8,8 +8,21 @@ The public surface for plugin authors is re-exported here: the hook marker, ever
 Fixtures for a plugin's own tests are in ``harness.testing`` (a pytest plugin).
 """
 
-from harness.api import (AlignedSample, CommandGroup, DatasetSource, DatasetSpec, DetectorSpec, EncodingSpec, Fold,
-                         InputKind, LoggerSpec, PrepareReport, Reference, RunLogger, TrackingOptions)
+from harness.api import (
+    AlignedSample,
+    CommandGroup,
+    DatasetSource,
+    DatasetSpec,
+    DetectorSpec,
+    EncodingSpec,
+    Fold,
+    InputKind,
+    LoggerSpec,
+    PrepareReport,
+    Reference,
+    RunLogger,
+    TrackingOptions,
+)
 from harness.contracts import validate_sample
 from harness.errors import HarnessError, PluginError
 from harness.hookspecs import hookimpl

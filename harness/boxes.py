@@ -8,6 +8,7 @@ thousands of candidate boxes.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -15,7 +16,7 @@ import torch
 
 def xyxy_to_xywh(b: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Corners to COCO (top-left x, top-left y, width, height)."""
-    out = b.clone() if isinstance(b, torch.Tensor) else np.array(b, copy=True)
+    out: Any = b.clone() if isinstance(b, torch.Tensor) else np.array(b, copy=True)
     out[..., 2] = b[..., 2] - b[..., 0]
     out[..., 3] = b[..., 3] - b[..., 1]
     return out
@@ -23,7 +24,7 @@ def xyxy_to_xywh(b: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
 
 def xywh_to_xyxy(b: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """COCO (top-left x, y, w, h) to corners."""
-    out = b.clone() if isinstance(b, torch.Tensor) else np.array(b, copy=True)
+    out: Any = b.clone() if isinstance(b, torch.Tensor) else np.array(b, copy=True)
     out[..., 2] = b[..., 0] + b[..., 2]
     out[..., 3] = b[..., 1] + b[..., 3]
     return out

@@ -29,7 +29,14 @@ from typing import Any, Mapping, Sequence
 from harness.errors import HarnessError, StoreError
 from harness.io import read_json
 from harness.report.reader import (
-    APPROXIMATE, Entry, FoldResult, ResultLabel, StoredRun, StoreView, label_notes, marks,
+    APPROXIMATE,
+    Entry,
+    FoldResult,
+    ResultLabel,
+    StoredRun,
+    StoreView,
+    label_notes,
+    marks,
 )
 from harness.report.tables import Stat, format_value
 

@@ -33,8 +33,14 @@ def measure(model: Any, input_kind: str, in_channels: int, thermal_channels: int
     from harness.profiling.model_io import example_inputs, fused_copy
     from harness.profiling.params import count_parameters, reachable_parameters
 
-    rec: dict[str, Any] = {"schema": SCHEMA, "model_options": dict(model_options or {}), "num_classes": int(num_classes),
-                           "input_kind": input_kind, "in_channels": int(in_channels), "imgsz": int(imgsz)}
+    rec: dict[str, Any] = {
+        "schema": SCHEMA,
+        "model_options": dict(model_options or {}),
+        "num_classes": int(num_classes),
+        "input_kind": input_kind,
+        "in_channels": int(in_channels),
+        "imgsz": int(imgsz),
+    }
     try:
         small = example_inputs(input_kind, int(imgsz), 1, in_channels, thermal_channels, device="meta")
         params = reachable_parameters(model, small)

@@ -26,6 +26,7 @@ from typing import Any, Iterable, Mapping
 import yaml
 
 from harness.errors import ConfigError
+from harness.io import read_text
 
 ENV_CONFIG_DIR = "HARNESS_CONFIG_DIR"
 
@@ -68,12 +69,7 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _constru
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping with ``safe_load`` semantics; errors name the file and the line."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_text(path, ConfigError, "config file")
     try:
         data = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as exc:
@@ -145,7 +141,9 @@ def merge(base: dict[str, Any], update: Mapping[str, Any], schema_node: Mapping[
             )
         if isinstance(value, Mapping) and isinstance(out.get(key), dict):
             open_map = isinstance(default, dict) and not default
-            out[key] = merge(out[key], value, None if (open_map or schema_node is None) else default, source, dotted + ".")
+            out[key] = merge(
+                out[key], value, None if (open_map or schema_node is None) else default, source, dotted + "."
+            )
         else:
             out[key] = copy.deepcopy(_plain(value))
     return out
@@ -225,8 +223,10 @@ def _named_file(root: Path, kind: str, name: str, option: str) -> Path:
     """``<root>/<kind>/<name>.yaml`` for a profile, protocol or detector name; a name that is a path (``../x``,
     ``a/b``, an absolute path) is refused, so a name can never read a file outside the config folder."""
     if not name or name in (".", "..") or any(c in name for c in ("/", "\\", "\x00")) or os.path.isabs(name):
-        raise ConfigError(f"{option} {name!r}: expected a plain name such as those under {root / kind} "
-                          f"(available: {', '.join(available(kind)) or 'none'}); to use your own file, pass --config FILE")
+        raise ConfigError(
+            f"{option} {name!r}: expected a plain name such as those under {root / kind} "
+            f"(available: {', '.join(available(kind)) or 'none'}); to use your own file, pass --config FILE"
+        )
     return root / kind / f"{name}.yaml"
 
 
@@ -253,7 +253,9 @@ def load_config(
 
         path = shipped_protocol(protocol) or _named_file(root, "protocols", protocol, "protocol")
         if not path.exists():
-            raise ConfigError(f"unknown protocol {protocol!r}: no {path} (available: {', '.join(available('protocols'))})")
+            raise ConfigError(
+                f"unknown protocol {protocol!r}: no {path} (available: {', '.join(available('protocols'))})"
+            )
         layers.append((str(path), read_yaml(path)))
     if detector_defaults:
         layers.append((f"defaults of detector {detector!r}", detector_defaults))

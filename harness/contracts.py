@@ -266,8 +266,8 @@ def validate_sample(sample: AlignedSample, num_classes: int | None = None,
             i = int(np.nonzero(outside)[0][0])
             raise _fail(sample, "boxes", f"box {i} {boxes[i].tolist()} lies outside the {w}x{h} frame")
         if (labels < 0).any() or (num_classes is not None and (labels >= num_classes).any()):
-            bad = labels[(labels < 0) | ((labels >= num_classes) if num_classes is not None else False)]
-            raise _fail(sample, "labels", f"label {int(bad[0])} outside 0..{(num_classes or 0) - 1}")
+            wrong = labels[(labels < 0) | ((labels >= num_classes) if num_classes is not None else False)]
+            raise _fail(sample, "labels", f"label {int(wrong[0])} outside 0..{(num_classes or 0) - 1}")
     return sample
 
 

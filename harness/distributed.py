@@ -107,8 +107,11 @@ def init_from_env(backend: str | None = None, timeout_s: float = 1800.0) -> Dist
     backend = backend or ("nccl" if cuda else "gloo")
     if cuda:
         torch.cuda.set_device(env.local_rank)
-    dist.init_process_group(backend=backend, timeout=timedelta(seconds=timeout_s),
-                            **({"device_id": torch.device("cuda", env.local_rank)} if cuda and backend == "nccl" else {}))
+    dist.init_process_group(
+        backend=backend,
+        timeout=timedelta(seconds=timeout_s),
+        **({"device_id": torch.device("cuda", env.local_rank)} if cuda and backend == "nccl" else {}),
+    )
     log.info("process group %s: rank %d of %d (local rank %d)", backend, env.rank, env.world_size, env.local_rank)
     return info()
 

@@ -20,17 +20,18 @@ from typing import Any
 
 import numpy as np
 
-from harness.api import EncodingSpec
+from harness.api import AlignedSample, EncodingSpec
 from harness.errors import PluginError
 from harness.hookspecs import hookimpl
-from harness.api import AlignedSample
 from harness.sensing import c2 as c2mod
 
 
 def encode_c2(sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE,
               floor: float = c2mod.FLOOR) -> np.ndarray:
     """``round(255 * C2(T))``: C2 of the temperature map in C (floor in C)."""
-    return c2mod.c2_uint8(sample.thermal, sigma=sigma, percentile=percentile, floor=floor, name=sample.name)
+    # sample.thermal is present: the host checks what an encoding needs before calling it
+    return c2mod.c2_uint8(sample.thermal, sigma=sigma, percentile=percentile, floor=floor,  # type: ignore[arg-type]
+                          name=sample.name)
 
 
 def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: float = 60.0,
@@ -67,7 +68,7 @@ def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: f
 
 def encode_linear16(sample: AlignedSample, mode: str = "minmax", t_min: float = 0.0, t_max: float = 60.0,
                     percentiles: tuple[float, float] | list[float] = (1.0, 99.0)) -> np.ndarray:
-    return linear_map(sample.thermal, mode=mode, t_min=t_min, t_max=t_max,
+    return linear_map(sample.thermal, mode=mode, t_min=t_min, t_max=t_max,  # type: ignore[arg-type]
                       percentiles=tuple(percentiles))  # type: ignore[arg-type]
 
 

@@ -89,7 +89,9 @@ def _finding(kind: str, message: str, examples: Sequence[str]) -> Finding:
 
 
 def _name(record: Mapping[str, Any]) -> str:
-    meta = record.get("meta") if isinstance(record.get("meta"), dict) else {}
+    meta = record.get("meta")
+    if not isinstance(meta, dict):
+        meta = {}
     return str(meta.get("file_name") or f"image {record['image_id']}")
 
 

@@ -13,7 +13,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, IO
+from typing import IO, Any, Callable
 
 
 def current_umask() -> int:
@@ -120,17 +120,26 @@ def file_digest(path: str | Path, algorithm: str = "sha1") -> str:
     return h.hexdigest()
 
 
+def read_text(path: str | Path, error: type[Exception] | None = None, what: str = "file") -> str:
+    """The UTF-8 text of ``path``; a missing or unreadable file is an ``error`` (default ``DataError``) naming it
+    (``"<path>: <what> not found"``, ``"<path>: cannot read (<reason>)"``)."""
+    from harness.errors import DataError
+
+    fail = error or DataError
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise fail(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise fail(f"{path}: cannot read ({exc.strerror})") from None
+
+
 def read_json(path: str | Path) -> Any:
     """Read JSON; a malformed file is a ``DataError`` naming the file and the position."""
     from harness.errors import DataError
 
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DataError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
+    text = read_text(path)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

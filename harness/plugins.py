@@ -493,8 +493,8 @@ def _check_unmarked(plugin: Any, name: str) -> None:
             fn = getattr(plugin, attr)
         except Exception:  # noqa: BLE001 - a property that fails is not a hook
             continue
-        hook = attr if attr in hook_names() else difflib.get_close_matches(attr, hook_names(), n=1, cutoff=0.85)
-        hook = hook if isinstance(hook, str) else (hook[0] if hook else None)
+        near = [attr] if attr in hook_names() else difflib.get_close_matches(attr, hook_names(), n=1, cutoff=0.85)
+        hook = near[0] if near else None
         if hook is None or not callable(fn) or hasattr(fn, marker):
             continue
         msg = (f"function {attr!r} looks like the hook {hook!r} but has no @hookimpl, so the harness never calls "

@@ -45,8 +45,8 @@ if TYPE_CHECKING:
     import torch
 
     from harness.api import DatasetSpec, DetectorSpec, EncodingSpec, Fold
-    from harness.plugins import PluginHost
     from harness.cache import PreparedDataset
+    from harness.plugins import PluginHost
 
 log = logging.getLogger(__name__)
 
@@ -435,8 +435,11 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
     hd.barrier()
     stored = False
     tracker = tracking.for_run(cfg, r.path.parents[len(r.key.parts()) - 1]) if main else tracking.Tracker()
-    tracker.start(str(r.key), tracking.flatten_params(cfg), {"detector": det.name, "dataset": r.key.dataset,
-                                                              "encoding": enc.name, "fold": fold.name, "seed": str(seed)})
+    tracker.start(
+        str(r.key),
+        tracking.flatten_params(cfg),
+        {"detector": det.name, "dataset": r.key.dataset, "encoding": enc.name, "fold": fold.name, "seed": str(seed)},
+    )
     try:
         settings = TrainSettings.from_config(cfg, seed)
         eval_cfg = cfg["eval"]
@@ -491,7 +494,8 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
                 overall.epoch_done(int(record["epoch"]), int(record["epochs"]))
 
         trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
-                          det.thermal_channels, r.checkpoint_dir, validate, on_epoch, progress, digest, name)
+                          det.thermal_channels, r.checkpoint_dir, validate,  # type: ignore[arg-type]
+                          on_epoch, progress, digest, name)
         resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model
@@ -526,14 +530,29 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
             "support": support,
             "metrics": evaluation["metrics"],
             "per_category": evaluation["per_category"],
-            "model": {"params": int(params), "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-                      "in_channels": in_channels, "input_kind": det.input_kind, "weights": cfg["train"].get("final", "best")},
-            "train": {**train_summary, "images": len(train_idx), "imgsz": settings.imgsz, "batch": settings.batch,
-                      "init": init_report, "predict_s": round(predict_s, 3), "predict_images": len(visited),
-                      "processes": dist.world_size,
-                      "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None},
+            "model": {
+                "params": int(params),
+                "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+                "in_channels": in_channels,
+                "input_kind": det.input_kind,
+                "weights": cfg["train"].get("final", "best"),
+            },
+            "train": {
+                **train_summary,
+                "images": len(train_idx),
+                "imgsz": settings.imgsz,
+                "batch": settings.batch,
+                "init": init_report,
+                "predict_s": round(predict_s, 3),
+                "predict_images": len(visited),
+                "processes": dist.world_size,
+                "predict_images_per_s": round(len(val_idx) / predict_s, 2) if predict_s > 0 else None,
+            },
             "complexity": complexity,
-            "environment": {**environment(trainer.device), "torch_deterministic": torch.are_deterministic_algorithms_enabled()},
+            "environment": {
+                **environment(trainer.device),
+                "torch_deterministic": torch.are_deterministic_algorithms_enabled(),
+            },
             "degenerate_detections": degenerate.to_dict(),
             "input_risks": list((cfg.get("meta") or {}).get("input_risks") or []),  # accepted by inputs.accept
         }

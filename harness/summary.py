@@ -51,7 +51,7 @@ class SizeSummary:
     """Boxes per category (rows, label order) and per size bin (columns, ``SIZE_BINS`` order)."""
 
     categories: list[str]
-    counts: np.ndarray = field(default=None)  # type: ignore[assignment]
+    counts: np.ndarray = field(default=None)  # type: ignore[arg-type]
     images: int = 0
 
     def __post_init__(self) -> None:
@@ -104,8 +104,10 @@ class SizeSummary:
         if not self.total:
             return "object sizes: no boxes"
         s = self.shares()
-        return (f"object sizes: {100 * s[0]:.1f} % of {self.total:,} boxes are under {FINEST_STRIDE}x{FINEST_STRIDE} px "
-                f"(the finest detector stride), {100 * (s[0] + s[1]):.1f} % under 16x16 px")
+        return (
+            f"object sizes: {100 * s[0]:.1f} % of {self.total:,} boxes are under {FINEST_STRIDE}x{FINEST_STRIDE} px "
+            f"(the finest detector stride), {100 * (s[0] + s[1]):.1f} % under 16x16 px"
+        )
 
     def rows(self) -> list[list[Any]]:
         """Per category: name, count per bin, total; then an ``all`` row and a ``share`` row (percent)."""

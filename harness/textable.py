@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-
 #: Default output width: everything a command prints fits a 100-column terminal.
 WIDTH = 100
 

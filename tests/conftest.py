@@ -17,7 +17,9 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-pytest_plugins = ["harness.testing", "pytester"]
+# Fixtures for every test module: ``datasets_helpers`` (the tiny synthetic M3T set: ``tiny_source``, ``tiny``) and
+# ``engine_helpers`` (``shapes_run_plugins``: the shapes dataset and the example TinyDet registered for one test)
+pytest_plugins = ["harness.testing", "pytester", "datasets_helpers", "engine_helpers"]
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"

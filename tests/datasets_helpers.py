@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
@@ -28,6 +29,27 @@ def tiny(tiny_source: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "m3t"
     shutil.copytree(tiny_source, dst)
     return dst
+
+
+def skip_reasons(prepared: Any) -> dict[str, int]:
+    """The skips of a prepared dataset's prepare report, counted by reason."""
+    return prepared.manifest["report"]["skip_reasons"]
+
+
+@contextlib.contextmanager
+def edited_json(path: Path) -> Iterator[Any]:
+    """Damage a JSON file for a test: read it, let the ``with`` block change the document, write it back."""
+    doc = json.loads(path.read_text())
+    yield doc
+    path.write_text(json.dumps(doc))
+
+
+def write_or_remove(path: Path, content: str | None) -> None:
+    """Damage a file for a test: write ``content`` over it, or remove it when ``content`` is ``None``."""
+    if content is None:
+        path.unlink()
+    else:
+        path.write_text(content)
 
 
 def synth_cfg(root: Path, **dataset: Any) -> dict[str, Any]:

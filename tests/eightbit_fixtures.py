@@ -8,15 +8,22 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any, Callable
 
 import cv2
 import numpy as np
+import pytest
+
+from harness.api import PrepareReport
+from harness.errors import ConfigError, DataError
 
 RGBT_CLASSES = ("ship", "car", "cyclist", "pedestrian", "bus", "drone", "plane")
 M3FD_NAMES = ("People", "Car", "Bus", "Motorcycle", "Lamp", "Truck")
 
 
-def _draw(h: int, w: int, boxes: list[tuple[float, float, float, float]], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _draw(
+    h: int, w: int, boxes: list[tuple[float, float, float, float]], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """(visible BGR, thermal grey) with a blob per xywh box."""
     vis = np.full((h, w, 3), 70, np.uint8) + rng.integers(0, 20, (h, w, 3), dtype=np.uint8)
     th = np.full((h, w), 40, np.uint8) + rng.integers(0, 15, (h, w), dtype=np.uint8)
@@ -37,8 +44,16 @@ def _frame_boxes(rng: np.random.Generator, w: int, h: int, n: int) -> list[tuple
     return out
 
 
-def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_seqs=("DJI_0101_1",), frames: int = 3,
-                    size: tuple[int, int] = (64, 48), split_files: bool = True, seed: int = 0, flat: bool = False) -> dict:
+def write_rgbt_tiny(
+    root: Path,
+    train_seqs=("DJI_0001_1", "DJI_0002_1"),
+    test_seqs=("DJI_0101_1",),
+    frames: int = 3,
+    size: tuple[int, int] = (64, 48),
+    split_files: bool = True,
+    seed: int = 0,
+    flat: bool = False,
+) -> dict:
     """Write ``images/``, ``annotations_coco/`` and ``data_split/`` under ``root``; return what was written.
 
     ``flat=True`` writes what unzipping the three release archives into ``root`` gives: the sequence folders, the
@@ -68,7 +83,9 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
                 for m, img in (("00", vis), ("01", th)):
                     p = images / seq / m / f"{frame}.jpg"
                     p.parent.mkdir(parents=True, exist_ok=True)
-                    cv2.imwrite(str(p), img if m == "00" else cv2.merge([img, img, img]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+                    cv2.imwrite(
+                        str(p), img if m == "00" else cv2.merge([img, img, img]), [cv2.IMWRITE_JPEG_QUALITY, 95]
+                    )
                 t_boxes = [(float(x), float(y), float(bw), float(bh), c) for x, y, bw, bh, c in objs]
                 v_boxes = [(x + 1, y + 1, bw, bh, c) for x, y, bw, bh, c in t_boxes]
                 if f == 0:
@@ -79,7 +96,10 @@ def write_rgbt_tiny(root: Path, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_se
         n = len(keys)
         for idx, (seq, frame) in enumerate(keys):
             ids = {"01": idx + 1, "00": 5000 + (n - 1 - idx)}
-            for m, boxes in (("01", expected["thermal_boxes"][seq, frame]), ("00", expected["visible_boxes"][seq, frame])):
+            for m, boxes in (
+                ("01", expected["thermal_boxes"][seq, frame]),
+                ("00", expected["visible_boxes"][seq, frame]),
+            ):
                 docs[m]["images"].append({"id": ids[m], "file_name": f"{seq}/{m}/{frame}.jpg", "width": w, "height": h})
                 for x, y, bw, bh, c in boxes:
                     docs[m]["annotations"].append({
@@ -125,7 +145,9 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
         stem = f"{n:05d}"
         cv2.imwrite(str(base / "Vis" / f"{stem}.png"), vis)
         cv2.imwrite(str(base / "Ir" / f"{stem}.png"), cv2.merge([th, th, th]))
-        names = [M3FD_NAMES[c] if not (k == 1 and j == 0) else f"{M3FD_NAMES[c].lower()} " for j, (*_, c) in enumerate(objs)]
+        names = [
+            M3FD_NAMES[c] if not (k == 1 and j == 0) else f"{M3FD_NAMES[c].lower()} " for j, (*_, c) in enumerate(objs)
+        ]
         # labelImg's convention: 1-based inclusive pixel indices (pixels x .. x+bw-1 are written x+1 .. x+bw)
         write_voc(base / "Annotation" / f"{stem}.xml", f"{stem}.png", w, h,
                   [(nm, x + 1, y + 1, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
@@ -142,8 +164,9 @@ def write_voc(path: Path, filename: str, w: int, h: int, objects, folder: str = 
         for name, x0, y0, x1, y1, *rest in objects
     )
     path.write_text(
-        f"<annotation>\n  <folder>{folder}</folder>\n  <filename>{filename}</filename>\n  <size>\n    <width>{w}</width>\n"
-        f"    <height>{h}</height>\n    <depth>3</depth>\n  </size>\n{obj_xml}</annotation>\n"
+        f"<annotation>\n  <folder>{folder}</folder>\n  <filename>{filename}</filename>\n"
+        f"  <size>\n    <width>{w}</width>\n    <height>{h}</height>\n    <depth>3</depth>\n  </size>\n"
+        f"{obj_xml}</annotation>\n"
     )
 
 
@@ -210,7 +233,9 @@ def build_trained_store(base: Path) -> dict:
                  cache)
     assert res.exit_code == 0, res.output
     out["pretrain_output"] = res.output
-    out["checkpoint"] = Path(next(line.split(maxsplit=1)[1] for line in res.output.splitlines() if line.startswith("checkpoint:")))
+    out["checkpoint"] = Path(
+        next(line.split(maxsplit=1)[1] for line in res.output.splitlines() if line.startswith("checkpoint:"))
+    )
     rgbt = ["run", "--detector", "ours", "--dataset", "rgbt-tiny", "--set", f"dataset.root={rgbt_root}", *common]
     for name, extra in (("run_init", ["--init", str(out["checkpoint"])]), ("run_ir8", ["--encoding", "ir8"]),
                         ("run_visible", ["--set", "dataset.gt=visible"])):
@@ -218,3 +243,35 @@ def build_trained_store(base: Path) -> dict:
         assert res.exit_code == 0, res.output
         out[name] = res.output
     return out
+
+
+def collect(source: Any) -> tuple[list[Any], PrepareReport]:
+    """Every sample of an opened dataset source, and its prepare report."""
+    report = PrepareReport()
+    return list(source.samples(report)), report
+
+
+def collect_with_drops(open_source: Callable[..., Any], root: Path, kept: int, reasons: dict[str, int],
+                       strict_error: str = "strict") -> tuple[list[Any], PrepareReport]:
+    """Collect the samples of ``open_source(root)``: ``kept`` of them, the skips counted by ``reasons``; opened with
+    ``strict=True`` the same release is an error matching ``strict_error``. Returns the samples and the report."""
+    samples, report = collect(open_source(root))
+    assert len(samples) == kept
+    assert report.summary()["skip_reasons"] == reasons
+    with pytest.raises(DataError, match=strict_error):
+        open_source(root, strict=True)
+    return samples, report
+
+
+def check_layout_errors(open_source: Callable[..., Any], env: str, folder: Path, made: str, missing: str,
+                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """No root and no ``env`` is an error naming the variable; a ``folder`` holding only ``made`` is one naming what
+    is ``missing``; ``strict="yes"`` is a ``ConfigError``."""
+    monkeypatch.delenv(env, raising=False)
+    with pytest.raises(DataError, match=env):
+        open_source()
+    (folder / made).mkdir()
+    with pytest.raises(DataError, match=f"missing {missing}"):
+        open_source(folder)
+    with pytest.raises(ConfigError, match="'strict' must be true or false"):
+        open_source(folder, strict="yes")

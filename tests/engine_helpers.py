@@ -42,7 +42,7 @@ def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
 @pytest.fixture
 def shapes_run_plugins(host: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
     """The shapes dataset, the test encodings and the example TinyDet plugin registered for one test, with a cache
-    of its own (import it into a test module as the fixture ``plugins``)."""
+    of its own (a fixture of every test module, through ``conftest.py``)."""
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     with shapes_and_tinydet("run"):
         yield host

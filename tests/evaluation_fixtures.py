@@ -48,8 +48,14 @@ def random_coco(seed: int, n_images: int = 40, n_cats: int = 4, absent_cat: bool
     if dense_image:
         for _ in range(130):
             s = float(rng.uniform(5, 60))
-            dets.append({"image_id": 1, "category_id": 1, "bbox": [float(rng.uniform(0, 500)), float(rng.uniform(0, 400)), s, s],
-                         "score": float(rng.uniform(0.0, 1.0))})
+            dets.append(
+                {
+                    "image_id": 1,
+                    "category_id": 1,
+                    "bbox": [float(rng.uniform(0, 500)), float(rng.uniform(0, 400)), s, s],
+                    "score": float(rng.uniform(0.0, 1.0)),
+                }
+            )
     order = rng.permutation(len(dets))
     dets = [dets[i] for i in order]
     return {"info": {}, "images": images, "annotations": anns, "categories": cats}, dets

@@ -257,7 +257,6 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
         cases.append(Case(name, path, expect, why, plain, kind[0]))
         return path
 
-    refused = r"refused"
     # --- code that would run ------------------------------------------------------------------------------
     torch.save({"model": {"w": torch.ones(4)}, "x": _Shell(marker)}, add("reduce_os_system", r"posix\.system.*refused",
                                                                          "__reduce__ -> os.system"))

@@ -26,7 +26,6 @@ import time
 import traceback
 from pathlib import Path
 
-
 _LIBC = ctypes.CDLL("libc.so.6")
 
 

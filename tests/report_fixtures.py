@@ -3,15 +3,34 @@ detections of a chosen quality, scored by ``harness.evaluation.evaluate`` (no ha
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import pytest
 
 from harness.io import atomic_write_json
 from harness.store import RunKey, Store
 
 CATEGORIES = ("window", "crack", "delamination", "water_seepage")
+CHROMIUM = Path("/usr/bin/chromium")
+#: A test that opens a report in Debian's headless Chromium: skipped where it is not installed.
+needs_chromium = pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),
+                                    reason="Debian's chromium is not installed (apt-get install chromium; .ci/run "
+                                           "installs it)")
+
+
+def chromium_screenshot(page: Path, shot: Path, profile_dir: Path, size: str = "1400,5200"
+                        ) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """Open ``page`` headless, screenshot it into ``shot``; the finished process and the page's console messages."""
+    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           "--disable-dev-shm-usage", f"--user-data-dir={profile_dir}", "--enable-logging=stderr", "--v=0",
+           "--hide-scrollbars", f"--window-size={size}", f"--screenshot={shot}", page.resolve().as_uri()]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+    return proc, [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
 
 
 def make_gt(n_images: int, rng: np.random.Generator, first_id: int = 1, categories: Sequence[str] = CATEGORIES,
@@ -45,15 +64,30 @@ def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float 
         if rng.random() < recall:
             x, y, w, h = a["bbox"]
             cat = a["category_id"] if rng.random() >= label_noise else int(rng.integers(1, ncat + 1))
-            dets.append({"image_id": a["image_id"], "category_id": cat,
-                         "bbox": [x + rng.normal(0, jitter), y + rng.normal(0, jitter), max(1.0, w + rng.normal(0, jitter)),
-                                  max(1.0, h + rng.normal(0, jitter))], "score": float(rng.uniform(0.5, 1.0))})
+            dets.append(
+                {
+                    "image_id": a["image_id"],
+                    "category_id": cat,
+                    "bbox": [
+                        x + rng.normal(0, jitter),
+                        y + rng.normal(0, jitter),
+                        max(1.0, w + rng.normal(0, jitter)),
+                        max(1.0, h + rng.normal(0, jitter)),
+                    ],
+                    "score": float(rng.uniform(0.5, 1.0)),
+                }
+            )
     for im in gt["images"]:
         for _ in range(int(rng.poisson(false_positives))):
             w, h = float(rng.uniform(10, 40)), float(rng.uniform(10, 40))
-            dets.append({"image_id": im["id"], "category_id": int(rng.integers(1, ncat + 1)),
-                         "bbox": [float(rng.uniform(0, im["width"] - w)), float(rng.uniform(0, im["height"] - h)), w, h],
-                         "score": float(rng.uniform(0.0, 0.6))})
+            dets.append(
+                {
+                    "image_id": im["id"],
+                    "category_id": int(rng.integers(1, ncat + 1)),
+                    "bbox": [float(rng.uniform(0, im["width"] - w)), float(rng.uniform(0, im["height"] - h)), w, h],
+                    "score": float(rng.uniform(0.0, 0.6)),
+                }
+            )
     return dets
 
 
@@ -108,8 +142,13 @@ def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = (
         for f in folds:
             drng = np.random.default_rng([seed, i, folds.index(f)])
             comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
-            write_run(store, RunKey(dataset, det, "c2", f, 0), gts[f], make_detections(gts[f], drng, **QUALITY[quality]),
-                      complexity=comp)
+            write_run(
+                store,
+                RunKey(dataset, det, "c2", f, 0),
+                gts[f],
+                make_detections(gts[f], drng, **QUALITY[quality]),
+                complexity=comp,
+            )
     for det, encs in (encodings or {}).items():
         for j, enc in enumerate(encs):
             drng = np.random.default_rng([seed, 100 + j])

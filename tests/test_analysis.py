@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from evaluation_fixtures import canonical, random_coco
-from harness.evaluation import evaluate
 from harness.evaluation import analysis as A
+from harness.evaluation import evaluate
 from harness.evaluation.analysis import NO_ANALYSIS, analyse, analysis_of, store_analysis
 from harness.evaluation.inputs import prepare
 from harness.store import RunKey, Store

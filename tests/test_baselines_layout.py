@@ -44,7 +44,11 @@ def conv_keys(p: str, c1: int, c2: int, k: int) -> dict[str, tuple]:
 
 def c3_keys(p: str, c1: int, c2: int, n: int) -> dict[str, tuple]:
     c_ = c2 // 2
-    out = {**conv_keys(f"{p}.cv1", c1, c_, 1), **conv_keys(f"{p}.cv2", c1, c_, 1), **conv_keys(f"{p}.cv3", 2 * c_, c2, 1)}
+    out = {
+        **conv_keys(f"{p}.cv1", c1, c_, 1),
+        **conv_keys(f"{p}.cv2", c1, c_, 1),
+        **conv_keys(f"{p}.cv3", 2 * c_, c2, 1),
+    }
     for i in range(n):
         out.update(conv_keys(f"{p}.m.{i}.cv1", c_, c_, 1))
         out.update(conv_keys(f"{p}.m.{i}.cv2", c_, c_, 3))

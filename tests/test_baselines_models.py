@@ -141,7 +141,7 @@ def test_icafusion_upsamples_tokens_nearest_in_training_and_bilinear_in_eval():
     block = TransformerFusionBlock(16, 4, 4, heads=8, attn_pdrop=0.0, resid_pdrop=0.0)
     with torch.no_grad():
         block.pos_emb_vis.normal_()
-    v, t = torch.rand(1, 16, 16, 16), torch.rand(1, 16, 16, 16)
+    v, _ = torch.rand(1, 16, 16, 16), torch.rand(1, 16, 16, 16)
     tokens = block._tokens(v, block.vis_coefficient, block.pos_emb_vis)
     block.train()
     near = block._back(tokens, v)
@@ -236,7 +236,9 @@ def test_bfcfm_corrects_each_modality_with_the_other():
     v, t = torch.rand(2, 8, 5, 5), torch.rand(2, 8, 5, 5)
     assert block(v, t).shape == (2, 8, 5, 5)
     # channel MLP 4C -> 4C -> 2C, spatial 2C -> C -> 2 (biased convs), fuse CBS 2C -> C (conv + BN), C = 8
-    assert sum(p.numel() for p in block.parameters()) == (32 * 32 + 32) + (32 * 16 + 16) + (16 * 8 + 8) + (8 * 2 + 2) + (16 * 8 + 2 * 8)
+    assert sum(p.numel() for p in block.parameters()) == (32 * 32 + 32) + (32 * 16 + 16) + (16 * 8 + 8) + (
+        8 * 2 + 2
+    ) + (16 * 8 + 2 * 8)
 
 
 # ------------------------------------------------------------------------------------------------ errors, plugin

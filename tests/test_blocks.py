@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from adapters.detectors.yolo.blocks import C2f, C3, SPPF, Conv, fuse_model
+from adapters.detectors.yolo.blocks import C3, SPPF, C2f, Conv, fuse_model
 
 
 def n_params(m):

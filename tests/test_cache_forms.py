@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
+from datasets_helpers import synth_cfg
 from harness.cache import forms as CF
 from harness.cache import prepare
 from harness.errors import DataError

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import pytest
-from datasets_helpers import tiny_source  # noqa: F401  (session fixture: the tiny synthetic M3T set)
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 pytest.importorskip("harness.runner", reason="needs the training engine (`harness run`)")

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from coco_rgbt_helpers import H, W, centikelvin, make_coco_rgbt, read_json, temperature, write_json
+from datasets_helpers import edited_json, skip_reasons, write_or_remove
 from harness.errors import ConfigError, DataError
 
 
@@ -26,20 +27,23 @@ def pairs(pairs_source, tmp_path) -> Path:
 
 
 def _prepare(root: Path, cache: Path, **options):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     cfg = load_config(protocol="default")
     cfg["dataset"] = {"root": str(root), **options}
     return prepare("coco-rgbt", cfg, cache_root=cache, progress=False)
 
 
-def _skips(ds) -> dict[str, int]:
-    return ds.manifest["report"]["skip_reasons"]
-
-
 def _skipped(ds) -> list[list[str]]:
     return ds.manifest["report"]["skipped_files"]
+
+
+def _prepare_skipping(root: Path, cache: Path, kept: int, skips: dict[str, int]) -> dict[str, str]:
+    """Prepare, check that ``kept`` samples remain and what was skipped (counted by reason); the reason of each file."""
+    ds = _prepare(root, cache)
+    assert len(ds) == kept and skip_reasons(ds) == skips
+    return dict(_skipped(ds))
 
 
 # ------------------------------------------------------------------------------------------- end to end (CLI)
@@ -90,12 +94,11 @@ def test_thermal_is_the_decoded_temperature_and_c2_is_computed_from_it(pairs_sou
 
 
 def test_folds_given_in_the_json_replace_one_fold_per_group(pairs, tmp_path):
-    from harness.config import load_config
     from harness.cache import resolve_folds
+    from harness.config import load_config
 
-    coco = read_json(pairs)
-    coco["folds"] = {"ab": ["site-a", "site-b"], "c": ["site-c"]}
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["folds"] = {"ab": ["site-a", "site-b"], "c": ["site-c"]}
     ds = _prepare(pairs, tmp_path / "c")
     folds = resolve_folds("coco-rgbt", ds, load_config(protocol="default"))
     assert [(f.name, f.val_groups, f.train_groups) for f in folds] == [
@@ -117,7 +120,7 @@ def test_tiff_in_centikelvin_or_celsius_rjpeg_and_sidecar_units_are_read(pairs, 
         coco["images"][k]["thermal_file_name"] = f"thermal/{k:03d}.{ext}"
     write_json(pairs, coco)
     ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 12 and _skips(ds) == {}
+    assert len(ds) == 12 and skip_reasons(ds) == {}
     by_id = {ds[i].image_id: ds[i] for i in range(len(ds))}
     np.testing.assert_array_equal(by_id[1].thermal, t0)
     assert np.abs(by_id[2].thermal - t1).max() < 0.1  # R-JPEG raw14 counts: 1/16 K steps
@@ -130,10 +133,9 @@ def test_tiff_in_centikelvin_or_celsius_rjpeg_and_sidecar_units_are_read(pairs, 
 def test_scale_and_offset_options_override_the_default_unit(pairs, tmp_path):
     import cv2
 
-    coco = read_json(pairs)
-    coco["images"] = coco["images"][:3]  # one per group
-    coco["annotations"] = [a for a in coco["annotations"] if a["image_id"] <= 3]
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["images"] = coco["images"][:3]  # one per group
+        coco["annotations"] = [a for a in coco["annotations"] if a["image_id"] <= 3]
     for k in range(3):  # deci-Kelvin
         cv2.imwrite(str(pairs / "thermal" / f"{k:03d}.png"), np.rint((temperature(k) + 273.15) * 10).astype(np.uint16))
     with pytest.raises(DataError, match="no usable image pairs.*implausible temperatures: 3"):
@@ -170,7 +172,7 @@ def test_rgb_of_another_size_is_registered_by_the_group_homography(pairs, tmp_pa
     coco["images"][1]["homography"] = half  # image 2 (001.png, site-b) gives its own
     write_json(pairs, coco)
     ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 12 and _skips(ds) == {}
+    assert len(ds) == 12 and skip_reasons(ds) == {}
     by_id = {ds[i].image_id: ds[i] for i in range(len(ds))}
     for iid in (1, 2):
         s = by_id[iid]
@@ -187,9 +189,8 @@ def test_registration_crops_to_the_common_support_and_moves_the_boxes(pairs, tmp
 
     rgb = cv2.imread(str(pairs / "rgb" / "000.png"))
     cv2.imwrite(str(pairs / "rgb" / "000.png"), rgb[:, 8:])  # 56x48: the RGB camera missed the left 8 columns
-    coco = read_json(pairs)
-    coco["images"][0]["homography"] = [[1, 0, 8], [0, 1, 0], [0, 0, 1]]  # RGB x + 8 = thermal x
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["images"][0]["homography"] = [[1, 0, 8], [0, 1, 0], [0, 0, 1]]  # RGB x + 8 = thermal x
     ds = _prepare(pairs, tmp_path / "c")
     s = next(ds[i] for i in range(len(ds)) if ds[i].image_id == 1)
     assert s.rgb.shape == (H, W - 8, 3) and s.thermal.shape == (H, W - 8)
@@ -206,29 +207,23 @@ def test_missing_thermal_partner_is_a_counted_skip(pairs, tmp_path):
     coco = read_json(pairs)
     del coco["images"][1]["thermal_file_name"]
     write_json(pairs, coco)
-    ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 10 and _skips(ds) == {"missing thermal partner": 2}
-    reasons = dict(_skipped(ds))
+    reasons = _prepare_skipping(pairs, tmp_path / "c", 10, {"missing thermal partner": 2})
     assert "thermal/000.png not found" in reasons["rgb/000.png"]
     assert "has no 'thermal_file_name'" in reasons["rgb/001.png"]
 
 
 def test_missing_rgb_file_is_a_counted_skip(pairs, tmp_path):
     (pairs / "rgb" / "003.png").unlink()
-    ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 11 and _skips(ds) == {"missing RGB image": 1}
+    _prepare_skipping(pairs, tmp_path / "c", 11, {"missing RGB image": 1})
 
 
 def test_size_mismatch_without_a_homography_is_a_counted_skip_naming_the_fix(pairs, tmp_path):
     import cv2
 
     cv2.imwrite(str(pairs / "rgb" / "000.png"), np.zeros((2 * H, 2 * W, 3), np.uint8))
-    coco = read_json(pairs)
-    coco["images"][1]["width"] = 640
-    write_json(pairs, coco)
-    ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 10 and _skips(ds) == {"size mismatch": 2}
-    reasons = dict(_skipped(ds))
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["images"][1]["width"] = 640
+    reasons = _prepare_skipping(pairs, tmp_path / "c", 10, {"size mismatch": 2})
     assert "RGB rgb/000.png is 128x96, thermal thermal/000.png is 64x48" in reasons["rgb/000.png"]
     assert "homographies['site-a']" in reasons["rgb/000.png"]
     assert "the JSON says 640x48" in reasons["rgb/001.png"]
@@ -236,8 +231,8 @@ def test_size_mismatch_without_a_homography_is_a_counted_skip_naming_the_fix(pai
 
 def _prepare_accepting(root: Path, cache: Path, kind: str, **options):
     """Prepare with ``inputs.accept=[kind]`` (the guard's option that accepts the finding)."""
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     cfg = load_config(protocol="default", overrides=[f"inputs.accept=[{kind}]"])
     cfg["dataset"] = {"root": str(root), **options}
@@ -259,7 +254,7 @@ def test_a_category_missing_from_the_file_stops_instead_of_dropping_its_boxes(pa
     assert all(len(line) <= 100 for line in lines[1:6])
     assert "inputs.accept=[dropped-annotations]" in lines[7]
     ds = _prepare_accepting(pairs, tmp_path / "c", "dropped-annotations")
-    assert len(ds) == 12 and _skips(ds) == {"annotation with an unknown category id": 12}
+    assert len(ds) == 12 and skip_reasons(ds) == {"annotation with an unknown category id": 12}
     assert "1 hot_spot, 2 window" in _skipped(ds)[0][1]
     assert ds.manifest["instances"] == 12
     assert [r["kind"] for r in ds.input_risks] == ["dropped-annotations"]
@@ -278,7 +273,7 @@ def test_box_outside_the_image_stops_with_a_summary_and_partial_boxes_are_clippe
     assert lines[2].startswith("    e.g. annotations.json#annotation=1: annotation box outside the image: [501.0,")
     assert lines[4].endswith("(and 2 more)") and all(len(line) <= 100 for line in lines[1:5])
     ds = _prepare_accepting(pairs, tmp_path / "c", "all")
-    assert len(ds) == 12 and _skips(ds) == {"annotation box outside the image": 5}
+    assert len(ds) == 12 and skip_reasons(ds) == {"annotation box outside the image": 5}
     assert _skipped(ds)[0][0] == "annotations.json#annotation=1"
     assert any("1 box(es) reaching past the image edge were clipped" in n for n in ds.manifest["report"]["notes"])
     clipped = next(ds[i] for i in range(len(ds)) if ds[i].image_id == coco["annotations"][5]["image_id"])
@@ -286,30 +281,27 @@ def test_box_outside_the_image_stops_with_a_summary_and_partial_boxes_are_clippe
 
 
 def test_duplicate_image_ids_are_a_clear_error(pairs, tmp_path):
-    coco = read_json(pairs)
-    coco["images"][1]["id"] = coco["images"][0]["id"]
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["images"][1]["id"] = coco["images"][0]["id"]
     with pytest.raises(DataError, match=r"annotations.json: duplicate image id 1 \('rgb/000.png' and 'rgb/001.png'\)"):
         _prepare(pairs, tmp_path / "c")
     assert not list((tmp_path / "c").rglob("manifest.json"))
 
 
 def test_duplicate_category_ids_are_a_clear_error(pairs, tmp_path):
-    coco = read_json(pairs)
-    coco["categories"][1]["id"] = 1
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["categories"][1]["id"] = 1
     with pytest.raises(DataError, match=r"duplicate category id 1 \('hot_spot' and 'window'\)"):
         _prepare(pairs, tmp_path / "c")
 
 
 def test_duplicate_annotation_ids_are_dropped_annotations(pairs, tmp_path):
-    coco = read_json(pairs)
-    coco["annotations"][3]["id"] = coco["annotations"][0]["id"]
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["annotations"][3]["id"] = coco["annotations"][0]["id"]
     with pytest.raises(DataError, match="dropped-annotations: 1 annotation"):
         _prepare(pairs, tmp_path / "c")
     ds = _prepare_accepting(pairs, tmp_path / "c", "dropped-annotations")
-    assert _skips(ds) == {"annotation with a duplicate id": 1} and ds.manifest["instances"] == 23
+    assert skip_reasons(ds) == {"annotation with a duplicate id": 1} and ds.manifest["instances"] == 23
 
 
 def test_image_without_a_group_or_with_an_escaping_path_is_a_counted_skip(pairs, tmp_path):
@@ -318,7 +310,7 @@ def test_image_without_a_group_or_with_an_escaping_path_is_a_counted_skip(pairs,
     coco["images"][1]["thermal_file_name"] = "../../../etc/passwd"
     write_json(pairs, coco)
     ds = _prepare(pairs, tmp_path / "c")
-    assert len(ds) == 10 and _skips(ds) == {"no group": 1, "path outside the dataset root": 1}
+    assert len(ds) == 10 and skip_reasons(ds) == {"no group": 1, "path outside the dataset root": 1}
 
 
 def test_unreadable_and_mostly_missing_thermal_are_counted_skips_a_few_holes_are_kept(pairs, tmp_path):
@@ -331,12 +323,11 @@ def test_unreadable_and_mostly_missing_thermal_are_counted_skips_a_few_holes_are
     mostly = temperature(2)
     mostly[: mostly.shape[0] * 3 // 4] = np.nan
     tifffile.imwrite(pairs / "thermal" / "002.tif", mostly)
-    coco = read_json(pairs)
-    coco["images"][1]["thermal_file_name"] = "thermal/001.tif"
-    coco["images"][2]["thermal_file_name"] = "thermal/002.tif"
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["images"][1]["thermal_file_name"] = "thermal/001.tif"
+        coco["images"][2]["thermal_file_name"] = "thermal/002.tif"
     ds = _prepare(pairs, tmp_path / "c")
-    assert _skips(ds) == {"thermal unreadable": 1, "non-finite temperatures": 1}
+    assert skip_reasons(ds) == {"thermal unreadable": 1, "non-finite temperatures": 1}
     missing = ds.manifest["report"]["missing_temperatures"]
     assert missing["samples"] == 1 and missing["pixels"] == 2  # the holed frame is kept, its two holes counted
 
@@ -349,20 +340,15 @@ def test_unreadable_and_mostly_missing_thermal_are_counted_skips_a_few_holes_are
     ('{"images": [], "categories": []}', "'categories' is empty"),
 ])
 def test_broken_annotation_file_is_a_clear_error(pairs, tmp_path, content, message):
-    path = pairs / "annotations.json"
-    if content is None:
-        path.unlink()
-    else:
-        path.write_text(content)
+    write_or_remove(pairs / "annotations.json", content)
     with pytest.raises(DataError, match=message) as exc:
         _prepare(pairs, tmp_path / "c")
     assert "annotations.json" in str(exc.value)
 
 
 def test_folds_naming_an_unknown_group_are_a_clear_error(pairs, tmp_path):
-    coco = read_json(pairs)
-    coco["folds"] = {"x": ["site-z"]}
-    write_json(pairs, coco)
+    with edited_json(pairs / "annotations.json") as coco:
+        coco["folds"] = {"x": ["site-z"]}
     with pytest.raises(DataError, match="fold 'x' holds out 'site-z'.*site-a, site-b, site-c"):
         _prepare(pairs, tmp_path / "c")
 
@@ -378,8 +364,8 @@ def test_bad_options_are_config_errors(pairs_source, tmp_path, options, message)
 
 
 def test_a_bad_warp_setting_is_a_config_error(pairs_source, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     cfg = load_config(protocol="default", overrides=["sensing.warp.interpolation=bicubic"])
     cfg["dataset"] = {"root": str(pairs_source)}

@@ -121,7 +121,9 @@ def test_clear_errors_for_missing_store_or_dataset(trained, tmp_path):
     res = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "no results store here" in res.output
     res = invoke(["compare", "--datasets", "m3t,rgbt-tiny", "--store", str(trained["store"])])
-    assert res.exit_code == 2 and "no finished runs for dataset(s) m3t" in res.output and "m3fd, rgbt-tiny" in res.output
+    assert (
+        res.exit_code == 2 and "no finished runs for dataset(s) m3t" in res.output and "m3fd, rgbt-tiny" in res.output
+    )
 
 
 def test_text_table_aligns_and_shows_mean_and_sd():

@@ -30,7 +30,9 @@ def test_cli_overrides_win_and_are_typed():
 
 
 def test_detector_defaults_layer_below_profile():
-    cfg = load_config(profile="smoke", detector="x", detector_defaults={"eval": {"iou": 0.5}, "protocol": {"imgsz": 999}})
+    cfg = load_config(
+        profile="smoke", detector="x", detector_defaults={"eval": {"iou": 0.5}, "protocol": {"imgsz": 999}}
+    )
     assert cfg["eval"]["iou"] == 0.5
     assert cfg["protocol"]["imgsz"] != 999  # the profile is applied after the detector's defaults
 

@@ -91,8 +91,8 @@ def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypat
 
 # ------------------------------------------------------------------------------------------- open and prepare
 def test_sensing_is_passed_only_to_an_open_that_takes_it_and_source_categories_win(tmp_path):
-    from harness.config import load_config
     from harness.cache import open_source, prepare, resolve_folds
+    from harness.config import load_config
 
     cfg = load_config(protocol="default", overrides=["sensing.warp.crop=false"])
     with_sensing = DatasetSpec("contract-test", open=lambda root=None, sensing=None: _Source(sensing), categories=())
@@ -121,10 +121,9 @@ def test_skip_reasons_are_counted_by_their_label():
 @pytest.mark.parametrize("sensing_stage", [False, True])
 def test_report_shows_sensor_sections_only_for_datasets_with_a_sensing_stage(tmp_path, sensing_stage):
     pytest.importorskip("harness.evaluation")
-    from report_fixtures import synthetic_store
-
     from harness.hookspecs import hookimpl
     from harness.report import build_report
+    from report_fixtures import synthetic_store
 
     store = synthetic_store(tmp_path / "store", folds=("P1", "P2"), per_fold=3, detectors={"alpha": "strong"})
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
+from datasets_helpers import edited_json, skip_reasons, synth_cfg, write_or_remove
 from harness.errors import DataError
 
 
@@ -25,17 +25,9 @@ def _coco(root: Path) -> dict:
     return json.loads((root / "annotations" / "instances_rgb.json").read_text())
 
 
-def _write_coco(root: Path, coco: dict) -> None:
-    (root / "annotations" / "instances_rgb.json").write_text(json.dumps(coco))
-
-
 def _first_pair(root: Path) -> tuple[Path, Path]:
     rgb = root / "images" / _coco(root)["images"][0]["file_name"]
     return rgb, rgb.with_name(rgb.name.replace("_W.JPG", "_T.JPG"))
-
-
-def _skips(ds) -> dict[str, int]:
-    return ds.manifest["report"]["skip_reasons"]
 
 
 # ------------------------------------------------------------------------------------------------ counted skips
@@ -43,7 +35,7 @@ def test_missing_thermal_partner_is_a_counted_skip(tiny, tmp_path):
     _, thermal = _first_pair(tiny)
     thermal.unlink()
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 7 and _skips(ds) == {"missing thermal partner": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"missing thermal partner": 1}
     listed = ds.manifest["report"]["skipped_files"]
     assert listed[0][0].endswith("_W.JPG") and "no P1/" in listed[0][1]
 
@@ -52,7 +44,7 @@ def test_unreadable_rgb_is_a_counted_skip(tiny, tmp_path):
     rgb, _ = _first_pair(tiny)
     rgb.write_bytes(b"this is not a JPEG")
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 7 and _skips(ds) == {"RGB unreadable": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"RGB unreadable": 1}
 
 
 def test_unreadable_thermal_is_a_counted_skip(tiny, tmp_path):
@@ -60,14 +52,14 @@ def test_unreadable_thermal_is_a_counted_skip(tiny, tmp_path):
     data = thermal.read_bytes()
     thermal.write_bytes(data[: len(data) // 3])  # cut short inside the radiometric payload
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 7 and _skips(ds) == {"thermal unreadable": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"thermal unreadable": 1}
 
 
 def test_plain_jpeg_instead_of_rjpeg_is_a_counted_skip(tiny, tmp_path):
     rgb, thermal = _first_pair(tiny)
     thermal.write_bytes(rgb.read_bytes())  # a JPEG without APP3 payload
     ds = _prepare(tiny, tmp_path / "c")
-    assert _skips(ds) == {"thermal unreadable": 1}
+    assert skip_reasons(ds) == {"thermal unreadable": 1}
     assert "no radiometric payload" in ds.manifest["report"]["skipped_files"][0][1]
 
 
@@ -77,7 +69,7 @@ def test_thermal_size_mismatch_is_a_counted_skip(tiny, tmp_path):
     _, thermal = _first_pair(tiny)
     write_rjpeg(thermal, np.full((64, 80), 20.0, np.float32))
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 7 and _skips(ds) == {"thermal size mismatch": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"thermal size mismatch": 1}
     assert "80x64, expected 160x128" in ds.manifest["report"]["skipped_files"][0][1]
 
 
@@ -88,56 +80,52 @@ def test_a_few_missing_temperatures_are_kept_and_counted_mostly_missing_is_a_cou
     thermal.unlink()
     np.save(thermal.with_suffix(".npy"), temp)
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 8 and not _skips(ds)
+    assert len(ds) == 8 and not skip_reasons(ds)
     missing = ds.manifest["report"]["missing_temperatures"]
     assert missing["samples"] == 1 and missing["pixels"] >= 20  # undistortion may widen the holes
 
     temp[:100] = np.nan
     np.save(thermal.with_suffix(".npy"), temp)
     ds = _prepare(tiny, tmp_path / "d")
-    assert len(ds) == 7 and _skips(ds) == {"non-finite temperatures": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"non-finite temperatures": 1}
 
 
 def test_rgb_size_differing_from_the_annotation_file_is_a_counted_skip(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["images"][0]["width"] = 4000
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["images"][0]["width"] = 4000
     ds = _prepare(tiny, tmp_path / "c")
-    assert _skips(ds) == {"RGB size mismatch": 1}
+    assert skip_reasons(ds) == {"RGB size mismatch": 1}
 
 
 def test_box_outside_the_image_is_counted_and_stops_unless_accepted_partial_boxes_are_clipped(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["annotations"][0]["bbox"] = [5000.0, 10.0, 20.0, 20.0]
-    coco["annotations"][1]["bbox"] = [-30.0, 10.0, 40.0, 20.0]
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["annotations"][0]["bbox"] = [5000.0, 10.0, 20.0, 20.0]
+        coco["annotations"][1]["bbox"] = [-30.0, 10.0, 40.0, 20.0]
     with pytest.raises(DataError, match=r"dropped-annotations: 1 annotation\(s\) dropped"):
         _prepare(tiny, tmp_path / "c")  # a dropped box would be an unlabelled object: the guard stops
     ds = _prepare(tiny, tmp_path / "c", accept=("dropped-annotations",))
-    assert len(ds) == 8 and _skips(ds) == {"annotation box outside the image": 1}
+    assert len(ds) == 8 and skip_reasons(ds) == {"annotation box outside the image": 1}
     assert any("clipped" in n for n in ds.manifest["report"]["notes"])
 
 
 def test_malformed_annotations_are_counted_and_stop_unless_accepted(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["annotations"][0]["category_id"] = 99
-    coco["annotations"][1]["image_id"] = 12345
-    coco["annotations"][2]["bbox"] = [1, 2, 0, 5]
-    coco["annotations"][3]["bbox"] = "wide"
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["annotations"][0]["category_id"] = 99
+        coco["annotations"][1]["image_id"] = 12345
+        coco["annotations"][2]["bbox"] = [1, 2, 0, 5]
+        coco["annotations"][3]["bbox"] = "wide"
     with pytest.raises(DataError, match=r"dropped-annotations: 4 annotation\(s\) dropped"):
         _prepare(tiny, tmp_path / "c")
     ds = _prepare(tiny, tmp_path / "c", accept=("dropped-annotations",))
-    assert _skips(ds) == {"annotation with an unknown category id": 1, "annotation for an unknown image id": 1,
+    assert skip_reasons(ds) == {"annotation with an unknown category id": 1, "annotation for an unknown image id": 1,
                           "annotation box malformed": 2}
 
 
 def test_image_path_escaping_the_root_is_a_counted_skip(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["images"][0]["file_name"] = "../../../../etc/passwd"
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["images"][0]["file_name"] = "../../../../etc/passwd"
     ds = _prepare(tiny, tmp_path / "c")
-    assert len(ds) == 7 and _skips(ds) == {"path outside the dataset root": 1}
+    assert len(ds) == 7 and skip_reasons(ds) == {"path outside the dataset root": 1}
 
 
 # ------------------------------------------------------------------------------------------------ clear errors
@@ -150,11 +138,7 @@ def test_image_path_escaping_the_root_is_a_counted_skip(tiny, tmp_path):
     ('{"annotations": []}', "'images' is missing"),
 ])
 def test_broken_annotation_file_is_a_clear_error(tiny, tmp_path, content, message):
-    path = tiny / "annotations" / "instances_rgb.json"
-    if content is None:
-        path.unlink()
-    else:
-        path.write_text(content)
+    write_or_remove(tiny / "annotations" / "instances_rgb.json", content)
     with pytest.raises(DataError, match=message) as exc:
         _prepare(tiny, tmp_path / "c")
     assert "instances_rgb.json" in str(exc.value)
@@ -162,9 +146,8 @@ def test_broken_annotation_file_is_a_clear_error(tiny, tmp_path, content, messag
 
 
 def test_unknown_category_is_a_clear_error_that_says_how_to_map_it(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["categories"][4]["name"] = "peeling_paint"
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["categories"][4]["name"] = "peeling_paint"
     with pytest.raises(DataError, match="unknown category name.*'peeling_paint'.*manifest key 'categories'"):
         _prepare(tiny, tmp_path / "c")
     (tiny / "m3t.yaml").write_text("categories: {peeling_paint: paint_peeling}\n")
@@ -172,9 +155,8 @@ def test_unknown_category_is_a_clear_error_that_says_how_to_map_it(tiny, tmp_pat
 
 
 def test_duplicate_image_ids_are_a_clear_error(tiny, tmp_path):
-    coco = _coco(tiny)
-    coco["images"][1]["id"] = coco["images"][0]["id"]
-    _write_coco(tiny, coco)
+    with edited_json(tiny / "annotations" / "instances_rgb.json") as coco:
+        coco["images"][1]["id"] = coco["images"][0]["id"]
     with pytest.raises(DataError, match=r"duplicate image id \d+ \('P1/DJI_.*' and 'P1/DJI_.*'\)"):
         _prepare(tiny, tmp_path / "c")
 

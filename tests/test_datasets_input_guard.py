@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.api import DatasetSpec, Fold
+from harness.api import AlignedSample, DatasetSpec, Fold
 from harness.errors import ConfigError, DataError, PluginError
-from harness.api import AlignedSample
 
 H, W = 24, 32
 
@@ -50,8 +49,8 @@ def _spec(samples, fail=None) -> DatasetSpec:
 
 
 def _prepare(spec, tmp_path, *overrides):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     cfg = load_config(protocol="default", overrides=list(overrides))
     return prepare(spec, cfg, cache_root=tmp_path / "cache", progress=False)
@@ -179,8 +178,8 @@ def _coco_rgbt(tmp_path) -> Path:
 
 
 def _prepare_coco(root, tmp_path, **options):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     cfg = load_config(protocol="default")
     cfg["dataset"] = {"root": str(root), **options}

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from adapters.datasets.m3t import M3T_CATEGORIES, clip_box_xywh, load_manifest, open_m3t, safe_join, time_from_name
-from datasets_helpers import corner_errors, synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
+from datasets_helpers import corner_errors, synth_cfg
 from harness.api import PrepareReport
 from harness.errors import DataError
 

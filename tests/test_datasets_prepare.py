@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets_helpers import synth_cfg, tiny, tiny_source  # noqa: F401  (fixtures)
-from harness.errors import ConfigError, DataError
+from datasets_helpers import synth_cfg
 from harness.cache import cache_key, coco_path, fold_indices, prepare, resolve_folds
+from harness.errors import ConfigError, DataError
 
 
 def _prep(root: Path, cache: Path, cfg: dict | None = None, **kw):

@@ -15,7 +15,6 @@ from adapters.datasets.m3t import M3T_CATEGORIES
 from adapters.datasets.synthetic.generation import _sawtooth
 from adapters.datasets.synthetic.painting import _overlaps
 from harness.sensing.registration import apply_homography, plane_homography
-from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 
 
 # ------------------------------------------------------------------------------------------------ geometry

@@ -8,8 +8,15 @@ import torch
 
 from engine_helpers import ENCODINGS, write_dataset
 from harness import EncodingSpec
-from harness.engine.data import (AugmentSettings, EpochSampler, LetterboxDataset, SampleSource, TrainDataset, collate,
-                                 to_inputs)
+from harness.engine.data import (
+    AugmentSettings,
+    EpochSampler,
+    LetterboxDataset,
+    SampleSource,
+    TrainDataset,
+    collate,
+    to_inputs,
+)
 from harness.errors import ConfigError
 
 IR8, NONE = ENCODINGS

@@ -33,7 +33,9 @@ class Oracle(nn.Module):
                 for sl in ndimage.find_objects(lab):
                     boxes.append([sl[1].start, sl[0].start, sl[1].stop, sl[0].stop])
             b = torch.tensor(boxes, dtype=torch.float32).reshape(-1, 4)
-            out.append({"boxes": b, "scores": torch.full((len(b),), 0.9), "labels": torch.zeros(len(b), dtype=torch.long)})
+            out.append(
+                {"boxes": b, "scores": torch.full((len(b),), 0.9), "labels": torch.zeros(len(b), dtype=torch.long)}
+            )
         return out
 
 
@@ -48,7 +50,12 @@ def test_letterbox_is_undone_exactly():
            "scores": torch.tensor([0.9, 0.4]), "labels": torch.tensor([2, 0])}
     out = detections_to_coco(det, 7, lb)
     # the score at the model's full float32 precision (not rounded to 5 decimals)
-    assert out[0] == {"image_id": 7, "category_id": 3, "bbox": [20.0, 20.0, 40.0, 40.0], "score": float(np.float32(0.9))}
+    assert out[0] == {
+        "image_id": 7,
+        "category_id": 3,
+        "bbox": [20.0, 20.0, 40.0, 40.0],
+        "score": float(np.float32(0.9)),
+    }
     assert out[1]["bbox"] == [180.0, 48.0, 20.0, 16.0]  # clipped to the 200 x 64 frame
     assert out[1]["category_id"] == 1
 

@@ -1,4 +1,5 @@
-"""The training loop: the loss falls, a resumed run reaches the same state, the 4th channel is used, errors are clear."""
+"""The training loop: the loss falls, a resumed run reaches the same state, the 4th channel is used, errors are
+clear."""
 
 from __future__ import annotations
 
@@ -49,7 +50,11 @@ def test_loss_decreases_on_a_tiny_batch(prepared):
 def _validate(src):
     def validate(model):
         dets = predict(model, src, 64, batch=8, conf=0.05, iou=0.6, max_det=50)
-        return {"mAP50": len(dets) / (10 * len(src)) % 1.0, "mAP50_95": float(np.mean([d["score"] for d in dets]) if dets else 0.0)}
+        return {
+            "mAP50": len(dets) / (10 * len(src)) % 1.0,
+            "mAP50_95": float(np.mean([d["score"] for d in dets]) if dets else 0.0),
+        }
+
     return validate
 
 
@@ -108,7 +113,8 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
 
 
 def _label_accuracy(model, src, classes=(1, 2)) -> float:
-    """Among ground-truth boxes of ``classes``, the share whose best-overlapping confident detection has the right label."""
+    """Among ground-truth boxes of ``classes``, the share whose best-overlapping confident detection has the right
+    label."""
     from harness.boxes import box_iou
 
     dets = predict(model, src, 64, batch=8, conf=0.2, iou=0.6, max_det=50)
@@ -122,7 +128,9 @@ def _label_accuracy(model, src, classes=(1, 2)) -> float:
             total += 1
             if not mine:
                 continue
-            xyxy = torch.tensor([[d["bbox"][0], d["bbox"][1], d["bbox"][0] + d["bbox"][2], d["bbox"][1] + d["bbox"][3]] for d in mine])
+            xyxy = torch.tensor(
+                [[d["bbox"][0], d["bbox"][1], d["bbox"][0] + d["bbox"][2], d["bbox"][1] + d["bbox"][3]] for d in mine]
+            )
             iou = box_iou(torch.as_tensor(b)[None], xyxy)[0]
             j = int(iou.argmax())
             hits += int(iou[j] > 0.3 and mine[j]["category_id"] - 1 == lab)
@@ -145,32 +153,32 @@ def test_the_fourth_channel_is_what_tells_warm_from_cold(prepared):
     assert acc["test-none"] < 0.7, acc  # RGB alone cannot do much better than guessing between the two
 
 
+class _LossStub(nn.Module):
+    """A model of one parameter ``w`` whose training forward returns ``losses(w)``, whatever the batch."""
+
+    def __init__(self, losses):
+        super().__init__()
+        self.w = nn.Parameter(torch.ones(1))
+        self.losses = losses
+
+    def forward(self, x, targets=None):
+        return self.losses(self.w)
+
+
 def test_non_finite_loss_is_a_clear_error(prepared):
-    class Exploding(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = nn.Parameter(torch.ones(1))
-
-        def forward(self, x, targets=None):
-            return {"box": self.w * float("nan"), "cls": self.w.sum()}
-
+    exploding = _LossStub(lambda w: {"box": w * float("nan"), "cls": w.sum()})
     src = SampleSource(prepared, list(range(4)), IR8)
     with pytest.raises(TrainingError, match=r"loss box became nan at epoch 1, iteration 1.*lr0"):
-        Trainer(Exploding(), TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False).fit()
+        Trainer(exploding, TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False).fit()
 
 
 def test_a_model_breaking_the_contract_is_named(prepared):
-    class ListLoss(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = nn.Parameter(torch.ones(1))
-
-        def forward(self, x, targets=None):
-            return [self.w.sum()]
-
+    list_loss = _LossStub(lambda w: [w.sum()])
     src = SampleSource(prepared, list(range(4)), IR8)
     with pytest.raises(PluginError, match="'broken'.*dict of scalar loss"):
-        Trainer(ListLoss(), TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False, name="broken").fit()
+        Trainer(
+            list_loss, TrainDataset(src, 64, AugmentSettings.off()), settings(), progress=False, name="broken"
+        ).fit()
 
 
 def test_early_stopping_after_patience_epochs(prepared):

@@ -1,4 +1,5 @@
-"""The evaluator against plain pycocotools, edge cases pycocotools gets wrong, and the precision/recall operating point."""
+"""The evaluator against plain pycocotools, edge cases pycocotools gets wrong, and the precision/recall operating
+point."""
 
 from __future__ import annotations
 
@@ -147,7 +148,9 @@ def test_gt_annotation_id_zero_is_renumbered():
     naive_stats, _ = pycocotools_reference(zero, dets)
     assert naive_stats[1] < ref_stats[1]
     for engine in ENGINES:
-        assert evaluate(zero, dets, engine=engine)["metrics"]["coco_stats"] == pytest.approx(nullable(ref_stats), abs=1e-12)
+        assert evaluate(zero, dets, engine=engine)["metrics"]["coco_stats"] == pytest.approx(
+            nullable(ref_stats), abs=1e-12
+        )
 
 
 def test_missing_area_and_iscrowd_default_like_coco():
@@ -193,10 +196,14 @@ def test_no_ground_truth_at_all_is_undefined_not_a_crash():
 
 def _box_case():
     """One category, two GT; detections: 0.9 hits GT1, 0.8 misses, 0.7 hits GT2, 0.6 duplicates GT1."""
-    gt = {"images": [{"id": 1, "width": 100, "height": 100}],
-          "annotations": [{"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400, "iscrowd": 0},
-                          {"id": 2, "image_id": 1, "category_id": 1, "bbox": [60, 60, 20, 20], "area": 400, "iscrowd": 0}],
-          "categories": [{"id": 1, "name": "crack"}]}
+    gt = {
+        "images": [{"id": 1, "width": 100, "height": 100}],
+        "annotations": [
+            {"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400, "iscrowd": 0},
+            {"id": 2, "image_id": 1, "category_id": 1, "bbox": [60, 60, 20, 20], "area": 400, "iscrowd": 0},
+        ],
+        "categories": [{"id": 1, "name": "crack"}],
+    }
     dets = [{"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},
             {"image_id": 1, "category_id": 1, "bbox": [40, 5, 10, 10], "score": 0.8},
             {"image_id": 1, "category_id": 1, "bbox": [61, 61, 20, 20], "score": 0.7},
@@ -227,7 +234,9 @@ def test_operating_point_averages_f1_over_categories_with_gt():
 
 def test_crowd_matches_are_ignored_by_the_operating_point():
     gt, dets = _box_case()
-    gt["annotations"].append({"id": 3, "image_id": 1, "category_id": 1, "bbox": [35, 0, 30, 30], "area": 900, "iscrowd": 1})
+    gt["annotations"].append(
+        {"id": 3, "image_id": 1, "category_id": 1, "bbox": [35, 0, 30, 30], "area": 900, "iscrowd": 1}
+    )
     for engine in ENGINES:
         m = evaluate(gt, dets, engine=engine)["metrics"]
         # the 0.8 detection now falls in the crowd region: it is neither TP nor FP; t=0.7 gives P 1, R 1
@@ -300,7 +309,8 @@ def test_bulk_greedy_matching_equals_cocoeval(seed):
     layout = pair_layout(prep, 100)
     got = layout.greedy_match(prep, layout.values(prep, iou_elementwise), threshold=0.5)
     assert len(ref) > 50 and got == ref
-    assert got[dets.index(exact) + 1] == renumbered[10_001]  # of two identical GT boxes, the later one (crowd comes last)
+    # of two identical GT boxes, the later one (crowd comes last)
+    assert got[dets.index(exact) + 1] == renumbered[10_001]
 
 
 def test_bulk_iou_matrices_are_bitwise_cocoeval_s():

@@ -9,8 +9,8 @@ import stat
 import numpy as np
 import pytest
 
-from harness.io import atomic_write_json, atomic_write_text, current_umask, make_temp_dir
 from harness.api import AlignedSample
+from harness.io import atomic_write_json, atomic_write_text, current_umask, make_temp_dir
 
 
 @pytest.fixture(params=[0o022, 0o002], ids=["umask022", "umask002"])

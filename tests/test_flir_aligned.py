@@ -7,20 +7,15 @@ import numpy as np
 import pytest
 
 from adapters.datasets import flir_aligned
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import collect, collect_with_drops
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 from public_fixtures import FLIR_FRAMES, write_flir_aligned
 
 
 @pytest.fixture
 def release(tmp_path):
     return tmp_path, write_flir_aligned(tmp_path)
-
-
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
 
 
 def test_label_path_follows_the_yolo_rule():
@@ -57,15 +52,12 @@ def test_missing_partner_missing_labels_and_bad_lines(release):
     (base / "infrared" / "test" / "images" / "FLIR_08865_PreviewData.jpeg").unlink()
     (base / "visible" / "train" / "labels" / "FLIR_00003_RGB.txt").unlink()
     (base / "visible" / "train" / "labels" / "FLIR_00005_RGB.txt").write_text("0 0.5 0.5 0.1 0.1\n3 0.5 0.5 0.1 0.1\n")
-    samples, report = collect(flir_aligned.open_flir_aligned(root))
-    assert len(samples) == 3
-    assert report.summary()["skip_reasons"] == {"missing infrared frame": 1, "malformed labels": 1}
+    samples, report = collect_with_drops(flir_aligned.open_flir_aligned, root, 3,
+                                         {"missing infrared frame": 1, "malformed labels": 1})
     reason = dict(report.skipped)[str(base / "visible" / "train" / "labels" / "FLIR_00005_RGB.txt")]
     assert "FLIR_00005_RGB.txt: line 2: class 3 outside 0..2" in reason
     unlabelled = next(s for s in samples if s.meta["frame"] == "FLIR_00003")
     assert unlabelled.boxes.shape == (0, 4) and any("1 image(s) without a label file" in n for n in report.notes)
-    with pytest.raises(DataError, match="strict"):
-        flir_aligned.open_flir_aligned(root, strict=True)
 
 
 def test_one_class_variant_and_option_errors(release, tmp_path, monkeypatch):
@@ -119,8 +111,8 @@ def test_a_tree_with_both_kinds_of_label_folder_must_name_its_layout(tmp_path):
 
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     spec = host.dataset("flir-aligned")
     assert spec.categories == ("person", "car", "bicycle") and spec.protocol == "flir-aligned"
@@ -171,8 +163,8 @@ def test_labels_where_the_adapter_does_not_find_them_stop_the_preparation(tmp_pa
     nothing, and names the images; with the folder the same tree prepares every box."""
     import shutil
 
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     write_flir_aligned(tmp_path, layout="icafusion")
     labels = tmp_path / "FLIR-align-3class" / "labels"

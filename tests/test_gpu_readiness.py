@@ -82,9 +82,8 @@ def test_training_with_workers_and_channels_last_matches_the_plain_run(host, tmp
     is seeded per sample), so the same losses up to the float rounding of the memory format."""
     pytest.importorskip("harness.cache")
     from engine_helpers import ShapesPlugin, tinydet_module
-
-    from harness.testing import temporary_plugin
     from harness.runner import RunRequest, run
+    from harness.testing import temporary_plugin
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     tinydet_module()

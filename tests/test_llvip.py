@@ -6,9 +6,7 @@ import numpy as np
 import pytest
 
 from adapters.datasets import llvip
-from eightbit_fixtures import write_voc
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import check_layout_errors, collect, collect_with_drops, write_voc
 from harness.contracts import validate_sample
 from public_fixtures import LLVIP_FRAMES, write_llvip
 
@@ -18,11 +16,6 @@ def release(tmp_path):
     return tmp_path, write_llvip(tmp_path)
 
 
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
-
-
 def test_pairs_by_name_per_split_with_the_voc_rule(release):
     root, expected = release
     samples, report = collect(llvip.open_llvip(root))
@@ -30,7 +23,10 @@ def test_pairs_by_name_per_split_with_the_voc_rule(release):
     for s in samples:
         validate_sample(s, num_classes=1)
         stem = s.meta["file_name"].rsplit("/", 1)[1][:-4]
-        assert s.meta["file_name"] == f"infrared/{s.group}/{stem}.jpg" and s.meta["rgb_file"] == f"visible/{s.group}/{stem}.jpg"
+        assert (
+            s.meta["file_name"] == f"infrared/{s.group}/{stem}.jpg"
+            and s.meta["rgb_file"] == f"visible/{s.group}/{stem}.jpg"
+        )
         assert stem in LLVIP_FRAMES[s.group] and s.meta["split"] == s.group
         # the XML holds (x + 1, y + 1, x + bw, y + bh): prepared boxes are the drawn pixels' corners exactly
         assert s.boxes.tolist() == [list(map(float, b)) for b in expected[stem]] and s.labels.tolist() == [0, 0]
@@ -53,11 +49,7 @@ def test_missing_partner_and_unknown_class_are_counted(release):
     base = root / "LLVIP"
     (base / "visible" / "test" / "190002.jpg").unlink()
     write_voc(base / "Annotations" / "010002.xml", "010002.jpg", 80, 64, [("person", 1, 1, 9, 9), ("dog", 2, 2, 8, 8)])
-    samples, report = collect(llvip.open_llvip(root))
-    assert len(samples) == 3
-    assert report.summary()["skip_reasons"] == {"missing visible frame": 1, "unknown class": 1}
-    with pytest.raises(DataError, match="strict.*190002"):
-        llvip.open_llvip(root, strict=True)
+    collect_with_drops(llvip.open_llvip, root, 3, {"missing visible frame": 1, "unknown class": 1}, "strict.*190002")
 
 
 def test_difficult_person_and_zero_based_option(release):
@@ -72,19 +64,12 @@ def test_difficult_person_and_zero_based_option(release):
 
 
 def test_layout_errors(tmp_path, monkeypatch):
-    monkeypatch.delenv(llvip.ROOT_ENV, raising=False)
-    with pytest.raises(DataError, match="HARNESS_LLVIP"):
-        llvip.open_llvip()
-    (tmp_path / "infrared").mkdir()
-    with pytest.raises(DataError, match="missing Annotations, visible"):
-        llvip.open_llvip(tmp_path)
-    with pytest.raises(ConfigError, match="'strict' must be true or false"):
-        llvip.open_llvip(tmp_path, strict="yes")
+    check_layout_errors(llvip.open_llvip, "HARNESS_LLVIP", tmp_path, "infrared", "Annotations, visible", monkeypatch)
 
 
 def test_registered_and_prepares_with_its_protocol(host, release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare, resolve_folds
+    from harness.config import load_config
 
     spec = host.dataset("llvip")
     assert spec.categories == ("person",) and spec.thermal == "8bit" and spec.protocol == "llvip"

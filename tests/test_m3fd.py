@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from adapters.datasets import m3fd
-from eightbit_fixtures import write_m3fd, write_voc
-from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
+from eightbit_fixtures import check_layout_errors, collect, collect_with_drops, write_m3fd, write_voc
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -20,11 +19,6 @@ REPO = Path(__file__).resolve().parent.parent
 def release(tmp_path):
     expected = write_m3fd(tmp_path)
     return tmp_path, expected
-
-
-def collect(source):
-    report = PrepareReport()
-    return list(source.samples(report)), report
 
 
 def test_pairs_per_image_sizes_and_classes_by_name(release):
@@ -83,12 +77,7 @@ def test_missing_infrared_image_is_a_counted_drop(release):
     root, _ = release
     (root / "M3FD_Detection" / "Ir" / "00003.png").unlink()
     (root / "M3FD_Detection" / "Annotation" / "00401.xml").unlink()
-    source = m3fd.open_m3fd(root)
-    samples, report = collect(source)
-    assert len(samples) == 6
-    assert report.summary()["skip_reasons"] == {"missing thermal frame": 1, "no annotation": 1}
-    with pytest.raises(DataError, match="strict"):
-        m3fd.open_m3fd(root, strict=True)
+    collect_with_drops(m3fd.open_m3fd, root, 6, {"missing thermal frame": 1, "no annotation": 1})
 
 
 def test_malformed_xml_names_file_and_position(release):
@@ -125,14 +114,7 @@ def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
 
 
 def test_errors_for_layout_and_options(tmp_path, monkeypatch):
-    monkeypatch.delenv(m3fd.ROOT_ENV, raising=False)
-    with pytest.raises(DataError, match="HARNESS_M3FD"):
-        m3fd.open_m3fd()
-    (tmp_path / "Ir").mkdir()
-    with pytest.raises(DataError, match="missing Annotation, Vis"):
-        m3fd.open_m3fd(tmp_path)
-    with pytest.raises(ConfigError, match="'strict' must be true or false"):
-        m3fd.open_m3fd(tmp_path, strict="yes")
+    check_layout_errors(m3fd.open_m3fd, "HARNESS_M3FD", tmp_path, "Ir", "Annotation, Vis", monkeypatch)
 
 
 def test_registered_for_pretraining_with_ir8(host):
@@ -159,19 +141,25 @@ def test_pretrain_writes_a_checkpoint_that_run_init_loads(tmp_path_factory):
     # `harness run --init` on another dataset loaded it (see the RGBT-Tiny end-to-end test for the details)
     from harness.store import RunKey, Store
 
-    init = Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    init = (
+        Store(trained["store"]).run(RunKey("rgbt-tiny", "ours", "proxy8", "test-T", 0)).read_metrics()["train"]["init"]
+    )
     assert init["path"] == str(ckpt) and init["loaded"] > 0
 
 
 def test_prepared_manifest_records_the_split(release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare, resolve_folds
+    from harness.config import load_config
 
     root, _ = release
     cfg = load_config(protocol="m3fd", overrides=[f"dataset.root={root}"])
     ds = prepare("m3fd", cfg, cache_root=tmp_path / "cache", progress=False)
     (fold,) = ds.manifest["folds"]
-    assert fold == {"name": "val", "train_groups": ["00000-00099", "00100-00199"], "val_groups": ["00400-00499", "00900-00999"]}
+    assert fold == {
+        "name": "val",
+        "train_groups": ["00000-00099", "00100-00199"],
+        "val_groups": ["00400-00499", "00900-00999"],
+    }
     (resolved,) = resolve_folds("m3fd", ds, cfg)
     assert resolved.name == "val" and len(ds.indices(resolved.val_groups)) == 3
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harness import AlignedSample, validate_sample
 from harness.api import DatasetSpec, Fold
 from harness.encodings import encode_c2, encode_linear16
 from harness.errors import DataError, SampleError
-from harness import AlignedSample, validate_sample
 
 H, W = 32, 40
 
@@ -51,8 +51,8 @@ def test_a_sample_may_miss_some_temperatures_but_not_most():
 
 
 def test_prepare_counts_missing_pixels_per_sample_and_skips_the_unusable(tmp_path):
-    from harness.commands.data import prepare_summary
     from harness.cache import prepare
+    from harness.commands.data import prepare_summary
 
     samples = [_sample(0), _sample(1, holes=7), _sample(2, holes=30), _sample(3, all_missing=True)]
     spec = DatasetSpec("toy-missing", lambda root, **kw: _Source(samples), ("thing",))

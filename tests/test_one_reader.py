@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 
 from harness.report.reader import (
-    ACCEPTED, APPROXIMATE, INPUT_RISK, ResultLabel, StoreView, label_notes, marks, merge_labels, read_run, run_labels,
+    ACCEPTED,
+    APPROXIMATE,
+    INPUT_RISK,
+    ResultLabel,
+    StoreView,
+    label_notes,
+    marks,
+    merge_labels,
+    read_run,
+    run_labels,
 )
 from harness.store import RunKey, Store
 from report_fixtures import QUALITY, make_detections, make_gt, write_run

@@ -35,7 +35,16 @@ def centred_boxes(points: torch.Tensor, size: float) -> torch.Tensor:
 
 def test_make_anchors_are_cell_centres_row_major():
     pts, strides = make_anchors([torch.zeros(1, 1, 2, 3), torch.zeros(1, 1, 1, 2)], [8, 16])
-    assert pts.tolist() == [[0.5, 0.5], [1.5, 0.5], [2.5, 0.5], [0.5, 1.5], [1.5, 1.5], [2.5, 1.5], [0.5, 0.5], [1.5, 0.5]]
+    assert pts.tolist() == [
+        [0.5, 0.5],
+        [1.5, 0.5],
+        [2.5, 0.5],
+        [0.5, 1.5],
+        [1.5, 1.5],
+        [2.5, 1.5],
+        [0.5, 0.5],
+        [1.5, 0.5],
+    ]
     assert strides.flatten().tolist() == [8] * 6 + [16] * 2
 
 
@@ -44,7 +53,8 @@ def test_box_distances_round_trip_and_clamp():
     boxes = torch.tensor([[2.0, 3.0, 9.0, 6.0], [2.0, 2.0, 30.0, 3.0]])
     d = bbox2dist(pts, boxes, 14.99)
     assert d.tolist()[0] == [3.0, 2.0, 4.0, 1.0]
-    assert d[1].tolist() == pytest.approx([0.0, 0.0, 14.99, 2.0])  # anchor outside the box on the left/top, far right clamped
+    # anchor outside the box on the left/top, far right clamped
+    assert d[1].tolist() == pytest.approx([0.0, 0.0, 14.99, 2.0])
     torch.testing.assert_close(dist2bbox(d[:1], pts[:1]), boxes[:1])
 
 
@@ -122,8 +132,14 @@ def test_assigner_gives_a_shared_anchor_to_the_box_it_overlaps_most_and_ignores_
 
 def test_assigner_without_any_box_assigns_nothing():
     pts = grid()
-    out = TaskAlignedAssigner(2)(torch.rand(2, 16, 2), centred_boxes(pts, 8)[None].repeat(2, 1, 1), pts,
-                                 torch.zeros(2, 0, dtype=torch.long), torch.zeros(2, 0, 4), torch.zeros(2, 0, dtype=torch.bool))
+    out = TaskAlignedAssigner(2)(
+        torch.rand(2, 16, 2),
+        centred_boxes(pts, 8)[None].repeat(2, 1, 1),
+        pts,
+        torch.zeros(2, 0, dtype=torch.long),
+        torch.zeros(2, 0, 4),
+        torch.zeros(2, 0, dtype=torch.bool),
+    )
     assert not out.fg_mask.any() and out.scores.sum() == 0 and torch.all(out.labels == 2)
 
 
@@ -154,8 +170,10 @@ def test_loss_decreases_over_a_few_steps_on_a_tiny_batch():
     torch.manual_seed(0)
     model = build_yolov8(4, in_channels=4, scale="n").train()
     x = torch.rand(2, 4, 96, 96)
-    targets = [{"boxes": torch.tensor([[10.0, 12.0, 50.0, 60.0], [60.0, 40.0, 90.0, 92.0]]), "labels": torch.tensor([0, 3])},
-               {"boxes": torch.tensor([[20.0, 20.0, 70.0, 44.0]]), "labels": torch.tensor([2])}]
+    targets = [
+        {"boxes": torch.tensor([[10.0, 12.0, 50.0, 60.0], [60.0, 40.0, 90.0, 92.0]]), "labels": torch.tensor([0, 3])},
+        {"boxes": torch.tensor([[20.0, 20.0, 70.0, 44.0]]), "labels": torch.tensor([2])},
+    ]
     opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9)
     history = []
     for _ in range(16):

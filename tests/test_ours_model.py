@@ -149,7 +149,9 @@ def test_bad_inputs_and_options_are_clear_errors(small):
     with pytest.raises(ConfigError, match="scale"):
         build_yolov8(8, scale="q")
     with pytest.raises(HarnessError, match="outside 0..7"):
-        small.train()(torch.rand(1, 4, 64, 64), [{"boxes": torch.tensor([[1.0, 1, 9, 9]]), "labels": torch.tensor([8])}])
+        small.train()(
+            torch.rand(1, 4, 64, 64), [{"boxes": torch.tensor([[1.0, 1, 9, 9]]), "labels": torch.tensor([8])}]
+        )
     with pytest.raises(HarnessError, match="one dict per image"):
         small.train()(torch.rand(2, 4, 64, 64), [{"boxes": torch.zeros(0, 4), "labels": torch.zeros(0)}])
 

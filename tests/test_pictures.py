@@ -11,8 +11,19 @@ import pytest
 
 from engine_helpers import CATEGORIES, ShapesPlugin
 from harness.plugins import temporary_plugin
-from harness.report.pictures import (GT_COLOUR, PRED_COLOURS, TITLE_H, BoxSet, coco_boxes, draw_sample, encode_image,
-                                     inline_image, save_image, terminal_protocol, thermal_range)
+from harness.report.pictures import (
+    GT_COLOUR,
+    PRED_COLOURS,
+    TITLE_H,
+    BoxSet,
+    coco_boxes,
+    draw_sample,
+    encode_image,
+    inline_image,
+    save_image,
+    terminal_protocol,
+    thermal_range,
+)
 from harness.sample import AlignedSample
 
 
@@ -114,11 +125,11 @@ def shapes(host, tmp_path, monkeypatch):
 def _fake_run(store, fold: str = "A", detector: str = "det"):
     """A finished run of the shapes dataset made by hand: its held-out GT, one prediction per GT box (shifted by
     one pixel) and one confident false positive per image."""
+    from harness.cache import prepare
     from harness.config import load_config
     from harness.evaluation import evaluate
     from harness.io import atomic_write_json
     from harness.plugins import get_host
-    from harness.cache import prepare
     from harness.store import RunKey, Store
 
     spec = get_host().dataset("shapes")

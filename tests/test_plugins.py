@@ -12,10 +12,20 @@ import pytest
 
 from harness import DatasetSpec, DetectorSpec, EncodingSpec, hookimpl
 from harness.errors import PluginError, UnknownNameError
+from harness.testing import temporary_plugin
 
 
 def _build(num_classes, in_channels=4, **_):  # a detector builder that is never called in these tests
     raise AssertionError("not built in this test")
+
+
+def registering(hook: str, *records):
+    """A throwaway plugin whose ``hook`` (``register_datasets``, ...) registers ``records``."""
+    def impl(register):
+        for record in records:
+            register(record)
+
+    return types.SimpleNamespace(**{hook: hookimpl(impl)})
 
 
 def make_detector_plugin(*names, name="undo-plugin", raise_after=None):
@@ -34,8 +44,6 @@ def make_detector_plugin(*names, name="undo-plugin", raise_after=None):
 
 # ------------------------------------------------------------------ one test per hook
 def test_hook_register_detectors(host):
-    from harness.testing import temporary_plugin
-
     with temporary_plugin(make_detector_plugin("undo-det"), name="undo-det-plugin"):
         spec = host.detector("undo-det")
         assert spec.input_kind == "single"
@@ -45,14 +53,9 @@ def test_hook_register_detectors(host):
 
 
 def test_hook_register_datasets(host):
-    from harness.testing import temporary_plugin
-
-    class Plugin:
-        @hookimpl
-        def register_datasets(self, register):
-            register(DatasetSpec(name="undo-ds", open=lambda root=None: None, categories=("a", "b")))
-
-    with temporary_plugin(Plugin(), name="undo-ds-plugin"):
+    plugin = registering("register_datasets",
+                         DatasetSpec(name="undo-ds", open=lambda root=None: None, categories=("a", "b")))
+    with temporary_plugin(plugin, name="undo-ds-plugin"):
         assert host.dataset("undo-ds").categories == ("a", "b")
     assert "undo-ds" not in host.datasets()
 
@@ -60,36 +63,24 @@ def test_hook_register_datasets(host):
 def test_hook_register_encodings(host):
     import numpy as np
 
-    from harness.testing import temporary_plugin
-
-    class Plugin:
-        @hookimpl
-        def register_encodings(self, register):
-            register(EncodingSpec(name="undo-enc", fn=lambda s: np.zeros(s.ir8.shape, np.uint8), needs="ir8"))
-
-    with temporary_plugin(Plugin(), name="undo-enc-plugin"):
+    plugin = registering("register_encodings",
+                         EncodingSpec(name="undo-enc", fn=lambda s: np.zeros(s.ir8.shape, np.uint8), needs="ir8"))
+    with temporary_plugin(plugin, name="undo-enc-plugin"):
         assert host.encoding("undo-enc").needs == "ir8"
     assert "undo-enc" not in host.encodings()
 
 
 def test_hook_register_loggers(host):
-    from harness.testing import temporary_plugin
     from harness.tracking import LoggerSpec
 
-    class Plugin:
-        @hookimpl
-        def register_loggers(self, register):
-            register(LoggerSpec(name="undo-logger", create=lambda options: None))
-
-    with temporary_plugin(Plugin(), name="undo-logger-plugin"):
+    plugin = registering("register_loggers", LoggerSpec(name="undo-logger", create=lambda options: None))
+    with temporary_plugin(plugin, name="undo-logger-plugin"):
         assert host.logger("undo-logger").name == "undo-logger"
         assert {"mlflow", "tensorboard"} <= set(host.loggers())
     assert "undo-logger" not in host.loggers()
 
 
 def test_hook_register_commands(host):
-    from harness.testing import temporary_plugin
-
     class Plugin:
         @hookimpl
         def register_commands(self, cli):
@@ -109,22 +100,20 @@ def test_hook_register_commands(host):
 
 # ------------------------------------------------------------------ conflicts and broken plugins
 def test_duplicate_name_is_an_error_naming_both_plugins(host):
-    from harness.testing import temporary_plugin
-
     with temporary_plugin(make_detector_plugin("undo-twin"), name="first-plugin"), \
             temporary_plugin(make_detector_plugin("undo-twin", "undo-other"), name="second-plugin"):
         with pytest.raises(PluginError) as err:
             host.detector("undo-twin")
         assert "first-plugin" in str(err.value) and "second-plugin" in str(err.value)
         conflicts = [p for p in host.problems if p.stage == "conflict"]
-        assert len(conflicts) == 1 and "first-plugin" in conflicts[0].message and "second-plugin" in conflicts[0].message
+        assert (
+            len(conflicts) == 1 and "first-plugin" in conflicts[0].message and "second-plugin" in conflicts[0].message
+        )
         # the rest of the second plugin still works
         assert host.detector("undo-other").name == "undo-other"
 
 
 def test_plugin_raising_at_registration_is_reported_and_others_load(host):
-    from harness.testing import temporary_plugin
-
     with temporary_plugin(make_detector_plugin("undo-a", "undo-b", raise_after=1), name="broken-plugin"), \
             temporary_plugin(make_detector_plugin("undo-good"), name="good-plugin"):
         names = host.detectors()
@@ -137,14 +126,7 @@ def test_plugin_raising_at_registration_is_reported_and_others_load(host):
 
 
 def test_register_rejects_wrong_record_type(host):
-    from harness.testing import temporary_plugin
-
-    class Plugin:
-        @hookimpl
-        def register_detectors(self, register):
-            register({"name": "not-a-spec"})
-
-    with temporary_plugin(Plugin(), name="sloppy-plugin"):
+    with temporary_plugin(registering("register_detectors", {"name": "not-a-spec"}), name="sloppy-plugin"):
         assert any(p.plugin == "sloppy-plugin" and "DetectorSpec" in p.message for p in host.problems)
 
 
@@ -212,7 +194,10 @@ def test_autoload_switch_disables_entry_points(fresh_plugins, fake_dists, monkey
     assert "alpha-det" not in host.detectors()
 
 
-@pytest.mark.parametrize("allow, expected", [("harness-alpha", {"alpha-det"}), ("harness_beta,harness-alpha", {"alpha-det", "beta-det"}), ("", set())])
+@pytest.mark.parametrize(
+    "allow, expected",
+    [("harness-alpha", {"alpha-det"}), ("harness_beta,harness-alpha", {"alpha-det", "beta-det"}), ("", set())],
+)
 def test_allow_list(fresh_plugins, fake_dists, monkeypatch, allow, expected):
     monkeypatch.setenv("HARNESS_LOAD_PLUGINS", allow)
     monkeypatch.setenv("HARNESS_DISABLE_PLUGIN_AUTOLOAD", "1")  # the allow-list wins over the switch
@@ -232,29 +217,33 @@ def test_entry_point_that_fails_to_import_is_reported(fresh_plugins, monkeypatch
     assert any(p.plugin == "harness_broken" and p.stage == "import" for p in host.problems)
 
 
-def test_misspelled_hook_is_reported_by_check_pending(fresh_plugins, monkeypatch, tmp_path):
-    (tmp_path / "typo_plugin.py").write_text(
-        "from harness import hookimpl\n\n@hookimpl\ndef register_detector(register):\n    pass\n"
-    )
-    (tmp_path / "fine_plugin.py").write_text(
-        "from harness import hookimpl, EncodingSpec\n\n@hookimpl\ndef register_encodings(register):\n"
-        "    register(EncodingSpec(name='dir-enc', fn=lambda s: None, channels=0, needs=None))\n"
-    )
-    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
-    host = fresh_plugins.load_plugins()
+@pytest.fixture
+def load_plugin_files(fresh_plugins, monkeypatch, tmp_path, caplog):
+    """``load_plugin_files(module=source, ...) -> host``: the modules written into a plugins folder (``--plugins-dir``)
+    and every plugin loaded from scratch, warnings captured by ``caplog``."""
+    def load(**modules: str):
+        for name, source in modules.items():
+            (tmp_path / f"{name}.py").write_text(source)
+        monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
+        with caplog.at_level("WARNING", logger="harness.plugins"):
+            return fresh_plugins.load_plugins()
+
+    return load
+
+
+def test_misspelled_hook_is_reported_by_check_pending(load_plugin_files):
+    host = load_plugin_files(
+        typo_plugin="from harness import hookimpl\n\n@hookimpl\ndef register_detector(register):\n    pass\n",
+        fine_plugin="from harness import hookimpl, EncodingSpec\n\n@hookimpl\ndef register_encodings(register):\n"
+                    "    register(EncodingSpec(name='dir-enc', fn=lambda s: None, channels=0, needs=None))\n")
     assert any(p.plugin == "typo_plugin" and "register_detector" in p.message for p in host.problems)
     assert "dir-enc" in host.encodings()
 
 
-def test_a_hook_name_typo_names_the_plugin_and_the_nearest_hook(fresh_plugins, monkeypatch, tmp_path, caplog):
-    from harness.errors import UnknownNameError
-
-    (tmp_path / "typo_det.py").write_text(
-        "from harness import hookimpl, DetectorSpec\n\n@hookimpl\ndef register_detector(register):\n"
-        "    register(DetectorSpec(name='mydet', build=lambda n, **k: None, input_kind='single'))\n")
-    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
-    with caplog.at_level("WARNING", logger="harness.plugins"):
-        host = fresh_plugins.load_plugins()
+def test_a_hook_name_typo_names_the_plugin_and_the_nearest_hook(load_plugin_files, caplog):
+    host = load_plugin_files(
+        typo_det="from harness import hookimpl, DetectorSpec\n\n@hookimpl\ndef register_detector(register):\n"
+                 "    register(DetectorSpec(name='mydet', build=lambda n, **k: None, input_kind='single'))\n")
     [problem] = [p for p in host.problems if p.plugin == "typo_det"]
     assert "unknown hook 'register_detector', did you mean 'register_detectors'?" in problem.message
     assert "typo_det" in caplog.text and "did you mean 'register_detectors'" in caplog.text
@@ -273,18 +262,17 @@ def test_registering_an_object_with_a_hook_typo_is_a_plugin_error(host):
             pass
 
     before = len(pm.list_name_plugin())
-    with pytest.raises(PluginError, match=r"plugin 'typo-object'.*'register_dataset', did you mean 'register_datasets'"):
+    with pytest.raises(
+        PluginError, match=r"plugin 'typo-object'.*'register_dataset', did you mean 'register_datasets'"
+    ):
         register_plugin(Typo(), name="typo-object")
     assert len(pm.list_name_plugin()) == before  # not kept
 
 
-def test_a_hook_like_function_without_hookimpl_is_reported(fresh_plugins, monkeypatch, tmp_path, caplog):
-    (tmp_path / "forgot_marker.py").write_text(
-        "from harness import DetectorSpec\n\ndef register_detectors(register):\n"
-        "    register(DetectorSpec(name='unmarked', build=lambda n, **k: None, input_kind='single'))\n")
-    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(tmp_path))
-    with caplog.at_level("WARNING", logger="harness.plugins"):
-        host = fresh_plugins.load_plugins()
+def test_a_hook_like_function_without_hookimpl_is_reported(load_plugin_files, caplog):
+    host = load_plugin_files(
+        forgot_marker="from harness import DetectorSpec\n\ndef register_detectors(register):\n"
+                      "    register(DetectorSpec(name='unmarked', build=lambda n, **k: None, input_kind='single'))\n")
     assert "forgot_marker" in caplog.text and "@hookimpl" in caplog.text
     assert any(p.plugin == "forgot_marker" and "no @hookimpl" in p.message for p in host.problems)
     assert not [p for p in host.problems if p.plugin.startswith(("harness.", "adapters."))]  # built-ins are clean
@@ -322,8 +310,6 @@ def test_every_hook_is_documented_and_tested():
 
 # ------------------------------------------------------------------ CLI listings
 def test_cli_list_and_plugins(cli_runner):
-    from harness.testing import temporary_plugin
-
     with temporary_plugin(make_detector_plugin("undo-cli-det"), name="undo-cli-plugin"):
         result = cli_runner(["list"])
         assert result.exit_code == 0

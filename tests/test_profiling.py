@@ -220,8 +220,8 @@ def test_published_figures_stand_only_beside_the_configuration_they_describe():
 
 
 def test_cli_profile_and_export(cli_runner, tmp_path):
-    from harness.testing import temporary_plugin
     from harness.store import Store
+    from harness.testing import temporary_plugin
 
     with temporary_plugin(_TinyPlugin(), name="tiny-profiling-plugin"):
         args = ["--imgsz", "16", "--runs", "3", "--warmup", "1", "--threads", "1", "--no-onnx"]

@@ -9,10 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 from harness.api import PrepareReport
 from harness.sensing.registration import (
-    HomographyEntry, LandmarkFit, apply_homography, fit_landmarks, homography_from_similarity, load_homography_entries,
+    HomographyEntry,
+    LandmarkFit,
+    apply_homography,
+    fit_landmarks,
+    homography_from_similarity,
+    load_homography_entries,
 )
 
 #: The quality fields of a landmark fit, wherever it is recorded.
@@ -63,7 +67,9 @@ def test_the_register_command_and_the_dataset_record_the_same_fit(tiny_source, t
 
 
 def _python_files() -> list[Path]:
-    return sorted(p for folder in ("harness", "adapters", "benchmarks", "plugins") for p in (ROOT / folder).rglob("*.py"))
+    return sorted(
+        p for folder in ("harness", "adapters", "benchmarks", "plugins") for p in (ROOT / folder).rglob("*.py")
+    )
 
 
 def test_the_homography_maths_has_one_implementation_that_every_caller_uses():

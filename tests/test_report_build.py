@@ -42,7 +42,9 @@ def test_report_writes_every_format(built):
     stored = store.run(RunKey("synth", "beta", "c2", "P1", 0)).read_metrics()
     beta = next(r for r in fold_recs if r["detector"] == "beta")
     assert float(beta["value"]) == pytest.approx(stored["metrics"]["mAP50"])
-    assert int(beta["images"]) == stored["support"]["images"] and int(beta["instances"]) == stored["support"]["instances"]
+    assert (
+        int(beta["images"]) == stored["support"]["images"] and int(beta["instances"]) == stored["support"]["instances"]
+    )
 
 
 def test_absent_sections_are_stated_with_the_command_that_fills_them(built):

@@ -4,9 +4,6 @@ figure on the HTML page in headless Chromium."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +12,8 @@ pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
 from harness.report.curves import METRICS, entry_curves, read_log
+from report_fixtures import chromium_screenshot, needs_chromium
 
-CHROMIUM = Path("/usr/bin/chromium")
 RUN = ["protocol.imgsz=64", "protocol.epochs=3", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
        "train.warmup_epochs=0", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
 
@@ -47,10 +44,9 @@ def curves_report(tmp_path_factory):
     """Two real detectors (the example TinyDet, single and dual stream), both folds of the engine tests' shapes
     dataset, 3 epochs each, and the report of that store."""
     from engine_helpers import ShapesPlugin, tinydet_module
-
-    from harness.testing import temporary_plugin
     from harness.report import build_report
     from harness.runner import RunRequest, run
+    from harness.testing import temporary_plugin
 
     root = tmp_path_factory.mktemp("curves")
     mp = pytest.MonkeyPatch()
@@ -61,7 +57,10 @@ def curves_report(tmp_path_factory):
 
     threads = torch.get_num_threads()
     try:
-        with temporary_plugin(ShapesPlugin(), name="shapes-curves"), temporary_plugin(tinydet_plugin, name="tiny-curves"):
+        with (
+            temporary_plugin(ShapesPlugin(), name="shapes-curves"),
+            temporary_plugin(tinydet_plugin, name="tiny-curves"),
+        ):
             for det in ("tinydet", "tinydet-dual"):
                 run(RunRequest(detector=det, dataset="shapes", encoding="test-ir8", store=root / "store",
                                overrides=RUN, progress=False))
@@ -89,18 +88,13 @@ def test_report_has_a_curves_figure_per_dataset_from_the_logs(curves_report):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),
-                    reason="Debian's chromium is not installed (apt-get install chromium; .ci/run installs it)")
+@needs_chromium
 def test_chromium_screenshot_shows_the_curves(curves_report, tmp_path):
     import cv2
 
     _, out = curves_report
     shot = tmp_path / "page.png"
-    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
-           "--disable-background-networking", "--disable-component-update", "--disable-dev-shm-usage",
-           f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1400,4000",
-           f"--screenshot={shot}", (out / "report.html").resolve().as_uri()]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+    proc, _ = chromium_screenshot(out / "report.html", shot, tmp_path / "profile", "1400,4000")
     assert proc.returncode == 0, proc.stderr[-2000:]
     img = cv2.imread(str(shot))
     assert img is not None and img.shape[1] == 1400

@@ -13,8 +13,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +21,11 @@ import pytest
 for _module in ("harness.evaluation", "harness.runner", "harness.cache", "harness.profiling"):
     pytest.importorskip(_module)
 
+from report_fixtures import chromium_screenshot, needs_chromium  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
 
 TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-CHROMIUM = Path("/usr/bin/chromium")
 FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
         "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16",
         "dataset.profile=tiny"]
@@ -57,15 +56,18 @@ def real_store(tmp_path_factory):
     import torch
 
     threads = torch.get_num_threads()
-    from harness.testing import temporary_plugin
-
     import harness_tinydet.plugin as tinydet
+
+    from harness.testing import temporary_plugin
 
     sets = [a for s in FAST for a in ("--set", s)]
     from engine_helpers import ShapesPlugin
 
     try:
-        with temporary_plugin(tinydet, name="tinydet-report-test"), temporary_plugin(ShapesPlugin(), name="shapes-report-test"):
+        with (
+            temporary_plugin(tinydet, name="tinydet-report-test"),
+            temporary_plugin(ShapesPlugin(), name="shapes-report-test"),
+        ):
             _cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
             _cli(["run", "--detector", "tinydet-dual", "--dataset", DATASET, "--folds", "all", "--store", str(store),
                   *sets])
@@ -123,7 +125,9 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
         measured = runs[(row["detector"], enc, "P1")]["complexity"]  # measured in the run, not the profile
         assert row["gflops"] == measured["gflops"]["640"]["paper"] > 0
         assert row["params"] == pytest.approx(measured["params_fused"] / 1e6)
-    assert folds.rows[0]["images"] == sum(runs[("tinydet", "c2", f)]["support"]["images"] for f in ("P1", "P2", "P3", "P4+P5"))
+    assert folds.rows[0]["images"] == sum(
+        runs[("tinydet", "c2", f)]["support"]["images"] for f in ("P1", "P2", "P3", "P4+P5")
+    )
     # the ablation: one row per encoding, with the seed's two thermal-only defects
     ablation = report.tables[2]
     assert [r["encoding"] for r in ablation.rows] == ["c2", "ir8", "none"]
@@ -172,20 +176,8 @@ def test_report_command_prints_every_table_of_the_real_store(real_store, tmp_pat
 
 
 # ------------------------------------------------------------------------------------------------ Chromium
-def _chromium(page: Path, shot: Path, profile_dir: Path, size: str = "1400,5200") -> tuple[int, list[str]]:
-    """Open ``page`` headless, screenshot it, return (exit code, console messages of the page)."""
-    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           "--disable-dev-shm-usage", f"--user-data-dir={profile_dir}", "--enable-logging=stderr", "--v=0",
-           "--hide-scrollbars", f"--window-size={size}", f"--screenshot={shot}", page.resolve().as_uri()]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
-    console = [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
-    return proc.returncode, console
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),
-                    reason="Debian's chromium is not installed (.ci/run installs it)")
+@needs_chromium
 def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_path):
     import cv2
 
@@ -193,12 +185,12 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
     # the detector of console messages works: a page with an error is caught
     bad = tmp_path / "bad.html"
     bad.write_text("<!DOCTYPE html><html><body><script>console.error('probe'); nope();</script></body></html>")
-    code, console = _chromium(bad, tmp_path / "bad.png", tmp_path / "profile-bad", "400,300")
-    assert code == 0 and any("probe" in ln for ln in console) and any("nope" in ln for ln in console)
+    proc, console = chromium_screenshot(bad, tmp_path / "bad.png", tmp_path / "profile-bad", "400,300")
+    assert proc.returncode == 0 and any("probe" in ln for ln in console) and any("nope" in ln for ln in console)
 
     shot = tmp_path / "report.png"
-    code, console = _chromium(out / "report.html", shot, tmp_path / "profile")
-    assert code == 0 and console == [], console
+    proc, console = chromium_screenshot(out / "report.html", shot, tmp_path / "profile")
+    assert proc.returncode == 0 and console == [], console
     keep = os.environ.get("HARNESS_REPORT_SCREENSHOT")
     if keep:
         shutil.copyfile(shot, keep)

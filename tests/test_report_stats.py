@@ -18,16 +18,20 @@ from harness.report.stats import (  # noqa: E402
     percentile_ci,
     resample_coco,
 )
-from report_fixtures import make_detections, make_gt, synthetic_store, write_run  # noqa: E402
 from harness.store import RunKey, Store  # noqa: E402
+from report_fixtures import make_detections, make_gt, synthetic_store, write_run  # noqa: E402
 
 
 def _two_image_case():
     """Image 1 has one object, found (score 0.9); image 2 has one object, missed."""
-    gt = {"images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100}],
-          "annotations": [{"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400, "iscrowd": 0},
-                          {"id": 2, "image_id": 2, "category_id": 1, "bbox": [50, 50, 20, 20], "area": 400, "iscrowd": 0}],
-          "categories": [{"id": 1, "name": "crack"}]}
+    gt = {
+        "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100}],
+        "annotations": [
+            {"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400, "iscrowd": 0},
+            {"id": 2, "image_id": 2, "category_id": 1, "bbox": [50, 50, 20, 20], "area": 400, "iscrowd": 0},
+        ],
+        "categories": [{"id": 1, "name": "crack"}],
+    }
     dets = [{"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9}]
     return gt, dets
 
@@ -123,8 +127,10 @@ def test_detectors_of_the_same_quality_give_an_interval_containing_zero(pair_sto
 
 def test_a_clearly_better_detector_excludes_zero_and_the_observed_delta_is_the_table_difference(pair_store, scorer):
     comp = _compare(pair_store, "strong", "weak", scorer)
-    view_metrics = {det: [pair_store.run(RunKey("synth", det, "c2", f, 0)).read_metrics()["metrics"] for f in ("P1", "P2")]
-                    for det in ("strong", "weak")}
+    view_metrics = {
+        det: [pair_store.run(RunKey("synth", det, "c2", f, 0)).read_metrics()["metrics"] for f in ("P1", "P2")]
+        for det in ("strong", "weak")
+    }
     for key in ("mAP50", "mAP50_95"):
         b = comp.bootstrap[key]
         assert b.ci_low > 0.05 and b.excludes_zero and b.p_not_better == 0.0
@@ -134,7 +140,9 @@ def test_a_clearly_better_detector_excludes_zero_and_the_observed_delta_is_the_t
         assert b.delta == pytest.approx(stored["strong"] - stored["weak"], abs=1e-9)
         assert b.a_ci[0] <= b.a <= b.a_ci[1]
         fd = comp.fold_differences[key]
-        assert fd.diffs == pytest.approx([view_metrics["strong"][i][key] - view_metrics["weak"][i][key] for i in range(2)])
+        assert fd.diffs == pytest.approx(
+            [view_metrics["strong"][i][key] - view_metrics["weak"][i][key] for i in range(2)]
+        )
         assert fd.stat.mean == pytest.approx(sum(fd.diffs) / 2)
         assert fd.stat.sd == pytest.approx(abs(fd.diffs[0] - fd.diffs[1]) / math.sqrt(2))
     swapped = _compare(pair_store, "weak", "strong", scorer)
@@ -186,7 +194,12 @@ def test_missing_predictions_and_bad_names_are_clear_errors(tmp_path):
         compare_detectors(store, "synth", "gamma", "beta")
     with pytest.raises(StoreError, match="same runs"):
         compare_detectors(store, "synth", "alpha", "alpha/c2")
-    write_run(store, RunKey("synth", "alpha", "ir8", "P1", 0), json.loads(store.run(RunKey("synth", "alpha", "c2", "P1", 0)).gt_path.read_text()), [])
+    write_run(
+        store,
+        RunKey("synth", "alpha", "ir8", "P1", 0),
+        json.loads(store.run(RunKey("synth", "alpha", "c2", "P1", 0)).gt_path.read_text()),
+        [],
+    )
     with pytest.raises(HarnessError, match="several encodings"):
         compare_detectors(Store(tmp_path), "synth", "alpha", "beta")
 

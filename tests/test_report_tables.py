@@ -11,8 +11,8 @@ import pytest
 
 pytest.importorskip("harness.evaluation")
 
-from harness.report.reader import StoreView  # noqa: E402
 from harness.report.plots import LABEL_SLOTS, _short_labels, pareto_front, pareto_steps, place_labels  # noqa: E402
+from harness.report.reader import StoreView  # noqa: E402
 from harness.report.tables import (  # noqa: E402
     Column,
     Interval,
@@ -141,7 +141,10 @@ def test_ablation_table_rows_are_encodings_with_the_thermal_defects(store):
     assert any("mould" in n for n in t.notes)
     m = store.run(RunKey("synth", "alpha", "none", "P10", 0)).read_metrics()
     none = t.rows[2]
-    assert none["recall"] == m["metrics"]["recall"] and none["cat:water_seepage"] == m["per_category"]["water_seepage"]["AP50"]
+    assert (
+        none["recall"] == m["metrics"]["recall"]
+        and none["cat:water_seepage"] == m["per_category"]["water_seepage"]["AP50"]
+    )
     assert none["images"] == 5 and "P10" in t.title
 
 
@@ -179,9 +182,16 @@ def test_sensing_tables_from_the_analyses(tmp_path):
 
     yy, xx = np.mgrid[0:48, 0:64]
     temp = (25 + 3 * np.exp(-((xx - 20) ** 2 + (yy - 20) ** 2) / 8.0)).astype(np.float32)
-    sample = AlignedSample(image_id=1, rgb=np.zeros((48, 64, 3), np.uint8), thermal=temp, ir8=np.zeros((48, 64), np.uint8),
-                           boxes=np.array([[16, 16, 24, 24]], np.float32), labels=np.array([0], np.int64), group="P1",
-                           meta={})
+    sample = AlignedSample(
+        image_id=1,
+        rgb=np.zeros((48, 64, 3), np.uint8),
+        thermal=temp,
+        ir8=np.zeros((48, 64), np.uint8),
+        boxes=np.array([[16, 16, 24, 24]], np.float32),
+        labels=np.array([0], np.int64),
+        group="P1",
+        meta={},
+    )
     disp = nan_to_none(displacement_study([sample], ["crack", "vent"], shifts=(2, 5)))
     d = displacement_table(disp, "synth")
     assert [c.label for c in d.columns] == ["Class", "Boxes", "A(0)", "R(2 px) %", "R(5 px) %"]

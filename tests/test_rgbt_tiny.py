@@ -10,11 +10,12 @@ import pytest
 
 from adapters.datasets import rgbt_tiny
 from adapters.datasets._eightbit import clip_boxes, read_thermal8
-from eightbit_fixtures import RGBT_CLASSES, rgbt_json, write_rgbt_tiny
+from datasets_helpers import edited_json
+from eightbit_fixtures import RGBT_CLASSES, collect, rgbt_json, write_rgbt_tiny
 from harness.api import PrepareReport
-from harness.errors import ConfigError, DataError
 from harness.cache import PreparedDataset, PreparedWriter
 from harness.contracts import validate_sample
+from harness.errors import ConfigError, DataError
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +31,6 @@ def copy_release(tmp_path):
     root = tmp_path / "RGBT-Tiny"
     expected = write_rgbt_tiny(root, train_seqs=("DJI_0001_1",), test_seqs=("DJI_0101_1",), frames=2)
     return root, expected
-
-
-def collect(source):
-    report = PrepareReport()
-    samples = list(source.samples(report))
-    return samples, report
 
 
 def xywh_to_xyxy(boxes):
@@ -60,7 +55,10 @@ def test_frames_pair_by_file_name_and_boxes_follow_the_chosen_source(release, gt
         # the two JSONs number this frame differently; the pair still refers to the same frame
         ids = s.meta["coco_image_ids"]
         assert ids["00"] != ids["01"] and ids["00"] >= 5000
-        assert s.meta["file_name"] == f"{frame[0]}/01/{frame[1]}.jpg" and s.meta["rgb_file"] == f"{frame[0]}/00/{frame[1]}.jpg"
+        assert (
+            s.meta["file_name"] == f"{frame[0]}/01/{frame[1]}.jpg"
+            and s.meta["rgb_file"] == f"{frame[0]}/00/{frame[1]}.jpg"
+        )
         assert s.thermal is None and s.ir8.dtype == np.uint8 and s.ir8.shape == (48, 64) and s.rgb.shape == (48, 64, 3)
         assert s.group == frame[0] and s.meta["gt"] == rgbt_tiny.normalise_gt(gt)
     # the visible-only box on every first frame is class id 0 = ship, a real class (not background)
@@ -84,7 +82,11 @@ def test_split_and_groups_come_from_the_dataset_files(release):
     t = rgbt_tiny.open_rgbt_tiny(root)
     assert t.groups() == ["DJI_0001_1", "DJI_0002_1", "DJI_0101_1"]
     (fold,) = t.folds()
-    assert fold.name == "test-T" and fold.train_groups == ("DJI_0001_1", "DJI_0002_1") and fold.val_groups == ("DJI_0101_1",)
+    assert (
+        fold.name == "test-T"
+        and fold.train_groups == ("DJI_0001_1", "DJI_0002_1")
+        and fold.val_groups == ("DJI_0101_1",)
+    )
     assert rgbt_tiny.open_rgbt_tiny(root, gt="visible").folds()[0].name == "test-RGB"
 
 
@@ -129,10 +131,9 @@ def test_missing_thermal_frame_is_dropped_counted_and_reported(copy_release):
 def test_mismatched_image_counts_drop_the_unpaired_frames(copy_release, caplog):
     root, expected = copy_release
     path = rgbt_json(root, "00", "test")
-    doc = json.loads(path.read_text())
-    gone = doc["images"].pop(0)
-    doc["annotations"] = [a for a in doc["annotations"] if a["image_id"] != gone["id"]]
-    path.write_text(json.dumps(doc))
+    with edited_json(path) as doc:
+        gone = doc["images"].pop(0)
+        doc["annotations"] = [a for a in doc["annotations"] if a["image_id"] != gone["id"]]
     with caplog.at_level(logging.WARNING):
         source = rgbt_tiny.open_rgbt_tiny(root)
     assert "different numbers of images (1 vs 2)" in caplog.text
@@ -185,21 +186,31 @@ def test_extra_data_after_json_is_reported_like_the_known_release_problem(copy_r
 def test_class_name_not_in_the_list_is_an_error_naming_file_and_class(copy_release):
     root, _ = copy_release
     path = rgbt_json(root, "00", "train")
-    doc = json.loads(path.read_text())
-    doc["categories"][2]["name"] = "tractor"
-    path.write_text(json.dumps(doc))
-    with pytest.raises(DataError, match=r"instances_00_train2017.json: categories\[2\]: class 'tractor' is not an RGBT-Tiny class"):
+    with edited_json(path) as doc:
+        doc["categories"][2]["name"] = "tractor"
+    with pytest.raises(
+        DataError, match=r"instances_00_train2017.json: categories\[2\]: class 'tractor' is not an RGBT-Tiny class"
+    ):
         rgbt_tiny.open_rgbt_tiny(root)
 
 
-@pytest.mark.parametrize("damage, match", [
-    (lambda d: d["annotations"][0].update(category_id=17), r"annotations\[0\]: category_id 17 is not in 'categories'"),
-    (lambda d: d["annotations"][1].update(image_id=-3), r"annotations\[1\]: image_id -3 is not in 'images'"),
-    (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), r"annotations\[0\]: bbox must be four finite numbers"),
-    (lambda d: d["images"][0].update(file_name="DJI_0001_1/00/00000.jpg"), r"images\[0\]: file_name .* folder '00' but this is the thermal"),
-    (lambda d: d["images"][1].update(file_name="flat.jpg"), r"images\[1\]: file_name: expected"),
-    (lambda d: d.pop("annotations"), r"missing or non-list field 'annotations'"),
-])
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (
+            lambda d: d["annotations"][0].update(category_id=17),
+            r"annotations\[0\]: category_id 17 is not in 'categories'",
+        ),
+        (lambda d: d["annotations"][1].update(image_id=-3), r"annotations\[1\]: image_id -3 is not in 'images'"),
+        (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), r"annotations\[0\]: bbox must be four finite numbers"),
+        (
+            lambda d: d["images"][0].update(file_name="DJI_0001_1/00/00000.jpg"),
+            r"images\[0\]: file_name .* folder '00' but this is the thermal",
+        ),
+        (lambda d: d["images"][1].update(file_name="flat.jpg"), r"images\[1\]: file_name: expected"),
+        (lambda d: d.pop("annotations"), r"missing or non-list field 'annotations'"),
+    ],
+)
 def test_inconsistent_annotation_records_name_the_record(copy_release, damage, match):
     root, _ = copy_release
     path = rgbt_json(root, "01", "train")
@@ -232,7 +243,11 @@ def test_strides_keep_every_kth_frame_per_sequence(release):
     root, _ = release
     source = rgbt_tiny.open_rgbt_tiny(root, train_stride=2)
     frames = [(p.key.sequence, p.key.frame) for p in source.pairs]
-    assert ("DJI_0001_1", "00000") in frames and ("DJI_0001_1", "00001") not in frames and ("DJI_0001_1", "00002") in frames
+    assert (
+        ("DJI_0001_1", "00000") in frames
+        and ("DJI_0001_1", "00001") not in frames
+        and ("DJI_0001_1", "00002") in frames
+    )
     assert sum(p.split == "test" for p in source.pairs) == 3 and len(source.pairs) == 7
     assert any("every 2th frame" in n and "not the official protocol" in n for n in source.notes)
 
@@ -361,8 +376,8 @@ def test_harness_run_ours_on_rgbt_tiny_end_to_end(trained):
 
 # ------------------------------------------------------------------ through the prepared-sample cache
 def test_prepare_records_drops_folds_and_options(copy_release, tmp_path):
-    from harness.config import load_config
     from harness.cache import prepare
+    from harness.config import load_config
 
     root, expected = copy_release
     (root / "images" / "DJI_0101_1" / "01" / "00001.jpg").unlink()

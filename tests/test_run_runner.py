@@ -11,7 +11,6 @@ pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
 from engine_helpers import CATEGORIES, fast_overrides
-from engine_helpers import shapes_run_plugins as plugins  # noqa: F401 - the fixture
 from harness.config import read_yaml
 from harness.errors import ConfigError, StoreError
 from harness.testing import temporary_plugin
@@ -28,7 +27,7 @@ def request(tmp_path, **kw):
 
 
 @pytest.mark.slow
-def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path, monkeypatch):
+def test_run_trains_every_fold_and_fills_the_store(shapes_run_plugins, tmp_path, monkeypatch):
     import harness.complexity
     from harness.report.run_tables import category_table, fold_table
     from harness.runner import run
@@ -96,7 +95,7 @@ def test_run_trains_every_fold_and_fills_the_store(plugins, tmp_path, monkeypatc
 
 
 @pytest.mark.slow
-def test_a_run_is_scored_with_every_setting_of_its_eval_section(plugins, tmp_path, monkeypatch):
+def test_a_run_is_scored_with_every_setting_of_its_eval_section(shapes_run_plugins, tmp_path, monkeypatch):
     """Validation and the final evaluation call the one evaluation path with the run's ``eval`` section: the SAFit
     anchor and ``strict`` reach the evaluator (the runner used to pass engine and matching only)."""
     import harness.evaluation
@@ -123,7 +122,7 @@ def test_a_run_is_scored_with_every_setting_of_its_eval_section(plugins, tmp_pat
 
 
 @pytest.mark.slow
-def test_finished_runs_are_skipped_changed_ones_refused_and_forced(plugins, tmp_path):
+def test_finished_runs_are_skipped_changed_ones_refused_and_forced(shapes_run_plugins, tmp_path):
     from harness.runner import run
 
     first = run(request(tmp_path, folds="A"))
@@ -145,7 +144,7 @@ def test_finished_runs_are_skipped_changed_ones_refused_and_forced(plugins, tmp_
     assert read_yaml(init.results[0].path / "config.yaml")["train"]["init"] == str(best)
 
 
-def test_a_run_another_process_is_training_is_refused_and_left_alone(plugins, tmp_path):
+def test_a_run_another_process_is_training_is_refused_and_left_alone(shapes_run_plugins, tmp_path):
     from harness.runner import run
     from harness.store import RunBusyError, RunKey, Store
 
@@ -158,7 +157,7 @@ def test_a_run_another_process_is_training_is_refused_and_left_alone(plugins, tm
 
 
 @pytest.mark.slow
-def test_an_interrupted_run_resumes_to_the_uninterrupted_result(plugins, tmp_path, monkeypatch):
+def test_an_interrupted_run_resumes_to_the_uninterrupted_result(shapes_run_plugins, tmp_path, monkeypatch):
     from harness.engine import trainer as trainer_mod
     from harness.runner import run
 
@@ -191,7 +190,7 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_result(plugins, tmp_pat
     assert log == [1, 2, 3]  # the interrupted epoch was not checkpointed, so it is not logged twice
 
 
-def test_bad_requests_are_clear_errors(plugins, tmp_path):
+def test_bad_requests_are_clear_errors(shapes_run_plugins, tmp_path):
     from harness.errors import UnknownNameError
     from harness.runner import run
 
@@ -206,7 +205,7 @@ def test_bad_requests_are_clear_errors(plugins, tmp_path):
 
 
 @pytest.mark.slow
-def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
+def test_cli_run_and_ablate_print_aligned_tables(shapes_run_plugins, tmp_path, cli_runner):
     store = str(tmp_path / "store")
     sets = [a for s in FAST for a in ("--set", s)]
     res = cli_runner(["run", "--detector", "tinydet-dual", "--dataset", "shapes", "--encoding", "test-ir8",
@@ -227,8 +226,25 @@ def test_cli_run_and_ablate_print_aligned_tables(plugins, tmp_path, cli_runner):
     assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
     assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]
 
-    res = cli_runner(["ablate", "--dataset", "shapes", "--detector", "tinydet", "--encodings", "test-ir8", "--folds", "B",
-                      "--categories", "delamination", "--store", store, "--no-progress", *sets])
+    res = cli_runner(
+        [
+            "ablate",
+            "--dataset",
+            "shapes",
+            "--detector",
+            "tinydet",
+            "--encodings",
+            "test-ir8",
+            "--folds",
+            "B",
+            "--categories",
+            "delamination",
+            "--store",
+            store,
+            "--no-progress",
+            *sets,
+        ]
+    )
     assert res.exit_code == 2 and "category 'delamination' is not in the dataset" in res.output
 
 
@@ -255,7 +271,7 @@ def register_datasets(register):
 '''
 
 
-def test_a_finished_run_is_not_reused_once_its_dataset_plugins_code_changed(plugins, tmp_path, monkeypatch):
+def test_a_finished_run_is_not_reused_once_its_dataset_plugins_code_changed(shapes_run_plugins, tmp_path, monkeypatch):
     """The plugin's code changes what it yields while its fingerprint() stays the same: the cache key changes with
     the code, and so does the run's identity, so the finished run is refused, not skipped as the same run."""
     import importlib

@@ -131,7 +131,9 @@ def test_engines_agree_under_safit():
     keys = ("mAP50", "mAP50_95", "AP75", "AP_et", "AP_t", "AP_s", "AP_m", "AP_l")
     sa, sb = a["metrics"]["safit"], b["metrics"]["safit"]
     assert all((sa[k] is None) == (sb[k] is None) for k in keys)
-    assert [sa[k] for k in keys if sa[k] is not None] == pytest.approx([sb[k] for k in keys if sb[k] is not None], abs=1e-12)
+    assert [sa[k] for k in keys if sa[k] is not None] == pytest.approx(
+        [sb[k] for k in keys if sb[k] is not None], abs=1e-12
+    )
     assert sa["mAP50"] > a["metrics"]["mAP50"]  # tiny, loosely placed boxes score higher under SAFit
     assert {k: v.get("SAFit_AP50_95") for k, v in a["per_category"].items()} == \
            pytest.approx({k: v.get("SAFit_AP50_95") for k, v in b["per_category"].items()}, abs=1e-12)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.errors import SampleError
 from harness import AlignedSample, validate_sample
+from harness.errors import SampleError
 
 
 def good(**over):

@@ -99,11 +99,11 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
     torch.set_num_threads(1)
     from engine_helpers import ENCODINGS, tinydet_module
     from harness import distributed as hd
+    from harness.cache import PreparedDataset
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
     from harness.engine.runtime import seed_everything
     from harness.engine.trainer import Trainer, TrainSettings
-    from harness.cache import PreparedDataset
 
     try:
         assert hd.init_from_env() == DistInfo(rank, world, rank)
@@ -125,9 +125,16 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
         visited: list[int] = []
         dets = predict(OneBoxPerImage(rank), held_out, 64, batch=2, distributed=True, visited=visited)
         if rank == 0:
-            queue.put({"epochs": result.epochs_run, "unused_epochs": unused_result.epochs_run, "same_weights": all(torch.equal(weights[0], w) for w in weights),
-                       "dets": dets, "visited": visited,
-                       "expected": [held_out.image_id(k) for k in range(len(held_out))]})
+            queue.put(
+                {
+                    "epochs": result.epochs_run,
+                    "unused_epochs": unused_result.epochs_run,
+                    "same_weights": all(torch.equal(weights[0], w) for w in weights),
+                    "dets": dets,
+                    "visited": visited,
+                    "expected": [held_out.image_id(k) for k in range(len(held_out))],
+                }
+            )
         else:
             queue.put({"rank1_dets": len(dets), "rank1_visited": len(visited)})
     except BaseException as exc:  # report instead of hanging the test

@@ -50,8 +50,11 @@ def test_a_run_killed_mid_epoch_resumes_to_the_uninterrupted_result(tmp_path):
     proc = subprocess.Popen(_cmd(store), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         # epoch 1 is checkpointed and logged; epoch 2 has started
-        logged = _wait_for(lambda: (run_dir / "log.jsonl").exists() and (run_dir / "log.jsonl").read_text().count("\n") >= 1,
-                           proc, timeout=240)
+        logged = _wait_for(
+            lambda: (run_dir / "log.jsonl").exists() and (run_dir / "log.jsonl").read_text().count("\n") >= 1,
+            proc,
+            timeout=240,
+        )
         assert logged, "the run ended before its first epoch was logged"
         first_epoch_s = json.loads((run_dir / "log.jsonl").read_text().splitlines()[0])["time_s"]
         time.sleep(0.3 * first_epoch_s)  # about a third into epoch 2, which lasts as long as epoch 1

@@ -5,7 +5,6 @@ a shell or unpickles untrusted data."""
 from __future__ import annotations
 
 import ast
-import json
 import pathlib
 import subprocess
 from pathlib import Path
@@ -113,14 +112,14 @@ def test_config_names_cannot_reach_outside_the_config_folder(kw):
 def test_rgbt_tiny_annotation_paths_cannot_leave_the_images_folder(tmp_path):
     pytest.importorskip("adapters.datasets.rgbt_tiny")
     from adapters.datasets import rgbt_tiny
+    from datasets_helpers import edited_json
     from eightbit_fixtures import rgbt_json, write_rgbt_tiny
 
     root = tmp_path / "RGBT-Tiny"
     write_rgbt_tiny(root, train_seqs=("DJI_0001_1",), test_seqs=("DJI_0101_1",), frames=2)
     path = rgbt_json(root, "01", "train")
-    doc = json.loads(path.read_text())
-    doc["images"][0]["file_name"] = "DJI_0001_1/../../../../secret/01/00000.jpg"
-    path.write_text(json.dumps(doc))
+    with edited_json(path) as doc:
+        doc["images"][0]["file_name"] = "DJI_0001_1/../../../../secret/01/00000.jpg"
     with pytest.raises(DataError, match=r"instances_01_train2017.json: images\[0\]: file_name: .*leads outside"):
         rgbt_tiny.open_rgbt_tiny(root)
     with pytest.raises(ValueError, match="leads outside"):

@@ -64,12 +64,14 @@ def test_expansion_covers_the_grid_and_leaves_out_impossible_combinations(plugin
 
 
 def test_a_missing_executor_package_is_a_clear_error(plugins, tmp_path, monkeypatch):
-    from harness.sweep import ExecutorError, expand, execute
+    from harness.sweep import ExecutorError, execute, expand
 
     job = expand(spec(tmp_path, folds="A")).jobs[0]
     for module, executor in (("ray", "ray"), ("submitit", "slurm")):
         monkeypatch.setitem(sys.modules, module, None)  # `import ray` now raises ImportError
-        with pytest.raises(ExecutorError, match=rf"--executor {executor} needs the Python package '{module}'.*pip install"):
+        with pytest.raises(
+            ExecutorError, match=rf"--executor {executor} needs the Python package '{module}'.*pip install"
+        ):
             execute([job], executor)
     assert _finished_runs(tmp_path / "store") == []
 

@@ -12,9 +12,9 @@ pytest.importorskip("harness.cache")
 from engine_helpers import CATEGORIES, ShapesSource, tinydet_module
 from harness import DatasetSpec, hookimpl
 from harness.errors import DataError
-from harness.testing import temporary_plugin
 from harness.scoring.frames import from_prepared, to_prepared
 from harness.sensing.warp import transform_boxes
+from harness.testing import temporary_plugin
 from scale_helpers import TINY
 
 ORIGIN = (6, 4)
@@ -24,8 +24,13 @@ H = [[0.5, 0.0, -3.0], [0.0, 0.5, -1.5], [0.0, 0.0, 1.0]]  # RGB at twice the th
 def rotated_homography(scale: float = 0.5, degrees: float = 2.0, shift=(-3.0, -1.5), tilt=(2e-5, -1e-5)):
     """RGB -> frame: a scale, a rotation, a shift and a little perspective, as a registration fit gives them."""
     t = np.deg2rad(degrees)
-    return np.array([[scale * np.cos(t), -scale * np.sin(t), shift[0]], [scale * np.sin(t), scale * np.cos(t), shift[1]],
-                     [tilt[0], tilt[1], 1.0]])
+    return np.array(
+        [
+            [scale * np.cos(t), -scale * np.sin(t), shift[0]],
+            [scale * np.sin(t), scale * np.cos(t), shift[1]],
+            [tilt[0], tilt[1], 1.0],
+        ]
+    )
 
 
 def lens(width: int, height: int, k1: float = -0.12, k2: float = 0.03):
@@ -174,8 +179,8 @@ def finished_run(tmp_path_factory, one_torch_thread):
     os.environ["HARNESS_CACHE"] = str(tmp / "cache")
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
-    from engine_helpers import ShapesPlugin
 
+    from engine_helpers import ShapesPlugin
     from harness.runner import RunRequest, run
 
     with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-t"), \

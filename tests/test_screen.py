@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from datasets_helpers import tiny_source  # noqa: F401  (session fixture: the tiny synthetic M3T set)
+
 from screen_helpers import POSITIONS, p1_flight, upscaled_flight
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
@@ -147,11 +147,11 @@ def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
 
 def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):
     """Below the findings: the front end's [R, G, B, C2] and temperature map are the run's prepared samples."""
-    from harness.plugins import get_host
     from harness.cache import PreparedDataset
+    from harness.plugins import get_host
     from harness.screen.flight import find_captures
-    from harness.screen.job import ScreenRequest, load_homography, load_model, resolve_cameras
     from harness.screen.frontend import FrontEnd, FrontEndSettings
+    from harness.screen.job import ScreenRequest, load_homography, load_model, resolve_cameras
 
     flight, _, _ = screened
     req = ScreenRequest(flight=flight, out=trained.root / "unused", run=trained.run)
@@ -381,9 +381,9 @@ def test_onnx_runtime_gives_the_same_findings_as_pytorch(trained, screened, tmp_
 def test_reduced_jpeg_decoding_where_the_warp_shrinks_the_wide_image(trained, screened, tmp_path):
     """Wide images twice the size (the warp shrinks them 3.5x): decoded at 1/2, the findings are those of a full
     decode, and the boxes in the wide image are twice those of the original flight."""
+    from harness.screen.frontend import scale_change
     from harness.sensing.calibration import CameraModel
     from harness.sensing.registration import load_homography_entries, save_homographies
-    from harness.screen.frontend import scale_change
 
     flight = upscaled_flight(trained.tiny, tmp_path / "wide")
     cam = CameraModel.load(trained.tiny / "calibration" / "wide_camera.yaml")

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from harness.errors import DataError
 from harness.api import AlignedSample
+from harness.errors import DataError
 from harness.sensing.analyses import box_amplitudes, displacement_study, format_displacement, shift_replicate
 from harness.sensing.c2 import c2, contrast_amplitude
 

@@ -9,11 +9,10 @@ import struct
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.sensing import jpeg
 from harness.sensing.batch import DecodeOptions, decode_batch, exact_params
 from harness.sensing.radiometry import read_thermal, sidecar_path, write_rjpeg
-
-from conftest import SHARED
 
 REAL = SHARED / "data" / "dji-m3t-rjpeg" / "m3t_a.jpg"
 

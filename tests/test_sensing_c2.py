@@ -8,11 +8,19 @@ import math
 import numpy as np
 import pytest
 
-from harness.errors import PluginError
 from harness.api import AlignedSample
+from harness.errors import PluginError
 from harness.sensing.c2 import (
-    c2, c2_from_deviation, c2_uint8, clip_scale, contrast_amplitude, fast_percentile, gaussian_background,
-    kernel_radius, local_deviation, to_uint8,
+    c2,
+    c2_from_deviation,
+    c2_uint8,
+    clip_scale,
+    contrast_amplitude,
+    fast_percentile,
+    gaussian_background,
+    kernel_radius,
+    local_deviation,
+    to_uint8,
 )
 
 

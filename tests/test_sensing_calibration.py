@@ -9,7 +9,11 @@ import pytest
 
 from harness.errors import DataError
 from harness.sensing.calibration import (
-    CameraModel, calibrate_checkerboard, undistort_boxes, undistort_image, undistort_points,
+    CameraModel,
+    calibrate_checkerboard,
+    undistort_boxes,
+    undistort_image,
+    undistort_points,
 )
 
 SIZE = (320, 240)
@@ -123,7 +127,9 @@ def test_undistortion_removes_the_border_and_moves_points_consistently():
     X = np.array([[0.3, -0.2, 2.0]])
     distorted, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)
     ideal, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), new_cam.K, np.zeros(5))
-    np.testing.assert_allclose(undistort_points(distorted.reshape(-1, 2), cam, new_cam), ideal.reshape(-1, 2), atol=1e-3)
+    np.testing.assert_allclose(
+        undistort_points(distorted.reshape(-1, 2), cam, new_cam), ideal.reshape(-1, 2), atol=1e-3
+    )
     box = undistort_boxes(np.array([[100, 80, 140, 120]]), cam, new_cam)
     assert box.shape == (1, 4) and box[0, 2] > box[0, 0]
     with pytest.raises(DataError, match="calibrated at 320x240"):

@@ -9,13 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import ConfigError, DataError
 from harness.sensing import dji_correction as dc
 from harness.sensing import dji_formats, jpeg
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
-
-from conftest import SHARED
-from datasets_helpers import tiny_source  # noqa: F401  (fixture)
 
 CAMERAS = SHARED / "data" / "dji-rjpeg-cameras"
 M3T = SHARED / "data" / "dji-m3t-rjpeg"

@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import ConfigError, DataError
 from harness.sensing import dji_converter, jpeg
 from harness.sensing import dji_correction as dc
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
-
-from conftest import SHARED
 
 CAMERAS = SHARED / "data" / "dji-rjpeg-cameras"
 needs_cameras = pytest.mark.skipif(not CAMERAS.is_dir(), reason=f"{CAMERAS} not present")
@@ -173,10 +172,9 @@ def test_a_command_template_names_any_other_converter(standin, tmp_path):
 
 
 def test_decode_command_and_dataset_prepare_use_the_converter(standin, tmp_path, cli_runner):
-    from harness.config import load_config
-    from harness.cache import prepare
-
     from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
+    from harness.cache import prepare
+    from harness.config import load_config
 
     folder, log = standin
     src = builtin_table_file(tmp_path / "flight" / "DJI_0001_T.jpg")

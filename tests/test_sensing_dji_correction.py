@@ -10,12 +10,11 @@ import struct
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import ConfigError, DataError
 from harness.sensing import dji_correction as dc
 from harness.sensing import jpeg
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
-
-from conftest import SHARED
 
 REAL = SHARED / "data" / "dji-m3t-rjpeg"
 REAL_FILES = ["m3t_a", "m3t_b", "m3t_c"]
@@ -145,7 +144,9 @@ def test_damaged_or_missing_app5_is_a_clear_error(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- equations
 def test_balance_hand_computed():
-    w = lambda c: (c + 273.15) ** 4
+    def w(c):
+        return (c + 273.15) ** 4
+
     # tau 1 (Q14 16384), emissivity 0.9, atmosphere 20 C: W0 = 0.9 W + 0.1 W(20)
     expect = ((w(40.0) - 0.1 * w(20.0)) / 0.9) ** 0.25 - 273.15
     got = dc.radiance_balance(np.array([40.0]), np.array([16384.0]), 0.9, 20.0)
@@ -257,8 +258,8 @@ def test_decode_command_routes_and_overrides(tmp_path, cli_runner):
 
 
 def test_config_selects_the_route_and_keys_the_cache():
-    from harness.config import load_config
     from harness.cache import cache_key
+    from harness.config import load_config
     from harness.sensing.options import SensingOptions
 
     cfg = load_config()

@@ -11,13 +11,12 @@ import struct
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import DataError
 from harness.sensing import dji_approximate, dji_formats, jpeg
 from harness.sensing import dji_correction as dc
 from harness.sensing.batch import DecodeOptions, decode_batch, format_failures
 from harness.sensing.radiometry import read_rjpeg, read_thermal, write_rjpeg
-
-from conftest import SHARED
 from test_sensing_dji_correction import _table, _with_app5
 
 CAMERAS = SHARED / "data" / "dji-rjpeg-cameras"
@@ -219,10 +218,9 @@ def test_the_bounds_are_ordered_and_cover_the_emissivity_they_name():
 def test_a_dataset_prepared_on_approximate_temperatures_says_so(tmp_path):
     import cv2
 
-    from harness.config import load_config
-    from harness.cache import prepare
-
     from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
+    from harness.cache import prepare
+    from harness.config import load_config
 
     root = make_coco_rgbt(tmp_path / "coco", n=6)
     coco = read_json(root)
@@ -247,11 +245,11 @@ def test_a_dataset_prepared_on_approximate_temperatures_says_so(tmp_path):
 
 def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path):
     from harness.report.reader import StoreView, read_run
-    from harness.report.run_tables import category_table as run_categories, fold_table
+    from harness.report.run_tables import category_table as run_categories
+    from harness.report.run_tables import fold_table
     from harness.report.tables import ablation_tables, category_table, project_table
     from harness.runner import RunOutcome, RunSummary
     from harness.store import RunKey
-
     from report_fixtures import synthetic_store
 
     store = synthetic_store(tmp_path / "store", folds=("P1", "P2"), per_fold=4,

@@ -9,13 +9,19 @@ import struct
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from harness.errors import DataError
 from harness.sensing import jpeg
 from harness.sensing.radiometry import (
-    RJpeg, celsius_to_raw14, raw14_to_celsius, read_rjpeg, read_thermal, sidecar_path, write_rjpeg, write_thermal,
+    RJpeg,
+    celsius_to_raw14,
+    raw14_to_celsius,
+    read_rjpeg,
+    read_thermal,
+    sidecar_path,
+    write_rjpeg,
+    write_thermal,
 )
-
-from conftest import SHARED
 
 REAL = SHARED / "data" / "dji-m3t-rjpeg"
 REAL_FILES = ["m3t_a", "m3t_b", "m3t_c"]

@@ -11,11 +11,20 @@ import pytest
 from harness.errors import DataError
 from harness.sensing import registration as reg
 from harness.sensing.registration import (
-    Landmarks, apply_homography, corner_error, estimate_homography_auto, group_by_capture_time,
-    homography_from_focal_lengths, homography_from_landmarks, homography_from_similarity, image_center,
-    load_homographies, read_landmarks, registration_error, save_homographies,
+    Landmarks,
+    apply_homography,
+    corner_error,
+    estimate_homography_auto,
+    group_by_capture_time,
+    homography_from_focal_lengths,
+    homography_from_landmarks,
+    homography_from_similarity,
+    image_center,
+    load_homographies,
+    read_landmarks,
+    registration_error,
+    save_homographies,
 )
-
 from sensing_scenes import render_pair
 
 RGB_SIZE, TH_SIZE = (4000, 3000), (640, 512)
@@ -181,7 +190,9 @@ def test_homographies_file_round_trip_and_hand_edits(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- landmarks files, error
 def _write_csv(path, rows):
-    path.write_text("scene,group,rgb_x,rgb_y,thermal_x,thermal_y\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
+    path.write_text(
+        "scene,group,rgb_x,rgb_y,thermal_x,thermal_y\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n"
+    )
 
 
 def test_landmarks_files_csv_and_json(tmp_path):
@@ -235,8 +246,22 @@ def test_registration_error_command(tmp_path, cli_runner):
     save_homographies(tmp_path / "H.yaml", {"P1": _true_h(), "P2": reg.HomographyEntry(_true_h(), "landmarks", None,
                                                                                           RGB_SIZE, TH_SIZE)})
     out = tmp_path / "err.json"
-    res = cli_runner(["sensing", "registration-error", "--landmarks", str(tmp_path / "lm.csv"), "--homographies",
-                      str(tmp_path / "H.yaml"), "--dataset", "m3t", "--store", str(tmp_path / "store"), "--out", str(out)])
+    res = cli_runner(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(tmp_path / "lm.csv"),
+            "--homographies",
+            str(tmp_path / "H.yaml"),
+            "--dataset",
+            "m3t",
+            "--store",
+            str(tmp_path / "store"),
+            "--out",
+            str(out),
+        ]
+    )
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())
     assert data["n"] == 16 and 0.1 < data["mean"] < 1.0 and set(data["per_scene"]) == {"s0", "s1", "s2"}

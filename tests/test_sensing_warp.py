@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.errors import DataError
 from harness.contracts import validate_sample
+from harness.errors import DataError
 from harness.sensing.registration import homography_from_similarity
 from harness.sensing.warp import align_pair, common_support_box, support_mask, transform_boxes, warp_to_thermal
 

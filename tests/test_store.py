@@ -13,7 +13,7 @@ import pytest
 
 from harness.errors import StoreError
 from harness.io import atomic_write, atomic_write_json, read_json
-from harness.store import Run, RunKey, Store
+from harness.store import RunKey, Store
 
 
 def test_layout_one_folder_per_dataset_detector_encoding_fold_seed(tmp_path):

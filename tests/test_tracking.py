@@ -1,4 +1,5 @@
-"""Experiment tracking: the logger hook, the tracker fan-out, and real MLflow / TensorBoard read-back of a 1-epoch run."""
+"""Experiment tracking: the logger hook, the tracker fan-out, and real MLflow / TensorBoard read-back of a 1-epoch
+run."""
 
 from __future__ import annotations
 

@@ -25,8 +25,8 @@ def register_datasets(register):
 
 
 def test_an_edited_dataset_plugin_is_prepared_again(host, tmp_path, monkeypatch):
-    from harness.testing import temporary_plugin
     from harness.cache import plugin_code_fingerprint, prepare
+    from harness.testing import temporary_plugin
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     path = tmp_path / "shapes_code_plugin.py"

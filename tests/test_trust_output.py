@@ -61,10 +61,9 @@ def test_report_print_writes_no_report_folder(tmp_path, cli_runner):
 def test_a_dataset_with_only_invalid_samples_names_the_reasons_with_counts(host, tmp_path, monkeypatch):
     pytest.importorskip("harness.cache")
     from engine_helpers import CATEGORIES, ShapesSource
-
     from harness import DatasetSpec
-    from harness.errors import DataError
     from harness.cache import prepare
+    from harness.errors import DataError
 
     class FloatRGB(ShapesSource):
         def samples(self, report):
@@ -82,10 +81,9 @@ def test_a_dataset_with_only_invalid_samples_names_the_reasons_with_counts(host,
 def test_a_sweep_checks_its_settings_per_detector_when_planning(host, tmp_path, monkeypatch):
     pytest.importorskip("harness.cache")
     from engine_helpers import ShapesPlugin, tinydet_module
-
     from harness.errors import ConfigError
-    from harness.testing import temporary_plugin
     from harness.sweep import SweepSpec, expand
+    from harness.testing import temporary_plugin
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     tinydet_module()

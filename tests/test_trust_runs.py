@@ -10,7 +10,6 @@ pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
 from engine_helpers import CATEGORIES, fast_overrides  # noqa: E402
-from engine_helpers import shapes_run_plugins as plugins  # noqa: E402, F401 - the fixture
 from harness.errors import ConfigError  # noqa: E402
 
 FAST = fast_overrides(epochs=1, close_mosaic=0)
@@ -30,11 +29,12 @@ def _files(path):
             if p.is_file() and p.name not in (".lock", "status.json")}
 
 
-def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only_that(plugins, tmp_path):
+def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only_that(shapes_run_plugins, tmp_path):
+    from harness_tinydet.model import TinyDet
+
     from harness.report.reader import StoreView
     from harness.report.tables import project_table
     from harness.runner import run
-    from harness_tinydet.model import TinyDet
 
     summary = run(request(tmp_path, ["model.width=8"]))
     comp = summary.results[0].metrics["complexity"]
@@ -63,7 +63,7 @@ def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only
     assert compared.rows[0].options == "width=8" and "tinydet [width=8]" in compared.to_text()
 
 
-def test_profile_takes_the_run_options_and_writes_the_run_store(plugins, tmp_path, monkeypatch, cli_runner):
+def test_profile_takes_the_run_options_and_writes_the_run_store(shapes_run_plugins, tmp_path, monkeypatch, cli_runner):
     monkeypatch.chdir(tmp_path)
     res = cli_runner(["profile", "--detector", "tinydet", "--set", "model.width=8", "--imgsz", "64", "--no-latency",
                       "--no-onnx", "--no-fvcore", "--format", "json"])
@@ -75,7 +75,8 @@ def test_profile_takes_the_run_options_and_writes_the_run_store(plugins, tmp_pat
     assert stored["params"]["total"] == sum(p.numel() for p in TinyDet(8, in_channels=4, width=8).parameters())
 
 
-def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(plugins, tmp_path, monkeypatch):
+def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(shapes_run_plugins, tmp_path,
+                                                                                  monkeypatch):
     from harness.engine.trainer import Trainer
     from harness.runner import run
 
@@ -100,7 +101,7 @@ def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attemp
     assert staged["state"] == "failed" and "out of memory" in staged["error"]
 
 
-def test_force_replaces_a_finished_run_in_one_swap(plugins, tmp_path):
+def test_force_replaces_a_finished_run_in_one_swap(shapes_run_plugins, tmp_path):
     from harness.runner import run
 
     first = run(request(tmp_path)).results[0]
@@ -117,7 +118,7 @@ def test_force_replaces_a_finished_run_in_one_swap(plugins, tmp_path):
 
 
 @pytest.mark.parametrize("bad", ["model.widht=32", "protocol.imgsz=100"])
-def test_bad_settings_are_refused_before_a_run_is_started(plugins, tmp_path, bad):
+def test_bad_settings_are_refused_before_a_run_is_started(shapes_run_plugins, tmp_path, bad):
     from harness.runner import run
     from harness.store import RunKey, Store
 
@@ -126,7 +127,7 @@ def test_bad_settings_are_refused_before_a_run_is_started(plugins, tmp_path, bad
     assert Store(tmp_path / "store").run(RunKey("shapes", "tinydet", "test-ir8", "A", 0)).status() is None
 
 
-def test_an_error_while_building_the_model_in_a_run_is_recorded_as_failed(plugins, tmp_path, monkeypatch):
+def test_an_error_while_building_the_model_in_a_run_is_recorded_as_failed(shapes_run_plugins, tmp_path, monkeypatch):
     import harness.runner as runner
     from harness.store import RunKey, Store
 
@@ -171,7 +172,7 @@ def test_an_interrupted_swap_is_recovered(tmp_path):
     assert not run.retired_path.exists()
 
 
-def test_a_dataset_given_from_another_folder_is_the_same_run(plugins, tmp_path, cli_runner):
+def test_a_dataset_given_from_another_folder_is_the_same_run(shapes_run_plugins, tmp_path, cli_runner):
     from harness.runner import run
 
     run(request(tmp_path, [f"dataset.root={tmp_path / 'here'}"]))
@@ -182,7 +183,7 @@ def test_a_dataset_given_from_another_folder_is_the_same_run(plugins, tmp_path, 
     assert "skipped" in res.output
 
 
-def test_a_changed_configuration_is_refused_with_the_keys_that_differ(plugins, tmp_path):
+def test_a_changed_configuration_is_refused_with_the_keys_that_differ(shapes_run_plugins, tmp_path):
     from harness.errors import StoreError
     from harness.runner import run
 

@@ -41,7 +41,6 @@ def test_store_commands_fit_100_columns(wide_store, tmp_path, cli_runner):
 
 def test_listing_and_profile_fit_100_columns(host, cli_runner):
     from engine_helpers import tinydet_module
-
     from harness.testing import temporary_plugin
 
     tinydet_module()

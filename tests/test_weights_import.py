@@ -214,8 +214,8 @@ def test_pretrain_starts_from_an_imported_checkpoint(tmp_path, host, monkeypatch
     """`harness pretrain --init` (and so `harness run --init`) takes the import: stem inflated to 4 channels."""
     from engine_helpers import ShapesPlugin
     from harness.commands.pretrain import pretrain
-    from harness.testing import temporary_plugin
     from harness.store import RunKey, Store
+    from harness.testing import temporary_plugin
     from scale_helpers import TINY
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))

@@ -1,14 +1,16 @@
-"""Helpers shared by the adapters of public datasets that ship 8-bit thermal images (RGBT-Tiny, M3FD).
+"""Helpers shared by the adapters of public datasets that ship 8-bit thermal images (RGBT-Tiny, M3FD, LLVIP,
+FLIR-aligned) and by coco-rgbt.
 
 Small pure functions: read an image with explicit flags, turn an 8-bit thermal image into one channel, clip boxes
-to the frame, resolve the dataset root, check plugin options, hash file stats into a fingerprint.
+to the frame, resolve the dataset root, check plugin options, hash file stats into a fingerprint. What the sources
+themselves share (counted drops, strict mode, one sample loop) is in ``adapters.datasets._paired``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -77,18 +79,25 @@ def read_thermal8(path: Path) -> tuple[np.ndarray, bool]:
 
 @dataclass
 class BoxStats:
-    """What happened to the boxes of one dataset while they were brought into the prepared format."""
+    """What happened while one dataset's samples were brought into the prepared format: boxes kept, clipped to the
+    frame, dropped (no area inside the frame, crowd), thermal images converted from colour, images with no label
+    file."""
 
     kept: int = 0
     clipped: int = 0
     degenerate: int = 0
     crowd: int = 0
+    colour: int = 0
+    unlabelled: int = 0
 
     def add(self, other: "BoxStats") -> None:
-        self.kept += other.kept
-        self.clipped += other.clipped
-        self.degenerate += other.degenerate
-        self.crowd += other.crowd
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+    def note(self) -> str:
+        """The prepare-report line about the boxes (kept, clipped, dropped for want of area)."""
+        return (f"boxes: {self.kept} kept, {self.clipped} clipped to the frame, "
+                f"{self.degenerate} dropped with no area inside the frame")
 
 
 def clip_boxes(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -104,6 +113,15 @@ def clip_boxes(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, n
     keep = (clipped[:, 2] > clipped[:, 0]) & (clipped[:, 3] > clipped[:, 1])
     changed = int((np.abs(clipped - xyxy).max(axis=1) > 0)[keep].sum()) if len(xyxy) else 0
     return clipped.astype(np.float32), keep, changed
+
+
+def clip_to_frame(xyxy: np.ndarray, labels: np.ndarray, width: int, height: int
+                  ) -> tuple[np.ndarray, np.ndarray, BoxStats]:
+    """``clip_boxes``, then only the boxes that keep an area: contiguous boxes (float32 Nx4) and their labels, and
+    what happened to them (kept, clipped, degenerate)."""
+    boxes, keep, clipped = clip_boxes(xyxy, width, height)
+    stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum()))
+    return np.ascontiguousarray(boxes[keep]), np.ascontiguousarray(np.asarray(labels)[keep]), stats
 
 
 def xywh_to_xyxy(xywh: np.ndarray) -> np.ndarray:
@@ -133,6 +151,25 @@ def resolve_root(root: str | os.PathLike | None, env: str, dataset: str, must_co
             f"(found: {', '.join(found) or 'nothing'}); point dataset.root or {env} at the folder that holds them"
         )
     return path
+
+
+def find_release_root(root: str | os.PathLike | None, env: str, dataset: str, names: Iterable[str],
+                      layouts: Iterable[Iterable[str]]) -> Path:
+    """The release folder: ``root`` (else ``$env``) itself or one of the folders ``names`` inside it, the first that
+    holds every sub-folder of one of ``layouts``; otherwise a ``DataError`` naming what the first layout misses."""
+    path = resolve_root(root, env, dataset, ())
+    needs = [tuple(need) for need in layouts]
+    for folder in (path, *(path / n for n in names)):
+        if any(all((folder / d).is_dir() for d in need) for need in needs):
+            return folder
+    return resolve_root(path, env, dataset, needs[0])  # raises, naming what is missing
+
+
+def check_strict(dataset: str, strict: Any) -> bool:
+    """The ``strict`` option: true or false, nothing else."""
+    if not isinstance(strict, bool):
+        raise ConfigError(f"dataset {dataset!r}: option 'strict' must be true or false, got {strict!r}")
+    return strict
 
 
 def positive_int(dataset: str, name: str, value: Any) -> int:

@@ -58,13 +58,13 @@ from adapters.datasets._eightbit import (
     ImageReadError,
     clip_boxes,
     file_stat,
-    read_image,
     read_rgb,
     read_thermal8,
     resolve_root,
     stat_digest,
     xywh_to_xyxy,
 )
+from adapters.datasets._paired import SkipPair
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
@@ -92,10 +92,6 @@ OPTIONS = {
 }
 #: Bumped when the adapter's output changes for the same input files (part of the cache key).
 ADAPTER_VERSION = 1
-
-
-class SkipPair(Exception):
-    """A pair that cannot be used: a counted skip with this reason."""
 
 
 @dataclass
@@ -197,31 +193,6 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
 
 
 # ------------------------------------------------------------------------------------------------ thermal files
-def _load_thermal_array(path: Path) -> np.ndarray:
-    """The pixel array of a thermal PNG/TIFF/NPY as stored (no unit applied)."""
-    import cv2
-
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".npy":
-            arr = np.load(path, allow_pickle=False)
-        elif suffix in (".tif", ".tiff"):
-            import tifffile
-
-            arr = tifffile.imread(path)
-        else:
-            arr = read_image(path, cv2.IMREAD_UNCHANGED)
-    except ImageReadError:
-        raise
-    except Exception as exc:  # tifffile / numpy raise many types for damaged files
-        raise ImageReadError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from None
-    if arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[:, :, 0]
-    if arr.ndim != 2:
-        raise ImageReadError(f"{path}: expected a single-channel thermal image, got shape {arr.shape}")
-    return arr
-
-
 def read_temperature(path: Path, scale: float | None = None, offset: float | None = None,
                      sensing: SensingOptions | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) from a radiometric thermal file, and how it was read.
@@ -231,7 +202,14 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
     for an 8-bit image, an unreadable file, non-finite or implausible values.
     """
-    from harness.sensing.radiometry import UNITS, read_sidecar, read_thermal, route_meta, sidecar_route
+    from harness.sensing.radiometry import (
+        UNITS,
+        load_thermal_array,
+        read_sidecar,
+        read_thermal,
+        route_meta,
+        sidecar_route,
+    )
 
     if path.suffix.lower() in (".jpg", ".jpeg"):
         try:
@@ -243,8 +221,8 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             raise SkipPair(f"thermal unreadable: {exc}") from None
         return temp, {"unit": info.get("unit"), "format": "rjpeg", **route_meta(info)}
     try:
-        arr = _load_thermal_array(path)
-    except ImageReadError as exc:
+        arr = load_thermal_array(path)
+    except DataError as exc:
         raise SkipPair(f"thermal unreadable: {exc}") from None
     if arr.dtype == np.uint8:
         raise SkipPair(f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
@@ -483,16 +461,9 @@ def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATION
     return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, opts)
 
 
-SPEC = DatasetSpec(
-    name=DATASET,
-    open=open_coco_rgbt,
-    categories=(),  # from the COCO JSON
-    description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
-    thermal="radiometric",
-    default_encoding="c2",
-    protocol="default",
-    root_env=ROOT_ENV,
-)
+SPEC = DatasetSpec(name=DATASET, open=open_coco_rgbt, categories=(),  # the categories come from the COCO JSON
+                   description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
+                   thermal="radiometric", default_encoding="c2", protocol="default", root_env=ROOT_ENV)
 
 
 @hookimpl

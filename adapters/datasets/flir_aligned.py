@@ -49,7 +49,6 @@ through the shared VOC reader (``voc_convention``, ``difficult``), and a class o
 
 from __future__ import annotations
 
-import logging
 import math
 import re
 from pathlib import Path
@@ -57,28 +56,20 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from adapters.datasets._eightbit import (
-    BoxStats,
-    ImageReadError,
-    clip_boxes,
-    file_stat,
-    read_rgb,
-    read_thermal8,
-    resolve_root,
-    stat_digest,
-)
-from adapters.datasets.voc import VocStats, normalise_convention, normalise_difficult, parse_voc, to_xyxy
-from harness.api import DatasetSpec, Fold, PrepareReport
+from adapters.datasets._eightbit import BoxStats, check_strict, clip_to_frame, file_stat, find_release_root, stat_digest
+from adapters.datasets._paired import SPLITS, SkipPair, SplitSource, eightbit_spec, read_pair
+from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
+from harness.api import PrepareReport
 from harness.errors import ConfigError, DataError
 from harness.hookspecs import hookimpl
 from harness.sample import AlignedSample
 
-log = logging.getLogger(__name__)
-
 DATASET = "flir-aligned"
 ROOT_ENV = "HARNESS_FLIR_ALIGNED"
+DESCRIPTION = (
+    "FLIR-aligned visible/infrared pairs (ICAFusion's, YOLOv5's or the release layout), 3 classes, 8-bit IR; train/test"
+)
 CATEGORIES = ("person", "car", "bicycle")
-SPLITS = ("train", "test")
 MODALITIES = ("visible", "infrared")
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp")
 #: Release folder names looked for under a root that holds the dataset folder.
@@ -172,10 +163,11 @@ def _images(folder: Path) -> dict[str, Path]:
     return out
 
 
-class FlirAlignedSource:
+class FlirAlignedSource(SplitSource):
     """An opened FLIR-aligned copy (see the module docstring)."""
 
     name = DATASET
+    log_name = "FLIR-aligned"
 
     def __init__(self, root: Path, labels: str = "visible", classes: Sequence[str] = CATEGORIES, strict: bool = False,
                  voc_convention: str = "one-based", difficult: str = "drop", layout: str | None = None):
@@ -202,14 +194,9 @@ class FlirAlignedSource:
             raise DataError(f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
                             f"visible/{{train,test}}/[images/]FLIR_<n>_RGB.jpg and "
                             f"infrared/.../[images/]FLIR_<n>_PreviewData.jpeg)")
-        counts = {s: sum(f[0] == s for f in self.frames) for s in SPLITS}
-        self.notes = [f"{counts['train']} train / {counts['test']} test pairs, {len(self.dropped)} dropped; "
-                      f"boxes from the {labels} labels ({self.layout} layout); classes {', '.join(self.categories)}"]
-        if self.dropped:
-            log.warning("FLIR-aligned: %s", self.notes[0])
-            if strict:
-                path, reason = self.dropped[0]
-                raise DataError(f"dataset {DATASET!r} (strict): {path}: {reason}")
+        self.notes = [f"{self._split_note()}; boxes from the {labels} labels ({self.layout} layout); "
+                      f"classes {', '.join(self.categories)}"]
+        self._check_drops()
 
     def _release_frames(self) -> None:
         if self.labels != "infrared":
@@ -236,15 +223,6 @@ class FlirAlignedSource:
                 else:
                     self.frames.append((split, key, vis, ir))
 
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def groups(self) -> list[str]:
-        return [s for s in SPLITS if any(f[0] == s for f in self.frames)]
-
-    def folds(self) -> list[Fold]:
-        return [Fold("test", ("train",), ("test",))] if self.groups() == list(SPLITS) else []
-
     def _label_file(self, vis: Path, ir: Path) -> Path:
         if self.layout == "release":
             return self.root / "Annotations" / f"{ir.stem}.xml"
@@ -258,100 +236,47 @@ class FlirAlignedSource:
         return stat_digest(parts)
 
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
-        for path, reason in self.dropped:
-            report.skip(path, reason)
-        for note in self.notes:
-            report.note(note)
-        stats, unlabelled = BoxStats(), 0
         self._voc = VocStats(self.voc_convention, self.difficult)
-        try:
-            for k, frame in enumerate(self.frames):
-                out = self._sample(k, frame, report)
-                if out is not None:
-                    stats.add(out[1])
-                    unlabelled += out[2]
-                    yield out[0]
-        finally:
-            report.note(f"boxes: {stats.kept} kept, {stats.clipped} clipped to the frame, "
-                        f"{stats.degenerate} dropped with no area inside the frame; {unlabelled} image(s) without a "
-                        f"label file (no objects)")
-            if self.layout == "release":
-                report.note(self._voc.note())
+        yield from self._samples(report, enumerate(self.frames), self._sample)
 
-    def _skip(self, report: PrepareReport, path: Path, reason: str) -> None:
-        if self.strict:
-            raise DataError(f"{path}: {reason}")
-        log.warning("FLIR-aligned: skipped %s (%s)", path, reason)
-        report.skip(path, reason)
+    def _closing_notes(self, report: PrepareReport, stats: BoxStats) -> None:
+        report.note(f"{stats.note()}; {stats.unlabelled} image(s) without a label file (no objects)")
+        if self.layout == "release":
+            report.note(self._voc.note())
 
-    def _sample(self, k: int, frame: tuple[str, str, Path, Path],
-                report: PrepareReport) -> tuple[AlignedSample, BoxStats, bool] | None:
-        split, key, vis_path, ir_path = frame
-        try:
-            ir8, _ = read_thermal8(ir_path)
-            rgb = read_rgb(vis_path)
-        except ImageReadError as exc:
-            self._skip(report, ir_path, f"unreadable image: {exc}")
-            return None
+    def _sample(self, item: tuple[int, tuple[str, str, Path, Path]]) -> tuple[AlignedSample, BoxStats]:
+        k, (split, key, vis_path, ir_path) = item
+        ir8, _, rgb = read_pair(ir_path, vis_path, ir_path)
         h, w = ir8.shape
-        if rgb.shape[:2] != (h, w):
-            self._skip(report, ir_path, f"size mismatch: visible {rgb.shape[1]}x{rgb.shape[0]}, infrared {w}x{h}")
-            return None
         lab = self._label_file(vis_path, ir_path)
         missing = not lab.is_file()
         if self.layout == "release":
-            out = self._voc_boxes(lab, w, h, report)
-            if out is None:
-                return None
-            xyxy, labels = out
+            ann = read_known(lab, [c.lower() for c in self.categories],
+                             f"one of {', '.join(self.categories)} (dataset.classes)")
+            check_size(ann, lab, w, h)
+            xyxy, labels = self._voc.targets(ann, [c.lower() for c in self.categories])
         else:
             try:
                 xyxy, labels = (np.zeros((0, 4)), np.zeros(0, np.int64)) if missing else parse_yolo(
                     lab, len(self.categories), w, h)
             except DataError as exc:
-                self._skip(report, lab, f"malformed labels: {exc}")
-                return None
-        boxes, keep, clipped = clip_boxes(xyxy, w, h)
+                raise SkipPair(f"malformed labels: {exc}", lab) from None
+        boxes, labels, stats = clip_to_frame(xyxy, labels, w, h)
+        stats.unlabelled = int(missing)
         sample = AlignedSample(
-            image_id=k + 1, rgb=rgb, thermal=None, ir8=ir8, boxes=np.ascontiguousarray(boxes[keep]),
-            labels=np.ascontiguousarray(labels[keep]), group=split,
+            image_id=k + 1, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=split,
             meta={"file_name": ir_path.relative_to(self.root).as_posix(),
                   "rgb_file": vis_path.relative_to(self.root).as_posix(), "frame": key, "split": split,
                   "labels": self.labels},
         )
-        return sample, BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum())), missing
-
-
-    def _voc_boxes(self, xml: Path, w: int, h: int, report: PrepareReport) -> tuple[np.ndarray, np.ndarray] | None:
-        try:
-            ann = parse_voc(xml)
-        except DataError as exc:
-            self._skip(report, xml, f"malformed annotation: {exc}")
-            return None
-        names = [c.lower() for c in self.categories]
-        unknown = sorted({o.name for o in ann.objects if o.name.strip().lower() not in names})
-        if unknown:
-            self._skip(report, xml, f"unknown class: {', '.join(map(repr, unknown))} is not one of "
-                                    f"{', '.join(self.categories)} (dataset.classes)")
-            return None
-        if ann.width and ann.height and (ann.width, ann.height) != (w, h):
-            self._skip(report, xml, f"size mismatch: <size> says {ann.width}x{ann.height}, images are {w}x{h}")
-            return None
-        self._voc.add(ann.objects)
-        objects = [o for o in ann.objects if not (o.difficult and self.difficult == "drop")]
-        labels = np.array([names.index(o.name.strip().lower()) for o in objects], np.int64)
-        return to_xyxy(objects, self.voc_convention), labels
+        return sample, stats
 
 
 def find_root(root: str | Path | None) -> Path:
     """Accept the dataset folder (ICAFusion's ``visible/`` + ``infrared/``, or the release's ``JPEGImages/`` +
     ``Annotations/``) or the folder that holds it (``FLIR-align-3class/``, ``align/`` ...)."""
-    path = resolve_root(root, ROOT_ENV, DATASET, ())
     layouts = (MODALITIES, ("JPEGImages", "Annotations"))
-    for folder in (path, *(path / n for n in (*FOLDER_NAMES, "align"))):
-        if any(all((folder / d).is_dir() for d in need) for need in layouts):
-            return folder
-    return resolve_root(path, ROOT_ENV, DATASET, MODALITIES)  # raises, naming what is missing
+    return find_release_root(root, ROOT_ENV, DATASET, (*FOLDER_NAMES, "align"), layouts)
 
 
 def _classes(value: Any) -> tuple[str, ...]:
@@ -366,8 +291,7 @@ def open_flir_aligned(root: str | Path | None = None, labels: str | None = None,
                       difficult: str = "drop", layout: str = "auto") -> FlirAlignedSource:
     """Open a FLIR-aligned copy (the options are the ``dataset:`` config keys, see ``OPTIONS``); ``labels``
     defaults to ``visible`` in the YOLO layouts and ``infrared`` in the release layout."""
-    if not isinstance(strict, bool):
-        raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
+    strict = check_strict(DATASET, strict)
     if layout not in ("auto", *LAYOUTS):
         raise ConfigError(f"dataset {DATASET!r}: option 'layout' must be auto, {', '.join(LAYOUTS)}; got {layout!r}")
     path = find_root(root)
@@ -385,17 +309,7 @@ def open_flir_aligned(root: str | Path | None = None, labels: str | None = None,
                              difficult=normalise_difficult(DATASET, difficult), layout=chosen)
 
 
-SPEC = DatasetSpec(
-    name=DATASET,
-    open=open_flir_aligned,
-    categories=CATEGORIES,
-    description="FLIR-aligned visible/infrared pairs (ICAFusion's, YOLOv5's or the release layout), 3 classes, "
-                "8-bit IR; train/test",
-    thermal="8bit",
-    default_encoding="proxy8",
-    protocol="flir-aligned",
-    root_env=ROOT_ENV,
-)
+SPEC = eightbit_spec(DATASET, open_flir_aligned, CATEGORIES, DESCRIPTION, ROOT_ENV)
 
 
 @hookimpl

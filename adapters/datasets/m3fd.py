@@ -32,32 +32,20 @@ What the loader does, and why:
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
-
-from adapters.datasets._eightbit import (
-    BoxStats,
-    ImageReadError,
-    clip_boxes,
-    file_stat,
-    read_rgb,
-    read_thermal8,
-    resolve_root,
-    stat_digest,
-)
-from adapters.datasets.voc import VocStats, normalise_convention, normalise_difficult, parse_voc, to_xyxy
-from harness.api import DatasetSpec, Fold, PrepareReport
-from harness.errors import ConfigError, DataError
+from adapters.datasets._eightbit import BoxStats, check_strict, clip_to_frame, file_stat, find_release_root, stat_digest
+from adapters.datasets._paired import PairedSource, eightbit_spec, read_pair
+from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
+from harness.api import Fold, PrepareReport
+from harness.errors import DataError
 from harness.hookspecs import hookimpl
 from harness.sample import AlignedSample
 
-log = logging.getLogger(__name__)
-
 DATASET = "m3fd"
 ROOT_ENV = "HARNESS_M3FD"
+DESCRIPTION = "M3FD visible/infrared pairs, 6 classes, 8-bit IR; fixed recorded train/val split (pretraining)"
 #: Our fixed class order (the README's); XML names are matched case-insensitively.
 CATEGORIES = ("people", "car", "bus", "motorcycle", "lamp", "truck")
 SUBDIRS = ("Annotation", "Ir", "Vis")
@@ -101,10 +89,11 @@ def _index(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
     return out
 
 
-class M3fdSource:
+class M3fdSource(PairedSource):
     """An opened M3FD detection release (see the module docstring)."""
 
     name = DATASET
+    log_name = "M3FD"
     categories = CATEGORIES
 
     def __init__(self, root: Path, strict: bool = False, voc_convention: str = "one-based", difficult: str = "drop"):
@@ -125,7 +114,9 @@ class M3fdSource:
         self.stems: list[str] = []
         for s in stems:
             if s not in self.xml:
-                self.dropped.append((str(self.ir.get(s) or self.vis[s]), f"no annotation: Annotation/{s}.xml not found"))
+                self.dropped.append(
+                    (str(self.ir.get(s) or self.vis[s]), f"no annotation: Annotation/{s}.xml not found")
+                )
             elif s not in self.ir:
                 self.dropped.append((str(self.xml[s]), f"missing thermal frame: Ir/{s}.png not found"))
             elif s not in self.vis:
@@ -136,11 +127,7 @@ class M3fdSource:
             raise DataError(f"dataset {DATASET!r}: no complete Annotation/Ir/Vis triple under {root}")
         self.notes.append(f"{len(self.xml)} annotations, {len(self.ir)} infrared, {len(self.vis)} visible images; "
                           f"{len(self.stems)} complete pairs, {len(self.dropped)} dropped")
-        if self.dropped:
-            log.warning("M3FD: %s", self.notes[-1])
-        if self.strict and self.dropped:
-            path, reason = self.dropped[0]
-            raise DataError(f"dataset {DATASET!r} (strict): {path}: {reason}")
+        self._check_drops()
         n_val = sum(1 for s in self.stems if is_val_block(block_of(int(s))))
         self.notes.append(f"recorded split (blocks of {BLOCK} frames, every {VAL_EVERY}th held out): "
                           f"{len(self.stems) - n_val} train / {n_val} val pairs")
@@ -154,7 +141,9 @@ class M3fdSource:
 
     def folds(self) -> list[Fold]:
         groups = self.groups()
-        return [Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))]
+        return [
+            Fold(FOLD, tuple(g for g in groups if not is_val_block(g)), tuple(g for g in groups if is_val_block(g)))
+        ]
 
     def fingerprint(self) -> str:
         parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY,
@@ -164,64 +153,23 @@ class M3fdSource:
         return stat_digest(parts)
 
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
-        for path, reason in self.dropped:
-            report.skip(path, reason)
-        for note in self.notes:
-            report.note(note)
-        stats, colour = BoxStats(), 0
-        voc = VocStats(self.voc_convention, self.difficult)
-        try:
-            for s in self.stems:
-                out = self._sample(s, report, voc)
-                if out is None:
-                    continue
-                sample, box_stats, was_colour = out
-                stats.add(box_stats)
-                colour += was_colour
-                yield sample
-        finally:
-            report.note(f"boxes: {stats.kept} kept, {stats.clipped} clipped to the frame, "
-                        f"{stats.degenerate} dropped with no area inside the frame")
-            report.note(voc.note())
-            if colour:
-                report.note(f"{colour} infrared image(s) were colour and were converted to luminance")
+        self._voc = VocStats(self.voc_convention, self.difficult)
+        yield from self._samples(report, self.stems, self._sample)
 
-    def _skip(self, report: PrepareReport, path: Path, reason: str) -> None:
-        if self.strict:
-            raise DataError(f"{path}: {reason}")
-        log.warning("M3FD: skipped %s (%s)", path, reason)
-        report.skip(path, reason)
+    def _closing_notes(self, report: PrepareReport, stats: BoxStats) -> None:
+        report.note(stats.note())
+        report.note(self._voc.note())
+        if stats.colour:
+            report.note(f"{stats.colour} infrared image(s) were colour and were converted to luminance")
 
-    def _sample(self, stem: str, report: PrepareReport, voc: VocStats) -> tuple[AlignedSample, BoxStats, bool] | None:
+    def _sample(self, stem: str) -> tuple[AlignedSample, BoxStats]:
         xml_path = self.xml[stem]
-        try:
-            ann = parse_voc(xml_path)
-        except DataError as exc:
-            self._skip(report, xml_path, f"malformed annotation: {exc}")
-            return None
-        unknown = sorted({o.name for o in ann.objects if o.name.strip().lower() not in CATEGORIES})
-        if unknown:
-            self._skip(report, xml_path, f"unknown class: {', '.join(map(repr, unknown))} is not one of {', '.join(CATEGORIES)}")
-            return None
-        try:
-            ir8, was_colour = read_thermal8(self.ir[stem])
-            rgb = read_rgb(self.vis[stem])
-        except ImageReadError as exc:
-            self._skip(report, xml_path, f"unreadable image: {exc}")
-            return None
+        ann = read_known(xml_path, CATEGORIES, f"one of {', '.join(CATEGORIES)}")
+        ir8, was_colour, rgb = read_pair(self.ir[stem], self.vis[stem], xml_path, names=("Vis", "Ir"))
         h, w = ir8.shape
-        if rgb.shape[:2] != (h, w):
-            self._skip(report, xml_path, f"size mismatch: Vis {rgb.shape[1]}x{rgb.shape[0]}, Ir {w}x{h}")
-            return None
-        if ann.width is not None and (ann.width, ann.height) != (w, h) and (ann.width, ann.height) != (0, 0):
-            self._skip(report, xml_path, f"size mismatch: <size> says {ann.width}x{ann.height}, images are {w}x{h}")
-            return None
-        voc.add(ann.objects)
-        objects = [o for o in ann.objects if not (o.difficult and self.difficult == "drop")]
-        xyxy = to_xyxy(objects, self.voc_convention)
-        labels = np.array([CATEGORIES.index(o.name.strip().lower()) for o in objects], dtype=np.int64)
-        boxes, keep, clipped = clip_boxes(xyxy, w, h)
-        stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum()))
+        check_size(ann, xml_path, w, h)
+        boxes, labels, stats = clip_to_frame(*self._voc.targets(ann, CATEGORIES), w, h)
+        stats.colour = int(was_colour)
         number = int(stem)
         group = block_of(number)
         sample = AlignedSample(
@@ -229,8 +177,8 @@ class M3fdSource:
             rgb=rgb,
             thermal=None,
             ir8=ir8,
-            boxes=np.ascontiguousarray(boxes[keep]),
-            labels=np.ascontiguousarray(labels[keep]),
+            boxes=boxes,
+            labels=labels,
             group=group,
             meta={
                 "file_name": f"Ir/{self.ir[stem].name}",
@@ -239,38 +187,23 @@ class M3fdSource:
                 "split": "val" if is_val_block(group) else "train",
             },
         )
-        return sample, stats, was_colour
+        return sample, stats
 
 
 def find_root(root: str | Path | None) -> Path:
     """Accept ``M3FD_Detection/`` itself or the folder that holds it."""
-    path = resolve_root(root, ROOT_ENV, DATASET, ())
-    if all((path / d).is_dir() for d in SUBDIRS):
-        return path
-    if all((path / "M3FD_Detection" / d).is_dir() for d in SUBDIRS):
-        return path / "M3FD_Detection"
-    return resolve_root(path, ROOT_ENV, DATASET, SUBDIRS)  # raises, naming what is missing
+    return find_release_root(root, ROOT_ENV, DATASET, ("M3FD_Detection",), [SUBDIRS])
 
 
 def open_m3fd(root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based",
               difficult: str = "drop") -> M3fdSource:
     """Open an M3FD detection release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
-    if not isinstance(strict, bool):
-        raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
+    strict = check_strict(DATASET, strict)
     convention, difficult = normalise_convention(DATASET, voc_convention), normalise_difficult(DATASET, difficult)
     return M3fdSource(find_root(root), strict=strict, voc_convention=convention, difficult=difficult)
 
 
-SPEC = DatasetSpec(
-    name=DATASET,
-    open=open_m3fd,
-    categories=CATEGORIES,
-    description="M3FD visible/infrared pairs, 6 classes, 8-bit IR; fixed recorded train/val split (pretraining)",
-    thermal="8bit",
-    default_encoding="ir8",
-    protocol="m3fd",
-    root_env=ROOT_ENV,
-)
+SPEC = eightbit_spec(DATASET, open_m3fd, CATEGORIES, DESCRIPTION, ROOT_ENV, default_encoding="ir8")
 
 
 @hookimpl

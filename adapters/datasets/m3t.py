@@ -29,6 +29,7 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from adapters.datasets._paired import SkipPair
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.hookspecs import hookimpl
@@ -56,10 +57,6 @@ ADAPTER_VERSION = 1
 THERMAL_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 _DJI_TIME = re.compile(r"DJI_(\d{14})_")
-
-
-class SkipPair(Exception):
-    """A pair that cannot be used: recorded as a counted skip with this reason, never raised to the user."""
 
 
 # ------------------------------------------------------------------------------------------------ manifest

@@ -45,20 +45,19 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from adapters.datasets._coco import coco_id
 from adapters.datasets._eightbit import (
     BoxStats,
-    ImageReadError,
-    clip_boxes,
+    check_strict,
+    clip_to_frame,
     file_stat,
     positive_int,
-    read_rgb,
-    read_thermal8,
     resolve_root,
     stat_digest,
     xywh_to_xyxy,
 )
-from harness.api import DatasetSpec, Fold, PrepareReport
-from adapters.datasets._coco import coco_id
+from adapters.datasets._paired import PairedSource, eightbit_spec, read_pair
+from harness.api import Fold, PrepareReport
 from harness.errors import ConfigError, DataError
 from harness.hookspecs import hookimpl
 from harness.io import read_json
@@ -68,6 +67,7 @@ log = logging.getLogger(__name__)
 
 DATASET = "rgbt-tiny"
 ROOT_ENV = "HARNESS_RGBT_TINY"
+DESCRIPTION = "RGBT-Tiny visible-thermal tiny objects, 8-bit thermal JPEGs, split by sequence (set dataset.gt)"
 #: The seven classes in the order of the official JSON ids (0..6); our labels use the same order.
 CATEGORIES = ("ship", "car", "cyclist", "pedestrian", "bus", "drone", "plane")
 MODALITY_DIR = {"visible": "00", "thermal": "01"}
@@ -80,7 +80,8 @@ _GT_ALIASES = {"thermal": "thermal", "t": "thermal", "ir": "thermal", "01": "the
 OPTIONS = {
     "root": f"folder holding images/ and annotations_coco/ (default: ${ROOT_ENV})",
     "gt": "annotation source, thermal (T, default) or visible (RGB)",
-    "train_stride": "keep every k-th paired frame of each training sequence (default 1: all; not the official protocol)",
+    "train_stride": "keep every k-th paired frame of each training sequence (default 1: all; not the official "
+                    "protocol)",
     "test_stride": "keep every k-th paired frame of each test sequence (default 1: all; not the official protocol)",
     "strict": "raise instead of dropping frames whose visible and thermal sides do not match (default false)",
 }
@@ -273,7 +274,11 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
     boxes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for iid, anns in per_image.items():
         xywh = np.array([a[0] for a in anns], dtype=np.float64)
-        boxes[iid] = (xywh_to_xyxy(xywh), np.array([a[1] for a in anns], np.int64), np.array([a[2] for a in anns], bool))
+        boxes[iid] = (
+            xywh_to_xyxy(xywh),
+            np.array([a[1] for a in anns], np.int64),
+            np.array([a[2] for a in anns], bool),
+        )
     return CocoFile(path, modality, split, images, boxes, instances=len(data["annotations"]))
 
 
@@ -316,10 +321,14 @@ def pair_frames(visible: CocoFile, thermal: CocoFile, images_dir: Path) -> Split
     for key in sorted(set(visible.images) | set(thermal.images)):
         v, t = visible.images.get(key), thermal.images.get(key)
         if t is None:
-            result.dropped.append((str(images_dir / v.file_name), f"only in visible annotations: {thermal.path.name} has no frame {key}"))
+            result.dropped.append(
+                (str(images_dir / v.file_name), f"only in visible annotations: {thermal.path.name} has no frame {key}")
+            )
             continue
         if v is None:
-            result.dropped.append((str(images_dir / t.file_name), f"only in thermal annotations: {visible.path.name} has no frame {key}"))
+            result.dropped.append(
+                (str(images_dir / t.file_name), f"only in thermal annotations: {visible.path.name} has no frame {key}")
+            )
             continue
         if file_stat(images_dir / t.file_name) is None:
             result.dropped.append((str(images_dir / t.file_name), f"missing thermal frame: {t.file_name} not found"))
@@ -328,8 +337,12 @@ def pair_frames(visible: CocoFile, thermal: CocoFile, images_dir: Path) -> Split
             result.dropped.append((str(images_dir / v.file_name), f"missing visible frame: {v.file_name} not found"))
             continue
         if None not in (v.width, v.height, t.width, t.height) and (v.width, v.height) != (t.width, t.height):
-            result.dropped.append((str(images_dir / t.file_name),
-                                   f"size mismatch: visible {v.width}x{v.height}, thermal {t.width}x{t.height} in the annotations"))
+            result.dropped.append(
+                (
+                    str(images_dir / t.file_name),
+                    f"size mismatch: visible {v.width}x{v.height}, thermal {t.width}x{t.height} in the annotations",
+                )
+            )
             continue
         result.pairs.append(Pair(key, visible.split, v, t))
     return result
@@ -380,11 +393,13 @@ def find_split_files(root: Path) -> dict[str, list[Path]]:
 
 
 # ---------------------------------------------------------------------------------------------- the source
-class RgbtTinySource:
+class RgbtTinySource(PairedSource):
     """An opened RGBT-Tiny release (see the module docstring). Opening reads and checks the annotation files and
     stats every image file; ``samples`` decodes the images."""
 
     name = DATASET
+    log_name = "RGBT-Tiny"
+    skip_verb = "dropped"
     categories = CATEGORIES
 
     def __init__(self, root: Path, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
@@ -397,14 +412,20 @@ class RgbtTinySource:
         self.strict = strict
         self.notes: list[str] = []
         ann = self.layout.annotations
-        missing = [annotation_path(ann, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(ann, m, s).is_file()]
+        missing = [
+            annotation_path(ann, m, s) for s in SPLITS for m in MODALITY_DIR if not annotation_path(ann, m, s).is_file()
+        ]
         if missing:
             raise DataError(
                 f"dataset {DATASET!r}: annotation file(s) missing: {', '.join(str(p) for p in missing)}; the release "
                 f"ships annotations_coco/instances_{{00,01}}_{{train,test}}2017.json"
             )
         self.coco = {(m, s): load_coco_file(annotation_path(ann, m, s), m, s) for s in SPLITS for m in MODALITY_DIR}
-        self.pairing = {s: pair_frames(self.coco["visible", s], self.coco["thermal", s], self.images_dir) for s in SPLITS}
+        self.pairing = {
+            s: pair_frames(self.coco["visible", s], self.coco["thermal", s], self.images_dir) for s in SPLITS
+        }
+        #: (path or frame, reason) of every frame that could not be paired
+        self.dropped = [d for s in SPLITS for d in self.pairing[s].dropped]
 
         seqs = {s: {p.key.sequence for p in self.pairing[s].pairs} for s in SPLITS}
         both = seqs["train"] & seqs["test"]
@@ -424,13 +445,11 @@ class RgbtTinySource:
         self._describe()
         if self.strict and self.dropped:
             path, reason = self.dropped[0]
-            raise DataError(f"dataset {DATASET!r} (strict): {len(self.dropped)} frame(s) cannot be paired, first: {path}: {reason}")
+            raise DataError(
+                f"dataset {DATASET!r} (strict): {len(self.dropped)} frame(s) cannot be paired, first: {path}: {reason}"
+            )
 
     # ------------------------------------------------------------------ checks and notes
-    @property
-    def dropped(self) -> list[tuple[str, str]]:
-        return [d for s in SPLITS for d in self.pairing[s].dropped]
-
     def _drop_text(self) -> str:
         return "; ".join(self.pairing[s].describe() for s in SPLITS)
 
@@ -447,21 +466,31 @@ class RgbtTinySource:
                 log.info("RGBT-Tiny %s", sp.describe())
             if self.strides[s] > 1:
                 kept = sum(1 for p in self.pairs if p.split == s)
-                self.notes.append(f"{s}: every {self.strides[s]}th frame of each sequence kept ({kept} of {len(sp.pairs)} pairs); "
-                                  f"not the official protocol")
-        self.notes.append({"folders": "layout: images/, annotations_coco/ and data_split/ folders",
-                           "flat": "layout: the three archives unzipped into one folder (flat)",
-                           "mixed": "layout: images and annotation files in different places (mixed)"}[self.layout.kind])
+                self.notes.append(
+                    f"{s}: every {self.strides[s]}th frame of each sequence kept ({kept} of {len(sp.pairs)} pairs); "
+                    f"not the official protocol"
+                )
+        self.notes.append(
+            {
+                "folders": "layout: images/, annotations_coco/ and data_split/ folders",
+                "flat": "layout: the three archives unzipped into one folder (flat)",
+                "mixed": "layout: images and annotation files in different places (mixed)",
+            }[self.layout.kind]
+        )
         src = self.gt
-        self.notes.append(f"annotation source: {src} ({SOURCE_LABEL[src]}), from instances_{MODALITY_DIR[src]}_*2017.json")
+        self.notes.append(
+            f"annotation source: {src} ({SOURCE_LABEL[src]}), from instances_{MODALITY_DIR[src]}_*2017.json"
+        )
         self._check_split_files()
         listed = {k.sequence for c in self.coco.values() for k in c.images}
         if self.images_dir.is_dir():
             on_disk = {p.name for p in _sequence_dirs(self.images_dir)}
             extra = sorted(on_disk - listed)
             if extra:
-                self.notes.append(f"{len(extra)} sequence folder(s) under images/ are in no annotation file and are not used: "
-                                  f"{', '.join(extra[:5])}{' ...' if len(extra) > 5 else ''}")
+                self.notes.append(
+                    f"{len(extra)} sequence folder(s) under images/ are in no annotation file and are not used: "
+                    f"{', '.join(extra[:5])}{' ...' if len(extra) > 5 else ''}"
+                )
 
     def _check_split_files(self) -> None:
         for split, files in find_split_files(self.root).items():
@@ -512,62 +541,31 @@ class RgbtTinySource:
         return stat_digest(parts)
 
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
-        for path, reason in self.dropped:
-            report.skip(path, reason)
-        for note in self.notes:
-            report.note(note)
-        stats, colour = BoxStats(), 0
-        try:
-            for pair in self.pairs:
-                sample, box_stats, was_colour = self._sample(pair, report)
-                if sample is None:
-                    continue
-                stats.add(box_stats)
-                colour += was_colour
-                yield sample
-        finally:
-            self._box_notes(report, stats, colour)
+        yield from self._samples(report, self.pairs, self._sample)
 
-    def _box_notes(self, report: PrepareReport, stats: BoxStats, colour: int) -> None:
+    def _closing_notes(self, report: PrepareReport, stats: BoxStats) -> None:
         report.note(f"boxes ({self.gt} annotations): {stats.kept} kept, {stats.clipped} clipped to the frame, "
                     f"{stats.degenerate} dropped with no area inside the frame, {stats.crowd} crowd boxes dropped")
-        if colour:
-            report.note(f"{colour} thermal frame(s) were colour images and were converted to luminance")
-            log.warning("RGBT-Tiny: %d thermal frame(s) were colour images, converted to luminance", colour)
+        if stats.colour:
+            report.note(f"{stats.colour} thermal frame(s) were colour images and were converted to luminance")
+            log.warning("RGBT-Tiny: %d thermal frame(s) were colour images, converted to luminance", stats.colour)
 
-    def _skip(self, report: PrepareReport, path: Path, reason: str) -> None:
-        if self.strict:
-            raise DataError(f"{path}: {reason}")
-        log.warning("RGBT-Tiny: dropped %s (%s)", path, reason)
-        report.skip(path, reason)
-
-    def _sample(self, pair: Pair, report: PrepareReport) -> tuple[AlignedSample | None, BoxStats, bool]:
+    def _sample(self, pair: Pair) -> tuple[AlignedSample, BoxStats]:
         t_path, v_path = self.images_dir / pair.thermal.file_name, self.images_dir / pair.visible.file_name
-        try:
-            ir8, was_colour = read_thermal8(t_path)
-            rgb = read_rgb(v_path)
-        except ImageReadError as exc:
-            self._skip(report, t_path, f"unreadable image: {exc}")
-            return None, BoxStats(), False
-        if rgb.shape[:2] != ir8.shape:
-            self._skip(report, t_path, f"size mismatch: visible {rgb.shape[1]}x{rgb.shape[0]}, thermal "
-                                       f"{ir8.shape[1]}x{ir8.shape[0]}")
-            return None, BoxStats(), False
+        ir8, was_colour, rgb = read_pair(t_path, v_path, t_path, names=("visible", "thermal"))
         h, w = ir8.shape
         entry = pair.thermal if self.gt == "thermal" else pair.visible
         xyxy, labels, crowd = self.coco[self.gt, pair.split].boxes.get(
             entry.id, (np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0, bool)))
-        stats = BoxStats(crowd=int(crowd.sum()))
-        xyxy, labels = xyxy[~crowd], labels[~crowd]
-        boxes, keep, clipped = clip_boxes(xyxy, w, h)
-        stats.kept, stats.clipped, stats.degenerate = int(keep.sum()), clipped, int((~keep).sum())
+        boxes, labels, stats = clip_to_frame(xyxy[~crowd], labels[~crowd], w, h)
+        stats.crowd, stats.colour = int(crowd.sum()), int(was_colour)
         sample = AlignedSample(
             image_id=self.image_ids[pair.key],
             rgb=rgb,
             thermal=None,
             ir8=ir8,
-            boxes=np.ascontiguousarray(boxes[keep]),
-            labels=np.ascontiguousarray(labels[keep]),
+            boxes=boxes,
+            labels=labels,
             group=pair.key.sequence,
             meta={
                 "file_name": pair.thermal.file_name,
@@ -579,34 +577,19 @@ class RgbtTinySource:
                 "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id},
             },
         )
-        return sample, stats, was_colour
+        return sample, stats
 
 
 def open_rgbt_tiny(root: str | Path | None = None, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
                    strict: bool = False) -> RgbtTinySource:
     """Open an RGBT-Tiny release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     path = resolve_root(root, ROOT_ENV, DATASET, ())
-    if not isinstance(strict, bool):
-        raise ConfigError(f"dataset {DATASET!r}: option 'strict' must be true or false, got {strict!r}")
-    return RgbtTinySource(
-        path,
-        gt=normalise_gt(gt),
-        train_stride=positive_int(DATASET, "train_stride", train_stride),
-        test_stride=positive_int(DATASET, "test_stride", test_stride),
-        strict=strict,
-    )
+    strict = check_strict(DATASET, strict)
+    return RgbtTinySource(path, gt=normalise_gt(gt), train_stride=positive_int(DATASET, "train_stride", train_stride),
+                          test_stride=positive_int(DATASET, "test_stride", test_stride), strict=strict)
 
 
-SPEC = DatasetSpec(
-    name=DATASET,
-    open=open_rgbt_tiny,
-    categories=CATEGORIES,
-    description="RGBT-Tiny visible-thermal tiny objects, 8-bit thermal JPEGs, split by sequence (set dataset.gt)",
-    thermal="8bit",
-    default_encoding="proxy8",
-    protocol="rgbt-tiny",
-    root_env=ROOT_ENV,
-)
+SPEC = eightbit_spec(DATASET, open_rgbt_tiny, CATEGORIES, DESCRIPTION, ROOT_ENV)
 
 
 @hookimpl

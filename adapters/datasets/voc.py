@@ -1,4 +1,4 @@
-"""One Pascal-VOC reader for every dataset that ships VOC XML annotations (M3FD, LLVIP).
+"""One Pascal-VOC reader for every dataset that ships VOC XML annotations (M3FD, LLVIP, the FLIR-aligned release).
 
 **The pixel convention.** VOC XMLs written by the VOC devkit and by labelImg (the tool M3FD and LLVIP were labelled
 with) give ``<bndbox>`` in **1-based, inclusive pixel indices**: the top-left pixel of the image is ``(1, 1)`` and a
@@ -28,9 +28,11 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
+from adapters.datasets._paired import SkipPair
 from harness.errors import ConfigError, DataError
 
 CONVENTIONS = ("one-based", "zero-based")
@@ -121,6 +123,26 @@ def parse_voc(path: Path) -> VocAnnotation:
     return VocAnnotation(width, height, objects)
 
 
+def read_known(path: Path, names: Sequence[str], expected: str) -> VocAnnotation:
+    """``parse_voc``, where every object must be one of ``names`` (lower case; the file's names are matched without
+    case and surrounding spaces). A malformed file or another class is a ``SkipPair`` of the file (``expected``
+    ends the message: "'dog' is not <expected>")."""
+    try:
+        ann = parse_voc(path)
+    except DataError as exc:
+        raise SkipPair(f"malformed annotation: {exc}", path) from None
+    unknown = sorted({o.name for o in ann.objects if o.name.strip().lower() not in names})
+    if unknown:
+        raise SkipPair(f"unknown class: {', '.join(map(repr, unknown))} is not {expected}", path)
+    return ann
+
+
+def check_size(ann: VocAnnotation, path: Path, width: int, height: int) -> None:
+    """A ``<size>`` other than the images' is a ``SkipPair`` of the file (an absent or zero size is not checked)."""
+    if ann.width and ann.height and (ann.width, ann.height) != (width, height):
+        raise SkipPair(f"size mismatch: <size> says {ann.width}x{ann.height}, images are {width}x{height}", path)
+
+
 def to_xyxy(objects: list[VocObject], convention: str = "one-based") -> np.ndarray:
     """The objects' boxes as 0-based continuous corners ``[x1, y1, x2, y2]`` (float64 Nx4), see the module doc."""
     xyxy = np.array([[o.xmin, o.ymin, o.xmax, o.ymax] for o in objects], dtype=np.float64).reshape(-1, 4)
@@ -145,6 +167,14 @@ class VocStats:
         self.boxes += len(objects)
         self.difficult += sum(o.difficult for o in objects)
         self.floats += sum(o.has_float for o in objects)
+
+    def targets(self, ann: VocAnnotation, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Count ``ann``'s objects, leave out the difficult ones when they are dropped, and return the boxes as
+        0-based corners (float64 Nx4) and the labels (the index in ``names`` of each lower-cased name)."""
+        self.add(ann.objects)
+        objects = [o for o in ann.objects if not (o.difficult and self.difficult_mode == "drop")]
+        labels = np.array([list(names).index(o.name.strip().lower()) for o in objects], dtype=np.int64)
+        return to_xyxy(objects, self.convention), labels
 
     def note(self) -> str:
         if self.convention == "one-based":

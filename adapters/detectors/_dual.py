@@ -1,4 +1,5 @@
-"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec and their weight loading.
+"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec, the end of their build
+(NMS settings, weights) and their weight loading.
 
 Kept free of torch imports so that registering the plugins stays fast (``harness --help``, ``harness list``).
 """
@@ -18,17 +19,31 @@ def load_weights(model: Any, state_dict: Mapping[str, Any] | Any, name: str) -> 
     return load_state_dict_report(model, read_weights(state_dict, name), name)
 
 
-def dual_stream_spec(*, name: str, build: Callable[..., Any], description: str, label: str, reference: Reference,
-                     nms_iou: float, load_official: Callable[..., dict] | None) -> DetectorSpec:
+def finish_build(model: Any, name: str, weights: Any = None, conf: float | None = None, iou: float | None = None,
+                 max_det: int | None = None, multi_label: bool | None = None, max_nms: int | None = None) -> Any:
+    """The end of every dual-stream build: the NMS settings of the config (``None`` keeps the model's), then
+    ``weights`` (a YOLOv5-layout state dict or file, when given) with the key report kept as ``model.load_report``."""
+    from adapters.detectors.yolo.v5 import set_inference_options
+
+    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
+    if weights is not None:
+        model.load_report = load_weights(model, weights, name)
+    return model
+
+
+def dual_stream_spec(*, name: str, build: Callable[..., Any], description: str, label: str,
+                     seed: tuple[float, float], nms_iou: float, load_official: Callable[..., dict] | None
+                     ) -> DetectorSpec:
     """A dual-stream detector fed ``(rgb, thermal)``, the thermal encoding (ir8 by default, as the baselines' own
-    code reads its thermal images) replicated to three channels."""
+    code reads its thermal images) replicated to three channels. ``seed``: the parameters (M) and GFLOPs the seed
+    paper publishes for it (8 classes, 640 x 640)."""
     return DetectorSpec(
         name=name,
         build=build,
         input_kind="dual",
         description=description,
         label=label,
-        reference=reference,
+        reference=Reference(params_m=seed[0], gflops=seed[1], source="seed paper", num_classes=8),
         default_thermal_encoding="ir8",
         thermal_channels=3,
         defaults={"eval": {"iou": nms_iou}},

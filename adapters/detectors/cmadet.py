@@ -2,17 +2,16 @@
 ``adapters.detectors.cmadet_net``.
 
 Model options (config section ``model``): ``scale`` (trunk size, default s) or explicit ``width``/``depth``,
-``align_width``, ``hidden``, ``reduce``, ``grid``, ``flow_gain`` (alignment network), ``reduction`` (BFCFM), ``osr`` (object search
-rectification on/off), ``osr_weight``, ``tv_weight``, ``osr_points``, ``osr_radius``, ``osr_temperature``,
-``prior_bias``, ``weights`` (a state dict of this reconstruction), and the NMS settings.
+``align_width``, ``hidden``, ``reduce``, ``grid``, ``flow_gain`` (alignment network), ``reduction`` (BFCFM),
+``osr`` (object search rectification on/off), ``osr_weight``, ``tv_weight``, ``osr_points``, ``osr_radius``,
+``osr_temperature``, ``prior_bias``, ``weights`` (a state dict of this reconstruction), and the NMS settings.
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
-from adapters.detectors._dual import dual_stream_spec, load_weights
-from harness.api import Reference
+from adapters.detectors._dual import dual_stream_spec, finish_build
 from harness.hookspecs import hookimpl
 
 NAME = "cmadet"
@@ -20,6 +19,9 @@ DESCRIPTION = ("CMA-Det: dual YOLOv5s backbones, alignment network warping the v
                "frame (global FC field + residual refinement at P5/P4/P3), object search rectification (training "
                "only), bi-directional channel/spatial correction fusion, YOLOv5 PAN neck and anchor head")
 LABEL = "reconstructed from the paper"
+#: Options of the network itself (``CMADet``), beyond the trunk size, the weights and the NMS settings.
+NET_OPTIONS = ("align_width", "hidden", "reduce", "grid", "flow_gain", "reduction", "osr", "osr_weight", "tv_weight",
+               "osr_points", "osr_radius", "osr_temperature", "prior_bias")
 
 
 def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float | None = None,
@@ -27,26 +29,15 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float
           max_det: int | None = None, multi_label: bool | None = None, max_nms: int | None = None, **options: Any):
     """Build the CMA-Det reconstruction; ``in_channels`` is the thermal stream's (3: the encoding replicated)."""
     from adapters.detectors.cmadet_net import CMADet
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale, set_inference_options
+    from adapters.detectors.yolo.v5 import check_options, resolve_scale
 
-    check_options(NAME, options, ("align_width", "hidden", "reduce", "grid", "flow_gain", "reduction", "osr", "osr_weight",
-                                  "tv_weight", "osr_points", "osr_radius", "osr_temperature", "prior_bias"))
+    check_options(NAME, options, NET_OPTIONS)
     w, d = resolve_scale(NAME, scale, width, depth)
     model = CMADet(num_classes, in_channels, width=w, depth=d, **options)
-    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
-    if weights is not None:
-        model.load_report = load_reconstruction_weights(model, weights)
-    return model
-
-
-def load_reconstruction_weights(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
-    """Load a state dict saved from this reconstruction (there is no official checkpoint); returns the key report."""
-    return load_weights(model, state_dict, NAME)
+    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
 
 
 @hookimpl
 def register_detectors(register):
     register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              reference=Reference(params_m=33.47, gflops=33.67, source="seed paper", num_classes=8),
-                              nms_iou=0.6,
-                              load_official=None))  # no official checkpoint exists
+                              seed=(33.47, 33.67), nms_iou=0.6, load_official=None))  # no official checkpoint exists

@@ -36,27 +36,17 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from adapters.detectors.yolo import v5
 from adapters.detectors.yolo.blocks import Conv
 from adapters.detectors.yolo.loss_v5 import YOLOv5Loss
-from adapters.detectors.yolo.v5 import (
-    AnchorDetector,
-    Detect,
-    as_pair,
-    backbone_layers,
-    check_size,
-    level_channels,
-    pan_layers,
-    run_backbone,
-    run_pan,
-    scale_width,
-)
 
 P3_STRIDE = 8
 
 
 # ------------------------------------------------------------------------------------------------ flow maths
 def warp(feat: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """Backward warp: out(x) = feat(x + flow(x)), bilinear, zero outside; ``flow`` ``[B, 2, H, W]`` in cells (dx, dy)."""
+    """Backward warp: out(x) = feat(x + flow(x)), bilinear, zero outside; ``flow`` ``[B, 2, H, W]`` in cells
+    (dx, dy)."""
     _, _, h, w = feat.shape
     ys = torch.arange(h, device=feat.device, dtype=feat.dtype).view(1, h, 1)
     xs = torch.arange(w, device=feat.device, dtype=feat.dtype).view(1, 1, w)
@@ -231,31 +221,46 @@ class BFCFM(nn.Module):
         return self.fuse(torch.cat((v2, t2), 1))
 
 
-class CMADet(AnchorDetector):
+class CMADet(v5.AnchorDetector):
     """Dual YOLOv5 (``width`` 0.5, ``depth`` 0.33: the s size) with alignment, OSR and BFCFM; see the module text."""
 
     name = "cmadet"
 
-    def __init__(self, nc: int, in_channels: int = 3, width: float = 0.5, depth: float = 0.33,
-                 align_width: int | None = None, hidden: int | None = None, reduce: int | None = None,
-                 grid: int = 20, flow_gain: float = 0.1, reduction: float = 1.0, osr: bool = True, osr_weight: float = 0.1,
-                 tv_weight: float = 0.01, osr_points: int = 5, osr_radius: int = 3, osr_temperature: float = 0.1,
-                 prior_bias: bool = True):
+    def __init__(
+        self,
+        nc: int,
+        in_channels: int = 3,
+        width: float = 0.5,
+        depth: float = 0.33,
+        align_width: int | None = None,
+        hidden: int | None = None,
+        reduce: int | None = None,
+        grid: int = 20,
+        flow_gain: float = 0.1,
+        reduction: float = 1.0,
+        osr: bool = True,
+        osr_weight: float = 0.1,
+        tv_weight: float = 0.01,
+        osr_points: int = 5,
+        osr_radius: int = 3,
+        osr_temperature: float = 0.1,
+        prior_bias: bool = True,
+    ):
         super().__init__(nc)
-        chans = level_channels(width)
-        self.backbone_rgb = nn.ModuleList(backbone_layers(3, width, depth))
-        self.backbone_thermal = nn.ModuleList(backbone_layers(in_channels, width, depth))
+        chans = v5.level_channels(width)
+        self.backbone_rgb = nn.ModuleList(v5.backbone_layers(3, width, depth))
+        self.backbone_thermal = nn.ModuleList(v5.backbone_layers(in_channels, width, depth))
         self.align = AlignmentNetwork(
             chans,
-            width=align_width or scale_width(320, width),
+            width=align_width or v5.scale_width(320, width),
             hidden=hidden or max(int(round(880 * width)), 8),
-            reduce=reduce or scale_width(128, width),
+            reduce=reduce or v5.scale_width(128, width),
             grid=grid,
             gain=flow_gain,
         )
         self.fusion = nn.ModuleList(BFCFM(c, reduction) for c in chans)
-        self.neck = nn.ModuleList(pan_layers(width, depth))
-        self.detect = Detect(nc, chans)
+        self.neck = nn.ModuleList(v5.pan_layers(width, depth))
+        self.detect = v5.Detect(nc, chans)
         if prior_bias:
             self.detect.init_prior_bias()
         self.criterion = YOLOv5Loss(self.detect)
@@ -263,17 +268,14 @@ class CMADet(AnchorDetector):
         self.osr_points, self.osr_radius, self.osr_temperature = osr_points, osr_radius, osr_temperature
 
     @property
-    def head(self) -> Detect:  # type: ignore[override]
+    def head(self) -> v5.Detect:  # type: ignore[override]
         return self.detect
 
     def _forward(self, inputs: Any) -> tuple[tuple[torch.Tensor, ...], dict[str, Any]]:
-        rgb, thermal = as_pair(inputs, self.name)
-        check_size(rgb.shape[-2], rgb.shape[-1], self.name)
-        vis = run_backbone(self.backbone_rgb, rgb)
-        th = run_backbone(self.backbone_thermal, thermal)
+        vis, th = v5.run_two_backbones(self.backbone_rgb, self.backbone_thermal, inputs, self.name)
         warped, flows = self.align(vis, th)
         fused = [f(v, t) for f, v, t in zip(self.fusion, warped, th)]
-        feats = run_pan(self.neck, *fused)
+        feats = v5.run_pan(self.neck, *fused)
         return feats, {"warped": warped, "thermal": th, "flows": flows}
 
     def neck_features(self, inputs: Any) -> tuple[torch.Tensor, ...]:

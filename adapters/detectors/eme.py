@@ -13,8 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, load_weights
-from harness.api import Reference
+from adapters.detectors._dual import dual_stream_spec, finish_build, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "eme"
@@ -30,15 +29,12 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float
           multi_label: bool | None = None, max_nms: int | None = None, **unknown: Any):
     """Build EME for ``num_classes``; ``in_channels`` is the thermal stream's (concatenated after RGB)."""
     from adapters.detectors.eme_net import EME
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale, set_inference_options
+    from adapters.detectors.yolo.v5 import check_options, resolve_scale
 
     check_options(NAME, unknown, ())
     w, d = resolve_scale(NAME, scale, width, depth)
     model = EME(num_classes, in_channels, width=w, depth=d, shape=shape, prior_bias=prior_bias)
-    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
-    if weights is not None:
-        model.load_report = load_official(model, weights)
-    return model
+    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
@@ -49,6 +45,4 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 @hookimpl
 def register_detectors(register):
     register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              reference=Reference(params_m=46.15, gflops=109.2, source="seed paper", num_classes=8),
-                              nms_iou=0.6,
-                              load_official=load_official))
+                              seed=(46.15, 109.2), nms_iou=0.6, load_official=load_official))

@@ -26,18 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from adapters.detectors.yolo import v5
 from adapters.detectors.yolo.loss_v5 import YOLOv5Loss
-from adapters.detectors.yolo.v5 import (
-    AnchorDetector,
-    Detect,
-    as_pair,
-    backbone_layers,
-    check_size,
-    level_channels,
-    pan_layers,
-    run_backbone,
-    run_pan,
-)
 from harness.errors import HarnessError
 
 DETECT_LAYER = 24
@@ -60,7 +50,9 @@ def gaussian_kernel(size: int = 7, sigma: float = 1.5, dtype: torch.dtype = torc
     return g[:, None] * g[None, :]
 
 
-def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 7, sigma: float = 1.5, max_val: float = 1.0) -> torch.Tensor:
+def ssim_map(
+    a: torch.Tensor, b: torch.Tensor, window: int = 7, sigma: float = 1.5, max_val: float = 1.0
+) -> torch.Tensor:
     """Per-pixel SSIM of two ``[B, 1, H, W]`` maps (reflect padding, same size):
 
     SSIM = (2 mu_a mu_b + C1)(2 s_ab + C2) / ((mu_a^2 + mu_b^2 + C1)(s_a^2 + s_b^2 + C2)),
@@ -103,7 +95,7 @@ class ShaPE(nn.Module):
         return self.conv(torch.cat((rgb * w[:, :1], thermal * w[:, 1:]), 1))
 
 
-class EME(AnchorDetector):
+class EME(v5.AnchorDetector):
     """YOLOv5 early fusion; ``width``/``depth`` 1.0 is YOLOv5l (the seed's EME figures), ``shape`` adds ShaPE."""
 
     name = "eme"
@@ -114,15 +106,15 @@ class EME(AnchorDetector):
         fused_channels = 3 + in_channels
         self.in_channels_total = fused_channels
         self.stem = ShaPE(3, in_channels, 3) if shape else None
-        layers = backbone_layers(3 if shape else fused_channels, width, depth) + pan_layers(width, depth)
-        layers.append(Detect(nc, level_channels(width)))
+        layers = v5.backbone_layers(3 if shape else fused_channels, width, depth) + v5.pan_layers(width, depth)
+        layers.append(v5.Detect(nc, v5.level_channels(width)))
         self.model = nn.ModuleList(layers)
         if prior_bias:
             self.head.init_prior_bias()
         self.criterion = YOLOv5Loss(self.head)
 
     @property
-    def head(self) -> Detect:  # type: ignore[override]
+    def head(self) -> v5.Detect:  # type: ignore[override]
         return self.model[DETECT_LAYER]
 
     def early_fusion(self, inputs: Any) -> torch.Tensor:
@@ -130,13 +122,13 @@ class EME(AnchorDetector):
         if isinstance(inputs, torch.Tensor) and inputs.dim() == 4:
             x = inputs
         else:
-            x = torch.cat(as_pair(inputs, self.name), 1)
+            x = torch.cat(v5.as_pair(inputs, self.name), 1)
         if x.shape[1] != self.in_channels_total:
             raise HarnessError(f"detector {self.name!r}: early fusion expects {self.in_channels_total} channels "
                                f"(RGB + {self.in_channels_total - 3} thermal), got {x.shape[1]}")
-        check_size(x.shape[-2], x.shape[-1], self.name)
+        v5.check_size(x.shape[-2], x.shape[-1], self.name)
         return self.stem(x) if self.stem is not None else x
 
     def neck_features(self, inputs: Any) -> tuple[torch.Tensor, ...]:
-        p3, p4, p5 = run_backbone(self.model[0:10], self.early_fusion(inputs))
-        return run_pan(self.model[10:24], p3, p4, p5)
+        p3, p4, p5 = v5.run_backbone(self.model[0:10], self.early_fusion(inputs))
+        return v5.run_pan(self.model[10:24], p3, p4, p5)

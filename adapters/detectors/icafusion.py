@@ -11,8 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, load_weights
-from harness.api import Reference
+from adapters.detectors._dual import dual_stream_spec, finish_build, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "icafusion"
@@ -28,16 +27,13 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float
           multi_label: bool | None = None, max_nms: int | None = None, **unknown: Any):
     """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated)."""
     from adapters.detectors.icafusion_net import ICAFusion
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale, set_inference_options
+    from adapters.detectors.yolo.v5 import check_options, resolve_scale
 
     check_options(NAME, unknown, ())
     w, d = resolve_scale(NAME, scale, width, depth)
     model = ICAFusion(num_classes, in_channels, width=w, depth=d, tokens=tuple(tokens), heads=heads,
                       block_exp=block_exp, dropout=dropout, prior_bias=prior_bias, sort_obj_iou=sort_obj_iou)
-    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
-    if weights is not None:
-        model.load_report = load_official(model, weights)
-    return model
+    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
@@ -51,6 +47,4 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 @hookimpl
 def register_detectors(register):
     register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              reference=Reference(params_m=120.24, gflops=191.68, source="seed paper", num_classes=8),
-                              nms_iou=0.5,
-                              load_official=load_official))
+                              seed=(120.24, 191.68), nms_iou=0.5, load_official=load_official))

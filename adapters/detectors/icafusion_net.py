@@ -37,19 +37,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from adapters.detectors.yolo import v5
 from adapters.detectors.yolo.blocks import Conv
 from adapters.detectors.yolo.loss_v5 import YOLOv5Loss
-from adapters.detectors.yolo.v5 import (
-    AnchorDetector,
-    Detect,
-    as_pair,
-    backbone_layers,
-    check_size,
-    level_channels,
-    pan_layers,
-    run_backbone,
-    run_pan,
-)
 from harness.errors import HarnessError
 
 #: Token grids of the fusion blocks at P3, P4, P5 in the official configuration (for 640 px inputs).
@@ -151,8 +141,16 @@ class CrossAttention(nn.Module):
     def forward(self, vis: torch.Tensor, ir: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b, n, c = vis.shape
         xv, xt = self.LN1(vis), self.LN2(ir)
-        q_v, k_v, v_v = self._heads(self.que_proj_vis(xv)), self._heads(self.key_proj_vis(xv)), self._heads(self.val_proj_vis(xv))
-        q_t, k_t, v_t = self._heads(self.que_proj_ir(xt)), self._heads(self.key_proj_ir(xt)), self._heads(self.val_proj_ir(xt))
+        q_v, k_v, v_v = (
+            self._heads(self.que_proj_vis(xv)),
+            self._heads(self.key_proj_vis(xv)),
+            self._heads(self.val_proj_vis(xv)),
+        )
+        q_t, k_t, v_t = (
+            self._heads(self.que_proj_ir(xt)),
+            self._heads(self.key_proj_ir(xt)),
+            self._heads(self.val_proj_ir(xt)),
+        )
         scale = 1.0 / math.sqrt(self.d_k)
         att_v = self.attn_drop(torch.softmax(q_t @ k_v.transpose(-2, -1) * scale, -1))  # thermal queries, visible keys
         att_t = self.attn_drop(torch.softmax(q_v @ k_t.transpose(-2, -1) * scale, -1))  # visible queries, thermal keys
@@ -229,7 +227,7 @@ class TransformerFusionBlock(nn.Module):
         return self.conv1x1_out(torch.cat((fused_v, fused_t), 1))
 
 
-class ICAFusion(AnchorDetector):
+class ICAFusion(v5.AnchorDetector):
     """Two-stream YOLOv5 with three TransformerFusionBlocks; ``width``/``depth`` 1.0 is the published ``l`` size."""
 
     name = "icafusion"
@@ -240,14 +238,14 @@ class ICAFusion(AnchorDetector):
         super().__init__(nc)
         if len(tokens) != 3:
             raise HarnessError(f"ICAFusion: 'tokens' needs three grid sizes (P3, P4, P5), got {list(tokens)}")
-        chans = level_channels(width)
+        chans = v5.level_channels(width)
         layers: list[nn.Module] = []
-        layers += backbone_layers(3, width, depth)
-        layers += backbone_layers(in_channels, width, depth)
+        layers += v5.backbone_layers(3, width, depth)
+        layers += v5.backbone_layers(in_channels, width, depth)
         layers += [TransformerFusionBlock(c, int(t), int(t), heads, block_exp, 1, dropout, dropout)
                    for c, t in zip(chans, tokens)]
-        layers += pan_layers(width, depth)
-        layers.append(Detect(nc, chans, anchor_grid_buffer=True))
+        layers += v5.pan_layers(width, depth)
+        layers.append(v5.Detect(nc, chans, anchor_grid_buffer=True))
         self.model = nn.ModuleList(layers)
         self.iou = 0.5  # the official test.py NMS IoU
         if prior_bias:  # the official model leaves this out (commented out in its model builder)
@@ -255,17 +253,14 @@ class ICAFusion(AnchorDetector):
         self.criterion = YOLOv5Loss(self.head, sort_obj_iou=sort_obj_iou)
 
     @property
-    def head(self) -> Detect:  # type: ignore[override]
+    def head(self) -> v5.Detect:  # type: ignore[override]
         return self.model[DETECT_LAYER]
 
     def neck_features(self, inputs: Any) -> tuple[torch.Tensor, ...]:
-        rgb, thermal = as_pair(inputs, self.name)
-        check_size(rgb.shape[-2], rgb.shape[-1], self.name)
         m = self.model
-        r3, r4, r5 = run_backbone(m[0:10], rgb)
-        t3, t4, t5 = run_backbone(m[10:20], thermal)
+        (r3, r4, r5), (t3, t4, t5) = v5.run_two_backbones(m[0:10], m[10:20], inputs, self.name)
         f3, f4, f5 = m[20](r3, t3), m[21](r4, t4), m[22](r5, t5)
-        return run_pan(m[23:37], f3, f4, f5)
+        return v5.run_pan(m[23:37], f3, f4, f5)
 
     def unused_parameter_names(self) -> list[str]:
         """Names of the parameters the official forward never uses (kept for checkpoint compatibility)."""

@@ -143,7 +143,7 @@ def select(items: list[Entry], names: list[str], unused: bool) -> list[Entry]:
     """The entries ``harness cache rm`` removes: named (``dataset`` or ``dataset/folder``) or unused."""
     if unused:
         return [e for e in items if e.why_unused]
-    picked = []
+    picked: list[Entry] = []
     for name in names:
         hit = [e for e in items if name in (e.dataset, e.ref)]
         if not hit:

@@ -96,7 +96,7 @@ def decode_u8(data: np.ndarray | bytes, shape: tuple[int, ...], where: str, code
     if codec == "zstd":
         z = zstd_module(where)
         try:
-            flat = np.frombuffer(z.ZstdDecompressor().decompress(memoryview(np.ascontiguousarray(data))), np.uint8)
+            flat = np.frombuffer(z.ZstdDecompressor().decompress(np.ascontiguousarray(data).data), np.uint8)
             return np.cumsum(flat.reshape(shape), axis=1, dtype=np.uint8)
         except (z.ZstdError, ValueError) as exc:
             raise DataError(f"{where}: damaged compressed image ({exc}); prepare again") from None
@@ -128,7 +128,7 @@ def encode_f32(t: np.ndarray) -> bytes:
 
 
 def decode_f32(data: np.ndarray | bytes, shape: tuple[int, int], where: str) -> np.ndarray:
-    buf = memoryview(np.frombuffer(data, np.uint8))
+    buf = np.frombuffer(data, np.uint8).data
     try:
         kind = bytes(buf[:1])
         if kind == b"P":

@@ -75,7 +75,7 @@ class PreparedDataset:
         self._last: tuple[int, AlignedSample] | None = None
         self._boxes = self._map("boxes.f32", np.float32)
         self._labels = self._map("labels.i64", np.int64)
-        self._enc: dict[str, np.memmap] = {}
+        self._enc: dict[str, np.ndarray] = {}
 
     def _map(self, name: str, dtype: Any) -> np.ndarray:
         path = self.folder / name
@@ -225,7 +225,7 @@ class PreparedDataset:
         whichever measured cheaper on the first samples when the encoding was first used (``enc/<key>.json``)."""
         key, full = _encoding_key(encoding, params)
         if key not in self._enc:
-            self._enc[key] = self._compact_encoded(key, encoding, params, full)  # type: ignore[assignment]
+            self._enc[key] = self._compact_encoded(key, encoding, params, full)
         store = self._enc[key]
         r = self.records[i]
         if store is None:

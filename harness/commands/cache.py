@@ -25,8 +25,8 @@ def register_commands(cli: click.Group) -> None:
     @days_option
     def list_cmd(cache: Path | None, days: float) -> None:
         """Prepared datasets with their form, sample count, size, source size and last use."""
-        from harness.cache.admin import entries, table
         from harness.cache import cache_root
+        from harness.cache.admin import entries, table
 
         click.echo(table(entries(cache_root(cache), days)))
 
@@ -38,9 +38,9 @@ def register_commands(cli: click.Group) -> None:
     @days_option
     def rm_cmd(names: tuple[str, ...], unused: bool, dry_run: bool, cache: Path | None, days: float) -> None:
         """Remove prepared datasets: NAME is a dataset (all its preparations) or DATASET/FOLDER."""
+        from harness.cache import cache_root
         from harness.cache.admin import entries, human, remove, select
         from harness.errors import ConfigError
-        from harness.cache import cache_root
 
         if bool(names) == unused:
             raise ConfigError("name the prepared dataset(s) to remove, or pass --unused (not both)")
@@ -57,10 +57,9 @@ def register_commands(cli: click.Group) -> None:
     @root_option
     def verify_cmd(names: tuple[str, ...], cache: Path | None) -> None:
         """Decode every sample of the prepared datasets (all when none named) and check referenced source files."""
+        from harness.cache import PreparedDataset, cache_root
         from harness.cache.admin import entries, select
         from harness.errors import PartlyDone
-        from harness.cache import PreparedDataset
-        from harness.cache import cache_root
 
         items = [e for e in entries(cache_root(cache), 1e9) if e.form != "-"]
         failed = 0

@@ -16,43 +16,28 @@ def _warn_problems(host: Any) -> None:
         click.secho(f"warning: {problem}", err=True, fg="yellow")
 
 
+#: What ``harness list`` shows of each kind of spec, between its name and the plugin that provides it.
+LISTED_FIELDS = {
+    "detector": ("input_kind", "description", "label"),
+    "dataset": ("thermal", "categories", "default_encoding", "protocol", "description"),
+    "encoding": ("channels", "needs", "description"),
+}
+
+
+def _records(host: Any, kind: str, specs: Any) -> list[dict[str, Any]]:
+    """One plain record per spec (tuples as lists), sorted by name."""
+    rows = []
+    for s in specs:
+        fields = {f: list(v) if isinstance(v := getattr(s, f), tuple) else v for f in LISTED_FIELDS[kind]}
+        rows.append({"name": s.name, **fields, "plugin": host.owner(kind, s.name)})
+    return sorted(rows, key=lambda r: r["name"])
+
+
 def listing(host: Any) -> dict[str, list[dict[str, Any]]]:
     """Detectors, datasets and encodings as plain records (what ``harness list --format json`` prints)."""
-    detectors = [
-        {
-            "name": s.name,
-            "input_kind": s.input_kind,
-            "description": s.description,
-            "label": s.label,
-            "plugin": host.owner("detector", s.name),
-        }
-        for s in host.detectors().values()
-    ]
-    datasets = [
-        {
-            "name": s.name,
-            "thermal": s.thermal,
-            "categories": list(s.categories),
-            "default_encoding": s.default_encoding,
-            "protocol": s.protocol,
-            "description": s.description,
-            "plugin": host.owner("dataset", s.name),
-        }
-        for s in host.datasets().values()
-    ]
-    encodings = [
-        {
-            "name": s.name,
-            "channels": s.channels,
-            "needs": s.needs,
-            "description": s.description,
-            "plugin": host.owner("encoding", s.name),
-        }
-        for s in host.encodings().values()
-    ]
-    key = lambda r: r["name"]  # noqa: E731
-    return {"detectors": sorted(detectors, key=key), "datasets": sorted(datasets, key=key),
-            "encodings": sorted(encodings, key=key)}
+    return {"detectors": _records(host, "detector", host.detectors().values()),
+            "datasets": _records(host, "dataset", host.datasets().values()),
+            "encodings": _records(host, "encoding", host.encodings().values())}
 
 
 def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:

@@ -122,7 +122,6 @@ def register_commands(cli: click.Group) -> None:
                    f"{', '.join(sorted(set(ds.groups)))}")
         click.echo(folds_table(ds, selected))
         from harness.input_guard import describe
-
         from harness.textable import fit_text
 
         for line in describe(getattr(ds, "input_risks", None) or []):

@@ -264,7 +264,8 @@ def register_commands(cli: click.Group) -> None:
             true_entries = load_homography_entries(truth)
             sizes = {tuple(e.thermal_size) for e in true_entries.values() if e.thermal_size}
             result["truth"] = against_truth(lm, {g: e.H for g, e in true_entries.items()}, Hs,
-                                            next(iter(sizes)) if len(sizes) == 1 else None, method=method)
+                                            next(iter(sizes)) if len(sizes) == 1 else None,  # type: ignore[arg-type]
+                                            method=method)
             result["truth_file"] = str(truth)
             click.echo("\n" + format_against_truth(result["truth"], result))
         for path in _write_result(result, "registration_error", dataset, opt.resolve_store(store, profile), out):
@@ -311,7 +312,7 @@ def register_commands(cli: click.Group) -> None:
             except ImportError:
                 raise HarnessError("this installation has no dataset preparation (harness.cache); "
                                    "prepare the dataset elsewhere and pass --prepared DIR") from None
-            data = prepare(dataset, cfg)
+            data = prepare(dataset, cfg)  # type: ignore[arg-type]
         n = len(data) if max_images is None else min(len(data), max_images)
         with bar("displacement", total=n) as b:
             result = displacement_study(iter(data), data.categories, shift_list, max_images=max_images,

@@ -75,7 +75,8 @@ def iou_values(layout: PairLayout, prep: PreparedEval) -> np.ndarray:
     return values
 
 
-def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float], ignored: np.ndarray) -> Matches:
+def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] | np.ndarray,
+              ignored: np.ndarray) -> Matches:
     """COCO's greedy matching at every IoU threshold and area range (``ignored`` from ``gt_ignored``).
 
     Only entries with a value at or above the lowest threshold can match. Each such entry is expanded to the

@@ -113,6 +113,7 @@ def evaluate(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], eng
 def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) -> dict[str, Any]:
     res = run_engine(prep, engine, "iou")
     n_gt = np.array([prep.n_gt[c] for c in prep.cat_ids], dtype=np.int64)
+    assert res.op_scores is not None and res.op_cat_index is not None and res.op_is_tp is not None  # "iou" fills them
     op = max_f1_operating_point(res.op_scores, res.op_cat_index, res.op_is_tp, n_gt)
     stats = [_nullable(s) for s in res.stats]
     per_cat_ap = _per_category(res, prep)
@@ -147,7 +148,9 @@ def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) ->
         block, safit_cat = _safit_block(prep, engine, safit_anchor)
         metrics["safit"] = block
         for cid in prep.cat_ids:
-            per_category[prep.cat_names[cid]]["SAFit_AP50"], per_category[prep.cat_names[cid]]["SAFit_AP50_95"] = safit_cat[cid]
+            per_category[prep.cat_names[cid]]["SAFit_AP50"], per_category[prep.cat_names[cid]]["SAFit_AP50_95"] = (
+                safit_cat[cid]
+            )
 
     support: dict[str, Any] = {
         "images": len(prep.image_keys),

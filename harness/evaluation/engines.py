@@ -101,6 +101,9 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
         stock class, with SAFit computed pair by pair."""
 
         harness_inputs: PreparedEval | None = None
+        _harness_layout: PairLayout | None = None
+        _harness_values: np.ndarray | None = None
+        _harness_matches: Matches | None = None
 
         def evaluate(self) -> None:
             prep = self.harness_inputs
@@ -129,7 +132,7 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             if matching == "iou":
                 values = iou_values(layout, prep)
             else:
-                values = layout.values(prep, partial(safit_elementwise, c=SAFIT_C, anchor=anchor))
+                values = layout.values(prep, partial(safit_elementwise, c=SAFIT_C, anchor=anchor))  # type: ignore[arg-type]
             anns = prep.gt["annotations"]
             # the fields the library's C++ reads: "area", and "ignore" (prepare sets it to "iscrowd")
             gt_area = np.fromiter((a["area"] for a in anns), dtype=np.float64, count=len(anns))
@@ -142,7 +145,7 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             self.eval = accumulate(prep, layout, matches, ignored, self._paramsEval)
 
         def _stock_evaluate(self) -> None:
-            if self.cocoGt is None and self.harness_inputs is not None:
+            if self.cocoGt is None and self.harness_inputs is not None:  # type: ignore[has-type]
                 self.cocoGt, self.cocoDt = _coco_objects(self.harness_inputs)
             self.harness_inputs = None
             if not self.cocoDt.anns and self.cocoDt.dataset.get("annotations"):
@@ -183,15 +186,27 @@ def _pycoco_eval_class(matching: str, anchor: str) -> type:
 def check_options(engine: str, matching: str, anchor: str) -> None:
     """Refuse an unknown engine, matching or SAFit anchor, naming the config key that sets it."""
     if engine not in ENGINES:
-        raise EvaluationError(f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)")
+        raise EvaluationError(
+            f"unknown evaluation engine {engine!r}; use one of {', '.join(ENGINES)} (config eval.engine)"
+        )
     if matching not in MATCHINGS:
-        raise EvaluationError(f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)")
+        raise EvaluationError(
+            f"unknown matching {matching!r}; use one of {', '.join(MATCHINGS)} (config eval.matching)"
+        )
     if anchor not in ANCHORS:
-        raise EvaluationError(f"unknown SAFit NWD anchor {anchor!r}; use one of {', '.join(ANCHORS)} (config eval.safit_anchor)")
+        raise EvaluationError(
+            f"unknown SAFit NWD anchor {anchor!r}; use one of {', '.join(ANCHORS)} (config eval.safit_anchor)"
+        )
 
 
-def run_engine(prep: PreparedEval, engine: str = "faster-coco-eval", matching: str = "iou", anchor: str = "center",
-               area_ranges: Mapping[str, tuple[float, float]] | None = None, operating_point: bool = True) -> EngineResult:
+def run_engine(
+    prep: PreparedEval,
+    engine: str = "faster-coco-eval",
+    matching: str = "iou",
+    anchor: str = "center",
+    area_ranges: Mapping[str, tuple[float, float]] | None = None,
+    operating_point: bool = True,
+) -> EngineResult:
     """Run one engine on prepared inputs. ``area_ranges`` replaces COCO's small/medium/large (first must be 'all')."""
     check_options(engine, matching, anchor)
     if engine == "faster-coco-eval":

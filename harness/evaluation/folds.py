@@ -48,7 +48,9 @@ def aggregate_folds(list_of_metrics: Sequence[Mapping[str, Any]]) -> dict[str, A
         raise EvaluationError("aggregate_folds: no fold results given")
     for i, m in enumerate(items):
         if not isinstance(m, Mapping) or "metrics" not in m or "per_category" not in m:
-            raise EvaluationError(f"aggregate_folds: item {i} is not an evaluation result (needs 'metrics' and 'per_category')")
+            raise EvaluationError(
+                f"aggregate_folds: item {i} is not an evaluation result (needs 'metrics' and 'per_category')"
+            )
 
     metrics: dict[str, Any] = {}
     for key in FOLD_METRICS:

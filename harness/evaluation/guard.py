@@ -34,10 +34,15 @@ def _as_items(results: Any) -> list[tuple[str, Mapping[str, Any]]]:
         elif isinstance(item, Mapping):
             metrics = item
         else:
-            raise SampleMismatchError(f"cannot check item {i} ({type(item).__name__}): give metrics dicts or results-store runs")
+            raise SampleMismatchError(
+                f"cannot check item {i} ({type(item).__name__}): give metrics dicts or results-store runs"
+            )
         if label is None:
             run = metrics.get("run") or {}
-            label = "/".join(str(run[k]) for k in ("dataset", "detector", "encoding", "fold", "seed") if k in run) or f"result {i}"
+            label = (
+                "/".join(str(run[k]) for k in ("dataset", "detector", "encoding", "fold", "seed") if k in run)
+                or f"result {i}"
+            )
         out.append((str(label), metrics))
     return out
 

@@ -164,7 +164,9 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
     if len(set(keys)) != len(keys):
         seen: set = set()
         dup = next(k for k in keys if k in seen or seen.add(k))  # type: ignore[func-returns-value]
-        raise EvaluationError(f"ground truth images: image id {dup!r} appears more than once (ids 12 and '12' are the same image)")
+        raise EvaluationError(
+            f"ground truth images: image id {dup!r} appears more than once (ids 12 and '12' are the same image)"
+        )
     all_int = all(isinstance(k, int) for k in keys)
     key_to_internal: dict[int | str, int] = {k: (k if all_int else n + 1) for n, k in enumerate(keys)}  # type: ignore[misc]
     images = []
@@ -187,15 +189,22 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
     notes: list[str] = []
     ignore_without_crowd = sum(1 for a in gt["annotations"] if a.get("ignore") and not a.get("iscrowd"))
     if ignore_without_crowd:
-        msg = (f"{ignore_without_crowd} GT annotation(s) carry ignore=1 without iscrowd=1; COCO evaluation honours only "
-               f"iscrowd, so they are scored as ordinary objects (mark ignore regions with iscrowd=1)")
+        msg = (
+            f"{ignore_without_crowd} GT annotation(s) carry ignore=1 without iscrowd=1; COCO evaluation honours only "
+            f"iscrowd, so they are scored as ordinary objects (mark ignore regions with iscrowd=1)"
+        )
         log.warning(msg)
         notes.append(msg)
 
     columns, dropped, source = _prepare_detections(detections, key_to_internal, all_int, cat_names, strict)
     order = canonical_order(*columns)
     columns = tuple(c[order] for c in columns)  # type: ignore[assignment]
-    prepared_gt = {"info": {"description": "harness evaluation"}, "images": images, "annotations": anns, "categories": cats}
+    prepared_gt = {
+        "info": {"description": "harness evaluation"},
+        "images": images,
+        "annotations": anns,
+        "categories": cats,
+    }
     return PreparedEval(prepared_gt, sorted(cat_names), cat_names, keys, n_gt, n_crowd, crowd_ids, columns, gt_columns,
                         dropped, notes, source[order])
 
@@ -269,7 +278,9 @@ def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[i
     """Record-by-record normalisation of GT annotations; an error names the annotation."""
     anns: list[dict[str, Any]] = []
     for i, a in enumerate(anns_in):
-        where = f"ground truth annotations[{i}]" + (f" (id {a.get('id')!r})" if isinstance(a, Mapping) and "id" in a else "")
+        where = f"ground truth annotations[{i}]" + (
+            f" (id {a.get('id')!r})" if isinstance(a, Mapping) and "id" in a else ""
+        )
         if not isinstance(a, Mapping):
             raise EvaluationError(f"{where}: not a dict")
         for key in ("image_id", "category_id", "bbox"):
@@ -338,7 +349,11 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
             pass
     if scores is None or scores.shape != (n,) or not np.isfinite(scores).all():
         for i, s in enumerate(score_raw):
-            if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, float, np.integer, np.floating)) or not math.isfinite(s):
+            if (
+                isinstance(s, (bool, np.bool_))
+                or not isinstance(s, (int, float, np.integer, np.floating))
+                or not math.isfinite(s)
+            ):
                 raise EvaluationError(f"detections[{i}]: score {s!r} is not a finite number")
         raise EvaluationError("detections: every score must be a finite number")
 

@@ -44,7 +44,9 @@ def _precision_recall(kept: np.ndarray, tp: np.ndarray, n_gt: int) -> tuple[np.n
     return precision, tp / n_gt
 
 
-def max_f1_operating_point(scores: np.ndarray, labels: np.ndarray, is_tp: np.ndarray, n_gt: np.ndarray) -> OperatingPoint:
+def max_f1_operating_point(
+    scores: np.ndarray, labels: np.ndarray, is_tp: np.ndarray, n_gt: np.ndarray
+) -> OperatingPoint:
     """The operating point defined in this module's docstring.
 
     ``scores``, ``labels`` (category index 0..K-1) and ``is_tp`` describe the evaluated, non-ignored detections;

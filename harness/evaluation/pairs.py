@@ -120,7 +120,9 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     d_img, d_cat, d_score, _ = prep.det_columns
     g_img, g_cat, g_box, g_crowd = prep.gt_columns
     g_id = np.arange(1, len(g_img) + 1, dtype=np.int64)  # prepare numbers GT annotations 1..N in order
-    img_ids = np.unique(np.fromiter((im["id"] for im in prep.gt["images"]), dtype=np.int64, count=len(prep.gt["images"])))
+    img_ids = np.unique(
+        np.fromiter((im["id"] for im in prep.gt["images"]), dtype=np.int64, count=len(prep.gt["images"]))
+    )
     cat_ids = np.asarray(prep.cat_ids, dtype=np.int64)
     n_cat = len(cat_ids)
 

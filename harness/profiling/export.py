@@ -90,7 +90,7 @@ def _export_dynamo(wrapper: nn.Module, inputs: tuple, path: Path, names_in: list
         warnings.simplefilter("ignore")
         program = torch.onnx.export(wrapper, inputs, dynamo=True, input_names=names_in, output_names=names_out,
                                     opset_version=opset, verbose=False, **kwargs)
-        program.save(str(path))
+        program.save(str(path))  # type: ignore[union-attr]
 
 
 @contextlib.contextmanager
@@ -147,7 +147,9 @@ def check_onnx(path: str | Path, inputs: tuple[torch.Tensor, ...], expected: tup
     for i, (a, b) in enumerate(zip(got, expected)):
         b_np = b.detach().cpu().numpy()
         if a.shape != b_np.shape:
-            raise ExportError(f"{path}: output{i} has shape {list(a.shape)} in onnxruntime, {list(b_np.shape)} in torch")
+            raise ExportError(
+                f"{path}: output{i} has shape {list(a.shape)} in onnxruntime, {list(b_np.shape)} in torch"
+            )
         diffs.append(float(np.max(np.abs(a.astype(np.float64) - b_np.astype(np.float64)))) if a.size else 0.0)
     worst = max(diffs) if diffs else 0.0
     if worst > atol:

@@ -47,28 +47,28 @@ log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------------------------- paper convention
-def _conv(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _conv(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     return y.numel() * (x.shape[1] // m.groups) * math.prod(m.weight.shape[2:])
 
 
-def _norm(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _norm(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     flops = 2 * x.numel()
     if getattr(m, "affine", False) or getattr(m, "elementwise_affine", False):
         flops *= 2
     return flops
 
 
-def _softmax(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _softmax(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     dim = m.dim if m.dim is not None else -1
     features = x.shape[dim]
     return (x.numel() // features) * (3 * features - 1)
 
 
-def _avgpool(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _avgpool(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     return y.numel()
 
 
-def _adaptive_avgpool(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _adaptive_avgpool(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     kernel = math.prod(float(a) / float(b) for a, b in zip(x.shape[2:], y.shape[2:]))
     return int((kernel + 1) * y.numel())
 
@@ -76,22 +76,22 @@ def _adaptive_avgpool(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
 _UPSAMPLE = {"nearest": 1, "linear": 5, "bilinear": 11, "bicubic": 224 + 35}
 
 
-def _upsample(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _upsample(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     if m.mode not in _UPSAMPLE:
         log.warning("paper FLOPs: upsample mode %r has no rule (counted as 0, as thop does)", m.mode)
         return 0
     return int(y.numel() * _UPSAMPLE[m.mode])
 
 
-def _linear(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _linear(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     return m.in_features * y.numel()
 
 
-def _prelu(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _prelu(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     return 0 if m.training else x.numel()
 
 
-def _zero(m: nn.Module, x: torch.Tensor, y: torch.Tensor) -> int:
+def _zero(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
     return 0
 
 
@@ -107,7 +107,8 @@ PAPER_RULES: dict[type, Callable[[nn.Module, torch.Tensor, torch.Tensor], int]] 
     nn.MaxPool1d: _zero, nn.MaxPool2d: _zero, nn.MaxPool3d: _zero,
     nn.AdaptiveMaxPool1d: _zero, nn.AdaptiveMaxPool2d: _zero, nn.AdaptiveMaxPool3d: _zero,
     nn.AvgPool1d: _avgpool, nn.AvgPool2d: _avgpool, nn.AvgPool3d: _avgpool,
-    nn.AdaptiveAvgPool1d: _adaptive_avgpool, nn.AdaptiveAvgPool2d: _adaptive_avgpool, nn.AdaptiveAvgPool3d: _adaptive_avgpool,
+    nn.AdaptiveAvgPool1d: _adaptive_avgpool, nn.AdaptiveAvgPool2d: _adaptive_avgpool,
+    nn.AdaptiveAvgPool3d: _adaptive_avgpool,
     nn.Linear: _linear, nn.Dropout: _zero,
     nn.Upsample: _upsample, nn.UpsamplingBilinear2d: _upsample, nn.UpsamplingNearest2d: _upsample,
     nn.Sequential: _zero, nn.PixelShuffle: _zero,
@@ -203,7 +204,8 @@ def exact_flops(model: nn.Module, example_inputs: Any) -> FlopReport:
         with counter, torch.no_grad():
             wrapper(*inputs)
     except Exception as exc:
-        raise ProfilingError(f"forward_raw failed on the meta device under FlopCounterMode: {type(exc).__name__}: {exc}") from exc
+        raise ProfilingError(f"forward_raw failed on the meta device under FlopCounterMode: "
+                             f"{type(exc).__name__}: {exc}") from exc
     by_module = {}
     for name, counts in counter.get_flop_counts().items():
         short = name.split(".", 1)[1] if "." in name else ""

@@ -10,7 +10,7 @@ hooks), since a module can be called and still not contribute to the outputs.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 from torch import nn
@@ -57,6 +57,7 @@ def reachable_parameters(model: nn.Module, example_inputs: Any) -> ParamReport:
     called: set[int] = set()
     handles = [m.register_forward_pre_hook(lambda mod, _inp: called.add(id(mod))) for m in wrapper.modules()]
     inputs = tuple(t.to("meta") for t in as_tuple(example_inputs))
+    grads: Sequence[torch.Tensor | None]
     try:
         with torch.enable_grad():
             outputs = wrapper(*inputs)

@@ -12,11 +12,10 @@ renumbered (given the renumbered image list).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
-
-import logging
 
 import numpy as np
 
@@ -40,8 +39,8 @@ class Exported:
 
 def _prepared_of(run: Any) -> Any:
     """The prepared dataset a finished run was trained and scored on (from its stored configuration)."""
-    from harness.config import read_yaml
     from harness.cache import prepare
+    from harness.config import read_yaml
 
     cfg = read_yaml(run.config_path)
     ds = run.key.dataset
@@ -120,7 +119,8 @@ def export_predictions(store: str | Path, dataset: str | None = None, detector: 
         raise StoreError(f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
                          f"{encoding}, folds {list(folds or []) or 'all'})")
     out = Path(out)
-    results, cache = [], {}
+    results: list[Any] = []
+    cache: dict[Any, Any] = {}
     for r in runs:
         if len(runs) == 1 and out.suffix == ".json":
             target = out

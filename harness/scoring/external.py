@@ -313,7 +313,7 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         if not grouped.get(i):
             m.images_without_predictions += 1
         for (x1, y1, x2, y2), score, label, _ in items:
-            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,
+            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,  # type: ignore[arg-type]
                          "bbox": [x1, y1, x2 - x1, y2 - y1], "score": score})
     m.scored = len(dets)
     m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)
@@ -372,7 +372,9 @@ def _category_shift(prepared: Any, moved: Moved, fold: list[int], many_unknown: 
         fits_only_shifted = (ids[0] < 1 or ids[-1] > len(cats)) and all(1 <= c + shift <= len(cats) for c in ids)
         if shift_found(given, shifted) or (fits_only_shifted and many_unknown):
             mapping = ",".join(f"{k + 1 - shift}={c}" for k, c in enumerate(cats))
-            seen = f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
+            seen = (
+                f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
+            )
             guess = "0-based class ids, as Ultralytics 8.0 writes them? " if shift == 1 else ""
             return [Finding("category_shift", f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} "
                                               f"only after a shift of {shift:+d}{seen} ({guess}map them: "
@@ -420,11 +422,11 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
 
     Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
     ``allow_implausible``: then they are scored as read and the stored result is labelled."""
+    from harness.cache import fold_indices, prepare, resolve_folds
     from harness.config import load_config
     from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
     from harness.plugins import get_host
-    from harness.cache import fold_indices, prepare, resolve_folds
     from harness.store import EXTERNAL, RunKey, Store, config_hash, image_ids_hash
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+\-]*", name or ""):

@@ -159,11 +159,11 @@ def to_prepared(boxes: np.ndarray, frame: str, meta: Mapping[str, Any], size: tu
     ``prepared`` frame). Boxes from the ``thermal`` or ``rgb`` frame are rounded to float32 (module docstring)."""
     _check(frame, meta, where)
     _, crop = _crop(meta)
-    size = (float(size[0]), float(size[1])) if size is not None else crop
+    frame_wh = (float(size[0]), float(size[1])) if size is not None else crop
     b = _forward(boxes, frame, meta)
     if frame != "prepared":
         b = _snap(b)
-    return _finish(b, size, min_size if frame != "prepared" else None)
+    return _finish(b, frame_wh, min_size if frame != "prepared" else None)
 
 
 @dataclass

@@ -26,8 +26,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from harness.errors import DataError
 from harness.api import AlignedSample
+from harness.errors import DataError
 from harness.sensing import c2 as c2mod
 from harness.textable import text_table
 
@@ -140,7 +140,9 @@ def format_displacement(result: Mapping[str, Any]) -> str:
             rows.append([name, str(v["boxes"]), f"{v['A'][0]:.4f}", *[f"{r:.1f}%" for r in v["R"][1:]]])
     mean = result.get("mean_over_classes")
     if mean:
-        rows.append(["mean (classes)", str(result["boxes"]), f"{mean['A'][0]:.4f}", *[f"{r:.1f}%" for r in mean["R"][1:]]])
+        rows.append(
+            ["mean (classes)", str(result["boxes"]), f"{mean['A'][0]:.4f}", *[f"{r:.1f}%" for r in mean["R"][1:]]]
+        )
     title = (f"C2 retained under thermal displacement (R_c(d) = A_c(d) / A_c(0)), {result['images']} images, "
              f"{result['boxes']} boxes")
     return title + "\n" + text_table(header, rows)
@@ -178,11 +180,21 @@ def registration_error_study(landmarks: Any, homographies: Mapping[str, np.ndarr
     for g in sorted(set(sub.group)):
         v = e[np.array([x == g for x in sub.group])]
         per_group[g] = {"n": int(len(v)), "mean": float(v.mean()), "median": float(np.median(v))}
-    return {"n": int(len(e)), "mean": float(e.mean()), "median": float(np.median(e)), "p95": float(np.percentile(e, 95)),
-            "max": float(e.max()), "rmse": float(np.sqrt(np.mean(e ** 2))), "outside_support": 0,
-            "per_scene": per_scene, "per_group": per_group, "errors": [float(v) for v in e],
-            "units": "thermal pixels", "mode": f"leave-one-out {method} fit per group",
-            "groups_skipped": skipped}
+    return {
+        "n": int(len(e)),
+        "mean": float(e.mean()),
+        "median": float(np.median(e)),
+        "p95": float(np.percentile(e, 95)),
+        "max": float(e.max()),
+        "rmse": float(np.sqrt(np.mean(e**2))),
+        "outside_support": 0,
+        "per_scene": per_scene,
+        "per_group": per_group,
+        "errors": [float(v) for v in e],
+        "units": "thermal pixels",
+        "mode": f"leave-one-out {method} fit per group",
+        "groups_skipped": skipped,
+    }
 
 
 def format_registration_error(result: Mapping[str, Any]) -> str:

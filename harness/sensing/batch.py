@@ -26,9 +26,9 @@ from __future__ import annotations
 import logging
 import os
 import struct
-from decimal import Decimal
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
+from decimal import Decimal
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 

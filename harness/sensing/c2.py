@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import threading
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,7 @@ KEPT_MASKS = 4
 
 
 @lru_cache(maxsize=1)
-def _pocketfft() -> object | None:
+def _pocketfft() -> Any | None:
     """SciPy's pocketfft binding, which takes output buffers and single axes, or ``None`` where it is missing or
     does not give exactly what ``scipy.fft.rfft2`` / ``irfft2`` give (then the public functions are used)."""
     try:

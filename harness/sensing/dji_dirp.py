@@ -63,7 +63,7 @@ def is_dirp_block(app4: bytes) -> bool:
     return len(app4) >= BLOCK_BYTES and app4[:3] == BLOCK_MAGIC
 
 
-def _roundf(x: np.ndarray) -> np.ndarray:
+def _roundf(x: np.ndarray | np.floating) -> np.ndarray:
     """C ``roundf``: float32 rounded half away from zero (exact: ``x - trunc(x)`` is representable)."""
     x = np.asarray(x, dtype=F)
     whole = np.trunc(x)

@@ -88,15 +88,17 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
         if marker == EOI:
             raise DataError(f"{name}: JPEG ends (EOI at byte {start}) before any image data")
         if i + 2 > n:
-            raise DataError(f"{name}: truncated JPEG: the file ends inside the length of segment 0x{marker:02x} at byte {start}")
+            raise DataError(
+                f"{name}: truncated JPEG: the file ends inside the length of segment 0x{marker:02x} at byte {start}"
+            )
         length = struct.unpack(">H", data[i:i + 2])[0]
         if length < 2:
             raise DataError(f"{name}: corrupt JPEG: segment 0x{marker:02x} at byte {start} has length {length}")
         end = i + length
         if end > n:
             raise DataError(
-                f"{name}: truncated JPEG: segment 0x{marker:02x} at byte {start} declares {length - 2} bytes but the file "
-                f"ends after {n - i - 2}; the file was cut short (copy it again from the card)"
+                f"{name}: truncated JPEG: segment 0x{marker:02x} at byte {start} declares {length - 2} bytes but the "
+                f"file ends after {n - i - 2}; the file was cut short (copy it again from the card)"
             )
         payload = bytes(data[i + 2:end])
         segments.append(Segment(marker, start, payload))

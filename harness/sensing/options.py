@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
-
 #: ``sensing.radiometry`` keys that override an R-JPEG's measurement parameters in DJI's correction
 MEASUREMENT_KEYS = ("emissivity", "distance", "humidity", "reflected")
 
@@ -65,7 +64,9 @@ class SensingOptions:
             dji_irp=str(rad["dji_irp"]) if rad.get("dji_irp") else None,
             converter_timeout_s=float(rad["converter_timeout_s"]) if rad.get("converter_timeout_s") else None,
             group_gap_s=float((s.get("groups") or {}).get("gap_s", 300.0)),
-            registration=RegistrationOptions(**{k: v for k, v in reg.items() if k in RegistrationOptions.__annotations__}),
+            registration=RegistrationOptions(
+                **{k: v for k, v in reg.items() if k in RegistrationOptions.__annotations__}
+            ),
             undistort=UndistortOptions(**{k: v for k, v in und.items() if k in UndistortOptions.__annotations__}),
             warp=WarpOptions(**{k: v for k, v in warp.items() if k in WarpOptions.__annotations__}),
             displacement_shifts=tuple(int(v) for v in (s.get("displacement") or {}).get("shifts", (2, 5, 10, 15))),

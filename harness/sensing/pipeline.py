@@ -50,8 +50,10 @@ class SensingContext:
             q = Path(p).expanduser()
             return q if q.is_absolute() or base is None else Path(base) / q
 
-        rgb_cam = CameraModel.load(path(opts.undistort.rgb_camera)) if opts.undistort.rgb_camera else None
-        th_cam = CameraModel.load(path(opts.undistort.thermal_camera)) if opts.undistort.thermal_camera else None
+        rgb_file = path(opts.undistort.rgb_camera) if opts.undistort.rgb_camera else None
+        th_file = path(opts.undistort.thermal_camera) if opts.undistort.thermal_camera else None
+        rgb_cam = CameraModel.load(rgb_file) if rgb_file else None
+        th_cam = CameraModel.load(th_file) if th_file else None
         hfile = path(opts.registration.homographies)
         entries = reg.load_homography_entries(hfile) if hfile else {}
         return cls(opts, rgb_cam, th_cam, entries)
@@ -134,7 +136,8 @@ def read_capture_thermal(path: str | Path, options: SensingOptions | None = None
     and its own palette picture is the preview, unless that picture is missing, undecodable or of another size (then
     ``ir8_from_temperature``); info: ``format``, ``params`` (the file's measurement parameters), ``decoder`` (the
     route taken), and ``approximate`` / ``converter`` where the file took one of those routes (``options``: its
-    ``approximate`` flag and converter, as ``read_thermal`` takes them). Any other thermal file goes through ``read_thermal`` and its preview is ``ir8_from_temperature``.
+    ``approximate`` flag and converter, as ``read_thermal`` takes them). Any other thermal file goes through
+    ``read_thermal`` and its preview is ``ir8_from_temperature``.
     Errors are ``HarnessError``s naming the file (``ConfigError`` for a bad ``sensing.radiometry`` setting).
     """
     from harness.errors import HarnessError

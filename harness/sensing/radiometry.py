@@ -5,7 +5,8 @@ Other DJI cameras: ``dji_formats`` tells the layouts apart; H20T (dirp) files ar
 DJI M3T R-JPEG ("iirp" family: M3T, M30T, M3TD, H20N, H30T, M4T, Mavic 2 Enterprise Advanced), as laid out in the
 file (see ``docs/sensing.md``)::
 
-    SOI  APP1 Exif  APP2 MPF  APP3 x N  APP4 (256 B)  APP5 (tau table)  APP7 ...  APP0 JFIF ... SOS <palette preview> EOI
+    SOI  APP1 Exif  APP2 MPF  APP3 x N  APP4 (256 B)  APP5 (tau table)  APP7 ...  APP0 JFIF ...
+    SOS <palette preview> EOI
 
 * APP3: the payloads concatenated in file order are W*H little-endian uint16 words; each word is a 14-bit count
   shifted left by 2, so ``raw14 = word >> 2`` (the two low bits are always zero).
@@ -552,7 +553,9 @@ def read_sidecar(path: str | Path) -> dict[str, Any] | None:
     return None
 
 
-def _load_array(path: Path) -> np.ndarray:
+def load_thermal_array(path: Path) -> np.ndarray:
+    """The pixel array of a thermal PNG/TIFF/NPY as stored (single channel, no unit applied); a missing, damaged or
+    multi-channel file is a ``DataError`` naming it."""
     suffix = path.suffix.lower()
     if not path.exists():
         raise DataError(f"{path}: file not found")
@@ -568,7 +571,7 @@ def _load_array(path: Path) -> np.ndarray:
 
             arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if arr is None:
-                raise DataError(f"{path}: not a readable PNG image")
+                raise DataError(f"{path}: not a decodable image (truncated or wrong format)")
     except DataError:
         raise
     except Exception as exc:  # tifffile / numpy raise many types for damaged files
@@ -697,7 +700,7 @@ def read_thermal(path: str | Path, decoder: str = "auto",
         raise DataError(f"{path}: unsupported thermal file type {suffix!r}; use one of {', '.join(THERMAL_SUFFIXES)}")
     if suffix in (".jpg", ".jpeg"):
         return rjpeg_temperature(read_rjpeg(path, decoder, approximate, converter), overrides)
-    arr = _load_array(path)
+    arr = load_thermal_array(path)
     side = read_sidecar(path)
     dtype = arr.dtype.name
     if side is not None:
@@ -759,7 +762,7 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
     values = (t - offset) / scale
     if dtype.kind in "iu":
         values = np.rint(values)
-        info = np.iinfo(dtype)
+        info = np.iinfo(dtype)  # type: ignore[type-var]
         if values.min() < info.min or values.max() > info.max:
             raise DataError(f"{path}: temperatures {t.min():.2f}..{t.max():.2f} C do not fit {unit} ({dtype.name})")
     arr = values.astype(dtype)

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from harness.errors import DataError
 from harness.api import AlignedSample
+from harness.errors import DataError
 from harness.sensing.registration.homography import project_points
 
 _INTERP = {"linear": 1, "nearest": 0, "cubic": 2, "area": 3}

@@ -25,8 +25,8 @@ import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from harness.errors import ConfigError
 from harness.api import LoggerSpec, RunLogger, TrackingOptions  # re-exported for plugins
+from harness.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +161,7 @@ def epoch_metrics(record: Mapping[str, Any]) -> dict[str, float]:
     for k, v in (record.get("metrics") or {}).items():
         if k != "AP50_per_category":
             _put(out, f"val/{k}", v)
-    lrs = [_finite(v) for v in (record.get("lr") or {}).values()]
-    lrs = [v for v in lrs if v is not None]
+    lrs = [f for f in (_finite(v) for v in (record.get("lr") or {}).values()) if f is not None]
     if lrs:
         out["lr"] = max(lrs)
     for k in ("fitness", "time_s", "images_per_s"):

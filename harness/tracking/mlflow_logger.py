@@ -54,7 +54,9 @@ class MLflowLogger:
         exp = self.client.get_experiment_by_name(name)
         if exp is not None:
             return exp.experiment_id
-        local = self.uri.startswith("sqlite:") and not self.options.mlflow_uri and "MLFLOW_TRACKING_URI" not in os.environ
+        local = (
+            self.uri.startswith("sqlite:") and not self.options.mlflow_uri and "MLFLOW_TRACKING_URI" not in os.environ
+        )
         where = (self.options.store.resolve() / "mlartifacts").as_uri() if local else None
         try:
             return self.client.create_experiment(name, artifact_location=where)

@@ -22,7 +22,7 @@ import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator
+from typing import IO, Any, Iterator
 
 import torch
 
@@ -30,8 +30,18 @@ from harness.errors import HarnessError
 from harness.io import atomic_write, atomic_write_json, file_digest
 from harness.weights.layout import checkpoint_info, detect_layout
 from harness.weights.tree import find_model, is_state_dict, module_state_dict, to_float32
-from harness.weights.unpickle import (PIECE_BYTES, CheckpointFormatError, CheckpointLimitError, ForeignObjectError,
-                                      Limits, UnsafeCheckpointError, human, load_checkpoint, load_plain, out_itemsize)
+from harness.weights.unpickle import (
+    PIECE_BYTES,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    ForeignObjectError,
+    Limits,
+    UnsafeCheckpointError,
+    human,
+    load_checkpoint,
+    load_plain,
+    out_itemsize,
+)
 
 __all__ = ["ImportResult", "import_checkpoint", "read_checkpoint_weights", "write_safetensors",
            "CheckpointFormatError", "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError",
@@ -161,7 +171,7 @@ def _pieces(t: torch.Tensor, limit: int) -> Iterator[torch.Tensor]:
         stack.extend(reversed(p.unbind(0) if step == 1 else p.split(step)))
 
 
-def write_safetensors(f: BinaryIO, tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
+def write_safetensors(f: IO[bytes], tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:
     """Write ``tensors`` (floating ones cast to float32) in the safetensors format, one piece of at most
     ``PIECE_BYTES`` at a time: the import holds no converted copy of a whole tensor besides the file's storages."""
     header: dict[str, Any] = {"__metadata__": metadata}

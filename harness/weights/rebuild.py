@@ -19,8 +19,14 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 import torch
 
-from harness.weights.bounds import (MAX_DIMS, CheckpointFormatError, CheckpointLimitError, UnsafeCheckpointError,
-                                    brief, human)
+from harness.weights.bounds import (
+    MAX_DIMS,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    UnsafeCheckpointError,
+    brief,
+    human,
+)
 
 if TYPE_CHECKING:
     from harness.weights.unpickle import _Unpickler
@@ -29,6 +35,8 @@ if TYPE_CHECKING:
 # ------------------------------------------------------------------------------------------------ placeholders
 class _StubMeta(type):
     """Metaclass of placeholder classes: calling one (pickle's REDUCE) is refused."""
+
+    __stub_name__: str
 
     def __call__(cls, *args: Any, **kwargs: Any) -> Any:
         raise UnsafeCheckpointError(

@@ -57,12 +57,28 @@ import numpy as np
 import torch
 
 from harness.errors import HarnessError
-from harness.weights.bounds import (ARCHIVE_MULTIPLE, KEY_NODES, METADATA_FLOOR, METADATA_MULTIPLE, PEAK_FLOOR,
-                                    PEAK_MULTIPLE, PIECE_BYTES, RISKY_KEYS, SIZE_MULTIPLE, ZIP_ENTRY_BYTES, Budget,
-                                    CheckpointFormatError, CheckpointLimitError, ForeignObjectError, Limits, MiB,
-                                    UnsafeCheckpointError, brief, human)
-from harness.weights.rebuild import (REBUILD, StorageType, Stub, Token, out_itemsize, stub_class,
-                                     tensor_dims)
+from harness.weights.bounds import (
+    ARCHIVE_MULTIPLE,
+    KEY_NODES,
+    METADATA_FLOOR,
+    METADATA_MULTIPLE,
+    PEAK_FLOOR,
+    PEAK_MULTIPLE,
+    PIECE_BYTES,
+    RISKY_KEYS,
+    SIZE_MULTIPLE,
+    ZIP_ENTRY_BYTES,
+    Budget,
+    CheckpointFormatError,
+    CheckpointLimitError,
+    ForeignObjectError,
+    Limits,
+    MiB,
+    UnsafeCheckpointError,
+    brief,
+    human,
+)
+from harness.weights.rebuild import REBUILD, StorageType, Stub, Token, out_itemsize, stub_class, tensor_dims
 
 __all__ = ["load_checkpoint", "load_plain", "Stub", "stub_class", "REBUILD", "CheckpointFormatError",
            "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError", "Limits", "brief", "human",
@@ -119,6 +135,15 @@ _DEFAULT_COST = 40
 _FREE_INT = (1 << 61) - 1  # ints below this hash to themselves: a file cannot make them collide
 
 
+def _handles(*names: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Mark an ``_Unpickler`` method as the handler of the pickle opcodes ``names``; the class's dispatch table is
+    filled from these marks."""
+    def mark(handler: Callable[..., None]) -> Callable[..., None]:
+        setattr(handler, "opcodes", tuple(getattr(pickle, name)[0] for name in names))
+        return handler
+    return mark
+
+
 class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack machine, no recursion
     """The restricted, bounded unpickler (module docstring). ``load_storage`` resolves ``('storage', ...)``
     persistent ids; ``placeholders=False`` refuses classes outside the rebuild list instead of making stubs."""
@@ -156,7 +181,8 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             return n
 
         self.read, self.readline, self.readinto = read, readline, readinto
-        self.metastack, self.stack = [], []
+        self.metastack: list[list[Any]] = []
+        self.stack: list[Any] = []
         self.append = self.stack.append
         self.proto = 0
         dispatch, charge, cost = self.dispatch, self.budget.charge, _COST
@@ -170,15 +196,15 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
                 if handler is None:
                     raise pickle.UnpicklingError(f"unknown pickle opcode 0x{op:02x}")
                 start = consumed[0]
-                handler(self)
+                handler(self)  # type: ignore[arg-type]
                 charge(cost.get(op, _DEFAULT_COST) + 2 * (consumed[0] - start))
         except _Done as done:
             return done.value
 
+    @_handles("STOP")
     def _stop(self) -> None:
         raise _Done(self.stack.pop())
 
-    dispatch[_OP["STOP"]] = _stop
 
     # -------------------------------------------------------------------- names
     def find_class(self, module: str, name: str) -> Any:
@@ -200,12 +226,10 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             self.stubs.add(qual)
         return cls
 
+    @_handles("EXT1", "EXT2", "EXT4")
     def _ext(self) -> None:
         raise UnsafeCheckpointError("the checkpoint uses pickle extension codes (never written by torch.save); "
                                     "refused")
-
-    for _name in ("EXT1", "EXT2", "EXT4"):
-        dispatch[_OP[_name]] = _ext
 
     def persistent_load(self, pid: Any) -> Any:
         if not isinstance(pid, tuple) or not pid or pid[0] != "storage" or self._load_storage is None:
@@ -224,26 +248,26 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         frame = self._unframer.current_frame
         return 0 if frame is None else len(frame.getbuffer()) - frame.tell()
 
+    @_handles("FRAME")
     def _frame(self) -> None:
         n = self._length("a pickle frame")
         self._unframer.load_frame(n)
 
+    @_handles("BINBYTES8")
     def _binbytes8(self) -> None:
         self.append(self.read(self._length("a bytes object")))
 
+    @_handles("BINUNICODE8")
     def _binunicode8(self) -> None:
         self.append(str(self.read(self._length("a string")), "utf-8", "surrogatepass"))
 
+    @_handles("BYTEARRAY8")
     def _bytearray8(self) -> None:
         n = self._length("a bytearray")
         b = bytearray(n)
         self.readinto(b)
         self.append(b)
 
-    dispatch[_OP["FRAME"]] = _frame
-    dispatch[_OP["BINBYTES8"]] = _binbytes8
-    dispatch[_OP["BINUNICODE8"]] = _binunicode8
-    dispatch[_OP["BYTEARRAY8"]] = _bytearray8
 
     # -------------------------------------------------------------------- keys
     def check_key(self, key: Any) -> None:
@@ -274,26 +298,39 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
                 nodes += len(k)  # its hash is cached from its items' hashes, which were checked when it was made
 
     # -------------------------------------------------------------------- containers
+    def _target(self, kind: type, verb: str) -> Any:
+        """The container on top of the stack, which the pickle ``verb`` (e.g. "appends to"): it must be a ``kind``."""
+        target = self.stack[-1]
+        if type(target) is not kind:
+            raise CheckpointFormatError(f"the pickle {verb} {brief(target)}, not to a {kind.__name__}")
+        return target
+
+    def _set_items(self, items: list) -> list:
+        """``items`` for a set: charged to the budget, each checked as a key (``check_key``)."""
+        self.budget.charge(104 * len(items))
+        for k in items:
+            self.check_key(k)
+        return items
+
+    @_handles("APPEND")
     def _append(self) -> None:
         value = self.stack.pop()
-        target = self.stack[-1]
-        if type(target) is not list:
-            raise CheckpointFormatError(f"the pickle appends to {brief(target)}, not to a list")
-        target.append(value)
+        self._target(list, "appends to").append(value)
 
+    @_handles("APPENDS")
     def _appends(self) -> None:
         items = self.pop_mark()
-        target = self.stack[-1]
-        if type(target) is not list:
-            raise CheckpointFormatError(f"the pickle appends to {brief(target)}, not to a list")
+        target = self._target(list, "appends to")
         self.budget.charge(16 * len(items))
         target.extend(items)
 
+    @_handles("SETITEM")
     def _setitem(self) -> None:
         value = self.stack.pop()
         key = self.stack.pop()
         self._put_items(self.stack[-1], [key, value])
 
+    @_handles("SETITEMS")
     def _setitems(self) -> None:
         items = self.pop_mark()
         self._put_items(self.stack[-1], items)
@@ -306,48 +343,35 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             self.check_key(items[i])
             target[items[i]] = items[i + 1]
 
+    @_handles("ADDITEMS")
     def _additems(self) -> None:
         items = self.pop_mark()
-        target = self.stack[-1]
-        if type(target) is not set:
-            raise CheckpointFormatError(f"the pickle adds items to {brief(target)}, not to a set")
-        self.budget.charge(104 * len(items))
-        for k in items:
-            self.check_key(k)
-        target.update(items)
+        target = self._target(set, "adds items to")
+        target.update(self._set_items(items))
 
+    @_handles("FROZENSET")
     def _frozenset(self) -> None:
-        items = self.pop_mark()
-        self.budget.charge(104 * len(items))
-        for k in items:
-            self.check_key(k)
-        self.append(frozenset(items))
+        self.append(frozenset(self._set_items(self.pop_mark())))
 
+    @_handles("DICT")
     def _dict(self) -> None:
         items = self.pop_mark()
         d: dict = {}
         self._put_items(d, items)
         self.append(d)
 
+    @_handles("LIST")
     def _list(self) -> None:
         items = self.pop_mark()
         self.budget.charge(16 * len(items))
         self.append(items)
 
+    @_handles("TUPLE")
     def _tuple(self) -> None:
         items = self.pop_mark()
         self.budget.charge(8 * len(items))
         self.append(tuple(items))
 
-    dispatch[_OP["APPEND"]] = _append
-    dispatch[_OP["APPENDS"]] = _appends
-    dispatch[_OP["SETITEM"]] = _setitem
-    dispatch[_OP["SETITEMS"]] = _setitems
-    dispatch[_OP["ADDITEMS"]] = _additems
-    dispatch[_OP["FROZENSET"]] = _frozenset
-    dispatch[_OP["DICT"]] = _dict
-    dispatch[_OP["LIST"]] = _list
-    dispatch[_OP["TUPLE"]] = _tuple
 
     # -------------------------------------------------------------------- calls and instances
     def _call(self, func: Any, args: Any) -> Any:
@@ -360,15 +384,18 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             raise CheckpointFormatError(f"the arguments of {func.name} are {brief(args)}, not a tuple")
         return func.call(self, *args)
 
+    @_handles("REDUCE")
     def _reduce(self) -> None:
         args = self.stack.pop()
         self.stack[-1] = self._call(self.stack[-1], args)
 
+    @_handles("NEWOBJ")
     def _newobj(self) -> None:
         args = self.stack.pop()
         cls = self.stack.pop()
         self.append(self._new(cls, args, {}))
 
+    @_handles("NEWOBJ_EX")
     def _newobj_ex(self) -> None:
         kwargs = self.stack.pop()
         args = self.stack.pop()
@@ -383,11 +410,13 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             return self._call(cls, args)
         raise UnsafeCheckpointError(f"the checkpoint asks to create {brief(cls)} with __new__; refused")
 
+    @_handles("OBJ")
     def _obj(self) -> None:
         args = self.pop_mark()
         cls = args.pop(0)
         self.append(self._instantiate_checked(cls, tuple(args)))
 
+    @_handles("INST")
     def _inst(self) -> None:
         module = self.readline()[:-1].decode("ascii")
         name = self.readline()[:-1].decode("ascii")
@@ -399,6 +428,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             return cls.__new__(cls)
         return self._call(cls, args)
 
+    @_handles("BUILD")
     def _build(self) -> None:
         state = self.stack.pop()
         inst = self.stack[-1]
@@ -417,18 +447,15 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         else:
             raise UnsafeCheckpointError(f"the checkpoint sets the state of {brief(inst)}; refused")
 
+    @_handles("NEXT_BUFFER", "READONLY_BUFFER")
     def _ignore_buffers(self) -> None:
         raise CheckpointFormatError("the pickle refers to out-of-band buffers (never written by torch.save)")
 
-    dispatch[_OP["REDUCE"]] = _reduce
-    dispatch[_OP["NEWOBJ"]] = _newobj
-    dispatch[_OP["NEWOBJ_EX"]] = _newobj_ex
-    dispatch[_OP["OBJ"]] = _obj
-    dispatch[_OP["INST"]] = _inst
-    dispatch[_OP["BUILD"]] = _build
-    dispatch[pickle.NEXT_BUFFER[0]] = _ignore_buffers
-    dispatch[pickle.READONLY_BUFFER[0]] = _ignore_buffers
-    del _name
+
+for _handler in list(vars(_Unpickler).values()):
+    for _opcode in getattr(_handler, "opcodes", ()):
+        _Unpickler.dispatch[_opcode] = _handler
+del _handler, _opcode
 
 
 def _set_array_state(arr: np.ndarray, state: Any) -> None:

@@ -47,16 +47,37 @@ Everything is deterministic in ``seed``: each image draws from its own ``SeedSeq
 from __future__ import annotations
 
 from adapters.datasets.synthetic.generation import (
-    ENV_DATA, GENERATOR_VERSION, MARKER, THERMAL_FORMATS, SynthSummary, default_root, generate,
+    ENV_DATA,
+    GENERATOR_VERSION,
+    MARKER,
+    THERMAL_FORMATS,
+    SynthSummary,
+    default_root,
+    generate,
 )
 from adapters.datasets.synthetic.geometry import (
-    Canvas, Rig, Session, camera_matrix, canvas_for_session, distort_points, make_session, project_box_to_rgb,
-    rgb_render_maps, rotation_matrix, undistort_points_dense,
+    Canvas,
+    Rig,
+    Session,
+    camera_matrix,
+    canvas_for_session,
+    distort_points,
+    make_session,
+    project_box_to_rgb,
+    rgb_render_maps,
+    rotation_matrix,
+    undistort_points_dense,
 )
 from adapters.datasets.synthetic.painting import PAINTERS, Layers, SceneObject, place_objects, sill_box
 from adapters.datasets.synthetic.plugin import open_synthetic, register_datasets
 from adapters.datasets.synthetic.profiles import (
-    BASE_RATES, LOOKS, PROFILES, PROJECTS, Look, Profile, get_profile,
+    BASE_RATES,
+    LOOKS,
+    PROFILES,
+    PROJECTS,
+    Look,
+    Profile,
+    get_profile,
 )
 from adapters.datasets.synthetic.rendering import Frame, click_landmarks, pick_landmarks, render_frame
 

@@ -15,7 +15,13 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from adapters.datasets.synthetic.geometry import (
-    Rig, Session, canvas_for_session, make_session, project_box_to_rgb, rgb_render_maps, undistort_points_dense,
+    Rig,
+    Session,
+    canvas_for_session,
+    make_session,
+    project_box_to_rgb,
+    rgb_render_maps,
+    undistort_points_dense,
 )
 from adapters.datasets.synthetic.profiles import LOOKS, PROFILES, PROJECTS, Profile, get_profile
 from adapters.datasets.synthetic.rendering import pick_landmarks, render_frame

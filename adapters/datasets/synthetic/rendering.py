@@ -10,12 +10,20 @@ import numpy as np
 
 from adapters.datasets.synthetic.geometry import Canvas, Rig, Session
 from adapters.datasets.synthetic.painting import (
-    PAINTERS, Layers, SceneObject, fbm, luminance, paint_downpipe, paint_wall, paint_window, place_objects, smooth,
+    PAINTERS,
+    Layers,
+    SceneObject,
+    fbm,
+    luminance,
+    paint_downpipe,
+    paint_wall,
+    paint_window,
+    place_objects,
+    smooth,
     window_grid,
 )
 from adapters.datasets.synthetic.profiles import Look
 from harness.sensing.registration.homography import apply_homography
-
 
 _R2: dict[tuple[int, int], np.ndarray] = {}
 

@@ -64,7 +64,9 @@ def fuse_model(model: nn.Module) -> nn.Module:
 class Bottleneck(nn.Module):
     """Two convolutions with an optional residual: kernels ``k`` (YOLOv8 uses 3,3; YOLOv5 uses 1,3)."""
 
-    def __init__(self, c1: int, c2: int, shortcut: bool = True, g: int = 1, k: tuple[int, int] = (3, 3), e: float = 0.5):
+    def __init__(
+        self, c1: int, c2: int, shortcut: bool = True, g: int = 1, k: tuple[int, int] = (3, 3), e: float = 0.5
+    ):
         super().__init__()
         c_ = int(c2 * e)
         self.cv1 = Conv(c1, c_, k[0], 1)

@@ -8,7 +8,8 @@ For level l with raw outputs p (``[B, na, ny, nx, 5 + nc]``) and the positives m
     cls_l = BCE(t_cls, one-hot(class)) over positives (only when nc > 1)
 
     L_box = g_box * sum_l box_l      L_obj = g_obj * sum_l balance_l * obj_l      L_cls = g_cls * sum_l cls_l
-    g_box = 0.05 * 3/nl     g_cls = 0.5 * nc/80 * 3/nl     g_obj = 1.0 * (imgsz/640)^2 * 3/nl     balance = 4.0, 1.0, 0.4
+    g_box = 0.05 * 3/nl     g_cls = 0.5 * nc/80 * 3/nl     g_obj = 1.0 * (imgsz/640)^2 * 3/nl
+    balance = 4.0, 1.0, 0.4
 
 Each loss is multiplied by the batch size, as YOLOv5 returns it (its learning rates assume that scale).
 
@@ -71,7 +72,8 @@ def match_targets(targets: torch.Tensor, anchors: torch.Tensor, grid_hw: tuple[i
 
 
 class YOLOv5Loss:
-    """Callable ``loss(raw, targets, image_size) -> {"box", "obj", "cls"}`` for a :class:`~adapters.detectors.yolo.v5.Detect`.
+    """Callable ``loss(raw, targets, image_size) -> {"box", "obj", "cls"}`` for a
+    :class:`~adapters.detectors.yolo.v5.Detect`.
 
     ``raw``: per-level ``[B, na, ny, nx, 5 + nc]``; ``targets``: ``[n, 6]`` rows (image, class, cx, cy, w, h)
     in input pixels; ``image_size``: (h, w) of the input, whose longer side sets the objectness gain unless

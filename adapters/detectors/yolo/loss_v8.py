@@ -73,7 +73,8 @@ def dfl_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def pad_targets(targets: Sequence[dict[str, torch.Tensor]], batch: int, nc: int,
                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-image ``{"boxes" [N,4] xyxy, "labels" [N]}`` -> padded ``boxes [B,M,4]``, ``labels [B,M]``, ``mask [B,M]``."""
+    """Per-image ``{"boxes" [N,4] xyxy, "labels" [N]}`` -> padded ``boxes [B,M,4]``, ``labels [B,M]``,
+    ``mask [B,M]``."""
     if not isinstance(targets, (list, tuple)) or len(targets) != batch:
         n = len(targets) if isinstance(targets, (list, tuple)) else type(targets).__name__
         raise HarnessError(f"targets must be a list with one dict per image ({batch}); got {n}")

@@ -106,6 +106,16 @@ def run_backbone(layers: Sequence[nn.Module], x: torch.Tensor) -> tuple[torch.Te
     return taps[0], taps[1], x
 
 
+def run_two_backbones(rgb_layers: Sequence[nn.Module], thermal_layers: Sequence[nn.Module], inputs: Any, name: str
+                      ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                                 tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """A two-stream detector's start: ``(rgb, thermal)`` from ``inputs`` (``as_pair``, size checked), each through
+    its own backbone; returns (P3, P4, P5) of the visible stream and of the thermal stream."""
+    rgb, thermal = as_pair(inputs, name)
+    check_size(rgb.shape[-2], rgb.shape[-1], name)
+    return run_backbone(rgb_layers, rgb), run_backbone(thermal_layers, thermal)
+
+
 # ------------------------------------------------------------------------------------------------ neck
 def pan_layers(width: float = 1.0, depth: float = 1.0) -> list[nn.Module]:
     """PAN neck: layers 10-23 of the table above (14 modules), for P3/P4/P5 inputs of ``level_channels(width)``."""
@@ -154,7 +164,9 @@ class Detect(nn.Module):
                  strides: Sequence[int] = STRIDES, anchor_grid_buffer: bool = False):
         super().__init__()
         if len(anchors) != len(ch) or len(strides) != len(ch):
-            raise HarnessError(f"Detect: {len(ch)} input levels but {len(anchors)} anchor sets and {len(strides)} strides")
+            raise HarnessError(
+                f"Detect: {len(ch)} input levels but {len(anchors)} anchor sets and {len(strides)} strides"
+            )
         self.nc = nc
         self.no = nc + 5
         self.nl = len(anchors)
@@ -251,7 +263,8 @@ def check_size(h: int, w: int, name: str, multiple: int = 32) -> None:
 
 
 def targets_to_tensor(targets: Sequence[Mapping[str, torch.Tensor]], device: torch.device, name: str) -> torch.Tensor:
-    """Harness targets (per image ``boxes`` xyxy pixels, ``labels``) to YOLO rows ``[n, 6]``: image, class, cx, cy, w, h.
+    """Harness targets (per image ``boxes`` xyxy pixels, ``labels``) to YOLO rows ``[n, 6]``: image, class, cx, cy,
+    w, h.
 
     Boxes with zero width or height are dropped (no anchor can match them).
     """
@@ -355,7 +368,9 @@ def load_state_dict_report(model: nn.Module, state_dict: Mapping[str, Any], name
     if isinstance(sd, nn.Module):
         sd = sd.state_dict()
     if not isinstance(sd, Mapping):
-        raise HarnessError(f"detector {name!r}: load_official expects a state dict (name -> tensor), got {type(sd).__name__}")
+        raise HarnessError(
+            f"detector {name!r}: load_official expects a state dict (name -> tensor), got {type(sd).__name__}"
+        )
     own = model.state_dict()
     if any(k.endswith(".bn.weight") for k in sd) and not any(k.endswith(".bn.weight") for k in own):
         raise HarnessError(f"detector {name!r}: the model's BatchNorm is already folded (fuse()); load weights "

@@ -21,8 +21,9 @@ Initialising extra input channels (the C2 channel when RGB weights are loaded in
   inflation rule): a grey image replicated into all ``C`` channels gives the same response as before.
 * ``"random"``: keep the model's fresh random init for the new filters (what the public trainer does).
 
-Files are read as safetensors or with the harness's bounded weights-only reader (``harness.weights.unpickle.load_plain``:
-tensors and plain containers only, as ``torch.load(weights_only=True)`` accepts); nothing else is unpickled.
+Files are read as safetensors or with the harness's bounded weights-only reader
+(``harness.weights.unpickle.load_plain``: tensors and plain containers only, as ``torch.load(weights_only=True)``
+accepts); nothing else is unpickled.
 """
 
 from __future__ import annotations

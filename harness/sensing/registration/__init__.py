@@ -33,23 +33,52 @@ module          what it holds
 from __future__ import annotations
 
 from harness.sensing.registration.auto import (
-    AutoRegistration, ecc_correlation, estimate_homography_auto, optics_prior, read_image_rgb, read_thermal_any,
-    register_files, structure_image,
+    AutoRegistration,
+    ecc_correlation,
+    estimate_homography_auto,
+    optics_prior,
+    read_image_rgb,
+    read_thermal_any,
+    register_files,
+    structure_image,
 )
 from harness.sensing.registration.files import (
-    HOMOGRAPHY_FILE_HEADER, HomographyEntry, entry_from_similarity, load_homographies, load_homography_entries,
-    save_homographies, support_boxes,
+    HOMOGRAPHY_FILE_HEADER,
+    HomographyEntry,
+    entry_from_similarity,
+    load_homographies,
+    load_homography_entries,
+    save_homographies,
+    support_boxes,
 )
 from harness.sensing.registration.groups import capture_time, group_by_capture_time
 from harness.sensing.registration.homography import (
-    FULL_FRAME_DIAGONAL_MM, apply_homography, change_camera, corner_error, focal_length_px, focal_prior,
-    homography_from_focal_lengths, homography_from_similarity, image_center, normalize, plane_homography,
+    FULL_FRAME_DIAGONAL_MM,
+    apply_homography,
+    change_camera,
+    corner_error,
+    focal_length_px,
+    focal_prior,
+    homography_from_focal_lengths,
+    homography_from_similarity,
+    image_center,
+    normalize,
+    plane_homography,
     project_points,
-    reprojection_errors, similarity_from_homography,
+    reprojection_errors,
+    similarity_from_homography,
 )
 from harness.sensing.registration.landmarks import (
-    LANDMARK_COLUMNS, LandmarkFit, Landmarks, fit_groups, fit_landmarks, homography_from_landmarks,
-    leave_one_out_errors, read_landmarks, registration_error, write_landmarks,
+    LANDMARK_COLUMNS,
+    LandmarkFit,
+    Landmarks,
+    fit_groups,
+    fit_landmarks,
+    homography_from_landmarks,
+    leave_one_out_errors,
+    read_landmarks,
+    registration_error,
+    write_landmarks,
 )
 
 __all__ = [

@@ -14,7 +14,11 @@ import numpy as np
 from harness.errors import DataError
 from harness.sensing.registration.files import HomographyEntry
 from harness.sensing.registration.homography import (
-    corner_error, focal_prior, homography_from_similarity, image_center, normalize,
+    corner_error,
+    focal_prior,
+    homography_from_similarity,
+    image_center,
+    normalize,
 )
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import harness_example_dataset.plugin as plugin
+
 from harness.cache import prepare
 from harness.config import load_config
 

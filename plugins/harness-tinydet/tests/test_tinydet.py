@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import json
 
+import harness_tinydet.plugin as plugin
 import torch
 
-import harness_tinydet.plugin as plugin
 from harness.contracts import check_detections, check_losses
 
 

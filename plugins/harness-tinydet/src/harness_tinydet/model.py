@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from adapters.detectors.yolo.blocks import C2f, SPPF, Conv, fuse_model
+from adapters.detectors.yolo.blocks import SPPF, C2f, Conv, fuse_model
 from harness.boxes import batched_nms, bbox_iou
 from harness.errors import ConfigError
 
