@@ -28,14 +28,13 @@ def request(tmp_path, **kw):
 
 @pytest.mark.slow
 def test_run_trains_every_fold_and_fills_the_store(shapes_run_plugins, tmp_path, monkeypatch):
+    import torch
+
     import harness.complexity
+    from harness.engine.trainer import Trainer
     from harness.report.run_tables import category_table, fold_table
     from harness.runner import run
     from harness.store import METRICS_SCHEMA
-
-    import torch
-
-    from harness.engine.trainer import Trainer
 
     measured, at_fit = [], []
     measure, fit = harness.complexity.measure, Trainer.fit
