@@ -57,6 +57,13 @@ class AugmentSettings:
         return cls(mosaic=0.0, hsv_h=0.0, hsv_s=0.0, hsv_v=0.0, translate=0.0, scale=0.0, fliplr=0.0)
 
 
+def resized_long_side(full: np.ndarray, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
+    """``(full resized so its long side is size, ratio, full's (height, width))``: the form augmentation and
+    letterboxing start from (``SampleSource.resized``; ``harness screen`` reads its frames through it too)."""
+    img, r = A.resize_long_side(full, size)
+    return img, r, (int(full.shape[0]), int(full.shape[1]))
+
+
 class SampleSource:
     """A subset of a prepared dataset seen through one encoding: images ``[R, G, B, enc]`` and their targets.
 
@@ -86,8 +93,8 @@ class SampleSource:
         if hit is not None:
             return hit
         full = self.image(k)
-        img, r = A.resize_long_side(full, size)
-        out = (img, r, (int(full.shape[0]), int(full.shape[1])))
+        out = resized_long_side(full, size)
+        img, r = out[0], out[1]
         if self._cached_bytes + img.nbytes <= self.cache_bytes:
             if img is full:  # no resize: keep a copy of our own, never a view into the prepared arrays
                 img = img.copy()

@@ -184,6 +184,11 @@ class FrameImages:
     def image(self, k: int) -> np.ndarray:
         return self.images[k]
 
+    def resized(self, k: int, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
+        from harness.engine.data import resized_long_side
+
+        return resized_long_side(self.images[k], size)
+
     def targets(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 4), np.float32), np.zeros(0, np.int64)
 
