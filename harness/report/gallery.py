@@ -49,6 +49,7 @@ class Thumb:
     path: Path | None = None
     kind: str = ""  # "disagree", "miss" or "false positive"
     rel: str = ""  # the path relative to the report folder (``gallery/...``)
+    fourth: str = ""  # the encoding whose channel is the third panel ("" when none is drawn)
 
 
 @dataclass
@@ -179,7 +180,7 @@ class Source:
     note: str | None = None
 
 
-def source_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Source | None, str | None]:
+def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Any, str | None]:
     """The prepared samples a run was scored on, from the cache (``harness.cache.cached``), or (None, why not)."""
     from harness.cache import cache_root as default_root, cached
 
@@ -200,6 +201,12 @@ def source_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Sou
     if stored and stored != prepared.manifest.get("fingerprint"):
         return None, (f"{run.key}: the cached samples of {run.key.dataset} changed since the run (fingerprint "
                       f"{stored} then, {prepared.manifest.get('fingerprint')} now)")
+    return prepared, None
+
+
+def source_of(run: StoredRun, prepared: Any) -> Source:
+    """The pixels of ``run``'s samples: ``prepared`` and the run's encoding (its fourth channel) with its
+    parameters, when the encoding is installed here and adds a channel."""
     src = Source(prepared)
     enc_name = run.key.encoding
     try:
@@ -208,11 +215,11 @@ def source_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Sou
         enc = get_host().encoding(enc_name)
     except HarnessError:
         src.note = f"encoding {enc_name!r} is not installed here: its channel is not drawn"
-        return src, None
+        return src
     if getattr(enc, "channels", 0) and not (getattr(enc, "needs", None) == "thermal" and not prepared.radiometric):
         src.encoding = enc
         src.params = dict(((run.config.get("encoding") or {}).get(enc_name) or {}))
-    return src, None
+    return src
 
 
 def _boxes(records: Sequence[dict[str, Any]], image_id: int, categories: Sequence[str], name: str,
@@ -274,7 +281,7 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
                     sec.notes.append(f"{run.key}: {exc}")
     common, problems = disagreements(have, gts)
     sec.notes += problems
-    sources: dict[str, tuple[Source | None, str | None]] = {}
+    prepared: dict[str, tuple[Any, str | None]] = {}  # prepared key -> (samples or None, why not)
     for ev in evidence:
         gallery = Gallery(ev.name)
         sec.galleries.append(gallery)
@@ -289,13 +296,14 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
                 continue
             run, analysis = firsts[pick.fold]
             key = str(run.config.get("meta", {}).get("prepared_key"))
-            if key not in sources:
-                sources[key] = source_of(run, cache_root)
-            src, why = sources[key]
-            if src is None:
+            if key not in prepared:
+                prepared[key] = prepared_of(run, cache_root)
+            samples, why = prepared[key]
+            if samples is None:
                 if why not in gallery.notes:
                     gallery.notes.append(why or "no pixels")
                 continue
+            src = source_of(run, samples)
             if src.note and src.note not in gallery.notes:
                 gallery.notes.append(src.note)
             if pick.fold not in preds:
@@ -318,7 +326,8 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
 
             atomic_write_bytes(path, data)
             gallery.thumbs.append(Thumb(f"{pick.fold} · image {pick.image_id} · {pick.caption}", data, path,
-                                        pick.kind, path.relative_to(out).as_posix()))
+                                        pick.kind, path.relative_to(out).as_posix(),
+                                        getattr(src.encoding, "name", "")))
     sec.notes.append(f"Per detector: first the {disagree} held-out samples where the detectors disagree most (the "
                      f"same in every gallery), then per category its worst miss and its most confident false "
                      f"positive (docs/reports.md). Green: ground truth; red: the detector's predictions at its "
