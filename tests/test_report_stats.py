@@ -165,6 +165,7 @@ def test_a_one_seed_comparison_says_so_and_gives_no_significance_verdict(pair_st
     table = paired_table([comp], "t", "t")
     (row,) = table.rows
     assert row["verdict"] == "none: 1 seed per fold" and row["seeds"] == "1/1" and "p_beats" not in row
+    assert not {"p_beats", "needed"} & {c.key for c in table.columns}  # nothing about new training runs
     assert "yes" not in table.to_text().split()
     assert any("compares trained models, not detectors, and gives no significance verdict" in n for n in table.notes)
 
@@ -247,8 +248,8 @@ def test_compare_detectors_command(cli_runner, pair_store):
 def test_two_level_bootstrap_by_hand():
     """One fold, images without effect (every resample scores each run as on the original images): the spread is the
     seeds' alone. A's seeds score 0.5, 0.6, 0.7 and B's 0.4 each: every resampled difference is the mean of three
-    draws of A minus 0.4, a new run of A always beats one of B, and with V_img = 0 one seed per fold resolves the
-    difference (z^2 var(A) / delta^2 = 1.96^2 * 0.01 / 0.04 < 1)."""
+    draws of A minus 0.4, a new run of A always beats one of B, and with V_img = 0 two seeds per fold resolve the
+    difference in 80 % of benchmarks ((1.96 + 0.84)^2 var(A) / delta^2 = 7.85 * 0.01 / 0.04 = 1.96)."""
     from harness.report.stats import seeds_needed, two_level
 
     resamples = 400
@@ -260,9 +261,13 @@ def test_two_level_bootstrap_by_hand():
     assert set(np.round(lv["single"], 9)) == {0.1, 0.2, 0.3}  # one new run: one seed of each side
     assert np.allclose(lv["fixed"], 0.2) and lv["v_seed"] == pytest.approx(0.01)
     assert lv["seed_sd"]["a"] == pytest.approx(0.1) and lv["seed_sd"]["b"] == pytest.approx(0.0, abs=1e-12)
-    assert seeds_needed(0.2, 0.0, lv["v_seed"]) == (1, None)
-    # a difference of 0.05 with the same spread needs ceil(0.01 / (0.05 / 1.96)^2) = 16 seeds per fold
-    assert seeds_needed(0.05, 0.0, 0.01) == (16, None)
+    assert seeds_needed(0.2, 0.0, lv["v_seed"]) == (2, None)
+    # a difference of 0.05 with the same spread: ceil(7.85 * 0.01 / 0.05^2) = 32 seeds per fold; at 50 % power
+    # (the interval just excluding 0 at the observed difference) ceil(1.96^2 * 0.01 / 0.05^2) = 16
+    assert seeds_needed(0.05, 0.0, 0.01) == (32, None)
+    assert seeds_needed(0.05, 0.0, 0.01, power=0.5) == (16, None)
+    # with image spread: 0.01 / ((0.05 / 2.8016)^2 - 0.01^2) = 45.8
+    assert seeds_needed(0.05, 0.01 ** 2, 0.01) == (46, None)
     # the images alone (SD 0.03) cover 0.05: no number of seeds resolves it
     n, why = seeds_needed(0.05, 0.03 ** 2, 0.01)
     assert n is None and "more images are needed" in why

@@ -14,7 +14,9 @@ Tables (builders below, all reading only the store through ``reader.StoreView``)
   AP50 of the seed's two thermal-only defects (delamination, water seepage);
 * ``registration_table`` and ``displacement_table``: the sensor-level analyses of ``harness sensing``;
 * ``cross_dataset_table``: the cross-dataset comparison of ``harness.compare``;
-* ``paired_table``: paired comparisons (per-fold differences, paired bootstrap CIs) from ``stats.py``.
+* ``paired_table``: paired comparisons (per-fold differences, bootstrap CIs, a verdict only with three or more
+  training seeds per fold) from ``stats.py``;
+* the error-analysis tables (error types, AP per size bin) are built in ``evidence.py``.
 
 AP, precision and recall are fractions in the store and in CSV files, and percentages (one decimal) in text,
 Markdown and HTML.
@@ -745,6 +747,8 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
             Column("fold_d5095", "Δ mAP50:95 per fold", "pp"), Column("boot_d5095", "Δ mAP50:95 [95 % CI]", "pp"),
             Column("wins", "A better (folds)"), Column("p_beats", "P(A > B), new run (mAP50:95)", "float", 2),
             Column("needed", "Seeds needed (mAP50:95)"), Column("verdict", "CI excludes 0")]
+    if not any(c.verdict_allowed for c in comparisons):  # about new training runs: only with three seeds or more
+        cols = [c for c in cols if c.key not in ("p_beats", "needed")]
     from harness.report.stats import SEEDS_IMAGES as SEEDS_LEVEL
 
     table = Table(name, title, cols)
