@@ -62,6 +62,15 @@ def test_every_command_reads_the_store_through_the_one_reader():
     # the sample-matched guard accepts store runs as well as metrics dicts (its API): the one allowed exception
     assert [r.split(":")[0] for r in readers] == ["harness/evaluation/guard.py"], readers
     assert _analysis_readers() == []
+    assert listers == []
+    assert again == []
+    assert {n: where for n, where in defined.items() if len(where) != 1} == {}
+    assert {n: where[0] for n, where in defined.items() if n != "mean_sd"} == {
+        n: READER for n in CONCEPTS - {"mean_sd", "annotation_source"}}
+    for rel in ("harness/compare.py", "harness/runner.py", "harness/report/run_tables.py", "harness/report/tables.py",
+                "harness/report/build.py", "harness/report/stats.py"):
+        imported = {n.module for n in ast.walk(_tree(rel)) if isinstance(n, ast.ImportFrom)}
+        assert "harness.report.reader" in imported, rel
 
 
 def _analysis_readers() -> list[str]:
@@ -78,15 +87,6 @@ def _analysis_readers() -> list[str]:
             if name == "analysis_of" and rel in COMMANDS and rel != READER:
                 found.append(f"{rel}:{node.lineno} {name}")
     return found
-    assert listers == []
-    assert again == []
-    assert {n: where for n, where in defined.items() if len(where) != 1} == {}
-    assert {n: where[0] for n, where in defined.items() if n != "mean_sd"} == {
-        n: READER for n in CONCEPTS - {"mean_sd", "annotation_source"}}
-    for rel in ("harness/compare.py", "harness/runner.py", "harness/report/run_tables.py", "harness/report/tables.py",
-                "harness/report/build.py", "harness/report/stats.py"):
-        imported = {n.module for n in ast.walk(_tree(rel)) if isinstance(n, ast.ImportFrom)}
-        assert "harness.report.reader" in imported, rel
 
 
 def _only_written(rel: str) -> bool:
