@@ -140,11 +140,11 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
         table.rows.append(row)
     table.notes.append("TIDE (Bolya et al., ECCV 2020) on the evaluator's own matching (docs/evaluation.md 4c): each "
                        "false positive gets one type (Cls: right box, wrong category; Loc: right category, IoU "
-                       "0.1-0.5; Both; Dupe: a duplicate of a found object; Bkg: IoU <= 0.1 with every object), an object "
-                       "never detected is Miss. Each column is the mAP50 the detector would gain if that error type "
-                       "alone were fixed; FP and FN bound what removing every false positive or finding every object "
-                       "would give. Mean ± sample SD over the held-out folds (each fold the mean over its seeds), in "
-                       "points.")
+                       "0.1-0.5; Both; Dupe: a duplicate of a found object; Bkg: IoU <= 0.1 with every object), an "
+                       "object never detected is Miss. Each column is the mAP50 the detector would gain if that "
+                       "error type alone were fixed; FP and FN bound what removing every false positive or finding "
+                       "every object would give. Mean ± sample SD over the held-out folds (each fold the mean over its "
+                       "seeds), in points.")
     return table
 
 

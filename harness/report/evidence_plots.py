@@ -15,7 +15,6 @@ import numpy as np
 from harness.evaluation.analysis import ERROR_TYPES, SPECIAL_TYPES
 from harness.report.plots import save_figure
 
-RC = {"svg.hashsalt": "harness-report", "font.size": 8.5, "axes.titlesize": 9.5}
 #: panels per row of the confusion-matrix and PR figures
 PER_ROW = 4
 
@@ -26,6 +25,13 @@ def colours(names: Sequence[str]) -> dict[str, Any]:
 
     cmap = colormaps["tab10"]
     return {n: cmap(i % 10) for i, n in enumerate(names)}
+
+
+def _style() -> Any:
+    """The figures' matplotlib settings (deterministic SVG, the training curves' font sizes)."""
+    import matplotlib
+
+    return matplotlib.rc_context({"svg.hashsalt": "harness-report", "font.size": 8.5, "axes.titlesize": 9.5})
 
 
 def _figure(width: float, height: float) -> Any:
@@ -42,13 +48,11 @@ def tide_figure(rows: Sequence[tuple[str, Mapping[str, Any]]], order: Sequence[s
     """Grouped bars: per error type (and the two bounds), one bar per detector, ± SD over folds.
 
     ``rows``: (detector, {type: Stat}); values are fractions, drawn in points."""
-    import matplotlib
-
     from harness.report.evidence import ERROR_LABELS
 
     types = [*ERROR_TYPES, *SPECIAL_TYPES]
     col = colours(order)
-    with matplotlib.rc_context(RC):
+    with _style():
         fig = _figure(max(7.0, 0.55 * len(types) * max(1, len(rows)) ** 0.5 + 3.0), 3.4)
         ax = fig.subplots()
         n = max(1, len(rows))
@@ -75,9 +79,7 @@ def confusion_figure(mats: Sequence[tuple[str, Sequence[str], np.ndarray, int]],
                      title: str) -> tuple[str, list[Path]]:
     """One heat map per detector: rows predicted, columns ground truth (both ending with background), each cell
     with its count, coloured by its share of the ground-truth column."""
-    import matplotlib
-
-    with matplotlib.rc_context(RC):
+    with _style():
         k = max(len(m[1]) for m in mats)
         cols = min(PER_ROW if k <= 6 else 2, len(mats))  # many categories: larger matrices, two to a row
         rows = math.ceil(len(mats) / cols)
@@ -119,11 +121,9 @@ def _short(name: str, limit: int = 12) -> str:
 def pr_figure(curves: Mapping[str, Sequence[Any]], order: Sequence[str], out_base: Path | None,
               title: str) -> tuple[str, list[Path]]:
     """One panel per category, every detector's mean curve on it (``evidence.Curve``), its AP50 in the legend."""
-    import matplotlib
-
     col = colours(order)
     cats = list(curves)
-    with matplotlib.rc_context(RC):
+    with _style():
         cols = min(PER_ROW, len(cats))
         rows = math.ceil(len(cats) / cols)
         fig = _figure(3.1 * cols + 0.4, 2.7 * rows + 0.5)
