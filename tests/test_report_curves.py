@@ -95,10 +95,10 @@ def test_chromium_screenshot_shows_the_curves(curves_report, tmp_path):
     import cv2
 
     _, out = curves_report
-    shot = tmp_path / "page.png"
+    shot = tmp_path / "page.png"  # a tall window: the error analysis and the galleries come before the curves
     cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
            "--disable-background-networking", "--disable-component-update", "--disable-dev-shm-usage",
-           f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1400,4000",
+           f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1400,12000",
            f"--screenshot={shot}", (out / "report.html").resolve().as_uri()]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
     assert proc.returncode == 0, proc.stderr[-2000:]

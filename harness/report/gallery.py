@@ -258,6 +258,7 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
                     disagree: int = DISAGREE, per_category: int = PER_CATEGORY) -> Any:
     """The "Galleries" section of ``dataset``: one gallery per entry with an analysis (``evidence.Evidence``)."""
     from harness.evaluation.analysis import NO_ANALYSIS
+    from harness.io import atomic_write_bytes
     from harness.report.document import Section
     from harness.report.pictures import encode_image
     from harness.report.tables import _slug
@@ -270,6 +271,11 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
     if out is None:
         sec.absent = "pictures are drawn only when the report is written (--out)."
         return sec
+    folder = out / "gallery" / _slug(dataset)
+    if folder.is_dir():  # pictures of an earlier build of this report: replaced, never mixed with the new ones
+        import shutil
+
+        shutil.rmtree(folder)
     # the ground truth of each fold, from the first run with one
     gts: dict[str, dict[str, Any]] = {}
     for ev in have:
@@ -321,9 +327,7 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
                 gallery.notes.append(f"{pick.fold} image {pick.image_id}: not drawn ({exc})")
                 continue
             data = encode_image(img, "jpeg", QUALITY)
-            path = out / "gallery" / _slug(dataset) / _slug(ev.name) / f"{k:02d}_{_slug(pick.fold)}_{pick.image_id}.jpg"
-            from harness.io import atomic_write_bytes
-
+            path = folder / _slug(ev.name) / f"{k:02d}_{_slug(pick.fold)}_{pick.image_id}.jpg"
             atomic_write_bytes(path, data)
             gallery.thumbs.append(Thumb(f"{pick.fold} · image {pick.image_id} · {pick.caption}", data, path,
                                         pick.kind, path.relative_to(out).as_posix(),
