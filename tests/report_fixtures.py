@@ -102,9 +102,11 @@ def complexity_record(params: float, gflops: float, options: dict[str, Any] | No
 
 
 def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str, Any]],
-              imgsz: int = 64, complexity: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Score ``dets`` against ``gt`` and write the run's folder as the engine does (status last)."""
+              imgsz: int = 64, complexity: dict[str, Any] | None = None, analysis: bool = True) -> dict[str, Any]:
+    """Score ``dets`` against ``gt`` and write the run's folder as the engine does (status last); ``analysis``:
+    store its error analysis too (``analysis.json``), as every run since it existed does."""
     from harness.evaluation import evaluate
+    from harness.evaluation.analysis import store_analysis
 
     run = store.run(key)
     run.path.mkdir(parents=True, exist_ok=True)
@@ -115,21 +117,26 @@ def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str
     run.write_metrics({**ev, "model": {"params": 1000}, "train": {"epochs": 1, "imgsz": imgsz},
                        **({"complexity": complexity} if complexity else {}),
                        "environment": {"device": "cpu", "threads": 1, "torch": "test"}})
+    if analysis:
+        store_analysis(run, gt, dets, {}, ev["metrics"]["conf_threshold"])
     run.set_status("finished", config_hash="synthetic")
     return run.read_metrics()
 
 
 QUALITY = {
     "strong": {"recall": 0.95, "jitter": 0.5, "false_positives": 0.3},
+    "medium": {"recall": 0.75, "jitter": 2.0, "false_positives": 1.0, "label_noise": 0.1},
     "weak": {"recall": 0.45, "jitter": 3.0, "false_positives": 2.0, "label_noise": 0.3},
 }
 
 
 def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = ("P1", "P2"), per_fold: int = 6,
                     detectors: dict[str, str] | None = None, encodings: dict[str, Sequence[str]] | None = None,
-                    seed: int = 0, profiles: dict[str, tuple[float, float]] | None = None) -> Store:
-    """A store with ``detectors`` ({name: quality}) on every fold, optionally extra encodings of a detector on the
-    first fold (``encodings``: {detector: [enc, ...]}), and profiles ({detector: (params, gflops)})."""
+                    seed: int = 0, profiles: dict[str, tuple[float, float]] | None = None,
+                    seeds: Sequence[int] = (0,), analysis: bool = True) -> Store:
+    """A store with ``detectors`` ({name: quality}) on every fold and training seed (``seeds``: each seed's
+    detections an independent draw of the same quality), optionally extra encodings of a detector on the last fold
+    (``encodings``: {detector: [enc, ...]}), and profiles ({detector: (params, gflops)})."""
     store = Store(root)
     detectors = detectors or {"alpha": "strong", "beta": "weak"}
     rng = np.random.default_rng(seed)
@@ -140,20 +147,16 @@ def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = (
         first += per_fold
     for i, (det, quality) in enumerate(detectors.items()):
         for f in folds:
-            drng = np.random.default_rng([seed, i, folds.index(f)])
-            comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
-            write_run(
-                store,
-                RunKey(dataset, det, "c2", f, 0),
-                gts[f],
-                make_detections(gts[f], drng, **QUALITY[quality]),
-                complexity=comp,
-            )
+            for s in seeds:
+                drng = np.random.default_rng([seed, i, folds.index(f)] + ([s] if s else []))
+                comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
+                write_run(store, RunKey(dataset, det, "c2", f, s), gts[f],
+                          make_detections(gts[f], drng, **QUALITY[quality]), complexity=comp, analysis=analysis)
     for det, encs in (encodings or {}).items():
         for j, enc in enumerate(encs):
             drng = np.random.default_rng([seed, 100 + j])
             q = QUALITY["weak"] if j % 2 else QUALITY["strong"]
             comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
             write_run(store, RunKey(dataset, det, enc, folds[-1], 0), gts[folds[-1]],
-                      make_detections(gts[folds[-1]], drng, **q), complexity=comp)
+                      make_detections(gts[folds[-1]], drng, **q), complexity=comp, analysis=analysis)
     return store

@@ -70,6 +70,7 @@ def test_every_command_reads_the_store_through_the_one_reader():
                 again.append(f"{rel}:{node.lineno} category-name pattern")
     # the sample-matched guard accepts store runs as well as metrics dicts (its API): the one allowed exception
     assert [r.split(":")[0] for r in readers] == ["harness/evaluation/guard.py"], readers
+    assert _analysis_readers() == []
     assert listers == []
     assert again == []
     assert {n: where for n, where in defined.items() if len(where) != 1} == {}
@@ -79,6 +80,22 @@ def test_every_command_reads_the_store_through_the_one_reader():
                 "harness/report/build.py", "harness/report/stats.py"):
         imported = {n.module for n in ast.walk(_tree(rel)) if isinstance(n, ast.ImportFrom)}
         assert "harness.report.reader" in imported, rel
+
+
+def _analysis_readers() -> list[str]:
+    """``analysis.json`` is read by ``harness.evaluation.analysis.analysis_of`` (the store defines the file, the
+    runner deletes a stale one) and reaches the commands through ``StoredRun.analysis`` alone."""
+    allowed = {"harness/store.py", "harness/evaluation/analysis.py", "harness/runner.py"}
+    found = []
+    for path in sorted((ROOT / "harness").rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        for node in ast.walk(_tree(rel)):
+            name = node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name) else None
+            if name in ("read_analysis", "analysis_path") and rel not in allowed:
+                found.append(f"{rel}:{node.lineno} {name}")
+            if name == "analysis_of" and rel in COMMANDS and rel != READER:
+                found.append(f"{rel}:{node.lineno} {name}")
+    return found
 
 
 def _only_written(rel: str) -> bool:

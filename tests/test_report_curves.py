@@ -93,8 +93,8 @@ def test_chromium_screenshot_shows_the_curves(curves_report, tmp_path):
     import cv2
 
     _, out = curves_report
-    shot = tmp_path / "page.png"
-    proc, _ = chromium_screenshot(out / "report.html", shot, tmp_path / "profile", "1400,4000")
+    shot = tmp_path / "page.png"  # a tall window: the error analysis and the galleries come before the curves
+    proc, _ = chromium_screenshot(out / "report.html", shot, tmp_path / "profile", "1400,12000")
     assert proc.returncode == 0, proc.stderr[-2000:]
     img = cv2.imread(str(shot))
     assert img is not None and img.shape[1] == 1400

@@ -94,7 +94,8 @@ def real_report(real_store, tmp_path_factory):
     from harness.report import build_report
 
     out = tmp_path_factory.mktemp("report") / "m3t-synth"
-    return build_report(real_store, out=out, resamples=20, seed=0), out
+    # the galleries draw from the prepared cache the runs used (the fixture's HARNESS_CACHE)
+    return build_report(real_store, out=out, resamples=20, seed=0, cache_root=real_store.parent / "cache"), out
 
 
 @pytest.mark.slow
@@ -159,6 +160,22 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     assert cross.rows[0]["mAP50_95"].mean == folds.rows[0]["mAP50_95"].mean
     tidy = (out / "tidy.csv").read_text().splitlines()
     assert len(tidy) > 100 and all(line.count(",") >= 14 for line in tidy[:50])
+    # the evidence of every run's stored analysis: error types, confusion matrices, PR curves, AP per size bin, and
+    # one gallery per detector drawn from the prepared samples the runs were trained on
+    for ds in (DATASET, "shapes"):
+        keys = {s.key: s for s in report.sections if s.dataset == ds}
+        assert all(keys[k].figures for k in ("errors", "confusion", "pr")), ds
+        assert any(t.name.startswith(f"{ds}-size-ap") for t in keys["sizes"].tables)
+        galleries = keys["gallery"].galleries
+        assert [g.name for g in galleries] == ["tinydet", "tinydet-dual"] and all(g.thumbs for g in galleries), ds
+        for g in galleries:
+            assert all(t.path.is_file() and t.data[:3] == b"\xff\xd8\xff" for t in g.thumbs)  # JPEG files
+    shapes = next(s for s in report.sections if s.dataset == "shapes" and s.key == "gallery")
+    assert any("encoding 'test-ir8' is not installed here" in n for g in shapes.galleries for n in g.notes)
+    (m3t,) = [s for s in report.sections if s.dataset == DATASET and s.key == "gallery"]
+    assert not any(n for g in m3t.galleries for n in g.notes)
+    # each detector's pictures show its own encoding's channel (single-stream c2, dual-stream ir8)
+    assert [{t.fourth for t in g.thumbs} for g in m3t.galleries] == [{"c2"}, {"ir8"}]
 
 
 @pytest.mark.slow
@@ -189,7 +206,7 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
     assert proc.returncode == 0 and any("probe" in ln for ln in console) and any("nope" in ln for ln in console)
 
     shot = tmp_path / "report.png"
-    proc, console = chromium_screenshot(out / "report.html", shot, tmp_path / "profile")
+    proc, console = chromium_screenshot(out / "report.html", shot, tmp_path / "profile", "1400,20000")
     assert proc.returncode == 0 and console == [], console
     keep = os.environ.get("HARNESS_REPORT_SCREENSHOT")
     if keep:
@@ -208,7 +225,43 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
     assert dark > 0.005  # text
     content = (img.min(axis=2) < 200).any(axis=1)
     last = int(np.flatnonzero(content)[-1])
-    assert last > 2000 and content[:last].mean() > 0.4  # a long page, mostly filled
+    assert 2000 < last < img.shape[0] - 100 and content[:last].mean() > 0.4  # a long page, mostly filled, all shown
+
+    # the evidence of the first dataset, in the page's order: confusion matrices, PR curves, one gallery per detector
+    from harness.report.pictures import GT_COLOUR
+
+    def rows_with(rgb: tuple[int, int, int], tol: int, part: np.ndarray = img) -> np.ndarray:
+        return np.flatnonzero(np.all(np.abs(part.astype(int) - np.array(rgb[::-1])) <= tol, axis=2).any(axis=1))
+
+    def bands(rows: np.ndarray, gap: int = 60) -> list[tuple[int, int]]:
+        """Runs of rows, split where ``gap`` rows hold none."""
+        if not len(rows):
+            return []
+        cut = np.flatnonzero(np.diff(rows) > gap)
+        return list(zip([int(rows[0]), *(int(rows[c + 1]) for c in cut)], [*(int(rows[c]) for c in cut),
+                                                                            int(rows[-1])]))
+
+    navy = rows_with((8, 48, 107), 10)  # the confusion matrices' darkest cells (Blues) and their colour bar
+    legends = bands(rows_with(GT_COLOUR, 30), 100)  # the ground-truth key under each row of gallery pictures
+    assert len(navy) > 50 and len(legends) >= 4, (len(navy), legends)  # two galleries of two rows or more
+    saturated = np.mean(img.max(axis=2).astype(int) - img.min(axis=2) > 60, axis=1)
+    matrices_end = int(navy[navy < legends[0][0]][-1])
+    matrices_end += int(np.flatnonzero(saturated[matrices_end:] < 0.05)[0])  # below the last row of cells
+    tall = np.convolve((saturated[matrices_end:] > 0.2).astype(int), np.ones(20, int), "valid") == 20
+    pictures_top = matrices_end + int(np.flatnonzero(tall)[0])  # 20 rows of colour in a row: a picture, not a line
+    assert pictures_top < legends[0][0] < pictures_top + 400  # the first row of pictures, then its key
+    between = img[matrices_end:pictures_top]  # after the confusion matrices, before the pictures: the PR panels
+    for colour in ((31, 119, 180), (255, 127, 14)):  # both detectors' curves and legend keys (tab10)
+        assert len(rows_with(colour, 12, between)) >= 3, colour
+    pictures = img[pictures_top:legends[-1][1]]
+    orange = np.all(np.abs(pictures.astype(int) - np.array((60, 140, 245))) <= 60, axis=2)  # inferno's mid tones
+    assert orange.mean() > 0.01  # the thermal panels' colour map
+    html = (out / "report.html").read_text()
+    for ds in (DATASET, "shapes"):
+        section = html.split(f'<section id="{ds}-gallery">', 1)[1].split("</section>", 1)[0]
+        heads = re.findall(r"<h3[^>]*>Galleries: ([^<]+)</h3>", section)
+        assert heads == ["tinydet", "tinydet-dual"], heads
+        assert section.count('<figure class="thumb"><img src="data:image/jpeg;base64,') >= 4
 
 
 @pytest.mark.slow

@@ -148,7 +148,34 @@ def test_a_clearly_better_detector_excludes_zero_and_the_observed_delta_is_the_t
     swapped = _compare(pair_store, "weak", "strong", scorer)
     assert swapped.bootstrap["mAP50"].ci_high == pytest.approx(-comp.bootstrap["mAP50"].ci_low)
     text = comp.to_text()
-    assert "strong/c2 (A) vs weak/c2 (B)" in text and "40 resamples" in text and "yes" in text
+    assert "strong/c2 (A) vs weak/c2 (B)" in text and "40 resamples" in text
+
+
+def test_a_one_seed_comparison_says_so_and_gives_no_significance_verdict(pair_store, scorer):
+    """One training run per fold: the interval over images holds the trained models fixed, so however far it is
+    from 0 there is no verdict, in the text, the JSON and the report's table (it used to print "CI excludes 0 ...
+    yes")."""
+    from harness.report.tables import paired_table
+
+    comp = _compare(pair_store, "strong", "weak", scorer)
+    assert comp.bootstrap["mAP50"].excludes_zero  # a clear difference between these two trained models ...
+    assert comp.training_runs == 1 and not comp.verdict_allowed
+    assert comp.verdict("mAP50") is None and comp.verdict("mAP50_95") is None  # ... and still no verdict
+    text = comp.to_text()
+    flat = " ".join(text.split())
+    assert "One training seed per fold: this compares trained models, not detectors" in flat
+    assert "no significance verdict" in flat and "--seeds 0,1,2" in flat
+    assert "the trained models fixed" in flat and "Δ 95% CI (images)" in flat
+    assert "CI excludes 0" not in text and "yes" not in text.split() and "P(" not in text
+    data = json.loads(json.dumps(comp.to_dict()))
+    assert data["verdict"] is None and data["training_runs"] == 1 and "compares trained models" in data["seed_note"]
+    assert data["bootstrap"]["mAP50"]["level"] == "images" and data["bootstrap"]["mAP50"]["p_a_beats_b"] is None
+    table = paired_table([comp], "t", "t")
+    (row,) = table.rows
+    assert row["verdict"] == "none: 1 seed per fold" and row["seeds"] == "1/1" and "p_beats" not in row
+    assert not {"p_beats", "needed"} & {c.key for c in table.columns}  # nothing about new training runs
+    assert "yes" not in table.to_text().split()
+    assert any("compares trained models, not detectors, and gives no significance verdict" in n for n in table.notes)
 
 
 def test_same_seed_same_interval_and_scores_are_cached(pair_store):
@@ -228,3 +255,98 @@ def test_compare_detectors_command(cli_runner, pair_store):
     assert data["bootstrap"] is None and data["folds"] == ["P1", "P2"]
     res = cli_runner(["compare-detectors", "strong", "nope", "--dataset", "synth", "--store", str(pair_store.root)])
     assert res.exit_code == 2 and "no finished runs of 'nope'" in res.output
+
+
+# ------------------------------------------------------------------------------------------------ training seeds
+def test_two_level_bootstrap_by_hand():
+    """One fold, images without effect (every resample scores each run as on the original images): the spread is the
+    seeds' alone. A's seeds score 0.5, 0.6, 0.7 and B's 0.4 each: every resampled difference is the mean of three
+    draws of A minus 0.4, a new run of A always beats one of B, and with V_img = 0 two seeds per fold resolve the
+    difference in 80 % of benchmarks ((1.96 + 0.84)^2 var(A) / delta^2 = 7.85 * 0.01 / 0.04 = 1.96)."""
+    from harness.report.stats import seeds_needed, two_level
+
+    resamples = 400
+    a = np.repeat(np.array([0.5, 0.6, 0.7])[:, None, None], 1 + resamples, axis=1)
+    b = np.full((3, 1 + resamples, 1), 0.4)
+    (lv,) = two_level([a], [b], ["P1"], seed=0)
+    d = lv["a"] - lv["b"]
+    assert d.min() >= 0.1 - 1e-12 and d.max() <= 0.3 + 1e-12 and d.std() > 0.02  # seeds resampled, not fixed
+    assert set(np.round(lv["single"], 9)) == {0.1, 0.2, 0.3}  # one new run: one seed of each side
+    assert np.allclose(lv["fixed"], 0.2) and lv["v_seed"] == pytest.approx(0.01)
+    assert lv["seed_sd"]["a"] == pytest.approx(0.1) and lv["seed_sd"]["b"] == pytest.approx(0.0, abs=1e-12)
+    assert seeds_needed(0.2, 0.0, lv["v_seed"]) == (2, None)
+    # a difference of 0.05 with the same spread: ceil(7.85 * 0.01 / 0.05^2) = 32 seeds per fold; at 50 % power
+    # (the interval just excluding 0 at the observed difference) ceil(1.96^2 * 0.01 / 0.05^2) = 16
+    assert seeds_needed(0.05, 0.0, 0.01) == (32, None)
+    assert seeds_needed(0.05, 0.0, 0.01, power=0.5) == (16, None)
+    # with image spread: 0.01 / ((0.05 / 2.8016)^2 - 0.01^2) = 45.8
+    assert seeds_needed(0.05, 0.01 ** 2, 0.01) == (46, None)
+    # the images alone (SD 0.03) cover 0.05: no number of seeds resolves it
+    n, why = seeds_needed(0.05, 0.03 ** 2, 0.01)
+    assert n is None and "more images are needed" in why
+    # seeds that are copies of one run: the two levels reduce to the image bootstrap (seeds held at their mean)
+    rng = np.random.default_rng(0)
+    one = rng.uniform(0, 1, (1, 1 + resamples, 2))
+    (lv50, _) = two_level([np.repeat(one, 3, axis=0)], [np.zeros((3, 1 + resamples, 2))], ["P1"], seed=0)
+    assert np.allclose(lv50["a"], one[0, 1:, 0]) and np.allclose(lv50["fixed"], one[0, 1:, 0])
+
+
+@pytest.fixture(scope="module")
+def seeded_store(tmp_path_factory):
+    """Three training seeds per fold (each seed an independent draw of the detector's quality): strong, weak, and
+    two detectors of one medium quality (medium, peer); 'pair' has only two seeds."""
+    root = tmp_path_factory.mktemp("seeds")
+    store = synthetic_store(root, folds=("P1", "P2"), per_fold=8, seeds=(0, 1, 2), analysis=False,
+                            detectors={"strong": "strong", "weak": "weak", "medium": "medium", "peer": "medium"})
+    for f in ("P1", "P2"):
+        gt = json.loads(store.run(RunKey("synth", "strong", "c2", f, 0)).gt_path.read_text())
+        for s in (0, 1):
+            write_run(store, RunKey("synth", "pair", "c2", f, s), gt,
+                      make_detections(gt, np.random.default_rng([7, s, int(f[1])]), recall=0.8), analysis=False)
+    return store
+
+
+def test_three_seeds_give_the_two_level_intervals_and_a_verdict(seeded_store):
+    from harness.report.reader import StoreView
+    from harness.report.stats import SEEDS_IMAGES, paired_comparison
+    from harness.report.tables import paired_table
+
+    view = StoreView(seeded_store)
+    scorer = BootstrapScorer(RESAMPLES, seed=0)
+    strong, weak, medium, peer, pair = (view.entry("synth", n) for n in ("strong", "weak", "medium", "peer", "pair"))
+    clear = paired_comparison(strong, weak, RESAMPLES, 0, scorer)
+    assert clear.seeds == {"a": [3, 3], "b": [3, 3]} and clear.verdict_allowed and clear.seed_note is None
+    for key in ("mAP50", "mAP50_95"):
+        b = clear.bootstrap[key]
+        assert b.level == SEEDS_IMAGES and b.valid == RESAMPLES and b.ci_low > 0.05
+        assert clear.verdict(key) == "yes" and b.p_a_beats_b == 1.0 and b.seeds_needed == 1
+        assert b.seed_sd["a"] > 0 and b.seed_sd["b"] > 0
+        # the observed difference is still the stored mean over folds of the seed means
+        stored = [sum(e.folds[f].metrics["metrics"][key] for f in ("P1", "P2")) / 2 for e in (strong, weak)]
+        assert b.delta == pytest.approx(stored[0] - stored[1], abs=1e-9)
+    # two detectors of the same quality: the interval holds 0, a new run of either wins about as often
+    same = paired_comparison(medium, peer, RESAMPLES, 0, scorer)
+    for key in ("mAP50", "mAP50_95"):
+        b = same.bootstrap[key]
+        assert b.ci_low < 0 < b.ci_high and same.verdict(key) == "no" and 0.1 < b.p_a_beats_b < 0.9
+    # resampling the seeds widens the interval over the image bootstrap of the same (seed-averaged) runs
+    images_only = scorer.scores(medium, ["P1", "P2"])[1:, 1] - scorer.scores(peer, ["P1", "P2"])[1:, 1]
+    lo, hi = percentile_ci(images_only)
+    assert same.bootstrap["mAP50_95"].ci_high - same.bootstrap["mAP50_95"].ci_low > hi - lo
+    text = " ".join(clear.to_text().split())
+    assert "two-level bootstrap (training seeds, then images, within each fold)" in text
+    assert "P(A > B), new run" in text and "seeds needed" in text and "CI excludes 0" in text
+    assert "3 training seed(s) per fold" in text and "compares trained models" not in text
+    data = clear.to_dict()
+    assert data["verdict"] == {"mAP50": "yes", "mAP50_95": "yes"} and data["training_runs"] == 3
+    # two seeds are too few to estimate the spread: no verdict, said so
+    few = paired_comparison(strong, pair, RESAMPLES, 0, scorer)
+    assert not few.verdict_allowed and few.bootstrap["mAP50"].level == "images"
+    assert "Only 2 training seeds per fold" in few.seed_note
+    table = paired_table([clear, same, few], "t", "t")
+    assert [r["verdict"] for r in table.rows] == ["mAP50 yes, mAP50:95 yes", "mAP50 no, mAP50:95 no",
+                                                  "none: 2 seeds per fold"]
+    assert [r["seeds"] for r in table.rows] == ["3/3", "3/3", "3/2"]
+    assert table.rows[0]["p_beats"] == 1.0 and table.rows[0]["needed"] == "1"
+    assert any(n.startswith("Three or more seeds per fold: two-level bootstrap") for n in table.notes)
+    assert any(n.startswith("Fewer than three seeds per fold") for n in table.notes)

@@ -5,6 +5,7 @@
 * ``writer``: ``PreparedWriter``, samples validated and written into a temporary folder renamed into place;
 * ``reader``: ``PreparedDataset``, samples, encoded channels, COCO ground truth and support, in every form alike;
 * ``preparation``: ``prepare(dataset, cfg)``, open the plugin, check what it returns, write or reuse, guard inputs;
+  ``cached(dataset, key)``, what the cache holds under a run's key, without preparing;
 * ``folds``: the folds of a prepared dataset and the COCO files of their splits;
 * ``admin``: housekeeping (``harness cache``): listing, sizes, last use, removing what is unused.
 
@@ -13,7 +14,7 @@ The names below are the package's public surface (``harness.prepare`` re-exports
 
 from harness.cache.folds import FoldSupport, coco_path, fold_indices, fold_support, resolve_folds, select_folds
 from harness.cache.key import PREPARE_VERSION, cache_form, cache_key, cache_root, plugin_code_fingerprint
-from harness.cache.preparation import open_source, prepare
+from harness.cache.preparation import cached, open_source, prepare
 from harness.cache.reader import PreparedDataset
 from harness.cache.writer import PreparedWriter
 
@@ -25,6 +26,7 @@ __all__ = [
     "cache_form",
     "cache_key",
     "cache_root",
+    "cached",
     "coco_path",
     "fold_indices",
     "fold_support",

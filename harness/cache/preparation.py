@@ -33,7 +33,7 @@ from harness import contracts
 from harness.api import DatasetSpec, PrepareReport
 from harness.cache.admin import folder_bytes, mark_used
 from harness.cache.folds import ensure_coco, resolve_folds
-from harness.cache.forms import DEFAULT_FORM
+from harness.cache.forms import DEFAULT_FORM, FORMS
 from harness.cache.key import PREPARE_VERSION, cache_form, cache_key, cache_root, form_folder, preparation_sensing
 from harness.cache.reader import PreparedDataset
 from harness.cache.writer import PreparedWriter
@@ -106,6 +106,20 @@ def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str 
     ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form)
     mark_used(folder)
     return _checked(spec, ds, cfg, key, from_cache=False)
+
+
+def cached(dataset: str, key: str, cache_root: str | Path | None = None) -> PreparedDataset | None:
+    """The prepared ``dataset`` stored under ``key`` (a run records it as ``meta.prepared_key``) in either form, or
+    None when the cache holds no such folder. Nothing is prepared and no plugin is needed: the report draws held-out
+    samples from it."""
+    root = _cache_root(cache_root)
+    for form in dict.fromkeys((cache_form(), *FORMS)):
+        folder = form_folder(root, dataset, key, form)
+        if (folder / "manifest.json").is_file():
+            ds = PreparedDataset(folder)
+            ds.check_sizes()
+            return ds
+    return None
 
 
 def _checked(spec: DatasetSpec, ds: PreparedDataset, cfg: Mapping[str, Any], key: str,

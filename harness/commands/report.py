@@ -44,10 +44,12 @@ def register_commands(cli: click.Group) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         Per dataset: the project-grouped folds table (per-fold mAP50 and mAP50:95, mean ± sample SD, Params,
-        GFLOPs), the per-category table, the encoding ablation, paired comparisons (per-fold differences and a
-        paired bootstrap over images), the registration-error and C2-displacement tables; then the accuracy-versus-
-        GFLOPs figure and the cross-dataset table. Absent data is stated with the command that fills it; tables whose
-        rows were not scored on the same samples are labelled.
+        GFLOPs), the per-category table, the encoding ablation, object sizes and AP per size bin, paired comparisons
+        (per-fold differences, a bootstrap, a verdict only with three or more training seeds per fold), error types
+        (TIDE), confusion matrices, PR curves per category, one gallery per detector (pictures from the prepared
+        cache in HARNESS_CACHE), the registration-error and C2-displacement tables; then the accuracy-versus-GFLOPs
+        figure and the cross-dataset table. Absent data is stated with the command that fills it; tables whose rows
+        were not scored on the same samples are labelled.
         """
         from harness.report import build_report
         from harness.report.build import FORMATS as file_types
@@ -105,8 +107,10 @@ def register_commands(cli: click.Group) -> None:
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
         are resampled with replacement, both detectors' stored predictions are re-scored on the same resamples, and
-        the percentile 95 % interval of the difference of the mean over folds is reported. Refused when A and B
-        were scored on different samples.
+        the percentile 95 % interval of the difference of the mean over folds is reported. With one training seed
+        per fold this compares trained models and gives no verdict; with three or more (`harness run --seeds
+        0,1,2`) the training runs are resampled too, with the probability that a new run of A beats one of B and
+        the seeds the difference needs. Refused when A and B were scored on different samples.
         """
         import json
 

@@ -10,8 +10,9 @@ Public API (``docs/reports.md`` has the definitions)::
     resample_coco(gt, image_ids, detections) -> (gt, detections)   duplicates kept under new unique ids
 
 Reports read only the store, through its one reader (``harness.report.reader``, shared with ``harness compare`` and
-the tables ``harness run`` prints): ``metrics.json``, ``predictions.json`` and ``gt.json`` of finished runs, and
-``<dataset>/_sensing/<analysis>.json``.
+the tables ``harness run`` prints): ``metrics.json``, ``analysis.json``, ``predictions.json`` and ``gt.json`` of
+finished runs, and ``<dataset>/_sensing/<analysis>.json``; the galleries draw their pixels from the prepared cache
+the runs name (``harness.report.gallery``).
 """
 
 from harness.report.build import FORMATS, Report, Section, build_report

@@ -1,10 +1,12 @@
 """``build_report``: every table, the accuracy-versus-GFLOPs figure and the paired comparisons of a results store,
 written as Markdown, CSV and one self-contained HTML page.
 
-The report reads only the store. For each dataset it has, in order: the project-grouped table, the per-category
-table, the encoding ablation, the accuracy-versus-GFLOPs figure, paired comparisons, the registration-error table
-and the C2 displacement table; then the cross-dataset table; last, the training curves of each dataset
-(``harness.report.curves``). A section whose data the store does not hold is kept
+The report reads only the store (and, for the galleries' pixels, the prepared cache its runs name). For each dataset
+it has, in order: the project-grouped table, the per-category table, the encoding ablation, object sizes (counts,
+and AP per size bin), paired comparisons, error types (TIDE), confusion matrices, precision-recall curves, one
+gallery per detector (``harness.report.evidence``, ``harness.report.gallery``), the registration-error table and
+the C2 displacement table; then the accuracy-versus-GFLOPs figure and the cross-dataset table; last, the training
+curves of each dataset (``harness.report.curves``). A section whose data the store does not hold is kept
 and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
 loud label (and the list of differences) in every format.
 
@@ -15,6 +17,10 @@ Output folder (``out``)::
     csv/<table>.csv                             each table, wide, raw numbers (fractions)
     figures/accuracy_vs_gflops.png / .svg       the figure
     figures/training_curves_<dataset>.png / .svg
+    figures/errors_<dataset>.png / .svg         error types (TIDE)
+    figures/confusion_<dataset>.png / .svg      confusion matrices
+    figures/pr_<dataset>.png / .svg             precision-recall curves per category
+    gallery/<dataset>/<detector>/*.jpg          the galleries' thumbnails (also inline in report.html)
 """
 
 from __future__ import annotations
@@ -226,12 +232,19 @@ def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[st
 
 
 def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
-                     progress: Any = None, workers: int = 1,
-                     reference: str | None = REFERENCE) -> tuple[list[Section], list[PairedComparison]]:
-    """The sections of one dataset (see the module docstring for the order)."""
+                     progress: Any = None, workers: int = 1, reference: str | None = REFERENCE,
+                     out: Path | None = None, cache_root: str | Path | None = None,
+                     gallery: bool = True) -> tuple[list[Section], list[PairedComparison]]:
+    """The sections of one dataset (see the module docstring for the order). ``out``: where figures and thumbnails
+    are written (none when None); ``cache_root``: the prepared cache the galleries draw from (default
+    ``$HARNESS_CACHE``); ``gallery=False`` leaves the galleries out."""
+    from harness.report.evidence import evidence_sections
+    from harness.report.gallery import gallery_section
+
     root = view.root
     entries = view.entries(dataset)
     rows, _, _ = main_entries(entries)
+    evidence_secs, size_ap, evidence = evidence_sections(dataset, rows, _entry_names(rows), out, root)
     sections: list[Section] = []
     run_cmd = f"`harness run --detector D --dataset {dataset} --folds all --store {root}`"
 
@@ -265,13 +278,18 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
                       f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
     sections.append(sec)
 
-    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset))
+    sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset) + size_ap)
     if not sec.tables:
         sec.absent = f"no finished run of {dataset} stored its ground truth (gt.json); fill with {run_cmd}."
+    elif rows and not size_ap:
+        sec.notes.append(f"AP per size bin: {evidence_secs[0].absent or 'not stored'}")
     sections.append(sec)
 
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
     sections.append(sec)
+    sections += evidence_secs
+    if gallery:
+        sections.append(gallery_section(dataset, evidence, out, cache_root))
 
     sensing = [_sensing_section(
         view, dataset, "registration", "Registration error", "registration_error", registration_table,
@@ -329,13 +347,15 @@ class _Progress:
 def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,
                  formats: Sequence[str] = FORMATS, resamples: int = REPORT_RESAMPLES, seed: int = 0,
                  ablation_categories: Sequence[str] = ABLATION_CATEGORIES, title: str | None = None,
-                 progress: bool = False, workers: int = 1, reference: str | None = REFERENCE) -> Report:
+                 progress: bool = False, workers: int = 1, reference: str | None = REFERENCE,
+                 cache_root: str | Path | None = None, gallery: bool = True) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
     differences only); ``workers``: processes for the bootstrap; ``reference``: the detector compared with each
-    other one (the most accurate when absent). Returns the ``Report`` (its ``files`` lists what was
-    written).
+    other one (the most accurate when absent); ``cache_root``: the prepared cache the galleries draw their pixels
+    from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out. Returns the
+    ``Report`` (its ``files`` lists what was written).
     """
     bad = [f for f in formats if f not in FORMATS]
     if bad:
@@ -360,7 +380,8 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
                     environment={"python": platform.python_version(), "machine": platform.machine()})
     with _Progress(progress) as bar:
         for ds in chosen:
-            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers, reference)
+            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers, reference,
+                                               out_dir, cache_root, gallery)
             report.sections += sections
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))
@@ -377,6 +398,7 @@ def write_report(report: Report, out: Path, formats: Sequence[str] = FORMATS) ->
     from harness.io import atomic_write_text
 
     written: list[Path] = [p for s in report.sections for f in s.figures for p in f.files]
+    written += [t.path for s in report.sections for g in s.galleries for t in g.thumbs if t.path is not None]
     written.append(atomic_write_text(out / "report.txt", report.to_text()))
     if "md" in formats:
         written.append(atomic_write_text(out / "report.md", report.to_markdown()))

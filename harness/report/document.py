@@ -37,6 +37,8 @@ class Section:
     figures: list[FigureOut] = field(default_factory=list)
     absent: str | None = None
     notes: list[str] = field(default_factory=list)
+    #: pictures (``harness.report.gallery.Gallery``): one gallery per detector
+    galleries: list[Any] = field(default_factory=list)
 
     @property
     def anchor(self) -> str:
@@ -82,6 +84,11 @@ class Report:
             for f in s.figures:
                 where = ", ".join(str(p) for p in f.files) or "not written (no --out)"
                 out += [f"{f.title}: {where}", f"  {f.caption}", ""]
+            for g in s.galleries:
+                where = str(g.thumbs[0].path.parent) if g.thumbs and g.thumbs[0].path else "no picture"
+                out += [f"{s.title}, {g.name}: {len(g.thumbs)} picture(s) in {where}", *[f"  {n}" for n in g.notes]]
+            if s.galleries:
+                out.append("")
             out += [f"  {n}" for n in s.notes]
             if s.notes:
                 out.append("")
@@ -103,6 +110,12 @@ class Report:
                 out += [t.to_markdown(), ""]
             for f in s.figures:
                 out += [f"### {f.title}", "", f"![{f.title}]({figure_dir}/{f.name}.png)", "", f.caption, ""]
+            for g in s.galleries:
+                out += [f"### {s.title}: {g.name}", ""]
+                out += [f"- {n}" for n in g.notes] + ([""] if g.notes else [])
+                for t in g.thumbs:
+                    if t.rel:
+                        out += [f"![{t.caption}]({t.rel})", "", f"*{t.caption}*", ""]
             if s.notes:
                 out += [f"- {n}" for n in s.notes] + [""]
         return "\n".join(out).rstrip() + "\n"

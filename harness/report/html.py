@@ -1,4 +1,5 @@
-"""One self-contained HTML page: inline CSS, the figure as inline SVG, no script, no external request.
+"""One self-contained HTML page: inline CSS, figures as inline SVG, gallery thumbnails as inline JPEG (data URIs),
+no script, no external request.
 
 Best value of a column in bold, summary rows (support, means) in grey italics, Pareto members marked, a red banner
 on every table whose rows were not sample-matched, and a dashed box for every absent section with the command
@@ -7,7 +8,9 @@ that would fill it. The page can be mailed or archived on its own.
 
 from __future__ import annotations
 
+import base64
 from html import escape
+from typing import Any
 
 from harness.report.document import Report, Section
 from harness.report.plots import inline_svg
@@ -47,6 +50,10 @@ code { background: var(--head); padding: 1px 4px; border-radius: 3px; font-size:
 figure { margin: 10px 0; }
 figure svg.figure { width: 100%; max-width: 1200px; height: auto; display: block; }
 figcaption { color: var(--muted); font-size: 12.5px; max-width: 1200px; }
+.gallery { display: flex; flex-wrap: wrap; gap: 10px 14px; margin: 6px 0 14px; }
+figure.thumb { margin: 0; max-width: 100%; }
+figure.thumb img { display: block; max-width: 100%; height: auto; border: 1px solid var(--line); }
+figure.thumb figcaption { font-size: 11.5px; max-width: 640px; }
 footer { margin-top: 40px; color: var(--muted); font-size: 12px; border-top: 1px solid var(--line); padding-top: 8px; }
 """
 
@@ -107,6 +114,25 @@ def render_table(t: Table) -> str:
     return "\n".join(out)
 
 
+def render_gallery(s: Section, g: Any) -> str:
+    """One detector's gallery: its thumbnails inline (JPEG data URIs), each with its caption."""
+    out = [f'<h3 id="{escape(s.anchor)}-{escape(_anchor(g.name))}">{escape(s.title)}: {escape(g.name)}</h3>']
+    if g.notes:
+        out.append('<ul class="notes">' + "".join(f"<li>{_code(n)}</li>" for n in g.notes) + "</ul>")
+    thumbs = []
+    for t in g.thumbs:
+        data = base64.b64encode(t.data).decode("ascii")
+        thumbs.append(f'<figure class="thumb"><img src="data:image/jpeg;base64,{data}" alt="{escape(t.caption)}">'
+                      f"<figcaption>{escape(t.caption)}</figcaption></figure>")
+    if thumbs:
+        out.append(f'<div class="gallery">{"".join(thumbs)}</div>')
+    return "\n".join(out)
+
+
+def _anchor(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text)
+
+
 def render_section(s: Section) -> str:
     out = [f'<section id="{escape(s.anchor)}">']
     if s.absent:
@@ -119,6 +145,8 @@ def render_section(s: Section) -> str:
         links = " · ".join(f'<a href="figures/{escape(p.name)}">{escape(p.suffix[1:].upper())}</a>' for p in f.files)
         out.append(f'<figure>{inline_svg(f.svg)}<figcaption>Conventions as printed on the figure.'
                    f'{f" Files: {links}." if links else ""}</figcaption></figure>')
+    for g in s.galleries:
+        out.append(render_gallery(s, g))
     if s.notes:
         out.append('<ul class="notes">' + "".join(f"<li>{_code(n)}</li>" for n in s.notes) + "</ul>")
     out.append("</section>")

@@ -2,13 +2,15 @@
 
 ``harness report``, ``harness compare``, ``harness compare-detectors`` and the tables ``harness run`` and
 ``harness ablate`` print read the store through this module alone (``harness/store.py`` writes it): the
-``metrics.json`` of finished runs, the annotation source in their ``config.yaml``, and the stored sensing analyses
-(``<dataset>/_sensing/<analysis>.json``). Re-scoring reads ``gt.json`` and ``predictions.json`` of the runs found here.
+``metrics.json`` of finished runs, their error analysis (``analysis.json``: ``StoredRun.analysis``), the annotation
+source in their ``config.yaml``, and the stored sensing analyses (``<dataset>/_sensing/<analysis>.json``). Re-scoring
+and the galleries read ``gt.json`` and ``predictions.json`` of the runs found here (``StoredRun.ground_truth``,
+``StoredRun.predictions``).
 
 Vocabulary used by every table:
 
 * a **stored run** (``StoredRun``) is one finished (dataset, detector, encoding, fold, seed) with its
-  ``metrics.json`` and its labels;
+  ``metrics.json``, its labels and its error analysis;
 * an **entry** (``Entry``) is one (dataset, detector, encoding): the rows of the seed's tables;
 * a **fold result** (``FoldResult``) is one held-out fold of an entry with its seeds averaged (each metric the mean
   over the seeds that define it); its support is the support the seeds share (seeds scored on different samples
@@ -163,7 +165,8 @@ def label_notes(items: Sequence[tuple[str | None, Sequence[ResultLabel], Sequenc
 
 # ---------------------------------------------------------------------------------------------------- runs
 class StoredRun(Run):
-    """One finished run as stored: its folder (a ``Run``), its ``metrics.json`` and the labels it carries."""
+    """One finished run as stored: its folder (a ``Run``), its ``metrics.json``, the labels it carries and its error
+    analysis."""
 
     def __init__(self, run: Run, metrics: dict[str, Any]):
         self.key, self.path = run.key, run.path
@@ -187,6 +190,40 @@ class StoredRun(Run):
 
         cfg = read_yaml(self.config_path)
         return cfg if isinstance(cfg, dict) else {}
+
+    @cached_property
+    def _analysis(self) -> tuple[dict[str, Any] | None, str | None]:
+        from harness.evaluation.analysis import analysis_of
+
+        return analysis_of(self)
+
+    @property
+    def analysis(self) -> dict[str, Any] | None:
+        """The run's stored error analysis (``analysis.json``, schema in ``harness/store.py``), read once; None when
+        there is none (``analysis_missing`` says why: what a report shows in its place)."""
+        return self._analysis[0]
+
+    @property
+    def analysis_missing(self) -> str | None:
+        """Why the run has no error analysis (``no error analysis stored; rerun with --force``, unreadable, failed),
+        or None."""
+        return self._analysis[1]
+
+    def ground_truth(self) -> dict[str, Any]:
+        """The COCO ground truth the run was scored against (``gt.json``); a missing file is a ``StoreError``."""
+        return self._json(self.gt_path, "ground truth")
+
+    def predictions(self) -> list[dict[str, Any]]:
+        """The run's COCO detections on its held-out images (``predictions.json``)."""
+        return self._json(self.predictions_path, "predictions")
+
+    def _json(self, path: Path, what: str) -> Any:
+        from harness.io import read_json
+
+        if not path.is_file():
+            raise StoreError(f"{path}: missing; the run's {what} are needed here. Re-run the fold with `harness run "
+                             f"... --force` to write them")
+        return read_json(path)
 
     @cached_property
     def source(self) -> str:

@@ -24,6 +24,32 @@ Two views of the same question, "is A better than B on these data?":
    resample) equals the table's mean over folds, which ties the interval to the number it qualifies. Resamples in
    which a statistic is undefined (no ground truth drawn at all) are dropped and counted (``valid``).
 
+3. **Training seeds.** The image bootstrap holds the trained models fixed: it says how sure we are about these two
+   trained models, not about the two detectors, whose retraining with another seed moves the score too (training-seed
+   variance is often the larger part; Bouthillier et al., "Accounting for Variance in Machine Learning Benchmarks",
+   MLSys 2021; Agarwal et al., rliable, NeurIPS 2021). So the verdict depends on the training runs behind each fold:
+
+   * **fewer than three seeds per fold** (either side): the image interval is shown, labelled as such, and **no
+     significance verdict** is given (``PairedComparison.verdict_allowed`` is False; ``SEED_NOTE`` says why);
+   * **three or more seeds per fold** (both sides): a **two-level bootstrap**, within each fold::
+
+         for r in 1..R:
+             for every fold f:  seeds   s_X,f^r = k_X,f seeds drawn with replacement from X's seeds of fold f
+                                images  I_f^r   (as above, shared by A and B)
+             S_X^r = mean over folds f of [ mean over s in s_X,f^r of mAP(run s on I_f^r) ]
+             D^r   = S_A^r - S_B^r            95 % CI: percentile; verdict: the CI excludes 0
+
+     plus ``P(A > B)``, the probability that **a new training run** of A beats one of B (Bouthillier et al.'s
+     probability of outperforming): the share of resamples in which one seed drawn per fold for each (on the
+     resampled images) gives A the higher mean over folds, ties counted half; and the **seeds needed**: the fewest
+     seeds per fold (for each detector) with which a difference as large as the observed one would be resolved
+     (95 % interval excluding 0) in 80 % of benchmarks, the usual sample-size rule under a normal approximation:
+     ``(z_0.975 + z_0.8) * sqrt(V_img + V_seed / n) <= |delta|``, with ``V_seed = sum_f (s_A,f^2 + s_B,f^2) / F^2``
+     from the sample SDs over seeds within each fold and ``V_img`` the variance of D over the image resamples with
+     the seeds held at their mean; none when ``V_img`` alone is too large (more held-out images are needed, not
+     more seeds). Seed draws are seeded per fold and side
+     (``SeedSequence([seed, crc32(f), 1, crc32("a" | "b")])``), so they do not depend on the other folds.
+
 Both detectors must have been scored on the same samples (``check_sample_matched`` per fold, plus identical image
 ids in their ``gt.json``); otherwise the paired comparison is refused: pairing different images is meaningless.
 """
@@ -50,6 +76,12 @@ METRICS = ("mAP50", "mAP50_95")
 #: Resamples used when none are given.
 DEFAULT_RESAMPLES = 1000
 CONFIDENCE = 0.95
+#: Training seeds per fold (on both sides) from which a comparison resamples seeds and gives a verdict.
+MIN_SEEDS = 3
+#: The power of the "seeds needed" rule: the share of benchmarks in which the observed difference is resolved.
+POWER = 0.8
+#: Bootstrap levels: images only (the trained models fixed), or training seeds and then images within each fold.
+IMAGES, SEEDS_IMAGES = "images", "seeds+images"
 
 
 # ---------------------------------------------------------------------------------------------- resampling
@@ -244,18 +276,32 @@ class BootstrapScorer:
         self._run_scores[cache_key] = out
         return out
 
+    def fold_runs(self, entry: Entry, fold: str) -> np.ndarray:
+        """``[seeds, 1 + resamples, 2]``: each seed's run of ``fold`` on the original images and each resample."""
+        return np.stack([self.run_scores(entry.dataset, fold, r) for r in entry.folds[fold].runs])
+
     def scores(self, entry: Entry, folds: Sequence[str]) -> np.ndarray:
-        per_fold = []
-        for f in folds:
-            seeds = [self.run_scores(entry.dataset, f, r) for r in entry.folds[f].runs]
-            per_fold.append(np.mean(np.stack(seeds), axis=0))  # NaN stays NaN: an undefined resample is dropped
+        # NaN stays NaN: an undefined resample is dropped
+        per_fold = [np.mean(self.fold_runs(entry, f), axis=0) for f in folds]
         return np.mean(np.stack(per_fold), axis=0)
 
 
 # ---------------------------------------------------------------------------------------------- results
+#: What a comparison with fewer than ``MIN_SEEDS`` training seeds per fold says in place of a verdict.
+SEED_NOTE = ("{seeds}: this compares trained models, not detectors (the spread between training runs is not "
+             "measured), so no significance verdict is given; the image interval holds the trained models fixed. "
+             "Train both with --seeds 0,1,2 (or more) for the two-level bootstrap over seeds and images.")
+
+
 @dataclass
 class BootstrapResult:
-    """Paired bootstrap of one metric: observed values, the difference and its percentile CI."""
+    """Paired bootstrap of one metric: observed values, the difference and its percentile CI.
+
+    ``level``: ``IMAGES`` (the trained models fixed) or ``SEEDS_IMAGES`` (the two-level bootstrap). The last four
+    fields are set by the two-level bootstrap only: ``p_a_beats_b``, the probability that a new training run of A
+    beats one of B; ``seeds_needed``, the seeds per fold at which the observed spread resolves the difference (None:
+    not with these images, ``seeds_note`` says why); ``seed_sd``, the pooled sample SD over seeds within a fold of
+    each side (``{"a", "b"}``)."""
 
     metric: str
     a: float | None
@@ -271,6 +317,11 @@ class BootstrapResult:
     #: fraction of valid resamples with D <= 0 (small: A is rarely not better)
     p_not_better: float | None
     confidence: float = CONFIDENCE
+    level: str = IMAGES
+    p_a_beats_b: float | None = None
+    seeds_needed: int | None = None
+    seeds_note: str | None = None
+    seed_sd: dict[str, float | None] = field(default_factory=dict)
 
     @property
     def excludes_zero(self) -> bool:
@@ -304,6 +355,37 @@ class PairedComparison:
     labels: dict[str, list[ResultLabel]] = field(default_factory=dict)
     fold_marks: dict[str, list[str]] = field(default_factory=dict)
     label_notes: list[str] = field(default_factory=list)
+    #: training seeds behind each fold of each side (``{"a": [k per fold], "b": [...]}``)
+    seeds: dict[str, list[int]] = field(default_factory=dict)
+
+    @property
+    def training_runs(self) -> int:
+        """The fewest training seeds behind a fold of either side (0 when unknown)."""
+        counts = [k for side in self.seeds.values() for k in side]
+        return min(counts) if counts else 0
+
+    @property
+    def verdict_allowed(self) -> bool:
+        """Whether the comparison may say that A and B differ: both sides trained with ``MIN_SEEDS`` or more seeds
+        in every fold (the two-level bootstrap)."""
+        return self.training_runs >= MIN_SEEDS
+
+    @property
+    def seed_note(self) -> str | None:
+        """Why there is no verdict (``SEED_NOTE``), or None when one is allowed."""
+        if self.verdict_allowed:
+            return None
+        k = self.training_runs
+        what = "one training seed per fold" if k <= 1 else f"only {k} training seeds per fold"
+        return SEED_NOTE.format(seeds=what[0].upper() + what[1:])
+
+    def verdict(self, metric: str) -> str | None:
+        """``"yes"``/``"no"``: whether the two-level interval of ``metric`` excludes 0; None where no verdict is
+        allowed or there is no bootstrap."""
+        b = (self.bootstrap or {}).get(metric)
+        if b is None or not self.verdict_allowed or b.level != SEEDS_IMAGES:
+            return None
+        return "yes" if b.excludes_zero else "no"
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -313,6 +395,9 @@ class PairedComparison:
             d["labels"] = {side: [{"kind": lab.kind, "text": lab.text, "runs": list(lab.runs)} for lab in labs]
                            for side, labs in self.labels.items()}
             d["fold_marks"], d["label_notes"] = self.fold_marks, self.label_notes
+        d["training_runs"] = self.training_runs
+        d["verdict"] = {k: self.verdict(k) for k in METRICS} if self.verdict_allowed and self.bootstrap else None
+        d["seed_note"] = self.seed_note
         return d
 
     def to_text(self) -> str:
@@ -332,26 +417,41 @@ class PairedComparison:
                 for i, f in enumerate(self.folds)]
         sd = lambda s: "" if s.sd is None else f" ± {100 * s.sd:.1f}"  # noqa: E731
         rows.append(["mean ± SD", "", "", pp(f50.stat.mean) + sd(f50.stat), "", "", pp(f95.stat.mean) + sd(f95.stat)])
+        seeds = "/".join(str(k) for k in sorted(set(self.seeds.get("a", []) + self.seeds.get("b", [])))) or "?"
         out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} "
-               f"images, "
-               f"{self.instances} instances; AP in %, Δ = A - B in percentage points",
+               f"images, {self.instances} instances, {seeds} training seed(s) per fold; AP in %, Δ = A - B in "
+               f"percentage points",
                text_table(header, rows), "",
                f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s)."]
         if self.bootstrap:
             b0 = next(iter(self.bootstrap.values()))
-            out.append(f"paired bootstrap over images: {b0.resamples} resamples ({b0.valid} valid), seed {b0.seed}, "
-                       f"percentile {int(100 * b0.confidence)} % CI of the mean over folds")
-            bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI", "P(Δ <= 0)", "CI excludes 0"]
+            if b0.level == SEEDS_IMAGES:
+                out.append(f"two-level bootstrap (training seeds, then images, within each fold): {b0.resamples} "
+                           f"resamples ({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI "
+                           f"of the mean over folds")
+                bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI", "P(A > B), new run",
+                      "seeds needed", "CI excludes 0"]
+            else:
+                out.append(f"paired bootstrap over images, the trained models fixed: {b0.resamples} resamples "
+                           f"({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI of the "
+                           f"mean over folds")
+                bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI (images)"]
             brows = []
             for key, b in self.bootstrap.items():
-                brows.append([key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
-                              f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta),
-                              f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
-                              "-" if b.p_not_better is None else f"{b.p_not_better:.3f}",
-                              "yes" if b.excludes_zero else "no"])
+                row = [key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
+                       f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta), f"[{pp(b.ci_low)}, {pp(b.ci_high)}]"]
+                if b.level == SEEDS_IMAGES:
+                    row += ["-" if b.p_a_beats_b is None else f"{b.p_a_beats_b:.2f}",
+                            "-" if b.seeds_needed is None else str(b.seeds_needed), self.verdict(key) or "-"]
+                brows.append(row)
             out.append(text_table(bh, brows))
+            notes = [f"{k.replace('_', ':')}: seeds needed: {b.seeds_note}" for k, b in self.bootstrap.items()
+                     if b.seeds_note]
+            out += notes
         else:
             out.append("no bootstrap (resamples = 0)")
+        if self.seed_note:
+            out.append(self.seed_note)
         out += self.label_notes
         out += self.notes
         from harness.textable import fit_text
@@ -402,9 +502,86 @@ def check_pair_matched(a: Entry, b: Entry, folds: Sequence[str]) -> None:
                                           f"({e.folds[f].seed_mismatch})")
 
 
+# ---------------------------------------------------------------------------------------------- two levels
+def _z(confidence: float) -> float:
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(1.0 - (1.0 - confidence) / 2.0)
+
+
+def seeds_needed(delta: float | None, v_img: float, v_seed: float, confidence: float = CONFIDENCE,
+                 power: float = POWER, limit: int = 10_000) -> tuple[int | None, str | None]:
+    """The fewest seeds per fold ``n`` with ``(z_conf + z_power) * sqrt(v_img + v_seed / n) <= |delta|`` (module
+    docstring), or (None, why not)."""
+    from statistics import NormalDist
+
+    if delta is None or not math.isfinite(delta) or delta == 0.0:
+        return None, "no difference to resolve"
+    if not (math.isfinite(v_img) and math.isfinite(v_seed)):
+        return None, "the spread is undefined (a metric without a value in some run)"
+    z = _z(confidence) + NormalDist().inv_cdf(power)
+    room = (abs(delta) / z) ** 2 - v_img
+    if room <= 0.0:
+        return None, (f"not with these held-out images: their sampling spread alone (SD {100 * math.sqrt(v_img):.2f} "
+                      f"points) is too large for a difference of {100 * abs(delta):.2f} points; more images are "
+                      f"needed")
+    n = max(1, math.ceil(v_seed / room - 1e-9)) if v_seed > 0.0 else 1
+    if n > limit:
+        return None, f"more than {limit} seeds per fold"
+    return n, None
+
+
+def _seed_draws(k: int, resamples: int, seed: int, fold: str, side: str) -> np.ndarray:
+    """``[resamples, k]`` seed positions drawn with replacement for one side of one fold."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), zlib.crc32(fold.encode()), 1,
+                                                        zlib.crc32(side.encode())]))
+    return rng.integers(0, k, size=(int(resamples), int(k)), dtype=np.int64)
+
+
+def two_level(a_runs: Sequence[np.ndarray], b_runs: Sequence[np.ndarray], folds: Sequence[str], seed: int,
+              confidence: float = CONFIDENCE) -> list[dict[str, Any]]:
+    """The two-level bootstrap (module docstring) from per-run scores.
+
+    ``a_runs[f]``, ``b_runs[f]``: ``[seeds, 1 + R, metrics]`` scores of each seed's run of fold ``folds[f]`` on the
+    original images (row 0) and on the fold's image resamples (rows 1..R, the same for every run of the fold).
+    Returns, per metric, the resampled A, B and D (two levels), D with the seeds held at their mean (images only),
+    the single-run differences behind ``P(A > B)`` and the seed variances."""
+    resamples = a_runs[0].shape[1] - 1
+    cols = np.arange(1, resamples + 1)
+    sa, sb, fixed, single, v_seed = [], [], [], [], []
+    for f, fold in enumerate(folds):
+        xa, xb = np.asarray(a_runs[f], dtype=np.float64), np.asarray(b_runs[f], dtype=np.float64)
+        da = _seed_draws(xa.shape[0], resamples, seed, fold, "a")
+        db = _seed_draws(xb.shape[0], resamples, seed, fold, "b")
+        pa = xa[da, cols[:, None]]  # [R, k_a, metrics]: each resample's drawn seeds on its images
+        pb = xb[db, cols[:, None]]
+        sa.append(pa.mean(axis=1))
+        sb.append(pb.mean(axis=1))
+        single.append(pa[:, 0] - pb[:, 0])
+        fixed.append(xa[:, 1:].mean(axis=0) - xb[:, 1:].mean(axis=0))
+        v_seed.append(xa[:, 0].var(axis=0, ddof=1) + xb[:, 0].var(axis=0, ddof=1))
+    n_folds = len(folds)
+    out = []
+    for j in range(a_runs[0].shape[2]):
+        out.append({"a": np.mean([s[:, j] for s in sa], axis=0), "b": np.mean([s[:, j] for s in sb], axis=0),
+                    "fixed": np.mean([s[:, j] for s in fixed], axis=0),
+                    "single": np.mean([s[:, j] for s in single], axis=0),
+                    "v_seed": float(sum(v[j] for v in v_seed)) / n_folds ** 2,
+                    "seed_sd": {side: _pooled_sd([x[:, 0, j] for x in runs]) for side, runs in
+                                (("a", a_runs), ("b", b_runs))}})
+    return out
+
+
+def _pooled_sd(per_fold: Sequence[np.ndarray]) -> float | None:
+    """Square root of the mean over folds of the sample variance over seeds (None with fewer than two seeds)."""
+    vs = [float(np.var(v, ddof=1)) for v in per_fold if len(v) >= 2 and np.all(np.isfinite(v))]
+    return math.sqrt(sum(vs) / len(vs)) if vs else None
+
+
 def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
                       scorer: BootstrapScorer | None = None, folds: Sequence[str] | None = None) -> PairedComparison:
-    """Per-fold differences and (``resamples > 0``) the paired bootstrap of A - B; see the module docstring."""
+    """Per-fold differences and (``resamples > 0``) the paired bootstrap of A - B: over images when either side has
+    fewer than ``MIN_SEEDS`` seeds in a fold, else over seeds and images; see the module docstring."""
     if a.dataset != b.dataset:
         raise StoreError(f"{a.label} is on {a.dataset!r} and {b.label} on {b.dataset!r}: pair runs of one dataset")
     folds = list(folds) if folds is not None else common_folds(a, b)
@@ -412,6 +589,7 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
     images = sum(a.folds[f].images for f in folds)
     instances = sum(a.folds[f].instances for f in folds)
     comp = PairedComparison(a.dataset, a.label, b.label, folds, images, instances, fold_differences(a, b, folds))
+    comp.seeds = {k: [len(e.folds[f].runs) for f in folds] for k, e in zip("ab", (a, b))}
     shown = [a.restricted(folds), b.restricted(folds)]
     comp.label_notes = label_notes([e.notes_item() for e in shown])
     if comp.label_notes:
@@ -423,17 +601,34 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
     if scorer.resamples != resamples or scorer.seed != seed:
         raise ValueError("the scorer was made for other resamples or another seed")
     sa, sb = scorer.scores(a, folds), scorer.scores(b, folds)
+    levels = None
+    if comp.verdict_allowed:
+        levels = two_level([scorer.fold_runs(a, f) for f in folds], [scorer.fold_runs(b, f) for f in folds], folds,
+                           seed)
     boot: dict[str, BootstrapResult] = {}
     for j, key in enumerate(METRICS):
-        da, db = sa[1:, j], sb[1:, j]
+        obs_a, obs_b = sa[0, j], sb[0, j]
+        if levels is None:
+            da, db = sa[1:, j], sb[1:, j]
+        else:
+            da, db = levels[j]["a"], levels[j]["b"]
         valid = np.isfinite(da) & np.isfinite(db)
         d = da[valid] - db[valid]
         lo, hi = percentile_ci(d)
-        obs_a, obs_b = sa[0, j], sb[0, j]
-        boot[key] = BootstrapResult(
+        res = BootstrapResult(
             key, _f(obs_a), _f(obs_b), _f(obs_a - obs_b), lo, hi, percentile_ci(da[valid]), percentile_ci(db[valid]),
             resamples, int(valid.sum()), seed, float(np.mean(d <= 0)) if d.size else None)
-        for label, entry, observed in ((a.label, a, boot[key].a), (b.label, b, boot[key].b)):
+        if levels is not None:
+            lv = levels[j]
+            one = lv["single"][np.isfinite(lv["single"])]
+            fixed = lv["fixed"][np.isfinite(lv["fixed"])]
+            res.level = SEEDS_IMAGES
+            res.p_a_beats_b = float(np.mean(one > 0) + 0.5 * np.mean(one == 0)) if one.size else None
+            v_img = float(np.var(fixed, ddof=1)) if fixed.size >= 2 else 0.0
+            res.seeds_needed, res.seeds_note = seeds_needed(res.delta, v_img, lv["v_seed"])
+            res.seed_sd = lv["seed_sd"]
+        boot[key] = res
+        for label, entry, observed in ((a.label, a, res.a), (b.label, b, res.b)):
             stored = _stored_mean(entry, folds, key)
             if stored is not None and observed is not None and abs(stored - observed) > 1e-6:
                 comp.notes.append(f"note: re-scored {key} of {label} ({observed:.4f}) differs from its stored "

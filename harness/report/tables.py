@@ -14,7 +14,9 @@ Tables (builders below, all reading only the store through ``reader.StoreView``)
   AP50 of the seed's two thermal-only defects (delamination, water seepage);
 * ``registration_table`` and ``displacement_table``: the sensor-level analyses of ``harness sensing``;
 * ``cross_dataset_table``: the cross-dataset comparison of ``harness.compare``;
-* ``paired_table``: paired comparisons (per-fold differences, paired bootstrap CIs) from ``stats.py``.
+* ``paired_table``: paired comparisons (per-fold differences, bootstrap CIs, a verdict only with three or more
+  training seeds per fold) from ``stats.py``;
+* the error-analysis tables (error types, AP per size bin) are built in ``evidence.py``.
 
 AP, precision and recall are fractions in the store and in CSV files, and percentages (one decimal) in text,
 Markdown and HTML.
@@ -737,19 +739,26 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
 
 # -------------------------------------------------------------------------------------------------- paired
 def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
-    """Paired comparisons (``stats.PairedComparison``): per-fold differences and paired bootstrap 95 % CIs."""
-    cols = [Column("a", "A"), Column("b", "B"), Column("folds", "Folds", "int"), Column("images", "Images", "int"),
-            Column("instances", "Inst.", "int"),
+    """Paired comparisons (``stats.PairedComparison``): per-fold differences and paired bootstrap 95 % CIs; a verdict
+    only where both sides were trained with three or more seeds per fold (the two-level bootstrap)."""
+    cols = [Column("a", "A"), Column("b", "B"), Column("folds", "Folds", "int"), Column("seeds", "Seeds (A/B)"),
+            Column("images", "Images", "int"), Column("instances", "Inst.", "int"),
             Column("fold_d50", "Δ mAP50 per fold", "pp"), Column("boot_d50", "Δ mAP50 [95 % CI]", "pp"),
             Column("fold_d5095", "Δ mAP50:95 per fold", "pp"), Column("boot_d5095", "Δ mAP50:95 [95 % CI]", "pp"),
-            Column("wins", "A better (folds)"), Column("verdict", "CI excludes 0")]
+            Column("wins", "A better (folds)"), Column("p_beats", "P(A > B), new run (mAP50:95)", "float", 2),
+            Column("needed", "Seeds needed (mAP50:95)"), Column("verdict", "CI excludes 0")]
+    if not any(c.verdict_allowed for c in comparisons):  # about new training runs: only with three seeds or more
+        cols = [c for c in cols if c.key not in ("p_beats", "needed")]
+    from harness.report.stats import SEEDS_IMAGES as SEEDS_LEVEL
+
     table = Table(name, title, cols)
-    resamples = set()
+    resamples: dict[str, set[tuple[int, int, int]]] = {}
     for c in comparisons:
         fd = c.fold_differences
         row: dict[str, Any] = {"a": c.a, "b": c.b, "folds": len(c.folds), "images": c.images,
                                "instances": c.instances, "fold_d50": fd["mAP50"].stat,
                                "fold_d5095": fd["mAP50_95"].stat,
+                               "seeds": "/".join(_seed_counts(c.seeds.get(k, [])) for k in ("a", "b")),
                                "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}"}
         shown = "".join(c.fold_marks.get("a", []) + c.fold_marks.get("b", []))  # a difference rests on both sides
         m = "".join(ch for ch in dict.fromkeys(MARKS.values()) if ch in shown)
@@ -759,8 +768,9 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
             b = (c.bootstrap or {}).get(key)
             if b is not None:
                 row[col] = Interval(b.delta, b.ci_low, b.ci_high)
-                resamples.add((b.resamples, b.valid, b.seed))
-                verdicts.append(f"{key.replace('_', ':')} {'yes' if row[col].excludes_zero else 'no'}")
+                resamples.setdefault(b.level, set()).add((b.resamples, b.valid, b.seed))
+                if c.verdict(key) is not None:
+                    verdicts.append(f"{key.replace('_', ':')} {c.verdict(key)}")
                 table.records.append(record(name, f"delta_{key}_bootstrap", b.delta, dataset=c.dataset,
                                             detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
                                             instances=c.instances, n=b.valid, unit="fraction"))
@@ -768,20 +778,51 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
                                             detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
                 table.records.append(record(name, f"delta_{key}_ci_high", b.ci_high, dataset=c.dataset,
                                             detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
+                if b.p_a_beats_b is not None:
+                    table.records.append(record(name, f"p_a_beats_b_{key}", b.p_a_beats_b, dataset=c.dataset,
+                                                detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid,
+                                                unit="probability"))
+                if key == "mAP50_95" and b.level == SEEDS_LEVEL:
+                    row["p_beats"] = b.p_a_beats_b
+                    row["needed"] = str(b.seeds_needed) if b.seeds_needed is not None else "-"
             s = fd[key].stat
             table.records.append(record(name, f"delta_{key}_per_fold", s.mean, sd=s.sd, n=s.n, dataset=c.dataset,
                                         detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
                                         instances=c.instances))
-        row["verdict"] = ", ".join(verdicts) if verdicts else "no bootstrap"
+        if not c.bootstrap:
+            row["verdict"] = "no bootstrap"
+        elif not c.verdict_allowed:
+            row["verdict"] = f"none: {c.training_runs} seed{'s' if c.training_runs != 1 else ''} per fold"
+        else:
+            row["verdict"] = ", ".join(verdicts)
         table.rows.append(row)
     table.notes.append("Δ = A - B in percentage points. Per fold: mean ± sample SD of the per-fold differences "
-                       "(each fold's value averaged over its seeds); 'A better': folds where A's mAP50:95 is higher.")
-    if resamples:
-        desc = "; ".join(f"{r} resamples ({v} valid), seed {s}" for r, v, s in sorted(resamples))
-        table.notes.append(f"Paired bootstrap over images: each fold's held-out images resampled with replacement "
-                           f"(same resample for A and B), both re-scored by harness.evaluation with the duplicated "
-                           f"images given new ids, statistic = mean over folds; percentile 95 % CI; {desc}.")
-    else:
+                       "(each fold's value averaged over its seeds); 'A better': folds where A's mAP50:95 is higher. "
+                       "Seeds: training seeds per fold (the fewest of any fold).")
+    for level, runs in sorted(resamples.items()):
+        desc = "; ".join(f"{r} resamples ({v} valid), seed {s}" for r, v, s in sorted(runs))
+        if level == SEEDS_LEVEL:
+            table.notes.append(f"Three or more seeds per fold: two-level bootstrap (training seeds resampled, then "
+                               f"held-out images, within each fold), statistic = mean over folds; percentile 95 % CI; "
+                               f"'CI excludes 0' is its verdict. P(A > B), new run: the probability that one new "
+                               f"training run of A beats one of B (Bouthillier et al., MLSys 2021). Seeds needed: the "
+                               f"seeds per fold at which the observed spread would resolve the difference "
+                               f"(docs/reports.md); {desc}.")
+        else:
+            table.notes.append(f"Fewer than three seeds per fold: paired bootstrap over images only (same resample "
+                               f"for A and B, duplicated images given new ids, statistic = mean over folds, percentile "
+                               f"95 % CI): it holds the trained models fixed, so it compares trained models, not "
+                               f"detectors, and gives no significance verdict; train with --seeds 0,1,2 for one; "
+                               f"{desc}.")
+    if not resamples:
         table.notes.append("No bootstrap (resamples = 0): per-fold differences only.")
     table.notes[:0] = list(dict.fromkeys(n for c in comparisons for n in c.label_notes))
     return table
+
+
+def _seed_counts(per_fold: Sequence[int]) -> str:
+    """Seeds per fold as shown: ``3``, or ``2-3`` when folds differ, ``?`` when unknown."""
+    if not per_fold:
+        return "?"
+    lo, hi = min(per_fold), max(per_fold)
+    return str(lo) if lo == hi else f"{lo}-{hi}"
