@@ -23,8 +23,8 @@ full`` against the reduced decode (with the mean difference of the model inputs)
 from __future__ import annotations
 
 import argparse
+import math
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -36,20 +36,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine_lines  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
 TARGET = 0.30
 RGB_SIZE = (4000, 3000)
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+STAGES = ("decode", "align", "encode")
 
 
 def wide_camera() -> "object":
@@ -125,7 +119,10 @@ def weights_file(folder: Path, scale: str) -> Path:
 
 
 def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str, threads: int, cam: Path,
-               rgb_decode: str = "auto", workers: int = 1) -> dict:
+               rgb_decode: str = "auto", workers: int = 1, overlap: bool = True) -> dict:
+    """One screen of the flight; per-frame timings of the frames after the first (its one-time costs left out):
+    means (``mean``: the automatic registrations, one per group of three, included), medians (``median``: a frame
+    that reuses its group's registration), frames per second, and the registration's own cost."""
     from harness.screen import ScreenRequest, screen
 
     stamps: list[float] = []
@@ -138,28 +135,43 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
     req = ScreenRequest(flight=flight, out=out, weights=weights, detector="ours", dataset="m3t", profile="paper",
                         overrides=[f"model.scale={scale}", "eval.batch=1"], backend=backend, threads=threads,
                         rgb_camera=cam, rgb_decode=rgb_decode, progress=False, overlays=False, force=True,
-                        conf=0.5, workers=workers)
+                        conf=0.5, workers=workers, overlap=overlap)
+    c0 = time.process_time()
     screen(req, on_frame=on_frame)
     steady = records[1:]
-    med = {k: statistics.median(r["timings"][k] for r in steady) for k in ("decode", "align", "encode", "model")}
-    # each frame's front end and model ran back to back, under the same load: their ratio, per frame
-    ratio = statistics.median((r["timings"]["decode"] + r["timings"]["align"] + r["timings"]["encode"])
-                              / r["timings"]["model"] for r in steady)
-    cpu = {k: statistics.median(r["timings"][f"{k}_cpu"] for r in steady) for k in ("decode", "align", "encode",
-                                                                                      "model")}
-    cpu_ratio = statistics.median((r["timings"]["decode_cpu"] + r["timings"]["align_cpu"]
-                                   + r["timings"]["encode_cpu"]) / r["timings"]["model_cpu"] for r in steady)
-    fps = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan")
-    return {"fps": fps, "median": med, "ratio": ratio, "cpu": cpu, "cpu_ratio": cpu_ratio,
+    keys = [*STAGES, "model"]
+    t = {k: [r["timings"][k] for r in steady] for k in keys}
+    c = {k: [r["timings"][f"{k}_cpu"] for r in steady] for k in keys}
+    front = [sum(r["timings"][k] for k in STAGES) for r in steady]
+    front_cpu = [sum(r["timings"][f"{k}_cpu"] for k in STAGES) for r in steady]
+    registering = [r["timings"]["align_cpu"] for r in steady if r["route"] == "auto"]
+    reusing = [r["timings"]["align_cpu"] for r in steady if r["route"] != "auto"]
+    return {"fps": (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan"),
+            "mean": {k: statistics.fmean(v) for k, v in t.items()},
+            "mean_cpu": {k: statistics.fmean(v) for k, v in c.items()},
+            "median": {k: statistics.median(v) for k, v in t.items()},
+            "median_cpu": {k: statistics.median(v) for k, v in c.items()},
+            "front": statistics.fmean(front), "front_cpu": statistics.fmean(front_cpu),
+            "front_median_cpu": statistics.median(front_cpu),
+            # each frame's front end over its own model call, back to back (sequential runs): a load that changes
+            # during the run weighs on both alike
+            "cpu_ratio": statistics.median(f / r["timings"]["model_cpu"] for f, r in zip(front_cpu, steady)),
+            "register_cpu": (statistics.median(registering) - statistics.median(reusing))
+            if registering and reusing else float("nan"),
+            "process_cpu": (time.process_time() - c0) / max(1, len(records)),
             "routes": {r["route"] for r in records}, "reduction": {r["reduction"] for r in records}}
 
 
-def stage_split(flight: Path, cam: Path, repeats: int = 3) -> dict[str, float]:
-    """One thread: each step of one frame's front end timed on its own (medians over frames and repeats)."""
+def stage_split(flight: Path, cam: Path, repeats: int = 3) -> tuple[dict[str, float], int]:
+    """One thread: each step of one frame's front end timed on its own, CPU time (medians over frames and
+    repeats); the reduction the default decode uses."""
     import cv2
 
+    from harness.encodings import encode_c2
+    from harness.sample import AlignedSample
     from harness.screen.flight import find_captures
-    from harness.screen.frontend import decode_rgb, reduction_for, source_scale
+    from harness.screen.frontend import decode_rgb, reduction_for, sha1_bytes, source_scale
+    from harness.sensing import jpeg
     from harness.sensing.calibration import CameraModel
     from harness.sensing.options import SensingOptions
     from harness.sensing.pipeline import SensingContext, read_capture_thermal
@@ -170,40 +182,41 @@ def stage_split(flight: Path, cam: Path, repeats: int = 3) -> dict[str, float]:
     cv2.setNumThreads(1)
     caps = find_captures(flight).captures[:3]
     opts = SensingOptions()
-    times: dict[str, list[float]] = {k: [] for k in ("thermal decode", "wide decode 1/2", "wide decode full",
-                                                     "undistort", "register (auto)", "warp + crop", "C2")}
-    from harness.encodings import encode_c2
-
+    cam_full = CameraModel.load(cam)
+    reg_f = DatasetRegistration(SensingContext(opts, cam_full), None, None, "undistorted", {}, (24.0, 40.0))
+    r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
+    ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)))
+    reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
+    names = ("files, headers, SHA-1", "thermal R-JPEG", f"wide 1/{r}", "wide in full", "undistort", "register (auto)",
+             "warp + crop", "C2")
+    times: dict[str, list[float]] = {k: [] for k in names}
+    clock = time.thread_time
     for _ in range(repeats):
         for cap in caps:
-            data = cap.rgb.read_bytes()
-            t0 = time.perf_counter()
+            t0 = clock()
+            data, tdata = cap.rgb.read_bytes(), cap.thermal.read_bytes()
+            jpeg.read_segments(data, cap.rgb)
+            jpeg.read_segments(tdata, cap.thermal, require_eoi=False)
+            sha1_bytes(data), sha1_bytes(tdata)
+            t1 = clock()
             temp, ir8, _ = read_capture_thermal(cap.thermal, opts)
-            t1 = time.perf_counter()
-            cam_full = CameraModel.load(cam)
-            ctx_f = SensingContext(opts, cam_full)
-            reg_f = DatasetRegistration(ctx_f, None, None, "undistorted", {}, (24.0, 40.0))
-            r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
+            t2 = clock()
             rgb = decode_rgb(data, cap.rgb, r)
-            t2 = time.perf_counter()
+            t3 = clock()
             decode_rgb(data, cap.rgb, 1)
-            t3 = time.perf_counter()
-            ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)))
-            reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
+            t4 = clock()
             rgb_u, _ = ctx.undistort_rgb(rgb)
-            t4 = time.perf_counter()
+            t5 = clock()
             prior = reg.prior((rgb.shape[1], rgb.shape[0]), (640, 512))
             res = estimate_homography_auto(rgb_u, temp, init=prior)
-            t5 = time.perf_counter()
+            t6 = clock()
             pair = align_pair(rgb_u, temp, ir8, np.zeros((0, 4)), np.zeros(0), res.H)
-            t6 = time.perf_counter()
-            from harness.sample import AlignedSample
-
+            t7 = clock()
             encode_c2(AlignedSample(0, pair.rgb, pair.thermal, pair.ir8, np.zeros((0, 4)), np.zeros(0), "g"))
-            t7 = time.perf_counter()
-            for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
+            t8 = clock()
+            for key, dt in zip(names, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6, t8 - t7)):
                 times[key].append(dt)
-    return {k: statistics.median(v) for k, v in times.items()}
+    return {k: statistics.median(v) for k, v in times.items()}, r
 
 
 def input_difference(flight: Path, cam: Path) -> tuple[float, float, int]:
@@ -225,6 +238,10 @@ def input_difference(flight: Path, cam: Path) -> tuple[float, float, int]:
     if a.shape != b.shape:
         return float("nan"), float("nan"), out[1].reduction
     return float(np.abs(a[..., :3] - b[..., :3]).mean()), float(np.abs(a[..., 3] - b[..., 3]).mean()), out[1].reduction
+
+
+def _pct(x: float) -> str:
+    return f"{x:+.0%}" if math.isfinite(x) else "n/a"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -256,34 +273,51 @@ def main(argv: list[str] | None = None) -> int:
         size = statistics.median(p.stat().st_size for p in flight.glob("*_W.JPG")) / 1e6
         print(f"flight: {n} captures (640x512 real M3T R-JPEGs, 4000x3000 wide JPEGs of {size:.1f} MB), built in "
               f"{time.perf_counter() - t0:.0f} s")
-        print(f"CPU: {cpu_name()}, {os.cpu_count()} logical cores (load average {os.getloadavg()[0]:.1f} at the "
-              f"start); model threads {args.threads}, front end in the main process; torch {torch.__version__}")
-        header = (f"{'model':<7} {'backend':<7} {'fr/s':>5} | {'decode':>6} {'reg+warp':>8} {'C2':>4} {'front':>5} "
-                  f"{'model':>5} {'ratio':>5} | {'front':>5} {'model':>5} {'ratio':>5} | <= {TARGET:.0%}")
-        print("\nper frame, ms (medians over the frames after the first): wall clock | CPU time of the process\n"
-              + header + "\n" + "-" * len(header))
+        for line in machine_lines():
+            print(line)
+        print(f"model on {args.threads} threads, torch {torch.__version__}; front end on one OpenCV thread, in the "
+              "main process: sequential (before the model) or overlapped (a thread, one frame ahead)")
+        rows = []
         for scale in [s.strip() for s in args.scales.split(",") if s.strip()]:
             w = weights_file(work, scale)
             for backend in [b.strip() for b in args.backends.split(",") if b.strip()]:
-                r = run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam)
-                m, c = r["median"], r["cpu"]
-                front, front_cpu = m["decode"] + m["align"] + m["encode"], c["decode"] + c["align"] + c["encode"]
-                met = "wall " + ("met" if r["ratio"] <= TARGET else "no") + ", CPU " + \
-                    ("met" if r["cpu_ratio"] <= TARGET else "no")
-                wall = f"{1e3 * m['decode']:>6.0f} {1e3 * m['align']:>8.0f} {1e3 * m['encode']:>4.0f} " \
-                    f"{1e3 * front:>5.0f} {1e3 * m['model']:>5.0f} {r['ratio']:>5.0%}"
-                print(f"ours-{scale:<2} {backend:<7} {r['fps']:>5.2f} | {wall} | {1e3 * front_cpu:>5.0f} "
-                      f"{1e3 * c['model']:>5.0f} {r['cpu_ratio']:>5.0%} | {met}")
-                sys.stdout.flush()
-        print(f"routes: {', '.join(sorted(r['routes']))}; wide JPEG decoded at 1/{max(r['reduction'])}")
+                seq = run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam,
+                                 overlap=False)
+                ovl = run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam)
+                rows.append((f"ours-{scale}", backend, seq, ovl))
+                print(f"  ours-{scale} {backend}: done", file=sys.stderr)
+        print(f"\nper frame, ms (means over the frames after the first; an automatic registration every 3rd frame)")
+        head = (f"{'model':<7} {'backend':<7} | {'decode':>6} {'reg+warp':>8} {'C2':>3} {'front':>5} | "
+                f"{'model':>5} | {'front/model':>11} | {'median frame':>12}")
+        print("CPU time (sequential run; front end: its thread's)\n" + head + "\n" + "-" * len(head))
+        for name, backend, seq, _ in rows:
+            c = seq["mean_cpu"]
+            print(f"{name:<7} {backend:<7} | {1e3 * c['decode']:>6.0f} {1e3 * c['align']:>8.0f} "
+                  f"{1e3 * c['encode']:>3.0f} {1e3 * seq['front_cpu']:>5.0f} | {1e3 * c['model']:>5.0f} | "
+                  f"{seq['front_cpu'] / c['model']:>11.0%} | {seq['cpu_ratio']:>12.0%}")
+        head = (f"{'model':<7} {'backend':<7} | {'model alone':>11} | {'sequential':>16} | {'overlapped':>16} | "
+                f"target {TARGET:.0%}")
+        print("\nwall clock: the whole screen's time per frame (1 / frames per second) over the model's own (its "
+              "calls in\nthe sequential run); added = the share above the model's time\n" + head + "\n"
+              + f"{'':<7} {'':<7} | {'ms':>11} | {'fr/s  ms added':>16} | {'fr/s  ms added':>16} |\n"
+              + "-" * len(head))
+        for name, backend, seq, ovl in rows:
+            m = seq["mean"]["model"]
+            add_s, add_o = (1 / seq["fps"] - m) / m, (1 / ovl["fps"] - m) / m
+            verdict = "met" if add_o <= TARGET else "not met"
+            print(f"{name:<7} {backend:<7} | {1e3 * m:>11.0f} | {seq['fps']:>4.2f} {1e3 / seq['fps']:>4.0f} "
+                  f"{_pct(add_s):>6} | {ovl['fps']:>4.2f} {1e3 / ovl['fps']:>4.0f} {_pct(add_o):>6} | {verdict}")
+        seq = rows[0][2]
+        print(f"\nroutes: {', '.join(sorted(seq['routes']))}; wide JPEG decoded at 1/{max(seq['reduction'])}; an "
+              f"automatic registration costs {1e3 * seq['register_cpu']:.0f} ms CPU once per inspection group")
         if args.workers > 1:
             scale = args.scales.split(",")[0].strip()
             r = run_screen(flight, work / f"out-{scale}-workers", work / f"ours-{scale}.pt", scale, "torch",
                            args.threads, cam, workers=args.workers)
             print(f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
                   f"{r['fps']:.2f} frames/s")
-        split = stage_split(flight, cam)
-        print("\nfront-end steps on one thread, ms per frame (medians):")
+        split, red = stage_split(flight, cam)
+        print("\nfront-end steps on one thread, CPU ms per frame (medians):")
         print("  " + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in split.items()))
         d_rgb, d_c2, red = input_difference(flight, cam)
         print(f"reduced decode (1/{red}) vs full: model input differs by mean |d| {d_rgb:.2f} grey levels in RGB, "

@@ -124,7 +124,8 @@ class Frame:
     position: Position
     fingerprints: dict[str, str]
     thermal_decoder: str
-    #: seconds per step: wall clock (``decode``, ``align``, ``encode``) and CPU time of the process (``*_cpu``)
+    #: seconds per step: wall clock (``decode``, ``align``, ``encode``) and CPU time of the thread that ran it
+    #: (``*_cpu``; the front end's OpenCV calls run on one thread, ``job`` sees to it)
     timings: dict[str, float] = field(default_factory=dict)
     #: an accepted automatic registration (full-frame undistorted wide pixels of K -> thermal), for the other
     #: captures of its inspection group; None for every other route
@@ -146,8 +147,28 @@ def _read(path: Path) -> bytes:
         raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def _focal_35mm(data: bytes, name: Path) -> float | None:
-    layout = jpeg.read_segments(data, name, require_eoi=False)
+#: the bytes of a JPEG the header is first looked for in (DJI's EXIF, XMP and maker segments take well under this)
+HEADER_BYTES = 256 * 1024
+
+
+def read_header(data: bytes, name: Path) -> jpeg.JpegLayout:
+    """``jpeg.read_segments(data, name)`` (the header segments and frame size; a cut file is a ``DataError``)
+    without its pass over the whole entropy-coded data when the file ends with an EOI marker (``FF D9``).
+
+    Inside entropy-coded data every ``FF`` byte is followed by ``00`` or a restart marker, so a file ending in
+    ``FF D9`` has a main picture that was ended by a marker, not cut; its header is then read from the first
+    ``HEADER_BYTES`` alone. Otherwise (trailing data after the picture, a header larger than that) the whole file is
+    read as before. Only ``segments``, ``width``, ``height`` and ``components`` of the answer are meant to be used:
+    ``end`` is that of the first bytes."""
+    if len(data) > HEADER_BYTES and data.endswith(b"\xff\xd9"):
+        try:
+            return jpeg.read_segments(data[:HEADER_BYTES] + b"\xff\xd9", name)
+        except DataError:
+            pass
+    return jpeg.read_segments(data, name)
+
+
+def _focal_35mm(layout: jpeg.JpegLayout) -> float | None:
     for payload in layout.payloads(jpeg.APP1):
         exif = jpeg.parse_exif(payload)
         if exif:
@@ -156,15 +177,27 @@ def _focal_35mm(data: bytes, name: Path) -> float | None:
     return None
 
 
+def _imread_flag(reduction: int) -> tuple[int, bool]:
+    """(OpenCV's imread flag for a decode at ``1 / reduction``, whether it gives RGB order): libjpeg-turbo writes
+    R, G, B straight out (OpenCV >= 4.10), the same values as BGR reversed, without the copy."""
+    import cv2
+
+    flag = cv2.IMREAD_COLOR if reduction == 1 else getattr(cv2, _IMREAD_REDUCED[reduction])
+    rgb = getattr(cv2, "IMREAD_COLOR_RGB", None)
+    if rgb is None:
+        return flag, False
+    return (flag & ~cv2.IMREAD_COLOR) | rgb, True
+
+
 def decode_rgb(data: bytes, name: Path, reduction: int = 1) -> np.ndarray:
     """The wide JPEG as uint8 RGB, decoded at ``1 / reduction`` (1, 2, 4 or 8) through the JPEG's DCT."""
     import cv2
 
-    flag = cv2.IMREAD_COLOR if reduction == 1 else getattr(cv2, _IMREAD_REDUCED[reduction])
+    flag, rgb_order = _imread_flag(reduction)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if img is None:
         raise DataError(f"{name}: RGB unreadable: not a decodable image")
-    return np.ascontiguousarray(img[:, :, ::-1])
+    return img if rgb_order else np.ascontiguousarray(img[:, :, ::-1])
 
 
 def source_scale(H: np.ndarray, thermal_size: tuple[int, int]) -> float:
@@ -244,9 +277,10 @@ class FrontEnd:
             raise DataError(f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
                             f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}")
 
-    def _focal(self, rgb_data: bytes, thermal_data: bytes | None, cap: Capture) -> tuple[float, float] | None:
-        f_rgb = _focal_35mm(rgb_data, cap.rgb)
-        f_th = _focal_35mm(thermal_data, cap.thermal) if thermal_data is not None else None
+    def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None
+               ) -> tuple[float, float] | None:
+        f_rgb = _focal_35mm(rgb_layout)
+        f_th = _focal_35mm(thermal_layout) if thermal_layout is not None else None
         given = self.settings.focal_35mm
         if f_rgb is None and given:
             f_rgb = given[0]
@@ -264,9 +298,9 @@ class FrontEnd:
         from harness.sensing.pipeline import read_capture_thermal
         from harness.sensing.registration import HomographyEntry, normalize
 
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         rgb_data = _read(cap.rgb)
-        layout = jpeg.read_segments(rgb_data, cap.rgb)  # a cut file is an error here, not a half-grey image
+        layout = read_header(rgb_data, cap.rgb)  # a cut file is an error here, not a half-grey image
         rgb_size = (layout.width, layout.height)
         self._check_rgb_size(rgb_size, cap.rgb)
         thermal_data = _read(cap.thermal)
@@ -283,10 +317,12 @@ class FrontEnd:
 
             valid_mask(temp, str(cap.thermal))  # mostly missing: an error naming the file; a few stay NaN
         th, tw = temp.shape
-        position = read_position(rgb_data, str(cap.rgb))
-        if is_jpeg:
-            position = position.merged(read_position(thermal_data, str(cap.thermal)))
-        focal = self._focal(rgb_data, thermal_data if is_jpeg else None, cap)
+        # each file's header segments are read once (finding where a 12-megapixel scan ends takes milliseconds)
+        th_layout = jpeg.read_segments(thermal_data, cap.thermal, require_eoi=False) if is_jpeg else None
+        position = read_position(rgb_data, str(cap.rgb), layout)
+        if th_layout is not None:
+            position = position.merged(read_position(thermal_data, str(cap.thermal), th_layout))
+        focal = self._focal(layout, th_layout)
 
         # the factory prior, defined on the full image (the frame the training data was registered in)
         _, full_reg = self._context(1, rgb_size)
@@ -307,7 +343,8 @@ class FrontEnd:
         if self.settings.rgb_decode == "auto":
             reduction = reduction_for(source_scale(H_full, (tw, th)), rgb_size)
         rgb = decode_rgb(rgb_data, cap.rgb, reduction)
-        t1, c1 = time.perf_counter(), time.process_time()
+        fingerprints = {"rgb": sha1_bytes(rgb_data), "thermal": sha1_bytes(thermal_data)}
+        t1, c1 = time.perf_counter(), time.thread_time()
 
         ctx, dreg = self._context(reduction, rgb_size)
         prior = prior_full
@@ -341,7 +378,7 @@ class FrontEnd:
             ctx.entries[group] = HomographyEntry(normalize(prior), "focal")  # type: ignore[arg-type]
             pair = ctx.align_capture(rgb, temp, ir8, boxes, labels, group, boxes_frame="thermal", prior=prior)
             route = "prior (automatic registration rejected)"
-        t2, c2 = time.perf_counter(), time.process_time()
+        t2, c2 = time.perf_counter(), time.thread_time()
 
         sample = pair.to_sample(image_id, group, {"file_name": cap.rgb.name})
         channel = self.encoding.encode(sample, **dict(self.settings.encoding_params))
@@ -352,12 +389,12 @@ class FrontEnd:
                 raise HarnessError(f"encoding {self.encoding.name!r} returned {channel.dtype} {channel.shape}, "
                                    f"expected uint8 {(sample.height, sample.width)}")
             image = np.dstack((sample.rgb, channel))
-        t3, c3 = time.perf_counter(), time.process_time()
+        t3, c3 = time.perf_counter(), time.thread_time()
         thermal = pair.thermal if pair.thermal is not None else np.full(pair.ir8.shape, np.nan, np.float32)
         return Frame(capture=cap, image=image, thermal=thermal, origin=pair.origin, H=pair.H, cameras=pair.cameras,
                      reduction=reduction, rgb_size=rgb_size, thermal_size=(tw, th), route=route,
                      registration=quality, position=position,
-                     fingerprints={"rgb": sha1_bytes(rgb_data), "thermal": sha1_bytes(thermal_data)},
+                     fingerprints=fingerprints,
                      thermal_decoder=str(info.get("decoder") or info.get("format") or ""),
                      timings={"decode": t1 - t0, "align": t2 - t1, "encode": t3 - t2, "decode_cpu": c1 - c0,
                               "align_cpu": c2 - c1, "encode_cpu": c3 - c2}, registered=registered)
