@@ -458,6 +458,21 @@ def test_onnx_runtime_gives_the_same_findings_as_pytorch(trained, screened, tmp_
     _close(_frames(out), _frames(tmp_path / "onnx"), 1e-4, 0.02)
 
 
+def test_the_m3t_wide_image_is_decoded_at_a_quarter():
+    """The M3T's geometry from its EXIF focal lengths (wide 24 mm at 4000x3000, thermal 40 mm at 640x512): the warp
+    shrinks the wide image about 3.6x, so 1/4 (about 0.9 wide pixel per thermal pixel), and 1/8 in its 8000x6000
+    mode; a frame the warp shrinks by less than 2.2x (the synthetic profiles: 1.7x) is decoded as shot."""
+    from harness.screen.frontend import MIN_SAMPLING, reduction_for, source_scale
+    from harness.sensing.registration import focal_prior
+
+    for size, r in (((4000, 3000), 4), ((8000, 6000), 8)):
+        f = source_scale(focal_prior(size, (640, 512), (24.0, 40.0)), (640, 512))
+        assert reduction_for(f, size) == r and f / r >= MIN_SAMPLING
+    assert 3.5 < source_scale(focal_prior((4000, 3000), (640, 512), (24.0, 40.0)), (640, 512)) < 3.8
+    assert [reduction_for(f, (480, 360)) for f in (1.0, 1.7, 2.19, 2.2, 3.35)] == [1, 1, 1, 2, 2]
+    assert reduction_for(3.6, (4002, 3000)) == 2  # sizes a reduction does not divide
+
+
 def test_reduced_jpeg_decoding_where_the_warp_shrinks_the_wide_image(trained, screened, tmp_path):
     """Wide images twice the size (the warp shrinks them 3.5x): decoded at 1/2, the findings are those of a full
     decode, and the boxes in the wide image are twice those of the original flight."""

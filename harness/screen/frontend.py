@@ -23,15 +23,23 @@ Every step is the one the raw datasets use (``harness.sensing``), driven by the 
 
 **Reduced decoding.** The warp anti-aliases a wide image it shrinks by ``f >= 2`` with a Gaussian pyramid, one
 halving per octave. A JPEG can be decoded straight at 1/2, 1/4 or 1/8 of its size through its DCT
-(``cv2.IMREAD_REDUCED_COLOR_*``), two to three times faster at 1/2 on 4000x3000; the reduced image stands in for
-those pyramid levels. ``rgb_decode="auto"`` does so only where the warp would have halved the image anyway: by
-``r = 2^k``, the largest with ``f / r >= 1.1`` (and the image size divisible by ``r``), where ``f`` is the wide
-pixels per thermal pixel at the thermal centre under the file's homography or the factory prior. The whole
-chain then runs on the reduced image (the calibration through ``CameraModel.scaled``, the homography and the
-prior, both defined on the full image, through the change of pixel grid), so only the pyramid filter differs
-(the DCT's block filter instead of the 5-tap Gaussian): findings agree within the tolerance
-``docs/screening.md`` states; ``rgb_decode="full"`` is bit-identical to the training data. A frame the warp
-shrinks by less than 2.2x (the synthetic M3T profiles: 1.7x) is always decoded in full.
+(``cv2.IMREAD_REDUCED_COLOR_*``), which skips most of the inverse DCT and shrinks every later step; only the
+entropy decoding of the whole file remains. ``rgb_decode="auto"`` decodes a wide image the warp shrinks by
+``f < 2.2`` (``2 REDUCTION_MARGIN``) in full, as shot (the synthetic M3T profiles: 1.7x), and any other at the
+smallest ``1 / r``, ``r = 2^k <= 8``, that keeps ``f / r >= MIN_SAMPLING`` (0.85) wide pixels per thermal pixel
+(and divides the image size), where ``f`` is the wide pixels per thermal pixel at the thermal centre under the
+file's homography or the factory prior: the real M3T (4000x3000 beside 640x512, ``f`` about 3.6) at 1/4, about 0.9
+pixel per thermal pixel, which the warp enlarges slightly instead of shrinking. The whole chain then runs on the
+reduced image (the calibration through ``CameraModel.scaled``, the homography and the prior, both defined on the
+full image, through the change of pixel grid), so only the low-pass filter differs (the DCT's instead of the
+pyramid's and the warp's Gaussian): findings agree within the tolerance ``docs/screening.md`` states, which also
+gives the measured difference of the model input; ``rgb_decode="full"`` is bit-identical to the training data.
+
+**Speed.** Each file's header is read once (``read_header``: the end marker by the file's end), the wide JPEG is
+decoded straight to RGB order, the undistortion maps are built once per calibration
+(``harness.sensing.calibration``), and ``job`` runs the front end of the next capture in a thread while the model
+works on this one (OpenCV, NumPy and the model release the GIL). The timings in ``Frame.timings`` are the wall
+clock and the CPU time of the thread that ran each step.
 """
 
 from __future__ import annotations
@@ -58,8 +66,10 @@ FALLBACKS = ("prior", "skip")
 REGISTER = ("group", "frame")
 #: the largest DCT reduction OpenCV decodes
 MAX_REDUCTION = 8
-#: reduce only while the warp still shrinks the reduced image by at least this much
+#: a wide image the warp shrinks by less than twice this is decoded in full: taken as shot, as the training data was
 REDUCTION_MARGIN = 1.1
+#: any other is decoded at the smallest scale that keeps at least this many pixels per thermal pixel
+MIN_SAMPLING = 0.85
 _IMREAD_REDUCED = {2: "IMREAD_REDUCED_COLOR_2", 4: "IMREAD_REDUCED_COLOR_4", 8: "IMREAD_REDUCED_COLOR_8"}
 
 
@@ -211,9 +221,12 @@ def source_scale(H: np.ndarray, thermal_size: tuple[int, int]) -> float:
 
 
 def reduction_for(factor: float, rgb_size: tuple[int, int]) -> int:
-    """The DCT reduction ``r`` (1, 2, 4, 8) for a warp that shrinks the wide image by ``factor``."""
+    """The DCT reduction ``r`` (1, 2, 4, 8) for a warp that shrinks the wide image by ``factor``: 1 below
+    ``2 REDUCTION_MARGIN``, else the largest with ``factor / r >= MIN_SAMPLING`` (and the size divisible by it)."""
     r = 1
-    while 2 * r <= MAX_REDUCTION and factor / (2 * r) >= REDUCTION_MARGIN and \
+    if factor / 2 < REDUCTION_MARGIN:
+        return r
+    while 2 * r <= MAX_REDUCTION and factor / (2 * r) >= MIN_SAMPLING and \
             rgb_size[0] % (2 * r) == 0 and rgb_size[1] % (2 * r) == 0:
         r *= 2
     return r
