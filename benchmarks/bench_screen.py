@@ -171,9 +171,9 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
             "routes": {r["route"] for r in records}, "reduction": {r["reduction"] for r in records}}
 
 
-def stage_split(flight: Path, cam: Path, repeats: int = 3) -> tuple[dict[str, float], int]:
+def stage_split(flight: Path, cam: Path, r: int | None = None, repeats: int = 3) -> tuple[dict[str, float], int]:
     """One thread: each step of one frame's front end timed on its own, CPU time (medians over frames and
-    repeats); the reduction the default decode uses."""
+    repeats), with the wide image decoded at ``1 / r`` (None: the default decode's reduction); and that ``r``."""
     import cv2
 
     from harness.encodings import encode_c2
@@ -192,12 +192,13 @@ def stage_split(flight: Path, cam: Path, repeats: int = 3) -> tuple[dict[str, fl
     caps = find_captures(flight).captures[:3]
     opts = SensingOptions()
     cam_full = CameraModel.load(cam)
-    reg_f = DatasetRegistration(SensingContext(opts, cam_full), None, None, "undistorted", {}, (24.0, 40.0))
-    r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
-    ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)))
+    if r is None:
+        reg_f = DatasetRegistration(SensingContext(opts, cam_full), None, None, "undistorted", {}, (24.0, 40.0))
+        r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
+    ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)) if r > 1 else cam_full)
     reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
-    names = ("files, headers, SHA-1", "thermal R-JPEG", f"wide 1/{r}", "wide in full", "undistort", "register (auto)",
-             "warp + crop", "C2")
+    names = ("files + headers + SHA-1", "thermal R-JPEG", "wide decode", "undistort", "warp + crop", "C2",
+             "registration")
     times: dict[str, list[float]] = {k: [] for k in names}
     clock = time.thread_time
     for _ in range(repeats):
@@ -212,18 +213,16 @@ def stage_split(flight: Path, cam: Path, repeats: int = 3) -> tuple[dict[str, fl
             t2 = clock()
             rgb = decode_rgb(data, cap.rgb, r)
             t3 = clock()
-            decode_rgb(data, cap.rgb, 1)
-            t4 = clock()
             rgb_u, _ = ctx.undistort_rgb(rgb)
-            t5 = clock()
+            t4 = clock()
             prior = reg.prior((rgb.shape[1], rgb.shape[0]), (640, 512))
             res = estimate_homography_auto(rgb_u, temp, init=prior)
-            t6 = clock()
+            t5 = clock()
             pair = align_pair(rgb_u, temp, ir8, np.zeros((0, 4)), np.zeros(0), res.H)
-            t7 = clock()
+            t6 = clock()
             encode_c2(AlignedSample(0, pair.rgb, pair.thermal, pair.ir8, np.zeros((0, 4)), np.zeros(0), "g"))
-            t8 = clock()
-            for key, dt in zip(names, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6, t8 - t7)):
+            t7 = clock()
+            for key, dt in zip(names, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t6 - t5, t7 - t6, t5 - t4)):
                 times[key].append(dt)
     return {k: statistics.median(v) for k, v in times.items()}, r
 
@@ -361,9 +360,15 @@ def main(argv: list[str] | None = None) -> int:
                            args.threads, cam, workers=args.workers)
             print(f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
                   f"{r['fps']:.2f} frames/s")
-        split, red = stage_split(flight, cam)
-        print("\nfront-end steps on one thread, CPU ms per frame (medians):")
-        print("  " + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in split.items()))
+        print("\nfront-end steps on one thread by the wide decode's scale, CPU ms per frame (medians; the "
+              "registration once per group):")
+        red = stage_split(flight, cam)[1]
+        for r in dict.fromkeys((red, 2, 1)):
+            split, _ = stage_split(flight, cam, r)
+            frame = sum(v for k, v in split.items() if k != "registration")
+            print(f"  1/{r}{' (default)' if r == red else ''}: " + ", ".join(
+                f"{k} {1e3 * v:.0f}" for k, v in split.items() if k != "registration")
+                + f" = {1e3 * frame:.0f}; registration {1e3 * split['registration']:.0f}")
         print("\nreduced decode vs full, model input's RGB (same homography; C2 unchanged): mean |d| grey levels, "
               "PSNR")
         for label, fl in (("bench wide images", flight), ("natural-statistics image", detailed_flight(
