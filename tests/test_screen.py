@@ -340,6 +340,8 @@ def test_the_front_end_beside_the_model_changes_nothing(trained, screened, tmp_p
                                  homography=route[0], group=route[1], overlap=overlap))
             recs.append(_frames(out))
             assert len(recs[-1]) == 2 and all(r["timings"]["model_cpu"] >= 0 for r in recs[-1].values())
+            timings = json.loads((out / "manifest.json").read_text())["timings"]
+            assert timings["overlapped"] is overlap and timings["frontend_over_model_cpu"] > 0
         a, b = ({n: {k: v for k, v in r.items() if k not in ("timings", "H_rgb_to_aligned", "registered",
                                                              "findings")} for n, r in x.items()} for x in recs)
         assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN != NaN

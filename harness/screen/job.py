@@ -491,7 +491,7 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     rejected_skipped: list[tuple[str, str]] = []
     records: dict[str, dict[str, Any]] = dict(done)
     batch: list[Frame] = []
-    timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0}
+    timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0, "front_cpu": 0.0, "model_cpu": 0.0}
     stop: str | None = None
 
     thread = FrontEndThread() if req.workers == 1 and req.overlap and len(todo) > 1 else None
@@ -516,7 +516,9 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
             records[frame.capture.name] = rec
             for k in ("decode", "align", "encode"):
                 timings[k] += frame.timings[k]
+                timings["front_cpu"] += frame.timings.get(f"{k}_cpu", 0.0)
             timings["model"] += model_s
+            timings["model_cpu"] += model_cpu
             if on_frame is not None:
                 on_frame(rec)
         n = len(batch)
@@ -548,7 +550,8 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     screened = len(records) - len(done)
     failures += rejected_skipped
     result = _finish(folder, base, flight, records, failures, sm, timings, screened, len(done), req,
-                     time.perf_counter() - t_start, state="stopped" if stop else "finished")
+                     time.perf_counter() - t_start, state="stopped" if stop else "finished",
+                     overlapped=thread is not None)
     if stop is not None:
         raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
     return result
@@ -581,7 +584,8 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
 
 def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[str, dict[str, Any]],
             failures: list[tuple[str, str]], sm: ScreenModel, timings: dict[str, float], screened: int,
-            skipped_done: int, req: ScreenRequest, seconds: float, state: str) -> ScreenResult:
+            skipped_done: int, req: ScreenRequest, seconds: float, state: str, overlapped: bool = False
+            ) -> ScreenResult:
     from harness import __version__
     from harness.screen.gallery import render
 
@@ -596,12 +600,16 @@ def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[st
     routes = Counter(r["route"] for r in frames)
     rejected = [(r["frame"], str((r.get("registration") or {}).get("reason", ""))) for r in frames
                 if str(r["route"]).startswith("prior (")]
+    cpu = {k: timings.pop(k) for k in ("front_cpu", "model_cpu")}
     per = {k: (v / screened if screened else None) for k, v in timings.items()}
     front = sum(v for k, v in per.items() if k != "model" and v is not None) if screened else None
     timing = {"seconds": round(seconds, 3), "frames_per_s": round(screened / seconds, 3) if screened else None,
               "per_frame_s": {k: (round(v, 6) if v is not None else None) for k, v in per.items()},
               "frontend_over_model": round(front / per["model"], 4) if screened and per["model"] else None,
-              "workers": req.workers, "threads": req.threads}
+              "frontend_over_model_cpu": round(cpu["front_cpu"] / cpu["model_cpu"], 4) if cpu["model_cpu"] > 0
+              else None,
+              "workers": req.workers, "threads": req.threads,
+              "overlapped": overlapped}
     summary = [f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
                f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
                "ignored",
