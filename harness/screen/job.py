@@ -493,8 +493,7 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     batch: list[Frame] = []
     timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0, "front_cpu": 0.0, "model_cpu": 0.0}
     stop: str | None = None
-
-    thread = FrontEndThread() if req.workers == 1 and req.overlap and len(todo) > 1 else None
+    thread: FrontEndThread | None = None
 
     def flush(bar: _Bar) -> None:
         if not batch:
@@ -528,8 +527,10 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     groups = None
     if settings.register == "group" and settings.homography is None and fe.options.registration.method == "auto":
         groups = inspection_groups(flight.captures, fe.options.group_gap_s)
-    results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
+    if req.workers == 1 and req.overlap and len(todo) > 1:
+        thread = FrontEndThread()
     try:
+        results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
         with _Bar(req.progress, len(flight.captures), len(done)) as bar:
             for cap, frame, error, rejected in results:
                 if frame is None:
