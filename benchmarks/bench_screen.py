@@ -249,6 +249,7 @@ def detailed_flight(flight: Path, folder: Path) -> Path:
         x, y = rng.integers(0, w - 60), rng.integers(0, h - 80)
         img[y:y + rng.integers(10, 80), x:x + rng.integers(10, 60)] = rng.integers(0, 255, 3)
     ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 92])
+    assert ok
     data = cap.rgb.read_bytes()
     app1 = b"".join(jpeg.segment(seg.marker, seg.payload) for seg in jpeg.read_segments(data, cap.rgb).segments
                     if seg.marker == jpeg.APP1)

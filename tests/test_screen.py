@@ -389,6 +389,7 @@ def test_the_wide_header_is_read_without_a_pass_over_the_picture(tmp_path, monke
 
     rng = np.random.default_rng(0)
     ok, enc = cv2.imencode(".jpg", rng.integers(0, 256, (800, 1000, 3), dtype=np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
     exif = jpeg.build_exif({"Make": "DJI", "FocalLengthIn35mmFilm": 24})
     data = b"\xff\xd8" + jpeg.segment(jpeg.APP1, exif) + enc.tobytes()[2:]
     assert len(data) > 2 * HEADER_BYTES

@@ -266,7 +266,7 @@ def undistorted_camera(cam: CameraModel, alpha: float = 0.0) -> tuple[CameraMode
 #: undistortion maps kept per (K, distortion, size, alpha): a flight or a dataset reuses one calibration, and building
 #: the maps costs about as much as the remap itself. Bounded in bytes; the latest entry always stays.
 MAPS_CACHE_BYTES = 256 * 2 ** 20
-_MAPS: "OrderedDict[tuple, tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray]]" = OrderedDict()
+_MAPS: OrderedDict[tuple, tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray]] = OrderedDict()
 _MAPS_LOCK = threading.Lock()
 
 
