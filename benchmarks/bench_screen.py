@@ -4,27 +4,37 @@ The flight: the three real M3T R-JPEGs of ``../shared/data/dji-m3t-rjpeg/`` (640
 with a 4000x3000 wide JPEG made for it (the thermal frame's own picture seen through the factory prior, 3 % off
 in scale, 1 deg and (14, -9) px, with sensor-like texture; quality 92, about DJI's file size), DJI EXIF (35-mm focal
 lengths 24 and 40 mm) and XMP positions, and a wide-lens calibration (k1 -0.05), repeated ``--copies`` times
-under new capture names. Every frame takes the default route: the wide JPEG decoded at 1/2 through its DCT,
-undistortion, automatic registration (checked), warp, crop, C2.
+under new capture names (inspection groups of three). Every frame takes the default route: the wide JPEG decoded
+at a reduced scale through its DCT, undistortion, automatic registration once per group (checked), warp, crop, C2.
 
-For ours at scale s and n (random weights: timing only), in PyTorch and in ONNX Runtime, on ``--threads`` threads
-(default 2, the two cores), one frame per model call: frames per second of the whole screen in steady state (the
-first frame, with its one-time costs, left out), and per frame (medians) the front end's stages (decode; undistort
-+ register + warp + crop; fourth channel) beside the model's own time (letterbox, network, NMS). Target: the front
-end adds at most 30 % to the model's time; the ratio is the median over frames of each frame's front end over its
-model time (measured back to back, so a machine shared with other work loads both alike), in wall clock and in CPU
-time of the process. A second table splits the front end into its steps on one thread, and times ``--rgb-decode
-full`` against the reduced decode (with the mean difference of the model inputs).
+For ours at scale s and n (random weights: timing only), in PyTorch and in ONNX Runtime, model on ``--threads``
+threads (default 2, the two cores), one frame per model call, each screened twice: with the front end before the
+model (sequential) and with the front end of the next frame in a thread beside the model (overlapped, the default),
+alternated ``--rounds`` times so that both see the same load.
+The first frame, with its one-time costs, is left out. Printed against the target (the front end adds at most 30 %
+to the model's own time):
+
+* CPU time: per frame, the front end's stages (CPU time of the thread that ran them) beside the model's (the
+  process's CPU time over its call, less the front-end thread's), means with the registrations and the median frame
+  (one that reuses its group's registration; each frame's front end over its own model call, back to back);
+* wall clock: the whole screen's time per frame (1 / frames per second) against the model's own time (its calls in
+  the sequential run, where nothing else of the screen runs beside it): the share the front end adds, sequential and
+  overlapped.
+
+Then one thread's split of the front end into its steps, and what the reduced decode changes in the model input
+(against a full decode, on the bench's wide images and on a natural-statistics image with far more fine detail).
+The machine line says the CPU and the load average: on a shared machine every wall-clock figure moves with the
+others' work.
 
     .venv/bin/python benchmarks/bench_screen.py [--copies 5] [--threads 2] [--scales s,n] [--backends torch,onnx]
-                                                [--workers 2]
+                                                [--rounds 3] [--workers 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -36,20 +46,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine_lines  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
 TARGET = 0.30
 RGB_SIZE = (4000, 3000)
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+STAGES = ("decode", "align", "encode")
 
 
 def wide_camera() -> "object":
@@ -125,7 +129,10 @@ def weights_file(folder: Path, scale: str) -> Path:
 
 
 def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str, threads: int, cam: Path,
-               rgb_decode: str = "auto", workers: int = 1) -> dict:
+               rgb_decode: str = "auto", workers: int = 1, overlap: bool = True) -> dict:
+    """One screen of the flight; per-frame timings of the frames after the first (its one-time costs left out):
+    means (``mean``: the automatic registrations, one per group of three, included), medians (``median``: a frame
+    that reuses its group's registration), frames per second, and the registration's own cost."""
     from harness.screen import ScreenRequest, screen
 
     stamps: list[float] = []
@@ -138,28 +145,43 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
     req = ScreenRequest(flight=flight, out=out, weights=weights, detector="ours", dataset="m3t", profile="paper",
                         overrides=[f"model.scale={scale}", "eval.batch=1"], backend=backend, threads=threads,
                         rgb_camera=cam, rgb_decode=rgb_decode, progress=False, overlays=False, force=True,
-                        conf=0.5, workers=workers)
+                        conf=0.5, workers=workers, overlap=overlap)
+    c0 = time.process_time()
     screen(req, on_frame=on_frame)
     steady = records[1:]
-    med = {k: statistics.median(r["timings"][k] for r in steady) for k in ("decode", "align", "encode", "model")}
-    # each frame's front end and model ran back to back, under the same load: their ratio, per frame
-    ratio = statistics.median((r["timings"]["decode"] + r["timings"]["align"] + r["timings"]["encode"])
-                              / r["timings"]["model"] for r in steady)
-    cpu = {k: statistics.median(r["timings"][f"{k}_cpu"] for r in steady) for k in ("decode", "align", "encode",
-                                                                                      "model")}
-    cpu_ratio = statistics.median((r["timings"]["decode_cpu"] + r["timings"]["align_cpu"]
-                                   + r["timings"]["encode_cpu"]) / r["timings"]["model_cpu"] for r in steady)
-    fps = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan")
-    return {"fps": fps, "median": med, "ratio": ratio, "cpu": cpu, "cpu_ratio": cpu_ratio,
+    keys = [*STAGES, "model"]
+    t = {k: [r["timings"][k] for r in steady] for k in keys}
+    c = {k: [r["timings"][f"{k}_cpu"] for r in steady] for k in keys}
+    front = [sum(r["timings"][k] for k in STAGES) for r in steady]
+    front_cpu = [sum(r["timings"][f"{k}_cpu"] for k in STAGES) for r in steady]
+    registering = [r["timings"]["align_cpu"] for r in steady if r["route"] == "auto"]
+    reusing = [r["timings"]["align_cpu"] for r in steady if r["route"] != "auto"]
+    return {"fps": (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan"),
+            "mean": {k: statistics.fmean(v) for k, v in t.items()},
+            "mean_cpu": {k: statistics.fmean(v) for k, v in c.items()},
+            "median": {k: statistics.median(v) for k, v in t.items()},
+            "median_cpu": {k: statistics.median(v) for k, v in c.items()},
+            "front": statistics.fmean(front), "front_cpu": statistics.fmean(front_cpu),
+            "front_median_cpu": statistics.median(front_cpu),
+            # each frame's front end over its own model call, back to back (sequential runs): a load that changes
+            # during the run weighs on both alike
+            "cpu_ratio": statistics.median(f / r["timings"]["model_cpu"] for f, r in zip(front_cpu, steady)),
+            "register_cpu": (statistics.median(registering) - statistics.median(reusing))
+            if registering and reusing else float("nan"),
+            "process_cpu": (time.process_time() - c0) / max(1, len(records)),
             "routes": {r["route"] for r in records}, "reduction": {r["reduction"] for r in records}}
 
 
-def stage_split(flight: Path, cam: Path, repeats: int = 3) -> dict[str, float]:
-    """One thread: each step of one frame's front end timed on its own (medians over frames and repeats)."""
+def stage_split(flight: Path, cam: Path, r: int | None = None, repeats: int = 3) -> tuple[dict[str, float], int]:
+    """One thread: each step of one frame's front end timed on its own, CPU time (medians over frames and
+    repeats), with the wide image decoded at ``1 / r`` (None: the default decode's reduction); and that ``r``."""
     import cv2
 
+    from harness.encodings import encode_c2
+    from harness.sample import AlignedSample
     from harness.screen.flight import find_captures
-    from harness.screen.frontend import decode_rgb, reduction_for, source_scale
+    from harness.screen.frontend import decode_rgb, read_header, reduction_for, sha1_bytes, source_scale
+    from harness.sensing import jpeg
     from harness.sensing.calibration import CameraModel
     from harness.sensing.options import SensingOptions
     from harness.sensing.pipeline import SensingContext, read_capture_thermal
@@ -170,61 +192,102 @@ def stage_split(flight: Path, cam: Path, repeats: int = 3) -> dict[str, float]:
     cv2.setNumThreads(1)
     caps = find_captures(flight).captures[:3]
     opts = SensingOptions()
-    times: dict[str, list[float]] = {k: [] for k in ("thermal decode", "wide decode 1/2", "wide decode full",
-                                                     "undistort", "register (auto)", "warp + crop", "C2")}
-    from harness.encodings import encode_c2
-
+    cam_full = CameraModel.load(cam)
+    if r is None:
+        reg_f = DatasetRegistration(SensingContext(opts, cam_full), None, None, "undistorted", {}, (24.0, 40.0))
+        r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
+    ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)) if r > 1 else cam_full)
+    reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
+    names = ("files + headers + SHA-1", "thermal R-JPEG", "wide decode", "undistort", "warp + crop", "C2",
+             "registration")
+    times: dict[str, list[float]] = {k: [] for k in names}
+    clock = time.thread_time
     for _ in range(repeats):
         for cap in caps:
-            data = cap.rgb.read_bytes()
-            t0 = time.perf_counter()
+            t0 = clock()
+            data, tdata = cap.rgb.read_bytes(), cap.thermal.read_bytes()
+            read_header(data, cap.rgb)
+            jpeg.read_segments(tdata, cap.thermal, require_eoi=False)
+            sha1_bytes(data), sha1_bytes(tdata)
+            t1 = clock()
             temp, ir8, _ = read_capture_thermal(cap.thermal, opts)
-            t1 = time.perf_counter()
-            cam_full = CameraModel.load(cam)
-            ctx_f = SensingContext(opts, cam_full)
-            reg_f = DatasetRegistration(ctx_f, None, None, "undistorted", {}, (24.0, 40.0))
-            r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
+            t2 = clock()
             rgb = decode_rgb(data, cap.rgb, r)
-            t2 = time.perf_counter()
-            decode_rgb(data, cap.rgb, 1)
-            t3 = time.perf_counter()
-            ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)))
-            reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
+            t3 = clock()
             rgb_u, _ = ctx.undistort_rgb(rgb)
-            t4 = time.perf_counter()
+            t4 = clock()
             prior = reg.prior((rgb.shape[1], rgb.shape[0]), (640, 512))
             res = estimate_homography_auto(rgb_u, temp, init=prior)
-            t5 = time.perf_counter()
+            t5 = clock()
             pair = align_pair(rgb_u, temp, ir8, np.zeros((0, 4)), np.zeros(0), res.H)
-            t6 = time.perf_counter()
-            from harness.sample import AlignedSample
-
+            t6 = clock()
             encode_c2(AlignedSample(0, pair.rgb, pair.thermal, pair.ir8, np.zeros((0, 4)), np.zeros(0), "g"))
-            t7 = time.perf_counter()
-            for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
+            t7 = clock()
+            for key, dt in zip(names, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t6 - t5, t7 - t6, t5 - t4)):
                 times[key].append(dt)
-    return {k: statistics.median(v) for k, v in times.items()}
+    return {k: statistics.median(v) for k, v in times.items()}, r
 
 
-def input_difference(flight: Path, cam: Path) -> tuple[float, float, int]:
-    """Mean |difference| of the RGB and of the fourth channel of the model input, reduced vs full decode (grey
-    levels, file route with the prior so the registration is the same), and the reduction used."""
-    from harness.encodings import ENCODINGS
+def detailed_flight(flight: Path, folder: Path) -> Path:
+    """The first capture of ``flight`` with a wide image of natural-image statistics (amplitude falling as 1 /
+    frequency, contrast 40 grey levels, sharp-edged rectangles: far more fine detail than a facade at the M3T's
+    distance), the same EXIF: the reduced decode's harder case."""
+    import cv2
+
     from harness.screen.flight import find_captures
-    from harness.screen.frontend import FrontEnd, FrontEndSettings
+    from harness.sensing import jpeg
+
+    cap = find_captures(flight).captures[0]
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(1)
+    h, w = RGB_SIZE[1], RGB_SIZE[0]
+    fy, fx = np.fft.fftfreq(h)[:, None], np.fft.rfftfreq(w)[None, :]
+    amp = 1.0 / np.maximum(np.hypot(fx, fy), 1.0 / w)
+    img = np.stack([np.fft.irfft2(amp * np.exp(2j * np.pi * rng.random(amp.shape)), (h, w)) for _ in range(3)], -1)
+    img = np.clip((img - img.mean()) / img.std() * 40 + 128, 0, 255).astype(np.uint8)
+    for _ in range(200):
+        x, y = rng.integers(0, w - 60), rng.integers(0, h - 80)
+        img[y:y + rng.integers(10, 80), x:x + rng.integers(10, 60)] = rng.integers(0, 255, 3)
+    ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 92])
+    assert ok
+    data = cap.rgb.read_bytes()
+    app1 = b"".join(jpeg.segment(seg.marker, seg.payload) for seg in jpeg.read_segments(data, cap.rgb).segments
+                    if seg.marker == jpeg.APP1)
+    (folder / cap.rgb.name).write_bytes(b"\xff\xd8" + app1 + enc.tobytes()[2:])
+    shutil.copy(cap.thermal, folder / cap.thermal.name)
+    return folder
+
+
+def input_difference(flight: Path, cam: Path, reductions: tuple[int, ...] = (2, 4)) -> dict[int, tuple[float, float]]:
+    """Per reduction: mean |difference| of the model input's RGB against a full decode's (grey levels), and the
+    PSNR (dB), the registration being the same (the prior); the fourth channel never changes (the temperature map
+    is not touched), which is checked."""
+    from unittest import mock
+
+    from harness.encodings import ENCODINGS
+    from harness.screen import frontend
+    from harness.screen.flight import find_captures
     from harness.sensing.calibration import CameraModel
 
     c2 = next(e for e in ENCODINGS if e.name == "c2")
     cap = find_captures(flight).captures[0]
-    out = []
-    for mode in ("full", "auto"):
-        st = FrontEndSettings(sensing={"registration": {"method": "focal"}}, encoding="c2",
-                              rgb_camera=CameraModel.load(cam).to_dict(), rgb_decode=mode)
-        out.append(FrontEnd(st, c2).process(cap))
-    a, b = out[0].image.astype(np.int16), out[1].image.astype(np.int16)
-    if a.shape != b.shape:
-        return float("nan"), float("nan"), out[1].reduction
-    return float(np.abs(a[..., :3] - b[..., :3]).mean()), float(np.abs(a[..., 3] - b[..., 3]).mean()), out[1].reduction
+    st = frontend.FrontEndSettings(sensing={"registration": {"method": "focal"}}, encoding="c2",
+                                   rgb_camera=CameraModel.load(cam).to_dict())
+    images = {}
+    for r in (1, *reductions):
+        with mock.patch.object(frontend, "reduction_for", lambda f, size, r=r: r):
+            images[r] = frontend.FrontEnd(st, c2).process(cap).image.astype(np.int16)
+    out = {}
+    for r in reductions:
+        a, b = images[1], images[r]
+        assert a.shape == b.shape and np.array_equal(a[..., 3], b[..., 3])
+        d = np.abs(a[..., :3] - b[..., :3]).astype(np.float64)
+        out[r] = (float(d.mean()), 10 * math.log10(255 ** 2 / max(float((d ** 2).mean()), 1e-12)))
+    return out
+
+
+def _pct(x: float) -> str:
+    return f"{x:+.0%}" if math.isfinite(x) else "n/a"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -235,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backends", default="torch,onnx")
     ap.add_argument("--workers", type=int, default=2, help="also time the first scale with this many front-end "
                     "processes (1: skip)")
+    ap.add_argument("--rounds", type=int, default=3, help="sequential and overlapped screens, alternated")
     ap.add_argument("--keep", type=Path, default=None, help="build the flight here and keep it")
     args = ap.parse_args(argv)
     if not REAL.is_dir():
@@ -256,38 +320,74 @@ def main(argv: list[str] | None = None) -> int:
         size = statistics.median(p.stat().st_size for p in flight.glob("*_W.JPG")) / 1e6
         print(f"flight: {n} captures (640x512 real M3T R-JPEGs, 4000x3000 wide JPEGs of {size:.1f} MB), built in "
               f"{time.perf_counter() - t0:.0f} s")
-        print(f"CPU: {cpu_name()}, {os.cpu_count()} logical cores (load average {os.getloadavg()[0]:.1f} at the "
-              f"start); model threads {args.threads}, front end in the main process; torch {torch.__version__}")
-        header = (f"{'model':<7} {'backend':<7} {'fr/s':>5} | {'decode':>6} {'reg+warp':>8} {'C2':>4} {'front':>5} "
-                  f"{'model':>5} {'ratio':>5} | {'front':>5} {'model':>5} {'ratio':>5} | <= {TARGET:.0%}")
-        print("\nper frame, ms (medians over the frames after the first): wall clock | CPU time of the process\n"
-              + header + "\n" + "-" * len(header))
+        for line in machine_lines():
+            print(line)
+        print(f"model on {args.threads} threads, torch {torch.__version__}; front end on one OpenCV thread, in the "
+              "main process: sequential (before the model) or overlapped (a thread, one frame ahead)")
+        rows = []
         for scale in [s.strip() for s in args.scales.split(",") if s.strip()]:
             w = weights_file(work, scale)
             for backend in [b.strip() for b in args.backends.split(",") if b.strip()]:
-                r = run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam)
-                m, c = r["median"], r["cpu"]
-                front, front_cpu = m["decode"] + m["align"] + m["encode"], c["decode"] + c["align"] + c["encode"]
-                met = "wall " + ("met" if r["ratio"] <= TARGET else "no") + ", CPU " + \
-                    ("met" if r["cpu_ratio"] <= TARGET else "no")
-                wall = f"{1e3 * m['decode']:>6.0f} {1e3 * m['align']:>8.0f} {1e3 * m['encode']:>4.0f} " \
-                    f"{1e3 * front:>5.0f} {1e3 * m['model']:>5.0f} {r['ratio']:>5.0%}"
-                print(f"ours-{scale:<2} {backend:<7} {r['fps']:>5.2f} | {wall} | {1e3 * front_cpu:>5.0f} "
-                      f"{1e3 * c['model']:>5.0f} {r['cpu_ratio']:>5.0%} | {met}")
-                sys.stdout.flush()
-        print(f"routes: {', '.join(sorted(r['routes']))}; wide JPEG decoded at 1/{max(r['reduction'])}")
+                seqs, ovls = [], []
+                for _ in range(args.rounds):  # alternated, so both see the same load on a shared machine
+                    seqs.append(run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads,
+                                           cam, overlap=False))
+                    ovls.append(run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads,
+                                           cam))
+                rows.append((f"ours-{scale}", backend, seqs, ovls))
+                print(f"  ours-{scale} {backend}: done", file=sys.stderr)
+        med = statistics.median
+        print(f"\nper frame, ms (means over the frames after the first, an automatic registration every 3rd frame; "
+              f"medians of {args.rounds} rounds)")
+        head = (f"{'model':<7} {'backend':<7} | {'decode':>6} {'reg+warp':>8} {'C2':>3} {'front':>5} | "
+                f"{'model':>5} | {'front/model':>11} | {'median frame':>12}")
+        print("CPU time (sequential runs; front end: its thread's)\n" + head + "\n" + "-" * len(head))
+        for name, backend, seqs, _ in rows:
+            c = {k: med(q["mean_cpu"][k] for q in seqs) for k in (*STAGES, "model")}
+            front = med(q["front_cpu"] for q in seqs)
+            share = med(q["front_cpu"] / q["mean_cpu"]["model"] for q in seqs)
+            print(f"{name:<7} {backend:<7} | {1e3 * c['decode']:>6.0f} {1e3 * c['align']:>8.0f} "
+                  f"{1e3 * c['encode']:>3.0f} {1e3 * front:>5.0f} | {1e3 * c['model']:>5.0f} | "
+                  f"{share:>11.0%} | {med(q['cpu_ratio'] for q in seqs):>12.0%}")
+        head = (f"{'model':<7} {'backend':<7} | {'model':>5} | {'sequential':>16} | {'overlapped':>30} | "
+                f"<= {TARGET:.0%}")
+        units = f"{'':<7} {'':<7} | {'ms':>5} | {'fr/s  ms added':>16} | {'fr/s  ms added (range)':>30} |"
+        print("\nwall clock: the whole screen's time per frame (1 / frames per second) against the model's own "
+              "(its\ncalls in the sequential run of the same round); added: medians (and range) over the rounds\n"
+              + head + "\n" + units + "\n" + "-" * len(head))
+        for name, backend, seqs, ovls in rows:
+            m = [q["mean"]["model"] for q in seqs]
+            add_s = [(1 / q["fps"] - mi) / mi for q, mi in zip(seqs, m)]
+            add_o = [(1 / q["fps"] - mi) / mi for q, mi in zip(ovls, m)]
+            fs, fo = med(q["fps"] for q in seqs), med(q["fps"] for q in ovls)
+            rng = f"({_pct(min(add_o))}..{_pct(max(add_o))})"
+            verdict = "met" if med(add_o) <= TARGET else "not met"
+            print(f"{name:<7} {backend:<7} | {1e3 * med(m):>5.0f} | {fs:>4.2f} {1e3 / fs:>4.0f} "
+                  f"{_pct(med(add_s)):>6} | {fo:>4.2f} {1e3 / fo:>4.0f} {_pct(med(add_o)):>6} {rng:>13} | {verdict}")
+        seq = rows[0][2][0]
+        print(f"\nroutes: {', '.join(sorted(seq['routes']))}; wide JPEG decoded at 1/{max(seq['reduction'])}; an "
+              f"automatic registration costs {1e3 * seq['register_cpu']:.0f} ms CPU once per inspection group")
         if args.workers > 1:
             scale = args.scales.split(",")[0].strip()
             r = run_screen(flight, work / f"out-{scale}-workers", work / f"ours-{scale}.pt", scale, "torch",
                            args.threads, cam, workers=args.workers)
             print(f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
                   f"{r['fps']:.2f} frames/s")
-        split = stage_split(flight, cam)
-        print("\nfront-end steps on one thread, ms per frame (medians):")
-        print("  " + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in split.items()))
-        d_rgb, d_c2, red = input_difference(flight, cam)
-        print(f"reduced decode (1/{red}) vs full: model input differs by mean |d| {d_rgb:.2f} grey levels in RGB, "
-              f"{d_c2:.2f} in C2 (same homography)")
+        print("\nfront-end steps on one thread by the wide decode's scale, CPU ms per frame (medians; the "
+              "registration once per group):")
+        red = stage_split(flight, cam)[1]
+        for r in dict.fromkeys((red, 2, 1)):
+            split, _ = stage_split(flight, cam, r)
+            frame = sum(v for k, v in split.items() if k != "registration")
+            print(f"  1/{r}{' (default)' if r == red else ''}: " + ", ".join(
+                f"{k} {1e3 * v:.0f}" for k, v in split.items() if k != "registration")
+                + f" = {1e3 * frame:.0f}; registration {1e3 * split['registration']:.0f}")
+        print("\nreduced decode vs full, model input's RGB (same homography; C2 unchanged): mean |d| grey levels, "
+              "PSNR")
+        for label, fl in (("bench wide images", flight), ("natural-statistics image", detailed_flight(
+                flight, work / "detailed"))):
+            diff = input_difference(fl, cam)
+            print(f"  {label}: " + ", ".join(f"1/{r} {d:.2f} ({p:.1f} dB)" for r, (d, p) in diff.items()))
         print(f"load average at the end {os.getloadavg()[0]:.1f} (other work on the machine slows every figure)")
     finally:
         if args.keep is None:

@@ -324,6 +324,89 @@ def test_workers_give_the_same_findings(trained, screened, tmp_path):
     assert {n: r["findings"] for n, r in one.items()} == {n: r["findings"] for n, r in two.items()}
 
 
+def test_the_front_end_beside_the_model_changes_nothing(trained, screened, tmp_path):
+    """The front end of the next capture in a thread while the model runs (the default) or before it: the same
+    frames, registrations included (the group's second capture waits for the first's). The file route is exact;
+    an automatic registration can move in its last digits with what else runs in the process (OpenCV's and
+    NumPy's buffers), about 1e-7 of a pixel."""
+    from harness.screen import ScreenRequest, screen
+
+    flight, _, _ = screened
+    for route in ([trained.homographies, "P1-01"], [None, None]):
+        recs = []
+        for overlap in (True, False):
+            out = tmp_path / f"{route[1]}-{overlap}"
+            screen(ScreenRequest(flight=flight, out=out, run=trained.run, conf=0.001, progress=False,
+                                 homography=route[0], group=route[1], overlap=overlap))
+            recs.append(_frames(out))
+            assert len(recs[-1]) == 2 and all(r["timings"]["model_cpu"] >= 0 for r in recs[-1].values())
+            timings = json.loads((out / "manifest.json").read_text())["timings"]
+            assert timings["overlapped"] is overlap and timings["frontend_over_model_cpu"] > 0
+        a, b = ({n: {k: v for k, v in r.items() if k not in ("timings", "H_rgb_to_aligned", "registered",
+                                                             "findings")} for n, r in x.items()} for x in recs)
+        assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN != NaN
+        for n in recs[0]:
+            assert np.allclose(recs[0][n]["H_rgb_to_aligned"], recs[1][n]["H_rgb_to_aligned"], rtol=1e-6, atol=1e-6)
+        if route[0] is not None:
+            assert [r["findings"] for r in recs[0].values()] == [r["findings"] for r in recs[1].values()]
+        else:
+            assert [r["route"] for _, r in sorted(recs[0].items())] == ["auto", "auto (group G01)"]
+            _close(recs[0], recs[1], 1e-4, 0.01)
+
+
+def test_the_front_end_thread_clocks_its_own_cpu_time():
+    """What tells the model's CPU time from the front end's when both run at once."""
+    import time
+
+    from harness.screen.job import FrontEndThread
+
+    def spin(seconds: float) -> float:
+        t0 = time.thread_time()
+        while time.thread_time() - t0 < seconds:
+            pass
+        return time.thread_time() - t0
+
+    thread = FrontEndThread()
+    try:
+        if thread.cpu() is None:
+            pytest.skip("no per-thread CPU clock on this system")
+        c0 = thread.cpu()
+        spun = thread.submit(spin, 0.05).result()
+        spin(0.05)  # the caller's own CPU time is not the thread's
+        assert spun <= thread.cpu() - c0 < spun + 0.04
+    finally:
+        thread.shutdown()
+
+
+def test_the_wide_header_is_read_without_a_pass_over_the_picture(tmp_path, monkeypatch):
+    """A wide JPEG that ends with its EOI marker: the header from its first bytes, the same segments and size as a
+    full read; a cut one is still an error, and trailing data after the picture takes the full read."""
+    import cv2
+
+    from harness.errors import DataError
+    from harness.screen.frontend import HEADER_BYTES, read_header
+    from harness.sensing import jpeg
+
+    rng = np.random.default_rng(0)
+    ok, enc = cv2.imencode(".jpg", rng.integers(0, 256, (800, 1000, 3), dtype=np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    exif = jpeg.build_exif({"Make": "DJI", "FocalLengthIn35mmFilm": 24})
+    data = b"\xff\xd8" + jpeg.segment(jpeg.APP1, exif) + enc.tobytes()[2:]
+    assert len(data) > 2 * HEADER_BYTES
+    scanned: list[int] = []
+    find_eoi = jpeg._find_eoi
+    monkeypatch.setattr(jpeg, "_find_eoi", lambda d, start: scanned.append(len(d) - start) or find_eoi(d, start))
+    full = jpeg.read_segments(data, "wide.jpg")
+    head = read_header(data, Path("wide.jpg"))
+    assert (head.segments, head.width, head.height, head.components) == \
+        (full.segments, full.width, full.height, full.components) and (head.width, head.height) == (1000, 800)
+    assert scanned[0] > 2 * HEADER_BYTES and scanned[1] < HEADER_BYTES
+    with pytest.raises(DataError, match="wide.jpg: truncated JPEG"):
+        read_header(data[:len(data) // 2], Path("wide.jpg"))
+    assert read_header(data + b"trailer", Path("wide.jpg")).segments == full.segments
+    assert scanned[-1] > 2 * HEADER_BYTES
+
+
 def test_a_rejected_registration_is_listed(trained, tmp_path):
     """The wide image of another project beside a P1 thermal frame: the automatic registration's check fails."""
     flight = tmp_path / "flight"
@@ -376,6 +459,21 @@ def test_onnx_runtime_gives_the_same_findings_as_pytorch(trained, screened, tmp_
     onnx = json.loads((tmp_path / "onnx" / "model.onnx.json").read_text())
     assert onnx["max_abs_diff"] <= 1e-4
     _close(_frames(out), _frames(tmp_path / "onnx"), 1e-4, 0.02)
+
+
+def test_the_m3t_wide_image_is_decoded_at_a_quarter():
+    """The M3T's geometry from its EXIF focal lengths (wide 24 mm at 4000x3000, thermal 40 mm at 640x512): the warp
+    shrinks the wide image about 3.6x, so 1/4 (about 0.9 wide pixel per thermal pixel), and 1/8 in its 8000x6000
+    mode; a frame the warp shrinks by less than 2.2x (the synthetic profiles: 1.7x) is decoded as shot."""
+    from harness.screen.frontend import MIN_SAMPLING, reduction_for, source_scale
+    from harness.sensing.registration import focal_prior
+
+    for size, r in (((4000, 3000), 4), ((8000, 6000), 8)):
+        f = source_scale(focal_prior(size, (640, 512), (24.0, 40.0)), (640, 512))
+        assert reduction_for(f, size) == r and f / r >= MIN_SAMPLING
+    assert 3.5 < source_scale(focal_prior((4000, 3000), (640, 512), (24.0, 40.0)), (640, 512)) < 3.8
+    assert [reduction_for(f, (480, 360)) for f in (1.0, 1.7, 2.19, 2.2, 3.35)] == [1, 1, 1, 2, 2]
+    assert reduction_for(3.6, (4002, 3000)) == 2  # sizes a reduction does not divide
 
 
 def test_reduced_jpeg_decoding_where_the_warp_shrinks_the_wide_image(trained, screened, tmp_path):

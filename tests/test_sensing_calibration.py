@@ -136,3 +136,40 @@ def test_undistortion_removes_the_border_and_moves_points_consistently():
         undistort_image(np.zeros((10, 10), np.uint8), cam)
     same, _, roi = undistort_image(white, CameraModel(K_TRUE, np.zeros(5), SIZE))
     assert same is white and roi == (0, 0, 320, 240)
+
+
+def test_undistortion_maps_are_built_once_per_camera_and_change_nothing(monkeypatch):
+    """The maps are cached per camera model, size and alpha: the output is bit for bit the uncached computation's,
+    and another calibration (or alpha) gets its own maps."""
+    import cv2
+
+    from harness.sensing import calibration
+    from harness.sensing.calibration import undistorted_camera
+
+    real = cv2.initUndistortRectifyMap
+
+    def reference(img, cam, alpha, interp):
+        new_cam, (x, y, w, h) = undistorted_camera(cam, alpha)
+        K = new_cam.K.copy()
+        K[0, 2] += x
+        K[1, 2] += y
+        mx, my = real(cam.K, cam.dist, None, K, cam.image_size, cv2.CV_32FC1)
+        return cv2.remap(img, mx[y:y + h, x:x + w], my[y:y + h, x:x + w], interp, borderMode=cv2.BORDER_REPLICATE)
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (SIZE[1], SIZE[0], 3), dtype=np.uint8)
+    temp = rng.normal(25.0, 4.0, (SIZE[1], SIZE[0])).astype(np.float32)
+    cams = [CameraModel(K_TRUE, DIST_TRUE, SIZE), CameraModel(K_TRUE, DIST_TRUE * 0.5, SIZE)]
+    getattr(calibration, "_MAPS", {}).clear()
+    built = []
+    monkeypatch.setattr(cv2, "initUndistortRectifyMap", lambda *a: built.append(1) or real(*a))
+    for _ in range(3):
+        for cam in cams:
+            for alpha in (0.0, 1.0):
+                out, new_cam, _ = undistort_image(rgb, cam, alpha)
+                assert np.array_equal(out, reference(rgb, cam, alpha, cv2.INTER_LINEAR))
+                assert new_cam.to_dict() == undistorted_camera(cam, alpha)[0].to_dict()
+                t_out = undistort_image(temp, cam, alpha, "cubic")[0]
+                assert np.array_equal(t_out, reference(temp, cam, alpha, cv2.INTER_CUBIC))
+    monkeypatch.setattr(cv2, "initUndistortRectifyMap", real)
+    assert len(built) == 4  # two cameras x two alphas, whatever the number of images

@@ -23,15 +23,23 @@ Every step is the one the raw datasets use (``harness.sensing``), driven by the 
 
 **Reduced decoding.** The warp anti-aliases a wide image it shrinks by ``f >= 2`` with a Gaussian pyramid, one
 halving per octave. A JPEG can be decoded straight at 1/2, 1/4 or 1/8 of its size through its DCT
-(``cv2.IMREAD_REDUCED_COLOR_*``), two to three times faster at 1/2 on 4000x3000; the reduced image stands in for
-those pyramid levels. ``rgb_decode="auto"`` does so only where the warp would have halved the image anyway: by
-``r = 2^k``, the largest with ``f / r >= 1.1`` (and the image size divisible by ``r``), where ``f`` is the wide
-pixels per thermal pixel at the thermal centre under the file's homography or the factory prior. The whole
-chain then runs on the reduced image (the calibration through ``CameraModel.scaled``, the homography and the
-prior, both defined on the full image, through the change of pixel grid), so only the pyramid filter differs
-(the DCT's block filter instead of the 5-tap Gaussian): findings agree within the tolerance
-``docs/screening.md`` states; ``rgb_decode="full"`` is bit-identical to the training data. A frame the warp
-shrinks by less than 2.2x (the synthetic M3T profiles: 1.7x) is always decoded in full.
+(``cv2.IMREAD_REDUCED_COLOR_*``), which skips most of the inverse DCT and shrinks every later step; only the
+entropy decoding of the whole file remains. ``rgb_decode="auto"`` decodes a wide image the warp shrinks by
+``f < 2.2`` (``2 REDUCTION_MARGIN``) in full, as shot (the synthetic M3T profiles: 1.7x), and any other at the
+smallest ``1 / r``, ``r = 2^k <= 8``, that keeps ``f / r >= MIN_SAMPLING`` (0.85) wide pixels per thermal pixel
+(and divides the image size), where ``f`` is the wide pixels per thermal pixel at the thermal centre under the
+file's homography or the factory prior: the real M3T (4000x3000 beside 640x512, ``f`` about 3.6) at 1/4, about 0.9
+pixel per thermal pixel, which the warp enlarges slightly instead of shrinking. The whole chain then runs on the
+reduced image (the calibration through ``CameraModel.scaled``, the homography and the prior, both defined on the
+full image, through the change of pixel grid), so only the low-pass filter differs (the DCT's instead of the
+pyramid's and the warp's Gaussian): findings agree within the tolerance ``docs/screening.md`` states, which also
+gives the measured difference of the model input; ``rgb_decode="full"`` is bit-identical to the training data.
+
+**Speed.** Each file's header is read once (``read_header``: the end marker by the file's end), the wide JPEG is
+decoded straight to RGB order, the undistortion maps are built once per calibration
+(``harness.sensing.calibration``), and ``job`` runs the front end of the next capture in a thread while the model
+works on this one (OpenCV, NumPy and the model release the GIL). The timings in ``Frame.timings`` are the wall
+clock and the CPU time of the thread that ran each step.
 """
 
 from __future__ import annotations
@@ -58,8 +66,10 @@ FALLBACKS = ("prior", "skip")
 REGISTER = ("group", "frame")
 #: the largest DCT reduction OpenCV decodes
 MAX_REDUCTION = 8
-#: reduce only while the warp still shrinks the reduced image by at least this much
+#: a wide image the warp shrinks by less than twice this is decoded in full: taken as shot, as the training data was
 REDUCTION_MARGIN = 1.1
+#: any other is decoded at the smallest scale that keeps at least this many pixels per thermal pixel
+MIN_SAMPLING = 0.85
 _IMREAD_REDUCED = {2: "IMREAD_REDUCED_COLOR_2", 4: "IMREAD_REDUCED_COLOR_4", 8: "IMREAD_REDUCED_COLOR_8"}
 
 
@@ -124,7 +134,8 @@ class Frame:
     position: Position
     fingerprints: dict[str, str]
     thermal_decoder: str
-    #: seconds per step: wall clock (``decode``, ``align``, ``encode``) and CPU time of the process (``*_cpu``)
+    #: seconds per step: wall clock (``decode``, ``align``, ``encode``) and CPU time of the thread that ran it
+    #: (``*_cpu``; the front end's OpenCV calls run on one thread, ``job`` sees to it)
     timings: dict[str, float] = field(default_factory=dict)
     #: an accepted automatic registration (full-frame undistorted wide pixels of K -> thermal), for the other
     #: captures of its inspection group; None for every other route
@@ -146,8 +157,28 @@ def _read(path: Path) -> bytes:
         raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def _focal_35mm(data: bytes, name: Path) -> float | None:
-    layout = jpeg.read_segments(data, name, require_eoi=False)
+#: the bytes of a JPEG the header is first looked for in (DJI's EXIF, XMP and maker segments take well under this)
+HEADER_BYTES = 256 * 1024
+
+
+def read_header(data: bytes, name: Path) -> jpeg.JpegLayout:
+    """``jpeg.read_segments(data, name)`` (the header segments and frame size; a cut file is a ``DataError``)
+    without its pass over the whole entropy-coded data when the file ends with an EOI marker (``FF D9``).
+
+    Inside entropy-coded data every ``FF`` byte is followed by ``00`` or a restart marker, so a file ending in
+    ``FF D9`` has a main picture that was ended by a marker, not cut; its header is then read from the first
+    ``HEADER_BYTES`` alone. Otherwise (trailing data after the picture, a header larger than that) the whole file is
+    read as before. Only ``segments``, ``width``, ``height`` and ``components`` of the answer are meant to be used:
+    ``end`` is that of the first bytes."""
+    if len(data) > HEADER_BYTES and data.endswith(b"\xff\xd9"):
+        try:
+            return jpeg.read_segments(data[:HEADER_BYTES] + b"\xff\xd9", name)
+        except DataError:
+            pass
+    return jpeg.read_segments(data, name)
+
+
+def _focal_35mm(layout: jpeg.JpegLayout) -> float | None:
     for payload in layout.payloads(jpeg.APP1):
         exif = jpeg.parse_exif(payload)
         if exif:
@@ -156,15 +187,27 @@ def _focal_35mm(data: bytes, name: Path) -> float | None:
     return None
 
 
+def _imread_flag(reduction: int) -> tuple[int, bool]:
+    """(OpenCV's imread flag for a decode at ``1 / reduction``, whether it gives RGB order): libjpeg-turbo writes
+    R, G, B straight out (OpenCV >= 4.10), the same values as BGR reversed, without the copy."""
+    import cv2
+
+    flag = cv2.IMREAD_COLOR if reduction == 1 else getattr(cv2, _IMREAD_REDUCED[reduction])
+    rgb = getattr(cv2, "IMREAD_COLOR_RGB", None)
+    if rgb is None:
+        return flag, False
+    return (flag & ~cv2.IMREAD_COLOR) | rgb, True
+
+
 def decode_rgb(data: bytes, name: Path, reduction: int = 1) -> np.ndarray:
     """The wide JPEG as uint8 RGB, decoded at ``1 / reduction`` (1, 2, 4 or 8) through the JPEG's DCT."""
     import cv2
 
-    flag = cv2.IMREAD_COLOR if reduction == 1 else getattr(cv2, _IMREAD_REDUCED[reduction])
+    flag, rgb_order = _imread_flag(reduction)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if img is None:
         raise DataError(f"{name}: RGB unreadable: not a decodable image")
-    return np.ascontiguousarray(img[:, :, ::-1])
+    return img if rgb_order else np.ascontiguousarray(img[:, :, ::-1])
 
 
 def source_scale(H: np.ndarray, thermal_size: tuple[int, int]) -> float:
@@ -178,9 +221,12 @@ def source_scale(H: np.ndarray, thermal_size: tuple[int, int]) -> float:
 
 
 def reduction_for(factor: float, rgb_size: tuple[int, int]) -> int:
-    """The DCT reduction ``r`` (1, 2, 4, 8) for a warp that shrinks the wide image by ``factor``."""
+    """The DCT reduction ``r`` (1, 2, 4, 8) for a warp that shrinks the wide image by ``factor``: 1 below
+    ``2 REDUCTION_MARGIN``, else the largest with ``factor / r >= MIN_SAMPLING`` (and the size divisible by it)."""
     r = 1
-    while 2 * r <= MAX_REDUCTION and factor / (2 * r) >= REDUCTION_MARGIN and \
+    if factor / 2 < REDUCTION_MARGIN:
+        return r
+    while 2 * r <= MAX_REDUCTION and factor / (2 * r) >= MIN_SAMPLING and \
             rgb_size[0] % (2 * r) == 0 and rgb_size[1] % (2 * r) == 0:
         r *= 2
     return r
@@ -244,9 +290,10 @@ class FrontEnd:
             raise DataError(f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
                             f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}")
 
-    def _focal(self, rgb_data: bytes, thermal_data: bytes | None, cap: Capture) -> tuple[float, float] | None:
-        f_rgb = _focal_35mm(rgb_data, cap.rgb)
-        f_th = _focal_35mm(thermal_data, cap.thermal) if thermal_data is not None else None
+    def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None
+               ) -> tuple[float, float] | None:
+        f_rgb = _focal_35mm(rgb_layout)
+        f_th = _focal_35mm(thermal_layout) if thermal_layout is not None else None
         given = self.settings.focal_35mm
         if f_rgb is None and given:
             f_rgb = given[0]
@@ -264,9 +311,9 @@ class FrontEnd:
         from harness.sensing.pipeline import read_capture_thermal
         from harness.sensing.registration import HomographyEntry, normalize
 
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         rgb_data = _read(cap.rgb)
-        layout = jpeg.read_segments(rgb_data, cap.rgb)  # a cut file is an error here, not a half-grey image
+        layout = read_header(rgb_data, cap.rgb)  # a cut file is an error here, not a half-grey image
         rgb_size = (layout.width, layout.height)
         self._check_rgb_size(rgb_size, cap.rgb)
         thermal_data = _read(cap.thermal)
@@ -283,10 +330,12 @@ class FrontEnd:
 
             valid_mask(temp, str(cap.thermal))  # mostly missing: an error naming the file; a few stay NaN
         th, tw = temp.shape
-        position = read_position(rgb_data, str(cap.rgb))
-        if is_jpeg:
-            position = position.merged(read_position(thermal_data, str(cap.thermal)))
-        focal = self._focal(rgb_data, thermal_data if is_jpeg else None, cap)
+        # each file's header segments are read once (finding where a 12-megapixel scan ends takes milliseconds)
+        th_layout = jpeg.read_segments(thermal_data, cap.thermal, require_eoi=False) if is_jpeg else None
+        position = read_position(rgb_data, str(cap.rgb), layout)
+        if th_layout is not None:
+            position = position.merged(read_position(thermal_data, str(cap.thermal), th_layout))
+        focal = self._focal(layout, th_layout)
 
         # the factory prior, defined on the full image (the frame the training data was registered in)
         _, full_reg = self._context(1, rgb_size)
@@ -307,7 +356,8 @@ class FrontEnd:
         if self.settings.rgb_decode == "auto":
             reduction = reduction_for(source_scale(H_full, (tw, th)), rgb_size)
         rgb = decode_rgb(rgb_data, cap.rgb, reduction)
-        t1, c1 = time.perf_counter(), time.process_time()
+        fingerprints = {"rgb": sha1_bytes(rgb_data), "thermal": sha1_bytes(thermal_data)}
+        t1, c1 = time.perf_counter(), time.thread_time()
 
         ctx, dreg = self._context(reduction, rgb_size)
         prior = prior_full
@@ -341,7 +391,7 @@ class FrontEnd:
             ctx.entries[group] = HomographyEntry(normalize(prior), "focal")  # type: ignore[arg-type]
             pair = ctx.align_capture(rgb, temp, ir8, boxes, labels, group, boxes_frame="thermal", prior=prior)
             route = "prior (automatic registration rejected)"
-        t2, c2 = time.perf_counter(), time.process_time()
+        t2, c2 = time.perf_counter(), time.thread_time()
 
         sample = pair.to_sample(image_id, group, {"file_name": cap.rgb.name})
         channel = self.encoding.encode(sample, **dict(self.settings.encoding_params))
@@ -352,12 +402,12 @@ class FrontEnd:
                 raise HarnessError(f"encoding {self.encoding.name!r} returned {channel.dtype} {channel.shape}, "
                                    f"expected uint8 {(sample.height, sample.width)}")
             image = np.dstack((sample.rgb, channel))
-        t3, c3 = time.perf_counter(), time.process_time()
+        t3, c3 = time.perf_counter(), time.thread_time()
         thermal = pair.thermal if pair.thermal is not None else np.full(pair.ir8.shape, np.nan, np.float32)
         return Frame(capture=cap, image=image, thermal=thermal, origin=pair.origin, H=pair.H, cameras=pair.cameras,
                      reduction=reduction, rgb_size=rgb_size, thermal_size=(tw, th), route=route,
                      registration=quality, position=position,
-                     fingerprints={"rgb": sha1_bytes(rgb_data), "thermal": sha1_bytes(thermal_data)},
+                     fingerprints=fingerprints,
                      thermal_decoder=str(info.get("decoder") or info.get("format") or ""),
                      timings={"decode": t1 - t0, "align": t2 - t1, "encode": t3 - t2, "decode_cpu": c1 - c0,
                               "align_cpu": c2 - c1, "encode_cpu": c3 - c2}, registered=registered)

@@ -55,6 +55,8 @@ class ScreenRequest:
     register: str = "group"
     workers: int = 1
     threads: int | None = None
+    #: with ``workers`` 1: the front end of the next captures runs in a thread while the model works on this one
+    overlap: bool = True
     fail_fast: bool = False
     force: bool = False
     progress: bool = True
@@ -242,6 +244,37 @@ class _Now:
         return True
 
 
+class FrontEndThread:
+    """One thread that runs the front end beside the model (OpenCV's decoding and remaps, NumPy and the model's
+    kernels release the GIL), with a clock of the CPU time it has used (``cpu()``; None where the system gives no
+    per-thread clock), so the model's CPU time can be told apart from the front end's."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._clock: int | None = None
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="screen-frontend",
+                                       initializer=self._started)
+        self.pool.submit(lambda: None).result()
+
+    def _started(self) -> None:
+        import threading
+
+        try:
+            self._clock = time.pthread_getcpuclockid(threading.get_ident())
+        except (AttributeError, OSError):  # not on this system
+            self._clock = None
+
+    def cpu(self) -> float | None:
+        return time.clock_gettime(self._clock) if self._clock is not None else None
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
+        return self.pool.submit(fn, *args)
+
+    def shutdown(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
 def group_registrations(fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
                         ) -> dict[str, dict[str, Any]]:
     """The registrations earlier calls accepted, per group (what a re-run's remaining frames reuse)."""
@@ -254,9 +287,10 @@ def group_registrations(fe: FrontEnd, groups: dict[str, str] | None, done: dict[
 
 
 def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups: dict[str, str] | None = None,
-                     registered: dict[str, dict[str, Any]] | None = None
+                     registered: dict[str, dict[str, Any]] | None = None, thread: FrontEndThread | None = None
                      ) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
-    """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each).
+    """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each; with one
+    worker, ``thread`` runs them beside the caller, else each is computed when the caller asks for it).
 
     With ``groups`` (``{capture: inspection group}``) a group is registered once: its first capture whose automatic
     registration passes the check registers it, and its later captures reuse that homography (until one passes,
@@ -279,9 +313,11 @@ def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups
                                    initializer=_init_worker, initargs=(fe.settings, fe.encoding))
 
     def submit(cap: Capture, i: int, given: dict[str, Any] | None) -> Any:
-        if pool is None:
-            return _Now(lambda: _run_frontend(fe, cap, i, given))
-        return pool.submit(_work, cap, i, given)
+        if pool is not None:
+            return pool.submit(_work, cap, i, given)
+        if thread is not None:
+            return thread.submit(_run_frontend, fe, cap, i, given)
+        return _Now(lambda: _run_frontend(fe, cap, i, given))
 
     queue: deque = deque()  # (capture, future, group, registers its group)
     k = 0
@@ -398,15 +434,18 @@ def screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None
     """Screen ``req.flight`` into ``req.out``; see the package docstring. Bad files are listed in the result (and
     with ``fail_fast`` the first one raises a ``DataError`` after the frames before it are written).
     ``on_frame(record)`` is called after each frame is written."""
+    import cv2
     import torch
 
-    threads = torch.get_num_threads()
+    threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
     if req.threads:
         torch.set_num_threads(int(req.threads))
+    cv2.setNumThreads(1)  # the front end's OpenCV calls on one thread, beside the model's (as in the workers)
     try:
         return _screen(req, on_frame)
     finally:
         torch.set_num_threads(threads)
+        cv2.setNumThreads(cv_threads)
 
 
 def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | None) -> ScreenResult:
@@ -443,16 +482,22 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     rejected_skipped: list[tuple[str, str]] = []
     records: dict[str, dict[str, Any]] = dict(done)
     batch: list[Frame] = []
-    timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0}
+    timings = {"decode": 0.0, "align": 0.0, "encode": 0.0, "model": 0.0, "front_cpu": 0.0, "model_cpu": 0.0}
     stop: str | None = None
+    thread: FrontEndThread | None = None
 
     def flush(bar: _Bar) -> None:
         if not batch:
             return
+        f0 = thread.cpu() if thread is not None else None
         t0, c0 = time.perf_counter(), time.process_time()
         dets = predictor([f.image for f in batch])
         model_s = (time.perf_counter() - t0) / len(batch)
-        model_cpu = (time.process_time() - c0) / len(batch)
+        model_cpu = time.process_time() - c0
+        f1 = thread.cpu() if thread is not None else None
+        if f0 is not None and f1 is not None:
+            model_cpu -= f1 - f0  # the front end's CPU time beside the model is the front end's
+        model_cpu /= len(batch)
         for frame, d in zip(batch, dets):
             found = frame_findings(frame, d, sm.categories, sm.threshold)
             overlay = _write_pictures(folder, frame, found) if (found and req.overlays) else None
@@ -461,7 +506,9 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
             records[frame.capture.name] = rec
             for k in ("decode", "align", "encode"):
                 timings[k] += frame.timings[k]
+                timings["front_cpu"] += frame.timings.get(f"{k}_cpu", 0.0)
             timings["model"] += model_s
+            timings["model_cpu"] += model_cpu
             if on_frame is not None:
                 on_frame(rec)
         n = len(batch)
@@ -471,25 +518,32 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     groups = None
     if settings.register == "group" and settings.homography is None and fe.options.registration.method == "auto":
         groups = inspection_groups(flight.captures, fe.options.group_gap_s)
-    results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done))
-    with _Bar(req.progress, len(flight.captures), len(done)) as bar:
-        for cap, frame, error, rejected in results:
-            if frame is None:
-                (rejected_skipped if rejected else failures).append(_named(cap, error or "unknown error"))
-                bar.advance(1, _note(records, failures))
-                if req.fail_fast and not rejected:
-                    stop = error
-                    break
-                continue
-            batch.append(frame)
-            if len(batch) >= predictor.batch:
-                flush(bar)
-        results.close()  # a stop leaves no worker behind
-        flush(bar)
+    if req.workers == 1 and req.overlap and len(todo) > 1:
+        thread = FrontEndThread()
+    try:
+        results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
+        with _Bar(req.progress, len(flight.captures), len(done)) as bar:
+            for cap, frame, error, rejected in results:
+                if frame is None:
+                    (rejected_skipped if rejected else failures).append(_named(cap, error or "unknown error"))
+                    bar.advance(1, _note(records, failures))
+                    if req.fail_fast and not rejected:
+                        stop = error
+                        break
+                    continue
+                batch.append(frame)
+                if len(batch) >= predictor.batch:
+                    flush(bar)
+            results.close()  # a stop leaves no worker behind
+            flush(bar)
+    finally:
+        if thread is not None:
+            thread.shutdown()
     screened = len(records) - len(done)
     failures += rejected_skipped
     result = _finish(folder, base, flight, records, failures, sm, timings, screened, len(done), req,
-                     time.perf_counter() - t_start, state="stopped" if stop else "finished")
+                     time.perf_counter() - t_start, state="stopped" if stop else "finished",
+                     overlapped=thread is not None)
     if stop is not None:
         raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
     return result
@@ -522,7 +576,8 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
 
 def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[str, dict[str, Any]],
             failures: list[tuple[str, str]], sm: ScreenModel, timings: dict[str, float], screened: int,
-            skipped_done: int, req: ScreenRequest, seconds: float, state: str) -> ScreenResult:
+            skipped_done: int, req: ScreenRequest, seconds: float, state: str, overlapped: bool = False
+            ) -> ScreenResult:
     from harness import __version__
     from harness.screen.gallery import render
 
@@ -537,12 +592,16 @@ def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[st
     routes = Counter(r["route"] for r in frames)
     rejected = [(r["frame"], str((r.get("registration") or {}).get("reason", ""))) for r in frames
                 if str(r["route"]).startswith("prior (")]
+    cpu = {k: timings.pop(k) for k in ("front_cpu", "model_cpu")}
     per = {k: (v / screened if screened else None) for k, v in timings.items()}
     front = sum(v for k, v in per.items() if k != "model" and v is not None) if screened else None
     timing = {"seconds": round(seconds, 3), "frames_per_s": round(screened / seconds, 3) if screened else None,
               "per_frame_s": {k: (round(v, 6) if v is not None else None) for k, v in per.items()},
               "frontend_over_model": round(front / per["model"], 4) if screened and per["model"] else None,
-              "workers": req.workers, "threads": req.threads}
+              "frontend_over_model_cpu": round(cpu["front_cpu"] / cpu["model_cpu"], 4) if cpu["model_cpu"] > 0
+              else None,
+              "workers": req.workers, "threads": req.threads,
+              "overlapped": overlapped}
     summary = [f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
                f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
                "ignored",

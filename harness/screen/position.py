@@ -66,9 +66,11 @@ def _number(text: str | None) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def xmp_packets(data: bytes, name: str = "<bytes>") -> list[bytes]:
-    """The XMP packets in a JPEG's header segments (``DataError`` when ``data`` is not a JPEG)."""
-    layout = jpeg.read_segments(data, name, require_eoi=False)
+def xmp_packets(data: bytes, name: str = "<bytes>", layout: jpeg.JpegLayout | None = None) -> list[bytes]:
+    """The XMP packets in a JPEG's header segments (``DataError`` when ``data`` is not a JPEG); ``layout``: the
+    file's ``jpeg.read_segments`` when already read."""
+    if layout is None:
+        layout = jpeg.read_segments(data, name, require_eoi=False)
     return [p[len(XMP_HEADER):] for p in layout.payloads(jpeg.APP1) if p.startswith(XMP_HEADER)]
 
 
@@ -94,10 +96,11 @@ def _dji_values(packet: bytes) -> dict[str, str]:
     return out
 
 
-def read_position(data: bytes, name: str = "<bytes>") -> Position:
-    """The capture's position from the XMP of a JPEG's bytes (all ``None`` when it carries none)."""
+def read_position(data: bytes, name: str = "<bytes>", layout: jpeg.JpegLayout | None = None) -> Position:
+    """The capture's position from the XMP of a JPEG's bytes (all ``None`` when it carries none); ``layout``: the
+    file's ``jpeg.read_segments`` when already read."""
     values: dict[str, str] = {}
-    for packet in xmp_packets(data, name):
+    for packet in xmp_packets(data, name, layout):
         for key, value in _dji_values(packet).items():
             values.setdefault(key, value)
     return Position(**{ours: _number(values.get(dji)) for ours, dji in FIELDS.items()})

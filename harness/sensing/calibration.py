@@ -15,6 +15,8 @@ map (``undistort_points`` moves boxes and landmarks along).
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -261,6 +263,42 @@ def undistorted_camera(cam: CameraModel, alpha: float = 0.0) -> tuple[CameraMode
     return CameraModel(K, np.zeros(5), (w, h), name=cam.name, extra={"undistorted_from": cam.to_dict()}), (x, y, w, h)
 
 
+#: undistortion maps kept per (K, distortion, size, alpha): a flight or a dataset reuses one calibration, and building
+#: the maps costs about as much as the remap itself. Bounded in bytes; the latest entry always stays.
+MAPS_CACHE_BYTES = 256 * 2 ** 20
+_MAPS: OrderedDict[tuple, tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray]] = OrderedDict()
+_MAPS_LOCK = threading.Lock()
+
+
+def _undistort_maps(cam: CameraModel, alpha: float) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray,
+                                                                np.ndarray]:
+    """(new K, roi, map x, map y) of ``undistort_image``: float32 maps of the cropped output, cached (read-only)."""
+    import cv2
+
+    key = (cam.K.tobytes(), cam.dist.tobytes(), tuple(cam.image_size), float(alpha))
+    with _MAPS_LOCK:
+        hit = _MAPS.get(key)
+        if hit is not None:
+            _MAPS.move_to_end(key)
+            return hit
+    new_cam, (x, y, rw, rh) = undistorted_camera(cam, alpha)
+    full_K = new_cam.K.copy()
+    full_K[0, 2] += x
+    full_K[1, 2] += y
+    mx, my = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, full_K, cam.image_size, cv2.CV_32FC1)
+    mx, my = np.ascontiguousarray(mx[y:y + rh, x:x + rw]), np.ascontiguousarray(my[y:y + rh, x:x + rw])
+    mx.flags.writeable = False
+    my.flags.writeable = False
+    new_K = new_cam.K.copy()
+    new_K.flags.writeable = False
+    entry = (new_K, (x, y, rw, rh), mx, my)
+    with _MAPS_LOCK:
+        _MAPS[key] = entry
+        while len(_MAPS) > 1 and sum(e[2].nbytes + e[3].nbytes for e in _MAPS.values()) > MAPS_CACHE_BYTES:
+            _MAPS.popitem(last=False)
+    return entry
+
+
 def undistort_image(img: np.ndarray, cam: CameraModel, alpha: float = 0.0,
                     interpolation: str = "linear") -> tuple[np.ndarray, CameraModel, tuple[int, int, int, int]]:
     """Undistort ``img`` (RGB, preview or float temperature map) and crop to the valid region.
@@ -268,7 +306,8 @@ def undistort_image(img: np.ndarray, cam: CameraModel, alpha: float = 0.0,
     Returns ``(image, new_cam, roi)``: the cropped undistorted image, the distortion-free camera that describes
     it (principal point shifted by the crop) and ``roi = (x, y, w, h)`` in the uncropped undistorted frame.
     ``alpha=0`` keeps only valid pixels (no black border); ``alpha=1`` keeps every source pixel. Temperature maps
-    keep their dtype (float32, bilinear). A distortion-free camera returns the image unchanged.
+    keep their dtype (float32, bilinear). A distortion-free camera returns the image unchanged. The maps are built
+    once per camera model, size and ``alpha`` and reused (``MAPS_CACHE_BYTES``).
     """
     import cv2
 
@@ -278,13 +317,11 @@ def undistort_image(img: np.ndarray, cam: CameraModel, alpha: float = 0.0,
                         f"image is {w}x{h}; use CameraModel.scaled() for a resized image")
     if not np.any(cam.dist):
         return img, CameraModel(cam.K.copy(), np.zeros(5), cam.image_size, name=cam.name), (0, 0, w, h)
-    new_cam, (x, y, rw, rh) = undistorted_camera(cam, alpha)
-    full_K = new_cam.K.copy()
-    full_K[0, 2] += x
-    full_K[1, 2] += y
-    mx, my = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, full_K, (w, h), cv2.CV_32FC1)
+    new_K, (x, y, rw, rh), mx, my = _undistort_maps(cam, alpha)
+    new_cam = CameraModel(new_K.copy(), np.zeros(5), (rw, rh), name=cam.name,
+                          extra={"undistorted_from": cam.to_dict()})
     interp = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}[interpolation]
-    out = cv2.remap(img, mx[y:y + rh, x:x + rw], my[y:y + rh, x:x + rw], interp, borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(img, mx, my, interp, borderMode=cv2.BORDER_REPLICATE)
     return out, new_cam, (x, y, rw, rh)
 
 
