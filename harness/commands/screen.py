@@ -81,8 +81,9 @@ def register_commands(cli: click.Group) -> None:
                   help="A frame whose automatic registration fails its check: screened with the factory prior and "
                        "listed, or listed and not screened.")
     @click.option("--rgb-decode", type=click.Choice(["auto", "full"]), default="auto", show_default=True,
-                  help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it that much anyway; "
-                       "full: always in full (bit-identical to the training data).")
+                  help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it by 2.2x or more, "
+                       "keeping at least 0.85 wide pixel per thermal pixel; full: always in full (bit-identical "
+                       "to the training data).")
     @click.option("--register", type=click.Choice(["group", "frame"]), default="group", show_default=True,
                   help="Automatic registration once per inspection group (captures within the run's "
                        "sensing.groups.gap_s of each other; as the datasets register), or for every frame.")
