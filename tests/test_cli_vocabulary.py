@@ -214,7 +214,7 @@ def test_old_json_flag_and_markdown_value_print_the_same_as_the_new_ones(tmp_pat
         def render(self, fmt: str) -> str:
             return f"rendered as {fmt}"
 
-    record("harness.compare", "build_table", Table())
+    record("harness.report.compare", "build_table", Table())
     res = cli_runner(["compare", "--datasets", "d", "--store", str(tmp_path), "--format", "markdown"])
     assert res.exit_code == 0 and res.stdout.strip() == "rendered as markdown"
     assert "deprecated: --format markdown, use --format md" in res.stderr

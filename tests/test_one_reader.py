@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 READER = "harness/report/reader.py"
 #: The modules that build what the four commands print (the runner writes the store; it reads back through
 #: ``read_run``, which the scan of ``read_metrics`` below covers).
-COMMANDS = ["harness/compare.py", "harness/report/run_tables.py", "harness/commands/compare.py",
+COMMANDS = ["harness/report/compare.py", "harness/report/run_tables.py", "harness/commands/compare.py",
             "harness/commands/report.py", "harness/commands/run.py",
             *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "harness" / "report").glob("*.py"))]
 #: What the reader holds, each defined once in ``harness/``.
@@ -76,7 +76,7 @@ def test_every_command_reads_the_store_through_the_one_reader():
     assert {n: where for n, where in defined.items() if len(where) != 1} == {}
     assert {n: where[0] for n, where in defined.items() if n != "mean_sd"} == {
         n: READER for n in CONCEPTS - {"mean_sd", "annotation_source"}}
-    for rel in ("harness/compare.py", "harness/runner.py", "harness/report/run_tables.py", "harness/report/tables.py",
+    for rel in ("harness/report/compare.py", "harness/runner.py", "harness/report/run_tables.py", "harness/report/tables.py",
                 "harness/report/build.py", "harness/report/stats.py"):
         imported = {n.module for n in ast.walk(_tree(rel)) if isinstance(n, ast.ImportFrom)}
         assert "harness.report.reader" in imported, rel
@@ -200,12 +200,12 @@ def test_every_table_shows_the_labels_of_a_seed_beside_the_numbers_it_concerns(l
     p1 = next(line for line in res.stdout.splitlines() if line.startswith("P1"))
     assert "†" in p1 and "~" not in p1 and ACCEPTED_NOTE.split(":")[0] in res.stdout
     res = cli_runner(["compare-detectors", "alpha/c2", "beta", "--dataset", "synth", "--store",
-                      str(labelled_store.root), "--resamples", "0", "--json"])
+                      str(labelled_store.root), "--resamples", "0", "--format", "json"])
     paired = json.loads(res.stdout)
     assert [lab["kind"] for lab in paired["labels"]["a"]] == [ACCEPTED, APPROXIMATE] and paired["labels"]["b"] == []
     assert paired["fold_marks"] == {"a": ["†", "~"], "b": ["", ""]}
     res = cli_runner(["compare-detectors", "beta", "alpha/ir8", "--dataset", "synth", "--store",
-                      str(labelled_store.root), "--resamples", "0", "--json"])
+                      str(labelled_store.root), "--resamples", "0", "--format", "json"])
     assert "label_notes" not in json.loads(res.stdout)  # a pair without labels is written as before
 
 

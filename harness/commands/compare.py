@@ -35,8 +35,8 @@ def register_commands(cli: click.Group) -> None:
         results store. Detectors of the same dataset and source must have been scored on the same samples (same
         folds, same image ids, same instances); otherwise the command refuses, unless --allow-mismatched.
         """
-        from harness.compare import build_table
         from harness.io import atomic_write_text
+        from harness.report.compare import build_table
 
         names = [d.strip() for d in datasets.split(",") if d.strip()]
         table = build_table(opt.resolve_store(store, profile), names, allow_mismatched=allow_mismatched, safit=safit)

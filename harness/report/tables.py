@@ -13,7 +13,7 @@ Tables (builders below, all reading only the store through ``reader.StoreView``)
 * ``ablation_tables``: one per detector run with several encodings on common folds: P, R, mAP50, mAP50:95 and
   AP50 of the seed's two thermal-only defects (delamination, water seepage);
 * ``registration_table`` and ``displacement_table``: the sensor-level analyses of ``harness sensing``;
-* ``cross_dataset_table``: the cross-dataset comparison of ``harness.compare``;
+* ``cross_dataset_table``: the cross-dataset comparison of ``harness.report.compare``;
 * ``paired_table``: paired comparisons (per-fold differences, bootstrap CIs, a verdict only with three or more
   training seeds per fold) from ``stats.py``;
 * the error-analysis tables (error types, AP per size bin) are built in ``evidence.py``.
@@ -676,13 +676,13 @@ def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
 
 # -------------------------------------------------------------------------------------------------- cross-dataset
 def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
-    """The cross-dataset table of ``harness.compare.build_table``, restricted to the project tables' rows.
+    """The cross-dataset table of ``harness.report.compare.build_table``, restricted to the project tables' rows.
 
     The builder aggregates every (dataset, annotation source, detector, encoding) of the store; entries evaluated on
     fewer folds (encoding ablations) are left out here, as in the project-grouped tables, and named in a note. Rows
     of a dataset whose entries were not scored on the same samples are marked ``!`` and the table is labelled.
     """
-    from harness.compare import build_table
+    from harness.report.compare import build_table
 
     with_runs = [d for d in datasets if view.entries(d)]
     if not with_runs:

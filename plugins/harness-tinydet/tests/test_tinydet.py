@@ -33,5 +33,5 @@ def test_the_model_keeps_the_detector_contract(harness_plugin, harness_host):
 
 def test_the_cli_lists_them(harness_plugin, harness_cli):
     harness_plugin(plugin)
-    listed = json.loads(harness_cli(["list", "--json"]).stdout)
+    listed = json.loads(harness_cli(["list", "--format", "json"]).stdout)
     assert {"tinydet", "tinydet-dual"} <= {d["name"] for d in listed["detectors"]}
