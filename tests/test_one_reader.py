@@ -76,8 +76,8 @@ def test_every_command_reads_the_store_through_the_one_reader():
     assert {n: where for n, where in defined.items() if len(where) != 1} == {}
     assert {n: where[0] for n, where in defined.items() if n != "mean_sd"} == {
         n: READER for n in CONCEPTS - {"mean_sd", "annotation_source"}}
-    for rel in ("harness/report/compare.py", "harness/runner.py", "harness/report/run_tables.py", "harness/report/tables.py",
-                "harness/report/build.py", "harness/report/stats.py"):
+    for rel in ("harness/report/compare.py", "harness/runner.py", "harness/report/run_tables.py",
+                "harness/report/tables.py", "harness/report/build.py", "harness/report/stats.py"):
         imported = {n.module for n in ast.walk(_tree(rel)) if isinstance(n, ast.ImportFrom)}
         assert "harness.report.reader" in imported, rel
 
