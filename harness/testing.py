@@ -15,7 +15,8 @@ Fixtures:
     package installed in development mode) is used as it is and left loaded.
 ``harness_cli``
     ``harness_cli(["list", "--format", "json"]) -> click.testing.Result``: the ``harness`` command line run
-    in-process, with the commands of every plugin registered at that moment (stdout and stderr apart: ``result.stdout``).
+    in-process, with the commands of every plugin registered at that moment (stdout and stderr apart:
+    ``result.stdout``).
 ``fresh_harness``
     the ``harness.plugins`` module with nothing registered, for tests of loading itself (entry points, plugin
     folders, the allow-list): call ``fresh_harness.load_plugins()``; the normal state is restored afterwards.
