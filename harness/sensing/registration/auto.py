@@ -245,7 +245,13 @@ def read_image_rgb(path: str | Path) -> np.ndarray:
 
 
 def read_thermal_any(path: str | Path) -> np.ndarray:
-    """A thermal file for registration: temperature (R-JPEG or decoded file) when radiometric, else 8-bit grey."""
+    """A thermal file for registration: temperature (R-JPEG or decoded file) when radiometric, else 8-bit grey.
+
+    Registration needs the scene's structure, not its temperatures: a file whose temperatures are not decoded by the
+    default route (an 8-bit thermal JPEG, or an R-JPEG the default refuses) is registered on its 8-bit picture, and
+    a log line says so and why."""
+    import logging
+
     import cv2
 
     from harness.sensing.radiometry import read_thermal
@@ -253,10 +259,12 @@ def read_thermal_any(path: str | Path) -> np.ndarray:
     path = Path(path)
     try:
         return read_thermal(path)[0]
-    except DataError:
+    except DataError as exc:
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise
+        logging.getLogger(__name__).info("%s: registered on its 8-bit picture (temperatures not decoded: %s)",
+                                         path.name, str(exc).splitlines()[0][:160])
         return img
 
 
