@@ -18,7 +18,11 @@ First, the train step of ``ours`` against its anchors (``--step-threads``, defau
   benchmark says so: the anchor then includes those changes.
 
 Each is measured in its own process, ``--rounds`` times in turn (the median of the rounds' medians), so a busy
-machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours.
+machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours, after the
+machine lines (CPU, the instruction set torch dispatches to, any ISA restriction, the load). With ``--breakdown``,
+one step of ours and one of Ultralytics are then timed op by op (thread time of every ATen op, grouped: convolution
+forward, convolution backward, BatchNorm, SiLU, pooling/upsampling/concatenation/addition, other ops, and the time
+outside ops), with the convolutions' GFLOP/s and how much of the target the convolutions of ours alone take.
 
 Then four measurements of the whole engine, each in its own process (so that each peak-memory figure is its own):
 
@@ -35,6 +39,7 @@ different CPU; absolute images/s are printed for the record. Example::
     .venv/bin/python benchmarks/bench_train.py                       # ours, 640, batch 2, 2 threads
     .venv/bin/python benchmarks/bench_train.py --detector tinydet --imgsz 320 --no-step
     .venv/bin/python benchmarks/bench_train.py --step-only --rounds 5
+    .venv/bin/python benchmarks/bench_train.py --step-only --breakdown
 """
 
 from __future__ import annotations
@@ -324,25 +329,26 @@ def measure_step(args: argparse.Namespace) -> dict:
             "peak_rss_mb": round(peak_mb(), 1)}
 
 
-#: how ``--breakdown`` groups ATen ops: (label, op names); the rest is "other ops"
+#: how ``--breakdown`` groups ATen ops: (label, op names; "pool/cat/add" includes the upsampling); the rest (loss,
+#: optimiser, EMA, views) is "other ops"
 OP_GROUPS = (
     ("conv fwd", ("convolution",)),
     ("conv bwd", ("convolution_backward",)),
     ("BN", ("native_batch_norm", "native_batch_norm_backward")),
     ("SiLU", ("silu", "silu_backward")),
-    ("pool, upsample, cat, add", ("max_pool2d_with_indices", "max_pool2d_with_indices_backward", "upsample_nearest2d",
+    ("pool/cat/add", ("max_pool2d_with_indices", "max_pool2d_with_indices_backward", "upsample_nearest2d",
                                   "upsample_nearest2d_backward", "cat", "add", "add_")),
 )
 
 
 def conv_flops(func_name: str, args: tuple) -> float:
     """Multiply-adds x 2 of one ``convolution`` or ``convolution_backward`` call (each computed gradient counts as
-    much as the forward pass)."""
+    much as the forward pass; ``w[0].numel()`` is in-channels / groups x kernel taps)."""
     if func_name == "convolution":
-        x, w, stride, pad, dil, groups = args[0], args[1], args[3], args[4], args[5], args[8]
+        x, w, stride, pad, dil = args[0], args[1], args[3], args[4], args[5]
         passes = 1
     else:
-        x, w, stride, pad, dil, groups = args[1], args[2], args[4], args[5], args[6], args[9]
+        x, w, stride, pad, dil = args[1], args[2], args[4], args[5], args[6]
         passes = sum(bool(m) for m in args[10][:2])
     out = [(x.shape[2 + i] + 2 * pad[i] - dil[i] * (w.shape[2 + i] - 1) - 1) // stride[i] + 1 for i in range(2)]
     return 2.0 * passes * x.shape[0] * w.shape[0] * out[0] * out[1] * w[0].numel()
