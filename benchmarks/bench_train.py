@@ -18,7 +18,11 @@ First, the train step of ``ours`` against its anchors (``--step-threads``, defau
   benchmark says so: the anchor then includes those changes.
 
 Each is measured in its own process, ``--rounds`` times in turn (the median of the rounds' medians), so a busy
-machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours.
+machine slows all of them alike. The target is ``ours <= 0.85 x Ultralytics``, printed for both of ours, after the
+machine lines (CPU, the instruction set torch dispatches to, any ISA restriction, the load). With ``--breakdown``,
+one step of ours and one of Ultralytics are then timed op by op (thread time of every ATen op, grouped: convolution
+forward, convolution backward, BatchNorm, SiLU, pooling/upsampling/concatenation/addition, other ops, and the time
+outside ops), with the convolutions' GFLOP/s and how much of the target the convolutions of ours alone take.
 
 Then four measurements of the whole engine, each in its own process (so that each peak-memory figure is its own):
 
@@ -35,6 +39,7 @@ different CPU; absolute images/s are printed for the record. Example::
     .venv/bin/python benchmarks/bench_train.py                       # ours, 640, batch 2, 2 threads
     .venv/bin/python benchmarks/bench_train.py --detector tinydet --imgsz 320 --no-step
     .venv/bin/python benchmarks/bench_train.py --step-only --rounds 5
+    .venv/bin/python benchmarks/bench_train.py --step-only --breakdown
 """
 
 from __future__ import annotations
@@ -324,6 +329,87 @@ def measure_step(args: argparse.Namespace) -> dict:
             "peak_rss_mb": round(peak_mb(), 1)}
 
 
+#: how ``--breakdown`` groups ATen ops: (label, op names; "pool/cat/add" includes the upsampling); the rest (loss,
+#: optimiser, EMA, views) is "other ops"
+OP_GROUPS = (
+    ("conv fwd", ("convolution",)),
+    ("conv bwd", ("convolution_backward",)),
+    ("BN", ("native_batch_norm", "native_batch_norm_backward")),
+    ("SiLU", ("silu", "silu_backward")),
+    ("pool/cat/add", ("max_pool2d_with_indices", "max_pool2d_with_indices_backward", "upsample_nearest2d",
+                                  "upsample_nearest2d_backward", "cat", "add", "add_")),
+)
+
+
+def conv_flops(func_name: str, args: tuple) -> float:
+    """Multiply-adds x 2 of one ``convolution`` or ``convolution_backward`` call (each computed gradient counts as
+    much as the forward pass; ``w[0].numel()`` is in-channels / groups x kernel taps)."""
+    if func_name == "convolution":
+        x, w, stride, pad, dil = args[0], args[1], args[3], args[4], args[5]
+        passes = 1
+    else:
+        x, w, stride, pad, dil = args[1], args[2], args[4], args[5], args[6]
+        passes = sum(bool(m) for m in args[10][:2])
+    out = [(x.shape[2 + i] + 2 * pad[i] - dil[i] * (w.shape[2 + i] - 1) - 1) // stride[i] + 1 for i in range(2)]
+    return 2.0 * passes * x.shape[0] * w.shape[0] * out[0] * out[1] * w[0].numel()
+
+
+def measure_breakdown(args: argparse.Namespace) -> dict:
+    """CPU (thread) time of every ATen op in one train step after a warm-up, grouped by ``OP_GROUPS``, and the
+    convolutions' GFLOP/s. The dispatch hook costs a few microseconds per op: it lands in "outside ops" (the Python
+    and autograd work between ops), not in the op groups."""
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    torch.set_num_threads(args.step_threads)
+    kind = args.measure.split("-", 1)[1]
+    try:
+        step, what = build_step(kind, args.imgsz, args.batch, args.classes)
+    except ImportError as exc:
+        return {"what": args.measure, "missing": f"{type(exc).__name__}: {exc}"}
+    step()
+    times: dict[str, float] = {}
+    flops = [0.0]
+
+    class Timed(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, a=(), kw=None):
+            t0 = time.thread_time()
+            out = func(*a, **(kw or {}))
+            name = func.overloadpacket.__name__
+            times[name] = times.get(name, 0.0) + time.thread_time() - t0
+            if name in ("convolution", "convolution_backward"):
+                flops[0] += conv_flops(name, a)
+            return out
+
+    t0 = time.thread_time()
+    with Timed():
+        step()
+    total = time.thread_time() - t0
+    groups = {label: sum(times.pop(n, 0.0) for n in names) for label, names in OP_GROUPS}
+    groups["other ops"] = sum(times.values())
+    groups["outside ops"] = total - sum(groups.values())
+    conv = groups["conv fwd"] + groups["conv bwd"]
+    return {"what": args.measure, "description": what, "total_s": total, "groups_s": groups,
+            "conv_gflops_per_s": flops[0] / conv / 1e9 if conv else float("nan")}
+
+
+def print_breakdown(args: argparse.Namespace, step_medians: dict[str, float]) -> None:
+    rows = [run_measure(k, args) for k in ("breakdown-ours", "breakdown-ultralytics")]
+    rows = [r for r in rows if "missing" not in r]
+    labels = list(rows[0]["groups_s"])
+    print("where one step's CPU time goes, ms (thread time per ATen op, one step after a warm-up):")
+    print(f"  {'':<12}" + "".join(f"{lb[:12]:>13}" for lb in labels) + f"{'step':>8}{'conv GFLOP/s':>14}")
+    for r in rows:
+        print(f"  {r['what'][10:]:<12}" + "".join(f"{1e3 * r['groups_s'][lb]:>13.0f}" for lb in labels)
+              + f"{1e3 * r['total_s']:>8.0f}{r['conv_gflops_per_s']:>14.0f}")
+    if "step-ultralytics" in step_medians:
+        ours = rows[0]["groups_s"]
+        conv = ours["conv fwd"] + ours["conv bwd"]
+        goal = TARGET * step_medians["step-ultralytics"]
+        print(f"  the convolutions of ours alone: {conv:.3f} s = {conv / step_medians['step-ultralytics']:.3f} x "
+              f"Ultralytics' step; the target ({TARGET:.2f} x) leaves {goal - conv:+.3f} s for everything else")
+
+
 def frozen_sources_changed() -> list[str]:
     out = []
     for rel, digest in FROZEN_SOURCES.items():
@@ -335,14 +421,14 @@ def frozen_sources_changed() -> list[str]:
 
 def run_measure(what: str, args: argparse.Namespace) -> dict:
     cmd = [sys.executable, __file__, "--measure", what] + [f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items()
-                                                           if k not in ("measure", "step", "step_only")]
+                                                           if k not in ("measure", "step", "step_only", "breakdown")]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode:
         sys.exit(f"{what} failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def compare_steps(args: argparse.Namespace) -> None:
+def compare_steps(args: argparse.Namespace) -> dict[str, float]:
     kinds = ["step-ours", "step-ours-cl", "step-ultralytics", "step-frozen"]
     rounds: dict[str, list[dict]] = {k: [] for k in kinds}
     for _ in range(args.rounds):
@@ -351,6 +437,11 @@ def compare_steps(args: argparse.Namespace) -> None:
                 continue
             rounds[k].append(run_measure(k, args))
     med = {k: statistics.median(r["s_per_step"] for r in v) for k, v in rounds.items() if v and "missing" not in v[0]}
+    import torch  # noqa: F401  (loaded, so that the machine lines name the ISA torch dispatches to)
+    from _machine import machine_lines
+
+    for line in machine_lines():
+        print(line)
     print(f"train step: YOLOv8s 4-channel, {args.classes} classes, {args.imgsz} px, batch {args.batch}, "
           f"{args.step_threads} thread(s), CPU time per step (median of {args.rounds} rounds x {args.steps} steps)")
     for k in kinds:
@@ -368,6 +459,7 @@ def compare_steps(args: argparse.Namespace) -> None:
     changed = frozen_sources_changed()
     if changed:
         print(f"note: the frozen step runs the current {', '.join(changed)}, changed since it was frozen")
+    return med
 
 
 def _ir8():
@@ -390,15 +482,20 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="rounds of the train-step comparison")
     p.add_argument("--no-step", dest="step", action="store_false", help="skip the train-step comparison")
     p.add_argument("--step-only", action="store_true", help="only the train-step comparison")
+    p.add_argument("--breakdown", action="store_true",
+                   help="also time every ATen op of one step of ours and of Ultralytics, grouped (convolutions, ...)")
     p.add_argument("--measure", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure:
-        print(json.dumps(measure_step(args) if args.measure.startswith("step-") else measure(args)))
+        how = {"step": measure_step, "breakdown": measure_breakdown}.get(args.measure.split("-")[0], measure)
+        print(json.dumps(how(args)))
         return
     # the same OpenMP wait policy as `harness run` (see harness/commands/run.py), inherited by every measurement
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if args.step or args.step_only:
-        compare_steps(args)
+        medians = compare_steps(args)
+        if args.breakdown:
+            print_breakdown(args, medians)
         if args.step_only:
             return
         print()
