@@ -438,6 +438,7 @@ def compare_steps(args: argparse.Namespace) -> dict[str, float]:
             rounds[k].append(run_measure(k, args))
     med = {k: statistics.median(r["s_per_step"] for r in v) for k, v in rounds.items() if v and "missing" not in v[0]}
     import torch  # noqa: F401  (loaded, so that the machine lines name the ISA torch dispatches to)
+
     from _machine import machine_lines
 
     for line in machine_lines():
