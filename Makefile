@@ -1,7 +1,7 @@
 # Two entry points that do all the set-up themselves on a fresh machine (Python 3.11+, nothing installed):
 #   make demo   creates .venv on first use, then runs the main job on the built-in synthetic data
 #   make test   creates .venv on first use, then runs the test suite
-#   make lint   creates .venv on first use, then runs ruff (lint) over the tree and mypy over harness/
+#   make lint   creates .venv on first use, then runs ruff (lint and format check) over the tree and mypy over harness/
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -60,6 +60,7 @@ test: $(DEV_STAMP)
 # settings: [tool.ruff] and [tool.mypy] in pyproject.toml
 lint: $(DEV_STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy harness
 
 clean-venv:

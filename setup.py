@@ -1,5 +1,6 @@
 """Packaging glue that pyproject.toml cannot express: ship the repository's ``configs/`` folder inside the
 installed package as ``harness.configs`` so a non-editable install finds the protocols and profiles."""
+
 from setuptools import find_packages, setup
 
 setup(

@@ -67,6 +67,8 @@ def machine_lines() -> list[str]:
         parts.append(f"torch {torch.backends.cpu.get_cpu_capability()}")
     env = ", ".join(f"{k}={os.environ[k]}" for k in PROFILE_VARS if k in os.environ) or "none"
     load = " ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
-    return [f"CPU: {model}, {os.cpu_count()} logical cores, {hw} hardware; dispatch: {', '.join(parts)}",
-            f"ISA restrictions: {env}",
-            f"load average {load}: a shared machine, so CPU (process) time is the figure to compare"]
+    return [
+        f"CPU: {model}, {os.cpu_count()} logical cores, {hw} hardware; dispatch: {', '.join(parts)}",
+        f"ISA restrictions: {env}",
+        f"load average {load}: a shared machine, so CPU (process) time is the figure to compare",
+    ]

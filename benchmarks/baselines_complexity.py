@@ -27,8 +27,10 @@ BUILD = {"icafusion": icafusion.build, "eme": eme.build, "cmadet": cmadet.build}
 
 
 def complexity() -> None:
-    print(f"{'detector':<10} {'params (M)':>11} {'seed':>7} {'diff':>7} {'GFLOPs paper':>13} {'seed':>7} {'diff':>7} "
-          f"{'GFLOPs exact':>13} {'unused (M)':>11}")
+    print(
+        f"{'detector':<10} {'params (M)':>11} {'seed':>7} {'diff':>7} {'GFLOPs paper':>13} {'seed':>7} {'diff':>7} "
+        f"{'GFLOPs exact':>13} {'unused (M)':>11}"
+    )
     worst = 0.0
     for name, build in BUILD.items():
         with torch.device("meta"):
@@ -39,19 +41,25 @@ def complexity() -> None:
         exact = exact_flops(model, x).gflops
         unused = reachable_parameters(model, x).unreachable_count / 1e6
         sp, sg = SEED[name]
-        print(f"{name:<10} {params:>11.3f} {sp:>7.2f} {100 * (params / sp - 1):>+6.2f}% {paper:>13.3f} {sg:>7.2f} "
-              f"{100 * (paper / sg - 1):>+6.2f}% {exact:>13.3f} {unused:>11.3f}")
+        print(
+            f"{name:<10} {params:>11.3f} {sp:>7.2f} {100 * (params / sp - 1):>+6.2f}% {paper:>13.3f} {sg:>7.2f} "
+            f"{100 * (paper / sg - 1):>+6.2f}% {exact:>13.3f} {unused:>11.3f}"
+        )
         worst = max(worst, abs(params / sp - 1), abs(paper / sg - 1))
-    print(f"target: params and paper GFLOPs within {TARGET_DIFF:.0%} of the seed's -> "
-          f"{'met' if worst <= TARGET_DIFF else 'NOT met'} (largest difference {100 * worst:.2f} %)")
+    print(
+        f"target: params and paper GFLOPs within {TARGET_DIFF:.0%} of the seed's -> "
+        f"{'met' if worst <= TARGET_DIFF else 'NOT met'} (largest difference {100 * worst:.2f} %)"
+    )
 
 
 def timing(steps: int, scale: str) -> None:
     torch.manual_seed(0)
     b, size = 8, 256
     x = (torch.rand(b, 3, size, size), torch.rand(b, 3, size, size))
-    targets = [{"boxes": torch.tensor([[20.0, 30.0, 80.0, 100.0], [120.0, 40.0, 200.0, 90.0]]),
-                "labels": torch.tensor([1, 3])} for _ in range(b)]
+    targets = [
+        {"boxes": torch.tensor([[20.0, 30.0, 80.0, 100.0], [120.0, 40.0, 200.0, 90.0]]), "labels": torch.tensor([1, 3])}
+        for _ in range(b)
+    ]
     results = {}
     for name, build in (("eme", BUILD["eme"]), ("icafusion", BUILD["icafusion"]), ("cmadet", BUILD["cmadet"])):
         model = build(8, scale=scale).train()
@@ -67,8 +75,10 @@ def timing(steps: int, scale: str) -> None:
                 times.append(time.perf_counter() - t)
         results[name] = (sorted(times)[len(times) // 2], sum(p.numel() for p in model.parameters()) / 1e6)
     anchor = results["eme"][0]
-    print(f"\ntrain step, {size} px, batch {b}, scale {scale!r}, CPU threads {torch.get_num_threads()}, "
-          f"median of {steps} (anchor: eme)")
+    print(
+        f"\ntrain step, {size} px, batch {b}, scale {scale!r}, CPU threads {torch.get_num_threads()}, "
+        f"median of {steps} (anchor: eme)"
+    )
     print(f"{'detector':<10} {'params (M)':>11} {'s/step':>8} {'x eme':>7}")
     for name, (t, p) in results.items():
         print(f"{name:<10} {p:>11.3f} {t:>8.3f} {t / anchor:>7.2f}")

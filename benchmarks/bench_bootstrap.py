@@ -42,8 +42,10 @@ def main() -> None:
         dets = make_detections(gt, rng, recall=0.8, jitter=2.0, false_positives=args.dets)
         write_run(store, RunKey("bench", "det", "c2", "F1", 0), gt, dets)
         run = next(iter(StoreView(store).entries("bench")[0].folds["F1"].runs))
-        print(f"fold: {args.images} images, {len(gt['annotations'])} instances, {len(dets)} detections; "
-              f"{args.resamples} resamples + the original images")
+        print(
+            f"fold: {args.images} images, {len(gt['annotations'])} instances, {len(dets)} detections; "
+            f"{args.resamples} resamples + the original images"
+        )
 
         def timed(workers: int) -> tuple[float, np.ndarray]:
             scorer = BootstrapScorer(args.resamples, seed=0, workers=workers)
@@ -60,8 +62,10 @@ def main() -> None:
             same = np.array_equal(np.nan_to_num(out, nan=-1), np.nan_to_num(anchor, nan=-1))
             all_same = all_same and same
             print(f"        workers={w}: {s:7.2f} s  speed-up x{anchor_s / s:.2f} vs anchor; identical numbers: {same}")
-        print(f"target: identical numbers with any number of workers -> {'met' if all_same else 'NOT met'} "
-              f"(workers pay off once the resamples outweigh their start-up, about a second each)")
+        print(
+            f"target: identical numbers with any number of workers -> {'met' if all_same else 'NOT met'} "
+            f"(workers pay off once the resamples outweigh their start-up, about a second each)"
+        )
 
 
 if __name__ == "__main__":

@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
             fn()
     names = list(runs)
     for k in range(args.repeats):
-        for name in names[k % len(names):] + names[:k % len(names)]:  # rotating order
+        for name in names[k % len(names) :] + names[: k % len(names)]:  # rotating order
             c0 = time.process_time()
             runs[name]()
             cpu[name].append(time.process_time() - c0)
@@ -119,9 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     low = {k: min(v) * 1e3 for k, v in cpu.items()}
 
     # parity: byte for byte the previous code on the clean frame and on every masked frame; the anchor within 1
-    same_bytes = np.array_equal(c2_uint8(t), previous.c2_uint8(t)) and np.array_equal(
-        c2_uint8(same), previous.c2_uint8(same)) and all(
-        np.array_equal(c2_uint8(m), previous.c2_uint8(m)) for m in masked)
+    same_bytes = (
+        np.array_equal(c2_uint8(t), previous.c2_uint8(t))
+        and np.array_equal(c2_uint8(same), previous.c2_uint8(same))
+        and all(np.array_equal(c2_uint8(m), previous.c2_uint8(m)) for m in masked)
+    )
     u_diff = np.abs(c2_uint8(t).astype(int) - scipy_c2_uint8(t).astype(int))
     near_anchor = int(u_diff.max()) <= 1
 
@@ -141,17 +143,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {label:<58} {low[key]:>7.2f} {med[key]:>10.2f}")
     ratio = med["anchor"] / med["harness"]
     verdict = {True: "met", False: "NOT met"}
-    print(f"  anchor / harness: {ratio:.2f}x (target >= {TARGET_RATIO:g}x: {verdict[ratio >= TARGET_RATIO]}); harness "
-          f"{med['harness']:.2f} ms (target <= {TARGET_MS:g} ms on AVX2: {verdict[med['harness'] <= TARGET_MS]})")
-    print(f"  previous / harness: {med['previous'] / med['harness']:.2f}x clean, "
-          f"{med['previous, masked'] / med['masked, new mask']:.2f}x masked")
+    print(
+        f"  anchor / harness: {ratio:.2f}x (target >= {TARGET_RATIO:g}x: {verdict[ratio >= TARGET_RATIO]}); harness "
+        f"{med['harness']:.2f} ms (target <= {TARGET_MS:g} ms on AVX2: {verdict[med['harness'] <= TARGET_MS]})"
+    )
+    print(
+        f"  previous / harness: {med['previous'] / med['harness']:.2f}x clean, "
+        f"{med['previous, masked'] / med['masked, new mask']:.2f}x masked"
+    )
     for key in ("masked, new mask", "masked, same mask"):
         r = med[key] / med["harness"]
         print(f"  {key} / clean: {r:.2f}x (target <= {TARGET_MASKED:g}x: {verdict[r <= TARGET_MASKED]})")
-    print(f"  bytes: {'identical to' if same_bytes else 'DIFFERENT from'} the previous code's (clean, {n_masks + 1} "
-          f"masked frames)")
-    print(f"  anchor: <= {int(u_diff.max())} grey level apart on {int((u_diff > 0).sum())} of {u_diff.size} pixels -> "
-          f"{'ok' if same_bytes and near_anchor else 'MISMATCH'}")
+    print(
+        f"  bytes: {'identical to' if same_bytes else 'DIFFERENT from'} the previous code's (clean, {n_masks + 1} "
+        f"masked frames)"
+    )
+    print(
+        f"  anchor: <= {int(u_diff.max())} grey level apart on {int((u_diff > 0).sum())} of {u_diff.size} pixels -> "
+        f"{'ok' if same_bytes and near_anchor else 'MISMATCH'}"
+    )
     return 0 if same_bytes and near_anchor else 1
 
 

@@ -21,8 +21,22 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-HEAVY = ("numpy", "torch", "cv2", "scipy", "rich", "yaml", "PIL", "pycocotools", "faster_coco_eval", "onnx",
-         "onnxruntime", "matplotlib", "safetensors", "pandas")
+HEAVY = (
+    "numpy",
+    "torch",
+    "cv2",
+    "scipy",
+    "rich",
+    "yaml",
+    "PIL",
+    "pycocotools",
+    "faster_coco_eval",
+    "onnx",
+    "onnxruntime",
+    "matplotlib",
+    "safetensors",
+    "pandas",
+)
 DEFAULT = ("--help", "--version", "run --help", "sensing decode --help", "list", "plugins")
 LINE = re.compile(r"import time:\s+(\d+) \|\s+(\d+) \|( +)(\S+)")
 
@@ -49,12 +63,20 @@ def measure(args: list[str], env: dict[str, str]) -> tuple[float, float, list[st
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--cmd", action="append", default=None,
-                    help="A command line to time, e.g. --cmd='run --help' (repeatable) [default: a set of light ones].")
+    ap.add_argument(
+        "--cmd",
+        action="append",
+        default=None,
+        help="A command line to time, e.g. --cmd='run --help' (repeatable) [default: a set of light ones].",
+    )
     opts = ap.parse_args()
     with tempfile.TemporaryDirectory() as pyc:
-        env = {**os.environ, "HARNESS_DISABLE_PLUGIN_AUTOLOAD": "1", "PYTHONPYCACHEPREFIX": pyc,
-               "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+        env = {
+            **os.environ,
+            "HARNESS_DISABLE_PLUGIN_AUTOLOAD": "1",
+            "PYTHONPYCACHEPREFIX": pyc,
+            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+        }
         env.pop("PYTHONDONTWRITEBYTECODE", None)  # a real installation has its byte code cached
         floor = min(_time([sys.executable, "-c", "pass"], env) for _ in range(opts.repeats))
         print(f"python -c pass: {floor * 1e3:.0f} ms (best of {opts.repeats})")

@@ -33,8 +33,13 @@ def sequential_anchor(files: list[Path], out: Path) -> int:
     for path in files:
         rj = read_rjpeg(path)
         t, info = rjpeg_temperature(rj)
-        write_thermal(out / f"{path.stem}.png", t, unit="centikelvin", params=rj.params,
-                      extra={"source": str(path), "decoder_route": rj.decoder})
+        write_thermal(
+            out / f"{path.stem}.png",
+            t,
+            unit="centikelvin",
+            params=rj.params,
+            extra={"source": str(path), "decoder_route": rj.decoder},
+        )
     return len(files)
 
 
@@ -68,13 +73,14 @@ def main(argv: list[str] | None = None) -> int:
         runs = {
             "anchor: sequential loop (before)": lambda out: sequential_anchor(files, out),
             "decode_batch, 1 worker": lambda out: len(decode_batch([folder], out, workers=1).decoded),
-            f"decode_batch, {args.workers} workers": lambda out: len(decode_batch([folder], out,
-                                                                                  workers=args.workers).decoded),
+            f"decode_batch, {args.workers} workers": lambda out: len(
+                decode_batch([folder], out, workers=args.workers).decoded
+            ),
         }
         names = list(runs)
         times: dict[str, list[float]] = {n: [] for n in names}
         for k in range(args.rounds):
-            for name in names[k % 3:] + names[:k % 3]:
+            for name in names[k % 3 :] + names[: k % 3]:
                 out = tmp / f"out-{k}-{names.index(name)}"
                 out.mkdir()
                 t0 = time.perf_counter()
@@ -85,16 +91,20 @@ def main(argv: list[str] | None = None) -> int:
                     return 1
                 shutil.rmtree(out)
     anchor = statistics.median(times[names[0]])
-    print(f"Decoding {args.files} real 640x512 M3T R-JPEGs ({args.frame.name}), {args.rounds} rounds, "
-          f"{os.cpu_count()} CPU(s)")
+    print(
+        f"Decoding {args.files} real 640x512 M3T R-JPEGs ({args.frame.name}), {args.rounds} rounds, "
+        f"{os.cpu_count()} CPU(s)"
+    )
     print(f"  {'route':<36} {'median s':>9} {'files/s':>8} {'vs anchor':>10}")
     for name in names:
         med = statistics.median(times[name])
         print(f"  {name:<36} {med:>9.2f} {args.files / med:>8.1f} {anchor / med:>9.2f}x")
     one, many = (anchor / statistics.median(times[n]) for n in names[1:3])
-    print(f"target: 1 worker >= {TARGET_ONE:g}x the loop (it pays for atomic writes), {args.workers} workers >= "
-          f"{TARGET_MANY:g}x -> {'met' if one >= TARGET_ONE and many >= TARGET_MANY else 'NOT met'} "
-          f"(needs {args.workers} idle cores)")
+    print(
+        f"target: 1 worker >= {TARGET_ONE:g}x the loop (it pays for atomic writes), {args.workers} workers >= "
+        f"{TARGET_MANY:g}x -> {'met' if one >= TARGET_ONE and many >= TARGET_MANY else 'NOT met'} "
+        f"(needs {args.workers} idle cores)"
+    )
     return 0
 
 

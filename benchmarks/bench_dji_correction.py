@@ -31,7 +31,9 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "data"
 DEFAULT_FILES = [SHARED / "dji-m3t-rjpeg" / f"m3t_{k}.jpg" for k in "abc"] + [
-    SHARED / "dji-rjpeg-cameras" / "m2ea_iirp.jpg", SHARED / "dji-rjpeg-cameras" / "h20t_dirp.jpg"]
+    SHARED / "dji-rjpeg-cameras" / "m2ea_iirp.jpg",
+    SHARED / "dji-rjpeg-cameras" / "h20t_dirp.jpg",
+]
 
 
 def _time(fn, repeat: int) -> float:
@@ -78,11 +80,13 @@ def main(argv: list[str] | None = None) -> int:
     def previous_decode(f: Path) -> np.ndarray:
         rj = read_rjpeg(f)
         return dc.correct_temperature(rj.blackbody_c(), *correction_args(rj))
+
     corrected = [f for f in files if f.name in steps]
 
     runs = {
-        "correction, anchor: np.unique per value": lambda: [dc.correct_temperature(rj.blackbody_c(), *a)
-                                                            for rj, a in steps.values()],
+        "correction, anchor: np.unique per value": lambda: [
+            dc.correct_temperature(rj.blackbody_c(), *a) for rj, a in steps.values()
+        ],
         "correction, lookup table": lambda: [dc.correct_raw14(rj.raw14, *a) for rj, a in steps.values()],
         "decode, anchor: read the bytes": lambda: [f.read_bytes() for f in files],
         "decode, read_rjpeg + temperature": lambda: [rjpeg_temperature(read_rjpeg(f)) for f in files],
@@ -92,12 +96,14 @@ def main(argv: list[str] | None = None) -> int:
     names = list(runs)
     times: dict[str, list[float]] = {n: [] for n in names}
     for k in range(args.rounds):
-        for name in names[k % len(names):] + names[:k % len(names)]:
+        for name in names[k % len(names) :] + names[: k % len(names)]:
             times[name].append(_time(runs[name], args.repeat))
     med = {n: statistics.median(v) for n, v in times.items()}
     n_corr, n_dec = len(steps), len(files)
-    print(f"{n_corr} file(s) with a correction step, {n_dec} decoded; median of {args.rounds} rounds x "
-          f"{args.repeat} repeats, OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}")
+    print(
+        f"{n_corr} file(s) with a correction step, {n_dec} decoded; median of {args.rounds} rounds x "
+        f"{args.repeat} repeats, OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}"
+    )
     print(f"{'run':42s} {'ms/file':>9s} {'files/s':>9s}")
     for name in names:
         n = n_dec if name.startswith("decode") else n_corr
@@ -105,11 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     a, b = med[names[0]], med[names[1]]
     print(f"correction step: lookup table {a / b:.1f}x faster than the np.unique anchor")
     r, d = med[names[2]], med[names[3]]
-    print(f"decode: {n_dec / d:.1f} files/s, {d / r:.0f}x the time of reading the bytes "
-          f"({n_dec / r:.0f} files/s)")
+    print(f"decode: {n_dec / d:.1f} files/s, {d / r:.0f}x the time of reading the bytes ({n_dec / r:.0f} files/s)")
     o, c = med[names[4]], med[names[5]]
-    print(f"corrected decode: {o / c:.1f}x the previous path's files/s per core ({n_corr / c:.0f} against "
-          f"{n_corr / o:.0f} files/s)")
+    print(
+        f"corrected decode: {o / c:.1f}x the previous path's files/s per core ({n_corr / c:.0f} against "
+        f"{n_corr / o:.0f} files/s)"
+    )
     print(f"target: lookup table >= {TARGET:g}x the np.unique anchor -> {'met' if a / b >= TARGET else 'NOT met'}")
     return 0
 

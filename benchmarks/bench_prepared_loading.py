@@ -79,9 +79,11 @@ def main() -> None:
     t_prep = median_time(prepared, args.repeat)
     s0 = ds[0]
     rh, rw = cv2.imread(str(pairs[0][0])).shape[:2]
-    print(f"m3t-synth {args.profile}: {n} samples; raw: RGB {rw}x{rh} JPEG + thermal {pairs[0][1].suffix} file; "
-          f"prepared: {s0.width}x{s0.height} (rgb u8, thermal f32, ir8 u8); {os.cpu_count()} CPU(s), "
-          f"median of {args.repeat} passes")
+    print(
+        f"m3t-synth {args.profile}: {n} samples; raw: RGB {rw}x{rh} JPEG + thermal {pairs[0][1].suffix} file; "
+        f"prepared: {s0.width}x{s0.height} (rgb u8, thermal f32, ir8 u8); {os.cpu_count()} CPU(s), "
+        f"median of {args.repeat} passes"
+    )
     rows = [("raw decode (anchor)", t_anchor), ("raw + align", t_align), ("prepared (memmap)", t_prep)]
     width = max(len(r[0]) for r in rows)
     print(f"{'loader':<{width}}  {'samples/s':>10}  {'x anchor':>9}")

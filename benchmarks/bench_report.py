@@ -44,18 +44,33 @@ def detections(gt: dict, rng: np.random.Generator, recall: float, per_image: int
             x, y, w, h = a["bbox"]
             j = 0.15 * max(w, h)
             cat = a["category_id"] if rng.random() < 0.8 else int(rng.integers(1, ncat + 1))
-            by_image[a["image_id"]].append({"image_id": a["image_id"], "category_id": cat, "score": float(
-                rng.uniform(0.05, 0.7)), "bbox": [x + rng.normal(0, j), y + rng.normal(0, j), max(2.0, w + rng.normal(
-                    0, j)), max(2.0, h + rng.normal(0, j))]})
+            by_image[a["image_id"]].append(
+                {
+                    "image_id": a["image_id"],
+                    "category_id": cat,
+                    "score": float(rng.uniform(0.05, 0.7)),
+                    "bbox": [
+                        x + rng.normal(0, j),
+                        y + rng.normal(0, j),
+                        max(2.0, w + rng.normal(0, j)),
+                        max(2.0, h + rng.normal(0, j)),
+                    ],
+                }
+            )
     sizes = {im["id"]: (im["width"], im["height"]) for im in gt["images"]}
     out = []
     for iid, dets in by_image.items():
         W, H = sizes[iid]
         for _ in range(per_image - len(dets)):
             w, h = float(rng.uniform(6, 60)), float(rng.uniform(6, 60))
-            dets.append({"image_id": iid, "category_id": int(rng.integers(1, ncat + 1)),
-                         "score": float(rng.exponential(0.04)) + 0.001,
-                         "bbox": [float(rng.uniform(0, W - w)), float(rng.uniform(0, H - h)), w, h]})
+            dets.append(
+                {
+                    "image_id": iid,
+                    "category_id": int(rng.integers(1, ncat + 1)),
+                    "score": float(rng.exponential(0.04)) + 0.001,
+                    "bbox": [float(rng.uniform(0, W - w)), float(rng.uniform(0, H - h)), w, h],
+                }
+            )
         out += dets
     return out
 
@@ -81,8 +96,11 @@ def build_store(root: Path) -> None:
         run = store.run(key)
         run.path.mkdir(parents=True, exist_ok=True)
         run.set_status("running", config_hash="bench")
-        run.write_config(run_config(cfg, key, {"prepared_fingerprint": prepared.manifest.get("fingerprint"),
-                                               "prepared_key": prepared.key}))
+        run.write_config(
+            run_config(
+                cfg, key, {"prepared_fingerprint": prepared.manifest.get("fingerprint"), "prepared_key": prepared.key}
+            )
+        )
         _, val = fold_indices(prepared, fold)
         gt = prepared.coco(val)
         dets = detections(gt, rng, recall)
@@ -90,20 +108,40 @@ def build_store(root: Path) -> None:
         atomic_write_json(run.gt_path, gt, indent=None)
         atomic_write_json(run.predictions_path, dets, indent=None)
         gflops = {"ours": 8.7, "eme": 5.1, "icafusion": 9.8, "cmadet": 11.2}[det]
-        run.write_metrics({**ev, "train": {"epochs": EPOCHS, "imgsz": 128}, "environment": {"device": "cpu",
-                          "threads": 1, "torch": "bench"},
-                           "complexity": {"schema": 1, "model_options": {"scale": "n"}, "imgsz": 128,
-                                          "params": 3_000_000, "params_fused": 3_000_000, "bn_folded": True,
-                                          "unused_params": 0, "gflops": {"640": {"paper": gflops,
-                                                                                 "exact": gflops * 1.01}}}})
+        run.write_metrics(
+            {
+                **ev,
+                "train": {"epochs": EPOCHS, "imgsz": 128},
+                "environment": {"device": "cpu", "threads": 1, "torch": "bench"},
+                "complexity": {
+                    "schema": 1,
+                    "model_options": {"scale": "n"},
+                    "imgsz": 128,
+                    "params": 3_000_000,
+                    "params_fused": 3_000_000,
+                    "bn_folded": True,
+                    "unused_params": 0,
+                    "gflops": {"640": {"paper": gflops, "exact": gflops * 1.01}},
+                },
+            }
+        )
         store_analysis(run, gt, dets, cfg, ev["metrics"]["conf_threshold"])
         with open(run.log_path, "w", encoding="utf-8") as fh:
             for e in range(1, EPOCHS + 1):
-                fh.write(json.dumps({"epoch": e, "loss": {"box": 3.0 / e, "cls": 4.0 / e, "dfl": 2.0 / e},
-                                     "metrics": {"mAP50": 0.01 * e, "mAP50_95": 0.004 * e}}) + "\n")
+                fh.write(
+                    json.dumps(
+                        {
+                            "epoch": e,
+                            "loss": {"box": 3.0 / e, "cls": 4.0 / e, "dfl": 2.0 / e},
+                            "metrics": {"mAP50": 0.01 * e, "mAP50_95": 0.004 * e},
+                        }
+                    )
+                    + "\n"
+                )
         run.set_status("finished", config_hash="bench")
-    atomic_write_json(store.dataset_path("m3t-synth"), {"dataset": "m3t-synth", "thermal": "radiometric",
-                                                        "sensing_stage": True})
+    atomic_write_json(
+        store.dataset_path("m3t-synth"), {"dataset": "m3t-synth", "thermal": "radiometric", "sensing_stage": True}
+    )
     print(f"store: {len(jobs)} runs in {root}")
 
 
@@ -139,12 +177,16 @@ def main() -> None:
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     pictures = sum(len(g.thumbs) for s in report.sections for g in getattr(s, "galleries", []))
-    print(f"build_report(resamples={args.resamples}, workers={args.workers}): {wall:.1f} s wall, {cpu:.1f} s CPU "
-          f"here + {kids.ru_utime + kids.ru_stime:.1f} s CPU in workers; {len(report.tables)} tables, "
-          f"{sum(len(s.figures) for s in report.sections)} figures, {pictures} pictures")
+    print(
+        f"build_report(resamples={args.resamples}, workers={args.workers}): {wall:.1f} s wall, {cpu:.1f} s CPU "
+        f"here + {kids.ru_utime + kids.ru_stime:.1f} s CPU in workers; {len(report.tables)} tables, "
+        f"{sum(len(s.figures) for s in report.sections)} figures, {pictures} pictures"
+    )
     size = folder_bytes(args.out) / 1e6
-    print(f"report folder {args.out}: {size:.2f} MB (report.html {(args.out / 'report.html').stat().st_size / 1e6:.2f} "
-          f"MB)")
+    print(
+        f"report folder {args.out}: {size:.2f} MB (report.html {(args.out / 'report.html').stat().st_size / 1e6:.2f} "
+        f"MB)"
+    )
     print(f"target: report folder < {TARGET_MB:g} MB: {'met' if size < TARGET_MB else 'NOT met'}")
 
 

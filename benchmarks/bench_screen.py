@@ -72,8 +72,8 @@ def make_flight(folder: Path, copies: int) -> Path:
 
     from harness.screen.position import add_xmp
     from harness.sensing import jpeg
-    from harness.sensing.registration import focal_prior, homography_from_similarity, image_center
     from harness.sensing.radiometry import read_rjpeg
+    from harness.sensing.registration import focal_prior, homography_from_similarity, image_center
 
     folder.mkdir(parents=True, exist_ok=True)
     cam = wide_camera()

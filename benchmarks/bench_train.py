@@ -176,7 +176,8 @@ def measure(args: argparse.Namespace) -> dict:
                                thermal_channels=spec.thermal_channels, conf=0.001, iou=0.7, max_det=300)
                 dt = time.perf_counter() - t0
                 out.update(s_per_step=dt / args.steps, images_per_s=n / dt, detections_per_image=len(dets) / n)
-    out.update(peak_rss_mb=round(peak_mb(), 1), rss_before_mb=round(base, 1), peak_over_start_mb=round(peak_mb() - base, 1),
+    out.update(peak_rss_mb=round(peak_mb(), 1), rss_before_mb=round(base, 1),
+               peak_over_start_mb=round(peak_mb() - base, 1),
                model_params=int(sum(p.numel() for p in model.parameters())))
     del np
     return out
@@ -506,7 +507,8 @@ def main() -> None:
     r0 = rows["anchor-train"]
     print(f"detector {args.detector} ({r0['model_params']:,} params), {args.imgsz} px, batch {args.batch}, "
           f"{args.threads} threads, CPU")
-    print(f"{'measurement':<14} {'images/s':>9} {'s/step':>8} {'peak RSS MB':>12} {'+MB over start':>15} {'vs anchor':>10}")
+    print(f"{'measurement':<14} {'images/s':>9} {'s/step':>8} {'peak RSS MB':>12} {'+MB over start':>15} "
+          f"{'vs anchor':>10}")
     for what, r in rows.items():
         anchor = rows["anchor-train" if "train" in what else "anchor-eval"]
         ratio = r["images_per_s"] / anchor["images_per_s"]

@@ -41,8 +41,9 @@ def main() -> None:
     runs = []
     for scale in args.scales:
         torch.manual_seed(0)
-        path = save_ultralytics(ours.build(80, in_channels=3, scale=scale), folder / f"yolov8{scale}.pt",
-                                {i: f"c{i}" for i in range(80)})
+        path = save_ultralytics(
+            ours.build(80, in_channels=3, scale=scale), folder / f"yolov8{scale}.pt", {i: f"c{i}" for i in range(80)}
+        )
         runs.append({"name": f"ultralytics yolov8{scale}", "path": str(path), "mode": "import"})
     if args.icafusion_width:
         torch.manual_seed(0)
@@ -52,13 +53,28 @@ def main() -> None:
     spec = folder / "runs.json"
     spec.write_text(json.dumps(runs))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.environ.get("PYTHONPATH", str(REPO)), str(REPO / "tests")])}
-    out = subprocess.run([sys.executable, str(REPO / "tests" / "hostile_runner.py"), str(spec), "--allowance",
-                          str(64 << 30), "--timeout", "600"], capture_output=True, text=True, env=env, check=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "tests" / "hostile_runner.py"),
+            str(spec),
+            "--allowance",
+            str(64 << 30),
+            "--timeout",
+            "600",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+    )
     print(f"{'checkpoint':<26} {'file MiB':>9} {'seconds':>8} {'peak MiB':>9} {'peak/file':>9}  outcome")
     for r in json.loads(out.stdout):
         size = Path(r["path"]).stat().st_size
-        print(f"{r['name']:<26} {size / 2**20:>9.1f} {r['seconds']:>8.2f} {r['peak_bytes'] / 2**20:>9.1f} "
-              f"{r['peak_bytes'] / size:>9.2f}  {r['outcome']} {r.get('message', '')[:60]}")
+        print(
+            f"{r['name']:<26} {size / 2**20:>9.1f} {r['seconds']:>8.2f} {r['peak_bytes'] / 2**20:>9.1f} "
+            f"{r['peak_bytes'] / size:>9.2f}  {r['outcome']} {r.get('message', '')[:60]}"
+        )
 
 
 if __name__ == "__main__":

@@ -53,8 +53,9 @@ def references(paths: list[Path]) -> list[tuple[Path, Path, dict[str, float]]]:
     return out
 
 
-def band_maxima(approx: np.ndarray, ref: np.ndarray, stated: tuple[tuple[float, float], ...] = ()
-                ) -> dict[float, float]:
+def band_maxima(
+    approx: np.ndarray, ref: np.ndarray, stated: tuple[tuple[float, float], ...] = ()
+) -> dict[float, float]:
     """The largest ``|approx - ref|`` per temperature band of the reference (``BANDS``, or the stated bands' upper
     temperatures and everything above them)."""
     d = np.abs(approx.astype(np.float64) - ref.astype(np.float64))
@@ -104,8 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     for ref_path, src, over in rows:
         with np.load(ref_path) as z:
             ref = z["temp_c"].astype(np.float32)
-        name = f"{src.parent.name}/{src.name}" + (f" e={over['emissivity']:g} d={over['distance']:g} "
-                                                  f"h={over['humidity']:g}" if over else "")
+        name = f"{src.parent.name}/{src.name}" + (
+            f" e={over['emissivity']:g} d={over['distance']:g} h={over['humidity']:g}" if over else ""
+        )
         try:
             rj = read_rjpeg(src, approximate=True)
             if rj.decoder != "approximate":
@@ -120,8 +122,10 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             fit = smooth_best(raw, ref)
             pct, worst = c2_agreement(fit, ref)
-            print(f"  best smooth model (cubic fitted to the SDK's own values): max |d| "
-                  f"{float(np.abs(fit - ref).max()):.3f} C; C2 within one grey level {pct:.2f} %, max {worst}")
+            print(
+                f"  best smooth model (cubic fitted to the SDK's own values): max |d| "
+                f"{float(np.abs(fit - ref).max()):.3f} C; C2 within one grey level {pct:.2f} %, max {worst}"
+            )
             continue
         rec = info["approximate"]
         bands = band_maxima(temp, ref)
@@ -135,9 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         if not over:
             c2_rows.setdefault(rec["approximation"], []).append((pct, worst))
         missing = int(np.isnan(temp).sum())
-        print(f"{name}: {rec['approximation']}, stated bound {rec['bound_c']:g} C; max |d| by band "
-              f"({_bands_text(bands)}); C2 within one grey level {pct:.3f} %, max {worst}"
-              + (f"; {missing} px above the measured range left missing" if missing else ""))
+        print(
+            f"{name}: {rec['approximation']}, stated bound {rec['bound_c']:g} C; max |d| by band "
+            f"({_bands_text(bands)}); C2 within one grey level {pct:.3f} %, max {worst}"
+            + (f"; {missing} px above the measured range left missing" if missing else "")
+        )
     print()
     for (name, high), agg in sorted(per_approx.items()):
         approx = dji_approximate.APPROXIMATIONS[name]
@@ -148,12 +154,19 @@ def main(argv: list[str] | None = None) -> int:
             limit = stated.get(hi)
             flag = "" if limit is not None and v <= limit else " EXCEEDED" if limit is not None else " (left missing)"
             parts.append(f"<={hi:g} C: {v:.4f} (stated {limit if limit is not None else '-'}){flag}")
-        group = f"emissivity < {approx.high_emissivity:g}" if not high and approx.bands_high_emissivity else \
-            f"emissivity >= {approx.high_emissivity:g}" if high else "all emissivities"
+        group = (
+            f"emissivity < {approx.high_emissivity:g}"
+            if not high and approx.bands_high_emissivity
+            else f"emissivity >= {approx.high_emissivity:g}"
+            if high
+            else "all emissivities"
+        )
         print(f"{name} [{group}]: " + "; ".join(parts) + f"; hottest reference pixel {hottest:.1f} C")
     for name, vals in sorted(c2_rows.items()):
-        print(f"{name} C2 at the files' own parameters: within one grey level {min(p for p, _ in vals):.3f} % "
-              f"or more, max difference {max(w for _, w in vals)} ({len(vals)} files)")
+        print(
+            f"{name} C2 at the files' own parameters: within one grey level {min(p for p, _ in vals):.3f} % "
+            f"or more, max difference {max(w for _, w in vals)} ({len(vals)} files)"
+        )
     return 0
 
 

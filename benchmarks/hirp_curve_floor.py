@@ -35,8 +35,8 @@ import numpy as np
 from _common import SHARED_DATA, reference_arrays
 
 DATA = SHARED_DATA / "dji-rjpeg-cameras"
-APP4_PARAMS = 0x48        # measurement-parameter block inside the hirp APP4 payload
-CALIB_TYPE = 7            # HIDR block holding the 0x3800-byte calibration (payload 0x1C bytes into the block)
+APP4_PARAMS = 0x48  # measurement-parameter block inside the hirp APP4 payload
+CALIB_TYPE = 7  # HIDR block holding the 0x3800-byte calibration (payload 0x1C bytes into the block)
 
 
 def layout(path: Path) -> dict:
@@ -51,20 +51,22 @@ def layout(path: Path) -> dict:
     blocks = [struct.unpack_from("<III", app5, 12 + 12 * i) for i in range(9)]
     blocks = [b for b in blocks if b[1]]
     calib_at = next(off for typ, _, off in blocks if typ == CALIB_TYPE) + 0x1C
-    calib = app5[calib_at:calib_at + 0x3800]
-    tp = app4[APP4_PARAMS:APP4_PARAMS + 0x48]
+    calib = app5[calib_at : calib_at + 0x3800]
+    tp = app4[APP4_PARAMS : APP4_PARAMS + 0x48]
     slot, gain = struct.unpack_from("<H", tp, 0x32)[0], tp[0x34]
     r, b, o, f = struct.unpack_from("<iiii", calib, 0x654 + 0x44 * slot + 0x154 * gain)
     _, gain_word = struct.unpack_from("<ii", calib, 0xCF8 + 0x24 * slot + 0xB4 * gain)
     return {
-        "blocks": [(typ, size, off, app5[off:off + 4].decode("latin-1")) for typ, size, off in blocks],
+        "blocks": [(typ, size, off, app5[off : off + 4].decode("latin-1")) for typ, size, off in blocks],
         "emissivity": struct.unpack_from("<H", tp, 0x10)[0] / 8192,
         "distance": struct.unpack_from("<i", tp, 0x14)[0] / 8192,
         "ambient": struct.unpack_from("<i", tp, 0x28)[0] / 1000,
         "humidity": struct.unpack_from("<i", tp, 0x2C)[0] / 1000,
-        "slot": slot, "gain": gain,
+        "slot": slot,
+        "gain": gain,
         "readings": struct.unpack_from("<HH", tp, 0x30)[:1] + struct.unpack_from("<H", tp, 0x36),
-        "response": (r, b, o, f), "gain_word": gain_word,
+        "response": (r, b, o, f),
+        "gain_word": gain_word,
     }
 
 
@@ -76,8 +78,13 @@ def smooth_floor(raw: np.ndarray, lo: np.ndarray, hi: np.ndarray, degree: int) -
     v = np.vander(x, degree + 1)
     ones = np.ones((len(raw), 1))
     a_ub = np.vstack([np.hstack([v, -ones]), np.hstack([-v, -ones])])
-    res = linprog(np.r_[np.zeros(degree + 1), 1.0], A_ub=a_ub, b_ub=np.r_[hi, -lo],
-                  bounds=[(None, None)] * (degree + 1) + [(0, None)], method="highs")
+    res = linprog(
+        np.r_[np.zeros(degree + 1), 1.0],
+        A_ub=a_ub,
+        b_ub=np.r_[hi, -lo],
+        bounds=[(None, None)] * (degree + 1) + [(0, None)],
+        method="highs",
+    )
     return float(res.fun)
 
 
@@ -86,13 +93,13 @@ def planck_fit(raw: np.ndarray, temp: np.ndarray, weight: np.ndarray, info: dict
     from scipy.optimize import least_squares
 
     r, b, _, f = info["response"]
-    r_eff, b_k, f_eff = r * info["gain_word"] / 2 ** 28, b / 16384, f / 256
+    r_eff, b_k, f_eff = r * info["gain_word"] / 2**28, b / 16384, f / 256
     e, w_amb = info["emissivity"], (info["ambient"] + 273.15) ** 4
 
     def model(x: np.ndarray) -> np.ndarray:
         signal = np.maximum((raw - x[0]) / x[1], 1e-6)
         t_bb = b_k / np.log(r_eff / signal + f_eff)
-        return ((t_bb ** 4 - (1 - e) * w_amb) / e) ** 0.25 - 273.15
+        return ((t_bb**4 - (1 - e) * w_amb) / e) ** 0.25 - 273.15
 
     t_mid = float(np.median(temp)) + 273.15
     x0 = [float(np.median(raw)) - r_eff / (np.exp(b_k / t_mid) - f_eff), 1.0]
@@ -114,19 +121,24 @@ def main(argv: list[str] | None = None) -> int:
         np.maximum.at(hi, inverse, temp)
         dc_round = bool(np.array_equal(ref["temp_dc"].ravel(), np.round(temp * 10)))
         print(f"{name}: HIDR " + ", ".join(f"{t}:{tag}@{o:#x}+{s:#x}" for t, s, o, tag in info["blocks"]))
-        print(f"  e={info['emissivity']:.4f} d={info['distance']:g} m ambient={info['ambient']:g} C "
-              f"RH={info['humidity']:g} % slot={info['slot']} gain={info['gain']} readings={info['readings']}")
+        print(
+            f"  e={info['emissivity']:.4f} d={info['distance']:g} m ambient={info['ambient']:g} C "
+            f"RH={info['humidity']:g} % slot={info['slot']} gain={info['gain']} readings={info['readings']}"
+        )
         r, b, o, f = info["response"]
         print(f"  response R={r} B={b} ({b / 16384:.1f} K) O={o} F={f}; gain word {info['gain_word']}")
-        print(f"  raw {values[0]}..{values[-1]} ({len(values)} values) -> {temp.min():.1f}..{temp.max():.1f} C; "
-              f"spread per raw {float((hi - lo).max()):.4f} C")
+        print(
+            f"  raw {values[0]}..{values[-1]} ({len(values)} values) -> {temp.min():.1f}..{temp.max():.1f} C; "
+            f"spread per raw {float((hi - lo).max()):.4f} C"
+        )
         print(f"  temp_dc = round(10 temp_c): {dc_round}")
-        floors = [(d, smooth_floor(values, lo, hi, d), smooth_floor(values, lo, hi + 0.0999, d))
-                  for d in (1, 2, 3, 5, 8)]
+        floors = [
+            (d, smooth_floor(values, lo, hi, d), smooth_floor(values, lo, hi + 0.0999, d)) for d in (1, 2, 3, 5, 8)
+        ]
         print("  smooth floor, max|d| C by degree (continuous / truncated to 0.1):")
         print("   " + ", ".join(f"{d}: {c:.3f}/{t:.3f}" for d, c, t in floors))
         res = planck_fit(values.astype(np.float64), lo, counts.astype(np.float64), info)
-        rms = float(np.sqrt(np.average(res ** 2, weights=counts)))
+        rms = float(np.sqrt(np.average(res**2, weights=counts)))
         print(f"  Planck, file's R B F + fitted offset, gain: rms {rms:.3f} max {np.abs(res).max():.3f} C")
     print("target: max|d| <= 0.05 C on every pixel; a floor above it rules out every smooth model")
     return 0

@@ -28,8 +28,9 @@ def random_targets(batch: int, size: int, boxes: int, nc: int, seed: int = 0) ->
     for _ in range(batch):
         wh = (torch.rand(boxes, 2, generator=g) * 0.25 + 0.02) * size
         c = torch.rand(boxes, 2, generator=g) * (size - wh) + wh / 2
-        out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
-                    "labels": torch.randint(0, nc, (boxes,), generator=g)})
+        out.append(
+            {"boxes": torch.cat((c - wh / 2, c + wh / 2), 1), "labels": torch.randint(0, nc, (boxes,), generator=g)}
+        )
     return out
 
 
@@ -77,8 +78,10 @@ def main() -> None:
     args = p.parse_args()
     print(f"YOLOv8{args.scale} 4-channel, nc=8, {args.boxes} boxes/image, median of {args.iters} after 1 warm-up")
     print("anchor = network forward + backward + SGD step; loss = assigner + BCE + CIoU + DFL, forward + backward")
-    header = (f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} "
-              f"{'full/anchor':>12}")
+    header = (
+        f"{'input':>9} {'thr':>3} {'network s':>10} {'loss s':>8} {'loss/anchor':>12} {'full step s':>12} "
+        f"{'full/anchor':>12}"
+    )
     print(header)
     print("-" * len(header))
     worst = 0.0
@@ -87,10 +90,15 @@ def main() -> None:
         for threads in (int(t) for t in args.threads.split(",")):
             r = measure(size, batch, threads, args.boxes, args.iters, args.scale)
             worst = max(worst, r["loss"] / r["network"])
-            print(f"{size:>5}x{batch:<3} {threads:>3} {r['network']:>10.3f} {r['loss']:>8.3f} "
-                  f"{r['loss'] / r['network']:>12.3f} {r['full']:>12.3f} {r['full'] / r['network']:>12.3f}", flush=True)
-    print(f"target: loss/anchor <= {TARGET_LOSS:g} (the loss and assigner a small part of a step) -> "
-          f"{'met' if worst <= TARGET_LOSS else 'NOT met'}")
+            print(
+                f"{size:>5}x{batch:<3} {threads:>3} {r['network']:>10.3f} {r['loss']:>8.3f} "
+                f"{r['loss'] / r['network']:>12.3f} {r['full']:>12.3f} {r['full'] / r['network']:>12.3f}",
+                flush=True,
+            )
+    print(
+        f"target: loss/anchor <= {TARGET_LOSS:g} (the loss and assigner a small part of a step) -> "
+        f"{'met' if worst <= TARGET_LOSS else 'NOT met'}"
+    )
 
 
 if __name__ == "__main__":

@@ -21,8 +21,21 @@ from pathlib import Path
 from typing import Any, Iterator
 
 #: keys that record when, where or how fast a run ran, not what it computed
-IGNORED = {"time_s", "predict_s", "predict_images_per_s", "images_per_s", "environment", "best_path", "last_path",
-           "device", "resumed_from", "created", "finished", "started", "elapsed_s"}
+IGNORED = {
+    "time_s",
+    "predict_s",
+    "predict_images_per_s",
+    "images_per_s",
+    "environment",
+    "best_path",
+    "last_path",
+    "device",
+    "resumed_from",
+    "created",
+    "finished",
+    "started",
+    "elapsed_s",
+}
 
 
 def runs(store: Path) -> dict[str, Path]:

@@ -38,10 +38,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         folds = tuple(f"P{i + 1}" for i in range(args.folds - 1)) + (f"P{args.folds}+P{args.folds + 1}",)
-        store = synthetic_store(root / "s", folds=folds, per_fold=4,
-                                detectors={"a-rather-long-detector-name": "strong", "beta": "weak", "gamma": "weak"},
-                                encodings={"beta": ["ir8", "none"]},
-                                profiles={"a-rather-long-detector-name": (3_210_000, 8.2), "beta": (1_100_000, 2.5)})
+        store = synthetic_store(
+            root / "s",
+            folds=folds,
+            per_fold=4,
+            detectors={"a-rather-long-detector-name": "strong", "beta": "weak", "gamma": "weak"},
+            encodings={"beta": ["ir8", "none"]},
+            profiles={"a-rather-long-detector-name": (3_210_000, 8.2), "beta": (1_100_000, 2.5)},
+        )
         build_report(store, out=root / "rep", resamples=10)
         html = (root / "rep" / "report.html").read_text()
         if args.old_css:
@@ -52,9 +56,20 @@ def main() -> None:
             )
         page = root / "rep" / "probe.html"
         page.write_text(html.replace("</body>", PROBE))
-        out = subprocess.run(["/usr/bin/chromium", "--headless", "--no-sandbox", "--disable-gpu",
-                              f"--window-size={args.width},3000", "--dump-dom", page.as_uri()],
-                             capture_output=True, text=True, timeout=180)
+        out = subprocess.run(
+            [
+                "/usr/bin/chromium",
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                f"--window-size={args.width},3000",
+                "--dump-dom",
+                page.as_uri(),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
     m = re.search(r'data-overflow="([^"]*)"', out.stdout)
     if not m:
         raise SystemExit(f"chromium gave no measurement: {out.stderr[-400:]}")

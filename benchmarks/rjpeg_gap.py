@@ -25,8 +25,9 @@ DATA = SHARED_DATA / "dji-m3t-rjpeg"
 def flir_tau(distance_m: float, humidity_pct: float, t_atm_c: float) -> float:
     """Atmospheric transmission of the FLIR model with Thermimage's default constants."""
     a1, a2, b1, b2, x = 0.006569, 0.01262, -0.002276, -0.00667, 1.9
-    h2o = humidity_pct / 100 * math.exp(1.5587 + 0.06939 * t_atm_c - 0.00027816 * t_atm_c ** 2
-                                        + 0.00000068455 * t_atm_c ** 3)
+    h2o = (
+        humidity_pct / 100 * math.exp(1.5587 + 0.06939 * t_atm_c - 0.00027816 * t_atm_c**2 + 0.00000068455 * t_atm_c**3)
+    )
     k = math.sqrt(distance_m / 2)
     return x * math.exp(-k * (a1 + b1 * math.sqrt(h2o))) + (1 - x) * math.exp(-k * (a2 + b2 * math.sqrt(h2o)))
 
@@ -36,7 +37,7 @@ def radiance_balance(t0_c: np.ndarray, emissivity: float, reflected_c: float, ta
     w = (t0_c + 273.15) ** 4
     wr, wa = (reflected_c + 273.15) ** 4, (t_atm_c + 273.15) ** 4
     wo = (w - (1 - tau) * wa - tau * (1 - emissivity) * wr) / (tau * emissivity)
-    return wo ** 0.25 - 273.15
+    return wo**0.25 - 273.15
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,17 +59,25 @@ def main(argv: list[str] | None = None) -> int:
             "blackbody (harness)": t0,
             "grey body": radiance_balance(t0, p["emissivity"], p["reflected"], 1.0, p["reflected"]),
             "grey body + FLIR atmosphere": radiance_balance(
-                t0, p["emissivity"], p["reflected"], flir_tau(p["distance"], p["humidity"], p["reflected"]),
-                p["reflected"]),
+                t0,
+                p["emissivity"],
+                p["reflected"],
+                flir_tau(p["distance"], p["humidity"], p["reflected"]),
+                p["reflected"],
+            ),
         }
         for route, est in routes.items():
             d = ref["temp_c"].astype(np.float64) - est
-            print(f"{name:<8} {'exact' if exact else 'DIFF':>6} {route:<28} {d.mean():>+8.3f} {np.abs(d).mean():>9.3f} "
-                  f"{np.percentile(np.abs(d), 95):>8.3f} {np.abs(d).max():>8.3f}")
+            print(
+                f"{name:<8} {'exact' if exact else 'DIFF':>6} {route:<28} {d.mean():>+8.3f} {np.abs(d).mean():>9.3f} "
+                f"{np.percentile(np.abs(d), 95):>8.3f} {np.abs(d).max():>8.3f}"
+            )
         same = float(np.mean(corrected == ref["temp_c"]))
         dc_bad = int((rj.deci_celsius() != ref["temp_dc"]).sum())
-        print(f"{name:<8} dji correction: {same:.2%} of pixels equal temp_c bit for bit; "
-              f"deci-C mismatches vs temp_dc: {dc_bad}")
+        print(
+            f"{name:<8} dji correction: {same:.2%} of pixels equal temp_c bit for bit; "
+            f"deci-C mismatches vs temp_dc: {dc_bad}"
+        )
     print("d = DJI temp_c - route, degrees C; target of a full correction: |d| <= 0.05")
     return 0
 

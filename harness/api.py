@@ -56,8 +56,9 @@ class Reference:
 
     def applies(self, num_classes: int, imgsz: int, model_options: dict[str, Any] | None = None) -> bool:
         """Whether the figures describe a model built with these classes, input size and model options."""
-        return (not model_options and imgsz == self.imgsz
-                and (self.num_classes is None or num_classes == self.num_classes))
+        return (
+            not model_options and imgsz == self.imgsz and (self.num_classes is None or num_classes == self.num_classes)
+        )
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,7 @@ def reason_label(reason: str) -> str:
     wrong, without the sample's name or the offending values (one count for every box outside its frame)."""
     key = reason.split(":")[0]
     if "field '" in reason:
-        detail = _FRAME_SIZE.sub("its frame", _BOX_DETAIL.sub("a box", reason[reason.index("field '"):]))
+        detail = _FRAME_SIZE.sub("its frame", _BOX_DETAIL.sub("a box", reason[reason.index("field '") :]))
         key += ", " + detail
     return key
 
@@ -304,8 +305,13 @@ class EncodingSpec:
         """``fn(sample, **params, **overrides)``, checked: what the encoding needs is there, and what it returns is
         a uint8 array of the sample's height and width (``None`` for a zero-channel encoding)."""
         contracts.check_encoding_input(self, sample)
-        out = contracts.plugin_call(lambda: f"{contracts.plugin_label('encoding', self.name, self.fn)}: {sample.name}",
-                                    "fn()", self.fn, sample, **{**self.params, **overrides})
+        out = contracts.plugin_call(
+            lambda: f"{contracts.plugin_label('encoding', self.name, self.fn)}: {sample.name}",
+            "fn()",
+            self.fn,
+            sample,
+            **{**self.params, **overrides},
+        )
         return contracts.check_encoding_output(self, sample, out)
 
 

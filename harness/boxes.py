@@ -87,8 +87,9 @@ def bbox_iou(a: torch.Tensor, b: torch.Tensor, kind: str = "iou", eps: float = 1
     raise ValueError(f"unknown IoU kind {kind!r}")
 
 
-def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, block: int = 256,
-        max_keep: int | None = None) -> torch.Tensor:
+def nms(
+    boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, block: int = 256, max_keep: int | None = None
+) -> torch.Tensor:
     """Exact greedy NMS; returns kept indices sorted by decreasing score.
 
     Candidates are visited in blocks of ``block`` boxes: one IoU matrix of the block against the boxes kept so
@@ -102,7 +103,7 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, block: 
     kept_boxes: list[torch.Tensor] = []
     keep: list[int] = []
     for start in range(0, len(b), block):
-        blk = b[start:start + block]
+        blk = b[start : start + block]
         if kept_boxes:
             alive = (box_iou(blk, torch.cat(kept_boxes)) <= iou_threshold).all(1)
         else:
@@ -111,7 +112,7 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, block: 
         a = alive.cpu().numpy().copy()
         for i in range(len(a)):
             if a[i]:
-                a[i + 1:] &= ~suppress[i, i + 1:]
+                a[i + 1 :] &= ~suppress[i, i + 1 :]
         idx = np.nonzero(a)[0]
         if len(idx):
             kept_boxes.append(blk[torch.as_tensor(idx, device=b.device)])
@@ -122,8 +123,9 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, block: 
     return order[torch.as_tensor(keep, dtype=torch.long, device=boxes.device)]
 
 
-def batched_nms(boxes: torch.Tensor, scores: torch.Tensor, classes: torch.Tensor, iou_threshold: float,
-                max_keep: int | None = None) -> torch.Tensor:
+def batched_nms(
+    boxes: torch.Tensor, scores: torch.Tensor, classes: torch.Tensor, iou_threshold: float, max_keep: int | None = None
+) -> torch.Tensor:
     """Per-class exact greedy NMS (boxes of different classes never suppress each other)."""
     if boxes.numel() == 0:
         return torch.empty(0, dtype=torch.long, device=boxes.device)

@@ -104,8 +104,11 @@ def report_bug(ctx: click.Context, exc: Exception) -> NoReturn:
     text = str(exc).strip().splitlines()
     first = text[0][:300] if text else ""
     click.secho(f"bug: {type(exc).__name__}{': ' + first if first else ''} (at {where(exc)})", err=True, fg="red")
-    click.echo(f"This is a bug in the harness or a plugin, not a problem with your input. Please report it to "
-               f"{REPORT_BUGS} with the command line and the traceback, which `harness -v ...` prints.", err=True)
+    click.echo(
+        f"This is a bug in the harness or a plugin, not a problem with your input. Please report it to "
+        f"{REPORT_BUGS} with the command line and the traceback, which `harness -v ...` prints.",
+        err=True,
+    )
     if verbose:
         click.echo("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip(), err=True)
     raise click.exceptions.Exit(ExitCode.BUG)

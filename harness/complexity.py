@@ -26,8 +26,15 @@ SCHEMA = 1
 REFERENCE_IMGSZ = 640
 
 
-def measure(model: Any, input_kind: str, in_channels: int, thermal_channels: int, imgsz: int, num_classes: int,
-            model_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def measure(
+    model: Any,
+    input_kind: str,
+    in_channels: int,
+    thermal_channels: int,
+    imgsz: int,
+    num_classes: int,
+    model_options: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """The complexity record of ``model`` (see the module docstring); a failure is recorded, never raised."""
     from harness.profiling.flops import exact_flops, paper_flops
     from harness.profiling.model_io import example_inputs, fused_copy
@@ -46,14 +53,20 @@ def measure(model: Any, input_kind: str, in_channels: int, thermal_channels: int
         params = reachable_parameters(model, small)
         fused, did_fuse = fused_copy(model)
         fused_total, _, _ = count_parameters(fused)
-        rec.update(params=params.total, trainable=params.trainable, params_fused=int(fused_total),
-                   bn_folded=bool(did_fuse),
-                   unused_params=int(params.unreachable_count - params.frozen_unreachable_count))
+        rec.update(
+            params=params.total,
+            trainable=params.trainable,
+            params_fused=int(fused_total),
+            bn_folded=bool(did_fuse),
+            unused_params=int(params.unreachable_count - params.frozen_unreachable_count),
+        )
         gflops: dict[str, dict[str, float]] = {}
         for size in dict.fromkeys((int(imgsz), REFERENCE_IMGSZ)):
             inputs = example_inputs(input_kind, size, 1, in_channels, thermal_channels, device="meta")
-            gflops[str(size)] = {"paper": round(paper_flops(fused, inputs).gflops, 4),
-                                 "exact": round(exact_flops(fused, inputs).gflops, 4)}
+            gflops[str(size)] = {
+                "paper": round(paper_flops(fused, inputs).gflops, 4),
+                "exact": round(exact_flops(fused, inputs).gflops, 4),
+            }
         rec["gflops"] = gflops
     except Exception as exc:  # noqa: BLE001 - the run goes on; the record says why its complexity is missing
         log.warning("complexity of the trained model could not be measured: %s: %s", type(exc).__name__, exc)
@@ -68,10 +81,17 @@ def given(params_m: float | None, gflops: float | None, imgsz: int = REFERENCE_I
     and the run's ``external`` block says where they came from."""
     if params_m is None and gflops is None:
         return None
-    return {"schema": SCHEMA, "source": "given", "model_options": {}, "num_classes": None, "input_kind": "external",
-            "params": None if params_m is None else int(round(float(params_m) * 1e6)), "bn_folded": False,
-            "gflops": {} if gflops is None else {str(imgsz): {"paper": float(gflops), "exact": None}},
-            "imgsz": int(imgsz)}
+    return {
+        "schema": SCHEMA,
+        "source": "given",
+        "model_options": {},
+        "num_classes": None,
+        "input_kind": "external",
+        "params": None if params_m is None else int(round(float(params_m) * 1e6)),
+        "bn_folded": False,
+        "gflops": {} if gflops is None else {str(imgsz): {"paper": float(gflops), "exact": None}},
+        "imgsz": int(imgsz),
+    }
 
 
 def numbers(rec: Mapping[str, Any] | None, imgsz: int = REFERENCE_IMGSZ) -> dict[str, Any]:
@@ -80,11 +100,18 @@ def numbers(rec: Mapping[str, Any] | None, imgsz: int = REFERENCE_IMGSZ) -> dict
         return {}
     g = (rec.get("gflops") or {}).get(str(imgsz)) or {}
     count = rec.get("params_fused") if rec.get("bn_folded") else rec.get("params")
-    return {"params_m": None if count is None else float(count) / 1e6, "gflops": g.get("paper"),
-            "gflops_exact": g.get("exact"), "imgsz": imgsz, "bn_folded": bool(rec.get("bn_folded")),
-            "num_classes": rec.get("num_classes"), "input_kind": rec.get("input_kind"),
-            "model_options": dict(rec.get("model_options") or {}), "unused_params": rec.get("unused_params"),
-            "source": rec.get("source", "measured")}
+    return {
+        "params_m": None if count is None else float(count) / 1e6,
+        "gflops": g.get("paper"),
+        "gflops_exact": g.get("exact"),
+        "imgsz": imgsz,
+        "bn_folded": bool(rec.get("bn_folded")),
+        "num_classes": rec.get("num_classes"),
+        "input_kind": rec.get("input_kind"),
+        "model_options": dict(rec.get("model_options") or {}),
+        "unused_params": rec.get("unused_params"),
+        "source": rec.get("source", "measured"),
+    }
 
 
 def options_label(options: Mapping[str, Any]) -> str:

@@ -56,9 +56,7 @@ def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = Fal
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
         if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r}", key_node.start_mark
-            )
+            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
         seen.add(key)
     return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
 
@@ -123,8 +121,9 @@ def _type_ok(default: Any, value: Any) -> bool:
     return True
 
 
-def merge(base: dict[str, Any], update: Mapping[str, Any], schema_node: Mapping[str, Any] | None, source: str,
-          path: str = "") -> dict[str, Any]:
+def merge(
+    base: dict[str, Any], update: Mapping[str, Any], schema_node: Mapping[str, Any] | None, source: str, path: str = ""
+) -> dict[str, Any]:
     """Merge ``update`` into a copy of ``base``, checking keys and types against ``schema_node``."""
     out = copy.deepcopy(base)
     for key, value in update.items():
@@ -174,11 +173,15 @@ def parse_override(item: str) -> dict[str, Any]:
 _RANGES: dict[tuple[str, str], tuple[float | None, float | None, bool, bool, bool]] = {
     **{("protocol", k): (1, None, True, True, True) for k in ("imgsz", "epochs")},
     ("protocol", "patience"): (0, None, True, True, True),
-    **{("train", k): (1, None, True, True, True) for k in ("batch", "nominal_batch", "val_period", "threads",
-                                                             "max_images")},
+    **{
+        ("train", k): (1, None, True, True, True)
+        for k in ("batch", "nominal_batch", "val_period", "threads", "max_images")
+    },
     **{("train", k): (0, None, False, True, False) for k in ("lr0", "lrf", "ema_tau")},
-    **{("train", k): (0, None, True, True, False) for k in ("weight_decay", "warmup_epochs", "warmup_bias_lr",
-                                                              "clip_grad")},
+    **{
+        ("train", k): (0, None, True, True, False)
+        for k in ("weight_decay", "warmup_epochs", "warmup_bias_lr", "clip_grad")
+    },
     **{("train", k): (0, None, True, True, True) for k in ("warmup_min_iters", "close_mosaic", "workers")},
     **{("train", k): (0, 1, True, False, False) for k in ("momentum", "ema_decay")},
     ("train", "warmup_momentum"): (0, 1, True, True, False),
@@ -213,10 +216,17 @@ def check_values(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str
             above = high is not None and (value > high if high_in else value >= high)
             bad = (integer and float(value) != int(value)) or below or above
         if bad:
-            source = next((src for src, layer in reversed(list(layers))
-                           if isinstance(layer.get(section), Mapping) and key in layer[section]), "the configuration")
-            raise ConfigError(f"{source}: {section}.{key}={value!r} must be "
-                              f"{_range_text(low, high, low_in, high_in, integer)}")
+            source = next(
+                (
+                    src
+                    for src, layer in reversed(list(layers))
+                    if isinstance(layer.get(section), Mapping) and key in layer[section]
+                ),
+                "the configuration",
+            )
+            raise ConfigError(
+                f"{source}: {section}.{key}={value!r} must be {_range_text(low, high, low_in, high_in, integer)}"
+            )
 
 
 def _named_file(root: Path, kind: str, name: str, option: str) -> Path:

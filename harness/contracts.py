@@ -115,8 +115,10 @@ def check_dataset_spec(spec: DatasetSpec) -> None:
     if not callable(spec.open):
         raise PluginError(f"dataset {spec.name!r}: open must be callable")
     if not isinstance(spec.protocol, str) or not spec.protocol:
-        raise PluginError(f"dataset {spec.name!r}: protocol must be a name, 'package:file.yaml' or an absolute "
-                          f"path, got {spec.protocol!r}")
+        raise PluginError(
+            f"dataset {spec.name!r}: protocol must be a name, 'package:file.yaml' or an absolute "
+            f"path, got {spec.protocol!r}"
+        )
     from harness.protocols import protocol_form, shipped_protocol
 
     if protocol_form(spec.protocol) != "name":
@@ -125,8 +127,10 @@ def check_dataset_spec(spec: DatasetSpec) -> None:
         except HarnessError as exc:
             raise PluginError(f"dataset {spec.name!r}: {exc}") from None
     elif "/" in spec.protocol or "\\" in spec.protocol:
-        raise PluginError(f"dataset {spec.name!r}: protocol {spec.protocol!r} is a relative path; give a name "
-                          "under configs/protocols/, 'package:file.yaml' or an absolute path")
+        raise PluginError(
+            f"dataset {spec.name!r}: protocol {spec.protocol!r} is a relative path; give a name "
+            "under configs/protocols/, 'package:file.yaml' or an absolute path"
+        )
     if spec.thermal not in ("radiometric", "8bit"):
         raise PluginError(f"dataset {spec.name!r}: thermal must be 'radiometric' or '8bit'")
 
@@ -153,21 +157,31 @@ def check_source(source: Any, label: str) -> Any:
     ``samples(report)``, and ``categories`` (when it has them) a sequence of strings; else a ``PluginError``."""
     missing = [m for m in SOURCE_METHODS if not callable(getattr(source, m, None))]
     if missing:
-        raise PluginError(f"{label}: open() returned {type(source).__name__}, which has no "
-                          f"{', '.join(m + '()' for m in missing)}; it must return a DatasetSource (groups(), folds(), "
-                          f"fingerprint(), samples(report); docs/plugins.md, 'The dataset contract')")
+        raise PluginError(
+            f"{label}: open() returned {type(source).__name__}, which has no "
+            f"{', '.join(m + '()' for m in missing)}; it must return a DatasetSource (groups(), folds(), "
+            f"fingerprint(), samples(report); docs/plugins.md, 'The dataset contract')"
+        )
     categories = getattr(source, "categories", None)
-    if categories is not None and (isinstance(categories, (str, bytes)) or not isinstance(categories, Sequence)
-                                   or not all(isinstance(c, str) and c for c in categories)):
-        raise PluginError(f"{label}: the opened source's categories must be a sequence of non-empty strings in label "
-                          f"order, got {categories!r}")
+    if categories is not None and (
+        isinstance(categories, (str, bytes))
+        or not isinstance(categories, Sequence)
+        or not all(isinstance(c, str) and c for c in categories)
+    ):
+        raise PluginError(
+            f"{label}: the opened source's categories must be a sequence of non-empty strings in label "
+            f"order, got {categories!r}"
+        )
     return source
 
 
 def check_groups(groups: Any, label: str) -> list[str]:
     """``groups()``: a list (or tuple) of non-empty strings."""
-    if isinstance(groups, (str, bytes)) or not isinstance(groups, Sequence) \
-            or not all(isinstance(g, str) and g for g in groups):
+    if (
+        isinstance(groups, (str, bytes))
+        or not isinstance(groups, Sequence)
+        or not all(isinstance(g, str) and g for g in groups)
+    ):
         raise PluginError(f"{label}: groups() must return a list of non-empty strings, got {groups!r}")
     return list(groups)
 
@@ -180,16 +194,20 @@ def check_folds(folds: Any, label: str) -> list[Fold]:
         raise PluginError(f"{label}: folds() must return a list of Fold records, got {type(folds).__name__}")
     bad = [f for f in folds if not isinstance(f, Fold)]
     if bad:
-        raise PluginError(f"{label}: folds() must return Fold records (harness.Fold(name, train_groups, "
-                          f"val_groups)), got {type(bad[0]).__name__} {bad[0]!r}")
+        raise PluginError(
+            f"{label}: folds() must return Fold records (harness.Fold(name, train_groups, "
+            f"val_groups)), got {type(bad[0]).__name__} {bad[0]!r}"
+        )
     return list(folds)
 
 
 def check_fingerprint(fingerprint: Any, label: str) -> str:
     """``fingerprint()``: a non-empty string (it keys the prepared cache: anything else would key it on nothing)."""
     if not isinstance(fingerprint, str) or not fingerprint:
-        raise PluginError(f"{label}: fingerprint() must return a non-empty string that changes whenever the samples "
-                          f"would, got {fingerprint!r}")
+        raise PluginError(
+            f"{label}: fingerprint() must return a non-empty string that changes whenever the samples "
+            f"would, got {fingerprint!r}"
+        )
     return fingerprint
 
 
@@ -212,8 +230,9 @@ def _check_array(sample: AlignedSample, name: str, value: Any, dtype: Any, ndim:
     return value
 
 
-def validate_sample(sample: AlignedSample, num_classes: int | None = None,
-                    box_tolerance: float = 1e-3) -> AlignedSample:
+def validate_sample(
+    sample: AlignedSample, num_classes: int | None = None, box_tolerance: float = 1e-3
+) -> AlignedSample:
     """Check ``sample`` against the contract; return it unchanged or raise ``SampleError`` naming the field."""
     import numpy as np
 
@@ -244,8 +263,12 @@ def validate_sample(sample: AlignedSample, num_classes: int | None = None,
 
             bad = int((~np.isfinite(th)).sum())
             if bad > MAX_INVALID_FRACTION * th.size:
-                raise _fail(sample, "thermal", f"{bad} of {th.size} pixels are non-finite temperature values (NaN or "
-                            f"inf), more than the {100 * MAX_INVALID_FRACTION:g} % a map may miss")
+                raise _fail(
+                    sample,
+                    "thermal",
+                    f"{bad} of {th.size} pixels are non-finite temperature values (NaN or "
+                    f"inf), more than the {100 * MAX_INVALID_FRACTION:g} % a map may miss",
+                )
 
     boxes = _check_array(sample, "boxes", sample.boxes, np.float32, 2)
     if boxes.shape[1] != 4:
@@ -280,8 +303,10 @@ def check_unique_id(seen: dict[int, str], sample: Any, where: str, label: str) -
     if isinstance(iid, numbers.Integral) and not isinstance(iid, bool):
         iid = int(iid)
         if iid in seen:
-            raise DataError(f"{label}: image_id {iid!r} is given to two samples ({seen[iid]} and {where}); every "
-                            f"sample needs its own image_id. Nothing was cached")
+            raise DataError(
+                f"{label}: image_id {iid!r} is given to two samples ({seen[iid]} and {where}); every "
+                f"sample needs its own image_id. Nothing was cached"
+            )
         seen[iid] = where
 
 
@@ -306,8 +331,10 @@ def check_encoding_output(spec: EncodingSpec, sample: AlignedSample, out: Any) -
     if isinstance(out, np.ndarray) and out.dtype == np.uint8 and out.shape == want:
         return out
     got = f"a {out.dtype} array of shape {tuple(out.shape)}" if isinstance(out, np.ndarray) else type(out).__name__
-    raise PluginError(f"{plugin_label('encoding', spec.name, spec.fn)}: {sample.name}: fn returned {got}, expected a "
-                      f"uint8 numpy array of shape {want}" + (" or None" if spec.channels == 0 else ""))
+    raise PluginError(
+        f"{plugin_label('encoding', spec.name, spec.fn)}: {sample.name}: fn returned {got}, expected a "
+        f"uint8 numpy array of shape {want}" + (" or None" if spec.channels == 0 else "")
+    )
 
 
 # ------------------------------------------------------------------------------------------------ detectors
@@ -322,8 +349,9 @@ def check_detections(det: Any, detector: str, num_classes: int | None = None) ->
 
     where = f"detector {detector!r}: eval-mode output"
     if not isinstance(det, Mapping):
-        raise PluginError(f"{where} must be one dict per image with 'boxes', 'scores' and 'labels', got "
-                          f"{type(det).__name__}")
+        raise PluginError(
+            f"{where} must be one dict per image with 'boxes', 'scores' and 'labels', got {type(det).__name__}"
+        )
     missing = [k for k in ("boxes", "scores", "labels") if k not in det]
     if missing:
         raise PluginError(f"{where} has no {', '.join(repr(k) for k in missing)} (keys: {sorted(map(str, det))})")
@@ -357,14 +385,18 @@ def check_losses(losses: Any, detector: str) -> Mapping[str, Any]:
 
     where = f"detector {detector!r}: in train mode model(inputs, targets)"
     if not isinstance(losses, Mapping) or not losses:
-        raise PluginError(f"{where} must return a non-empty dict of scalar loss tensors, got "
-                          f"{type(losses).__name__}{' (empty)' if isinstance(losses, Mapping) else ''}")
+        raise PluginError(
+            f"{where} must return a non-empty dict of scalar loss tensors, got "
+            f"{type(losses).__name__}{' (empty)' if isinstance(losses, Mapping) else ''}"
+        )
     for k, v in losses.items():
         if not isinstance(v, torch.Tensor):
             raise PluginError(f"{where}: loss {k!r} must be a tensor, got {type(v).__name__}")
         if v.numel() != 1:
-            raise PluginError(f"{where}: loss {k!r} must be a scalar (one element), got shape {_shape(v)}; "
-                              f"reduce it over the batch (sum or mean) inside the detector")
+            raise PluginError(
+                f"{where}: loss {k!r} must be a scalar (one element), got shape {_shape(v)}; "
+                f"reduce it over the batch (sum or mean) inside the detector"
+            )
     return losses
 
 
@@ -385,4 +417,3 @@ def fold_batchnorm(model: Any) -> tuple[Any, bool]:
     if out is not None and hasattr(out, "parameters"):
         return out, True
     return model, True
-

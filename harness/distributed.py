@@ -101,8 +101,10 @@ def init_from_env(backend: str | None = None, timeout_s: float = 1800.0) -> Dist
     if dist is None:
         raise ConfigError("WORLD_SIZE > 1 but this torch build has no torch.distributed support")
     if "MASTER_ADDR" not in os.environ or "MASTER_PORT" not in os.environ:
-        raise ConfigError("WORLD_SIZE > 1 but MASTER_ADDR / MASTER_PORT are not set; start the job with torchrun "
-                          "(see docs/scaling.md)")
+        raise ConfigError(
+            "WORLD_SIZE > 1 but MASTER_ADDR / MASTER_PORT are not set; start the job with torchrun "
+            "(see docs/scaling.md)"
+        )
     cuda = torch.cuda.is_available()
     backend = backend or ("nccl" if cuda else "gloo")
     if cuda:

@@ -26,16 +26,27 @@ from harness.hookspecs import hookimpl
 from harness.sensing import c2 as c2mod
 
 
-def encode_c2(sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE,
-              floor: float = c2mod.FLOOR) -> np.ndarray:
+def encode_c2(
+    sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE, floor: float = c2mod.FLOOR
+) -> np.ndarray:
     """``round(255 * C2(T))``: C2 of the temperature map in C (floor in C)."""
     # sample.thermal is present: the host checks what an encoding needs before calling it
-    return c2mod.c2_uint8(sample.thermal, sigma=sigma, percentile=percentile, floor=floor,  # type: ignore[arg-type]
-                          name=sample.name)
+    return c2mod.c2_uint8(
+        sample.thermal,  # type: ignore[arg-type]
+        sigma=sigma,
+        percentile=percentile,
+        floor=floor,
+        name=sample.name,
+    )
 
 
-def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: float = 60.0,
-               percentiles: tuple[float, float] = (1.0, 99.0)) -> np.ndarray:
+def linear_map(
+    t: np.ndarray,
+    mode: str = "minmax",
+    t_min: float = 0.0,
+    t_max: float = 60.0,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+) -> np.ndarray:
     """Temperature to uint8 by ``round(255 * clip((T - lo) / (hi - lo), 0, 1))``.
 
     ``mode="minmax"``: ``lo, hi`` = the image's min and max (a flat image maps to 0);
@@ -66,10 +77,20 @@ def linear_map(t: np.ndarray, mode: str = "minmax", t_min: float = 0.0, t_max: f
     return np.rint(out, out=out).astype(np.uint8)
 
 
-def encode_linear16(sample: AlignedSample, mode: str = "minmax", t_min: float = 0.0, t_max: float = 60.0,
-                    percentiles: tuple[float, float] | list[float] = (1.0, 99.0)) -> np.ndarray:
-    return linear_map(sample.thermal, mode=mode, t_min=t_min, t_max=t_max,  # type: ignore[arg-type]
-                      percentiles=tuple(percentiles))  # type: ignore[arg-type]
+def encode_linear16(
+    sample: AlignedSample,
+    mode: str = "minmax",
+    t_min: float = 0.0,
+    t_max: float = 60.0,
+    percentiles: tuple[float, float] | list[float] = (1.0, 99.0),
+) -> np.ndarray:
+    return linear_map(
+        sample.thermal,  # type: ignore[arg-type]
+        mode=mode,
+        t_min=t_min,
+        t_max=t_max,
+        percentiles=tuple(percentiles),  # type: ignore[arg-type]
+    )
 
 
 def encode_ir8(sample: AlignedSample) -> np.ndarray:
@@ -82,8 +103,9 @@ def encode_none(sample: AlignedSample) -> None:
     return None
 
 
-def encode_proxy8(sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE,
-                  floor: float = 1.0) -> np.ndarray:
+def encode_proxy8(
+    sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE, floor: float = 1.0
+) -> np.ndarray:
     """C2 computed on 8-bit intensity ``I`` (0..255) instead of temperature.
 
     ``dI = I - G_sigma * I``, ``p_clip = max(P99(|dI|), floor)`` with ``floor`` in grey levels (default 1.0,
@@ -93,17 +115,32 @@ def encode_proxy8(sample: AlignedSample, sigma: float = c2mod.SIGMA, percentile:
 
 
 ENCODINGS: tuple[EncodingSpec, ...] = (
-    EncodingSpec("c2", encode_c2, channels=1, needs="thermal",
-                 description="signed local radiometric contrast (Gaussian background sigma 11, P99 clip, 0.05 C floor)",
-                 params={"sigma": c2mod.SIGMA, "percentile": c2mod.PERCENTILE, "floor": c2mod.FLOOR}),
-    EncodingSpec("linear16", encode_linear16, channels=1, needs="thermal",
-                 description="temperature mapped linearly to 8 bit (per-image min-max by default)",
-                 params={"mode": "minmax", "t_min": 0.0, "t_max": 60.0, "percentiles": [1.0, 99.0]}),
+    EncodingSpec(
+        "c2",
+        encode_c2,
+        channels=1,
+        needs="thermal",
+        description="signed local radiometric contrast (Gaussian background sigma 11, P99 clip, 0.05 C floor)",
+        params={"sigma": c2mod.SIGMA, "percentile": c2mod.PERCENTILE, "floor": c2mod.FLOOR},
+    ),
+    EncodingSpec(
+        "linear16",
+        encode_linear16,
+        channels=1,
+        needs="thermal",
+        description="temperature mapped linearly to 8 bit (per-image min-max by default)",
+        params={"mode": "minmax", "t_min": 0.0, "t_max": 60.0, "percentiles": [1.0, 99.0]},
+    ),
     EncodingSpec("ir8", encode_ir8, channels=1, needs="ir8", description="the 8-bit thermal preview"),
     EncodingSpec("none", encode_none, channels=0, needs=None, description="RGB only"),
-    EncodingSpec("proxy8", encode_proxy8, channels=1, needs="ir8",
-                 description="C2's local contrast on 8-bit intensity (floor in grey levels)",
-                 params={"sigma": c2mod.SIGMA, "percentile": c2mod.PERCENTILE, "floor": 1.0}),
+    EncodingSpec(
+        "proxy8",
+        encode_proxy8,
+        channels=1,
+        needs="ir8",
+        description="C2's local contrast on 8-bit intensity (floor in grey levels)",
+        params={"sigma": c2mod.SIGMA, "percentile": c2mod.PERCENTILE, "floor": 1.0},
+    ),
 )
 
 

@@ -72,8 +72,9 @@ def settings(cfg: Mapping[str, Any] | None) -> tuple[set[str], float]:
         kinds = set(KINDS)
     unknown = sorted(kinds - set(KINDS))
     if unknown:
-        raise ConfigError(f"inputs.accept: unknown finding(s) {', '.join(map(repr, unknown))}; use any of "
-                          f"{', '.join(KINDS)}, or all")
+        raise ConfigError(
+            f"inputs.accept: unknown finding(s) {', '.join(map(repr, unknown))}; use any of {', '.join(KINDS)}, or all"
+        )
     share = section.get("max_unlabelled", DEFAULT_MAX_UNLABELLED)
     if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
         raise ConfigError(f"inputs.max_unlabelled must be a share between 0 and 1, got {share!r}")
@@ -81,7 +82,7 @@ def settings(cfg: Mapping[str, Any] | None) -> tuple[set[str], float]:
 
 
 def _cut(text: str, width: int) -> str:
-    return text if len(text) <= width else text[:width - 3] + "..."
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def _finding(kind: str, message: str, examples: Sequence[str]) -> Finding:
@@ -99,8 +100,12 @@ def _parts(prepared: Any, folds: Iterable[Any]) -> list[tuple[str, list[int]]]:
     """(what, sample indices): the whole dataset, then the training and held-out part of every fold."""
     parts = [("the dataset", list(range(len(prepared.records))))]
     for f in folds:
-        parts.append((f"fold {f.name!r} training part ({'+'.join(f.train_groups) or 'no group'})",
-                      prepared.indices(f.train_groups)))
+        parts.append(
+            (
+                f"fold {f.name!r} training part ({'+'.join(f.train_groups) or 'no group'})",
+                prepared.indices(f.train_groups),
+            )
+        )
         parts.append((f"fold {f.name!r} held-out part ({'+'.join(f.val_groups)})", prepared.indices(f.val_groups)))
     return parts
 
@@ -113,22 +118,32 @@ def inspect(prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT
     parts = [(what, idx) for what, idx in _parts(prepared, folds) if idx]
     for what, idx in parts:
         if all(int(records[i]["n"]) == 0 for i in idx):
-            out.append(_finding("no-labels", f"{what}: {len(idx)} image(s) and not one box",
-                                [_name(records[i]) for i in idx]))
+            out.append(
+                _finding("no-labels", f"{what}: {len(idx)} image(s) and not one box", [_name(records[i]) for i in idx])
+            )
             covered.update(idx)
     for what, idx in parts:
         rest = [i for i in idx if i not in covered]
         empty = [i for i in rest if int(records[i]["n"]) == 0]
         if rest and len(empty) / len(rest) > max_unlabelled and len(empty) >= MIN_UNLABELLED:
-            out.append(_finding("unlabelled-images", f"{what}: {len(empty)} of {len(rest)} images "
-                                                     f"({len(empty) / len(rest):.0%}) have no box, more than "
-                                                     f"{max_unlabelled:.0%}", [_name(records[i]) for i in empty]))
+            out.append(
+                _finding(
+                    "unlabelled-images",
+                    f"{what}: {len(empty)} of {len(rest)} images "
+                    f"({len(empty) / len(rest):.0%}) have no box, more than "
+                    f"{max_unlabelled:.0%}",
+                    [_name(records[i]) for i in empty],
+                )
+            )
     report = prepared.manifest.get("report") or {}
     dropped = {k: v for k, v in (report.get("skip_reasons") or {}).items() if k.startswith("annotation")}
     if dropped:
         total = sum(dropped.values())
-        listed = [f"{where}: {reason}" for where, reason in report.get("skipped_files") or []
-                  if reason.startswith("annotation")]
+        listed = [
+            f"{where}: {reason}"
+            for where, reason in report.get("skipped_files") or []
+            if reason.startswith("annotation")
+        ]
         counts = ", ".join(f"{k}: {v}" for k, v in sorted(dropped.items(), key=lambda kv: -kv[1]))
         kept = int(prepared.manifest.get("instances", 0))
         finding = _finding("dropped-annotations", f"{total} annotation(s) dropped, {kept} kept ({counts})", listed)
@@ -149,7 +164,8 @@ def check(prepared: Any, folds: Iterable[Any], cfg: Mapping[str, Any] | None) ->
             f"dataset {prepared.name!r}: implausible labels in {prepared.folder}:\n{lines}\n"
             f"Check the dataset's layout and annotation files (docs/datasets.md). To use these samples anyway,\n"
             f"accept the risk with --set 'inputs.accept=[{', '.join(kinds)}]' (the results are labelled with it;\n"
-            f"the prepared samples are kept).")
+            f"the prepared samples are kept)."
+        )
     return findings
 
 

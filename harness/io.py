@@ -158,6 +158,8 @@ def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
     root_a = Path(os.path.abspath(root))
     target = Path(os.path.normpath(root_a / rel_s))
     if os.path.isabs(rel_s) or (target != root_a and root_a not in target.parents):
-        raise DataError(f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "
-                        "paths in the manifest and the annotation files must stay inside the dataset folder")
+        raise DataError(
+            f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "
+            "paths in the manifest and the annotation files must stay inside the dataset folder"
+        )
     return target

@@ -172,8 +172,9 @@ class PluginHost:
         registry = self._registry(hook_name)
         owners = self._conflicts[hook_name].get(name)
         if owners:
-            raise PluginError(f"{conflict_message(kind, name, owners)}; uninstall one of them or restrict loading "
-                              f"with {ENV_ALLOW}")
+            raise PluginError(
+                f"{conflict_message(kind, name, owners)}; uninstall one of them or restrict loading with {ENV_ALLOW}"
+            )
         if name not in registry:
             broken = [p.plugin for p in self._hook_problems[hook_name] if p.stage == hook_name]
             misspelled = [p for p in self.load_problems if p.hook == hook_name]
@@ -181,8 +182,11 @@ class PluginHost:
             if broken:
                 err.args = (err.args[0] + f" (plugins that failed to register: {', '.join(broken)})",)
             if misspelled:
-                err.args = (err.args[0] + " Possibly why: " + "; ".join(f"plugin {p.plugin!r}: {p.message}"
-                                                                         for p in misspelled),)
+                err.args = (
+                    err.args[0]
+                    + " Possibly why: "
+                    + "; ".join(f"plugin {p.plugin!r}: {p.message}" for p in misspelled),
+                )
             raise err
         return registry[name][0]
 
@@ -223,8 +227,10 @@ class PluginHost:
         for hook in _REGISTRATION_HOOKS:
             self._registry(hook)
             out.extend(self._hook_problems[hook])
-        out.extend(PluginProblem(owners[-1], "conflict", conflict_message("command", name, owners))
-                   for name, owners in self._command_conflicts.items())
+        out.extend(
+            PluginProblem(owners[-1], "conflict", conflict_message("command", name, owners))
+            for name, owners in self._command_conflicts.items()
+        )
         return out
 
     def conflicts(self) -> dict[str, dict[str, list[str]]]:
@@ -263,8 +269,9 @@ class PluginHost:
             except Exception as exc:
                 cli.commands.clear()
                 cli.commands.update(before)
-                self.load_problems.append(PluginProblem(impl.plugin_name, "register_commands",
-                                                        f"{type(exc).__name__}: {exc}{where(exc)}"))
+                self.load_problems.append(
+                    PluginProblem(impl.plugin_name, "register_commands", f"{type(exc).__name__}: {exc}{where(exc)}")
+                )
                 log.warning("plugin %r failed in register_commands: %s%s", impl.plugin_name, exc, where(exc))
                 continue
             for name, command in list(cli.commands.items()):
@@ -326,8 +333,13 @@ def where(exc: BaseException) -> str:
 
     frames = traceback.extract_tb(exc.__traceback__)
     own = str(Path(__file__).resolve().parent)
-    outside = [f for f in frames if not f.filename.startswith("<") and "pluggy" not in Path(f.filename).parts
-               and not str(Path(f.filename).resolve()).startswith(own)] or frames
+    outside = [
+        f
+        for f in frames
+        if not f.filename.startswith("<")
+        and "pluggy" not in Path(f.filename).parts
+        and not str(Path(f.filename).resolve()).startswith(own)
+    ] or frames
     if isinstance(exc, SyntaxError) and exc.filename:
         return f" (at {exc.filename}:{exc.lineno})"
     return f" (at {outside[-1].filename}:{outside[-1].lineno})" if outside else ""
@@ -349,9 +361,15 @@ def _conflicted(command: Any, owner: str, message: str) -> Any:
     def refuse(**_: Any) -> None:
         raise PluginError(f"{message}; uninstall one of them or restrict loading with {ENV_ALLOW}")
 
-    stand_in = click.Command(command.name, callback=refuse, help=command.help, short_help=command.short_help,
-                             context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
-                             add_help_option=False, hidden=command.hidden)
+    stand_in = click.Command(
+        command.name,
+        callback=refuse,
+        help=command.help,
+        short_help=command.short_help,
+        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+        add_help_option=False,
+        hidden=command.hidden,
+    )
     setattr(stand_in, _OWNER, owner)
     return stand_in
 
@@ -443,8 +461,10 @@ def load_plugins_dir(folder: Path) -> None:
 def _name_taken(name: str, newcomer: str, first: str | None = None) -> None:
     """Record that ``newcomer`` (a distribution or a file) declares a plugin name another plugin already has."""
     holder = f"distribution {first!r}" if first else _holder(name)
-    msg = (f"plugin name {name!r} is declared by more than one plugin: {holder} and {newcomer}; only the first is "
-           f"loaded (rename one, or restrict loading with {ENV_ALLOW})")
+    msg = (
+        f"plugin name {name!r} is declared by more than one plugin: {holder} and {newcomer}; only the first is "
+        f"loaded (rename one, or restrict loading with {ENV_ALLOW})"
+    )
     host.load_problems.append(PluginProblem(name, "conflict", msg))
     log.warning("%s", msg)
 
@@ -497,8 +517,10 @@ def _check_unmarked(plugin: Any, name: str) -> None:
         hook = near[0] if near else None
         if hook is None or not callable(fn) or hasattr(fn, marker):
             continue
-        msg = (f"function {attr!r} looks like the hook {hook!r} but has no @hookimpl, so the harness never calls "
-               f"it; decorate it with @harness.hookimpl")
+        msg = (
+            f"function {attr!r} looks like the hook {hook!r} but has no @hookimpl, so the harness never calls "
+            f"it; decorate it with @harness.hookimpl"
+        )
         host.load_problems.append(PluginProblem(name, "validate", msg, hook))
         log.warning("plugin %r: %s", name, msg)
 
@@ -513,8 +535,10 @@ def _pending_problem(plugin: Any, name: str) -> PluginProblem:
     for hook in _unknown_hooks(plugin) or ["?"]:
         near = nearest_hook(hook)
         nearest = nearest or near
-        parts.append(f"unknown hook {hook!r}, " + (f"did you mean {near!r}?" if near else
-                                                     f"the hooks are {', '.join(hook_names())}"))
+        parts.append(
+            f"unknown hook {hook!r}, "
+            + (f"did you mean {near!r}?" if near else f"the hooks are {', '.join(hook_names())}")
+        )
     return PluginProblem(name, "validate", "not loaded: " + "; ".join(parts), nearest)
 
 

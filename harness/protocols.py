@@ -50,6 +50,8 @@ def shipped_protocol(protocol: str | os.PathLike[str]) -> Path | None:
             raise ConfigError(f"protocol {text!r}: package {package!r} cannot be imported ({exc})") from None
         path = Path(str(base.joinpath(*Path(rel).parts)))
     if not path.is_file():
-        raise ConfigError(f"protocol {text!r}: no file {path}; a plugin that ships its protocol must install it "
-                          "with its package (package data)")
+        raise ConfigError(
+            f"protocol {text!r}: no file {path}; a plugin that ships its protocol must install it "
+            "with its package (package data)"
+        )
     return path

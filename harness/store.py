@@ -124,13 +124,13 @@ _EXTERNAL_FOLDER = "external."
 def detector_folder(detector: str) -> str:
     """The store folder of a detector name (``external/NAME`` -> ``external.NAME``; others unchanged)."""
     if detector.startswith(EXTERNAL):
-        return _EXTERNAL_FOLDER + _safe(detector[len(EXTERNAL):])
+        return _EXTERNAL_FOLDER + _safe(detector[len(EXTERNAL) :])
     return detector
 
 
 def detector_name(folder: str) -> str:
     """Inverse of ``detector_folder``."""
-    return EXTERNAL + folder[len(_EXTERNAL_FOLDER):] if folder.startswith(_EXTERNAL_FOLDER) else folder
+    return EXTERNAL + folder[len(_EXTERNAL_FOLDER) :] if folder.startswith(_EXTERNAL_FOLDER) else folder
 
 
 def _safe(part: str) -> str:
@@ -195,17 +195,20 @@ class Run:
             self.path.mkdir(parents=True, exist_ok=True)
             lock = open(self.lock_path, "a+", encoding="utf-8")
         except OSError as exc:
-            raise StoreError(f"cannot write run {self.key} into the results store: {exc.strerror or exc} "
-                             f"({exc.filename or self.path}); make the store writable or choose another --store"
-                             ) from None
+            raise StoreError(
+                f"cannot write run {self.key} into the results store: {exc.strerror or exc} "
+                f"({exc.filename or self.path}); make the store writable or choose another --store"
+            ) from None
         with lock as f:
             try:
                 fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 f.seek(0)
                 holder = f.read().strip() or "unknown process"
-                raise RunBusyError(f"run {self.key} ({self.path}) is being trained by another process ({holder}); "
-                                   f"wait for it to finish, or use another --store") from None
+                raise RunBusyError(
+                    f"run {self.key} ({self.path}) is being trained by another process ({holder}); "
+                    f"wait for it to finish, or use another --store"
+                ) from None
             f.seek(0)
             f.truncate()
             f.write(f"pid {os.getpid()} on {socket.gethostname()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
@@ -363,8 +366,9 @@ class Store:
     def run(self, key: RunKey) -> Run:
         return Run(self.root, key)
 
-    def runs(self, dataset: str | None = None, detector: str | None = None,
-             finished_only: bool = True) -> Iterator[Run]:
+    def runs(
+        self, dataset: str | None = None, detector: str | None = None, finished_only: bool = True
+    ) -> Iterator[Run]:
         """Every run in the store (sorted), optionally filtered; only finished ones unless asked."""
         if not self.root.exists():
             return
@@ -390,8 +394,10 @@ class Store:
 
     def write_dataset(self, spec: Any) -> Path:
         """``<dataset>/_dataset.json``: what a report needs to know about a dataset (written with its runs)."""
-        return atomic_write_json(self.dataset_path(spec.name), {"dataset": spec.name, "thermal": spec.thermal,
-                                                                "sensing_stage": bool(spec.sensing_stage)})
+        return atomic_write_json(
+            self.dataset_path(spec.name),
+            {"dataset": spec.name, "thermal": spec.thermal, "sensing_stage": bool(spec.sensing_stage)},
+        )
 
     def profile_path(self, detector: str) -> Path:
         return self.root / "_profiles" / f"{detector}.json"

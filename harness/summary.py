@@ -30,11 +30,11 @@ import numpy as np
 
 #: (name, short name, lower area edge, upper area edge) in px^2.
 SIZE_BINS: tuple[tuple[str, str, float, float], ...] = (
-    ("extremely tiny", "ET", 0.0, 8.0 ** 2),
-    ("tiny", "T", 8.0 ** 2, 16.0 ** 2),
-    ("small", "S", 16.0 ** 2, 32.0 ** 2),
-    ("medium", "M", 32.0 ** 2, 96.0 ** 2),
-    ("large", "L", 96.0 ** 2, math.inf),
+    ("extremely tiny", "ET", 0.0, 8.0**2),
+    ("tiny", "T", 8.0**2, 16.0**2),
+    ("small", "S", 16.0**2, 32.0**2),
+    ("medium", "M", 32.0**2, 96.0**2),
+    ("large", "L", 96.0**2, math.inf),
 )
 #: Stride of the finest feature map of the built-in detectors (P3/8).
 FINEST_STRIDE = 8
@@ -127,10 +127,13 @@ class SizeSummary:
         return text_table(self.header(), rows)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"bins": [{"name": n, "short": s, "area": [lo, None if math.isinf(hi) else hi]}
-                         for n, s, lo, hi in SIZE_BINS],
-                "images": self.images,
-                "counts": {c: [int(v) for v in row] for c, row in zip(self.categories, self.counts)}}
+        return {
+            "bins": [
+                {"name": n, "short": s, "area": [lo, None if math.isinf(hi) else hi]} for n, s, lo, hi in SIZE_BINS
+            ],
+            "images": self.images,
+            "counts": {c: [int(v) for v in row] for c, row in zip(self.categories, self.counts)},
+        }
 
 
 def bin_label(k: int) -> str:

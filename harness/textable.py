@@ -8,8 +8,13 @@ from typing import Any, Sequence
 WIDTH = 100
 
 
-def text_table(header: Sequence[Any], rows: Sequence[Sequence[Any]], align: str | None = None,
-               width: int | None = WIDTH, keep: int = 1) -> str:
+def text_table(
+    header: Sequence[Any],
+    rows: Sequence[Sequence[Any]],
+    align: str | None = None,
+    width: int | None = WIDTH,
+    keep: int = 1,
+) -> str:
     """Header, a rule and the rows, columns separated by two spaces.
 
     ``align`` has one ``l`` or ``r`` per column; by default the first column is left-aligned and the others right.
@@ -25,8 +30,9 @@ def text_table(header: Sequence[Any], rows: Sequence[Sequence[Any]], align: str 
 
     def render(idx: Sequence[int]) -> str:
         def line(row: Sequence[Any]) -> str:
-            return "  ".join(str(row[i]).ljust(widths[i]) if align[i] == "l" else str(row[i]).rjust(widths[i])
-                             for i in idx).rstrip()
+            return "  ".join(
+                str(row[i]).ljust(widths[i]) if align[i] == "l" else str(row[i]).rjust(widths[i]) for i in idx
+            ).rstrip()
 
         return "\n".join([line(header), "  ".join("-" * widths[i] for i in idx), *(line(r) for r in rows)])
 
@@ -64,6 +70,15 @@ def fit_text(text: str, width: int = WIDTH) -> str:
             out.append(line)
             continue
         indent = " " * (len(line) - len(line.lstrip()))
-        out.extend(textwrap.wrap(line.strip(), width, initial_indent=indent, subsequent_indent=indent + "  ",
-                                 break_long_words=True, break_on_hyphens=False) or [""])
+        out.extend(
+            textwrap.wrap(
+                line.strip(),
+                width,
+                initial_indent=indent,
+                subsequent_indent=indent + "  ",
+                break_long_words=True,
+                break_on_hyphens=False,
+            )
+            or [""]
+        )
     return "\n".join(out)

@@ -18,7 +18,7 @@ def temperature(k: int) -> np.ndarray:
     rng = np.random.default_rng(k)
     t = 18.0 + 0.2 * rng.standard_normal((H, W))
     x = 6 + (k * 3) % 30
-    t[10:20, x:x + 10] += 6.0
+    t[10:20, x : x + 10] += 6.0
     t[28:40, 40:52] -= 4.0
     return t.astype(np.float32)
 
@@ -45,11 +45,27 @@ def make_coco_rgbt(root: Path, n: int = 12, groups: tuple[str, ...] = GROUPS) ->
         rgb = np.stack([grey, np.roll(grey, 1, axis=1), 255 - grey], axis=2)
         cv2.imwrite(str(root / "rgb" / f"{k:03d}.png"), rgb[:, :, ::-1])
         cv2.imwrite(str(root / "thermal" / f"{k:03d}.png"), centikelvin(t))
-        images.append({"id": k + 1, "file_name": f"rgb/{k:03d}.png", "thermal_file_name": f"thermal/{k:03d}.png",
-                       "group": groups[k % len(groups)], "width": W, "height": H})
+        images.append(
+            {
+                "id": k + 1,
+                "file_name": f"rgb/{k:03d}.png",
+                "thermal_file_name": f"thermal/{k:03d}.png",
+                "group": groups[k % len(groups)],
+                "width": W,
+                "height": H,
+            }
+        )
         for cat, bbox in boxes(k):
-            anns.append({"id": len(anns) + 1, "image_id": k + 1, "category_id": cat, "bbox": bbox,
-                         "area": bbox[2] * bbox[3], "iscrowd": 0})
+            anns.append(
+                {
+                    "id": len(anns) + 1,
+                    "image_id": k + 1,
+                    "category_id": cat,
+                    "bbox": bbox,
+                    "area": bbox[2] * bbox[3],
+                    "iscrowd": 0,
+                }
+            )
     write_json(root, {"images": images, "annotations": anns, "categories": CATEGORIES})
     return root
 

@@ -66,8 +66,9 @@ def write_rgbt_tiny(
     rng = np.random.default_rng(seed)
     w, h = size
     root = Path(root)
-    images, annotations, splits = (root, root, root) if flat else (root / "images", root / "annotations_coco",
-                                                                  root / "data_split")
+    images, annotations, splits = (
+        (root, root, root) if flat else (root / "images", root / "annotations_coco", root / "data_split")
+    )
     cats = [{"id": i, "name": n} for i, n in enumerate(RGBT_CLASSES)]
     cats = [cats[i] for i in (3, 0, 6, 1, 5, 2, 4)]
     expected: dict = {"frames": {}, "thermal_boxes": {}, "visible_boxes": {}}
@@ -102,9 +103,16 @@ def write_rgbt_tiny(
             ):
                 docs[m]["images"].append({"id": ids[m], "file_name": f"{seq}/{m}/{frame}.jpg", "width": w, "height": h})
                 for x, y, bw, bh, c in boxes:
-                    docs[m]["annotations"].append({
-                        "id": len(docs[m]["annotations"]) + 1, "image_id": ids[m], "category_id": c,
-                        "bbox": [x, y, bw, bh], "area": bw * bh, "iscrowd": 0})
+                    docs[m]["annotations"].append(
+                        {
+                            "id": len(docs[m]["annotations"]) + 1,
+                            "image_id": ids[m],
+                            "category_id": c,
+                            "bbox": [x, y, bw, bh],
+                            "area": bw * bh,
+                            "iscrowd": 0,
+                        }
+                    )
         # visible images listed in reverse order, as another tool might write them
         docs["00"]["images"].reverse()
         for m in ("00", "01"):
@@ -124,8 +132,9 @@ def rgbt_json(root: Path, modality: str, split: str) -> Path:
     return Path(root) / "annotations_coco" / f"instances_{modality}_{split}2017.json"
 
 
-def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int = 0,
-               sizes: dict[int, tuple[int, int]] | None = None) -> dict:
+def write_m3fd(
+    root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int = 0, sizes: dict[int, tuple[int, int]] | None = None
+) -> dict:
     """Write ``M3FD_Detection/{Annotation,Ir,Vis}`` under ``root``; return the boxes per frame number.
 
     Frame 120 is 72x40 (per-image sizes); class names are written with the dataset's capitals and, once, with a
@@ -149,8 +158,13 @@ def write_m3fd(root: Path, numbers=(0, 1, 2, 3, 120, 401, 402, 950), seed: int =
             M3FD_NAMES[c] if not (k == 1 and j == 0) else f"{M3FD_NAMES[c].lower()} " for j, (*_, c) in enumerate(objs)
         ]
         # labelImg's convention: 1-based inclusive pixel indices (pixels x .. x+bw-1 are written x+1 .. x+bw)
-        write_voc(base / "Annotation" / f"{stem}.xml", f"{stem}.png", w, h,
-                  [(nm, x + 1, y + 1, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)])
+        write_voc(
+            base / "Annotation" / f"{stem}.xml",
+            f"{stem}.png",
+            w,
+            h,
+            [(nm, x + 1, y + 1, x + bw, y + bh) for nm, (x, y, bw, bh, _) in zip(names, objs)],
+        )
         expected[n] = [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs]
     return expected
 
@@ -172,9 +186,23 @@ def write_voc(path: Path, filename: str, w: int, h: int, objects, folder: str = 
 
 # ---------------------------------------------------------------------------------------------- real tiny runs
 #: Settings that make a run take a couple of seconds on a CPU: 64 px, one epoch, the smallest YOLOv8 scale.
-TINY_RUN = ["--set", "protocol.imgsz=64", "--set", "protocol.epochs=1", "--set", "protocol.patience=1",
-            "--set", "train.batch=4", "--set", "train.nominal_batch=4", "--set", "train.threads=1",
-            "--set", "model.scale=n", "--no-progress"]
+TINY_RUN = [
+    "--set",
+    "protocol.imgsz=64",
+    "--set",
+    "protocol.epochs=1",
+    "--set",
+    "protocol.patience=1",
+    "--set",
+    "train.batch=4",
+    "--set",
+    "train.nominal_batch=4",
+    "--set",
+    "train.threads=1",
+    "--set",
+    "model.scale=n",
+    "--no-progress",
+]
 
 
 def invoke(args: list[str], cache: Path | None = None):
@@ -227,18 +255,28 @@ def build_trained_store(base: Path) -> dict:
     expected = write_rgbt_tiny(rgbt_root)
     write_m3fd(m3fd_root)
     common = [*TINY_RUN, "--store", str(store)]
-    out = {"base": base, "store": store, "cache": cache, "rgbt_root": rgbt_root, "m3fd_root": m3fd_root,
-           "expected": expected}
-    res = invoke(["pretrain", "--detector", "ours", "--dataset", "m3fd", "--set", f"dataset.root={m3fd_root}", *common],
-                 cache)
+    out = {
+        "base": base,
+        "store": store,
+        "cache": cache,
+        "rgbt_root": rgbt_root,
+        "m3fd_root": m3fd_root,
+        "expected": expected,
+    }
+    res = invoke(
+        ["pretrain", "--detector", "ours", "--dataset", "m3fd", "--set", f"dataset.root={m3fd_root}", *common], cache
+    )
     assert res.exit_code == 0, res.output
     out["pretrain_output"] = res.output
     out["checkpoint"] = Path(
         next(line.split(maxsplit=1)[1] for line in res.output.splitlines() if line.startswith("checkpoint:"))
     )
     rgbt = ["run", "--detector", "ours", "--dataset", "rgbt-tiny", "--set", f"dataset.root={rgbt_root}", *common]
-    for name, extra in (("run_init", ["--init", str(out["checkpoint"])]), ("run_ir8", ["--encoding", "ir8"]),
-                        ("run_visible", ["--set", "dataset.gt=visible"])):
+    for name, extra in (
+        ("run_init", ["--init", str(out["checkpoint"])]),
+        ("run_ir8", ["--encoding", "ir8"]),
+        ("run_visible", ["--set", "dataset.gt=visible"]),
+    ):
         res = invoke(rgbt + extra, cache)
         assert res.exit_code == 0, res.output
         out[name] = res.output
@@ -251,8 +289,9 @@ def collect(source: Any) -> tuple[list[Any], PrepareReport]:
     return list(source.samples(report)), report
 
 
-def collect_with_drops(open_source: Callable[..., Any], root: Path, kept: int, reasons: dict[str, int],
-                       strict_error: str = "strict") -> tuple[list[Any], PrepareReport]:
+def collect_with_drops(
+    open_source: Callable[..., Any], root: Path, kept: int, reasons: dict[str, int], strict_error: str = "strict"
+) -> tuple[list[Any], PrepareReport]:
     """Collect the samples of ``open_source(root)``: ``kept`` of them, the skips counted by ``reasons``; opened with
     ``strict=True`` the same release is an error matching ``strict_error``. Returns the samples and the report."""
     samples, report = collect(open_source(root))
@@ -263,8 +302,9 @@ def collect_with_drops(open_source: Callable[..., Any], root: Path, kept: int, r
     return samples, report
 
 
-def check_layout_errors(open_source: Callable[..., Any], env: str, folder: Path, made: str, missing: str,
-                        monkeypatch: pytest.MonkeyPatch) -> None:
+def check_layout_errors(
+    open_source: Callable[..., Any], env: str, folder: Path, made: str, missing: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """No root and no ``env`` is an error naming the variable; a ``folder`` holding only ``made`` is one naming what
     is ``missing``; ``strict="yes"`` is a ``ConfigError``."""
     monkeypatch.delenv(env, raising=False)

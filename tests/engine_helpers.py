@@ -34,9 +34,19 @@ def tinydet_module():
 
 def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
     """``--set`` overrides for a tiny CPU run of TinyDet on the shapes dataset (64 px, batch 8, one thread)."""
-    return ["protocol.imgsz=64", f"protocol.epochs={epochs}", "protocol.patience=10", "train.batch=8",
-            "train.nominal_batch=8", "train.warmup_epochs=0.5", "train.warmup_min_iters=0",
-            f"train.close_mosaic={close_mosaic}", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+    return [
+        "protocol.imgsz=64",
+        f"protocol.epochs={epochs}",
+        "protocol.patience=10",
+        "train.batch=8",
+        "train.nominal_batch=8",
+        "train.warmup_epochs=0.5",
+        "train.warmup_min_iters=0",
+        f"train.close_mosaic={close_mosaic}",
+        "train.threads=1",
+        "train.device=cpu",
+        "eval.batch=16",
+    ]
 
 
 @pytest.fixture
@@ -57,13 +67,20 @@ def shapes_and_tinydet(tag: str) -> Iterator[None]:
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
 
-    with temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"), \
-            temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"):
+    with (
+        temporary_plugin(ShapesPlugin(), name=f"shapes-{tag}"),
+        temporary_plugin(tinydet_plugin, name=f"tinydet-{tag}"),
+    ):
         yield
 
 
-def make_sample(image_id: int, group: str, rng: np.random.Generator, size: tuple[int, int] = (64, 80),
-                n_objects: tuple[int, int] = (1, 3)) -> AlignedSample:
+def make_sample(
+    image_id: int,
+    group: str,
+    rng: np.random.Generator,
+    size: tuple[int, int] = (64, 80),
+    n_objects: tuple[int, int] = (1, 3),
+) -> AlignedSample:
     h, w = size
     rgb = np.clip(rng.normal(150, 12, (h, w, 3)), 0, 255).astype(np.uint8)
     temp = (20.0 + rng.normal(0, 0.3, (h, w))).astype(np.float32)
@@ -73,28 +90,41 @@ def make_sample(image_id: int, group: str, rng: np.random.Generator, size: tuple
         for _attempt in range(20):
             bw, bh = int(rng.integers(10, 22)), int(rng.integers(10, 22))
             x1, y1 = int(rng.integers(0, w - bw)), int(rng.integers(0, h - bh))
-            if not occupied[max(0, y1 - 2):y1 + bh + 2, max(0, x1 - 2):x1 + bw + 2].any():
+            if not occupied[max(0, y1 - 2) : y1 + bh + 2, max(0, x1 - 2) : x1 + bw + 2].any():
                 break
         else:
             continue
-        occupied[y1:y1 + bh, x1:x1 + bw] = True
+        occupied[y1 : y1 + bh, x1 : x1 + bw] = True
         label = int(rng.integers(0, len(CATEGORIES)))
         if label == 0:  # window: dark blue in RGB, a little cooler
-            rgb[y1:y1 + bh, x1:x1 + bw] = (30, 40, 90)
-            temp[y1:y1 + bh, x1:x1 + bw] -= 1.0
+            rgb[y1 : y1 + bh, x1 : x1 + bw] = (30, 40, 90)
+            temp[y1 : y1 + bh, x1 : x1 + bw] -= 1.0
         else:  # warm / cold: identical grey squares in RGB, opposite temperature
-            rgb[y1:y1 + bh, x1:x1 + bw] = (225, 225, 225)
-            temp[y1:y1 + bh, x1:x1 + bw] += 4.0 if label == 1 else -4.0
+            rgb[y1 : y1 + bh, x1 : x1 + bw] = (225, 225, 225)
+            temp[y1 : y1 + bh, x1 : x1 + bw] += 4.0 if label == 1 else -4.0
         boxes.append([x1, y1, x1 + bw, y1 + bh])
         labels.append(label)
     ir8 = np.clip((temp - 14.0) / 12.0 * 255, 0, 255).astype(np.uint8)
-    return AlignedSample(image_id=image_id, rgb=rgb, thermal=temp, ir8=ir8,
-                         boxes=np.asarray(boxes, np.float32).reshape(-1, 4), labels=np.asarray(labels, np.int64),
-                         group=group, meta={"file_name": f"{group}_{image_id:04d}.jpg"})
+    return AlignedSample(
+        image_id=image_id,
+        rgb=rgb,
+        thermal=temp,
+        ir8=ir8,
+        boxes=np.asarray(boxes, np.float32).reshape(-1, 4),
+        labels=np.asarray(labels, np.int64),
+        group=group,
+        meta={"file_name": f"{group}_{image_id:04d}.jpg"},
+    )
 
 
-def write_dataset(folder: Path, groups: tuple[str, ...] = ("A", "B"), per_group: int = 8, seed: int = 0,
-                  size: tuple[int, int] = (64, 80), name: str = "shapes") -> PreparedDataset:
+def write_dataset(
+    folder: Path,
+    groups: tuple[str, ...] = ("A", "B"),
+    per_group: int = 8,
+    seed: int = 0,
+    size: tuple[int, int] = (64, 80),
+    name: str = "shapes",
+) -> PreparedDataset:
     rng = np.random.default_rng(seed)
     with PreparedWriter(folder, name, CATEGORIES, fingerprint=f"shapes-{seed}-{per_group}") as w:
         k = 1
@@ -121,8 +151,9 @@ class ShapesSource:
     name = "shapes"
     categories = CATEGORIES
 
-    def __init__(self, groups: tuple[str, ...] = ("A", "B"), per_group: int = 8, seed: int = 0,
-                 size: tuple[int, int] = (64, 80)):
+    def __init__(
+        self, groups: tuple[str, ...] = ("A", "B"), per_group: int = 8, seed: int = 0, size: tuple[int, int] = (64, 80)
+    ):
         self._groups, self.per_group, self.seed, self.size = groups, per_group, seed, size
 
     def groups(self) -> list[str]:
@@ -164,8 +195,16 @@ class ContractSource:
     def samples(self, report: Any):
         for i, g in enumerate(["a", "a", "b"], start=1):
             t = np.full((8, 8), 20.0, np.float32)
-            yield AlignedSample(i, np.zeros((8, 8, 3), np.uint8), t, np.zeros((8, 8), np.uint8),
-                                np.array([[1, 1, 4, 4]], np.float32), np.array([1], np.int64), g, {})
+            yield AlignedSample(
+                i,
+                np.zeros((8, 8, 3), np.uint8),
+                t,
+                np.zeros((8, 8), np.uint8),
+                np.array([[1, 1, 4, 4]], np.float32),
+                np.array([1], np.int64),
+                g,
+                {},
+            )
 
 
 class ShapesPlugin:
@@ -178,9 +217,15 @@ class ShapesPlugin:
 
     @hookimpl
     def register_datasets(self, register):
-        register(DatasetSpec(name="shapes", open=lambda root=None, sensing=None, **opts: ShapesSource(**opts),
-                             categories=CATEGORIES, default_encoding="test-ir8",
-                             description="coloured shapes for engine tests"))
+        register(
+            DatasetSpec(
+                name="shapes",
+                open=lambda root=None, sensing=None, **opts: ShapesSource(**opts),
+                categories=CATEGORIES,
+                default_encoding="test-ir8",
+                description="coloured shapes for engine tests",
+            )
+        )
 
 
 PLUGIN_FILE = '''
@@ -208,8 +253,24 @@ def install_plugin(folder: str, tmp_path: Path) -> tuple[Path, Path]:
 
     src, site = tmp_path / "src", tmp_path / "site"
     shutil.copytree(REPO / "plugins" / folder, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
+    pip = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--target",
+            str(site),
+            str(src),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert pip.returncode == 0, pip.stderr
     return src, site
 
@@ -218,5 +279,11 @@ def run_plugin_tests(src: Path, env: dict[str, str]) -> Any:
     """The plugin's own ``tests/`` run by pytest in a subprocess, with the fixtures of ``harness.testing``."""
     import subprocess
 
-    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "harness.testing",
-                           str(src / "tests")], env=env, cwd=src, capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "harness.testing", str(src / "tests")],
+        env=env,
+        cwd=src,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )

@@ -63,8 +63,12 @@ def _case(case: dict) -> dict:
             out = path.with_name(path.stem + ".cli.safetensors")
             res = CliRunner().invoke(get_cli(), ["weights", "import", str(path), "--out", str(out)])
             crashed = res.exception is not None and not isinstance(res.exception, SystemExit)
-            result.update(outcome="exception" if crashed else ("ok" if res.exit_code == 0 else "error"),
-                          message=res.output, exit_code=res.exit_code, type=type(res.exception).__name__)
+            result.update(
+                outcome="exception" if crashed else ("ok" if res.exit_code == 0 else "error"),
+                message=res.output,
+                exit_code=res.exit_code,
+                type=type(res.exception).__name__,
+            )
         else:
             import torch
 
@@ -76,8 +80,12 @@ def _case(case: dict) -> dict:
     except HarnessError as exc:
         result.update(outcome="error", message=str(exc), type=type(exc).__name__)
     except BaseException as exc:  # what the test must never see
-        result.update(outcome="exception", type=type(exc).__name__, message=str(exc)[:500],
-                      where=traceback.format_exc().splitlines()[-3:])
+        result.update(
+            outcome="exception",
+            type=type(exc).__name__,
+            message=str(exc)[:500],
+            where=traceback.format_exc().splitlines()[-3:],
+        )
     seconds = time.perf_counter() - t0
     peak = max(_status()["VmHWM"], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
     return {**case, **result, "seconds": seconds, "peak_bytes": max(peak - start["VmRSS"], 0)}
@@ -99,7 +107,7 @@ def _worker(cases: list[dict], allowance: int, w: int) -> None:
 def run(cases: list[dict], allowance: int, timeout: float) -> list[dict]:
     results: list[dict] = []
     while len(results) < len(cases):
-        todo = cases[len(results):]
+        todo = cases[len(results) :]
         r, w = os.pipe()
         pid = os.fork()
         if pid == 0:

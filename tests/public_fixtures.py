@@ -48,16 +48,22 @@ def write_llvip(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0) -> 
             objs = _boxes(rng, w, h, 2)
             vis, th = _draw(h, w, [o[:4] for o in objs], rng)
             cv2.imwrite(str(base / "visible" / split / f"{stem}.jpg"), vis, [cv2.IMWRITE_JPEG_QUALITY, 95])
-            cv2.imwrite(str(base / "infrared" / split / f"{stem}.jpg"), cv2.merge([th, th, th]),
-                        [cv2.IMWRITE_JPEG_QUALITY, 95])
-            write_voc(base / "Annotations" / f"{stem}.xml", f"{stem}.jpg", w, h,
-                      [("person", x + 1, y + 1, x + bw, y + bh) for x, y, bw, bh, _ in objs], folder="JPEGImages")
+            cv2.imwrite(
+                str(base / "infrared" / split / f"{stem}.jpg"), cv2.merge([th, th, th]), [cv2.IMWRITE_JPEG_QUALITY, 95]
+            )
+            write_voc(
+                base / "Annotations" / f"{stem}.xml",
+                f"{stem}.jpg",
+                w,
+                h,
+                [("person", x + 1, y + 1, x + bw, y + bh) for x, y, bw, bh, _ in objs],
+                folder="JPEGImages",
+            )
             expected[stem] = [(x, y, x + bw, y + bh) for x, y, bw, bh, _ in objs]
     return expected
 
 
-def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0,
-                       layout: str = "yolov5") -> dict:
+def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int = 0, layout: str = "yolov5") -> dict:
     """Write ``FLIR-align-3class/`` under ``root`` in YOLOv5's layout (``<modality>/<split>/images|labels/``) or,
     with ``layout="icafusion"``, ICAFusion's (images in ``<modality>/<split>/``, labels in ``labels/<split>/``);
     return {number: (visible boxes, infrared boxes)} where each box is (x1, y1, x2, y2, class index) in pixels. The
@@ -70,8 +76,10 @@ def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int =
         for n in numbers:
             objs = _boxes(rng, w - 1, h - 1, 3)
             vis, th = _draw(h, w, [o[:4] for o in objs], rng)
-            boxes = {"visible": [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs],
-                     "infrared": [(x + 1, y + 1, x + 1 + bw, y + 1 + bh, c) for x, y, bw, bh, c in objs]}
+            boxes = {
+                "visible": [(x, y, x + bw, y + bh, c) for x, y, bw, bh, c in objs],
+                "infrared": [(x + 1, y + 1, x + 1 + bw, y + 1 + bh, c) for x, y, bw, bh, c in objs],
+            }
             for modality, name, img in (("visible", f"FLIR_{n}_RGB", vis), ("infrared", f"FLIR_{n}_PreviewData", th)):
                 if layout == "icafusion":
                     images, labels = base / modality / split, base / "labels" / split
@@ -81,8 +89,10 @@ def write_flir_aligned(root: Path, size: tuple[int, int] = (80, 64), seed: int =
                 labels.mkdir(parents=True, exist_ok=True)
                 ext = ".jpg" if modality == "visible" else ".jpeg"
                 cv2.imwrite(str(images / f"{name}{ext}"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-                lines = [f"{c} {(x1 + x2) / 2 / w:.6f} {(y1 + y2) / 2 / h:.6f} {(x2 - x1) / w:.6f} {(y2 - y1) / h:.6f}"
-                         for x1, y1, x2, y2, c in boxes[modality]]
+                lines = [
+                    f"{c} {(x1 + x2) / 2 / w:.6f} {(y1 + y2) / 2 / h:.6f} {(x2 - x1) / w:.6f} {(y2 - y1) / h:.6f}"
+                    for x1, y1, x2, y2, c in boxes[modality]
+                ]
                 (labels / f"{name}.txt").write_text("\n".join(lines) + "\n")
             expected[n] = (boxes["visible"], boxes["infrared"])
     return expected
@@ -106,9 +116,14 @@ def write_flir_release(root: Path, size: tuple[int, int] = (80, 64), seed: int =
             for n in numbers:
                 for modality, name in (("visible", f"FLIR_{n}_RGB.jpg"), ("infrared", f"FLIR_{n}_PreviewData.jpeg")):
                     shutil.copy(src / modality / split / "images" / name, base / "JPEGImages" / name)
-                write_voc(base / "Annotations" / f"FLIR_{n}_PreviewData.xml", f"FLIR_{n}_PreviewData.jpeg", w, h,
-                          [(FLIR_CLASSES[c], x1 + 1, y1 + 1, x2, y2) for x1, y1, x2, y2, c in expected[n][1]],
-                          folder="JPEGImages")
+                write_voc(
+                    base / "Annotations" / f"FLIR_{n}_PreviewData.xml",
+                    f"FLIR_{n}_PreviewData.jpeg",
+                    w,
+                    h,
+                    [(FLIR_CLASSES[c], x1 + 1, y1 + 1, x2, y2) for x1, y1, x2, y2, c in expected[n][1]],
+                    folder="JPEGImages",
+                )
             listing = "align_train.txt" if split == "train" else "align_validation.txt"
             (base / listing).write_text("".join(f"FLIR_{n}_PreviewData\n" for n in numbers))
     return expected

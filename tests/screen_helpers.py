@@ -9,10 +9,26 @@ import numpy as np
 
 #: a plausible DJI position per capture of project P1 (what the XMP of the test flights carries)
 POSITIONS = {
-    "DJI_20240512094000_0001": {"lat": 48.13743215, "lon": 11.57549012, "alt_abs": 541.234, "alt_rel": 22.5,
-                                "gimbal_yaw": 91.3, "gimbal_pitch": -2.1, "gimbal_roll": 0.0, "flight_yaw": 90.8},
-    "DJI_20240512094005_0002": {"lat": 48.13744102, "lon": 11.57553311, "alt_abs": 541.301, "alt_rel": 22.6,
-                                "gimbal_yaw": 90.9, "gimbal_pitch": -1.8, "gimbal_roll": 0.0, "flight_yaw": 90.1},
+    "DJI_20240512094000_0001": {
+        "lat": 48.13743215,
+        "lon": 11.57549012,
+        "alt_abs": 541.234,
+        "alt_rel": 22.5,
+        "gimbal_yaw": 91.3,
+        "gimbal_pitch": -2.1,
+        "gimbal_roll": 0.0,
+        "flight_yaw": 90.8,
+    },
+    "DJI_20240512094005_0002": {
+        "lat": 48.13744102,
+        "lon": 11.57553311,
+        "alt_abs": 541.301,
+        "alt_rel": 22.6,
+        "gimbal_yaw": 90.9,
+        "gimbal_pitch": -1.8,
+        "gimbal_roll": 0.0,
+        "flight_yaw": 90.1,
+    },
 }
 
 
@@ -53,7 +69,8 @@ def upscaled_flight(tiny: Path, folder: Path, factor: int = 2) -> Path:
         big = cv2.resize(img, None, fx=factor, fy=factor, interpolation=cv2.INTER_CUBIC)
         ok, enc = cv2.imencode(".jpg", big, [cv2.IMWRITE_JPEG_QUALITY, 92])
         assert ok
-        exif = next(p for p in jpeg.read_segments(data, src, require_eoi=False).payloads(jpeg.APP1)
-                    if p.startswith(b"Exif"))
+        exif = next(
+            p for p in jpeg.read_segments(data, src, require_eoi=False).payloads(jpeg.APP1) if p.startswith(b"Exif")
+        )
         (folder / src.name).write_bytes(b"\xff\xd8" + jpeg.segment(jpeg.APP1, exif) + enc.tobytes()[2:])
     return folder

@@ -17,7 +17,7 @@ def facade_labels(seed: int, width: int, height: int, up: int = 4) -> np.ndarray
     floors = int(rng.integers(3, 6))
     fh = H // floors
     for f in range(floors):
-        lab[f * fh:f * fh + max(2, fh // 10)] = 1
+        lab[f * fh : f * fh + max(2, fh // 10)] = 1
     cols = int(rng.integers(4, 8))
     cw = W // cols
     for f in range(floors):
@@ -27,15 +27,20 @@ def facade_labels(seed: int, width: int, height: int, up: int = 4) -> np.ndarray
             ww, hh = int(cw * rng.uniform(0.35, 0.6)), int(fh * rng.uniform(0.35, 0.6))
             x0 = c * cw + int(rng.integers(2, cw - ww - 1))
             y0 = f * fh + fh // 5 + int(rng.integers(0, max(1, fh - hh - fh // 5 - 1)))
-            lab[y0:y0 + hh, x0:x0 + ww] = 2 + int(rng.integers(0, 2))
+            lab[y0 : y0 + hh, x0 : x0 + ww] = 2 + int(rng.integers(0, 2))
     for _ in range(8):
         cx, cy = int(rng.integers(0, W)), int(rng.integers(0, H))
         cv2.circle(lab, (cx, cy), int(rng.integers(2 * up, 6 * up)), 4 + int(rng.integers(0, 2)), -1)
     return lab
 
 
-def render_pair(seed: int, H_true: np.ndarray, rgb_size: tuple[int, int] = (480, 384),
-                thermal_size: tuple[int, int] = (160, 128), up: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def render_pair(
+    seed: int,
+    H_true: np.ndarray,
+    rgb_size: tuple[int, int] = (480, 384),
+    thermal_size: tuple[int, int] = (160, 128),
+    up: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
     """(rgb uint8 HxWx3, temperature float32) of one scene; RGB pixel p sees thermal point ``H_true p``."""
     import cv2
 
@@ -48,7 +53,8 @@ def render_pair(seed: int, H_true: np.ndarray, rgb_size: tuple[int, int] = (480,
     thermal = thermal + rng.normal(0, 0.02, (th, tw)).astype(np.float32)
     # thermal pixel centre u sits at u * up + (up - 1) / 2 on the fine grid
     S = np.array([[up, 0, (up - 1) / 2], [0, up, (up - 1) / 2], [0, 0, 1.0]])
-    rgb = cv2.warpPerspective(colours[lab], S @ H_true, rgb_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REFLECT)
+    rgb = cv2.warpPerspective(
+        colours[lab], S @ H_true, rgb_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT
+    )
     rgb = np.clip(rgb.astype(np.float32) + rng.normal(0, 3, rgb.shape), 0, 255).astype(np.uint8)
     return rgb, thermal.astype(np.float32)

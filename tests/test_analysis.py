@@ -23,16 +23,25 @@ def _hand_fixture():
     d5 B .5 = g3 (TP); d6 B .4 [0,0,20,8] on g4, IoU 0.4 (localisation); d7 A .3 = g4 (classification, but d6
     scores higher on g4, so fixing classification removes d7 rather than matching it).
     """
-    gt = {"images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100}],
-          "categories": [{"id": 1, "name": "A"}, {"id": 2, "name": "B"}],
-          "annotations": [
-              {"id": 11, "image_id": 1, "category_id": 1, "bbox": [0, 0, 10, 10], "area": 100, "iscrowd": 0},
-              {"id": 12, "image_id": 1, "category_id": 1, "bbox": [50, 50, 10, 10], "area": 100, "iscrowd": 0},
-              {"id": 13, "image_id": 1, "category_id": 2, "bbox": [20, 20, 10, 10], "area": 100, "iscrowd": 0},
-              {"id": 14, "image_id": 2, "category_id": 2, "bbox": [0, 0, 20, 20], "area": 400, "iscrowd": 0}]}
-    dets = [(1, 1, .9, [0, 0, 10, 10]), (1, 1, .8, [0, 0, 10, 10]), (1, 2, .7, [50, 50, 10, 10]),
-            (1, 1, .6, [80, 80, 10, 10]), (1, 2, .5, [20, 20, 10, 10]), (2, 2, .4, [0, 0, 20, 8]),
-            (2, 1, .3, [0, 0, 20, 20])]
+    gt = {
+        "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100}],
+        "categories": [{"id": 1, "name": "A"}, {"id": 2, "name": "B"}],
+        "annotations": [
+            {"id": 11, "image_id": 1, "category_id": 1, "bbox": [0, 0, 10, 10], "area": 100, "iscrowd": 0},
+            {"id": 12, "image_id": 1, "category_id": 1, "bbox": [50, 50, 10, 10], "area": 100, "iscrowd": 0},
+            {"id": 13, "image_id": 1, "category_id": 2, "bbox": [20, 20, 10, 10], "area": 100, "iscrowd": 0},
+            {"id": 14, "image_id": 2, "category_id": 2, "bbox": [0, 0, 20, 20], "area": 400, "iscrowd": 0},
+        ],
+    }
+    dets = [
+        (1, 1, 0.9, [0, 0, 10, 10]),
+        (1, 1, 0.8, [0, 0, 10, 10]),
+        (1, 2, 0.7, [50, 50, 10, 10]),
+        (1, 1, 0.6, [80, 80, 10, 10]),
+        (1, 2, 0.5, [20, 20, 10, 10]),
+        (2, 2, 0.4, [0, 0, 20, 8]),
+        (2, 1, 0.3, [0, 0, 20, 20]),
+    ]
     return gt, [{"image_id": i, "category_id": c, "score": s, "bbox": b} for i, c, s, b in dets]
 
 
@@ -49,8 +58,14 @@ def test_hand_computed_tide_errors():
     an = analyse(gt, dets)
     t = an["tide"]
     assert t["mAP50"] == pytest.approx(BASE, abs=1e-12)
-    assert t["counts"] == {"classification": 2, "localisation": 1, "both": 0, "duplicate": 1, "background": 1,
-                           "missed": 0}
+    assert t["counts"] == {
+        "classification": 2,
+        "localisation": 1,
+        "both": 0,
+        "duplicate": 1,
+        "background": 1,
+        "missed": 0,
+    }
     assert t["dAP50"]["classification"] == pytest.approx(CLS - BASE, abs=1e-12)
     assert t["dAP50"]["localisation"] == pytest.approx(LOC - BASE, abs=1e-12)
     # removing d2 (duplicate) or d4 (background) leaves A at precision 1 up to recall 0.5: nothing gained
@@ -93,11 +108,14 @@ def test_hand_computed_worst_misses_and_false_positives():
     assert [(f["score"], f["error"]) for f in fa] == [(0.8, "duplicate"), (0.6, "background"), (0.3, "classification")]
     assert fa[2]["gt_category"] == "B" and fa[2]["annotation_id"] == 14 and not fa[2]["kept"]
     assert [(f["score"], f["error"], f["gt_category"]) for f in worst["B"]["false_positives"]] == [
-        (0.7, "classification", "A"), (0.4, "localisation", "B")]
+        (0.7, "classification", "A"),
+        (0.4, "localisation", "B"),
+    ]
     # g2 is confused with d3 (a B box); nothing at the operating point came near g4
     assert [(m["annotation_id"], m["reason"]) for m in worst["A"]["misses"]] == [(12, "classification")]
     assert [(m["annotation_id"], m["reason"], m["bbox"]) for m in worst["B"]["misses"]] == [
-        (14, "missed", [0.0, 0.0, 20.0, 20.0])]
+        (14, "missed", [0.0, 0.0, 20.0, 20.0])
+    ]
 
 
 def _pycocotools_eval(gt, dets):
@@ -131,10 +149,12 @@ def test_the_analysis_uses_the_evaluator_s_matching_and_numbers(seed):
         name = prep.cat_names[cid]
         assert an["pr"]["categories"][name]["AP50"] == ev["per_category"][name]["AP50"]
         if ev["per_category"][name]["AP50"] is not None:  # stored to 6 decimals
-            np.testing.assert_allclose(an["pr"]["categories"][name]["precision"], coco["precision"][0, :, k, 0, -1],
-                                       atol=6e-7)
-            np.testing.assert_allclose(an["pr"]["categories"][name]["scores"], coco["scores"][0, :, k, 0, -1],
-                                       atol=6e-7)
+            np.testing.assert_allclose(
+                an["pr"]["categories"][name]["precision"], coco["precision"][0, :, k, 0, -1], atol=6e-7
+            )
+            np.testing.assert_allclose(
+                an["pr"]["categories"][name]["scores"], coco["scores"][0, :, k, 0, -1], atol=6e-7
+            )
     # confusion matrix: the diagonal is the operating point's true positives, columns sum to the instances,
     # and diagonal / row sum is each category's precision at the operating point
     mat = np.array(an["confusion"]["matrix"])
@@ -166,10 +186,15 @@ def test_size_bins_engines_agree_and_tiny_datasets_get_safit_bins():
     assert _rounded(fast) == _rounded(ref)  # C++ and Python sums may differ in the last bit
     assert set(fast["safit"]["AP50"]) == {"extremely_tiny", "tiny", "small", "medium", "large"}
     assert sum(fast["safit"]["instances"].values()) >= sum(fast["coco"]["instances"].values())
+
     # automatic: a dataset whose GT is mostly COCO-small (below 32 x 32) is a tiny-object one
     def sized(side):
-        return {**gt, "annotations": [{**a, "bbox": [*a["bbox"][:2], side, side], "area": side * side}
-                                      for a in gt["annotations"]]}
+        return {
+            **gt,
+            "annotations": [
+                {**a, "bbox": [*a["bbox"][:2], side, side], "area": side * side} for a in gt["annotations"]
+            ],
+        }
 
     assert "safit" in analyse(sized(20), dets)["sizes"]
     assert "safit" not in analyse(sized(40), dets)["sizes"]
@@ -195,8 +220,14 @@ def test_tide_errors_equal_the_tidecv_package(seed, monkeypatch):
     run = tide.evaluate(g, p, mode=tidecv.TIDE.BOX)
     theirs = tide.get_main_errors()["pred"]
     special = tide.get_special_errors()["pred"]
-    names = {"Cls": "classification", "Loc": "localisation", "Both": "both", "Dupe": "duplicate",
-             "Bkg": "background", "Miss": "missed"}
+    names = {
+        "Cls": "classification",
+        "Loc": "localisation",
+        "Both": "both",
+        "Dupe": "duplicate",
+        "Bkg": "background",
+        "Miss": "missed",
+    }
     counts = {names[e.short_name]: n for e, n in run.count_errors().items()}
 
     ours = analyse(gt, dets)["tide"]

@@ -38,8 +38,14 @@ def _n(n: int, depth: float) -> int:
 
 
 def conv_keys(p: str, c1: int, c2: int, k: int) -> dict[str, tuple]:
-    return {f"{p}.conv.weight": (c2, c1, k, k), f"{p}.bn.weight": (c2,), f"{p}.bn.bias": (c2,),
-            f"{p}.bn.running_mean": (c2,), f"{p}.bn.running_var": (c2,), f"{p}.bn.num_batches_tracked": ()}
+    return {
+        f"{p}.conv.weight": (c2, c1, k, k),
+        f"{p}.bn.weight": (c2,),
+        f"{p}.bn.bias": (c2,),
+        f"{p}.bn.running_mean": (c2,),
+        f"{p}.bn.running_var": (c2,),
+        f"{p}.bn.num_batches_tracked": (),
+    }
 
 
 def c3_keys(p: str, c1: int, c2: int, n: int) -> dict[str, tuple]:
@@ -85,13 +91,35 @@ def yaml_layer_keys(index: int, module: str, c1: int, args: tuple, width: float,
 
 
 # [module, args] of the yolov5l.yaml (v6.x) backbone rows: Conv [c2, k], C3 [n, c2], SPPF [c2]
-BACKBONE = [("Conv", (64, 6)), ("Conv", (128, 3)), ("C3", (3, 128)), ("Conv", (256, 3)), ("C3", (6, 256)),
-            ("Conv", (512, 3)), ("C3", (9, 512)), ("Conv", (1024, 3)), ("C3", (3, 1024)), ("SPPF", (1024,))]
+BACKBONE = [
+    ("Conv", (64, 6)),
+    ("Conv", (128, 3)),
+    ("C3", (3, 128)),
+    ("Conv", (256, 3)),
+    ("C3", (6, 256)),
+    ("Conv", (512, 3)),
+    ("C3", (9, 512)),
+    ("Conv", (1024, 3)),
+    ("C3", (3, 1024)),
+    ("SPPF", (1024,)),
+]
 # PAN rows as (index offset, module, args, index offset of the concatenated input or None)
-HEAD = [("Conv", (512, 1), None), ("Upsample", (), None), ("Concat", (), "P4"), ("C3", (3, 512), None),
-        ("Conv", (256, 1), None), ("Upsample", (), None), ("Concat", (), "P3"), ("C3", (3, 256), None),
-        ("Conv", (256, 3), None), ("Concat", (), 4), ("C3", (3, 512), None),
-        ("Conv", (512, 3), None), ("Concat", (), 0), ("C3", (3, 1024), None)]
+HEAD = [
+    ("Conv", (512, 1), None),
+    ("Upsample", (), None),
+    ("Concat", (), "P4"),
+    ("C3", (3, 512), None),
+    ("Conv", (256, 1), None),
+    ("Upsample", (), None),
+    ("Concat", (), "P3"),
+    ("C3", (3, 256), None),
+    ("Conv", (256, 3), None),
+    ("Concat", (), 4),
+    ("C3", (3, 512), None),
+    ("Conv", (512, 3), None),
+    ("Concat", (), 0),
+    ("C3", (3, 1024), None),
+]
 
 
 def backbone_keys(start: int, c_in: int, width: float, depth: float) -> tuple[dict, dict[int, int]]:
@@ -133,16 +161,29 @@ def yolov5_official_layout(c_in: int, nc: int, width: float, depth: float) -> di
 
 def fusion_block_keys(p: str, d: int, tokens: int) -> dict[str, tuple]:
     """ICAFusion TransformerFusionBlock(d, tokens, tokens), one CrossTransformerBlock, expansion 4."""
-    out: dict[str, tuple] = {f"{p}.pos_emb_vis": (1, tokens * tokens, d), f"{p}.pos_emb_ir": (1, tokens * tokens, d),
-                             f"{p}.vis_coefficient.w1": (1,), f"{p}.vis_coefficient.w2": (1,),
-                             f"{p}.ir_coefficient.w1": (1,), f"{p}.ir_coefficient.w2": (1,)}
+    out: dict[str, tuple] = {
+        f"{p}.pos_emb_vis": (1, tokens * tokens, d),
+        f"{p}.pos_emb_ir": (1, tokens * tokens, d),
+        f"{p}.vis_coefficient.w1": (1,),
+        f"{p}.vis_coefficient.w2": (1,),
+        f"{p}.ir_coefficient.w1": (1,),
+        f"{p}.ir_coefficient.w2": (1,),
+    }
     b = f"{p}.crosstransformer.0"
     ln = lambda q: {f"{q}.weight": (d,), f"{q}.bias": (d,)}  # noqa: E731
     lin = lambda q, i, o: {f"{q}.weight": (o, i), f"{q}.bias": (o,)}  # noqa: E731
     out.update(ln(f"{b}.ln_input"))
     out.update(ln(f"{b}.ln_output"))
-    for proj in ("que_proj_vis", "key_proj_vis", "val_proj_vis", "que_proj_ir", "key_proj_ir", "val_proj_ir",
-                 "out_proj_vis", "out_proj_ir"):
+    for proj in (
+        "que_proj_vis",
+        "key_proj_vis",
+        "val_proj_vis",
+        "que_proj_ir",
+        "key_proj_ir",
+        "val_proj_ir",
+        "out_proj_vis",
+        "out_proj_ir",
+    ):
         out.update(lin(f"{b}.crossatt.{proj}", d, d))
     out.update(ln(f"{b}.crossatt.LN1"))
     out.update(ln(f"{b}.crossatt.LN2"))
@@ -225,11 +266,14 @@ def _inputs(size: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.rand(1, 3, size, size, generator=g), torch.rand(1, 3, size, size, generator=g)
 
 
-@pytest.mark.parametrize("spec,kw", [
-    (icafusion, {"width": 0.125, "depth": 0.33, "tokens": (4, 2, 2)}),
-    (eme, {"width": 0.125, "depth": 0.33}),
-    (eme, {"width": 0.125, "depth": 0.33, "shape": True}),
-])
+@pytest.mark.parametrize(
+    "spec,kw",
+    [
+        (icafusion, {"width": 0.125, "depth": 0.33, "tokens": (4, 2, 2)}),
+        (eme, {"width": 0.125, "depth": 0.33}),
+        (eme, {"width": 0.125, "depth": 0.33, "shape": True}),
+    ],
+)
 def test_save_then_load_official_gives_identical_outputs(tmp_path, spec, kw):
     torch.manual_seed(0)
     src = spec.build(NC, **kw).eval()
@@ -251,14 +295,24 @@ def test_a_state_dict_built_from_the_documented_layout_loads_completely():
     width, depth, tokens = 0.125, 0.33, (4, 2, 2)
     layout = icafusion_official_layout(NC, width, depth, tokens)
     g = torch.Generator().manual_seed(5)
-    official = {k: (torch.zeros(s, dtype=torch.long) if k.endswith("num_batches_tracked")
-                    else torch.randn(s, generator=g).half()) for k, s in layout.items()}  # released files are fp16
+    official = {
+        k: (
+            torch.zeros(s, dtype=torch.long)
+            if k.endswith("num_batches_tracked")
+            else torch.randn(s, generator=g).half()
+        )
+        for k, s in layout.items()
+    }  # released files are fp16
     model = icafusion.build(NC, width=width, depth=depth, tokens=tokens)
     report = icafusion.load_official(model, {"model": official, "epoch": 3})  # checkpoint dict with a state dict inside
     assert report["missing"] == [] and report["unexpected"] == [] and report["mismatched"] == []
     sd = model.state_dict()
-    for k in ("model.20.pos_emb_vis", "model.37.anchor_grid", "model.22.crosstransformer.0.mlp.2.bias",
-              "model.36.m.0.cv2.bn.running_var"):
+    for k in (
+        "model.20.pos_emb_vis",
+        "model.37.anchor_grid",
+        "model.22.crosstransformer.0.mlp.2.bias",
+        "model.36.m.0.cv2.bn.running_var",
+    ):
         assert sd[k].dtype == torch.float32
         torch.testing.assert_close(sd[k], official[k].float())
 
@@ -279,8 +333,11 @@ def test_single_stream_yolov5_weights_initialise_both_icafusion_streams():
     from adapters.detectors.icafusion_net import yolov5_backbone_to_two_stream
 
     width, depth = 0.125, 0.33
-    single = {k: torch.randn(s) for k, s in yolov5_official_layout(3, 80, width, depth).items()
-              if not k.endswith("num_batches_tracked")}
+    single = {
+        k: torch.randn(s)
+        for k, s in yolov5_official_layout(3, 80, width, depth).items()
+        if not k.endswith("num_batches_tracked")
+    }
     mapped = yolov5_backbone_to_two_stream(single)
     model = icafusion.build(NC, width=width, depth=depth, tokens=(4, 2, 2))
     report = icafusion.load_official(model, mapped)

@@ -151,8 +151,10 @@ def test_icafusion_upsamples_tokens_nearest_in_training_and_bilinear_in_eval():
     assert not torch.allclose(near, bil)
 
 
-@pytest.mark.parametrize("size,grid,expected", [(80, 20, (4, 4)), (40, 16, (10, 2)), (20, 10, (2, 2)),
-                                                 (32, 20, (13, 1)), (16, 16, None), (8, 10, None)])
+@pytest.mark.parametrize(
+    "size,grid,expected",
+    [(80, 20, (4, 4)), (40, 16, (10, 2)), (20, 10, (2, 2)), (32, 20, (13, 1)), (16, 16, None), (8, 10, None)],
+)
 def test_icafusion_pool_rule(size, grid, expected):
     from adapters.detectors.icafusion_net import pool_geometry, pool_to_grid
 

@@ -78,8 +78,15 @@ def test_matching_by_wh_ratio_and_two_neighbour_cells():
     # anchor 0 (10x13 px): 40/10 = 4 is not < 4 -> no match; anchors 1 and 2 match
     # cells: own (12, 7); right neighbour (13, 7) since x is 0.25 cell from its edge; upper (12, 6) likewise
     got = sorted(zip(a.tolist(), gi.tolist(), gj.tolist(), [tuple(round(v, 4) for v in t) for t in tbox.tolist()]))
-    want = sorted((ai, x, y, t) for ai in (1, 2) for x, y, t in (
-        (12, 7, (0.75, 0.25, 5.0, 5.0)), (13, 7, (-0.25, 0.25, 5.0, 5.0)), (12, 6, (0.75, 1.25, 5.0, 5.0))))
+    want = sorted(
+        (ai, x, y, t)
+        for ai in (1, 2)
+        for x, y, t in (
+            (12, 7, (0.75, 0.25, 5.0, 5.0)),
+            (13, 7, (-0.25, 0.25, 5.0, 5.0)),
+            (12, 6, (0.75, 1.25, 5.0, 5.0)),
+        )
+    )
     assert got == want
     assert set(cls.tolist()) == {3} and set(b.tolist()) == {0}
     torch.testing.assert_close(anch[a == 1][0], anchors[1])
@@ -105,10 +112,14 @@ def test_loss_terms_against_hand_values():
 
 
 def test_targets_are_converted_and_degenerate_boxes_dropped():
-    rows = targets_to_tensor([{"boxes": torch.tensor([[10.0, 20.0, 30.0, 60.0], [5.0, 5.0, 5.0, 9.0]]),
-                               "labels": torch.tensor([2, 1])},
-                              {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}],
-                             torch.device("cpu"), "t")
+    rows = targets_to_tensor(
+        [
+            {"boxes": torch.tensor([[10.0, 20.0, 30.0, 60.0], [5.0, 5.0, 5.0, 9.0]]), "labels": torch.tensor([2, 1])},
+            {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)},
+        ],
+        torch.device("cpu"),
+        "t",
+    )
     assert rows.tolist() == [[0.0, 2.0, 20.0, 40.0, 20.0, 40.0]]
 
 
@@ -118,12 +129,14 @@ def _pred(rows: list[list[float]], nc: int = 3) -> torch.Tensor:
 
 
 def test_nms_keeps_the_best_box_per_class_and_the_harness_format():
-    p = _pred([
-        [50, 50, 20, 20, 0.9, 0.9, 0.0, 0.0],   # class 0, score 0.81
-        [52, 50, 20, 20, 0.8, 0.9, 0.0, 0.0],   # overlaps the first, class 0: suppressed
-        [52, 50, 20, 20, 0.8, 0.0, 0.5, 0.0],   # same box, class 1: kept (classes never suppress each other)
-        [150, 150, 10, 10, 0.5, 0.0, 0.0, 0.1],  # score 0.05 < conf 0.1: dropped
-    ])
+    p = _pred(
+        [
+            [50, 50, 20, 20, 0.9, 0.9, 0.0, 0.0],  # class 0, score 0.81
+            [52, 50, 20, 20, 0.8, 0.9, 0.0, 0.0],  # overlaps the first, class 0: suppressed
+            [52, 50, 20, 20, 0.8, 0.0, 0.5, 0.0],  # same box, class 1: kept (classes never suppress each other)
+            [150, 150, 10, 10, 0.5, 0.0, 0.0, 0.1],  # score 0.05 < conf 0.1: dropped
+        ]
+    )
     (det,) = postprocess(p, conf=0.1, iou=0.5, max_det=300, multi_label=False, image_size=(200, 200))
     assert set(det) == {"boxes", "scores", "labels"}
     assert det["labels"].tolist() == [0, 1]

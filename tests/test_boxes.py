@@ -18,7 +18,7 @@ def greedy_reference(boxes, scores, thr):
         i = order[0]
         keep.append(i)
         rest = order[1:]
-        ious = box_iou(torch.tensor(boxes[i:i + 1]), torch.tensor(boxes[rest])).numpy()[0]
+        ious = box_iou(torch.tensor(boxes[i : i + 1]), torch.tensor(boxes[rest])).numpy()[0]
         order = rest[ious <= thr]
     return keep
 

@@ -150,8 +150,9 @@ def test_prepare_prints_sizes_and_cache_lists_verifies_and_removes(rgbt640, tmp_
     cache = tmp_path / "c"
     out = cli_runner(["prepare", "--dataset", "rgbt-tiny", "--root", str(rgbt640), "--cache", str(cache)]).output
     assert "(compact form) beside" in out and "of source files" in out
-    cli_runner(["prepare", "--dataset", "rgbt-tiny", "--root", str(rgbt640), "--cache", str(cache),
-                "--cache-form", "raw"])
+    cli_runner(
+        ["prepare", "--dataset", "rgbt-tiny", "--root", str(rgbt640), "--cache", str(cache), "--cache-form", "raw"]
+    )
     (cache / "rgbt-tiny" / ".x.tmp").mkdir()
     os.utime(cache / "rgbt-tiny" / ".x.tmp", (0, 0))  # an interrupted preparation's leftover
     listed = cli_runner(["cache", "list", "--cache", str(cache)]).output

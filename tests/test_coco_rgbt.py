@@ -62,10 +62,34 @@ def test_prepare_folds_and_run_through_the_cli(pairs_source, tmp_path, cli_runne
 
     store = tmp_path / "store"
     env = {"HARNESS_CACHE": cache}
-    res = cli_runner(["run", "--detector", "ours", "--dataset", "coco-rgbt", "--root", root, "--folds", "all",
-                      "--profile", "smoke", "--set", "protocol.epochs=1", "--store", str(store), "--no-progress",
-                      # smaller and faster than the smoke profile's YOLOv8s at 160 px; the path is the same
-                      "--set", "protocol.imgsz=64", "--set", "model.scale=n", "--set", "train.threads=1"], env=env)
+    res = cli_runner(
+        [
+            "run",
+            "--detector",
+            "ours",
+            "--dataset",
+            "coco-rgbt",
+            "--root",
+            root,
+            "--folds",
+            "all",
+            "--profile",
+            "smoke",
+            "--set",
+            "protocol.epochs=1",
+            "--store",
+            str(store),
+            "--no-progress",
+            # smaller and faster than the smoke profile's YOLOv8s at 160 px; the path is the same
+            "--set",
+            "protocol.imgsz=64",
+            "--set",
+            "model.scale=n",
+            "--set",
+            "train.threads=1",
+        ],
+        env=env,
+    )
     assert res.exit_code == 0, res.output
     for fold in ("site-a", "site-b", "site-c"):
         metrics = json.loads((store / "coco-rgbt" / "ours" / "c2" / fold / "seed0" / "metrics.json").read_text())
@@ -102,7 +126,9 @@ def test_folds_given_in_the_json_replace_one_fold_per_group(pairs, tmp_path):
     ds = _prepare(pairs, tmp_path / "c")
     folds = resolve_folds("coco-rgbt", ds, load_config(protocol="default"))
     assert [(f.name, f.val_groups, f.train_groups) for f in folds] == [
-        ("ab", ("site-a", "site-b"), ("site-c",)), ("c", ("site-c",), ("site-a", "site-b"))]
+        ("ab", ("site-a", "site-b"), ("site-c",)),
+        ("c", ("site-c",), ("site-a", "site-b")),
+    ]
 
 
 def test_tiff_in_centikelvin_or_celsius_rjpeg_and_sidecar_units_are_read(pairs, tmp_path):
@@ -248,8 +274,9 @@ def test_a_category_missing_from_the_file_stops_instead_of_dropping_its_boxes(pa
     with pytest.raises(DataError) as err:
         _prepare(pairs, tmp_path / "c")
     lines = str(err.value).splitlines()
-    assert " ".join(x.strip() for x in lines[1:3]) == ("dropped-annotations: 12 annotation(s) dropped, 12 kept "
-                                                       "(annotation with an unknown category id: 12)")
+    assert " ".join(x.strip() for x in lines[1:3]) == (
+        "dropped-annotations: 12 annotation(s) dropped, 12 kept (annotation with an unknown category id: 12)"
+    )
     assert lines[3].startswith("    e.g. annotations.json#annotation=") and lines[5].endswith("(and 9 more)")
     assert all(len(line) <= 100 for line in lines[1:6])
     assert "inputs.accept=[dropped-annotations]" in lines[7]
@@ -332,13 +359,16 @@ def test_unreadable_and_mostly_missing_thermal_are_counted_skips_a_few_holes_are
     assert missing["samples"] == 1 and missing["pixels"] == 2  # the holed frame is kept, its two holes counted
 
 
-@pytest.mark.parametrize("content, message", [
-    (None, "annotation file not found; set dataset.annotations"),
-    ("", "annotation file is empty"),
-    ('{"images": [', "invalid JSON"),
-    ('{"images": [], "annotations": []}', "'categories' is missing"),
-    ('{"images": [], "categories": []}', "'categories' is empty"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (None, "annotation file not found; set dataset.annotations"),
+        ("", "annotation file is empty"),
+        ('{"images": [', "invalid JSON"),
+        ('{"images": [], "annotations": []}', "'categories' is missing"),
+        ('{"images": [], "categories": []}', "'categories' is empty"),
+    ],
+)
 def test_broken_annotation_file_is_a_clear_error(pairs, tmp_path, content, message):
     write_or_remove(pairs / "annotations.json", content)
     with pytest.raises(DataError, match=message) as exc:
@@ -353,11 +383,14 @@ def test_folds_naming_an_unknown_group_are_a_clear_error(pairs, tmp_path):
         _prepare(pairs, tmp_path / "c")
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"thermal": "16bit"}, "option 'thermal' must be one of radiometric, 8bit"),
-    ({"thermal_scale": "big"}, "option 'thermal_scale' must be a number"),
-    ({"stride": 2}, "does not take option"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"thermal": "16bit"}, "option 'thermal' must be one of radiometric, 8bit"),
+        ({"thermal_scale": "big"}, "option 'thermal_scale' must be a number"),
+        ({"stride": 2}, "does not take option"),
+    ],
+)
 def test_bad_options_are_config_errors(pairs_source, tmp_path, options, message):
     with pytest.raises(ConfigError, match=message):
         _prepare(pairs_source, tmp_path / "c", **options)
@@ -379,6 +412,7 @@ def test_cli_prints_a_clear_error_without_traceback(pairs, tmp_path):
     from harness.cli import get_cli
 
     (pairs / "annotations.json").write_text("{oops")
-    res = CliRunner().invoke(get_cli(), ["prepare", "--dataset", "coco-rgbt", "--root", str(pairs), "--cache",
-                                         str(tmp_path / "c")])
+    res = CliRunner().invoke(
+        get_cli(), ["prepare", "--dataset", "coco-rgbt", "--root", str(pairs), "--cache", str(tmp_path / "c")]
+    )
     assert res.exit_code != 0 and "invalid JSON" in res.output and "Traceback" not in res.output

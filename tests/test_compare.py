@@ -51,11 +51,26 @@ def test_table_lists_each_dataset_source_and_detector_with_support_and_map(train
     res = invoke(["compare", "--datasets", "m3fd,rgbt-tiny", "--store", str(trained["store"])])
     assert res.exit_code == 0, res.output
     header, rows = _merged(res.output)
-    assert header == ["dataset", "GT", "detector", "encoding", "folds", "images", "instances", "mAP50", "mAP50:95",
-                      "SAFit-AP50", "SAFit-AP50:95"]
+    assert header == [
+        "dataset",
+        "GT",
+        "detector",
+        "encoding",
+        "folds",
+        "images",
+        "instances",
+        "mAP50",
+        "mAP50:95",
+        "SAFit-AP50",
+        "SAFit-AP50:95",
+    ]
     got = {(r[0], r[1], r[3]): r for r in rows}
-    assert list(got) == [("m3fd", "-", "ir8"), ("rgbt-tiny", "RGB", "proxy8"), ("rgbt-tiny", "T", "ir8"),
-                         ("rgbt-tiny", "T", "proxy8")]  # dataset order as asked, then source, then encoding
+    assert list(got) == [
+        ("m3fd", "-", "ir8"),
+        ("rgbt-tiny", "RGB", "proxy8"),
+        ("rgbt-tiny", "T", "ir8"),
+        ("rgbt-tiny", "T", "proxy8"),
+    ]  # dataset order as asked, then source, then encoding
     for (ds, src, enc), r in got.items():
         fold = {"m3fd": "val", "T": "test-T", "RGB": "test-RGB"}[ds if ds == "m3fd" else src]
         m = stored(trained, ds, enc, fold)
@@ -72,8 +87,9 @@ def test_table_lists_each_dataset_source_and_detector_with_support_and_map(train
 
 def test_json_and_markdown_formats(trained, tmp_path):
     out = tmp_path / "table.json"
-    res = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(trained["store"]), "--format", "json",
-                  "--out", str(out)])
+    res = invoke(
+        ["compare", "--datasets", "rgbt-tiny", "--store", str(trained["store"]), "--format", "json", "--out", str(out)]
+    )
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())
     assert data["mismatches"] == [] and {r["source"] for r in data["rows"]} == {"T", "RGB"}
@@ -99,9 +115,27 @@ def test_rows_on_different_supports_are_refused_or_labelled(trained, tmp_path):
     store = tmp_path / "store"
     shutil.copytree(trained["store"], store)
     # a real run of another encoding on every second test frame: a different support for the same dataset and source
-    res = invoke(["run", "--detector", "ours", "--dataset", "rgbt-tiny", "--encoding", "ir8",
-                  "--set", f"dataset.root={trained['rgbt_root']}", "--set", "dataset.gt=visible",
-                  "--set", "dataset.test_stride=2", *TINY_RUN, "--store", str(store)], cache=trained["cache"])
+    res = invoke(
+        [
+            "run",
+            "--detector",
+            "ours",
+            "--dataset",
+            "rgbt-tiny",
+            "--encoding",
+            "ir8",
+            "--set",
+            f"dataset.root={trained['rgbt_root']}",
+            "--set",
+            "dataset.gt=visible",
+            "--set",
+            "dataset.test_stride=2",
+            *TINY_RUN,
+            "--store",
+            str(store),
+        ],
+        cache=trained["cache"],
+    )
     assert res.exit_code == 0, res.output
     refused = invoke(["compare", "--datasets", "rgbt-tiny", "--store", str(store)])
     assert refused.exit_code == 2
@@ -129,8 +163,10 @@ def test_clear_errors_for_missing_store_or_dataset(trained, tmp_path):
 def test_text_table_aligns_and_shows_mean_and_sd():
     from harness.compare import CompareRow, CompareTable
 
-    rows = [CompareRow("m3t", "-", "ours", "c2", ["P1", "P2"], [0], 120, 900, 0.5, 0.1, 0.25, None),
-            CompareRow("rgbt-tiny", "T", "a-longer-name", "proxy8", ["test-T"], [0], 7, 12, None, None, 0.0, None)]
+    rows = [
+        CompareRow("m3t", "-", "ours", "c2", ["P1", "P2"], [0], 120, 900, 0.5, 0.1, 0.25, None),
+        CompareRow("rgbt-tiny", "T", "a-longer-name", "proxy8", ["test-T"], [0], 7, 12, None, None, 0.0, None),
+    ]
     lines = CompareTable(rows, []).to_text().splitlines()
     header, first, second = lines[0], lines[2], lines[4]
     assert first.startswith("m3t        -   ours") and second.startswith("rgbt-tiny  T   a-longer-name")

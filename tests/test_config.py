@@ -22,8 +22,10 @@ def test_defaults_and_protocol_and_profile_layering():
 
 
 def test_cli_overrides_win_and_are_typed():
-    cfg = load_config(profile="smoke", overrides=["protocol.epochs=3", "protocol.imgsz=320", "eval.engine=pycocotools",
-                                                  "model.width=0.25"])
+    cfg = load_config(
+        profile="smoke",
+        overrides=["protocol.epochs=3", "protocol.imgsz=320", "eval.engine=pycocotools", "model.width=0.25"],
+    )
     assert cfg["protocol"]["imgsz"] == 320
     assert cfg["eval"]["engine"] == "pycocotools"
     assert cfg["model"] == {"width": 0.25}  # open section
@@ -105,13 +107,16 @@ def read_yaml_roundtrip(cfg):
     return yaml.safe_load(dump_yaml(cfg))
 
 
-@pytest.mark.parametrize("override, message", [
-    ("train.lr0=-1", r"--set train.lr0=-1: train.lr0=-1 must be a number > 0"),
-    ("train.momentum=1.5", r"train.momentum=1.5 must be a number in \[0, 1\)"),
-    ("eval.iou=0", r"eval.iou=0 must be a number in \(0, 1\]"),
-    ("train.batch=0", r"train.batch=0 must be an integer >= 1"),
-    ("augment.fliplr=.nan", r"augment.fliplr=nan must be a number in \[0, 1\]"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("train.lr0=-1", r"--set train.lr0=-1: train.lr0=-1 must be a number > 0"),
+        ("train.momentum=1.5", r"train.momentum=1.5 must be a number in \[0, 1\)"),
+        ("eval.iou=0", r"eval.iou=0 must be a number in \(0, 1\]"),
+        ("train.batch=0", r"train.batch=0 must be an integer >= 1"),
+        ("augment.fliplr=.nan", r"augment.fliplr=nan must be a number in \[0, 1\]"),
+    ],
+)
 def test_a_value_out_of_range_is_a_config_error_naming_key_and_source(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config("smoke", protocol="default", overrides=[override])
@@ -125,7 +130,18 @@ def test_a_value_out_of_range_in_a_file_names_the_file(tmp_path):
 
 
 def test_cli_bad_learning_rate_is_one_clear_line(cli_runner, tmp_path):
-    res = cli_runner(["run", "--detector", "ours", "--dataset", "m3t-synth", "--set", "train.lr0=-1",
-                      "--store", str(tmp_path / "store")])
+    res = cli_runner(
+        [
+            "run",
+            "--detector",
+            "ours",
+            "--dataset",
+            "m3t-synth",
+            "--set",
+            "train.lr0=-1",
+            "--store",
+            str(tmp_path / "store"),
+        ]
+    )
     assert res.exit_code == 2 and "Traceback" not in res.output
     assert "train.lr0=-1 must be a number > 0" in res.output and not (tmp_path / "store").exists()

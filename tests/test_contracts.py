@@ -28,8 +28,20 @@ def test_every_contract_record_is_exported_from_harness_and_the_old_paths_are_th
     from harness.tracking.spec import LoggerSpec as old_logger
     from harness.tracking.spec import RunLogger, TrackingOptions
 
-    for name in ("DetectorSpec", "Reference", "DatasetSpec", "DatasetSource", "Fold", "PrepareReport",
-                 "AlignedSample", "EncodingSpec", "LoggerSpec", "RunLogger", "TrackingOptions", "CommandGroup"):
+    for name in (
+        "DetectorSpec",
+        "Reference",
+        "DatasetSpec",
+        "DatasetSource",
+        "Fold",
+        "PrepareReport",
+        "AlignedSample",
+        "EncodingSpec",
+        "LoggerSpec",
+        "RunLogger",
+        "TrackingOptions",
+        "CommandGroup",
+    ):
         assert getattr(harness, name) is getattr(api, name), name
         assert name in harness.__all__
     assert old_sample is api.AlignedSample and old_logger is tracking_logger is api.LoggerSpec
@@ -100,8 +112,10 @@ def test_the_cli_lists_the_command_clash_under_problems(harness_plugin, harness_
 
     harness_plugin(_CommandPlugin(), name="undo-shadow-cli")
     out = json.loads(harness_cli(["plugins"]).stdout)
-    assert any(p["plugin"] == "undo-shadow-cli" and p["stage"] == "conflict" and "'list'" in p["message"]
-               for p in out["problems"])
+    assert any(
+        p["plugin"] == "undo-shadow-cli" and p["stage"] == "conflict" and "'list'" in p["message"]
+        for p in out["problems"]
+    )
     mine = next(p for p in out["plugins"] if p["name"] == "undo-shadow-cli")
     assert mine["conflicts"] == {"commands": ["list"]}
 
@@ -188,12 +202,15 @@ class _GroupsText(_Good):
         return "ab"
 
 
-@pytest.mark.parametrize("source, message", [
-    (_NoSamples, r"open\(\) returned _NoSamples, which has no samples\(\)"),
-    (_NoneFingerprint, r"fingerprint\(\) must return a non-empty string.*got None"),
-    (_DictFolds, r"folds\(\) must return Fold records"),
-    (_GroupsText, r"groups\(\) must return a list of non-empty strings, got 'ab'"),
-])
+@pytest.mark.parametrize(
+    "source, message",
+    [
+        (_NoSamples, r"open\(\) returned _NoSamples, which has no samples\(\)"),
+        (_NoneFingerprint, r"fingerprint\(\) must return a non-empty string.*got None"),
+        (_DictFolds, r"folds\(\) must return Fold records"),
+        (_GroupsText, r"groups\(\) must return a list of non-empty strings, got 'ab'"),
+    ],
+)
 def test_what_open_returns_is_checked_at_the_boundary(tmp_path, source, message):
     from harness.cache import prepare
     from harness.config import load_config
@@ -222,11 +239,14 @@ def test_a_source_that_yields_something_else_than_a_sample_gets_a_counted_skip(t
 
 # ------------------------------------------------------------------------------------------- encodings
 @pytest.mark.parametrize("form", ["raw", "compact"])
-@pytest.mark.parametrize("returned, got", [
-    (lambda s: s.ir8.tolist(), "list"),
-    (lambda s: s.ir8.astype(np.float32), "a float32 array of shape (8, 8)"),
-    (lambda s: None, "NoneType"),
-])
+@pytest.mark.parametrize(
+    "returned, got",
+    [
+        (lambda s: s.ir8.tolist(), "list"),
+        (lambda s: s.ir8.astype(np.float32), "a float32 array of shape (8, 8)"),
+        (lambda s: None, "NoneType"),
+    ],
+)
 def test_an_encodings_output_is_checked_once_for_both_cache_forms(tmp_path, form, returned, got, harness_plugin):
     from harness.cache import PreparedWriter
 
@@ -244,8 +264,10 @@ def test_an_encodings_output_is_checked_once_for_both_cache_forms(tmp_path, form
     from harness.cache import PreparedDataset
 
     ds = PreparedDataset(tmp_path / "ds")
-    expected = f"encoding 'undo-bad-enc' (plugin undo-enc-plugin): sample 1: fn returned {got}, expected a uint8 " \
-               "numpy array of shape (8, 8)"
+    expected = (
+        f"encoding 'undo-bad-enc' (plugin undo-enc-plugin): sample 1: fn returned {got}, expected a uint8 "
+        "numpy array of shape (8, 8)"
+    )
     with pytest.raises(PluginError, match=re.escape(expected)):
         ds.channel(0, get_host().encoding("undo-bad-enc"))
 
@@ -263,8 +285,11 @@ def test_an_exception_in_an_encoding_names_the_encoding_and_its_plugin(harness_p
     from harness.plugins import get_host
 
     sample = next(_Good().samples(None))
-    with pytest.raises(PluginError, match=r"encoding 'undo-raising-enc' \(plugin undo-raising-plugin\): sample 1: "
-                                          r"fn\(\) raised ValueError: no such channel \(at .*test_contracts.py:\d+\)"):
+    with pytest.raises(
+        PluginError,
+        match=r"encoding 'undo-raising-enc' \(plugin undo-raising-plugin\): sample 1: "
+        r"fn\(\) raised ValueError: no such channel \(at .*test_contracts.py:\d+\)",
+    ):
         get_host().encoding("undo-raising-enc").encode(sample)
 
 

@@ -32,16 +32,21 @@ def test_every_hook_is_documented():
     assert hooks and all(f"`{h}(" in DOCS for h in hooks), [h for h in hooks if f"`{h}(" not in DOCS]
 
 
-@pytest.mark.parametrize("title, names", [
-    ("`DatasetSpec`: what you register", [f.name for f in dataclasses.fields(DatasetSpec)]),
-    ("`AlignedSample`: one pair in the thermal frame", [f.name for f in dataclasses.fields(AlignedSample)]),
-    ("`DatasetSource`: what `open` returns",
-     [n for n in vars(DatasetSource) if not n.startswith("_")] + list(DatasetSource.__annotations__)),
-    ("Skips and their reasons", [f"report.{m}" for m in ("skip", "note")]),
-])
+@pytest.mark.parametrize(
+    "title, names",
+    [
+        ("`DatasetSpec`: what you register", [f.name for f in dataclasses.fields(DatasetSpec)]),
+        ("`AlignedSample`: one pair in the thermal frame", [f.name for f in dataclasses.fields(AlignedSample)]),
+        (
+            "`DatasetSource`: what `open` returns",
+            [n for n in vars(DatasetSource) if not n.startswith("_")] + list(DatasetSource.__annotations__),
+        ),
+        ("Skips and their reasons", [f"report.{m}" for m in ("skip", "note")]),
+    ],
+)
 def test_every_part_of_the_dataset_contract_is_documented(title, names):
     text = _section("The dataset contract")
-    part = text[text.index(title):]
+    part = text[text.index(title) :]
     missing = [n for n in set(names) if f"`{n}" not in part]
     assert not missing, f"undocumented in docs/plugins.md ({title}): {missing}"
 
@@ -77,12 +82,15 @@ def test_a_protocol_shipped_in_a_package_or_by_path_is_loaded(tmp_path, monkeypa
     assert load_config(protocol="m3t-4fold")["protocol"]["folds"]["P1"] == ["P1"]  # names are unchanged
 
 
-@pytest.mark.parametrize("protocol, message", [
-    ("contract_pkg:missing.yaml", "no file .*missing.yaml"),
-    ("no_such_pkg_xyz:protocol.yaml", "package 'no_such_pkg_xyz' cannot be imported"),
-    ("protocols/mine.yaml", "is a relative path"),
-    ("", "protocol must be"),
-])
+@pytest.mark.parametrize(
+    "protocol, message",
+    [
+        ("contract_pkg:missing.yaml", "no file .*missing.yaml"),
+        ("no_such_pkg_xyz:protocol.yaml", "package 'no_such_pkg_xyz' cannot be imported"),
+        ("protocols/mine.yaml", "is a relative path"),
+        ("", "protocol must be"),
+    ],
+)
 def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypatch, protocol, message):
     _package(tmp_path, monkeypatch)
     with pytest.raises(PluginError, match=f"dataset 'contract-test': .*{message}"):

@@ -117,8 +117,11 @@ def test_malformed_annotations_are_counted_and_stop_unless_accepted(tiny, tmp_pa
     with pytest.raises(DataError, match=r"dropped-annotations: 4 annotation\(s\) dropped"):
         _prepare(tiny, tmp_path / "c")
     ds = _prepare(tiny, tmp_path / "c", accept=("dropped-annotations",))
-    assert skip_reasons(ds) == {"annotation with an unknown category id": 1, "annotation for an unknown image id": 1,
-                          "annotation box malformed": 2}
+    assert skip_reasons(ds) == {
+        "annotation with an unknown category id": 1,
+        "annotation for an unknown image id": 1,
+        "annotation box malformed": 2,
+    }
 
 
 def test_image_path_escaping_the_root_is_a_counted_skip(tiny, tmp_path):
@@ -129,14 +132,17 @@ def test_image_path_escaping_the_root_is_a_counted_skip(tiny, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ clear errors
-@pytest.mark.parametrize("content, message", [
-    (None, "annotation file not found"),
-    ("", "annotation file is empty"),
-    ("  \n", "annotation file is empty"),
-    ('{"images": [', "invalid JSON at line 1"),
-    ("[1, 2]", "expected a COCO JSON object"),
-    ('{"annotations": []}', "'images' is missing"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (None, "annotation file not found"),
+        ("", "annotation file is empty"),
+        ("  \n", "annotation file is empty"),
+        ('{"images": [', "invalid JSON at line 1"),
+        ("[1, 2]", "expected a COCO JSON object"),
+        ('{"annotations": []}', "'images' is missing"),
+    ],
+)
 def test_broken_annotation_file_is_a_clear_error(tiny, tmp_path, content, message):
     write_or_remove(tiny / "annotations" / "instances_rgb.json", content)
     with pytest.raises(DataError, match=message) as exc:
@@ -161,8 +167,15 @@ def test_duplicate_image_ids_are_a_clear_error(tiny, tmp_path):
         _prepare(tiny, tmp_path / "c")
 
 
-@pytest.mark.parametrize("line", ["images: ../../elsewhere", "annotations: /etc/hosts",
-                                  "landmarks: registration/../../x.json", "projects: {P1: ../../P1}"])
+@pytest.mark.parametrize(
+    "line",
+    [
+        "images: ../../elsewhere",
+        "annotations: /etc/hosts",
+        "landmarks: registration/../../x.json",
+        "projects: {P1: ../../P1}",
+    ],
+)
 def test_manifest_path_escaping_the_root_is_a_clear_error(tiny, tmp_path, line):
     (tiny / "m3t.yaml").write_text(line + "\n")
     with pytest.raises(DataError, match="leads outside the dataset root"):
@@ -183,7 +196,8 @@ def test_cli_prints_a_clear_error_without_traceback(tiny, tmp_path, cli_runner):
 
     from harness.cli import get_cli
 
-    res = CliRunner().invoke(get_cli(), ["prepare", "--dataset", "m3t", "--root", str(tiny), "--cache",
-                                         str(tmp_path / "c")])
+    res = CliRunner().invoke(
+        get_cli(), ["prepare", "--dataset", "m3t", "--root", str(tiny), "--cache", str(tmp_path / "c")]
+    )
     assert res.exit_code == 2
     assert "error:" in res.output and "invalid JSON" in res.output and "Traceback" not in res.output

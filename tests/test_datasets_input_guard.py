@@ -17,9 +17,16 @@ H, W = 24, 32
 
 def _sample(i: int, group: str, boxes: int = 1, inside: bool = True) -> AlignedSample:
     box = [[2, 2, 10, 10]] if inside else [[2, 2, 10, 10 + 2 * H]]
-    return AlignedSample(i, np.zeros((H, W, 3), np.uint8), None, np.full((H, W), 40 + i, np.uint8),
-                         np.array(box * boxes, np.float32).reshape(-1, 4), np.zeros(boxes, np.int64), group,
-                         meta={"file_name": f"{group}/frame_{i:03d}.png"})
+    return AlignedSample(
+        i,
+        np.zeros((H, W, 3), np.uint8),
+        None,
+        np.full((H, W), 40 + i, np.uint8),
+        np.array(box * boxes, np.float32).reshape(-1, 4),
+        np.zeros(boxes, np.int64),
+        group,
+        meta={"file_name": f"{group}/frame_{i:03d}.png"},
+    )
 
 
 class _Source:
@@ -72,25 +79,32 @@ def test_a_fold_part_without_labels_stops_with_counts_and_examples(tmp_path):
     assert len(_published(tmp_path)) == 1  # the samples are kept: accepting the risk reads them from the cache
     ds = _prepare(_spec(samples), tmp_path, "inputs.accept=[no-labels]")
     assert ds.from_cache and ds.input_risks == [
-        {"kind": "no-labels", "message": "fold 'b' held-out part (b): 6 image(s) and not one box"}]
+        {"kind": "no-labels", "message": "fold 'b' held-out part (b): 6 image(s) and not one box"}
+    ]
     with pytest.raises(DataError, match="no-labels"):  # the cached samples are checked again without the option
         _prepare(_spec(samples), tmp_path)
 
 
 def test_more_than_a_small_share_of_unlabelled_images_stops(tmp_path):
     samples = [_sample(i, "a", boxes=int(i % 3 == 0)) for i in range(1, 13)] + [_sample(13, "b"), _sample(14, "b")]
-    with pytest.raises(DataError, match=r"unlabelled-images: fold 'b' training part \(a\): 8 of 12 images \(67%\) "
-                                        r"have no box, more than 20%"):
+    with pytest.raises(
+        DataError,
+        match=r"unlabelled-images: fold 'b' training part \(a\): 8 of 12 images \(67%\) "
+        r"have no box, more than 20%",
+    ):
         _prepare(_spec(samples), tmp_path)
     assert _prepare(_spec(samples), tmp_path, "inputs.max_unlabelled=0.7").input_risks == []
     ds = _prepare(_spec(samples), tmp_path, "inputs.accept=[all]")
     assert [r["kind"] for r in ds.input_risks] == ["unlabelled-images", "unlabelled-images"]  # the dataset, the part
 
 
-@pytest.mark.parametrize("override, message", [
-    ("inputs.accept=[no-lables]", "inputs.accept: unknown finding.*'no-lables'.*no-labels, unlabelled-images"),
-    ("inputs.max_unlabelled=1.5", "inputs.max_unlabelled must be a share between 0 and 1"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("inputs.accept=[no-lables]", "inputs.accept: unknown finding.*'no-lables'.*no-labels, unlabelled-images"),
+        ("inputs.max_unlabelled=1.5", "inputs.max_unlabelled must be a share between 0 and 1"),
+    ],
+)
 def test_bad_guard_settings_are_config_errors(tmp_path, override, message):
     with pytest.raises(ConfigError, match=message):
         _prepare(_spec([_sample(1, "a"), _sample(2, "b")]), tmp_path, override)
@@ -100,8 +114,11 @@ def test_an_accepted_risk_labels_the_run_but_is_not_part_of_its_identity():
     from harness.runner import run_hash
 
     base = {"train": {"lr0": 0.01}, "meta": {"prepared_key": "k"}, "inputs": {"accept": []}}
-    labelled = {"train": {"lr0": 0.01}, "meta": {"prepared_key": "k", "input_risks": ["no-labels: ..."]},
-                "inputs": {"accept": ["no-labels"]}}
+    labelled = {
+        "train": {"lr0": 0.01},
+        "meta": {"prepared_key": "k", "input_risks": ["no-labels: ..."]},
+        "inputs": {"accept": ["no-labels"]},
+    }
     assert run_hash(base) == run_hash(labelled)
     assert run_hash(base) != run_hash({**base, "meta": {"prepared_key": "other"}})
 
@@ -114,10 +131,12 @@ def test_the_run_table_shows_an_accepted_risk(tmp_path):
 
     risk = "no-labels: fold 'b' held-out part (b): 6 image(s) and not one box"
     run = Store(tmp_path).run(RunKey("guard-test", "det", "ir8", "b", 0))
-    run.write_metrics({"metrics": {"mAP50": 0.5}, "support": {"instances": 3}, "per_category": {}, "train": {},
-                       "input_risks": [risk]})
-    summary = RunSummary("det", "guard-test", "ir8", "smoke", tmp_path, {}, ["thing"],
-                         [RunOutcome(read_run(run), "trained")])
+    run.write_metrics(
+        {"metrics": {"mAP50": 0.5}, "support": {"instances": 3}, "per_category": {}, "train": {}, "input_risks": [risk]}
+    )
+    summary = RunSummary(
+        "det", "guard-test", "ir8", "smoke", tmp_path, {}, ["thing"], [RunOutcome(read_run(run), "trained")]
+    )
     lines = fold_table(summary).splitlines()
     assert lines[-1] == f"† accepted input risk: {risk}"
     assert next(line for line in lines if line.startswith("b ")).split()[-5:] == ["0.500", "†", "-", "-/-", "trained"]
@@ -126,16 +145,22 @@ def test_the_run_table_shows_an_accepted_risk(tmp_path):
 # ------------------------------------------------------------------------------------------- plugin failures
 def test_duplicate_image_ids_stop_before_anything_is_cached(tmp_path):
     samples = [_sample(1, "a"), _sample(2, "a"), _sample(2, "b"), _sample(3, "b")]
-    with pytest.raises(DataError, match=r"dataset 'guard-test'.*image_id 2 is given to two samples "
-                                        r"\(a/frame_002.png and b/frame_002.png\).*Nothing was cached"):
+    with pytest.raises(
+        DataError,
+        match=r"dataset 'guard-test'.*image_id 2 is given to two samples "
+        r"\(a/frame_002.png and b/frame_002.png\).*Nothing was cached",
+    ):
         _prepare(_spec(samples), tmp_path)
     assert not _published(tmp_path)
 
 
 def test_a_plugin_whose_samples_raise_is_named(tmp_path):
     samples = [_sample(1, "a"), _sample(2, "b")]
-    with pytest.raises(PluginError, match=r"dataset 'guard-test'.*samples\(\) raised KeyError: 'frame'.*"
-                                          r"test_datasets_input_guard.py:\d+.*nothing was cached"):
+    with pytest.raises(
+        PluginError,
+        match=r"dataset 'guard-test'.*samples\(\) raised KeyError: 'frame'.*"
+        r"test_datasets_input_guard.py:\d+.*nothing was cached",
+    ):
         _prepare(_spec(samples, fail=KeyError("frame")), tmp_path)
     assert not _published(tmp_path)
 
@@ -251,8 +276,10 @@ def test_the_m3t_adapter_uses_the_same_coco_checks(tmp_path):
     with pytest.raises(DataError, match=r"duplicate image id 5 \('P1/a_W.JPG' and 'P1/b_W.JPG'\)"):
         read_coco_annotations(path)
     images[1]["id"] = "6"
-    anns = [{"id": 1, "image_id": "6", "category_id": "1", "bbox": [1, 2, 3, 4]},
-            {"id": 2, "image_id": 6, "category_id": 3, "bbox": [1, 2, 3, 4]}]
+    anns = [
+        {"id": 1, "image_id": "6", "category_id": "1", "bbox": [1, 2, 3, 4]},
+        {"id": 2, "image_id": 6, "category_id": 3, "bbox": [1, 2, 3, 4]},
+    ]
     path.write_text(json.dumps({"images": images, "annotations": anns, "categories": [{"id": 1, "name": "crack"}]}))
     ann = read_coco_annotations(path)
     assert [(r.image_id, len(r.boxes)) for r in ann.images] == [(5, 0), (6, 1)]
@@ -292,8 +319,12 @@ def test_a_fold_that_holds_out_every_group_says_so(tmp_path):
         def folds(self):
             return []
 
-    spec = DatasetSpec("guard-test", lambda root=None, **kw: OneGroup([_sample(1, "a"), _sample(2, "a")]), ("x",),
-                       thermal="8bit")
-    with pytest.raises(DataError, match=r"fold 'a' holds out every group of the prepared data \(a\): nothing is "
-                                        r"left to train on"):
+    spec = DatasetSpec(
+        "guard-test", lambda root=None, **kw: OneGroup([_sample(1, "a"), _sample(2, "a")]), ("x",), thermal="8bit"
+    )
+    with pytest.raises(
+        DataError,
+        match=r"fold 'a' holds out every group of the prepared data \(a\): nothing is "
+        r"left to train on",
+    ):
         _prepare(spec, tmp_path)

@@ -21,8 +21,17 @@ def _prep(root: Path, cache: Path, cfg: dict | None = None, **kw):
 def test_cache_key_depends_on_fingerprint_sensing_and_dataset():
     base = cache_key("abc", {}, "m3t")
     assert base == cache_key("abc", {}, "m3t") and len(base) == 16
-    assert len({base, cache_key("abd", {}, "m3t"), cache_key("abc", {"warp": {"crop": False}}, "m3t"),
-                cache_key("abc", {}, "m3t-synth")}) == 4
+    assert (
+        len(
+            {
+                base,
+                cache_key("abd", {}, "m3t"),
+                cache_key("abc", {"warp": {"crop": False}}, "m3t"),
+                cache_key("abc", {}, "m3t-synth"),
+            }
+        )
+        == 4
+    )
     # the displacement study's settings do not change prepared samples
     assert cache_key("abc", {"displacement": {"shifts": [1]}}, "m3t") == base
 
@@ -172,8 +181,10 @@ def test_concurrent_first_use_generates_once(tmp_path, monkeypatch):
     monkeypatch.setattr(generation, "generate", counting)
     monkeypatch.setenv("HARNESS_DATA", str(tmp_path / "data"))
     results = []
-    threads = [threading.Thread(target=lambda: results.append(len(synthetic.open_synthetic(profile="tiny", seed=5))))
-               for _ in range(2)]
+    threads = [
+        threading.Thread(target=lambda: results.append(len(synthetic.open_synthetic(profile="tiny", seed=5))))
+        for _ in range(2)
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -208,7 +219,7 @@ def test_cli_synth_prepare_and_folds(tmp_path, cli_runner):
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     header = next(i for i, line in enumerate(lines) if line.startswith("fold"))
-    rows = [line.split() for line in lines[header + 2:header + 6]]
+    rows = [line.split() for line in lines[header + 2 : header + 6]]
     assert [r[0] for r in rows] == ["P1", "P2", "P3", "P4+P5"]
     assert [(int(r[2]), int(r[4])) for r in rows] == [(6, 2), (6, 2), (6, 2), (6, 2)]
     res = cli_runner(["folds", *args, "--folds", "P3"])

@@ -46,8 +46,10 @@ def test_baseline_parallax_falls_with_distance():
     kt = S.camera_matrix((160, 128), 40.0)
     t = np.array([0.03, 0.0, 0.0])
     n = np.array([0, 0, 1.0])
-    shift = [plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2]
-             - plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2] for d in (5.0, 10.0)]
+    shift = [
+        plane_homography(kw, kt, np.eye(3), t, n, d)[0, 2] - plane_homography(kw, kt, np.eye(3), 0 * t, n, d)[0, 2]
+        for d in (5.0, 10.0)
+    ]
     # f_T * B / Z: halves when the distance doubles
     assert shift[0] == pytest.approx(kt[0, 0] * 0.03 / 5.0)
     assert shift[1] == pytest.approx(shift[0] / 2)
@@ -96,7 +98,11 @@ def test_full_profile_has_the_seeds_fold_sizes():
     assert total == 674
     held = {"P1": n["P1"], "P2": n["P2"], "P3": n["P3"], "P4+P5": n["P4"] + n["P5"]}
     assert {f: (total - v, v) for f, v in held.items()} == {
-        "P1": (418, 256), "P2": (587, 87), "P3": (473, 201), "P4+P5": (544, 130)}
+        "P1": (418, 256),
+        "P2": (587, 87),
+        "P3": (473, 201),
+        "P4+P5": (544, 130),
+    }
 
 
 def test_a_stain_wider_than_a_window_is_placed_and_damp_stays_clear_of_every_sill():
@@ -107,9 +113,13 @@ def test_a_stain_wider_than_a_window_is_placed_and_damp_stays_clear_of_every_sil
 
     canvas = S.Canvas(2, 20, 20, (640, 512))
     ppm = 80.0
-    layers = S.Layers(canvas, np.zeros((canvas.height, canvas.width, 3), np.float32),
-                      np.zeros((canvas.height, canvas.width), np.float32),
-                      np.full((canvas.height, canvas.width), np.nan, np.float32), ppm)
+    layers = S.Layers(
+        canvas,
+        np.zeros((canvas.height, canvas.width, 3), np.float32),
+        np.zeros((canvas.height, canvas.width), np.float32),
+        np.full((canvas.height, canvas.width), np.nan, np.float32),
+        ppm,
+    )
     window = S.SceneObject("window", np.array([300.0, 100.0, 300.0 + 0.6 * ppm, 100.0 + 1.2 * ppm]))
     sill = S.sill_box(window.box, ppm)
     look = dataclasses.replace(S.LOOKS["P5"], rates={c: 0.0 for c in S.BASE_RATES} | {"water_seepage": 3.0})
@@ -158,8 +168,14 @@ def test_generated_folder_has_the_raw_m3t_layout(tiny_source):
         assert rgb.name.endswith("_W.JPG") and rgb.exists()
         assert (rgb.parent / rgb.name.replace("_W.JPG", "_T.JPG")).exists()
         assert img["file_name"].split("/")[0] in S.PROJECTS
-    for name in ("calibration/wide_camera.yaml", "registration/landmarks.json", "m3t.yaml",
-                 "ground_truth/homographies.yaml", "ground_truth/instances_thermal.json", "ground_truth/frames.json"):
+    for name in (
+        "calibration/wide_camera.yaml",
+        "registration/landmarks.json",
+        "m3t.yaml",
+        "ground_truth/homographies.yaml",
+        "ground_truth/instances_thermal.json",
+        "ground_truth/frames.json",
+    ):
         assert (root / name).exists(), name
 
 
@@ -193,8 +209,8 @@ def _box_contrast(img: np.ndarray, box: list[float], ring: int = 3) -> tuple[flo
     """(mean inside the box - mean of a ring around it, std of the ring)."""
     x0, y0, x1, y1 = (int(round(v)) for v in box)
     h, w = img.shape[:2]
-    inner = img[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)]
-    outer = img[max(y0 - ring, 0):min(y1 + ring, h), max(x0 - ring, 0):min(x1 + ring, w)].astype(np.float64)
+    inner = img[max(y0, 0) : min(y1, h), max(x0, 0) : min(x1, w)]
+    outer = img[max(y0 - ring, 0) : min(y1 + ring, h), max(x0 - ring, 0) : min(x1 + ring, w)].astype(np.float64)
     n_out = outer.size - inner.size
     ring_mean = (outer.sum() - inner.sum()) / max(n_out, 1)
     return float(inner.mean() - ring_mean), float(outer.std())

@@ -34,21 +34,36 @@ def _faulty_plugin():
             if self.training:
                 return super().forward(inputs, targets)
             boxes = torch.tensor(XYWH)
-            return [{"boxes": boxes.clone(), "scores": torch.linspace(0.9, 0.3, len(XYWH)),
-                     "labels": torch.zeros(len(XYWH), dtype=torch.long)} for _ in range(len(inputs))]
+            return [
+                {
+                    "boxes": boxes.clone(),
+                    "scores": torch.linspace(0.9, 0.3, len(XYWH)),
+                    "labels": torch.zeros(len(XYWH), dtype=torch.long),
+                }
+                for _ in range(len(inputs))
+            ]
 
     class Plugin:
         @hookimpl
         def register_detectors(self, register):
-            register(DetectorSpec(name="xywh-det", input_kind="single", description="returns x, y, w, h boxes",
-                                  build=lambda num_classes, in_channels=4, **cfg: XywhDet(num_classes, in_channels)))
+            register(
+                DetectorSpec(
+                    name="xywh-det",
+                    input_kind="single",
+                    description="returns x, y, w, h boxes",
+                    build=lambda num_classes, in_channels=4, **cfg: XywhDet(num_classes, in_channels),
+                )
+            )
 
     return Plugin()
 
 
 def test_degenerate_boxes_are_counted_by_kind():
-    det = {"boxes": torch.tensor(XYWH + [[5.0, 5.0, 5.0, 9.0], [-30.0, -30.0, -10.0, -10.0]]),
-           "scores": torch.full((9,), 0.5), "labels": torch.zeros(9, dtype=torch.long)}
+    det = {
+        "boxes": torch.tensor(XYWH + [[5.0, 5.0, 5.0, 9.0], [-30.0, -30.0, -10.0, -10.0]]),
+        "scores": torch.full((9,), 0.5),
+        "labels": torch.zeros(9, dtype=torch.long),
+    }
     counts = DegenerateBoxes()
     lb = Letterbox(ratio=1.0, pad=(0.0, 0.0), shape=(64, 80))
     out = detections_to_coco(det, 1, lb, num_classes=1, name="d", degenerate=counts)
@@ -66,8 +81,10 @@ def test_a_run_whose_detector_returns_xywh_boxes_stops_naming_it(tmp_path, monke
 
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     request = dict(detector="xywh-det", dataset="shapes", folds="A", store=tmp_path / "store", progress=False)
-    with temporary_plugin(ShapesPlugin(), name="shapes-degenerate"), \
-            temporary_plugin(_faulty_plugin(), name="xywh-plugin"):
+    with (
+        temporary_plugin(ShapesPlugin(), name="shapes-degenerate"),
+        temporary_plugin(_faulty_plugin(), name="xywh-plugin"),
+    ):
         with pytest.raises(PluginError) as err:
             run(RunRequest(**request, overrides=TINY))
         text = str(err.value)

@@ -42,11 +42,14 @@ def test_hsv_gains_zero_is_identity():
 
 
 # ------------------------------------------------------------------ geometry
-@pytest.mark.parametrize("kw", [
-    dict(degrees=0, translate=0.2, scale=0.5),
-    dict(degrees=30, translate=0.1, scale=0.3),
-    dict(degrees=10, translate=0.1, scale=0.2, shear=10),
-])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(degrees=0, translate=0.2, scale=0.5),
+        dict(degrees=30, translate=0.1, scale=0.3),
+        dict(degrees=10, translate=0.1, scale=0.2, shear=10),
+    ],
+)
 def test_random_affine_moves_all_channels_and_boxes_identically(kw):
     img, boxes = _scene()
     labels = np.array([2])

@@ -42,8 +42,9 @@ def test_source_stacks_rgb_and_the_encoding(prepared):
 @pytest.mark.parametrize("mosaic", [0.0, 1.0])
 def test_training_pipeline_applies_geometry_to_every_channel(prepared, mosaic):
     """The extra channel is a copy of R: after mosaic, affine and flips (no HSV) it must still equal R everywhere."""
-    aug = AugmentSettings(mosaic=mosaic, hsv_h=0, hsv_s=0, hsv_v=0, degrees=15, translate=0.2, scale=0.5, shear=5,
-                          fliplr=0.5, flipud=0.5)
+    aug = AugmentSettings(
+        mosaic=mosaic, hsv_h=0, hsv_s=0, hsv_v=0, degrees=15, translate=0.2, scale=0.5, shear=5, fliplr=0.5, flipud=0.5
+    )
     ds = TrainDataset(SampleSource(prepared, None, RED), 64, aug, seed=3)
     for k in range(len(ds)):
         item = ds[k]

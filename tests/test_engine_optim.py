@@ -53,9 +53,16 @@ def test_build_optimizer_puts_decay_on_the_first_group_only(name):
         optim.build_optimizer(Toy(), "Lion", 0.01, 0.9, 0.0)
 
 
-@pytest.mark.parametrize("batch, nominal, accumulate, wd", [
-    (16, 64, 4, 5e-4), (2, 64, 32, 5e-4), (24, 64, 3, 5e-4 * 24 * 3 / 64), (128, 64, 1, 1e-3), (8, 8, 1, 5e-4),
-])
+@pytest.mark.parametrize(
+    "batch, nominal, accumulate, wd",
+    [
+        (16, 64, 4, 5e-4),
+        (2, 64, 32, 5e-4),
+        (24, 64, 3, 5e-4 * 24 * 3 / 64),
+        (128, 64, 1, 1e-3),
+        (8, 8, 1, 5e-4),
+    ],
+)
 def test_accumulation_and_weight_decay_scaling(batch, nominal, accumulate, wd):
     assert optim.accumulate_steps(batch, nominal) == accumulate
     assert optim.scaled_weight_decay(5e-4, batch, accumulate, nominal) == pytest.approx(wd)

@@ -46,8 +46,11 @@ def prepared(tmp_path_factory):
 
 def test_letterbox_is_undone_exactly():
     lb = Letterbox(ratio=0.5, pad=(0.0, 16.0), shape=(64, 200))
-    det = {"boxes": torch.tensor([[10.0, 26.0, 30.0, 46.0], [90.0, 40.0, 120.0, 60.0]]),
-           "scores": torch.tensor([0.9, 0.4]), "labels": torch.tensor([2, 0])}
+    det = {
+        "boxes": torch.tensor([[10.0, 26.0, 30.0, 46.0], [90.0, 40.0, 120.0, 60.0]]),
+        "scores": torch.tensor([0.9, 0.4]),
+        "labels": torch.tensor([2, 0]),
+    }
     out = detections_to_coco(det, 7, lb)
     # the score at the model's full float32 precision (not rounded to 5 decimals)
     assert out[0] == {
@@ -89,8 +92,10 @@ def test_predict_validates_the_model_output(prepared):
 
     class BadLabel(nn.Module):
         def forward(self, x):
-            return [{"boxes": torch.tensor([[1.0, 1, 5, 5]]), "scores": torch.tensor([0.5]),
-                     "labels": torch.tensor([7])} for _ in x]
+            return [
+                {"boxes": torch.tensor([[1.0, 1, 5, 5]]), "scores": torch.tensor([0.5]), "labels": torch.tensor([7])}
+                for _ in x
+            ]
 
     with pytest.raises(PluginError, match="labels. must lie in 0..2, got 7"):
         predict(BadLabel(), src, 64, num_classes=3, name="bad")

@@ -161,12 +161,15 @@ def test_missing_area_and_iscrowd_default_like_coco():
     assert evaluate(bare, dets)["metrics"]["coco_stats"] == evaluate(gt, dets)["metrics"]["coco_stats"]
 
 
-@pytest.mark.parametrize("bad, message", [
-    ({"bbox": [1, 2, 3]}, r"detections\[0\]: bbox has 3 numbers"),
-    ({"bbox": [1, 2, -3, 4]}, r"detections\[0\]: bbox .* negative width"),
-    ({"score": float("nan")}, r"detections\[0\]: score nan is not a finite number"),
-    ({"image_id": True}, r"detections\[0\]: id True is a boolean"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ({"bbox": [1, 2, 3]}, r"detections\[0\]: bbox has 3 numbers"),
+        ({"bbox": [1, 2, -3, 4]}, r"detections\[0\]: bbox .* negative width"),
+        ({"score": float("nan")}, r"detections\[0\]: score nan is not a finite number"),
+        ({"image_id": True}, r"detections\[0\]: id True is a boolean"),
+    ],
+)
 def test_malformed_detections_name_the_record(bad, message):
     gt, dets = random_coco(seed=9)
     with pytest.raises(EvaluationError, match=message):
@@ -204,10 +207,12 @@ def _box_case():
         ],
         "categories": [{"id": 1, "name": "crack"}],
     }
-    dets = [{"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},
-            {"image_id": 1, "category_id": 1, "bbox": [40, 5, 10, 10], "score": 0.8},
-            {"image_id": 1, "category_id": 1, "bbox": [61, 61, 20, 20], "score": 0.7},
-            {"image_id": 1, "category_id": 1, "bbox": [11, 10, 20, 20], "score": 0.6}]
+    dets = [
+        {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},
+        {"image_id": 1, "category_id": 1, "bbox": [40, 5, 10, 10], "score": 0.8},
+        {"image_id": 1, "category_id": 1, "bbox": [61, 61, 20, 20], "score": 0.7},
+        {"image_id": 1, "category_id": 1, "bbox": [11, 10, 20, 20], "score": 0.6},
+    ]
     return gt, dets
 
 
@@ -223,8 +228,9 @@ def test_operating_point_hand_computed(engine):
 
 def test_operating_point_averages_f1_over_categories_with_gt():
     # category 0: TP@0.9, FP@0.5 (1 GT); category 1: TP@0.5 (1 GT); category 2: no GT, its detections are ignored
-    op = max_f1_operating_point(scores=[0.9, 0.5, 0.5, 0.95], labels=[0, 0, 1, 2], is_tp=[True, False, True, False],
-                                n_gt=[1, 1, 0])
+    op = max_f1_operating_point(
+        scores=[0.9, 0.5, 0.5, 0.95], labels=[0, 0, 1, 2], is_tp=[True, False, True, False], n_gt=[1, 1, 0]
+    )
     # t=0.9: F1 = (1 + 0)/2 = 0.5;  t=0.5: F1 = (2/3 + 1)/2 = 0.8333
     assert op.conf_threshold == 0.5
     assert op.f1 == pytest.approx((2 / 3 + 1) / 2)
@@ -326,8 +332,7 @@ def test_bulk_iou_matrices_are_bitwise_cocoeval_s():
     prep = prepare(gt, dets)
     layout = pair_layout(prep, 100)
     ours = layout.matrices(layout.values(prep, iou_elementwise))
-    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt)), COCO(copy.deepcopy(gt)).loadRes(canonical(dets)),
-                         iouType="bbox")
+    ev = COCOeval_faster(COCO(copy.deepcopy(prep.gt)), COCO(copy.deepcopy(gt)).loadRes(canonical(dets)), iouType="bbox")
     ev.evaluate()  # the library's own per-pair IoU matrices, dense 1 image at a time
     theirs = {(int(i), int(c)): np.asarray(m) for (i, c), m in ev.ious.items() if len(m)}
     assert set(ours) == set(theirs) and len(ours) > 50
@@ -349,8 +354,9 @@ def test_stock_preparation_path_gives_the_same_numbers():
     prep = prepare(gt, dets)
     dt = COCO(print_function=_silent)
     dt.dataset = {"images": prep.gt["images"], "categories": prep.gt["categories"], "annotations": prep.dets}
-    ev = _faster_eval_class("iou", "center")(COCO(prep.gt, print_function=_silent), dt, iouType="bbox",
-                                              print_function=_silent)
+    ev = _faster_eval_class("iou", "center")(
+        COCO(prep.gt, print_function=_silent), dt, iouType="bbox", print_function=_silent
+    )
     ev.evaluate()
     ev.accumulate()
     ev.summarize()
@@ -364,11 +370,14 @@ def _library_evaluation(prep, gt, dets, matching, ranges=None):
 
     from harness.evaluation.engines import _faster_eval_class, _silent
 
-    ev = _faster_eval_class(matching, "center")(COCO(copy.deepcopy(prep.gt), print_function=_silent),
-                                                 COCO(copy.deepcopy(gt), print_function=_silent).loadRes(
-                                                     copy.deepcopy(dets)),
-                                                 iouType="bbox", print_function=_silent, separate_eval=True,
-                                                 ranges=ranges)
+    ev = _faster_eval_class(matching, "center")(
+        COCO(copy.deepcopy(prep.gt), print_function=_silent),
+        COCO(copy.deepcopy(gt), print_function=_silent).loadRes(copy.deepcopy(dets)),
+        iouType="bbox",
+        print_function=_silent,
+        separate_eval=True,
+        ranges=ranges,
+    )
     ev.evaluate()  # no harness_inputs: the library's own path (SAFit matrices pair by pair)
     return ev, _C.COCOevalAccumulate(ev._paramsEval, ev._evalImgs_cpp)
 

@@ -13,20 +13,30 @@ from harness.store import RunKey, Store
 
 
 def _fold(name, map50, cats, images=10, instances=None, sha="a" * 40):
-    per_cat = {n: {"AP50": ap, "AP50_95": None if ap is None else ap / 2, "instances": 0 if ap is None else 5}
-               for n, ap in cats.items()}
+    per_cat = {
+        n: {"AP50": ap, "AP50_95": None if ap is None else ap / 2, "instances": 0 if ap is None else 5}
+        for n, ap in cats.items()
+    }
     inst = instances if instances is not None else sum(v["instances"] for v in per_cat.values())
-    return {"run": {"dataset": "m3t", "detector": "ours", "encoding": "c2", "fold": name, "seed": 0},
-            "support": {"images": images, "instances": inst, "image_ids_sha1": sha,
-                        "categories": {n: v["instances"] for n, v in per_cat.items()}},
-            "metrics": {"mAP50": map50, "mAP50_95": map50 / 2, "precision": 0.5, "recall": 0.4},
-            "per_category": per_cat}
+    return {
+        "run": {"dataset": "m3t", "detector": "ours", "encoding": "c2", "fold": name, "seed": 0},
+        "support": {
+            "images": images,
+            "instances": inst,
+            "image_ids_sha1": sha,
+            "categories": {n: v["instances"] for n, v in per_cat.items()},
+        },
+        "metrics": {"mAP50": map50, "mAP50_95": map50 / 2, "precision": 0.5, "recall": 0.4},
+        "per_category": per_cat,
+    }
 
 
 def test_absent_category_is_excluded_from_its_mean_not_counted_as_zero():
-    folds = [_fold("P1", 0.6, {"crack": 0.5, "window": 0.9}),
-             _fold("P2", 0.8, {"crack": None, "window": 0.8}),  # no crack in the held-out projects of P2
-             _fold("P3", 0.7, {"crack": 0.7, "window": 0.7})]
+    folds = [
+        _fold("P1", 0.6, {"crack": 0.5, "window": 0.9}),
+        _fold("P2", 0.8, {"crack": None, "window": 0.8}),  # no crack in the held-out projects of P2
+        _fold("P3", 0.7, {"crack": 0.7, "window": 0.7}),
+    ]
     agg = aggregate_folds(folds)
     crack = agg["per_category"]["crack"]["AP50"]
     assert crack["values"] == [0.5, None, 0.7]
@@ -115,12 +125,21 @@ def test_the_runners_path_from_model_outputs_scores_exactly_what_evaluate_scores
         ds = by_image.get(im["id"], [])
         xyxy = np.array([[x, y, x + w, y + h] for x, y, w, h in (d["bbox"] for d in ds)], np.float32).reshape(-1, 4)
         scores = np.array([d["score"] for d in ds], np.float32)
-        out = {"boxes": torch.from_numpy(xyxy), "scores": torch.from_numpy(scores),
-               "labels": torch.tensor([d["category_id"] - 1 for d in ds], dtype=torch.int64)}
+        out = {
+            "boxes": torch.from_numpy(xyxy),
+            "scores": torch.from_numpy(scores),
+            "labels": torch.tensor([d["category_id"] - 1 for d in ds], dtype=torch.int64),
+        }
         converted += detections_to_coco(out, im["id"], None, len(gt["categories"]))
-        by_hand += [{"image_id": im["id"], "category_id": d["category_id"], "score": float(s),
-                     "bbox": [float(b[0]), float(b[1]), float(b[2]) - float(b[0]), float(b[3]) - float(b[1])]}
-                    for d, b, s in zip(ds, xyxy, scores)]
+        by_hand += [
+            {
+                "image_id": im["id"],
+                "category_id": d["category_id"],
+                "score": float(s),
+                "bbox": [float(b[0]), float(b[1]), float(b[2]) - float(b[0]), float(b[3]) - float(b[1])],
+            }
+            for d, b, s in zip(ds, xyxy, scores)
+        ]
     assert len(converted) == len(dets) == len(by_hand)
     assert evaluate(gt, converted) == evaluate(gt, by_hand)
     stray = {**converted[0], "image_id": 99999}

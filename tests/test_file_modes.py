@@ -53,8 +53,17 @@ def test_a_prepared_folder_and_its_files_get_the_umask_modes(umask, tmp_path):
 
     w = PreparedWriter(tmp_path / "cache" / "key", "toy", ["car"])
     h, wd = 8, 10
-    w.add(AlignedSample(0, np.zeros((h, wd, 3), np.uint8), np.full((h, wd), 20, np.float32),
-                        np.zeros((h, wd), np.uint8), np.array([[1, 1, 4, 4]], np.float32), np.array([0]), "g"))
+    w.add(
+        AlignedSample(
+            0,
+            np.zeros((h, wd, 3), np.uint8),
+            np.full((h, wd), 20, np.float32),
+            np.zeros((h, wd), np.uint8),
+            np.array([[1, 1, 4, 4]], np.float32),
+            np.array([0]),
+            "g",
+        )
+    )
     folder = w.close({})
     assert mode(folder) == 0o777 & ~umask
     files = [p for p in folder.rglob("*") if p.is_file()]

@@ -22,8 +22,10 @@ def test_label_path_follows_the_yolo_rule():
     img = flir_aligned.Path("/d/FLIR-align-3class/visible/train/images/FLIR_00002_RGB.jpg")
     assert flir_aligned.label_path(img).as_posix() == "/d/FLIR-align-3class/visible/train/labels/FLIR_00002_RGB.txt"
     root = flir_aligned.Path("/d/FLIR-align-3class")
-    for image, label in (("visible/train/FLIR_00002_RGB.jpg", "labels/train/FLIR_00002_RGB.txt"),
-                         ("infrared/test/FLIR_08863_PreviewData.jpeg", "labels/test/FLIR_08863_PreviewData.txt")):
+    for image, label in (
+        ("visible/train/FLIR_00002_RGB.jpg", "labels/train/FLIR_00002_RGB.txt"),
+        ("infrared/test/FLIR_08863_PreviewData.jpeg", "labels/test/FLIR_08863_PreviewData.txt"),
+    ):
         assert flir_aligned.icafusion_label_path(root / image, root) == root / label  # ICAFusion's img2label_paths
     assert flir_aligned.frame_key("FLIR_00002_PreviewData") == flir_aligned.frame_key("FLIR_00002_RGB") == "FLIR_00002"
 
@@ -52,8 +54,9 @@ def test_missing_partner_missing_labels_and_bad_lines(release):
     (base / "infrared" / "test" / "images" / "FLIR_08865_PreviewData.jpeg").unlink()
     (base / "visible" / "train" / "labels" / "FLIR_00003_RGB.txt").unlink()
     (base / "visible" / "train" / "labels" / "FLIR_00005_RGB.txt").write_text("0 0.5 0.5 0.1 0.1\n3 0.5 0.5 0.1 0.1\n")
-    samples, report = collect_with_drops(flir_aligned.open_flir_aligned, root, 3,
-                                         {"missing infrared frame": 1, "malformed labels": 1})
+    samples, report = collect_with_drops(
+        flir_aligned.open_flir_aligned, root, 3, {"missing infrared frame": 1, "malformed labels": 1}
+    )
     reason = dict(report.skipped)[str(base / "visible" / "train" / "labels" / "FLIR_00005_RGB.txt")]
     assert "FLIR_00005_RGB.txt: line 2: class 3 outside 0..2" in reason
     unlabelled = next(s for s in samples if s.meta["frame"] == "FLIR_00003")

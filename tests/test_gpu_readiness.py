@@ -89,13 +89,29 @@ def test_training_with_workers_and_channels_last_matches_the_plain_run(host, tmp
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
 
-    base = ["protocol.imgsz=64", "protocol.epochs=2", "train.batch=8", "train.nominal_batch=8",
-            "train.warmup_epochs=0", "train.close_mosaic=1", "train.threads=1", "train.device=cpu"]
+    base = [
+        "protocol.imgsz=64",
+        "protocol.epochs=2",
+        "train.batch=8",
+        "train.nominal_batch=8",
+        "train.warmup_epochs=0",
+        "train.close_mosaic=1",
+        "train.threads=1",
+        "train.device=cpu",
+    ]
     logs = {}
     with temporary_plugin(ShapesPlugin(), name="shapes-gpu"), temporary_plugin(tinydet_plugin, name="tiny-gpu"):
         for label, extra in (("plain", []), ("fast", ["train.workers=2", "train.channels_last=true"])):
-            summary = run(RunRequest(detector="tinydet", dataset="shapes", folds="A", store=tmp_path / label,
-                                     overrides=[*base, *extra], progress=False))
+            summary = run(
+                RunRequest(
+                    detector="tinydet",
+                    dataset="shapes",
+                    folds="A",
+                    store=tmp_path / label,
+                    overrides=[*base, *extra],
+                    progress=False,
+                )
+            )
             (r,) = summary.results
             logs[label] = [json.loads(x) for x in (r.path / "log.jsonl").read_text().splitlines()]
     assert [x["epoch"] for x in logs["fast"]] == [1, 2]

@@ -19,9 +19,16 @@ def _sample(i: int, holes: int = 0, all_missing: bool = False) -> AlignedSample:
     t.reshape(-1)[:holes] = np.nan
     if all_missing:
         t[:] = np.inf
-    return AlignedSample(i, np.zeros((H, W, 3), np.uint8), t, np.zeros((H, W), np.uint8),
-                         np.array([[2, 2, 10, 10]], np.float32), np.array([0]), "g1" if i % 2 else "g2",
-                         meta={"file_name": f"frame_{i}.tif"})
+    return AlignedSample(
+        i,
+        np.zeros((H, W, 3), np.uint8),
+        t,
+        np.zeros((H, W), np.uint8),
+        np.array([[2, 2, 10, 10]], np.float32),
+        np.array([0]),
+        "g1" if i % 2 else "g2",
+        meta={"file_name": f"frame_{i}.tif"},
+    )
 
 
 class _Source:
@@ -59,8 +66,11 @@ def test_prepare_counts_missing_pixels_per_sample_and_skips_the_unusable(tmp_pat
     ds = prepare(spec, {}, cache_root=tmp_path, progress=False)
     rep = ds.manifest["report"]
     assert len(ds) == 3 and rep["skipped"] == 1 and "non-finite" in rep["skipped_files"][0][1]
-    assert rep["missing_temperatures"] == {"samples": 2, "pixels": 37, "per_sample": {
-        "sample 1 (frame_1.tif)": 7, "sample 2 (frame_2.tif)": 30}}
+    assert rep["missing_temperatures"] == {
+        "samples": 2,
+        "pixels": 37,
+        "per_sample": {"sample 1 (frame_1.tif)": 7, "sample 2 (frame_2.tif)": 30},
+    }
     assert "missing temperatures (NaN/inf, left out of the encodings): 37 pixels in 2 sample(s)" in prepare_summary(ds)
     kept = ds[1]
     assert int((~np.isfinite(kept.thermal)).sum()) == 7  # the cache keeps them missing, not zero

@@ -74,9 +74,11 @@ def test_dfl_expectation_and_loss_on_hand_computed_values():
 
 
 def test_pad_targets_pads_to_the_most_boxes_and_checks_labels():
-    t = [{"boxes": torch.tensor([[0.0, 0, 4, 4], [1, 1, 5, 5]]), "labels": torch.tensor([1, 2])},
-         {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)},
-         {"boxes": [[2.0, 2, 6, 6]], "labels": [0]}]
+    t = [
+        {"boxes": torch.tensor([[0.0, 0, 4, 4], [1, 1, 5, 5]]), "labels": torch.tensor([1, 2])},
+        {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)},
+        {"boxes": [[2.0, 2, 6, 6]], "labels": [0]},
+    ]
     boxes, labels, mask = pad_targets(t, 3, nc=3, device=torch.device("cpu"))
     assert boxes.shape == (3, 2, 4) and labels.tolist() == [[1, 2], [0, 0], [0, 0]]
     assert mask.tolist() == [[True, True], [False, False], [True, False]]
@@ -90,8 +92,9 @@ def test_assigner_picks_the_topk_best_aligned_anchors_inside_the_box():
     pd_boxes = centred_boxes(pts, 24.0)[None]  # every anchor predicts a 24x24 box around itself
     pd_scores = torch.full((1, 16, 2), 0.5)
     gt = torch.tensor([[[0.0, 0.0, 24.0, 24.0]]])  # holds the 9 anchors with centres 4, 12, 20
-    out = TaskAlignedAssigner(2, topk=5, alpha=0.5, beta=6.0)(pd_scores, pd_boxes, pts, torch.tensor([[1]]), gt,
-                                                              torch.tensor([[True]]))
+    out = TaskAlignedAssigner(2, topk=5, alpha=0.5, beta=6.0)(
+        pd_scores, pd_boxes, pts, torch.tensor([[1]]), gt, torch.tensor([[True]])
+    )
     fg = out.fg_mask[0].view(4, 4)
     # the centre anchor (12,12) predicts the box exactly (CIoU 1); its 4 edge neighbours come next (CIoU 0.46);
     # the 4 corner anchors (CIoU 0.22) and the anchors outside the box are not chosen
@@ -112,15 +115,22 @@ def test_assigner_gives_a_shared_anchor_to_the_box_it_overlaps_most_and_ignores_
     pts = grid()
     pd_boxes = centred_boxes(pts, 16.0)[None]
     pd_scores = torch.full((1, 16, 3), 0.5)
-    gts = torch.tensor([[[0.0, 0.0, 16.0, 24.0],  # anchors (4|12, 4|12|20)
-                         [8.0, 0.0, 24.0, 16.0],  # anchors (12|20, 4|12)
-                         [0.0, 0.0, 32.0, 32.0]]])  # padding: must be ignored
+    gts = torch.tensor(
+        [
+            [
+                [0.0, 0.0, 16.0, 24.0],  # anchors (4|12, 4|12|20)
+                [8.0, 0.0, 24.0, 16.0],  # anchors (12|20, 4|12)
+                [0.0, 0.0, 32.0, 32.0],
+            ]
+        ]
+    )  # padding: must be ignored
     labels = torch.tensor([[0, 2, 1]])
     out = TaskAlignedAssigner(3, topk=10)(pd_scores, pd_boxes, pts, labels, gts, torch.tensor([[True, True, False]]))
     idx = {(4, 4): 0, (12, 4): 1, (4, 12): 4, (12, 12): 5, (20, 4): 2, (20, 12): 6, (4, 20): 8, (12, 20): 9}
     fg = out.fg_mask[0]
-    assert fg.nonzero().flatten().tolist() == sorted(idx[p] for p in [(4, 4), (12, 4), (4, 12), (12, 12), (20, 4),
-                                                                      (20, 12), (4, 20), (12, 20)])
+    assert fg.nonzero().flatten().tolist() == sorted(
+        idx[p] for p in [(4, 4), (12, 4), (4, 12), (12, 12), (20, 4), (20, 12), (4, 20), (12, 20)]
+    )
     # anchors (12,4) and (12,12) lie in both boxes. Their 16x16 predictions [4,-4,20,12] and [4,4,20,20] have
     # CIoU 0.222 / 0.351 with box 0 / box 1 at (12,4), and 0.412 / 0.351 at (12,12) (worked out by hand):
     # (12,4) goes to box 1 (label 2), (12,12) to box 0 (label 0)
@@ -258,8 +268,10 @@ def test_assigner_matches_the_rule_written_with_loops(seed):
 def test_gains_scale_the_losses():
     torch.manual_seed(3)
     maps = [torch.randn(2, 64 + 3, s, s) for s in (8, 4, 2)]
-    targets = [{"boxes": torch.tensor([[4.0, 6.0, 40.0, 50.0]]), "labels": torch.tensor([1])},
-               {"boxes": torch.tensor([[20.0, 10.0, 60.0, 30.0]]), "labels": torch.tensor([2])}]
+    targets = [
+        {"boxes": torch.tensor([[4.0, 6.0, 40.0, 50.0]]), "labels": torch.tensor([1])},
+        {"boxes": torch.tensor([[20.0, 10.0, 60.0, 30.0]]), "labels": torch.tensor([2])},
+    ]
 
     def run(**gains):
         crit = V8DetectionLoss(nc=3, **gains)

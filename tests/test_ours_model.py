@@ -172,8 +172,9 @@ def test_harness_profile_reports_the_seed_figures(cli_runner):
     import json
 
     pytest.importorskip("harness.profiling", reason="the profiling module is not in this checkout yet")
-    result = cli_runner(["profile", "--detector", "ours", "--format", "json", "--no-latency", "--no-onnx",
-                         "--no-fvcore", "--no-store"])
+    result = cli_runner(
+        ["profile", "--detector", "ours", "--format", "json", "--no-latency", "--no-onnx", "--no-fvcore", "--no-store"]
+    )
     assert result.exit_code == 0, result.output
     (record,) = json.loads(result.output)
     assert record["params"]["fused"] == 11_128_968

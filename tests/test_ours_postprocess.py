@@ -11,15 +11,27 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def scene():
-    boxes = torch.tensor([[[10.0, 10.0, 50.0, 50.0],  # 0: class 0, 0.9
-                           [12.0, 11.0, 52.0, 49.0],  # 1: overlaps 0 (IoU ~0.86), class 0, 0.8 -> suppressed
-                           [11.0, 10.0, 51.0, 50.0],  # 2: overlaps 0, but class 1, 0.7 -> kept
-                           [100.0, 100.0, 140.0, 150.0],  # 3: far away, class 0, 0.6 -> kept
-                           [-5.0, 60.0, 30.0, 90.0],  # 4: crosses the left border, class 2, 0.5 -> kept, clipped
-                           [60.0, 60.0, 70.0, 70.0]]])  # 5: below the confidence threshold
+    boxes = torch.tensor(
+        [
+            [
+                [10.0, 10.0, 50.0, 50.0],  # 0: class 0, 0.9
+                [12.0, 11.0, 52.0, 49.0],  # 1: overlaps 0 (IoU ~0.86), class 0, 0.8 -> suppressed
+                [11.0, 10.0, 51.0, 50.0],  # 2: overlaps 0, but class 1, 0.7 -> kept
+                [100.0, 100.0, 140.0, 150.0],  # 3: far away, class 0, 0.6 -> kept
+                [-5.0, 60.0, 30.0, 90.0],  # 4: crosses the left border, class 2, 0.5 -> kept, clipped
+                [60.0, 60.0, 70.0, 70.0],
+            ]
+        ]
+    )  # 5: below the confidence threshold
     scores = torch.zeros(1, 6, 3)
     scores[0, 0, 0], scores[0, 1, 0], scores[0, 2, 1], scores[0, 3, 0], scores[0, 4, 2], scores[0, 5, 1] = (
-        0.9, 0.8, 0.7, 0.6, 0.5, 0.0005)
+        0.9,
+        0.8,
+        0.7,
+        0.6,
+        0.5,
+        0.0005,
+    )
     return boxes, scores
 
 

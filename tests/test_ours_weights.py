@@ -143,5 +143,6 @@ def test_bad_checkpoints_are_clear_errors(tmp_path):
     report = load_yolov8_weights(model, partial, strict=False)
     assert report["missing"] and all(k.startswith("model.22.") for k in report["missing"])
     with pytest.raises(HarnessError, match="extra_channels"):
-        load_yolov8_weights(build_yolov8(8, in_channels=4, scale="n"), trained_like(8, 3, seed=8).state_dict(),
-                            extra_channels="noise")
+        load_yolov8_weights(
+            build_yolov8(8, in_channels=4, scale="n"), trained_like(8, 3, seed=8).state_dict(), extra_channels="noise"
+        )

@@ -27,8 +27,14 @@ def _env(site, **extra):
 
 
 def _harness(args, env, timeout=300):
-    return subprocess.run([sys.executable, "-m", "harness", *args], env=env, capture_output=True, text=True,
-                          timeout=timeout, cwd=env.get("HARNESS_TEST_CWD"))
+    return subprocess.run(
+        [sys.executable, "-m", "harness", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=env.get("HARNESS_TEST_CWD"),
+    )
 
 
 @pytest.mark.slow
@@ -36,8 +42,12 @@ def test_example_plugin_installs_lists_and_runs(tmp_path):
     src, site = install_plugin("harness-tinydet", tmp_path)
     assert (site / "harness_tinydet" / "plugin.py").exists()
 
-    env = _env(site, HARNESS_PLUGINS_DIR=write_plugin_dir(tmp_path / "dir_plugins"), HARNESS_CACHE=tmp_path / "cache",
-               HARNESS_TEST_CWD=tmp_path)
+    env = _env(
+        site,
+        HARNESS_PLUGINS_DIR=write_plugin_dir(tmp_path / "dir_plugins"),
+        HARNESS_CACHE=tmp_path / "cache",
+        HARNESS_TEST_CWD=tmp_path,
+    )
     listed = _harness(["list", "--format", "json"], env)
     assert listed.returncode == 0, listed.stderr
     detectors = {d["name"]: d for d in json.loads(listed.stdout)["detectors"]}
@@ -49,10 +59,33 @@ def test_example_plugin_installs_lists_and_runs(tmp_path):
     assert mine["distribution"] == "harness-tinydet" and mine["version"] == "0.1.0"
 
     store = tmp_path / "store"
-    sets = ["protocol.imgsz=64", "protocol.epochs=2", "train.batch=8", "train.nominal_batch=8", "train.threads=1",
-            "train.warmup_min_iters=0", "train.device=cpu"]
-    ran = _harness(["run", "--detector", "tinydet", "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "A",
-                    "--store", str(store), "--no-progress", *[a for s in sets for a in ("--set", s)]], env)
+    sets = [
+        "protocol.imgsz=64",
+        "protocol.epochs=2",
+        "train.batch=8",
+        "train.nominal_batch=8",
+        "train.threads=1",
+        "train.warmup_min_iters=0",
+        "train.device=cpu",
+    ]
+    ran = _harness(
+        [
+            "run",
+            "--detector",
+            "tinydet",
+            "--dataset",
+            "shapes",
+            "--encoding",
+            "test-ir8",
+            "--folds",
+            "A",
+            "--store",
+            str(store),
+            "--no-progress",
+            *[a for s in sets for a in ("--set", s)],
+        ],
+        env,
+    )
     assert ran.returncode == 0, ran.stderr[-3000:]
     assert "tinydet on shapes, encoding test-ir8" in ran.stdout
     metrics = json.loads((store / "shapes" / "tinydet" / "test-ir8" / "A" / "seed0" / "metrics.json").read_text())

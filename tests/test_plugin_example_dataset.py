@@ -18,8 +18,14 @@ from engine_helpers import install_plugin, run_plugin_tests  # noqa: E402
 
 
 def _harness(args, env):
-    return subprocess.run([sys.executable, "-m", "harness", *args], env=env, capture_output=True, text=True,
-                          timeout=300, cwd=env["HARNESS_TEST_CWD"])
+    return subprocess.run(
+        [sys.executable, "-m", "harness", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=env["HARNESS_TEST_CWD"],
+    )
 
 
 @pytest.mark.slow
@@ -29,9 +35,12 @@ def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
 
     env = dict(os.environ)
     env.pop("HARNESS_DISABLE_PLUGIN_AUTOLOAD", None)
-    env.update(PYTHONPATH=os.pathsep.join([str(site), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
-               HARNESS_LOAD_PLUGINS="harness-example-dataset", HARNESS_CACHE=str(tmp_path / "cache"),
-               HARNESS_TEST_CWD=str(tmp_path))
+    env.update(
+        PYTHONPATH=os.pathsep.join([str(site), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+        HARNESS_LOAD_PLUGINS="harness-example-dataset",
+        HARNESS_CACHE=str(tmp_path / "cache"),
+        HARNESS_TEST_CWD=str(tmp_path),
+    )
 
     listed = json.loads(_harness(["list", "--format", "json"], env).stdout)
     mine = next(d for d in listed["datasets"] if d["name"] == "example-folders")
@@ -44,12 +53,30 @@ def test_example_dataset_plugin_installs_prepares_and_runs(tmp_path):
     assert "prepared example-folders: 12 aligned samples, 24 instances" in prep.stdout
     folds = _harness(["folds", "--dataset", "example-folders", "--root", "data"], env)
     assert folds.returncode == 0, folds.stderr
-    assert [line.split()[0] for line in folds.stdout.splitlines() if line.startswith("site")] == \
-        ["site1", "site2", "site3"]
+    assert [line.split()[0] for line in folds.stdout.splitlines() if line.startswith("site")] == [
+        "site1",
+        "site2",
+        "site3",
+    ]
 
     sets = ["protocol.epochs=1", "model.scale=n", "train.threads=1"]
-    args = ["run", "--detector", "ours", "--dataset", "example-folders", "--root", "data", "--folds", "site2",
-            "--profile", "smoke", "--store", "store", "--no-progress", *[a for s in sets for a in ("--set", s)]]
+    args = [
+        "run",
+        "--detector",
+        "ours",
+        "--dataset",
+        "example-folders",
+        "--root",
+        "data",
+        "--folds",
+        "site2",
+        "--profile",
+        "smoke",
+        "--store",
+        "store",
+        "--no-progress",
+        *[a for s in sets for a in ("--set", s)],
+    ]
     ran = _harness(args, env)
     assert ran.returncode == 0, ran.stderr[-3000:]
     run_dir = tmp_path / "store" / "example-folders" / "ours" / "c2" / "site2" / "seed0"

@@ -21,6 +21,7 @@ def _build(num_classes, in_channels=4, **_):  # a detector builder that is never
 
 def registering(hook: str, *records):
     """A throwaway plugin whose ``hook`` (``register_datasets``, ...) registers ``records``."""
+
     def impl(register):
         for record in records:
             register(record)
@@ -53,8 +54,9 @@ def test_hook_register_detectors(host):
 
 
 def test_hook_register_datasets(host):
-    plugin = registering("register_datasets",
-                         DatasetSpec(name="undo-ds", open=lambda root=None: None, categories=("a", "b")))
+    plugin = registering(
+        "register_datasets", DatasetSpec(name="undo-ds", open=lambda root=None: None, categories=("a", "b"))
+    )
     with temporary_plugin(plugin, name="undo-ds-plugin"):
         assert host.dataset("undo-ds").categories == ("a", "b")
     assert "undo-ds" not in host.datasets()
@@ -63,8 +65,9 @@ def test_hook_register_datasets(host):
 def test_hook_register_encodings(host):
     import numpy as np
 
-    plugin = registering("register_encodings",
-                         EncodingSpec(name="undo-enc", fn=lambda s: np.zeros(s.ir8.shape, np.uint8), needs="ir8"))
+    plugin = registering(
+        "register_encodings", EncodingSpec(name="undo-enc", fn=lambda s: np.zeros(s.ir8.shape, np.uint8), needs="ir8")
+    )
     with temporary_plugin(plugin, name="undo-enc-plugin"):
         assert host.encoding("undo-enc").needs == "ir8"
     assert "undo-enc" not in host.encodings()
@@ -100,8 +103,10 @@ def test_hook_register_commands(host):
 
 # ------------------------------------------------------------------ conflicts and broken plugins
 def test_duplicate_name_is_an_error_naming_both_plugins(host):
-    with temporary_plugin(make_detector_plugin("undo-twin"), name="first-plugin"), \
-            temporary_plugin(make_detector_plugin("undo-twin", "undo-other"), name="second-plugin"):
+    with (
+        temporary_plugin(make_detector_plugin("undo-twin"), name="first-plugin"),
+        temporary_plugin(make_detector_plugin("undo-twin", "undo-other"), name="second-plugin"),
+    ):
         with pytest.raises(PluginError) as err:
             host.detector("undo-twin")
         assert "first-plugin" in str(err.value) and "second-plugin" in str(err.value)
@@ -114,8 +119,10 @@ def test_duplicate_name_is_an_error_naming_both_plugins(host):
 
 
 def test_plugin_raising_at_registration_is_reported_and_others_load(host):
-    with temporary_plugin(make_detector_plugin("undo-a", "undo-b", raise_after=1), name="broken-plugin"), \
-            temporary_plugin(make_detector_plugin("undo-good"), name="good-plugin"):
+    with (
+        temporary_plugin(make_detector_plugin("undo-a", "undo-b", raise_after=1), name="broken-plugin"),
+        temporary_plugin(make_detector_plugin("undo-good"), name="good-plugin"),
+    ):
         names = host.detectors()
         assert "undo-good" in names
         assert "undo-a" not in names  # a plugin that raised contributes nothing half-registered
@@ -154,6 +161,7 @@ def _install_fake(monkeypatch, dist_name, module_name, detector_name, version="1
     if broken:
         ep_target = f"{module_name}_missing_module"
     else:
+
         @hookimpl
         def register_detectors(register):
             register(DetectorSpec(name=detector_name, build=_build, input_kind="dual"))
@@ -221,6 +229,7 @@ def test_entry_point_that_fails_to_import_is_reported(fresh_plugins, monkeypatch
 def load_plugin_files(fresh_plugins, monkeypatch, tmp_path, caplog):
     """``load_plugin_files(module=source, ...) -> host``: the modules written into a plugins folder (``--plugins-dir``)
     and every plugin loaded from scratch, warnings captured by ``caplog``."""
+
     def load(**modules: str):
         for name, source in modules.items():
             (tmp_path / f"{name}.py").write_text(source)
@@ -235,7 +244,8 @@ def test_misspelled_hook_is_reported_by_check_pending(load_plugin_files):
     host = load_plugin_files(
         typo_plugin="from harness import hookimpl\n\n@hookimpl\ndef register_detector(register):\n    pass\n",
         fine_plugin="from harness import hookimpl, EncodingSpec\n\n@hookimpl\ndef register_encodings(register):\n"
-                    "    register(EncodingSpec(name='dir-enc', fn=lambda s: None, channels=0, needs=None))\n")
+        "    register(EncodingSpec(name='dir-enc', fn=lambda s: None, channels=0, needs=None))\n",
+    )
     assert any(p.plugin == "typo_plugin" and "register_detector" in p.message for p in host.problems)
     assert "dir-enc" in host.encodings()
 
@@ -243,7 +253,8 @@ def test_misspelled_hook_is_reported_by_check_pending(load_plugin_files):
 def test_a_hook_name_typo_names_the_plugin_and_the_nearest_hook(load_plugin_files, caplog):
     host = load_plugin_files(
         typo_det="from harness import hookimpl, DetectorSpec\n\n@hookimpl\ndef register_detector(register):\n"
-                 "    register(DetectorSpec(name='mydet', build=lambda n, **k: None, input_kind='single'))\n")
+        "    register(DetectorSpec(name='mydet', build=lambda n, **k: None, input_kind='single'))\n"
+    )
     [problem] = [p for p in host.problems if p.plugin == "typo_det"]
     assert "unknown hook 'register_detector', did you mean 'register_detectors'?" in problem.message
     assert "typo_det" in caplog.text and "did you mean 'register_detectors'" in caplog.text
@@ -272,7 +283,8 @@ def test_registering_an_object_with_a_hook_typo_is_a_plugin_error(host):
 def test_a_hook_like_function_without_hookimpl_is_reported(load_plugin_files, caplog):
     host = load_plugin_files(
         forgot_marker="from harness import DetectorSpec\n\ndef register_detectors(register):\n"
-                      "    register(DetectorSpec(name='unmarked', build=lambda n, **k: None, input_kind='single'))\n")
+        "    register(DetectorSpec(name='unmarked', build=lambda n, **k: None, input_kind='single'))\n"
+    )
     assert "forgot_marker" in caplog.text and "@hookimpl" in caplog.text
     assert any(p.plugin == "forgot_marker" and "no @hookimpl" in p.message for p in host.problems)
     assert not [p for p in host.problems if p.plugin.startswith(("harness.", "adapters."))]  # built-ins are clean
@@ -297,8 +309,13 @@ def test_every_hook_is_documented_and_tested():
 
     hooks = sorted(n for n in dir(hookspecs) if hasattr(getattr(hookspecs, n), "harness_spec"))
     assert set(hooks) <= set(dir(pm.hook))
-    assert hooks == ["register_commands", "register_datasets", "register_detectors", "register_encodings",
-                     "register_loggers"]
+    assert hooks == [
+        "register_commands",
+        "register_datasets",
+        "register_detectors",
+        "register_encodings",
+        "register_loggers",
+    ]
     guide = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
     this_file = Path(__file__).read_text()
     for name in hooks:

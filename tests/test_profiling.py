@@ -186,8 +186,7 @@ def test_latency_protocol_excludes_warmup_and_records_threads():
 
 
 def test_profile_model_end_to_end(tmp_path):
-    r = profile_model(TinyAttentionDetector().eval(), _x(), warmup=2, runs=5, threads=1,
-                      onnx_path=tmp_path / "p.onnx")
+    r = profile_model(TinyAttentionDetector().eval(), _x(), warmup=2, runs=5, threads=1, onnx_path=tmp_path / "p.onnx")
     assert r["params"]["fused"] == 598 and r["params"]["unreachable_count"] == 32
     assert r["flops"]["paper"]["flops"] == 2 * (CONV + LINEARS + HEAD + UP)
     assert r["flops"]["exact"]["flops"] == 2 * (CONV + LINEARS + ATTN + HEAD)
@@ -200,10 +199,21 @@ def test_profile_model_end_to_end(tmp_path):
 class _TinyPlugin:
     @hookimpl
     def register_detectors(self, register):
-        register(DetectorSpec(name="tiny-attn", build=lambda num_classes, in_channels=4, **kw: TinyAttentionDetector(),
-                              reference=Reference(params_m=0.0006, gflops=0.00007, source="hand count", imgsz=16)))
-        register(DetectorSpec(name="tiny-dual", build=lambda num_classes, in_channels=1, **kw: TinyDualDetector(),
-                              input_kind="dual", thermal_channels=1))
+        register(
+            DetectorSpec(
+                name="tiny-attn",
+                build=lambda num_classes, in_channels=4, **kw: TinyAttentionDetector(),
+                reference=Reference(params_m=0.0006, gflops=0.00007, source="hand count", imgsz=16),
+            )
+        )
+        register(
+            DetectorSpec(
+                name="tiny-dual",
+                build=lambda num_classes, in_channels=1, **kw: TinyDualDetector(),
+                input_kind="dual",
+                thermal_channels=1,
+            )
+        )
         register(DetectorSpec(name="tiny-broken", build=_broken))
 
 

@@ -45,6 +45,8 @@ def test_progress_is_silent_when_disabled_and_sweeps_count_failures():
     s.job_done(True)
     now.t = 60
     s.job_done(False)
-    assert out.getvalue().splitlines() == ["sweep 1/4 runs | 0:30 elapsed, ETA 1:30",
-                                           "sweep 2/4 runs (1 failed) | 1:00 elapsed, ETA 1:00"]
+    assert out.getvalue().splitlines() == [
+        "sweep 1/4 runs | 0:30 elapsed, ETA 1:30",
+        "sweep 2/4 runs (1 failed) | 1:00 elapsed, ETA 1:00",
+    ]
     assert clock(3725) == "1:02:05" and clock(None) == "?"

@@ -47,8 +47,9 @@ def test_the_register_command_and_the_dataset_record_the_same_fit(tiny_source, t
     from adapters.datasets.m3t import open_m3t
 
     out = tmp_path / "homographies.yaml"
-    res = cli_runner(["sensing", "register", "--landmarks", str(tiny_source / "registration" / "landmarks.json"),
-                      "--out", str(out)])
+    res = cli_runner(
+        ["sensing", "register", "--landmarks", str(tiny_source / "registration" / "landmarks.json"), "--out", str(out)]
+    )
     assert res.exit_code == 0, res.output
     written = load_homography_entries(out)
     source = open_m3t(tiny_source)
@@ -62,8 +63,11 @@ def test_the_register_command_and_the_dataset_record_the_same_fit(tiny_source, t
         assert entry.quality["pairs"] == used[group].quality["pairs"] >= 4
         # the dataset fits in the undistorted image's frame, the command in the calibration's: the same pairs
         assert entry.quality["rms_px"] == pytest.approx(used[group].quality["rms_px"], abs=2e-3)
-        assert source.registration[group] == {"source": "landmarks", "pairs": entry.quality["pairs"],
-                                              "rms_px": used[group].quality["rms_px"]}
+        assert source.registration[group] == {
+            "source": "landmarks",
+            "pairs": entry.quality["pairs"],
+            "rms_px": used[group].quality["rms_px"],
+        }
 
 
 def _python_files() -> list[Path]:
@@ -75,9 +79,17 @@ def _python_files() -> list[Path]:
 def test_the_homography_maths_has_one_implementation_that_every_caller_uses():
     """No second definition of the shared maths, no landmark fit or ``cv2.findHomography`` outside the
     registration package, and no dataset adapter that borrows the M3T plugin's helpers."""
-    shared = {"apply_homography", "project_points", "homography_from_landmarks", "fit_landmarks",
-              "focal_length_px", "homography_from_focal_lengths", "focal_prior", "plane_homography",
-              "change_camera"}
+    shared = {
+        "apply_homography",
+        "project_points",
+        "homography_from_landmarks",
+        "fit_landmarks",
+        "focal_length_px",
+        "homography_from_focal_lengths",
+        "focal_prior",
+        "plane_homography",
+        "change_camera",
+    }
     defined: dict[str, list[str]] = {}
     outside: list[str] = []
     borrowers: list[str] = []
@@ -90,8 +102,12 @@ def test_the_homography_maths_has_one_implementation_that_every_caller_uses():
                 name = getattr(node.func, "attr", None) or getattr(node.func, "id", None)
                 if name in ("findHomography", "homography_from_landmarks"):
                     outside.append(f"{rel}:{node.lineno} {name}")
-            elif (isinstance(node, ast.ImportFrom) and node.module == "adapters.datasets.m3t"
-                  and rel.startswith("adapters/datasets/") and not rel.startswith("adapters/datasets/synthetic/")):
+            elif (
+                isinstance(node, ast.ImportFrom)
+                and node.module == "adapters.datasets.m3t"
+                and rel.startswith("adapters/datasets/")
+                and not rel.startswith("adapters/datasets/synthetic/")
+            ):
                 borrowers.append(rel)
     assert {n: where for n, where in defined.items() if len(where) != 1 or not where[0].startswith(HOME)} == {}
     assert outside == []

@@ -22,8 +22,14 @@ EXTERNAL = re.compile(r"""(?:src|href|url)\s*[=(]\s*["']?\s*(?:https?:|//|ftp:)"
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("store")
-    store = synthetic_store(root, folds=("P1", "P2"), per_fold=4, detectors={"alpha": "strong", "beta": "weak"},
-                            encodings={"alpha": ["ir8"]}, profiles={"alpha": (2_000_000, 6.0)})
+    store = synthetic_store(
+        root,
+        folds=("P1", "P2"),
+        per_fold=4,
+        detectors={"alpha": "strong", "beta": "weak"},
+        encodings={"alpha": ["ir8"]},
+        profiles={"alpha": (2_000_000, 6.0)},
+    )
     out = tmp_path_factory.mktemp("out") / "rep"
     return store, out, build_report(store, out=out, resamples=8, seed=1)
 
@@ -31,9 +37,18 @@ def built(tmp_path_factory):
 def test_report_writes_every_format(built):
     store, out, report = built
     names = {p.relative_to(out).as_posix() for p in report.files}
-    assert {"report.md", "report.html", "report.txt", "tidy.csv", "figures/accuracy_vs_gflops.png",
-            "figures/accuracy_vs_gflops.svg", "csv/synth-folds.csv", "csv/synth-categories.csv",
-            "csv/synth-ablation-alpha.csv", "csv/synth-paired.csv"} <= names
+    assert {
+        "report.md",
+        "report.html",
+        "report.txt",
+        "tidy.csv",
+        "figures/accuracy_vs_gflops.png",
+        "figures/accuracy_vs_gflops.svg",
+        "csv/synth-folds.csv",
+        "csv/synth-categories.csv",
+        "csv/synth-ablation-alpha.csv",
+        "csv/synth-paired.csv",
+    } <= names
     assert all((out / n).stat().st_size > 0 for n in names)
     assert (out / "figures/accuracy_vs_gflops.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     tidy = list(csv.DictReader(io.StringIO((out / "tidy.csv").read_text())))
@@ -54,9 +69,16 @@ def test_absent_sections_are_stated_with_the_command_that_fills_them(built):
     assert "harness sensing displacement --dataset synth" in absent["displacement"]
     md = (out / "report.md").read_text()
     assert md.count("*Absent.*") == len(absent)
-    for title in ("project-grouped folds", "per category", "encoding ablation of alpha", "paired comparisons",
-                  "Registration error", "C2 under thermal displacement", "Accuracy versus GFLOPs",
-                  "Cross-dataset comparison"):
+    for title in (
+        "project-grouped folds",
+        "per category",
+        "encoding ablation of alpha",
+        "paired comparisons",
+        "Registration error",
+        "C2 under thermal displacement",
+        "Accuracy versus GFLOPs",
+        "Cross-dataset comparison",
+    ):
         assert title in md, title
     assert "beta/c2: Params and GFLOPs absent, run(s) without a complexity record" in md
 
@@ -98,13 +120,26 @@ def test_unmatched_rows_get_a_loud_label_everywhere(tmp_path):
 
 def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, tmp_path):
     store, _, _ = built
-    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md",
-                      "--resamples", "0", "--print"])
+    res = cli_runner(
+        [
+            "report",
+            "--store",
+            str(store.root),
+            "--out",
+            str(tmp_path / "r"),
+            "--file-types",
+            "md",
+            "--resamples",
+            "0",
+            "--print",
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert "synth: project-grouped folds" in res.output and "Registration error: ABSENT" in res.output
     assert not (tmp_path / "r").exists()  # --print prints instead of writing
-    res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md",
-                      "--resamples", "0"])
+    res = cli_runner(
+        ["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md", "--resamples", "0"]
+    )
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
     res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r2"), "--resamples", "0"])
     assert res.exit_code == 0 and "-> " in res.output and "report.html" in res.output

@@ -27,14 +27,24 @@ def evidence_store(tmp_path_factory):
     """alpha (two seeds per fold), beta and gamma (one), on two folds; delta's runs were stored before the analysis
     existed, and gamma's P2 run lost its analysis."""
     root = tmp_path_factory.mktemp("evidence")
-    store = synthetic_store(root / "store", folds=FOLDS, per_fold=8, detectors={"alpha": "strong", "beta": "weak",
-                                                                                "gamma": "medium"})
+    store = synthetic_store(
+        root / "store", folds=FOLDS, per_fold=8, detectors={"alpha": "strong", "beta": "weak", "gamma": "medium"}
+    )
     for f in FOLDS:
         gt = json.loads(store.run(RunKey("synth", "alpha", "c2", f, 0)).gt_path.read_text())
-        write_run(store, RunKey("synth", "alpha", "c2", f, 1), gt,
-                  make_detections(gt, np.random.default_rng([5, int(f[1])]), recall=0.8, false_positives=1.0))
-        write_run(store, RunKey("synth", "delta", "c2", f, 0), gt,
-                  make_detections(gt, np.random.default_rng([6, int(f[1])]), recall=0.6), analysis=False)
+        write_run(
+            store,
+            RunKey("synth", "alpha", "c2", f, 1),
+            gt,
+            make_detections(gt, np.random.default_rng([5, int(f[1])]), recall=0.8, false_positives=1.0),
+        )
+        write_run(
+            store,
+            RunKey("synth", "delta", "c2", f, 0),
+            gt,
+            make_detections(gt, np.random.default_rng([6, int(f[1])]), recall=0.6),
+            analysis=False,
+        )
     store.run(RunKey("synth", "gamma", "c2", "P2", 0)).analysis_path.unlink()
     out = root / "report"
     return store, out, build_report(store, out=out, resamples=0)
@@ -62,7 +72,8 @@ def test_error_types_are_the_fold_means_of_each_folds_seed_mean(evidence_store):
         assert rows["alpha"][t].mean == pytest.approx(np.mean(per_fold), abs=1e-12)
         assert rows["alpha"][t].n == 2
     assert rows["alpha"]["mAP50"].mean == pytest.approx(
-        np.mean([np.mean([a["tide"]["mAP50"] for a in alpha[f]]) for f in FOLDS]))
+        np.mean([np.mean([a["tide"]["mAP50"] for a in alpha[f]]) for f in FOLDS])
+    )
     # gamma: only P1 has an analysis, so its numbers are P1's (n = 1), and a note names the run left out
     gamma = _analyses(store, "gamma")
     assert rows["gamma"]["missed"].n == 1 and rows["gamma"]["missed"].mean == gamma["P1"][0]["tide"]["dAP50"]["missed"]
@@ -135,7 +146,8 @@ def test_ap_per_size_bin(evidence_store):
         assert rows["beta"][f"AP50:{b}"].mean == pytest.approx(np.mean(values))
     support = rows["instances"]
     assert support["_summary"] and int(support["AP50:small"].replace(",", "")) == sum(
-        beta[f][0]["sizes"]["coco"]["instances"]["small"] for f in FOLDS)
+        beta[f][0]["sizes"]["coco"]["instances"]["small"] for f in FOLDS
+    )
     sizes = next(s for s in report.sections if s.key == "sizes")
     assert all(t in sizes.tables for t in tables)
 
@@ -188,19 +200,30 @@ def test_galleries_start_where_the_detectors_disagree_most():
     assert disagreements([a], {"P1": gt}) == ([], [])  # one detector: nothing to disagree about
     short = _ev("c", {"P1": _analysis([1, 1], [0, 0, 0])})
     assert disagreements([a, short], {"P1": gt})[1] == [
-        "fold P1: the runs' analyses do not cover the same ground truth; not compared"]
+        "fold P1: the runs' analyses do not cover the same ground truth; not compared"
+    ]
 
 
 def test_galleries_then_show_each_categorys_worst_miss_and_most_confident_kept_false_positive():
-    worst = {"crack": {"misses": [
-        {"image_id": 7, "bbox": [0, 0, 5, 5], "area": 25.0, "reason": "below_threshold", "best_iou": 0.9},
-        {"image_id": 8, "bbox": [0, 0, 9, 9], "area": 81.0, "reason": "missed", "best_iou": 0.0},
-        {"image_id": 9, "bbox": [0, 0, 3, 3], "area": 9.0, "reason": "missed", "best_iou": 0.0}],
-        "false_positives": [{"image_id": 4, "bbox": [1, 1, 2, 2], "score": 0.99, "error": "background", "kept": False},
-                            {"image_id": 5, "bbox": [1, 1, 2, 2], "score": 0.8, "error": "localisation",
-                             "kept": True}]}}
-    other = {"crack": {"misses": [{"image_id": 3, "bbox": [0, 0, 4, 4], "area": 16.0, "reason": "missed",
-                                   "best_iou": 0.0}], "false_positives": []}}
+    worst = {
+        "crack": {
+            "misses": [
+                {"image_id": 7, "bbox": [0, 0, 5, 5], "area": 25.0, "reason": "below_threshold", "best_iou": 0.9},
+                {"image_id": 8, "bbox": [0, 0, 9, 9], "area": 81.0, "reason": "missed", "best_iou": 0.0},
+                {"image_id": 9, "bbox": [0, 0, 3, 3], "area": 9.0, "reason": "missed", "best_iou": 0.0},
+            ],
+            "false_positives": [
+                {"image_id": 4, "bbox": [1, 1, 2, 2], "score": 0.99, "error": "background", "kept": False},
+                {"image_id": 5, "bbox": [1, 1, 2, 2], "score": 0.8, "error": "localisation", "kept": True},
+            ],
+        }
+    }
+    other = {
+        "crack": {
+            "misses": [{"image_id": 3, "bbox": [0, 0, 4, 4], "area": 16.0, "reason": "missed", "best_iou": 0.0}],
+            "false_positives": [],
+        }
+    }
     ev = _ev("a", {"P1": _analysis([], [], worst), "P2": _analysis([], [], other)})
     picks = worst_picks(ev)
     misses = [(p.fold, p.image_id) for p in picks if p.kind == "miss"]
@@ -211,5 +234,8 @@ def test_galleries_then_show_each_categorys_worst_miss_and_most_confident_kept_f
     common = [SimpleNamespace(fold="P1", image_id=8, kind="disagree", category=None)]
     chosen = choose(common, picks, per_category=1, disagree=4)
     # the worst miss's image is already shown (it is where the detectors disagree): the next one is taken
-    assert [(p.fold, p.image_id, p.kind) for p in chosen] == [("P1", 8, "disagree"), ("P2", 3, "miss"),
-                                                              ("P1", 5, "false positive")]
+    assert [(p.fold, p.image_id, p.kind) for p in chosen] == [
+        ("P1", 8, "disagree"),
+        ("P2", 3, "miss"),
+        ("P1", 5, "false positive"),
+    ]

@@ -243,14 +243,38 @@ def test_a_stored_number_that_re_scoring_does_not_reproduce_is_noted(tmp_path):
 
 
 def test_compare_detectors_command(cli_runner, pair_store):
-    res = cli_runner(["compare-detectors", "strong", "weak/c2", "--dataset", "synth", "--store", str(pair_store.root),
-                      "--resamples", "20"])
+    res = cli_runner(
+        [
+            "compare-detectors",
+            "strong",
+            "weak/c2",
+            "--dataset",
+            "synth",
+            "--store",
+            str(pair_store.root),
+            "--resamples",
+            "20",
+        ]
+    )
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     assert any(line.startswith("mean ± SD") for line in lines)
     assert "20 resamples (20 valid), seed 0" in res.output
-    res = cli_runner(["compare-detectors", "strong", "weak", "--dataset", "synth", "--store", str(pair_store.root),
-                      "--resamples", "0", "--format", "json"])
+    res = cli_runner(
+        [
+            "compare-detectors",
+            "strong",
+            "weak",
+            "--dataset",
+            "synth",
+            "--store",
+            str(pair_store.root),
+            "--resamples",
+            "0",
+            "--format",
+            "json",
+        ]
+    )
     data = json.loads(res.output)
     assert data["bootstrap"] is None and data["folds"] == ["P1", "P2"]
     res = cli_runner(["compare-detectors", "strong", "nope", "--dataset", "synth", "--store", str(pair_store.root)])
@@ -280,9 +304,9 @@ def test_two_level_bootstrap_by_hand():
     assert seeds_needed(0.05, 0.0, 0.01) == (32, None)
     assert seeds_needed(0.05, 0.0, 0.01, power=0.5) == (16, None)
     # with image spread: 0.01 / ((0.05 / 2.8016)^2 - 0.01^2) = 45.8
-    assert seeds_needed(0.05, 0.01 ** 2, 0.01) == (46, None)
+    assert seeds_needed(0.05, 0.01**2, 0.01) == (46, None)
     # the images alone (SD 0.03) cover 0.05: no number of seeds resolves it
-    n, why = seeds_needed(0.05, 0.03 ** 2, 0.01)
+    n, why = seeds_needed(0.05, 0.03**2, 0.01)
     assert n is None and "more images are needed" in why
     # seeds that are copies of one run: the two levels reduce to the image bootstrap (seeds held at their mean)
     rng = np.random.default_rng(0)
@@ -296,13 +320,24 @@ def seeded_store(tmp_path_factory):
     """Three training seeds per fold (each seed an independent draw of the detector's quality): strong, weak, and
     two detectors of one medium quality (medium, peer); 'pair' has only two seeds."""
     root = tmp_path_factory.mktemp("seeds")
-    store = synthetic_store(root, folds=("P1", "P2"), per_fold=8, seeds=(0, 1, 2), analysis=False,
-                            detectors={"strong": "strong", "weak": "weak", "medium": "medium", "peer": "medium"})
+    store = synthetic_store(
+        root,
+        folds=("P1", "P2"),
+        per_fold=8,
+        seeds=(0, 1, 2),
+        analysis=False,
+        detectors={"strong": "strong", "weak": "weak", "medium": "medium", "peer": "medium"},
+    )
     for f in ("P1", "P2"):
         gt = json.loads(store.run(RunKey("synth", "strong", "c2", f, 0)).gt_path.read_text())
         for s in (0, 1):
-            write_run(store, RunKey("synth", "pair", "c2", f, s), gt,
-                      make_detections(gt, np.random.default_rng([7, s, int(f[1])]), recall=0.8), analysis=False)
+            write_run(
+                store,
+                RunKey("synth", "pair", "c2", f, s),
+                gt,
+                make_detections(gt, np.random.default_rng([7, s, int(f[1])]), recall=0.8),
+                analysis=False,
+            )
     return store
 
 
@@ -344,8 +379,11 @@ def test_three_seeds_give_the_two_level_intervals_and_a_verdict(seeded_store):
     assert not few.verdict_allowed and few.bootstrap["mAP50"].level == "images"
     assert "Only 2 training seeds per fold" in few.seed_note
     table = paired_table([clear, same, few], "t", "t")
-    assert [r["verdict"] for r in table.rows] == ["mAP50 yes, mAP50:95 yes", "mAP50 no, mAP50:95 no",
-                                                  "none: 2 seeds per fold"]
+    assert [r["verdict"] for r in table.rows] == [
+        "mAP50 yes, mAP50:95 yes",
+        "mAP50 no, mAP50:95 no",
+        "none: 2 seeds per fold",
+    ]
     assert [r["seeds"] for r in table.rows] == ["3/3", "3/3", "3/2"]
     assert table.rows[0]["p_beats"] == 1.0 and table.rows[0]["needed"] == "1"
     assert any(n.startswith("Three or more seeds per fold: two-level bootstrap") for n in table.notes)

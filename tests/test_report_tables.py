@@ -33,9 +33,14 @@ from report_fixtures import make_detections, make_gt, synthetic_store, write_run
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
-    return synthetic_store(tmp_path_factory.mktemp("tables"), folds=("P1", "P2", "P10"), per_fold=5,
-                           detectors={"alpha": "strong", "beta": "weak"}, encodings={"alpha": ["ir8", "none"]},
-                           profiles={"alpha": (3_210_000, 8.2), "beta": (1_100_000, 2.5)})
+    return synthetic_store(
+        tmp_path_factory.mktemp("tables"),
+        folds=("P1", "P2", "P10"),
+        per_fold=5,
+        detectors={"alpha": "strong", "beta": "weak"},
+        encodings={"alpha": ["ir8", "none"]},
+        profiles={"alpha": (3_210_000, 8.2), "beta": (1_100_000, 2.5)},
+    )
 
 
 def test_cells_format_fractions_as_percent_and_missing_as_dash():
@@ -108,7 +113,7 @@ def test_project_table_reports_each_fold_the_mean_and_sample_sd_and_the_profile(
     lines = text.splitlines()
     head = next(i for i, line in enumerate(lines) if line.startswith("Detector"))
     spans = [m.span() for m in re.finditer(r"-+", lines[head + 1])]
-    for line in lines[head + 2:head + 5]:  # every right-aligned cell ends under the end of its rule
+    for line in lines[head + 2 : head + 5]:  # every right-aligned cell ends under the end of its rule
         for (a, b), col in zip(spans[:-1], table.columns[:-1]):
             if col.align == "r":
                 assert line[b - 1] != " " and (b == len(line) or line[b] == " "), (line, col.label)
@@ -124,8 +129,10 @@ def test_project_table_reports_each_fold_the_mean_and_sample_sd_and_the_profile(
 def test_category_means_skip_folds_without_the_category(store):
     table = category_table(StoreView(store), "synth")
     row = next(r for r in table.rows if r["category"] == "water_seepage")
-    per_fold = [store.run(RunKey("synth", "alpha", "c2", f, 0)).read_metrics()["per_category"]["water_seepage"]
-                for f in ("P1", "P2", "P10")]
+    per_fold = [
+        store.run(RunKey("synth", "alpha", "c2", f, 0)).read_metrics()["per_category"]["water_seepage"]
+        for f in ("P1", "P2", "P10")
+    ]
     assert per_fold[0]["instances"] == 0 and per_fold[0]["AP50"] is None  # the fixture leaves it out of P1
     present = [p["AP50"] for p in per_fold[1:]]
     assert row["folds"] == "2/3" and row["instances"] == sum(p["instances"] for p in per_fold)

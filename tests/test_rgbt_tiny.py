@@ -38,8 +38,10 @@ def xywh_to_xyxy(boxes):
 
 
 # ------------------------------------------------------------------ pairing, classes, annotation source
-@pytest.mark.parametrize("gt, key", [("thermal", "thermal_boxes"), ("T", "thermal_boxes"), ("visible", "visible_boxes"),
-                                     ("RGB", "visible_boxes")])
+@pytest.mark.parametrize(
+    "gt, key",
+    [("thermal", "thermal_boxes"), ("T", "thermal_boxes"), ("visible", "visible_boxes"), ("RGB", "visible_boxes")],
+)
 def test_frames_pair_by_file_name_and_boxes_follow_the_chosen_source(release, gt, key):
     root, expected = release
     source = rgbt_tiny.open_rgbt_tiny(root, gt=gt)
@@ -71,7 +73,7 @@ def test_thermal_frame_is_the_ir8_channel_and_visible_is_rgb_order(release):
     root, _ = release
     s = next(iter(rgbt_tiny.open_rgbt_tiny(root).samples(PrepareReport())))
     x1, y1, x2, y2 = s.boxes[0].astype(int)
-    inside, outside = s.ir8[y1 + 2:y2 - 2, x1 + 2:x2 - 2], s.ir8[s.ir8 < 100]
+    inside, outside = s.ir8[y1 + 2 : y2 - 2, x1 + 2 : x2 - 2], s.ir8[s.ir8 < 100]
     assert inside.mean() > 200 and outside.mean() < 70  # hot blob where the thermal box is
     r, g, b = s.rgb[y1 + 3, x1 + 3].astype(int)  # visible box shifted by +1 px; drawn as BGR (30, 200, 220)
     assert r > 180 and b < 80
@@ -273,8 +275,10 @@ def test_root_from_environment_or_a_clear_error(release, monkeypatch, tmp_path):
 
 # ------------------------------------------------------------------ the two ways of unpacking the three archives
 def _sample_fields(samples):
-    return [(s.image_id, s.group, s.rgb.tobytes(), s.ir8.tobytes(), s.boxes.tobytes(), s.labels.tolist(), s.meta)
-            for s in samples]
+    return [
+        (s.image_id, s.group, s.rgb.tobytes(), s.ir8.tobytes(), s.boxes.tobytes(), s.labels.tolist(), s.meta)
+        for s in samples
+    ]
 
 
 def test_flat_unzip_prepares_the_same_samples_as_the_folder_layout(tmp_path):

@@ -44,8 +44,9 @@ def test_run_trains_every_fold_and_fills_the_store(shapes_run_plugins, tmp_path,
         return measure(*a, **k)
 
     monkeypatch.setattr(harness.complexity, "measure", measure_drawing)
-    monkeypatch.setattr(Trainer, "fit",
-                        lambda self, *a, **k: at_fit.append(torch.get_rng_state()) or fit(self, *a, **k))
+    monkeypatch.setattr(
+        Trainer, "fit", lambda self, *a, **k: at_fit.append(torch.get_rng_state()) or fit(self, *a, **k)
+    )
     summary = run(request(tmp_path))
     assert [r.key.fold for r in summary.results] == ["A", "B"] and {r.state for r in summary.results} == {"trained"}
     assert len(measured) == 1  # both folds train the same architecture: measured once, stored with each
@@ -54,15 +55,27 @@ def test_run_trains_every_fold_and_fills_the_store(shapes_run_plugins, tmp_path,
     assert records[0] == records[1] and records[0]["params"] > 1000
     for r in summary.results:
         files = {p.name for p in r.path.iterdir()}
-        assert {"config.yaml", "status.json", "metrics.json", "predictions.json", "gt.json", "log.jsonl",
-                "checkpoints"} <= files
+        assert {
+            "config.yaml",
+            "status.json",
+            "metrics.json",
+            "predictions.json",
+            "gt.json",
+            "log.jsonl",
+            "checkpoints",
+        } <= files
         assert {p.name for p in (r.path / "checkpoints").iterdir()} == {"last.pt", "best.pt"}
         status = json.loads((r.path / "status.json").read_text())
         assert status["state"] == "finished" and status["config_hash"]
         m = json.loads((r.path / "metrics.json").read_text())
         assert m["schema"] == METRICS_SCHEMA
-        assert m["run"] == {"dataset": "shapes", "detector": "tinydet", "encoding": "test-ir8", "fold": r.key.fold,
-                            "seed": 0}
+        assert m["run"] == {
+            "dataset": "shapes",
+            "detector": "tinydet",
+            "encoding": "test-ir8",
+            "fold": r.key.fold,
+            "seed": 0,
+        }
         gt = json.loads((r.path / "gt.json").read_text())
         assert m["support"]["images"] == len(gt["images"]) == 8 == r.val_images
         assert m["support"]["instances"] == len(gt["annotations"])
@@ -86,7 +99,10 @@ def test_run_trains_every_fold_and_fills_the_store(shapes_run_plugins, tmp_path,
         assert "defaults of detector 'tinydet'" in cfg["meta"]["sources"] and cfg["train"]["lr0"] == 0.002
         assert cfg["meta"]["fold"] == r.key.fold and cfg["meta"]["val_groups"] == [r.key.fold]
     assert json.loads((tmp_path / "store" / "shapes" / "_dataset.json").read_text()) == {
-        "dataset": "shapes", "thermal": "radiometric", "sensing_stage": False}  # what a report reads, not the plugin
+        "dataset": "shapes",
+        "thermal": "radiometric",
+        "sensing_stage": False,
+    }  # what a report reads, not the plugin
     table = fold_table(summary)
     assert "mean ± SD" in table and table.count("trained") == 2
     lines = category_table(summary).splitlines()
@@ -109,11 +125,23 @@ def test_a_run_is_scored_with_every_setting_of_its_eval_section(shapes_run_plugi
 
     monkeypatch.setattr(coco, "evaluate", spy)
     monkeypatch.setattr(harness.evaluation, "evaluate", spy)
-    summary = run(request(tmp_path, folds="A", overrides=[*FAST, "protocol.epochs=1", "eval.matching=safit",
-                                                          "eval.safit_anchor=topleft", "eval.strict=true"]))
+    summary = run(
+        request(
+            tmp_path,
+            folds="A",
+            overrides=[
+                *FAST,
+                "protocol.epochs=1",
+                "eval.matching=safit",
+                "eval.safit_anchor=topleft",
+                "eval.strict=true",
+            ],
+        )
+    )
     assert len(seen) == 2  # one validation, the final evaluation
-    assert all((kw.get("matching"), kw.get("safit_anchor"), kw.get("strict")) == ("safit", "topleft", True)
-               for kw in seen)
+    assert all(
+        (kw.get("matching"), kw.get("safit_anchor"), kw.get("strict")) == ("safit", "topleft", True) for kw in seen
+    )
     r = summary.results[0]
     gt, preds = (json.loads((r.path / name).read_text()) for name in ("gt.json", "predictions.json"))
     expected = real(gt, preds, matching="safit", safit_anchor="topleft")["metrics"]["safit"]
@@ -207,8 +235,23 @@ def test_bad_requests_are_clear_errors(shapes_run_plugins, tmp_path):
 def test_cli_run_and_ablate_print_aligned_tables(shapes_run_plugins, tmp_path, cli_runner):
     store = str(tmp_path / "store")
     sets = [a for s in FAST for a in ("--set", s)]
-    res = cli_runner(["run", "--detector", "tinydet-dual", "--dataset", "shapes", "--encoding", "test-ir8",
-                      "--folds", "A,B", "--store", store, "--no-progress", *sets])
+    res = cli_runner(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "shapes",
+            "--encoding",
+            "test-ir8",
+            "--folds",
+            "A,B",
+            "--store",
+            store,
+            "--no-progress",
+            *sets,
+        ]
+    )
     assert res.exit_code == 0, res.output
     out = res.output
     assert "tinydet-dual on shapes, encoding test-ir8" in out and "mean ± SD" in out and "per category" in out
@@ -216,11 +259,28 @@ def test_cli_run_and_ablate_print_aligned_tables(shapes_run_plugins, tmp_path, c
     rule = out.splitlines()[out.splitlines().index(header) + 1]
     assert len(header) == len(rule.rstrip())  # the columns line up under their headers
 
-    res = cli_runner(["ablate", "--detector", "tinydet", "--dataset", "shapes", "--encodings", "test-none,test-ir8",
-                      "--folds", "B", "--categories", "warm,cold", "--store", store, "--no-progress", *sets])
+    res = cli_runner(
+        [
+            "ablate",
+            "--detector",
+            "tinydet",
+            "--dataset",
+            "shapes",
+            "--encodings",
+            "test-none,test-ir8",
+            "--folds",
+            "B",
+            "--categories",
+            "warm,cold",
+            "--store",
+            store,
+            "--no-progress",
+            *sets,
+        ]
+    )
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
-    lines = lines[next(i for i, line in enumerate(lines) if line.startswith("encoding ablation:")):]
+    lines = lines[next(i for i, line in enumerate(lines) if line.startswith("encoding ablation:")) :]
     assert lines[0].startswith("encoding ablation: tinydet on shapes, fold B")
     assert lines[1].split() == ["encoding", "P", "R", "mAP50", "mAP50:95", "AP50", "warm", "AP50", "cold"]
     assert [line.split()[0] for line in lines[3:]] == ["test-none", "test-ir8"]

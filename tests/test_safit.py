@@ -14,13 +14,23 @@ def sigmoid(x: float) -> float:
     return 1 / (1 + math.exp(-x))
 
 
-@pytest.mark.parametrize("gt, dt, iou, nwd, w, safit", [
-    # 8x8 GT, prediction shifted 2 px diagonally: overlap 6x6 = 36, union 92; W2 = sqrt(2^2 + 2^2)
-    ((100, 100, 8, 8), (102, 102, 8, 8), 36 / 92, math.exp(-math.sqrt(8) / 32), sigmoid(-24 / 32), None),
-    ((100, 100, 32, 32), (102, 102, 32, 32), 900 / 1148, math.exp(-math.sqrt(8) / 32), 0.5, None),
-    ((100, 100, 100, 100), (102, 102, 100, 100), 9604 / 10396, math.exp(-math.sqrt(8) / 32), sigmoid(68 / 32), None),
-    ((100, 100, 8, 8), (200, 200, 8, 8), 0.0, math.exp(-math.sqrt(2 * 100**2) / 32), sigmoid(-24 / 32), None),
-])
+@pytest.mark.parametrize(
+    "gt, dt, iou, nwd, w, safit",
+    [
+        # 8x8 GT, prediction shifted 2 px diagonally: overlap 6x6 = 36, union 92; W2 = sqrt(2^2 + 2^2)
+        ((100, 100, 8, 8), (102, 102, 8, 8), 36 / 92, math.exp(-math.sqrt(8) / 32), sigmoid(-24 / 32), None),
+        ((100, 100, 32, 32), (102, 102, 32, 32), 900 / 1148, math.exp(-math.sqrt(8) / 32), 0.5, None),
+        (
+            (100, 100, 100, 100),
+            (102, 102, 100, 100),
+            9604 / 10396,
+            math.exp(-math.sqrt(8) / 32),
+            sigmoid(68 / 32),
+            None,
+        ),
+        ((100, 100, 8, 8), (200, 200, 8, 8), 0.0, math.exp(-math.sqrt(2 * 100**2) / 32), sigmoid(-24 / 32), None),
+    ],
+)
 def test_worked_values(gt, dt, iou, nwd, w, safit):
     expected = w * iou + (1 - w) * nwd
     for anchor in ("center", "topleft"):  # same-size boxes: both anchors agree
@@ -77,10 +87,20 @@ def test_matrix_shapes_and_empty_inputs():
 
 
 def _one_box(dt_box, gt_box=(100, 100, 8, 8)):
-    gt = {"images": [{"id": 1, "width": 640, "height": 512}],
-          "annotations": [{"id": 1, "image_id": 1, "category_id": 1, "bbox": list(gt_box),
-                           "area": gt_box[2] * gt_box[3], "iscrowd": 0}],
-          "categories": [{"id": 1, "name": "person"}]}
+    gt = {
+        "images": [{"id": 1, "width": 640, "height": 512}],
+        "annotations": [
+            {
+                "id": 1,
+                "image_id": 1,
+                "category_id": 1,
+                "bbox": list(gt_box),
+                "area": gt_box[2] * gt_box[3],
+                "iscrowd": 0,
+            }
+        ],
+        "categories": [{"id": 1, "name": "person"}],
+    }
     return gt, [{"image_id": 1, "category_id": 1, "bbox": list(dt_box), "score": 0.9}]
 
 
@@ -135,8 +155,9 @@ def test_engines_agree_under_safit():
         [sb[k] for k in keys if sb[k] is not None], abs=1e-12
     )
     assert sa["mAP50"] > a["metrics"]["mAP50"]  # tiny, loosely placed boxes score higher under SAFit
-    assert {k: v.get("SAFit_AP50_95") for k, v in a["per_category"].items()} == \
-           pytest.approx({k: v.get("SAFit_AP50_95") for k, v in b["per_category"].items()}, abs=1e-12)
+    assert {k: v.get("SAFit_AP50_95") for k, v in a["per_category"].items()} == pytest.approx(
+        {k: v.get("SAFit_AP50_95") for k, v in b["per_category"].items()}, abs=1e-12
+    )
 
 
 def test_config_selects_engine_matching_and_anchor():

@@ -31,8 +31,14 @@ def plugins(host, tmp_path, monkeypatch):
 def spec(tmp_path, **kw):
     from harness.sweep import SweepSpec
 
-    base = dict(detectors=("tinydet",), datasets=("shapes",), folds="all", seeds=(0,), overrides=tuple(TINY),
-                store=str(tmp_path / "store"))
+    base = dict(
+        detectors=("tinydet",),
+        datasets=("shapes",),
+        folds="all",
+        seeds=(0,),
+        overrides=tuple(TINY),
+        store=str(tmp_path / "store"),
+    )
     base.update(kw)
     return SweepSpec(**base)
 
@@ -46,8 +52,9 @@ def _finished_runs(store):
 def test_expansion_covers_the_grid_and_leaves_out_impossible_combinations(plugins, tmp_path):
     from harness.sweep import expand
 
-    planned = expand(spec(tmp_path, detectors=("tinydet", "tinydet-dual"), encodings=("test-ir8", "test-none"),
-                          seeds=(0, 1)))
+    planned = expand(
+        spec(tmp_path, detectors=("tinydet", "tinydet-dual"), encodings=("test-ir8", "test-none"), seeds=(0, 1))
+    )
     names = sorted(str(j) for j in planned.jobs)
     assert len(names) == 2 * 2 * 3 == len(set(names))  # (fold A, B) x (seed 0, 1) x 3 valid combinations
     assert "shapes/tinydet-dual/test-ir8/B/seed1" in names and "shapes/tinydet/test-none/A/seed0" in names
@@ -118,8 +125,21 @@ def test_submitit_sweep_runs_a_job_array_and_a_second_sweep_skips_it(plugins, tm
 
 
 def test_sweep_command_runs_locally_and_prints_the_table(plugins, tmp_path, cli_runner):
-    args = ["sweep", "--detectors", "tinydet", "--datasets", "shapes", "--folds", "A", "--seeds", "3",
-            "--store", str(tmp_path / "store"), "--no-progress", *[a for s in TINY for a in ("--set", s)]]
+    args = [
+        "sweep",
+        "--detectors",
+        "tinydet",
+        "--datasets",
+        "shapes",
+        "--folds",
+        "A",
+        "--seeds",
+        "3",
+        "--store",
+        str(tmp_path / "store"),
+        "--no-progress",
+        *[a for s in TINY for a in ("--set", s)],
+    ]
     dry = cli_runner([*args, "--dry-run"])
     assert dry.exit_code == 0 and "run   shapes/tinydet/test-ir8/A/seed3" in dry.output
     assert _finished_runs(tmp_path / "store") == []
@@ -149,16 +169,32 @@ def test_slurm_sweep_is_submitted_as_one_job_array_with_the_parameters(plugins, 
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
     monkeypatch.setenv("SBATCH_COPY", str(tmp_path / "submitted.sh"))
     jobs = expand(spec(tmp_path, seeds=(0, 1, 2))).jobs
-    options = ExecutorOptions(partition="gpu", account="proj", timeout_min=90, mem_gb=32, cpus_per_run=8,
-                              array_parallelism=4, slurm_setup=("source /opt/venv/bin/activate",),
-                              slurm_extra=(("constraint", "a100"),))
+    options = ExecutorOptions(
+        partition="gpu",
+        account="proj",
+        timeout_min=90,
+        mem_gb=32,
+        cpus_per_run=8,
+        array_parallelism=4,
+        slurm_setup=("source /opt/venv/bin/activate",),
+        slurm_extra=(("constraint", "a100"),),
+    )
     ex = submitit_executor(options, tmp_path / "logs" / "%j")
     assert ex.cluster == "slurm"
     submitted = ex.map_array(run_job, jobs)
     assert [j.job_id for j in submitted] == [f"4242_{i}" for i in range(6)]
     script = (tmp_path / "submitted.sh").read_text()
-    for line in ("#SBATCH --array=0-5%4", "#SBATCH --partition=gpu", "#SBATCH --account=proj", "#SBATCH --time=90",
-                 "#SBATCH --mem=32GB", "#SBATCH --cpus-per-task=8", "#SBATCH --gpus-per-node=1",
-                 "#SBATCH --constraint=a100", "source /opt/venv/bin/activate", "submitit.core._submit"):
+    for line in (
+        "#SBATCH --array=0-5%4",
+        "#SBATCH --partition=gpu",
+        "#SBATCH --account=proj",
+        "#SBATCH --time=90",
+        "#SBATCH --mem=32GB",
+        "#SBATCH --cpus-per-task=8",
+        "#SBATCH --gpus-per-node=1",
+        "#SBATCH --constraint=a100",
+        "source /opt/venv/bin/activate",
+        "submitit.core._submit",
+    ):
         assert line in script, (line, script)
     assert _finished_runs(tmp_path / "store") == []

@@ -31,7 +31,7 @@ def flight(tmp_path):
     for i in range(100):
         shutil.copyfile(good, folder / f"DJI_{i:04d}_T.JPG")
     data = good.read_bytes()
-    (folder / "DJI_0049_T_cut.JPG").write_bytes(data[:len(data) // 2])  # cut inside the radiometric payload
+    (folder / "DJI_0049_T_cut.JPG").write_bytes(data[: len(data) // 2])  # cut inside the radiometric payload
     (folder / "DJI_0050_T_noise.JPG").write_bytes(b"\x00not a jpeg at all" * 10)
     (folder / "DJI_0051_T_empty.JPG").write_bytes(b"")
     import cv2
@@ -50,13 +50,16 @@ def test_a_flight_with_three_bad_files_decodes_the_other_hundred_and_names_the_f
     assert len(written) == 100 and written[0] == "DJI_0000_T.png" and written[-1] == "DJI_0099_T.png"
     assert len(list(out.glob("*.png.json"))) == 100
     assert not list(out.glob(".*"))  # no temporary file left behind
-    tail = res.stdout[res.stdout.index("decoded 100 of 103 file(s)"):]
+    tail = res.stdout[res.stdout.index("decoded 100 of 103 file(s)") :]
     assert "partly done: 3 of 103 file(s) could not be decoded" in res.stderr
     assert "1 JPEG(s) without a radiometric payload passed over; 3 failed:" in tail
     lines = tail.splitlines()[1:]
     assert len(lines) == 3
     assert [ln.split(": ")[0].strip().rsplit("/", 1)[-1] for ln in lines] == [
-        "DJI_0049_T_cut.JPG", "DJI_0050_T_noise.JPG", "DJI_0051_T_empty.JPG"]
+        "DJI_0049_T_cut.JPG",
+        "DJI_0050_T_noise.JPG",
+        "DJI_0051_T_empty.JPG",
+    ]
     assert all(len(ln.split(": ", 1)[1]) > 5 for ln in lines)  # each with its reason
     assert "Traceback" not in res.output
 
@@ -74,10 +77,17 @@ def test_folders_keep_their_layout_and_files_given_directly_go_to_the_top(tmp_pa
         (tmp_path / "in" / flight).mkdir(parents=True)
         shutil.copyfile(src, tmp_path / "in" / flight / "DJI_0001_T.JPG")
     seen = []
-    res = decode_batch([tmp_path / "in", src, tmp_path / "missing.jpg"], tmp_path / "out",
-                       DecodeOptions(unit="celsius"), progress=lambda done, total: seen.append((done, total)))
+    res = decode_batch(
+        [tmp_path / "in", src, tmp_path / "missing.jpg"],
+        tmp_path / "out",
+        DecodeOptions(unit="celsius"),
+        progress=lambda done, total: seen.append((done, total)),
+    )
     assert sorted(str(p.relative_to(tmp_path / "out")) for p in (tmp_path / "out").rglob("*.tif")) == [
-        "a.tif", "f1/DJI_0001_T.tif", "f2/sub/DJI_0001_T.tif"]
+        "a.tif",
+        "f1/DJI_0001_T.tif",
+        "f2/sub/DJI_0001_T.tif",
+    ]
     assert res.failed == [(str(tmp_path / "missing.jpg"), "file not found")]
     assert seen[-1] == (3, 3)
     back, _ = read_thermal(tmp_path / "out" / "a.tif")
@@ -85,8 +95,11 @@ def test_folders_keep_their_layout_and_files_given_directly_go_to_the_top(tmp_pa
 
 
 def test_sidecar_records_the_measurement_parameters_exactly(tmp_path):
-    src = write_rjpeg(tmp_path / "p.jpg", _temperature(), params={"emissivity": 0.9312345, "distance": 7.123456789,
-                                                                  "humidity": 0.4321987, "reflected": 23.456789})
+    src = write_rjpeg(
+        tmp_path / "p.jpg",
+        _temperature(),
+        params={"emissivity": 0.9312345, "distance": 7.123456789, "humidity": 0.4321987, "reflected": 23.456789},
+    )
     decode_batch([src], tmp_path / "out")
     side = json.loads(sidecar_path(tmp_path / "out" / "p.png").read_text())
     layout = jpeg.read_segments(src.read_bytes(), src)

@@ -69,7 +69,7 @@ def test_c2_of_an_impulse_by_hand_including_reflect_101_borders():
     dev = t - background
     a = np.sort(np.abs(dev).ravel())
     # 25 values: rank 0.99 * 24 = 23.76 between the largest (1 - g0^2) and the next (g0 g1)
-    assert a[24] == pytest.approx(1 - g0 ** 2) and a[23] == pytest.approx(g0 * g1)
+    assert a[24] == pytest.approx(1 - g0**2) and a[23] == pytest.approx(g0 * g1)
     p = a[23] + 0.76 * (a[24] - a[23])
     expected = np.clip(dev / (2 * p) + 0.5, 0, 1)
     got = c2(t, sigma=0.5)
@@ -133,8 +133,12 @@ def test_flat_image_is_neutral_thanks_to_the_floor():
 @pytest.mark.parametrize("n", [30_000, 327_680])
 def test_fast_percentile_equals_numpy(n):
     rng = np.random.default_rng(n)
-    for values in (np.abs(rng.normal(size=n)), rng.exponential(size=n) ** 3, np.round(rng.uniform(size=n), 2),
-                   np.concatenate([np.zeros(n - 10), np.ones(10)])):
+    for values in (
+        np.abs(rng.normal(size=n)),
+        rng.exponential(size=n) ** 3,
+        np.round(rng.uniform(size=n), 2),
+        np.concatenate([np.zeros(n - 10), np.ones(10)]),
+    ):
         values = values.astype(np.float32)
         for q in (50.0, 95.0, 99.0, 99.9, 100.0):
             assert fast_percentile(values, q) == pytest.approx(float(np.percentile(values, q)), rel=1e-6, abs=1e-12)
@@ -153,8 +157,15 @@ def test_contrast_amplitude_uses_the_pixels_whose_centres_are_inside():
 def _sample(thermal=True) -> AlignedSample:
     t = _scene(32, 40, seed=3)
     ir8 = np.clip((t - t.min()) / (t.max() - t.min()) * 255, 0, 255).astype(np.uint8)
-    return AlignedSample(image_id=1, rgb=np.zeros((32, 40, 3), np.uint8), thermal=t if thermal else None, ir8=ir8,
-                         boxes=np.zeros((0, 4), np.float32), labels=np.zeros(0, np.int64), group="P1")
+    return AlignedSample(
+        image_id=1,
+        rgb=np.zeros((32, 40, 3), np.uint8),
+        thermal=t if thermal else None,
+        ir8=ir8,
+        boxes=np.zeros((0, 4), np.float32),
+        labels=np.zeros(0, np.int64),
+        group="P1",
+    )
 
 
 def test_builtin_encodings_are_registered(host):

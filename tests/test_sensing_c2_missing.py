@@ -59,7 +59,7 @@ def test_one_nan_changes_c2_only_within_the_kernel_radius_of_that_pixel():
     r = c2mod.kernel_radius(c2mod.SIGMA)
     diff = np.abs(holed.astype(np.float64) - clean)
     near = np.zeros(t.shape, bool)
-    near[max(y - r, 0):y + r + 1, max(x - r, 0):x + r + 1] = True
+    near[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = True
     assert diff[~near].max() < 1e-4  # float32 FFT noise only
     assert diff[near].max() > 1e-2  # the hole shows around itself
     assert holed[y, x] == 0.5
@@ -75,16 +75,19 @@ def test_inf_is_treated_like_nan():
     assert np.array_equal(c2mod.c2_uint8(t_inf), c2mod.c2_uint8(t_nan))
 
 
-@pytest.mark.parametrize("bad, expected", [
-    (np.zeros((0, 0), np.float32), "empty shape (0, 0)"),
-    (np.zeros((0, 640), np.float32), "empty shape (0, 640)"),
-    (np.zeros(10, np.float32), "1-D shape (10,)"),
-    (np.zeros((4, 5, 3), np.float32), "3-D shape (4, 5, 3)"),
-    (np.zeros((4, 5), np.complex64), "complex"),
-    (np.full((4, 5), 2 ** 40, np.int64), "beyond float32's exact range"),
-    (np.full((4, 5), 1e300), "beyond float32's range"),
-    (np.zeros((4, 5), bool), "boolean"),
-])
+@pytest.mark.parametrize(
+    "bad, expected",
+    [
+        (np.zeros((0, 0), np.float32), "empty shape (0, 0)"),
+        (np.zeros((0, 640), np.float32), "empty shape (0, 640)"),
+        (np.zeros(10, np.float32), "1-D shape (10,)"),
+        (np.zeros((4, 5, 3), np.float32), "3-D shape (4, 5, 3)"),
+        (np.zeros((4, 5), np.complex64), "complex"),
+        (np.full((4, 5), 2**40, np.int64), "beyond float32's exact range"),
+        (np.full((4, 5), 1e300), "beyond float32's range"),
+        (np.zeros((4, 5), bool), "boolean"),
+    ],
+)
 def test_malformed_maps_get_one_clear_error_quickly(bad, expected):
     t0 = time.perf_counter()
     with pytest.raises(DataError) as exc:

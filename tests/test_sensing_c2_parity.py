@@ -84,8 +84,18 @@ def test_recurring_and_changing_masks_use_the_right_normaliser():
     small = scene(60, 70, seed=5)
     small[3, 4] = np.nan
     more = [rng.random(a.shape) < 0.01 for _ in range(c2mod.KEPT_MASKS + 2)]  # more masks than are kept
-    for t, m in ((a, m1), (b, m1), (b, m2), (small, None), (a, m1), (a, None), (b, m2), *((a, x) for x in more),
-                 *((b, x) for x in more), (a, m1)):
+    for t, m in (
+        (a, m1),
+        (b, m1),
+        (b, m2),
+        (small, None),
+        (a, m1),
+        (a, None),
+        (b, m2),
+        *((a, x) for x in more),
+        *((b, x) for x in more),
+        (a, m1),
+    ):
         x = t.copy()
         if m is not None:
             x[m] = np.nan
@@ -130,7 +140,7 @@ def test_huge_finite_temperatures_give_a_finite_exact_c2_without_warnings():
     by a power of two is exact, so its C2 is now byte for byte that of the unscaled map. A single pixel near
     float32's maximum lands within one grey level of a float64 computation."""
     t = scene(seed=8)
-    huge = t * np.float32(2.0 ** 122)
+    huge = t * np.float32(2.0**122)
     spike = t.copy()
     spike[40, 50] = np.float32(3e38)
     holed = huge.copy()

@@ -97,8 +97,9 @@ def test_camera_model_yaml_round_trip_and_errors(tmp_path):
 def test_checkerboard_calibration_recovers_known_intrinsics(warm):
     views = _views(10, warm=warm)
     views.append(np.zeros((SIZE[1], SIZE[0]), np.float32 if warm else np.uint8))  # a view without a board
-    res = calibrate_checkerboard([(f"v{i}", v) for i, v in enumerate(views)], PATTERN, SQUARE, thermal=warm,
-                                 name="thermal" if warm else "rgb")
+    res = calibrate_checkerboard(
+        [(f"v{i}", v) for i, v in enumerate(views)], PATTERN, SQUARE, thermal=warm, name="thermal" if warm else "rgb"
+    )
     cam = res.camera
     assert res.rejected == ["v10"] and len(res.used) == 10
     assert res.rms < 0.3
@@ -154,7 +155,9 @@ def test_undistortion_maps_are_built_once_per_camera_and_change_nothing(monkeypa
         K[0, 2] += x
         K[1, 2] += y
         mx, my = real(cam.K, cam.dist, None, K, cam.image_size, cv2.CV_32FC1)
-        return cv2.remap(img, mx[y:y + h, x:x + w], my[y:y + h, x:x + w], interp, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.remap(
+            img, mx[y : y + h, x : x + w], my[y : y + h, x : x + w], interp, borderMode=cv2.BORDER_REPLICATE
+        )
 
     rng = np.random.default_rng(3)
     rgb = rng.integers(0, 256, (SIZE[1], SIZE[0], 3), dtype=np.uint8)

@@ -30,7 +30,7 @@ def _table(version: int = 0x14, fill: int = 16384, reflection: bool = False, hum
     temps, dists = dc.tau_axes(version)
     tau = np.full((len(temps), len(dists)), fill, dtype="<u2")
     words = np.zeros(max(dc.OLD_TABLE_BYTES // 2, tau.size), dtype="<u2")
-    words[:tau.size] = tau.ravel()
+    words[: tau.size] = tau.ravel()
     return head.tobytes() + words.tobytes()
 
 
@@ -39,7 +39,7 @@ def _with_app5(src: bytes, payload: bytes | None) -> bytes:
     layout = jpeg.read_segments(src)
     seg = next(s for s in layout.segments if s.marker == jpeg.APP5)
     end = seg.offset + 4 + len(seg.payload)
-    return src[:seg.offset] + (jpeg.segment(jpeg.APP5, payload) if payload is not None else b"") + src[end:]
+    return src[: seg.offset] + (jpeg.segment(jpeg.APP5, payload) if payload is not None else b"") + src[end:]
 
 
 # ---------------------------------------------------------------------------------------------- real files
@@ -80,8 +80,9 @@ def test_overrides_move_the_temperature_the_right_way():
     rj = read_rjpeg(REAL / "m3t_c.jpg")
     base = rj.corrected_c().astype(np.float64).mean()
     # re-measured at the file's values: identical
-    np.testing.assert_array_equal(rj.corrected_c(emissivity=0.95, distance=5.0, humidity=50.0, reflected=25.0),
-                                  rj.corrected_c())
+    np.testing.assert_array_equal(
+        rj.corrected_c(emissivity=0.95, distance=5.0, humidity=50.0, reflected=25.0), rj.corrected_c()
+    )
     assert rj.corrected_c(emissivity=0.85).mean() > base + 0.3  # less emissive: more of the signal is reflection
     assert rj.corrected_c(emissivity=1.0).mean() < base
     assert rj.corrected_c(distance=20.0).mean() > base + 0.1  # more air absorbs more
@@ -121,8 +122,11 @@ def test_damaged_or_missing_app5_is_a_clear_error(tmp_path):
     default.write_bytes(_with_app5(src, b"\xff" * 4 + app5[4:]))
     with pytest.raises(dc.UnsupportedCorrection, match="default.jpg"):
         read_rjpeg(default, decoder="dji")
-    with pytest.raises(dc.UnsupportedCorrection, match=r"default\.jpg: camera 'M3T'.*built-in default.*"
-                                                       r"--converter.*--approximate"):
+    with pytest.raises(
+        dc.UnsupportedCorrection,
+        match=r"default\.jpg: camera 'M3T'.*built-in default.*"
+        r"--converter.*--approximate",
+    ):
         read_rjpeg(default)  # auto: refused, no silent blackbody
     rj = read_rjpeg(default, approximate=True)  # the labelled approximate route, on request
     assert rj.decoder == "approximate" and rj.approximation.name == "builtin-tau-unity"
@@ -163,8 +167,9 @@ def test_balance_hand_computed():
 def test_tau_interpolation_and_humidity_hand_computed():
     temps, dists = dc.tau_axes(0x14)
     tau = (np.arange(len(temps))[:, None] * 10 + np.arange(len(dists))[None, :] * 100 + 5000).astype(np.uint16)
-    table = dc.TauTable(tau=tau, temps_k=temps, distances_m=dists, version=0x14, humidity=1, reflection=False,
-                        max_distance=25.0)
+    table = dc.TauTable(
+        tau=tau, temps_k=temps, distances_m=dists, version=0x14, humidity=1, reflection=False, max_distance=25.0
+    )
     # 30 C = 303.15 K: a quarter of the way from 298.15 (row 2) to 323.15 (row 3); 5.25 m: half way 5.0 -> 5.5
     j = int(np.flatnonzero(np.isclose(dists, 5.0))[0])
     expect = 5000 + (2 + 0.2) * 10 + (j + 0.5) * 100
@@ -207,7 +212,7 @@ def test_app5_header_variants():
     with pytest.raises(dc.UnsupportedCorrection, match="emissivity"):
         dc.parse_app5(_table(version=0x101), 0x200)
     with pytest.raises(DataError, match=r"x\.jpg.*45x88.*cut short"):  # v0300 tables have more cells
-        dc.parse_app5(_table(version=0x102)[:0x100 + dc.OLD_TABLE_BYTES], 0x300, "x.jpg")
+        dc.parse_app5(_table(version=0x102)[: 0x100 + dc.OLD_TABLE_BYTES], 0x300, "x.jpg")
 
 
 # ---------------------------------------------------------------------------------------------- written files
@@ -244,13 +249,15 @@ def test_decode_command_routes_and_overrides(tmp_path, cli_runner):
     res = cli_runner(["sensing", "decode", str(tabled), "--out", str(tmp_path / "o"), "--unit", "celsius"])
     assert res.exit_code == 0 and "dji" in res.output, res.output
     a, info = read_thermal(tmp_path / "o" / "tab.tif")
-    res = cli_runner(["sensing", "decode", str(tabled), "--out", str(tmp_path / "o2"), "--unit", "celsius",
-                      "--emissivity", "0.8"])
+    res = cli_runner(
+        ["sensing", "decode", str(tabled), "--out", str(tmp_path / "o2"), "--unit", "celsius", "--emissivity", "0.8"]
+    )
     assert res.exit_code == 0, res.output
     b, _ = read_thermal(tmp_path / "o2" / "tab.tif")
     assert b.mean() > a.mean() > 30.0
-    res = cli_runner(["sensing", "decode", str(tabled), "--out", str(tmp_path / "o3"), "--unit", "celsius",
-                      "--blackbody"])
+    res = cli_runner(
+        ["sensing", "decode", str(tabled), "--out", str(tmp_path / "o3"), "--unit", "celsius", "--blackbody"]
+    )
     c, _ = read_thermal(tmp_path / "o3" / "tab.tif")
     assert res.exit_code == 0 and np.abs(c - 30.0).max() <= 1 / 32 + 1e-5
     res = cli_runner(["sensing", "decode", str(tabled), "--out", str(tmp_path / "o4"), "--distance", "40"])

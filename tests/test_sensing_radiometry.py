@@ -31,8 +31,9 @@ needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} not present")
 def _temperature(h=48, w=64, seed=0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:h, 0:w]
-    return (22.0 + 0.1 * xx + 3.0 * np.exp(-((xx - 20) ** 2 + (yy - 15) ** 2) / 30.0)
-            + rng.normal(0, 0.2, (h, w))).astype(np.float32)
+    return (
+        22.0 + 0.1 * xx + 3.0 * np.exp(-((xx - 20) ** 2 + (yy - 15) ** 2) / 30.0) + rng.normal(0, 0.2, (h, w))
+    ).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------- real files
@@ -53,8 +54,9 @@ def test_real_rjpeg_reproduces_reference_raw14_exactly(name):
 @needs_real
 def test_real_rjpeg_parameters_exif_and_preview():
     rj = read_rjpeg(REAL / "m3t_a.jpg")
-    assert rj.params == pytest.approx({"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
-                                       "reflected": 25.0}, abs=1e-5)
+    assert rj.params == pytest.approx(
+        {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0, "reflected": 25.0}, abs=1e-5
+    )
     assert rj.header["format"] == "iirp" and (rj.header["width"], rj.header["height"]) == (640, 512)
     assert rj.exif["Make"] == "DJI" and rj.exif["Model"] == "M3T"
     assert rj.exif["FocalLength"] == pytest.approx(9.1)
@@ -86,8 +88,12 @@ def test_real_rjpeg_cut_in_the_middle_of_app3_is_a_clear_error(tmp_path):
 # ---------------------------------------------------------------------------------------------- synthetic R-JPEG
 def test_synthetic_rjpeg_round_trip_is_exact_to_a_sixteenth_kelvin(tmp_path):
     t = _temperature()
-    path = write_rjpeg(tmp_path / "synth.jpg", t, params={"emissivity": 0.9, "distance": 12.0, "humidity": 0.6},
-                       exif={"DateTimeOriginal": "2024:05:01 10:00:00"})
+    path = write_rjpeg(
+        tmp_path / "synth.jpg",
+        t,
+        params={"emissivity": 0.9, "distance": 12.0, "humidity": 0.6},
+        exif={"DateTimeOriginal": "2024:05:01 10:00:00"},
+    )
     rj = read_rjpeg(path)
     assert isinstance(rj, RJpeg)
     np.testing.assert_array_equal(rj.raw14, np.rint((t.astype(np.float64) + 273.15) * 16).astype(np.uint16))
@@ -128,7 +134,7 @@ def test_raw14_conversions_are_inverse_and_refuse_out_of_range():
 def test_truncated_synthetic_rjpeg_is_a_data_error_naming_the_file(tmp_path, fraction):
     data = write_rjpeg(tmp_path / "ok.jpg", _temperature(300, 400)).read_bytes()
     bad = tmp_path / "bad.jpg"
-    bad.write_bytes(data[:int(len(data) * fraction)])
+    bad.write_bytes(data[: int(len(data) * fraction)])
     with pytest.raises(DataError, match="bad.jpg"):
         read_rjpeg(bad)
 
@@ -161,7 +167,7 @@ def test_payload_of_the_wrong_size_or_layout_is_refused(tmp_path):
     # drop the last APP3 segment: the payload no longer fills the frame
     end = last.offset + 4 + len(last.payload)
     short = tmp_path / "short.jpg"
-    short.write_bytes(bytes(data[:last.offset]) + bytes(data[end:]))
+    short.write_bytes(bytes(data[: last.offset]) + bytes(data[end:]))
     with pytest.raises(DataError, match=r"short.jpg.*expected"):
         read_rjpeg(short)
     # set a low bit in a word: not the iirp layout (14-bit counts << 2)
@@ -177,7 +183,7 @@ def test_other_dji_formats_are_refused(tmp_path):
     data = bytearray(write_rjpeg(tmp_path / "ok.jpg", _temperature()).read_bytes())
     layout = jpeg.read_segments(bytes(data))
     app4 = [s for s in layout.segments if s.marker == jpeg.APP4][0]
-    data[app4.offset + 8:app4.offset + 12] = b"girp"
+    data[app4.offset + 8 : app4.offset + 12] = b"girp"
     other = tmp_path / "m30t.jpg"
     other.write_bytes(bytes(data))
     with pytest.raises(DataError, match="camera 'M3T', DJI R-JPEG format 'girp': temperatures are not decoded"):
@@ -185,11 +191,25 @@ def test_other_dji_formats_are_refused(tmp_path):
 
 
 def test_exif_writer_and_reader_agree():
-    payload = jpeg.build_exif({"Make": "DJI", "Model": "M3T", "DateTimeOriginal": "2023:01:02 03:04:05",
-                               "FocalLength": 9.1, "FocalLengthIn35mmFilm": 40, "ExifImageWidth": 640})
+    payload = jpeg.build_exif(
+        {
+            "Make": "DJI",
+            "Model": "M3T",
+            "DateTimeOriginal": "2023:01:02 03:04:05",
+            "FocalLength": 9.1,
+            "FocalLengthIn35mmFilm": 40,
+            "ExifImageWidth": 640,
+        }
+    )
     exif = jpeg.parse_exif(payload)
-    assert exif == {"Make": "DJI", "Model": "M3T", "DateTimeOriginal": "2023:01:02 03:04:05",
-                    "FocalLength": pytest.approx(9.1), "FocalLengthIn35mmFilm": 40, "ExifImageWidth": 640}
+    assert exif == {
+        "Make": "DJI",
+        "Model": "M3T",
+        "DateTimeOriginal": "2023:01:02 03:04:05",
+        "FocalLength": pytest.approx(9.1),
+        "FocalLengthIn35mmFilm": 40,
+        "ExifImageWidth": 640,
+    }
     with pytest.raises(DataError, match="cannot be written"):
         jpeg.build_exif({"NotATag": 1})
     assert jpeg.parse_exif(b"JFIF\x00") == {}
@@ -197,10 +217,16 @@ def test_exif_writer_and_reader_agree():
 
 
 # ---------------------------------------------------------------------------------------------- decoded files
-@pytest.mark.parametrize("unit,suffix,tol", [
-    ("centikelvin", ".png", 0.005 + 1e-4), ("centikelvin", ".tif", 0.005 + 1e-4),
-    ("decicelsius", ".tiff", 0.05 + 1e-4), ("celsius", ".tif", 0.0), ("celsius", ".npy", 0.0),
-])
+@pytest.mark.parametrize(
+    "unit,suffix,tol",
+    [
+        ("centikelvin", ".png", 0.005 + 1e-4),
+        ("centikelvin", ".tif", 0.005 + 1e-4),
+        ("decicelsius", ".tiff", 0.05 + 1e-4),
+        ("celsius", ".tif", 0.0),
+        ("celsius", ".npy", 0.0),
+    ],
+)
 def test_thermal_files_round_trip_with_their_sidecar(tmp_path, unit, suffix, tol):
     t = _temperature(seed=1)
     path = write_thermal(tmp_path / f"frame{suffix}", t, unit=unit, params={"emissivity": 0.95})

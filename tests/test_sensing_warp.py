@@ -48,12 +48,15 @@ def test_common_support_box_is_the_bounding_extent():
 
 def test_boxes_through_h_crop_and_clip_by_hand():
     H = np.array([[0.5, 0.0, 10.0], [0.0, 0.5, 20.0], [0.0, 0.0, 1.0]])
-    boxes = np.array([
-        [100, 50, 200, 150],   # inside, partly clipped on the right and bottom
-        [20, 30, 60, 70],      # inside
-        [500, 500, 520, 510],  # lands outside the crop: dropped
-        [100, 50, 101, 51],    # 0.5 x 0.5 px after scaling: degenerate, dropped
-    ], dtype=np.float32)
+    boxes = np.array(
+        [
+            [100, 50, 200, 150],  # inside, partly clipped on the right and bottom
+            [20, 30, 60, 70],  # inside
+            [500, 500, 520, 510],  # lands outside the crop: dropped
+            [100, 50, 101, 51],  # 0.5 x 0.5 px after scaling: degenerate, dropped
+        ],
+        dtype=np.float32,
+    )
     out, keep = transform_boxes(boxes, H, origin=(5, 10), size=(100, 80))
     # edge x -> centre coordinate x - 0.5 -> 0.5 (x - 0.5) + 10 -> + 0.5 -> minus the origin
     x = lambda v: 0.5 * (v - 0.5) + 10 + 0.5 - 5  # noqa: E731
@@ -107,8 +110,16 @@ def test_align_pair_moves_rgb_boxes_through_h_and_respects_thermal_validity():
     H = np.diag([0.25, 0.25, 1.0])  # RGB covers the top-left 50 x 50 thermal pixels
     valid = np.ones((50, 60), bool)
     valid[:, :4] = False  # e.g. the undistortion border
-    pair = align_pair(rgb, thermal, np.zeros((50, 60), np.uint8), np.array([[40, 40, 80, 120]], np.float32),
-                      np.array([0]), H, boxes_frame="rgb", thermal_valid=valid)
+    pair = align_pair(
+        rgb,
+        thermal,
+        np.zeros((50, 60), np.uint8),
+        np.array([[40, 40, 80, 120]], np.float32),
+        np.array([0]),
+        H,
+        boxes_frame="rgb",
+        thermal_valid=valid,
+    )
     assert pair.origin == (4, 0) and pair.size == (46, 50)
     x = lambda v: 0.25 * (v - 0.5) + 0.5 - 4  # noqa: E731
     yv = lambda v: 0.25 * (v - 0.5) + 0.5  # noqa: E731
@@ -131,9 +142,15 @@ def test_sensing_context_runs_a_capture_as_the_config_says(tmp_path):
     H = np.diag([0.25, 0.25, 1.0])
     save_homographies(tmp_path / "H.yaml", {"P1": H})
     CameraModel(np.array([[60.0, 0, 29.5], [0, 60.0, 24.5], [0, 0, 1]]), [-0.2, 0, 0, 0, 0], (60, 50)).save(
-        tmp_path / "th.yaml")
-    cfg = load_config(overrides=["sensing.registration.homographies=H.yaml", "sensing.registration.method=file",
-                                 "sensing.warp.min_box_size=2.0"])
+        tmp_path / "th.yaml"
+    )
+    cfg = load_config(
+        overrides=[
+            "sensing.registration.homographies=H.yaml",
+            "sensing.registration.method=file",
+            "sensing.warp.min_box_size=2.0",
+        ]
+    )
     ctx = SensingContext.from_config(cfg, base=tmp_path)
     pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 20, 20], [0, 0, 1.5, 1.5]]), np.array([0, 1]), "P1")
     assert pair.dropped == 1 and pair.origin == (0, 0)
@@ -145,4 +162,5 @@ def test_sensing_context_runs_a_capture_as_the_config_says(tmp_path):
     assert th_u.shape == ir8_u.shape and th_u.shape[0] < 50 and np.allclose(th_u, 25.0)
     with pytest.raises(DataError, match="'focal' needs"):
         SensingContext.from_config(load_config(overrides=["sensing.registration.method=focal"])).homography(
-            "P1", rgb, thermal)
+            "P1", rgb, thermal
+        )

@@ -111,9 +111,11 @@ def test_a_killed_holder_leaves_no_stale_lock(tmp_path):
     from harness.store import RunBusyError
 
     run = Store(tmp_path).run(RunKey("m3t", "ours", "c2", "P1", 0))
-    code = ("import sys, time; from pathlib import Path; from harness.store import Store, RunKey\n"
-            f"r = Store(Path({str(tmp_path)!r})).run(RunKey('m3t', 'ours', 'c2', 'P1', 0))\n"
-            "with r.exclusive():\n    print('locked', flush=True); time.sleep(60)\n")
+    code = (
+        "import sys, time; from pathlib import Path; from harness.store import Store, RunKey\n"
+        f"r = Store(Path({str(tmp_path)!r})).run(RunKey('m3t', 'ours', 'c2', 'P1', 0))\n"
+        "with r.exclusive():\n    print('locked', flush=True); time.sleep(60)\n"
+    )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "locked"
@@ -141,8 +143,11 @@ def test_a_new_run_in_a_read_only_store_is_a_clear_error(tmp_path, monkeypatch):
         return real_mkdir(self, *args, **kwargs)
 
     monkeypatch.setattr(Path, "mkdir", read_only)
-    with pytest.raises(StoreError, match=r"cannot write run m3t-synth/ours/c2/P9/seed0 into the results store: "
-                                         r"Permission denied \(.*P9/seed0\); make the store writable or choose "
-                                         r"another --store"):
+    with pytest.raises(
+        StoreError,
+        match=r"cannot write run m3t-synth/ours/c2/P9/seed0 into the results store: "
+        r"Permission denied \(.*P9/seed0\); make the store writable or choose "
+        r"another --store",
+    ):
         with run.exclusive():
             pass

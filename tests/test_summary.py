@@ -57,14 +57,15 @@ def test_prepare_prints_the_table_for_every_dataset(tmp_path, cli_runner):
     from eightbit_fixtures import write_rgbt_tiny
 
     write_rgbt_tiny(tmp_path / "rgbt", train_seqs=("DJI_0001_1",), test_seqs=("DJI_0101_1",), frames=2)
-    res = cli_runner(["prepare", "--dataset", "rgbt-tiny", "--root", str(tmp_path / "rgbt"), "--cache",
-                      str(tmp_path / "cache")])
+    res = cli_runner(
+        ["prepare", "--dataset", "rgbt-tiny", "--root", str(tmp_path / "rgbt"), "--cache", str(tmp_path / "cache")]
+    )
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     head = next(i for i, line in enumerate(lines) if line.startswith("category"))
     header = "category ET <8 T 8-16 S 16-32 M 32-96 L >=96 total"
     assert lines[head].split() == header.split()
-    rows = {line.split()[0]: line.split()[1:] for line in lines[head + 2:head + 9]}
+    rows = {line.split()[0]: line.split()[1:] for line in lines[head + 2 : head + 9]}
     assert list(rows) == ["ship", "car", "cyclist", "pedestrian", "bus", "drone", "plane"]
     alls = next(line for line in lines if line.startswith("all ")).split()
     assert int(alls[-1]) == 8 and sum(int(v) for v in alls[1:-1]) == 8  # 4 frames x 2 thermal boxes

@@ -7,7 +7,7 @@ import tomllib
 
 from engine_helpers import REPO
 
-AUTHOR_TESTS = '''
+AUTHOR_TESTS = """
 import click
 from harness import DetectorSpec, hookimpl
 
@@ -41,7 +41,7 @@ def test_its_command_runs(harness_plugin, harness_cli):
 def test_a_fresh_host_loads_again(fresh_harness):
     assert not fresh_harness.pm.list_name_plugin()
     assert "ours" in fresh_harness.load_plugins().detectors()
-'''
+"""
 
 
 def test_a_plugin_authors_tests_use_the_shipped_fixtures(pytester, harness_host):

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("harness.cache")
 
-PLUGIN = '''
+PLUGIN = """
 from engine_helpers import CATEGORIES, ShapesSource
 from harness import DatasetSpec, hookimpl
 
@@ -21,7 +21,7 @@ def open_shapes(root=None, sensing=None, **opts):
 @hookimpl
 def register_datasets(register):
     register(DatasetSpec(name="shapes-code", open=open_shapes, categories=CATEGORIES, default_encoding="test-ir8"))
-'''
+"""
 
 
 def test_an_edited_dataset_plugin_is_prepared_again(host, tmp_path, monkeypatch):

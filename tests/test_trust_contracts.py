@@ -12,19 +12,24 @@ from harness.errors import PluginError
 
 
 def _det(k=3, boxes=None, scores=None, labels=None):
-    return {"boxes": torch.rand(k, 4) * 10 + torch.tensor([0, 0, 10, 10]) if boxes is None else boxes,
-            "scores": torch.rand(k) if scores is None else scores,
-            "labels": torch.zeros(k, dtype=torch.int64) if labels is None else labels}
+    return {
+        "boxes": torch.rand(k, 4) * 10 + torch.tensor([0, 0, 10, 10]) if boxes is None else boxes,
+        "scores": torch.rand(k) if scores is None else scores,
+        "labels": torch.zeros(k, dtype=torch.int64) if labels is None else labels,
+    }
 
 
-@pytest.mark.parametrize("bad, field, expected", [
-    (_det(boxes=torch.rand(4, 5)), "'boxes'", "[K, 4]"),  # 4 x 5 = 20 values reshape silently into 5 boxes
-    (_det(scores=torch.rand(3, 1)), "'scores'", "[K] = [3]"),
-    (_det(labels=torch.zeros(3)), "'labels'", "integer"),
-    (_det(labels=torch.tensor([0, 1, 2])), "'labels'", "0..1"),
-    (_det(scores=torch.tensor([0.5, float("nan"), 0.2])), "'scores'", "finite"),
-    ({"boxes": torch.rand(2, 4)}, "'scores', 'labels'", "keys"),
-])
+@pytest.mark.parametrize(
+    "bad, field, expected",
+    [
+        (_det(boxes=torch.rand(4, 5)), "'boxes'", "[K, 4]"),  # 4 x 5 = 20 values reshape silently into 5 boxes
+        (_det(scores=torch.rand(3, 1)), "'scores'", "[K] = [3]"),
+        (_det(labels=torch.zeros(3)), "'labels'", "integer"),
+        (_det(labels=torch.tensor([0, 1, 2])), "'labels'", "0..1"),
+        (_det(scores=torch.tensor([0.5, float("nan"), 0.2])), "'scores'", "finite"),
+        ({"boxes": torch.rand(2, 4)}, "'scores', 'labels'", "keys"),
+    ],
+)
 def test_eval_outputs_that_break_the_contract_name_detector_field_and_expectation(bad, field, expected):
     from harness.engine.predict import detections_to_coco
 
@@ -37,8 +42,12 @@ def test_eval_outputs_that_break_the_contract_name_detector_field_and_expectatio
 def test_a_valid_eval_output_passes_unchanged():
     from harness.engine.predict import detections_to_coco
 
-    det = _det(k=2, boxes=torch.tensor([[1.0, 2.0, 11.0, 22.0], [0.0, 0.0, 5.0, 5.0]]),
-               scores=torch.tensor([0.9, 0.4]), labels=torch.tensor([1, 0]))
+    det = _det(
+        k=2,
+        boxes=torch.tensor([[1.0, 2.0, 11.0, 22.0], [0.0, 0.0, 5.0, 5.0]]),
+        scores=torch.tensor([0.9, 0.4]),
+        labels=torch.tensor([1, 0]),
+    )
     out = detections_to_coco(det, 7, None, num_classes=2, name="ok")
     assert [(o["category_id"], o["bbox"]) for o in out] == [(2, [1.0, 2.0, 10.0, 20.0]), (1, [0.0, 0.0, 5.0, 5.0])]
 

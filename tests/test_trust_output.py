@@ -12,23 +12,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-BROKEN = '''from harness import DatasetSpec, hookimpl
+BROKEN = """from harness import DatasetSpec, hookimpl
 
 
 @hookimpl
 def register_datasets(register):
     raise RuntimeError("the plugin is broken here")
-'''
+"""
 
 
 def test_plugins_prints_json_only_and_locates_a_broken_plugin(tmp_path):
     (tmp_path / "plug").mkdir()
     path = tmp_path / "plug" / "broken_plugin.py"
     path.write_text(BROKEN)
-    env = {**os.environ, "HARNESS_PLUGINS_DIR": str(tmp_path / "plug"), "HARNESS_DISABLE_PLUGIN_AUTOLOAD": "1",
-           "COLUMNS": "100"}
-    res = subprocess.run([sys.executable, "-m", "harness", "-vv", "plugins"], capture_output=True, text=True,
-                         env=env, timeout=120)
+    env = {
+        **os.environ,
+        "HARNESS_PLUGINS_DIR": str(tmp_path / "plug"),
+        "HARNESS_DISABLE_PLUGIN_AUTOLOAD": "1",
+        "COLUMNS": "100",
+    }
+    res = subprocess.run(
+        [sys.executable, "-m", "harness", "-vv", "plugins"], capture_output=True, text=True, env=env, timeout=120
+    )
     assert res.returncode == 0, res.stderr
     data = json.loads(res.stdout)  # nothing but the JSON on stdout
     problem = next(p for p in data["problems"] if p["plugin"] == "broken_plugin")
@@ -52,8 +57,9 @@ def test_report_print_writes_no_report_folder(tmp_path, cli_runner):
     from report_fixtures import synthetic_store
 
     store = synthetic_store(tmp_path / "s", folds=("P1", "P2"), per_fold=3)
-    res = cli_runner(["report", "--print", "--store", str(store.root), "--out", str(tmp_path / "rep"),
-                      "--resamples", "0"])
+    res = cli_runner(
+        ["report", "--print", "--store", str(store.root), "--out", str(tmp_path / "rep"), "--resamples", "0"]
+    )
     assert res.exit_code == 0, res.output
     assert "project-grouped folds" in res.output and not (tmp_path / "rep").exists()
 
@@ -89,10 +95,13 @@ def test_a_sweep_checks_its_settings_per_detector_when_planning(host, tmp_path, 
     tinydet_module()
     import harness_tinydet.plugin as tinydet_plugin
 
-    with temporary_plugin(ShapesPlugin(), name="shapes-sweep-plan"), \
-            temporary_plugin(tinydet_plugin, name="tinydet-sweep-plan"):
-        spec = SweepSpec(("tinydet",), ("shapes",), store=str(tmp_path / "store"),
-                         overrides=("protocol.imgsz=64", "model.widht=8"))
+    with (
+        temporary_plugin(ShapesPlugin(), name="shapes-sweep-plan"),
+        temporary_plugin(tinydet_plugin, name="tinydet-sweep-plan"),
+    ):
+        spec = SweepSpec(
+            ("tinydet",), ("shapes",), store=str(tmp_path / "store"), overrides=("protocol.imgsz=64", "model.widht=8")
+        )
         with pytest.raises(ConfigError, match="tinydet.*widht"):
             expand(spec)
         assert len(expand(dataclasses.replace(spec, overrides=("protocol.imgsz=64", "model.width=8"))).jobs) == 2

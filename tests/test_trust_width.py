@@ -18,18 +18,31 @@ def _fits(text: str) -> None:
 
 @pytest.fixture(scope="module")
 def wide_store(tmp_path_factory):
-    return synthetic_store(tmp_path_factory.mktemp("wide"), folds=("P1", "P2", "P3", "P4+P5"), per_fold=4,
-                           detectors={"a-rather-long-detector-name": "strong", "beta": "weak"},
-                           encodings={"beta": ["ir8", "none"]},
-                           profiles={"a-rather-long-detector-name": (3_210_000, 8.2), "beta": (1_100_000, 2.5)})
+    return synthetic_store(
+        tmp_path_factory.mktemp("wide"),
+        folds=("P1", "P2", "P3", "P4+P5"),
+        per_fold=4,
+        detectors={"a-rather-long-detector-name": "strong", "beta": "weak"},
+        encodings={"beta": ["ir8", "none"]},
+        profiles={"a-rather-long-detector-name": (3_210_000, 8.2), "beta": (1_100_000, 2.5)},
+    )
 
 
 def test_store_commands_fit_100_columns(wide_store, tmp_path, cli_runner):
     root = str(wide_store.root)
     commands = [
         ["report", "--print", "--store", root, "--resamples", "0"],
-        ["compare-detectors", "a-rather-long-detector-name", "beta/c2", "--dataset", "synth", "--store", root,
-         "--resamples", "10"],
+        [
+            "compare-detectors",
+            "a-rather-long-detector-name",
+            "beta/c2",
+            "--dataset",
+            "synth",
+            "--store",
+            root,
+            "--resamples",
+            "10",
+        ],
         ["compare", "--datasets", "synth", "--store", root, "--allow-mismatched"],
         ["report", "--store", root, "--out", str(tmp_path / "rep"), "--resamples", "0"],
     ]
@@ -47,8 +60,22 @@ def test_listing_and_profile_fit_100_columns(host, cli_runner):
     import harness_tinydet.plugin as tinydet_plugin
 
     with temporary_plugin(tinydet_plugin, name="tinydet-width"):
-        for args in (["list"], ["profile", "--detector", "tinydet,tinydet-dual", "--imgsz", "64", "--runs", "2",
-                                "--warmup", "1", "--no-onnx", "--no-store"]):
+        for args in (
+            ["list"],
+            [
+                "profile",
+                "--detector",
+                "tinydet,tinydet-dual",
+                "--imgsz",
+                "64",
+                "--runs",
+                "2",
+                "--warmup",
+                "1",
+                "--no-onnx",
+                "--no-store",
+            ],
+        ):
             res = cli_runner(args, env={"COLUMNS": str(WIDTH)})
             assert res.exit_code == 0, (args, res.output)
             _fits(res.stdout)

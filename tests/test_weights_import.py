@@ -125,8 +125,13 @@ def test_a_standin_ultralytics_checkpoint_converts_and_loads_through_init_with_i
     out = tmp_path / "yolov8n.safetensors"
     res = import_checkpoint(src, out)
     lay = res.info["layout"]
-    assert (lay["family"], lay["scale"], lay["nc"], lay["in_channels"], lay["two_stream"]) == ("yolov8", "n", 3, 3,
-                                                                                                False)
+    assert (lay["family"], lay["scale"], lay["nc"], lay["in_channels"], lay["two_stream"]) == (
+        "yolov8",
+        "n",
+        3,
+        3,
+        False,
+    )
     assert lay["names"] == ["window", "crack", "vent"] and lay["suggested_detector"] == "ours"
     assert res.info["weights_from"] == ("ema" if style == "trainer" else "model")
     assert res.info["source_dtypes"] == ["float16"]
@@ -205,8 +210,9 @@ def test_yolov5_single_stream_layout_is_named(tmp_path):
     sd, info = read_checkpoint_weights(save_yolov5_style(model, tmp_path / "v5.pt"))
     lay = info["layout"]
     assert lay["family"] == "yolov5" and not lay["two_stream"] and lay["scale"] == "n" and lay["nc"] == 3
-    assert set(sd) == set(model.state_dict()) - {k for k in model.state_dict() if k.endswith("num_batches_tracked")} \
-        or set(sd) == set(model.state_dict())
+    assert set(sd) == set(model.state_dict()) - {
+        k for k in model.state_dict() if k.endswith("num_batches_tracked")
+    } or set(sd) == set(model.state_dict())
 
 
 @pytest.mark.slow
@@ -222,8 +228,15 @@ def test_pretrain_starts_from_an_imported_checkpoint(tmp_path, host, monkeypatch
     out = tmp_path / "w.safetensors"
     import_checkpoint(save_ultralytics(_ours(nc=3, in_channels=3), tmp_path / "best.pt", NAMES), out)
     with temporary_plugin(ShapesPlugin(), name="shapes-test"):
-        res = pretrain("ours", "shapes", fold="A", overrides=TINY + ["model.scale=n", "protocol.epochs=1"],
-                       store=tmp_path / "store", progress=False, init=out)
+        res = pretrain(
+            "ours",
+            "shapes",
+            fold="A",
+            overrides=TINY + ["model.scale=n", "protocol.epochs=1"],
+            store=tmp_path / "store",
+            progress=False,
+            init=out,
+        )
     assert res.checkpoint.exists()
     init = Store(tmp_path / "store").run(RunKey("shapes", "ours", "test-ir8", "A", 0)).read_metrics()["train"]["init"]
     assert init["path"] == str(out) and init["loaded"] > 300 and init["stem"]["checkpoint_channels"] == 3
@@ -236,16 +249,27 @@ def test_the_import_written_one_tensor_at_a_time_reads_back_as_the_safetensors_l
     from safetensors.torch import load_file, save
 
     g = torch.Generator().manual_seed(0)
-    odd = {"model": {"half": torch.randn(3, 4, generator=g).half(), "bf16": torch.randn(5, generator=g).bfloat16(),
-                     "f64": torch.randn(2, 2, generator=g).double(), "mask": torch.tensor([True, False, True]),
-                     "steps": torch.tensor(7), "empty": torch.zeros(0, 3), "codes": torch.arange(6, dtype=torch.int8),
-                     "strided": torch.arange(12.0).reshape(3, 4).t()}}
+    odd = {
+        "model": {
+            "half": torch.randn(3, 4, generator=g).half(),
+            "bf16": torch.randn(5, generator=g).bfloat16(),
+            "f64": torch.randn(2, 2, generator=g).double(),
+            "mask": torch.tensor([True, False, True]),
+            "steps": torch.tensor(7),
+            "empty": torch.zeros(0, 3),
+            "codes": torch.arange(6, dtype=torch.int8),
+            "strided": torch.arange(12.0).reshape(3, 4).t(),
+        }
+    }
     torch.save(odd, tmp_path / "odd.pt")
     for src in (save_ultralytics(_ours(), tmp_path / "best.pt", NAMES), tmp_path / "odd.pt"):
         res = import_checkpoint(src, tmp_path / "w.safetensors")
         sd, info = read_checkpoint_weights(src)
-        meta = {"format": "rgbt-harness-import", "family": info["layout"]["family"],
-                "source_sha256": info["source_sha256"]}
+        meta = {
+            "format": "rgbt-harness-import",
+            "family": info["layout"]["family"],
+            "source_sha256": info["source_sha256"],
+        }
         (tmp_path / "lib.safetensors").write_bytes(save(sd, metadata=meta))
         ours, lib = load_file(str(res.weights)), load_file(str(tmp_path / "lib.safetensors"))
         assert ours.keys() == lib.keys() == sd.keys()
@@ -259,9 +283,15 @@ def test_tensors_are_written_in_pieces_that_cover_them_in_row_major_order():
     from harness.weights import _pieces
 
     g = torch.Generator().manual_seed(0)
-    tensors = [torch.randn(7, 5, 3, generator=g), torch.randn(6, 4, generator=g).t(), torch.randn(1).expand(9, 4),
-               torch.randn(3, 1, 5, generator=g).expand(3, 4, 5), torch.arange(50.0), torch.tensor(3.0),
-               torch.zeros(0, 4)]
+    tensors = [
+        torch.randn(7, 5, 3, generator=g),
+        torch.randn(6, 4, generator=g).t(),
+        torch.randn(1).expand(9, 4),
+        torch.randn(3, 1, 5, generator=g).expand(3, 4, 5),
+        torch.arange(50.0),
+        torch.tensor(3.0),
+        torch.zeros(0, 4),
+    ]
     for t in tensors:
         for limit in (1, 12, 40, 10_000):
             pieces = list(_pieces(t, limit))

@@ -57,8 +57,12 @@ def standin_classes(model: nn.Module, module_of: Mapping[str, str], root: tuple[
             sys.modules.pop(name, None)
 
 
-ULTRALYTICS_MODULES = {"Conv": "ultralytics.nn.modules.conv", "Concat": "ultralytics.nn.modules.conv",
-                       "Detect": "ultralytics.nn.modules.head", "*": "ultralytics.nn.modules.block"}
+ULTRALYTICS_MODULES = {
+    "Conv": "ultralytics.nn.modules.conv",
+    "Concat": "ultralytics.nn.modules.conv",
+    "Detect": "ultralytics.nn.modules.head",
+    "*": "ultralytics.nn.modules.block",
+}
 YOLOV5_MODULES = {"Detect": "models.yolo", "*": "models.common"}
 
 
@@ -75,14 +79,25 @@ def save_ultralytics(model: nn.Module, path: Path, names: Mapping[int, str], sty
     """An Ultralytics ``.pt``: the trainer's ``{'model': None, 'ema': <model>}`` or ``YOLO.save()``'s final
     ``{'model': <model>, 'ema': None}``; the model in half precision with ``yaml`` and ``names`` attributes."""
     m = half_copy(model)
-    m.yaml = {"nc": int(model.nc), "scale": str(model.scale), "backbone": [[-1, 1, "Conv", [64, 3, 2]]],
-              "head": [[[15, 18, 21], 1, "Detect", ["nc"]]]}
+    m.yaml = {
+        "nc": int(model.nc),
+        "scale": str(model.scale),
+        "backbone": [[-1, 1, "Conv", [64, 3, 2]]],
+        "head": [[[15, 18, 21], 1, "Detect", ["nc"]]],
+    }
     m.names = dict(names)
     m.args = {"imgsz": 640, "epochs": 3, "save_dir": "runs/detect/train"}
-    ckpt: dict[str, Any] = {"epoch": 2 if style == "trainer" else -1, "best_fitness": 0.25,
-                            "date": "2024-05-01T12:00:00", "version": "8.2.0", "license": "AGPL-3.0",
-                            "train_args": {"imgsz": 640, "data": "facade.yaml", "save_dir": Path("runs/detect/train")},
-                            "train_metrics": {"metrics/mAP50(B)": 0.5}, "optimizer": None, "updates": 123}
+    ckpt: dict[str, Any] = {
+        "epoch": 2 if style == "trainer" else -1,
+        "best_fitness": 0.25,
+        "date": "2024-05-01T12:00:00",
+        "version": "8.2.0",
+        "license": "AGPL-3.0",
+        "train_args": {"imgsz": 640, "data": "facade.yaml", "save_dir": Path("runs/detect/train")},
+        "train_metrics": {"metrics/mAP50(B)": 0.5},
+        "optimizer": None,
+        "updates": 123,
+    }
     if style == "trainer":
         ckpt.update(model=None, ema=m)
     else:
@@ -100,9 +115,17 @@ def save_yolov5_style(model: nn.Module, path: Path, extra: Mapping[str, Any] | N
     m = half_copy(model)
     m.yaml = {"nc": int(getattr(model, "nc", 0)), "depth_multiple": 0.33, "width_multiple": 0.125}
     m.names = [f"class{i}" for i in range(int(getattr(model, "nc", 0)))]
-    ckpt = {"epoch": 5, "best_fitness": np.array([0.31]), "training_results": "0/4 ...", "model": m, "ema": None,
-            "optimizer": None, "wandb_id": None, "opt": {"weights": "yolov5l.pt", "img_size": [640, 640]},
-            **dict(extra or {})}
+    ckpt = {
+        "epoch": 5,
+        "best_fitness": np.array([0.31]),
+        "training_results": "0/4 ...",
+        "model": m,
+        "ema": None,
+        "optimizer": None,
+        "wandb_id": None,
+        "opt": {"weights": "yolov5l.pt", "img_size": [640, 640]},
+        **dict(extra or {}),
+    }
     with standin_classes(m, YOLOV5_MODULES, ("models.yolo", "Model")):
         torch.save(ckpt, path)
     return path

@@ -109,8 +109,10 @@ def load_coco_json(path: Path, hint: str = "") -> dict[str, Any]:
     if path.is_dir():
         raise DataError(f"{path}: is a folder, not a COCO JSON file{tail}")
     if not path.read_bytes().strip():
-        raise DataError(f"{path}: annotation file is empty; expected a COCO JSON object with 'images', "
-                        "'annotations' and 'categories'")
+        raise DataError(
+            f"{path}: annotation file is empty; expected a COCO JSON object with 'images', "
+            "'annotations' and 'categories'"
+        )
     coco = read_json(path)
     if not isinstance(coco, dict):
         raise DataError(f"{path}: expected a COCO JSON object, got a {type(coco).__name__}")
@@ -136,8 +138,10 @@ def read_categories(path: Path, coco: dict[str, Any]) -> dict[int, str]:
         cid = coco_id(cat.get("id")) if isinstance(cat, dict) else None
         name = cat.get("name") if isinstance(cat, dict) else None
         if not isinstance(cid, int) or not isinstance(name, str) or not name.strip():
-            raise DataError(f"{path}: categories[{i}]: every category needs an integer 'id' and a non-empty 'name', "
-                            f"got {str(cat)[:120]}")
+            raise DataError(
+                f"{path}: categories[{i}]: every category needs an integer 'id' and a non-empty 'name', "
+                f"got {str(cat)[:120]}"
+            )
         if cid in cats:
             raise DataError(f"{path}: duplicate category id {cid} ({cats[cid]!r} and {name!r})")
         if name in cats.values():
@@ -155,8 +159,10 @@ def read_images(path: Path, coco: dict[str, Any]) -> tuple[list[CocoImage], bool
             raise DataError(f"{path}: images[{i}]: every image needs 'id' and 'file_name', got {str(entry)[:120]}")
         key = coco_id(entry["id"])
         if key is None:
-            raise DataError(f"{path}: images[{i}] ({entry['file_name']}): image id {entry['id']!r} is neither an "
-                            f"integer nor a non-empty string")
+            raise DataError(
+                f"{path}: images[{i}] ({entry['file_name']}): image id {entry['id']!r} is neither an "
+                f"integer nor a non-empty string"
+            )
         keys.append(key)
     renumber = not all(isinstance(k, int) for k in keys)
     images: list[CocoImage] = []
@@ -166,13 +172,22 @@ def read_images(path: Path, coco: dict[str, Any]) -> tuple[list[CocoImage], bool
         fname = str(entry["file_name"])
         if key in by_id:
             first = by_id[key]
-            raise DataError(f"{path}: duplicate image id {key!r} ({first.file_name!r} and {fname!r}); image ids must "
-                            f"be unique (12, \"12\" and 12.0 are the same id)")
+            raise DataError(
+                f"{path}: duplicate image id {key!r} ({first.file_name!r} and {fname!r}); image ids must "
+                f'be unique (12, "12" and 12.0 are the same id)'
+            )
         if fname in by_name:
-            raise DataError(f"{path}: file {fname!r} is listed twice (image ids {by_name[fname].original_id!r} and "
-                            f"{entry['id']!r})")
-        image = CocoImage(n + 1 if renumber else int(key), fname, _size(entry.get("width")), _size(entry.get("height")),
-                          entry, entry["id"])
+            raise DataError(
+                f"{path}: file {fname!r} is listed twice (image ids {by_name[fname].original_id!r} and {entry['id']!r})"
+            )
+        image = CocoImage(
+            n + 1 if renumber else int(key),
+            fname,
+            _size(entry.get("width")),
+            _size(entry.get("height")),
+            entry,
+            entry["id"],
+        )
         by_id[key] = by_name[fname] = image
         images.append(image)
     return images, renumber
@@ -196,8 +211,13 @@ def read_coco(path: Path, hint: str = "") -> CocoFile:
         if "id" in ann:
             key = coco_id(ann["id"])
             if key in seen:
-                issues.append((where, f"annotation with a duplicate id: {ann['id']!r} is used twice (image ids "
-                                      f"{seen[key]!r} and {ann.get('image_id')!r})"))
+                issues.append(
+                    (
+                        where,
+                        f"annotation with a duplicate id: {ann['id']!r} is used twice (image ids "
+                        f"{seen[key]!r} and {ann.get('image_id')!r})",
+                    )
+                )
                 continue
             seen[key] = ann.get("image_id")
         image_id = internal.get(coco_id(ann.get("image_id")))
@@ -207,13 +227,18 @@ def read_coco(path: Path, hint: str = "") -> CocoFile:
         cid = coco_id(ann.get("category_id"))
         if cid not in cats:
             known = ", ".join(f"{k} {v}" for k, v in cats.items())
-            issues.append((where, f"annotation with an unknown category id: {ann.get('category_id')!r} (the "
-                                  f"categories are {known})"))
+            issues.append(
+                (
+                    where,
+                    f"annotation with an unknown category id: {ann.get('category_id')!r} (the categories are {known})",
+                )
+            )
             continue
         box = parse_bbox(ann.get("bbox"))
         if box is None:
-            issues.append((where, f"annotation box malformed: {str(ann.get('bbox'))[:80]} (expected [x, y, w, h] "
-                                  f"with w, h > 0)"))
+            issues.append(
+                (where, f"annotation box malformed: {str(ann.get('bbox'))[:80]} (expected [x, y, w, h] with w, h > 0)")
+            )
             continue
         aid_key = coco_id(ann["id"]) if "id" in ann else None
         anns.append(CocoAnnotation(aid_key, image_id, int(cid), box, ann))  # type: ignore[arg-type]

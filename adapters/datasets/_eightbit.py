@@ -96,8 +96,10 @@ class BoxStats:
 
     def note(self) -> str:
         """The prepare-report line about the boxes (kept, clipped, dropped for want of area)."""
-        return (f"boxes: {self.kept} kept, {self.clipped} clipped to the frame, "
-                f"{self.degenerate} dropped with no area inside the frame")
+        return (
+            f"boxes: {self.kept} kept, {self.clipped} clipped to the frame, "
+            f"{self.degenerate} dropped with no area inside the frame"
+        )
 
 
 def clip_boxes(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -115,8 +117,9 @@ def clip_boxes(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, n
     return clipped.astype(np.float32), keep, changed
 
 
-def clip_to_frame(xyxy: np.ndarray, labels: np.ndarray, width: int, height: int
-                  ) -> tuple[np.ndarray, np.ndarray, BoxStats]:
+def clip_to_frame(
+    xyxy: np.ndarray, labels: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray, BoxStats]:
     """``clip_boxes``, then only the boxes that keep an area: contiguous boxes (float32 Nx4) and their labels, and
     what happened to them (kept, clipped, degenerate)."""
     boxes, keep, clipped = clip_boxes(xyxy, width, height)
@@ -153,8 +156,9 @@ def resolve_root(root: str | os.PathLike | None, env: str, dataset: str, must_co
     return path
 
 
-def find_release_root(root: str | os.PathLike | None, env: str, dataset: str, names: Iterable[str],
-                      layouts: Iterable[Iterable[str]]) -> Path:
+def find_release_root(
+    root: str | os.PathLike | None, env: str, dataset: str, names: Iterable[str], layouts: Iterable[Iterable[str]]
+) -> Path:
     """The release folder: ``root`` (else ``$env``) itself or one of the folders ``names`` inside it, the first that
     holds every sub-folder of one of ``layouts``; otherwise a ``DataError`` naming what the first layout misses."""
     path = resolve_root(root, env, dataset, ())

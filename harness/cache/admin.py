@@ -99,8 +99,17 @@ def entries(root: Path, days: float = 30.0, now: float | None = None) -> list[En
                 continue
             mark = folder / USED_MARK
             used = mark.stat().st_mtime if mark.exists() else (folder / "manifest.json").stat().st_mtime
-            e = Entry(ds_dir.name, folder.name, folder, manifest.get("form", "raw"), int(manifest.get("count", 0)),
-                      folder_bytes(folder), manifest.get("source_bytes"), str(manifest.get("created", "-"))[:10], used)
+            e = Entry(
+                ds_dir.name,
+                folder.name,
+                folder,
+                manifest.get("form", "raw"),
+                int(manifest.get("count", 0)),
+                folder_bytes(folder),
+                manifest.get("source_bytes"),
+                str(manifest.get("created", "-"))[:10],
+                used,
+            )
             gone = [s for s in manifest.get("sources", []) if not Path(s).is_dir()]
             if gone:
                 e.why_unused = f"its source folder is gone ({gone[0]})"
@@ -119,8 +128,17 @@ def table(items: list[Entry], now: float | None = None) -> str:
     for e in items:
         src = human(e.source_bytes) if e.source_bytes else "-"
         ago = (now - e.last_used) / 86400
-        rows.append([e.ref[:44], e.form, f"{e.count:,}", human(e.bytes), src,
-                     "today" if ago < 1 else f"{ago:.0f} d ago", "unused" if e.why_unused else ""])
+        rows.append(
+            [
+                e.ref[:44],
+                e.form,
+                f"{e.count:,}",
+                human(e.bytes),
+                src,
+                "today" if ago < 1 else f"{ago:.0f} d ago",
+                "unused" if e.why_unused else "",
+            ]
+        )
     total = sum(e.bytes for e in items)
     body = text_table(["prepared dataset", "form", "samples", "size", "source", "last used", ""], rows, "llrrrll")
     return body + f"\n{len(items)} prepared, {human(total)} in all"

@@ -18,8 +18,12 @@ from harness.errors import ConfigError, DataError
 from harness.io import atomic_write_json
 
 
-def resolve_folds(dataset_spec: DatasetSpec | str, prepared: PreparedDataset, cfg: Mapping[str, Any],
-                  selection: str | Sequence[str] | None = "all") -> list[Fold]:
+def resolve_folds(
+    dataset_spec: DatasetSpec | str,
+    prepared: PreparedDataset,
+    cfg: Mapping[str, Any],
+    selection: str | Sequence[str] | None = "all",
+) -> list[Fold]:
     """The evaluation folds: ``cfg["protocol"]["folds"]`` (``{fold name: [held-out groups]}``, training on every
     other group present) when set, else the dataset's own folds recorded at preparation. ``selection``: ``"all"``,
     a fold name, a comma-separated list of names, or a list of names."""
@@ -34,8 +38,10 @@ def resolve_folds(dataset_spec: DatasetSpec | str, prepared: PreparedDataset, cf
             held_t = (held,) if isinstance(held, str) else tuple(held or ())
             missing = [g for g in held_t if g not in present]
             if missing:
-                raise ConfigError(f"protocol.folds: fold {fold_name!r} holds out {', '.join(map(repr, missing))}, "
-                                  f"which dataset {name!r} does not have; its groups are {', '.join(present)}")
+                raise ConfigError(
+                    f"protocol.folds: fold {fold_name!r} holds out {', '.join(map(repr, missing))}, "
+                    f"which dataset {name!r} does not have; its groups are {', '.join(present)}"
+                )
             if not held_t:
                 raise ConfigError(f"protocol.folds: fold {fold_name!r} holds out no group")
             folds.append(Fold(str(fold_name), tuple(g for g in present if g not in held_t), held_t))
@@ -57,8 +63,9 @@ def select_folds(folds: list[Fold], selection: str | Sequence[str] | None) -> li
     by_name = {f.name: f for f in folds}
     unknown = [n for n in names if n not in by_name]
     if unknown:
-        raise ConfigError(f"unknown fold(s) {', '.join(map(repr, unknown))}; available: "
-                          f"{', '.join(by_name)} (or 'all')")
+        raise ConfigError(
+            f"unknown fold(s) {', '.join(map(repr, unknown))}; available: {', '.join(by_name)} (or 'all')"
+        )
     return [by_name[n] for n in names]
 
 
@@ -66,12 +73,13 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
     """Sample indices (into ``prepared``) of the fold's training and held-out groups."""
     train, val = prepared.indices(fold.train_groups), prepared.indices(fold.val_groups)
     if not val:
-        raise DataError(f"fold {fold.name!r}: no prepared images in the held-out group(s) "
-                        f"{', '.join(fold.val_groups)}")
+        raise DataError(f"fold {fold.name!r}: no prepared images in the held-out group(s) {', '.join(fold.val_groups)}")
     if not train and not fold.train_groups:
-        raise DataError(f"fold {fold.name!r} holds out every group of the prepared data "
-                        f"({', '.join(fold.val_groups)}): nothing is left to train on; give the dataset a second "
-                        f"group or set protocol.folds")
+        raise DataError(
+            f"fold {fold.name!r} holds out every group of the prepared data "
+            f"({', '.join(fold.val_groups)}): nothing is left to train on; give the dataset a second "
+            f"group or set protocol.folds"
+        )
     if not train:
         raise DataError(f"fold {fold.name!r}: no prepared images to train on (groups {', '.join(fold.train_groups)})")
     return train, val
@@ -95,8 +103,18 @@ def fold_support(prepared: PreparedDataset, folds: Iterable[Fold]) -> list[FoldS
     for f in folds:
         tr, va = fold_indices(prepared, f)
         st, sv = prepared.support(tr), prepared.support(va)
-        out.append(FoldSupport(f.name, f.train_groups, f.val_groups, st["images"], st["instances"], sv["images"],
-                               sv["instances"], sv["categories"]))
+        out.append(
+            FoldSupport(
+                f.name,
+                f.train_groups,
+                f.val_groups,
+                st["images"],
+                st["instances"],
+                sv["images"],
+                sv["instances"],
+                sv["categories"],
+            )
+        )
     return out
 
 
@@ -117,8 +135,13 @@ def coco_path(prepared: PreparedDataset, fold: Fold | None = None, split: str = 
         idx = tr if split == "train" else va
     if not path.exists():
         coco = prepared.coco(idx)
-        coco["info"].update({"fold": None if fold is None else fold.name, "split": split if fold else "all",
-                             "key": prepared.manifest.get("key")})
+        coco["info"].update(
+            {
+                "fold": None if fold is None else fold.name,
+                "split": split if fold else "all",
+                "key": prepared.manifest.get("key"),
+            }
+        )
         atomic_write_json(path, coco, indent=None)
     return path
 

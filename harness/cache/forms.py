@@ -63,8 +63,10 @@ def zstd_module(where: str) -> Any:
     try:
         import zstandard
     except ImportError:
-        raise DataError(f"{where}: this prepared dataset is compressed with zstd; `pip install zstandard` (extra "
-                        f"rgbt-harness[fast-cache]) or prepare it again without") from None
+        raise DataError(
+            f"{where}: this prepared dataset is compressed with zstd; `pip install zstandard` (extra "
+            f"rgbt-harness[fast-cache]) or prepare it again without"
+        ) from None
     return zstandard
 
 
@@ -135,8 +137,8 @@ def decode_f32(data: np.ndarray | bytes, shape: tuple[int, int], where: str) -> 
             import cv2
 
             n = int.from_bytes(buf[1:5], "little")
-            table = np.frombuffer(zlib.decompress(buf[5:5 + n]), "<u4").astype(np.uint32)
-            idx = cv2.imdecode(np.frombuffer(buf[5 + n:], np.uint8), cv2.IMREAD_UNCHANGED)
+            table = np.frombuffer(zlib.decompress(buf[5 : 5 + n]), "<u4").astype(np.uint32)
+            idx = cv2.imdecode(np.frombuffer(buf[5 + n :], np.uint8), cv2.IMREAD_UNCHANGED)
             if idx is None or idx.shape != shape or idx.dtype != np.uint16:
                 raise ValueError("index image")
             return table[idx].view(np.float32)
@@ -223,20 +225,28 @@ def find_reference(sample: Any, bases: Sequence[Path], files: tuple[Any, Any] | 
             ir8 = read_ir8_file(ir_path, mode)
             if ir8 is not None and np.array_equal(ir8, sample.ir8):
                 try:
-                    rel = (rgb_path.resolve().relative_to(b.resolve()).as_posix(),
-                           ir_path.resolve().relative_to(b.resolve()).as_posix())
+                    rel = (
+                        rgb_path.resolve().relative_to(b.resolve()).as_posix(),
+                        ir_path.resolve().relative_to(b.resolve()).as_posix(),
+                    )
                 except ValueError:  # not under this folder: perhaps under the next one
                     break
-                return {"base": b, "rgb": rel[0], "ir8": rel[1], "ir8_mode": mode,
-                        "digest": {"rgb": pixel_digest(sample.rgb), "ir8": pixel_digest(sample.ir8)},
-                        "bytes": rgb_path.stat().st_size + ir_path.stat().st_size}
+                return {
+                    "base": b,
+                    "rgb": rel[0],
+                    "ir8": rel[1],
+                    "ir8_mode": mode,
+                    "digest": {"rgb": pixel_digest(sample.rgb), "ir8": pixel_digest(sample.ir8)},
+                    "bytes": rgb_path.stat().st_size + ir_path.stat().st_size,
+                }
         if files is None:
             break  # the pixels differ from the named files: compress them instead
     return None
 
 
-def load_reference(base: Path, ref: dict[str, Any], shape: tuple[int, int], verify: bool,
-                   channels: Sequence[str] = ("rgb", "ir8")) -> list[np.ndarray]:
+def load_reference(
+    base: Path, ref: dict[str, Any], shape: tuple[int, int], verify: bool, channels: Sequence[str] = ("rgb", "ir8")
+) -> list[np.ndarray]:
     """The referenced files' pixels (``channels`` of ``rgb``, ``ir8``); ``verify`` compares them with the recorded
     digests. A missing, unreadable or changed file is a ``DataError`` naming it."""
     out = []
@@ -245,10 +255,14 @@ def load_reference(base: Path, ref: dict[str, Any], shape: tuple[int, int], veri
         img = read_rgb_file(path) if name == "rgb" else read_ir8_file(path, ref["ir8_mode"])
         want = (*shape, 3) if name == "rgb" else shape
         if img is None:
-            raise DataError(f"{path}: source file of a prepared sample is missing or unreadable; restore it or "
-                            f"prepare again (`harness prepare --force`)")
+            raise DataError(
+                f"{path}: source file of a prepared sample is missing or unreadable; restore it or "
+                f"prepare again (`harness prepare --force`)"
+            )
         if img.shape != want or (verify and pixel_digest(img) != ref["digest"][name]):
-            raise DataError(f"{path}: source file changed since it was prepared (decoded pixels differ from the "
-                            f"recorded digest); restore it or prepare again (`harness prepare --force`)")
+            raise DataError(
+                f"{path}: source file changed since it was prepared (decoded pixels differ from the "
+                f"recorded digest); restore it or prepare again (`harness prepare --force`)"
+            )
         out.append(img)
     return out

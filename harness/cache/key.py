@@ -56,9 +56,17 @@ def preparation_sensing(sensing: Mapping[str, Any] | None) -> dict[str, Any]:
 def cache_key(fingerprint: str, sensing: Mapping[str, Any] | None, dataset: str) -> str:
     """``sha1({dataset, fingerprint, sensing, PREPARE_VERSION, plugin code})`` as 16 hex digits (analysis-only
     sensing keys, such as the displacement study's shifts, are left out)."""
-    payload = json.dumps({"dataset": dataset, "fingerprint": fingerprint, "sensing": preparation_sensing(sensing),
-                          "version": PREPARE_VERSION, "code": plugin_code_fingerprint(dataset)},
-                         sort_keys=True, default=str)
+    payload = json.dumps(
+        {
+            "dataset": dataset,
+            "fingerprint": fingerprint,
+            "sensing": preparation_sensing(sensing),
+            "version": PREPARE_VERSION,
+            "code": plugin_code_fingerprint(dataset),
+        },
+        sort_keys=True,
+        default=str,
+    )
     return hashlib.sha1(payload.encode()).hexdigest()[:16]
 
 
@@ -76,9 +84,11 @@ def plugin_code_fingerprint(dataset: str) -> str:
     if home is None:
         return ""
     top = home.__name__.split(".")[0]
-    names = {home.__name__} | {getattr(v, "__module__", None) or getattr(v, "__name__", "")
-                               for v in vars(home).values() if inspect.ismodule(v) or inspect.isclass(v)
-                               or inspect.isfunction(v)}
+    names = {home.__name__} | {
+        getattr(v, "__module__", None) or getattr(v, "__name__", "")
+        for v in vars(home).values()
+        if inspect.ismodule(v) or inspect.isclass(v) or inspect.isfunction(v)
+    }
     h = hashlib.sha1()
     for name in sorted(n for n in names if n and n.split(".")[0] == top and top != "harness"):
         path = getattr(sys.modules.get(name), "__file__", None)

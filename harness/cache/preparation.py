@@ -67,15 +67,23 @@ def open_source(dataset: str | DatasetSpec, cfg: Mapping[str, Any]) -> tuple[Dat
     unknown = [k for k in options if k not in params and not takes_any]
     if unknown:
         known = [p for p in params if p not in ("root", "self") and params[p].kind is not inspect.Parameter.VAR_KEYWORD]
-        raise ConfigError(f"dataset {spec.name!r} does not take option(s) {', '.join(map(repr, unknown))} "
-                          f"(dataset.<option>); it takes: root, {', '.join(known) or 'nothing else'}")
+        raise ConfigError(
+            f"dataset {spec.name!r} does not take option(s) {', '.join(map(repr, unknown))} "
+            f"(dataset.<option>); it takes: root, {', '.join(known) or 'nothing else'}"
+        )
     label = plugin_label(spec)
     source = contracts.plugin_call(label, "open()", spec.open, root, **options)
     return spec, contracts.check_source(source, label)
 
 
-def prepare(dataset: str | DatasetSpec, cfg: Mapping[str, Any], cache_root: str | Path | None = None,
-            force: bool = False, progress: bool = True, form: str | None = None) -> PreparedDataset:
+def prepare(
+    dataset: str | DatasetSpec,
+    cfg: Mapping[str, Any],
+    cache_root: str | Path | None = None,
+    force: bool = False,
+    progress: bool = True,
+    form: str | None = None,
+) -> PreparedDataset:
     """Prepared samples of ``dataset`` under the current config (prepared now if not cached), in cache ``form``
     (``compact`` or ``raw``, default ``$HARNESS_CACHE_FORM`` or ``compact``): every form loads identical samples.
 
@@ -122,8 +130,9 @@ def cached(dataset: str, key: str, cache_root: str | Path | None = None) -> Prep
     return None
 
 
-def _checked(spec: DatasetSpec, ds: PreparedDataset, cfg: Mapping[str, Any], key: str,
-             from_cache: bool) -> PreparedDataset:
+def _checked(
+    spec: DatasetSpec, ds: PreparedDataset, cfg: Mapping[str, Any], key: str, from_cache: bool
+) -> PreparedDataset:
     """The COCO files of the folds written, the plausibility guard passed (``harness.input_guard``: an unaccepted
     finding is a ``DataError``), and the extra attributes set: ``from_cache``, ``key`` and ``input_risks`` (the
     accepted findings, as dicts, that label every result on these samples)."""
@@ -153,14 +162,21 @@ def _reference_bases(source: Any) -> list[Path]:
     return out
 
 
-def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: str, sensing: dict[str, Any],
-           progress: bool, form: str = DEFAULT_FORM) -> PreparedDataset:
+def _build(
+    spec: DatasetSpec,
+    source: Any,
+    folder: Path,
+    key: str,
+    fingerprint: str,
+    sensing: dict[str, Any],
+    progress: bool,
+    form: str = DEFAULT_FORM,
+) -> PreparedDataset:
     report = PrepareReport()
     label = plugin_label(spec)
     folds = [asdict(f) for f in contracts.check_folds(contracts.plugin_call(label, "folds()", source.folds), label)]
     groups = contracts.check_groups(contracts.plugin_call(label, "groups()", source.groups), label)
-    extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": groups, "folds": folds,
-             "sensing": sensing}
+    extra = {"key": key, "prepare_version": PREPARE_VERSION, "groups": groups, "folds": folds, "sensing": sensing}
     total = len(source) if hasattr(source, "__len__") else None
     missing: dict[str, int] = {}
     routes: dict[str, Any] = {}
@@ -172,9 +188,16 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
     bases = _reference_bases(source)
     if bases:
         extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
-    writer = PreparedWriter(folder, spec.name, categories, fingerprint=fingerprint, extra=extra, form=form,
-                            sources=bases if form == "compact" else (),
-                            pixel_files=getattr(source, "pixel_files", None))
+    writer = PreparedWriter(
+        folder,
+        spec.name,
+        categories,
+        fingerprint=fingerprint,
+        extra=extra,
+        form=form,
+        sources=bases if form == "compact" else (),
+        pixel_files=getattr(source, "pixel_files", None),
+    )
     seen: dict[int, str] = {}
     try:
         with progress_bar(f"preparing {spec.name}", total, enabled=progress, eta=True, transient=False) as bar:
@@ -191,20 +214,27 @@ def _build(spec: DatasetSpec, source: Any, folder: Path, key: str, fingerprint: 
                 bar.advance()
         if not writer.records:
             summary = report.summary()
-            raise DataError(f"dataset {spec.name!r}: no usable image pairs ({summary['skipped']} skipped: "
-                            f"{_reasons_text(summary['skip_reasons'])}); nothing was cached")
+            raise DataError(
+                f"dataset {spec.name!r}: no usable image pairs ({summary['skipped']} skipped: "
+                f"{_reasons_text(summary['skip_reasons'])}); nothing was cached"
+            )
         if hasattr(source, "write_artifacts"):
             contracts.plugin_call(label, "write_artifacts()", source.write_artifacts, writer.tmp)
         summary = report.summary()
         summary["skipped_files"] = [list(s) for s in report.skipped[:MAX_LISTED_SKIPS]]
-        summary["missing_temperatures"] = {"samples": len(missing), "pixels": sum(missing.values()),
-                                           "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS])}
+        summary["missing_temperatures"] = {
+            "samples": len(missing),
+            "pixels": sum(missing.values()),
+            "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS]),
+        }
         if routes:
             summary.update(routes)
             if "approximate_temperatures" in routes:
                 a = routes["approximate_temperatures"]
-                report.note(f"{a['samples']} sample(s) hold approximate temperatures (within {a['bound_c']:g} C of "
-                            f"DJI's SDK at worst: {', '.join(a['approximations'])}); results on them say so")
+                report.note(
+                    f"{a['samples']} sample(s) hold approximate temperatures (within {a['bound_c']:g} C of "
+                    f"DJI's SDK at worst: {', '.join(a['approximations'])}); results on them say so"
+                )
                 summary["notes"] = list(report.notes)
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         writer.close(summary)
@@ -231,8 +261,9 @@ def _plugin_samples(label: str, source: Any, report: PrepareReport) -> Iterable[
     except (HarnessError, KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:
-        raise PluginError(f"{label}: samples() raised {type(exc).__name__}: {exc}{where(exc)}; "
-                          f"nothing was cached") from exc
+        raise PluginError(
+            f"{label}: samples() raised {type(exc).__name__}: {exc}{where(exc)}; nothing was cached"
+        ) from exc
 
 
 def _sample_where(sample: Any) -> Any:
@@ -260,8 +291,10 @@ def _count_route(routes: dict[str, Any], sample: Any) -> None:
     meta = sample.meta if isinstance(sample.meta, dict) else {}
     route = meta.get("thermal_route")
     if route == "approximate":
-        a = routes.setdefault("approximate_temperatures", {"label": "approximate temperatures", "samples": 0,
-                                                           "bound_c": 0.0, "approximations": []})
+        a = routes.setdefault(
+            "approximate_temperatures",
+            {"label": "approximate temperatures", "samples": 0, "bound_c": 0.0, "approximations": []},
+        )
         a["samples"] += 1
         a["bound_c"] = max(a["bound_c"], float(meta.get("temperature_bound_c") or 0.0))
         if meta.get("approximation") and meta["approximation"] not in a["approximations"]:

@@ -51,8 +51,10 @@ class PreparedDataset:
             raise DataError(f"{self.folder}: not a prepared dataset (no manifest.json); run `harness prepare`")
         self.manifest = read_json(manifest_path)
         if self.manifest.get("schema") != PREPARED_SCHEMA:
-            raise DataError(f"{manifest_path}: prepared-data schema {self.manifest.get('schema')}, expected "
-                            f"{PREPARED_SCHEMA}; prepare again")
+            raise DataError(
+                f"{manifest_path}: prepared-data schema {self.manifest.get('schema')}, expected "
+                f"{PREPARED_SCHEMA}; prepare again"
+            )
         self.records: list[dict[str, Any]] = read_json(self.folder / "samples.json")
         self.categories: list[str] = list(self.manifest["categories"])
         self.name: str = self.manifest["dataset"]
@@ -94,10 +96,16 @@ class PreparedDataset:
         if self.radiometric:
             sizes["thermal.f32"] = px * 4
         if self.form != "raw":
-            ends = {name: max([sum(r[ch]) for r in self.records if ch in r], default=0)
-                    for name, ch in (("rgb.pack", "rgb"), ("ir8.pack", "ir8"), ("thermal.pack", "thermal"))}
-            sizes = {"boxes.f32": nb * 16, "labels.i64": nb * 8, "rgb.pack": ends["rgb.pack"],
-                     "ir8.pack": ends["ir8.pack"]}
+            ends = {
+                name: max([sum(r[ch]) for r in self.records if ch in r], default=0)
+                for name, ch in (("rgb.pack", "rgb"), ("ir8.pack", "ir8"), ("thermal.pack", "thermal"))
+            }
+            sizes = {
+                "boxes.f32": nb * 16,
+                "labels.i64": nb * 8,
+                "rgb.pack": ends["rgb.pack"],
+                "ir8.pack": ends["ir8.pack"],
+            }
             if self.radiometric:
                 sizes["thermal.pack"] = ends["thermal.pack"]
             if self.codec == "zstd":
@@ -134,8 +142,11 @@ class PreparedDataset:
         r = self.records[i]
         h, w, px = r["height"], r["width"], r["px"]
         if self.form == "raw":
-            return (self._rgb[px * 3:(px + h * w) * 3].reshape(h, w, 3), self._ir8[px:px + h * w].reshape(h, w),
-                    None if self._thermal is None else self._thermal[px:px + h * w].reshape(h, w))
+            return (
+                self._rgb[px * 3 : (px + h * w) * 3].reshape(h, w, 3),
+                self._ir8[px : px + h * w].reshape(h, w),
+                None if self._thermal is None else self._thermal[px : px + h * w].reshape(h, w),
+            )
         if "src" in r:
             ref = r["src"]
             rgb, ir8 = CF.load_reference(self.sources[ref["base"]], ref, (h, w), (i, "ir8") not in self._verified)
@@ -166,7 +177,7 @@ class PreparedDataset:
 
     @staticmethod
     def _chunk(arr: np.ndarray, at: Sequence[int]) -> np.ndarray:
-        return arr[at[0]:at[0] + at[1]]
+        return arr[at[0] : at[0] + at[1]]
 
     def verify(self, indices: Iterable[int] | None = None) -> list[str]:
         """Decode every sample (all when None) and check referenced source files; the errors, one per sample."""
@@ -190,8 +201,8 @@ class PreparedDataset:
             rgb=rgb,
             thermal=thermal,
             ir8=ir8,
-            boxes=self._boxes[b * 4:(b + n) * 4].reshape(n, 4),
-            labels=self._labels[b:b + n],
+            boxes=self._boxes[b * 4 : (b + n) * 4].reshape(n, 4),
+            labels=self._labels[b : b + n],
             group=r["group"],
             meta=r["meta"],
         )
@@ -207,7 +218,7 @@ class PreparedDataset:
         """(boxes, labels) of sample ``i`` without touching the image arrays."""
         r = self.records[i]
         b, n = r["box"], r["n"]
-        return self._boxes[b * 4:(b + n) * 4].reshape(n, 4), self._labels[b:b + n]
+        return self._boxes[b * 4 : (b + n) * 4].reshape(n, 4), self._labels[b : b + n]
 
     # ------------------------------------------------------------------ encodings
     def channel(self, i: int, encoding: Any, params: dict[str, Any] | None = None) -> np.ndarray | None:
@@ -218,7 +229,7 @@ class PreparedDataset:
         if self.form != "raw":
             return self._compact_channel(i, encoding, params or {})
         arr = self._encoded(encoding, params or {})
-        return arr[r["px"]:r["px"] + r["height"] * r["width"]].reshape(r["height"], r["width"])
+        return arr[r["px"] : r["px"] + r["height"] * r["width"]].reshape(r["height"], r["width"])
 
     def _compact_channel(self, i: int, encoding: Any, params: dict[str, Any]) -> np.ndarray:
         """Compact form: the encoding is either stored (compressed per sample) or recomputed from the decoded sample,
@@ -232,8 +243,14 @@ class PreparedDataset:
             return _frozen(encoding.encode(self[i], **params))
         pack, idx = store  # type: ignore[misc]
         at = idx[i]
-        return _frozen(CF.decode_u8(pack[int(at[0]):int(at[0]) + int(at[1])], (r["height"], r["width"]),
-                                    f"{self.folder / 'enc' / key}.pack sample {r['image_id']}", self.codec))
+        return _frozen(
+            CF.decode_u8(
+                pack[int(at[0]) : int(at[0]) + int(at[1])],
+                (r["height"], r["width"]),
+                f"{self.folder / 'enc' / key}.pack sample {r['image_id']}",
+                self.codec,
+            )
+        )
 
     def _compact_encoded(self, key: str, encoding: Any, params: dict[str, Any], full: dict[str, Any]) -> Any:
         info_path = self.folder / "enc" / f"{key}.json"
@@ -262,6 +279,7 @@ class PreparedDataset:
                         f.write(data)
                         offsets[i] = (pos, len(data))
                         pos += len(data)
+
                 atomic_write(pack_path, write)
                 atomic_write(idx_path, lambda f: f.write(offsets.astype("<i8").tobytes()))
             ms = {"compute": round(t_enc * 1e3, 3), "decode": round(t_dec * 1e3, 3)}
@@ -277,9 +295,11 @@ class PreparedDataset:
             return self._enc[key]
         path = self.folder / "enc" / f"{key}.u8"
         if not path.exists():
+
             def write(f: Any) -> None:
                 for s in self:
                     f.write(np.ascontiguousarray(encoding.encode(s, **params)).tobytes())
+
             atomic_write(path, write)
             atomic_write_json(path.with_suffix(".json"), {"encoding": encoding.name, "params": full})
         self._enc[key] = self._map(f"enc/{key}.u8", np.uint8)
@@ -293,17 +313,36 @@ class PreparedDataset:
         ann_id = 1
         for i in idx:
             r = self.records[i]
-            images.append({"id": int(r["image_id"]), "width": r["width"], "height": r["height"],
-                           "file_name": str(r["meta"].get("file_name", r["image_id"])), "group": r["group"]})
+            images.append(
+                {
+                    "id": int(r["image_id"]),
+                    "width": r["width"],
+                    "height": r["height"],
+                    "file_name": str(r["meta"].get("file_name", r["image_id"])),
+                    "group": r["group"],
+                }
+            )
             boxes, labels = self.targets(i)
             for (x1, y1, x2, y2), lab in zip(boxes.tolist(), labels.tolist()):
                 w, h = x2 - x1, y2 - y1
-                anns.append({"id": ann_id, "image_id": int(r["image_id"]), "category_id": int(lab) + 1,
-                             "bbox": [x1, y1, w, h], "area": w * h, "iscrowd": 0})
+                anns.append(
+                    {
+                        "id": ann_id,
+                        "image_id": int(r["image_id"]),
+                        "category_id": int(lab) + 1,
+                        "bbox": [x1, y1, w, h],
+                        "area": w * h,
+                        "iscrowd": 0,
+                    }
+                )
                 ann_id += 1
         cats = [{"id": k + 1, "name": n} for k, n in enumerate(self.categories)]
-        return {"info": {"dataset": self.name, "frame": "thermal"}, "images": images, "annotations": anns,
-                "categories": cats}
+        return {
+            "info": {"dataset": self.name, "frame": "thermal"},
+            "images": images,
+            "annotations": anns,
+            "categories": cats,
+        }
 
     def support(self, indices: Sequence[int] | None = None) -> dict[str, Any]:
         """Images and instances (per category) of a subset: the 'support' recorded with every number."""
@@ -312,5 +351,8 @@ class PreparedDataset:
         for i in idx:
             _, labels = self.targets(i)
             counts += np.bincount(np.asarray(labels), minlength=len(self.categories))[: len(self.categories)]
-        return {"images": len(idx), "instances": int(counts.sum()),
-                "categories": {n: int(c) for n, c in zip(self.categories, counts)}}
+        return {
+            "images": len(idx),
+            "instances": int(counts.sum()),
+            "categories": {n: int(c) for n, c in zip(self.categories, counts)},
+        }

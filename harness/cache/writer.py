@@ -37,9 +37,17 @@ from harness.io import atomic_write_json, make_temp_dir
 class PreparedWriter:
     """Write samples into ``folder`` (created atomically on ``close``). Use as a context manager."""
 
-    def __init__(self, folder: str | Path, dataset: str, categories: Sequence[str], fingerprint: str = "",
-                 extra: dict[str, Any] | None = None, form: str = "raw", sources: Sequence[str | Path] = (),
-                 pixel_files: Any = None):
+    def __init__(
+        self,
+        folder: str | Path,
+        dataset: str,
+        categories: Sequence[str],
+        fingerprint: str = "",
+        extra: dict[str, Any] | None = None,
+        form: str = "raw",
+        sources: Sequence[str | Path] = (),
+        pixel_files: Any = None,
+    ):
         """``form``: ``raw`` or ``compact``; ``sources``: folders whose files an 8-bit sample may reference
         (compact form); ``pixel_files(sample) -> (rgb path, thermal path) | None``: the dataset's own answer."""
         self.folder = Path(folder)
@@ -83,10 +91,19 @@ class PreparedWriter:
         self._files["boxes.f32"].write(np.ascontiguousarray(sample.boxes).tobytes())
         self._files["labels.i64"].write(np.ascontiguousarray(sample.labels).tobytes())
         n = int(len(sample.boxes))
-        self.records.append({
-            "image_id": int(sample.image_id), "group": sample.group, "height": h, "width": w,
-            "px": self._px, "box": self._nbox, "n": n, "meta": sample.meta, **packed,
-        })
+        self.records.append(
+            {
+                "image_id": int(sample.image_id),
+                "group": sample.group,
+                "height": h,
+                "width": w,
+                "px": self._px,
+                "box": self._nbox,
+                "n": n,
+                "meta": sample.meta,
+                **packed,
+            }
+        )
         self._ids.add(int(sample.image_id))
         self._px += h * w
         self._nbox += n
@@ -124,10 +141,17 @@ class PreparedWriter:
         (self.tmp / "enc").mkdir(exist_ok=True)
         atomic_write_json(self.tmp / "samples.json", self.records, indent=None)
         manifest = {
-            "schema": PREPARED_SCHEMA, "dataset": self.dataset, "categories": self.categories,
-            "fingerprint": self.fingerprint, "count": len(self.records), "instances": self._nbox,
-            "radiometric": bool(self._has_thermal), "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            "report": report or {}, "form": self.form, **self.extra,
+            "schema": PREPARED_SCHEMA,
+            "dataset": self.dataset,
+            "categories": self.categories,
+            "fingerprint": self.fingerprint,
+            "count": len(self.records),
+            "instances": self._nbox,
+            "radiometric": bool(self._has_thermal),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "report": report or {},
+            "form": self.form,
+            **self.extra,
         }
         if self.form != "raw":
             manifest["codec"] = {"u8": self.codec, "thermal": "table+png16"}

@@ -15,10 +15,19 @@ def register_commands(cli: click.Group) -> None:
     def cache_group() -> None:
         """The prepared-sample cache ($HARNESS_CACHE or ./cache): list, verify, rm."""
 
-    root_option = click.option("--cache", type=click.Path(file_okay=False, path_type=Path), default=None,
-                               help="Cache folder (default: $HARNESS_CACHE or ./cache).")
-    days_option = click.option("--days", type=float, default=30.0, show_default=True,
-                               help="A prepared dataset not used for this many days counts as unused.")
+    root_option = click.option(
+        "--cache",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=None,
+        help="Cache folder (default: $HARNESS_CACHE or ./cache).",
+    )
+    days_option = click.option(
+        "--days",
+        type=float,
+        default=30.0,
+        show_default=True,
+        help="A prepared dataset not used for this many days counts as unused.",
+    )
 
     @cache_group.command(name="list")
     @root_option
@@ -46,8 +55,10 @@ def register_commands(cli: click.Group) -> None:
             raise ConfigError("name the prepared dataset(s) to remove, or pass --unused (not both)")
         picked = select(entries(cache_root(cache), days), list(names), unused)
         for e in picked:
-            click.echo(f"{'would remove' if dry_run else 'removing'} {e.ref} ({human(e.bytes)})"
-                       + (f": {e.why_unused}" if e.why_unused else ""))
+            click.echo(
+                f"{'would remove' if dry_run else 'removing'} {e.ref} ({human(e.bytes)})"
+                + (f": {e.why_unused}" if e.why_unused else "")
+            )
         total = sum(e.bytes for e in picked)
         freed = total if dry_run else remove(picked)
         click.echo(f"{'would free' if dry_run else 'freed'} {human(freed)} ({len(picked)} prepared dataset(s))")

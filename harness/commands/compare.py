@@ -20,15 +20,30 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--datasets", required=True, help="Comma-separated datasets, in table order (e.g. m3t,rgbt-tiny).")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @click.option("--safit", is_flag=True,
-                  help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions.")
-    @click.option("--allow-mismatched", is_flag=True,
-                  help="Print rows scored on different supports, marked '!', instead of refusing.")
+    @click.option(
+        "--safit", is_flag=True, help="Add SAFit-AP50 and SAFit-AP50:95, re-scored from the stored predictions."
+    )
+    @click.option(
+        "--allow-mismatched",
+        is_flag=True,
+        help="Print rows scored on different supports, marked '!', instead of refusing.",
+    )
     @opt.format_option("text", "json", "md", "csv", aliases={"markdown": "md"})
-    @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-                  help="Also write the table to this file.")
-    def compare_cmd(datasets: str, store: Path | None, profile: str | None, safit: bool, allow_mismatched: bool,
-                    fmt: str, out: Path | None) -> None:
+    @click.option(
+        "--out",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        help="Also write the table to this file.",
+    )
+    def compare_cmd(
+        datasets: str,
+        store: Path | None,
+        profile: str | None,
+        safit: bool,
+        allow_mismatched: bool,
+        fmt: str,
+        out: Path | None,
+    ) -> None:
         """Compare detectors across datasets on identical supports.
 
         One row per dataset, annotation source (T or RGB), detector and encoding, read from finished runs in the

@@ -35,9 +35,11 @@ def _records(host: Any, kind: str, specs: Any) -> list[dict[str, Any]]:
 
 def listing(host: Any) -> dict[str, list[dict[str, Any]]]:
     """Detectors, datasets and encodings as plain records (what ``harness list --format json`` prints)."""
-    return {"detectors": _records(host, "detector", host.detectors().values()),
-            "datasets": _records(host, "dataset", host.datasets().values()),
-            "encodings": _records(host, "encoding", host.encodings().values())}
+    return {
+        "detectors": _records(host, "detector", host.detectors().values()),
+        "datasets": _records(host, "dataset", host.datasets().values()),
+        "encodings": _records(host, "encoding", host.encodings().values()),
+    }
 
 
 def format_listing(data: dict[str, list[dict[str, Any]]]) -> str:

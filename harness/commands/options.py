@@ -57,15 +57,17 @@ class SharedOption(click.Option):
     """A ``click.Option`` that knows its place in the vocabulary (``shared``: its name there, ``None`` for a
     command's own option) and its deprecated spellings (``old``: old argv token -> the tokens that replace it)."""
 
-    def __init__(self, *args: Any, shared: str | None = None,
-                 old: Mapping[str, Sequence[str]] | None = None, **kwargs: Any):
+    def __init__(
+        self, *args: Any, shared: str | None = None, old: Mapping[str, Sequence[str]] | None = None, **kwargs: Any
+    ):
         super().__init__(*args, **kwargs)
         self.shared = shared
         self.old = {k: tuple(v) for k, v in (old or {}).items()}
 
 
-def option(*decls: str, shared: str | None = None, old: Sequence[str] | Mapping[str, Sequence[str]] = (),
-           **kwargs: Any) -> Callable[[F], F]:
+def option(
+    *decls: str, shared: str | None = None, old: Sequence[str] | Mapping[str, Sequence[str]] = (), **kwargs: Any
+) -> Callable[[F], F]:
     """``click.option`` with deprecated spellings: ``old=("--fold",)`` renames to this option's first long name;
     a mapping (``{"--json": ("--format", "json")}``) gives the replacement tokens."""
     new = next(d for d in decls if d.startswith("--"))
@@ -78,40 +80,82 @@ def _join(*parts: str | None) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ the vocabulary
-def folds_option(*, one: bool = False, required: bool = False, default: str | None = "all", help: str | None = None,
-                 old: Sequence[str] = ()) -> Callable[[F], F]:
+def folds_option(
+    *,
+    one: bool = False,
+    required: bool = False,
+    default: str | None = "all",
+    help: str | None = None,
+    old: Sequence[str] = (),
+) -> Callable[[F], F]:
     """``--folds`` -> parameter ``folds`` (a string: ``all``, ``P1`` or ``P1,P4+P5``). ``one=True``: the command
     works on one fold, and a comma is a usage error."""
-    text = help or ("The one held-out fold to use, e.g. P4+P5." if one
-                    else "Held-out folds: 'all' or comma-separated fold names, e.g. P1,P4+P5.")
+    text = help or (
+        "The one held-out fold to use, e.g. P4+P5."
+        if one
+        else "Held-out folds: 'all' or comma-separated fold names, e.g. P1,P4+P5."
+    )
 
     def check(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
         if one and value is not None and "," in value:
             raise click.BadParameter(f"{value!r}: this command works on one fold; give one name, e.g. P4+P5")
         return value
 
-    return option("--folds", "folds", shared="folds", old=old, required=required,
-                  default=None if required else default, show_default=default is not None and not required,
-                  callback=check, metavar="FOLD" if one else "FOLDS", help=text)
+    return option(
+        "--folds",
+        "folds",
+        shared="folds",
+        old=old,
+        required=required,
+        default=None if required else default,
+        show_default=default is not None and not required,
+        callback=check,
+        metavar="FOLD" if one else "FOLDS",
+        help=text,
+    )
 
 
-def seeds_option(*, one: bool = False, default: str | int | None = None, help: str | None = None,
-                 old: Sequence[str] = ()) -> Callable[[F], F]:
+def seeds_option(
+    *, one: bool = False, default: str | int | None = None, help: str | None = None, old: Sequence[str] = ()
+) -> Callable[[F], F]:
     """``--seeds`` -> parameter ``seeds``: training seeds, a comma-separated string (``None``: the protocol's, or all
     runs' for a filter). ``one=True``: one seed, as an ``int`` (or ``None`` when not given and no ``default``)."""
     if one:
-        return option("--seeds", "seeds", shared="seeds", old=old, type=int,
-                      default=None if default is None else int(default), show_default=default is not None,
-                      metavar="SEED", help=help or "The training seed.")
-    return option("--seeds", "seeds", shared="seeds", old=old, default=default, show_default=default is not None,
-                  metavar="SEEDS",
-                  help=help or "Training seeds, comma-separated, e.g. 0,1,2 [default: protocol.seeds].")
+        return option(
+            "--seeds",
+            "seeds",
+            shared="seeds",
+            old=old,
+            type=int,
+            default=None if default is None else int(default),
+            show_default=default is not None,
+            metavar="SEED",
+            help=help or "The training seed.",
+        )
+    return option(
+        "--seeds",
+        "seeds",
+        shared="seeds",
+        old=old,
+        default=default,
+        show_default=default is not None,
+        metavar="SEEDS",
+        help=help or "Training seeds, comma-separated, e.g. 0,1,2 [default: protocol.seeds].",
+    )
 
 
 def bootstrap_seed_option(*, old: Sequence[str] = ()) -> Callable[[F], F]:
     """``--bootstrap-seed`` -> parameter ``bootstrap_seed`` (int, default 0)."""
-    return option("--bootstrap-seed", "bootstrap_seed", shared="bootstrap-seed", old=old, type=int, default=0,
-                  show_default=True, help="Seed of the paired bootstrap's resamples (same seed, same intervals).")
+    return option(
+        "--bootstrap-seed",
+        "bootstrap_seed",
+        shared="bootstrap-seed",
+        old=old,
+        type=int,
+        default=0,
+        show_default=True,
+        help="Seed of the paired bootstrap's resamples (same seed, same intervals).",
+    )
 
 
 class _FormatChoice(click.Choice):
@@ -132,8 +176,9 @@ class _FormatChoice(click.Choice):
 _FORMAT_WORDS = {"text": "text (aligned, 100 columns)", "json": "json", "md": "md (Markdown)", "csv": "csv"}
 
 
-def format_option(*formats: str, default: str = "text", old_json: bool = False,
-                  aliases: Mapping[str, str] | None = None) -> Callable[[F], F]:
+def format_option(
+    *formats: str, default: str = "text", old_json: bool = False, aliases: Mapping[str, str] | None = None
+) -> Callable[[F], F]:
     """``--format`` -> parameter ``fmt``: what the command prints on stdout, one of ``formats`` (a subset of
     ``FORMATS``). ``old_json=True`` keeps ``--json`` as a deprecated spelling of ``--format json``."""
     bad = [f for f in formats if f not in FORMATS]
@@ -142,8 +187,16 @@ def format_option(*formats: str, default: str = "text", old_json: bool = False,
     ordered = [f for f in FORMATS if f in formats]
     words = ", ".join(_FORMAT_WORDS[f] for f in ordered[:-1]) + f" or {_FORMAT_WORDS[ordered[-1]]}"
     old = {"--json": ("--format", "json")} if old_json and "json" in formats else {}
-    return option("--format", "fmt", shared="format", old=old, type=_FormatChoice(ordered, aliases or {}),
-                  default=default, show_default=True, help=f"What to print on stdout: {words}.")
+    return option(
+        "--format",
+        "fmt",
+        shared="format",
+        old=old,
+        type=_FormatChoice(ordered, aliases or {}),
+        default=default,
+        show_default=True,
+        help=f"What to print on stdout: {words}.",
+    )
 
 
 def no_progress_option() -> Callable[[F], F]:
@@ -157,24 +210,34 @@ def no_progress_option() -> Callable[[F], F]:
             token = progress.switch_off()
             ctx.call_on_close(lambda: progress.switch_back(token))
 
-    return option("--no-progress", shared="no-progress", is_flag=True, expose_value=False, callback=switch,
-                  help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).")
+    return option(
+        "--no-progress",
+        shared="no-progress",
+        is_flag=True,
+        expose_value=False,
+        callback=switch,
+        help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).",
+    )
 
 
 def profile_option(*, uses_config: bool = True, param: str = "profile", help: str | None = None) -> Callable[[F], F]:
     """``--profile`` (default ``smoke``) -> parameter ``profile`` (or ``param``). ``uses_config=False``: the command
     uses the profile only for its default store."""
-    text = help or ("Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also "
-                    "names the default store, results/<profile>." if uses_config else
-                    "Run profile whose results store (results/<profile>) is used when --store is not given.")
+    text = help or (
+        "Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also "
+        "names the default store, results/<profile>."
+        if uses_config
+        else "Run profile whose results store (results/<profile>) is used when --store is not given."
+    )
     return option("--profile", param, shared="profile", default=DEFAULT_PROFILE, show_default=True, help=text)
 
 
 def store_option(*, reads: bool = False, help: str | None = None) -> Callable[[F], F]:
     """``--store`` -> parameter ``store`` (a ``Path`` or ``None``; ``resolve_store`` applies the default rule)."""
     text = help or _join("Results store root" + (" to read" if reads else ""), "[default: results/<profile>].")
-    return option("--store", "store", shared="store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help=text)
+    return option(
+        "--store", "store", shared="store", type=click.Path(file_okay=False, path_type=Path), default=None, help=text
+    )
 
 
 def config_options(*, help_set: str | None = None, after_profile: bool = True) -> Callable[[F], F]:
@@ -182,10 +245,22 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
     where = ", applied after the profile" if after_profile else ""
 
     def deco(f: F) -> F:
-        f = option("--set", "overrides", shared="set", multiple=True, metavar="KEY=VALUE",
-                   help=help_set or "Override one config key, e.g. --set protocol.epochs=5 (repeatable).")(f)
-        return option("--config", "config_files", shared="config", multiple=True, type=click.Path(dir_okay=False),
-                      help=f"Extra YAML config file(s){where} (repeatable).")(f)
+        f = option(
+            "--set",
+            "overrides",
+            shared="set",
+            multiple=True,
+            metavar="KEY=VALUE",
+            help=help_set or "Override one config key, e.g. --set protocol.epochs=5 (repeatable).",
+        )(f)
+        return option(
+            "--config",
+            "config_files",
+            shared="config",
+            multiple=True,
+            type=click.Path(dir_okay=False),
+            help=f"Extra YAML config file(s){where} (repeatable).",
+        )(f)
 
     return deco
 

@@ -12,12 +12,18 @@ from harness.hookspecs import hookimpl
 
 def summary_line(info: dict) -> str:
     lay = info["layout"]
-    parts = [lay["family"], f"scale {lay['scale'] or '?'}", f"nc {lay['nc'] if lay['nc'] is not None else '?'}",
-             f"{lay['in_channels'] or '?'} input channel(s)"]
+    parts = [
+        lay["family"],
+        f"scale {lay['scale'] or '?'}",
+        f"nc {lay['nc'] if lay['nc'] is not None else '?'}",
+        f"{lay['in_channels'] or '?'} input channel(s)",
+    ]
     if lay["two_stream"]:
         parts.append("two streams")
-    return (f"{info['tensors']} tensors, {info['parameters'] / 1e6:.2f} M values from {info['weights_from']!r} "
-            f"({', '.join(parts)})")
+    return (
+        f"{info['tensors']} tensors, {info['parameters'] / 1e6:.2f} M values from {info['weights_from']!r} "
+        f"({', '.join(parts)})"
+    )
 
 
 @hookimpl

@@ -63,7 +63,8 @@ def load(path: str | Path) -> dict[str, Any]:
     except HarnessError as exc:  # unreadable, truncated, or asking for more than the file's size allows
         raise CheckpointError(str(exc)) from None
     if not isinstance(obj, dict):
-        raise CheckpointError(f"{path}: expected a dictionary (a state dict or a harness checkpoint), got {type(obj).__name__}")
+        raise CheckpointError(f"{path}: expected a dictionary (a state dict or a harness checkpoint), "
+                              f"got {type(obj).__name__}")
     return obj
 
 
@@ -130,7 +131,8 @@ def load_matching(model: nn.Module, state: Mapping[str, torch.Tensor]) -> dict[s
 def init_from(model: nn.Module, path: str | Path,
               load_official: Callable[[nn.Module, Mapping[str, Any]], dict] | None = None) -> dict[str, Any]:
     """Initialise ``model`` from a checkpoint (``--init``): the detector's own importer when it has one (it knows
-    its official layout, e.g. inflating a 3-channel stem to 4 channels), else every tensor matching by name and shape."""
+    its official layout, e.g. inflating a 3-channel stem to 4 channels), else every tensor matching by name and
+    shape."""
     try:
         state = state_dict_of(load(path))
     except CheckpointError as exc:
@@ -147,5 +149,6 @@ def init_from(model: nn.Module, path: str | Path,
                 f"is it a checkpoint of this detector?"
             )
     report["path"] = str(path)
-    log.info("initialised from %s (%s)", path, ", ".join(f"{k}={v if not isinstance(v, list) else len(v)}" for k, v in report.items() if k != "path"))
+    counts = (f"{k}={v if not isinstance(v, list) else len(v)}" for k, v in report.items() if k != "path")
+    log.info("initialised from %s (%s)", path, ", ".join(counts))
     return report

@@ -241,7 +241,8 @@ def collate(items: list[dict[str, Any]]) -> Batch:
 
 
 def to_inputs(images: torch.Tensor, input_kind: str = "single", thermal_channels: int = 3,
-              device: torch.device | str = "cpu", channels_last: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+              device: torch.device | str = "cpu",
+              channels_last: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """uint8 ``[B, C, H, W]`` -> the detector's inputs, floats in 0..1 (see the module docstring)."""
     x = images.to(device, non_blocking=True).float().div_(255.0)
     if input_kind == "single":

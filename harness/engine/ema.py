@@ -23,8 +23,9 @@ def ema_decay(updates: int, decay: float = 0.9999, tau: float = 2000.0) -> float
 
 
 class ModelEMA:
-    def __init__(self, model: nn.Module, decay: float = 0.9999, tau: float = 2000.0, updates: int = 0,
-                 flat: Any = None):
+    def __init__(
+        self, model: nn.Module, decay: float = 0.9999, tau: float = 2000.0, updates: int = 0, flat: Any = None
+    ):
         self.module = copy.deepcopy(unwrap(model)).eval()
         for p in self.module.parameters():
             p.requires_grad_(False)

@@ -117,6 +117,7 @@ class FlatState:
     def _marker(self, i: int) -> Any:
         def mark(_: torch.Tensor) -> None:
             self.touched[i] = True
+
         return mark
 
     @staticmethod
@@ -222,8 +223,14 @@ class FlatOptimizer:
         """Why ``opt`` cannot be stepped here (None when it can): only the plain AdamW and (Nesterov) SGD."""
         if isinstance(opt, torch.optim.AdamW):
             for g in opt.param_groups:
-                if g.get("amsgrad") or g.get("maximize") or g.get("capturable") or g.get("differentiable") \
-                        or g.get("fused") or not g.get("decoupled_weight_decay", True):
+                if (
+                    g.get("amsgrad")
+                    or g.get("maximize")
+                    or g.get("capturable")
+                    or g.get("differentiable")
+                    or g.get("fused")
+                    or not g.get("decoupled_weight_decay", True)
+                ):
                     return "AdamW with amsgrad/maximize/capturable/differentiable/fused options"
             return None
         if type(opt) is torch.optim.SGD:
@@ -294,8 +301,11 @@ class FlatOptimizer:
                 continue
             p, start = params[i], slots[i].start
             if self.adam:
-                self.opt.state[p] = {"step": torch.tensor(0.0), "exp_avg": _view(self.exp_avg, p, start),
-                                     "exp_avg_sq": _view(self.exp_avg_sq, p, start)}
+                self.opt.state[p] = {
+                    "step": torch.tensor(0.0),
+                    "exp_avg": _view(self.exp_avg, p, start),
+                    "exp_avg_sq": _view(self.exp_avg_sq, p, start),
+                }
             else:
                 self.opt.state[p] = {"momentum_buffer": _view(self.momentum, p, start)}
             self.has_state[i] = True
@@ -311,9 +321,13 @@ class FlatOptimizer:
         bias_correction1 = 1 - beta1 ** float(step)
         bias_correction2 = 1 - beta2 ** float(step)
         step_size = lr / bias_correction1
-        bias_correction2_sqrt = bias_correction2 ** 0.5
-        p_all, g_all, m_all, v_all = self.flat.buffers[self.flat.float_dtype], self.flat.grads, self.exp_avg, \
-            self.exp_avg_sq
+        bias_correction2_sqrt = bias_correction2**0.5
+        p_all, g_all, m_all, v_all = (
+            self.flat.buffers[self.flat.float_dtype],
+            self.flat.grads,
+            self.exp_avg,
+            self.exp_avg_sq,
+        )
         for c0, c1 in chunks(s, e):
             param, grad, exp_avg, exp_avg_sq = p_all[c0:c1], g_all[c0:c1], m_all[c0:c1], v_all[c0:c1]
             if wd != 0:

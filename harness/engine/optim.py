@@ -65,7 +65,9 @@ def scaled_weight_decay(weight_decay: float, batch: int, accumulate: int, nomina
     return weight_decay * batch * accumulate / nominal_batch
 
 
-def build_optimizer(model: nn.Module, name: str, lr0: float, momentum: float, weight_decay: float) -> torch.optim.Optimizer:
+def build_optimizer(
+    model: nn.Module, name: str, lr0: float, momentum: float, weight_decay: float
+) -> torch.optim.Optimizer:
     """SGD (Nesterov) or AdamW over the three groups; each group records its ``name`` and ``initial_lr``."""
     groups = param_groups(model)
     if not any(groups.values()):

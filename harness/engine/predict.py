@@ -80,8 +80,11 @@ class DegenerateBoxes:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``metrics.json`` records (``metrics.degenerate_detections``)."""
-        return {"returned": self.returned, **{k: int(self.counts[k]) for k in DEGENERATE},
-                "examples": {k: v for k, v in self.examples.items()}}
+        return {
+            "returned": self.returned,
+            **{k: int(self.counts[k]) for k in DEGENERATE},
+            "examples": {k: v for k, v in self.examples.items()},
+        }
 
     def check(self, detector: str, allow: bool = False) -> str | None:
         """Stop (``PluginError`` naming the detector) when most of the returned boxes were malformed
@@ -91,16 +94,26 @@ class DegenerateBoxes:
             return None
         seen = ", ".join(f"{self.counts[k]} {k.replace('_', ' ')}" for k in MALFORMED if self.counts[k])
         shown = "; ".join(f"{k} {', '.join(map(str, v))}" for k, v in self.examples.items() if k in MALFORMED)
-        text = (f"detector {detector!r}: {bad} of the {self.returned} boxes it returned in eval mode were degenerate "
-                f"({seen}; e.g. {shown})")
+        text = (
+            f"detector {detector!r}: {bad} of the {self.returned} boxes it returned in eval mode were degenerate "
+            f"({seen}; e.g. {shown})"
+        )
         if allow:
             return text + "; stored anyway because eval.allow_degenerate is set"
-        raise PluginError(text + ". Eval-mode boxes must be x1, y1, x2, y2 in input pixels (not x, y, w, h): fix the "
-                          "detector, or set eval.allow_degenerate=true to store the run labelled")
+        raise PluginError(
+            text + ". Eval-mode boxes must be x1, y1, x2, y2 in input pixels (not x, y, w, h): fix the "
+            "detector, or set eval.allow_degenerate=true to store the run labelled"
+        )
 
 
-def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: Any, num_classes: int | None = None,
-                       name: str = "model", degenerate: DegenerateBoxes | None = None) -> list[dict[str, Any]]:
+def detections_to_coco(
+    det: dict[str, torch.Tensor],
+    image_id: int,
+    letterbox: Any,
+    num_classes: int | None = None,
+    name: str = "model",
+    degenerate: DegenerateBoxes | None = None,
+) -> list[dict[str, Any]]:
     """One image's ``{"boxes", "scores", "labels"}`` (input pixels) -> COCO results in the original frame.
 
     Degenerate boxes are left out and, when ``degenerate`` is given, counted there."""
@@ -127,11 +140,25 @@ def detections_to_coco(det: dict[str, torch.Tensor], image_id: int, letterbox: A
 
 
 @torch.inference_mode()
-def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, input_kind: str = "single",
-            thermal_channels: int = 3, device: torch.device | str = "cpu", conf: float | None = None,
-            iou: float | None = None, max_det: int | None = None, num_classes: int | None = None,
-            workers: int = 0, progress: bool = False, name: str = "model", distributed: bool = False,
-            visited: list[int] | None = None, degenerate: DegenerateBoxes | None = None) -> list[dict[str, Any]]:
+def predict(
+    model: nn.Module,
+    source: SampleSource,
+    imgsz: int,
+    batch: int = 8,
+    input_kind: str = "single",
+    thermal_channels: int = 3,
+    device: torch.device | str = "cpu",
+    conf: float | None = None,
+    iou: float | None = None,
+    max_det: int | None = None,
+    num_classes: int | None = None,
+    workers: int = 0,
+    progress: bool = False,
+    name: str = "model",
+    distributed: bool = False,
+    visited: list[int] | None = None,
+    degenerate: DegenerateBoxes | None = None,
+) -> list[dict[str, Any]]:
     """Detections for every image of ``source`` (COCO results, see the module docstring).
 
     With ``distributed`` (under ``torchrun``) each process predicts one contiguous shard of the images
@@ -143,8 +170,12 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
     from harness import distributed as hd
 
     if conf is not None:
-        configure(model, conf, iou if iou is not None else getattr(model, "iou", 0.7),
-                  max_det if max_det is not None else getattr(model, "max_det", 300))
+        configure(
+            model,
+            conf,
+            iou if iou is not None else getattr(model, "iou", 0.7),
+            max_det if max_det is not None else getattr(model, "max_det", 300),
+        )
     d = hd.info() if distributed else hd.DistInfo()
     was_training = model.training
     model.eval()
@@ -161,8 +192,10 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
             for b in loader:
                 out = model(to_inputs(b.images, input_kind, thermal_channels, device))
                 if not isinstance(out, (list, tuple)) or len(out) != len(b):
-                    raise PluginError(f"detector {name!r}: in eval mode model(inputs) must return one dict per image "
-                                      f"({len(b)}), got {type(out).__name__}")
+                    raise PluginError(
+                        f"detector {name!r}: in eval mode model(inputs) must return one dict per image "
+                        f"({len(b)}), got {type(out).__name__}"
+                    )
                 for det, image_id, lb in zip(out, b.image_ids, b.letterboxes):
                     results.extend(detections_to_coco(det, image_id, lb, num_classes, name, counts))
                 ids.extend(int(i) for i in b.image_ids)
@@ -181,8 +214,10 @@ def predict(model: nn.Module, source: SampleSource, imgsz: int, batch: int = 8, 
                 counts.merge(c)
             expected = [source.image_id(k) for k in range(len(source))]
             if ids != expected:  # the shards must partition the images exactly
-                raise PluginError(f"distributed prediction visited {len(ids)} images ({len(set(ids))} distinct), "
-                                  f"expected each of the {len(expected)} images once")
+                raise PluginError(
+                    f"distributed prediction visited {len(ids)} images ({len(set(ids))} distinct), "
+                    f"expected each of the {len(expected)} images once"
+                )
     if visited is not None:
         visited.extend(ids)
     if degenerate is not None:

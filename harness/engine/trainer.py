@@ -282,7 +282,8 @@ class Trainer:
                             start = s.warmup_bias_lr if g["name"] == "bias" else 0.0
                             g["lr"] = optim.interp(ni, nw, start, g["initial_lr"] * factor)
                             optim.set_momentum(g, optim.interp(ni, nw, s.warmup_momentum, s.momentum))
-                    inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last)
+                    inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device,
+                                       s.channels_last)
                     targets = targets_to(batch.targets, self.device)
                     with torch.autocast(self.device.type, enabled=amp):
                         losses = train_model(inputs, targets)
@@ -332,7 +333,8 @@ class Trainer:
                 history.append(record)
                 if main:
                     log.info(_line(record, self.name))
-                stopped_early = best_epoch is not None and (epoch + 1) - best_epoch >= s.patience and epoch + 1 < s.epochs
+                stopped_early = (best_epoch is not None and (epoch + 1) - best_epoch >= s.patience
+                                 and epoch + 1 < s.epochs)
                 done = stopped_early or epoch + 1 == s.epochs
                 if self.last_path is not None and main:
                     ckpt.save(self.last_path, {
@@ -363,7 +365,8 @@ class Trainer:
         if not torch.isfinite(loss):
             bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
             raise TrainingError(
-                f"{self.name}: loss {', '.join(bad)} became {float(loss.detach())} at epoch {epoch + 1}, iteration {i + 1}; "
+                f"{self.name}: loss {', '.join(bad)} became {float(loss.detach())} at epoch {epoch + 1}, "
+                f"iteration {i + 1}; "
                 f"try a lower train.lr0, a longer train.warmup_epochs, or train.amp=false"
             )
         return loss

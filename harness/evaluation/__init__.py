@@ -24,7 +24,20 @@ from harness.evaluation.operating_point import OPERATING_POINT, max_f1_operating
 from harness.evaluation.safit import iou_xywh, nwd_xywh, safit_weight, safit_xywh
 
 __all__ = [
-    "COCO_STAT_NAMES", "ENGINES", "MATCHINGS", "OPERATING_POINT", "EvaluationError",
-    "SampleMismatchError", "aggregate_folds", "check_sample_matched", "evaluate", "evaluate_with_config",
-    "iou_xywh", "max_f1_operating_point", "mean_sd", "nwd_xywh", "safit_weight", "safit_xywh",
+    "COCO_STAT_NAMES",
+    "ENGINES",
+    "MATCHINGS",
+    "OPERATING_POINT",
+    "EvaluationError",
+    "SampleMismatchError",
+    "aggregate_folds",
+    "check_sample_matched",
+    "evaluate",
+    "evaluate_with_config",
+    "iou_xywh",
+    "max_f1_operating_point",
+    "mean_sd",
+    "nwd_xywh",
+    "safit_weight",
+    "safit_xywh",
 ]

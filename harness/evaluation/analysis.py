@@ -63,7 +63,10 @@ SPECIAL_TYPES = ("false_positives", "false_negatives")
 #: COCO's 101 recall points, exactly as ``COCOeval.Params`` builds them.
 RECALL_POINTS = np.linspace(0.0, 1.00, int(np.round((1.00 - 0.0) / 0.01)) + 1, endpoint=True)
 COCO_AREA_RANGES: dict[str, tuple[float, float]] = {
-    "small": (0.0, 32.0 ** 2), "medium": (32.0 ** 2, 96.0 ** 2), "large": (96.0 ** 2, 1e5 ** 2)}
+    "small": (0.0, 32.0**2),
+    "medium": (32.0**2, 96.0**2),
+    "large": (96.0**2, 1e5**2),
+}
 #: SAFit's bins (RGBT-Tiny), without "all"
 SAFIT_AREA_RANGES: dict[str, tuple[float, float]] = {k: v for k, v in TINY_AREA_RANGES.items() if k != "all"}
 #: a dataset is a tiny-object one (SAFit's bins are added) when more than this share of its GT is COCO-small
@@ -172,8 +175,15 @@ class _Matched:
 
 
 # ------------------------------------------------------------------------------------------------ AP and TIDE
-def _map50(cat: np.ndarray, score: np.ndarray, tp: np.ndarray, fp: np.ndarray, seq: np.ndarray,
-           n_gt: np.ndarray, cats: np.ndarray) -> float | None:
+def _map50(
+    cat: np.ndarray,
+    score: np.ndarray,
+    tp: np.ndarray,
+    fp: np.ndarray,
+    seq: np.ndarray,
+    n_gt: np.ndarray,
+    cats: np.ndarray,
+) -> float | None:
     """mAP50 over the categories ``cats`` (indices) of the data points given (COCO's AP of each, see the module
     docstring); a category whose GT count fell to 0 scores 0 if it still has detections and is left out otherwise
     (TIDE's rule)."""
@@ -211,10 +221,12 @@ def _tide(m: _Matched) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarr
     linked = np.full(nf, -1, dtype=np.int64)
     undecided = has_gt.copy()
     code[~has_gt] = _BKG
-    rules = ((_LOC, (cls_max >= IOU_BG) & (cls_max <= IOU_FG), cls_arg),
-             (_CLS, oth_max >= IOU_FG, oth_arg),
-             (_DUPE, dup_max >= IOU_FG, None),
-             (_BKG, all_max <= IOU_BG, None))
+    rules = (
+        (_LOC, (cls_max >= IOU_BG) & (cls_max <= IOU_FG), cls_arg),
+        (_CLS, oth_max >= IOU_FG, oth_arg),
+        (_DUPE, dup_max >= IOU_FG, None),
+        (_BKG, all_max <= IOU_BG, None),
+    )
     for c, hit, arg in rules:
         take = undecided & hit
         code[take] = c
@@ -285,9 +297,16 @@ def _tide(m: _Matched) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarr
         row["missed"] = int((missed & (m.g_cat_index == k)).sum())
         per_cat[name] = row
     block = {
-        "mAP50": base, "dAP50": d_ap, "special": special, "counts": counts, "counts_per_category": per_cat,
-        "iou_foreground": IOU_FG, "iou_background": IOU_BG, "false_positives": int(nf),
-        "true_positives": int(m.tp.sum()), "instances": int(m.n_gt.sum()),
+        "mAP50": base,
+        "dAP50": d_ap,
+        "special": special,
+        "counts": counts,
+        "counts_per_category": per_cat,
+        "iou_foreground": IOU_FG,
+        "iou_background": IOU_BG,
+        "false_positives": int(nf),
+        "true_positives": int(m.tp.sum()),
+        "instances": int(m.n_gt.sum()),
     }
     fp_code = np.full(len(m.d_score), -1, dtype=np.int64)
     fp_code[fps] = code
@@ -306,16 +325,32 @@ def _pr_curves(m: _Matched) -> dict[str, Any]:
         n_gt = int(m.n_gt[k])
         sel = np.flatnonzero(m.evaluated & (m.cat_index == k))
         if n_gt == 0:
-            cats[name] = {"instances": 0, "detections": int(len(sel)), "AP50": None, "precision": None,
-                          "scores": None, "max_recall": None}
+            cats[name] = {
+                "instances": 0,
+                "detections": int(len(sel)),
+                "AP50": None,
+                "precision": None,
+                "scores": None,
+                "max_recall": None,
+            }
             continue
         order = m.coco_order(sel)
         q, ss, rmax = _pr101(m.tp[order], m.fp[order], m.d_score[order], n_gt)
-        cats[name] = {"instances": n_gt, "detections": int(len(sel)), "AP50": float(q.mean()),
-                      "precision": _rl(q), "scores": _rl(ss), "max_recall": _r(rmax)}
-    return {"iou": IOU_FG, "recall": _rl(RECALL_POINTS, 2), "categories": cats,
-            "definition": "COCO's interpolated precision and the score of the detection that reaches each recall "
-                          "point (0 beyond the last recall reached); area all, maxDets 100"}
+        cats[name] = {
+            "instances": n_gt,
+            "detections": int(len(sel)),
+            "AP50": float(q.mean()),
+            "precision": _rl(q),
+            "scores": _rl(ss),
+            "max_recall": _r(rmax),
+        }
+    return {
+        "iou": IOU_FG,
+        "recall": _rl(RECALL_POINTS, 2),
+        "categories": cats,
+        "definition": "COCO's interpolated precision and the score of the detection that reaches each recall "
+        "point (0 beyond the last recall reached); area all, maxDets 100",
+    }
 
 
 # ------------------------------------------------------------------------------------------------ operating point
@@ -358,8 +393,13 @@ def _confusion(m: _Matched, kept: np.ndarray, found: np.ndarray) -> tuple[dict[s
     bg_g = left_g[~confused_gt[left_g]]
     np.add.at(mat, (np.full(len(bg_g), k), m.g_cat_index[bg_g]), 1)
     labels = [m.prep.cat_names[c] for c in m.cat_ids.tolist()] + ["background"]
-    return {"rows": "predicted", "columns": "ground truth", "labels": labels, "matrix": mat.tolist(),
-            "iou": IOU_FG}, confused_gt
+    return {
+        "rows": "predicted",
+        "columns": "ground truth",
+        "labels": labels,
+        "matrix": mat.tolist(),
+        "iou": IOU_FG,
+    }, confused_gt
 
 
 def _image_counts(m: _Matched, kept: np.ndarray, found: np.ndarray) -> dict[str, Any]:
@@ -372,13 +412,26 @@ def _image_counts(m: _Matched, kept: np.ndarray, found: np.ndarray) -> dict[str,
         return np.bincount(pos, minlength=n).tolist()
 
     real = ~m.g_crowd
-    return {"image_id": [m.image_key[i] for i in images.tolist()], "gt": count(m.g_img[real]),
-            "tp": count(m.g_img[real & found]), "fp": count(m.d_img[kept & ~m.tp]),
-            "fn": count(m.g_img[real & ~found])}
+    return {
+        "image_id": [m.image_key[i] for i in images.tolist()],
+        "gt": count(m.g_img[real]),
+        "tp": count(m.g_img[real & found]),
+        "fp": count(m.d_img[kept & ~m.tp]),
+        "fn": count(m.g_img[real & ~found]),
+    }
 
 
-def _worst(m: _Matched, kept: np.ndarray, found: np.ndarray, confused_gt: np.ndarray, fp_code: np.ndarray,
-           fp_iou: np.ndarray, fp_link: np.ndarray, gt_ids: list[Any], n: int) -> dict[str, Any]:
+def _worst(
+    m: _Matched,
+    kept: np.ndarray,
+    found: np.ndarray,
+    confused_gt: np.ndarray,
+    fp_code: np.ndarray,
+    fp_iou: np.ndarray,
+    fp_link: np.ndarray,
+    gt_ids: list[Any],
+    n: int,
+) -> dict[str, Any]:
     """Per category: the ``n`` most confident false positives and the ``n`` worst misses at the operating point."""
     # misses: their best IoU with a kept detection of the same category, and why they were missed
     miss = np.flatnonzero(~m.g_crowd & ~found)
@@ -398,20 +451,35 @@ def _worst(m: _Matched, kept: np.ndarray, found: np.ndarray, confused_gt: np.nda
         name = m.prep.cat_names[cid]
         mine = np.flatnonzero(m.g_cat_index[miss] == k)
         mine = mine[np.lexsort((-area[mine], best_same[mine], reason[mine]))][:n]
-        misses = [{"image_id": m.image_key[int(m.g_img[miss[i]])], "annotation_id": gt_ids[int(miss[i])],
-                   "bbox": _rl(m.g_box[miss[i]], 2), "area": _r(area[i], 2), "reason": MISS_REASONS[reason[i]],
-                   "best_iou": _r(best_same[i], 4),
-                   "score": _r(m.d_score[m.gt_det[miss[i]]], 4) if matched_below[i] else None} for i in mine.tolist()]
+        misses = [
+            {
+                "image_id": m.image_key[int(m.g_img[miss[i]])],
+                "annotation_id": gt_ids[int(miss[i])],
+                "bbox": _rl(m.g_box[miss[i]], 2),
+                "area": _r(area[i], 2),
+                "reason": MISS_REASONS[reason[i]],
+                "best_iou": _r(best_same[i], 4),
+                "score": _r(m.d_score[m.gt_det[miss[i]]], 4) if matched_below[i] else None,
+            }
+            for i in mine.tolist()
+        ]
         fps = np.flatnonzero((fp_code >= 0) & (m.cat_index == k))
         fps = fps[np.lexsort((m.seq[fps], -m.d_score[fps]))][:n]
         false_pos = []
         for j in fps.tolist():
             link = int(fp_link[j])
-            false_pos.append({"image_id": m.image_key[int(m.d_img[j])], "bbox": _rl(m.d_box[j], 2),
-                              "score": _r(m.d_score[j], 4), "error": ERROR_TYPES[fp_code[j]],
-                              "iou": _r(fp_iou[j], 4), "kept": bool(kept[j]),
-                              "gt_category": m.prep.cat_names[int(m.g_cat[link])] if link >= 0 else None,
-                              "annotation_id": gt_ids[link] if link >= 0 else None})
+            false_pos.append(
+                {
+                    "image_id": m.image_key[int(m.d_img[j])],
+                    "bbox": _rl(m.d_box[j], 2),
+                    "score": _r(m.d_score[j], 4),
+                    "error": ERROR_TYPES[fp_code[j]],
+                    "iou": _r(fp_iou[j], 4),
+                    "kept": bool(kept[j]),
+                    "gt_category": m.prep.cat_names[int(m.g_cat[link])] if link >= 0 else None,
+                    "annotation_id": gt_ids[link] if link >= 0 else None,
+                }
+            )
         out[name] = {"misses": misses, "false_positives": false_pos}
     return out
 
@@ -425,7 +493,7 @@ def _is_tiny(prep: PreparedEval) -> bool:
 def _sizes(prep: PreparedEval, engine: str, tiny: bool) -> dict[str, Any]:
     from harness.evaluation.coco import summarize_precision
 
-    ranges: dict[str, tuple[float, float]] = {"all": (0.0, 1e5 ** 2)}
+    ranges: dict[str, tuple[float, float]] = {"all": (0.0, 1e5**2)}
     ranges.update({f"coco.{k}": v for k, v in COCO_AREA_RANGES.items()})
     if tiny:
         ranges.update({f"safit.{k}": v for k, v in SAFIT_AREA_RANGES.items()})
@@ -436,8 +504,13 @@ def _sizes(prep: PreparedEval, engine: str, tiny: bool) -> dict[str, Any]:
     cats = np.array([a["category_id"] for a in prep.gt["annotations"]], dtype=np.int64)
 
     def block(scheme: str, bins: Mapping[str, tuple[float, float]]) -> dict[str, Any]:
-        out: dict[str, Any] = {"ranges": {b: [float(lo), float(hi)] for b, (lo, hi) in bins.items()},
-                               "AP50": {}, "AP50_95": {}, "instances": {}, "per_category": {}}
+        out: dict[str, Any] = {
+            "ranges": {b: [float(lo), float(hi)] for b, (lo, hi) in bins.items()},
+            "AP50": {},
+            "AP50_95": {},
+            "instances": {},
+            "per_category": {},
+        }
         for b, (lo, hi) in bins.items():
             a = labels.index(f"{scheme}.{b}")
             inside = ~crowd & (areas >= lo) & (areas <= hi)  # COCO's area ranges include both edges
@@ -451,17 +524,27 @@ def _sizes(prep: PreparedEval, engine: str, tiny: bool) -> dict[str, Any]:
                 pc["instances"][b] = int((inside & (cats == cid)).sum())
         return out
 
-    sizes: dict[str, Any] = {"matching": "iou", "area": "GT area field, px^2 of the prepared frame",
-                             "coco": block("coco", COCO_AREA_RANGES)}
+    sizes: dict[str, Any] = {
+        "matching": "iou",
+        "area": "GT area field, px^2 of the prepared frame",
+        "coco": block("coco", COCO_AREA_RANGES),
+    }
     if tiny:
         sizes["safit"] = block("safit", SAFIT_AREA_RANGES)
     return sizes
 
 
 # ------------------------------------------------------------------------------------------------ entry point
-def analyse(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], *, conf_threshold: float | None = None,
-            engine: str = "faster-coco-eval", matching: str = "iou", examples: int = 10,
-            tiny: bool | None = None) -> dict[str, Any]:
+def analyse(
+    gt: Mapping[str, Any],
+    detections: Sequence[Mapping[str, Any]],
+    *,
+    conf_threshold: float | None = None,
+    engine: str = "faster-coco-eval",
+    matching: str = "iou",
+    examples: int = 10,
+    tiny: bool | None = None,
+) -> dict[str, Any]:
     """The error analysis of one run (module docstring; schema in ``harness/store.py``).
 
     ``conf_threshold``: the operating point's confidence (``metrics.conf_threshold``); computed here, by the same
@@ -503,23 +586,41 @@ def analyse(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], *, c
     return result
 
 
-def analyse_with_config(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any],
-                        conf_threshold: float | None = None) -> dict[str, Any]:
+def analyse_with_config(
+    gt: Mapping[str, Any],
+    detections: Sequence[Mapping[str, Any]],
+    cfg: Mapping[str, Any],
+    conf_threshold: float | None = None,
+) -> dict[str, Any]:
     """``analyse`` with the engine and matching of a resolved config's ``eval`` section."""
     ev = cfg.get("eval", cfg)
-    return analyse(gt, detections, conf_threshold=conf_threshold, engine=ev.get("engine", "faster-coco-eval"),
-                   matching=ev.get("matching", "iou"))
+    return analyse(
+        gt,
+        detections,
+        conf_threshold=conf_threshold,
+        engine=ev.get("engine", "faster-coco-eval"),
+        matching=ev.get("matching", "iou"),
+    )
 
 
-def store_analysis(run: Any, gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any],
-                   conf_threshold: float | None) -> bool:
+def store_analysis(
+    run: Any,
+    gt: Mapping[str, Any],
+    detections: Sequence[Mapping[str, Any]],
+    cfg: Mapping[str, Any],
+    conf_threshold: float | None,
+) -> bool:
     """Compute and write ``run``'s ``analysis.json``; a failure is logged and recorded in the file (the run's
     metrics and predictions are never lost to it). Returns whether the analysis was stored."""
     try:
         result = analyse_with_config(gt, detections, cfg, conf_threshold)
     except Exception as exc:  # noqa: BLE001 - the analysis is additive: the run itself stands
-        log.error("%s: error analysis failed (%s: %s); the run's metrics are stored without it", run.key,
-                  type(exc).__name__, exc)
+        log.error(
+            "%s: error analysis failed (%s: %s); the run's metrics are stored without it",
+            run.key,
+            type(exc).__name__,
+            exc,
+        )
         run.write_analysis({"schema": ANALYSIS_SCHEMA, "error": f"{type(exc).__name__}: {exc}"})
         return False
     run.write_analysis(result)

@@ -39,8 +39,15 @@ log = logging.getLogger(__name__)
 #: The 12 numbers of ``COCOeval.summarize()`` for boxes, in order.
 COCO_STAT_NAMES = ("AP", "AP50", "AP75", "APs", "APm", "APl", "AR1", "AR10", "AR100", "ARs", "ARm", "ARl")
 
-__all__ = ["COCO_STAT_NAMES", "ENGINES", "MATCHINGS", "EvaluationError", "evaluate", "evaluate_with_config",
-           "summarize_precision"]
+__all__ = [
+    "COCO_STAT_NAMES",
+    "ENGINES",
+    "MATCHINGS",
+    "EvaluationError",
+    "evaluate",
+    "evaluate_with_config",
+    "summarize_precision",
+]
 
 
 # ----------------------------------------------------------------------------------------------- summaries
@@ -49,8 +56,9 @@ def _nullable(x: float) -> float | None:
     return None if x is None or x < 0 or not math.isfinite(x) else float(x)
 
 
-def summarize_precision(precision: np.ndarray, iou_thrs: np.ndarray, iou: float | None = None, area: int = 0,
-                        cat: int | None = None) -> float | None:
+def summarize_precision(
+    precision: np.ndarray, iou_thrs: np.ndarray, iou: float | None = None, area: int = 0, cat: int | None = None
+) -> float | None:
     """Mean of the interpolated precision over recall points (and IoU thresholds when ``iou`` is None), skipping -1.
 
     ``precision`` is COCOeval's ``[T, R, K, A, M]`` array; the last maxDets column (100) is used, as for AP.
@@ -69,8 +77,10 @@ def summarize_precision(precision: np.ndarray, iou_thrs: np.ndarray, iou: float 
 def _per_category(res: EngineResult, prep: PreparedEval) -> dict[int, tuple[float | None, float | None]]:
     out = {}
     for k, cid in enumerate(prep.cat_ids):
-        out[cid] = (summarize_precision(res.precision, res.iou_thrs, 0.5, 0, k),
-                    summarize_precision(res.precision, res.iou_thrs, None, 0, k))
+        out[cid] = (
+            summarize_precision(res.precision, res.iou_thrs, 0.5, 0, k),
+            summarize_precision(res.precision, res.iou_thrs, None, 0, k),
+        )
     return out
 
 
@@ -82,17 +92,30 @@ def _safit_block(prep: PreparedEval, engine: str, anchor: str) -> tuple[dict[str
         return summarize_precision(res.precision, res.iou_thrs, iou, labels.index(area))
 
     block = {
-        "mAP50": ap(0.5), "mAP50_95": ap(), "AP75": ap(0.75),
-        "AP_et": ap(area="extremely_tiny"), "AP_t": ap(area="tiny"), "AP_s": ap(area="small"),
-        "AP_m": ap(area="medium"), "AP_l": ap(area="large"),
-        "anchor": anchor, "C": SAFIT_C,
+        "mAP50": ap(0.5),
+        "mAP50_95": ap(),
+        "AP75": ap(0.75),
+        "AP_et": ap(area="extremely_tiny"),
+        "AP_t": ap(area="tiny"),
+        "AP_s": ap(area="small"),
+        "AP_m": ap(area="medium"),
+        "AP_l": ap(area="large"),
+        "anchor": anchor,
+        "C": SAFIT_C,
         "area_ranges": {k: [float(a), float(b)] for k, (a, b) in TINY_AREA_RANGES.items()},
     }
     return block, _per_category(res, prep)
 
 
-def evaluate(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], engine: str = "faster-coco-eval",
-             matching: str = "iou", *, safit_anchor: str = "center", strict: bool = False) -> dict[str, Any]:
+def evaluate(
+    gt: Mapping[str, Any],
+    detections: Sequence[Mapping[str, Any]],
+    engine: str = "faster-coco-eval",
+    matching: str = "iou",
+    *,
+    safit_anchor: str = "center",
+    strict: bool = False,
+) -> dict[str, Any]:
     """Score COCO results against COCO ground truth; returns ``{"support", "metrics", "per_category"}``.
 
     ``detections``: dicts with ``image_id``, ``category_id`` (= label + 1), ``bbox`` ``[x, y, w, h]`` in the GT's
@@ -142,8 +165,13 @@ def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) ->
         name = prep.cat_names[cid]
         ap50, ap = per_cat_ap[cid]
         pr = op.per_category.get(k)
-        per_category[name] = {"AP50": ap50, "AP50_95": ap, "instances": prep.n_gt[cid],
-                              "precision": pr[0] if pr else None, "recall": pr[1] if pr else None}
+        per_category[name] = {
+            "AP50": ap50,
+            "AP50_95": ap,
+            "instances": prep.n_gt[cid],
+            "precision": pr[0] if pr else None,
+            "recall": pr[1] if pr else None,
+        }
     if matching == "safit":
         block, safit_cat = _safit_block(prep, engine, safit_anchor)
         metrics["safit"] = block
@@ -163,9 +191,16 @@ def _score(prep: PreparedEval, engine: str, matching: str, safit_anchor: str) ->
     return {"support": support, "metrics": metrics, "per_category": per_category}
 
 
-def evaluate_with_config(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]],
-                         cfg: Mapping[str, Any]) -> dict[str, Any]:
+def evaluate_with_config(
+    gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any]
+) -> dict[str, Any]:
     """``evaluate`` with engine, matching and SAFit anchor read from a resolved config's ``eval`` section."""
     ev = cfg.get("eval", cfg)
-    return evaluate(gt, detections, engine=ev.get("engine", "faster-coco-eval"), matching=ev.get("matching", "iou"),
-                    safit_anchor=ev.get("safit_anchor", "center"), strict=bool(ev.get("strict", False)))
+    return evaluate(
+        gt,
+        detections,
+        engine=ev.get("engine", "faster-coco-eval"),
+        matching=ev.get("matching", "iou"),
+        safit_anchor=ev.get("safit_anchor", "center"),
+        strict=bool(ev.get("strict", False)),
+    )

@@ -109,13 +109,20 @@ def _faster_eval_class(matching: str, anchor: str) -> type:
             prep = self.harness_inputs
             try:
                 p = self.params
-                if (prep is None or p.iouType != "bbox" or self.lvis_style or not p.useCats or self.separate_eval
-                        or self.extra_calc):
+                if (
+                    prep is None
+                    or p.iouType != "bbox"
+                    or self.lvis_style
+                    or not p.useCats
+                    or self.separate_eval
+                    or self.extra_calc
+                ):
                     return self._stock_evaluate()
                 self._bulk_evaluate(prep)
             except AttributeError as exc:  # the library's parameters changed: do it its own way
-                log.warning("faster-coco-eval bulk evaluation unavailable (%s); using the library's own, slower "
-                            "evaluation", exc)
+                log.warning(
+                    "faster-coco-eval bulk evaluation unavailable (%s); using the library's own, slower evaluation", exc
+                )
                 self._harness_layout = self._harness_values = self._harness_matches = None
                 return self._stock_evaluate()
 
@@ -214,8 +221,9 @@ def run_engine(
     return _run_pycocotools(prep, matching, anchor, area_ranges, operating_point)
 
 
-def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Mapping[str, tuple[float, float]] | None,
-                want_op: bool) -> EngineResult:
+def _run_faster(
+    prep: PreparedEval, matching: str, anchor: str, area_ranges: Mapping[str, tuple[float, float]] | None, want_op: bool
+) -> EngineResult:
     ranges = None
     if area_ranges is not None:
         ranges = {k: list(v) for k, v in area_ranges.items() if k != "all"}
@@ -228,11 +236,19 @@ def _run_faster(prep: PreparedEval, matching: str, anchor: str, area_ranges: Map
     ev.evaluate()
     ev.accumulate()
     ev.summarize()
-    result = EngineResult(list(map(float, ev.stats[:12])), np.asarray(ev.eval["precision"]),
-                          np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl))
+    result = EngineResult(
+        list(map(float, ev.stats[:12])),
+        np.asarray(ev.eval["precision"]),
+        np.asarray(ev.params.iouThrs),
+        list(ev.params.areaRngLbl),
+    )
     if want_op:
-        _fill_operating_inputs(result, prep, *_matches_at_50(ev, prep), getattr(ev, "_harness_layout", None)
-                               or pair_layout(prep, ev.params.maxDets[-1]))
+        _fill_operating_inputs(
+            result,
+            prep,
+            *_matches_at_50(ev, prep),
+            getattr(ev, "_harness_layout", None) or pair_layout(prep, ev.params.maxDets[-1]),
+        )
     return result
 
 
@@ -248,8 +264,9 @@ def _matches_at_50(ev: Any, prep: PreparedEval) -> tuple[np.ndarray, np.ndarray]
     return layout.greedy_match_indices(layout.values(prep, iou_elementwise), threshold=0.5)
 
 
-def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, det_idx: np.ndarray, gt_idx: np.ndarray,
-                           layout: PairLayout) -> None:
+def _fill_operating_inputs(
+    result: EngineResult, prep: PreparedEval, det_idx: np.ndarray, gt_idx: np.ndarray, layout: PairLayout
+) -> None:
     """Evaluated detections (top 100 per image and category), without those matched to crowd GT."""
     n = prep.n_dets
     _, cat, score, _ = prep.det_columns
@@ -264,8 +281,9 @@ def _fill_operating_inputs(result: EngineResult, prep: PreparedEval, det_idx: np
     result.op_is_tp = matched[keep]
 
 
-def _run_pycocotools(prep: PreparedEval, matching: str, anchor: str,
-                     area_ranges: Mapping[str, tuple[float, float]] | None, want_op: bool) -> EngineResult:
+def _run_pycocotools(
+    prep: PreparedEval, matching: str, anchor: str, area_ranges: Mapping[str, tuple[float, float]] | None, want_op: bool
+) -> EngineResult:
     from pycocotools.coco import COCO
 
     with contextlib.redirect_stdout(io.StringIO()):
@@ -289,8 +307,9 @@ def _run_pycocotools(prep: PreparedEval, matching: str, anchor: str,
             stats = list(map(float, ev.stats))
         else:
             stats = [-1.0] * 12  # pycocotools' summarize() only knows small/medium/large
-    result = EngineResult(stats, np.asarray(ev.eval["precision"]), np.asarray(ev.params.iouThrs),
-                          list(ev.params.areaRngLbl))
+    result = EngineResult(
+        stats, np.asarray(ev.eval["precision"]), np.asarray(ev.params.iouThrs), list(ev.params.areaRngLbl)
+    )
     if want_op:
         all_rng = list(ev.params.areaRng[0])
         scores, cats, tps = [], [], []

@@ -84,5 +84,9 @@ def aggregate_folds(list_of_metrics: Sequence[Mapping[str, Any]]) -> dict[str, A
         "instances": int(sum(int(s.get("instances") or 0) for s in supports)),
         "categories": cats,
     }
-    return {"folds": [_fold_name(m, i) for i, m in enumerate(items)], "support": support, "metrics": metrics,
-            "per_category": per_category}
+    return {
+        "folds": [_fold_name(m, i) for i, m in enumerate(items)],
+        "support": support,
+        "metrics": metrics,
+        "per_category": per_category,
+    }

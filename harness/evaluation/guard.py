@@ -83,8 +83,10 @@ def _differences(items: list[tuple[str, Mapping[str, Any]]]) -> tuple[list[str],
 
 
 #: What the refusal suggests when the caller names no other way (the Python API's own option).
-API_HINT = ("Re-evaluate every detector on the same prepared split, or allow the comparison explicitly "
-            "(allow=True) so that every table showing these numbers is labelled as not sample-matched.")
+API_HINT = (
+    "Re-evaluate every detector on the same prepared split, or allow the comparison explicitly "
+    "(allow=True) so that every table showing these numbers is labelled as not sample-matched."
+)
 
 
 def check_sample_matched(results: Any, allow: bool = False, hint: str | None = None) -> str | None:
@@ -115,5 +117,9 @@ def check_sample_matched(results: Any, allow: bool = False, hint: str | None = N
         return None
     if allow:
         return "NOT sample-matched: " + ", ".join(all_kinds) + " differ"
-    raise SampleMismatchError("refusing to compare results evaluated on different samples:\n  " + "\n  ".join(lines)
-                              + "\n" + (hint or API_HINT))
+    raise SampleMismatchError(
+        "refusing to compare results evaluated on different samples:\n  "
+        + "\n  ".join(lines)
+        + "\n"
+        + (hint or API_HINT)
+    )

@@ -119,9 +119,12 @@ class PreparedEval:
         """The kept detections as COCO result dicts (ids 1..N, ``area = w * h``), built on first use."""
         img, cat, score, boxes = self.det_columns
         areas = boxes[:, 2] * boxes[:, 3]
-        return [{"id": j, "image_id": im, "category_id": c, "bbox": b, "score": sc, "area": ar}
-                for j, (im, c, b, sc, ar) in enumerate(zip(img.tolist(), cat.tolist(), boxes.tolist(), score.tolist(),
-                                                           areas.tolist()), start=1)]
+        return [
+            {"id": j, "image_id": im, "category_id": c, "bbox": b, "score": sc, "area": ar}
+            for j, (im, c, b, sc, ar) in enumerate(
+                zip(img.tolist(), cat.tolist(), boxes.tolist(), score.tolist(), areas.tolist()), start=1
+            )
+        ]
 
 
 def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], strict: bool = False) -> PreparedEval:
@@ -205,12 +208,25 @@ def prepare(gt: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], stri
         "annotations": anns,
         "categories": cats,
     }
-    return PreparedEval(prepared_gt, sorted(cat_names), cat_names, keys, n_gt, n_crowd, crowd_ids, columns, gt_columns,
-                        dropped, notes, source[order])
+    return PreparedEval(
+        prepared_gt,
+        sorted(cat_names),
+        cat_names,
+        keys,
+        n_gt,
+        n_crowd,
+        crowd_ids,
+        columns,
+        gt_columns,
+        dropped,
+        notes,
+        source[order],
+    )
 
 
-def canonical_order(image_ids: np.ndarray, category_ids: np.ndarray, scores: np.ndarray,
-                    boxes: np.ndarray) -> np.ndarray:
+def canonical_order(
+    image_ids: np.ndarray, category_ids: np.ndarray, scores: np.ndarray, boxes: np.ndarray
+) -> np.ndarray:
     """The permutation that puts detections in canonical order: by image id, then category id, then descending
     score, then box ``x, y, w, h`` ascending (detections equal in all of these are interchangeable).
 
@@ -270,8 +286,10 @@ def _fast_annotations(anns_in: list, key_to_internal: dict, all_int: bool, cat_n
     if not np.isin(cat_a, np.fromiter(cat_names, dtype=np.int64)).all():
         return None
     crowd_l = [int(bool(c)) for c in crowd]
-    return [{"id": j, "image_id": i, "category_id": c, "bbox": b, "area": ar, "iscrowd": cr, "ignore": cr}
-            for j, (i, c, b, ar, cr) in enumerate(zip(img, cat, box.tolist(), area.tolist(), crowd_l), start=1)]
+    return [
+        {"id": j, "image_id": i, "category_id": c, "bbox": b, "area": ar, "iscrowd": cr, "ignore": cr}
+        for j, (i, c, b, ar, cr) in enumerate(zip(img, cat, box.tolist(), area.tolist(), crowd_l), start=1)
+    ]
 
 
 def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[int, str]) -> list[dict[str, Any]]:
@@ -300,21 +318,38 @@ def _checked_annotations(anns_in: list, key_to_internal: dict, cat_names: dict[i
         if not math.isfinite(area) or area < 0:
             raise EvaluationError(f"{where}: area {a.get('area')!r} is not a finite non-negative number")
         crowd = int(bool(a.get("iscrowd", 0)))
-        anns.append({"id": len(anns) + 1, "image_id": key_to_internal[img], "category_id": cid, "bbox": box,
-                     "area": area, "iscrowd": crowd, "ignore": crowd})
+        anns.append(
+            {
+                "id": len(anns) + 1,
+                "image_id": key_to_internal[img],
+                "category_id": cid,
+                "bbox": box,
+                "area": area,
+                "iscrowd": crowd,
+                "ignore": crowd,
+            }
+        )
     return anns
 
 
-def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal: dict, all_int: bool,
-                        cat_names: dict[int, str], strict: bool) -> tuple[tuple, dict[str, int], np.ndarray]:
+def _prepare_detections(
+    detections: Sequence[Mapping[str, Any]],
+    key_to_internal: dict,
+    all_int: bool,
+    cat_names: dict[int, str],
+    strict: bool,
+) -> tuple[tuple, dict[str, int], np.ndarray]:
     """Vectorised checks of COCO results (a million detections take well under a second); returns the kept
     detections as columns (image_id, category_id, score, boxes), the counts of dropped ones and the kept ones'
     indices in ``detections``."""
     n = len(detections)
     dropped = {"unknown_category": 0, "unknown_image": 0}
     if n == 0:
-        return ((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4))), dropped,
-                np.zeros(0, dtype=np.int64))
+        return (
+            (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4))),
+            dropped,
+            np.zeros(0, dtype=np.int64),
+        )
     try:
         img_raw = [d["image_id"] for d in detections]
         cat_raw = [d["category_id"] for d in detections]
@@ -387,8 +422,10 @@ def _prepare_detections(detections: Sequence[Mapping[str, Any]], key_to_internal
             parts.append(f"{n_bad_img} on images not in the ground truth (e.g. image_id {', '.join(examples)})")
         if n_bad_cat:
             examples = sorted({str(cat_raw[i]) for i in np.flatnonzero(known_img & ~known_cat)[:1000]})[:5]
-            parts.append(f"{n_bad_cat} of categories not in the ground truth (category_id {', '.join(examples)}; "
-                         f"detections use category_id = label + 1)")
+            parts.append(
+                f"{n_bad_cat} of categories not in the ground truth (category_id {', '.join(examples)}; "
+                f"detections use category_id = label + 1)"
+            )
         msg = f"{n} detections: " + "; ".join(parts)
         if strict:
             raise EvaluationError(msg)

@@ -19,8 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 #: How ``metrics.precision`` / ``metrics.recall`` are defined, written next to them in every metrics.json.
-OPERATING_POINT = ("confidence maximising mean F1 over categories with GT; COCO matching at IoU 0.50, "
-                   "area all, maxDets 100")
+OPERATING_POINT = (
+    "confidence maximising mean F1 over categories with GT; COCO matching at IoU 0.50, area all, maxDets 100"
+)
 
 
 @dataclass
@@ -81,7 +82,7 @@ def max_f1_operating_point(
     per_cat: dict[int, tuple[float, float]] = {}
     for k in cats:
         kept, tp_k = counts[int(k)]
-        p, r = _precision_recall(kept[best:best + 1], tp_k[best:best + 1], int(n_gt[k]))
+        p, r = _precision_recall(kept[best : best + 1], tp_k[best : best + 1], int(n_gt[k]))
         per_cat[int(k)] = (float(p[0]), float(r[0]))
     ps = np.array([v[0] for v in per_cat.values()])
     rs = np.array([v[1] for v in per_cat.values()])

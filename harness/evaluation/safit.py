@@ -81,8 +81,9 @@ def safit_weight(gt_area: np.ndarray | float, c: float = SAFIT_C) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-(np.sqrt(np.maximum(a, 0.0)) - c) / c))
 
 
-def safit_elementwise(d: np.ndarray, g: np.ndarray, crowd: np.ndarray | bool = False, c: float = SAFIT_C,
-                      anchor: Anchor = "center") -> np.ndarray:
+def safit_elementwise(
+    d: np.ndarray, g: np.ndarray, crowd: np.ndarray | bool = False, c: float = SAFIT_C, anchor: Anchor = "center"
+) -> np.ndarray:
     """``SAFit = w(A_g) IoU + (1 - w(A_g)) NWD`` with ``A_g = w_g * h_g`` of the GT box."""
     w = safit_weight(g[..., 2] * g[..., 3], c)
     return w * iou_elementwise(d, g, crowd) + (1.0 - w) * nwd_elementwise(d, g, c, anchor)
@@ -102,8 +103,9 @@ def nwd_xywh(dt: np.ndarray, gt: np.ndarray, c: float = SAFIT_C, anchor: Anchor 
     return nwd_elementwise(d[:, None, :], g[None, :, :], c, anchor)
 
 
-def safit_xywh(dt: np.ndarray, gt: np.ndarray, iscrowd: np.ndarray | None = None, c: float = SAFIT_C,
-               anchor: Anchor = "center") -> np.ndarray:
+def safit_xywh(
+    dt: np.ndarray, gt: np.ndarray, iscrowd: np.ndarray | None = None, c: float = SAFIT_C, anchor: Anchor = "center"
+) -> np.ndarray:
     """SAFit matrix, weight from each GT box's w*h."""
     d, g = _as_boxes(dt), _as_boxes(gt)
     crowd = np.zeros(len(g), dtype=bool) if iscrowd is None else np.asarray(iscrowd, dtype=bool).reshape(-1)

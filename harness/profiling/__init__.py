@@ -25,7 +25,7 @@ __all__ = ["ProfilingError", "example_inputs", "export_detector", "export_onnx",
 CONVENTIONS = {
     "paper": "BatchNorm folded, module-level count with thop-0.1.1 rules, 1 MAC = 2 FLOPs (no attention matmuls)",
     "exact": "torch.utils.flop_counter.FlopCounterMode on the meta device: every matmul-type op incl. attention, "
-             "1 MAC = 2 FLOPs; no norms, activations, pooling or upsampling",
+    "1 MAC = 2 FLOPs; no norms, activations, pooling or upsampling",
     "fvcore": "fvcore FlopCountAnalysis (jit trace): conv, linear, matmul, einsum, norms, upsampling; MACs x 2",
 }
 
@@ -46,9 +46,20 @@ def _guarded(what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         return {"error": msg}
 
 
-def profile_model(model: Any, example_inputs: Any, *, latency: bool = True, onnx: bool = True, fvcore: bool = True,
-                  warmup: int = 10, runs: int = 50, threads: int | None = None, device: str = "cpu",
-                  onnx_path: str | Path | None = None, table_depth: int = 3) -> dict[str, Any]:
+def profile_model(
+    model: Any,
+    example_inputs: Any,
+    *,
+    latency: bool = True,
+    onnx: bool = True,
+    fvcore: bool = True,
+    warmup: int = 10,
+    runs: int = 50,
+    threads: int | None = None,
+    device: str = "cpu",
+    onnx_path: str | Path | None = None,
+    table_depth: int = 3,
+) -> dict[str, Any]:
     """Parameters, FLOPs ("paper", "exact", fvcore), torch-eager and onnxruntime latency of one model.
 
     The model is profiled as built for the parameter counts and the reachability analysis, and BN-folded (its
@@ -71,8 +82,12 @@ def profile_model(model: Any, example_inputs: Any, *, latency: bool = True, onnx
     paper = paper_flops(fused, example_inputs)
     exact = exact_flops(fused, example_inputs)
     flops: dict[str, Any] = {
-        "paper": {"gflops": paper.gflops, "flops": paper.flops, "convention": CONVENTIONS["paper"],
-                  "modules_without_rule": paper.not_counted},
+        "paper": {
+            "gflops": paper.gflops,
+            "flops": paper.flops,
+            "convention": CONVENTIONS["paper"],
+            "modules_without_rule": paper.not_counted,
+        },
         "exact": {"gflops": exact.gflops, "flops": exact.flops, "convention": CONVENTIONS["exact"]},
     }
     by_module = {"paper": _top_level(paper.by_module), "exact": _top_level(exact.by_module)}
@@ -81,8 +96,13 @@ def profile_model(model: Any, example_inputs: Any, *, latency: bool = True, onnx
         if isinstance(fv, dict):
             flops["fvcore"] = fv
         else:
-            flops["fvcore"] = {"gflops": fv.gflops, "flops": fv.flops, "convention": CONVENTIONS["fvcore"],
-                               "skipped_ops": fv.not_counted, "table": fv.table}
+            flops["fvcore"] = {
+                "gflops": fv.gflops,
+                "flops": fv.flops,
+                "convention": CONVENTIONS["fvcore"],
+                "skipped_ops": fv.not_counted,
+                "table": fv.table,
+            }
             by_module["fvcore"] = _top_level(fv.by_module)
     out["flops"] = flops
     out["by_module"] = by_module
@@ -91,8 +111,9 @@ def profile_model(model: Any, example_inputs: Any, *, latency: bool = True, onnx
     if latency:
         from harness.profiling.latency import onnx_latency, torch_latency
 
-        lat: dict[str, Any] = {"torch": _guarded("torch latency", torch_latency, fused, example_inputs, warmup, runs,
-                                                 n_threads, device)}
+        lat: dict[str, Any] = {
+            "torch": _guarded("torch latency", torch_latency, fused, example_inputs, warmup, runs, n_threads, device)
+        }
         if onnx:
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(onnx_path) if onnx_path else Path(tmp) / "model.onnx"
@@ -100,11 +121,23 @@ def profile_model(model: Any, example_inputs: Any, *, latency: bool = True, onnx
                 out["onnx"] = record
                 if "error" not in record:
                     providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device.startswith("cuda") else None
-                    lat["onnxruntime"] = _guarded("onnxruntime latency", onnx_latency, str(path), example_inputs,
-                                                  warmup, runs, n_threads, providers)
+                    lat["onnxruntime"] = _guarded(
+                        "onnxruntime latency",
+                        onnx_latency,
+                        str(path),
+                        example_inputs,
+                        warmup,
+                        runs,
+                        n_threads,
+                        providers,
+                    )
         out["latency"] = lat
-    out["environment"] = {"torch": torch.__version__, "python": platform.python_version(),
-                          "machine": platform.machine(), "profile_time_s": round(time.perf_counter() - t_start, 2)}
+    out["environment"] = {
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "profile_time_s": round(time.perf_counter() - t_start, 2),
+    }
     return out
 
 
@@ -117,8 +150,9 @@ def _top_level(by_module: dict[str, int]) -> dict[str, int]:
     return out
 
 
-def build_detector(name: str, num_classes: int = 8, in_channels: int = 4, host: Any = None,
-                   model_options: dict[str, Any] | None = None) -> tuple[Any, Any]:
+def build_detector(
+    name: str, num_classes: int = 8, in_channels: int = 4, host: Any = None, model_options: dict[str, Any] | None = None
+) -> tuple[Any, Any]:
     """(spec, model) of a registered detector, built for ``num_classes``, the input the spec declares and the model
     options of a run configuration (``model`` section: ``--set model.scale=n``)."""
     from harness.plugins import get_host
@@ -129,29 +163,52 @@ def build_detector(name: str, num_classes: int = 8, in_channels: int = 4, host: 
     try:
         model = spec.build(num_classes, in_channels=channels, **options)
     except Exception as exc:
-        raise ProfilingError(f"detector {name!r} could not be built (num_classes={num_classes}, "
-                             f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}") from exc
+        raise ProfilingError(
+            f"detector {name!r} could not be built (num_classes={num_classes}, "
+            f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}"
+        ) from exc
     return spec, model.eval()
 
 
-def profile_detector(name: str, imgsz: int = 640, num_classes: int = 8, in_channels: int = 4, host: Any = None,
-                     model_options: dict[str, Any] | None = None, **kwargs: Any) -> dict[str, Any]:
+def profile_detector(
+    name: str,
+    imgsz: int = 640,
+    num_classes: int = 8,
+    in_channels: int = 4,
+    host: Any = None,
+    model_options: dict[str, Any] | None = None,
+    **kwargs: Any,
+) -> dict[str, Any]:
     """Build a registered detector and profile it at ``imgsz`` x ``imgsz``, batch 1, both inputs when dual-stream."""
     spec, model = build_detector(name, num_classes, in_channels, host, model_options)
     inputs = example_inputs(spec.input_kind, imgsz, 1, in_channels, spec.thermal_channels)
     result = profile_model(model, inputs, **kwargs)
     ref = spec.reference
     return {
-        "detector": spec.name, "label": spec.label, "input_kind": spec.input_kind, "imgsz": imgsz,
-        "num_classes": num_classes, "model_options": dict(model_options or {}),
-        "reference": (None if ref is None or not ref.applies(num_classes, imgsz, model_options) else
-                      {"params_m": ref.params_m, "gflops": ref.gflops, "source": ref.source}),
+        "detector": spec.name,
+        "label": spec.label,
+        "input_kind": spec.input_kind,
+        "imgsz": imgsz,
+        "num_classes": num_classes,
+        "model_options": dict(model_options or {}),
+        "reference": (
+            None
+            if ref is None or not ref.applies(num_classes, imgsz, model_options)
+            else {"params_m": ref.params_m, "gflops": ref.gflops, "source": ref.source}
+        ),
         **result,
     }
 
 
-def export_detector(name: str, path: str | Path, imgsz: int = 640, num_classes: int = 8, in_channels: int = 4,
-                    host: Any = None, **kwargs: Any) -> dict[str, Any]:
+def export_detector(
+    name: str,
+    path: str | Path,
+    imgsz: int = 640,
+    num_classes: int = 8,
+    in_channels: int = 4,
+    host: Any = None,
+    **kwargs: Any,
+) -> dict[str, Any]:
     """``harness export``: a registered detector's raw forward to ONNX, checked against torch."""
     spec, model = build_detector(name, num_classes, in_channels, host)
     inputs = example_inputs(spec.input_kind, imgsz, 1, in_channels, spec.thermal_channels)

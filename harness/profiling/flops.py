@@ -98,20 +98,44 @@ def _zero(m: Any, x: torch.Tensor, y: torch.Tensor) -> int:
 #: exact module type -> MACs of one call (thop 0.1.1's table; RNN modules are not covered)
 PAPER_RULES: dict[type, Callable[[nn.Module, torch.Tensor, torch.Tensor], int]] = {
     nn.ZeroPad2d: _zero,
-    nn.Conv1d: _conv, nn.Conv2d: _conv, nn.Conv3d: _conv,
-    nn.ConvTranspose1d: _conv, nn.ConvTranspose2d: _conv, nn.ConvTranspose3d: _conv,
-    nn.BatchNorm1d: _norm, nn.BatchNorm2d: _norm, nn.BatchNorm3d: _norm, nn.SyncBatchNorm: _norm,
-    nn.LayerNorm: _norm, nn.InstanceNorm1d: _norm, nn.InstanceNorm2d: _norm, nn.InstanceNorm3d: _norm,
-    nn.PReLU: _prelu, nn.Softmax: _softmax,
-    nn.ReLU: _zero, nn.ReLU6: _zero, nn.LeakyReLU: _zero,
-    nn.MaxPool1d: _zero, nn.MaxPool2d: _zero, nn.MaxPool3d: _zero,
-    nn.AdaptiveMaxPool1d: _zero, nn.AdaptiveMaxPool2d: _zero, nn.AdaptiveMaxPool3d: _zero,
-    nn.AvgPool1d: _avgpool, nn.AvgPool2d: _avgpool, nn.AvgPool3d: _avgpool,
-    nn.AdaptiveAvgPool1d: _adaptive_avgpool, nn.AdaptiveAvgPool2d: _adaptive_avgpool,
+    nn.Conv1d: _conv,
+    nn.Conv2d: _conv,
+    nn.Conv3d: _conv,
+    nn.ConvTranspose1d: _conv,
+    nn.ConvTranspose2d: _conv,
+    nn.ConvTranspose3d: _conv,
+    nn.BatchNorm1d: _norm,
+    nn.BatchNorm2d: _norm,
+    nn.BatchNorm3d: _norm,
+    nn.SyncBatchNorm: _norm,
+    nn.LayerNorm: _norm,
+    nn.InstanceNorm1d: _norm,
+    nn.InstanceNorm2d: _norm,
+    nn.InstanceNorm3d: _norm,
+    nn.PReLU: _prelu,
+    nn.Softmax: _softmax,
+    nn.ReLU: _zero,
+    nn.ReLU6: _zero,
+    nn.LeakyReLU: _zero,
+    nn.MaxPool1d: _zero,
+    nn.MaxPool2d: _zero,
+    nn.MaxPool3d: _zero,
+    nn.AdaptiveMaxPool1d: _zero,
+    nn.AdaptiveMaxPool2d: _zero,
+    nn.AdaptiveMaxPool3d: _zero,
+    nn.AvgPool1d: _avgpool,
+    nn.AvgPool2d: _avgpool,
+    nn.AvgPool3d: _avgpool,
+    nn.AdaptiveAvgPool1d: _adaptive_avgpool,
+    nn.AdaptiveAvgPool2d: _adaptive_avgpool,
     nn.AdaptiveAvgPool3d: _adaptive_avgpool,
-    nn.Linear: _linear, nn.Dropout: _zero,
-    nn.Upsample: _upsample, nn.UpsamplingBilinear2d: _upsample, nn.UpsamplingNearest2d: _upsample,
-    nn.Sequential: _zero, nn.PixelShuffle: _zero,
+    nn.Linear: _linear,
+    nn.Dropout: _zero,
+    nn.Upsample: _upsample,
+    nn.UpsamplingBilinear2d: _upsample,
+    nn.UpsamplingNearest2d: _upsample,
+    nn.Sequential: _zero,
+    nn.PixelShuffle: _zero,
 }
 
 
@@ -145,6 +169,7 @@ def paper_flops(model: nn.Module, example_inputs: Any, on_meta: bool = True) -> 
             y = output[0] if isinstance(output, (tuple, list)) else output
             if isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor):
                 ops[id(m)] += int(rule(m, x, y))
+
         return _hook
 
     def note(m: nn.Module, inputs: tuple) -> None:
@@ -204,8 +229,9 @@ def exact_flops(model: nn.Module, example_inputs: Any) -> FlopReport:
         with counter, torch.no_grad():
             wrapper(*inputs)
     except Exception as exc:
-        raise ProfilingError(f"forward_raw failed on the meta device under FlopCounterMode: "
-                             f"{type(exc).__name__}: {exc}") from exc
+        raise ProfilingError(
+            f"forward_raw failed on the meta device under FlopCounterMode: {type(exc).__name__}: {exc}"
+        ) from exc
     by_module = {}
     for name, counts in counter.get_flop_counts().items():
         short = name.split(".", 1)[1] if "." in name else ""
@@ -236,8 +262,11 @@ def fvcore_flops(model: nn.Module, example_inputs: Any, max_depth: int = 3) -> F
         with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), torch.no_grad():
             warnings.simplefilter("ignore")
             total = analysis.total()
-            by_module = {strip_prefix(k): 2 * int(v) for k, v in analysis.by_module().items()
-                         if k and strip_prefix(k) and "." not in strip_prefix(k)}
+            by_module = {
+                strip_prefix(k): 2 * int(v)
+                for k, v in analysis.by_module().items()
+                if k and strip_prefix(k) and "." not in strip_prefix(k)
+            }
             skipped = sorted(f"{op} (x{n})" for op, n in analysis.unsupported_ops().items())
             table = flop_count_table(analysis, max_depth=max_depth)
     except Exception as exc:
@@ -245,5 +274,10 @@ def fvcore_flops(model: nn.Module, example_inputs: Any, max_depth: int = 3) -> F
     finally:
         fv_logger.setLevel(level)
     table = table.replace("| model.", "| ").replace("| model ", "|  ")
-    return FlopReport("fvcore", 2 * int(total), by_module, skipped,
-                      "fvcore per-module table (fvcore units: multiply-adds; the harness reports 2x):\n" + table)
+    return FlopReport(
+        "fvcore",
+        2 * int(total),
+        by_module,
+        skipped,
+        "fvcore per-module table (fvcore units: multiply-adds; the harness reports 2x):\n" + table,
+    )

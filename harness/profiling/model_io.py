@@ -74,8 +74,15 @@ def is_dual(example_inputs: Any) -> bool:
     return not isinstance(example_inputs, torch.Tensor)
 
 
-def example_inputs(input_kind: str, imgsz: int | Sequence[int] = 640, batch: int = 1, channels: int = 4,
-                   thermal_channels: int = 3, device: str | torch.device = "cpu", seed: int = 0) -> Any:
+def example_inputs(
+    input_kind: str,
+    imgsz: int | Sequence[int] = 640,
+    batch: int = 1,
+    channels: int = 4,
+    thermal_channels: int = 3,
+    device: str | torch.device = "cpu",
+    seed: int = 0,
+) -> Any:
     """Inputs of the detector contract in 0..1: ``[B, channels, H, W]`` or ``(rgb, thermal)``."""
     h, w = (imgsz, imgsz) if isinstance(imgsz, int) else tuple(imgsz)
     if str(device) == "meta":
@@ -103,4 +110,4 @@ def to_meta(model: nn.Module) -> nn.Module:
 
 
 def strip_prefix(name: str, prefix: str = "model.") -> str:
-    return name[len(prefix):] if name.startswith(prefix) else (name if name != "model" else "")
+    return name[len(prefix) :] if name.startswith(prefix) else (name if name != "model" else "")

@@ -68,8 +68,9 @@ def reachable_parameters(model: nn.Module, example_inputs: Any) -> ParamReport:
             else:
                 grads = [None] * len(named)
     except Exception as exc:
-        raise ProfilingError(f"forward_raw failed on the meta device while tracing parameter use: "
-                             f"{type(exc).__name__}: {exc}") from exc
+        raise ProfilingError(
+            f"forward_raw failed on the meta device while tracing parameter use: {type(exc).__name__}: {exc}"
+        ) from exc
     finally:
         for h in handles:
             h.remove()
@@ -85,5 +86,6 @@ def reachable_parameters(model: nn.Module, example_inputs: Any) -> ParamReport:
     outer = [strip_prefix(n) for n in not_called if not any(n.startswith(o + ".") for o in not_called)]
     frozen_un = [n for n in unreachable if n in frozen]
     frozen_count = sum(p.numel() for (n, p), g in zip(named, grads) if g is None and n in frozen)
-    return ParamReport(total, trainable, buffers, total - un_count, unreachable, un_count, outer,
-                       frozen_un, frozen_count)
+    return ParamReport(
+        total, trainable, buffers, total - un_count, unreachable, un_count, outer, frozen_un, frozen_count
+    )

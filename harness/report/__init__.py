@@ -16,8 +16,8 @@ the runs name (``harness.report.gallery``).
 """
 
 from harness.report.build import FORMATS, Report, Section, build_report
-from harness.report.reader import Entry, FoldResult, ResultLabel, StoredRun, StoreView
 from harness.report.plots import pareto_front
+from harness.report.reader import Entry, FoldResult, ResultLabel, StoredRun, StoreView
 from harness.report.stats import (
     BootstrapResult,
     BootstrapScorer,
@@ -29,8 +29,24 @@ from harness.report.stats import (
 from harness.report.tables import Column, Interval, Stat, Table
 
 __all__ = [
-    "FORMATS", "BootstrapResult", "BootstrapScorer", "Column", "Entry", "FoldResult", "Interval", "PairedComparison",
-    "Report", "ResultLabel", "Section", "Stat", "StoredRun", "StoreView", "Table", "build_report", "compare_detectors",
+    "FORMATS",
+    "BootstrapResult",
+    "BootstrapScorer",
+    "Column",
+    "Entry",
+    "FoldResult",
+    "Interval",
+    "PairedComparison",
+    "Report",
+    "ResultLabel",
+    "Section",
+    "Stat",
+    "StoredRun",
+    "StoreView",
+    "Table",
+    "build_report",
+    "compare_detectors",
     "paired_comparison",
-    "pareto_front", "resample_coco",
+    "pareto_front",
+    "resample_coco",
 ]

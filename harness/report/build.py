@@ -32,14 +32,15 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError
-from harness.report.reader import Entry, StoreView, label_notes
 from harness.report.curves import curves_section
+from harness.report.document import FigureOut, Report, Section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
+from harness.report.reader import Entry, StoreView, label_notes
 from harness.report.sizes import size_tables
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
 from harness.report.tables import (
-    _entry_names,
     ABLATION_CATEGORIES,
+    _entry_names,
     ablation_tables,
     category_table,
     cross_dataset_table,
@@ -50,7 +51,6 @@ from harness.report.tables import (
     records_csv,
     registration_table,
 )
-from harness.report.document import FigureOut, Report, Section
 from harness.store import Store
 
 log = logging.getLogger(__name__)
@@ -90,8 +90,18 @@ def _points(dataset: str, rows: Sequence[Entry]) -> list[PlotPoint]:
             m = agg.get(metric) or {}
             if m.get("mean") is None:
                 continue
-            points.append(PlotPoint(dataset, names[e.label], e.detector, metric, float(prof["gflops"]),
-                                    float(m["mean"]), m.get("sd"), int(m.get("n") or 0)))
+            points.append(
+                PlotPoint(
+                    dataset,
+                    names[e.label],
+                    e.detector,
+                    metric,
+                    float(prof["gflops"]),
+                    float(m["mean"]),
+                    m.get("sd"),
+                    int(m.get("n") or 0),
+                )
+            )
     return points
 
 
@@ -100,13 +110,15 @@ def _conventions(view: StoreView, entries: Sequence[Entry]) -> str:
     sizes = sorted({p["imgsz"] for p in profs if p.get("imgsz")})
     run_sizes = sorted({s for s in (e.train_imgsz() for e in entries) if s})
     folds = sorted({len(e.folds) for e in entries})
-    return (f"x: GFLOPs, 'paper' convention (BatchNorm folded, 1 multiply-add = 2 FLOPs, network up to the raw head "
-            f"outputs, no decoding or NMS) at {'/'.join(f'{s}x{s}' for s in sizes) or '?'} input, batch 1, both "
-            f"inputs for dual-stream detectors, log scale. y: COCO box AP in % (mAP50:95 over IoU 0.50:0.05:0.95, "
-            f"mAP50 at IoU 0.50; 101 recall points, maxDets 100), mean over {'/'.join(map(str, folds))} held-out "
-            f"fold(s); error bars: ± 1 sample SD over folds. Runs trained and evaluated at "
-            f"{'/'.join(f'{s}x{s}' for s in run_sizes) or '?'} px; {_hardware(entries)}. Dashed: Pareto "
-            f"front. Store: {view.root}.")
+    return (
+        f"x: GFLOPs, 'paper' convention (BatchNorm folded, 1 multiply-add = 2 FLOPs, network up to the raw head "
+        f"outputs, no decoding or NMS) at {'/'.join(f'{s}x{s}' for s in sizes) or '?'} input, batch 1, both "
+        f"inputs for dual-stream detectors, log scale. y: COCO box AP in % (mAP50:95 over IoU 0.50:0.05:0.95, "
+        f"mAP50 at IoU 0.50; 101 recall points, maxDets 100), mean over {'/'.join(map(str, folds))} held-out "
+        f"fold(s); error bars: ± 1 sample SD over folds. Runs trained and evaluated at "
+        f"{'/'.join(f'{s}x{s}' for s in run_sizes) or '?'} px; {_hardware(entries)}. Dashed: Pareto "
+        f"front. Store: {view.root}."
+    )
 
 
 def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) -> Section:
@@ -121,27 +133,36 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
         unprofiled.extend(e.label for e in rows if e.complexity().get("gflops") is None)
     unprofiled = list(dict.fromkeys(unprofiled))
     if not used:
-        sec.absent = ("no finished runs in the store; fill with `harness run --detector D --dataset X --store "
-                      f"{view.root}` (each run measures the complexity of the model it trained).")
+        sec.absent = (
+            "no finished runs in the store; fill with `harness run --detector D --dataset X --store "
+            f"{view.root}` (each run measures the complexity of the model it trained)."
+        )
         return sec
     if not points:
-        sec.absent = (f"no run recorded the complexity of its model ({', '.join(unprofiled)}); re-run them with "
-                      f"`harness run ... --force --store {view.root}` to measure it.")
+        sec.absent = (
+            f"no run recorded the complexity of its model ({', '.join(unprofiled)}); re-run them with "
+            f"`harness run ... --force --store {view.root}` to measure it."
+        )
         return sec
     conventions = _conventions(view, used)
-    svg, files = accuracy_vs_gflops(points, conventions, out / "figures" / "accuracy_vs_gflops" if out else None,
-                                    title="Held-out accuracy versus GFLOPs")
+    svg, files = accuracy_vs_gflops(
+        points,
+        conventions,
+        out / "figures" / "accuracy_vs_gflops" if out else None,
+        title="Held-out accuracy versus GFLOPs",
+    )
     sec.figures.append(FigureOut("accuracy_vs_gflops", "Accuracy versus GFLOPs", svg, conventions, files, points))
     if unprofiled:
-        sec.notes.append(f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
-                         f"them with --force to measure it.")
+        sec.notes.append(
+            f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
+            f"them with --force to measure it."
+        )
     sec.notes += label_notes([e.notes_item(f"{e.dataset} {e.label}") for e in used if e.complexity().get("gflops")])
     return sec
 
 
 def _pareto_labels(dataset: str, rows: Sequence[Entry]) -> set[str] | None:
-    pts = [(e.label, e.complexity().get("gflops"), e.aggregate()["metrics"].get("mAP50_95"))
-           for e in rows]
+    pts = [(e.label, e.complexity().get("gflops"), e.aggregate()["metrics"].get("mAP50_95")) for e in rows]
     pts = [(lab, g, m["mean"]) for lab, g, m in pts if g is not None and m and m.get("mean") is not None]
     if not pts:
         return None
@@ -149,8 +170,16 @@ def _pareto_labels(dataset: str, rows: Sequence[Entry]) -> set[str] | None:
     return {pts[i][0] for i in idx}
 
 
-def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamples: int, seed: int, progress: Any,
-                    workers: int = 1, reference: str | None = REFERENCE) -> tuple[Section, list[PairedComparison]]:
+def _paired_section(
+    view: StoreView,
+    dataset: str,
+    rows: Sequence[Entry],
+    resamples: int,
+    seed: int,
+    progress: Any,
+    workers: int = 1,
+    reference: str | None = REFERENCE,
+) -> tuple[Section, list[PairedComparison]]:
     """Paired comparisons: the ``reference`` detector's main entry against every other detector's (the most accurate
     entry when the reference was not run), then, within one detector, its best encoding against the others."""
     sec = Section("paired", "Paired comparisons", dataset)
@@ -174,17 +203,20 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamp
                 ref = best(group)
                 pairs += [(ref, e) for e in group if e is not ref and (ref, e) not in pairs and (e, ref) not in pairs]
     if not pairs:
-        sec.absent = (f"fewer than two detectors (or encodings) evaluated on the same folds of {dataset}; fill with "
-                      f"`harness run --detector OTHER --dataset {dataset} --store {view.root}`, then "
-                      f"`harness compare-detectors A B --dataset {dataset} --store {view.root}`.")
+        sec.absent = (
+            f"fewer than two detectors (or encodings) evaluated on the same folds of {dataset}; fill with "
+            f"`harness run --detector OTHER --dataset {dataset} --store {view.root}`, then "
+            f"`harness compare-detectors A B --dataset {dataset} --store {view.root}`."
+        )
         return sec, []
     from harness.evaluation import SampleMismatchError
 
     scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None, workers)
     comps: list[PairedComparison] = []
     if progress is not None and resamples > 0:
-        runs = {str(r.path) for a, b in pairs for f in set(a.folds) & set(b.folds) for e in (a, b)
-                for r in e.folds[f].runs}
+        runs = {
+            str(r.path) for a, b in pairs for f in set(a.folds) & set(b.folds) for e in (a, b) for r in e.folds[f].runs
+        }
         progress.start(len(runs) * (1 + resamples), f"bootstrap {dataset}")
     for a, b in pairs:
         try:
@@ -194,14 +226,21 @@ def _paired_section(view: StoreView, dataset: str, rows: Sequence[Entry], resamp
             detail = "; ".join(ln.strip() for ln in lines[1:] if ln.startswith("  "))
             skipped.append(f"{a.label} vs {b.label}: {lines[0].rstrip(':')}" + (f" ({detail})" if detail else ""))
     if comps:
-        sec.tables.append(paired_table(comps, f"{dataset}-paired".replace("/", "-"),
-                                       f"{dataset}: paired comparisons (A - B, percentage points)"))
+        sec.tables.append(
+            paired_table(
+                comps,
+                f"{dataset}-paired".replace("/", "-"),
+                f"{dataset}: paired comparisons (A - B, percentage points)",
+            )
+        )
     if skipped:
         sec.notes += [f"Not compared: {s}" for s in skipped]
         if not comps:
             sec.absent = "no pair of entries was scored on the same samples: " + "; ".join(skipped)
-    sec.notes.append(f"Single pairs with more resamples: `harness compare-detectors A B --dataset {dataset} --store "
-                     f"{view.root} --resamples 1000`.")
+    sec.notes.append(
+        f"Single pairs with more resamples: `harness compare-detectors A B --dataset {dataset} --store "
+        f"{view.root} --resamples 1000`."
+    )
     return sec, comps
 
 
@@ -213,13 +252,17 @@ def _cross_section(view: StoreView, datasets: Sequence[str]) -> Section:
         sec.absent = f"the cross-dataset table could not be built: {exc}"
         return sec
     if not table.rows:
-        sec.absent = (f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
-                      f"{view.root}` for each dataset.")
+        sec.absent = (
+            f"no finished runs in the store; fill with `harness run --detector D --dataset X --store "
+            f"{view.root}` for each dataset."
+        )
     else:
         with_runs = [d for d in datasets if view.entries(d)]
         if len(with_runs) < 2:
-            table.notes.append(f"Only {', '.join(with_runs)} has runs in this store; add another dataset with "
-                               f"`harness run --dataset OTHER --store {view.root}` to compare across datasets.")
+            table.notes.append(
+                f"Only {', '.join(with_runs)} has runs in this store; add another dataset with "
+                f"`harness run --dataset OTHER --store {view.root}` to compare across datasets."
+            )
         sec.tables.append(table)
     return sec
 
@@ -231,10 +274,19 @@ def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[st
         return None, f"unreadable: {exc}"
 
 
-def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, ablation_categories: Sequence[str],
-                     progress: Any = None, workers: int = 1, reference: str | None = REFERENCE,
-                     out: Path | None = None, cache_root: str | Path | None = None,
-                     gallery: bool = True) -> tuple[list[Section], list[PairedComparison]]:
+def dataset_sections(
+    view: StoreView,
+    dataset: str,
+    resamples: int,
+    seed: int,
+    ablation_categories: Sequence[str],
+    progress: Any = None,
+    workers: int = 1,
+    reference: str | None = REFERENCE,
+    out: Path | None = None,
+    cache_root: str | Path | None = None,
+    gallery: bool = True,
+) -> tuple[list[Section], list[PairedComparison]]:
     """The sections of one dataset (see the module docstring for the order). ``out``: where figures and thumbnails
     are written (none when None); ``cache_root``: the prepared cache the galleries draw from (default
     ``$HARNESS_CACHE``); ``gallery=False`` leaves the galleries out."""
@@ -256,8 +308,9 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
         sec.tables.append(table)
     unfinished = view.unfinished(dataset)
     if unfinished:
-        sec.notes.append("Runs in the store that are not finished (not shown): "
-                         + ", ".join(f"{k} ({s})" for k, s in unfinished))
+        sec.notes.append(
+            "Runs in the store that are not finished (not shown): " + ", ".join(f"{k} ({s})" for k, s in unfinished)
+        )
     sections.append(sec)
 
     sec = Section("categories", "Per category", dataset)
@@ -273,9 +326,11 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     sec.tables += abl
     sec.notes += notes
     if not abl:
-        sec.absent = (f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
-                      f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --folds F "
-                      f"--store {root}`." + (" " + " ".join(notes) if notes else ""))
+        sec.absent = (
+            f"no detector of {dataset} was run with two or more encodings on a common fold; fill with "
+            f"`harness ablate --detector D --dataset {dataset} --encodings none,ir8,linear16,c2 --folds F "
+            f"--store {root}`." + (" " + " ".join(notes) if notes else "")
+        )
     sections.append(sec)
 
     sec = Section("sizes", "Object sizes", dataset, tables=size_tables(view, dataset) + size_ap)
@@ -291,24 +346,48 @@ def dataset_sections(view: StoreView, dataset: str, resamples: int, seed: int, a
     if gallery:
         sections.append(gallery_section(dataset, evidence, out, cache_root))
 
-    sensing = [_sensing_section(
-        view, dataset, "registration", "Registration error", "registration_error", registration_table,
-        f"no registration-error analysis of {dataset}",
-        f"harness sensing registration-error ... --dataset {dataset} --store {root}",
-        f"harness sensing registration-error --landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} "
-        f"--store {root}"), _sensing_section(
-        view, dataset, "displacement", "C2 under thermal displacement", "displacement", displacement_table,
-        f"no displacement study of {dataset}", f"harness sensing displacement --dataset {dataset} --store {root}",
-        f"harness sensing displacement --dataset {dataset} --store {root}")]
+    sensing = [
+        _sensing_section(
+            view,
+            dataset,
+            "registration",
+            "Registration error",
+            "registration_error",
+            registration_table,
+            f"no registration-error analysis of {dataset}",
+            f"harness sensing registration-error ... --dataset {dataset} --store {root}",
+            f"harness sensing registration-error --landmarks LANDMARKS.csv --homographies H.yaml --dataset {dataset} "
+            f"--store {root}",
+        ),
+        _sensing_section(
+            view,
+            dataset,
+            "displacement",
+            "C2 under thermal displacement",
+            "displacement",
+            displacement_table,
+            f"no displacement study of {dataset}",
+            f"harness sensing displacement --dataset {dataset} --store {root}",
+            f"harness sensing displacement --dataset {dataset} --store {root}",
+        ),
+    ]
     # sensor-level sections belong to datasets with a sensing stage; a stored analysis is shown whatever the dataset
     keep_absent = view.sensing_stage(dataset)
     sections += [s for s in sensing if keep_absent or not s.absent]
     return sections, comps
 
 
-def _sensing_section(view: StoreView, dataset: str, key: str, title: str, analysis: str,
-                     make_table: Callable[[Mapping[str, Any], str], Any], missing: str, rerun: str,
-                     fill: str) -> Section:
+def _sensing_section(
+    view: StoreView,
+    dataset: str,
+    key: str,
+    title: str,
+    analysis: str,
+    make_table: Callable[[Mapping[str, Any], str], Any],
+    missing: str,
+    rerun: str,
+    fill: str,
+) -> Section:
     """The section of one stored sensing analysis: its table, or why it is absent and the command that fills it."""
     sec = Section(key, title, dataset)
     result, problem = _read_sensing(view, dataset, analysis)
@@ -344,11 +423,21 @@ class _Progress:
         self._bar.advance(k)
 
 
-def build_report(store: Store | str | Path, datasets: Sequence[str] | None = None, out: str | Path | None = None,
-                 formats: Sequence[str] = FORMATS, resamples: int = REPORT_RESAMPLES, seed: int = 0,
-                 ablation_categories: Sequence[str] = ABLATION_CATEGORIES, title: str | None = None,
-                 progress: bool = False, workers: int = 1, reference: str | None = REFERENCE,
-                 cache_root: str | Path | None = None, gallery: bool = True) -> Report:
+def build_report(
+    store: Store | str | Path,
+    datasets: Sequence[str] | None = None,
+    out: str | Path | None = None,
+    formats: Sequence[str] = FORMATS,
+    resamples: int = REPORT_RESAMPLES,
+    seed: int = 0,
+    ablation_categories: Sequence[str] = ABLATION_CATEGORIES,
+    title: str | None = None,
+    progress: bool = False,
+    workers: int = 1,
+    reference: str | None = REFERENCE,
+    cache_root: str | Path | None = None,
+    gallery: bool = True,
+) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
@@ -365,23 +454,32 @@ def build_report(store: Store | str | Path, datasets: Sequence[str] | None = Non
     if datasets:
         missing = [d for d in datasets if d not in available]
         if missing:
-            raise HarnessError(f"{view.root}: nothing stored for dataset(s) {', '.join(missing)} (the store has: "
-                               f"{', '.join(available) or 'nothing'}); run `harness run --dataset NAME --store "
-                               f"{view.root}` first")
+            raise HarnessError(
+                f"{view.root}: nothing stored for dataset(s) {', '.join(missing)} (the store has: "
+                f"{', '.join(available) or 'nothing'}); run `harness run --dataset NAME --store "
+                f"{view.root}` first"
+            )
         chosen = list(datasets)
     else:
         chosen = available
     if not chosen:
-        raise HarnessError(f"{view.root}: the results store holds no finished runs or analyses; fill it with "
-                           f"`harness run --store {view.root} ...` first")
+        raise HarnessError(
+            f"{view.root}: the results store holds no finished runs or analyses; fill it with "
+            f"`harness run --store {view.root} ...` first"
+        )
     out_dir = Path(out) if out is not None else None
-    report = Report(title or f"Benchmark report: {', '.join(chosen)}", str(view.root), chosen,
-                    time.strftime("%Y-%m-%d %H:%M:%S"),
-                    environment={"python": platform.python_version(), "machine": platform.machine()})
+    report = Report(
+        title or f"Benchmark report: {', '.join(chosen)}",
+        str(view.root),
+        chosen,
+        time.strftime("%Y-%m-%d %H:%M:%S"),
+        environment={"python": platform.python_version(), "machine": platform.machine()},
+    )
     with _Progress(progress) as bar:
         for ds in chosen:
-            sections, comps = dataset_sections(view, ds, resamples, seed, ablation_categories, bar, workers, reference,
-                                               out_dir, cache_root, gallery)
+            sections, comps = dataset_sections(
+                view, ds, resamples, seed, ablation_categories, bar, workers, reference, out_dir, cache_root, gallery
+            )
             report.sections += sections
             report.comparisons += comps
     report.sections.append(_plot_section(view, chosen, out_dir))

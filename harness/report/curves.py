@@ -111,8 +111,9 @@ def collect(view: Any, dataset: str) -> tuple[list[EntryCurves], list[str]]:
     return out, problems
 
 
-def training_curves(curves: Sequence[EntryCurves], out_base: Path | None = None,
-                    title: str = "Training curves") -> tuple[str, list[Path]]:
+def training_curves(
+    curves: Sequence[EntryCurves], out_base: Path | None = None, title: str = "Training curves"
+) -> tuple[str, list[Path]]:
     """Draw one row per entry (loss components | held-out mAP); returns (SVG text, written files)."""
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -156,8 +157,7 @@ def _draw(ax: Any, curve: Curve, color: str, label: str, scale: float = 1.0) -> 
     epochs, mean, lo, hi = curve.series()
     ax.plot(epochs, [scale * v for v in mean], color=color, linewidth=1.4, marker="o", markersize=2.5, label=label)
     if any(h > low for low, h in zip(lo, hi)):
-        ax.fill_between(epochs, [scale * v for v in lo], [scale * v for v in hi], color=color, alpha=0.18,
-                        linewidth=0)
+        ax.fill_between(epochs, [scale * v for v in lo], [scale * v for v in hi], color=color, alpha=0.18, linewidth=0)
 
 
 def curves_section(view: Any, dataset: str, out: Path | None) -> Any:
@@ -167,14 +167,18 @@ def curves_section(view: Any, dataset: str, out: Path | None) -> Any:
     sec = Section("curves", "Training curves", dataset)
     curves, problems = collect(view, dataset)
     if not curves:
-        sec.absent = (f"no finished run of {dataset} has a training log (log.jsonl); fill with `harness run "
-                      f"--detector D --dataset {dataset} --store {view.root}`.")
+        sec.absent = (
+            f"no finished run of {dataset} has a training log (log.jsonl); fill with `harness run "
+            f"--detector D --dataset {dataset} --store {view.root}`."
+        )
         return sec
     name = f"training_curves_{dataset}".replace("/", "-")
     svg, files = training_curves(curves, out / "figures" / name if out else None, f"Training curves, {dataset}")
-    caption = (f"{dataset}: per entry (detector/encoding), the mean of each loss component over the epoch's "
-               f"batches and the held-out mAP50 / mAP50:95 (%) of the EMA weights after each epoch; lines: mean over "
-               f"the runs (folds x seeds) that reached the epoch; band: their minimum to maximum.")
+    caption = (
+        f"{dataset}: per entry (detector/encoding), the mean of each loss component over the epoch's "
+        f"batches and the held-out mAP50 / mAP50:95 (%) of the EMA weights after each epoch; lines: mean over "
+        f"the runs (folds x seeds) that reached the epoch; band: their minimum to maximum."
+    )
     sec.figures.append(FigureOut(name, "Training curves", svg, caption, files))
     sec.notes += [f"Left out: {p}" for p in problems]
     return sec

@@ -131,8 +131,8 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     from harness.config import read_yaml
     from harness.io import atomic_write_json, read_json
     from harness.plugins import get_host
-    from harness.scoring.export import _prepared_of
     from harness.report.reader import StoreView
+    from harness.scoring.export import _prepared_of
 
     view = StoreView(store)
     st = view.store
@@ -148,8 +148,8 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
         prepared = _prepared_of(configured[0])
         cfg = read_yaml(configured[0].config_path)
     else:
-        from harness.config import load_config
         from harness.cache import prepare
+        from harness.config import load_config
 
         cfg = load_config(protocol=spec.protocol)
         prepared = prepare(spec.name, cfg, progress=False)

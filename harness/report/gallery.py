@@ -182,7 +182,8 @@ class Source:
 
 def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Any, str | None]:
     """The prepared samples a run was scored on, from the cache (``harness.cache.cached``), or (None, why not)."""
-    from harness.cache import cache_root as default_root, cached
+    from harness.cache import cache_root as default_root
+    from harness.cache import cached
 
     meta = run.config.get("meta") or {}
     key = meta.get("prepared_key")

@@ -107,8 +107,7 @@ def render_table(t: Table) -> str:
             cells.append(f'<td class="{" ".join(cls)}">{escape(text)}</td>')
         row_cls = ' class="summary"' if r.get("_summary") else ""
         body.append(f"<tr{row_cls}>{''.join(cells)}</tr>")
-    out.append(f'<div class="table-wrap"><table><thead>{head}</thead><tbody>{"".join(body)}</tbody>'
-               f"</table></div>")
+    out.append(f'<div class="table-wrap"><table><thead>{head}</thead><tbody>{"".join(body)}</tbody></table></div>')
     if t.notes:
         out.append('<ul class="notes">' + "".join(f"<li>{_code(n)}</li>" for n in t.notes) + "</ul>")
     return "\n".join(out)
@@ -122,8 +121,10 @@ def render_gallery(s: Section, g: Any) -> str:
     thumbs = []
     for t in g.thumbs:
         data = base64.b64encode(t.data).decode("ascii")
-        thumbs.append(f'<figure class="thumb"><img src="data:image/jpeg;base64,{data}" alt="{escape(t.caption)}">'
-                      f"<figcaption>{escape(t.caption)}</figcaption></figure>")
+        thumbs.append(
+            f'<figure class="thumb"><img src="data:image/jpeg;base64,{data}" alt="{escape(t.caption)}">'
+            f"<figcaption>{escape(t.caption)}</figcaption></figure>"
+        )
     if thumbs:
         out.append(f'<div class="gallery">{"".join(thumbs)}</div>')
     return "\n".join(out)
@@ -143,8 +144,10 @@ def render_section(s: Section) -> str:
     for f in s.figures:
         out.append(f"<h3>{escape(f.title)}</h3>")
         links = " · ".join(f'<a href="figures/{escape(p.name)}">{escape(p.suffix[1:].upper())}</a>' for p in f.files)
-        out.append(f'<figure>{inline_svg(f.svg)}<figcaption>Conventions as printed on the figure.'
-                   f'{f" Files: {links}." if links else ""}</figcaption></figure>')
+        out.append(
+            f"<figure>{inline_svg(f.svg)}<figcaption>Conventions as printed on the figure."
+            f"{f' Files: {links}.' if links else ''}</figcaption></figure>"
+        )
     for g in s.galleries:
         out.append(render_gallery(s, g))
     if s.notes:
@@ -161,7 +164,7 @@ def render_html(report: Report) -> str:
             current = s.dataset
             title = s.dataset or "All datasets"
             body.append(f'<h2 id="ds-{escape(str(s.dataset or "all"))}">{escape(title)}</h2>')
-            nav.append(f'<b>{escape(title)}</b>')
+            nav.append(f"<b>{escape(title)}</b>")
         cls = ' class="off"' if s.absent else ""
         warn = " ⚠" if any(t.warning for t in s.tables) else ""
         nav.append(f'<a{cls} href="#{escape(s.anchor)}">{escape(s.title)}{warn}{" (absent)" if s.absent else ""}</a>')
@@ -169,11 +172,15 @@ def render_html(report: Report) -> str:
     warned = [t.title for t in report.tables if t.warning]
     banner = ""
     if report.problems:
-        banner += (f'<div class="loud" role="alert">⚠ unreadable files in the store (skipped)<ul>'
-                   f'{"".join(f"<li>{escape(p)}</li>" for p in report.problems)}</ul></div>')
+        banner += (
+            f'<div class="loud" role="alert">⚠ unreadable files in the store (skipped)<ul>'
+            f"{''.join(f'<li>{escape(p)}</li>' for p in report.problems)}</ul></div>"
+        )
     if warned:
-        banner += (f'<div class="loud" role="alert">⚠ {len(warned)} table(s) compare rows that were not scored on the '
-                   f'same samples<ul>{"".join(f"<li>{escape(w)}</li>" for w in warned)}</ul></div>')
+        banner += (
+            f'<div class="loud" role="alert">⚠ {len(warned)} table(s) compare rows that were not scored on the '
+            f"same samples<ul>{''.join(f'<li>{escape(w)}</li>' for w in warned)}</ul></div>"
+        )
     return f"""<!DOCTYPE html>
 <html lang="en">
 <head>

@@ -60,8 +60,9 @@ class BoxSet:
         return BoxSet(self.boxes[keep], self.labels[keep], self.scores[keep], self.name, self.colour)
 
 
-def coco_boxes(records: Iterable[Mapping[str, Any]], image_id: Any, name: str = "",
-               colour: tuple[int, int, int] | None = None) -> BoxSet:
+def coco_boxes(
+    records: Iterable[Mapping[str, Any]], image_id: Any, name: str = "", colour: tuple[int, int, int] | None = None
+) -> BoxSet:
     """The COCO records (``bbox`` xywh, ``category_id`` = label + 1, optional ``score``) of one image as a BoxSet."""
     rows = [r for r in records if r.get("image_id") == image_id and not r.get("iscrowd")]
     boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (r["bbox"] for r in rows)], dtype=np.float64)
@@ -106,8 +107,9 @@ def colour_map(values: np.ndarray) -> np.ndarray:
     return cv2.applyColorMap(np.asarray(values, dtype=np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
 
 
-def thermal_panel(thermal: np.ndarray,
-                  span: tuple[float, float] | None = None) -> tuple[np.ndarray, tuple[float, float]]:
+def thermal_panel(
+    thermal: np.ndarray, span: tuple[float, float] | None = None
+) -> tuple[np.ndarray, tuple[float, float]]:
     """Temperature in °C as an RGB colour-mapped image (missing pixels grey) and the range it maps."""
     t = np.asarray(thermal, dtype=np.float32)
     span = span or thermal_range(t) or (0.0, 1.0)
@@ -147,8 +149,9 @@ def _scale_bar(height: int, span: tuple[float, float], font_size: int) -> np.nda
     return np.asarray(out)
 
 
-def _draw_boxes(panel: np.ndarray, sets: Sequence[BoxSet], scale: float, categories: Sequence[str],
-                font_size: int) -> np.ndarray:
+def _draw_boxes(
+    panel: np.ndarray, sets: Sequence[BoxSet], scale: float, categories: Sequence[str], font_size: int
+) -> np.ndarray:
     from PIL import Image, ImageDraw
 
     img = Image.fromarray(np.ascontiguousarray(panel))
@@ -218,10 +221,18 @@ def _hstack(parts: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
     return np.concatenate(cols, axis=1)
 
 
-def draw_sample(sample: Any, *, fourth: np.ndarray | None = None, fourth_name: str = "fourth channel",
-                categories: Sequence[str] = (), gt: BoxSet | None | bool = True,
-                predictions: Sequence[BoxSet] = (), height: int = 360, title: str = "",
-                thermal_span: tuple[float, float] | None = None) -> np.ndarray:
+def draw_sample(
+    sample: Any,
+    *,
+    fourth: np.ndarray | None = None,
+    fourth_name: str = "fourth channel",
+    categories: Sequence[str] = (),
+    gt: BoxSet | None | bool = True,
+    predictions: Sequence[BoxSet] = (),
+    height: int = 360,
+    title: str = "",
+    thermal_span: tuple[float, float] | None = None,
+) -> np.ndarray:
     """One picture of an aligned sample (module docstring): RGB | thermal | fourth channel, boxes on each.
 
     ``gt=True`` draws the sample's own boxes, a ``BoxSet`` draws those instead, ``None``/``False`` none.
@@ -235,8 +246,13 @@ def draw_sample(sample: Any, *, fourth: np.ndarray | None = None, fourth_name: s
     if isinstance(gt, BoxSet):
         sets.append(gt if gt.colour else BoxSet(gt.boxes, gt.labels, gt.scores, gt.name or "ground truth", GT_COLOUR))
     for k, p in enumerate(predictions):
-        sets.append(p if p.colour else BoxSet(p.boxes, p.labels, p.scores, p.name or f"predictions {k + 1}",
-                                              PRED_COLOURS[k % len(PRED_COLOURS)]))
+        sets.append(
+            p
+            if p.colour
+            else BoxSet(
+                p.boxes, p.labels, p.scores, p.name or f"predictions {k + 1}", PRED_COLOURS[k % len(PRED_COLOURS)]
+            )
+        )
     h0 = int(sample.ir8.shape[0])
     scale = height / h0
     font_size = 11 if height < 200 else 13
@@ -309,7 +325,7 @@ def inline_image(png: bytes, protocol: str) -> str:
     if protocol == "iterm2":
         return f"\033]1337;File=inline=1;size={len(png)};preserveAspectRatio=1:{data}\a\n"
     if protocol == "kitty":
-        chunks = [data[i:i + 4096] for i in range(0, len(data), 4096)] or [""]
+        chunks = [data[i : i + 4096] for i in range(0, len(data), 4096)] or [""]
         out = []
         for i, chunk in enumerate(chunks):
             more = int(i < len(chunks) - 1)
@@ -317,4 +333,3 @@ def inline_image(png: bytes, protocol: str) -> str:
             out.append(f"\033_G{head};{chunk}\033\\")
         return "".join(out) + "\n"
     raise ValueError(f"unknown inline image protocol {protocol!r}")
-

@@ -56,8 +56,9 @@ def pareto_front(costs: Sequence[float], values: Sequence[float]) -> list[int]:
     return front
 
 
-def pareto_steps(costs: Sequence[float], values: Sequence[float],
-                 x_max: float | None = None) -> tuple[list[float], list[float]]:
+def pareto_steps(
+    costs: Sequence[float], values: Sequence[float], x_max: float | None = None
+) -> tuple[list[float], list[float]]:
     """Vertices of the front's step line (post-steps: the value holds until the next front point's cost)."""
     idx = pareto_front(costs, values)
     xs = [costs[i] for i in idx]
@@ -82,8 +83,11 @@ def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float,
     return max(0.0, min(a[2], b[2]) - max(a[0], b[0])) * max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
 
 
-def place_labels(anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[float, float]],
-                 slots: Sequence[tuple[float, float, str]] = LABEL_SLOTS) -> list[tuple[float, float, str]]:
+def place_labels(
+    anchors: Sequence[tuple[float, float]],
+    sizes: Sequence[tuple[float, float]],
+    slots: Sequence[tuple[float, float, str]] = LABEL_SLOTS,
+) -> list[tuple[float, float, str]]:
     """A slot (dx, dy, ha) for each point's label: anchors are marker positions and sizes label extents (width,
     height), both in points. Labels are placed from left to right; each takes the first slot that covers no label
     placed before it and no marker, or the slot covering the least area of them."""
@@ -96,8 +100,9 @@ def place_labels(anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[f
         for dx, dy, ha in slots:
             x0 = x + dx if ha == "left" else x + dx - w
             box = (x0, y + dy, x0 + w, y + dy + h)
-            cost = (sum(_overlap(box, o) for o in placed)
-                    + sum(_overlap(box, m) for j, m in enumerate(markers) if j != i))
+            cost = sum(_overlap(box, o) for o in placed) + sum(
+                _overlap(box, m) for j, m in enumerate(markers) if j != i
+            )
             if cost < best_cost:
                 best, best_cost = ((dx, dy, ha), box), cost
             if cost == 0.0:
@@ -122,8 +127,12 @@ def _style(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
     return {lab: (MARKERS[i % len(MARKERS)], cmap(i % 10)) for i, lab in enumerate(labels)}
 
 
-def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: Path | None = None,
-                       title: str = "Accuracy versus complexity") -> tuple[str, list[Path]]:
+def accuracy_vs_gflops(
+    points: Sequence[PlotPoint],
+    conventions: str,
+    out_base: Path | None = None,
+    title: str = "Accuracy versus complexity",
+) -> tuple[str, list[Path]]:
     """Draw the figure; returns (SVG text, written files). ``out_base`` without suffix gets ``.png`` and ``.svg``."""
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -158,8 +167,19 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 for p in pts:
                     marker, color = style[p.label]
                     yerr = None if p.sd is None else 100 * p.sd
-                    ax.errorbar(p.gflops, 100 * p.value, yerr=yerr, fmt=marker, color=color, markersize=8,
-                                capsize=3, elinewidth=1, markeredgecolor="black", markeredgewidth=0.6, zorder=3)
+                    ax.errorbar(
+                        p.gflops,
+                        100 * p.value,
+                        yerr=yerr,
+                        fmt=marker,
+                        color=color,
+                        markersize=8,
+                        capsize=3,
+                        elinewidth=1,
+                        markeredgecolor="black",
+                        markeredgewidth=0.6,
+                        zorder=3,
+                    )
                 if pts:
                     sx, sy = pareto_steps([p.gflops for p in pts], [100 * p.value for p in pts], x_hi)
                     ax.step(sx, sy, where="post", linestyle="--", color="0.35", linewidth=1.2, zorder=2)
@@ -180,8 +200,20 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
                 if r == nrows - 1:
                     ax.set_xlabel("GFLOPs (log scale)")
                 panels.append((ax, pts))
-        handles = [Line2D([], [], marker=style[lab][0], color=style[lab][1], linestyle="none", markersize=8,
-                          markeredgecolor="black", markeredgewidth=0.6, label=lab) for lab in labels]
+        handles = [
+            Line2D(
+                [],
+                [],
+                marker=style[lab][0],
+                color=style[lab][1],
+                linestyle="none",
+                markersize=8,
+                markeredgecolor="black",
+                markeredgewidth=0.6,
+                label=lab,
+            )
+            for lab in labels
+        ]
         handles.append(Line2D([], [], linestyle="--", color="0.35", label="Pareto front"))
         fig.legend(handles=handles, loc="outside right upper", frameon=False, title="detector")
         fig.suptitle(title, fontsize=11)
@@ -195,8 +227,15 @@ def accuracy_vs_gflops(points: Sequence[PlotPoint], conventions: str, out_base: 
             anchors = [tuple(v * to_pt for v in ax.transData.transform((p.gflops, 100 * p.value))) for p in pts]
             sizes = [(LABEL_CHAR_PT * len(names[p.label]), LABEL_LINE_PT) for p in pts]
             for p, (dx, dy, ha) in zip(pts, place_labels(anchors, sizes)):
-                ax.annotate(names[p.label], (p.gflops, 100 * p.value), textcoords="offset points", xytext=(dx, dy),
-                            ha=ha, fontsize=LABEL_FONT_PT, zorder=4)
+                ax.annotate(
+                    names[p.label],
+                    (p.gflops, 100 * p.value),
+                    textcoords="offset points",
+                    xytext=(dx, dy),
+                    ha=ha,
+                    fontsize=LABEL_FONT_PT,
+                    zorder=4,
+                )
 
         return save_figure(fig, out_base, dpi=150)
 

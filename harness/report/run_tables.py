@@ -31,8 +31,10 @@ def _pm(stats: dict[str, Any]) -> str:
 
 def _marked(row: list[str], col_marks: Sequence[str]) -> list[str]:
     """``row`` with each column's marks beside its numbers (text and empty cells left alone)."""
-    return [f"{c} {m}" if m and c not in ("", "-") and c[:1].isdigit() else c
-            for c, m in zip(row, [*col_marks, *[""] * (len(row) - len(col_marks))])]
+    return [
+        f"{c} {m}" if m and c not in ("", "-") and c[:1].isdigit() else c
+        for c, m in zip(row, [*col_marks, *[""] * (len(row) - len(col_marks))])
+    ]
 
 
 def _runs(summary: RunSummary) -> list[StoredRun]:
@@ -58,15 +60,25 @@ def fold_table(summary: RunSummary) -> str:
     for r in summary.results:
         m, tr = r.metrics["metrics"], r.metrics.get("train") or {}
         epochs = f"{tr.get('best_epoch') or '-'}/{tr.get('epochs_run', '-')}"
-        row = [r.key.fold, str(r.key.seed), str(r.train_images), str(r.val_images),
-               str(r.metrics["support"].get("instances", "-")), *(_num(m.get(k)) for k in keys), epochs, r.state]
+        row = [
+            r.key.fold,
+            str(r.key.seed),
+            str(r.train_images),
+            str(r.val_images),
+            str(r.metrics["support"].get("instances", "-")),
+            *(_num(m.get(k)) for k in keys),
+            epochs,
+            r.state,
+        ]
         rows.append(_marked(row, [""] * 5 + [marks(r.stored.labels)] * 4))
     if len(runs) > 1:
         agg = aggregate_folds([r.metrics for r in runs])["metrics"]
         row = ["mean ± SD", "", "", "", "", *(_pm(agg.get(k, {})) for k in keys), "", ""]
         rows.append(_marked(row, [""] * 5 + [marks(_labels(runs))] * 4))
-    title = (f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
-             f"(best epoch / epochs run)")
+    title = (
+        f"{summary.detector} on {summary.dataset}, encoding {summary.encoding}, profile {summary.profile} "
+        f"(best epoch / epochs run)"
+    )
     return fit_text(title) + "\n" + text_table(headers, rows) + _notes([(None, runs)])
 
 
@@ -85,8 +97,11 @@ def category_table(summary: RunSummary) -> str:
         a = agg.get(cat, {})
         row = [cat, str(inst), *(_num(p.get("AP50")) for p in per), _pm(a.get("AP50", {})), _pm(a.get("AP50_95", {}))]
         rows.append(_marked(row, col_marks))
-    return ("per category (AP50 mean ± SD over the folds where the category has instances)\n"
-            + text_table(headers, rows) + _notes([(None, runs)]))
+    return (
+        "per category (AP50 mean ± SD over the folds where the category has instances)\n"
+        + text_table(headers, rows)
+        + _notes([(None, runs)])
+    )
 
 
 def ablation_table(ab: AblationSummary) -> str:
@@ -99,10 +114,17 @@ def ablation_table(ab: AblationSummary) -> str:
         def col(get: Any) -> str:
             return _pm(mean_sd([get(m) for m in ms])) if len(ms) > 1 else _num(get(ms[0]))
 
-        row = [enc, *(col(lambda m, k=k: m["metrics"].get(k)) for k in ("precision", "recall", "mAP50", "mAP50_95")),
-               *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories)]
+        row = [
+            enc,
+            *(col(lambda m, k=k: m["metrics"].get(k)) for k in ("precision", "recall", "mAP50", "mAP50_95")),
+            *(col(lambda m, c=c: (m["per_category"].get(c) or {}).get("AP50")) for c in ab.categories),
+        ]
         rows.append(_marked(row, ["", *[marks(_labels(_runs(summary)))] * (len(row) - 1)]))
     seeds = sorted({r.key.seed for s in ab.runs.values() for r in s.results})
     title = f"encoding ablation: {ab.detector} on {ab.dataset}, fold {ab.fold}, seed(s) {','.join(map(str, seeds))}"
-    return (fit_text(title) + "\n" + text_table(headers, rows)
-            + _notes([(enc, _runs(summary)) for enc, summary in ab.runs.items()]))
+    return (
+        fit_text(title)
+        + "\n"
+        + text_table(headers, rows)
+        + _notes([(enc, _runs(summary)) for enc, summary in ab.runs.items()])
+    )

@@ -18,8 +18,15 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from harness.errors import ConfigError, DataError, StoreError
-from harness.report.pictures import BoxSet, coco_boxes, draw_sample, encode_image, inline_image, save_image, \
-    terminal_protocol
+from harness.report.pictures import (
+    BoxSet,
+    coco_boxes,
+    draw_sample,
+    encode_image,
+    inline_image,
+    save_image,
+    terminal_protocol,
+)
 
 log = logging.getLogger(__name__)
 
@@ -130,8 +137,8 @@ def show(dataset: str, cfg: Mapping[str, Any], *, image_id: int | None = None, i
          cache_root: str | Path | None = None, inline: bool | None = None) -> Shown:
     """Draw one prepared sample (module docstring). Without ``out``, a terminal that draws images gets it inline
     (``inline=None``: when stdout is such a terminal); otherwise it is written to ``show_<dataset>_<id>.png``."""
-    from harness.plugins import get_host
     from harness.cache import prepare
+    from harness.plugins import get_host
 
     host = get_host()
     spec = host.dataset(dataset)

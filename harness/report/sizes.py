@@ -45,12 +45,24 @@ def size_table(dataset: str, summary: SizeSummary, folds: list[str]) -> Table:
     for row in summary.rows()[:-1]:  # the category rows and "all"; shares go into the note
         table.rows.append({"category": row[0], **{f"bin{k}": v for k, v in enumerate(row[1:-1])}, "total": row[-1]})
         for k, v in enumerate(row[1:-1]):
-            table.records.append(record(name, f"boxes {SIZE_BINS[k][0]}", v, dataset=dataset, fold=",".join(folds),
-                                        category=row[0], unit="boxes", images=summary.images,
-                                        instances=summary.total))
+            table.records.append(
+                record(
+                    name,
+                    f"boxes {SIZE_BINS[k][0]}",
+                    v,
+                    dataset=dataset,
+                    fold=",".join(folds),
+                    category=row[0],
+                    unit="boxes",
+                    images=summary.images,
+                    instances=summary.total,
+                )
+            )
     table.notes.append(summary.headline() + ".")
-    table.notes.append("SAFit bins on the box side sqrt(w*h), px of the prepared frame; each held-out fold's "
-                       "scored ground truth (gt.json) counted once.")
+    table.notes.append(
+        "SAFit bins on the box side sqrt(w*h), px of the prepared frame; each held-out fold's "
+        "scored ground truth (gt.json) counted once."
+    )
     return table
 
 

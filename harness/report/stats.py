@@ -123,8 +123,9 @@ class IndexedRun:
         return resample_coco(self, [self.image_ids[i] for i in indices])
 
 
-def resample_coco(run: IndexedRun | Mapping[str, Any], image_ids: Sequence[Any],
-                  detections: Sequence[Mapping[str, Any]] | None = None) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+def resample_coco(
+    run: IndexedRun | Mapping[str, Any], image_ids: Sequence[Any], detections: Sequence[Mapping[str, Any]] | None = None
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """COCO ground truth and detections restricted to ``image_ids`` in that order, duplicates kept.
 
     Image ``k`` of the list (1-based) gets the new id ``k``; its annotations (with new unique annotation ids) and
@@ -178,8 +179,12 @@ def _quiet_evaluation() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------------------------- scoring
-def score_resamples(indexed: IndexedRun, rows: np.ndarray, engine: str = "faster-coco-eval",
-                    progress: Callable[[int], None] | None = None) -> np.ndarray:
+def score_resamples(
+    indexed: IndexedRun,
+    rows: np.ndarray,
+    engine: str = "faster-coco-eval",
+    progress: Callable[[int], None] | None = None,
+) -> np.ndarray:
     """``[len(rows), 2]`` mAP50, mAP50:95 of ``harness.evaluation.evaluate`` on each resample (a row of image
     positions); NaN where a metric is undefined (no ground truth drawn)."""
     from harness.evaluation import evaluate
@@ -211,8 +216,13 @@ class BootstrapScorer:
     ``workers > 1`` scores chunks of resamples in that many processes (same numbers, in the same order).
     """
 
-    def __init__(self, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                 progress: Callable[[int], None] | None = None, workers: int = 1):
+    def __init__(
+        self,
+        resamples: int = DEFAULT_RESAMPLES,
+        seed: int = 0,
+        progress: Callable[[int], None] | None = None,
+        workers: int = 1,
+    ):
         if resamples < 0:
             raise ValueError("resamples must be >= 0")
         self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
@@ -233,8 +243,10 @@ class BootstrapScorer:
 
         for path in (run.gt_path, run.predictions_path):
             if not path.exists():
-                raise StoreError(f"{path}: missing; the paired bootstrap re-scores a run's predictions.json against "
-                                 f"its gt.json. Re-run this fold with `harness run ... --force` to write them")
+                raise StoreError(
+                    f"{path}: missing; the paired bootstrap re-scores a run's predictions.json against "
+                    f"its gt.json. Re-run this fold with `harness run ... --force` to write them"
+                )
         engine = (run.metrics.get("metrics") or {}).get("engine") or "faster-coco-eval"
         return IndexedRun.from_coco(read_json(run.gt_path), read_json(run.predictions_path)), engine
 
@@ -243,9 +255,11 @@ class BootstrapScorer:
         if ids != indexed.image_ids:
             from harness.evaluation import SampleMismatchError
 
-            raise SampleMismatchError(f"{where}: its gt.json holds other images than the other runs of fold {fold!r} "
-                                      f"({len(indexed.image_ids)} vs {len(ids)} images); a paired comparison needs "
-                                      f"the same held-out images")
+            raise SampleMismatchError(
+                f"{where}: its gt.json holds other images than the other runs of fold {fold!r} "
+                f"({len(indexed.image_ids)} vs {len(ids)} images); a paired comparison needs "
+                f"the same held-out images"
+            )
 
     def run_scores(self, dataset: str, fold: str, run: Any) -> np.ndarray:
         """``[1 + resamples, 2]`` mAP50, mAP50:95 of one run on the original images and on each resample."""
@@ -263,8 +277,9 @@ class BootstrapScorer:
 
             chunks = np.array_split(rows, 4 * self.workers)
             with ProcessPoolExecutor(self.workers) as pool:
-                futures = [pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c)
-                           for c in chunks]
+                futures = [
+                    pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c) for c in chunks
+                ]
                 parts = []
                 for fut, c in zip(futures, chunks):
                     parts.append(fut.result())
@@ -288,9 +303,11 @@ class BootstrapScorer:
 
 # ---------------------------------------------------------------------------------------------- results
 #: What a comparison with fewer than ``MIN_SEEDS`` training seeds per fold says in place of a verdict.
-SEED_NOTE = ("{seeds}: this compares trained models, not detectors (the spread between training runs is not "
-             "measured), so no significance verdict is given; the image interval holds the trained models fixed. "
-             "Train both with --seeds 0,1,2 (or more) for the two-level bootstrap over seeds and images.")
+SEED_NOTE = (
+    "{seeds}: this compares trained models, not detectors (the spread between training runs is not "
+    "measured), so no significance verdict is given; the image interval holds the trained models fixed. "
+    "Train both with --seeds 0,1,2 (or more) for the two-level bootstrap over seeds and images."
+)
 
 
 @dataclass
@@ -392,8 +409,10 @@ class PairedComparison:
         for key in ("labels", "fold_marks", "label_notes"):  # the keys appear only where there is something to say
             d.pop(key)
         if self.label_notes:
-            d["labels"] = {side: [{"kind": lab.kind, "text": lab.text, "runs": list(lab.runs)} for lab in labs]
-                           for side, labs in self.labels.items()}
+            d["labels"] = {
+                side: [{"kind": lab.kind, "text": lab.text, "runs": list(lab.runs)} for lab in labs]
+                for side, labs in self.labels.items()
+            }
             d["fold_marks"], d["label_notes"] = self.fold_marks, self.label_notes
         d["training_runs"] = self.training_runs
         d["verdict"] = {k: self.verdict(k) for k in METRICS} if self.verdict_allowed and self.bootstrap else None
@@ -404,49 +423,95 @@ class PairedComparison:
         """Per-fold table and bootstrap summary, aligned."""
         pct = lambda v: "-" if v is None or not math.isfinite(v) else f"{100 * v:.1f}"  # noqa: E731
         pp = lambda v: "-" if v is None or not math.isfinite(v) else f"{100 * v:+.1f}"  # noqa: E731
-        header = ["fold", f"{self.a} mAP50", f"{self.b} mAP50", "Δ mAP50", f"{self.a} mAP50:95", f"{self.b} mAP50:95",
-                  "Δ mAP50:95"]
+        header = [
+            "fold",
+            f"{self.a} mAP50",
+            f"{self.b} mAP50",
+            "Δ mAP50",
+            f"{self.a} mAP50:95",
+            f"{self.b} mAP50:95",
+            "Δ mAP50:95",
+        ]
         f50, f95 = self.fold_differences["mAP50"], self.fold_differences["mAP50_95"]
         ma, mb = (self.fold_marks.get(k) or [""] * len(self.folds) for k in ("a", "b"))
 
         def mark(text: str, m: str) -> str:
             return f"{text} {m}" if m and text != "-" else text
 
-        rows = [[f, mark(pct(f50.a[i]), ma[i]), mark(pct(f50.b[i]), mb[i]), pp(f50.diffs[i]),
-                 mark(pct(f95.a[i]), ma[i]), mark(pct(f95.b[i]), mb[i]), pp(f95.diffs[i])]
-                for i, f in enumerate(self.folds)]
+        rows = [
+            [
+                f,
+                mark(pct(f50.a[i]), ma[i]),
+                mark(pct(f50.b[i]), mb[i]),
+                pp(f50.diffs[i]),
+                mark(pct(f95.a[i]), ma[i]),
+                mark(pct(f95.b[i]), mb[i]),
+                pp(f95.diffs[i]),
+            ]
+            for i, f in enumerate(self.folds)
+        ]
         sd = lambda s: "" if s.sd is None else f" ± {100 * s.sd:.1f}"  # noqa: E731
         rows.append(["mean ± SD", "", "", pp(f50.stat.mean) + sd(f50.stat), "", "", pp(f95.stat.mean) + sd(f95.stat)])
         seeds = "/".join(str(k) for k in sorted(set(self.seeds.get("a", []) + self.seeds.get("b", [])))) or "?"
-        out = [f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} "
-               f"images, {self.instances} instances, {seeds} training seed(s) per fold; AP in %, Δ = A - B in "
-               f"percentage points",
-               text_table(header, rows), "",
-               f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s)."]
+        out = [
+            f"{self.dataset}: {self.a} (A) vs {self.b} (B), {len(self.folds)} held-out fold(s), {self.images} "
+            f"images, {self.instances} instances, {seeds} training seed(s) per fold; AP in %, Δ = A - B in "
+            f"percentage points",
+            text_table(header, rows),
+            "",
+            f"A has the higher mAP50:95 in {f95.wins} of {len(self.folds)} fold(s).",
+        ]
         if self.bootstrap:
             b0 = next(iter(self.bootstrap.values()))
             if b0.level == SEEDS_IMAGES:
-                out.append(f"two-level bootstrap (training seeds, then images, within each fold): {b0.resamples} "
-                           f"resamples ({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI "
-                           f"of the mean over folds")
-                bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI", "P(A > B), new run",
-                      "seeds needed", "CI excludes 0"]
+                out.append(
+                    f"two-level bootstrap (training seeds, then images, within each fold): {b0.resamples} "
+                    f"resamples ({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI "
+                    f"of the mean over folds"
+                )
+                bh = [
+                    "metric",
+                    "A",
+                    "A 95% CI",
+                    "B",
+                    "B 95% CI",
+                    "Δ (A - B)",
+                    "Δ 95% CI",
+                    "P(A > B), new run",
+                    "seeds needed",
+                    "CI excludes 0",
+                ]
             else:
-                out.append(f"paired bootstrap over images, the trained models fixed: {b0.resamples} resamples "
-                           f"({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI of the "
-                           f"mean over folds")
+                out.append(
+                    f"paired bootstrap over images, the trained models fixed: {b0.resamples} resamples "
+                    f"({b0.valid} valid), seed {b0.seed}, percentile {int(100 * b0.confidence)} % CI of the "
+                    f"mean over folds"
+                )
                 bh = ["metric", "A", "A 95% CI", "B", "B 95% CI", "Δ (A - B)", "Δ 95% CI (images)"]
             brows = []
             for key, b in self.bootstrap.items():
-                row = [key.replace("_", ":"), pct(b.a), f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]", pct(b.b),
-                       f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]", pp(b.delta), f"[{pp(b.ci_low)}, {pp(b.ci_high)}]"]
+                row = [
+                    key.replace("_", ":"),
+                    pct(b.a),
+                    f"[{pct(b.a_ci[0])}, {pct(b.a_ci[1])}]",
+                    pct(b.b),
+                    f"[{pct(b.b_ci[0])}, {pct(b.b_ci[1])}]",
+                    pp(b.delta),
+                    f"[{pp(b.ci_low)}, {pp(b.ci_high)}]",
+                ]
                 if b.level == SEEDS_IMAGES:
-                    row += ["-" if b.p_a_beats_b is None else f"{b.p_a_beats_b:.2f}",
-                            "-" if b.seeds_needed is None else str(b.seeds_needed), self.verdict(key) or "-"]
+                    row += [
+                        "-" if b.p_a_beats_b is None else f"{b.p_a_beats_b:.2f}",
+                        "-" if b.seeds_needed is None else str(b.seeds_needed),
+                        self.verdict(key) or "-",
+                    ]
                 brows.append(row)
             out.append(text_table(bh, brows))
-            notes = [f"{k.replace('_', ':')}: seeds needed: {b.seeds_note}" for k, b in self.bootstrap.items()
-                     if b.seeds_note]
+            notes = [
+                f"{k.replace('_', ':')}: seeds needed: {b.seeds_note}"
+                for k, b in self.bootstrap.items()
+                if b.seeds_note
+            ]
             out += notes
         else:
             out.append("no bootstrap (resamples = 0)")
@@ -475,16 +540,20 @@ def fold_differences(a: Entry, b: Entry, folds: Sequence[str]) -> dict[str, Fold
 def common_folds(a: Entry, b: Entry) -> list[str]:
     folds = sorted(set(a.fold_names) & set(b.fold_names), key=natural_key)
     if not folds:
-        raise StoreError(f"{a.label} (folds {', '.join(a.fold_names)}) and {b.label} (folds {', '.join(b.fold_names)}) "
-                         f"share no held-out fold of {a.dataset!r}; a paired comparison needs the same held-out images")
+        raise StoreError(
+            f"{a.label} (folds {', '.join(a.fold_names)}) and {b.label} (folds {', '.join(b.fold_names)}) "
+            f"share no held-out fold of {a.dataset!r}; a paired comparison needs the same held-out images"
+        )
     return folds
 
 
 #: What a refused pair can do: a paired comparison has no meaning on different images, so there is no option to
 #: force it; the side-by-side table can show the rows, labelled.
-PAIR_HINT = ("A paired comparison needs both scored on the same held-out images: re-run them on the same prepared "
-             "split. To see their rows side by side, labelled as not sample-matched: "
-             "`harness compare --datasets DATASET --allow-mismatched` or `harness report`.")
+PAIR_HINT = (
+    "A paired comparison needs both scored on the same held-out images: re-run them on the same prepared "
+    "split. To see their rows side by side, labelled as not sample-matched: "
+    "`harness compare --datasets DATASET --allow-mismatched` or `harness report`."
+)
 
 
 def check_pair_matched(a: Entry, b: Entry, folds: Sequence[str]) -> None:
@@ -492,14 +561,16 @@ def check_pair_matched(a: Entry, b: Entry, folds: Sequence[str]) -> None:
     from harness.evaluation import check_sample_matched
 
     for f in folds:
-        check_sample_matched({f"{a.label}@{f}": a.folds[f].metrics, f"{b.label}@{f}": b.folds[f].metrics},
-                             hint=PAIR_HINT)
+        check_sample_matched(
+            {f"{a.label}@{f}": a.folds[f].metrics, f"{b.label}@{f}": b.folds[f].metrics}, hint=PAIR_HINT
+        )
         for e in (a, b):
             if e.folds[f].seed_mismatch:
                 from harness.evaluation import SampleMismatchError
 
-                raise SampleMismatchError(f"{e.label} fold {f}: its seeds were scored on different samples "
-                                          f"({e.folds[f].seed_mismatch})")
+                raise SampleMismatchError(
+                    f"{e.label} fold {f}: its seeds were scored on different samples ({e.folds[f].seed_mismatch})"
+                )
 
 
 # ---------------------------------------------------------------------------------------------- two levels
@@ -509,8 +580,14 @@ def _z(confidence: float) -> float:
     return NormalDist().inv_cdf(1.0 - (1.0 - confidence) / 2.0)
 
 
-def seeds_needed(delta: float | None, v_img: float, v_seed: float, confidence: float = CONFIDENCE,
-                 power: float = POWER, limit: int = 10_000) -> tuple[int | None, str | None]:
+def seeds_needed(
+    delta: float | None,
+    v_img: float,
+    v_seed: float,
+    confidence: float = CONFIDENCE,
+    power: float = POWER,
+    limit: int = 10_000,
+) -> tuple[int | None, str | None]:
     """The fewest seeds per fold ``n`` with ``(z_conf + z_power) * sqrt(v_img + v_seed / n) <= |delta|`` (module
     docstring), or (None, why not)."""
     from statistics import NormalDist
@@ -522,9 +599,11 @@ def seeds_needed(delta: float | None, v_img: float, v_seed: float, confidence: f
     z = _z(confidence) + NormalDist().inv_cdf(power)
     room = (abs(delta) / z) ** 2 - v_img
     if room <= 0.0:
-        return None, (f"not with these held-out images: their sampling spread alone (SD {100 * math.sqrt(v_img):.2f} "
-                      f"points) is too large for a difference of {100 * abs(delta):.2f} points; more images are "
-                      f"needed")
+        return None, (
+            f"not with these held-out images: their sampling spread alone (SD {100 * math.sqrt(v_img):.2f} "
+            f"points) is too large for a difference of {100 * abs(delta):.2f} points; more images are "
+            f"needed"
+        )
     n = max(1, math.ceil(v_seed / room - 1e-9)) if v_seed > 0.0 else 1
     if n > limit:
         return None, f"more than {limit} seeds per fold"
@@ -533,13 +612,19 @@ def seeds_needed(delta: float | None, v_img: float, v_seed: float, confidence: f
 
 def _seed_draws(k: int, resamples: int, seed: int, fold: str, side: str) -> np.ndarray:
     """``[resamples, k]`` seed positions drawn with replacement for one side of one fold."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), zlib.crc32(fold.encode()), 1,
-                                                        zlib.crc32(side.encode())]))
+    rng = np.random.default_rng(
+        np.random.SeedSequence([int(seed), zlib.crc32(fold.encode()), 1, zlib.crc32(side.encode())])
+    )
     return rng.integers(0, k, size=(int(resamples), int(k)), dtype=np.int64)
 
 
-def two_level(a_runs: Sequence[np.ndarray], b_runs: Sequence[np.ndarray], folds: Sequence[str], seed: int,
-              confidence: float = CONFIDENCE) -> list[dict[str, Any]]:
+def two_level(
+    a_runs: Sequence[np.ndarray],
+    b_runs: Sequence[np.ndarray],
+    folds: Sequence[str],
+    seed: int,
+    confidence: float = CONFIDENCE,
+) -> list[dict[str, Any]]:
     """The two-level bootstrap (module docstring) from per-run scores.
 
     ``a_runs[f]``, ``b_runs[f]``: ``[seeds, 1 + R, metrics]`` scores of each seed's run of fold ``folds[f]`` on the
@@ -563,12 +648,18 @@ def two_level(a_runs: Sequence[np.ndarray], b_runs: Sequence[np.ndarray], folds:
     n_folds = len(folds)
     out = []
     for j in range(a_runs[0].shape[2]):
-        out.append({"a": np.mean([s[:, j] for s in sa], axis=0), "b": np.mean([s[:, j] for s in sb], axis=0),
-                    "fixed": np.mean([s[:, j] for s in fixed], axis=0),
-                    "single": np.mean([s[:, j] for s in single], axis=0),
-                    "v_seed": float(sum(v[j] for v in v_seed)) / n_folds ** 2,
-                    "seed_sd": {side: _pooled_sd([x[:, 0, j] for x in runs]) for side, runs in
-                                (("a", a_runs), ("b", b_runs))}})
+        out.append(
+            {
+                "a": np.mean([s[:, j] for s in sa], axis=0),
+                "b": np.mean([s[:, j] for s in sb], axis=0),
+                "fixed": np.mean([s[:, j] for s in fixed], axis=0),
+                "single": np.mean([s[:, j] for s in single], axis=0),
+                "v_seed": float(sum(v[j] for v in v_seed)) / n_folds**2,
+                "seed_sd": {
+                    side: _pooled_sd([x[:, 0, j] for x in runs]) for side, runs in (("a", a_runs), ("b", b_runs))
+                },
+            }
+        )
     return out
 
 
@@ -578,8 +669,14 @@ def _pooled_sd(per_fold: Sequence[np.ndarray]) -> float | None:
     return math.sqrt(sum(vs) / len(vs)) if vs else None
 
 
-def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                      scorer: BootstrapScorer | None = None, folds: Sequence[str] | None = None) -> PairedComparison:
+def paired_comparison(
+    a: Entry,
+    b: Entry,
+    resamples: int = DEFAULT_RESAMPLES,
+    seed: int = 0,
+    scorer: BootstrapScorer | None = None,
+    folds: Sequence[str] | None = None,
+) -> PairedComparison:
     """Per-fold differences and (``resamples > 0``) the paired bootstrap of A - B: over images when either side has
     fewer than ``MIN_SEEDS`` seeds in a fold, else over seeds and images; see the module docstring."""
     if a.dataset != b.dataset:
@@ -603,8 +700,9 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
     sa, sb = scorer.scores(a, folds), scorer.scores(b, folds)
     levels = None
     if comp.verdict_allowed:
-        levels = two_level([scorer.fold_runs(a, f) for f in folds], [scorer.fold_runs(b, f) for f in folds], folds,
-                           seed)
+        levels = two_level(
+            [scorer.fold_runs(a, f) for f in folds], [scorer.fold_runs(b, f) for f in folds], folds, seed
+        )
     boot: dict[str, BootstrapResult] = {}
     for j, key in enumerate(METRICS):
         obs_a, obs_b = sa[0, j], sb[0, j]
@@ -616,8 +714,19 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
         d = da[valid] - db[valid]
         lo, hi = percentile_ci(d)
         res = BootstrapResult(
-            key, _f(obs_a), _f(obs_b), _f(obs_a - obs_b), lo, hi, percentile_ci(da[valid]), percentile_ci(db[valid]),
-            resamples, int(valid.sum()), seed, float(np.mean(d <= 0)) if d.size else None)
+            key,
+            _f(obs_a),
+            _f(obs_b),
+            _f(obs_a - obs_b),
+            lo,
+            hi,
+            percentile_ci(da[valid]),
+            percentile_ci(db[valid]),
+            resamples,
+            int(valid.sum()),
+            seed,
+            float(np.mean(d <= 0)) if d.size else None,
+        )
         if levels is not None:
             lv = levels[j]
             one = lv["single"][np.isfinite(lv["single"])]
@@ -631,8 +740,10 @@ def paired_comparison(a: Entry, b: Entry, resamples: int = DEFAULT_RESAMPLES, se
         for label, entry, observed in ((a.label, a, res.a), (b.label, b, res.b)):
             stored = _stored_mean(entry, folds, key)
             if stored is not None and observed is not None and abs(stored - observed) > 1e-6:
-                comp.notes.append(f"note: re-scored {key} of {label} ({observed:.4f}) differs from its stored "
-                                  f"metrics ({stored:.4f}); were the runs evaluated with other settings?")
+                comp.notes.append(
+                    f"note: re-scored {key} of {label} ({observed:.4f}) differs from its stored "
+                    f"metrics ({stored:.4f}); were the runs evaluated with other settings?"
+                )
     comp.bootstrap = boot
     return comp
 
@@ -647,9 +758,17 @@ def _f(x: Any) -> float | None:
     return None if x is None or not math.isfinite(float(x)) else float(x)
 
 
-def compare_detectors(store: Any, dataset: str, a: str, b: str, resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                      progress: Callable[[int], None] | None = None,
-                      on_total: Callable[[int], None] | None = None, workers: int = 1) -> PairedComparison:
+def compare_detectors(
+    store: Any,
+    dataset: str,
+    a: str,
+    b: str,
+    resamples: int = DEFAULT_RESAMPLES,
+    seed: int = 0,
+    progress: Callable[[int], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
+    workers: int = 1,
+) -> PairedComparison:
     """``harness compare-detectors``: A and B are ``DETECTOR`` or ``DETECTOR/ENCODING`` on ``dataset``."""
     view = store if isinstance(store, StoreView) else StoreView(store)
     ea, eb = view.entry(dataset, a), view.entry(dataset, b)

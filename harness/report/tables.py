@@ -32,7 +32,14 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
 from harness.report.reader import (
-    MARKS, Entry, ResultLabel, StoreView, find_category, label_notes, marks, natural_key,
+    MARKS,
+    Entry,
+    ResultLabel,
+    StoreView,
+    find_category,
+    label_notes,
+    marks,
+    natural_key,
 )
 from harness.textable import text_table
 

@@ -47,8 +47,10 @@ def _prepared_of(run: Any) -> Any:
     prepared = prepare(ds, cfg, progress=False)
     stored = (read_yaml(run.config_path).get("meta") or {}).get("prepared_fingerprint")
     if stored and stored != prepared.manifest.get("fingerprint"):
-        raise StoreError(f"{run.key}: the dataset's prepared samples changed since the run "
-                         f"(fingerprint {stored} then, {prepared.manifest.get('fingerprint')} now)")
+        raise StoreError(
+            f"{run.key}: the dataset's prepared samples changed since the run "
+            f"(fingerprint {stored} then, {prepared.manifest.get('fingerprint')} now)"
+        )
     return prepared
 
 
@@ -82,17 +84,35 @@ def export_run(run: Any, frame: str, out: Path, prepared: Any = None) -> Exporte
         inexact += moved.inexact
         for d, (x1, y1, x2, y2) in zip(dets, moved.boxes.tolist()):
             cid = int(d["category_id"])
-            out_dets.append({"image_id": iid, "file_name": fname, "category_id": cid,
-                             "category_name": cats[cid - 1] if 1 <= cid <= len(cats) else None,
-                             "bbox": [x1, y1, x2 - x1, y2 - y1], "score": d["score"]})
+            out_dets.append(
+                {
+                    "image_id": iid,
+                    "file_name": fname,
+                    "category_id": cid,
+                    "category_name": cats[cid - 1] if 1 <= cid <= len(cats) else None,
+                    "bbox": [x1, y1, x2 - x1, y2 - y1],
+                    "score": d["score"],
+                }
+            )
     atomic_write_json(out, out_dets, indent=None)
     images_path = companion_path(out)
-    atomic_write_json(images_path, {"info": {"frame": frame, "run": str(run.key)}, "images": images,
-                                    "categories": [{"id": k + 1, "name": n} for k, n in enumerate(cats)]})
+    atomic_write_json(
+        images_path,
+        {
+            "info": {"frame": frame, "run": str(run.key)},
+            "images": images,
+            "categories": [{"id": k + 1, "name": n} for k, n in enumerate(cats)],
+        },
+    )
     if inexact:
-        log.warning("%s: %d of %d box(es) are too thin for the %s frame's homography or lens to have an exact "
-                    "preimage; exported as the closest box, they score back slightly wider", run.key, inexact,
-                    len(out_dets), frame)
+        log.warning(
+            "%s: %d of %d box(es) are too thin for the %s frame's homography or lens to have an exact "
+            "preimage; exported as the closest box, they score back slightly wider",
+            run.key,
+            inexact,
+            len(out_dets),
+            frame,
+        )
     return Exported(str(run.key), out, images_path, len(out_dets), len(images), inexact)
 
 
@@ -101,10 +121,16 @@ def companion_path(out: Path) -> Path:
     return out.with_name(out.stem + ".images.json")
 
 
-def export_predictions(store: str | Path, dataset: str | None = None, detector: str | None = None,
-                       encoding: str | None = None, folds: Sequence[str] | None = None,
-                       seed: int | Sequence[int] | None = None, frame: str = "thermal",
-                       out: str | Path = "predictions") -> list[Exported]:
+def export_predictions(
+    store: str | Path,
+    dataset: str | None = None,
+    detector: str | None = None,
+    encoding: str | None = None,
+    folds: Sequence[str] | None = None,
+    seed: int | Sequence[int] | None = None,
+    frame: str = "thermal",
+    out: str | Path = "predictions",
+) -> list[Exported]:
     """Export every finished run that matches (``seed``: one training seed or several); ``out`` is the file for one
     run, a folder for several."""
     from harness.report.reader import read_run
@@ -112,12 +138,18 @@ def export_predictions(store: str | Path, dataset: str | None = None, detector: 
 
     st = Store(store)
     seeds = None if seed is None else {int(seed)} if isinstance(seed, int) else {int(s) for s in seed}
-    runs = [r for r in st.runs(dataset=dataset, detector=detector)
-            if (encoding is None or r.key.encoding == encoding) and (not folds or r.key.fold in folds)
-            and (seeds is None or r.key.seed in seeds)]
+    runs = [
+        r
+        for r in st.runs(dataset=dataset, detector=detector)
+        if (encoding is None or r.key.encoding == encoding)
+        and (not folds or r.key.fold in folds)
+        and (seeds is None or r.key.seed in seeds)
+    ]
     if not runs:
-        raise StoreError(f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
-                         f"{encoding}, folds {list(folds or []) or 'all'})")
+        raise StoreError(
+            f"no finished run in {st.root} matches (dataset {dataset}, detector {detector}, encoding "
+            f"{encoding}, folds {list(folds or []) or 'all'})"
+        )
     out = Path(out)
     results: list[Any] = []
     cache: dict[Any, Any] = {}

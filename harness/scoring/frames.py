@@ -63,8 +63,10 @@ def _camera(meta: Mapping[str, Any], sensor: str) -> tuple[Any, Any] | None:
         return None
     from harness.sensing.calibration import CameraModel
 
-    return (CameraModel.from_dict(cams["camera"], f"{sensor} camera"),
-            CameraModel.from_dict(cams["undistorted"], f"{sensor} undistorted camera"))
+    return (
+        CameraModel.from_dict(cams["camera"], f"{sensor} camera"),
+        CameraModel.from_dict(cams["undistorted"], f"{sensor} undistorted camera"),
+    )
 
 
 def _undistort(b: np.ndarray, cams: tuple[Any, Any] | None) -> np.ndarray:
@@ -112,8 +114,10 @@ def _check(frame: str, meta: Mapping[str, Any], where: str) -> None:
     if frame not in FRAMES:
         raise DataError(f"unknown frame {frame!r}; use one of {', '.join(FRAMES)}")
     if frame == "rgb" and "H_rgb_to_frame" not in meta:
-        raise DataError(f"{where}: the prepared sample records no RGB-to-frame homography (the dataset has no "
-                        f"registration stage); use --frame prepared or thermal")
+        raise DataError(
+            f"{where}: the prepared sample records no RGB-to-frame homography (the dataset has no "
+            f"registration stage); use --frame prepared or thermal"
+        )
 
 
 def _forward(b: np.ndarray, frame: str, meta: Mapping[str, Any]) -> np.ndarray:
@@ -138,8 +142,9 @@ def _estimate(b: np.ndarray, frame: str, meta: Mapping[str, Any]) -> np.ndarray:
         b[:, [1, 3]] += origin[1]
         b = _distort(b, _camera(meta, "thermal"))
     elif frame == "rgb":
-        b = _distort(_homography(np.linalg.inv(np.asarray(meta["H_rgb_to_frame"], np.float64)), b),
-                     _camera(meta, "rgb"))
+        b = _distort(
+            _homography(np.linalg.inv(np.asarray(meta["H_rgb_to_frame"], np.float64)), b), _camera(meta, "rgb")
+        )
     return b
 
 
@@ -150,8 +155,14 @@ def _snap(b: np.ndarray) -> np.ndarray:
     return out
 
 
-def to_prepared(boxes: np.ndarray, frame: str, meta: Mapping[str, Any], size: tuple[int, int] | None = None,
-                min_size: float | None = 1.0, where: str = "sample") -> tuple[np.ndarray, np.ndarray]:
+def to_prepared(
+    boxes: np.ndarray,
+    frame: str,
+    meta: Mapping[str, Any],
+    size: tuple[int, int] | None = None,
+    min_size: float | None = 1.0,
+    where: str = "sample",
+) -> tuple[np.ndarray, np.ndarray]:
     """Boxes (N x 4 xyxy) of ``frame`` -> the prepared frame: ``(kept boxes float64, keep mask)``.
 
     ``size`` (w, h) of the prepared frame clips the result (``meta['crop_size']`` when not given). A box thinner

@@ -50,8 +50,12 @@ def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.where(union > 0, inter / union, 0.0)
 
 
-def agreement(preds: Sequence[Pred], targets: Callable[[int], tuple[np.ndarray, np.ndarray]],
-              images: Sequence[int], top: int = TOP_PER_IMAGE) -> float | None:
+def agreement(
+    preds: Sequence[Pred],
+    targets: Callable[[int], tuple[np.ndarray, np.ndarray]],
+    images: Sequence[int],
+    top: int = TOP_PER_IMAGE,
+) -> float | None:
     """Recall at IoU 0.50 over the ground truth of ``images``: the share of their objects that a prediction of the
     same category on the same image overlaps with IoU >= 0.5, counting each image's ``top`` highest-scoring
     predictions. ``None`` when the images hold no objects. One reading of the ids against another is judged on the

@@ -30,5 +30,14 @@ from harness.screen.flight import Capture, Flight, find_captures
 from harness.screen.job import ScreenRequest, ScreenResult, screen
 from harness.screen.position import Position, add_xmp, read_position
 
-__all__ = ["Capture", "Flight", "find_captures", "ScreenRequest", "ScreenResult", "screen", "Position", "add_xmp",
-           "read_position"]
+__all__ = [
+    "Capture",
+    "Flight",
+    "find_captures",
+    "ScreenRequest",
+    "ScreenResult",
+    "screen",
+    "Position",
+    "add_xmp",
+    "read_position",
+]

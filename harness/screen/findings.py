@@ -50,12 +50,16 @@ def box_temperatures(temp: np.ndarray, box: Sequence[float]) -> dict[str, float 
     vals = inside[np.isfinite(inside)].astype(np.float64)
     out: dict[str, float | None] = dict.fromkeys(TEMPERATURE_KEYS)
     if vals.size:
-        out.update(t_min=float(vals.min()), t_mean=float(vals.mean()), t_max=float(vals.max()),
-                   t_p95=float(np.percentile(vals, 95)))
+        out.update(
+            t_min=float(vals.min()),
+            t_mean=float(vals.mean()),
+            t_max=float(vals.max()),
+            t_p95=float(np.percentile(vals, 95)),
+        )
     r = max(RING_MIN_PX, int(math.ceil(RING_FRACTION * min(x1 - x0, y1 - y0))))
     ra, rb, rc, rd = max(0, y0 - r), min(h, y1 + r), max(0, x0 - r), min(w, x1 + r)
     ring = np.ones((rb - ra, rd - rc), bool)
-    ring[y0 - ra:y1 - ra, x0 - rc:x1 - rc] = False
+    ring[y0 - ra : y1 - ra, x0 - rc : x1 - rc] = False
     around = temp[ra:rb, rc:rd][ring]
     around = around[np.isfinite(around)].astype(np.float64)
     if around.size:
@@ -75,8 +79,12 @@ def _envelope(points: np.ndarray, size: tuple[int, int]) -> list[float]:
     pts = points + 0.5
     w, h = size
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    return [float(np.clip(lo[0], 0, w)), float(np.clip(lo[1], 0, h)), float(np.clip(hi[0], 0, w)),
-            float(np.clip(hi[1], 0, h))]
+    return [
+        float(np.clip(lo[0], 0, w)),
+        float(np.clip(lo[1], 0, h)),
+        float(np.clip(hi[0], 0, w)),
+        float(np.clip(hi[1], 0, h)),
+    ]
 
 
 def _camera_pair(cameras: dict[str, Any], sensor: str) -> tuple[Any, Any] | None:
@@ -112,8 +120,9 @@ def box_in_rgb(frame: Frame, box: Sequence[float]) -> list[float]:
     return _envelope(pts, frame.rgb_size)
 
 
-def frame_findings(frame: Frame, detections: list[dict[str, Any]], categories: Sequence[str],
-                   threshold: float) -> list[dict[str, Any]]:
+def frame_findings(
+    frame: Frame, detections: list[dict[str, Any]], categories: Sequence[str], threshold: float
+) -> list[dict[str, Any]]:
     """One record per detection scoring at least ``threshold``, best first (``detections``: COCO results of the
     frame, as the run's predictions store them)."""
     out = []
@@ -124,8 +133,13 @@ def frame_findings(frame: Frame, detections: list[dict[str, Any]], categories: S
         aligned = [x, y, round(x + w, 2), round(y + h, 2)]
         label = int(det["category_id"]) - 1
         rec: dict[str, Any] = {
-            "frame": frame.capture.name, "class": categories[label], "class_id": label, "score": det["score"],
-            "bbox": list(det["bbox"]), "box_aligned": aligned, "box_thermal": box_in_thermal(frame, aligned),
+            "frame": frame.capture.name,
+            "class": categories[label],
+            "class_id": label,
+            "score": det["score"],
+            "bbox": list(det["bbox"]),
+            "box_aligned": aligned,
+            "box_thermal": box_in_thermal(frame, aligned),
             "box_rgb": box_in_rgb(frame, aligned),
         }
         rec.update(box_temperatures(frame.thermal, aligned))

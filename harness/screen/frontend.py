@@ -112,8 +112,10 @@ class FrontEndSettings:
         if method not in ("auto", "focal", "file"):
             raise ConfigError(f"the run's sensing.registration.method is {method!r}; expected auto, focal or file")
         if method == "file" and self.homography is None:
-            raise ConfigError("the run registered every group from a homographies file "
-                              "(sensing.registration.method: file); give the flight's with --homography FILE")
+            raise ConfigError(
+                "the run registered every group from a homographies file "
+                "(sensing.registration.method: file); give the flight's with --homography FILE"
+            )
 
 
 @dataclass
@@ -226,8 +228,12 @@ def reduction_for(factor: float, rgb_size: tuple[int, int]) -> int:
     r = 1
     if factor / 2 < REDUCTION_MARGIN:
         return r
-    while 2 * r <= MAX_REDUCTION and factor / (2 * r) >= MIN_SAMPLING and \
-            rgb_size[0] % (2 * r) == 0 and rgb_size[1] % (2 * r) == 0:
+    while (
+        2 * r <= MAX_REDUCTION
+        and factor / (2 * r) >= MIN_SAMPLING
+        and rgb_size[0] % (2 * r) == 0
+        and rgb_size[1] % (2 * r) == 0
+    ):
         r *= 2
     return r
 
@@ -249,10 +255,12 @@ class FrontEnd:
         settings.check()
         self.settings = settings
         self.options = SensingOptions.from_config(dict(settings.sensing))
-        self.rgb_camera = CameraModel.from_dict(dict(settings.rgb_camera), "rgb camera") \
-            if settings.rgb_camera else None
-        self.thermal_camera = CameraModel.from_dict(dict(settings.thermal_camera), "thermal camera") \
-            if settings.thermal_camera else None
+        self.rgb_camera = (
+            CameraModel.from_dict(dict(settings.rgb_camera), "rgb camera") if settings.rgb_camera else None
+        )
+        self.thermal_camera = (
+            CameraModel.from_dict(dict(settings.thermal_camera), "thermal camera") if settings.thermal_camera else None
+        )
         if encoding is None:
             from harness.plugins import get_host
 
@@ -287,11 +295,12 @@ class FrontEnd:
     def _check_rgb_size(self, rgb_size: tuple[int, int], name: Path) -> None:
         cam = self.rgb_camera
         if cam is not None and cam.image_size != rgb_size:
-            raise DataError(f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
-                            f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}")
+            raise DataError(
+                f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
+                f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}"
+            )
 
-    def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None
-               ) -> tuple[float, float] | None:
+    def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None) -> tuple[float, float] | None:
         f_rgb = _focal_35mm(rgb_layout)
         f_th = _focal_35mm(thermal_layout) if thermal_layout is not None else None
         given = self.settings.focal_35mm
@@ -350,8 +359,10 @@ class FrontEnd:
         elif prior_full is not None:
             H_full = prior_full
         else:
-            raise DataError(f"{cap.rgb}: no 35-mm focal length in the EXIF of the wide or thermal image, so no "
-                            "factory prior; give --focal-35mm WIDE,THERMAL or --homography FILE")
+            raise DataError(
+                f"{cap.rgb}: no 35-mm focal length in the EXIF of the wide or thermal image, so no "
+                "factory prior; give --focal-35mm WIDE,THERMAL or --homography FILE"
+            )
         reduction = 1
         if self.settings.rgb_decode == "auto":
             reduction = reduction_for(source_scale(H_full, (tw, th)), rgb_size)
@@ -379,8 +390,11 @@ class FrontEnd:
             res = ctx.auto_results.get(group)
             if res is not None:
                 quality = {"ok": True, **res.quality()}
-                registered = {"H": self._to_k(res.H, dreg, reduction).tolist(), "registration": quality,
-                              "capture": cap.name}
+                registered = {
+                    "H": self._to_k(res.H, dreg, reduction).tolist(),
+                    "registration": quality,
+                    "capture": cap.name,
+                }
         except DataError as exc:
             res = ctx.auto_results.get(group)
             if res is None or res.ok:
@@ -399,15 +413,35 @@ class FrontEnd:
             image = np.ascontiguousarray(sample.rgb)
         else:
             if channel.dtype != np.uint8 or channel.shape != (sample.height, sample.width):
-                raise HarnessError(f"encoding {self.encoding.name!r} returned {channel.dtype} {channel.shape}, "
-                                   f"expected uint8 {(sample.height, sample.width)}")
+                raise HarnessError(
+                    f"encoding {self.encoding.name!r} returned {channel.dtype} {channel.shape}, "
+                    f"expected uint8 {(sample.height, sample.width)}"
+                )
             image = np.dstack((sample.rgb, channel))
         t3, c3 = time.perf_counter(), time.thread_time()
         thermal = pair.thermal if pair.thermal is not None else np.full(pair.ir8.shape, np.nan, np.float32)
-        return Frame(capture=cap, image=image, thermal=thermal, origin=pair.origin, H=pair.H, cameras=pair.cameras,
-                     reduction=reduction, rgb_size=rgb_size, thermal_size=(tw, th), route=route,
-                     registration=quality, position=position,
-                     fingerprints=fingerprints,
-                     thermal_decoder=str(info.get("decoder") or info.get("format") or ""),
-                     timings={"decode": t1 - t0, "align": t2 - t1, "encode": t3 - t2, "decode_cpu": c1 - c0,
-                              "align_cpu": c2 - c1, "encode_cpu": c3 - c2}, registered=registered)
+        return Frame(
+            capture=cap,
+            image=image,
+            thermal=thermal,
+            origin=pair.origin,
+            H=pair.H,
+            cameras=pair.cameras,
+            reduction=reduction,
+            rgb_size=rgb_size,
+            thermal_size=(tw, th),
+            route=route,
+            registration=quality,
+            position=position,
+            fingerprints=fingerprints,
+            thermal_decoder=str(info.get("decoder") or info.get("format") or ""),
+            timings={
+                "decode": t1 - t0,
+                "align": t2 - t1,
+                "encode": t3 - t2,
+                "decode_cpu": c1 - c0,
+                "align_cpu": c2 - c1,
+                "encode_cpu": c3 - c2,
+            },
+            registered=registered,
+        )

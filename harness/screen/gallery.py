@@ -45,8 +45,11 @@ def _num(v: Any, digits: int = 1, sign: bool = False) -> str:
 
 def map_svg(frames: Sequence[dict[str, Any]], width: int = 640, height: int = 420) -> str:
     """The capture positions (equirectangular, metres) in capture order, findings per frame as red dots."""
-    pts = [(f["position"]["lon"], f["position"]["lat"], len(f.get("findings") or []), f["frame"]) for f in frames
-           if (f.get("position") or {}).get("lat") is not None and (f.get("position") or {}).get("lon") is not None]
+    pts = [
+        (f["position"]["lon"], f["position"]["lat"], len(f.get("findings") or []), f["frame"])
+        for f in frames
+        if (f.get("position") or {}).get("lat") is not None and (f.get("position") or {}).get("lon") is not None
+    ]
     if not pts:
         return "<p class='meta'>No capture carries a GPS position (DJI XMP GpsLatitude/GpsLongitude).</p>"
     lat0 = sum(p[1] for p in pts) / len(pts)
@@ -67,35 +70,55 @@ def map_svg(frames: Sequence[dict[str, Any]], width: int = 640, height: int = 42
     for (x, y), (_, _, n, name) in zip(xy, pts):
         r = 3.0 if n == 0 else 4.0 + min(8.0, 2.0 * math.sqrt(n))
         colour = "#7a8691" if n == 0 else "#c62828"
-        dots.append(f"<circle cx='{x:.1f}' cy='{y:.1f}' r='{r:.1f}' fill='{colour}' fill-opacity='0.8'>"
-                    f"<title>{escape(name)}: {n} finding(s)</title></circle>")
+        dots.append(
+            f"<circle cx='{x:.1f}' cy='{y:.1f}' r='{r:.1f}' fill='{colour}' fill-opacity='0.8'>"
+            f"<title>{escape(name)}: {n} finding(s)</title></circle>"
+        )
     unit = 10 ** math.floor(math.log10(max(span / 4, 1e-3)))
     bar_m = max(k * unit for k in (1, 2, 5) if k * unit <= max(span / 4, 1e-3))
-    bar = f"<line x1='{pad}' y1='{height - 12}' x2='{pad + bar_m * s:.1f}' y2='{height - 12}' stroke='#1d2329' " \
-          f"stroke-width='2'/><text x='{pad}' y='{height - 16}' font-size='11'>{bar_m:g} m</text>"
-    return (f"<svg class='map' viewBox='0 0 {width} {height}' width='{width}' height='{height}' "
-            f"xmlns='http://www.w3.org/2000/svg'><polyline points='{path}' fill='none' stroke='#b0bac4' "
-            f"stroke-width='1'/>{''.join(dots)}{bar}<text x='{width - pad}' y='18' font-size='11' "
-            f"text-anchor='end'>N up, {len(pts)} captures with GPS</text></svg>")
+    bar = (
+        f"<line x1='{pad}' y1='{height - 12}' x2='{pad + bar_m * s:.1f}' y2='{height - 12}' stroke='#1d2329' "
+        f"stroke-width='2'/><text x='{pad}' y='{height - 16}' font-size='11'>{bar_m:g} m</text>"
+    )
+    return (
+        f"<svg class='map' viewBox='0 0 {width} {height}' width='{width}' height='{height}' "
+        f"xmlns='http://www.w3.org/2000/svg'><polyline points='{path}' fill='none' stroke='#b0bac4' "
+        f"stroke-width='1'/>{''.join(dots)}{bar}<text x='{width - pad}' y='18' font-size='11' "
+        f"text-anchor='end'>N up, {len(pts)} captures with GPS</text></svg>"
+    )
 
 
-def render(title: str, frames: Sequence[dict[str, Any]], findings: Sequence[dict[str, Any]], categories: Sequence[str],
-           failures: Sequence[tuple[str, str]], summary: Sequence[str], version: str) -> str:
+def render(
+    title: str,
+    frames: Sequence[dict[str, Any]],
+    findings: Sequence[dict[str, Any]],
+    categories: Sequence[str],
+    failures: Sequence[tuple[str, str]],
+    summary: Sequence[str],
+    version: str,
+) -> str:
     counts = Counter(f["class"] for f in findings)
     order = sorted(categories, key=lambda c: (-counts.get(c, 0), list(categories).index(c)))
     rows = "".join(f"<tr><td>{escape(c)}</td><td class='r'>{counts.get(c, 0)}</td></tr>" for c in order)
-    out = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{escape(title)}</title>"
-           f"<style>{CSS}</style></head><body><h1>{escape(title)}</h1>"]
+    out = [
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{escape(title)}</title>"
+        f"<style>{CSS}</style></head><body><h1>{escape(title)}</h1>"
+    ]
     out += [f"<p class='meta'>{escape(line)}</p>" for line in summary]
-    out.append(f"<h2>Findings per class</h2><table><tr><th>class</th><th>findings</th></tr>{rows}"
-               f"<tr><td><b>total</b></td><td class='r'><b>{len(findings)}</b></td></tr></table>")
+    out.append(
+        f"<h2>Findings per class</h2><table><tr><th>class</th><th>findings</th></tr>{rows}"
+        f"<tr><td><b>total</b></td><td class='r'><b>{len(findings)}</b></td></tr></table>"
+    )
     out.append(f"<h2>Flight</h2>{map_svg(frames)}")
     prior = [f for f in frames if str(f.get("route", "")).startswith("prior (")]
     if failures or prior:
         out.append("<h2>Frames to check</h2><ul>")
         out += [f"<li class='warn'>{escape(p)}: {escape(r)}</li>" for p, r in failures]
-        out += [f"<li>{escape(f['frame'])}: {escape(f['route'])} "
-                f"({escape(str((f.get('registration') or {}).get('reason', '')))})</li>" for f in prior]
+        out += [
+            f"<li>{escape(f['frame'])}: {escape(f['route'])} "
+            f"({escape(str((f.get('registration') or {}).get('reason', '')))})</li>"
+            for f in prior
+        ]
         out.append("</ul>")
     for c in order:
         mine = sorted((f for f in findings if f["class"] == c), key=lambda f: -f["score"])
@@ -111,7 +134,8 @@ def render(title: str, frames: Sequence[dict[str, Any]], findings: Sequence[dict
                 f"alt='{escape(c)}'></a><span class='score'>{f['score']:.3f}</span> "
                 f"&Delta;T {_num(f.get('delta_t'), 1, True)} &deg;C &middot; max {_num(f.get('t_max'))} &deg;C<br>"
                 f"<a href='{link}' title='{escape(tip)}'>{escape(f['frame'])}</a><br>"
-                f"<span class='meta'>{escape(where)}</span></div>")
+                f"<span class='meta'>{escape(where)}</span></div>"
+            )
         if len(mine) > MAX_CARDS:
             out.append(f"<p class='meta'>{len(mine) - MAX_CARDS} more in findings.csv</p>")
         out.append("</div>")

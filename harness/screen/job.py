@@ -8,7 +8,6 @@ import json
 import logging
 import os
 import shutil
-import sys
 import time
 from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
@@ -16,11 +15,11 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 from harness.errors import ConfigError, DataError, HarnessError
+from harness.screen import outputs as out
 from harness.screen.findings import frame_findings
 from harness.screen.flight import Capture, Flight, find_captures, inspection_groups
 from harness.screen.frontend import Frame, FrontEnd, FrontEndSettings, RegistrationRejected
 from harness.screen.model import Predictor, ScreenModel, file_sha1, from_run, from_weights
-from harness.screen import outputs as out
 
 log = logging.getLogger(__name__)
 
@@ -90,20 +89,30 @@ def load_model(req: ScreenRequest) -> ScreenModel:
         raise ConfigError("give either --run RUN_DIR (a finished run) or --weights FILE with --detector and --dataset")
     if req.run is not None:
         if req.detector or req.dataset or req.encoding or req.config_files or req.overrides:
-            raise ConfigError("--run takes everything from the run's stored configuration; --detector, --dataset, "
-                              "--encoding, --config and --set go with --weights only")
+            raise ConfigError(
+                "--run takes everything from the run's stored configuration; --detector, --dataset, "
+                "--encoding, --config and --set go with --weights only"
+            )
         return from_run(req.run, req.conf)
     if not req.detector or not req.dataset:
         raise ConfigError("--weights needs --detector NAME and --dataset NAME (its categories, protocol and encoding)")
-    return from_weights(req.weights, req.detector, req.dataset, req.encoding, req.profile,  # type: ignore[arg-type]
-                        req.config_files, req.overrides, req.conf)
+    return from_weights(
+        req.weights,
+        req.detector,
+        req.dataset,
+        req.encoding,
+        req.profile,  # type: ignore[arg-type]
+        req.config_files,
+        req.overrides,
+        req.conf,
+    )
 
 
 def recorded_cameras(sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, Any] | None, str] | None:
     """The cameras the run's prepared data was undistorted with (``AlignedSample.meta["cameras"]``), from the cache
     (``$HARNESS_CACHE``), found by the run's prepared fingerprint; None when that data is not there."""
-    from harness.io import read_json
     from harness.cache.key import cache_root, preparation_sensing
+    from harness.io import read_json
 
     meta = sm.config.get("meta") or {}
     fingerprint, dataset = meta.get("prepared_fingerprint"), meta.get("dataset")
@@ -120,18 +129,23 @@ def recorded_cameras(sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, 
         samples = read_json(manifest.parent / "samples.json")
         seen: dict[str, dict[str, Any] | None] = {}
         for sensor in ("rgb", "thermal"):
-            cams = {json.dumps((s.get("meta", {}).get("cameras") or {}).get(sensor, {}).get("camera"), sort_keys=True)
-                    for s in samples}
+            cams = {
+                json.dumps((s.get("meta", {}).get("cameras") or {}).get(sensor, {}).get("camera"), sort_keys=True)
+                for s in samples
+            }
             if len(cams) > 1:
-                raise ConfigError(f"{manifest.parent}: the run's data was undistorted with {len(cams)} different "
-                                  f"{sensor} calibrations; give the flight's with --{sensor}-camera FILE")
+                raise ConfigError(
+                    f"{manifest.parent}: the run's data was undistorted with {len(cams)} different "
+                    f"{sensor} calibrations; give the flight's with --{sensor}-camera FILE"
+                )
             seen[sensor] = json.loads(cams.pop()) if cams else None
         return seen["rgb"], seen["thermal"], str(manifest.parent)
     return None
 
 
-def resolve_cameras(req: ScreenRequest, sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, Any] | None,
-                                                                  dict[str, str]]:
+def resolve_cameras(
+    req: ScreenRequest, sm: ScreenModel
+) -> tuple[dict[str, Any] | None, dict[str, Any] | None, dict[str, str]]:
     """(wide camera, thermal camera, where each came from): ``--rgb-camera``/``--thermal-camera``, else the
     configuration's ``sensing.undistort``, else (a run) the cameras its prepared data records; ``--no-undistort``
     for none."""
@@ -163,13 +177,19 @@ def resolve_cameras(req: ScreenRequest, sm: ScreenModel) -> tuple[dict[str, Any]
                     "the run's prepared data is not in the cache (HARNESS_CACHE, now "
                     f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the lens calibration its training "
                     "undistorted the images with is unknown: give it with --rgb-camera FILE (e.g. the dataset's "
-                    "calibration/wide_camera.yaml), or --no-undistort if its dataset had none")
+                    "calibration/wide_camera.yaml), or --no-undistort if its dataset had none"
+                )
             cams[sensor] = recorded[0 if sensor == "rgb" else 1]
-            source[sensor] = f"the run's prepared data ({recorded[2]})" if cams[sensor] else \
-                "none (the run's prepared data used none)"
+            source[sensor] = (
+                f"the run's prepared data ({recorded[2]})"
+                if cams[sensor]
+                else "none (the run's prepared data used none)"
+            )
     if cams["rgb"] is None and source["rgb"] == "none configured":
-        log.warning("no wide-camera calibration (--rgb-camera, sensing.undistort.rgb_camera): the wide images are "
-                    "not undistorted; give the one the model's training data was undistorted with")
+        log.warning(
+            "no wide-camera calibration (--rgb-camera, sensing.undistort.rgb_camera): the wide images are "
+            "not undistorted; give the one the model's training data was undistorted with"
+        )
     return cams["rgb"], cams["thermal"], source
 
 
@@ -183,8 +203,9 @@ def load_homography(path: str | Path | None, group: str | None) -> dict[str, Any
     entries = load_homography_entries(path)
     if group is None:
         if len(entries) != 1:
-            raise ConfigError(f"{path} holds {len(entries)} homographies ({', '.join(sorted(entries))}); pick one "
-                              "with --group NAME")
+            raise ConfigError(
+                f"{path} holds {len(entries)} homographies ({', '.join(sorted(entries))}); pick one with --group NAME"
+            )
         group = next(iter(entries))
     if group not in entries:
         raise ConfigError(f"{path}: no group {group!r}; it holds {', '.join(sorted(entries))}")
@@ -195,9 +216,17 @@ def load_homography(path: str | Path | None, group: str | None) -> dict[str, Any
 def screen_key(sm: ScreenModel, settings: FrontEndSettings, backend: str) -> str:
     """What makes two screens of the same files give the same findings."""
     ev = sm.config.get("eval") or {}
-    payload = {"weights": sm.weights_sha1, "detector": sm.detector.name, "backend": backend,
-               "threshold": sm.threshold, "imgsz": sm.imgsz, "nms": [ev.get("conf"), ev.get("iou"), ev.get("max_det")],
-               "model": sm.config.get("model") or {}, "frontend": asdict(settings), "schema": SCHEMA}
+    payload = {
+        "weights": sm.weights_sha1,
+        "detector": sm.detector.name,
+        "backend": backend,
+        "threshold": sm.threshold,
+        "imgsz": sm.imgsz,
+        "nms": [ev.get("conf"), ev.get("iou"), ev.get("max_det")],
+        "model": sm.config.get("model") or {},
+        "frontend": asdict(settings),
+        "schema": SCHEMA,
+    }
     return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -216,8 +245,9 @@ def _work(cap: Capture, image_id: int, given: dict[str, Any] | None) -> tuple[Fr
     return _run_frontend(_WORKER["frontend"], cap, image_id, given)
 
 
-def _run_frontend(fe: FrontEnd, cap: Capture, image_id: int, given: dict[str, Any] | None = None
-                  ) -> tuple[Frame | None, str | None, bool]:
+def _run_frontend(
+    fe: FrontEnd, cap: Capture, image_id: int, given: dict[str, Any] | None = None
+) -> tuple[Frame | None, str | None, bool]:
     """(frame, error, rejected): a bad file's error as text, naming the file."""
     try:
         return fe.process(cap, image_id, given), None, False
@@ -253,8 +283,7 @@ class FrontEndThread:
         from concurrent.futures import ThreadPoolExecutor
 
         self._clock: int | None = None
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="screen-frontend",
-                                       initializer=self._started)
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="screen-frontend", initializer=self._started)
         self.pool.submit(lambda: None).result()
 
     def _started(self) -> None:
@@ -275,8 +304,9 @@ class FrontEndThread:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-def group_registrations(fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
-                        ) -> dict[str, dict[str, Any]]:
+def group_registrations(
+    fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
+) -> dict[str, dict[str, Any]]:
     """The registrations earlier calls accepted, per group (what a re-run's remaining frames reuse)."""
     out: dict[str, dict[str, Any]] = {}
     for name, rec in done.items():
@@ -286,9 +316,14 @@ def group_registrations(fe: FrontEnd, groups: dict[str, str] | None, done: dict[
     return out
 
 
-def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups: dict[str, str] | None = None,
-                     registered: dict[str, dict[str, Any]] | None = None, thread: FrontEndThread | None = None
-                     ) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
+def frontend_results(
+    fe: FrontEnd,
+    caps: Sequence[Capture],
+    workers: int,
+    groups: dict[str, str] | None = None,
+    registered: dict[str, dict[str, Any]] | None = None,
+    thread: FrontEndThread | None = None,
+) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
     """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each; with one
     worker, ``thread`` runs them beside the caller, else each is computed when the caller asks for it).
 
@@ -306,11 +341,17 @@ def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups
         try:
             pickle.dumps((fe.settings, fe.encoding))
         except Exception as exc:  # noqa: BLE001 - e.g. an encoding function defined as a lambda
-            raise ConfigError(f"--workers {workers}: encoding {fe.encoding.name!r} cannot be sent to worker "
-                              f"processes ({type(exc).__name__}: {exc}); use --workers 1") from None
+            raise ConfigError(
+                f"--workers {workers}: encoding {fe.encoding.name!r} cannot be sent to worker "
+                f"processes ({type(exc).__name__}: {exc}); use --workers 1"
+            ) from None
         # spawned, not forked: a process forked while the model's threads hold a lock can hang for good
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(caps)), mp_context=mp.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(fe.settings, fe.encoding))
+        pool = ProcessPoolExecutor(
+            max_workers=min(workers, len(caps)),
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(fe.settings, fe.encoding),
+        )
 
     def submit(cap: Capture, i: int, given: dict[str, Any] | None) -> Any:
         if pool is not None:
@@ -329,8 +370,11 @@ def frontend_results(fe: FrontEnd, caps: Sequence[Capture], workers: int, groups
                 given = None
                 if group is not None and group in registered:
                     reg = registered[group]
-                    given = {"H": reg["H"], "registration": {**reg["registration"], "from": reg["capture"]},
-                             "route": f"auto (group {group})"}
+                    given = {
+                        "H": reg["H"],
+                        "registration": {**reg["registration"], "from": reg["capture"]},
+                        "route": f"auto (group {group})",
+                    }
                 elif group is not None and any(g == group for _, _, g, _ in queue):
                     break  # the group's registration is pending: wait for it before its next capture
                 queue.append((cap, submit(cap, k, given), group, given is None and group is not None))
@@ -370,19 +414,41 @@ class _Bar:
         self._bar.__exit__(*exc)
 
 
-def _frame_record(frame: Frame, findings: list[dict[str, Any]], key: str, flight: Path, overlay: str | None,
-                  model_s: float, model_cpu: float) -> dict[str, Any]:
-    return {"key": key, "frame": frame.capture.name, "status": "screened",
-            "rgb_file": str(frame.capture.rgb.relative_to(flight)),
-            "thermal_file": str(frame.capture.thermal.relative_to(flight)), "fingerprints": frame.fingerprints,
-            "route": frame.route, "registration": frame.registration, "reduction": frame.reduction,
-            "crop_origin": list(frame.origin), "aligned_size": [int(frame.image.shape[1]), int(frame.image.shape[0])],
-            "rgb_size": list(frame.rgb_size), "thermal_size": list(frame.thermal_size),
-            "H_rgb_to_aligned": frame.H.tolist(), "thermal_decoder": frame.thermal_decoder,
-            "position": frame.position.to_dict(), "registered": frame.registered, "overlay": overlay,
-            "findings": findings,
-            "timings": {**{k: round(v, 6) for k, v in frame.timings.items()}, "model": round(model_s, 6),
-                        "model_cpu": round(model_cpu, 6)}}
+def _frame_record(
+    frame: Frame,
+    findings: list[dict[str, Any]],
+    key: str,
+    flight: Path,
+    overlay: str | None,
+    model_s: float,
+    model_cpu: float,
+) -> dict[str, Any]:
+    return {
+        "key": key,
+        "frame": frame.capture.name,
+        "status": "screened",
+        "rgb_file": str(frame.capture.rgb.relative_to(flight)),
+        "thermal_file": str(frame.capture.thermal.relative_to(flight)),
+        "fingerprints": frame.fingerprints,
+        "route": frame.route,
+        "registration": frame.registration,
+        "reduction": frame.reduction,
+        "crop_origin": list(frame.origin),
+        "aligned_size": [int(frame.image.shape[1]), int(frame.image.shape[0])],
+        "rgb_size": list(frame.rgb_size),
+        "thermal_size": list(frame.thermal_size),
+        "H_rgb_to_aligned": frame.H.tolist(),
+        "thermal_decoder": frame.thermal_decoder,
+        "position": frame.position.to_dict(),
+        "registered": frame.registered,
+        "overlay": overlay,
+        "findings": findings,
+        "timings": {
+            **{k: round(v, 6) for k, v in frame.timings.items()},
+            "model": round(model_s, 6),
+            "model_cpu": round(model_cpu, 6),
+        },
+    }
 
 
 def _done_frames(folder: Path, key: str, caps: Sequence[Capture]) -> dict[str, dict[str, Any]]:
@@ -403,8 +469,9 @@ def _done_frames(folder: Path, key: str, caps: Sequence[Capture]) -> dict[str, d
             continue
         fp = rec.get("fingerprints") or {}
         try:
-            same = fp.get("rgb") == sha1_bytes(cap.rgb.read_bytes()) and \
-                fp.get("thermal") == sha1_bytes(cap.thermal.read_bytes())
+            same = fp.get("rgb") == sha1_bytes(cap.rgb.read_bytes()) and fp.get("thermal") == sha1_bytes(
+                cap.thermal.read_bytes()
+            )
         except OSError:
             same = False
         if same:
@@ -422,8 +489,10 @@ def _prepare_out(folder: Path, key: str, force: bool) -> None:
         old = read_json(manifest).get("key") if manifest.exists() else None
         if old is not None and old != key:
             if not force:
-                raise ConfigError(f"--out {folder} holds a screen with another model or other settings (key {old}, "
-                                  f"now {key}); use another --out, or --force to replace it")
+                raise ConfigError(
+                    f"--out {folder} holds a screen with another model or other settings (key {old}, "
+                    f"now {key}); use another --out, or --force to replace it"
+                )
         if force:
             for sub in ("frames", "overlays", "crops"):
                 shutil.rmtree(folder / sub, ignore_errors=True)
@@ -459,10 +528,18 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
         raise DataError(f"{flight.bad[0][0]}: {flight.bad[0][1]}")
     sm = load_model(req)
     rgb_cam, th_cam, cam_source = resolve_cameras(req, sm)
-    settings = FrontEndSettings(sensing=sm.sensing, encoding=sm.encoding.name, encoding_params=sm.encoding_params,
-                                rgb_camera=rgb_cam, thermal_camera=th_cam,
-                                homography=load_homography(req.homography, req.group), fallback=req.fallback,
-                                rgb_decode=req.rgb_decode, focal_35mm=req.focal_35mm, register=req.register)
+    settings = FrontEndSettings(
+        sensing=sm.sensing,
+        encoding=sm.encoding.name,
+        encoding_params=sm.encoding_params,
+        rgb_camera=rgb_cam,
+        thermal_camera=th_cam,
+        homography=load_homography(req.homography, req.group),
+        fallback=req.fallback,
+        rgb_decode=req.rgb_decode,
+        focal_35mm=req.focal_35mm,
+        register=req.register,
+    )
     fe = FrontEnd(settings, sm.encoding)
     key = screen_key(sm, settings, req.backend)
     folder = Path(req.out)
@@ -471,11 +548,18 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     done = _done_frames(folder, key, flight.captures)
     todo = [c for c in flight.captures if c.name not in done]
     if done:
-        log.info("%d of %d frames were screened earlier with the same settings: skipped", len(done),
-                 len(flight.captures))
-    base = {"schema": SCHEMA, "key": key, "harness_version": __version__, "flight": str(Path(req.flight).resolve()),
-            "model": {**sm.describe(), "backend": req.backend, "device": req.device, "onnx": predictor.onnx or None},
-            "frontend": {**asdict(settings), "cameras_from": cam_source}, "config": sm.config}
+        log.info(
+            "%d of %d frames were screened earlier with the same settings: skipped", len(done), len(flight.captures)
+        )
+    base = {
+        "schema": SCHEMA,
+        "key": key,
+        "harness_version": __version__,
+        "flight": str(Path(req.flight).resolve()),
+        "model": {**sm.describe(), "backend": req.backend, "device": req.device, "onnx": predictor.onnx or None},
+        "frontend": {**asdict(settings), "cameras_from": cam_source},
+        "config": sm.config,
+    }
     out.write_json(folder / "manifest.json", {**base, "state": "running"})
 
     failures: list[tuple[str, str]] = list(flight.bad)
@@ -541,9 +625,21 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
             thread.shutdown()
     screened = len(records) - len(done)
     failures += rejected_skipped
-    result = _finish(folder, base, flight, records, failures, sm, timings, screened, len(done), req,
-                     time.perf_counter() - t_start, state="stopped" if stop else "finished",
-                     overlapped=thread is not None)
+    result = _finish(
+        folder,
+        base,
+        flight,
+        records,
+        failures,
+        sm,
+        timings,
+        screened,
+        len(done),
+        req,
+        time.perf_counter() - t_start,
+        state="stopped" if stop else "finished",
+        overlapped=thread is not None,
+    )
     if stop is not None:
         raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
     return result
@@ -553,7 +649,7 @@ def _named(cap: Capture, error: str) -> tuple[str, str]:
     """(the bad file, the reason) from an error text that starts with the file's path."""
     for path in (cap.thermal, cap.rgb):
         if error.startswith(f"{path}: "):
-            return str(path), error[len(str(path)) + 2:]
+            return str(path), error[len(str(path)) + 2 :]
     return str(cap.rgb), error
 
 
@@ -574,10 +670,21 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
     return rel
 
 
-def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[str, dict[str, Any]],
-            failures: list[tuple[str, str]], sm: ScreenModel, timings: dict[str, float], screened: int,
-            skipped_done: int, req: ScreenRequest, seconds: float, state: str, overlapped: bool = False
-            ) -> ScreenResult:
+def _finish(
+    folder: Path,
+    base: dict[str, Any],
+    flight: Flight,
+    records: dict[str, dict[str, Any]],
+    failures: list[tuple[str, str]],
+    sm: ScreenModel,
+    timings: dict[str, float],
+    screened: int,
+    skipped_done: int,
+    req: ScreenRequest,
+    seconds: float,
+    state: str,
+    overlapped: bool = False,
+) -> ScreenResult:
     from harness import __version__
     from harness.screen.gallery import render
 
@@ -590,36 +697,73 @@ def _finish(folder: Path, base: dict[str, Any], flight: Flight, records: dict[st
     out.write_geojson(folder / "findings.geojson", findings)
     counts = Counter(f["class"] for f in findings)
     routes = Counter(r["route"] for r in frames)
-    rejected = [(r["frame"], str((r.get("registration") or {}).get("reason", ""))) for r in frames
-                if str(r["route"]).startswith("prior (")]
+    rejected = [
+        (r["frame"], str((r.get("registration") or {}).get("reason", "")))
+        for r in frames
+        if str(r["route"]).startswith("prior (")
+    ]
     cpu = {k: timings.pop(k) for k in ("front_cpu", "model_cpu")}
     per = {k: (v / screened if screened else None) for k, v in timings.items()}
     front = sum(v for k, v in per.items() if k != "model" and v is not None) if screened else None
-    timing = {"seconds": round(seconds, 3), "frames_per_s": round(screened / seconds, 3) if screened else None,
-              "per_frame_s": {k: (round(v, 6) if v is not None else None) for k, v in per.items()},
-              "frontend_over_model": round(front / per["model"], 4) if screened and per["model"] else None,
-              "frontend_over_model_cpu": round(cpu["front_cpu"] / cpu["model_cpu"], 4) if cpu["model_cpu"] > 0
-              else None,
-              "workers": req.workers, "threads": req.threads,
-              "overlapped": overlapped}
-    summary = [f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
-               f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
-               "ignored",
-               f"model {sm.detector.name} ({base['model']['backend']}), encoding {sm.encoding.name}, threshold "
-               f"{sm.threshold:g} ({sm.threshold_source})",
-               "registration routes: " + ", ".join(f"{k} {v}" for k, v in sorted(routes.items()))]
+    timing = {
+        "seconds": round(seconds, 3),
+        "frames_per_s": round(screened / seconds, 3) if screened else None,
+        "per_frame_s": {k: (round(v, 6) if v is not None else None) for k, v in per.items()},
+        "frontend_over_model": round(front / per["model"], 4) if screened and per["model"] else None,
+        "frontend_over_model_cpu": round(cpu["front_cpu"] / cpu["model_cpu"], 4) if cpu["model_cpu"] > 0 else None,
+        "workers": req.workers,
+        "threads": req.threads,
+        "overlapped": overlapped,
+    }
+    summary = [
+        f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
+        f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
+        "ignored",
+        f"model {sm.detector.name} ({base['model']['backend']}), encoding {sm.encoding.name}, threshold "
+        f"{sm.threshold:g} ({sm.threshold_source})",
+        "registration routes: " + ", ".join(f"{k} {v}" for k, v in sorted(routes.items())),
+    ]
     html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, failures, summary, __version__)
     from harness.io import atomic_write_text
 
     atomic_write_text(folder / "index.html", html)
-    inputs = [{"frame": r["frame"], "rgb": r["rgb_file"], "thermal": r["thermal_file"], **{
-        f"{k}_sha1": v for k, v in (r.get("fingerprints") or {}).items()}} for r in frames]
-    manifest = {**base, "state": state, "frames": {"captures": len(flight.captures), "screened": len(frames),
-                                                   "with_findings": sum(1 for r in frames if r.get("findings")),
-                                                   "failed": len(failures), "ignored_files": flight.ignored},
-                "findings": dict(counts), "routes": dict(routes), "failures": [list(f) for f in failures],
-                "registration_rejected": [list(r) for r in rejected], "inputs": inputs, "timings": timing}
+    inputs = [
+        {
+            "frame": r["frame"],
+            "rgb": r["rgb_file"],
+            "thermal": r["thermal_file"],
+            **{f"{k}_sha1": v for k, v in (r.get("fingerprints") or {}).items()},
+        }
+        for r in frames
+    ]
+    manifest = {
+        **base,
+        "state": state,
+        "frames": {
+            "captures": len(flight.captures),
+            "screened": len(frames),
+            "with_findings": sum(1 for r in frames if r.get("findings")),
+            "failed": len(failures),
+            "ignored_files": flight.ignored,
+        },
+        "findings": dict(counts),
+        "routes": dict(routes),
+        "failures": [list(f) for f in failures],
+        "registration_rejected": [list(r) for r in rejected],
+        "inputs": inputs,
+        "timings": timing,
+    }
     out.write_json(folder / "manifest.json", manifest)
-    return ScreenResult(folder, len(flight.captures), screened, skipped_done,
-                        sum(1 for r in frames if r.get("findings")), dict(counts), failures, rejected, timing,
-                        sm.threshold, sm.threshold_source)
+    return ScreenResult(
+        folder,
+        len(flight.captures),
+        screened,
+        skipped_done,
+        sum(1 for r in frames if r.get("findings")),
+        dict(counts),
+        failures,
+        rejected,
+        timing,
+        sm.threshold,
+        sm.threshold_source,
+    )

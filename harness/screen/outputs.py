@@ -30,18 +30,54 @@ from harness.screen.position import FIELDS
 
 BOX_KEYS = ("box_thermal", "box_rgb", "box_aligned")
 CSV_COLUMNS = (
-    "frame", "class", "score",
-    "thermal_x0", "thermal_y0", "thermal_x1", "thermal_y1",
-    "rgb_x0", "rgb_y0", "rgb_x1", "rgb_y1",
-    "aligned_x0", "aligned_y0", "aligned_x1", "aligned_y1",
-    *TEMPERATURE_KEYS, *FIELDS, "route", "rgb_file", "thermal_file", "overlay",
+    "frame",
+    "class",
+    "score",
+    "thermal_x0",
+    "thermal_y0",
+    "thermal_x1",
+    "thermal_y1",
+    "rgb_x0",
+    "rgb_y0",
+    "rgb_x1",
+    "rgb_y1",
+    "aligned_x0",
+    "aligned_y0",
+    "aligned_x1",
+    "aligned_y1",
+    *TEMPERATURE_KEYS,
+    *FIELDS,
+    "route",
+    "rgb_file",
+    "thermal_file",
+    "overlay",
 )
 #: decimals per column in the CSV
-_DIGITS = {"score": 5, "lat": 8, "lon": 8, "alt_abs": 3, "alt_rel": 3, "gimbal_yaw": 2, "gimbal_pitch": 2,
-           "gimbal_roll": 2, "flight_yaw": 2, **dict.fromkeys(TEMPERATURE_KEYS, 3)}
+_DIGITS = {
+    "score": 5,
+    "lat": 8,
+    "lon": 8,
+    "alt_abs": 3,
+    "alt_rel": 3,
+    "gimbal_yaw": 2,
+    "gimbal_pitch": 2,
+    "gimbal_roll": 2,
+    "flight_yaw": 2,
+    **dict.fromkeys(TEMPERATURE_KEYS, 3),
+}
 #: BGR colours per class index (OpenCV drawing), cycled
-PALETTE = ((80, 200, 255), (255, 160, 60), (90, 230, 120), (60, 60, 255), (255, 90, 220), (250, 250, 90),
-           (40, 160, 250), (200, 120, 255), (140, 255, 200), (120, 180, 120))
+PALETTE = (
+    (80, 200, 255),
+    (255, 160, 60),
+    (90, 230, 120),
+    (60, 60, 255),
+    (255, 90, 220),
+    (250, 250, 90),
+    (40, 160, 250),
+    (200, 120, 255),
+    (140, 255, 200),
+    (120, 180, 120),
+)
 
 
 def safe_name(frame: str) -> str:
@@ -111,8 +147,7 @@ def _label(f: dict[str, Any]) -> str:
     return f"{f['class']} {f['score']:.2f}" + (f" dT {dt:+.1f}C" if dt is not None else "")
 
 
-def overlay(rgb: np.ndarray, temp: np.ndarray, findings: Sequence[dict[str, Any]], min_height: int = 360
-            ) -> np.ndarray:
+def overlay(rgb: np.ndarray, temp: np.ndarray, findings: Sequence[dict[str, Any]], min_height: int = 360) -> np.ndarray:
     """The aligned RGB and the thermal colour map side by side (BGR), boxes and labels on both; frames lower than
     ``min_height`` pixels are enlarged by a whole factor first."""
     import cv2
@@ -152,11 +187,21 @@ def crop(rgb: np.ndarray, temp: np.ndarray, box: Sequence[float], height: int = 
     parts = []
     for img in (np.ascontiguousarray(rgb[:, :, ::-1]), colours):
         part = np.ascontiguousarray(img[c:d, a:b])
-        cv2.rectangle(part, (int(round(x0)) - a, int(round(y0)) - c), (int(round(x1)) - a - 1, int(round(y1)) - c - 1),
-                      (255, 255, 255), 1)
+        cv2.rectangle(
+            part,
+            (int(round(x0)) - a, int(round(y0)) - c),
+            (int(round(x1)) - a - 1, int(round(y1)) - c - 1),
+            (255, 255, 255),
+            1,
+        )
         f = height / max(part.shape[0], 1)
-        parts.append(cv2.resize(part, (max(1, int(round(part.shape[1] * f))), height),
-                                interpolation=cv2.INTER_NEAREST if f >= 1 else cv2.INTER_AREA))
+        parts.append(
+            cv2.resize(
+                part,
+                (max(1, int(round(part.shape[1] * f))), height),
+                interpolation=cv2.INTER_NEAREST if f >= 1 else cv2.INTER_AREA,
+            )
+        )
     return np.hstack([parts[0], np.full((height, 3, 3), 255, np.uint8), parts[1]])
 
 

@@ -49,10 +49,16 @@ def shift_replicate(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
     return img[ys[:, None], xs[None, :]]
 
 
-def box_amplitudes(thermal: np.ndarray, boxes: np.ndarray, shifts: Sequence[int] = SHIFTS,
-                   directions: Sequence[tuple[int, int]] = DIRECTIONS, sigma: float = c2mod.SIGMA,
-                   percentile: float = c2mod.PERCENTILE, floor: float = c2mod.FLOOR,
-                   name: str | None = None) -> np.ndarray:
+def box_amplitudes(
+    thermal: np.ndarray,
+    boxes: np.ndarray,
+    shifts: Sequence[int] = SHIFTS,
+    directions: Sequence[tuple[int, int]] = DIRECTIONS,
+    sigma: float = c2mod.SIGMA,
+    percentile: float = c2mod.PERCENTILE,
+    floor: float = c2mod.FLOOR,
+    name: str | None = None,
+) -> np.ndarray:
     """``A_b(d)`` for every box (rows) and shift ``d`` in ``(0, *shifts)`` (columns): mean ``|C2 - 0.5|`` in the
     box, averaged over the directions; C2 is recomputed on each shifted temperature map. Pixels with a missing
     temperature are left out of the box means (a box with none valid gets NaN); ``name`` is named in errors."""
@@ -75,10 +81,16 @@ def box_amplitudes(thermal: np.ndarray, boxes: np.ndarray, shifts: Sequence[int]
     return out
 
 
-def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[str], shifts: Sequence[int] = SHIFTS,
-                       sigma: float = c2mod.SIGMA, percentile: float = c2mod.PERCENTILE, floor: float = c2mod.FLOOR,
-                       max_images: int | None = None, progress: Callable[[int], None] | None = None
-                       ) -> dict[str, Any]:
+def displacement_study(
+    samples: Iterable[AlignedSample],
+    categories: Sequence[str],
+    shifts: Sequence[int] = SHIFTS,
+    sigma: float = c2mod.SIGMA,
+    percentile: float = c2mod.PERCENTILE,
+    floor: float = c2mod.FLOOR,
+    max_images: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
     """The seed's displacement study over aligned samples (see the module docstring).
 
     Returns ``{"shifts": [0, *shifts], "classes": {name: {"boxes": n, "A": [A_c(d)...], "R": [R_c(d) %...]}},
@@ -99,8 +111,9 @@ def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[st
         images += 1
         invalid += c2mod.invalid_count(sample.thermal)
         if len(sample.boxes):
-            amps = box_amplitudes(sample.thermal, sample.boxes, shifts, sigma=sigma, percentile=percentile,
-                                  floor=floor, name=sample.name)
+            amps = box_amplitudes(
+                sample.thermal, sample.boxes, shifts, sigma=sigma, percentile=percentile, floor=floor, name=sample.name
+            )
             for lab, row in zip(np.asarray(sample.labels).tolist(), amps):
                 if np.isfinite(row).all():
                     per_class.setdefault(int(lab), []).append(row)
@@ -118,14 +131,28 @@ def displacement_study(samples: Iterable[AlignedSample], categories: Sequence[st
     present = [v for v in classes.values() if v["A"] is not None]
     mean = None
     if present:
-        mean = {"A": [float(np.mean([v["A"][i] for v in present])) for i in range(len(shifts) + 1)],
-                "R": [float(np.nanmean([v["R"][i] for v in present])) for i in range(len(shifts) + 1)]}
-    return {"analysis": "displacement", "shifts": [0, *shifts], "classes": classes, "mean_over_classes": mean,
-            "images": images, "boxes": int(sum(v["boxes"] for v in classes.values())), "invalid_pixels": invalid,
-            "params": {"sigma": sigma, "percentile": percentile, "floor": floor, "directions": "right,left,down,up",
-                       "border": "replicate"},
-            "definition": "R_c(d) = 100 * A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the direction-averaged "
-                          "mean |C2 - 0.5| in the box after shifting the thermal map d px"}
+        mean = {
+            "A": [float(np.mean([v["A"][i] for v in present])) for i in range(len(shifts) + 1)],
+            "R": [float(np.nanmean([v["R"][i] for v in present])) for i in range(len(shifts) + 1)],
+        }
+    return {
+        "analysis": "displacement",
+        "shifts": [0, *shifts],
+        "classes": classes,
+        "mean_over_classes": mean,
+        "images": images,
+        "boxes": int(sum(v["boxes"] for v in classes.values())),
+        "invalid_pixels": invalid,
+        "params": {
+            "sigma": sigma,
+            "percentile": percentile,
+            "floor": floor,
+            "directions": "right,left,down,up",
+            "border": "replicate",
+        },
+        "definition": "R_c(d) = 100 * A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the direction-averaged "
+        "mean |C2 - 0.5| in the box after shifting the thermal map d px",
+    }
 
 
 def format_displacement(result: Mapping[str, Any]) -> str:
@@ -143,15 +170,20 @@ def format_displacement(result: Mapping[str, Any]) -> str:
         rows.append(
             ["mean (classes)", str(result["boxes"]), f"{mean['A'][0]:.4f}", *[f"{r:.1f}%" for r in mean["R"][1:]]]
         )
-    title = (f"C2 retained under thermal displacement (R_c(d) = A_c(d) / A_c(0)), {result['images']} images, "
-             f"{result['boxes']} boxes")
+    title = (
+        f"C2 retained under thermal displacement (R_c(d) = A_c(d) / A_c(0)), {result['images']} images, "
+        f"{result['boxes']} boxes"
+    )
     return title + "\n" + text_table(header, rows)
 
 
 # ---------------------------------------------------------------------------------------------- registration error
-def registration_error_study(landmarks: Any, homographies: Mapping[str, np.ndarray] | None = None,
-                             method: str = "lsq", support: Mapping[str, tuple[float, float, float, float]] | None = None
-                             ) -> dict[str, Any]:
+def registration_error_study(
+    landmarks: Any,
+    homographies: Mapping[str, np.ndarray] | None = None,
+    method: str = "lsq",
+    support: Mapping[str, tuple[float, float, float, float]] | None = None,
+) -> dict[str, Any]:
     """Registration error on a landmarks file's points.
 
     With ``homographies`` (``{group: H}``, e.g. the similarity-adjusted ones actually used) the landmarks are
@@ -199,9 +231,19 @@ def registration_error_study(landmarks: Any, homographies: Mapping[str, np.ndarr
 
 def format_registration_error(result: Mapping[str, Any]) -> str:
     """Overall mean / median / P95 (px) and the per-scene mean, aligned."""
-    head = text_table(["landmarks", "mean (px)", "median (px)", "P95 (px)", "max (px)"],
-                  [[str(result["n"]), f"{result['mean']:.2f}", f"{result['median']:.2f}", f"{result['p95']:.2f}",
-                    f"{result['max']:.2f}"]], align="rrrrr")
+    head = text_table(
+        ["landmarks", "mean (px)", "median (px)", "P95 (px)", "max (px)"],
+        [
+            [
+                str(result["n"]),
+                f"{result['mean']:.2f}",
+                f"{result['median']:.2f}",
+                f"{result['p95']:.2f}",
+                f"{result['max']:.2f}",
+            ]
+        ],
+        align="rrrrr",
+    )
     rows = [[scene, str(v["n"]), f"{v['mean']:.2f}", f"{v['median']:.2f}"] for scene, v in result["per_scene"].items()]
     per = text_table(["scene", "n", "mean (px)", "median (px)"], rows)
     note = f"registration error in thermal pixels ({result.get('mode', '')})"

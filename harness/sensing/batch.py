@@ -81,8 +81,9 @@ class _Job:
     from_folder: bool
 
 
-def collect_jobs(inputs: Iterable[str | Path], out_dir: str | Path, suffix: str
-                 ) -> tuple[list[_Job], list[tuple[str, str]]]:
+def collect_jobs(
+    inputs: Iterable[str | Path], out_dir: str | Path, suffix: str
+) -> tuple[list[_Job], list[tuple[str, str]]]:
     """The files to decode with their targets, and the inputs that already fail (missing, or a second input
     with the same target)."""
     out_dir = Path(out_dir)
@@ -102,8 +103,9 @@ def collect_jobs(inputs: Iterable[str | Path], out_dir: str | Path, suffix: str
         if p.is_dir():
             found = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in RJPEG_SUFFIXES)
             if not found:
-                failed.append((str(p), "a folder without any .jpg/.jpeg file (give R-JPEG files or folders "
-                                       "holding them)"))
+                failed.append(
+                    (str(p), "a folder without any .jpg/.jpeg file (give R-JPEG files or folders holding them)")
+                )
             for f in found:
                 rel = f.relative_to(p)
                 add(f, out_dir / rel.parent / f"{f.stem}.{suffix}", True)
@@ -133,7 +135,7 @@ def exact_params(data: bytes, name: str | Path, layout: Any = None) -> dict[str,
         return {}
     if len(payload) < base + 20:
         return {}
-    values = struct.unpack("<5f", payload[base:base + 20])
+    values = struct.unpack("<5f", payload[base : base + 20])
     out = {}
     for (key, factor), v in zip(APP4_PARAMS, values):
         shortest = Decimal(str(np.float32(v)))  # the shortest decimal that reads back to this float32
@@ -171,12 +173,21 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     tmp = _temporary(target)
     moves = [(tmp, target), (sidecar_path(tmp), sidecar_path(target))]
     try:
-        write_thermal(tmp, t, unit=options.unit, params=params,
-                      extra={"source": str(source), "decoder": route, "decoder_route": rj.decoder,
-                             **({"decoder_note": rj.decoder_note} if rj.decoder_note else {}),
-                             **{k: info[k] for k in ("correction", "approximate", "converter") if k in info},
-                             **({"temperatures": info["approximate"]["label"]} if "approximate" in info else {}),
-                             "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))}})
+        write_thermal(
+            tmp,
+            t,
+            unit=options.unit,
+            params=params,
+            extra={
+                "source": str(source),
+                "decoder": route,
+                "decoder_route": rj.decoder,
+                **({"decoder_note": rj.decoder_note} if rj.decoder_note else {}),
+                **{k: info[k] for k in ("correction", "approximate", "converter") if k in info},
+                **({"temperatures": info["approximate"]["label"]} if "approximate" in info else {}),
+                "exif": {k: v for k, v in rj.exif.items() if isinstance(v, (str, int, float))},
+            },
+        )
         if options.preview:
             import cv2
 
@@ -190,11 +201,20 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     finally:
         for a, _ in moves:
             a.unlink(missing_ok=True)
-    return {"file": source.name, "source": str(source), "size": f"{t.shape[1]}x{t.shape[0]}", "route": rj.decoder,
-            "route_label": route, "approximate": info.get("approximate"),
-            "min": float(np.nanmin(t)), "max": float(np.nanmax(t)), "mean": float(np.nanmean(t)),
-            "emissivity": float(used.get("emissivity", float("nan"))),
-            "distance": float(used.get("distance", float("nan"))), "written": str(target)}
+    return {
+        "file": source.name,
+        "source": str(source),
+        "size": f"{t.shape[1]}x{t.shape[0]}",
+        "route": rj.decoder,
+        "route_label": route,
+        "approximate": info.get("approximate"),
+        "min": float(np.nanmin(t)),
+        "max": float(np.nanmax(t)),
+        "mean": float(np.nanmean(t)),
+        "emissivity": float(used.get("emissivity", float("nan"))),
+        "distance": float(used.get("distance", float("nan"))),
+        "written": str(target),
+    }
 
 
 def _run(job: _Job, options: DecodeOptions) -> tuple[dict[str, Any] | None, str | None]:
@@ -214,9 +234,14 @@ def _reason(exc: BaseException, source: Path, unexpected: bool = False) -> str:
     return f"{type(exc).__name__}: {text}" if unexpected else text
 
 
-def decode_batch(inputs: Iterable[str | Path], out_dir: str | Path, options: DecodeOptions | None = None,
-                 workers: int = 1, fail_fast: bool = False,
-                 progress: Callable[[int, int], None] | None = None) -> BatchResult:
+def decode_batch(
+    inputs: Iterable[str | Path],
+    out_dir: str | Path,
+    options: DecodeOptions | None = None,
+    workers: int = 1,
+    fail_fast: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> BatchResult:
     """Decode every R-JPEG among ``inputs`` (files and folders) into ``out_dir``; see the module docstring.
 
     ``progress(done, total)`` is called after each file. With ``fail_fast`` the first failure raises (a
@@ -287,8 +312,10 @@ def format_failures(result: BatchResult) -> str:
     approx = [r for r in result.decoded if r.get("approximate")]
     if approx:
         worst = max(r["approximate"]["bound_c"] for r in approx)
-        head += (f"; {len(approx)} with approximate temperatures (within {worst:g} C of DJI's SDK at worst; "
-                 "see each sidecar)")
+        head += (
+            f"; {len(approx)} with approximate temperatures (within {worst:g} C of DJI's SDK at worst; "
+            "see each sidecar)"
+        )
     if not n and not result.failed:
         return head + ": nothing to decode (no R-JPEG among the inputs)"
     if not result.failed:

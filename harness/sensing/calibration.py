@@ -156,8 +156,8 @@ def find_checkerboard(img: np.ndarray, pattern: tuple[int, int], thermal: bool =
     """Inner-corner positions (N x 2 float32, row-major) of a ``pattern = (cols, rows)`` checkerboard, or None.
 
     Thermal frames (any dtype) are stretched with ``stretch_to_uint8`` (plain, then with CLAHE for low contrast)
-    and tried both ways round (a warm board on a cold background and the inverse). Uses ``findChessboardCornersSB`` (robust on low-resolution frames) and
-    falls back to ``findChessboardCorners`` + ``cornerSubPix``.
+    and tried both ways round (a warm board on a cold background and the inverse). Uses ``findChessboardCornersSB``
+    (robust on low-resolution frames) and falls back to ``findChessboardCorners`` + ``cornerSubPix``.
     """
     import cv2
 
@@ -170,7 +170,8 @@ def find_checkerboard(img: np.ndarray, pattern: tuple[int, int], thermal: bool =
         ok, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         if ok:
             return corners.reshape(-1, 2).astype(np.float32)
-        ok, corners = cv2.findChessboardCorners(gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        ok, corners = cv2.findChessboardCorners(gray, pattern,
+                                                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
         if ok:
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
             corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), crit)
@@ -224,7 +225,8 @@ def calibrate_checkerboard(images: Sequence[np.ndarray] | Iterable[tuple[str, np
         if size is None:
             size = this
         elif this != size:
-            raise DataError(f"{label}: image size {this[0]}x{this[1]} differs from the first view's {size[0]}x{size[1]}")
+            raise DataError(f"{label}: image size {this[0]}x{this[1]} differs from the first view's "
+                            f"{size[0]}x{size[1]}")
         corners = find_checkerboard(img, pattern, thermal=thermal)
         if corners is None:
             rejected.append(label)
@@ -233,7 +235,8 @@ def calibrate_checkerboard(images: Sequence[np.ndarray] | Iterable[tuple[str, np
         img_pts.append(corners.reshape(-1, 1, 2))
         used.append(label)
     if size is None or len(used) < min_views:
-        raise DataError(f"checkerboard {pattern[0]}x{pattern[1]} found in {len(used)} view(s), need at least {min_views}"
+        raise DataError(f"checkerboard {pattern[0]}x{pattern[1]} found in {len(used)} view(s), "
+                        f"need at least {min_views}"
                         + (f"; not found in: {', '.join(rejected[:10])}" if rejected else "")
                         + ". Check the pattern size (inner corners, cols x rows) and the board's contrast.")
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0

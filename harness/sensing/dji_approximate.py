@@ -54,8 +54,11 @@ class Approximation:
     high_emissivity: float = 1.1
 
     def bands_for(self, emissivity: float) -> tuple[tuple[float, float], ...]:
-        return self.bands_high_emissivity if emissivity >= self.high_emissivity and self.bands_high_emissivity \
+        return (
+            self.bands_high_emissivity
+            if emissivity >= self.high_emissivity and self.bands_high_emissivity
             else self.bands
+        )
 
     @property
     def measured_up_to_c(self) -> float:
@@ -101,17 +104,27 @@ def unity_table() -> Any:
     temps, dists = dc.tau_axes(0)
     tau = np.full((len(temps), len(dists)), dc.Q14, dtype=np.uint16)
     tau.flags.writeable = False
-    return dc.TauTable(tau=tau, temps_k=temps, distances_m=dists, version=0, humidity=0, reflection=True,
-                       max_distance=25.0, approximation="builtin-tau-unity")
+    return dc.TauTable(
+        tau=tau,
+        temps_k=temps,
+        distances_m=dists,
+        version=0,
+        humidity=0,
+        reflection=True,
+        max_distance=25.0,
+        approximation="builtin-tau-unity",
+    )
 
 
 def check_emissivity(approx: Approximation, emissivity: float, name: object) -> None:
     """A ``DataError`` naming ``name`` when ``emissivity`` lies outside the range the bound was measured over."""
     lo, hi = approx.emissivity
     if not lo <= emissivity <= hi:
-        raise DataError(f"{name}: the approximate route ({approx.name}) was measured for emissivity {lo:g}-{hi:g} "
-                        f"only; emissivity {emissivity:g} has no measured bound (decode the file with DJI's SDK: "
-                        "--converter dji_irp)")
+        raise DataError(
+            f"{name}: the approximate route ({approx.name}) was measured for emissivity {lo:g}-{hi:g} "
+            f"only; emissivity {emissivity:g} has no measured bound (decode the file with DJI's SDK: "
+            "--converter dji_irp)"
+        )
 
 
 def apply(temperature_c: np.ndarray, approx: Approximation, emissivity: float) -> tuple[np.ndarray, dict[str, Any]]:
@@ -130,9 +143,15 @@ def apply(temperature_c: np.ndarray, approx: Approximation, emissivity: float) -
         bound = max(bound, b)
         if hottest <= upper:
             break
-    record = {"label": LABEL, "approximation": approx.name, "left_out": approx.left_out, "bound_c": bound,
-              "measured_on": approx.measured_on + " against DJI Thermal SDK",
-              "measured_up_to_c": top, "missing_above_range": int(above.sum())}
+    record = {
+        "label": LABEL,
+        "approximation": approx.name,
+        "left_out": approx.left_out,
+        "bound_c": bound,
+        "measured_on": approx.measured_on + " against DJI Thermal SDK",
+        "measured_up_to_c": top,
+        "missing_above_range": int(above.sum()),
+    }
     return t, record
 
 

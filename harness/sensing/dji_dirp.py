@@ -95,26 +95,34 @@ class DirpCalibration:
         return struct.unpack_from("<H", self.block, off)[0]
 
     def summary(self) -> dict[str, Any]:
-        return {"format": "dirp", "header_version": self.header_version,
-                "curve_c": [int(self.curve[0]) / 10.0, int(self.curve[-1]) / 10.0]}
+        return {
+            "format": "dirp",
+            "header_version": self.header_version,
+            "curve_c": [int(self.curve[0]) / 10.0, int(self.curve[-1]) / 10.0],
+        }
 
 
 def parse(app4: bytes, app5: bytes | None, name: str | Path = "<R-JPEG>") -> DirpCalibration:
     """The calibration block (APP4) and curve (APP5) of a class-D file; a short segment is a ``DataError``."""
     if not is_dirp_block(app4):
-        raise DataError(f"{name}: APP4 is not a dirp calibration block (expected {BLOCK_BYTES:#x} bytes starting "
-                        f"aa 55 12, got {len(app4)} bytes starting {app4[:3].hex(' ')})")
+        raise DataError(
+            f"{name}: APP4 is not a dirp calibration block (expected {BLOCK_BYTES:#x} bytes starting "
+            f"aa 55 12, got {len(app4)} bytes starting {app4[:3].hex(' ')})"
+        )
     if app5 is None or len(app5) < CURVE_BYTES:
         got = "no APP5 segment" if app5 is None else f"{len(app5)} bytes"
-        raise DataError(f"{name}: the dirp temperature curve (APP5, {CURVE_BYTES:#x} bytes) is missing or cut "
-                        f"short ({got}); the file is damaged")
+        raise DataError(
+            f"{name}: the dirp temperature curve (APP5, {CURVE_BYTES:#x} bytes) is missing or cut "
+            f"short ({got}); the file is damaged"
+        )
     block = bytes(app4[:BLOCK_BYTES])
     curve = np.frombuffer(app5[:CURVE_BYTES], dtype="<i2").astype(np.int16)
     curve.flags.writeable = False
     d, h, e, r = struct.unpack_from("<HHHh", block, 0x44)
     stored = {"distance": float(d), "humidity": float(h), "emissivity": e / 100.0, "reflected": r / 10.0}
-    return DirpCalibration(block=block, curve=curve, header_version=struct.unpack_from("<I", block, 0x148)[0],
-                           stored_params=stored)
+    return DirpCalibration(
+        block=block, curve=curve, header_version=struct.unpack_from("<I", block, 0x148)[0], stored_params=stored
+    )
 
 
 def measurement_params(overrides: Mapping[str, float | None] | None = None) -> dict[str, float]:
@@ -124,19 +132,21 @@ def measurement_params(overrides: Mapping[str, float | None] | None = None) -> d
         if value is None:
             continue
         if key not in RANGES:
-            raise ConfigError(f"measurement parameter {key!r} does not apply to dirp (H20T) files; "
-                              f"known: {', '.join(RANGES)}")
+            raise ConfigError(
+                f"measurement parameter {key!r} does not apply to dirp (H20T) files; known: {', '.join(RANGES)}"
+            )
         v = float(value)
         lo, hi = RANGES[key]
         if not lo <= v <= hi:
-            raise ConfigError(f"measurement parameter {key}={v:g} {UNITS[key]} is outside the range the dirp "
-                              f"correction accepts ({lo:g}..{hi:g} {UNITS[key]})")
+            raise ConfigError(
+                f"measurement parameter {key}={v:g} {UNITS[key]} is outside the range the dirp "
+                f"correction accepts ({lo:g}..{hi:g} {UNITS[key]})"
+            )
         p[key] = v
     return p
 
 
-def temperature_table(cal: DirpCalibration, params: Mapping[str, float],
-                      name: str | Path = "<R-JPEG>") -> np.ndarray:
+def temperature_table(cal: DirpCalibration, params: Mapping[str, float], name: str | Path = "<R-JPEG>") -> np.ndarray:
     """Temperature (C, float32) of every raw value 0..65535 at ``params`` (module docstring)."""
     # the parameters as the SDK stores them: whole metres and percent, emissivity in percent, reflection in 0.1 C
     dist = int(np.int16(int(F(params["distance"]))))
@@ -145,8 +155,10 @@ def temperature_table(cal: DirpCalibration, params: Mapping[str, float],
     refl10 = int(np.int16(int(F(F(params["reflected"]) * F(10.0)))))
     for off in (0x64, 0xA4, 0x88, 0xA8, 0x84):
         if cal.f32(off) < F(-273.5):
-            raise DataError(f"{name}: dirp calibration block holds an invalid internal temperature at {off:#x} "
-                            f"({float(cal.f32(off)):g} C); the file is damaged")
+            raise DataError(
+                f"{name}: dirp calibration block holds an invalid internal temperature at {off:#x} "
+                f"({float(cal.f32(off)):g} C); the file is damaged"
+            )
     curve = cal.curve
     t_a4 = cal.f32(0xA4)
     s9 = int(np.int16(int(_roundf(t_a4 * F(10.0)))))
@@ -155,8 +167,10 @@ def temperature_table(cal: DirpCalibration, params: Mapping[str, float],
     else:
         k = _first_step(curve, s9) if curve[0] < s9 else None
         if k is None:
-            raise DataError(f"{name}: the camera's internal temperature {float(t_a4):.2f} C lies outside its "
-                            "temperature curve; the file cannot be measured")
+            raise DataError(
+                f"{name}: the camera's internal temperature {float(t_a4):.2f} C lies outside its "
+                "temperature curve; the file cannot be measured"
+            )
         shift = F(int(_roundf(F((k + 1) * 4))) & 0xFFFF)
     k1, k2, k3, k4, kf, b1, b2 = (cal.f32(o) for o in (0x24, 0x28, 0x2C, 0x30, 0x34, 0x38, 0x3C))
     ref = cal.i16(0x58)
@@ -188,7 +202,8 @@ def temperature_table(cal: DirpCalibration, params: Mapping[str, float],
     return out
 
 
-def measure(raw: np.ndarray, cal: DirpCalibration, params: Mapping[str, float],
-            name: str | Path = "<R-JPEG>") -> np.ndarray:
+def measure(
+    raw: np.ndarray, cal: DirpCalibration, params: Mapping[str, float], name: str | Path = "<R-JPEG>"
+) -> np.ndarray:
     """Temperature (C, float32, shaped like ``raw``) of a class-D frame at ``params`` (see ``DEFAULTS``)."""
     return temperature_table(cal, params, name)[np.asarray(raw, dtype=np.uint16)]

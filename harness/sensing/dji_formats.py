@@ -37,13 +37,14 @@ DECODED = ("iirp", "dirp")
 #: why a format is refused (completes "... is not decoded: <reason>")
 REFUSED = {
     "hirp": "its temperatures come from DJI's integer measurement core (MicroTA), driven by the camera's "
-            "calibration in the APP5 'HIDR' container, which this decoder does not implement",
+    "calibration in the APP5 'HIDR' container, which this decoder does not implement",
     "girp": "its gray-to-temperature curves are built into DJI's SDK, not stored in the file",
-    "dirp-g": "the Zenmuse XT S layout (class G: 'Plug' block in APP2, curve in APP3, raw in APP4) is not "
-              "implemented",
+    "dirp-g": "the Zenmuse XT S layout (class G: 'Plug' block in APP2, curve in APP3, raw in APP4) is not implemented",
 }
-CONVERTER_HINT = ("decode it with DJI's own Thermal SDK: --converter dji_irp (sensing.radiometry.converter: "
-                  "dji_irp), or give the temperature file DJI's SDK wrote (.tif/.npy with its sidecar)")
+CONVERTER_HINT = (
+    "decode it with DJI's own Thermal SDK: --converter dji_irp (sensing.radiometry.converter: "
+    "dji_irp), or give the temperature file DJI's SDK wrote (.tif/.npy with its sidecar)"
+)
 APPROXIMATE_HINT = "or accept approximate temperatures: --approximate (sensing.radiometry.approximate: true)"
 
 
@@ -80,8 +81,9 @@ def options_text(approximation: object | None, why_not: str = "") -> str:
     if approximation is None:
         return f"{CONVERTER_HINT}; no approximate route exists for it{' (' + why_not + ')' if why_not else ''}"
     top = max(b for _, b in approximation.bands)  # type: ignore[attr-defined]
-    return (f"{CONVERTER_HINT}; {APPROXIMATE_HINT}, measured within {top:g} C of DJI's SDK or better "
-            f"({approximation.name})")  # type: ignore[attr-defined]
+    return (
+        f"{CONVERTER_HINT}; {APPROXIMATE_HINT}, measured within {top:g} C of DJI's SDK or better ({approximation.name})"  # type: ignore[attr-defined]
+    )
 
 
 def refusal(path: str | Path, fmt: str, model: str) -> UnsupportedFormat:
@@ -91,11 +93,14 @@ def refusal(path: str | Path, fmt: str, model: str) -> UnsupportedFormat:
         return UnsupportedFormat(
             f"{path}: {camera} does not write a DJI R-JPEG layout this decoder knows; decoded: iirp "
             f"({', '.join(IIRP_MODELS)}) and dirp ({', '.join(dji_dirp.DIRP_MODELS)}); a converter of your own "
-            "can be named with --converter 'COMMAND {input} {output}'")
+            "can be named with --converter 'COMMAND {input} {output}'"
+        )
     reason = REFUSED.get(fmt, "the format is not known")
     why = "the temperatures need DJI's own code" if fmt in REFUSED else ""
-    return UnsupportedFormat(f"{path}: {camera}, DJI R-JPEG format {fmt!r}: temperatures are not decoded: "
-                             f"{reason}; {options_text(None, why)}")
+    return UnsupportedFormat(
+        f"{path}: {camera}, DJI R-JPEG format {fmt!r}: temperatures are not decoded: "
+        f"{reason}; {options_text(None, why)}"
+    )
 
 
 # ---------------------------------------------------------------------------------------------- hirp fields
@@ -117,8 +122,13 @@ def hirp_params(app4: bytes) -> dict[str, float]:
     flags = struct.unpack_from("<H", app4, b + 0x1C)[0]
     ambient = struct.unpack_from("<i", app4, b + 0x28)[0] / 1000.0
     humidity = struct.unpack_from("<i", app4, b + 0x2C)[0] / 1000.0
-    return {"emissivity": round(emissivity, 6), "distance": round(distance, 6), "humidity": round(humidity, 4),
-            "reflected": round(reflected if flags & 1 else ambient, 4), "ambient": round(ambient, 4)}
+    return {
+        "emissivity": round(emissivity, 6),
+        "distance": round(distance, 6),
+        "humidity": round(humidity, 4),
+        "reflected": round(reflected if flags & 1 else ambient, 4),
+        "ambient": round(ambient, 4),
+    }
 
 
 def original_raw(words: np.ndarray, fmt: str) -> np.ndarray:
@@ -143,8 +153,10 @@ def frame_words(layout: object, fmt: str, model: str, path: str | Path) -> np.nd
             w, h = aw, ah
     if len(raw) != w * h * 2:
         where = "APP4" if fmt == "dirp-g" else "APP3"
-        raise DataError(f"{path}: radiometric payload ({where}) holds {len(raw)} bytes, expected {w * h * 2} for "
-                        f"{w}x{h} 16-bit words ({model or 'unnamed camera'}, format {fmt or 'unknown'!r})")
+        raise DataError(
+            f"{path}: radiometric payload ({where}) holds {len(raw)} bytes, expected {w * h * 2} for "
+            f"{w}x{h} 16-bit words ({model or 'unnamed camera'}, format {fmt or 'unknown'!r})"
+        )
     return np.frombuffer(raw, dtype="<u2").reshape(h, w)
 
 

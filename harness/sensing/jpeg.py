@@ -66,8 +66,9 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     n = len(data)
     if n < 4 or data[0] != 0xFF or data[1] != SOI:
         head = data[:8].hex(" ") if n else "empty"
-        raise DataError(f"{name}: not a JPEG file (starts with {head}, expected ff d8); "
-                        "pass an R-JPEG straight from the camera")
+        raise DataError(
+            f"{name}: not a JPEG file (starts with {head}, expected ff d8); pass an R-JPEG straight from the camera"
+        )
     segments: list[Segment] = []
     width = height = components = 0
     i = 2
@@ -91,7 +92,7 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
             raise DataError(
                 f"{name}: truncated JPEG: the file ends inside the length of segment 0x{marker:02x} at byte {start}"
             )
-        length = struct.unpack(">H", data[i:i + 2])[0]
+        length = struct.unpack(">H", data[i : i + 2])[0]
         if length < 2:
             raise DataError(f"{name}: corrupt JPEG: segment 0x{marker:02x} at byte {start} has length {length}")
         end = i + length
@@ -100,7 +101,7 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
                 f"{name}: truncated JPEG: segment 0x{marker:02x} at byte {start} declares {length - 2} bytes but the "
                 f"file ends after {n - i - 2}; the file was cut short (copy it again from the card)"
             )
-        payload = bytes(data[i + 2:end])
+        payload = bytes(data[i + 2 : end])
         segments.append(Segment(marker, start, payload))
         if marker in SOF_MARKERS and len(payload) >= 6:
             height, width = struct.unpack(">HH", payload[1:5])
@@ -140,7 +141,7 @@ def _find_eoi(data: bytes, start: int) -> int:
             return j
         if j + 4 > n:  # another segment (progressive scans, DHT between scans): skip it
             return -1
-        j += 2 + struct.unpack(">H", data[j + 2:j + 4])[0]
+        j += 2 + struct.unpack(">H", data[j + 2 : j + 4])[0]
 
 
 def segment(marker: int, payload: bytes) -> bytes:
@@ -201,19 +202,19 @@ def parse_exif(payload: bytes) -> dict[str, Any]:
 
 
 def _read_ifd(tiff: bytes, offset: int, order: str, out: dict[str, Any]) -> int:
-    (count,) = struct.unpack(order + "H", tiff[offset:offset + 2])
+    (count,) = struct.unpack(order + "H", tiff[offset : offset + 2])
     exif_ptr = 0
     for k in range(count):
         e = offset + 2 + 12 * k
-        tag, typ, num = struct.unpack(order + "HHI", tiff[e:e + 8])
+        tag, typ, num = struct.unpack(order + "HHI", tiff[e : e + 8])
         size = _TYPE_SIZE.get(typ, 0) * num
         if size == 0:
             continue
         if size <= 4:
-            raw = tiff[e + 8:e + 8 + size]
+            raw = tiff[e + 8 : e + 8 + size]
         else:
-            (ptr,) = struct.unpack(order + "I", tiff[e + 8:e + 12])
-            raw = tiff[ptr:ptr + size]
+            (ptr,) = struct.unpack(order + "I", tiff[e + 8 : e + 12])
+            raw = tiff[ptr : ptr + size]
             if len(raw) < size:
                 continue
         if tag == _EXIF_POINTER:

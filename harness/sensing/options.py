@@ -83,8 +83,12 @@ class SensingOptions:
 
     def thermal_kwargs(self) -> dict[str, Any]:
         """What ``radiometry.read_thermal`` takes from these options (decoder, overrides, routes)."""
-        return {"decoder": self.decoder, "overrides": self.measurement, "approximate": self.approximate,
-                "converter": self.converter_spec()}
+        return {
+            "decoder": self.decoder,
+            "overrides": self.measurement,
+            "approximate": self.approximate,
+            "converter": self.converter_spec(),
+        }
 
 
 def _flag(value: Any) -> bool:

@@ -57,8 +57,9 @@ def resolve(names: Iterable[str]) -> list[LoggerSpec]:
         missing = spec.missing()
         if missing:
             how = f"pip install 'rgbt-harness[{spec.extra}]'" if spec.extra else f"pip install {' '.join(missing)}"
-            raise ConfigError(f"tracking.loggers: logger {name!r} needs {', '.join(missing)}, which is not installed; "
-                              f"{how}")
+            raise ConfigError(
+                f"tracking.loggers: logger {name!r} needs {', '.join(missing)}, which is not installed; {how}"
+            )
         specs.append(spec)
     return specs
 
@@ -185,8 +186,9 @@ def final_metrics(metrics: Mapping[str, Any]) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------------------------------------- the report's
-def log_report(names: Iterable[str], store: str | Path, files: Sequence[Path], title: str,
-               cfg: Mapping[str, Any] | None = None) -> list[str]:
+def log_report(
+    names: Iterable[str], store: str | Path, files: Sequence[Path], title: str, cfg: Mapping[str, Any] | None = None
+) -> list[str]:
     """Log a report's files as artefacts of one tracking run named after it; returns the problems (empty: all
     loggers took it)."""
     tracker = open_tracker(names, TrackingOptions.from_config(cfg or {}, store, group="report"))
@@ -199,5 +201,18 @@ def log_report(names: Iterable[str], store: str | Path, files: Sequence[Path], t
     return tracker.problems
 
 
-__all__ = ["LoggerSpec", "RunLogger", "Tracker", "TrackingOptions", "epoch_metrics", "final_metrics",
-           "flatten_params", "for_run", "log_report", "log_to_overrides", "open_tracker", "parse_names", "resolve"]
+__all__ = [
+    "LoggerSpec",
+    "RunLogger",
+    "Tracker",
+    "TrackingOptions",
+    "epoch_metrics",
+    "final_metrics",
+    "flatten_params",
+    "for_run",
+    "log_report",
+    "log_to_overrides",
+    "open_tracker",
+    "parse_names",
+    "resolve",
+]

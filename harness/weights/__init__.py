@@ -43,9 +43,18 @@ from harness.weights.unpickle import (
     out_itemsize,
 )
 
-__all__ = ["ImportResult", "import_checkpoint", "read_checkpoint_weights", "write_safetensors",
-           "CheckpointFormatError", "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError",
-           "load_checkpoint", "load_plain"]
+__all__ = [
+    "ImportResult",
+    "import_checkpoint",
+    "read_checkpoint_weights",
+    "write_safetensors",
+    "CheckpointFormatError",
+    "CheckpointLimitError",
+    "ForeignObjectError",
+    "UnsafeCheckpointError",
+    "load_checkpoint",
+    "load_plain",
+]
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +81,9 @@ def _one_line(src: Path) -> Iterator[None]:
     except RuntimeError as exc:
         if "alloc" not in str(exc).lower():
             raise
-        raise CheckpointLimitError(f"{src}: ran out of memory importing it ({str(exc).splitlines()[0][:120]})") \
-            from None
+        raise CheckpointLimitError(
+            f"{src}: ran out of memory importing it ({str(exc).splitlines()[0][:120]})"
+        ) from None
 
 
 def _size(path: Path) -> int:
@@ -101,10 +111,14 @@ def _read_raw(src: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         raise CheckpointFormatError(f"{src}: the state dict under {where!r} has keys that are not strings")
     total = sum(len(k) + t.numel() * out_itemsize(t.dtype) for k, t in raw.items())
     if total > limits.tensor_bytes:
-        raise CheckpointLimitError(f"{src}: its model's tensors add up to {human(total)} as float32, over "
-                                   f"{limits.of_file()}; refused")
-    cast = [f"{k}: {str(t.dtype).replace('torch.', '')}" for k, t in raw.items()
-            if t.is_floating_point() and t.dtype != torch.float32]
+        raise CheckpointLimitError(
+            f"{src}: its model's tensors add up to {human(total)} as float32, over {limits.of_file()}; refused"
+        )
+    cast = [
+        f"{k}: {str(t.dtype).replace('torch.', '')}"
+        for k, t in raw.items()
+        if t.is_floating_point() and t.dtype != torch.float32
+    ]
     layout = detect_layout(model, raw)
     names = sorted(stubs)
     info = {
@@ -140,22 +154,39 @@ def import_checkpoint(src: str | Path, out: str | Path) -> ImportResult:
     with _one_line(src):
         raw, info = _read_raw(src)
         lay = info["layout"]
-        meta = {"format": "rgbt-harness-import", "family": str(lay["family"]),
-                "source_sha256": info["source_sha256"]}
+        meta = {"format": "rgbt-harness-import", "family": str(lay["family"]), "source_sha256": info["source_sha256"]}
         atomic_write(out, lambda f: write_safetensors(f, raw, meta))
         sidecar = out.with_suffix(".json")
         info["weights"] = str(out)
         atomic_write_json(sidecar, info)
-    log.debug("%s: %d tensors (%s, scale %s, nc %s, %s input channel(s)%s) -> %s", src, info["tensors"],
-              lay["family"], lay["scale"], lay["nc"], lay["in_channels"], ", two streams" if lay["two_stream"] else "",
-              out)
+    log.debug(
+        "%s: %d tensors (%s, scale %s, nc %s, %s input channel(s)%s) -> %s",
+        src,
+        info["tensors"],
+        lay["family"],
+        lay["scale"],
+        lay["nc"],
+        lay["in_channels"],
+        ", two streams" if lay["two_stream"] else "",
+        out,
+    )
     return ImportResult(out, sidecar, json.loads(json.dumps(info)))
 
 
 #: safetensors' names of the dtypes an import writes
-_ST_DTYPES = {torch.float32: "F32", torch.float64: "F64", torch.float16: "F16", torch.bfloat16: "BF16",
-              torch.int64: "I64", torch.int32: "I32", torch.int16: "I16", torch.int8: "I8", torch.uint8: "U8",
-              torch.bool: "BOOL", torch.complex64: "C64"}
+_ST_DTYPES = {
+    torch.float32: "F32",
+    torch.float64: "F64",
+    torch.float16: "F16",
+    torch.bfloat16: "BF16",
+    torch.int64: "I64",
+    torch.int32: "I32",
+    torch.int16: "I16",
+    torch.int8: "I8",
+    torch.uint8: "U8",
+    torch.bool: "BOOL",
+    torch.complex64: "C64",
+}
 
 
 def _pieces(t: torch.Tensor, limit: int) -> Iterator[torch.Tensor]:

@@ -130,6 +130,5 @@ class Budget:
         if self.left < 0:
             raise CheckpointLimitError(
                 f"rebuilding the checkpoint's objects needs more than {human(self.limits.metadata_bytes)} of memory "
-                f"(the limit is {human(METADATA_FLOOR)} + {self.limits.of_file(METADATA_MULTIPLE)}); refused")
-
-
+                f"(the limit is {human(METADATA_FLOOR)} + {self.limits.of_file(METADATA_MULTIPLE)}); refused"
+            )

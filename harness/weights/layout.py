@@ -141,8 +141,11 @@ def _names(names: Any) -> list[str] | None:
     if isinstance(names, Mapping) and len(names) <= MAX_NAMES:
         index = {}
         for k in names:
-            i = k if isinstance(k, int) and not isinstance(k, bool) else (int(k) if isinstance(k, str) and
-                                                                        k.isdigit() and len(k) < 10 else None)
+            i = (
+                k
+                if isinstance(k, int) and not isinstance(k, bool)
+                else (int(k) if isinstance(k, str) and k.isdigit() and len(k) < 10 else None)
+            )
             if i is None or i in index:
                 return None
             index[i] = k
@@ -151,8 +154,10 @@ def _names(names: Any) -> list[str] | None:
         values = list(names)
     else:
         return None
-    if not all(isinstance(v, (str, int)) and not isinstance(v, bool) and (not isinstance(v, int) or
-                                                                          v.bit_length() < 64) for v in values):
+    if not all(
+        isinstance(v, (str, int)) and not isinstance(v, bool) and (not isinstance(v, int) or v.bit_length() < 64)
+        for v in values
+    ):
         return None
     return [str(v)[:200] for v in values]
 
@@ -164,9 +169,19 @@ def detect_layout(model: Any, sd: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     cls = model.stub_name[:200] if isinstance(model, Stub) else None
     tops = sorted({int(m.group(1)) for k in sd for m in [_TOP.match(k)] if m})
     head = tops[-1] if tops else None
-    out: dict[str, Any] = {"family": "unknown", "model_class": cls, "layers": len(tops), "head_index": head,
-                           "scale": None, "nc": None, "in_channels": None, "two_stream": False, "names": None,
-                           "suggested_detector": None, "notes": []}
+    out: dict[str, Any] = {
+        "family": "unknown",
+        "model_class": cls,
+        "layers": len(tops),
+        "head_index": head,
+        "scale": None,
+        "nc": None,
+        "in_channels": None,
+        "two_stream": False,
+        "names": None,
+        "suggested_detector": None,
+        "notes": [],
+    }
     if head is None:
         out["notes"].append("no 'model.<i>.' layers: not a YOLO-family module tree")
         return out
@@ -206,8 +221,9 @@ def detect_layout(model: Any, sd: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     if names is not None:
         out["names"] = names
     elif isinstance(model, Stub) and "names" in model.state:
-        out["notes"].append(f"the model's names ({brief(model.state['names'])}) are not a list of at most "
-                            f"{MAX_NAMES} class names")
+        out["notes"].append(
+            f"the model's names ({brief(model.state['names'])}) are not a list of at most {MAX_NAMES} class names"
+        )
     if out["family"] == "yolov8" and not out["two_stream"]:
         out["suggested_detector"] = "ours"
     elif out["family"] == "yolov5" and out["two_stream"]:
@@ -215,8 +231,13 @@ def detect_layout(model: Any, sd: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     elif out["family"] == "yolov5":
         out["suggested_detector"] = "eme"
     if yaml:
-        out["yaml"] = _simple({k: v for k, v in yaml.items() if k in ("nc", "scale", "scales", "depth_multiple",
-                                                                     "width_multiple", "ch", "anchors")})
+        out["yaml"] = _simple(
+            {
+                k: v
+                for k, v in yaml.items()
+                if k in ("nc", "scale", "scales", "depth_multiple", "width_multiple", "ch", "anchors")
+            }
+        )
     return out
 
 

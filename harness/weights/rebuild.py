@@ -107,15 +107,43 @@ class Token:
 
 
 _STORAGE_DTYPES = {
-    "DoubleStorage": torch.float64, "FloatStorage": torch.float32, "HalfStorage": torch.float16,
-    "BFloat16Storage": torch.bfloat16, "LongStorage": torch.int64, "IntStorage": torch.int32,
-    "ShortStorage": torch.int16, "CharStorage": torch.int8, "ByteStorage": torch.uint8, "BoolStorage": torch.bool,
-    "ComplexFloatStorage": torch.complex64, "ComplexDoubleStorage": torch.complex128,
+    "DoubleStorage": torch.float64,
+    "FloatStorage": torch.float32,
+    "HalfStorage": torch.float16,
+    "BFloat16Storage": torch.bfloat16,
+    "LongStorage": torch.int64,
+    "IntStorage": torch.int32,
+    "ShortStorage": torch.int16,
+    "CharStorage": torch.int8,
+    "ByteStorage": torch.uint8,
+    "BoolStorage": torch.bool,
+    "ComplexFloatStorage": torch.complex64,
+    "ComplexDoubleStorage": torch.complex128,
     "UntypedStorage": torch.uint8,
 }
-_DTYPES = {name: getattr(torch, name) for name in (
-    "float64", "float32", "float16", "bfloat16", "int64", "int32", "int16", "int8", "uint8", "bool",
-    "complex64", "complex128", "double", "float", "half", "long", "int", "short")}
+_DTYPES = {
+    name: getattr(torch, name)
+    for name in (
+        "float64",
+        "float32",
+        "float16",
+        "bfloat16",
+        "int64",
+        "int32",
+        "int16",
+        "int8",
+        "uint8",
+        "bool",
+        "complex64",
+        "complex128",
+        "double",
+        "float",
+        "half",
+        "long",
+        "int",
+        "short",
+    )
+}
 
 
 class StorageType:
@@ -172,8 +200,8 @@ def _view(u: "_Unpickler", storage: Any, offset: Any, size: Any, stride: Any) ->
     nbytes = numel * max(storage.element_size(), out_itemsize(storage.dtype))
     if nbytes > u.limits.tensor_bytes:
         raise CheckpointLimitError(
-            f"a tensor of size {size} (stride {stride}) expands to {human(nbytes)}, over {u.limits.of_file()}; "
-            f"refused")
+            f"a tensor of size {size} (stride {stride}) expands to {human(nbytes)}, over {u.limits.of_file()}; refused"
+        )
     if numel == 0:
         return storage.new_empty(size)
     need = offset + sum((s - 1) * st for s, st in zip(size, stride)) + 1
@@ -183,13 +211,23 @@ def _view(u: "_Unpickler", storage: Any, offset: Any, size: Any, stride: Any) ->
     return storage.as_strided(size, stride, offset)
 
 
-def _rebuild_tensor(u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (),
-                    *rest: Any) -> torch.Tensor:
+def _rebuild_tensor(
+    u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (), *rest: Any
+) -> torch.Tensor:
     return _view(u, storage, offset, size, stride)
 
 
-def _rebuild_tensor_v3(u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (),
-                       requires_grad: Any = False, hooks: Any = None, dtype: Any = None, *rest: Any) -> torch.Tensor:
+def _rebuild_tensor_v3(
+    u: "_Unpickler",
+    storage: Any = None,
+    offset: Any = 0,
+    size: Any = (),
+    stride: Any = (),
+    requires_grad: Any = False,
+    hooks: Any = None,
+    dtype: Any = None,
+    *rest: Any,
+) -> torch.Tensor:
     t = storage
     if isinstance(t, torch.Tensor) and isinstance(dtype, torch.dtype) and t.dtype != dtype:
         t = t.view(torch.uint8).view(dtype)
@@ -202,12 +240,15 @@ def _rebuild_parameter(u: "_Unpickler", data: Any = None, requires_grad: Any = T
     return torch.nn.Parameter(data, requires_grad=bool(requires_grad) and data.is_floating_point())
 
 
-def _rebuild_from_type_v2(u: "_Unpickler", func: Any = None, new_type: Any = None, args: Any = (),
-                          state: Any = None) -> Any:
-    if func not in (G_REBUILD_TENSOR, G_REBUILD_TENSOR_V2, G_REBUILD_TENSOR_V3, G_REBUILD_PARAMETER) \
-            or not isinstance(args, tuple):
-        raise UnsafeCheckpointError("the checkpoint rebuilds a tensor subclass through a function outside the "
-                                    "rebuild list; refused")
+def _rebuild_from_type_v2(
+    u: "_Unpickler", func: Any = None, new_type: Any = None, args: Any = (), state: Any = None
+) -> Any:
+    if func not in (G_REBUILD_TENSOR, G_REBUILD_TENSOR_V2, G_REBUILD_TENSOR_V3, G_REBUILD_PARAMETER) or not isinstance(
+        args, tuple
+    ):
+        raise UnsafeCheckpointError(
+            "the checkpoint rebuilds a tensor subclass through a function outside the rebuild list; refused"
+        )
     t = func.call(u, *args)
     return torch.nn.Parameter(t, requires_grad=t.is_floating_point()) if new_type is G_PARAMETER else t
 
@@ -271,8 +312,16 @@ def _call_ordered_dict(u: "_Unpickler", arg: Any = ()) -> collections.OrderedDic
 
 
 def _call_defaultdict(u: "_Unpickler", factory: Any = None, arg: Any = ()) -> collections.defaultdict:
-    factories = {None: None, G_LIST: list, G_DICT: dict, G_INT: int, G_FLOAT: float, G_SET: set, G_STR: str,
-                 G_TUPLE: tuple}
+    factories = {
+        None: None,
+        G_LIST: list,
+        G_DICT: dict,
+        G_INT: int,
+        G_FLOAT: float,
+        G_SET: set,
+        G_STR: str,
+        G_TUPLE: tuple,
+    }
     if not (factory is None or isinstance(factory, Token)) or factory not in factories:
         raise UnsafeCheckpointError(f"the checkpoint builds a defaultdict with factory {brief(factory)}; refused")
     return collections.defaultdict(factories[factory], _pairs(u, arg, "defaultdict()"))
@@ -303,6 +352,7 @@ def _atomic(ctor: Callable[..., Any], what: str) -> Callable[..., Any]:
         _atoms(args, what)
         u.budget.charge(sum(len(a) for a in args if isinstance(a, (str, bytes))) * 4 + 64)
         return ctor(*args)
+
     return call
 
 
@@ -321,8 +371,7 @@ def _call_size(u: "_Unpickler", iterable: Any = ()) -> torch.Size:
 
 
 def _numpy_scalar(u: "_Unpickler", dtype: Any = None, data: Any = b"") -> Any:
-    if not isinstance(dtype, np.dtype) or dtype.hasobject or not isinstance(data, bytes) \
-            or len(data) < dtype.itemsize:
+    if not isinstance(dtype, np.dtype) or dtype.hasobject or not isinstance(data, bytes) or len(data) < dtype.itemsize:
         raise CheckpointFormatError(f"a NumPy scalar is rebuilt from {brief(dtype)} and {brief(data)}")
     return np.frombuffer(data, dtype=dtype, count=1)[0].copy()
 
@@ -368,10 +417,17 @@ G_REBUILD_PARAMETER = Token("torch._utils._rebuild_parameter", _rebuild_paramete
 G_PARAMETER = Token("torch.nn.parameter.Parameter")  # a token: calling it is refused
 G_TENSOR = Token("torch.Tensor")
 G_NDARRAY = Token("numpy.ndarray")
-G_LIST, G_TUPLE, G_SET = Token("builtins.list", _call_list), Token("builtins.tuple", _call_tuple), \
-    Token("builtins.set", _call_set)
-G_DICT, G_INT, G_FLOAT, G_STR = Token("builtins.dict", _call_dict), Token("builtins.int", _atomic(int, "int()")), \
-    Token("builtins.float", _atomic(float, "float()")), Token("builtins.str", _atomic(str, "str()"))
+G_LIST, G_TUPLE, G_SET = (
+    Token("builtins.list", _call_list),
+    Token("builtins.tuple", _call_tuple),
+    Token("builtins.set", _call_set),
+)
+G_DICT, G_INT, G_FLOAT, G_STR = (
+    Token("builtins.dict", _call_dict),
+    Token("builtins.int", _atomic(int, "int()")),
+    Token("builtins.float", _atomic(float, "float()")),
+    Token("builtins.str", _atomic(str, "str()")),
+)
 
 #: Every global the unpickler resolves to something real (others become placeholders, and calling them is refused).
 REBUILD: dict[tuple[str, str], Any] = {
@@ -379,8 +435,9 @@ REBUILD: dict[tuple[str, str], Any] = {
     ("torch._utils", "_rebuild_tensor_v2"): G_REBUILD_TENSOR_V2,
     ("torch._utils", "_rebuild_tensor_v3"): G_REBUILD_TENSOR_V3,
     ("torch._utils", "_rebuild_parameter"): G_REBUILD_PARAMETER,
-    ("torch._utils", "_rebuild_parameter_with_state"): Token("torch._utils._rebuild_parameter_with_state",
-                                                               _rebuild_parameter),
+    ("torch._utils", "_rebuild_parameter_with_state"): Token(
+        "torch._utils._rebuild_parameter_with_state", _rebuild_parameter
+    ),
     ("torch._tensor", "_rebuild_from_type_v2"): Token("torch._tensor._rebuild_from_type_v2", _rebuild_from_type_v2),
     ("torch.nn.parameter", "Parameter"): G_PARAMETER,
     ("torch", "Tensor"): G_TENSOR,
@@ -389,9 +446,14 @@ REBUILD: dict[tuple[str, str], Any] = {
     ("collections", "OrderedDict"): Token("collections.OrderedDict", _call_ordered_dict),
     ("collections", "defaultdict"): Token("collections.defaultdict", _call_defaultdict),
     ("_codecs", "encode"): Token("_codecs.encode", _latin1_bytes),
-    ("builtins", "set"): G_SET, ("builtins", "frozenset"): Token("builtins.frozenset", _call_frozenset),
-    ("builtins", "list"): G_LIST, ("builtins", "tuple"): G_TUPLE, ("builtins", "dict"): G_DICT,
-    ("builtins", "int"): G_INT, ("builtins", "float"): G_FLOAT, ("builtins", "str"): G_STR,
+    ("builtins", "set"): G_SET,
+    ("builtins", "frozenset"): Token("builtins.frozenset", _call_frozenset),
+    ("builtins", "list"): G_LIST,
+    ("builtins", "tuple"): G_TUPLE,
+    ("builtins", "dict"): G_DICT,
+    ("builtins", "int"): G_INT,
+    ("builtins", "float"): G_FLOAT,
+    ("builtins", "str"): G_STR,
     ("builtins", "bytes"): Token("builtins.bytes", _call_bytes),
     ("builtins", "bytearray"): Token("builtins.bytearray", _call_bytearray),
     ("builtins", "bool"): Token("builtins.bool", _atomic(bool, "bool()")),
@@ -401,15 +463,17 @@ REBUILD: dict[tuple[str, str], Any] = {
     ("datetime", "datetime"): Token("datetime.datetime", _atomic(datetime.datetime, "datetime()")),
     ("datetime", "date"): Token("datetime.date", _atomic(datetime.date, "date()")),
     ("datetime", "timedelta"): Token("datetime.timedelta", _atomic(datetime.timedelta, "timedelta()")),
-    ("numpy", "dtype"): Token("numpy.dtype", _numpy_dtype), ("numpy", "ndarray"): G_NDARRAY,
-    **{(m, "scalar"): Token(f"{m}.scalar", _numpy_scalar) for m in ("numpy.core.multiarray",
-                                                                       "numpy._core.multiarray")},
-    **{(m, "_reconstruct"): Token(f"{m}._reconstruct", _numpy_reconstruct) for m in ("numpy.core.multiarray",
-                                                                                         "numpy._core.multiarray")},
-    **{("pathlib", n): Token(f"pathlib.{n}", _path) for n in ("Path", "PosixPath", "WindowsPath", "PurePath",
-                                                                 "PurePosixPath", "PureWindowsPath")},
+    ("numpy", "dtype"): Token("numpy.dtype", _numpy_dtype),
+    ("numpy", "ndarray"): G_NDARRAY,
+    **{(m, "scalar"): Token(f"{m}.scalar", _numpy_scalar) for m in ("numpy.core.multiarray", "numpy._core.multiarray")},
+    **{
+        (m, "_reconstruct"): Token(f"{m}._reconstruct", _numpy_reconstruct)
+        for m in ("numpy.core.multiarray", "numpy._core.multiarray")
+    },
+    **{
+        ("pathlib", n): Token(f"pathlib.{n}", _path)
+        for n in ("Path", "PosixPath", "WindowsPath", "PurePath", "PurePosixPath", "PureWindowsPath")
+    },
     **{("torch", n): StorageType(n) for n in _STORAGE_DTYPES},
     **{("torch", n): d for n, d in _DTYPES.items()},
 }
-
-

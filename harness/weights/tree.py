@@ -20,8 +20,11 @@ MODEL_KEYS = ("ema", "model", "state_dict", "model_state_dict", "net", "module")
 
 
 def is_module(obj: Any) -> bool:
-    return isinstance(obj, Stub) and isinstance(obj.state.get("_modules"), Mapping) \
+    return (
+        isinstance(obj, Stub)
+        and isinstance(obj.state.get("_modules"), Mapping)
         and isinstance(obj.state.get("_parameters"), Mapping)
+    )
 
 
 def module_state_dict(root: Stub, max_bytes: int | None = None) -> dict[str, torch.Tensor]:
@@ -45,17 +48,20 @@ def module_state_dict(root: Stub, max_bytes: int | None = None) -> dict[str, tor
         skip = {s for s in skip if isinstance(s, str)} if isinstance(skip, (set, frozenset, list, tuple)) else set()
         for group in ("_parameters", "_buffers"):
             entries = st.get(group)
-            for name, value in (entries.items() if isinstance(entries, Mapping) else ()):
+            for name, value in entries.items() if isinstance(entries, Mapping) else ():
                 if not isinstance(value, torch.Tensor) or (group == "_buffers" and name in skip):
                     continue
                 if not isinstance(name, str):
-                    raise CheckpointFormatError(f"module {prefix or '<root>'} names a tensor {brief(name)}, "
-                                                f"not a string")
+                    raise CheckpointFormatError(
+                        f"module {prefix or '<root>'} names a tensor {brief(name)}, not a string"
+                    )
                 key = prefix + name
                 total += len(key) + value.numel() * out_itemsize(value.dtype)
                 if max_bytes is not None and total > max_bytes:
-                    raise CheckpointLimitError(f"its model's tensors and names add up to more than {human(max_bytes)}"
-                                               f" as float32 (reached at {brief(key, 80)}); refused")
+                    raise CheckpointLimitError(
+                        f"its model's tensors and names add up to more than {human(max_bytes)}"
+                        f" as float32 (reached at {brief(key, 80)}); refused"
+                    )
                 out[key] = value
         children = st.get("_modules")
         children = list(children.items()) if isinstance(children, Mapping) else []
@@ -89,12 +95,15 @@ def find_model(obj: Any, where: str) -> tuple[Any, str]:
                 return value.state["module"], f"{key}.module"  # type: ignore[union-attr]
     if isinstance(obj, Mapping):
         keys = sorted(k if isinstance(k, str) else brief(k) for k in list(obj)[:1000])
-        kinds = ", ".join(brief(k, 40)[1:-1] for k in keys[:12]) + (f" and {len(obj) - 12} more" if len(obj) > 12
-                                                                    else "")
+        kinds = ", ".join(brief(k, 40)[1:-1] for k in keys[:12]) + (
+            f" and {len(obj) - 12} more" if len(obj) > 12 else ""
+        )
     else:
         kinds = brief(obj)
-    raise HarnessError(f"{where}: no model found (looked for a module or a state dict at the top level and under "
-                       f"{', '.join(MODEL_KEYS)}; the file holds {kinds})")
+    raise HarnessError(
+        f"{where}: no model found (looked for a module or a state dict at the top level and under "
+        f"{', '.join(MODEL_KEYS)}; the file holds {kinds})"
+    )
 
 
 def to_float32(sd: Mapping[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], list[str]]:

@@ -80,10 +80,31 @@ from harness.weights.bounds import (
 )
 from harness.weights.rebuild import REBUILD, StorageType, Stub, Token, out_itemsize, stub_class, tensor_dims
 
-__all__ = ["load_checkpoint", "load_plain", "Stub", "stub_class", "REBUILD", "CheckpointFormatError",
-           "CheckpointLimitError", "ForeignObjectError", "UnsafeCheckpointError", "Limits", "brief", "human",
-           "out_itemsize", "MiB", "SIZE_MULTIPLE", "ARCHIVE_MULTIPLE", "METADATA_FLOOR", "METADATA_MULTIPLE",
-           "PEAK_FLOOR", "PEAK_MULTIPLE", "PIECE_BYTES", "KEY_NODES", "RISKY_KEYS"]
+__all__ = [
+    "load_checkpoint",
+    "load_plain",
+    "Stub",
+    "stub_class",
+    "REBUILD",
+    "CheckpointFormatError",
+    "CheckpointLimitError",
+    "ForeignObjectError",
+    "UnsafeCheckpointError",
+    "Limits",
+    "brief",
+    "human",
+    "out_itemsize",
+    "MiB",
+    "SIZE_MULTIPLE",
+    "ARCHIVE_MULTIPLE",
+    "METADATA_FLOOR",
+    "METADATA_MULTIPLE",
+    "PEAK_FLOOR",
+    "PEAK_MULTIPLE",
+    "PIECE_BYTES",
+    "KEY_NODES",
+    "RISKY_KEYS",
+]
 
 
 # ------------------------------------------------------------------------------------------------ the unpickler
@@ -119,18 +140,79 @@ class _Source:
         return n
 
 
-_OP = {name: getattr(pickle, name)[0] for name in (
-    "MARK", "EMPTY_LIST", "LIST", "EMPTY_DICT", "DICT", "EMPTY_SET", "FROZENSET", "TUPLE", "TUPLE1", "TUPLE2",
-    "TUPLE3", "NEWOBJ", "NEWOBJ_EX", "OBJ", "INST", "BUILD", "PUT", "BINPUT", "LONG_BINPUT", "MEMOIZE", "GLOBAL",
-    "STACK_GLOBAL", "REDUCE", "APPEND", "APPENDS", "SETITEM", "SETITEMS", "ADDITEMS", "STOP", "FRAME", "BINBYTES8",
-    "BINUNICODE8", "BYTEARRAY8", "EXT1", "EXT2", "EXT4")}
+_OP = {
+    name: getattr(pickle, name)[0]
+    for name in (
+        "MARK",
+        "EMPTY_LIST",
+        "LIST",
+        "EMPTY_DICT",
+        "DICT",
+        "EMPTY_SET",
+        "FROZENSET",
+        "TUPLE",
+        "TUPLE1",
+        "TUPLE2",
+        "TUPLE3",
+        "NEWOBJ",
+        "NEWOBJ_EX",
+        "OBJ",
+        "INST",
+        "BUILD",
+        "PUT",
+        "BINPUT",
+        "LONG_BINPUT",
+        "MEMOIZE",
+        "GLOBAL",
+        "STACK_GLOBAL",
+        "REDUCE",
+        "APPEND",
+        "APPENDS",
+        "SETITEM",
+        "SETITEMS",
+        "ADDITEMS",
+        "STOP",
+        "FRAME",
+        "BINBYTES8",
+        "BINUNICODE8",
+        "BYTEARRAY8",
+        "EXT1",
+        "EXT2",
+        "EXT4",
+    )
+}
 
 #: A bound on the bytes of Python objects each opcode makes (variable parts are charged where they are known).
-_COST = {_OP[k]: v for k, v in {
-    "MARK": 88, "EMPTY_LIST": 72, "LIST": 72, "EMPTY_DICT": 240, "DICT": 240, "EMPTY_SET": 232, "FROZENSET": 232,
-    "TUPLE": 56, "TUPLE1": 64, "TUPLE2": 72, "TUPLE3": 80, "NEWOBJ": 400, "NEWOBJ_EX": 400, "OBJ": 400, "INST": 400,
-    "BUILD": 64, "PUT": 128, "BINPUT": 128, "LONG_BINPUT": 128, "MEMOIZE": 128, "GLOBAL": 64, "STACK_GLOBAL": 64,
-    "REDUCE": 64, "APPEND": 16, "SETITEM": 104}.items()}
+_COST = {
+    _OP[k]: v
+    for k, v in {
+        "MARK": 88,
+        "EMPTY_LIST": 72,
+        "LIST": 72,
+        "EMPTY_DICT": 240,
+        "DICT": 240,
+        "EMPTY_SET": 232,
+        "FROZENSET": 232,
+        "TUPLE": 56,
+        "TUPLE1": 64,
+        "TUPLE2": 72,
+        "TUPLE3": 80,
+        "NEWOBJ": 400,
+        "NEWOBJ_EX": 400,
+        "OBJ": 400,
+        "INST": 400,
+        "BUILD": 64,
+        "PUT": 128,
+        "BINPUT": 128,
+        "LONG_BINPUT": 128,
+        "MEMOIZE": 128,
+        "GLOBAL": 64,
+        "STACK_GLOBAL": 64,
+        "REDUCE": 64,
+        "APPEND": 16,
+        "SETITEM": 104,
+    }.items()
+}
 _DEFAULT_COST = 40
 _FREE_INT = (1 << 61) - 1  # ints below this hash to themselves: a file cannot make them collide
 
@@ -138,9 +220,11 @@ _FREE_INT = (1 << 61) - 1  # ints below this hash to themselves: a file cannot m
 def _handles(*names: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Mark an ``_Unpickler`` method as the handler of the pickle opcodes ``names``; the class's dispatch table is
     filled from these marks."""
+
     def mark(handler: Callable[..., None]) -> Callable[..., None]:
         setattr(handler, "opcodes", tuple(getattr(pickle, name)[0] for name in names))
         return handler
+
     return mark
 
 
@@ -150,8 +234,13 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
 
     dispatch = dict(pickle._Unpickler.dispatch)
 
-    def __init__(self, source: _Source, load_storage: Callable[[tuple], torch.Tensor] | None, budget: Budget,
-                 placeholders: bool = True):
+    def __init__(
+        self,
+        source: _Source,
+        load_storage: Callable[[tuple], torch.Tensor] | None,
+        budget: Budget,
+        placeholders: bool = True,
+    ):
         super().__init__(source)
         self._source, self._load_storage, self.budget = source, load_storage, budget
         self.limits, self.placeholders = budget.limits, placeholders
@@ -205,7 +294,6 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
     def _stop(self) -> None:
         raise _Done(self.stack.pop())
 
-
     # -------------------------------------------------------------------- names
     def find_class(self, module: str, name: str) -> Any:
         # protocol-2 files name Python 2 modules (``__builtin__.set``); map them as pickle's own find_class does
@@ -228,8 +316,7 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
 
     @_handles("EXT1", "EXT2", "EXT4")
     def _ext(self) -> None:
-        raise UnsafeCheckpointError("the checkpoint uses pickle extension codes (never written by torch.save); "
-                                    "refused")
+        raise UnsafeCheckpointError("the checkpoint uses pickle extension codes (never written by torch.save); refused")
 
     def persistent_load(self, pid: Any) -> Any:
         if not isinstance(pid, tuple) or not pid or pid[0] != "storage" or self._load_storage is None:
@@ -268,7 +355,6 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         self.readinto(b)
         self.append(b)
 
-
     # -------------------------------------------------------------------- keys
     def check_key(self, key: Any) -> None:
         """Refuse dict keys and set items whose hashing a file could make exponential, crash the interpreter
@@ -282,8 +368,10 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
             return  # placeholders, tokens and dtypes hash by identity
         self._risky += 1
         if self._risky > RISKY_KEYS:
-            raise CheckpointLimitError(f"more than {RISKY_KEYS} dict keys or set items are numbers beyond 2**61, "
-                                       f"floats or tuples (their hashes can be made to collide); refused")
+            raise CheckpointLimitError(
+                f"more than {RISKY_KEYS} dict keys or set items are numbers beyond 2**61, "
+                f"floats or tuples (their hashes can be made to collide); refused"
+            )
         stack, nodes = [key], 0
         while stack:
             k = stack.pop()
@@ -372,14 +460,15 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         self.budget.charge(8 * len(items))
         self.append(tuple(items))
 
-
     # -------------------------------------------------------------------- calls and instances
     def _call(self, func: Any, args: Any) -> Any:
         if isinstance(func, type) and issubclass(func, Stub):
             func()  # refuses, naming the class
         if not isinstance(func, Token) or func.call is None:
-            raise UnsafeCheckpointError(f"the checkpoint asks to call {brief(func)}(...); only the tensor-rebuild "
-                                        f"list is called, so this call is refused and nothing from the file was run")
+            raise UnsafeCheckpointError(
+                f"the checkpoint asks to call {brief(func)}(...); only the tensor-rebuild "
+                f"list is called, so this call is refused and nothing from the file was run"
+            )
         if not isinstance(args, tuple):
             raise CheckpointFormatError(f"the arguments of {func.name} are {brief(args)}, not a tuple")
         return func.call(self, *args)
@@ -437,12 +526,14 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         elif type(inst) is np.ndarray:
             _set_array_state(inst, state)
         elif type(inst) is np.dtype or isinstance(inst, np.dtype):
-            if not isinstance(state, tuple) or len(state) > 9 or not all(isinstance(s, (str, int, type(None)))
-                                                                            for s in state):
+            if (
+                not isinstance(state, tuple)
+                or len(state) > 9
+                or not all(isinstance(s, (str, int, type(None))) for s in state)
+            ):
                 raise CheckpointFormatError(f"a NumPy dtype gets the state {brief(state)}")
             inst.__setstate__(state)
-        elif type(inst) is collections.OrderedDict and isinstance(state, dict) \
-                and all(type(k) is str for k in state):
+        elif type(inst) is collections.OrderedDict and isinstance(state, dict) and all(type(k) is str for k in state):
             inst.__dict__.update(state)  # a state dict's ``_metadata``
         else:
             raise UnsafeCheckpointError(f"the checkpoint sets the state of {brief(inst)}; refused")
@@ -460,8 +551,13 @@ del _handler, _opcode
 
 def _set_array_state(arr: np.ndarray, state: Any) -> None:
     """``ndarray.__setstate__`` for plain numeric arrays whose bytes are all in the file."""
-    if not (isinstance(state, tuple) and len(state) == 5 and isinstance(state[2], np.dtype)
-            and not state[2].hasobject and isinstance(state[4], bytes)):
+    if not (
+        isinstance(state, tuple)
+        and len(state) == 5
+        and isinstance(state[2], np.dtype)
+        and not state[2].hasobject
+        and isinstance(state[4], bytes)
+    ):
         raise CheckpointFormatError(f"a NumPy array gets the state {brief(state)}")
     shape = tensor_dims(state[1], "NumPy shape")
     if math.prod(shape) * state[2].itemsize != len(state[4]):
@@ -495,11 +591,12 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> bytearray:
             chunk = m.read(min(1 << 22, len(buf) - pos))
             if not chunk:
                 break
-            view[pos:pos + len(chunk)] = chunk
+            view[pos : pos + len(chunk)] = chunk
             pos += len(chunk)
     if pos != len(buf):
-        raise CheckpointFormatError(f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} "
-                                    f"bytes")
+        raise CheckpointFormatError(
+            f"archive member {brief(info.filename, 80)} holds {pos} of its {info.file_size} bytes"
+        )
     return buf
 
 
@@ -507,8 +604,9 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
     infos = zf.infolist()
     for info in infos:
         if _unsafe_member(info.filename):
-            raise CheckpointFormatError(f"{path}: archive member {brief(info.filename, 100)} points outside the "
-                                        f"archive; refused")
+            raise CheckpointFormatError(
+                f"{path}: archive member {brief(info.filename, 100)} points outside the archive; refused"
+            )
     budget = Budget(limits)
     budget.charge(sum(ZIP_ENTRY_BYTES + len(i.filename) + len(i.extra) + len(i.comment) for i in infos))
     declared = sum(info.file_size for info in infos)
@@ -517,7 +615,8 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
         raise CheckpointLimitError(
             f"{path}: its archive members expand to {human(declared)} ({brief(big.filename, 80)[1:-1]}: "
             f"{human(big.file_size)} from {human(big.compress_size)}), over {limits.of_file(ARCHIVE_MULTIPLE)}; "
-            f"refused before decompressing")
+            f"refused before decompressing"
+        )
     names = {info.filename: info for info in infos}
     pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
     if not pkl:
@@ -539,8 +638,11 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
             if numel is not None and numel * itemsize > len(raw):
                 raise CheckpointFormatError(f"{path}: a storage of {numel} elements has only {len(raw)} bytes")
             count = len(raw) // itemsize
-            cache[key] = torch.frombuffer(raw, dtype=storage_type.dtype, count=count) if count \
+            cache[key] = (
+                torch.frombuffer(raw, dtype=storage_type.dtype, count=count)
+                if count
                 else torch.empty(0, dtype=storage_type.dtype)
+            )
         return cache[key]
 
     data = bytes(_read_member(zf, names[pkl[0]]))
@@ -579,8 +681,10 @@ def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) ->
             nbytes = (numel or 0) * storage_type.itemsize
             declared[0] += nbytes
             if declared[0] > limits.file_bytes:
-                raise CheckpointLimitError(f"{path}: its storages declare {human(declared[0])}, more than the file's "
-                                           f"{human(limits.file_bytes)}; refused before allocating")
+                raise CheckpointLimitError(
+                    f"{path}: its storages declare {human(declared[0])}, more than the file's "
+                    f"{human(limits.file_bytes)}; refused before allocating"
+                )
             loaded[key] = torch.empty(int(numel or 0), dtype=storage_type.dtype)
         return loaded[key]
 
@@ -593,8 +697,7 @@ def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) ->
     for key in keys:
         raw = source.read(8)
         target = loaded.get(key)
-        if len(raw) != 8 or target is None or key in filled \
-                or int.from_bytes(raw, "little") != target.numel():
+        if len(raw) != 8 or target is None or key in filled or int.from_bytes(raw, "little") != target.numel():
             raise CheckpointFormatError(f"{path}: storage {brief(key)} does not match the checkpoint's references")
         flat = target.view(-1).view(torch.uint8) if target.numel() else target
         if target.numel() and source.readinto(flat.numpy()) != flat.numel():
@@ -604,13 +707,28 @@ def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) ->
     if missing:
         raise CheckpointFormatError(
             f"{path}: storage {brief(missing[0])} is referenced but its bytes are not in the file ({len(missing)} "
-            f"missing); refused (it would read as uninitialised memory)")
+            f"missing); refused (it would read as uninitialised memory)"
+        )
     return obj, unpickler.stubs
 
 
-_READ_ERRORS = (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, KeyError, IndexError,
-                RuntimeError, zipfile.BadZipFile, zlib.error, struct.error, OverflowError, NotImplementedError,
-                UnicodeError, LookupError)
+_READ_ERRORS = (
+    pickle.UnpicklingError,
+    EOFError,
+    ValueError,
+    TypeError,
+    AttributeError,
+    KeyError,
+    IndexError,
+    RuntimeError,
+    zipfile.BadZipFile,
+    zlib.error,
+    struct.error,
+    OverflowError,
+    NotImplementedError,
+    UnicodeError,
+    LookupError,
+)
 
 
 def load_checkpoint(path: str | Path, placeholders: bool = True) -> tuple[Any, set[str]]:
@@ -631,13 +749,16 @@ def load_checkpoint(path: str | Path, placeholders: bool = True) -> tuple[Any, s
             raise
         raise type(exc)(f"{path}: {exc}") from None
     except MemoryError:
-        raise CheckpointLimitError(f"{path}: ran out of memory while reading it ({human(limits.file_bytes)} on "
-                                   f"disk); refused") from None
+        raise CheckpointLimitError(
+            f"{path}: ran out of memory while reading it ({human(limits.file_bytes)} on disk); refused"
+        ) from None
     except RecursionError:
         raise CheckpointFormatError(f"{path}: nested too deeply to read") from None
     except _READ_ERRORS as exc:
-        raise CheckpointFormatError(f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__}: "
-                                    f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
+        raise CheckpointFormatError(
+            f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__}: "
+            f"{str(exc).splitlines()[0][:200] if str(exc) else ''})"
+        ) from None
 
 
 def load_plain(path: str | Path) -> Any:

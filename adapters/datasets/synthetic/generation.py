@@ -81,8 +81,15 @@ def _rgb_jpeg_bytes(rgb: np.ndarray, when: datetime, rig: Rig, quality: int) -> 
     ok, enc = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:  # pragma: no cover
         raise DataError("could not encode a synthetic RGB frame")
-    tags = {"Make": "DJI", "Model": "M3T", "DateTimeOriginal": when, "FocalLength": 6.72,
-            "FocalLengthIn35mmFilm": 24, "ExifImageWidth": rig.rgb_size[0], "ExifImageHeight": rig.rgb_size[1]}
+    tags = {
+        "Make": "DJI",
+        "Model": "M3T",
+        "DateTimeOriginal": when,
+        "FocalLength": 6.72,
+        "FocalLengthIn35mmFilm": 24,
+        "ExifImageWidth": rig.rgb_size[0],
+        "ExifImageHeight": rig.rgb_size[1],
+    }
     return b"\xff\xd8" + jpeg.segment(jpeg.APP1, jpeg.build_exif(tags)) + enc.tobytes()[2:]
 
 
@@ -97,8 +104,15 @@ def _round_box(box: Iterable[float]) -> list[float]:
     return [round(x0, 2), round(y0, 2), round(x1 - x0, 2), round(y1 - y0, 2)]
 
 
-def generate(out: str | Path | None = None, profile: str = "small", seed: int = 0, thermal_format: str = "rjpeg",
-             force: bool = False, progress: bool = True, workers: int | None = None) -> SynthSummary:
+def generate(
+    out: str | Path | None = None,
+    profile: str = "small",
+    seed: int = 0,
+    thermal_format: str = "rjpeg",
+    force: bool = False,
+    progress: bool = True,
+    workers: int | None = None,
+) -> SynthSummary:
     """Write the synthetic M3T-like dataset to ``out`` (atomically: a temporary folder renamed into place).
 
     ``workers``: processes rendering in parallel (default: up to 4, at most the CPU count; 1 renders in this
@@ -118,8 +132,9 @@ def generate(out: str | Path | None = None, profile: str = "small", seed: int = 
     tmp = make_temp_dir(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     t_start = time.perf_counter()
     try:
-        summary = _generate_into(tmp, prof, seed, thermal_format, progress, max(1, int(workers)),
-                                 atomic_write_json, atomic_write_text)
+        summary = _generate_into(
+            tmp, prof, seed, thermal_format, progress, max(1, int(workers)), atomic_write_json, atomic_write_text
+        )
         if out.exists():
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
             os.replace(out, old)
@@ -159,7 +174,7 @@ def _plan(prof: Profile, root: Path, seed: int, thermal_format: str, chunk: int 
             items = [(i, k + i) for i in range(count)]
             k += count
             for c in range(0, count, chunk):
-                out.append(_Chunk(str(root), prof.name, seed, thermal_format, project, s, tuple(items[c:c + chunk])))
+                out.append(_Chunk(str(root), prof.name, seed, thermal_format, project, s, tuple(items[c : c + chunk])))
     return out
 
 
@@ -205,17 +220,30 @@ def _render_chunk(task: _Chunk) -> list[dict[str, Any]]:
         when = session.start + timedelta(seconds=float(i * 5 + rng.integers(0, 3)))
         stem = f"DJI_{when:%Y%m%d%H%M%S}_{k + 1:04d}"
         (folder / f"{stem}_W.JPG").write_bytes(_rgb_jpeg_bytes(frame.rgb, when, rig, prof.jpeg_quality))
-        params = {"ambient": look.ambient_c, "distance": round(session.distance_m, 2), "emissivity": 0.95,
-                  "humidity": 50.0, "reflected": look.ambient_c}
+        params = {
+            "ambient": look.ambient_c,
+            "distance": round(session.distance_m, 2),
+            "emissivity": 0.95,
+            "humidity": 50.0,
+            "reflected": look.ambient_c,
+        }
         if task.thermal_format == "rjpeg":
             thermal_rel = f"{task.project}/{stem}_T.JPG"
             write_rjpeg(folder / f"{stem}_T.JPG", frame.temperature, params=params, exif={"DateTimeOriginal": when})
         else:
             thermal_rel = f"{task.project}/{stem}_T.png"
-            write_thermal(folder / f"{stem}_T.png", frame.temperature, unit="centikelvin", params=params,
-                          extra={"captured": when.isoformat(sep=" ")})
-        write_thermal(root / "ground_truth" / "temperature" / task.project / f"{stem}.png", frame.true_temperature,
-                      unit="centikelvin")
+            write_thermal(
+                folder / f"{stem}_T.png",
+                frame.temperature,
+                unit="centikelvin",
+                params=params,
+                extra={"captured": when.isoformat(sep=" ")},
+            )
+        write_thermal(
+            root / "ground_truth" / "temperature" / task.project / f"{stem}.png",
+            frame.true_temperature,
+            unit="centikelvin",
+        )
         objects = []
         for obj in frame.objects:
             rgb_box = project_box_to_rgb(obj.box, hinv, rig)
@@ -224,13 +252,29 @@ def _render_chunk(task: _Chunk) -> list[dict[str, Any]]:
             cw, ch = clip[2] - clip[0], clip[3] - clip[1]
             if cw < 2 or ch < 2 or cw * ch < 0.3 * full:
                 continue  # not (enough) in the RGB picture: an annotator would not box it
-            objects.append({"category": obj.category, "rgb_box": [float(b) for b in clip],
-                            "box": [float(b) for b in obj.box],
-                            "attrs": {a: v for a, v in obj.attrs.items() if a != "storey_top"}})
-        out.append({"k": k, "project": task.project, "group": session.name, "stem": stem, "when": when,
-                    "rgb_rel": f"{task.project}/{stem}_W.JPG", "thermal_rel": thermal_rel, "objects": objects,
-                    "drift_c": frame.drift_c, "vignette_c": frame.vignette_c,
-                    "landmarks": pick_landmarks(frame, session, rig, rng, limit=12, clicks=prof.clicks)})
+            objects.append(
+                {
+                    "category": obj.category,
+                    "rgb_box": [float(b) for b in clip],
+                    "box": [float(b) for b in obj.box],
+                    "attrs": {a: v for a, v in obj.attrs.items() if a != "storey_top"},
+                }
+            )
+        out.append(
+            {
+                "k": k,
+                "project": task.project,
+                "group": session.name,
+                "stem": stem,
+                "when": when,
+                "rgb_rel": f"{task.project}/{stem}_W.JPG",
+                "thermal_rel": thermal_rel,
+                "objects": objects,
+                "drift_c": frame.drift_c,
+                "vignette_c": frame.vignette_c,
+                "landmarks": pick_landmarks(frame, session, rig, rng, limit=12, clicks=prof.clicks),
+            }
+        )
     return out
 
 
@@ -254,8 +298,16 @@ def _run_chunks(chunks: list[_Chunk], workers: int, progress: bool, label: str) 
     return [r for r in results if r is not None]
 
 
-def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, progress: bool, workers: int,
-                   write_json: Callable[..., Any], write_text: Callable[..., Any]) -> SynthSummary:
+def _generate_into(
+    root: Path,
+    prof: Profile,
+    seed: int,
+    thermal_format: str,
+    progress: bool,
+    workers: int,
+    write_json: Callable[..., Any],
+    write_text: Callable[..., Any],
+) -> SynthSummary:
     from adapters.datasets.m3t import M3T_CATEGORIES
     from harness.sensing.registration import HomographyEntry, save_homographies
 
@@ -275,76 +327,159 @@ def _generate_into(root: Path, prof: Profile, seed: int, thermal_format: str, pr
     for chunk, results in zip(chunks, rendered):
         if chunk.items[0][0] == 0:
             session, _ = _session(rig, seed, chunk.project, chunk.session)
-            sessions_out[session.name] = {"project": chunk.project, "distance_m": round(session.distance_m, 3),
-                                          "start": session.start.isoformat(sep=" "),
-                                          "normal": [round(float(x), 6) for x in session.normal]}
+            sessions_out[session.name] = {
+                "project": chunk.project,
+                "distance_m": round(session.distance_m, 3),
+                "start": session.start.isoformat(sep=" "),
+                "normal": [round(float(x), 6) for x in session.normal],
+            }
             true_h[session.name] = session.homography
             lm_count[session.name] = 0
         for r in results:
             image_id += 1
             when = r["when"].isoformat(sep=" ")
             images.append({"id": image_id, "file_name": r["rgb_rel"], "width": w, "height": h, "date_captured": when})
-            gt_images.append({"id": image_id, "file_name": r["thermal_rel"], "rgb_file_name": r["rgb_rel"],
-                              "width": tw, "height": th, "group": r["group"], "project": r["project"]})
+            gt_images.append(
+                {
+                    "id": image_id,
+                    "file_name": r["thermal_rel"],
+                    "rgb_file_name": r["rgb_rel"],
+                    "width": tw,
+                    "height": th,
+                    "group": r["group"],
+                    "project": r["project"],
+                }
+            )
             objects_meta = []
             for obj in r["objects"]:
                 ann_id += 1
                 cat = obj["category"]
                 bbox = _round_box(obj["rgb_box"])
-                anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[cat], "bbox": bbox,
-                             "area": round(bbox[2] * bbox[3], 2), "iscrowd": 0})
+                anns.append(
+                    {
+                        "id": ann_id,
+                        "image_id": image_id,
+                        "category_id": cat_id[cat],
+                        "bbox": bbox,
+                        "area": round(bbox[2] * bbox[3], 2),
+                        "iscrowd": 0,
+                    }
+                )
                 ann_counts[cat] += 1
                 box = np.array(obj["box"])
                 tbox = np.clip(box, 0, [tw, th, tw, th])
                 tarea = max(tbox[2] - tbox[0], 0) * max(tbox[3] - tbox[1], 0)
                 area = (box[2] - box[0]) * (box[3] - box[1])
-                objects_meta.append({"id": ann_id, "category": cat, "thermal_box": [round(float(b), 4) for b in box],
-                                     **obj["attrs"]})
+                objects_meta.append(
+                    {"id": ann_id, "category": cat, "thermal_box": [round(float(b), 4) for b in box], **obj["attrs"]}
+                )
                 if tarea > 0:
                     tb = [float(b) for b in tbox]
-                    gt_anns.append({"id": ann_id, "image_id": image_id, "category_id": cat_id[cat],
-                                    "bbox": [tb[0], tb[1], tb[2] - tb[0], tb[3] - tb[1]], "area": float(tarea),
-                                    "iscrowd": 0, "unclipped_box": obj["box"],
-                                    "visible_fraction": round(float(tarea / area), 4)})
+                    gt_anns.append(
+                        {
+                            "id": ann_id,
+                            "image_id": image_id,
+                            "category_id": cat_id[cat],
+                            "bbox": [tb[0], tb[1], tb[2] - tb[0], tb[3] - tb[1]],
+                            "area": float(tarea),
+                            "iscrowd": 0,
+                            "unclipped_box": obj["box"],
+                            "visible_fraction": round(float(tarea / area), 4),
+                        }
+                    )
                     th_counts[cat] += 1
-            frames_meta.append({"image_id": image_id, "file_name": r["rgb_rel"], "thermal_file": r["thermal_rel"],
-                                "group": r["group"], "captured": when, "drift_c": round(r["drift_c"], 4),
-                                "vignette_c": round(r["vignette_c"], 4), "objects": objects_meta})
+            frames_meta.append(
+                {
+                    "image_id": image_id,
+                    "file_name": r["rgb_rel"],
+                    "thermal_file": r["thermal_rel"],
+                    "group": r["group"],
+                    "captured": when,
+                    "drift_c": round(r["drift_c"], 4),
+                    "vignette_c": round(r["vignette_c"], 4),
+                    "objects": objects_meta,
+                }
+            )
             for lm in r["landmarks"]:  # the first 24 clicks of each inspection group
                 if lm_count[r["group"]] < 24:
                     landmarks.append({"scene": r["rgb_rel"], "group": r["group"], **lm})
                     lm_count[r["group"]] += 1
 
     categories = _coco_categories()
-    write_json(root / "annotations" / "instances_rgb.json",
-               {"info": {"description": f"m3t-synth {prof.name}, seed {seed}: annotations in the RGB (wide) frame",
-                         "frame": "rgb"}, "images": images, "annotations": anns, "categories": categories}, indent=None)
-    write_json(root / "registration" / "landmarks.json", {
-        "description": "landmark pairs clicked on the undistorted wide-camera image (calibration K, full frame) "
-                       "and on the thermal image; scene = the RGB file, group = its inspection group",
-        "rgb_frame": "undistorted", "convention": "OpenCV pixel coordinates (pixel centres at integers)",
-        "landmarks": landmarks})
+    write_json(
+        root / "annotations" / "instances_rgb.json",
+        {
+            "info": {
+                "description": f"m3t-synth {prof.name}, seed {seed}: annotations in the RGB (wide) frame",
+                "frame": "rgb",
+            },
+            "images": images,
+            "annotations": anns,
+            "categories": categories,
+        },
+        indent=None,
+    )
+    write_json(
+        root / "registration" / "landmarks.json",
+        {
+            "description": "landmark pairs clicked on the undistorted wide-camera image (calibration K, full frame) "
+            "and on the thermal image; scene = the RGB file, group = its inspection group",
+            "rgb_frame": "undistorted",
+            "convention": "OpenCV pixel coordinates (pixel centres at integers)",
+            "landmarks": landmarks,
+        },
+    )
     _write_camera(root / "calibration" / "wide_camera.yaml", rig)
     gt = root / "ground_truth"
-    save_homographies(gt / "homographies.yaml",
-                      {n: HomographyEntry(hm, method="true", rgb_size=prof.rgb_size, thermal_size=prof.thermal_size,
-                                          note=f"distance {sessions_out[n]['distance_m']} m")
-                       for n, hm in true_h.items()},
-                      meta={"frame": "undistorted wide-camera pixels (calibration K) -> thermal pixels",
-                            "generator": f"m3t-synth {prof.name} seed {seed}"})
+    save_homographies(
+        gt / "homographies.yaml",
+        {
+            n: HomographyEntry(
+                hm,
+                method="true",
+                rgb_size=prof.rgb_size,
+                thermal_size=prof.thermal_size,
+                note=f"distance {sessions_out[n]['distance_m']} m",
+            )
+            for n, hm in true_h.items()
+        },
+        meta={
+            "frame": "undistorted wide-camera pixels (calibration K) -> thermal pixels",
+            "generator": f"m3t-synth {prof.name} seed {seed}",
+        },
+    )
     write_json(gt / "sessions.json", sessions_out)
-    write_json(gt / "instances_thermal.json",
-               {"info": {"description": "true boxes in the thermal frame (clipped), ids = RGB annotation ids",
-                         "frame": "thermal"}, "images": gt_images, "annotations": gt_anns, "categories": categories},
-               indent=None)
+    write_json(
+        gt / "instances_thermal.json",
+        {
+            "info": {
+                "description": "true boxes in the thermal frame (clipped), ids = RGB annotation ids",
+                "frame": "thermal",
+            },
+            "images": gt_images,
+            "annotations": gt_anns,
+            "categories": categories,
+        },
+        indent=None,
+    )
     write_json(gt / "frames.json", frames_meta, indent=None)
     write_text(root / "m3t.yaml", _MANIFEST.format(profile=prof.name, seed=seed, tw=tw, th=th))
     write_text(root / "README.md", _README.format(profile=prof.name, seed=seed, n=len(images)))
     counts = {pr: n for pr, n in zip(PROJECTS, prof.images)}
-    write_json(root / MARKER, {"generator": "m3t-synth", "generator_version": GENERATOR_VERSION, "profile": prof.name,
-                               "seed": seed, "thermal_format": thermal_format, "images": counts,
-                               "annotations": ann_counts, "thermal_instances": th_counts,
-                               "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
+    write_json(
+        root / MARKER,
+        {
+            "generator": "m3t-synth",
+            "generator_version": GENERATOR_VERSION,
+            "profile": prof.name,
+            "seed": seed,
+            "thermal_format": thermal_format,
+            "images": counts,
+            "annotations": ann_counts,
+            "thermal_instances": th_counts,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        },
+    )
     return SynthSummary(root, prof.name, seed, counts, ann_counts, th_counts, list(sessions_out), 0.0)
 
 
@@ -375,4 +510,3 @@ Generated by `harness synth`; laid out exactly like the raw M3T release, so `--d
 reads it too. `ground_truth/` holds what a real release cannot (true homographies, true thermal-frame boxes, true
 temperature maps, per-frame sensor offsets); the adapters never read it.
 """
-

@@ -83,8 +83,15 @@ class Rig:
         w, h = profile.rgb_size
         k_rgb = camera_matrix(profile.rgb_size, M3T_FOCAL_35MM[0], offset=(0.004 * w, -0.003 * h))
         k_th = camera_matrix(profile.thermal_size, M3T_FOCAL_35MM[1])
-        return Rig(k_rgb, (-0.105, 0.045, 0.0, 0.0, 0.0), k_th, profile.rgb_size, profile.thermal_size,
-                   rotation_matrix(0.35, -0.25, 0.15), np.array([0.021, 0.034, 0.0]))
+        return Rig(
+            k_rgb,
+            (-0.105, 0.045, 0.0, 0.0, 0.0),
+            k_th,
+            profile.rgb_size,
+            profile.thermal_size,
+            rotation_matrix(0.35, -0.25, 0.15),
+            np.array([0.021, 0.034, 0.0]),
+        )
 
 
 @dataclass(frozen=True)
@@ -156,18 +163,28 @@ class Canvas:
 
     def extent_box(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Edge-coordinate box of canvas pixels (index arrays)."""
-        return np.array([cols.min() / self.k - self.mx, rows.min() / self.k - self.my,
-                         (cols.max() + 1) / self.k - self.mx, (rows.max() + 1) / self.k - self.my])
+        return np.array(
+            [
+                cols.min() / self.k - self.mx,
+                rows.min() / self.k - self.my,
+                (cols.max() + 1) / self.k - self.mx,
+                (rows.max() + 1) / self.k - self.my,
+            ]
+        )
 
 
 def canvas_for_session(rig: Rig, session: Session, k: int = 2) -> Canvas:
     """A canvas large enough for every RGB pixel of the session to fall inside it."""
     w, h = rig.rgb_size
     n = 64
-    edge = np.concatenate([
-        np.c_[np.linspace(0, w - 1, n), np.zeros(n)], np.c_[np.linspace(0, w - 1, n), np.full(n, h - 1)],
-        np.c_[np.zeros(n), np.linspace(0, h - 1, n)], np.c_[np.full(n, w - 1), np.linspace(0, h - 1, n)],
-    ])
+    edge = np.concatenate(
+        [
+            np.c_[np.linspace(0, w - 1, n), np.zeros(n)],
+            np.c_[np.linspace(0, w - 1, n), np.full(n, h - 1)],
+            np.c_[np.zeros(n), np.linspace(0, h - 1, n)],
+            np.c_[np.full(n, w - 1), np.linspace(0, h - 1, n)],
+        ]
+    )
     pts = apply_homography(session.homography, undistort_points_dense(edge, rig.k_rgb, rig.dist_rgb)) + 0.5
     tw, th = rig.thermal_size
     mx = int(math.ceil(max(-pts[:, 0].min(), pts[:, 0].max() - tw, 0))) + 3
@@ -188,10 +205,16 @@ def project_box_to_rgb(box: np.ndarray, hinv: np.ndarray, rig: Rig, samples: int
     """Envelope, in the distorted RGB frame (edge coordinates), of a thermal-frame box's outline."""
     x0, y0, x1, y1 = (float(b) for b in box)
     t = np.linspace(0.0, 1.0, samples)
-    outline = np.concatenate([
-        np.c_[x0 + (x1 - x0) * t, np.full(samples, y0)], np.c_[x0 + (x1 - x0) * t, np.full(samples, y1)],
-        np.c_[np.full(samples, x0), y0 + (y1 - y0) * t], np.c_[np.full(samples, x1), y0 + (y1 - y0) * t],
-    ]) - 0.5
+    outline = (
+        np.concatenate(
+            [
+                np.c_[x0 + (x1 - x0) * t, np.full(samples, y0)],
+                np.c_[x0 + (x1 - x0) * t, np.full(samples, y1)],
+                np.c_[np.full(samples, x0), y0 + (y1 - y0) * t],
+                np.c_[np.full(samples, x1), y0 + (y1 - y0) * t],
+            ]
+        )
+        - 0.5
+    )
     rgb = distort_points(apply_homography(hinv, outline), rig.k_rgb, rig.dist_rgb) + 0.5
     return np.array([rgb[:, 0].min(), rgb[:, 1].min(), rgb[:, 0].max(), rgb[:, 1].max()])
-

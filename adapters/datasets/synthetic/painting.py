@@ -28,7 +28,7 @@ def fbm(shape: tuple[int, int], cell_px: float, rng: np.random.Generator, octave
     out = np.zeros(shape, np.float32)
     amp, total = 1.0, 0.0
     for o in range(octaves):
-        out += amp * value_noise(shape, cell_px / (2 ** o), rng)
+        out += amp * value_noise(shape, cell_px / (2**o), rng)
         total += amp * amp
         amp *= 0.5
     return out / math.sqrt(total)
@@ -135,8 +135,12 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
     elif look.material == "paint":
         grid = rng.standard_normal((max(2, int(h / cell(0.8))), max(2, int(w / cell(0.06))))).astype(np.float32)
         streaks = cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)
-        albedo *= (1 + 0.04 * fbm((h, w), cell(0.5), rng) - 0.03 * np.clip(streaks, 0, None)
-                   + 0.02 * value_noise((h, w), cell(0.012), rng))[..., None]
+        albedo *= (
+            1
+            + 0.04 * fbm((h, w), cell(0.5), rng)
+            - 0.03 * np.clip(streaks, 0, None)
+            + 0.02 * value_noise((h, w), cell(0.012), rng)
+        )[..., None]
     elif look.material == "cladding":
         plank = 0.28
         row = np.floor(ym / plank)
@@ -150,8 +154,11 @@ def paint_wall(layers: Layers, look: Look, rng: np.random.Generator) -> None:
         raise ValueError(look.material)
     # soft light gradient (sun from one side)
     gx, gy = rng.uniform(-0.06, 0.06, size=2)
-    ramp = (1 + gx * (c.u(np.arange(w))[None, :] / c.thermal_size[0] - 0.5)
-            + gy * (c.v(np.arange(h))[:, None] / c.thermal_size[1] - 0.5))
+    ramp = (
+        1
+        + gx * (c.u(np.arange(w))[None, :] / c.thermal_size[0] - 0.5)
+        + gy * (c.v(np.arange(h))[:, None] / c.thermal_size[1] - 0.5)
+    )
     albedo *= ramp[..., None].astype(np.float32)
     np.clip(albedo, 0.0, 1.0, out=albedo)
     layers.albedo = albedo
@@ -195,7 +202,7 @@ def paint_window(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Ge
     ax = np.clip((u - x0) / (x1 - x0), 0, 1)
     sky_top = np.array([0.62, 0.70, 0.80], np.float32) * rng.uniform(0.85, 1.1)
     sky_bot = np.array([0.22, 0.25, 0.30], np.float32) * rng.uniform(0.8, 1.2)
-    g = (sky_top * (1 - ay[..., None]) + sky_bot * ay[..., None])
+    g = sky_top * (1 - ay[..., None]) + sky_bot * ay[..., None]
     streak = np.exp(-(((ax - ay * rng.uniform(0.3, 0.8) - rng.uniform(-0.2, 0.6)) / 0.12) ** 2))
     g = g + 0.15 * streak[..., None]
     if rng.random() < 0.35:  # curtains or blinds inside
@@ -237,8 +244,14 @@ def paint_ac_unit(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     d = np.sqrt((u - fx) ** 2 + (v - fy) ** 2)
     fan = inside & (d < fr)
     rings = fan & ((d / (0.022 * ppm)) % 2 < 0.8)
-    louvre = (inside & (u < x0 + 0.38 * w) & (u > x0 + 0.06 * w) & (((v - y0) / (0.04 * ppm)) % 2 < 0.7)
-              & (v > y0 + 0.12 * h) & (v < y1 - 0.12 * h))
+    louvre = (
+        inside
+        & (u < x0 + 0.38 * w)
+        & (u > x0 + 0.06 * w)
+        & (((v - y0) / (0.04 * ppm)) % 2 < 0.7)
+        & (v > y0 + 0.12 * h)
+        & (v < y1 - 0.12 * h)
+    )
     alb = layers.albedo[ys, xs]
     housing = np.array([0.83, 0.83, 0.81], np.float32) * rng.uniform(0.9, 1.05)
     alb = np.where(inside[..., None], housing, alb)
@@ -271,8 +284,9 @@ def paint_vent(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gene
         rim = inside & (d > s / 2 - 0.025 * ppm)
     else:
         inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
-        rim = inside & ((u < x0 + 0.025 * ppm) | (u > x1 - 0.025 * ppm) | (v < y0 + 0.025 * ppm)
-                        | (v > y1 - 0.025 * ppm))
+        rim = inside & (
+            (u < x0 + 0.025 * ppm) | (u > x1 - 0.025 * ppm) | (v < y0 + 0.025 * ppm) | (v > y1 - 0.025 * ppm)
+        )
         slat = inside & ~rim & (((v - y0) / (0.03 * ppm)) % 2 < 0.9)  # louvre gaps, 60 mm pitch
     metal = np.array([0.86, 0.86, 0.84], np.float32) * rng.uniform(0.85, 1.05)
     alb = layers.albedo[ys, xs]
@@ -315,8 +329,10 @@ def paint_crack(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gen
     shift = 4
 
     def to_px(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # edge coords -> fixed-point local canvas pixels
-        return (np.round(((p[:, 0] + c.mx) * c.k - 0.5 - xs.start) * (1 << shift)).astype(np.int32),
-                np.round(((p[:, 1] + c.my) * c.k - 0.5 - ys.start) * (1 << shift)).astype(np.int32))
+        return (
+            np.round(((p[:, 0] + c.mx) * c.k - 0.5 - xs.start) * (1 << shift)).astype(np.int32),
+            np.round(((p[:, 1] + c.my) * c.k - 0.5 - ys.start) * (1 << shift)).astype(np.int32),
+        )
 
     px, py = to_px(pts)
     cv2.polylines(mask, [np.c_[px, py].reshape(-1, 1, 2)], False, 255, thickness=1, lineType=cv2.LINE_AA, shift=shift)
@@ -325,8 +341,9 @@ def paint_crack(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gen
         b = pts[a] + rng.normal(0, 1, 2) * 0.2 * np.array([x1 - x0, y1 - y0])
         b = np.clip(b, [x0, y0], [x1, y1])
         bx, by = to_px(np.array([pts[a], (pts[a] + b) / 2 + rng.normal(0, 0.5, 2), b]))
-        cv2.polylines(mask, [np.c_[bx, by].reshape(-1, 1, 2)], False, 160, thickness=1, lineType=cv2.LINE_AA,
-                      shift=shift)
+        cv2.polylines(
+            mask, [np.c_[bx, by].reshape(-1, 1, 2)], False, 160, thickness=1, lineType=cv2.LINE_AA, shift=shift
+        )
     m = mask.astype(np.float32) / 255.0
     extent = layers.extent(m > 0.3, ys, xs)
     if extent is None:
@@ -338,8 +355,9 @@ def paint_crack(layers: Layers, obj: SceneObject, look: Look, rng: np.random.Gen
     return extent
 
 
-def blob_mask(u: np.ndarray, v: np.ndarray, box: Sequence[float], rng: np.random.Generator, roughness: float,
-              cell: float) -> np.ndarray:
+def blob_mask(
+    u: np.ndarray, v: np.ndarray, box: Sequence[float], rng: np.random.Generator, roughness: float, cell: float
+) -> np.ndarray:
     """Irregular blob inside ``box``: a superellipse whose radius is modulated by smooth noise."""
     x0, y0, x1, y1 = box
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
@@ -387,8 +405,9 @@ def paint_efflorescence(layers: Layers, obj: SceneObject, look: Look, rng: np.ra
     x0, y0, x1, y1 = obj.box
     ax, ay = (u - x0) / (x1 - x0), (v - y0) / (y1 - y0)
     h, w = ay.shape[0], ax.shape[1]
-    streak_len = cv2.resize(rng.uniform(0.25, 1.0, size=(1, max(2, w // 6))).astype(np.float32), (w, 1),
-                            interpolation=cv2.INTER_LINEAR)
+    streak_len = cv2.resize(
+        rng.uniform(0.25, 1.0, size=(1, max(2, w // 6))).astype(np.float32), (w, 1), interpolation=cv2.INTER_LINEAR
+    )
     across = 1 - np.abs(2 * ax - 1) ** 3
     alpha = np.clip(1 - ay / streak_len, 0, 1) * across
     alpha *= 0.6 + 0.4 * np.clip(value_noise((h, w), max(1.0, 0.02 * layers.ppm * layers.canvas.k), rng), -1, 1)
@@ -479,7 +498,9 @@ def paint_seepage(layers: Layers, obj: SceneObject, look: Look, rng: np.random.G
     inside = (u > x0) & (u < x1) & (v > y0) & (v < y1)
     stain = rng.uniform(0.07, 0.14)  # faint: a damp patch darkens the surface by a few per cent
     wet = np.clip(moisture, 0, 1.5) * inside
-    tide = np.exp(-((np.minimum(np.minimum(u - x0, x1 - u), np.minimum(v - y0, y1 - v))) / (0.02 * ppm)) ** 2) * inside
+    tide = (
+        np.exp(-(((np.minimum(np.minimum(u - x0, x1 - u), np.minimum(v - y0, y1 - v))) / (0.02 * ppm)) ** 2)) * inside
+    )
     layers.albedo[ys, xs] *= (1 - stain * wet - 0.04 * tide)[..., None]
     obj.attrs.update(delta_c=round(amp, 2))
     return layers.extent(inside, ys, xs)
@@ -500,8 +521,13 @@ def paint_downpipe(layers: Layers, x: float, width: float, rng: np.random.Genera
 
 
 PAINTERS: dict[str, Callable[..., Any]] = {
-    "ac_unit": paint_ac_unit, "vent": paint_vent, "crack": paint_crack, "paint_peeling": paint_peeling,
-    "efflorescence": paint_efflorescence, "delamination": paint_delamination, "water_seepage": paint_seepage,
+    "ac_unit": paint_ac_unit,
+    "vent": paint_vent,
+    "crack": paint_crack,
+    "paint_peeling": paint_peeling,
+    "efflorescence": paint_efflorescence,
+    "delamination": paint_delamination,
+    "water_seepage": paint_seepage,
 }
 
 
@@ -517,8 +543,9 @@ def sill_box(window: Sequence[float], ppm: float) -> np.ndarray:
     return np.array([window[0] - 0.06 * ppm, window[1], window[2] + 0.06 * ppm, window[3] + 0.22 * ppm])
 
 
-def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
-                  rng: np.random.Generator) -> list[SceneObject]:
+def place_objects(
+    layers: Layers, look: Look, windows: list[SceneObject], rng: np.random.Generator
+) -> list[SceneObject]:
     """Equipment and defects on free wall, mostly inside the thermal footprint (some straddle its edge)."""
     c, ppm = layers.canvas, layers.ppm
     tw, th = c.thermal_size
@@ -562,12 +589,14 @@ def place_objects(layers: Layers, look: Look, windows: list[SceneObject],
                 # a seepage's damp zone (DAMP_FRINGE_M around its stain) is part of it: nothing else sits in it
                 gap = (DAMP_FRINGE_M if cat == "water_seepage" else 0.05) * ppm
                 side = np.array([box[0] - gap, box[1], box[2] + gap, box[3] + 0.6 * gap])
-                if (_overlaps(side, sills, 0.05 * ppm) or _overlaps(box, occupied, gap)
-                        or _overlaps(box, damp, DAMP_FRINGE_M * ppm)):
+                if (
+                    _overlaps(side, sills, 0.05 * ppm)
+                    or _overlaps(box, occupied, gap)
+                    or _overlaps(box, damp, DAMP_FRINGE_M * ppm)
+                ):
                     continue
                 attrs = {"round": bool(rng.random() < 0.35)} if cat == "vent" else {}
                 out.append(SceneObject(cat, box, attrs))
                 (damp if cat == "water_seepage" else occupied).append(box)
                 break
     return out
-

@@ -49,16 +49,27 @@ class Frame:
     vignette_c: float
 
 
-def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndarray, np.ndarray] | None, look: Look,
-                 rng: np.random.Generator, drift_c: float) -> Frame:
+def render_frame(
+    rig: Rig,
+    session: Session,
+    canvas: Canvas,
+    maps: tuple[np.ndarray, np.ndarray] | None,
+    look: Look,
+    rng: np.random.Generator,
+    drift_c: float,
+) -> Frame:
     """One capture. ``maps=None`` renders the thermal side only (the RGB is then an empty array): the same scene,
     the same random draws for everything the thermal camera sees."""
     import cv2
 
     ppm = rig.k_thermal[0, 0] / session.distance_m
-    layers = Layers(canvas, np.zeros((canvas.height, canvas.width, 3), np.float32),
-                    np.zeros((canvas.height, canvas.width), np.float32),
-                    np.full((canvas.height, canvas.width), np.nan, np.float32), ppm)
+    layers = Layers(
+        canvas,
+        np.zeros((canvas.height, canvas.width, 3), np.float32),
+        np.zeros((canvas.height, canvas.width), np.float32),
+        np.full((canvas.height, canvas.width), np.nan, np.float32),
+        ppm,
+    )
     paint_wall(layers, look, rng)
     windows = window_grid(layers, look, rng)
     if rng.random() < 0.3:
@@ -80,14 +91,20 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
     ys, xs = canvas.thermal_slice()
     sigma = max(0.5, 0.08 * ppm * canvas.k)  # lateral conduction, 8 cm
     pad = int(3 * sigma) + 2
-    region = (slice(max(ys.start - pad, 0), min(ys.stop + pad, canvas.height)),
-              slice(max(xs.start - pad, 0), min(xs.stop + pad, canvas.width)))
+    region = (
+        slice(max(ys.start - pad, 0), min(ys.stop + pad, canvas.height)),
+        slice(max(xs.start - pad, 0), min(xs.stop + pad, canvas.width)),
+    )
     absorb = smooth(1 - 0.7 * luminance(layers.albedo[region]), sigma)
     a_wall = 1 - 0.7 * float(luminance(np.array(look.wall_rgb)))
     rows = canvas.v(np.arange(region[0].start, region[0].stop))[:, None].astype(np.float32)
-    temp = (look.ambient_c + look.sun_load_c * (1 + 0.4 * (absorb - a_wall) / a_wall)
-            - 0.08 * (rows / ppm) + 0.25 * fbm(absorb.shape, 1.2 * ppm * canvas.k, rng, octaves=2)
-            + layers.dtemp[region])
+    temp = (
+        look.ambient_c
+        + look.sun_load_c * (1 + 0.4 * (absorb - a_wall) / a_wall)
+        - 0.08 * (rows / ppm)
+        + 0.25 * fbm(absorb.shape, 1.2 * ppm * canvas.k, rng, octaves=2)
+        + layers.dtemp[region]
+    )
     if look.slab_bridge_c > 0 and windows:  # floor slabs between storeys
         slab_v = np.array(sorted({round(w.attrs["storey_top"], 3) for w in windows}), np.float32)
         d = np.min(np.abs(rows - slab_v[None, :]), axis=1, keepdims=True)
@@ -95,17 +112,30 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
     glass = layers.glass[region]
     temp = np.where(np.isnan(glass), temp, glass).astype(np.float32)
     tw, th = canvas.thermal_size
-    inner = (slice(ys.start - region[0].start, ys.stop - region[0].start),
-             slice(xs.start - region[1].start, xs.stop - region[1].start))
+    inner = (
+        slice(ys.start - region[0].start, ys.stop - region[0].start),
+        slice(xs.start - region[1].start, xs.stop - region[1].start),
+    )
     true_t = cv2.resize(temp[inner], (tw, th), interpolation=cv2.INTER_AREA)
     meas = cv2.GaussianBlur(true_t, (0, 0), 0.55)
     vig = look.vignette_c * rng.uniform(0.8, 1.2)
-    meas = meas + drift_c + vig * _radius2((th, tw)) + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32) \
+    meas = (
+        meas
+        + drift_c
+        + vig * _radius2((th, tw))
+        + rng.normal(0, 0.03, size=(1, tw)).astype(np.float32)
         + 0.05 * rng.standard_normal((th, tw), dtype=np.float32)
+    )
 
     if maps is None:
-        return Frame(np.zeros((0, 0, 3), np.uint8), meas.astype(np.float32), true_t.astype(np.float32), objects,
-                     float(drift_c), float(vig))
+        return Frame(
+            np.zeros((0, 0, 3), np.uint8),
+            meas.astype(np.float32),
+            true_t.astype(np.float32),
+            objects,
+            float(drift_c),
+            float(vig),
+        )
     # --- RGB: sample the canvas through the rig geometry and lens distortion, then the camera
     img = cv2.remap(layers.albedo, maps[0], maps[1], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     rh, rw = img.shape[:2]
@@ -120,8 +150,9 @@ def render_frame(rig: Rig, session: Session, canvas: Canvas, maps: tuple[np.ndar
     return Frame(rgb, meas.astype(np.float32), true_t.astype(np.float32), objects, float(drift_c), float(vig))
 
 
-def pick_landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Generator, limit: int,
-               clicks: str = "human") -> list[dict[str, Any]]:
+def pick_landmarks(
+    frame: Frame, session: Session, rig: Rig, rng: np.random.Generator, limit: int, clicks: str = "human"
+) -> list[dict[str, Any]]:
     """Corners of windows, AC units and vents (sharp in both images) inside the thermal frame, spread out by
     farthest-point selection as a careful annotator would, clicked in both images with a little noise."""
     tw, th = rig.thermal_size
@@ -145,8 +176,10 @@ def pick_landmarks(frame: Frame, session: Session, rig: Rig, rng: np.random.Gene
         dist = np.minimum(dist, np.linalg.norm(cand - cand[nxt], axis=1))
     thermal = cand[chosen]
     rgb = apply_homography(np.linalg.inv(session.homography), thermal)  # undistorted wide image (camera K)
-    return [{"rgb": [round(float(a), 2), round(float(b), 2)], "thermal": [round(float(c), 2), round(float(d), 2)]}
-            for (a, b), (c, d) in zip(*click_landmarks(rgb, thermal, rig, rng, clicks))]
+    return [
+        {"rgb": [round(float(a), 2), round(float(b), 2)], "thermal": [round(float(c), 2), round(float(d), 2)]}
+        for (a, b), (c, d) in zip(*click_landmarks(rgb, thermal, rig, rng, clicks))
+    ]
 
 
 #: Landmark clicking, a human-factors model (see docs/datasets.md): in the thermal image a corner is a soft
@@ -161,8 +194,9 @@ RGB_CLICK_NATIVE_PX = 1.5
 MISPICK_RATE = 0.1
 
 
-def click_landmarks(rgb: np.ndarray, thermal: np.ndarray, rig: Rig, rng: np.random.Generator,
-                    clicks: str = "human") -> tuple[np.ndarray, np.ndarray]:
+def click_landmarks(
+    rgb: np.ndarray, thermal: np.ndarray, rig: Rig, rng: np.random.Generator, clicks: str = "human"
+) -> tuple[np.ndarray, np.ndarray]:
     """Where a person clicks true corresponding points (Nx2 each): RGB nearly exact, thermal a few px off.
 
     ``clicks="precise"``: sub-pixel clicks (0.8 RGB px, 0.35 thermal px), for the test profile.
@@ -178,4 +212,3 @@ def click_landmarks(rgb: np.ndarray, thermal: np.ndarray, rig: Rig, rng: np.rand
     thermal_click = np.round(thermal + t_err)
     rgb_click = rgb + rng.normal(0, RGB_CLICK_NATIVE_PX * rig.rgb_size[0] / 4000, rgb.shape)
     return rgb_click, thermal_click
-

@@ -31,8 +31,9 @@ from harness.boxes import bbox_iou, cxcywh_to_xyxy
 _NEIGHBOURS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))
 
 
-def match_targets(targets: torch.Tensor, anchors: torch.Tensor, grid_hw: tuple[int, int], stride: float,
-                  anchor_t: float = 4.0) -> tuple[torch.Tensor, ...]:
+def match_targets(
+    targets: torch.Tensor, anchors: torch.Tensor, grid_hw: tuple[int, int], stride: float, anchor_t: float = 4.0
+) -> tuple[torch.Tensor, ...]:
     """Positives of one level.
 
     ``targets``: ``[n, 6]`` rows (image, class, cx, cy, w, h) in input pixels; ``anchors``: ``[na, 2]`` in grid
@@ -81,9 +82,18 @@ class YOLOv5Loss:
     highest IoU is the objectness target (ICAFusion turns it on; YOLOv5 leaves it off).
     """
 
-    def __init__(self, head: nn.Module, box: float = 0.05, obj: float = 1.0, cls: float = 0.5,
-                 anchor_t: float = 4.0, balance: Sequence[float] = (4.0, 1.0, 0.4), sort_obj_iou: bool = False,
-                 label_smoothing: float = 0.0, imgsz: int | None = None):
+    def __init__(
+        self,
+        head: nn.Module,
+        box: float = 0.05,
+        obj: float = 1.0,
+        cls: float = 0.5,
+        anchor_t: float = 4.0,
+        balance: Sequence[float] = (4.0, 1.0, 0.4),
+        sort_obj_iou: bool = False,
+        label_smoothing: float = 0.0,
+        imgsz: int | None = None,
+    ):
         self.head = head
         self.box, self.obj, self.cls = box, obj, cls
         self.anchor_t = anchor_t
@@ -93,8 +103,9 @@ class YOLOv5Loss:
         self.imgsz = imgsz
         self.bce = nn.BCEWithLogitsLoss()
 
-    def __call__(self, raw: Sequence[torch.Tensor], targets: torch.Tensor, image_size: tuple[int, int]
-                 ) -> dict[str, torch.Tensor]:
+    def __call__(
+        self, raw: Sequence[torch.Tensor], targets: torch.Tensor, image_size: tuple[int, int]
+    ) -> dict[str, torch.Tensor]:
         head = self.head
         nl, nc = head.nl, head.nc
         device = raw[0].device
@@ -102,8 +113,9 @@ class YOLOv5Loss:
         lobj = torch.zeros((), device=device)
         lcls = torch.zeros((), device=device)
         for i, p in enumerate(raw):
-            b, a, gj, gi, tbox, anch, tcls = match_targets(targets, head.anchors[i], (p.shape[2], p.shape[3]),
-                                                            head.strides[i], self.anchor_t)
+            b, a, gj, gi, tbox, anch, tcls = match_targets(
+                targets, head.anchors[i], (p.shape[2], p.shape[3]), head.strides[i], self.anchor_t
+            )
             tobj = torch.zeros(p.shape[:4], dtype=p.dtype, device=device)
             n = b.shape[0]
             if n:

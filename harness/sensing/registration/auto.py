@@ -36,11 +36,15 @@ class AutoRegistration:
 
     def quality(self) -> dict[str, Any]:
         """The quality fields written wherever an automatic registration is recorded."""
-        return {"correlation": round(self.correlation, 4), "initial_correlation": round(self.initial_correlation, 4),
-                "corner_shift_px": round(self.corner_shift_px, 2)}
+        return {
+            "correlation": round(self.correlation, 4),
+            "initial_correlation": round(self.initial_correlation, 4),
+            "corner_shift_px": round(self.corner_shift_px, 2),
+        }
 
-    def entry(self, rgb_size: tuple[int, int] | None = None,
-              thermal_size: tuple[int, int] | None = None) -> HomographyEntry:
+    def entry(
+        self, rgb_size: tuple[int, int] | None = None, thermal_size: tuple[int, int] | None = None
+    ) -> HomographyEntry:
         return HomographyEntry(self.H, "auto", None, rgb_size, thermal_size, quality=self.quality())
 
 
@@ -78,19 +82,30 @@ def structure_image(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     return mag / (mag + c) if c > 0 else mag
 
 
-def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str, iterations: int, eps: float,
-         mask: np.ndarray | None) -> tuple[float, np.ndarray]:
+def _ecc(
+    template: np.ndarray,
+    image: np.ndarray,
+    warp: np.ndarray,
+    motion: str,
+    iterations: int,
+    eps: float,
+    mask: np.ndarray | None,
+) -> tuple[float, np.ndarray]:
     """One ``cv2.findTransformECC`` run; ``warp`` and the result are 3x3 (thermal pixel -> image pixel)."""
     import cv2
 
-    mt = {"translation": cv2.MOTION_TRANSLATION, "euclidean": cv2.MOTION_EUCLIDEAN, "affine": cv2.MOTION_AFFINE,
-          "homography": cv2.MOTION_HOMOGRAPHY}[motion]
+    mt = {
+        "translation": cv2.MOTION_TRANSLATION,
+        "euclidean": cv2.MOTION_EUCLIDEAN,
+        "affine": cv2.MOTION_AFFINE,
+        "homography": cv2.MOTION_HOMOGRAPHY,
+    }[motion]
     w = warp.astype(np.float32)
     w = w if motion == "homography" else w[:2].copy()
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, eps)
     rho, found = cv2.findTransformECC(template, image, w, mt, crit, mask, 1)  # type: ignore[arg-type]  # None: no mask
     out = np.eye(3)
-    out[:found.shape[0]] = found
+    out[: found.shape[0]] = found
     return float(rho), out
 
 
@@ -114,8 +129,9 @@ def _warp_inverse(img: np.ndarray, W: np.ndarray) -> np.ndarray:
     return cv2.warpPerspective(img, W, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 
-def _coarse_search(template: np.ndarray, image: np.ndarray, mask: np.ndarray, scales: np.ndarray,
-                   thetas: np.ndarray) -> tuple[float, np.ndarray]:
+def _coarse_search(
+    template: np.ndarray, image: np.ndarray, mask: np.ndarray, scales: np.ndarray, thetas: np.ndarray
+) -> tuple[float, np.ndarray]:
     """Best warp over a grid of scales and rotations (about the centre), each with the translation that phase
     correlation finds, scored by ECC's criterion."""
     import cv2
@@ -136,11 +152,19 @@ def _coarse_search(template: np.ndarray, image: np.ndarray, mask: np.ndarray, sc
     return best_rho, best_W
 
 
-def estimate_homography_auto(rgb: np.ndarray, thermal: np.ndarray, init: np.ndarray | None = None,
-                             levels: int | None = None, motion: str = "homography", iterations: int = 100,
-                             search_scale: float = 0.06, search_rotation_deg: float = 4.0,
-                             min_correlation: float = 0.5, max_corner_shift: float | None = None,
-                             structure_sigma: float = 1.0) -> AutoRegistration:
+def estimate_homography_auto(
+    rgb: np.ndarray,
+    thermal: np.ndarray,
+    init: np.ndarray | None = None,
+    levels: int | None = None,
+    motion: str = "homography",
+    iterations: int = 100,
+    search_scale: float = 0.06,
+    search_rotation_deg: float = 4.0,
+    min_correlation: float = 0.5,
+    max_corner_shift: float | None = None,
+    structure_sigma: float = 1.0,
+) -> AutoRegistration:
     """RGB -> thermal homography by ECC on structure images, coarse to fine, with a quality check.
 
     ``rgb``: uint8 HxWx3 (any size); ``thermal``: temperature map (float) or 8-bit preview, in the thermal frame.
@@ -170,8 +194,9 @@ def estimate_homography_auto(rgb: np.ndarray, thermal: np.ndarray, init: np.ndar
     h, w = th.shape
     rgb_arr = np.asarray(rgb)
     if init is None:
-        init = homography_from_similarity(0, 0, 0, w / rgb_arr.shape[1],
-                                          image_center((rgb_arr.shape[1], rgb_arr.shape[0])), image_center((w, h)))
+        init = homography_from_similarity(
+            0, 0, 0, w / rgb_arr.shape[1], image_center((rgb_arr.shape[1], rgb_arr.shape[0])), image_center((w, h))
+        )
     H0 = normalize(init)
     if max_corner_shift is None:
         max_corner_shift = 0.1 * math.hypot(w, h)
@@ -181,32 +206,45 @@ def estimate_homography_auto(rgb: np.ndarray, thermal: np.ndarray, init: np.ndar
     # only where the pre-warped RGB is real (eroded: the replicated border carries no structure)
     mask = cv2.erode(valid.astype(np.uint8), np.ones((9, 9), np.uint8))
     if mask.sum() < 0.1 * h * w:
-        return AutoRegistration(H0, False, float("nan"), float("nan"), 0.0,
-                                reason="the initial homography puts less than 10% of the thermal frame on RGB pixels")
+        return AutoRegistration(
+            H0,
+            False,
+            float("nan"),
+            float("nan"),
+            0.0,
+            reason="the initial homography puts less than 10% of the thermal frame on RGB pixels",
+        )
     init_rho = ecc_correlation(tmpl, img, mask)
     if levels is None:
         levels = 1
-        while min(h, w) / 2 ** levels >= 64 and w / 2 ** levels >= 80:
+        while min(h, w) / 2**levels >= 64 and w / 2**levels >= 80:
             levels += 1
     pyr_t, pyr_i, pyr_m = [tmpl], [img], [mask]
     for _ in range(1, levels):
         pyr_t.append(cv2.pyrDown(pyr_t[-1]))
         pyr_i.append(cv2.pyrDown(pyr_i[-1]))
-        pyr_m.append((cv2.resize(pyr_m[-1], (pyr_t[-1].shape[1], pyr_t[-1].shape[0]),
-                                 interpolation=cv2.INTER_NEAREST) > 0).astype(np.uint8))
+        pyr_m.append(
+            (
+                cv2.resize(pyr_m[-1], (pyr_t[-1].shape[1], pyr_t[-1].shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+            ).astype(np.uint8)
+        )
     top = len(pyr_t) - 1
     report: list[dict[str, Any]] = []
     n_scales = max(1, int(round(2 * search_scale / 0.01)) + 1)
     n_thetas = max(1, int(round(2 * search_rotation_deg / 1.0)) + 1)
-    rho, Wc = _coarse_search(pyr_t[top], pyr_i[top], pyr_m[top],
-                             np.linspace(1 - search_scale, 1 + search_scale, n_scales),
-                             np.linspace(-search_rotation_deg, search_rotation_deg, n_thetas))
-    S = np.diag([0.5 ** top, 0.5 ** top, 1.0])
+    rho, Wc = _coarse_search(
+        pyr_t[top],
+        pyr_i[top],
+        pyr_m[top],
+        np.linspace(1 - search_scale, 1 + search_scale, n_scales),
+        np.linspace(-search_rotation_deg, search_rotation_deg, n_thetas),
+    )
+    S = np.diag([0.5**top, 0.5**top, 1.0])
     W = np.linalg.inv(S) @ Wc @ S
     report.append({"level": top, "step": "search", "correlation": rho})
     converged = 0
     for lvl in range(top, -1, -1):
-        S = np.diag([0.5 ** lvl, 0.5 ** lvl, 1.0])
+        S = np.diag([0.5**lvl, 0.5**lvl, 1.0])
         mot = motion if lvl == 0 else ("affine" if motion == "homography" else motion)
         try:
             rho, W_l = _ecc(pyr_t[lvl], pyr_i[lvl], S @ W @ np.linalg.inv(S), mot, iterations, 1e-6, pyr_m[lvl])
@@ -227,8 +265,9 @@ def estimate_homography_auto(rgb: np.ndarray, thermal: np.ndarray, init: np.ndar
     if shift > max_corner_shift:
         reasons.append(f"a corner moved {shift:.1f} px from the initial homography (limit {max_corner_shift:.1f})")
     ok = not reasons
-    return AutoRegistration(H if ok else H0, ok, float(final_rho), float(init_rho), shift, reason="; ".join(reasons),
-                            levels=report)
+    return AutoRegistration(
+        H if ok else H0, ok, float(final_rho), float(init_rho), shift, reason="; ".join(reasons), levels=report
+    )
 
 
 def read_image_rgb(path: str | Path) -> np.ndarray:
@@ -263,13 +302,17 @@ def read_thermal_any(path: str | Path) -> np.ndarray:
         img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise
-        logging.getLogger(__name__).info("%s: registered on its 8-bit picture (temperatures not decoded: %s)",
-                                         path.name, str(exc).splitlines()[0][:160])
+        logging.getLogger(__name__).info(
+            "%s: registered on its 8-bit picture (temperatures not decoded: %s)",
+            path.name,
+            str(exc).splitlines()[0][:160],
+        )
         return img
 
 
-def optics_prior(rgb_path: str | Path, thermal_path: str | Path, rgb_size: tuple[int, int],
-                 thermal_size: tuple[int, int]) -> np.ndarray | None:
+def optics_prior(
+    rgb_path: str | Path, thermal_path: str | Path, rgb_size: tuple[int, int], thermal_size: tuple[int, int]
+) -> np.ndarray | None:
     """Focal-length prior from the two files' EXIF 35-mm-equivalent focal lengths (None when either lacks it)."""
     from harness.sensing import jpeg
 
@@ -285,8 +328,9 @@ def optics_prior(rgb_path: str | Path, thermal_path: str | Path, rgb_size: tuple
     return focal_prior(rgb_size, thermal_size, (f35[0], f35[1]))
 
 
-def register_files(rgb_path: str | Path, thermal_path: str | Path, init: HomographyEntry | np.ndarray | None = None,
-                   **kwargs: Any) -> tuple[AutoRegistration, tuple[int, int], tuple[int, int]]:
+def register_files(
+    rgb_path: str | Path, thermal_path: str | Path, init: HomographyEntry | np.ndarray | None = None, **kwargs: Any
+) -> tuple[AutoRegistration, tuple[int, int], tuple[int, int]]:
     """``estimate_homography_auto`` on two files; the start is ``init``, else the EXIF optics prior, else the
     default. Returns the result and the two image sizes ``(w, h)``."""
     rgb = read_image_rgb(rgb_path)
@@ -296,4 +340,3 @@ def register_files(rgb_path: str | Path, thermal_path: str | Path, init: Homogra
     if H0 is None:
         H0 = optics_prior(rgb_path, thermal_path, rgb_size, th_size)
     return estimate_homography_auto(rgb, th, init=H0, **kwargs), rgb_size, th_size
-

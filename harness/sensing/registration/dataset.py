@@ -43,8 +43,15 @@ class DatasetRegistration:
     RGB and thermal cameras' 35-mm-equivalent focal lengths, for the prior.
     """
 
-    def __init__(self, ctx: SensingContext, homographies: Path | None, landmarks: Path | None,
-                 landmarks_rgb: str, group_of: Mapping[str, str], focal_35mm: tuple[float, float]):
+    def __init__(
+        self,
+        ctx: SensingContext,
+        homographies: Path | None,
+        landmarks: Path | None,
+        landmarks_rgb: str,
+        group_of: Mapping[str, str],
+        focal_35mm: tuple[float, float],
+    ):
         self.ctx = ctx
         self.homographies = load_homographies(homographies) if homographies is not None else {}
         self.landmarks = read_landmarks(landmarks) if landmarks is not None else None
@@ -131,8 +138,10 @@ class DatasetRegistration:
 
     def notes(self) -> list[str]:
         """One line per registered group, for the prepare report."""
-        return [f"registration of {g}: " + ", ".join(f"{k} {v}" for k, v in self.how(g).items())
-                for g in sorted(self.ctx.entries)]
+        return [
+            f"registration of {g}: " + ", ".join(f"{k} {v}" for k, v in self.how(g).items())
+            for g in sorted(self.ctx.entries)
+        ]
 
     def save(self, path: Path, dataset: str) -> Path | None:
         """The homographies used, one per group (camera K frame), as a homographies file; None when there are none."""
@@ -143,6 +152,9 @@ class DatasetRegistration:
         for g, h in sorted(fitted.items()):
             how = self.how(g)
             entries[g] = HomographyEntry(h, method=str(how.pop("source", "")), quality=how)
-        frame = ("undistorted wide-camera pixels (calibration K) -> thermal pixels" if self.ctx.rgb_camera is not None
-                 else "RGB pixels -> thermal pixels")
+        frame = (
+            "undistorted wide-camera pixels (calibration K) -> thermal pixels"
+            if self.ctx.rgb_camera is not None
+            else "RGB pixels -> thermal pixels"
+        )
         return save_homographies(path, entries, meta={"frame": frame, "dataset": dataset})

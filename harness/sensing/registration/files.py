@@ -41,18 +41,29 @@ class HomographyEntry:
         return out
 
 
-def entry_from_similarity(params: Mapping[str, float], rgb_size: tuple[int, int] | None,
-                          thermal_size: tuple[int, int] | None, note: str = "") -> HomographyEntry:
+def entry_from_similarity(
+    params: Mapping[str, float], rgb_size: tuple[int, int] | None, thermal_size: tuple[int, int] | None, note: str = ""
+) -> HomographyEntry:
     """An entry defined by similarity parameters about the image centres (origin when a size is unknown)."""
     missing = {"tx", "ty", "theta_deg", "scale"} - set(params)
     if missing:
         raise DataError(f"similarity parameters lack {sorted(missing)}; give tx, ty, theta_deg, scale")
-    H = homography_from_similarity(float(params["tx"]), float(params["ty"]), float(params["theta_deg"]),
-                                   float(params["scale"]),
-                                   image_center(rgb_size) if rgb_size else (0.0, 0.0),
-                                   image_center(thermal_size) if thermal_size else (0.0, 0.0))
-    return HomographyEntry(H, "similarity", {k: float(params[k]) for k in ("tx", "ty", "theta_deg", "scale")},
-                           rgb_size, thermal_size, note=note)
+    H = homography_from_similarity(
+        float(params["tx"]),
+        float(params["ty"]),
+        float(params["theta_deg"]),
+        float(params["scale"]),
+        image_center(rgb_size) if rgb_size else (0.0, 0.0),
+        image_center(thermal_size) if thermal_size else (0.0, 0.0),
+    )
+    return HomographyEntry(
+        H,
+        "similarity",
+        {k: float(params[k]) for k in ("tx", "ty", "theta_deg", "scale")},
+        rgb_size,
+        thermal_size,
+        note=note,
+    )
 
 
 HOMOGRAPHY_FILE_HEADER = """\
@@ -65,8 +76,9 @@ HOMOGRAPHY_FILE_HEADER = """\
 """
 
 
-def save_homographies(path: str | Path, homographies: Mapping[str, np.ndarray | HomographyEntry],
-                      meta: Mapping[str, Any] | None = None) -> Path:
+def save_homographies(
+    path: str | Path, homographies: Mapping[str, np.ndarray | HomographyEntry], meta: Mapping[str, Any] | None = None
+) -> Path:
     """Write ``{group: H or HomographyEntry}`` as a commented, human-editable YAML file."""
     from harness.config import dump_yaml
     from harness.io import atomic_write_text
@@ -112,12 +124,23 @@ def load_homography_entries(path: str | Path) -> dict[str, HomographyEntry]:
                 H = normalize(H)
             except DataError as exc:
                 raise DataError(f"{where}: {exc}") from None
-            entry = HomographyEntry(H, str(raw.get("method", "manual")), raw.get("similarity"), rgb_size,  # type: ignore[arg-type]
-                                    thermal_size, dict(raw.get("quality", {}) or {}), str(raw.get("note", "")))
+            entry = HomographyEntry(
+                H,
+                str(raw.get("method", "manual")),
+                raw.get("similarity"),
+                rgb_size,  # type: ignore[arg-type]
+                thermal_size,
+                dict(raw.get("quality", {}) or {}),
+                str(raw.get("note", "")),
+            )
         elif "similarity" in raw:
             try:
-                entry = entry_from_similarity(raw["similarity"], rgb_size, thermal_size,  # type: ignore[arg-type]
-                                              note=str(raw.get("note", "")))
+                entry = entry_from_similarity(
+                    raw["similarity"],
+                    rgb_size,
+                    thermal_size,  # type: ignore[arg-type]
+                    note=str(raw.get("note", "")),
+                )
             except (DataError, TypeError, ValueError) as exc:
                 raise DataError(f"{where}: {exc}") from None
         else:
@@ -142,4 +165,3 @@ def support_boxes(entries: Mapping[str, HomographyEntry]) -> dict[str, tuple[int
             if mask.any():
                 out[group] = common_support_box(mask)
     return out
-

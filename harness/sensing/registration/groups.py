@@ -14,12 +14,14 @@ def capture_time(path: str | Path) -> datetime | None:
     from harness.sensing import jpeg
 
     exif = jpeg.read_exif(path)
-    return jpeg.parse_exif_datetime(exif.get("DateTimeOriginal") or exif.get("DateTime"),
-                                    exif.get("SubSecTimeOriginal"))
+    return jpeg.parse_exif_datetime(
+        exif.get("DateTimeOriginal") or exif.get("DateTime"), exif.get("SubSecTimeOriginal")
+    )
 
 
-def group_by_capture_time(times: Mapping[str, datetime | str | None], gap_s: float = 300.0,
-                          prefix: str = "G") -> dict[str, str]:
+def group_by_capture_time(
+    times: Mapping[str, datetime | str | None], gap_s: float = 300.0, prefix: str = "G"
+) -> dict[str, str]:
     """Split captures into inspection groups wherever consecutive capture times are more than ``gap_s`` apart.
 
     ``times``: ``{capture key: datetime or EXIF 'YYYY:MM:DD HH:MM:SS'}``. Returns ``{key: group}`` with groups
@@ -37,8 +39,10 @@ def group_by_capture_time(times: Mapping[str, datetime | str | None], gap_s: flo
         else:
             parsed.append((dt, str(key)))
     if missing:
-        raise DataError(f"no capture time for {len(missing)} capture(s) ({', '.join(missing[:5])}"
-                        f"{', ...' if len(missing) > 5 else ''}); give their groups explicitly")
+        raise DataError(
+            f"no capture time for {len(missing)} capture(s) ({', '.join(missing[:5])}"
+            f"{', ...' if len(missing) > 5 else ''}); give their groups explicitly"
+        )
     parsed.sort()
     out: dict[str, str] = {}
     group = 0
@@ -49,4 +53,3 @@ def group_by_capture_time(times: Mapping[str, datetime | str | None], gap_s: flo
         out[key] = f"{prefix}{group:02d}"
         prev = dt
     return out
-

@@ -64,9 +64,14 @@ def normalize(H: np.ndarray) -> np.ndarray:
     return H / H[2, 2]
 
 
-def homography_from_similarity(tx: float, ty: float, theta_deg: float, scale: float,
-                               rgb_center: tuple[float, float] = (0.0, 0.0),
-                               thermal_center: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+def homography_from_similarity(
+    tx: float,
+    ty: float,
+    theta_deg: float,
+    scale: float,
+    rgb_center: tuple[float, float] = (0.0, 0.0),
+    thermal_center: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     """``u = s R(theta) (x - c_rgb) + c_thermal + t`` as a 3x3 homography.
 
     ``theta_deg`` is counter-clockwise on screen (image y points down, so ``R = [[cos, sin], [-sin, cos]]``
@@ -86,8 +91,9 @@ def homography_from_similarity(tx: float, ty: float, theta_deg: float, scale: fl
     return H
 
 
-def similarity_from_homography(H: np.ndarray, rgb_center: tuple[float, float] = (0.0, 0.0),
-                               thermal_center: tuple[float, float] = (0.0, 0.0)) -> dict[str, float]:
+def similarity_from_homography(
+    H: np.ndarray, rgb_center: tuple[float, float] = (0.0, 0.0), thermal_center: tuple[float, float] = (0.0, 0.0)
+) -> dict[str, float]:
     """The closest similarity ``(tx, ty, theta_deg, scale)`` to ``H`` (from its linear part at the centre)."""
     H = normalize(H)
     A = H[:2, :2]
@@ -98,9 +104,13 @@ def similarity_from_homography(H: np.ndarray, rgb_center: tuple[float, float] = 
     return {"tx": float(t[0]), "ty": float(t[1]), "theta_deg": float(theta), "scale": float(scale)}
 
 
-def focal_length_px(focal_mm: float | None = None, pixel_pitch_mm: float | None = None,
-                    focal_35mm: float | None = None, image_size: tuple[int, int] | None = None,
-                    frame_diagonal_mm: float = FULL_FRAME_DIAGONAL_MM) -> float:
+def focal_length_px(
+    focal_mm: float | None = None,
+    pixel_pitch_mm: float | None = None,
+    focal_35mm: float | None = None,
+    image_size: tuple[int, int] | None = None,
+    frame_diagonal_mm: float = FULL_FRAME_DIAGONAL_MM,
+) -> float:
     """Focal length in pixels: ``f_mm / pitch_mm``, or ``f_35 * diagonal_px / frame_diagonal_mm`` from the 35-mm
     equivalent (the 36 x 24 mm frame's diagonal, 43.27 mm)."""
     if focal_mm and pixel_pitch_mm:
@@ -110,21 +120,31 @@ def focal_length_px(focal_mm: float | None = None, pixel_pitch_mm: float | None 
     raise DataError("focal length in pixels needs (focal_mm and pixel_pitch_mm) or (focal_35mm and image_size)")
 
 
-def homography_from_focal_lengths(f_rgb_px: float, f_thermal_px: float, rgb_size: tuple[int, int],
-                                  thermal_size: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
-                                  ) -> np.ndarray:
+def homography_from_focal_lengths(
+    f_rgb_px: float,
+    f_thermal_px: float,
+    rgb_size: tuple[int, int],
+    thermal_size: tuple[int, int],
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     """The optics prior: centres aligned (plus ``offset``), scale ``f_thermal / f_rgb``, no rotation."""
-    return homography_from_similarity(offset[0], offset[1], 0.0, f_thermal_px / f_rgb_px,
-                                      image_center(rgb_size), image_center(thermal_size))
+    return homography_from_similarity(
+        offset[0], offset[1], 0.0, f_thermal_px / f_rgb_px, image_center(rgb_size), image_center(thermal_size)
+    )
 
 
-def focal_prior(rgb_size: tuple[int, int], thermal_size: tuple[int, int], focal_35mm: tuple[float, float],
-                f_rgb_px: float | None = None) -> np.ndarray:
+def focal_prior(
+    rgb_size: tuple[int, int],
+    thermal_size: tuple[int, int],
+    focal_35mm: tuple[float, float],
+    f_rgb_px: float | None = None,
+) -> np.ndarray:
     """The optics prior from the two cameras' 35-mm-equivalent focal lengths ``(rgb, thermal)``; ``f_rgb_px``
     replaces the RGB one where a calibration gives the focal length in pixels."""
     f_rgb = f_rgb_px if f_rgb_px is not None else focal_length_px(focal_35mm=focal_35mm[0], image_size=rgb_size)
-    return homography_from_focal_lengths(f_rgb, focal_length_px(focal_35mm=focal_35mm[1], image_size=thermal_size),
-                                         rgb_size, thermal_size)
+    return homography_from_focal_lengths(
+        f_rgb, focal_length_px(focal_35mm=focal_35mm[1], image_size=thermal_size), rgb_size, thermal_size
+    )
 
 
 def change_camera(H: np.ndarray, k_from: np.ndarray, k_to: np.ndarray) -> np.ndarray:
@@ -134,8 +154,9 @@ def change_camera(H: np.ndarray, k_from: np.ndarray, k_to: np.ndarray) -> np.nda
     return h / h[2, 2]
 
 
-def plane_homography(k_rgb: np.ndarray, k_thermal: np.ndarray, rot: np.ndarray, t: np.ndarray,
-                     normal: np.ndarray, distance: float) -> np.ndarray:
+def plane_homography(
+    k_rgb: np.ndarray, k_thermal: np.ndarray, rot: np.ndarray, t: np.ndarray, normal: np.ndarray, distance: float
+) -> np.ndarray:
     """Homography of the plane ``n^T X = d`` (RGB-camera frame) from RGB to thermal pixels.
 
     ``X_T = R X + t`` and ``n^T X / d = 1`` on the plane give ``X_T = (R + t n^T / d) X``, hence

@@ -84,8 +84,10 @@ def read_landmarks(path: str | Path) -> Landmarks:
             fields = set(reader.fieldnames or [])
             need = {"scene", "rgb_x", "rgb_y", "thermal_x", "thermal_y"}
             if not need <= fields:
-                raise DataError(f"{path}: CSV header lacks {sorted(need - fields)}; expected columns "
-                                f"{', '.join(LANDMARK_COLUMNS)} (group optional)")
+                raise DataError(
+                    f"{path}: CSV header lacks {sorted(need - fields)}; expected columns "
+                    f"{', '.join(LANDMARK_COLUMNS)} (group optional)"
+                )
             for line, rec in enumerate(reader, start=2):
                 try:
                     scene = rec["scene"].strip()
@@ -108,8 +110,10 @@ def write_landmarks(path: str | Path, landmarks: Landmarks) -> Path:
 
     path = Path(path)
     if path.suffix.lower() == ".json":
-        items = [{"scene": s, "group": g, "rgb": r.tolist(), "thermal": t.tolist()}
-                 for s, g, r, t in zip(landmarks.scene, landmarks.group, landmarks.rgb, landmarks.thermal)]
+        items = [
+            {"scene": s, "group": g, "rgb": r.tolist(), "thermal": t.tolist()}
+            for s, g, r, t in zip(landmarks.scene, landmarks.group, landmarks.rgb, landmarks.thermal)
+        ]
         return atomic_write_json(path, {"landmarks": items})
     lines = [",".join(LANDMARK_COLUMNS)]
     for s, g, r, t in zip(landmarks.scene, landmarks.group, landmarks.rgb, landmarks.thermal):
@@ -117,8 +121,9 @@ def write_landmarks(path: str | Path, landmarks: Landmarks) -> Path:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def homography_from_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "lsq",
-                              ransac_threshold: float = 2.0) -> np.ndarray:
+def homography_from_landmarks(
+    src: np.ndarray, dst: np.ndarray, method: str = "lsq", ransac_threshold: float = 2.0
+) -> np.ndarray:
     """Homography taking ``src`` (RGB, N x 2) onto ``dst`` (thermal, N x 2), N >= 4.
 
     ``method="lsq"``: every pair, least squares (normalised DLT refined by Levenberg-Marquardt on the
@@ -137,8 +142,10 @@ def homography_from_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "l
         centred = pts - pts.mean(axis=0)
         sv = np.linalg.svd(centred, compute_uv=False)
         if sv[1] <= 1e-9 * max(sv[0], 1.0):
-            raise DataError(f"the {name} landmarks are collinear or duplicated; a homography needs 4 points in general "
-                            "position (no three on a line)")
+            raise DataError(
+                f"the {name} landmarks are collinear or duplicated; a homography needs 4 points in general "
+                "position (no three on a line)"
+            )
     if method == "lsq":
         H, mask = cv2.findHomography(s, d, 0)
     elif method == "ransac":
@@ -171,13 +178,13 @@ class LandmarkFit:
         """The quality fields written wherever a landmark fit is recorded (homographies files, prepare notes)."""
         return {"pairs": self.pairs, "inliers": int(self.inliers.sum()), "rms_px": round(self.rms_px, 4)}
 
-    def entry(self, rgb_size: tuple[int, int] | None = None,
-              thermal_size: tuple[int, int] | None = None) -> HomographyEntry:
+    def entry(
+        self, rgb_size: tuple[int, int] | None = None, thermal_size: tuple[int, int] | None = None
+    ) -> HomographyEntry:
         return HomographyEntry(self.H, "landmarks", None, rgb_size, thermal_size, quality=self.quality())
 
 
-def fit_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "lsq", ransac_threshold: float = 2.0
-                  ) -> LandmarkFit:
+def fit_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "lsq", ransac_threshold: float = 2.0) -> LandmarkFit:
     """``homography_from_landmarks`` with its inliers (RANSAC: the pairs within ``ransac_threshold`` px of the
     final H) and the RMS reprojection error over them."""
     H = homography_from_landmarks(src, dst, method, ransac_threshold)
@@ -185,7 +192,7 @@ def fit_landmarks(src: np.ndarray, dst: np.ndarray, method: str = "lsq", ransac_
     d = np.asarray(dst, dtype=np.float64).reshape(-1, 2)
     inliers = reprojection_errors(H, s, d) <= ransac_threshold if method == "ransac" else np.ones(len(s), bool)
     err = reprojection_errors(H, s[inliers], d[inliers])
-    return LandmarkFit(H, method, inliers, float(np.sqrt(np.mean(err ** 2))))
+    return LandmarkFit(H, method, inliers, float(np.sqrt(np.mean(err**2))))
 
 
 def fit_groups(landmarks: Landmarks, method: str = "lsq", ransac_threshold: float = 2.0) -> dict[str, LandmarkFit]:
@@ -207,8 +214,11 @@ def _percentile(a: np.ndarray, q: float) -> float:
 Box = tuple[float, float, float, float]
 
 
-def registration_error(landmarks: Landmarks | tuple[np.ndarray, np.ndarray], H: np.ndarray | Mapping[str, np.ndarray],
-                       support: Box | Mapping[str, Box] | None = None) -> dict[str, Any]:
+def registration_error(
+    landmarks: Landmarks | tuple[np.ndarray, np.ndarray],
+    H: np.ndarray | Mapping[str, np.ndarray],
+    support: Box | Mapping[str, Box] | None = None,
+) -> dict[str, Any]:
     """Reprojection error ``|| H(rgb_i) - thermal_i ||`` in thermal pixels (the aligned frame: the common-support
     crop only shifts coordinates, so distances are the same).
 
@@ -217,9 +227,16 @@ def registration_error(landmarks: Landmarks | tuple[np.ndarray, np.ndarray], H: 
     Returns ``n``, ``mean``, ``median``, ``p95``, ``max``, ``rmse``, ``outside_support``, ``per_scene``
     (``{scene: {n, mean, median}}``), ``per_group`` and the individual ``errors``.
     """
-    lm = landmarks if isinstance(landmarks, Landmarks) else Landmarks(
-        landmarks[0], landmarks[1], ["all"] * len(np.asarray(landmarks[0]).reshape(-1, 2)),
-        ["all"] * len(np.asarray(landmarks[0]).reshape(-1, 2)))
+    lm = (
+        landmarks
+        if isinstance(landmarks, Landmarks)
+        else Landmarks(
+            landmarks[0],
+            landmarks[1],
+            ["all"] * len(np.asarray(landmarks[0]).reshape(-1, 2)),
+            ["all"] * len(np.asarray(landmarks[0]).reshape(-1, 2)),
+        )
+    )
     errors = np.full(len(lm), np.nan)
     keep = np.ones(len(lm), dtype=bool)
     for group in lm.groups():
@@ -241,8 +258,11 @@ def registration_error(landmarks: Landmarks | tuple[np.ndarray, np.ndarray], H: 
     kept = lm.select(keep)
 
     def summary(values: np.ndarray) -> dict[str, float]:
-        return {"n": int(len(values)), "mean": float(values.mean()) if len(values) else float("nan"),
-                "median": _percentile(values, 50)}
+        return {
+            "n": int(len(values)),
+            "mean": float(values.mean()) if len(values) else float("nan"),
+            "median": _percentile(values, 50),
+        }
 
     per_scene = {s: summary(e[np.array([x == s for x in kept.scene])]) for s in sorted(set(kept.scene))}
     per_group = {g: summary(e[np.array([x == g for x in kept.group])]) for g in sorted(set(kept.group))}
@@ -252,7 +272,7 @@ def registration_error(landmarks: Landmarks | tuple[np.ndarray, np.ndarray], H: 
         "median": _percentile(e, 50),
         "p95": _percentile(e, 95),
         "max": float(e.max()) if len(e) else float("nan"),
-        "rmse": float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan"),
+        "rmse": float(np.sqrt(np.mean(e**2))) if len(e) else float("nan"),
         "outside_support": int((~keep).sum()),
         "per_scene": per_scene,
         "per_group": per_group,
@@ -274,4 +294,3 @@ def leave_one_out_errors(landmarks: Landmarks, method: str = "lsq", ransac_thres
             H = homography_from_landmarks(landmarks.rgb[rest], landmarks.thermal[rest], method, ransac_threshold)
             errors[k] = reprojection_errors(H, landmarks.rgb[[k]], landmarks.thermal[[k]])[0]  # type: ignore[arg-type]
     return errors
-

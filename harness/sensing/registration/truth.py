@@ -29,8 +29,12 @@ def _stats(values: np.ndarray) -> dict[str, float]:
     v = v[np.isfinite(v)]
     if not len(v):
         return {"n": 0, "mean": float("nan"), "median": float("nan"), "p95": float("nan")}
-    return {"n": int(len(v)), "mean": float(v.mean()), "median": float(np.median(v)),
-            "p95": float(np.percentile(v, 95))}
+    return {
+        "n": int(len(v)),
+        "mean": float(v.mean()),
+        "median": float(np.median(v)),
+        "p95": float(np.percentile(v, 95)),
+    }
 
 
 def frame_grid(thermal_size: tuple[int, int], n: int = GRID) -> np.ndarray:
@@ -40,8 +44,13 @@ def frame_grid(thermal_size: tuple[int, int], n: int = GRID) -> np.ndarray:
     return np.c_[xs.ravel(), ys.ravel()]
 
 
-def against_truth(landmarks: Landmarks, true_h: Mapping[str, np.ndarray], fitted_h: Mapping[str, np.ndarray] | None,
-                  thermal_size: tuple[int, int] | None, method: str = "lsq") -> dict[str, Any]:
+def against_truth(
+    landmarks: Landmarks,
+    true_h: Mapping[str, np.ndarray],
+    fitted_h: Mapping[str, np.ndarray] | None,
+    thermal_size: tuple[int, int] | None,
+    method: str = "lsq",
+) -> dict[str, Any]:
     """The landmarks' error under ``true_h`` and, per group, the distance between ``fitted_h`` (default: a fit of
     each group's landmarks) and ``true_h`` over a grid of the thermal frame. Thermal pixels throughout.
 
@@ -49,8 +58,10 @@ def against_truth(landmarks: Landmarks, true_h: Mapping[str, np.ndarray], fitted
     """
     missing = sorted(set(landmarks.groups()) - set(true_h))
     if missing:
-        raise DataError(f"the true homographies have no group {', '.join(map(repr, missing))} "
-                        f"(have: {', '.join(sorted(true_h)) or 'none'})")
+        raise DataError(
+            f"the true homographies have no group {', '.join(map(repr, missing))} "
+            f"(have: {', '.join(sorted(true_h)) or 'none'})"
+        )
     on_true = registration_error(landmarks, dict(true_h))
     fitted = dict(fitted_h) if fitted_h is not None else {g: f.H for g, f in fit_groups(landmarks, method).items()}
     per_group: dict[str, dict[str, float]] = {}
@@ -70,21 +81,42 @@ def against_truth(landmarks: Landmarks, true_h: Mapping[str, np.ndarray], fitted
         per_group[group] = _stats(d)
         dists.append(d)
     grid = _stats(np.concatenate(dists)) if dists else _stats(np.array([]))
-    return {"landmarks_on_true": {k: on_true[k] for k in ("n", "mean", "median", "p95")},
-            "fitted_vs_true": grid, "fitted_vs_true_per_group": per_group,
-            "fitted": "given homographies" if fitted_h is not None else f"{method} fit per group",
-            "grid": f"{GRID}x{GRID} points over the thermal frame" if thermal_size is not None
-            else f"{GRID}x{GRID} points over the landmarks' extent"}
+    return {
+        "landmarks_on_true": {k: on_true[k] for k in ("n", "mean", "median", "p95")},
+        "fitted_vs_true": grid,
+        "fitted_vs_true_per_group": per_group,
+        "fitted": "given homographies" if fitted_h is not None else f"{method} fit per group",
+        "grid": f"{GRID}x{GRID} points over the thermal frame"
+        if thermal_size is not None
+        else f"{GRID}x{GRID} points over the landmarks' extent",
+    }
 
 
 def format_against_truth(result: Mapping[str, Any], measured: Mapping[str, Any]) -> str:
     """The measured error beside the error against the truth: one aligned table, thermal px."""
     on_true, grid = result["landmarks_on_true"], result["fitted_vs_true"]
-    rows = [["landmarks, as measured", str(measured["n"]), f"{measured['mean']:.2f}", f"{measured['median']:.2f}",
-             f"{measured['p95']:.2f}"],
-            ["landmarks, true homography", str(on_true["n"]), f"{on_true['mean']:.2f}", f"{on_true['median']:.2f}",
-             f"{on_true['p95']:.2f}"],
-            ["fitted vs true homography", str(grid["n"]), f"{grid['mean']:.2f}", f"{grid['median']:.2f}",
-             f"{grid['p95']:.2f}"]]
-    note = (f"against the truth (fitted: {result['fitted']}; fitted vs true on {result['grid']})")
+    rows = [
+        [
+            "landmarks, as measured",
+            str(measured["n"]),
+            f"{measured['mean']:.2f}",
+            f"{measured['median']:.2f}",
+            f"{measured['p95']:.2f}",
+        ],
+        [
+            "landmarks, true homography",
+            str(on_true["n"]),
+            f"{on_true['mean']:.2f}",
+            f"{on_true['median']:.2f}",
+            f"{on_true['p95']:.2f}",
+        ],
+        [
+            "fitted vs true homography",
+            str(grid["n"]),
+            f"{grid['mean']:.2f}",
+            f"{grid['median']:.2f}",
+            f"{grid['p95']:.2f}",
+        ],
+    ]
+    note = f"against the truth (fitted: {result['fitted']}; fitted vs true on {result['grid']})"
     return note + "\n" + text_table(["error (thermal px)", "n", "mean", "median", "P95"], rows, align="lrrrr")

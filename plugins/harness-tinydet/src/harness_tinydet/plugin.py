@@ -24,20 +24,24 @@ def build_tinydet_dual(num_classes: int, in_channels: int = 1, **model_cfg: Any)
 
 @hookimpl
 def register_detectors(register):
-    register(DetectorSpec(
-        name="tinydet",
-        build=build_tinydet,
-        input_kind="single",
-        description="tiny anchor-free two-level detector (example plugin)",
-        label="example plugin",
-        defaults={"train": {"lr0": 0.04}},
-    ))
-    register(DetectorSpec(
-        name="tinydet-dual",
-        build=build_tinydet_dual,
-        input_kind="dual",
-        description="two-stream TinyDet: RGB and thermal stems summed at stride 4 (example plugin)",
-        label="example plugin",
-        thermal_channels=1,
-        defaults={"train": {"lr0": 0.04}},
-    ))
+    register(
+        DetectorSpec(
+            name="tinydet",
+            build=build_tinydet,
+            input_kind="single",
+            description="tiny anchor-free two-level detector (example plugin)",
+            label="example plugin",
+            defaults={"train": {"lr0": 0.04}},
+        )
+    )
+    register(
+        DetectorSpec(
+            name="tinydet-dual",
+            build=build_tinydet_dual,
+            input_kind="dual",
+            description="two-stream TinyDet: RGB and thermal stems summed at stride 4 (example plugin)",
+            label="example plugin",
+            thermal_channels=1,
+            defaults={"train": {"lr0": 0.04}},
+        )
+    )
