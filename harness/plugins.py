@@ -24,6 +24,7 @@ through ``host``. Fixtures for tests (throwaway plugins, a fresh host) are in ``
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
 import importlib.metadata
@@ -33,7 +34,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator
 
 import pluggy
 
@@ -596,13 +597,30 @@ def get_host() -> PluginHost:
     return load_plugins()
 
 
+@contextlib.contextmanager
+def _temporary_plugin(plugin: Any, name: str | None = None) -> Iterator[str]:
+    """Register ``plugin`` for the duration of a ``with`` block, then unregister it, whatever happens; yields the name
+    it is registered under."""
+    registered = register_plugin(plugin, name)
+    try:
+        yield registered
+    finally:
+        unregister_plugin(registered)
+
+
+def reset_plugins(loader: Callable[[], Any] | None = None) -> None:
+    """Forget every registered plugin so that ``load_plugins`` starts again; then call ``loader`` when given."""
+    unload_plugins()
+    if loader is not None:
+        loader()
+
+
 def __getattr__(name: str) -> Any:
-    """``temporary_plugin`` and ``reset_for_tests`` moved to ``harness.testing``; the old names still work."""
+    """``reset_for_tests`` is now ``reset_plugins``, and both it and ``temporary_plugin`` are documented in
+    ``harness.testing``; the old spellings still work."""
     if name in ("temporary_plugin", "reset_for_tests"):
         import warnings
 
-        from harness import testing
-
         warnings.warn(f"harness.plugins.{name} moved to harness.testing", DeprecationWarning, stacklevel=2)
-        return testing.temporary_plugin if name == "temporary_plugin" else testing.reset_plugins
+        return _temporary_plugin if name == "temporary_plugin" else reset_plugins
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

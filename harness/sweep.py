@@ -377,7 +377,7 @@ def sweep(spec: SweepSpec, executor: str = "local", options: ExecutorOptions | N
 
 
 def sweep_table(summary: SweepSummary) -> str:
-    from harness.report.tables import format_value
+    from harness.report.cells import format_value
     from harness.textable import text_table
 
     rows = [[r.run, r.state, format_value(r.mAP50, "float", 3), format_value(r.mAP50_95, "float", 3),

@@ -28,11 +28,12 @@ installed plugins out of your tests (the harness's own ``tests/conftest.py`` doe
 
 from __future__ import annotations
 
-import contextlib
 import copy
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import pytest
+
+from harness.plugins import reset_plugins
 
 if TYPE_CHECKING:  # pragma: no cover
     from types import ModuleType
@@ -40,28 +41,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from click.testing import Result
 
     from harness.plugins import PluginHost
-
-
-@contextlib.contextmanager
-def temporary_plugin(plugin: Any, name: str | None = None) -> Iterator[str]:
-    """Register ``plugin`` for the duration of a ``with`` block, then unregister it, whatever happens; yields the name
-    it is registered under."""
-    from harness.plugins import register_plugin, unregister_plugin
-
-    registered = register_plugin(plugin, name)
-    try:
-        yield registered
-    finally:
-        unregister_plugin(registered)
-
-
-def reset_plugins(loader: Callable[[], Any] | None = None) -> None:
-    """Forget every registered plugin so that ``load_plugins`` starts again; then call ``loader`` when given."""
-    from harness.plugins import unload_plugins
-
-    unload_plugins()
-    if loader is not None:
-        loader()
 
 
 @pytest.fixture

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from engine_helpers import CATEGORIES, ShapesPlugin
-from harness.plugins import temporary_plugin
 from harness.report.pictures import (
     GT_COLOUR,
     PRED_COLOURS,
@@ -25,6 +24,7 @@ from harness.report.pictures import (
     thermal_range,
 )
 from harness.sample import AlignedSample
+from harness.testing import temporary_plugin
 
 
 def _sample(radiometric: bool = True) -> AlignedSample:

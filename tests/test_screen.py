@@ -60,7 +60,7 @@ def trained(tiny_source, tmp_path_factory):  # noqa: F811
     mp.syspath_prepend(str(TINYDET_SRC))
     import harness_tinydet.plugin as tinydet
 
-    from harness.plugins import temporary_plugin
+    from harness.testing import temporary_plugin
 
     sets = [a for s in [*FAST, f"dataset.root={tiny_source}"] for a in ("--set", s)]
     try:

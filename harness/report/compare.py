@@ -28,6 +28,7 @@ from typing import Any, Mapping, Sequence
 
 from harness.errors import HarnessError, StoreError
 from harness.io import read_json
+from harness.report.cells import Stat, format_value
 from harness.report.reader import (
     APPROXIMATE,
     Entry,
@@ -38,7 +39,6 @@ from harness.report.reader import (
     label_notes,
     marks,
 )
-from harness.report.tables import Stat, format_value
 
 
 class SupportMismatch(HarnessError):

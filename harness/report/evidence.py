@@ -29,15 +29,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from harness.evaluation import mean_sd
-from harness.evaluation.analysis import ERROR_TYPES, NO_ANALYSIS, SPECIAL_TYPES
+from harness.evaluation.analysis import ERROR_LABELS, ERROR_TYPES, NO_ANALYSIS, SPECIAL_TYPES
 from harness.report.reader import Entry, StoredRun
 from harness.report.tables import Column, Stat, Table, _slug, record
 
 log = logging.getLogger(__name__)
 
-#: Display names of the error types (TIDE's abbreviations in brackets) and of the two bounds.
-ERROR_LABELS = {"classification": "Cls", "localisation": "Loc", "both": "Both", "duplicate": "Dupe",
-                "background": "Bkg", "missed": "Miss", "false_positives": "FP", "false_negatives": "FN"}
 SIZE_SCHEMES = {"coco": "COCO", "safit": "SAFit"}
 
 

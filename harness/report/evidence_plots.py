@@ -12,7 +12,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from harness.evaluation.analysis import ERROR_TYPES, SPECIAL_TYPES
+from harness.evaluation.analysis import ERROR_LABELS, ERROR_TYPES, SPECIAL_TYPES
 from harness.report.plots import save_figure
 
 #: panels per row of the confusion-matrix and PR figures
@@ -49,7 +49,6 @@ def tide_figure(
     """Grouped bars: per error type (and the two bounds), one bar per detector, ± SD over folds.
 
     ``rows``: (detector, {type: Stat}); values are fractions, drawn in points."""
-    from harness.report.evidence import ERROR_LABELS
 
     types = [*ERROR_TYPES, *SPECIAL_TYPES]
     col = colours(order)

@@ -12,8 +12,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Sequence
 
 from harness.evaluation import aggregate_folds, mean_sd
+from harness.report.cells import Stat, format_value
 from harness.report.reader import ResultLabel, StoredRun, label_notes, marks, merge_labels
-from harness.report.tables import Stat, format_value
 from harness.textable import fit_text, text_table
 
 if TYPE_CHECKING:

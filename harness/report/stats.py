@@ -67,8 +67,9 @@ import numpy as np
 
 from harness.errors import StoreError
 from harness.evaluation import mean_sd
+from harness.report.cells import Stat
 from harness.report.reader import Entry, ResultLabel, StoreView, label_notes, marks, natural_key
-from harness.report.tables import Stat, text_table
+from harness.textable import text_table
 
 log = logging.getLogger(__name__)
 

@@ -31,6 +31,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
+from harness.report.cells import Interval, Stat, _number, _raw, format_value  # noqa: F401 (re-exported)
 from harness.report.reader import (
     MARKS,
     Entry,
@@ -49,33 +50,6 @@ ABLATION_CATEGORIES = ("delamination", "water seepage")
 #: Columns of the tidy long-format records (``tidy.csv``).
 RECORD_FIELDS = ("table", "dataset", "detector", "encoding", "fold", "category", "metric", "value", "sd", "n", "unit",
                  "images", "instances", "seeds", "sample_matched")
-
-
-@dataclass(frozen=True)
-class Stat:
-    """A mean with its sample SD over ``n`` values (folds, seeds or resamples)."""
-
-    mean: float | None
-    sd: float | None = None
-    n: int = 1
-
-    @classmethod
-    def from_mean_sd(cls, rec: Mapping[str, Any] | None) -> "Stat":
-        rec = rec or {}
-        return cls(rec.get("mean"), rec.get("sd"), int(rec.get("n") or 0))
-
-
-@dataclass(frozen=True)
-class Interval:
-    """A point estimate with a confidence interval (e.g. a bootstrap 95 % CI of a difference)."""
-
-    value: float | None
-    low: float | None
-    high: float | None
-
-    @property
-    def excludes_zero(self) -> bool:
-        return self.low is not None and self.high is not None and (self.low > 0 or self.high < 0)
 
 
 @dataclass(frozen=True)
@@ -199,57 +173,6 @@ class Table:
 
 
 # -------------------------------------------------------------------------------------------------- formatting
-def _number(v: Any) -> float | None:
-    if isinstance(v, Stat):
-        v = v.mean
-    elif isinstance(v, Interval):
-        v = v.value
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return None
-    return float(v) if math.isfinite(float(v)) else None
-
-
-def _raw(v: Any) -> Any:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return "" if not math.isfinite(v) else repr(v)
-    return v
-
-
-def format_value(v: Any, kind: str, digits: int = 1) -> str:
-    """One cell as text; ``None`` and NaN are ``-``."""
-    if v is None:
-        return "-"
-    if isinstance(v, str):
-        return v
-    scale = 100.0 if kind in ("pct", "pp") else 1.0
-
-    def num(x: float | None, signed: bool = False) -> str:
-        if x is None or not math.isfinite(float(x)):
-            return "-"
-        if kind == "int":
-            return f"{int(round(x)):,}"
-        if kind == "sig":
-            return f"{x:.3g}"
-        return f"{scale * float(x):{'+' if signed else ''}.{digits}f}"
-
-    if isinstance(v, Stat):
-        if v.mean is None:
-            return "-"
-        return num(v.mean, kind == "pp") + (f" ± {num(v.sd)}" if v.sd is not None else "")
-    if isinstance(v, Interval):
-        if v.value is None:
-            return "-"
-        ci = f" [{num(v.low, True)}, {num(v.high, True)}]" if v.low is not None and v.high is not None else ""
-        return num(v.value, kind == "pp") + ci
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, (int, float)):
-        return num(v, kind == "pp")
-    return str(v)
-
-
 def _md_escape(text: str) -> str:
     return str(text).replace("|", "\\|")
 

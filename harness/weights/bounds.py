@@ -7,9 +7,6 @@ types of a read, and two helpers that are safe on anything a hostile file can bu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
-
-import torch
 
 from harness.errors import HarnessError
 
@@ -65,34 +62,6 @@ def human(n: int | float) -> str:
             return f"{int(n)} bytes" if unit == "bytes" else f"{n:.1f} {unit}"
         n /= 1024
     raise AssertionError  # pragma: no cover
-
-
-def brief(obj: Any, width: int = 60) -> str:
-    """A short description of any object that never walks into it (``repr`` of a hostile structure can take
-    exponential time, recurse without bound or fail on a huge integer)."""
-    if isinstance(obj, str):
-        return repr(obj if len(obj) <= width else obj[:width] + "...")
-    if isinstance(obj, bool) or obj is None:
-        return repr(obj)
-    if isinstance(obj, int):
-        return repr(obj) if obj.bit_length() <= 64 else f"<int of {obj.bit_length()} bits>"
-    if isinstance(obj, float):
-        return repr(obj)
-    if isinstance(obj, (bytes, bytearray)):
-        return f"<{type(obj).__name__} of {len(obj)}>"
-    if isinstance(obj, (list, tuple, dict, set, frozenset)):
-        return f"<{type(obj).__name__} of {len(obj)} items>"
-    from harness.weights.rebuild import Stub, Token
-
-    if isinstance(obj, Stub):
-        return f"<{obj.stub_name[:width]}>"
-    if isinstance(obj, type) and issubclass(obj, Stub):
-        return obj.__stub_name__[:width]
-    if isinstance(obj, Token):
-        return obj.name[:width]
-    if isinstance(obj, torch.Tensor):
-        return f"<tensor {tuple(obj.shape)}>"
-    return f"<{type(obj).__name__}>"
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,6 @@ from harness.weights.bounds import (
     CheckpointFormatError,
     CheckpointLimitError,
     UnsafeCheckpointError,
-    brief,
     human,
 )
 
@@ -477,3 +476,29 @@ REBUILD: dict[tuple[str, str], Any] = {
     **{("torch", n): StorageType(n) for n in _STORAGE_DTYPES},
     **{("torch", n): d for n, d in _DTYPES.items()},
 }
+
+
+def brief(obj: Any, width: int = 60) -> str:
+    """A short description of any object that never walks into it (``repr`` of a hostile structure can take
+    exponential time, recurse without bound or fail on a huge integer)."""
+    if isinstance(obj, str):
+        return repr(obj if len(obj) <= width else obj[:width] + "...")
+    if isinstance(obj, bool) or obj is None:
+        return repr(obj)
+    if isinstance(obj, int):
+        return repr(obj) if obj.bit_length() <= 64 else f"<int of {obj.bit_length()} bits>"
+    if isinstance(obj, float):
+        return repr(obj)
+    if isinstance(obj, (bytes, bytearray)):
+        return f"<{type(obj).__name__} of {len(obj)}>"
+    if isinstance(obj, (list, tuple, dict, set, frozenset)):
+        return f"<{type(obj).__name__} of {len(obj)} items>"
+    if isinstance(obj, Stub):
+        return f"<{obj.stub_name[:width]}>"
+    if isinstance(obj, type) and issubclass(obj, Stub):
+        return obj.__stub_name__[:width]
+    if isinstance(obj, Token):
+        return obj.name[:width]
+    if isinstance(obj, torch.Tensor):
+        return f"<tensor {tuple(obj.shape)}>"
+    return f"<{type(obj).__name__}>"

@@ -75,10 +75,9 @@ from harness.weights.bounds import (
     Limits,
     MiB,
     UnsafeCheckpointError,
-    brief,
     human,
 )
-from harness.weights.rebuild import REBUILD, StorageType, Stub, Token, out_itemsize, stub_class, tensor_dims
+from harness.weights.rebuild import REBUILD, StorageType, Stub, Token, brief, out_itemsize, stub_class, tensor_dims
 
 __all__ = [
     "load_checkpoint",
