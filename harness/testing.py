@@ -33,7 +33,11 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import pytest
 
+from harness.plugins import _temporary_plugin as temporary_plugin
 from harness.plugins import reset_plugins
+
+__all__ = ["temporary_plugin", "reset_plugins", "harness_host", "harness_plugin", "harness_cli", "fresh_harness"]
+
 
 if TYPE_CHECKING:  # pragma: no cover
     from types import ModuleType

@@ -44,7 +44,9 @@ def test_a_fresh_host_loads_again(fresh_harness):
 """
 
 
-def test_a_plugin_authors_tests_use_the_shipped_fixtures(pytester, harness_host):
+def test_a_plugin_authors_tests_use_the_shipped_fixtures(harness_host, pytester):
+    # the host first: pytester forgets, when it ends, every module imported after it began, and a plugin module
+    # imported again later would no longer hold the functions the host registered (pickling them then fails)
     before = sorted(name for name, _ in harness_host.pm.list_name_plugin())
     pytester.makeconftest('pytest_plugins = ["harness.testing"]\n')
     pytester.makepyfile(test_mine=AUTHOR_TESTS)
