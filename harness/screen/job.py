@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 from harness.errors import ConfigError, DataError, HarnessError
+from harness.io import file_digest
 from harness.screen import outputs as out
 from harness.screen.findings import frame_findings
 from harness.screen.flight import Capture, Flight, find_captures, inspection_groups
 from harness.screen.frontend import Frame, FrontEnd, FrontEndSettings, RegistrationRejected
-from harness.screen.model import Predictor, ScreenModel, file_sha1, from_run, from_weights
+from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +211,7 @@ def load_homography(path: str | Path | None, group: str | None) -> dict[str, Any
     if group not in entries:
         raise ConfigError(f"{path}: no group {group!r}; it holds {', '.join(sorted(entries))}")
     e = entries[group]
-    return {"H": e.H.tolist(), "method": e.method, "source": str(path), "group": group, "sha1": file_sha1(Path(path))}
+    return {"H": e.H.tolist(), "method": e.method, "source": str(path), "group": group, "sha1": file_digest(path)}
 
 
 def screen_key(sm: ScreenModel, settings: FrontEndSettings, backend: str) -> str:

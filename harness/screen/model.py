@@ -16,7 +16,6 @@ outputs (its ``forward_raw`` is answered by the session), so only the network it
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,18 +24,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from harness.errors import ConfigError, PluginError, StoreError
+from harness.io import file_digest
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("torch", "onnx")
-
-
-def file_sha1(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 @dataclass
@@ -142,7 +134,7 @@ def from_run(run_dir: str | Path, threshold: float | None = None) -> ScreenModel
                                                                           "seed")},
            "config_hash": status.get("config_hash"), "held_out": meta.get("val_groups")}
     return ScreenModel(det, model, categories, enc, dict((cfg.get("encoding") or {}).get(enc.name) or {}), cfg,
-                       weights, file_sha1(weights), thr, source, run)
+                       weights, file_digest(weights), thr, source, run)
 
 
 def from_weights(weights: str | Path, detector: str, dataset: str, encoding: str | None = None,
@@ -168,7 +160,7 @@ def from_weights(weights: str | Path, detector: str, dataset: str, encoding: str
     thr = float(threshold) if threshold is not None else float(cfg["eval"]["conf"])
     source = "--conf" if threshold is not None else "eval.conf of the configuration (no run: no operating point)"
     return ScreenModel(det, model, categories, enc, dict((cfg.get("encoding") or {}).get(enc.name) or {}), cfg,
-                       path, file_sha1(path), thr, source, {"dataset": ds.name})
+                       path, file_digest(path), thr, source, {"dataset": ds.name})
 
 
 # ------------------------------------------------------------------------------------------------ prediction
@@ -238,7 +230,7 @@ class Predictor:
             log.info("exporting the model to %s (ONNX, BatchNorm folded, dynamic batch)", path)
             rec = export_onnx(sm.model, inputs, path, dynamic_batch=True, check=True)
             record = {**want, **{k: rec.get(k) for k in ("opset", "exporter", "fused", "max_abs_diff", "atol")},
-                      "onnx_sha1": file_sha1(path)}
+                      "onnx_sha1": file_digest(path)}
             atomic_write_json(record_path, record)
         self.onnx = {"path": str(path), **record}
         session = ort_session(path, threads)
