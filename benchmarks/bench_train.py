@@ -55,6 +55,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = 0.85  # ours / Ultralytics, train step
@@ -311,16 +312,25 @@ def build_step(kind: str, size: int, batch: int, classes: int):
     return step, what
 
 
-def measure_step(args: argparse.Namespace) -> dict:
+def warm_step(args: argparse.Namespace) -> tuple[Callable[[], None], str] | dict:
+    """The step that ``args.measure`` names, on ``--step-threads`` threads, after one warm-up call (first-call
+    allocations, lazy criterion and anchor caches); or the "missing" record when its package does not import."""
     import torch
 
     torch.set_num_threads(args.step_threads)
-    kind = args.measure.split("-", 1)[1]
     try:
-        step, what = build_step(kind, args.imgsz, args.batch, args.classes)
+        step, what = build_step(args.measure.split("-", 1)[1], args.imgsz, args.batch, args.classes)
     except ImportError as exc:
         return {"what": args.measure, "missing": f"{type(exc).__name__}: {exc}"}
-    step()  # warm-up: first-call allocations, lazy criterion and anchor caches
+    step()
+    return step, what
+
+
+def measure_step(args: argparse.Namespace) -> dict:
+    built = warm_step(args)
+    if isinstance(built, dict):
+        return built
+    step, what = built
     times = []
     for _ in range(args.steps):
         t0 = time.thread_time()  # CPU time of this (the only torch) thread: robust to other processes' load
@@ -359,16 +369,12 @@ def measure_breakdown(args: argparse.Namespace) -> dict:
     """CPU (thread) time of every ATen op in one train step after a warm-up, grouped by ``OP_GROUPS``, and the
     convolutions' GFLOP/s. The dispatch hook costs a few microseconds per op: it lands in "outside ops" (the Python
     and autograd work between ops), not in the op groups."""
-    import torch
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    torch.set_num_threads(args.step_threads)
-    kind = args.measure.split("-", 1)[1]
-    try:
-        step, what = build_step(kind, args.imgsz, args.batch, args.classes)
-    except ImportError as exc:
-        return {"what": args.measure, "missing": f"{type(exc).__name__}: {exc}"}
-    step()
+    built = warm_step(args)
+    if isinstance(built, dict):
+        return built
+    step, what = built
     times: dict[str, float] = {}
     flops = [0.0]
 
