@@ -33,10 +33,18 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import pytest
 
-from harness.plugins import _temporary_plugin as temporary_plugin
-from harness.plugins import reset_plugins
+# temporary_plugin and reset_plugins come from __getattr__ below
+__all__ = ["temporary_plugin", "reset_plugins", "harness_host", "harness_plugin", "harness_cli", "fresh_harness"]  # noqa: F822
 
-__all__ = ["temporary_plugin", "reset_plugins", "harness_host", "harness_plugin", "harness_cli", "fresh_harness"]
+
+def __getattr__(name: str) -> Any:
+    """``temporary_plugin`` and ``reset_plugins``, the plugin host's own, looked up on first use: pytest imports this
+    module at every start (``pytest11``), and it imports nothing of the harness until a test asks."""
+    if name in ("temporary_plugin", "reset_plugins"):
+        from harness import plugins
+
+        return plugins._temporary_plugin if name == "temporary_plugin" else plugins.reset_plugins
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -99,8 +107,8 @@ def fresh_harness() -> Iterator[ModuleType]:
     """The plugin machinery with nothing loaded; the normal state (every plugin loaded) is restored afterwards."""
     from harness import plugins
 
-    reset_plugins()
+    plugins.reset_plugins()
     try:
         yield plugins
     finally:
-        reset_plugins(plugins.load_plugins)
+        plugins.reset_plugins(plugins.load_plugins)
