@@ -16,6 +16,7 @@ the runs name (``harness.report.gallery``).
 """
 
 from harness.report.build import FORMATS, Report, Section, build_report
+from harness.report.cells import Interval, Stat
 from harness.report.plots import pareto_front
 from harness.report.reader import Entry, FoldResult, ResultLabel, StoredRun, StoreView
 from harness.report.stats import (
@@ -26,7 +27,7 @@ from harness.report.stats import (
     paired_comparison,
     resample_coco,
 )
-from harness.report.tables import Column, Interval, Stat, Table
+from harness.report.tables import Column, Table
 
 __all__ = [
     "FORMATS",

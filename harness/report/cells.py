@@ -37,24 +37,6 @@ class Interval:
         return self.low is not None and self.high is not None and (self.low > 0 or self.high < 0)
 
 
-def _number(v: Any) -> float | None:
-    if isinstance(v, Stat):
-        v = v.mean
-    elif isinstance(v, Interval):
-        v = v.value
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return None
-    return float(v) if math.isfinite(float(v)) else None
-
-
-def _raw(v: Any) -> Any:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return "" if not math.isfinite(v) else repr(v)
-    return v
-
-
 def format_value(v: Any, kind: str, digits: int = 1) -> str:
     """One cell as text; ``None`` and NaN are ``-``."""
     if v is None:

@@ -31,7 +31,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
-from harness.report.cells import Interval, Stat, _number, _raw, format_value  # noqa: F401 (re-exported)
+from harness.report.cells import Interval, Stat, format_value
 from harness.report.reader import (
     MARKS,
     Entry,
@@ -173,6 +173,24 @@ class Table:
 
 
 # -------------------------------------------------------------------------------------------------- formatting
+def _number(v: Any) -> float | None:
+    if isinstance(v, Stat):
+        v = v.mean
+    elif isinstance(v, Interval):
+        v = v.value
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(float(v)) else None
+
+
+def _raw(v: Any) -> Any:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else repr(v)
+    return v
+
+
 def _md_escape(text: str) -> str:
     return str(text).replace("|", "\\|")
 
