@@ -139,7 +139,18 @@ def read_json(path: str | Path) -> Any:
     from harness.errors import DataError
 
     path = Path(path)
-    text = read_text(path)
+    if path.suffix == ".gz":  # gzip-compressed JSON (the shipped reference results' predictions and ground truth)
+        import gzip
+
+        try:
+            with gzip.open(path, "rt", encoding="utf-8") as f:
+                text = f.read()
+        except FileNotFoundError:
+            raise DataError(f"{path}: file not found") from None
+        except (OSError, EOFError) as exc:
+            raise DataError(f"{path}: cannot read gzip-compressed JSON ({exc})") from None
+    else:
+        text = read_text(path)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

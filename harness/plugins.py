@@ -74,6 +74,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "harness.commands.pretrain",
     "harness.commands.run",
     "harness.commands.sweep",
+    "harness.commands.benchmark",
     "harness.commands.report",
     "harness.commands.weights",
     "harness.commands.score",

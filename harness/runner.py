@@ -554,6 +554,14 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
                 "torch_deterministic": torch.are_deterministic_algorithms_enabled(),
             },
             "degenerate_detections": degenerate.to_dict(),
+            # the samples by content (harness.cache.reader.PreparedDataset.content_digest): what reference results
+            # are matched on, so a code change that leaves the samples identical keeps a comparison valid
+            "samples": {
+                "encoding": enc.name,
+                "train": prepared.content_digest(train_idx, enc, enc_params),
+                "held_out": prepared.content_digest(val_idx, enc, enc_params),
+                "aligned": {"train": prepared.content_digest(train_idx), "held_out": prepared.content_digest(val_idx)},
+            },
             "input_risks": list((cfg.get("meta") or {}).get("input_risks") or []),  # accepted by inputs.accept
         }
         if degenerate_note:

@@ -38,6 +38,9 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
       "external": {...},                             # runs of `harness score`: identity and matching counts
       "labels": [str, ...],                          # optional: a risk accepted when the result was stored
       "input_risks": [str, ...],                     # trained runs: dataset input risks accepted (inputs.accept)
+      "samples": {"encoding", "train", "held_out"},  # trained runs: content digests of the samples trained on and
+                                                     # scored (PreparedDataset.content_digest); reference results
+                                                     # are matched on them (harness.references)
       "temperatures": {"label", "samples", "bound_c", "approximations"}   # optional: approximate temperatures
     }
 
@@ -154,13 +157,22 @@ class RunBusyError(StoreError):
 
 
 class _RunFile:
-    """A file (or folder) of a run's folder, as a read-only attribute: ``run.metrics_path``."""
+    """A file (or folder) of a run's folder, as a read-only attribute: ``run.metrics_path``.
 
-    def __init__(self, name: str):
-        self.name = name
+    ``packed``: the file may be stored gzip-compressed as ``<name>.gz`` (the shipped reference results keep their
+    ground truth and predictions so); the path is then that of the ``.gz`` file when only it exists, and
+    ``harness.io.read_json`` reads either."""
+
+    def __init__(self, name: str, packed: bool = False):
+        self.name, self.packed = name, packed
 
     def __get__(self, run: Run, owner: type | None = None) -> Path:
-        return run.path / self.name
+        path = run.path / self.name
+        if self.packed and not path.exists():
+            gz = run.path / f"{self.name}.gz"
+            if gz.exists():
+                return gz
+        return path
 
 
 class Run:
@@ -174,8 +186,8 @@ class Run:
     config_path = _RunFile("config.yaml")
     status_path = _RunFile("status.json")
     metrics_path = _RunFile("metrics.json")
-    predictions_path = _RunFile("predictions.json")
-    gt_path = _RunFile("gt.json")
+    predictions_path = _RunFile("predictions.json", packed=True)
+    gt_path = _RunFile("gt.json", packed=True)
     log_path = _RunFile("log.jsonl")
     checkpoint_dir = _RunFile("checkpoints")
     lock_path = _RunFile(".lock")

@@ -220,6 +220,31 @@ class PreparedDataset:
         b, n = r["box"], r["n"]
         return self._boxes[b * 4 : (b + n) * 4].reshape(n, 4), self._labels[b : b + n]
 
+    def content_digest(self, indices: Sequence[int], encoding: Any = None, params: dict[str, Any] | None = None) -> str:
+        """blake2b of what a detector sees of the samples at ``indices``, in that order: image id, group, RGB pixels,
+        the encoding's channel (none for RGB only; with ``encoding=None`` the temperatures, or the 8-bit thermal picture,
+        of the aligned sample instead), boxes and labels. It identifies samples by their content, so a
+        change to the code or the cache key that leaves the samples identical leaves it unchanged (reference results
+        rest on it: ``harness.references``)."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(f"{getattr(encoding, 'name', 'none')}\n".encode())
+        for i in indices:
+            r = self.records[i]
+            rgb = np.ascontiguousarray(self.rgb(i))
+            h.update(f"{int(r['image_id'])}\t{r['group']}\t{rgb.shape}\n".encode())
+            h.update(rgb.tobytes())
+            if encoding is None:  # the aligned sample itself: temperatures (or the 8-bit thermal picture)
+                sample = self[i]
+                ch = sample.thermal if sample.thermal is not None else sample.ir8
+            else:
+                ch = self.channel(i, encoding, params)
+            if ch is not None:
+                h.update(np.ascontiguousarray(ch).tobytes())
+            boxes, labels = self.targets(i)
+            h.update(np.ascontiguousarray(boxes, dtype=np.float32).tobytes())
+            h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
+        return h.hexdigest()
+
     # ------------------------------------------------------------------ encodings
     def channel(self, i: int, encoding: Any, params: dict[str, Any] | None = None) -> np.ndarray | None:
         """The encoding's uint8 HxW channel of sample ``i`` (computed for the whole dataset on first use)."""

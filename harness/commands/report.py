@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from harness.commands import options as opt
+from harness.commands.benchmark import load_reference_option, reference_results_option
 from harness.hookspecs import hookimpl
 
 
@@ -37,10 +38,12 @@ def register_commands(cli: click.Group) -> None:
                        "was not run).")
     @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
                   help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
+    @reference_results_option()
     @opt.no_progress_option()
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
                    print_tables: bool, resamples: int, bootstrap_seed: int, workers: int, ablation_categories: str,
-                   title: str | None, reference: str, log_to: str | None = None) -> None:
+                   title: str | None, reference: str, log_to: str | None = None,
+                   reference_results: str | None = None) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         Per dataset: the project-grouped folds table (per-fold mAP50 and mAP50:95, mean ± sample SD, Params,
@@ -65,7 +68,8 @@ def register_commands(cli: click.Group) -> None:
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
         report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples,
                               seed=bootstrap_seed, ablation_categories=cats, title=title, progress=True,
-                              workers=workers, reference=reference)
+                              workers=workers, reference=reference,
+                              references=load_reference_option(reference_results))
         if print_tables:
             click.echo(report.to_text())
             return
@@ -100,9 +104,10 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
                   help="Processes for the bootstrap's re-scoring.")
     @opt.format_option("text", "json", old_json=True)
+    @reference_results_option()
     @opt.no_progress_option()
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
-                              bootstrap_seed: int, workers: int, fmt: str) -> None:
+                              bootstrap_seed: int, workers: int, fmt: str, reference_results: str | None = None) -> None:
         """Paired comparison of A and B (DETECTOR or DETECTOR/ENCODING) on the same held-out images.
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
@@ -117,9 +122,12 @@ def register_commands(cli: click.Group) -> None:
         from harness.progress import bar
         from harness.report import compare_detectors
 
+        from harness.report.reader import StoreView
+
         root = opt.resolve_store(store, profile)
+        view = StoreView(root, references=load_reference_option(reference_results))
         with bar("bootstrap") as b_bar:
-            comp = compare_detectors(root, dataset, a, b, resamples=resamples, seed=bootstrap_seed,
+            comp = compare_detectors(view, dataset, a, b, resamples=resamples, seed=bootstrap_seed,
                                      progress=b_bar.advance, on_total=lambda n: b_bar.update(total=n),
                                      workers=workers)
         if fmt == "json":

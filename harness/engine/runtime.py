@@ -94,6 +94,10 @@ def environment(device: torch.device | None = None) -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "device": str(device) if device is not None else None,
     }
+    try:  # the instruction set torch's CPU kernels use (AVX2 and AVX-512 round differently)
+        env["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    except Exception:
+        pass
     if device is not None and device.type == "cuda":
         env["gpu"] = torch.cuda.get_device_name(device)
         env["cuda"] = torch.version.cuda

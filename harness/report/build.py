@@ -35,6 +35,7 @@ from harness.errors import HarnessError
 from harness.report.curves import curves_section
 from harness.report.document import FigureOut, Report, Section
 from harness.report.plots import PlotPoint, accuracy_vs_gflops, pareto_front
+from harness.report.reader import REFERENCE_PREFIX as REF_PREFIX
 from harness.report.reader import Entry, StoreView, label_notes
 from harness.report.sizes import size_tables
 from harness.report.stats import BootstrapScorer, PairedComparison, paired_comparison
@@ -184,6 +185,10 @@ def _paired_section(
     entry when the reference was not run), then, within one detector, its best encoding against the others."""
     sec = Section("paired", "Paired comparisons", dataset)
     entries = view.entries(dataset)
+    if view.references is not None and not view.pairs_with_references(dataset):
+        # reference results trained at another budget are shown beside the store's runs, never paired with them
+        entries = [e for e in entries if not e.detector.startswith(REF_PREFIX)]
+        rows = [e for e in rows if not e.detector.startswith(REF_PREFIX)]
     pairs: list[tuple[Entry, Entry]] = []
     skipped: list[str] = []
 
@@ -191,7 +196,8 @@ def _paired_section(
         return max(candidates, key=lambda e: (e.aggregate()["metrics"].get("mAP50_95") or {}).get("mean") or -1.0)
 
     if len(rows) >= 2:
-        ref = next((e for e in rows if e.detector == reference), None) or best(rows)
+        ref = (next((e for e in rows if e.detector == reference), None)
+               or next((e for e in rows if e.detector == f"{REF_PREFIX}{reference}"), None) or best(rows))
         pairs += [(ref, e) for e in rows if e is not ref]
     by_det: dict[str, list[Entry]] = {}
     for e in entries:
@@ -306,6 +312,7 @@ def dataset_sections(
         sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
     else:
         sec.tables.append(table)
+    sec.notes += view.reference_notes.get(dataset, [])
     unfinished = view.unfinished(dataset)
     if unfinished:
         sec.notes.append(
@@ -437,19 +444,21 @@ def build_report(
     reference: str | None = REFERENCE,
     cache_root: str | Path | None = None,
     gallery: bool = True,
+    references: Any = None,
 ) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
     differences only); ``workers``: processes for the bootstrap; ``reference``: the detector compared with each
     other one (the most accurate when absent); ``cache_root``: the prepared cache the galleries draw their pixels
-    from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out. Returns the
+    from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out; ``references``: reference
+    results (``harness.references.ReferenceSet``) read beside the store, as ``ref:<detector>`` entries. Returns the
     ``Report`` (its ``files`` lists what was written).
     """
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise HarnessError(f"unknown report format(s) {', '.join(bad)}; use any of {', '.join(FORMATS)}")
-    view = StoreView(store)
+    view = StoreView(store, references=references)
     available = view.datasets()
     if datasets:
         missing = [d for d in datasets if d not in available]

@@ -37,6 +37,8 @@ from harness.store import Run, Store
 
 log = logging.getLogger(__name__)
 
+#: The name reference results' entries get beside a store's own (``ref:ours``; ``harness.references``).
+REFERENCE_PREFIX = "ref:"
 #: Headline metrics averaged over seeds within a fold.
 SEED_METRICS = ("mAP50", "mAP50_95", "precision", "recall", "f1")
 #: Per-category metrics averaged over seeds within a fold.
@@ -441,7 +443,7 @@ def group_entries(dataset: str, runs: Iterable[StoredRun]) -> list[Entry]:
 class StoreView:
     """Read-only, report-oriented view of a results store."""
 
-    def __init__(self, store: Store | str | Path):
+    def __init__(self, store: Store | str | Path, references: Any = None):
         self.store = store if isinstance(store, Store) else Store(store)
         if not self.store.root.is_dir():
             raise StoreError(f"{self.store.root}: no results store here; pass --store (the folder `harness run` wrote "
@@ -449,6 +451,13 @@ class StoreView:
         self._entries: dict[str, list[Entry]] = {}
         #: files that could not be read (named, with the reason); the report lists them instead of failing
         self.problems: list[str] = []
+        #: reference results read beside the store (``harness.references.ReferenceSet``): their runs join the
+        #: store's as ``ref:<detector>`` entries once the store's runs are checked to use the same samples
+        self.references = references
+        self._reference_runs: dict[str, list[StoredRun]] = {}
+        #: per dataset: notes on the reference results (what they are, which folds they lack)
+        self.reference_notes: dict[str, list[str]] = {}
+        self._references_paired = False
 
     @property
     def root(self) -> Path:
@@ -476,7 +485,40 @@ class StoreView:
                 self.problem(f"{run.key}: skipped, {run.metrics_path} has no {', '.join(missing)} section")
                 continue
             out.append(stored)
+        if self.references is not None and dataset == self.references.dataset:
+            out += self.reference_runs(dataset, out)
         return out
+
+    def reference_runs(self, dataset: str, own: Sequence[StoredRun]) -> list[StoredRun]:
+        """The reference results' runs of ``dataset``, after checking that ``own`` (the store's runs) used the same
+        samples (``harness.references.check_matched``: a mismatch is an error naming what differs)."""
+        if dataset not in self._reference_runs:
+            from harness.references import check_matched, same_training
+
+            refs = self.references
+            notes = check_matched(refs, own)
+            runs = refs.runs()
+            for text in refs.problems:
+                self.problem(f"reference results: {text}")
+            self._reference_runs[dataset] = runs
+            trained = [r for r in own if not r.metrics.get("external")]
+            same = same_training(refs, trained) if trained else True
+            self.reference_notes[dataset] = [
+                f"Reference results ({len(runs)} runs, entries named ref:DETECTOR): {refs.describe()}; read from "
+                f"{refs.root}. The store's runs were checked to use the same samples (content digests)."
+            ] + (["The store's runs were trained at another image size or number of epochs than the reference "
+                  "results: they are shown side by side, not paired (a comparison of two training budgets, "
+                  "not of detectors)."] if not same else []) + notes
+            self._references_paired = same
+        return list(self._reference_runs[dataset])
+
+    def pairs_with_references(self, dataset: str) -> bool:
+        """Whether paired comparisons may pair the store's entries with the reference entries of ``dataset``."""
+        if self.references is None or dataset != self.references.dataset:
+            return False
+        if dataset not in self._reference_runs:
+            self.finished_runs(dataset)
+        return self._references_paired
 
     # ------------------------------------------------------------------------------------------ what is there
     def datasets(self) -> list[str]:
@@ -484,6 +526,8 @@ class StoreView:
         names = {r.key.dataset for r in self.store.runs(finished_only=False)}
         for p in self.root.glob("*/_sensing/*.json"):
             names.add(p.parent.parent.name)
+        if self.references is not None:
+            names.add(self.references.dataset)
         return sorted((n for n in names if not n.startswith("_")), key=natural_key)
 
     def unfinished(self, dataset: str) -> list[tuple[str, str]]:

@@ -1,0 +1,510 @@
+"""The reference benchmark: the four detectors x four folds x three seeds and the encoding ablation, at the
+``benchmark`` profile on the small ``m3t-synth`` set, run in lanes (one run per core) and resumed where it stopped.
+
+``plan_benchmark(BenchmarkSpec(...))`` lists the benchmark's cells and asks the results store which are left to do,
+through the sweep's planning (``harness.sweep.expand``): a finished cell with the same configuration is skipped, a
+finished cell with another configuration stops everything before anything trains, and an interrupted cell resumes
+from its ``last.pt`` when it runs again. ``run_benchmark`` then runs the cells left in ``lanes`` worker processes at
+a time (``harness run`` for one fold and seed, one torch thread each, its log in ``<store>/_benchmark/logs``),
+longest first, and prints the overall progress with an ETA after every epoch of any lane (``BenchmarkProgress``).
+A cell that fails is listed at the end; the others go on.
+
+The cells:
+
+* every detector of ``DETECTORS`` on every fold of the dataset, with the dataset's encoding (``c2``), seeds 0, 1, 2,
+  each with ``configs/benchmark/<detector>.yaml`` on top of the profile;
+* the encoding ablation: ``ours`` with each of ``ENCODINGS`` on ``P4+P5`` (the seed's ablation split), seeds 0, 1, 2
+  (its ``c2`` cells are the detector grid's own).
+
+The shipped reference results (``harness.references``) are this benchmark's store, exported.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence, TextIO
+
+from harness.errors import ConfigError
+from harness.sweep import JobResult, SweepJob, SweepSpec
+
+log = logging.getLogger(__name__)
+
+DATASET = "m3t-synth"
+PROFILE = "benchmark"
+DETECTORS = ("ours", "eme", "icafusion", "cmadet")
+SEEDS = (0, 1, 2)
+ABLATION_DETECTOR = "ours"
+ABLATION_FOLD = "P4+P5"
+ENCODINGS = ("none", "ir8", "linear16", "c2")
+#: Default results store of ``harness benchmark run`` and ``make benchmark``.
+DEFAULT_STORE = Path("results") / PROFILE
+#: Relative CPU time of one epoch per detector at the benchmark's sizes (ours = 1; measured side by side on one
+#: 2-core machine, docs/benchmark.md); only used to order the cells (longest first, so the lanes end together) and
+#: for the ETA before a detector's first epoch has been timed in this call.
+RELATIVE_COST = {"ours": 1.0, "eme": 0.8, "icafusion": 1.9, "cmadet": 2.3}
+
+
+def detector_config(detector: str) -> Path | None:
+    """``configs/benchmark/<detector>.yaml`` when it exists (the per-detector options of the benchmark)."""
+    from harness.config import config_dir
+
+    path = config_dir() / "benchmark" / f"{detector}.yaml"
+    return path if path.is_file() else None
+
+
+@dataclass(frozen=True)
+class BenchmarkSpec:
+    """What to run; the defaults are the reference benchmark."""
+
+    store: str | Path = DEFAULT_STORE
+    detectors: tuple[str, ...] = DETECTORS
+    folds: str = "all"
+    seeds: tuple[int, ...] = SEEDS
+    ablation: bool = True
+    encodings: tuple[str, ...] = ENCODINGS
+    dataset: str = DATASET
+    profile: str = PROFILE
+    overrides: tuple[str, ...] = ()
+    force: bool = False
+
+
+@dataclass
+class BenchmarkPlan:
+    store: Path
+    jobs: list[SweepJob] = field(default_factory=list)  # cells left to do, longest first
+    skipped: list[JobResult] = field(default_factory=list)  # finished earlier with the same configuration
+    invalid: list[str] = field(default_factory=list)
+
+    @property
+    def cells(self) -> int:
+        return len(self.jobs) + len(self.skipped)
+
+
+def _specs(spec: BenchmarkSpec) -> list[SweepSpec]:
+    out = []
+    for det in spec.detectors:
+        cfg = detector_config(det)
+        common = dict(datasets=(spec.dataset,), seeds=tuple(spec.seeds), profile=spec.profile,
+                      config_files=(str(cfg),) if cfg else (), overrides=tuple(spec.overrides),
+                      store=str(spec.store), force=spec.force)
+        out.append(SweepSpec(detectors=(det,), folds=spec.folds, **common))  # type: ignore[arg-type]
+        if spec.ablation and det == ABLATION_DETECTOR:
+            out.append(SweepSpec(detectors=(det,), folds=ABLATION_FOLD, encodings=tuple(spec.encodings),
+                                 **common))  # type: ignore[arg-type]
+    return out
+
+
+def plan_benchmark(spec: BenchmarkSpec) -> BenchmarkPlan:
+    """The benchmark's cells, checked against the results store (see the module docstring)."""
+    from harness.sweep import expand
+
+    if not spec.seeds:
+        raise ConfigError("the benchmark needs at least one seed (--seeds)")
+    if len(set(spec.seeds)) != len(spec.seeds):
+        raise ConfigError(f"--seeds {','.join(map(str, spec.seeds))}: a seed is listed twice")
+    plan = BenchmarkPlan(store=Path(spec.store).resolve())
+    seen: set[str] = set()
+    for sweep_spec in _specs(spec):
+        part = expand(sweep_spec)
+        plan.invalid.extend(part.invalid)
+        for job in part.jobs:
+            if str(job) not in seen:
+                seen.add(str(job))
+                plan.jobs.append(job)
+        for done in part.skipped:
+            if done.run not in seen:
+                seen.add(done.run)
+                plan.skipped.append(done)
+    plan.jobs.sort(key=lambda j: (-RELATIVE_COST.get(j.detector, 1.0), DETECTORS.index(j.detector)
+                                  if j.detector in DETECTORS else len(DETECTORS), j.fold, j.encoding, j.seed))
+    return plan
+
+
+# ------------------------------------------------------------------------------------------------- progress
+@dataclass
+class _Lane:
+    job: SweepJob
+    started: float
+    epochs_done: int = 0  # epochs logged so far (a resumed cell starts with those of its earlier attempt)
+    epochs: int = 0
+    start_epochs: int = 0
+
+
+class BenchmarkProgress:
+    """Overall progress of the benchmark over all lanes, on stderr: cells done, running, failed, elapsed and ETA.
+
+    The ETA sums the epochs left (of the cells running and of those waiting) times each detector's seconds per epoch
+    measured in this call (its first epochs), or, before a detector has been timed, the mean of the others scaled by
+    ``RELATIVE_COST``; divided by the lanes. Early stopping can only make it shorter."""
+
+    def __init__(self, jobs: Sequence[SweepJob], epochs: int, lanes: int, skipped: int = 0, enabled: bool = True,
+                 stream: TextIO | None = None, now: Callable[[], float] | None = None):
+        self.pending = list(jobs)
+        self.epochs, self.lanes, self.skipped = int(epochs), max(1, int(lanes)), int(skipped)
+        self.total = len(self.pending) + self.skipped
+        self.enabled, self.stream = enabled, stream
+        self._now = now or time.perf_counter
+        self.t0 = self._now()
+        self.done = 0
+        self.failed = 0
+        self.running: dict[str, _Lane] = {}
+        self._epoch_s: dict[str, list[float]] = {}  # detector -> seconds per epoch of each timed lane
+        self._lock = threading.Lock()
+        self._last_line = 0.0
+
+    def started(self, job: SweepJob, epochs_done: int = 0) -> None:
+        with self._lock:
+            self.pending = [j for j in self.pending if str(j) != str(job)]
+            self.running[str(job)] = _Lane(job, self._now(), epochs_done, self.epochs, epochs_done)
+
+    def epoch(self, job: SweepJob, epochs_done: int, epochs: int | None = None) -> None:
+        with self._lock:
+            lane = self.running.get(str(job))
+            if lane is None or epochs_done <= lane.epochs_done:
+                return
+            elapsed = self._now() - lane.started
+            lane.epochs_done = epochs_done
+            if epochs:
+                lane.epochs = int(epochs)
+            trained = epochs_done - lane.start_epochs  # in this call, start-up included
+            if trained > 0 and elapsed > 0:
+                self._epoch_s.setdefault(job.detector, []).append(elapsed / trained)
+        self.print_line(force=False)
+
+    def finished(self, job: SweepJob, ok: bool) -> None:
+        with self._lock:
+            self.running.pop(str(job), None)
+            self.done += 1
+            self.failed += 0 if ok else 1
+        self.print_line(force=True)
+
+    def seconds_per_epoch(self, detector: str) -> float | None:
+        timed = {d: v[-1] for d, v in self._epoch_s.items() if v}
+        if detector in timed:
+            return timed[detector]
+        if not timed:
+            return None
+        unit = sum(s / RELATIVE_COST.get(d, 1.0) for d, s in timed.items()) / len(timed)
+        return unit * RELATIVE_COST.get(detector, 1.0)
+
+    def eta(self) -> float | None:
+        with self._lock:
+            left = 0.0
+            for lane in self.running.values():
+                spe = self.seconds_per_epoch(lane.job.detector)
+                if spe is None:
+                    return None
+                left += spe * max(lane.epochs - lane.epochs_done, 0)
+            for job in self.pending:
+                spe = self.seconds_per_epoch(job.detector)
+                if spe is None:
+                    return None
+                left += spe * self.epochs
+        return left / self.lanes
+
+    def line(self) -> str:
+        from harness.progress import clock
+
+        running = len(self.running)
+        failed = f", {self.failed} failed" if self.failed else ""
+        done = self.done + self.skipped
+        return (f"benchmark {done}/{self.total} cells ({running} running{failed}) | "
+                f"{clock(self._now() - self.t0)} elapsed, ETA {clock(self.eta())}")
+
+    def print_line(self, force: bool = True) -> None:
+        from harness.progress import progress_on
+
+        if not (self.enabled and progress_on()):
+            return
+        now = self._now()
+        if not force and now - self._last_line < 30.0:  # at most one line per 30 s between cell ends
+            return
+        self._last_line = now
+        print(self.line(), file=self.stream or sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------------------------------- lanes
+def job_command(job: SweepJob) -> list[str]:
+    """The ``harness run`` command line of one cell."""
+    cmd = [sys.executable, "-m", "harness", "run", "--detector", job.detector, "--dataset", job.dataset,
+           "--encoding", job.encoding, "--folds", job.fold, "--seeds", str(job.seed), "--store", job.store,
+           "--no-progress"]
+    if job.profile:
+        cmd += ["--profile", job.profile]
+    for c in job.config_files:
+        cmd += ["--config", c]
+    for o in job.overrides:
+        cmd += ["--set", o]
+    if job.force:
+        cmd.append("--force")
+    return cmd
+
+
+def _log_path(store: Path, job: SweepJob) -> Path:
+    name = f"{job.detector}_{job.encoding}_{job.fold}_seed{job.seed}.log".replace("/", "-")
+    return store / "_benchmark" / "logs" / name
+
+
+def _epochs_logged(store: Path, job: SweepJob) -> int:
+    from harness.store import Run, RunKey
+
+    path = Run(store, RunKey(job.dataset, job.detector, job.encoding, job.fold, job.seed)).log_path
+    try:
+        with open(path, "rb") as f:
+            return sum(1 for line in f if line.strip())
+    except OSError:
+        return 0
+
+
+def _result(store: Path, job: SweepJob, rc: int, elapsed: float, log_file: Path, resumed: bool) -> JobResult:
+    from harness.report.reader import read_run
+    from harness.store import Run, RunKey
+
+    run = Run(store, RunKey(job.dataset, job.detector, job.encoding, job.fold, job.seed))
+    if rc == 0 and run.is_finished():
+        m = read_run(run).metrics.get("metrics", {})
+        return JobResult(str(job), "resumed" if resumed else "trained", str(run.path), m.get("mAP50"),
+                         m.get("mAP50_95"), round(elapsed, 1))
+    tail = ""
+    try:
+        lines = [ln for ln in log_file.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+        tail = " | ".join(lines[-3:])
+    except OSError:
+        pass
+    return JobResult(str(job), "failed", str(run.path), time_s=round(elapsed, 1),
+                     error=f"exit {rc}: {tail[-400:]} (log: {log_file})")
+
+
+def run_lanes(jobs: Sequence[SweepJob], lanes: int, store: Path, progress: BenchmarkProgress,
+              poll_s: float = 2.0) -> list[JobResult]:
+    """Run ``jobs`` as ``harness run`` processes, ``lanes`` at a time, in order; the results in order of ending.
+
+    Each process gets one thread per library (``OMP_NUM_THREADS=1``; the profile sets torch's). On an interrupt
+    (Ctrl-C, SIGTERM) the running cells are stopped the way ``harness run`` stops (their status says interrupted and
+    ``last.pt`` holds their last epoch), and the interrupt is raised again once they have exited."""
+    queue = list(jobs)
+    running: dict[str, tuple[SweepJob, subprocess.Popen[bytes], float, Path, bool, Any]] = {}
+    results: list[JobResult] = []
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    try:
+        while queue or running:
+            while queue and len(running) < lanes:
+                job = queue.pop(0)
+                log_file = _log_path(store, job)
+                log_file.parent.mkdir(parents=True, exist_ok=True)
+                before = _epochs_logged(store, job)
+                fh = open(log_file, "ab")
+                fh.write(f"\n$ {' '.join(job_command(job))}\n".encode())
+                fh.flush()
+                proc = subprocess.Popen(job_command(job), stdout=fh, stderr=subprocess.STDOUT, env=env,
+                                        start_new_session=True)
+                running[str(job)] = (job, proc, time.perf_counter(), log_file, before > 0, fh)
+                progress.started(job, before)
+            time.sleep(poll_s)
+            for key in list(running):
+                job, proc, t0, log_file, resumed, fh = running[key]
+                progress.epoch(job, _epochs_logged(store, job))
+                rc = proc.poll()
+                if rc is None:
+                    continue
+                fh.close()
+                del running[key]
+                res = _result(store, job, rc, time.perf_counter() - t0, log_file, resumed)
+                results.append(res)
+                if res.state == "failed":
+                    log.error("benchmark: %s failed: %s", res.run, res.error)
+                progress.finished(job, res.state != "failed")
+    except BaseException:
+        for job, proc, _, _, _, fh in running.values():
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGINT)  # as Ctrl-C: the run records "interrupted" and keeps last.pt
+        deadline = time.perf_counter() + 60
+        for job, proc, _, _, _, fh in running.values():
+            try:
+                proc.wait(timeout=max(deadline - time.perf_counter(), 0.1))
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+            fh.close()
+        raise
+    return results
+
+
+def default_lanes() -> int:
+    """One lane per core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass
+class BenchmarkSummary:
+    store: Path
+    results: list[JobResult]
+    invalid: list[str]
+    wall_s: float
+    cpu_s: float
+
+    @property
+    def failed(self) -> list[JobResult]:
+        return [r for r in self.results if r.state == "failed"]
+
+
+def run_benchmark(spec: BenchmarkSpec, lanes: int | None = None, progress: bool = True,
+                  stream: TextIO | None = None) -> BenchmarkSummary:
+    """Plan the benchmark and run the cells left to do in ``lanes`` processes (default: one per core)."""
+    from harness.config import load_config
+
+    lanes = lanes or default_lanes()
+    plan = plan_benchmark(spec)
+    epochs = int(load_config(profile=spec.profile, overrides=list(spec.overrides))["protocol"]["epochs"])
+    log.info("benchmark: %d cells, %d finished earlier, %d to run in %d lane(s); store %s", plan.cells,
+             len(plan.skipped), len(plan.jobs), lanes, plan.store)
+    bar = BenchmarkProgress(plan.jobs, epochs, lanes, skipped=len(plan.skipped), enabled=progress, stream=stream)
+    t0, c0 = time.perf_counter(), _children_cpu()
+    results = run_lanes(plan.jobs, lanes, plan.store, bar) if plan.jobs else []
+    return BenchmarkSummary(plan.store, [*plan.skipped, *results], plan.invalid, time.perf_counter() - t0,
+                            _children_cpu() - c0)
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``) and the instruction set torch's kernels use, e.g. ``AMD EPYC 9B14
+    (torch CPU capability AVX2)``."""
+    name = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace").splitlines():
+            if line.lower().startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    name = name or __import__("platform").processor() or "unknown CPU"
+    try:
+        import torch
+
+        cap = torch.backends.cpu.get_cpu_capability()
+        return f"{name} (torch CPU capability {cap})"
+    except Exception:
+        return name
+
+
+def timing_path(store: Path) -> Path:
+    return Path(store) / "_benchmark" / "timing.json"
+
+
+def read_timing(store: Path) -> dict[str, Any] | None:
+    """The benchmark's accumulated wall and CPU time in ``store`` (``write_timing``), or None."""
+    from harness.io import read_json
+
+    path = timing_path(store)
+    return read_json(path) if path.is_file() else None
+
+
+def write_timing(summary: BenchmarkSummary, lanes: int) -> dict[str, Any]:
+    """Add this call's wall and CPU time to ``<store>/_benchmark/timing.json`` (a resumed benchmark adds up its
+    calls); the calls are listed with their lanes, cells and CPU."""
+    from harness.io import atomic_write_json
+
+    old = read_timing(summary.store) or {"wall_s": 0.0, "cpu_s": 0.0, "calls": []}
+    trained = [r for r in summary.results if r.state in ("trained", "resumed")]
+    call = {"wall_s": round(summary.wall_s, 1), "cpu_s": round(summary.cpu_s, 1), "lanes": int(lanes),
+            "cells": len(trained), "failed": len(summary.failed), "cpu": cpu_name(),
+            "isa_env": {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY") if k in os.environ},
+            "ended": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    out = {"wall_s": round(float(old.get("wall_s", 0.0)) + summary.wall_s, 1),
+           "cpu_s": round(float(old.get("cpu_s", 0.0)) + summary.cpu_s, 1),
+           "calls": [*old.get("calls", []), call]}
+    if trained or not old.get("calls"):
+        timing_path(summary.store).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(timing_path(summary.store), out)
+    return out
+
+
+#: What ``rerun_cell`` compares: the metrics.json sections that hold numbers of the evaluation.
+RERUN_SECTIONS = ("support", "metrics", "per_category")
+
+
+def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path,
+               progress: bool = False) -> dict[str, Any]:
+    """Train one reference cell again into ``store`` with the benchmark's recipe and compare it with the reference
+    run: the evaluation's numbers (``RERUN_SECTIONS``), the predictions, and the run's identity (its configuration
+    without locations)."""
+    from harness.io import read_json
+    from harness.report.reader import read_run
+    from harness.runner import RunRequest, identity_diff, run
+    from harness.store import Run, RunKey
+
+    ref_run = Run(refs.root, RunKey(refs.dataset, detector, encoding, fold, seed))
+    if not ref_run.is_finished():
+        cells = ", ".join((refs.manifest.get("cells") or [])[:3])
+        raise ConfigError(f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
+                          f"{refs.root} (cells look like {cells} ...)")
+    ref = read_run(ref_run)
+    cfg = detector_config(detector)
+    summary = run(RunRequest(detector=detector, dataset=refs.dataset, encoding=encoding, folds=fold, seeds=[seed],
+                             profile=refs.profile, config_files=[str(cfg)] if cfg else [], store=store,
+                             progress=progress))
+    del summary
+    new_run = read_run(Run(Path(store), RunKey(refs.dataset, detector, encoding, fold, seed)))
+    differences: list[str] = []
+    for section in RERUN_SECTIONS:
+        a, b = ref.metrics.get(section), new_run.metrics.get(section)
+        if a != b:
+            keys = sorted({*(a or {}), *(b or {})}) if isinstance(a, dict) and isinstance(b, dict) else []
+            diff = [k for k in keys if (a or {}).get(k) != (b or {}).get(k)]
+            differences.append(f"metrics.json {section}: " + (", ".join(
+                f"{k} {(a or {}).get(k)!r} vs {(b or {}).get(k)!r}" for k in diff[:4]) or "differs"))
+    same_predictions = read_json(ref.predictions_path) == read_json(new_run.predictions_path)
+    if not same_predictions:
+        differences.append("predictions differ")
+    config_diff = identity_diff(ref.config, new_run.config)
+    env_ref, env_new = ref.metrics.get("environment") or {}, new_run.metrics.get("environment") or {}
+    env_diff = [f"{k}: {env_ref.get(k)!r} vs {env_new.get(k)!r}" for k in sorted({*env_ref, *env_new})
+                if env_ref.get(k) != env_new.get(k) and k not in ("hostname", "time")]
+    return {
+        "cell": f"{detector}/{encoding}/{fold}/seed{seed}",
+        "reference": str(ref_run.path),
+        "rerun": str(new_run.path),
+        "identical": not differences,
+        "differences": differences,
+        "config_differences": config_diff,
+        "environment_differences": env_diff,
+        "mAP50": [(ref.metrics.get("metrics") or {}).get("mAP50"), (new_run.metrics.get("metrics") or {}).get("mAP50")],
+        "mAP50_95": [(ref.metrics.get("metrics") or {}).get("mAP50_95"),
+                     (new_run.metrics.get("metrics") or {}).get("mAP50_95")],
+    }
+
+
+def rerun_text(result: Mapping[str, Any]) -> str:
+    lines = [f"cell {result['cell']}: reference {result['reference']}", f"  rerun     {result['rerun']}",
+             f"  mAP50     reference {result['mAP50'][0]!r}  rerun {result['mAP50'][1]!r}",
+             f"  mAP50:95  reference {result['mAP50_95'][0]!r}  rerun {result['mAP50_95'][1]!r}"]
+    if result["identical"]:
+        lines.append("identical: metrics, per-category AP, support and predictions equal the reference run's")
+    else:
+        lines.append("DIFFERENT: " + "; ".join(result["differences"]))
+        if result["config_differences"]:
+            lines.append("  configuration differs: " + "; ".join(result["config_differences"]))
+        if result["environment_differences"]:
+            lines.append("  environment differs: " + "; ".join(result["environment_differences"]))
+    return "\n".join(lines)
+
+
+def _children_cpu() -> float:
+    t = os.times()
+    return t.children_user + t.children_system
+
+
+__all__ = ["ABLATION_DETECTOR", "ABLATION_FOLD", "BenchmarkPlan", "BenchmarkProgress", "BenchmarkSpec",
+           "BenchmarkSummary", "DATASET", "DETECTORS", "ENCODINGS", "PROFILE", "SEEDS", "default_lanes",
+           "cpu_name", "detector_config", "job_command", "plan_benchmark", "read_timing", "rerun_cell", "rerun_text",
+           "run_benchmark", "run_lanes", "write_timing"]

@@ -1,0 +1,148 @@
+"""``harness benchmark``: the reference benchmark (``run``), its export as shipped reference results (``export``), and
+one cell rerun against the shipped references (``rerun``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from harness.commands import options as opt
+from harness.hookspecs import hookimpl
+
+
+def reference_results_option():  # type: ignore[no-untyped-def]
+    """``--reference-results shipped|DIR``: reference results read beside the store (``harness.references``)."""
+    return click.option(
+        "--reference-results",
+        "reference_results",
+        default=None,
+        metavar="shipped|DIR",
+        help="Also read reference results beside the store: `shipped` (the project's benchmark results) or a folder "
+        "`harness benchmark export` wrote. Their entries are named ref:DETECTOR; refused when the store's runs "
+        "used other samples.",
+    )
+
+
+def load_reference_option(value: str | None):  # type: ignore[no-untyped-def]
+    if not value:
+        return None
+    from harness.references import load_references
+
+    return load_references(value)
+
+
+def _cell_key(text: str) -> tuple[str, str, str, int]:
+    """``ours/c2/P1/seed0`` (or ``ours/c2/P1/0``) -> (detector, encoding, fold, seed)."""
+    parts = text.strip().strip("/").split("/")
+    if len(parts) == 5:  # with the dataset in front
+        parts = parts[1:]
+    if len(parts) != 4:
+        raise click.BadParameter(f"{text!r}: name a cell as DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0",
+                                 param_hint="CELL")
+    det, enc, fold, seed = parts
+    try:
+        return det, enc, fold, int(seed.removeprefix("seed"))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: the seed part must be seedN or N", param_hint="CELL") from None
+
+
+@hookimpl
+def register_commands(cli: click.Group) -> None:
+    @cli.group(name="benchmark")
+    def benchmark_group() -> None:
+        """The reference benchmark: four detectors x four folds x three seeds and the encoding ablation on m3t-synth
+        at the benchmark profile (docs/benchmark.md)."""
+
+    @benchmark_group.command(name="run")
+    @opt.store_option(help="Results store [default: results/benchmark].")
+    @click.option("--lanes", type=click.IntRange(min=1), default=None,
+                  help="Cells trained side by side, one core each [default: one per core].")
+    @click.option("--detectors", default=",".join(("ours", "eme", "icafusion", "cmadet")), show_default=True,
+                  help="Comma-separated detectors of the detector grid.")
+    @opt.folds_option()
+    @opt.seeds_option(default="0,1,2")
+    @click.option("--ablation/--no-ablation", default=True, show_default=True,
+                  help="Also run the encoding ablation (ours: none, ir8, linear16, c2 on P4+P5).")
+    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                  help="Override one config key of every cell (the store then holds no reference benchmark).")
+    @click.option("--dry-run", is_flag=True, help="List the cells left to do, and stop.")
+    @click.option("--force", is_flag=True, help="Redo cells that already finished.")
+    @opt.no_progress_option()
+    def run_cmd(store: Path | None, lanes: int | None, detectors: str, folds: str, seeds: str, ablation: bool,
+                overrides: tuple[str, ...], dry_run: bool, force: bool) -> None:
+        """Run the benchmark's cells that are left to do, in lanes, with overall progress and ETA on stderr.
+
+        Finished cells are skipped and interrupted ones resume from their last epoch, so running it again after an
+        interrupt (Ctrl-C, a closed laptop) does only what is left. Prints one line per cell on stdout and the
+        wall and CPU time; exits 1 when a cell failed (the others still ran)."""
+        from harness import benchmark as B
+        from harness.progress import progress_on
+        from harness.sweep import SweepSummary, sweep_table
+
+        seed_list = opt.parse_seeds(seeds) or list(B.SEEDS)
+        spec = B.BenchmarkSpec(store=store or B.DEFAULT_STORE, detectors=tuple(opt.split_list(detectors)),
+                               folds=folds, seeds=tuple(seed_list), ablation=ablation, overrides=overrides,
+                               force=force)
+        if dry_run:
+            plan = B.plan_benchmark(spec)
+            for job in plan.jobs:
+                click.echo(f"todo  {job}")
+            for done in plan.skipped:
+                click.echo(f"done  {done.run}")
+            click.echo(f"{len(plan.jobs)} cell(s) to run, {len(plan.skipped)} finished, in {plan.store}")
+            return
+        summary = B.run_benchmark(spec, lanes=lanes, progress=progress_on())
+        B.write_timing(summary, lanes or B.default_lanes())
+        click.echo(sweep_table(SweepSummary(summary.store, summary.results, summary.invalid)))
+        click.echo(f"benchmark: {len(summary.results)} cells in {summary.store}; this call {summary.wall_s:.0f} s wall, "
+                   f"{summary.cpu_s:.0f} s CPU ({B.cpu_name()})")
+        if summary.failed:
+            click.secho(f"{len(summary.failed)} cell(s) failed; run `harness benchmark run` again to retry them "
+                        f"(logs in {summary.store / '_benchmark' / 'logs'})", fg="red", err=True)
+            raise SystemExit(1)
+
+    @benchmark_group.command(name="export")
+    @opt.store_option(help="Results store of the benchmark [default: results/benchmark].")
+    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+                  help="Folder to write [default: the shipped references, references/m3t-synth-benchmark].")
+    def export_cmd(store: Path | None, out: Path | None) -> None:
+        """Export a finished benchmark store as reference results: metrics, error analysis, logs, and the ground
+        truth and predictions the paired bootstrap re-scores (gzip), with the samples' digests (at most 10 MiB)."""
+        from harness import benchmark as B
+        from harness.references import export_references, resolve
+
+        spec = B.BenchmarkSpec(store=store or B.DEFAULT_STORE)
+        plan = B.plan_benchmark(spec)
+        if plan.jobs:
+            raise click.ClickException(
+                f"{len(plan.jobs)} benchmark cell(s) are not finished in {plan.store} (e.g. {plan.jobs[0]}); "
+                f"run `harness benchmark run --store {plan.store}` first")
+        manifest = export_references(plan.store, out or resolve("shipped"), plan.skipped,
+                                     benchmark=B.read_timing(plan.store))
+        click.echo(f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> "
+                   f"{out or resolve('shipped')}")
+
+    @benchmark_group.command(name="rerun")
+    @click.argument("cell")
+    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
+                  help="Results store to train the cell into [default: results/benchmark-rerun].")
+    @reference_results_option()
+    @opt.format_option("text", "json")
+    @opt.no_progress_option()
+    def rerun_cmd(cell: str, store: Path | None, reference_results: str | None, fmt: str) -> None:
+        """Train one reference CELL again (DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0) and compare its
+        metrics with the reference results' (default: the shipped ones): identical on the same torch build and
+        thread count. Exits 1 when a number differs."""
+        from harness import benchmark as B
+
+        det, enc, fold, seed = _cell_key(cell)
+        refs = load_reference_option(reference_results or "shipped")
+        result = B.rerun_cell(refs, det, enc, fold, seed, store or Path("results") / "benchmark-rerun")
+        if fmt == "json":
+            click.echo(json.dumps(result, indent=2))
+        else:
+            click.echo(B.rerun_text(result))
+        if not result["identical"]:
+            raise SystemExit(1)

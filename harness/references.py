@@ -1,0 +1,350 @@
+"""Reference results: the benchmark's results store, exported compact and versioned, shipped with the project.
+
+A plugin author compares a new detector with the four reference detectors without training them again: a report (or
+``compare-detectors``) reads the reference store beside the user's store through the same reader, and the reference
+entries appear under the names ``ref:<detector>``. A comparison is only made on the same samples: every trained run
+records content digests of the samples it trained on and scored (``metrics.json`` ``samples``, from
+``PreparedDataset.content_digest``), the reference store records those of its runs, and a user's run whose digest
+differs (another generator version, seed or profile of the synthetic set, other sensing options) is refused with
+what differs. A code change that leaves the samples identical keeps the references valid.
+
+Layout (``export_references``)::
+
+    <folder>/references.json             manifest (``MANIFEST_SCHEMA`` below)
+    <folder>/<dataset>/<detector>/<encoding>/<fold>/seed<seed>/
+        config.yaml status.json metrics.json analysis.json log.jsonl
+        gt.json.gz predictions.json.gz   (gzip, read by ``harness.io.read_json``; no checkpoints)
+
+``references.json``::
+
+    {"schema": 1, "dataset": str, "profile": str,
+     "generator": {"name", "version", "profile", "seed"} | null,     # the synthetic set the samples came from
+     "samples": {"<fold>/<encoding>": {"train": digest, "held_out": digest}},
+     "aligned": {"<fold>": {"train": digest, "held_out": digest}},   # the same samples before encoding
+     "cells": ["<detector>/<encoding>/<fold>/seed<seed>", ...],
+     "training": {"imgsz", "epochs", "scale", "threads"},
+     "environment": {...},                                           # torch build, CPU, threads of the runs
+     "benchmark": {"wall_s", "cpu_s", "lanes", "cpu"} | null}        # how long `harness benchmark run` took
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import logging
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from harness.errors import StoreError
+from harness.report.reader import REFERENCE_PREFIX
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "references.json"
+MANIFEST_SCHEMA = 1
+#: The name entries of the reference store get in a report: ``ref:ours``.
+PREFIX = REFERENCE_PREFIX
+#: The folder of the shipped references under ``references/`` (``harness.shipped_references`` when installed).
+SHIPPED = "m3t-synth-benchmark"
+#: Largest reference store the project ships.
+MAX_BYTES = 10 * 2**20
+#: Run files copied as they are, and those gzip-compressed.
+COPIED = ("config.yaml", "status.json", "metrics.json", "analysis.json", "log.jsonl")
+PACKED = ("gt.json", "predictions.json")
+
+
+class ReferenceMismatchError(StoreError):
+    """The user's runs and the reference results were not trained or scored on the same samples."""
+
+
+def shipped_root() -> Path:
+    """The folder holding the shipped reference stores: ``references/`` of the checkout, or the installed copy."""
+    try:
+        from importlib.resources import files
+
+        installed = Path(str(files("harness.shipped_references")))
+        if (installed / SHIPPED / MANIFEST).exists():
+            return installed
+    except (ModuleNotFoundError, TypeError):
+        pass
+    return Path(__file__).resolve().parent.parent / "references"
+
+
+def resolve(spec: str | Path) -> Path:
+    """``shipped`` -> the shipped reference store; anything else is a folder."""
+    if str(spec) == "shipped":
+        return shipped_root() / SHIPPED
+    return Path(spec)
+
+
+def _digests(metrics: Mapping[str, Any]) -> dict[str, Any] | None:
+    s = metrics.get("samples")
+    return s if isinstance(s, dict) and s.get("held_out") else None
+
+
+@dataclass
+class ReferenceSet:
+    """A reference store: its manifest and its runs."""
+
+    root: Path
+    manifest: dict[str, Any]
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def dataset(self) -> str:
+        return str(self.manifest["dataset"])
+
+    @property
+    def profile(self) -> str:
+        return str(self.manifest.get("profile") or "?")
+
+    def describe(self) -> str:
+        """``m3t-synth (generator v2, small, seed 0), benchmark profile: 256 px, 20 epochs, scale n``."""
+        g = self.manifest.get("generator") or {}
+        t = self.manifest.get("training") or {}
+        gen = (f" (generator v{g.get('version')}, {g.get('profile')}, seed {g.get('seed')})" if g else "")
+        train = ", ".join(f"{v}{u}" for v, u in ((t.get("imgsz"), " px"), (t.get("epochs"), " epochs"))
+                          if v is not None)
+        scale = f", scale {t['scale']}" if t.get("scale") else ""
+        return f"{self.dataset}{gen}, {self.profile} profile: {train}{scale}"
+
+    def runs(self) -> list[Any]:
+        """The finished reference runs, each named ``ref:<detector>`` (its folder unchanged)."""
+        from harness.report.reader import StoreView
+        from harness.store import RunKey
+
+        view = StoreView(self.root)
+        out = []
+        for run in view.finished_runs(self.dataset):
+            k = run.key
+            run.key = RunKey(k.dataset, PREFIX + k.detector, k.encoding, k.fold, k.seed)
+            out.append(run)
+        self.problems += view.problems
+        return out
+
+    def held_out_digest(self, fold: str, encoding: str) -> str | None:
+        return ((self.manifest.get("samples") or {}).get(f"{fold}/{encoding}") or {}).get("held_out")
+
+    def aligned_digest(self, fold: str) -> str | None:
+        return ((self.manifest.get("aligned") or {}).get(fold) or {}).get("held_out")
+
+
+def load_references(spec: str | Path) -> ReferenceSet:
+    """The reference store at ``spec`` (``shipped`` or a folder); a missing or malformed one is a clear error."""
+    from harness.io import read_json
+
+    root = resolve(spec)
+    path = root / MANIFEST
+    if not path.is_file():
+        hint = ("the shipped reference results are missing from this installation"
+                if str(spec) == "shipped" else "pass the folder `harness benchmark export` wrote, or `shipped`")
+        raise StoreError(f"{path}: no reference results here ({hint})")
+    manifest = read_json(path)
+    if not isinstance(manifest, dict) or manifest.get("schema") != MANIFEST_SCHEMA or "dataset" not in manifest:
+        raise StoreError(f"{path}: not a reference manifest of schema {MANIFEST_SCHEMA} (with a 'dataset')")
+    return ReferenceSet(root, manifest)
+
+
+# ------------------------------------------------------------------------------------------------- matching
+def _generator_of(run: Any) -> dict[str, Any] | None:
+    """The synthetic generator's record (``synth.json``) of the data a run was trained on, when it can be found."""
+    from harness.io import read_json
+
+    root = ((run.config.get("dataset") or {}) if isinstance(run.config, dict) else {}).get("root")
+    candidates = [Path(root)] if root else []
+    if not root and run.key.dataset == "m3t-synth":
+        try:
+            from adapters.datasets.synthetic.plugin import default_root
+
+            candidates.append(Path(default_root()))
+        except Exception:  # the plugin is not importable here: nothing to say about the generator
+            pass
+    for folder in candidates:
+        p = folder / "synth.json"
+        if p.is_file():
+            try:
+                info = read_json(p)
+            except Exception:
+                return None
+            return {k: info.get(k) for k in ("generator_version", "profile", "seed")} | {"root": str(folder)}
+    return None
+
+
+def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
+    """Check the user's ``runs`` of the reference dataset against ``refs``; raise ``ReferenceMismatchError`` when any
+    was trained or scored on other samples (or recorded no digest), naming the runs and what differs. Returns notes
+    (runs of folds or encodings the references do not hold, which are compared on their aligned samples)."""
+    mismatched: list[str] = []
+    undigested: list[str] = []
+    notes: list[str] = []
+    for run in runs:
+        k = run.key
+        if k.dataset != refs.dataset or k.detector.startswith(PREFIX):
+            continue
+        got = _digests(run.metrics)
+        if got is None:
+            undigested.append(str(k))
+            continue
+        want = refs.held_out_digest(k.fold, k.encoding)
+        have = got.get("held_out")
+        what = f"held-out samples of fold {k.fold} with encoding {k.encoding}"
+        if want is None:  # an encoding the references do not hold: the aligned samples must still agree
+            want, have = refs.aligned_digest(k.fold), (got.get("aligned") or {}).get("held_out")
+            what = f"aligned held-out samples of fold {k.fold}"
+            if want is None:
+                notes.append(f"{k}: fold {k.fold} is not in the reference results")
+                continue
+        if want != have:
+            mismatched.append(f"{k}: {what} digest {str(have)[:12]}, references {str(want)[:12]}")
+    if undigested:
+        raise ReferenceMismatchError(
+            f"cannot verify that {len(undigested)} run(s) used the reference results' samples: they were stored "
+            f"before runs recorded their samples' digest ({', '.join(undigested[:4])}"
+            f"{' ...' if len(undigested) > 4 else ''}); rerun them with --force, or leave out --reference-results"
+        )
+    if mismatched:
+        gen = None
+        for run in runs:
+            if not run.key.detector.startswith(PREFIX) and run.key.dataset == refs.dataset:
+                gen = _generator_of(run)
+                if gen:
+                    break
+        ref_gen = refs.manifest.get("generator") or {}
+        differs = ""
+        if gen and ref_gen:
+            diffs = [f"{name} {gen.get(key)} vs {ref_gen.get(ref_key)}" for name, key, ref_key in
+                     (("generator version", "generator_version", "version"), ("profile", "profile", "profile"),
+                      ("seed", "seed", "seed")) if gen.get(key) != ref_gen.get(ref_key)]
+            if diffs:
+                differs = f" Your data ({gen['root']}) differs from the references' in: {', '.join(diffs)}."
+        raise ReferenceMismatchError(
+            f"the reference results ({refs.describe()}) were trained and scored on other samples than "
+            f"{len(mismatched)} of your run(s): " + "; ".join(mismatched[:4]) + (" ..." if len(mismatched) > 4 else "")
+            + "." + differs + " A comparison needs the same samples: generate the default synthetic set "
+            "(`harness synth`, seed 0) and prepare it with default sensing options, or leave out --reference-results."
+        )
+    return notes
+
+
+def training_of(run: Any) -> dict[str, Any]:
+    """What the references' ``training`` record holds, for one run (its config)."""
+    cfg = run.config if isinstance(run.config, dict) else {}
+    return {"imgsz": (cfg.get("protocol") or {}).get("imgsz"), "epochs": (cfg.get("protocol") or {}).get("epochs"),
+            "scale": (cfg.get("model") or {}).get("scale"), "threads": (cfg.get("train") or {}).get("threads")}
+
+
+def same_training(refs: ReferenceSet, runs: Sequence[Any]) -> bool:
+    """Whether every one of ``runs`` was trained with the references' image size and epochs (a comparison of
+    accuracy is then a comparison of detectors at one budget, not of two budgets)."""
+    t = refs.manifest.get("training") or {}
+    return bool(runs) and all(
+        training_of(r).get("imgsz") == t.get("imgsz") and training_of(r).get("epochs") == t.get("epochs") for r in runs
+    )
+
+
+# ------------------------------------------------------------------------------------------------- export
+def _gzip_copy(src: Path, dst: Path) -> None:
+    data = src.read_bytes()
+    with open(dst, "wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0, compresslevel=9) as f:
+        f.write(data)
+
+
+def export_references(store: str | Path, out: str | Path, cells: Sequence[Any], benchmark: Mapping[str, Any] | None
+                      = None, generator: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Write the reference store of ``cells`` (``harness.sweep.JobResult``-like: ``.run`` is the run key text, or
+    ``RunKey``) from ``store`` into ``out``. Every cell must be finished and carry its samples' digests, and every
+    run of a (fold, encoding) must have used the same samples; the result must fit in ``MAX_BYTES``."""
+    from harness.report.reader import StoreView, read_run
+    from harness.store import Run, RunKey
+
+    store, out = Path(store), Path(out)
+    view = StoreView(store)
+    keys: list[RunKey] = []
+    for c in cells:
+        if isinstance(c, RunKey):
+            keys.append(c)
+        else:
+            ds, det, enc, fold, seed = str(getattr(c, "run", c)).split("/")
+            keys.append(RunKey(ds, det, enc, fold, int(seed.removeprefix("seed"))))
+    runs = []
+    missing = []
+    for k in keys:
+        r = Run(view.root, k)
+        if not r.is_finished():
+            missing.append(str(k))
+            continue
+        runs.append(read_run(r))
+    if missing:
+        raise StoreError(f"{store}: {len(missing)} benchmark cell(s) not finished ({', '.join(missing[:4])}"
+                         f"{' ...' if len(missing) > 4 else ''}); run `harness benchmark run` first")
+    samples: dict[str, dict[str, str]] = {}
+    aligned: dict[str, dict[str, str]] = {}
+    conflicts: list[str] = []
+    for r in runs:
+        d = _digests(r.metrics)
+        if d is None:
+            raise StoreError(f"{r.metrics_path}: no samples digest; rerun {r.key} with --force")
+        for table, key, rec in ((samples, f"{r.key.fold}/{r.key.encoding}", {k: d[k] for k in ("train", "held_out")}),
+                                (aligned, r.key.fold, d.get("aligned") or {})):
+            if table.setdefault(key, rec) != rec:
+                conflicts.append(f"{r.key} ({key})")
+    if conflicts:
+        raise StoreError(f"{store}: runs of the same fold and encoding used different samples: "
+                         + ", ".join(conflicts[:4]))
+    datasets = sorted({k.dataset for k in keys})
+    if len(datasets) != 1:
+        raise StoreError(f"reference results hold one dataset; the cells name {', '.join(datasets)}")
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for r in runs:
+        dst = Run(tmp, r.key).path
+        dst.mkdir(parents=True)
+        for name in COPIED:
+            if (r.path / name).is_file():
+                shutil.copyfile(r.path / name, dst / name)
+        for name in PACKED:
+            src = r.path / name
+            if not src.is_file():
+                raise StoreError(f"{src}: missing; the bootstrap needs it (rerun {r.key} with --force)")
+            _gzip_copy(src, dst / f"{name}.gz")
+    ds_file = store / datasets[0] / "_dataset.json"
+    if ds_file.is_file():
+        shutil.copyfile(ds_file, tmp / datasets[0] / "_dataset.json")
+    first = runs[0]
+    manifest = {
+        "schema": MANIFEST_SCHEMA,
+        "dataset": datasets[0],
+        "profile": (first.config.get("meta") or {}).get("profile"),
+        "generator": dict(generator) if generator else _generator_record(first),
+        "samples": dict(sorted(samples.items())),
+        "aligned": dict(sorted(aligned.items())),
+        "cells": sorted(str(k).removeprefix(f"{datasets[0]}/") for k in keys),
+        "training": training_of(first),
+        "environment": first.metrics.get("environment") or {},
+        "benchmark": dict(benchmark) if benchmark else None,
+    }
+    (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
+    size = sum(p.stat().st_size for p in tmp.rglob("*") if p.is_file())
+    if size > MAX_BYTES:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise StoreError(f"the reference store would take {size / 2**20:.1f} MiB, over the {MAX_BYTES / 2**20:.0f} MiB "
+                         f"the project ships")
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    manifest["bytes"] = size
+    return manifest
+
+
+def _generator_record(run: Any) -> dict[str, Any] | None:
+    gen = _generator_of(run)
+    if not gen:
+        return None
+    return {"name": run.key.dataset, "version": gen.get("generator_version"), "profile": gen.get("profile"),
+            "seed": gen.get("seed")}
+
+
+__all__ = ["MANIFEST", "PREFIX", "SHIPPED", "ReferenceMismatchError", "ReferenceSet", "check_matched",
+           "export_references", "load_references", "resolve", "same_training", "shipped_root"]
