@@ -128,6 +128,45 @@ def plan_benchmark(spec: BenchmarkSpec) -> BenchmarkPlan:
     return plan
 
 
+def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
+    """(the finished runs of the benchmark's cells in ``spec.store``, the cells not finished there).
+
+    Read from the store alone (no plugin, no planning), so a finished benchmark can be exported after a change that
+    moves the prepared data's cache key: what ties the results to their samples is the samples' digest. A
+    detector's grid is the encoding its runs used on every fold (one encoding per detector)."""
+    from harness.store import Store
+
+    runs = {r.key: r for r in Store(spec.store).runs(dataset=spec.dataset)}
+    want_folds = None if spec.folds == "all" else set(spec.folds.split(","))
+    found: list[Any] = []
+    missing: list[str] = []
+    for det in spec.detectors:
+        mine = [k for k in runs if k.detector == det]
+        encodings = sorted({k.encoding for k in mine})
+        if det == ABLATION_DETECTOR and spec.ablation and len(encodings) > 1:  # its grid: the dataset's c2
+            encodings = ["c2"] if "c2" in encodings else sorted({k.encoding for k in mine if k.fold != ABLATION_FOLD})
+        if len(encodings) != 1:
+            missing.append(f"{det}: one encoding on every fold expected, found {encodings or 'none'}")
+            continue
+        folds = sorted({k.fold for k in mine if k.encoding == encodings[0]})
+        if want_folds is not None:
+            folds = sorted(want_folds)
+        for fold in folds:
+            for seed in spec.seeds:
+                key = next((k for k in mine if (k.encoding, k.fold, k.seed) == (encodings[0], fold, seed)), None)
+                (found.append(key) if key is not None else missing.append(f"{det}/{encodings[0]}/{fold}/seed{seed}"))
+    if spec.ablation:
+        for enc in spec.encodings:
+            for seed in spec.seeds:
+                key = next((k for k in runs if (k.detector, k.encoding, k.fold, k.seed)
+                            == (ABLATION_DETECTOR, enc, ABLATION_FOLD, seed)), None)
+                if key is None:
+                    missing.append(f"{ABLATION_DETECTOR}/{enc}/{ABLATION_FOLD}/seed{seed}")
+                elif key not in found:
+                    found.append(key)
+    return found, missing
+
+
 # ------------------------------------------------------------------------------------------------- progress
 @dataclass
 class _Lane:
@@ -449,11 +488,22 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
         raise ConfigError(f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
                           f"{refs.root} (cells look like {cells} ...)")
     ref = read_run(ref_run)
-    cfg = detector_config(detector)
-    summary = run(RunRequest(detector=detector, dataset=refs.dataset, encoding=encoding, folds=fold, seeds=[seed],
-                             profile=refs.profile, config_files=[str(cfg)] if cfg else [], store=store,
-                             progress=progress))
-    del summary
+    # the reference run's own configuration, as the last layer: the rerun resolves to the same settings whatever
+    # the checkout's profiles say (its locations and its record of the run left out)
+    layer = {k: v for k, v in ref.config.items() if k != "meta"}
+    for section, key in (("dataset", "root"), ("train", "init")):
+        if isinstance(layer.get(section), dict):
+            layer[section].pop(key, None)
+    from harness.io import atomic_write_text
+
+    import yaml
+
+    cfg_file = Path(store) / "_rerun" / f"{detector}_{encoding}_{fold}_seed{seed}.yaml"
+    cfg_file.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(cfg_file, yaml.safe_dump(layer, sort_keys=True))
+    run(RunRequest(detector=detector, dataset=refs.dataset, encoding=encoding, folds=fold, seeds=[seed],
+                   profile=(ref.config.get("meta") or {}).get("profile"), config_files=[str(cfg_file)], store=store,
+                   force=True, progress=progress))
     new_run = read_run(Run(Path(store), RunKey(refs.dataset, detector, encoding, fold, seed)))
     differences: list[str] = []
     for section in RERUN_SECTIONS:
@@ -469,7 +519,12 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
     config_diff = identity_diff(ref.config, new_run.config)
     env_ref, env_new = ref.metrics.get("environment") or {}, new_run.metrics.get("environment") or {}
     env_diff = [f"{k}: {env_ref.get(k)!r} vs {env_new.get(k)!r}" for k in sorted({*env_ref, *env_new})
-                if env_ref.get(k) != env_new.get(k) and k not in ("hostname", "time")]
+                if env_ref.get(k) != env_new.get(k) and k in ("torch", "numpy", "opencv", "threads", "cpu_capability")]
+    if env_ref.get("cpu_capability") and env_ref.get("cpu_capability") != env_new.get("cpu_capability"):
+        cap = str(env_ref["cpu_capability"])
+        onednn = f"ONEDNN_MAX_CPU_ISA={cap.upper()} " if cap.upper() == "AVX2" else ""
+        env_diff.append(f"the references ran torch's {cap} kernels: rerun with {onednn}"
+                        f"ATEN_CPU_CAPABILITY={cap.lower()} for the same rounding")
     return {
         "cell": f"{detector}/{encoding}/{fold}/seed{seed}",
         "reference": str(ref_run.path),

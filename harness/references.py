@@ -152,13 +152,15 @@ def _generator_of(run: Any) -> dict[str, Any] | None:
     """The synthetic generator's record (``synth.json``) of the data a run was trained on, when it can be found."""
     from harness.io import read_json
 
-    root = ((run.config.get("dataset") or {}) if isinstance(run.config, dict) else {}).get("root")
+    ds = (run.config.get("dataset") or {}) if isinstance(run.config, dict) else {}
+    root = ds.get("root")
     candidates = [Path(root)] if root else []
     if not root and run.key.dataset == "m3t-synth":
         try:
-            from adapters.datasets.synthetic.plugin import default_root
+            from adapters.datasets.synthetic.generation import default_root
 
-            candidates.append(Path(default_root()))
+            candidates.append(default_root(str(ds.get("profile") or "small"), int(ds.get("seed") or 0),
+                                           str(ds.get("thermal_format") or "rjpeg")))
         except Exception:  # the plugin is not importable here: nothing to say about the generator
             pass
     for folder in candidates:

@@ -114,13 +114,15 @@ def register_commands(cli: click.Group) -> None:
         from harness.references import export_references, resolve
 
         spec = B.BenchmarkSpec(store=store or B.DEFAULT_STORE)
-        plan = B.plan_benchmark(spec)
-        if plan.jobs:
+        root = Path(spec.store)
+        if not root.is_dir():
+            raise click.ClickException(f"{root}: no results store here; run `harness benchmark run` first")
+        found, missing = B.finished_cells(spec)
+        if missing:
             raise click.ClickException(
-                f"{len(plan.jobs)} benchmark cell(s) are not finished in {plan.store} (e.g. {plan.jobs[0]}); "
-                f"run `harness benchmark run --store {plan.store}` first")
-        manifest = export_references(plan.store, out or resolve("shipped"), plan.skipped,
-                                     benchmark=B.read_timing(plan.store))
+                f"{len(missing)} benchmark cell(s) are not finished in {root} (e.g. {', '.join(missing[:3])}); "
+                f"run `harness benchmark run --store {root}` first")
+        manifest = export_references(root, out or resolve("shipped"), found, benchmark=B.read_timing(root))
         click.echo(f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> "
                    f"{out or resolve('shipped')}")
 

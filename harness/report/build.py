@@ -280,6 +280,47 @@ def _read_sensing(view: StoreView, dataset: str, analysis: str) -> tuple[dict[st
         return None, f"unreadable: {exc}"
 
 
+#: Profiles whose runs check the pipeline and do not rank detectors; a report says so beside their tables.
+PIPELINE_CHECK_PROFILES = {"demo": "5 epochs at 128 px", "smoke": "10 epochs at 160 px"}
+
+
+def _scale_note(view: StoreView, dataset: str) -> str | None:
+    """A note when the store's runs were trained at a pipeline-check profile (``make demo``): its numbers check the
+    pipeline and do not rank detectors."""
+    profiles = sorted({str((r.config.get("meta") or {}).get("profile")) for r in view.finished_runs(dataset)
+                       if not r.key.detector.startswith(REF_PREFIX) and not r.metrics.get("external")})
+    small = [p for p in profiles if p in PIPELINE_CHECK_PROFILES]
+    if not small:
+        return None
+    what = ", ".join(f"{p} ({PIPELINE_CHECK_PROFILES[p]})" for p in small)
+    refs = (" The reference results (ref:DETECTOR, `make benchmark`'s profile, three seeds) are shown beside them for "
+            "scale." if view.references is not None else " `make benchmark` runs the reference benchmark, at a scale "
+            "where detectors learn, with three seeds; `harness report --reference-results shipped` shows its results "
+            "beside these.")
+    return (f"Scale: runs of profile {what} check that the pipeline works end to end; at this scale the detectors "
+            f"learn little beyond windows, so these numbers do not rank detectors.{refs}")
+
+
+def _claims_section(view: StoreView, dataset: str, resamples: int, seed: int) -> Section | None:
+    """The paper's claims tested on the data (``harness.report.claims``); None for datasets without the paper's
+    categories."""
+    from harness.report.claims import claims_records, evaluate_claims
+    from harness.report.tables import Column, Table
+
+    cats = {c for e in view.entries(dataset) for f in e.folds.values() for c in (f.metrics.get("per_category") or {})}
+    if "delamination" not in cats:
+        return None
+    sec = Section("claims", "The paper's claims, tested", dataset)
+    claims, notes = evaluate_claims(view, dataset, resamples=max(resamples, 0), seed=seed)
+    rows = [{"n": c.number, "claim": c.text, "verdict": c.verdict, "evidence": "; ".join(c.evidence)} for c in claims]
+    table = Table(f"{dataset}-claims".replace("/", "-"), f"{dataset}: the paper's claims, tested on the data",
+                  [Column("n", "#", "int"), Column("claim", "claim"), Column("verdict", "verdict"),
+                   Column("evidence", "evidence: value [95 % interval]")], rows, records=list(claims_records(claims)))
+    sec.tables.append(table)
+    sec.notes += notes
+    return sec
+
+
 def dataset_sections(
     view: StoreView,
     dataset: str,
@@ -313,6 +354,9 @@ def dataset_sections(
     else:
         sec.tables.append(table)
     sec.notes += view.reference_notes.get(dataset, [])
+    scale = _scale_note(view, dataset)
+    if scale:
+        sec.notes.insert(0, scale)
     unfinished = view.unfinished(dataset)
     if unfinished:
         sec.notes.append(
@@ -349,6 +393,9 @@ def dataset_sections(
 
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
     sections.append(sec)
+    claims = _claims_section(view, dataset, resamples, seed)
+    if claims is not None:
+        sections.append(claims)
     sections += evidence_secs
     if gallery:
         sections.append(gallery_section(dataset, evidence, out, cache_root))

@@ -1,0 +1,223 @@
+"""The reference benchmark and reference results, end to end on tiny real runs.
+
+The example plugin's TinyDet stands in for the reference detectors: ``harness benchmark run`` trains its cells in two
+lanes (``harness run`` processes), a second call finds nothing left to do, ``harness benchmark export`` writes a
+compact reference store, a user's store of another detector is reported beside it (paired, since both were trained
+at the same budget on the same samples), a store trained on another synthetic seed is refused, and one reference
+cell trained again from the references' own configuration gives identical metrics and predictions.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+for _module in ("harness.evaluation", "harness.runner", "harness.cache"):
+    pytest.importorskip(_module)
+
+REPO = Path(__file__).resolve().parent.parent
+TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
+FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
+        "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16",
+        "dataset.profile=tiny"]
+FOLDS = "P1,P4+P5"
+
+
+def _cli(args: list[str], code: int = 0) -> str:
+    from click.testing import CliRunner
+
+    from harness.cli import get_cli
+
+    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
+    assert res.exit_code == code, f"harness {' '.join(args)} exited {res.exit_code}:\n{res.output}"
+    return res.output
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    """A tiny benchmark (TinyDet, 2 folds x 2 seeds, 1 epoch at 64 px) run in lanes, and its export."""
+    if not TINYDET_SRC.is_dir():
+        pytest.skip("the example TinyDet plugin is not in this checkout")
+    root = tmp_path_factory.mktemp("bench")
+    shim = root / "plugins"
+    shim.mkdir()
+    # the lanes' `harness run` processes find the plugin the way an unpackaged plugin is found
+    (shim / "tinydet_shim.py").write_text("from harness_tinydet.plugin import *  # noqa: F401,F403\n")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("HARNESS_CACHE", str(root / "cache"))
+    mp.setenv("HARNESS_DATA", str(root / "data"))
+    mp.setenv("HARNESS_PLUGINS_DIR", str(shim))
+    mp.setenv("PYTHONPATH", os.pathsep.join([str(TINYDET_SRC), os.environ.get("PYTHONPATH", "")]))
+    mp.syspath_prepend(str(TINYDET_SRC))
+    from harness.testing import reset_plugins
+
+    reset_plugins()  # this process loads the plugin from HARNESS_PLUGINS_DIR too, as the lanes do
+    store = root / "store"
+    sets = [a for s in FAST for a in ("--set", s)]
+    try:
+        first = _cli(["benchmark", "run", "--store", str(store), "--detectors", "tinydet", "--folds", FOLDS,
+                      "--seeds", "0,1", "--no-ablation", "--lanes", "2", *sets])
+        again = _cli(["benchmark", "run", "--store", str(store), "--detectors", "tinydet", "--folds", FOLDS,
+                      "--seeds", "0,1", "--no-ablation", "--dry-run", *sets])
+        yield {"root": root, "store": store, "first": first, "again": again, "sets": sets}
+    finally:
+        mp.undo()
+        reset_plugins()
+
+
+def _export(bench, out: Path):
+    from harness.benchmark import BenchmarkSpec, finished_cells
+    from harness.references import export_references
+
+    spec = BenchmarkSpec(store=bench["store"], detectors=("tinydet",), folds=FOLDS, seeds=(0, 1), ablation=False)
+    found, missing = finished_cells(spec)
+    assert not missing and len(found) == 4
+    return export_references(bench["store"], out, found)
+
+
+def test_lanes_train_every_cell_and_a_second_call_has_nothing_left(bench):
+    assert bench["first"].count("trained") == 4, bench["first"]
+    assert "benchmark: 4 cells" in bench["first"]
+    assert "0 cell(s) to run, 4 finished" in bench["again"]
+    logs = sorted((bench["store"] / "_benchmark" / "logs").glob("*.log"))
+    assert len(logs) == 4
+    timing = json.loads((bench["store"] / "_benchmark" / "timing.json").read_text())
+    assert timing["calls"][0]["cells"] == 4 and timing["calls"][0]["lanes"] == 2 and timing["cpu_s"] > 0
+
+
+def test_every_run_records_its_samples_by_content(bench):
+    from harness.store import Store
+
+    runs = list(Store(bench["store"]).runs(dataset="m3t-synth"))
+    by_fold: dict[str, set[str]] = {}
+    for r in runs:
+        s = json.loads(r.metrics_path.read_text())["samples"]
+        assert s["encoding"] == r.key.encoding and len(s["held_out"]) == 32 and s["aligned"]["held_out"]
+        by_fold.setdefault(r.key.fold, set()).add(s["held_out"])
+    assert all(len(v) == 1 for v in by_fold.values())  # seeds of a fold: the same samples
+    assert by_fold["P1"] != by_fold["P4+P5"]
+
+
+def test_export_is_compact_and_reads_back(bench, tmp_path):
+    from harness.references import load_references
+
+    manifest = _export(bench, tmp_path / "refs")
+    assert manifest["bytes"] < 10 * 2**20 and len(manifest["cells"]) == 4
+    assert set(manifest["samples"]) == {"P1/c2", "P4+P5/c2"}
+    assert manifest["generator"]["seed"] == 0 and manifest["training"]["imgsz"] == 64
+    run = tmp_path / "refs" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0"
+    assert not (run / "checkpoints").exists() and not (run / "predictions.json").exists()
+    original = json.loads((bench["store"] / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "predictions.json")
+                          .read_text())
+    assert json.loads(gzip.decompress((run / "predictions.json.gz").read_bytes())) == original
+    refs = load_references(tmp_path / "refs")
+    runs = refs.runs()
+    assert {r.key.detector for r in runs} == {"ref:tinydet"} and len(runs) == 4
+    assert runs[0].predictions() and runs[0].ground_truth()["images"]
+
+
+def test_a_users_detector_is_compared_with_the_references_without_training_them(bench, tmp_path):
+    from harness.references import load_references
+    from harness.report import build_report
+
+    _export(bench, tmp_path / "refs")
+    user = tmp_path / "user"
+    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", FOLDS, "--seeds", "0",
+          "--store", str(user), *bench["sets"]])
+    report = build_report(user, ["m3t-synth"], resamples=20, references=load_references(tmp_path / "refs"),
+                          gallery=False)
+    text = report.to_text()
+    assert "ref:tinydet" in text and "Reference results (4 runs" in text
+    paired = next(s for s in report.sections if s.key == "paired")
+    assert paired.tables, paired.notes
+    assert "ref:tinydet" in paired.tables[0].to_text() and "tinydet-dual" in paired.tables[0].to_text()
+    out = _cli(["compare-detectors", "ref:tinydet", "tinydet-dual", "--dataset", "m3t-synth", "--store", str(user),
+                "--reference-results", str(tmp_path / "refs"), "--resamples", "20", "--no-progress"])
+    assert "ref:tinydet" in out
+
+
+def test_references_on_other_samples_are_refused_naming_the_seed(bench, tmp_path):
+    _export(bench, tmp_path / "refs")
+    other = tmp_path / "other"
+    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", "P1", "--seeds", "0",
+          "--store", str(other), *bench["sets"], "--set", "dataset.seed=1"])
+    out = _cli(["report", "--store", str(other), "--reference-results", str(tmp_path / "refs"), "--out",
+                str(tmp_path / "r"), "--resamples", "0", "--no-progress"], code=2)
+    assert "other samples" in out and "seed 1 vs 0" in out
+
+
+def test_another_training_budget_is_shown_beside_not_paired(bench, tmp_path):
+    from harness.references import load_references
+    from harness.report import build_report
+
+    _export(bench, tmp_path / "refs")
+    user = tmp_path / "budget"
+    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", "P1", "--seeds", "0",
+          "--store", str(user), *bench["sets"], "--set", "protocol.imgsz=96"])
+    report = build_report(user, ["m3t-synth"], resamples=0, references=load_references(tmp_path / "refs"),
+                          gallery=False)
+    folds = next(s for s in report.sections if s.key == "folds")
+    assert "ref:tinydet" in folds.tables[0].to_text()
+    assert any("not paired" in n for n in folds.notes)
+    paired = next(s for s in report.sections if s.key == "paired")
+    assert all("ref:" not in t.to_text() for t in paired.tables)
+
+
+def test_one_reference_cell_trained_again_is_identical(bench, tmp_path):
+    from harness.benchmark import rerun_cell
+    from harness.references import load_references
+
+    _export(bench, tmp_path / "refs")
+    refs = load_references(tmp_path / "refs")
+    result = rerun_cell(refs, "tinydet", "c2", "P1", 1, tmp_path / "rerun")
+    assert result["identical"], result
+    assert result["mAP50"][0] == result["mAP50"][1]
+
+
+def test_a_rerun_that_differs_is_reported(bench, tmp_path):
+    from harness.benchmark import rerun_cell
+    from harness.references import load_references
+
+    _export(bench, tmp_path / "refs")
+    metrics = tmp_path / "refs" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "metrics.json"
+    m = json.loads(metrics.read_text())
+    m["metrics"]["mAP50"] = 0.123456  # as if the references had been made by other code
+    metrics.write_text(json.dumps(m))
+    result = rerun_cell(load_references(tmp_path / "refs"), "tinydet", "c2", "P1", 0, tmp_path / "rerun")
+    assert not result["identical"] and any("mAP50 0.123456" in d for d in result["differences"])
+
+
+def test_progress_eta_uses_measured_epochs_and_relative_costs():
+    from harness.benchmark import BenchmarkProgress
+    from harness.sweep import SweepJob
+
+    t = [0.0]
+    jobs = [SweepJob("ours", "m3t-synth", "c2", f"P{i}", 0, "s") for i in (1, 2)]
+    jobs.append(SweepJob("cmadet", "m3t-synth", "ir8", "P1", 0, "s"))
+    lines: list[str] = []
+
+    class Sink:
+        def write(self, text: str) -> None:
+            lines.append(text)
+
+        def flush(self) -> None:
+            pass
+
+    p = BenchmarkProgress(jobs, epochs=10, lanes=2, stream=Sink(), now=lambda: t[0])  # type: ignore[arg-type]
+    assert p.eta() is None  # nothing timed yet
+    p.started(jobs[0])
+    t[0] = 20.0
+    p.epoch(jobs[0], 2)  # ours: 10 s per epoch
+    # ours P1: 8 epochs left, ours P2: 10, cmadet: 10 x 2.3 x 10 s; over 2 lanes
+    assert p.eta() == pytest.approx((80 + 100 + 230) / 2)
+    p.finished(jobs[0], ok=True)
+    assert "benchmark 1/3 cells (0 running)" in "".join(lines)
+
+
+def test_unknown_reference_folder_is_a_clear_error(tmp_path):
+    out = _cli(["report", "--store", str(tmp_path), "--reference-results", str(tmp_path / "nowhere")], code=2)
+    assert "no reference results here" in out
