@@ -221,3 +221,36 @@ def test_progress_eta_uses_measured_epochs_and_relative_costs():
 def test_unknown_reference_folder_is_a_clear_error(tmp_path):
     out = _cli(["report", "--store", str(tmp_path), "--reference-results", str(tmp_path / "nowhere")], code=2)
     assert "no reference results here" in out
+
+
+def test_claims_are_tested_on_the_data_with_intervals(bench, tmp_path):
+    """The claims section on a store laid out as the benchmark's (TinyDet's runs copied under the reference names):
+    every claim gets a verdict and intervals computed from the stored predictions."""
+    import shutil
+
+    from harness.report.claims import CONTRADICTED, INCONCLUSIVE, SUPPORTED, evaluate_claims
+    from harness.report.reader import StoreView
+
+    src = bench["store"] / "m3t-synth" / "tinydet" / "c2"
+    store = tmp_path / "store"
+    for det, enc in (("ours", "c2"), ("eme", "ir8"), ("icafusion", "ir8"), ("cmadet", "ir8")):
+        shutil.copytree(src, store / "m3t-synth" / det / enc)
+    for enc in ("none", "ir8", "linear16"):
+        shutil.copytree(src / "P4+P5", store / "m3t-synth" / "ours" / enc / "P4+P5")
+    claims, notes = evaluate_claims(StoreView(store), "m3t-synth", resamples=20)
+    assert [c.number for c in claims] == [1, 2, 3, 4, 5, 6]
+    assert all(c.verdict in (SUPPORTED, CONTRADICTED, INCONCLUSIVE) for c in claims)
+    # identical runs under every name: no difference can exclude 0, so the comparisons cannot be supported
+    assert claims[1].verdict == INCONCLUSIVE and "c2 - ir8: 0.000 [0.000, 0.000]" in claims[1].evidence[0]
+    assert claims[5].verdict != SUPPORTED
+    assert any("[" in e for c in claims for e in c.evidence) and "this store's runs" in notes[0]
+
+
+def test_verdicts_combine_parts():
+    from harness.report.claims import CONTRADICTED, INCONCLUSIVE, SUPPORTED, Interval, combine
+
+    assert combine([SUPPORTED, SUPPORTED]) == SUPPORTED
+    assert combine([SUPPORTED, INCONCLUSIVE]) == INCONCLUSIVE
+    assert combine([INCONCLUSIVE, CONTRADICTED]) == CONTRADICTED
+    assert Interval(0.1, 0.02, 0.2).above(0.0) and not Interval(0.1, -0.01, 0.2).above(0.0)
+    assert Interval(-0.1, -0.2, -0.01).below(0.0) and Interval(0.1, 0.05, 0.2).text() == "0.100 [0.050, 0.200]"
