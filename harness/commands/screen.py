@@ -38,6 +38,10 @@ def summary_lines(res) -> list[str]:
                      f"fourth channel {ms['encode']:.0f} ms, model {ms['model']:.0f} ms; front end = "
                      f"{100 * res.timings['frontend_over_model']:.0f} % of the model's time; "
                      f"{res.timings['frames_per_s']:.2f} frames/s overall")
+    pos = res.positions or {}
+    if pos.get("exif") or pos.get("none"):
+        lines.append(f"positions: {pos.get('xmp', 0)} frame(s) from DJI XMP, {pos.get('exif', 0)} from EXIF GPS "
+                     f"(gps_source exif in the outputs), {pos.get('none', 0)} without GPS")
     for frame, why in res.rejected:
         lines.append(f"registration check failed, screened with the factory prior: {frame} ({why})")
     if res.failures:

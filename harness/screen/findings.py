@@ -144,6 +144,7 @@ def frame_findings(
         }
         rec.update(box_temperatures(frame.thermal, aligned))
         rec.update({k: getattr(frame.position, k) for k in FIELDS})
+        rec["gps_source"] = frame.position.gps_source
         rec["route"] = frame.route
         out.append(rec)
     return out

@@ -56,7 +56,7 @@ import numpy as np
 
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.screen.flight import Capture
-from harness.screen.position import Position, read_position
+from harness.screen.position import Position, capture_position
 from harness.sensing import jpeg
 
 log = logging.getLogger(__name__)
@@ -341,9 +341,10 @@ class FrontEnd:
         th, tw = temp.shape
         # each file's header segments are read once (finding where a 12-megapixel scan ends takes milliseconds)
         th_layout = jpeg.read_segments(thermal_data, cap.thermal, require_eoi=False) if is_jpeg else None
-        position = read_position(rgb_data, str(cap.rgb), layout)
-        if th_layout is not None:
-            position = position.merged(read_position(thermal_data, str(cap.thermal), th_layout))
+        position = capture_position(
+            (rgb_data, str(cap.rgb), layout),
+            (thermal_data, str(cap.thermal), th_layout) if th_layout is not None else None,
+        )
         focal = self._focal(layout, th_layout)
 
         # the factory prior, defined on the full image (the frame the training data was registered in)

@@ -128,6 +128,8 @@ def render(
         for f in mine[:MAX_CARDS]:
             tip = f"box {', '.join(f'{v:.0f}' for v in f['box_thermal'])} (thermal px)"
             where = f"{_num(f.get('lat'), 6)}, {_num(f.get('lon'), 6)}" if f.get("lat") is not None else "no GPS"
+            if f.get("lat") is not None and f.get("gps_source") == "exif":
+                where += " (EXIF GPS)"
             link = escape(f.get("overlay") or "")
             out.append(
                 f"<div class='card'><a href='{link}'><img loading='lazy' src='{escape(f.get('crop') or '')}' "

@@ -24,7 +24,7 @@ from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
 
 log = logging.getLogger(__name__)
 
-SCHEMA = 1
+SCHEMA = 2  # 2: positions carry gps_source (XMP, EXIF)
 
 
 @dataclass
@@ -78,6 +78,8 @@ class ScreenResult:
     timings: dict[str, float] = field(default_factory=dict)
     threshold: float = 0.0
     threshold_source: str = ""
+    #: screened frames by where their GPS position came from: ``xmp``, ``exif``, ``none``
+    positions: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -671,6 +673,28 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
     return rel
 
 
+def position_counts(frames: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Frame records by the source of their GPS position (``xmp``, ``exif``, ``none``), with one warning naming the
+    frames without one."""
+    counts = {"xmp": 0, "exif": 0, "none": 0}
+    missing = []
+    for r in frames:
+        pos = r.get("position") or {}
+        source = pos.get("gps_source") if pos.get("lat") is not None and pos.get("lon") is not None else None
+        counts[source if source in counts else "none"] += 1
+        if source is None:
+            missing.append(r["frame"])
+    if missing:
+        log.warning(
+            "%d of %d screened frame(s) carry no GPS position (no DJI XMP drone-dji:GpsLatitude and GpsLongitude, "
+            "no EXIF GPS), e.g. %s: their findings have empty lat/lon and a null GeoJSON geometry",
+            len(missing),
+            len(frames),
+            ", ".join(missing[:3]),
+        )
+    return counts
+
+
 def _finish(
     folder: Path,
     base: dict[str, Any],
@@ -698,6 +722,7 @@ def _finish(
     out.write_geojson(folder / "findings.geojson", findings)
     counts = Counter(f["class"] for f in findings)
     routes = Counter(r["route"] for r in frames)
+    positions = position_counts(frames)
     rejected = [
         (r["frame"], str((r.get("registration") or {}).get("reason", "")))
         for r in frames
@@ -751,6 +776,7 @@ def _finish(
         "routes": dict(routes),
         "failures": [list(f) for f in failures],
         "registration_rejected": [list(r) for r in rejected],
+        "positions": positions,
         "inputs": inputs,
         "timings": timing,
     }
@@ -767,4 +793,5 @@ def _finish(
         timing,
         sm.threshold,
         sm.threshold_source,
+        positions,
     )

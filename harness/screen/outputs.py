@@ -47,6 +47,7 @@ CSV_COLUMNS = (
     "aligned_y1",
     *TEMPERATURE_KEYS,
     *FIELDS,
+    "gps_source",
     "route",
     "rgb_file",
     "thermal_file",
