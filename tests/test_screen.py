@@ -142,7 +142,8 @@ def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
         assert want and got == want, name
         assert rec["route"] == "file" and rec["reduction"] == 1
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["frames"] == {"captures": 2, "screened": 2, "with_findings": 2, "failed": 0, "ignored_files": 3}
+    counts = {"captures": 2, "screened": 2, "with_findings": 2, "failed": 0, "ignored_files": 3}
+    assert {k: manifest["frames"][k] for k in counts} == counts
 
 
 def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):

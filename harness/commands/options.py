@@ -14,6 +14,10 @@ one thing everywhere (docs/plugins.md, "Commands"):
 ``--store``              results store root [default: ``results/<profile>``, the same rule in every command]
 ``--config``, ``--set``  extra YAML config files and ``KEY=VALUE`` overrides, applied after the profile
 ``--no-progress``        no progress bars and no progress lines (bars show only on a terminal anyway)
+``--approximate``,       how the R-JPEGs the harness cannot correct itself are decoded (``sensing decode``,
+``--converter``,         ``screen``): approximate temperatures with their measured bound, or DJI's own SDK
+``--dji-irp``,
+``--converter-timeout``
 =======================  ==============================================================================================
 
 Usage (decorators, applied like ``click.option``)::
@@ -260,6 +264,46 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
             multiple=True,
             type=click.Path(dir_okay=False),
             help=f"Extra YAML config file(s){where} (repeatable).",
+        )(f)
+
+    return deco
+
+
+def decode_route_options() -> Callable[[F], F]:
+    """``--approximate`` (parameter ``approximate``), ``--converter`` (``converter``), ``--dji-irp`` (``dji_irp``)
+    and ``--converter-timeout`` (``converter_timeout``): the routes for R-JPEGs the harness cannot correct itself,
+    as ``sensing.radiometry.approximate``, ``converter``, ``dji_irp`` and ``converter_timeout_s`` set them."""
+
+    def deco(f: F) -> F:
+        f = option(
+            "--converter-timeout",
+            shared="converter-timeout",
+            type=click.FloatRange(min=0, min_open=True),
+            default=None,
+            help="Seconds one converter run may take (default 120).",
+        )(f)
+        f = option(
+            "--dji-irp",
+            "dji_irp",
+            shared="dji-irp",
+            default=None,
+            metavar="PATH",
+            help="DJI Thermal SDK's dji_irp (the program or its folder); implies --converter dji_irp.",
+        )(f)
+        f = option(
+            "--converter",
+            shared="converter",
+            default=None,
+            metavar="dji_irp|TEMPLATE",
+            help="Decode the files the harness cannot correct with DJI's own SDK (dji_irp, on PATH or "
+            "--dji-irp) or a command template holding {input} and {output}.",
+        )(f)
+        return option(
+            "--approximate",
+            shared="approximate",
+            is_flag=True,
+            help="Accept approximate temperatures, each with its measured bound, for files whose exact "
+            "correction needs DJI's own tables (M4T, H30T, some M2EA); labelled in every output.",
         )(f)
 
     return deco

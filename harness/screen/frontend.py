@@ -142,6 +142,17 @@ class Frame:
     #: an accepted automatic registration (full-frame undistorted wide pixels of K -> thermal), for the other
     #: captures of its inspection group; None for every other route
     registered: dict[str, Any] | None = None
+    #: how the temperatures were decoded (``harness.sensing.radiometry.route_meta``): empty for DJI's exact
+    #: correction and for decoded temperature files; ``thermal_route`` otherwise, and for the approximate route
+    #: ``temperatures`` ("approximate temperatures"), ``temperature_bound_c`` and ``approximation``
+    temperatures: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def approximate_bound_c(self) -> float | None:
+        """The measured bound of approximate temperatures (C), None when they are not approximate."""
+        if self.temperatures.get("thermal_route") != "approximate":
+            return None
+        return float(self.temperatures["temperature_bound_c"])
 
     @property
     def rgb(self) -> np.ndarray:
@@ -154,9 +165,12 @@ def sha1_bytes(data: bytes) -> str:
 
 def _read(path: Path) -> bytes:
     try:
-        return path.read_bytes()
+        data = path.read_bytes()
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if not data:
+        raise DataError(f"{path}: empty file (0 bytes): nothing was copied into it; copy it again from the card")
+    return data
 
 
 #: the bytes of a JPEG the header is first looked for in (DJI's EXIF, XMP and maker segments take well under this)
@@ -172,6 +186,11 @@ def read_header(data: bytes, name: Path) -> jpeg.JpegLayout:
     ``HEADER_BYTES`` alone. Otherwise (trailing data after the picture, a header larger than that) the whole file is
     read as before. Only ``segments``, ``width``, ``height`` and ``components`` of the answer are meant to be used:
     ``end`` is that of the first bytes."""
+    if not data.startswith(b"\xff\xd8"):
+        raise DataError(
+            f"{name}: not a JPEG file (starts with {data[:8].hex(' ') or 'nothing'}, expected ff d8); the wide "
+            "image of a capture is the JPEG the drone's wide camera wrote"
+        )
     if len(data) > HEADER_BYTES and data.endswith(b"\xff\xd9"):
         try:
             return jpeg.read_segments(data[:HEADER_BYTES] + b"\xff\xd9", name)
@@ -318,6 +337,7 @@ class FrontEnd:
         ``given``: a registration made on another capture of the same inspection group (``Frame.registered`` of
         that capture, with a ``route`` label), used instead of registering this one."""
         from harness.sensing.pipeline import read_capture_thermal
+        from harness.sensing.radiometry import route_meta
         from harness.sensing.registration import HomographyEntry, normalize
 
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -445,4 +465,5 @@ class FrontEnd:
                 "encode_cpu": c3 - c2,
             },
             registered=registered,
+            temperatures=route_meta(info),
         )

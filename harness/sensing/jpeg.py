@@ -64,8 +64,10 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     entropy-coded data of the main image has no end-of-image marker (a file cut inside the picture).
     """
     n = len(data)
+    if n == 0:
+        raise DataError(f"{name}: empty file (0 bytes): nothing was copied into it; copy it again from the card")
     if n < 4 or data[0] != 0xFF or data[1] != SOI:
-        head = data[:8].hex(" ") if n else "empty"
+        head = data[:8].hex(" ")
         raise DataError(
             f"{name}: not a JPEG file (starts with {head}, expected ff d8); pass an R-JPEG straight from the camera"
         )
