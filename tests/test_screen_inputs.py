@@ -378,3 +378,17 @@ def test_overlay_tags_never_overlap_and_the_legend_lists_every_finding():
     rgb = np.zeros((128, 160, 3), np.uint8)
     pic = overlay(rgb, np.full((128, 160), 20.0, np.float32), findings)
     assert pic.shape[1] == 2 * 480 + 6 and pic.shape[0] > 384  # the legend strip below the two panels
+
+
+def test_wide_images_of_another_size_are_told_once_naming_rgb_camera(trained, tmp_path):
+    from screen_helpers import upscaled_flight
+
+    flight = upscaled_flight(trained.tiny, tmp_path / "wide")  # twice the size the run's calibration is for
+    text = _screen(trained, flight, tmp_path / "out", *_file_route(trained), code=1)
+    assert text.count("RGB size mismatch") == 1, text
+    assert "and 1 more wide image(s) of that size: RGB size mismatch: the image is" in text
+    assert "give the calibration of the camera that took these images with --rgb-camera FILE" in text
+    assert "nothing was screened: of 2 capture(s), 2 failed" in text
+    html = (tmp_path / "out" / "index.html").read_text()
+    assert html.count("RGB size mismatch") == 1
+    assert len(json.loads((tmp_path / "out" / "manifest.json").read_text())["failures"]) == 2  # every file kept

@@ -53,8 +53,10 @@ def summary_lines(res) -> list[str]:
     for frame, why in res.rejected:
         lines.append(f"registration check failed, screened with the factory prior: {frame} ({why})")
     if res.failures:
+        from harness.screen.job import grouped_failures
+
         lines.append(f"{len(res.failures)} bad file(s), skipped:")
-        lines += [f"  {path}: {reason}" for path, reason in res.failures]
+        lines += [f"  {path}: {reason}" for path, reason in grouped_failures(res.failures)]
     lines.append(f"results: {res.out} (findings.csv, findings.geojson, index.html, manifest.json)")
     return lines
 

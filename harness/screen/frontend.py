@@ -159,6 +159,20 @@ class Frame:
         return self.image[:, :, :3]
 
 
+#: how the reason for a wide image of another size than its calibration starts (``job`` lists them once per size)
+SIZE_MISMATCH = "RGB size mismatch"
+
+
+def size_mismatch(image: tuple[int, int], calibration: tuple[int, int]) -> str:
+    """The reason a wide image of ``image`` size cannot be undistorted with a calibration of ``calibration`` size
+    (the same text for every image of that size)."""
+    return (
+        f"{SIZE_MISMATCH}: the image is {image[0]}x{image[1]}, the wide-camera calibration is for "
+        f"{calibration[0]}x{calibration[1]}; give the calibration of the camera that took these images with "
+        "--rgb-camera FILE (sensing calibrate makes one)"
+    )
+
+
 def sha1_bytes(data: bytes) -> str:
     return hashlib.sha1(data).hexdigest()
 
@@ -314,10 +328,7 @@ class FrontEnd:
     def _check_rgb_size(self, rgb_size: tuple[int, int], name: Path) -> None:
         cam = self.rgb_camera
         if cam is not None and cam.image_size != rgb_size:
-            raise DataError(
-                f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
-                f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}"
-            )
+            raise DataError(f"{name}: {size_mismatch(rgb_size, cam.image_size)}")
 
     def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None) -> tuple[float, float] | None:
         f_rgb = _focal_35mm(rgb_layout)

@@ -726,6 +726,27 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
     return rel
 
 
+def grouped_failures(failures: Sequence[tuple[str, str]]) -> list[tuple[str, str]]:
+    """``failures`` with the wide images of one size that its calibration does not fit as one entry (the first
+    file, "and N more"), so that a flight shot in another mode is told once, not file by file."""
+    from harness.screen.frontend import SIZE_MISMATCH
+
+    out: list[tuple[str, str]] = []
+    same: dict[str, list[str]] = {}
+    for path, reason in failures:
+        if reason.startswith(SIZE_MISMATCH):
+            if reason not in same:
+                same[reason] = []
+                out.append((path, reason))
+            same[reason].append(path)
+        else:
+            out.append((path, reason))
+    return [
+        (f"{p} and {len(same[r]) - 1} more wide image(s) of that size" if r in same and len(same[r]) > 1 else p, r)
+        for p, r in out
+    ]
+
+
 def count_line(c: dict[str, int]) -> str:
     """The counts of a screen in words, adding up: captures = screened + failed + rejected + not reached."""
     parts = [f"{c['screened']} screened ({c['screened_now']} now, {c['screened_earlier']} earlier)"]
@@ -881,7 +902,8 @@ def _finish(
     ]
     if temperatures["approximate_frames"]:
         summary.append(approximate_line(temperatures))
-    html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, failures, summary, __version__)
+    listed = grouped_failures(failures)
+    html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, listed, summary, __version__)
     from harness.io import atomic_write_text
 
     atomic_write_text(folder / "index.html", html)
