@@ -296,6 +296,7 @@ def test_screen_takes_the_decoding_options_its_refusals_name_and_labels_approxim
     flight = _m4t_flight(trained, tmp_path / "flight")
     text = _screen(trained, flight, tmp_path / "refused", *_file_route(trained), code=1)
     assert "camera 'M4T'" in text and "--converter dji_irp" in text and "--approximate" in text
+    assert "--decoder" not in text  # an option of sensing decode only
     assert "nothing was screened: of 2 capture(s), 2 failed" in text
     from harness.cli import get_cli
 

@@ -173,6 +173,17 @@ def size_mismatch(image: tuple[int, int], calibration: tuple[int, int]) -> str:
     )
 
 
+#: advice of the decoder's refusals that names an option ``harness sensing decode`` takes and ``screen`` does not
+#: (a screen decodes with the run's ``sensing.radiometry.decoder``: the temperatures its model learnt from)
+_DECODE_ONLY_ADVICE = "; uncorrected (blackbody) temperatures only with --decoder blackbody"
+
+
+def screen_refusal(text: str) -> str:
+    """A thermal decoder's refusal as ``screen`` gives it: the routes it names (``--converter``, ``--dji-irp``,
+    ``--approximate``) are options of ``screen`` too; advice for ``sensing decode`` alone is left out."""
+    return text.replace(_DECODE_ONLY_ADVICE, "")
+
+
 def sha1_bytes(data: bytes) -> str:
     return hashlib.sha1(data).hexdigest()
 
@@ -363,7 +374,7 @@ class FrontEnd:
         except ConfigError:
             raise
         except HarnessError as exc:
-            text = str(exc)
+            text = screen_refusal(str(exc))
             raise DataError(text if str(cap.thermal) in text else f"{cap.thermal}: {text}") from None
         if not np.isfinite(temp).all():
             from harness.sensing.c2 import valid_mask
