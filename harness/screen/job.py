@@ -782,7 +782,7 @@ def _remove_stale(folder: Path, frames: Sequence[dict[str, Any]]) -> None:
     pictures |= {str(f.get("crop")) for r in frames for f in r.get("findings") or [] if f.get("crop")}
     for path in sorted((folder / "frames").glob("*.json")):
         if path.name not in keep:
-            log.info("removing %s: its capture is no longer in the flight", path)
+            log.info("removing %s: its capture is no longer screened from this flight", path)
             path.unlink(missing_ok=True)
     for sub in ("overlays", "crops"):
         for path in sorted((folder / sub).glob("*.jpg")):

@@ -277,7 +277,7 @@ def _legend(lines: Sequence[str], findings: Sequence[dict[str, Any]], width: int
     col_w = max([cv2.getTextSize(t, font, scale, 1)[0][0] for t in entries] + [1]) + 24
     cols = max(1, (width - 8) // col_w)
     rows = math.ceil(len(entries) / cols) if entries else 0
-    strip = np.full((8 + line_h * (len(head) + rows), width, 3), 255, np.uint8)
+    strip = np.full((12 + line_h * (len(head) + rows), width, 3), 255, np.uint8)
     y = 4 + th
     for text in head:
         cv2.putText(strip, text, (6, y), font, scale, (0, 0, 176), 1, cv2.LINE_AA)
