@@ -40,6 +40,7 @@ one release: the CLI rewrites them to the new ones before parsing and prints one
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -203,25 +204,40 @@ def format_option(
     )
 
 
-def no_progress_option() -> Callable[[F], F]:
-    """``--no-progress``: switches progress bars and progress lines off for this command (no parameter; code that
-    needs a bool asks ``harness.progress.progress_on()``)."""
+#: ``ctx.meta`` key: ``--no-progress`` was given to the command being invoked
+_NO_PROGRESS = "harness.no_progress"
 
-    def switch(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+
+def no_progress_option() -> Callable[[F], F]:
+    """``--no-progress``: switches progress bars and progress lines off while this command runs (no parameter; code
+    that needs a bool asks ``harness.progress.progress_on()``). The switch wraps the command's body, so a usage error
+    found while parsing (after ``--no-progress`` was read) leaves progress as it was."""
+
+    def given(ctx: click.Context, param: click.Parameter, value: bool) -> None:
         if value:
+            ctx.meta[_NO_PROGRESS] = True
+
+    def deco(f: F) -> F:
+        @functools.wraps(f)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            ctx = click.get_current_context(silent=True)
+            if ctx is None or not ctx.meta.get(_NO_PROGRESS):
+                return f(*args, **kwargs)
             from harness import progress
 
-            token = progress.switch_off()
-            ctx.call_on_close(lambda: progress.switch_back(token))
+            with progress.switched_off():
+                return f(*args, **kwargs)
 
-    return option(
-        "--no-progress",
-        shared="no-progress",
-        is_flag=True,
-        expose_value=False,
-        callback=switch,
-        help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).",
-    )
+        return option(  # type: ignore[return-value]
+            "--no-progress",
+            shared="no-progress",
+            is_flag=True,
+            expose_value=False,
+            callback=given,
+            help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).",
+        )(run)
+
+    return deco
 
 
 def profile_option(*, uses_config: bool = True, param: str = "profile", help: str | None = None) -> Callable[[F], F]:
