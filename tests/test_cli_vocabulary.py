@@ -414,6 +414,20 @@ def test_no_progress_switches_off_bars_and_lines_for_that_command_only(cli_runne
     assert progress.progress_on()  # nothing leaks out of the command
 
 
+def test_a_usage_error_after_no_progress_leaves_progress_on(cli_runner, extra_command):
+    from harness import progress
+
+    @click.command(name="probe")
+    @opt.no_progress_option()
+    @click.option("--conf", type=click.FloatRange(0, 1), help="A number in [0, 1].")
+    def probe(conf: float) -> None:
+        """Does nothing."""
+
+    extra_command(probe)
+    assert cli_runner(["probe", "--no-progress", "--conf", "1.5"]).exit_code == 2
+    assert progress.progress_on()
+
+
 def test_progress_bars_are_set_up_in_one_place():
     offenders = []
     for folder in ("harness", "adapters"):

@@ -142,7 +142,8 @@ def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
         assert want and got == want, name
         assert rec["route"] == "file" and rec["reduction"] == 1
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["frames"] == {"captures": 2, "screened": 2, "with_findings": 2, "failed": 0, "ignored_files": 3}
+    counts = {"captures": 2, "screened": 2, "with_findings": 2, "failed": 0, "ignored_files": 3}
+    assert {k: manifest["frames"][k] for k in counts} == counts
 
 
 def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):
@@ -267,7 +268,7 @@ def test_gps_and_gimbal_equal_what_exiftool_reads(tmp_path):
                           capture_output=True, text=True, check=True)
     by_file = {Path(r["SourceFile"]).name: r for r in json.loads(proc.stdout)}
     for path in files + written:
-        ours = read_position(path.read_bytes(), str(path)).to_dict()
+        ours = {k: v for k, v in read_position(path.read_bytes(), str(path)).to_dict().items() if k in names}
         theirs = {k: (float(by_file[path.name][n]) if n in by_file[path.name] else None) for k, n in names.items()}
         assert ours == pytest.approx(theirs, abs=1e-9) if theirs["lat"] is not None else ours == theirs, path.name
     assert all(v is None for v in read_position(files[0].read_bytes()).to_dict().values())

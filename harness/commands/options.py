@@ -14,6 +14,10 @@ one thing everywhere (docs/plugins.md, "Commands"):
 ``--store``              results store root [default: ``results/<profile>``, the same rule in every command]
 ``--config``, ``--set``  extra YAML config files and ``KEY=VALUE`` overrides, applied after the profile
 ``--no-progress``        no progress bars and no progress lines (bars show only on a terminal anyway)
+``--approximate``,       how the R-JPEGs the harness cannot correct itself are decoded (``sensing decode``,
+``--converter``,         ``screen``): approximate temperatures with their measured bound, or DJI's own SDK
+``--dji-irp``,
+``--converter-timeout``
 =======================  ==============================================================================================
 
 Usage (decorators, applied like ``click.option``)::
@@ -36,6 +40,7 @@ one release: the CLI rewrites them to the new ones before parsing and prints one
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -199,25 +204,40 @@ def format_option(
     )
 
 
-def no_progress_option() -> Callable[[F], F]:
-    """``--no-progress``: switches progress bars and progress lines off for this command (no parameter; code that
-    needs a bool asks ``harness.progress.progress_on()``)."""
+#: ``ctx.meta`` key: ``--no-progress`` was given to the command being invoked
+_NO_PROGRESS = "harness.no_progress"
 
-    def switch(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+
+def no_progress_option() -> Callable[[F], F]:
+    """``--no-progress``: switches progress bars and progress lines off while this command runs (no parameter; code
+    that needs a bool asks ``harness.progress.progress_on()``). The switch wraps the command's body, so a usage error
+    found while parsing (after ``--no-progress`` was read) leaves progress as it was."""
+
+    def given(ctx: click.Context, param: click.Parameter, value: bool) -> None:
         if value:
+            ctx.meta[_NO_PROGRESS] = True
+
+    def deco(f: F) -> F:
+        @functools.wraps(f)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            ctx = click.get_current_context(silent=True)
+            if ctx is None or not ctx.meta.get(_NO_PROGRESS):
+                return f(*args, **kwargs)
             from harness import progress
 
-            token = progress.switch_off()
-            ctx.call_on_close(lambda: progress.switch_back(token))
+            with progress.switched_off():
+                return f(*args, **kwargs)
 
-    return option(
-        "--no-progress",
-        shared="no-progress",
-        is_flag=True,
-        expose_value=False,
-        callback=switch,
-        help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).",
-    )
+        return option(  # type: ignore[return-value]
+            "--no-progress",
+            shared="no-progress",
+            is_flag=True,
+            expose_value=False,
+            callback=given,
+            help="No progress bars or progress lines on stderr (bars show only on a terminal anyway).",
+        )(run)
+
+    return deco
 
 
 def profile_option(*, uses_config: bool = True, param: str = "profile", help: str | None = None) -> Callable[[F], F]:
@@ -260,6 +280,46 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
             multiple=True,
             type=click.Path(dir_okay=False),
             help=f"Extra YAML config file(s){where} (repeatable).",
+        )(f)
+
+    return deco
+
+
+def decode_route_options() -> Callable[[F], F]:
+    """``--approximate`` (parameter ``approximate``), ``--converter`` (``converter``), ``--dji-irp`` (``dji_irp``)
+    and ``--converter-timeout`` (``converter_timeout``): the routes for R-JPEGs the harness cannot correct itself,
+    as ``sensing.radiometry.approximate``, ``converter``, ``dji_irp`` and ``converter_timeout_s`` set them."""
+
+    def deco(f: F) -> F:
+        f = option(
+            "--converter-timeout",
+            shared="converter-timeout",
+            type=click.FloatRange(min=0, min_open=True),
+            default=None,
+            help="Seconds one converter run may take (default 120).",
+        )(f)
+        f = option(
+            "--dji-irp",
+            "dji_irp",
+            shared="dji-irp",
+            default=None,
+            metavar="PATH",
+            help="DJI Thermal SDK's dji_irp (the program or its folder); implies --converter dji_irp.",
+        )(f)
+        f = option(
+            "--converter",
+            shared="converter",
+            default=None,
+            metavar="dji_irp|TEMPLATE",
+            help="Decode the files the harness cannot correct with DJI's own SDK (dji_irp, on PATH or "
+            "--dji-irp) or a command template holding {input} and {output}.",
+        )(f)
+        return option(
+            "--approximate",
+            shared="approximate",
+            is_flag=True,
+            help="Accept approximate temperatures, each with its measured bound, for files whose exact "
+            "correction needs DJI's own tables (M4T, H30T, some M2EA); labelled in every output.",
         )(f)
 
     return deco

@@ -28,6 +28,10 @@ def summary_lines(res) -> list[str]:
 
     lines = [f"screened {res.screened} frame(s) now, {res.skipped_done} earlier; {res.with_findings} with findings "
              f"(threshold {res.threshold:g}: {res.threshold_source})"]
+    if res.counts:
+        from harness.screen.job import count_line
+
+        lines.append(count_line(res.counts))
     if res.findings:
         rows = [[c, str(n)] for c, n in sorted(res.findings.items(), key=lambda kv: -kv[1])]
         lines.append(text_table(["class", "findings"], rows, "lr"))
@@ -38,11 +42,21 @@ def summary_lines(res) -> list[str]:
                      f"fourth channel {ms['encode']:.0f} ms, model {ms['model']:.0f} ms; front end = "
                      f"{100 * res.timings['frontend_over_model']:.0f} % of the model's time; "
                      f"{res.timings['frames_per_s']:.2f} frames/s overall")
+    if (res.temperatures or {}).get("approximate_frames"):
+        from harness.screen.job import approximate_line
+
+        lines.append(approximate_line(res.temperatures))
+    pos = res.positions or {}
+    if pos.get("exif") or pos.get("none"):
+        lines.append(f"positions: {pos.get('xmp', 0)} frame(s) from DJI XMP, {pos.get('exif', 0)} from EXIF GPS "
+                     f"(gps_source exif in the outputs), {pos.get('none', 0)} without GPS")
     for frame, why in res.rejected:
         lines.append(f"registration check failed, screened with the factory prior: {frame} ({why})")
     if res.failures:
+        from harness.screen.job import grouped_failures
+
         lines.append(f"{len(res.failures)} bad file(s), skipped:")
-        lines += [f"  {path}: {reason}" for path, reason in res.failures]
+        lines += [f"  {path}: {reason}" for path, reason in grouped_failures(res.failures)]
     lines.append(f"results: {res.out} (findings.csv, findings.geojson, index.html, manifest.json)")
     return lines
 
@@ -64,7 +78,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--backend", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
                   help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).")
     @click.option("--device", default="cpu", show_default=True, help="Torch device (cpu, cuda).")
-    @click.option("--conf", type=float, default=None,
+    @click.option("--conf", type=click.FloatRange(0.0, 1.0), default=None,
                   help="Report findings scoring at least this [default: the run's operating point].")
     @click.option("--homography", type=click.Path(dir_okay=False, exists=True), default=None,
                   help="A homographies YAML (undistorted wide pixels of the calibration K -> thermal pixels) used for "
@@ -91,13 +105,15 @@ def register_commands(cli: click.Group) -> None:
                   help="Processes for the front end (decode, register, warp, fourth channel).")
     @click.option("--threads", type=click.IntRange(min=1), default=None,
                   help="Threads for the model (torch and ONNX Runtime) [default: torch's].")
+    @opt.decode_route_options()
     @click.option("--fail-fast", is_flag=True, help="Stop at the first bad file.")
     @click.option("--force", is_flag=True, help="Replace a screen in --out made with another model or settings.")
     @click.option("--no-overlays", is_flag=True, help="No overlay and thumbnail pictures.")
     @opt.no_progress_option()
     def screen_cmd(flight, run_dir, weights, detector, dataset, encoding, profile, config_files, overrides, out,
                    backend, device, conf, homography, group, rgb_camera, thermal_camera, no_undistort, focal_35mm,
-                   fallback, rgb_decode, register, workers, threads, fail_fast, force, no_overlays):
+                   fallback, rgb_decode, register, workers, threads, approximate, converter, dji_irp,
+                   converter_timeout, fail_fast, force, no_overlays):
         """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
 
         Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
@@ -119,10 +135,14 @@ def register_commands(cli: click.Group) -> None:
                             backend=backend, device=device, conf=conf, homography=homography, group=group,
                             rgb_camera=rgb_camera, thermal_camera=thermal_camera, no_undistort=no_undistort,
                             focal_35mm=_focal(focal_35mm), fallback=fallback, rgb_decode=rgb_decode,
-                            register=register, workers=workers, threads=threads, fail_fast=fail_fast, force=force,
+                            register=register, workers=workers, threads=threads, approximate=approximate,
+                            converter=converter, dji_irp=dji_irp, converter_timeout=converter_timeout,
+                            fail_fast=fail_fast, force=force,
                             progress=progress_on(), overlays=not no_overlays)
         res = screen(req)
         for line in summary_lines(res):
             click.echo(line)
+        if res.nothing_screened:
+            raise PartlyDone(f"nothing was screened: {res.why_nothing}")
         if not res.ok:
             raise PartlyDone(f"{len(res.failures)} bad file(s) skipped (listed above)")

@@ -72,16 +72,7 @@ def register_commands(cli: click.Group) -> None:
                   help="auto: DJI's corrected temperature, or the route chosen below for files the harness cannot "
                        "correct, else an error; dji: corrected or an error; blackbody: raw14/16-273.15, uncorrected.")
     @click.option("--blackbody", is_flag=True, help="Same as --decoder blackbody.")
-    @click.option("--approximate", is_flag=True,
-                  help="Accept approximate temperatures, each with its measured bound, for files whose exact "
-                       "correction needs DJI's own tables (M4T, H30T, some M2EA); labelled in every output.")
-    @click.option("--converter", default=None, metavar="dji_irp|TEMPLATE",
-                  help="Decode the files the harness cannot correct with DJI's own SDK (dji_irp, on PATH or "
-                       "--dji-irp) or a command template holding {input} and {output}.")
-    @click.option("--dji-irp", "dji_irp", default=None, metavar="PATH",
-                  help="DJI Thermal SDK's dji_irp (the program or its folder); implies --converter dji_irp.")
-    @click.option("--converter-timeout", type=click.FloatRange(min=0, min_open=True), default=None,
-                  help="Seconds one converter run may take (default 120).")
+    @opt.decode_route_options()
     @click.option("--emissivity", type=float, default=None, help="Override the file's emissivity (0.1-1).")
     @click.option("--distance", type=float, default=None, help="Override the object distance, m (1-25).")
     @click.option("--humidity", type=float, default=None, help="Override the relative humidity, % (1-100).")

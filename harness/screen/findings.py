@@ -144,6 +144,9 @@ def frame_findings(
         }
         rec.update(box_temperatures(frame.thermal, aligned))
         rec.update({k: getattr(frame.position, k) for k in FIELDS})
+        rec["gps_source"] = frame.position.gps_source
+        rec["temperature_route"] = "approximate" if frame.approximate_bound_c is not None else frame.thermal_decoder
+        rec["t_bound_c"] = frame.approximate_bound_c
         rec["route"] = frame.route
         out.append(rec)
     return out

@@ -50,6 +50,30 @@ class Flight:
     captures: list[Capture] = field(default_factory=list)
     bad: list[tuple[str, str]] = field(default_factory=list)
     ignored: int = 0
+    #: the first ignored files (relative to the folder), to say what was found when nothing pairs
+    ignored_examples: list[str] = field(default_factory=list)
+
+    def ignore(self, path: Path) -> None:
+        self.ignored += 1
+        if len(self.ignored_examples) < 5:
+            self.ignored_examples.append(path.relative_to(self.folder).as_posix())
+
+    def why_empty(self) -> str:
+        """Why the flight gives nothing to screen (when it has no capture)."""
+        if not self.ignored and not self.bad:
+            return f"{self.folder} holds no files"
+        text = (
+            f"{self.folder} holds no wide/thermal pair: a capture is <name>{RGB_SUFFIX}.JPG beside "
+            f"<name>{THERMAL_SUFFIX}.JPG (or a decoded <name>{THERMAL_SUFFIX}.png/.tif/.tiff/.npy), as DJI names them"
+        )
+        if self.ignored:
+            text += (
+                f"; {self.ignored} file(s) ignored (zoom {', '.join(IGNORED_SUFFIXES[:2])} and video captures, other "
+                f"names), e.g. {', '.join(self.ignored_examples[:3])}"
+            )
+        if self.bad:
+            text += f"; {len(self.bad)} file(s) without a partner"
+        return text
 
 
 def find_captures(folder: str | Path) -> Flight:
@@ -69,7 +93,7 @@ def find_captures(folder: str | Path) -> Flight:
             m = _NAME.match(fname)
             ext = Path(fname).suffix.lower()
             if m is None or ext in IGNORED_EXTENSIONS:
-                flight.ignored += 1
+                flight.ignore(here / fname)
                 continue
             rel = (here / m["capture"]).relative_to(root).as_posix()
             suffix = m["suffix"].upper()
@@ -78,7 +102,7 @@ def find_captures(folder: str | Path) -> Flight:
             elif suffix == THERMAL_SUFFIX and ext in THERMAL_EXTENSIONS:
                 thermal.setdefault(rel, []).append(here / fname)
             else:
-                flight.ignored += 1
+                flight.ignore(here / fname)
     for name in sorted(set(rgb) | set(thermal)):
         if name not in thermal:
             flight.bad.append((str(rgb[name]), f"no thermal partner: no {Path(name).name}{THERMAL_SUFFIX}.* beside it"))

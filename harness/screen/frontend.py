@@ -56,7 +56,7 @@ import numpy as np
 
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.screen.flight import Capture
-from harness.screen.position import Position, read_position
+from harness.screen.position import Position, capture_position
 from harness.sensing import jpeg
 
 log = logging.getLogger(__name__)
@@ -142,10 +142,46 @@ class Frame:
     #: an accepted automatic registration (full-frame undistorted wide pixels of K -> thermal), for the other
     #: captures of its inspection group; None for every other route
     registered: dict[str, Any] | None = None
+    #: how the temperatures were decoded (``harness.sensing.radiometry.route_meta``): empty for DJI's exact
+    #: correction and for decoded temperature files; ``thermal_route`` otherwise, and for the approximate route
+    #: ``temperatures`` ("approximate temperatures"), ``temperature_bound_c`` and ``approximation``
+    temperatures: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def approximate_bound_c(self) -> float | None:
+        """The measured bound of approximate temperatures (C), None when they are not approximate."""
+        if self.temperatures.get("thermal_route") != "approximate":
+            return None
+        return float(self.temperatures["temperature_bound_c"])
 
     @property
     def rgb(self) -> np.ndarray:
         return self.image[:, :, :3]
+
+
+#: how the reason for a wide image of another size than its calibration starts (``job`` lists them once per size)
+SIZE_MISMATCH = "RGB size mismatch"
+
+
+def size_mismatch(image: tuple[int, int], calibration: tuple[int, int]) -> str:
+    """The reason a wide image of ``image`` size cannot be undistorted with a calibration of ``calibration`` size
+    (the same text for every image of that size)."""
+    return (
+        f"{SIZE_MISMATCH}: the image is {image[0]}x{image[1]}, the wide-camera calibration is for "
+        f"{calibration[0]}x{calibration[1]}; give the calibration of the camera that took these images with "
+        "--rgb-camera FILE (sensing calibrate makes one)"
+    )
+
+
+#: advice of the decoder's refusals that names an option ``harness sensing decode`` takes and ``screen`` does not
+#: (a screen decodes with the run's ``sensing.radiometry.decoder``: the temperatures its model learnt from)
+_DECODE_ONLY_ADVICE = "; uncorrected (blackbody) temperatures only with --decoder blackbody"
+
+
+def screen_refusal(text: str) -> str:
+    """A thermal decoder's refusal as ``screen`` gives it: the routes it names (``--converter``, ``--dji-irp``,
+    ``--approximate``) are options of ``screen`` too; advice for ``sensing decode`` alone is left out."""
+    return text.replace(_DECODE_ONLY_ADVICE, "")
 
 
 def sha1_bytes(data: bytes) -> str:
@@ -154,9 +190,12 @@ def sha1_bytes(data: bytes) -> str:
 
 def _read(path: Path) -> bytes:
     try:
-        return path.read_bytes()
+        data = path.read_bytes()
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if not data:
+        raise DataError(f"{path}: empty file (0 bytes): nothing was copied into it; copy it again from the card")
+    return data
 
 
 #: the bytes of a JPEG the header is first looked for in (DJI's EXIF, XMP and maker segments take well under this)
@@ -172,6 +211,11 @@ def read_header(data: bytes, name: Path) -> jpeg.JpegLayout:
     ``HEADER_BYTES`` alone. Otherwise (trailing data after the picture, a header larger than that) the whole file is
     read as before. Only ``segments``, ``width``, ``height`` and ``components`` of the answer are meant to be used:
     ``end`` is that of the first bytes."""
+    if not data.startswith(b"\xff\xd8"):
+        raise DataError(
+            f"{name}: not a JPEG file (starts with {data[:8].hex(' ') or 'nothing'}, expected ff d8); the wide "
+            "image of a capture is the JPEG the drone's wide camera wrote"
+        )
     if len(data) > HEADER_BYTES and data.endswith(b"\xff\xd9"):
         try:
             return jpeg.read_segments(data[:HEADER_BYTES] + b"\xff\xd9", name)
@@ -295,10 +339,7 @@ class FrontEnd:
     def _check_rgb_size(self, rgb_size: tuple[int, int], name: Path) -> None:
         cam = self.rgb_camera
         if cam is not None and cam.image_size != rgb_size:
-            raise DataError(
-                f"{name}: RGB size mismatch: the camera calibration is for {cam.image_size[0]}x"
-                f"{cam.image_size[1]}, the image is {rgb_size[0]}x{rgb_size[1]}"
-            )
+            raise DataError(f"{name}: {size_mismatch(rgb_size, cam.image_size)}")
 
     def _focal(self, rgb_layout: jpeg.JpegLayout, thermal_layout: jpeg.JpegLayout | None) -> tuple[float, float] | None:
         f_rgb = _focal_35mm(rgb_layout)
@@ -318,6 +359,7 @@ class FrontEnd:
         ``given``: a registration made on another capture of the same inspection group (``Frame.registered`` of
         that capture, with a ``route`` label), used instead of registering this one."""
         from harness.sensing.pipeline import read_capture_thermal
+        from harness.sensing.radiometry import route_meta
         from harness.sensing.registration import HomographyEntry, normalize
 
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -332,7 +374,7 @@ class FrontEnd:
         except ConfigError:
             raise
         except HarnessError as exc:
-            text = str(exc)
+            text = screen_refusal(str(exc))
             raise DataError(text if str(cap.thermal) in text else f"{cap.thermal}: {text}") from None
         if not np.isfinite(temp).all():
             from harness.sensing.c2 import valid_mask
@@ -341,9 +383,10 @@ class FrontEnd:
         th, tw = temp.shape
         # each file's header segments are read once (finding where a 12-megapixel scan ends takes milliseconds)
         th_layout = jpeg.read_segments(thermal_data, cap.thermal, require_eoi=False) if is_jpeg else None
-        position = read_position(rgb_data, str(cap.rgb), layout)
-        if th_layout is not None:
-            position = position.merged(read_position(thermal_data, str(cap.thermal), th_layout))
+        position = capture_position(
+            (rgb_data, str(cap.rgb), layout),
+            (thermal_data, str(cap.thermal), th_layout) if th_layout is not None else None,
+        )
         focal = self._focal(layout, th_layout)
 
         # the factory prior, defined on the full image (the frame the training data was registered in)
@@ -444,4 +487,5 @@ class FrontEnd:
                 "encode_cpu": c3 - c2,
             },
             registered=registered,
+            temperatures=route_meta(info),
         )

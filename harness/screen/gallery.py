@@ -13,6 +13,8 @@ from collections import Counter
 from html import escape
 from typing import Any, Sequence
 
+from harness.screen.outputs import score_digits
+
 #: findings shown per class (all are in findings.csv)
 MAX_CARDS = 400
 
@@ -125,14 +127,21 @@ def render(
         if not mine:
             continue
         out.append(f"<h2 id='{escape(c)}'>{escape(c)} ({len(mine)})</h2><div class='cards'>")
+        digits = max(3, score_digits([f["score"] for f in mine[:MAX_CARDS]]))
         for f in mine[:MAX_CARDS]:
             tip = f"box {', '.join(f'{v:.0f}' for v in f['box_thermal'])} (thermal px)"
             where = f"{_num(f.get('lat'), 6)}, {_num(f.get('lon'), 6)}" if f.get("lat") is not None else "no GPS"
+            if f.get("lat") is not None and f.get("gps_source") == "exif":
+                where += " (EXIF GPS)"
             link = escape(f.get("overlay") or "")
+            approx = ""
+            if f.get("temperature_route") == "approximate":
+                approx = f" <span class='warn'>(approximate, &plusmn;{_num(f.get('t_bound_c'), 3)} &deg;C)</span>"
             out.append(
                 f"<div class='card'><a href='{link}'><img loading='lazy' src='{escape(f.get('crop') or '')}' "
-                f"alt='{escape(c)}'></a><span class='score'>{f['score']:.3f}</span> "
-                f"&Delta;T {_num(f.get('delta_t'), 1, True)} &deg;C &middot; max {_num(f.get('t_max'))} &deg;C<br>"
+                f"alt='{escape(c)}'></a><span class='score'>{f['score']:.{digits}f}</span> "
+                f"&Delta;T {_num(f.get('delta_t'), 1, True)} &deg;C &middot; max {_num(f.get('t_max'))} &deg;C"
+                f"{approx}<br>"
                 f"<a href='{link}' title='{escape(tip)}'>{escape(f['frame'])}</a><br>"
                 f"<span class='meta'>{escape(where)}</span></div>"
             )

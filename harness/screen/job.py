@@ -24,7 +24,7 @@ from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
 
 log = logging.getLogger(__name__)
 
-SCHEMA = 1
+SCHEMA = 2  # 2: positions carry gps_source (XMP, EXIF)
 
 
 @dataclass
@@ -55,6 +55,12 @@ class ScreenRequest:
     register: str = "group"
     workers: int = 1
     threads: int | None = None
+    #: routes for R-JPEGs the harness cannot correct itself (``harness sensing decode``'s options): they set the
+    #: run's ``sensing.radiometry`` ``approximate``, ``converter``, ``dji_irp`` and ``converter_timeout_s``
+    approximate: bool = False
+    converter: str | None = None
+    dji_irp: str | None = None
+    converter_timeout: float | None = None
     #: with ``workers`` 1: the front end of the next captures runs in a thread while the model works on this one
     overlap: bool = True
     fail_fast: bool = False
@@ -78,6 +84,18 @@ class ScreenResult:
     timings: dict[str, float] = field(default_factory=dict)
     threshold: float = 0.0
     threshold_source: str = ""
+    #: screened frames by where their GPS position came from: ``xmp``, ``exif``, ``none``
+    positions: dict[str, int] = field(default_factory=dict)
+    #: the manifest's ``temperatures``: frames per decoding route, approximate frames and their largest bound
+    temperatures: dict[str, Any] = field(default_factory=dict)
+    #: the manifest's counts (``captures`` = ``screened`` + ``failed`` + ``rejected_not_screened`` + ``not_reached``)
+    counts: dict[str, int] = field(default_factory=dict)
+    #: why nothing was screened, when nothing was
+    why_nothing: str = ""
+
+    @property
+    def nothing_screened(self) -> bool:
+        return self.screened + self.skipped_done == 0
 
     @property
     def ok(self) -> bool:
@@ -86,6 +104,8 @@ class ScreenResult:
 
 # ------------------------------------------------------------------------------------------------ settings
 def load_model(req: ScreenRequest) -> ScreenModel:
+    if req.conf is not None and not 0.0 <= float(req.conf) <= 1.0:  # NaN fails too
+        raise ConfigError(f"--conf {req.conf}: a score threshold lies between 0 and 1")
     if (req.run is None) == (req.weights is None):
         raise ConfigError("give either --run RUN_DIR (a finished run) or --weights FILE with --detector and --dataset")
     if req.run is not None:
@@ -107,6 +127,24 @@ def load_model(req: ScreenRequest) -> ScreenModel:
         req.overrides,
         req.conf,
     )
+
+
+def decode_routes(sensing: dict[str, Any], req: ScreenRequest) -> dict[str, Any]:
+    """The ``sensing`` section with the request's decoding routes (``--approximate``, ``--converter``,
+    ``--dji-irp``, ``--converter-timeout``) set in its ``radiometry``; a wrong converter is a ``ConfigError``."""
+    rad = dict(sensing.get("radiometry") or {})
+    if req.approximate:
+        rad["approximate"] = True
+    if req.converter or req.dji_irp:
+        from harness.sensing.dji_converter import resolve
+
+        resolve(req.converter, req.dji_irp, req.converter_timeout)  # checked here, once, with the options' names
+        rad["converter"] = req.converter or "dji_irp"
+        if req.dji_irp:
+            rad["dji_irp"] = str(req.dji_irp)
+    if req.converter_timeout:
+        rad["converter_timeout_s"] = float(req.converter_timeout)
+    return {**sensing, "radiometry": rad}
 
 
 def recorded_cameras(sm: ScreenModel) -> tuple[dict[str, Any] | None, dict[str, Any] | None, str] | None:
@@ -440,6 +478,7 @@ def _frame_record(
         "thermal_size": list(frame.thermal_size),
         "H_rgb_to_aligned": frame.H.tolist(),
         "thermal_decoder": frame.thermal_decoder,
+        "temperatures": frame.temperatures,
         "position": frame.position.to_dict(),
         "registered": frame.registered,
         "overlay": overlay,
@@ -530,7 +569,7 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     sm = load_model(req)
     rgb_cam, th_cam, cam_source = resolve_cameras(req, sm)
     settings = FrontEndSettings(
-        sensing=sm.sensing,
+        sensing=decode_routes(sm.sensing, req),
         encoding=sm.encoding.name,
         encoding_params=sm.encoding_params,
         rgb_camera=rgb_cam,
@@ -605,26 +644,32 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
         groups = inspection_groups(flight.captures, fe.options.group_gap_s)
     if req.workers == 1 and req.overlap and len(todo) > 1:
         thread = FrontEndThread()
+    interrupted = False
     try:
         results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
         with _Bar(req.progress, len(flight.captures), len(done)) as bar:
-            for cap, frame, error, rejected in results:
-                if frame is None:
-                    (rejected_skipped if rejected else failures).append(_named(cap, error or "unknown error"))
-                    bar.advance(1, _note(records, failures))
-                    if req.fail_fast and not rejected:
-                        stop = error
-                        break
-                    continue
-                batch.append(frame)
-                if len(batch) >= predictor.batch:
-                    flush(bar)
-            results.close()  # a stop leaves no worker behind
-            flush(bar)
+            try:
+                for cap, frame, error, rejected in results:
+                    if frame is None:
+                        (rejected_skipped if rejected else failures).append(_named(cap, error or "unknown error"))
+                        bar.advance(1, _note(records, failures))
+                        if req.fail_fast and not rejected:
+                            stop = error
+                            break
+                        continue
+                    batch.append(frame)
+                    if len(batch) >= predictor.batch:
+                        flush(bar)
+                results.close()  # a stop leaves no worker behind
+                flush(bar)
+            except KeyboardInterrupt:  # the outputs of the frames done are written below, then it goes on up
+                interrupted = True
+                results.close()
     finally:
         if thread is not None:
             thread.shutdown()
     screened = len(records) - len(done)
+    n_failed = len(failures) - len(flight.bad)
     failures += rejected_skipped
     result = _finish(
         folder,
@@ -638,9 +683,19 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
         len(done),
         req,
         time.perf_counter() - t_start,
-        state="stopped" if stop else "finished",
+        state="interrupted" if interrupted else "stopped" if stop else "finished",
         overlapped=thread is not None,
+        failed_captures=n_failed,
+        rejected_skipped=len(rejected_skipped),
     )
+    if interrupted:
+        log.warning(
+            "interrupted: the %d frame(s) screened so far are in %s (findings.csv, index.html; a re-run goes on "
+            "from there)",
+            len(records),
+            folder,
+        )
+        raise KeyboardInterrupt
     if stop is not None:
         raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
     return result
@@ -671,6 +726,112 @@ def _write_pictures(folder: Path, frame: Frame, findings: list[dict[str, Any]]) 
     return rel
 
 
+def grouped_failures(failures: Sequence[tuple[str, str]]) -> list[tuple[str, str]]:
+    """``failures`` with the wide images of one size that its calibration does not fit as one entry (the first
+    file, "and N more"), so that a flight shot in another mode is told once, not file by file."""
+    from harness.screen.frontend import SIZE_MISMATCH
+
+    out: list[tuple[str, str]] = []
+    same: dict[str, list[str]] = {}
+    for path, reason in failures:
+        if reason.startswith(SIZE_MISMATCH):
+            if reason not in same:
+                same[reason] = []
+                out.append((path, reason))
+            same[reason].append(path)
+        else:
+            out.append((path, reason))
+    return [
+        (f"{p} and {len(same[r]) - 1} more wide image(s) of that size" if r in same and len(same[r]) > 1 else p, r)
+        for p, r in out
+    ]
+
+
+def count_line(c: dict[str, int]) -> str:
+    """The counts of a screen in words, adding up: captures = screened + failed + rejected + not reached."""
+    parts = [f"{c['screened']} screened ({c['screened_now']} now, {c['screened_earlier']} earlier)"]
+    parts.append(f"{c['failed']} failed")
+    if c["rejected_not_screened"]:
+        parts.append(f"{c['rejected_not_screened']} not screened (registration rejected, --fallback skip)")
+    if c["not_reached"]:
+        parts.append(f"{c['not_reached']} not reached")
+    text = f"{c['captures']} capture(s): " + ", ".join(parts)
+    return text + (
+        f"; besides them {c['unpaired_files']} file(s) without a partner, {c['ignored_files']} other file(s) ignored"
+    )
+
+
+def _why_none(c: dict[str, int]) -> str:
+    if c["screened"]:
+        return ""
+    why = []
+    if c["failed"]:
+        why.append(f"{c['failed']} failed (listed above)")
+    if c["rejected_not_screened"]:
+        why.append(f"{c['rejected_not_screened']} had their automatic registration rejected (--fallback skip)")
+    if c["not_reached"]:
+        why.append(f"{c['not_reached']} were not reached")
+    return f"of {c['captures']} capture(s), " + ", ".join(why)
+
+
+def _remove_stale(folder: Path, frames: Sequence[dict[str, Any]]) -> None:
+    """Remove the frame records, overlays and thumbnails of captures no longer in the flight (or no longer screened),
+    so that the folder holds what its findings.csv and manifest.json list and nothing else."""
+    keep = {f"{out.safe_name(r['frame'])}.json" for r in frames}
+    pictures = {str(r.get("overlay")) for r in frames if r.get("overlay")}
+    pictures |= {str(f.get("crop")) for r in frames for f in r.get("findings") or [] if f.get("crop")}
+    for path in sorted((folder / "frames").glob("*.json")):
+        if path.name not in keep:
+            log.info("removing %s: its capture is no longer screened from this flight", path)
+            path.unlink(missing_ok=True)
+    for sub in ("overlays", "crops"):
+        for path in sorted((folder / sub).glob("*.jpg")):
+            if f"{sub}/{path.name}" not in pictures:
+                path.unlink(missing_ok=True)
+
+
+def temperature_counts(frames: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """How the frames' temperatures were decoded: frames per route, and how many are approximate with the largest
+    bound (C)."""
+    routes: Counter = Counter()
+    bounds = []
+    for r in frames:
+        t = r.get("temperatures") or {}
+        routes[str(t.get("thermal_route") or r.get("thermal_decoder") or "unknown")] += 1
+        if t.get("thermal_route") == "approximate":
+            bounds.append(float(t["temperature_bound_c"]))
+    return {"routes": dict(routes), "approximate_frames": len(bounds), "bound_c": max(bounds) if bounds else None}
+
+
+def approximate_line(t: dict[str, Any]) -> str:
+    return (
+        f"approximate temperatures in {t['approximate_frames']} frame(s): within {t['bound_c']:g} C of DJI's "
+        "correction (--approximate; decode with DJI's own SDK, --converter dji_irp, for exact ones)"
+    )
+
+
+def position_counts(frames: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Frame records by the source of their GPS position (``xmp``, ``exif``, ``none``), with one warning naming the
+    frames without one."""
+    counts = {"xmp": 0, "exif": 0, "none": 0}
+    missing = []
+    for r in frames:
+        pos = r.get("position") or {}
+        source = pos.get("gps_source") if pos.get("lat") is not None and pos.get("lon") is not None else None
+        counts[source if source in counts else "none"] += 1
+        if source is None:
+            missing.append(r["frame"])
+    if missing:
+        log.warning(
+            "%d of %d screened frame(s) carry no GPS position (no DJI XMP drone-dji:GpsLatitude and GpsLongitude, "
+            "no EXIF GPS), e.g. %s: their findings have empty lat/lon and a null GeoJSON geometry",
+            len(missing),
+            len(frames),
+            ", ".join(missing[:3]),
+        )
+    return counts
+
+
 def _finish(
     folder: Path,
     base: dict[str, Any],
@@ -685,6 +846,8 @@ def _finish(
     seconds: float,
     state: str,
     overlapped: bool = False,
+    failed_captures: int = 0,
+    rejected_skipped: int = 0,
 ) -> ScreenResult:
     from harness import __version__
     from harness.screen.gallery import render
@@ -698,6 +861,8 @@ def _finish(
     out.write_geojson(folder / "findings.geojson", findings)
     counts = Counter(f["class"] for f in findings)
     routes = Counter(r["route"] for r in frames)
+    positions = position_counts(frames)
+    temperatures = temperature_counts(frames)
     rejected = [
         (r["frame"], str((r.get("registration") or {}).get("reason", "")))
         for r in frames
@@ -716,15 +881,29 @@ def _finish(
         "threads": req.threads,
         "overlapped": overlapped,
     }
+    _remove_stale(folder, frames)
+    frame_counts = {
+        "captures": len(flight.captures),
+        "screened": len(frames),
+        "screened_now": screened,
+        "screened_earlier": skipped_done,
+        "failed": failed_captures,
+        "rejected_not_screened": rejected_skipped,
+        "not_reached": len(flight.captures) - len(frames) - failed_captures - rejected_skipped,
+        "unpaired_files": len(flight.bad),
+        "ignored_files": flight.ignored,
+        "with_findings": sum(1 for r in frames if r.get("findings")),
+    }
     summary = [
-        f"flight {flight.folder}: {len(flight.captures)} capture(s), {len(frames)} screened "
-        f"({screened} now, {skipped_done} earlier), {len(failures)} failed, {flight.ignored} other file(s) "
-        "ignored",
+        f"flight {flight.folder}: {count_line(frame_counts)}",
         f"model {sm.detector.name} ({base['model']['backend']}), encoding {sm.encoding.name}, threshold "
         f"{sm.threshold:g} ({sm.threshold_source})",
         "registration routes: " + ", ".join(f"{k} {v}" for k, v in sorted(routes.items())),
     ]
-    html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, failures, summary, __version__)
+    if temperatures["approximate_frames"]:
+        summary.append(approximate_line(temperatures))
+    listed = grouped_failures(failures)
+    html = render(f"Screen of {flight.folder.name}", frames, findings, sm.categories, listed, summary, __version__)
     from harness.io import atomic_write_text
 
     atomic_write_text(folder / "index.html", html)
@@ -740,17 +919,13 @@ def _finish(
     manifest = {
         **base,
         "state": state,
-        "frames": {
-            "captures": len(flight.captures),
-            "screened": len(frames),
-            "with_findings": sum(1 for r in frames if r.get("findings")),
-            "failed": len(failures),
-            "ignored_files": flight.ignored,
-        },
+        "frames": frame_counts,
         "findings": dict(counts),
         "routes": dict(routes),
         "failures": [list(f) for f in failures],
         "registration_rejected": [list(r) for r in rejected],
+        "positions": positions,
+        "temperatures": temperatures,
         "inputs": inputs,
         "timings": timing,
     }
@@ -767,4 +942,8 @@ def _finish(
         timing,
         sm.threshold,
         sm.threshold_source,
+        positions,
+        temperatures,
+        frame_counts,
+        flight.why_empty() if not flight.captures else _why_none(frame_counts),
     )

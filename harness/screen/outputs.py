@@ -46,7 +46,10 @@ CSV_COLUMNS = (
     "aligned_x1",
     "aligned_y1",
     *TEMPERATURE_KEYS,
+    "temperature_route",
+    "t_bound_c",
     *FIELDS,
+    "gps_source",
     "route",
     "rgb_file",
     "thermal_file",
@@ -64,6 +67,7 @@ _DIGITS = {
     "gimbal_roll": 2,
     "flight_yaw": 2,
     **dict.fromkeys(TEMPERATURE_KEYS, 3),
+    "t_bound_c": 3,
 }
 #: BGR colours per class index (OpenCV drawing), cycled
 PALETTE = (
@@ -142,16 +146,90 @@ def thermal_colours(temp: np.ndarray) -> np.ndarray:
     return out
 
 
-def _label(f: dict[str, Any]) -> str:
+def score_digits(scores: Sequence[float], most: int = 5) -> int:
+    """Decimals that print every score with at least two significant digits and tell different scores apart
+    (2 to ``most``): 0.87 and 0.62 take 2, 0.042 takes 3, 0.0042 takes 4, 0.5012 beside 0.5034 takes 3."""
+    values = [float(v) for v in scores if v is not None and math.isfinite(float(v))]
+    positive = [v for v in values if v > 0]
+    digits = 2
+    if positive:
+        digits = max(digits, 1 - math.floor(math.log10(min(positive))))
+    distinct = len({round(v, most) for v in values})
+    while digits < most and len({round(v, digits) for v in values}) < distinct:
+        digits += 1
+    return int(min(digits, most))
+
+
+def _label(f: dict[str, Any], digits: int = 2) -> str:
     dt = f.get("delta_t")
-    return f"{f['class']} {f['score']:.2f}" + (f" dT {dt:+.1f}C" if dt is not None else "")
+    return f"{f['class']} {f['score']:.{digits}f}" + (f" dT {dt:+.1f}C" if dt is not None else "")
+
+
+def overlay_legend(findings: Sequence[dict[str, Any]]) -> list[str]:
+    """The overlay's legend: one line per finding, numbered as its tag on the pictures (best first), after a line
+    saying when the temperatures are approximate."""
+    digits = score_digits([f["score"] for f in findings])
+    bounds = [f.get("t_bound_c") for f in findings if f.get("temperature_route") == "approximate"]
+    head = [f"approximate temperatures (within +-{max(bounds):g} C)"] if bounds else []
+    return head + [f"{k}  {_label(f, digits)}" for k, f in enumerate(findings, 1)]
+
+
+Rect = tuple[int, int, int, int]  # x, y, w, h
+
+
+def _free(r: Rect, placed: Sequence[Rect], size: tuple[int, int]) -> bool:
+    x, y, w, h = r
+    if x < 0 or y < 0 or x + w > size[0] or y + h > size[1]:
+        return False
+    return all(x + w <= a or a + c <= x or y + h <= b or b + d <= y for a, b, c, d in placed)
+
+
+def place_labels(
+    boxes: Sequence[Sequence[float]], sizes: Sequence[tuple[int, int]], size: tuple[int, int]
+) -> list[tuple[Rect, bool]]:
+    """Where each box's tag goes, no two overlapping: (rectangle, whether it needs a leader line to its box).
+
+    In order, each tag takes the first free place at its box (above its top-left corner, inside it, below it, at
+    its right), else the free place nearest the box found on a grid (with a leader line); ``size``: the panel's
+    (width, height). A tag is put at its box even if overlapping only when the panel has no free place left."""
+    placed: list[Rect] = []
+    out: list[tuple[Rect, bool]] = []
+    W, H = size
+    for box, (w, h) in zip(boxes, sizes):
+        x0, y0, x1, y1 = (int(round(v)) for v in box)
+        near = [(x0, y0 - h), (x0, y0), (x0, y1), (x1 - w, y0 - h), (x1, y0), (x1 - w, y1), (x0 - w, y0)]
+        choice: tuple[Rect, bool] | None = None
+        for x, y in near:
+            r = (x, y, w, h)
+            if _free(r, placed, size):
+                choice = (r, False)
+                break
+        if choice is None:
+            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+            step_x, step_y = max(2, w // 2), max(1, h // 2)
+            grid = [(x, y) for y in range(0, max(1, H - h + 1), step_y) for x in range(0, max(1, W - w + 1), step_x)]
+            grid.sort(key=lambda p: (p[0] + w / 2 - cx) ** 2 + (p[1] + h / 2 - cy) ** 2)
+            for x, y in grid:
+                r = (x, y, w, h)
+                if _free(r, placed, size):
+                    choice = (r, True)
+                    break
+        if choice is None:  # no room left anywhere: at the box
+            choice = ((max(0, min(x0, W - w)), max(0, min(y0, H - h)), w, h), False)
+        placed.append(choice[0])
+        out.append(choice)
+    return out
 
 
 def overlay(rgb: np.ndarray, temp: np.ndarray, findings: Sequence[dict[str, Any]], min_height: int = 360) -> np.ndarray:
-    """The aligned RGB and the thermal colour map side by side (BGR), boxes and labels on both; frames lower than
-    ``min_height`` pixels are enlarged by a whole factor first."""
+    """The aligned RGB and the thermal colour map side by side (BGR), each finding's box with a numbered tag on both
+    (tags never overlap: one that finds no room at its box is put nearby with a leader line), and below them the
+    legend: number, class, score (as many decimals as the scores need, ``score_digits``) and contrast, headed by a
+    note when the temperatures are approximate. Frames lower than ``min_height`` pixels are enlarged by a whole
+    factor first."""
     import cv2
 
+    font = cv2.FONT_HERSHEY_SIMPLEX
     k = max(1, math.ceil(min_height / rgb.shape[0]))
     left = np.ascontiguousarray(rgb[:, :, ::-1])
     right = thermal_colours(temp)
@@ -159,18 +237,61 @@ def overlay(rgb: np.ndarray, temp: np.ndarray, findings: Sequence[dict[str, Any]
         left = cv2.resize(left, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
         right = cv2.resize(right, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
     scale = 0.4 + 0.1 * k if rgb.shape[0] * k < 700 else 0.6
+    boxes = [[v * k for v in f["box_aligned"]] for f in findings]
+    sizes = []
+    for n in range(1, len(findings) + 1):
+        (tw, th), base = cv2.getTextSize(str(n), font, scale, 1)
+        sizes.append((tw + 4, th + base + 3))
+    places = place_labels(boxes, sizes, (left.shape[1], left.shape[0]))
     for panel in (left, right):
-        for f in reversed(findings):  # the best drawn last, on top
+        for n in range(len(findings), 0, -1):  # the best drawn last, on top
+            f = findings[n - 1]
             colour = PALETTE[int(f["class_id"]) % len(PALETTE)]
-            x0, y0, x1, y1 = (int(round(v * k)) for v in f["box_aligned"])
+            x0, y0, x1, y1 = (int(round(v)) for v in boxes[n - 1])
             cv2.rectangle(panel, (x0, y0), (max(x1 - 1, x0), max(y1 - 1, y0)), colour, max(1, k // 2 + 1))
-            text = _label(f)
-            (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-            ty = y0 - 3 if y0 - th - base - 3 >= 0 else min(y1 + th + 3, panel.shape[0] - base)
-            cv2.rectangle(panel, (x0, ty - th - 2), (x0 + tw + 2, ty + base - 1), (0, 0, 0), -1)
-            cv2.putText(panel, text, (x0 + 1, ty - 1), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+        for n, ((x, y, w, h), leader) in enumerate(places, 1):
+            f = findings[n - 1]
+            colour = PALETTE[int(f["class_id"]) % len(PALETTE)]
+            if leader:
+                x0, y0, x1, y1 = boxes[n - 1]
+                bx = int(round(min(max(x + w / 2, x0), x1)))
+                by = int(round(min(max(y + h / 2, y0), y1)))
+                cv2.line(panel, (x + w // 2, y + h // 2), (bx, by), colour, 1, cv2.LINE_AA)
+            cv2.rectangle(panel, (x, y), (x + w - 1, y + h - 1), (0, 0, 0), -1)
+            (_, th), base = cv2.getTextSize(str(n), font, scale, 1)
+            cv2.putText(panel, str(n), (x + 2, y + h - base - 1), font, scale, colour, 1, cv2.LINE_AA)
     gap = np.full((left.shape[0], 6, 3), 255, np.uint8)
-    return np.hstack([left, gap, right])
+    pictures = np.hstack([left, gap, right])
+    return np.vstack([pictures, _legend(overlay_legend(findings), findings, pictures.shape[1], scale)])
+
+
+def _legend(lines: Sequence[str], findings: Sequence[dict[str, Any]], width: int, scale: float) -> np.ndarray:
+    """The legend strip: ``lines`` in columns (a note line first, across the width), numbers in their class colour."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    head = list(lines[: len(lines) - len(findings)])
+    entries = list(lines[len(lines) - len(findings) :])
+    (_, th), base = cv2.getTextSize("Ag", font, scale, 1)
+    line_h = th + base + 6
+    col_w = max([cv2.getTextSize(t, font, scale, 1)[0][0] for t in entries] + [1]) + 24
+    cols = max(1, (width - 8) // col_w)
+    rows = math.ceil(len(entries) / cols) if entries else 0
+    strip = np.full((12 + line_h * (len(head) + rows), width, 3), 255, np.uint8)
+    y = 4 + th
+    for text in head:
+        cv2.putText(strip, text, (6, y), font, scale, (0, 0, 176), 1, cv2.LINE_AA)
+        y += line_h
+    for n, (text, f) in enumerate(zip(entries, findings)):
+        col, row = divmod(n, rows) if rows else (0, 0)
+        x, yy = 6 + col * col_w, y + row * line_h
+        number, _, rest = text.partition("  ")
+        colour = PALETTE[int(f["class_id"]) % len(PALETTE)]
+        (nw, _), _ = cv2.getTextSize(number, font, scale, 1)
+        cv2.rectangle(strip, (x - 2, yy - th - 2), (x + nw + 2, yy + base), (0, 0, 0), -1)
+        cv2.putText(strip, number, (x, yy), font, scale, colour, 1, cv2.LINE_AA)
+        cv2.putText(strip, rest, (x + nw + 8, yy), font, scale, (20, 20, 20), 1, cv2.LINE_AA)
+    return strip
 
 
 def crop(rgb: np.ndarray, temp: np.ndarray, box: Sequence[float], height: int = 112) -> np.ndarray:

@@ -64,8 +64,10 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     entropy-coded data of the main image has no end-of-image marker (a file cut inside the picture).
     """
     n = len(data)
+    if n == 0:
+        raise DataError(f"{name}: empty file (0 bytes): nothing was copied into it; copy it again from the card")
     if n < 4 or data[0] != 0xFF or data[1] != SOI:
-        head = data[:8].hex(" ") if n else "empty"
+        head = data[:8].hex(" ")
         raise DataError(
             f"{name}: not a JPEG file (starts with {head}, expected ff d8); pass an R-JPEG straight from the camera"
         )
@@ -173,13 +175,27 @@ EXIF_TAGS: dict[int, tuple[str, str]] = {
     0xA405: ("FocalLengthIn35mmFilm", "exif"),
     0xA420: ("ImageUniqueID", "exif"),
 }
+#: tags of the GPS IFD (IFD0's ``GPSInfo`` pointer): latitude and longitude as three rationals (degrees, minutes,
+#: seconds) with their hemisphere in the ``*Ref`` tag (``N``/``S``, ``E``/``W``), altitude in metres with
+#: ``GPSAltitudeRef`` 1 below sea level
+GPS_TAGS: dict[int, str] = {
+    0x0001: "GPSLatitudeRef",
+    0x0002: "GPSLatitude",
+    0x0003: "GPSLongitudeRef",
+    0x0004: "GPSLongitude",
+    0x0005: "GPSAltitudeRef",
+    0x0006: "GPSAltitude",
+}
 _NAME_TO_TAG = {name: tag for tag, (name, _) in EXIF_TAGS.items()}
+_GPS_NAME_TO_TAG = {name: tag for tag, name in GPS_TAGS.items()}
 _TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 7: 1, 9: 4, 10: 8, 11: 4, 12: 8}
 _EXIF_POINTER = 0x8769
+_GPS_POINTER = 0x8825
 
 
 def parse_exif(payload: bytes) -> dict[str, Any]:
-    """Known tags of an APP1 payload (``b"Exif\\0\\0"`` + TIFF) as ``{name: value}``; empty when not EXIF.
+    """Known tags of an APP1 payload (``b"Exif\\0\\0"`` + TIFF) as ``{name: value}``; empty when not EXIF. The GPS
+    IFD's tags (``GPS_TAGS``) are included under their names.
 
     ASCII values come back as ``str``, single numbers as ``int``/``float`` (rationals divided out), lists for
     multi-valued tags. Malformed offsets end the walk quietly: EXIF is provenance, never worth refusing a file.
@@ -193,17 +209,20 @@ def parse_exif(payload: bytes) -> dict[str, Any]:
     out: dict[str, Any] = {}
     try:
         (ifd0,) = struct.unpack(order + "I", tiff[4:8])
-        exif_ptr = _read_ifd(tiff, ifd0, order, out)
-        if exif_ptr:
-            _read_ifd(tiff, exif_ptr, order, out)
+        pointers = _read_ifd(tiff, ifd0, order, out)
+        if pointers.get(_EXIF_POINTER):
+            _read_ifd(tiff, pointers[_EXIF_POINTER], order, out)
+        if pointers.get(_GPS_POINTER):
+            _read_ifd(tiff, pointers[_GPS_POINTER], order, out, gps=True)
     except (struct.error, IndexError, UnicodeDecodeError):
         pass
     return out
 
 
-def _read_ifd(tiff: bytes, offset: int, order: str, out: dict[str, Any]) -> int:
+def _read_ifd(tiff: bytes, offset: int, order: str, out: dict[str, Any], gps: bool = False) -> dict[int, int]:
+    """Read one IFD's known tags into ``out`` (``gps``: the GPS IFD's); return its EXIF and GPS IFD pointers."""
     (count,) = struct.unpack(order + "H", tiff[offset : offset + 2])
-    exif_ptr = 0
+    pointers: dict[int, int] = {}
     for k in range(count):
         e = offset + 2 + 12 * k
         tag, typ, num = struct.unpack(order + "HHI", tiff[e : e + 8])
@@ -217,13 +236,17 @@ def _read_ifd(tiff: bytes, offset: int, order: str, out: dict[str, Any]) -> int:
             raw = tiff[ptr : ptr + size]
             if len(raw) < size:
                 continue
-        if tag == _EXIF_POINTER:
-            (exif_ptr,) = struct.unpack(order + "I", raw[:4])
+        if gps:
+            if tag in GPS_TAGS:
+                out[GPS_TAGS[tag]] = _decode_value(raw, typ, num, order)
+            continue
+        if tag in (_EXIF_POINTER, _GPS_POINTER):
+            (pointers[tag],) = struct.unpack(order + "I", raw[:4])
             continue
         if tag not in EXIF_TAGS:
             continue
         out[EXIF_TAGS[tag][0]] = _decode_value(raw, typ, num, order)
-    return exif_ptr
+    return pointers
 
 
 def _decode_value(raw: bytes, typ: int, num: int, order: str) -> Any:
@@ -245,16 +268,37 @@ def _decode_value(raw: bytes, typ: int, num: int, order: str) -> Any:
     return vals[0] if num == 1 else vals
 
 
+def _rational(value: float, den: int) -> tuple[int, int]:
+    return int(round(float(value) * den)), den
+
+
 def build_exif(tags: Mapping[str, Any]) -> bytes:
-    """An APP1 payload (``Exif\\0\\0`` + little-endian TIFF) holding ``tags`` (names from ``EXIF_TAGS``).
+    """An APP1 payload (``Exif\\0\\0`` + little-endian TIFF) holding ``tags`` (names from ``EXIF_TAGS`` and
+    ``GPS_TAGS``).
 
     Strings are written as ASCII, ``FocalLength``/``FNumber``/``ExposureTime`` as rationals (1/1000 steps), the
-    rest as SHORT or LONG. ``DateTimeOriginal`` may be a ``datetime``.
+    rest as SHORT or LONG. ``DateTimeOriginal`` may be a ``datetime``. GPS tags as EXIF stores them:
+    ``GPSLatitude``/``GPSLongitude`` as (degrees, minutes, seconds) rationals (seconds in 1e-6 steps),
+    ``GPSAltitude`` a rational (1/1000 m), ``GPSAltitudeRef`` a byte, the ``*Ref`` letters ASCII.
     """
-    ifds: dict[str, list[tuple[int, int, int, bytes]]] = {"ifd0": [], "exif": []}
+    ifds: dict[str, list[tuple[int, int, int, bytes]]] = {"ifd0": [], "exif": [], "gps": []}
     for name, value in tags.items():
+        if name in _GPS_NAME_TO_TAG:
+            tag = _GPS_NAME_TO_TAG[name]
+            if name in ("GPSLatitudeRef", "GPSLongitudeRef"):
+                ifds["gps"].append((tag, 2, 2, str(value)[:1].encode("ascii") + b"\x00"))
+            elif name == "GPSAltitudeRef":
+                ifds["gps"].append((tag, 1, 1, bytes([int(value)])))
+            elif name == "GPSAltitude":
+                ifds["gps"].append((tag, 5, 1, struct.pack("<II", *_rational(value, 1000))))
+            else:
+                d, m, sec = (float(v) for v in value)
+                parts = (*_rational(d, 1), *_rational(m, 1), *_rational(sec, 1_000_000))
+                ifds["gps"].append((tag, 5, 3, struct.pack("<6I", *parts)))
+            continue
         if name not in _NAME_TO_TAG:
-            raise DataError(f"EXIF tag {name!r} cannot be written; known tags: {', '.join(sorted(_NAME_TO_TAG))}")
+            known = sorted([*_NAME_TO_TAG, *_GPS_NAME_TO_TAG])
+            raise DataError(f"EXIF tag {name!r} cannot be written; known tags: {', '.join(known)}")
         tag = _NAME_TO_TAG[name]
         where = EXIF_TAGS[tag][1]
         if isinstance(value, datetime):
@@ -270,10 +314,9 @@ def build_exif(tags: Mapping[str, Any]) -> bytes:
         else:
             ifds[where].append((tag, 4, 1, struct.pack("<I", int(value))))
 
-    def layout(entries: list[tuple[int, int, int, bytes]], start: int, extra: int) -> tuple[bytes, bytes]:
-        """IFD bytes at ``start`` (with ``extra`` additional entries appended by the caller) and its data area."""
-        n = len(entries) + extra
-        data_start = start + 2 + 12 * n + 4
+    def layout(entries: list[tuple[int, int, int, bytes]], start: int) -> tuple[bytes, bytes]:
+        """An IFD at ``start`` holding ``entries`` (tag order) and its data area, which follows it."""
+        data_start = start + 2 + 12 * len(entries) + 4
         head, area = [], b""
         for tag, typ, num, data in sorted(entries):
             if len(data) <= 4:
@@ -281,19 +324,22 @@ def build_exif(tags: Mapping[str, Any]) -> bytes:
             else:
                 head.append(struct.pack("<HHII", tag, typ, num, data_start + len(area)))
                 area += data + (b"\x00" if len(data) % 2 else b"")
-        return b"".join(head), area
+        return struct.pack("<H", len(entries)) + b"".join(head) + struct.pack("<I", 0), area
 
-    # IFD0 at offset 8; its last entry points at the EXIF IFD that follows IFD0's data area.
-    has_exif = bool(ifds["exif"])
-    head0, area0 = layout(ifds["ifd0"], 8, 1 if has_exif else 0)
-    n0 = len(ifds["ifd0"]) + (1 if has_exif else 0)
-    exif_offset = 8 + 2 + 12 * n0 + 4 + len(area0)
-    if has_exif:
-        head0 += struct.pack("<HHII", _EXIF_POINTER, 4, 1, exif_offset)
-    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", n0) + head0 + struct.pack("<I", 0) + area0
-    if has_exif:
-        head1, area1 = layout(ifds["exif"], exif_offset, 0)
-        tiff += struct.pack("<H", len(ifds["exif"])) + head1 + struct.pack("<I", 0) + area1
+    # IFD0 at offset 8, then its data area; the EXIF and GPS IFDs IFD0 points at follow, each with its data area
+    subs = [(ptr, ifds[k]) for ptr, k in ((_EXIF_POINTER, "exif"), (_GPS_POINTER, "gps")) if ifds[k]]
+    entries0 = list(ifds["ifd0"]) + [(ptr, 4, 1, b"\x00\x00\x00\x00") for ptr, _ in subs]
+    ifd0, area0 = layout(entries0, 8)
+    offset = 8 + len(ifd0) + len(area0)
+    blocks, pointers = [], {}
+    for ptr, entries in subs:
+        pointers[ptr] = offset
+        ifd, area = layout(entries, offset)
+        blocks.append(ifd + area)
+        offset += len(ifd) + len(area)
+    entries0 = list(ifds["ifd0"]) + [(ptr, 4, 1, struct.pack("<I", pointers[ptr])) for ptr, _ in subs]
+    ifd0, area0 = layout(entries0, 8)
+    tiff = b"II*\x00" + struct.pack("<I", 8) + ifd0 + area0 + b"".join(blocks)
     return b"Exif\x00\x00" + tiff
 
 
