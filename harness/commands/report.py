@@ -14,8 +14,8 @@ from harness.hookspecs import hookimpl
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
-    @click.option("--dataset", "datasets", multiple=True,
-                  help="Dataset to report (repeatable or comma-separated) [default: every dataset in the store].")
+    @opt.names_option("--datasets", old=("--dataset",),
+                      help="Datasets to report, comma-separated or repeated [default: every dataset in the store].")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
     @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -55,7 +55,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.report.build import FORMATS as file_types
 
         root = opt.resolve_store(store, profile)
-        names = [d.strip() for item in datasets for d in item.split(",") if d.strip()] or None
+        names = list(datasets) or None
         fmts = [f.lower() for f in opt.split_list(formats)]
         bad = [f for f in fmts if f not in file_types]
         if bad:
