@@ -311,6 +311,51 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
     return deco
 
 
+def stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
+    """Several option decorators as one, listed in the order they appear in ``--help`` (top first)."""
+
+    def deco(f: F) -> F:
+        for d in reversed(decorators):
+            f = d(f)
+        return f
+
+    return deco
+
+
+def model_shape_options(*, imgsz_help: str = "Square input size.") -> Callable[[F], F]:
+    """``--imgsz`` (640), ``--num-classes`` (8) and ``--in-channels`` (4): the model a command builds (``profile``,
+    ``export``) -> parameters ``imgsz``, ``num_classes``, ``in_channels``."""
+    return stack(
+        click.option("--imgsz", type=int, default=640, show_default=True, help=imgsz_help),
+        click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head."),
+        click.option(
+            "--in-channels",
+            type=int,
+            default=4,
+            show_default=True,
+            help="Channels of a single-stream detector's input (3 + encoding channels).",
+        ),
+    )
+
+
+def bootstrap_options(*, resamples: int, help_resamples: str, old_seed: Sequence[str] = ()) -> Callable[[F], F]:
+    """``--resamples`` (default ``resamples``), ``--bootstrap-seed`` and ``--workers``: the paired bootstrap of
+    ``report`` and ``compare-detectors`` -> parameters ``resamples``, ``bootstrap_seed``, ``workers``."""
+    return stack(
+        click.option(
+            "--resamples", type=click.IntRange(min=0), default=resamples, show_default=True, help=help_resamples
+        ),
+        bootstrap_seed_option(old=old_seed),
+        click.option(
+            "--workers",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Processes for the bootstrap's re-scoring.",
+        ),
+    )
+
+
 def default_store(profile: str | None) -> Path:
     """The one rule for a store not named with ``--store``: ``results/<profile>`` (``smoke`` when none)."""
     return STORE_PARENT / (profile or DEFAULT_PROFILE)

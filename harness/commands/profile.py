@@ -109,10 +109,7 @@ def register_commands(cli: click.Group) -> None:
     @opt.names_option("--detectors", required=True, old=("--detector",),
                       help="Detectors to profile, comma-separated or repeated, or 'all' for every registered detector.")
     @opt.format_option("text", "json", old_json=True)
-    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size.")
-    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
-    @click.option("--in-channels", type=int, default=4, show_default=True,
-                  help="Channels of a single-stream detector's input (3 + encoding channels).")
+    @opt.model_shape_options()
     @click.option("--runs", type=int, default=30, show_default=True, help="Timed runs per latency back-end.")
     @click.option("--warmup", type=int, default=5, show_default=True, help="Untimed warm-up runs.")
     @click.option("--threads", type=int, default=None, help="Threads for torch and onnxruntime [default: torch's].")
@@ -185,10 +182,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--detector", required=True, help="Detector name.")
     @opt.option("--out", "onnx_path", old=("--onnx",), required=True, type=click.Path(dir_okay=False, path_type=Path),
                 help="Output .onnx file.")
-    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size of the traced graph.")
-    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
-    @click.option("--in-channels", type=int, default=4, show_default=True,
-                  help="Channels of a single-stream detector's input (3 + encoding channels).")
+    @opt.model_shape_options(imgsz_help="Square input size of the traced graph.")
     @click.option("--opset", type=int, default=18, show_default=True, help="ONNX opset (17 or newer).")
     @click.option("--dynamic-batch", is_flag=True, help="Make the batch dimension dynamic.")
     @click.option("--check/--no-check", default=True, show_default=True,

@@ -24,11 +24,8 @@ def register_commands(cli: click.Group) -> None:
                 help="Comma-separated file types to write: md, csv, html.")
     @click.option("--print", "print_tables", is_flag=True,
                   help="Print every table in the terminal (aligned) instead of writing the report files.")
-    @click.option("--resamples", type=click.IntRange(min=0), default=200, show_default=True,
-                  help="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
-    @opt.bootstrap_seed_option(old=("--seed",))
-    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                  help="Processes for the bootstrap's re-scoring.")
+    @opt.bootstrap_options(resamples=200, old_seed=("--seed",),
+                           help_resamples="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
                   help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
     @click.option("--title", default=None, help="Title of the report.")
@@ -94,11 +91,9 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset both were evaluated on.")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @click.option("--resamples", type=click.IntRange(min=0), default=1000, show_default=True,
-                  help="Paired-bootstrap resamples of the held-out images (0: per-fold differences only).")
-    @opt.bootstrap_seed_option(old=("--seed",))
-    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                  help="Processes for the bootstrap's re-scoring.")
+    @opt.bootstrap_options(resamples=1000, old_seed=("--seed",),
+                           help_resamples="Paired-bootstrap resamples of the held-out images (0: per-fold differences "
+                                          "only).")
     @opt.format_option("text", "json", old_json=True)
     @opt.no_progress_option()
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
