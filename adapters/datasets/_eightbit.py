@@ -128,14 +128,22 @@ def clip_to_frame(
     return np.ascontiguousarray(boxes[keep]), np.ascontiguousarray(np.asarray(labels)[keep]), stats
 
 
-def eightbit_sample(image_id: int, rgb: np.ndarray, ir8: np.ndarray, xyxy: np.ndarray, labels: np.ndarray, group: str,
-                    meta: dict[str, Any]) -> tuple[AlignedSample, BoxStats]:
+def eightbit_sample(
+    image_id: int,
+    rgb: np.ndarray,
+    ir8: np.ndarray,
+    xyxy: np.ndarray,
+    labels: np.ndarray,
+    group: str,
+    meta: dict[str, Any],
+) -> tuple[AlignedSample, BoxStats]:
     """One pair of a release with 8-bit thermal images as an ``AlignedSample`` (no temperature map), its boxes
     clipped to the thermal frame by ``clip_to_frame``, whose counts come back beside it."""
     h, w = ir8.shape
     boxes, labels, stats = clip_to_frame(xyxy, labels, w, h)
-    sample = AlignedSample(image_id=image_id, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=group,
-                           meta=meta)
+    sample = AlignedSample(
+        image_id=image_id, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=group, meta=meta
+    )
     return sample, stats
 
 
