@@ -128,7 +128,7 @@ def clip_to_frame(
     return np.ascontiguousarray(boxes[keep]), np.ascontiguousarray(np.asarray(labels)[keep]), stats
 
 
-def eightbit_sample(
+def pair_sample(
     image_id: int,
     rgb: np.ndarray,
     ir8: np.ndarray,

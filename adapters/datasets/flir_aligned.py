@@ -56,14 +56,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from adapters.datasets._eightbit import (
-    BoxStats,
-    check_strict,
-    eightbit_sample,
-    file_stat,
-    find_release_root,
-    stat_digest,
-)
+from adapters.datasets._eightbit import BoxStats, check_strict, file_stat, find_release_root, pair_sample, stat_digest
 from adapters.datasets._paired import SPLITS, SkipPair, SplitSource, eightbit_spec, read_pair
 from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
 from harness.api import PrepareReport
@@ -271,7 +264,7 @@ class FlirAlignedSource(SplitSource):
         meta = {"file_name": ir_path.relative_to(self.root).as_posix(),
                 "rgb_file": vis_path.relative_to(self.root).as_posix(), "frame": key, "split": split,
                 "labels": self.labels}
-        sample, stats = eightbit_sample(k + 1, rgb, ir8, xyxy, labels, split, meta)
+        sample, stats = pair_sample(k + 1, rgb, ir8, xyxy, labels, split, meta)
         stats.unlabelled = int(missing)
         return sample, stats
 

@@ -35,14 +35,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Iterator
 
-from adapters.datasets._eightbit import (
-    BoxStats,
-    check_strict,
-    eightbit_sample,
-    file_stat,
-    find_release_root,
-    stat_digest,
-)
+from adapters.datasets._eightbit import BoxStats, check_strict, file_stat, find_release_root, pair_sample, stat_digest
 from adapters.datasets._paired import PairedSource, eightbit_spec, read_pair
 from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
 from harness.api import Fold, PrepareReport
@@ -179,7 +172,7 @@ class M3fdSource(PairedSource):
         group = block_of(number)
         meta = {"file_name": f"Ir/{self.ir[stem].name}", "rgb_file": f"Vis/{self.vis[stem].name}",
                 "annotation": f"Annotation/{xml_path.name}", "split": "val" if is_val_block(group) else "train"}
-        sample, stats = eightbit_sample(number + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), group, meta)
+        sample, stats = pair_sample(number + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), group, meta)
         stats.colour = int(was_colour)
         return sample, stats
 

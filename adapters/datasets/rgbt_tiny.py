@@ -49,8 +49,8 @@ from adapters.datasets._coco import coco_id
 from adapters.datasets._eightbit import (
     BoxStats,
     check_strict,
-    eightbit_sample,
     file_stat,
+    pair_sample,
     positive_int,
     resolve_root,
     stat_digest,
@@ -559,7 +559,7 @@ class RgbtTinySource(PairedSource):
         meta = {"file_name": pair.thermal.file_name, "rgb_file": pair.visible.file_name,
                 "sequence": pair.key.sequence, "frame": pair.key.frame, "split": pair.split, "gt": self.gt,
                 "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id}}
-        sample, stats = eightbit_sample(self.image_ids[pair.key], rgb, ir8, xyxy[~crowd], labels[~crowd],
+        sample, stats = pair_sample(self.image_ids[pair.key], rgb, ir8, xyxy[~crowd], labels[~crowd],
                                         pair.key.sequence, meta)
         stats.crowd, stats.colour = int(crowd.sum()), int(was_colour)
         return sample, stats
