@@ -14,9 +14,10 @@ hook                    record                                 what comes back t
 ``register_commands``   ``CommandGroup`` (a ``click.Group``)   commands added to the ``harness`` command line
 ======================  =====================================  ===================================================
 
-These are plain records. Every check of them, and of what a plugin's code returns (a source, a sample, an encoded
-channel, a model's output), lives in ``harness.contracts``: the records call it when they are built, the host when
-a plugin's output crosses into the harness. Names are unique per kind across all loaded plugins; a name two plugins
+These are plain records: this module imports nothing of the harness. Every check of them, and of what a plugin's
+code returns (a source, a sample, an encoded channel, a model's output), lives in ``harness.contracts``; the host
+(``harness.plugins``) runs the record's check when a plugin registers it, and the other checks where a plugin's
+output crosses into the harness. Names are unique per kind across all loaded plugins; a name two plugins
 register (a command included) is an error naming both (``harness.plugins``). The walk-through with examples is
 docs/plugins.md; everything here is exported from ``harness``.
 """
@@ -28,8 +29,6 @@ from dataclasses import dataclass, field
 from os import PathLike, fspath
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Literal, Mapping, Protocol, Sequence, runtime_checkable
-
-from harness import contracts
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -100,9 +99,6 @@ class DetectorSpec:
     #: ``load_official(model, state_dict) -> dict`` imports weights in the detector's official checkpoint layout.
     load_official: Callable[["torch.nn.Module", Mapping[str, Any]], dict] | None = None
 
-    def __post_init__(self) -> None:
-        contracts.check_detector_spec(self)
-
     def model_channels(self, stacked_channels: int) -> int:
         """The ``in_channels`` ``build`` receives when the stacked input has ``stacked_channels`` channels
         (``[R, G, B] + encoding``): those for a single-stream detector, ``thermal_channels`` for a dual-stream one."""
@@ -117,9 +113,6 @@ class Fold:
     name: str
     train_groups: tuple[str, ...]
     val_groups: tuple[str, ...]
-
-    def __post_init__(self) -> None:
-        contracts.check_fold(self)
 
 
 @dataclass
@@ -276,7 +269,6 @@ class DatasetSpec:
     def __post_init__(self) -> None:
         if isinstance(self.protocol, PathLike):
             object.__setattr__(self, "protocol", fspath(self.protocol))
-        contracts.check_dataset_spec(self)
 
 
 # ------------------------------------------------------------------------------------------------ encodings
@@ -287,8 +279,9 @@ class EncodingSpec:
     ``fn(sample, **params) -> uint8 HxW`` in the sample's frame (or ``None`` when ``channels == 0``, e.g. RGB-only
     ``none``). ``params`` are the defaults, overridable from the ``encoding`` section of the config. ``needs`` says
     which field of the sample it reads (``"thermal"`` for radiometric encodings such as ``c2``, ``"ir8"`` for 8-bit
-    ones), so the host refuses, with a clear message, an encoding a dataset cannot feed. ``encode`` checks both
-    sides of the call (``harness.contracts.check_encoding_input`` and ``check_encoding_output``).
+    ones), so the host refuses, with a clear message, an encoding a dataset cannot feed. The harness runs ``fn``
+    through ``harness.contracts.encode(spec, sample, **overrides)``, which checks both sides of the call
+    (``check_encoding_input`` and ``check_encoding_output``).
     """
 
     name: str
@@ -297,22 +290,6 @@ class EncodingSpec:
     needs: Literal["thermal", "ir8", None] = "thermal"
     description: str = ""
     params: Mapping[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        contracts.check_encoding_spec(self)
-
-    def encode(self, sample: AlignedSample, **overrides: Any) -> "np.ndarray | None":
-        """``fn(sample, **params, **overrides)``, checked: what the encoding needs is there, and what it returns is
-        a uint8 array of the sample's height and width (``None`` for a zero-channel encoding)."""
-        contracts.check_encoding_input(self, sample)
-        out = contracts.plugin_call(
-            lambda: f"{contracts.plugin_label('encoding', self.name, self.fn)}: {sample.name}",
-            "fn()",
-            self.fn,
-            sample,
-            **{**self.params, **overrides},
-        )
-        return contracts.check_encoding_output(self, sample, out)
 
 
 # ------------------------------------------------------------------------------------------------ loggers
@@ -363,9 +340,6 @@ class LoggerSpec:
     description: str = ""
     requires: tuple[str, ...] = ()
     extra: str | None = None
-
-    def __post_init__(self) -> None:
-        contracts.check_logger_spec(self)
 
     def missing(self) -> list[str]:
         """The required packages that cannot be imported here."""

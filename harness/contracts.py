@@ -1,12 +1,15 @@
 """Every boundary check of the plugin contracts (``harness.api``): where a plugin's record or output enters the
 harness, it is checked here, and every error names the plugin, the field and what was expected.
 
-Records, when they are built (``__post_init__``):
+The records themselves are plain data (``harness.api`` imports nothing of the harness); they are checked where they
+enter:
 
+* ``check_registered(spec, record_class)``: what a plugin hands a ``register`` callback is an instance of the hook's
+  record class, and ``check_record`` passes it (the host calls it for every registration);
+* ``check_record(record)``: ``check_detector_spec``, ``check_dataset_spec`` (with its ``protocol`` file),
+  ``check_encoding_spec``, ``check_logger_spec`` or ``check_fold``, by the record's class;
 * ``check_name(kind, name)``: names are lower-case identifiers, safe as folders of the results store;
-* ``check_detector_spec``, ``check_dataset_spec`` (with its ``protocol`` file), ``check_encoding_spec``,
-  ``check_logger_spec``, ``check_fold``;
-* ``check_registered(spec, record_class)``: what a plugin hands a ``register`` callback.
+* a ``Fold`` is checked by ``check_folds`` (a dataset's own folds) and where the configuration's folds are built.
 
 What a plugin's code returns:
 
@@ -14,8 +17,8 @@ What a plugin's code returns:
   ``check_groups``, ``check_folds``, ``check_fingerprint`` what they return;
 * ``validate_sample(sample, num_classes)``: an ``AlignedSample`` against its table (a failing sample is a counted
   skip when a dataset is prepared);
-* ``check_encoding_input`` / ``check_encoding_output``: an encoding gets the field it needs and returns a uint8
-  array of the sample's size (``EncodingSpec.encode`` calls both);
+* ``encode(spec, sample, **overrides)``: an encoding run with both sides checked, ``check_encoding_input`` (it gets
+  the field it needs) and ``check_encoding_output`` (it returns a uint8 array of the sample's size);
 * ``check_detections(det, detector, num_classes)``: one image's eval-mode output ``{"boxes" [K, 4] float,
   "scores" [K] float, finite, "labels" [K] int in 0..num_classes-1}``; degenerate boxes (NaN, inverted) pass here
   and are counted and dropped by ``harness.engine.predict``;
@@ -25,7 +28,9 @@ What a plugin's code returns:
   anything else a plugin happens to call ``fuse`` is never called.
 
 ``plugin_call(label, what, func, ...)`` runs a plugin's function and turns an exception its code raises (not a
-``HarnessError`` it raises on purpose) into a ``PluginError`` naming the plugin, the call and where it was raised.
+``HarnessError`` it raises on purpose) into a ``PluginError`` naming the plugin, the call and where it was raised
+(``where``). ``plugin_label`` names a record's plugin through the host's lookup, which ``harness.plugins`` (the host,
+above this module) installs with ``set_owner_lookup`` when it loads; this module never imports the host.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from __future__ import annotations
 import inspect
 import numbers
 import re
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 from harness.errors import HarnessError, PluginError, SampleError
@@ -47,19 +53,45 @@ FUSE_HOOK = "harness_fuse"
 #: What an opened dataset must answer (``harness.api.DatasetSource``).
 SOURCE_METHODS = ("groups", "folds", "fingerprint", "samples")
 _NAME = re.compile(r"^[a-z0-9][a-z0-9_.+-]*$")
+#: ``(kind, name) -> plugin``: the host's lookup of who registered a record (``set_owner_lookup``).
+_owner_lookup: Callable[[str, str], str | None] | None = None
 
 
 # ------------------------------------------------------------------------------------------------ who is speaking
+def set_owner_lookup(lookup: Callable[[str, str], str | None]) -> None:
+    """Install the host's ``(kind, name) -> plugin`` lookup; ``harness.plugins`` calls this when it is imported."""
+    global _owner_lookup
+    _owner_lookup = lookup
+
+
 def plugin_label(kind: str, name: str, fallback: Any = None) -> str:
     """``dataset 'NAME' (plugin P)``: how an error names a registered record and the plugin that registered it.
     ``fallback``: a function of the plugin, whose module is named when no loaded plugin registered ``name``."""
     try:
-        from harness.plugins import get_host
-
-        owner: str | None = get_host().owner(kind, name)
+        if _owner_lookup is None:  # no host loaded, so no plugin registered anything
+            raise LookupError(name)
+        owner: str | None = _owner_lookup(kind, name)
     except Exception:  # noqa: BLE001 - a record no plugin registered (tests, the API) has no owner to name
         owner = getattr(fallback, "__module__", None)
     return f"{kind} {name!r}" + (f" (plugin {owner})" if owner else "")
+
+
+def where(exc: BaseException) -> str:
+    """`` (at file:line)``: the innermost frame outside the harness (the plugin's code) where ``exc`` was raised."""
+    import traceback
+
+    frames = traceback.extract_tb(exc.__traceback__)
+    own = str(Path(__file__).resolve().parent)
+    outside = [
+        f
+        for f in frames
+        if not f.filename.startswith("<")
+        and "pluggy" not in Path(f.filename).parts
+        and not str(Path(f.filename).resolve()).startswith(own)
+    ] or frames
+    if isinstance(exc, SyntaxError) and exc.filename:
+        return f" (at {exc.filename}:{exc.lineno})"
+    return f" (at {outside[-1].filename}:{outside[-1].lineno})" if outside else ""
 
 
 def plugin_call(label: str | Callable[[], str], what: str, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
@@ -71,8 +103,6 @@ def plugin_call(label: str | Callable[[], str], what: str, func: Callable[..., A
     except (HarnessError, KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:
-        from harness.plugins import where
-
         text = label() if callable(label) else label
         raise PluginError(f"{text}: {what} raised {type(exc).__name__}: {exc}{where(exc)}") from exc
 
@@ -87,10 +117,31 @@ def check_name(kind: str, name: str) -> None:
 
 
 def check_registered(spec: Any, record: type) -> Any:
-    """What a plugin passed to a ``register`` callback: an instance of the hook's record class."""
+    """What a plugin passed to a ``register`` callback: an instance of the hook's record class, which passes
+    ``check_record``."""
     if not isinstance(spec, record):
         raise PluginError(f"register() expects a {record.__name__}, got {type(spec).__name__}")
-    return spec
+    return check_record(spec)
+
+
+def check_record(record: Any) -> Any:
+    """Check one contract record (``DetectorSpec``, ``DatasetSpec``, ``EncodingSpec``, ``LoggerSpec`` or ``Fold``)
+    with its class's check and return it unchanged; a ``PluginError`` names the record and the field."""
+    from harness.api import DatasetSpec, DetectorSpec, EncodingSpec, Fold, LoggerSpec
+
+    checks: dict[type, Callable[[Any], None]] = {
+        DetectorSpec: check_detector_spec,
+        DatasetSpec: check_dataset_spec,
+        EncodingSpec: check_encoding_spec,
+        LoggerSpec: check_logger_spec,
+        Fold: check_fold,
+    }
+    for cls, check in checks.items():
+        if isinstance(record, cls):
+            check(record)
+            return record
+    kinds = ", ".join(c.__name__ for c in checks)
+    raise PluginError(f"expected a contract record ({kinds}), got {type(record).__name__}")
 
 
 def check_detector_spec(spec: DetectorSpec) -> None:
@@ -198,6 +249,11 @@ def check_folds(folds: Any, label: str) -> list[Fold]:
             f"{label}: folds() must return Fold records (harness.Fold(name, train_groups, "
             f"val_groups)), got {type(bad[0]).__name__} {bad[0]!r}"
         )
+    for fold in folds:
+        try:
+            check_fold(fold)
+        except PluginError as exc:
+            raise PluginError(f"{label}: folds(): {exc}") from None
     return list(folds)
 
 
@@ -311,6 +367,21 @@ def check_unique_id(seen: dict[int, str], sample: Any, where: str, label: str) -
 
 
 # ------------------------------------------------------------------------------------------------ encodings
+def encode(spec: EncodingSpec, sample: AlignedSample, **overrides: Any) -> Any:
+    """``spec.fn(sample, **spec.params, **overrides)``, checked: what the encoding needs is there, an exception its
+    code raises names the encoding and its plugin, and what it returns is a uint8 array of the sample's height and
+    width (``None`` for a zero-channel encoding, whose callers know it has none: hence ``Any``)."""
+    check_encoding_input(spec, sample)
+    out = plugin_call(
+        lambda: f"{plugin_label('encoding', spec.name, spec.fn)}: {sample.name}",
+        "fn()",
+        spec.fn,
+        sample,
+        **{**spec.params, **overrides},
+    )
+    return check_encoding_output(spec, sample, out)
+
+
 def check_encoding_input(spec: EncodingSpec, sample: AlignedSample) -> None:
     """A radiometric encoding asked of a sample that has only 8-bit thermal is a ``PluginError`` saying what to use."""
     if spec.needs == "thermal" and sample.thermal is None:

@@ -40,7 +40,7 @@ import pluggy
 
 from harness import hookspecs
 from harness.api import REGISTRATIONS, DatasetSpec, DetectorSpec, EncodingSpec, LoggerSpec
-from harness.contracts import check_registered
+from harness.contracts import check_registered, set_owner_lookup, where
 from harness.errors import PluginError, UnknownNameError
 
 log = logging.getLogger(__name__)
@@ -329,24 +329,6 @@ class PluginHost:
         return out
 
 
-def where(exc: BaseException) -> str:
-    """`` (at file:line)``: the innermost frame outside the harness (the plugin's code) where ``exc`` was raised."""
-    import traceback
-
-    frames = traceback.extract_tb(exc.__traceback__)
-    own = str(Path(__file__).resolve().parent)
-    outside = [
-        f
-        for f in frames
-        if not f.filename.startswith("<")
-        and "pluggy" not in Path(f.filename).parts
-        and not str(Path(f.filename).resolve()).startswith(own)
-    ] or frames
-    if isinstance(exc, SyntaxError) and exc.filename:
-        return f" (at {exc.filename}:{exc.lineno})"
-    return f" (at {outside[-1].filename}:{outside[-1].lineno})" if outside else ""
-
-
 def _call_impl(impl: pluggy.HookImpl, **kwargs: Any) -> Any:
     """Call one hook implementation with the arguments it asks for (implementations may take fewer)."""
     return impl.function(*[kwargs[a] for a in impl.argnames])
@@ -596,6 +578,10 @@ def unload_plugins() -> None:
 
 def get_host() -> PluginHost:
     return load_plugins()
+
+
+# how ``harness.contracts`` (below the host) names the plugin that registered a record in its errors
+set_owner_lookup(lambda kind, name: get_host().owner(kind, name))
 
 
 @contextlib.contextmanager

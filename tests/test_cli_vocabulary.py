@@ -24,8 +24,8 @@ VOCABULARY = {"--folds": "folds", "--seeds": "seeds", "--bootstrap-seed": "boots
               "--store": "store", "--no-progress": "no-progress", "--config": "config", "--set": "set"}
 #: Spellings the vocabulary retired; `synth --seed` is the generator's seed, not a training or bootstrap seed.
 RETIRED = {"--fold", "--json", "--seed"}
-#: `synth --profile` is the synthetic set's size (tiny, small, full), not a run profile.
-OWN_MEANING = {("synth", "--seed"), ("synth", "--profile")}
+#: `synth --seed` is the generator's seed, not a training seed.
+OWN_MEANING = {("synth", "--seed")}
 #: Commands that show progress (bars, or run/sweep's progress lines).
 SHOWS_PROGRESS = {"run", "ablate", "sweep", "pretrain", "profile", "report", "compare-detectors", "prepare", "folds",
                   "score", "synth", "sensing decode", "sensing displacement", "show",
@@ -178,6 +178,21 @@ OLD_SPELLINGS = [
      lambda a, k: (a[0], a[5]), (Path("results/smoke"), [1]), ["--seed"]),
     (["sensing", "decode", "PREDS", "--out", "OUT", "--format", "tiff"], ("harness.sensing.batch", "decode_batch"),
      lambda a, k: a[2].fmt, "tiff", ["--format"]),
+    (["report", "--store", "STORE", "--dataset", "a", "--dataset", "b,c"], ("harness.report", "build_report"),
+     lambda a, k: a[1], ["a", "b", "c"], ["--dataset"]),
+    (["show", "--dataset", "m3t-synth", "--store", "STORE", "--detector", "x", "--detector", "y"],
+     ("harness.report.show", "show"), lambda a, k: k["detectors"], ("x", "y"), ["--detector"]),
+    (["profile", "--detector", "ours", "--no-store"], ("harness.profiling", "profile_detector"), lambda a, k: a[0],
+     "ours", ["--detector"]),
+    (["export", "--detector", "x", "--onnx", "OUT"], ("harness.profiling", "export_detector"),
+     lambda a, k: (a[0], Path(a[1]).name), ("x", "out"), ["--onnx"]),
+    (["synth", "--profile", "tiny", "--out", "OUT"], ("adapters.datasets.synthetic", "generate"),
+     lambda a, k: k["profile"], "tiny", ["--profile"]),
+    (["sensing", "register", "--similarity", "g=0,0,0,1", "--init", "PREDS", "--out", "OUT"],
+     ("harness.sensing.registration", "load_homography_entries"), lambda a, k: Path(a[0]).name, "preds.json",
+     ["--init"]),
+    (["export-fiftyone", "--dataset", "d", "--seed", "1", "--out", "OUT"],
+     ("harness.report.fiftyone_export", "export_fiftyone"), lambda a, k: k["seed"], [1], ["--seed"]),
 ]
 
 
@@ -242,6 +257,56 @@ def test_one_fold_commands_refuse_a_list(cli_runner):
     assert res.exit_code == 2 and "works on one fold" in res.output
 
 
+def test_one_run_commands_refuse_a_list_of_seeds_and_filters_take_one(cli_runner, record, tmp_path):
+    res = cli_runner(["pretrain", "--detector", "x", "--seeds", "0,1"])
+    assert res.exit_code == 2 and "trains one run; give one seed" in res.output
+    calls = record("harness.commands.pretrain", "pretrain")
+    res = cli_runner(["pretrain", "--detector", "x", "--seeds", "3"])
+    assert res.exit_code == 2 and calls["pretrain"][0][4] == 3 and "deprecated" not in res.output
+    calls = record("harness.report.fiftyone_export", "export_fiftyone")
+    res = cli_runner(["export-fiftyone", "--dataset", "d", "--seeds", "0,2", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and calls["export_fiftyone"][1]["seed"] == [0, 2]
+
+
+#: One meaning per option name: (option, what it must be in every command that has it).
+def _one_name(p: click.Parameter) -> bool:
+    return not p.multiple and getattr(p, "shared", None) is None
+
+
+ONE_MEANING = {
+    "--profile": lambda p: getattr(p, "shared", None) == "profile",  # a run profile, smoke or paper
+    "--seeds": lambda p: getattr(p, "shared", None) == "seeds",  # training seeds
+    "--datasets": lambda p: getattr(p, "shared", None) == "datasets" and p.multiple,
+    "--detectors": lambda p: getattr(p, "shared", None) == "detectors" and p.multiple,
+    "--dataset": _one_name,  # one dataset, never a list
+    "--detector": _one_name,
+    "--onnx": lambda p: p.is_flag,  # profile's switch; export writes its file with --out
+    "--init": lambda p: isinstance(p.type, click.Path) and not p.type.dir_okay,  # a checkpoint file
+}
+
+
+def test_every_option_name_has_one_meaning_across_the_cli(host):
+    seen: dict[str, list[str]] = {}
+    for path, cmd in _walk():
+        for p in cmd.params:
+            for o in getattr(p, "opts", []):
+                if o in ONE_MEANING and (path[0], o) not in OWN_MEANING:
+                    assert ONE_MEANING[o](p), f"harness {' '.join(path)} {o}: not the meaning it has elsewhere"
+                    seen.setdefault(o, []).append(" ".join(path))
+    assert set(seen) == set(ONE_MEANING), set(ONE_MEANING) - set(seen)
+    assert seen["--init"] == ["pretrain", "run"] and seen["--onnx"] == ["profile"], seen
+
+
+@pytest.mark.parametrize("plural", ["--datasets", "--detectors"])
+def test_lists_of_names_are_comma_separated_or_repeated_alike(plural):
+    cmd = click.Command("x", params=[], callback=lambda **kw: kw)
+    opt.names_option(plural, help="h")(cmd.callback)
+    cmd.params = list(getattr(cmd.callback, "__click_params__", []))
+    ctx = cmd.make_context("x", [plural, "a,b", plural, "c"])
+    assert ctx.params[plural.lstrip("-")] == ("a", "b", "c")
+    assert cmd.make_context("x", [])
+
+
 # ------------------------------------------------------------------------------------------------ exit codes
 def _one_error_line(res: Any) -> None:
     assert "Traceback" not in res.output
@@ -256,7 +321,7 @@ INPUT_ERRORS = [  # one per command family: training, data, scoring, reports, pr
     (["export-predictions", "--store", "EMPTY", "--out", "x.json"], "no finished run"),
     (["report", "--store", "NOWHERE"], "no results store here"),
     (["compare-detectors", "a", "b", "--dataset", "d", "--store", "NOWHERE"], "no results store here"),
-    (["profile", "--detector", "nope", "--no-store"], "unknown detector 'nope'"),
+    (["profile", "--detectors", "nope", "--no-store"], "unknown detector 'nope'"),
     (["sensing", "register", "--out", "h.yaml"], "give --landmarks, --similarity or --auto"),
     (["weights", "import", "missing.pt", "--out", "w.safetensors"], "missing.pt"),
     (["cache", "rm", "--cache", "EMPTY"], "or pass --unused"),

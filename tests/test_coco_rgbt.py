@@ -12,6 +12,7 @@ import pytest
 
 from coco_rgbt_helpers import H, W, centikelvin, make_coco_rgbt, read_json, temperature, write_json
 from datasets_helpers import edited_json, skip_reasons, write_or_remove
+from harness.contracts import encode
 from harness.errors import ConfigError, DataError
 
 
@@ -110,7 +111,7 @@ def test_thermal_is_the_decoded_temperature_and_c2_is_computed_from_it(pairs_sou
         k = sample.image_id - 1
         decoded = (centikelvin(temperature(k)).astype(np.float64) * 0.01 - 273.15).astype(np.float32)
         np.testing.assert_array_equal(sample.thermal, decoded)
-        np.testing.assert_array_equal(c2.encode(sample), c2_uint8(decoded))
+        np.testing.assert_array_equal(encode(c2, sample), c2_uint8(decoded))
         assert sample.group == ("site-a", "site-b", "site-c")[k % 3]
     first = ds[0]
     np.testing.assert_allclose(first.boxes, [[6, 10, 16, 20], [40, 28, 52, 40]])
@@ -179,7 +180,7 @@ def test_eight_bit_thermal_feeds_the_eight_bit_encodings(pairs, tmp_path):
         cv2.imwrite(str(p), np.full((H, W), 77, np.uint8))
     ds = _prepare(pairs, tmp_path / "c8", thermal="8bit")
     assert len(ds) == 12 and not ds.radiometric and ds[0].thermal is None and int(ds[0].ir8[0, 0]) == 77
-    assert get_host().encoding("proxy8").encode(ds[0]).shape == (H, W)
+    assert encode(get_host().encoding("proxy8"), ds[0]).shape == (H, W)
     radiometric = pytest.raises(DataError, match=r"no usable image pairs.*8-bit thermal: 12")
     with radiometric:
         _prepare(pairs, tmp_path / "c16")

@@ -177,9 +177,35 @@ def test_registering_a_plugin_under_a_taken_name_is_a_plugin_error(harness_plugi
 
 def test_a_logger_name_follows_the_rule_of_every_other_name():
     from harness import LoggerSpec
+    from harness.contracts import check_registered
 
     with pytest.raises(PluginError, match="invalid logger name 'My Logger'"):
-        LoggerSpec(name="My Logger", create=lambda options: None)
+        check_registered(LoggerSpec(name="My Logger", create=lambda options: None), LoggerSpec)
+
+
+def test_the_contract_records_are_plain_data_and_import_nothing_of_the_harness():
+    import ast
+    import inspect
+
+    from harness import api
+
+    tree = ast.parse(inspect.getsource(api))
+    imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    assert not [m for m in imported if m and m.split(".")[0] == "harness"], imported
+    # a record is built without running a check: the check is the boundary's (registration, check_folds)
+    assert DetectorSpec(name="Not A Name", build=lambda nc: None).name == "Not A Name"
+
+
+def test_the_checks_do_not_import_the_plugin_host():
+    import ast
+    import inspect
+
+    from harness import contracts
+
+    tree = ast.parse(inspect.getsource(contracts))
+    imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    assert "harness.plugins" not in imported
 
 
 # ------------------------------------------------------------------------------------------- opened datasets
@@ -282,6 +308,7 @@ def test_an_exception_in_an_encoding_names_the_encoding_and_its_plugin(harness_p
             register(EncodingSpec(name="undo-raising-enc", fn=broken, needs="ir8"))
 
     harness_plugin(Plugin(), name="undo-raising-plugin")
+    from harness.contracts import encode
     from harness.plugins import get_host
 
     sample = next(_Good().samples(None))
@@ -290,12 +317,16 @@ def test_an_exception_in_an_encoding_names_the_encoding_and_its_plugin(harness_p
         match=r"encoding 'undo-raising-enc' \(plugin undo-raising-plugin\): sample 1: "
         r"fn\(\) raised ValueError: no such channel \(at .*test_contracts.py:\d+\)",
     ):
-        get_host().encoding("undo-raising-enc").encode(sample)
+        encode(get_host().encoding("undo-raising-enc"), sample)
 
 
 def test_a_fold_record_is_still_checked():
+    from harness.contracts import check_folds, check_record
+
     with pytest.raises(PluginError, match="both trained on and held out"):
-        Fold("x", ("a",), ("a",))
+        check_record(Fold("x", ("a",), ("a",)))
+    with pytest.raises(PluginError, match=r"dataset 'd': folds\(\): fold 'x': groups \['a'\] are both trained on"):
+        check_folds([Fold("y", ("a",), ("b",)), Fold("x", ("a",), ("a",))], "dataset 'd'")
 
 
 def test_commands_added_again_after_a_host_reset_are_no_conflict(harness_host):

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from engine_helpers import ContractSource as _Source
-from harness import hookspecs
+from harness import hookimpl, hookspecs
 from harness.api import AlignedSample, DatasetSource, DatasetSpec, Fold, PrepareReport
 from harness.errors import PluginError
 from harness.testing import temporary_plugin
@@ -91,10 +91,23 @@ def test_a_protocol_shipped_in_a_package_or_by_path_is_loaded(tmp_path, monkeypa
         ("", "protocol must be"),
     ],
 )
-def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypatch, protocol, message):
+def test_a_bad_protocol_is_refused_when_the_plugin_registers(tmp_path, monkeypatch, harness_plugin, protocol, message):
+    from harness.contracts import check_registered
+    from harness.plugins import get_host
+
     _package(tmp_path, monkeypatch)
+    spec = DatasetSpec("contract-test", open=_Source, categories=("thing",), protocol=protocol)
     with pytest.raises(PluginError, match=f"dataset 'contract-test': .*{message}"):
-        DatasetSpec("contract-test", open=_Source, categories=("thing",), protocol=protocol)
+        check_registered(spec, DatasetSpec)
+
+    class Plugin:
+        @hookimpl
+        def register_datasets(self, register):
+            register(spec)
+
+    harness_plugin(Plugin(), name="undo-bad-protocol")
+    problems = [p for p in get_host().problems if p.plugin == "undo-bad-protocol"]
+    assert len(problems) == 1 and re.search(f"dataset 'contract-test': .*{message}", problems[0].message)
 
 
 # ------------------------------------------------------------------------------------------- open and prepare

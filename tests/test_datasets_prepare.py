@@ -204,10 +204,10 @@ def test_m3t_synth_refuses_a_folder_it_did_not_generate(tmp_path):
 # ------------------------------------------------------------------------------------------------ CLI
 def test_cli_synth_prepare_and_folds(tmp_path, cli_runner):
     out = tmp_path / "synth"
-    res = cli_runner(["synth", "--profile", "tiny", "--out", str(out), "--seed", "0"])
+    res = cli_runner(["synth", "--size", "tiny", "--out", str(out), "--seed", "0"])
     assert res.exit_code == 0, res.output
     assert "8 pairs" in res.output and "delamination" in res.output
-    res = cli_runner(["synth", "--profile", "tiny", "--out", str(out)])
+    res = cli_runner(["synth", "--size", "tiny", "--out", str(out)])
     assert res.exit_code == 2 and "--force" in res.output
     args = ["--dataset", "m3t-synth", "--root", str(out), "--cache", str(tmp_path / "cache")]
     res = cli_runner(["prepare", *args])

@@ -167,13 +167,13 @@ def test_ours_is_a_registered_single_stream_detector(host):
 
 
 def test_harness_profile_reports_the_seed_figures(cli_runner):
-    """``harness profile --detector ours --format json``: 11,128,968 parameters fused and 28.5 GFLOPs (paper
+    """``harness profile --detectors ours --format json``: 11,128,968 parameters fused and 28.5 GFLOPs (paper
     convention)."""
     import json
 
     pytest.importorskip("harness.profiling", reason="the profiling module is not in this checkout yet")
     result = cli_runner(
-        ["profile", "--detector", "ours", "--format", "json", "--no-latency", "--no-onnx", "--no-fvcore", "--no-store"]
+        ["profile", "--detectors", "ours", "--format", "json", "--no-latency", "--no-onnx", "--no-fvcore", "--no-store"]
     )
     assert result.exit_code == 0, result.output
     (record,) = json.loads(result.output)

@@ -137,13 +137,22 @@ def test_register_rejects_wrong_record_type(host):
         assert any(p.plugin == "sloppy-plugin" and "DetectorSpec" in p.message for p in host.problems)
 
 
-def test_invalid_spec_fields_are_errors():
-    with pytest.raises(PluginError, match="input_kind"):
-        DetectorSpec(name="x", build=_build, input_kind="triple")
-    with pytest.raises(PluginError, match="invalid detector name"):
-        DetectorSpec(name="Bad Name", build=_build)
-    with pytest.raises(PluginError, match="channels"):
-        EncodingSpec(name="e", fn=lambda s: None, channels=3)
+@pytest.mark.parametrize(
+    "hook, record, message",
+    [
+        ("register_detectors", DetectorSpec(name="x", build=_build, input_kind="triple"), "input_kind"),
+        ("register_detectors", DetectorSpec(name="Bad Name", build=_build), "invalid detector name"),
+        ("register_encodings", EncodingSpec(name="e", fn=lambda s: None, channels=3), "channels"),
+    ],
+)
+def test_invalid_spec_fields_are_errors_when_the_record_is_registered(host, hook, record, message):
+    from harness.contracts import check_record
+
+    with pytest.raises(PluginError, match=message):
+        check_record(record)
+    with temporary_plugin(registering(hook, record), name="undo-invalid-record"):
+        problems = [p for p in host.problems if p.plugin == "undo-invalid-record"]
+        assert len(problems) == 1 and message in problems[0].message, problems
 
 
 # ------------------------------------------------------------------ discovery through entry points

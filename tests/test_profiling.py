@@ -250,7 +250,7 @@ def test_cli_profile_and_export(cli_runner, tmp_path):
         assert stored["tiny-dual"]["input"]["shapes"] == [[1, 3, 16, 16], [1, 1, 16, 16]]
 
         out = tmp_path / "dual.onnx"
-        res = cli_runner(["export", "--detector", "tiny-dual", "--onnx", str(out), "--imgsz", "16"])
+        res = cli_runner(["export", "--detector", "tiny-dual", "--out", str(out), "--imgsz", "16"])
         assert res.exit_code == 0, res.output
         assert out.exists() and "inputs: rgb [1, 3, 16, 16], thermal [1, 1, 16, 16]" in res.output
         assert "onnxruntime matches torch" in res.output

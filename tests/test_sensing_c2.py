@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from harness.api import AlignedSample
+from harness.contracts import encode
 from harness.errors import PluginError
 from harness.sensing.c2 import (
     c2,
@@ -180,28 +181,28 @@ def test_builtin_encodings_are_registered(host):
 def test_encodings_compute_what_they_document(host):
     s = _sample()
     enc = host.encodings()
-    np.testing.assert_array_equal(enc["c2"].encode(s), c2_uint8(s.thermal))
-    np.testing.assert_array_equal(enc["c2"].encode(s, sigma=3.0), c2_uint8(s.thermal, sigma=3.0))
-    lin = enc["linear16"].encode(s)
+    np.testing.assert_array_equal(encode(enc["c2"], s), c2_uint8(s.thermal))
+    np.testing.assert_array_equal(encode(enc["c2"], s, sigma=3.0), c2_uint8(s.thermal, sigma=3.0))
+    lin = encode(enc["linear16"], s)
     assert lin.dtype == np.uint8 and lin.min() == 0 and lin.max() == 255
     assert lin.flat[np.argmax(s.thermal)] == 255 and lin.flat[np.argmin(s.thermal)] == 0
-    fixed = enc["linear16"].encode(s, mode="fixed", t_min=20.0, t_max=30.0)
+    fixed = encode(enc["linear16"], s, mode="fixed", t_min=20.0, t_max=30.0)
     np.testing.assert_array_equal(fixed, np.rint(np.clip((s.thermal - 20) / 10, 0, 1) * 255).astype(np.uint8))
     with pytest.raises(PluginError, match="unknown mode"):
-        enc["linear16"].encode(s, mode="log")
-    np.testing.assert_array_equal(enc["ir8"].encode(s), s.ir8)
-    assert enc["none"].encode(s) is None
-    np.testing.assert_array_equal(enc["proxy8"].encode(s), c2_uint8(s.ir8.astype(np.float32), floor=1.0))
+        encode(enc["linear16"], s, mode="log")
+    np.testing.assert_array_equal(encode(enc["ir8"], s), s.ir8)
+    assert encode(enc["none"], s) is None
+    np.testing.assert_array_equal(encode(enc["proxy8"], s), c2_uint8(s.ir8.astype(np.float32), floor=1.0))
     flat = _sample()
     flat.ir8[:] = 77
-    assert np.all(enc["proxy8"].encode(flat) == 128)
+    assert np.all(encode(enc["proxy8"], flat) == 128)
 
 
 def test_radiometric_encodings_refuse_8bit_samples_but_8bit_ones_work(host):
     s = _sample(thermal=False)
     with pytest.raises(PluginError, match="proxy8"):
-        host.encoding("c2").encode(s)
-    assert host.encoding("proxy8").encode(s).shape == s.ir8.shape
+        encode(host.encoding("c2"), s)
+    assert encode(host.encoding("proxy8"), s).shape == s.ir8.shape
 
 
 def test_encoding_parameters_come_from_the_config():

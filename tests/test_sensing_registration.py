@@ -296,7 +296,7 @@ def test_register_command_from_landmarks_similarity_and_images(tmp_path, cli_run
     write_thermal(tmp_path / "th.tif", scene_th, unit="celsius")
     save_homographies(tmp_path / "init.yaml", {"P3": _prior()})
     res = cli_runner(["sensing", "register", "--auto", f"P3={tmp_path / 'rgb.png'},{tmp_path / 'th.tif'}",
-                      "--init", str(tmp_path / "init.yaml"), "--out", str(out)])
+                      "--start-homographies", str(tmp_path / "init.yaml"), "--out", str(out)])
     assert res.exit_code == 0, res.output
     Hs = load_homographies(out)
     assert set(Hs) == {"P1", "P2", "P3"}

@@ -16,6 +16,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from harness.api import AlignedSample
 from harness.errors import ConfigError, DataError
 
 #: Largest per-pixel difference between the three channels of a JPEG-decoded grey image that still counts as
@@ -125,6 +126,25 @@ def clip_to_frame(
     boxes, keep, clipped = clip_boxes(xyxy, width, height)
     stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=int((~keep).sum()))
     return np.ascontiguousarray(boxes[keep]), np.ascontiguousarray(np.asarray(labels)[keep]), stats
+
+
+def pair_sample(
+    image_id: int,
+    rgb: np.ndarray,
+    ir8: np.ndarray,
+    xyxy: np.ndarray,
+    labels: np.ndarray,
+    group: str,
+    meta: dict[str, Any],
+) -> tuple[AlignedSample, BoxStats]:
+    """One pair of a release with 8-bit thermal images as an ``AlignedSample`` (no temperature map), its boxes
+    clipped to the thermal frame by ``clip_to_frame``, whose counts come back beside it."""
+    h, w = ir8.shape
+    boxes, labels, stats = clip_to_frame(xyxy, labels, w, h)
+    sample = AlignedSample(
+        image_id=image_id, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=group, meta=meta
+    )
+    return sample, stats
 
 
 def xywh_to_xyxy(xywh: np.ndarray) -> np.ndarray:

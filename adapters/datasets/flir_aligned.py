@@ -56,7 +56,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from adapters.datasets._eightbit import BoxStats, check_strict, clip_to_frame, file_stat, find_release_root, stat_digest
+from adapters.datasets._eightbit import BoxStats, check_strict, file_stat, find_release_root, pair_sample, stat_digest
 from adapters.datasets._paired import SPLITS, SkipPair, SplitSource, eightbit_spec, read_pair
 from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
 from harness.api import PrepareReport
@@ -261,14 +261,11 @@ class FlirAlignedSource(SplitSource):
                     lab, len(self.categories), w, h)
             except DataError as exc:
                 raise SkipPair(f"malformed labels: {exc}", lab) from None
-        boxes, labels, stats = clip_to_frame(xyxy, labels, w, h)
+        meta = {"file_name": ir_path.relative_to(self.root).as_posix(),
+                "rgb_file": vis_path.relative_to(self.root).as_posix(), "frame": key, "split": split,
+                "labels": self.labels}
+        sample, stats = pair_sample(k + 1, rgb, ir8, xyxy, labels, split, meta)
         stats.unlabelled = int(missing)
-        sample = AlignedSample(
-            image_id=k + 1, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=split,
-            meta={"file_name": ir_path.relative_to(self.root).as_posix(),
-                  "rgb_file": vis_path.relative_to(self.root).as_posix(), "frame": key, "split": split,
-                  "labels": self.labels},
-        )
         return sample, stats
 
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Iterator
 
-from adapters.datasets._eightbit import BoxStats, check_strict, clip_to_frame, file_stat, find_release_root, stat_digest
+from adapters.datasets._eightbit import BoxStats, check_strict, file_stat, find_release_root, pair_sample, stat_digest
 from adapters.datasets._paired import SPLITS, SplitSource, eightbit_spec, read_pair
 from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
 from harness.api import PrepareReport
@@ -108,13 +108,9 @@ class LlvipSource(SplitSource):
         ir8, _, rgb = read_pair(ir_path, vis_path, ir_path)
         h, w = ir8.shape
         check_size(ann, xml_path, w, h)
-        boxes, labels, stats = clip_to_frame(*self._voc.targets(ann, CATEGORIES), w, h)
-        sample = AlignedSample(
-            image_id=k + 1, rgb=rgb, thermal=None, ir8=ir8, boxes=boxes, labels=labels, group=split,
-            meta={"file_name": f"infrared/{split}/{ir_path.name}", "rgb_file": f"visible/{split}/{vis_path.name}",
-                  "annotation": f"Annotations/{xml_path.name}", "split": split},
-        )
-        return sample, stats
+        meta = {"file_name": f"infrared/{split}/{ir_path.name}", "rgb_file": f"visible/{split}/{vis_path.name}",
+                "annotation": f"Annotations/{xml_path.name}", "split": split}
+        return pair_sample(k + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), split, meta)
 
 
 def find_root(root: str | Path | None) -> Path:

@@ -35,7 +35,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Iterator
 
-from adapters.datasets._eightbit import BoxStats, check_strict, clip_to_frame, file_stat, find_release_root, stat_digest
+from adapters.datasets._eightbit import BoxStats, check_strict, file_stat, find_release_root, pair_sample, stat_digest
 from adapters.datasets._paired import PairedSource, eightbit_spec, read_pair
 from adapters.datasets.voc import VocStats, check_size, normalise_convention, normalise_difficult, read_known
 from harness.api import Fold, PrepareReport
@@ -168,25 +168,12 @@ class M3fdSource(PairedSource):
         ir8, was_colour, rgb = read_pair(self.ir[stem], self.vis[stem], xml_path, names=("Vis", "Ir"))
         h, w = ir8.shape
         check_size(ann, xml_path, w, h)
-        boxes, labels, stats = clip_to_frame(*self._voc.targets(ann, CATEGORIES), w, h)
-        stats.colour = int(was_colour)
         number = int(stem)
         group = block_of(number)
-        sample = AlignedSample(
-            image_id=number + 1,
-            rgb=rgb,
-            thermal=None,
-            ir8=ir8,
-            boxes=boxes,
-            labels=labels,
-            group=group,
-            meta={
-                "file_name": f"Ir/{self.ir[stem].name}",
-                "rgb_file": f"Vis/{self.vis[stem].name}",
-                "annotation": f"Annotation/{xml_path.name}",
-                "split": "val" if is_val_block(group) else "train",
-            },
-        )
+        meta = {"file_name": f"Ir/{self.ir[stem].name}", "rgb_file": f"Vis/{self.vis[stem].name}",
+                "annotation": f"Annotation/{xml_path.name}", "split": "val" if is_val_block(group) else "train"}
+        sample, stats = pair_sample(number + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), group, meta)
+        stats.colour = int(was_colour)
         return sample, stats
 
 

@@ -12,6 +12,9 @@ Two forms are read, both described in ``docs/datasets.md``:
 An optional manifest (``m3t.yaml`` at the root, or ``dataset.manifest``) maps a user's own folder and file names
 onto this layout; every path it names must stay inside the dataset root. Every bad pair is a counted skip
 (``PrepareReport.skip``) and every malformed input file a ``DataError`` naming the file and what to do.
+
+Kept in one module: manifest, annotations, source and raw aligner are the one M3T adapter, and the sensing maths they
+call live in ``harness.sensing``.
 """
 
 from __future__ import annotations

@@ -49,8 +49,8 @@ from adapters.datasets._coco import coco_id
 from adapters.datasets._eightbit import (
     BoxStats,
     check_strict,
-    clip_to_frame,
     file_stat,
+    pair_sample,
     positive_int,
     resolve_root,
     stat_digest,
@@ -553,30 +553,15 @@ class RgbtTinySource(PairedSource):
     def _sample(self, pair: Pair) -> tuple[AlignedSample, BoxStats]:
         t_path, v_path = self.images_dir / pair.thermal.file_name, self.images_dir / pair.visible.file_name
         ir8, was_colour, rgb = read_pair(t_path, v_path, t_path, names=("visible", "thermal"))
-        h, w = ir8.shape
         entry = pair.thermal if self.gt == "thermal" else pair.visible
         xyxy, labels, crowd = self.coco[self.gt, pair.split].boxes.get(
             entry.id, (np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0, bool)))
-        boxes, labels, stats = clip_to_frame(xyxy[~crowd], labels[~crowd], w, h)
+        meta = {"file_name": pair.thermal.file_name, "rgb_file": pair.visible.file_name,
+                "sequence": pair.key.sequence, "frame": pair.key.frame, "split": pair.split, "gt": self.gt,
+                "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id}}
+        sample, stats = pair_sample(self.image_ids[pair.key], rgb, ir8, xyxy[~crowd], labels[~crowd],
+                                        pair.key.sequence, meta)
         stats.crowd, stats.colour = int(crowd.sum()), int(was_colour)
-        sample = AlignedSample(
-            image_id=self.image_ids[pair.key],
-            rgb=rgb,
-            thermal=None,
-            ir8=ir8,
-            boxes=boxes,
-            labels=labels,
-            group=pair.key.sequence,
-            meta={
-                "file_name": pair.thermal.file_name,
-                "rgb_file": pair.visible.file_name,
-                "sequence": pair.key.sequence,
-                "frame": pair.key.frame,
-                "split": pair.split,
-                "gt": self.gt,
-                "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id},
-            },
-        )
         return sample, stats
 
 

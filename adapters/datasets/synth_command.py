@@ -14,10 +14,11 @@ def add_synth_command(cli: click.Group) -> None:
     """Add ``harness synth`` to ``cli``."""
 
     @cli.command(name="synth")
-    @click.option("--profile", type=click.Choice(["tiny", "small", "full"]), default="small", show_default=True,
-                  help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.")
+    @opt.option("--size", "profile", old=("--profile",), type=click.Choice(["tiny", "small", "full"]), default="small",
+                show_default=True,
+                help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.")
     @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<profile>-seed<seed>).")
+                  help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<size>-seed<seed>).")
     @click.option("--seed", type=int, default=0, show_default=True,
                   help="Seed of the generator (part of the folder name); the same seed gives the same files.")
     @click.option("--thermal-format", type=click.Choice(["rjpeg", "centikelvin"]), default="rjpeg", show_default=True,

@@ -1,5 +1,5 @@
-"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec, the end of their build
-(NMS settings, weights) and their weight loading.
+"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec, the options at the end of
+their build (NMS settings, weights) and their weight loading.
 
 Kept free of torch imports so that registering the plugins stays fast (``harness --help``, ``harness list``).
 """
@@ -19,6 +19,20 @@ def load_weights(model: Any, state_dict: Mapping[str, Any] | Any, name: str) -> 
     return load_state_dict_report(model, read_weights(state_dict, name), name)
 
 
+#: The build options every dual-stream detector takes besides its network's own: the weights and the NMS settings.
+FINISH_OPTIONS = ("weights", "conf", "iou", "max_det", "multi_label", "max_nms")
+
+
+def finish_options(name: str, options: dict[str, Any], known: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Take the ``FINISH_OPTIONS`` out of a build's keyword ``options`` (for ``finish_build``); what is left must be
+    among ``known`` (the network's own options), else a ``ConfigError`` naming the unknown ones."""
+    from adapters.detectors.yolo.v5 import check_options
+
+    finish = {k: options.pop(k) for k in FINISH_OPTIONS if k in options}
+    check_options(name, options, known)
+    return finish
+
+
 def finish_build(model: Any, name: str, weights: Any = None, conf: float | None = None, iou: float | None = None,
                  max_det: int | None = None, multi_label: bool | None = None, max_nms: int | None = None) -> Any:
     """The end of every dual-stream build: the NMS settings of the config (``None`` keeps the model's), then
@@ -31,7 +45,7 @@ def finish_build(model: Any, name: str, weights: Any = None, conf: float | None 
     return model
 
 
-def dual_stream_spec(*, name: str, build: Callable[..., Any], description: str, label: str,
+def dual_stream_spec(name: str, build: Callable[..., Any], description: str, label: str, *,
                      seed: tuple[float, float], nms_iou: float, load_official: Callable[..., dict] | None
                      ) -> DetectorSpec:
     """A dual-stream detector fed ``(rgb, thermal)``, the thermal encoding (ir8 by default, as the baselines' own

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from adapters.detectors._dual import dual_stream_spec, finish_build
+from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options
 from harness.hookspecs import hookimpl
 
 NAME = "cmadet"
@@ -25,19 +25,19 @@ NET_OPTIONS = ("align_width", "hidden", "reduce", "grid", "flow_gain", "reductio
 
 
 def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float | None = None,
-          depth: float | None = None, weights: Any = None, conf: float | None = None, iou: float | None = None,
-          max_det: int | None = None, multi_label: bool | None = None, max_nms: int | None = None, **options: Any):
-    """Build the CMA-Det reconstruction; ``in_channels`` is the thermal stream's (3: the encoding replicated)."""
+          depth: float | None = None, **options: Any):
+    """Build the CMA-Det reconstruction; ``in_channels`` is the thermal stream's (3: the encoding replicated);
+    ``options``: ``NET_OPTIONS``, the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.cmadet_net import CMADet
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale
+    from adapters.detectors.yolo.v5 import resolve_scale
 
-    check_options(NAME, options, NET_OPTIONS)
+    finish = finish_options(NAME, options, NET_OPTIONS)
     w, d = resolve_scale(NAME, scale, width, depth)
     model = CMADet(num_classes, in_channels, width=w, depth=d, **options)
-    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
+    return finish_build(model, NAME, **finish)
 
 
 @hookimpl
 def register_detectors(register):
-    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              seed=(33.47, 33.67), nms_iou=0.6, load_official=None))  # no official checkpoint exists
+    # no official checkpoint exists
+    register(dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(33.47, 33.67), nms_iou=0.6, load_official=None))

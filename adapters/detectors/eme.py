@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, finish_build, load_weights
+from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "eme"
@@ -24,17 +24,16 @@ LABEL = "YOLOv5l early fusion (+ShaPE option); weak supervision and distillation
 
 
 def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float | None = None,
-          depth: float | None = None, shape: bool = False, prior_bias: bool = True, weights: Any = None,
-          conf: float | None = None, iou: float | None = None, max_det: int | None = None,
-          multi_label: bool | None = None, max_nms: int | None = None, **unknown: Any):
-    """Build EME for ``num_classes``; ``in_channels`` is the thermal stream's (concatenated after RGB)."""
+          depth: float | None = None, shape: bool = False, prior_bias: bool = True, **options: Any):
+    """Build EME for ``num_classes``; ``in_channels`` is the thermal stream's (concatenated after RGB);
+    ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.eme_net import EME
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale
+    from adapters.detectors.yolo.v5 import resolve_scale
 
-    check_options(NAME, unknown, ())
+    finish = finish_options(NAME, options)
     w, d = resolve_scale(NAME, scale, width, depth)
     model = EME(num_classes, in_channels, width=w, depth=d, shape=shape, prior_bias=prior_bias)
-    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
+    return finish_build(model, NAME, **finish)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
@@ -44,5 +43,5 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 
 @hookimpl
 def register_detectors(register):
-    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              seed=(46.15, 109.2), nms_iou=0.6, load_official=load_official))
+    register(dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(46.15, 109.2), nms_iou=0.6,
+                              load_official=load_official))

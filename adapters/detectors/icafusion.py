@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, finish_build, load_weights
+from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "icafusion"
@@ -22,18 +22,17 @@ LABEL = "official architecture and checkpoint layout"
 
 def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float | None = None,
           depth: float | None = None, tokens: Any = (20, 16, 10), heads: int = 8, block_exp: int = 4,
-          dropout: float = 0.1, prior_bias: bool = False, sort_obj_iou: bool = True, weights: Any = None,
-          conf: float | None = None, iou: float | None = None, max_det: int | None = None,
-          multi_label: bool | None = None, max_nms: int | None = None, **unknown: Any):
-    """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated)."""
+          dropout: float = 0.1, prior_bias: bool = False, sort_obj_iou: bool = True, **options: Any):
+    """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated);
+    ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.icafusion_net import ICAFusion
-    from adapters.detectors.yolo.v5 import check_options, resolve_scale
+    from adapters.detectors.yolo.v5 import resolve_scale
 
-    check_options(NAME, unknown, ())
+    finish = finish_options(NAME, options)
     w, d = resolve_scale(NAME, scale, width, depth)
     model = ICAFusion(num_classes, in_channels, width=w, depth=d, tokens=tuple(tokens), heads=heads,
                       block_exp=block_exp, dropout=dropout, prior_bias=prior_bias, sort_obj_iou=sort_obj_iou)
-    return finish_build(model, NAME, weights, conf, iou, max_det, multi_label, max_nms)
+    return finish_build(model, NAME, **finish)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
@@ -46,5 +45,5 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 
 @hookimpl
 def register_detectors(register):
-    register(dual_stream_spec(name=NAME, build=build, description=DESCRIPTION, label=LABEL,
-                              seed=(120.24, 191.68), nms_iou=0.5, load_official=load_official))
+    register(dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(120.24, 191.68), nms_iou=0.5,
+                              load_official=load_official))

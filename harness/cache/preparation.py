@@ -253,8 +253,8 @@ def plugin_label(spec: DatasetSpec) -> str:
 def _plugin_samples(label: str, source: Any, report: PrepareReport) -> Iterable[Any]:
     """``source.samples(report)``, with an exception the plugin's code raises turned into a ``PluginError`` that names
     the dataset, its plugin and where it was raised (a ``HarnessError`` it raises on purpose passes unchanged)."""
+    from harness.contracts import where
     from harness.errors import HarnessError, PluginError
-    from harness.plugins import where
 
     try:
         yield from source.samples(report)

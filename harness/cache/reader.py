@@ -24,6 +24,7 @@ import numpy as np
 from harness.api import AlignedSample
 from harness.cache import forms as CF
 from harness.cache.forms import PREPARED_SCHEMA
+from harness.contracts import encode
 from harness.errors import DataError
 from harness.io import atomic_write, atomic_write_json, read_json
 
@@ -265,7 +266,7 @@ class PreparedDataset:
         store = self._enc[key]
         r = self.records[i]
         if store is None:
-            return _frozen(encoding.encode(self[i], **params))
+            return _frozen(encode(encoding, self[i], **params))
         pack, idx = store  # type: ignore[misc]
         at = idx[i]
         return _frozen(
@@ -287,7 +288,7 @@ class PreparedDataset:
             for i in probe:  # measure: recompute from the decoded sample vs decode the stored image
                 s = self[i]
                 t0 = time.perf_counter()
-                out = encoding.encode(s, **params)
+                out = encode(encoding, s, **params)
                 t1 = time.perf_counter()
                 data = CF.encode_u8(out, self.codec)
                 t2 = time.perf_counter()
@@ -300,7 +301,7 @@ class PreparedDataset:
                 def write(f: Any) -> None:
                     pos = 0
                     for i in range(len(self)):
-                        data = CF.encode_u8(encoding.encode(self[i], **params), self.codec)
+                        data = CF.encode_u8(encode(encoding, self[i], **params), self.codec)
                         f.write(data)
                         offsets[i] = (pos, len(data))
                         pos += len(data)
@@ -323,7 +324,7 @@ class PreparedDataset:
 
             def write(f: Any) -> None:
                 for s in self:
-                    f.write(np.ascontiguousarray(encoding.encode(s, **params)).tobytes())
+                    f.write(np.ascontiguousarray(encode(encoding, s, **params)).tobytes())
 
             atomic_write(path, write)
             atomic_write_json(path.with_suffix(".json"), {"encoding": encoding.name, "params": full})

@@ -17,7 +17,9 @@ log = logging.getLogger(__name__)
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="compare")
-    @click.option("--datasets", required=True, help="Comma-separated datasets, in table order (e.g. m3t,rgbt-tiny).")
+    @opt.names_option(
+        "--datasets", required=True, help="Datasets, comma-separated or repeated, in table order (e.g. m3t,rgbt-tiny)."
+    )
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
     @click.option(
@@ -36,7 +38,7 @@ def register_commands(cli: click.Group) -> None:
         help="Also write the table to this file.",
     )
     def compare_cmd(
-        datasets: str,
+        datasets: tuple[str, ...],
         store: Path | None,
         profile: str | None,
         safit: bool,
@@ -53,8 +55,8 @@ def register_commands(cli: click.Group) -> None:
         from harness.io import atomic_write_text
         from harness.report.compare import build_table
 
-        names = [d.strip() for d in datasets.split(",") if d.strip()]
-        table = build_table(opt.resolve_store(store, profile), names, allow_mismatched=allow_mismatched, safit=safit)
+        root = opt.resolve_store(store, profile)
+        table = build_table(root, list(datasets), allow_mismatched=allow_mismatched, safit=safit)
         for m in table.mismatches:  # the report selects its rows itself and says so in its own notes
             log.info("not sample-matched (printed, marked '!'): %s", m)
         text = table.render("markdown" if fmt == "md" else fmt)

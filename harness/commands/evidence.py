@@ -23,11 +23,11 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--encoding", default=None,
                   help="Encoding drawn as the fourth channel [default: the dataset's]; 'none' for none.")
     @opt.profile_option(uses_config=False)
-    @opt.store_option(reads=True, help="Results store to read --detector predictions from "
+    @opt.store_option(reads=True, help="Results store to read --detectors predictions from "
                                        "[default: results/<profile>].")
-    @click.option("--detector", "detectors", multiple=True,
-                  help="Draw this detector's predictions (finished runs holding the image, at their operating "
-                       "point); repeatable.")
+    @opt.names_option("--detectors", old=("--detector",),
+                      help="Draw these detectors' predictions (finished runs holding the image, at their operating "
+                           "point), comma-separated or repeated.")
     @click.option("--height", type=click.IntRange(64, 4000), default=400, show_default=True,
                   help="Height of each panel in pixels.")
     @click.option("--out", type=click.Path(dir_okay=False), default=None,
@@ -41,7 +41,7 @@ def register_commands(cli: click.Group) -> None:
         \b
         Examples:
           harness show --dataset m3t-synth --index 3 --out sample.png
-          harness show --dataset m3t-synth --image-id 12 --store results/smoke --detector ours
+          harness show --dataset m3t-synth --image-id 12 --store results/smoke --detectors ours
         """
         from harness.report.show import show
 
@@ -58,7 +58,7 @@ def register_commands(cli: click.Group) -> None:
     @opt.store_option(reads=True)
     @click.option("--dataset", required=True, help="Dataset whose finished runs are exported.")
     @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
-    @opt.seeds_option(one=True, old=("--seed",), help="Only runs of this training seed [default: all].")
+    @opt.seeds_option(old=("--seed",), help="Only runs of these training seeds, comma-separated [default: all].")
     @click.option("--encoding", default=None,
                   help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.")
     @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -77,7 +77,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.report.fiftyone_export import export_fiftyone
 
         result = export_fiftyone(opt.resolve_store(store, profile), dataset, out, folds=opt.split_list(folds) or None,
-                                 seed=seeds, encoding=encoding, name=name,
+                                 seed=opt.parse_seeds(seeds), encoding=encoding, name=name,
                                  overwrite=overwrite, records_only=records_only)
         for line in result.lines():
             click.echo(line, err=True)

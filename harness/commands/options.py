@@ -6,7 +6,15 @@ one thing everywhere (docs/plugins.md, "Commands"):
 =======================  ==============================================================================================
 ``--folds``              held-out fold(s): ``all`` or comma-separated names (``P1,P4+P5``); one name where a command
                          works on one fold (``ablate``, ``pretrain``, ``score``)
-``--seeds``              training seed(s), comma-separated (``0,1,2``) [default: the protocol's]
+``--seeds``              training seed(s), comma-separated (``0,1,2``) [default: the protocol's]; one seed where a
+                         command trains one run (``pretrain``)
+``--dataset``            one dataset; ``--datasets``: several, comma-separated or repeated (``compare``, ``report``,
+                         ``sweep``)
+``--detector``           one detector; ``--detectors``: several, comma-separated or repeated (``profile``, ``show``,
+                         ``sweep``)
+``--init``               a checkpoint a model starts from (``run``, ``pretrain``)
+``--out``                the file or folder a command writes (``export``'s ONNX file included; ``--onnx`` is
+                         ``profile``'s switch for timing onnxruntime)
 ``--bootstrap-seed``     seed of the paired bootstrap's resamples
 ``--format``             what a command prints on stdout: ``text`` (aligned, 100 columns), ``json``, ``md``
                          (Markdown), ``csv``; each command accepts the ones it can print
@@ -33,9 +41,10 @@ Usage (decorators, applied like ``click.option``)::
         root = opt.resolve_store(store, profile)
         ...
 
-Old spellings (``--fold``, ``--seed`` for the bootstrap seed, ``--json``, ``--format markdown``, ...) keep working for
-one release: the CLI rewrites them to the new ones before parsing and prints one ``deprecated:`` line on stderr
-(``rewrite_deprecated``). An option declares its old spellings with ``old=``.
+Old spellings (``--fold``, ``--seed`` for the bootstrap seed, ``--json``, ``--format markdown``, ``report --dataset``,
+``show``/``profile --detector``, ``export --onnx``, ``synth --profile``, ``sensing register --init``, ...) keep
+working for one release: the CLI rewrites them to the new ones before parsing and prints one ``deprecated:`` line on
+stderr (``rewrite_deprecated``). An option declares its old spellings with ``old=``.
 """
 
 from __future__ import annotations
@@ -124,16 +133,29 @@ def seeds_option(
     *, one: bool = False, default: str | int | None = None, help: str | None = None, old: Sequence[str] = ()
 ) -> Callable[[F], F]:
     """``--seeds`` -> parameter ``seeds``: training seeds, a comma-separated string (``None``: the protocol's, or all
-    runs' for a filter). ``one=True``: one seed, as an ``int`` (or ``None`` when not given and no ``default``)."""
+    runs' for a filter). ``one=True``: the command trains one run, so one seed, as an ``int`` (or ``None`` when not
+    given and no ``default``); a comma is a usage error, as for ``folds_option(one=True)``."""
     if one:
+
+        def check(ctx: click.Context, param: click.Parameter, value: str | int | None) -> int | None:
+            if value is None or isinstance(value, int):
+                return value
+            if "," in value:
+                raise click.BadParameter(f"{value!r}: this command trains one run; give one seed, e.g. 0")
+            try:
+                return int(value)
+            except ValueError:
+                raise click.BadParameter(f"{value!r} is not an integer seed") from None
+
         return option(
             "--seeds",
             "seeds",
             shared="seeds",
             old=old,
-            type=int,
-            default=None if default is None else int(default),
+            type=str,
+            default=None if default is None else str(int(default)),
             show_default=default is not None,
+            callback=check,
             metavar="SEED",
             help=help or "The training seed.",
         )
@@ -146,6 +168,30 @@ def seeds_option(
         show_default=default is not None,
         metavar="SEEDS",
         help=help or "Training seeds, comma-separated, e.g. 0,1,2 [default: protocol.seeds].",
+    )
+
+
+def names_option(
+    plural: str, *, required: bool = False, help: str, old: Sequence[str] = (), metavar: str | None = None
+) -> Callable[[F], F]:
+    """``--datasets`` / ``--detectors`` (``plural``) -> a parameter of that name: a tuple of names, in the order given,
+    comma-separated, repeated or both (``--datasets m3t,rgbt-tiny`` is ``--datasets m3t --datasets rgbt-tiny``); an
+    empty tuple when not given. The singular (``--dataset``, ``--detector``) always names one."""
+    name = plural.lstrip("-")
+
+    def flatten(ctx: click.Context, param: click.Parameter, value: Sequence[str]) -> tuple[str, ...]:
+        return tuple(n for item in value or () for n in split_list(item))
+
+    return option(
+        plural,
+        name,
+        shared=name,
+        old=old,
+        multiple=True,
+        required=required,
+        callback=flatten,
+        metavar=metavar or name.upper().rstrip("S"),
+        help=help,
     )
 
 
@@ -323,6 +369,51 @@ def decode_route_options() -> Callable[[F], F]:
         )(f)
 
     return deco
+
+
+def stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
+    """Several option decorators as one, listed in the order they appear in ``--help`` (top first)."""
+
+    def deco(f: F) -> F:
+        for d in reversed(decorators):
+            f = d(f)
+        return f
+
+    return deco
+
+
+def model_shape_options(*, imgsz_help: str = "Square input size.") -> Callable[[F], F]:
+    """``--imgsz`` (640), ``--num-classes`` (8) and ``--in-channels`` (4): the model a command builds (``profile``,
+    ``export``) -> parameters ``imgsz``, ``num_classes``, ``in_channels``."""
+    return stack(
+        click.option("--imgsz", type=int, default=640, show_default=True, help=imgsz_help),
+        click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head."),
+        click.option(
+            "--in-channels",
+            type=int,
+            default=4,
+            show_default=True,
+            help="Channels of a single-stream detector's input (3 + encoding channels).",
+        ),
+    )
+
+
+def bootstrap_options(*, resamples: int, help_resamples: str, old_seed: Sequence[str] = ()) -> Callable[[F], F]:
+    """``--resamples`` (default ``resamples``), ``--bootstrap-seed`` and ``--workers``: the paired bootstrap of
+    ``report`` and ``compare-detectors`` -> parameters ``resamples``, ``bootstrap_seed``, ``workers``."""
+    return stack(
+        click.option(
+            "--resamples", type=click.IntRange(min=0), default=resamples, show_default=True, help=help_resamples
+        ),
+        bootstrap_seed_option(old=old_seed),
+        click.option(
+            "--workers",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Processes for the bootstrap's re-scoring.",
+        ),
+    )
 
 
 def default_store(profile: str | None) -> Path:

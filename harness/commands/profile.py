@@ -106,13 +106,10 @@ def format_profiles(results: list[dict[str, Any]]) -> str:
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="profile")
-    @click.option("--detector", required=True,
-                  help="Detector name, several separated by commas, or 'all' for every registered detector.")
+    @opt.names_option("--detectors", required=True, old=("--detector",),
+                      help="Detectors to profile, comma-separated or repeated, or 'all' for every registered detector.")
     @opt.format_option("text", "json", old_json=True)
-    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size.")
-    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
-    @click.option("--in-channels", type=int, default=4, show_default=True,
-                  help="Channels of a single-stream detector's input (3 + encoding channels).")
+    @opt.model_shape_options()
     @click.option("--runs", type=int, default=30, show_default=True, help="Timed runs per latency back-end.")
     @click.option("--warmup", type=int, default=5, show_default=True, help="Untimed warm-up runs.")
     @click.option("--threads", type=int, default=None, help="Threads for torch and onnxruntime [default: torch's].")
@@ -127,7 +124,7 @@ def register_commands(cli: click.Group) -> None:
                                  "section is used.")
     @click.option("--no-store", is_flag=True, help="Do not write the results store.")
     @opt.no_progress_option()
-    def profile_cmd(detector: str, fmt: str, imgsz: int, num_classes: int, in_channels: int, runs: int,
+    def profile_cmd(detectors: tuple[str, ...], fmt: str, imgsz: int, num_classes: int, in_channels: int, runs: int,
                     warmup: int, threads: int | None, device: str, latency: bool, onnx: bool, fvcore: bool,
                     show_table: bool, store: Path | None, run_profile: str, config_files: tuple[str, ...],
                     overrides: tuple[str, ...], no_store: bool) -> None:
@@ -140,7 +137,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.store import Store
 
         host = get_host()
-        names = sorted(host.detectors()) if detector == "all" else [n.strip() for n in detector.split(",") if n.strip()]
+        names = sorted(host.detectors()) if detectors == ("all",) else list(detectors)
         options = {}
         for name in names:
             spec = host.detector(name)  # unknown names fail here with the list of available ones
@@ -183,12 +180,9 @@ def register_commands(cli: click.Group) -> None:
 
     @cli.command(name="export")
     @click.option("--detector", required=True, help="Detector name.")
-    @click.option("--onnx", "onnx_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-                  help="Output .onnx file.")
-    @click.option("--imgsz", type=int, default=640, show_default=True, help="Square input size of the traced graph.")
-    @click.option("--num-classes", type=int, default=8, show_default=True, help="Classes of the detection head.")
-    @click.option("--in-channels", type=int, default=4, show_default=True,
-                  help="Channels of a single-stream detector's input (3 + encoding channels).")
+    @opt.option("--out", "onnx_path", old=("--onnx",), required=True, type=click.Path(dir_okay=False, path_type=Path),
+                help="Output .onnx file.")
+    @opt.model_shape_options(imgsz_help="Square input size of the traced graph.")
     @click.option("--opset", type=int, default=18, show_default=True, help="ONNX opset (17 or newer).")
     @click.option("--dynamic-batch", is_flag=True, help="Make the batch dimension dynamic.")
     @click.option("--check/--no-check", default=True, show_default=True,

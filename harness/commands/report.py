@@ -15,8 +15,8 @@ from harness.hookspecs import hookimpl
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
-    @click.option("--dataset", "datasets", multiple=True,
-                  help="Dataset to report (repeatable or comma-separated) [default: every dataset in the store].")
+    @opt.names_option("--datasets", old=("--dataset",),
+                      help="Datasets to report, comma-separated or repeated [default: every dataset in the store].")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
     @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -25,11 +25,8 @@ def register_commands(cli: click.Group) -> None:
                 help="Comma-separated file types to write: md, csv, html.")
     @click.option("--print", "print_tables", is_flag=True,
                   help="Print every table in the terminal (aligned) instead of writing the report files.")
-    @click.option("--resamples", type=click.IntRange(min=0), default=200, show_default=True,
-                  help="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
-    @opt.bootstrap_seed_option(old=("--seed",))
-    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                  help="Processes for the bootstrap's re-scoring.")
+    @opt.bootstrap_options(resamples=200, old_seed=("--seed",),
+                           help_resamples="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
     @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
                   help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
     @click.option("--title", default=None, help="Title of the report.")
@@ -58,7 +55,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.report.build import FORMATS as file_types
 
         root = opt.resolve_store(store, profile)
-        names = [d.strip() for item in datasets for d in item.split(",") if d.strip()] or None
+        names = list(datasets) or None
         fmts = [f.lower() for f in opt.split_list(formats)]
         bad = [f for f in fmts if f not in file_types]
         if bad:
@@ -98,11 +95,9 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset both were evaluated on.")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @click.option("--resamples", type=click.IntRange(min=0), default=1000, show_default=True,
-                  help="Paired-bootstrap resamples of the held-out images (0: per-fold differences only).")
-    @opt.bootstrap_seed_option(old=("--seed",))
-    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                  help="Processes for the bootstrap's re-scoring.")
+    @opt.bootstrap_options(resamples=1000, old_seed=("--seed",),
+                           help_resamples="Paired-bootstrap resamples of the held-out images (0: per-fold differences "
+                                          "only).")
     @opt.format_option("text", "json", old_json=True)
     @reference_results_option()
     @opt.no_progress_option()

@@ -159,9 +159,9 @@ def register_commands(cli: click.Group) -> None:
                   help="A group's similarity parameters (thermal px, degrees, thermal px per RGB px). Repeatable.")
     @click.option("--auto", "auto_pairs", multiple=True, metavar="GROUP=RGB,THERMAL",
                   help="Register a group automatically from one RGB image and one thermal file. Repeatable.")
-    @click.option("--init", "init_file", type=click.Path(exists=True, path_type=Path), default=None,
-                  help="Homographies YAML to start --auto from (default: the group's entry in --out, else the EXIF "
-                       "focal-length prior, else RGB width fitted to thermal width).")
+    @opt.option("--start-homographies", "init_file", old=("--init",), type=click.Path(exists=True, path_type=Path),
+                default=None, help="Homographies YAML to start --auto from (default: the group's entry in --out, "
+                                   "else the EXIF focal-length prior, else RGB width fitted to thermal width).")
     @click.option("--rgb-size", default=None, help="RGB image size WxH (centre of the similarity).")
     @click.option("--thermal-size", default=None, help="Thermal image size WxH (centre of the similarity).")
     @click.option("--min-correlation", type=float, default=0.5, show_default=True,

@@ -28,8 +28,9 @@ def _key_values(items: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="sweep")
-    @click.option("--detectors", required=True, help="Comma-separated detectors, e.g. ours,eme,icafusion,cmadet.")
-    @click.option("--datasets", required=True, help="Comma-separated datasets, e.g. m3t.")
+    @opt.names_option("--detectors", required=True,
+                      help="Detectors, comma-separated or repeated, e.g. ours,eme,icafusion,cmadet.")
+    @opt.names_option("--datasets", required=True, help="Datasets, comma-separated or repeated, e.g. m3t.")
     @click.option("--encodings", default=None,
                   help="Comma-separated encodings [default: each detector's / dataset's own].")
     @opt.folds_option()
@@ -81,7 +82,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.sweep import ExecutorOptions, SweepSpec, expand, sweep, sweep_table
 
         parsed = parse_seeds(seeds)
-        spec = SweepSpec(detectors=tuple(_split(detectors)), datasets=tuple(_split(datasets)), folds=folds,
+        spec = SweepSpec(detectors=tuple(detectors), datasets=tuple(datasets), folds=folds,
                          seeds=tuple(parsed) if parsed is not None else None, encodings=tuple(_split(encodings)),
                          profile=profile, config_files=tuple(config_files), overrides=tuple(overrides),
                          store=None if store is None else str(store),

@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from harness.evaluation.inputs import PreparedEval
-from harness.evaluation.pairs import PairLayout
+from harness.evaluation.pairs import PairLayout, greedy_rounds
 from harness.evaluation.safit import iou_elementwise
 
 
@@ -82,7 +82,7 @@ def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] 
     Only entries with a value at or above the lowest threshold can match. Each such entry is expanded to the
     (threshold, area range) combinations it qualifies for; then one pass per detection rank settles every
     combination and pair at once, in the order COCO prefers (the last entry of each group after sorting by
-    non-ignored, value, GT position)."""
+    non-ignored, value, GT position: ``harness.evaluation.pairs.greedy_rounds``, the loop both paths share)."""
     n_thr, n_area = len(iou_thrs), ignored.shape[0]
     none = np.zeros(0, dtype=np.int64)
     thr = np.minimum(np.asarray(iou_thrs, dtype=np.float64), 1 - 1e-10)
@@ -102,21 +102,9 @@ def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] 
     crowd = layout.gt_crowd[g]
     pair = layout.pair[e].astype(np.int64)
     group = combo.astype(np.int64) * len(layout.keys) + pair
-    val, col, row = values[e], layout.col[e], layout.row[e]
     taken_key = combo.astype(np.int64) * len(layout.gt_crowd) + g
-    taken = np.zeros(n_thr * n_area * len(layout.gt_crowd), dtype=bool)
-    bounds = np.flatnonzero(np.r_[True, row[1:] != row[:-1], True])
-    out: list[np.ndarray] = []
-    for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist()):  # one detection rank at a time
-        s = np.arange(lo, hi)
-        s = s[crowd[s] | ~taken[taken_key[s]]]
-        if len(s) == 0:
-            continue
-        s = s[np.lexsort((col[s], val[s], nonign[s], group[s]))]
-        chosen = s[np.r_[group[s][1:] != group[s][:-1], True]]
-        taken[taken_key[chosen[~crowd[chosen]]]] = True
-        out.append(chosen)
-    chosen = np.concatenate(out) if out else none
+    chosen = greedy_rounds(layout.row[e], group, nonign, crowd, taken_key, n_thr * n_area * len(layout.gt_crowd),
+                           layout.col[e], values[e])
     return Matches(combo[chosen].astype(np.int64), layout.det[e[chosen]], g[chosen], n_thr, n_area)
 
 

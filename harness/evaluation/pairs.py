@@ -85,34 +85,48 @@ class PairLayout:
         if len(cand) == 0:
             return none, none
         cand = cand[np.argsort(self.row[cand], kind="stable")]
-        cand_row = self.row[cand]
-        cand_gt, cand_crowd = self.gt[cand], self.gt_crowd[self.gt[cand]]
-        cand_pair, cand_col, cand_val = self.pair[cand], self.col[cand], values[cand]
-        taken = np.zeros(len(self.gt_box), dtype=bool)
-        bounds = np.flatnonzero(np.r_[True, cand_row[1:] != cand_row[:-1], True])
-        out_det: list[np.ndarray] = []
-        out_gt: list[np.ndarray] = []
-        for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist()):  # one detection rank at a time
-            e = np.arange(lo, hi)
-            e = e[cand_crowd[e] | ~taken[cand_gt[e]]]
-            if len(e) == 0:
-                continue
-            # the last entry per pair after sorting by (pair, non-crowd, value, col) is the one COCO picks
-            e = e[np.lexsort((cand_col[e], cand_val[e], ~cand_crowd[e], cand_pair[e]))]
-            last = np.r_[cand_pair[e][1:] != cand_pair[e][:-1], True]
-            chosen = e[last]
-            g = cand_gt[chosen]
-            taken[g[~cand_crowd[chosen]]] = True
-            out_det.append(self.det[cand[chosen]])
-            out_gt.append(g)
-        if not out_det:
+        cand_gt = self.gt[cand]
+        cand_crowd = self.gt_crowd[cand_gt]
+        chosen = greedy_rounds(self.row[cand], self.pair[cand], ~cand_crowd, cand_crowd, cand_gt, len(self.gt_box),
+                               self.col[cand], values[cand])
+        if len(chosen) == 0:
             return none, none
-        return np.concatenate(out_det), np.concatenate(out_gt)
+        return self.det[cand[chosen]], cand_gt[chosen]
 
     def greedy_match(self, prep: PreparedEval, values: np.ndarray, threshold: float = 0.5) -> dict[int, int]:
         """``greedy_match_indices`` as ``{detection id: matched GT annotation id}`` (detection ids are 1..N)."""
         dets, gts = self.greedy_match_indices(values, threshold)
         return dict(zip((dets + 1).tolist(), self.gt_id[gts].tolist()))
+
+
+def greedy_rounds(row: np.ndarray, group: np.ndarray, preferred: np.ndarray, crowd: np.ndarray,
+                  taken_key: np.ndarray, n_keys: int, col: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """COCO's greedy matching loop (``COCOeval.evaluateImg``), one pass per detection rank for every group at once:
+    the positions of the chosen entries, rank by rank.
+
+    The arrays describe candidate entries (a detection and a GT that may match), ordered by ``row`` (the detection's
+    rank in its pair). At each rank, within each ``group`` (a pair, or a pair under one threshold and area range),
+    the detection takes among the entries whose GT is not yet taken (``crowd`` GT can be taken again; ``taken_key``
+    in ``0..n_keys-1`` names a GT within its group's matching) the last after sorting by (``preferred``, ``value``,
+    ``col``): preferred GT first, then the highest value, equal values going to the later GT. The one matching loop
+    of both evaluation paths: ``PairLayout.greedy_match_indices`` and ``harness.evaluation.bulk.match_all``.
+    """
+    if len(row) == 0:
+        return np.zeros(0, dtype=np.int64)
+    taken = np.zeros(n_keys, dtype=bool)
+    bounds = np.flatnonzero(np.r_[True, row[1:] != row[:-1], True])
+    out: list[np.ndarray] = []
+    for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist()):  # one detection rank at a time
+        s = np.arange(lo, hi)
+        s = s[crowd[s] | ~taken[taken_key[s]]]
+        if len(s) == 0:
+            continue
+        # the last entry per group after sorting by (group, preferred, value, col) is the one COCO picks
+        s = s[np.lexsort((col[s], value[s], preferred[s], group[s]))]
+        chosen = s[np.r_[group[s][1:] != group[s][:-1], True]]
+        taken[taken_key[chosen[~crowd[chosen]]]] = True
+        out.append(chosen)
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
 
 def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:

@@ -126,8 +126,9 @@ def _write_slices(prepared: Any, index: int, encoding: Any, params: dict[str, An
 
 
 def build_records(store: str | Path, dataset: str, out: str | Path, folds: Sequence[str] | None = None,
-                  seed: int | None = None, encoding: str | None = None) -> FiftyOneExport:
-    """The group records of every held-out sample of ``dataset``'s finished runs (module docstring)."""
+                  seed: int | Sequence[int] | None = None, encoding: str | None = None) -> FiftyOneExport:
+    """The group records of every held-out sample of ``dataset``'s finished runs (module docstring); ``seed``: only
+    runs of this training seed, or of these seeds."""
     from harness.config import read_yaml
     from harness.io import atomic_write_json, read_json
     from harness.plugins import get_host
@@ -137,10 +138,12 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     view = StoreView(store)
     st = view.store
     runs = [r for r in view.finished_runs(dataset) if not folds or r.key.fold in folds]
-    runs = [r for r in runs if seed is None or r.key.seed == seed]
+    seeds = None if seed is None else [seed] if isinstance(seed, int) else [int(x) for x in seed]
+    runs = [r for r in runs if seeds is None or r.key.seed in seeds]
     if not runs:
+        said = "all" if seeds is None else ",".join(map(str, seeds))
         raise StoreError(f"no finished run of {dataset} in {st.root} (folds {list(folds or []) or 'all'}, seed "
-                         f"{'all' if seed is None else seed})")
+                         f"{said})")
     host = get_host()
     spec = host.dataset(dataset)
     configured = [r for r in runs if r.config_path.is_file()]  # runs of `harness score` store no config.yaml
@@ -240,7 +243,7 @@ def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool
 
 
 def export_fiftyone(store: str | Path, dataset: str, out: str | Path, folds: Sequence[str] | None = None,
-                    seed: int | None = None, encoding: str | None = None, name: str | None = None,
+                    seed: int | Sequence[int] | None = None, encoding: str | None = None, name: str | None = None,
                     overwrite: bool = False, records_only: bool = False) -> FiftyOneExport:
     """``build_records`` then, unless ``records_only``, ``to_fiftyone``. A missing FiftyOne stops before anything
     is written (``records_only`` needs none)."""

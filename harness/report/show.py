@@ -150,7 +150,7 @@ def show(dataset: str, cfg: Mapping[str, Any], *, image_id: int | None = None, i
     preds: list[BoxSet] = []
     for det in detectors:
         if store is None:
-            raise ConfigError("--detector needs --store: the predictions are read from finished runs")
+            raise ConfigError("--detectors needs --store: the predictions are read from finished runs")
         preds += run_predictions(store, spec.name, det, iid)
     params = dict(((cfg.get("encoding") or {}).get(enc_name) or {})) if enc_name else {}
     img = sample_picture(prepared, i, encoding=enc, encoding_params=params, predictions=preds, height=height)

@@ -52,6 +52,9 @@ Two views of the same question, "is A better than B on these data?":
 
 Both detectors must have been scored on the same samples (``check_sample_matched`` per fold, plus identical image
 ids in their ``gt.json``); otherwise the paired comparison is refused: pairing different images is meaningless.
+
+Kept in one module: resampling, scoring, the per-fold differences and the two-level interval are one procedure,
+read top to bottom (``paired_comparison``).
 """
 
 from __future__ import annotations

@@ -20,6 +20,9 @@ Tables (builders below, all reading only the store through ``reader.StoreView``)
 
 AP, precision and recall are fractions in the store and in CSV files, and percentages (one decimal) in text,
 Markdown and HTML.
+
+Kept in one module: every table of the report is built here in one style (``Table``, tidy records, notes, the
+sample-matching warning), and the builders share those helpers.
 """
 
 from __future__ import annotations

@@ -54,6 +54,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from harness.contracts import encode
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.screen.flight import Capture
 from harness.screen.position import Position, capture_position
@@ -451,7 +452,7 @@ class FrontEnd:
         t2, c2 = time.perf_counter(), time.thread_time()
 
         sample = pair.to_sample(image_id, group, {"file_name": cap.rgb.name})
-        channel = self.encoding.encode(sample, **dict(self.settings.encoding_params))
+        channel = encode(self.encoding, sample, **dict(self.settings.encoding_params))
         if channel is None:
             image = np.ascontiguousarray(sample.rgb)
         else:

@@ -1,5 +1,8 @@
 """``screen(request)``: a flight through a run's sensing, encoding and model, into findings (the package docstring
-describes the whole)."""
+describes the whole).
+
+Kept in one module: the settings, the front end in workers and the resumable loop are the steps of one screen, read
+in order from ``ScreenRequest`` to ``screen``."""
 
 from __future__ import annotations
 

@@ -38,6 +38,9 @@ Blackbody (uncorrected, emissivity 1, no atmosphere) temperature::
 
 Decoded thermal is read from uint16 centi-Kelvin PNG/TIFF, int16 deci-Celsius TIFF, float32 TIFF or ``.npy``; a
 JSON sidecar ``<file>.json`` (e.g. ``frame.png.json``) states the unit (``read_thermal``/``write_thermal``).
+
+Kept in one module: the R-JPEG reader and writer and the decoded-file reader share one temperature convention
+(raw14 <-> degrees C, APP4 parameters, sidecar routes) that a reader checks side by side.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@
 NumPy scalars and arrays, ``datetime``, paths) to tokens; a token that may be called carries a checked
 implementation that charges what it makes to the read's budget before making it (``harness.weights.bounds``). Any
 other name becomes a :class:`Stub` class: an instance records its arguments and state, and calling the class is
-refused. The unpickler itself is ``harness.weights.unpickle``.
+refused. The unpickler itself is ``harness.weights.unpickle``, which imports this module; a rebuild call sees it
+only as a :class:`Reader` (its budget, its limits and its key check), so this module does not import it.
 """
 
 from __future__ import annotations
@@ -14,21 +15,30 @@ import datetime
 import math
 import operator
 import pathlib
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 import torch
 
 from harness.weights.bounds import (
     MAX_DIMS,
+    Budget,
     CheckpointFormatError,
     CheckpointLimitError,
+    Limits,
     UnsafeCheckpointError,
     human,
 )
 
-if TYPE_CHECKING:
-    from harness.weights.unpickle import _Unpickler
+
+class Reader(Protocol):
+    """What a rebuild call uses of the unpickler that calls it (``harness.weights.unpickle``)."""
+
+    budget: Budget
+    limits: Limits
+
+    def check_key(self, key: Any) -> None:
+        """Refuse a dict key or set item whose hashing the file could make costly."""
 
 
 # ------------------------------------------------------------------------------------------------ placeholders
@@ -185,7 +195,7 @@ def out_itemsize(dtype: torch.dtype) -> int:
     return 4 if dtype.is_floating_point else dtype.itemsize
 
 
-def _view(u: "_Unpickler", storage: Any, offset: Any, size: Any, stride: Any) -> torch.Tensor:
+def _view(u: Reader, storage: Any, offset: Any, size: Any, stride: Any) -> torch.Tensor:
     if not isinstance(storage, torch.Tensor):
         raise CheckpointFormatError(f"a tensor is rebuilt from {brief(storage)}, not from a storage")
     size, stride = tensor_dims(size, "size"), tensor_dims(stride, "stride")
@@ -211,13 +221,13 @@ def _view(u: "_Unpickler", storage: Any, offset: Any, size: Any, stride: Any) ->
 
 
 def _rebuild_tensor(
-    u: "_Unpickler", storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (), *rest: Any
+    u: Reader, storage: Any = None, offset: Any = 0, size: Any = (), stride: Any = (), *rest: Any
 ) -> torch.Tensor:
     return _view(u, storage, offset, size, stride)
 
 
 def _rebuild_tensor_v3(
-    u: "_Unpickler",
+    u: Reader,
     storage: Any = None,
     offset: Any = 0,
     size: Any = (),
@@ -233,15 +243,13 @@ def _rebuild_tensor_v3(
     return _view(u, t, offset, size, stride)
 
 
-def _rebuild_parameter(u: "_Unpickler", data: Any = None, requires_grad: Any = True, *rest: Any) -> torch.Tensor:
+def _rebuild_parameter(u: Reader, data: Any = None, requires_grad: Any = True, *rest: Any) -> torch.Tensor:
     if not isinstance(data, torch.Tensor):
         raise CheckpointFormatError(f"a parameter is rebuilt from {brief(data)}, not from a tensor")
     return torch.nn.Parameter(data, requires_grad=bool(requires_grad) and data.is_floating_point())
 
 
-def _rebuild_from_type_v2(
-    u: "_Unpickler", func: Any = None, new_type: Any = None, args: Any = (), state: Any = None
-) -> Any:
+def _rebuild_from_type_v2(u: Reader, func: Any = None, new_type: Any = None, args: Any = (), state: Any = None) -> Any:
     if func not in (G_REBUILD_TENSOR, G_REBUILD_TENSOR_V2, G_REBUILD_TENSOR_V3, G_REBUILD_PARAMETER) or not isinstance(
         args, tuple
     ):
@@ -252,7 +260,7 @@ def _rebuild_from_type_v2(
     return torch.nn.Parameter(t, requires_grad=t.is_floating_point()) if new_type is G_PARAMETER else t
 
 
-def _items(u: "_Unpickler", iterable: Any, what: str) -> list:
+def _items(u: Reader, iterable: Any, what: str) -> list:
     """The items of an iterable argument, charged before they are made; only containers and ranges."""
     if isinstance(iterable, range):
         try:
@@ -270,7 +278,7 @@ def _items(u: "_Unpickler", iterable: Any, what: str) -> list:
     raise UnsafeCheckpointError(f"the checkpoint calls {what} on {brief(iterable)}; refused")
 
 
-def _pairs(u: "_Unpickler", arg: Any, what: str) -> list[tuple[Any, Any]]:
+def _pairs(u: Reader, arg: Any, what: str) -> list[tuple[Any, Any]]:
     pairs = _items(u, arg, what)
     if isinstance(arg, dict):
         return pairs
@@ -282,15 +290,15 @@ def _pairs(u: "_Unpickler", arg: Any, what: str) -> list[tuple[Any, Any]]:
     return [tuple(p) for p in pairs]  # type: ignore[misc]
 
 
-def _call_list(u: "_Unpickler", iterable: Any = ()) -> list:
+def _call_list(u: Reader, iterable: Any = ()) -> list:
     return _items(u, iterable, "list()")
 
 
-def _call_tuple(u: "_Unpickler", iterable: Any = ()) -> tuple:
+def _call_tuple(u: Reader, iterable: Any = ()) -> tuple:
     return tuple(_items(u, iterable, "tuple()"))
 
 
-def _call_set(u: "_Unpickler", iterable: Any = ()) -> set:
+def _call_set(u: Reader, iterable: Any = ()) -> set:
     items = _items(u, iterable, "set()")
     for k in items:
         u.check_key(k)
@@ -298,19 +306,19 @@ def _call_set(u: "_Unpickler", iterable: Any = ()) -> set:
     return set(items)
 
 
-def _call_frozenset(u: "_Unpickler", iterable: Any = ()) -> frozenset:
+def _call_frozenset(u: Reader, iterable: Any = ()) -> frozenset:
     return frozenset(_call_set(u, iterable))
 
 
-def _call_dict(u: "_Unpickler", arg: Any = ()) -> dict:
+def _call_dict(u: Reader, arg: Any = ()) -> dict:
     return dict(_pairs(u, arg, "dict()"))
 
 
-def _call_ordered_dict(u: "_Unpickler", arg: Any = ()) -> collections.OrderedDict:
+def _call_ordered_dict(u: Reader, arg: Any = ()) -> collections.OrderedDict:
     return collections.OrderedDict(_pairs(u, arg, "OrderedDict()"))
 
 
-def _call_defaultdict(u: "_Unpickler", factory: Any = None, arg: Any = ()) -> collections.defaultdict:
+def _call_defaultdict(u: Reader, factory: Any = None, arg: Any = ()) -> collections.defaultdict:
     factories = {
         None: None,
         G_LIST: list,
@@ -326,7 +334,7 @@ def _call_defaultdict(u: "_Unpickler", factory: Any = None, arg: Any = ()) -> co
     return collections.defaultdict(factories[factory], _pairs(u, arg, "defaultdict()"))
 
 
-def _sized(u: "_Unpickler", ctor: type, args: tuple, what: str) -> Any:
+def _sized(u: Reader, ctor: type, args: tuple, what: str) -> Any:
     """``bytes``/``bytearray`` from a size, a string and encoding, bytes, or a list or range of ints."""
     if len(args) >= 1 and isinstance(args[0], int) and not isinstance(args[0], bool):
         u.budget.charge(args[0] + 64)  # before the allocation: bytearray(8e9) is refused here
@@ -338,16 +346,16 @@ def _sized(u: "_Unpickler", ctor: type, args: tuple, what: str) -> Any:
     return ctor(*args)
 
 
-def _call_bytes(u: "_Unpickler", *args: Any) -> bytes:
+def _call_bytes(u: Reader, *args: Any) -> bytes:
     return _sized(u, bytes, args, "bytes()")
 
 
-def _call_bytearray(u: "_Unpickler", *args: Any) -> bytearray:
+def _call_bytearray(u: Reader, *args: Any) -> bytearray:
     return _sized(u, bytearray, args, "bytearray()")
 
 
 def _atomic(ctor: Callable[..., Any], what: str) -> Callable[..., Any]:
-    def call(u: "_Unpickler", *args: Any) -> Any:
+    def call(u: Reader, *args: Any) -> Any:
         _atoms(args, what)
         u.budget.charge(sum(len(a) for a in args if isinstance(a, (str, bytes))) * 4 + 64)
         return ctor(*args)
@@ -355,27 +363,27 @@ def _atomic(ctor: Callable[..., Any], what: str) -> Callable[..., Any]:
     return call
 
 
-def _call_range(u: "_Unpickler", *args: Any) -> range:
+def _call_range(u: Reader, *args: Any) -> range:
     _atoms(args, "range()")
     return range(*args)
 
 
-def _call_slice(u: "_Unpickler", *args: Any) -> slice:
+def _call_slice(u: Reader, *args: Any) -> slice:
     return slice(*_atoms(args, "slice()"))
 
 
-def _call_size(u: "_Unpickler", iterable: Any = ()) -> torch.Size:
+def _call_size(u: Reader, iterable: Any = ()) -> torch.Size:
     items = _items(u, iterable, "torch.Size()")
     return torch.Size(tensor_dims(items, "torch.Size"))
 
 
-def _numpy_scalar(u: "_Unpickler", dtype: Any = None, data: Any = b"") -> Any:
+def _numpy_scalar(u: Reader, dtype: Any = None, data: Any = b"") -> Any:
     if not isinstance(dtype, np.dtype) or dtype.hasobject or not isinstance(data, bytes) or len(data) < dtype.itemsize:
         raise CheckpointFormatError(f"a NumPy scalar is rebuilt from {brief(dtype)} and {brief(data)}")
     return np.frombuffer(data, dtype=dtype, count=1)[0].copy()
 
 
-def _numpy_dtype(u: "_Unpickler", spec: Any = None, *rest: Any) -> np.dtype:
+def _numpy_dtype(u: Reader, spec: Any = None, *rest: Any) -> np.dtype:
     if not isinstance(spec, str) or len(spec) > 64:
         raise CheckpointFormatError(f"a NumPy dtype is rebuilt from {brief(spec)}")
     dt = np.dtype(spec)
@@ -384,20 +392,20 @@ def _numpy_dtype(u: "_Unpickler", spec: Any = None, *rest: Any) -> np.dtype:
     return dt
 
 
-def _numpy_reconstruct(u: "_Unpickler", cls: Any = None, *rest: Any) -> np.ndarray:
+def _numpy_reconstruct(u: Reader, cls: Any = None, *rest: Any) -> np.ndarray:
     if cls is not G_NDARRAY:
         raise UnsafeCheckpointError(f"the checkpoint rebuilds a NumPy array of class {brief(cls)}; refused")
     return np.ndarray.__new__(np.ndarray, (0,), np.uint8)  # filled by BUILD (checked in _Unpickler._build)
 
 
-def _path(u: "_Unpickler", *parts: Any) -> str:
+def _path(u: Reader, *parts: Any) -> str:
     if not all(isinstance(p, str) for p in parts):
         raise CheckpointFormatError("a path is rebuilt from something other than strings")
     u.budget.charge(sum(len(p) for p in parts) + 64)
     return str(pathlib.PurePosixPath(*parts))
 
 
-def _latin1_bytes(u: "_Unpickler", text: Any = None, encoding: Any = "latin1") -> bytes:
+def _latin1_bytes(u: Reader, text: Any = None, encoding: Any = "latin1") -> bytes:
     """Protocol-2 pickles write ``bytes`` as ``_codecs.encode(text, 'latin1')``: only that form is rebuilt."""
     if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
         raise UnsafeCheckpointError("the checkpoint calls _codecs.encode with other than a latin1 string; refused")
@@ -405,7 +413,7 @@ def _latin1_bytes(u: "_Unpickler", text: Any = None, encoding: Any = "latin1") -
     return text.encode("latin1")
 
 
-def _device(u: "_Unpickler", *args: Any) -> torch.device:
+def _device(u: Reader, *args: Any) -> torch.device:
     return torch.device(*_atoms(args, "torch.device()"))
 
 

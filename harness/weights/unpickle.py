@@ -38,6 +38,9 @@ refused with a one-line :class:`CheckpointLimitError` before the memory is taken
 
 With these, a whole import stays within ``PEAK_FLOOR`` (64 MiB) + ``PEAK_MULTIPLE`` (8) x F of memory above the
 interpreter's own (``tests/test_weights_hostile.py`` measures it on a corpus of hostile files).
+
+Kept in one module: the restricted unpickler and the two file layouts it reads charge the same ``Limits`` and
+``Budget`` at every step; what a pickle may rebuild is ``harness.weights.rebuild``.
 """
 
 from __future__ import annotations
