@@ -8,6 +8,9 @@ setup(
     packages=find_packages(include=["harness", "harness.*", "adapters", "adapters.*"])
     + ["harness.configs", "harness.shipped_references"],
     package_dir={"harness.configs": "configs", "harness.shipped_references": "references"},
-    package_data={"harness.configs": ["*.yaml", "**/*.yaml"], "harness": ["py.typed"],
-                  "harness.shipped_references": ["**/*"]},
+    package_data={
+        "harness.configs": ["*.yaml", "**/*.yaml"],
+        "harness": ["py.typed"],
+        "harness.shipped_references": ["**/*"],
+    },
 )

@@ -1,4 +1,4 @@
-"""Learning curves of candidate benchmark profiles: the numbers behind the choice of ``configs/profiles/benchmark.yaml``.
+"""Learning curves of candidate benchmark profiles: the numbers behind ``configs/profiles/benchmark.yaml``.
 
 Trains ``ours`` (YOLOv8n size, c2) on the seed's ablation split P4+P5 of the small m3t-synth set at each candidate
 image size for the same number of epochs (the demo's optimiser), one torch thread per run, then prints per epoch the
@@ -22,10 +22,31 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def train(size: int, epochs: int, store: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "harness", "run", "--detector", "ours", "--dataset", "m3t-synth", "--folds", "P4+P5",
-           "--profile", "benchmark", "--config", str(REPO / "configs" / "benchmark" / "ours.yaml"),
-           "--store", str(store / f"imgsz{size}"), "--set", f"protocol.imgsz={size}", "--set",
-           f"protocol.epochs={epochs}", "--set", f"protocol.patience={epochs}", "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "harness",
+        "run",
+        "--detector",
+        "ours",
+        "--dataset",
+        "m3t-synth",
+        "--folds",
+        "P4+P5",
+        "--profile",
+        "benchmark",
+        "--config",
+        str(REPO / "configs" / "benchmark" / "ours.yaml"),
+        "--store",
+        str(store / f"imgsz{size}"),
+        "--set",
+        f"protocol.imgsz={size}",
+        "--set",
+        f"protocol.epochs={epochs}",
+        "--set",
+        f"protocol.patience={epochs}",
+        "--no-progress",
+    ]
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
 
 
@@ -59,8 +80,10 @@ def main() -> None:
             m = r["metrics"]
             cats = {k: v for k, v in (m.get("AP50_per_category") or {}).items() if k != "window"}
             pos = sum(1 for v in cats.values() if v and v > 0)
-            print(f"{s:>5} {r['epoch']:>5} {m['mAP50']:>6.3f} {m['mAP50_95']:>6.3f} {pos:>3}  "
-                  + " ".join(f"{k[:5]}={v:.2f}" for k, v in cats.items() if v))
+            print(
+                f"{s:>5} {r['epoch']:>5} {m['mAP50']:>6.3f} {m['mAP50_95']:>6.3f} {pos:>3}  "
+                + " ".join(f"{k[:5]}={v:.2f}" for k, v in cats.items() if v)
+            )
         if rows:
             print(f"{s:>5} total training time {sum(r['time_s'] for r in rows):.0f} s over {len(rows)} epochs")
 

@@ -26,13 +26,13 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence, TextIO
+from typing import Any, Mapping, Sequence, TextIO
 
 from harness.errors import ConfigError
+from harness.progress import BenchmarkProgress
 from harness.sweep import JobResult, SweepJob, SweepSpec
 
 log = logging.getLogger(__name__)
@@ -72,6 +72,7 @@ class BenchmarkSpec:
     encodings: tuple[str, ...] = ENCODINGS
     dataset: str = DATASET
     profile: str = PROFILE
+    config_files: tuple[str, ...] = ()  # applied after each detector's configs/benchmark/<detector>.yaml
     overrides: tuple[str, ...] = ()
     force: bool = False
 
@@ -92,13 +93,18 @@ def _specs(spec: BenchmarkSpec) -> list[SweepSpec]:
     out = []
     for det in spec.detectors:
         cfg = detector_config(det)
-        common = dict(datasets=(spec.dataset,), seeds=tuple(spec.seeds), profile=spec.profile,
-                      config_files=(str(cfg),) if cfg else (), overrides=tuple(spec.overrides),
-                      store=str(spec.store), force=spec.force)
+        common = dict(
+            datasets=(spec.dataset,),
+            seeds=tuple(spec.seeds),
+            profile=spec.profile,
+            config_files=((str(cfg),) if cfg else ()) + tuple(spec.config_files),
+            overrides=tuple(spec.overrides),
+            store=str(spec.store),
+            force=spec.force,
+        )
         out.append(SweepSpec(detectors=(det,), folds=spec.folds, **common))  # type: ignore[arg-type]
         if spec.ablation and det == ABLATION_DETECTOR:
-            out.append(SweepSpec(detectors=(det,), folds=ABLATION_FOLD, encodings=tuple(spec.encodings),
-                                 **common))  # type: ignore[arg-type]
+            out.append(SweepSpec(detectors=(det,), folds=ABLATION_FOLD, encodings=tuple(spec.encodings), **common))  # type: ignore[arg-type]
     return out
 
 
@@ -123,8 +129,15 @@ def plan_benchmark(spec: BenchmarkSpec) -> BenchmarkPlan:
             if done.run not in seen:
                 seen.add(done.run)
                 plan.skipped.append(done)
-    plan.jobs.sort(key=lambda j: (-RELATIVE_COST.get(j.detector, 1.0), DETECTORS.index(j.detector)
-                                  if j.detector in DETECTORS else len(DETECTORS), j.fold, j.encoding, j.seed))
+    plan.jobs.sort(
+        key=lambda j: (
+            -RELATIVE_COST.get(j.detector, 1.0),
+            DETECTORS.index(j.detector) if j.detector in DETECTORS else len(DETECTORS),
+            j.fold,
+            j.encoding,
+            j.seed,
+        )
+    )
     return plan
 
 
@@ -158,8 +171,14 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
     if spec.ablation:
         for enc in spec.encodings:
             for seed in spec.seeds:
-                key = next((k for k in runs if (k.detector, k.encoding, k.fold, k.seed)
-                            == (ABLATION_DETECTOR, enc, ABLATION_FOLD, seed)), None)
+                key = next(
+                    (
+                        k
+                        for k in runs
+                        if (k.detector, k.encoding, k.fold, k.seed) == (ABLATION_DETECTOR, enc, ABLATION_FOLD, seed)
+                    ),
+                    None,
+                )
                 if key is None:
                     missing.append(f"{ABLATION_DETECTOR}/{enc}/{ABLATION_FOLD}/seed{seed}")
                 elif key not in found:
@@ -167,115 +186,28 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
     return found, missing
 
 
-# ------------------------------------------------------------------------------------------------- progress
-@dataclass
-class _Lane:
-    job: SweepJob
-    started: float
-    epochs_done: int = 0  # epochs logged so far (a resumed cell starts with those of its earlier attempt)
-    epochs: int = 0
-    start_epochs: int = 0
-
-
-class BenchmarkProgress:
-    """Overall progress of the benchmark over all lanes, on stderr: cells done, running, failed, elapsed and ETA.
-
-    The ETA sums the epochs left (of the cells running and of those waiting) times each detector's seconds per epoch
-    measured in this call (its first epochs), or, before a detector has been timed, the mean of the others scaled by
-    ``RELATIVE_COST``; divided by the lanes. Early stopping can only make it shorter."""
-
-    def __init__(self, jobs: Sequence[SweepJob], epochs: int, lanes: int, skipped: int = 0, enabled: bool = True,
-                 stream: TextIO | None = None, now: Callable[[], float] | None = None):
-        self.pending = list(jobs)
-        self.epochs, self.lanes, self.skipped = int(epochs), max(1, int(lanes)), int(skipped)
-        self.total = len(self.pending) + self.skipped
-        self.enabled, self.stream = enabled, stream
-        self._now = now or time.perf_counter
-        self.t0 = self._now()
-        self.done = 0
-        self.failed = 0
-        self.running: dict[str, _Lane] = {}
-        self._epoch_s: dict[str, list[float]] = {}  # detector -> seconds per epoch of each timed lane
-        self._lock = threading.Lock()
-        self._last_line = 0.0
-
-    def started(self, job: SweepJob, epochs_done: int = 0) -> None:
-        with self._lock:
-            self.pending = [j for j in self.pending if str(j) != str(job)]
-            self.running[str(job)] = _Lane(job, self._now(), epochs_done, self.epochs, epochs_done)
-
-    def epoch(self, job: SweepJob, epochs_done: int, epochs: int | None = None) -> None:
-        with self._lock:
-            lane = self.running.get(str(job))
-            if lane is None or epochs_done <= lane.epochs_done:
-                return
-            elapsed = self._now() - lane.started
-            lane.epochs_done = epochs_done
-            if epochs:
-                lane.epochs = int(epochs)
-            trained = epochs_done - lane.start_epochs  # in this call, start-up included
-            if trained > 0 and elapsed > 0:
-                self._epoch_s.setdefault(job.detector, []).append(elapsed / trained)
-        self.print_line(force=False)
-
-    def finished(self, job: SweepJob, ok: bool) -> None:
-        with self._lock:
-            self.running.pop(str(job), None)
-            self.done += 1
-            self.failed += 0 if ok else 1
-        self.print_line(force=True)
-
-    def seconds_per_epoch(self, detector: str) -> float | None:
-        timed = {d: v[-1] for d, v in self._epoch_s.items() if v}
-        if detector in timed:
-            return timed[detector]
-        if not timed:
-            return None
-        unit = sum(s / RELATIVE_COST.get(d, 1.0) for d, s in timed.items()) / len(timed)
-        return unit * RELATIVE_COST.get(detector, 1.0)
-
-    def eta(self) -> float | None:
-        with self._lock:
-            left = 0.0
-            for lane in self.running.values():
-                spe = self.seconds_per_epoch(lane.job.detector)
-                if spe is None:
-                    return None
-                left += spe * max(lane.epochs - lane.epochs_done, 0)
-            for job in self.pending:
-                spe = self.seconds_per_epoch(job.detector)
-                if spe is None:
-                    return None
-                left += spe * self.epochs
-        return left / self.lanes
-
-    def line(self) -> str:
-        from harness.progress import clock
-
-        running = len(self.running)
-        failed = f", {self.failed} failed" if self.failed else ""
-        done = self.done + self.skipped
-        return (f"benchmark {done}/{self.total} cells ({running} running{failed}) | "
-                f"{clock(self._now() - self.t0)} elapsed, ETA {clock(self.eta())}")
-
-    def print_line(self, force: bool = True) -> None:
-        from harness.progress import progress_on
-
-        if not (self.enabled and progress_on()):
-            return
-        now = self._now()
-        if not force and now - self._last_line < 30.0:  # at most one line per 30 s between cell ends
-            return
-        self._last_line = now
-        print(self.line(), file=self.stream or sys.stderr, flush=True)
-
-
 # ------------------------------------------------------------------------------------------------- lanes
 def job_command(job: SweepJob) -> list[str]:
     """The ``harness run`` command line of one cell."""
-    cmd = [sys.executable, "-m", "harness", "run", "--detector", job.detector, "--dataset", job.dataset,
-           "--encoding", job.encoding, "--folds", job.fold, "--seeds", str(job.seed), "--store", job.store,
-           "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "harness",
+        "run",
+        "--detector",
+        job.detector,
+        "--dataset",
+        job.dataset,
+        "--encoding",
+        job.encoding,
+        "--folds",
+        job.fold,
+        "--seeds",
+        str(job.seed),
+        "--store",
+        job.store,
+        "--no-progress",
+    ]
     if job.profile:
         cmd += ["--profile", job.profile]
     for c in job.config_files:
@@ -310,20 +242,28 @@ def _result(store: Path, job: SweepJob, rc: int, elapsed: float, log_file: Path,
     run = Run(store, RunKey(job.dataset, job.detector, job.encoding, job.fold, job.seed))
     if rc == 0 and run.is_finished():
         m = read_run(run).metrics.get("metrics", {})
-        return JobResult(str(job), "resumed" if resumed else "trained", str(run.path), m.get("mAP50"),
-                         m.get("mAP50_95"), round(elapsed, 1))
+        return JobResult(
+            str(job),
+            "resumed" if resumed else "trained",
+            str(run.path),
+            m.get("mAP50"),
+            m.get("mAP50_95"),
+            round(elapsed, 1),
+        )
     tail = ""
     try:
         lines = [ln for ln in log_file.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
         tail = " | ".join(lines[-3:])
     except OSError:
         pass
-    return JobResult(str(job), "failed", str(run.path), time_s=round(elapsed, 1),
-                     error=f"exit {rc}: {tail[-400:]} (log: {log_file})")
+    return JobResult(
+        str(job), "failed", str(run.path), time_s=round(elapsed, 1), error=f"exit {rc}: {tail[-400:]} (log: {log_file})"
+    )
 
 
-def run_lanes(jobs: Sequence[SweepJob], lanes: int, store: Path, progress: BenchmarkProgress,
-              poll_s: float = 2.0) -> list[JobResult]:
+def run_lanes(
+    jobs: Sequence[SweepJob], lanes: int, store: Path, progress: BenchmarkProgress, poll_s: float = 2.0
+) -> list[JobResult]:
     """Run ``jobs`` as ``harness run`` processes, ``lanes`` at a time, in order; the results in order of ending.
 
     Each process gets one thread per library (``OMP_NUM_THREADS=1``; the profile sets torch's). On an interrupt
@@ -344,8 +284,9 @@ def run_lanes(jobs: Sequence[SweepJob], lanes: int, store: Path, progress: Bench
                 fh = open(log_file, "ab")
                 fh.write(f"\n$ {' '.join(job_command(job))}\n".encode())
                 fh.flush()
-                proc = subprocess.Popen(job_command(job), stdout=fh, stderr=subprocess.STDOUT, env=env,
-                                        start_new_session=True)
+                proc = subprocess.Popen(
+                    job_command(job), stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True
+                )
                 running[str(job)] = (job, proc, time.perf_counter(), log_file, before > 0, fh)
                 progress.started(job, before)
             time.sleep(poll_s)
@@ -398,21 +339,37 @@ class BenchmarkSummary:
         return [r for r in self.results if r.state == "failed"]
 
 
-def run_benchmark(spec: BenchmarkSpec, lanes: int | None = None, progress: bool = True,
-                  stream: TextIO | None = None) -> BenchmarkSummary:
+def run_benchmark(
+    spec: BenchmarkSpec, lanes: int | None = None, progress: bool = True, stream: TextIO | None = None
+) -> BenchmarkSummary:
     """Plan the benchmark and run the cells left to do in ``lanes`` processes (default: one per core)."""
     from harness.config import load_config
 
     lanes = lanes or default_lanes()
     plan = plan_benchmark(spec)
     epochs = int(load_config(profile=spec.profile, overrides=list(spec.overrides))["protocol"]["epochs"])
-    log.info("benchmark: %d cells, %d finished earlier, %d to run in %d lane(s); store %s", plan.cells,
-             len(plan.skipped), len(plan.jobs), lanes, plan.store)
-    bar = BenchmarkProgress(plan.jobs, epochs, lanes, skipped=len(plan.skipped), enabled=progress, stream=stream)
+    log.info(
+        "benchmark: %d cells, %d finished earlier, %d to run in %d lane(s); store %s",
+        plan.cells,
+        len(plan.skipped),
+        len(plan.jobs),
+        lanes,
+        plan.store,
+    )
+    bar = BenchmarkProgress(
+        plan.jobs,
+        epochs,
+        lanes,
+        skipped=len(plan.skipped),
+        enabled=progress,
+        stream=stream,
+        relative_cost=RELATIVE_COST,
+    )
     t0, c0 = time.perf_counter(), _children_cpu()
     results = run_lanes(plan.jobs, lanes, plan.store, bar) if plan.jobs else []
-    return BenchmarkSummary(plan.store, [*plan.skipped, *results], plan.invalid, time.perf_counter() - t0,
-                            _children_cpu() - c0)
+    return BenchmarkSummary(
+        plan.store, [*plan.skipped, *results], plan.invalid, time.perf_counter() - t0, _children_cpu() - c0
+    )
 
 
 def cpu_name() -> str:
@@ -455,13 +412,21 @@ def write_timing(summary: BenchmarkSummary, lanes: int) -> dict[str, Any]:
 
     old = read_timing(summary.store) or {"wall_s": 0.0, "cpu_s": 0.0, "calls": []}
     trained = [r for r in summary.results if r.state in ("trained", "resumed")]
-    call = {"wall_s": round(summary.wall_s, 1), "cpu_s": round(summary.cpu_s, 1), "lanes": int(lanes),
-            "cells": len(trained), "failed": len(summary.failed), "cpu": cpu_name(),
-            "isa_env": {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY") if k in os.environ},
-            "ended": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    out = {"wall_s": round(float(old.get("wall_s", 0.0)) + summary.wall_s, 1),
-           "cpu_s": round(float(old.get("cpu_s", 0.0)) + summary.cpu_s, 1),
-           "calls": [*old.get("calls", []), call]}
+    call = {
+        "wall_s": round(summary.wall_s, 1),
+        "cpu_s": round(summary.cpu_s, 1),
+        "lanes": int(lanes),
+        "cells": len(trained),
+        "failed": len(summary.failed),
+        "cpu": cpu_name(),
+        "isa_env": {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY") if k in os.environ},
+        "ended": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    out = {
+        "wall_s": round(float(old.get("wall_s", 0.0)) + summary.wall_s, 1),
+        "cpu_s": round(float(old.get("cpu_s", 0.0)) + summary.cpu_s, 1),
+        "calls": [*old.get("calls", []), call],
+    }
     if trained or not old.get("calls"):
         timing_path(summary.store).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(timing_path(summary.store), out)
@@ -472,8 +437,9 @@ def write_timing(summary: BenchmarkSummary, lanes: int) -> dict[str, Any]:
 RERUN_SECTIONS = ("support", "metrics", "per_category")
 
 
-def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path,
-               progress: bool = False) -> dict[str, Any]:
+def rerun_cell(
+    refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path, progress: bool = False
+) -> dict[str, Any]:
     """Train one reference cell again into ``store`` with the benchmark's recipe and compare it with the reference
     run: the evaluation's numbers (``RERUN_SECTIONS``), the predictions, and the run's identity (its configuration
     without locations)."""
@@ -485,8 +451,10 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
     ref_run = Run(refs.root, RunKey(refs.dataset, detector, encoding, fold, seed))
     if not ref_run.is_finished():
         cells = ", ".join((refs.manifest.get("cells") or [])[:3])
-        raise ConfigError(f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
-                          f"{refs.root} (cells look like {cells} ...)")
+        raise ConfigError(
+            f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
+            f"{refs.root} (cells look like {cells} ...)"
+        )
     ref = read_run(ref_run)
     # the reference run's own configuration, as the last layer: the rerun resolves to the same settings whatever
     # the checkout's profiles say (its locations and its record of the run left out)
@@ -494,16 +462,27 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
     for section, key in (("dataset", "root"), ("train", "init")):
         if isinstance(layer.get(section), dict):
             layer[section].pop(key, None)
-    from harness.io import atomic_write_text
-
     import yaml
+
+    from harness.io import atomic_write_text
 
     cfg_file = Path(store) / "_rerun" / f"{detector}_{encoding}_{fold}_seed{seed}.yaml"
     cfg_file.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(cfg_file, yaml.safe_dump(layer, sort_keys=True))
-    run(RunRequest(detector=detector, dataset=refs.dataset, encoding=encoding, folds=fold, seeds=[seed],
-                   profile=(ref.config.get("meta") or {}).get("profile"), config_files=[str(cfg_file)], store=store,
-                   force=True, progress=progress))
+    run(
+        RunRequest(
+            detector=detector,
+            dataset=refs.dataset,
+            encoding=encoding,
+            folds=fold,
+            seeds=[seed],
+            profile=(ref.config.get("meta") or {}).get("profile"),
+            config_files=[str(cfg_file)],
+            store=store,
+            force=True,
+            progress=progress,
+        )
+    )
     new_run = read_run(Run(Path(store), RunKey(refs.dataset, detector, encoding, fold, seed)))
     differences: list[str] = []
     for section in RERUN_SECTIONS:
@@ -511,20 +490,27 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
         if a != b:
             keys = sorted({*(a or {}), *(b or {})}) if isinstance(a, dict) and isinstance(b, dict) else []
             diff = [k for k in keys if (a or {}).get(k) != (b or {}).get(k)]
-            differences.append(f"metrics.json {section}: " + (", ".join(
-                f"{k} {(a or {}).get(k)!r} vs {(b or {}).get(k)!r}" for k in diff[:4]) or "differs"))
+            differences.append(
+                f"metrics.json {section}: "
+                + (", ".join(f"{k} {(a or {}).get(k)!r} vs {(b or {}).get(k)!r}" for k in diff[:4]) or "differs")
+            )
     same_predictions = read_json(ref.predictions_path) == read_json(new_run.predictions_path)
     if not same_predictions:
         differences.append("predictions differ")
     config_diff = identity_diff(ref.config, new_run.config)
     env_ref, env_new = ref.metrics.get("environment") or {}, new_run.metrics.get("environment") or {}
-    env_diff = [f"{k}: {env_ref.get(k)!r} vs {env_new.get(k)!r}" for k in sorted({*env_ref, *env_new})
-                if env_ref.get(k) != env_new.get(k) and k in ("torch", "numpy", "opencv", "threads", "cpu_capability")]
+    env_diff = [
+        f"{k}: {env_ref.get(k)!r} vs {env_new.get(k)!r}"
+        for k in sorted({*env_ref, *env_new})
+        if env_ref.get(k) != env_new.get(k) and k in ("torch", "numpy", "opencv", "threads", "cpu_capability")
+    ]
     if env_ref.get("cpu_capability") and env_ref.get("cpu_capability") != env_new.get("cpu_capability"):
         cap = str(env_ref["cpu_capability"])
         onednn = f"ONEDNN_MAX_CPU_ISA={cap.upper()} " if cap.upper() == "AVX2" else ""
-        env_diff.append(f"the references ran torch's {cap} kernels: rerun with {onednn}"
-                        f"ATEN_CPU_CAPABILITY={cap.lower()} for the same rounding")
+        env_diff.append(
+            f"the references ran torch's {cap} kernels: rerun with {onednn}"
+            f"ATEN_CPU_CAPABILITY={cap.lower()} for the same rounding"
+        )
     return {
         "cell": f"{detector}/{encoding}/{fold}/seed{seed}",
         "reference": str(ref_run.path),
@@ -534,15 +520,20 @@ def rerun_cell(refs: Any, detector: str, encoding: str, fold: str, seed: int, st
         "config_differences": config_diff,
         "environment_differences": env_diff,
         "mAP50": [(ref.metrics.get("metrics") or {}).get("mAP50"), (new_run.metrics.get("metrics") or {}).get("mAP50")],
-        "mAP50_95": [(ref.metrics.get("metrics") or {}).get("mAP50_95"),
-                     (new_run.metrics.get("metrics") or {}).get("mAP50_95")],
+        "mAP50_95": [
+            (ref.metrics.get("metrics") or {}).get("mAP50_95"),
+            (new_run.metrics.get("metrics") or {}).get("mAP50_95"),
+        ],
     }
 
 
 def rerun_text(result: Mapping[str, Any]) -> str:
-    lines = [f"cell {result['cell']}: reference {result['reference']}", f"  rerun     {result['rerun']}",
-             f"  mAP50     reference {result['mAP50'][0]!r}  rerun {result['mAP50'][1]!r}",
-             f"  mAP50:95  reference {result['mAP50_95'][0]!r}  rerun {result['mAP50_95'][1]!r}"]
+    lines = [
+        f"cell {result['cell']}: reference {result['reference']}",
+        f"  rerun     {result['rerun']}",
+        f"  mAP50     reference {result['mAP50'][0]!r}  rerun {result['mAP50'][1]!r}",
+        f"  mAP50:95  reference {result['mAP50_95'][0]!r}  rerun {result['mAP50_95'][1]!r}",
+    ]
     if result["identical"]:
         lines.append("identical: metrics, per-category AP, support and predictions equal the reference run's")
     else:
@@ -559,7 +550,27 @@ def _children_cpu() -> float:
     return t.children_user + t.children_system
 
 
-__all__ = ["ABLATION_DETECTOR", "ABLATION_FOLD", "BenchmarkPlan", "BenchmarkProgress", "BenchmarkSpec",
-           "BenchmarkSummary", "DATASET", "DETECTORS", "ENCODINGS", "PROFILE", "SEEDS", "default_lanes",
-           "cpu_name", "detector_config", "job_command", "plan_benchmark", "read_timing", "rerun_cell", "rerun_text",
-           "run_benchmark", "run_lanes", "write_timing"]
+__all__ = [
+    "ABLATION_DETECTOR",
+    "ABLATION_FOLD",
+    "BenchmarkPlan",
+    "BenchmarkProgress",
+    "BenchmarkSpec",
+    "BenchmarkSummary",
+    "DATASET",
+    "DETECTORS",
+    "ENCODINGS",
+    "PROFILE",
+    "SEEDS",
+    "default_lanes",
+    "cpu_name",
+    "detector_config",
+    "job_command",
+    "plan_benchmark",
+    "read_timing",
+    "rerun_cell",
+    "rerun_text",
+    "run_benchmark",
+    "run_lanes",
+    "write_timing",
+]

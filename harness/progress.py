@@ -15,8 +15,10 @@ count and leaves these decisions here::
 
 Lines. ``harness run`` prints ``OverallProgress`` after every epoch (``run 2/4 ours/c2/P2 epoch 3/6 | 9/24 epochs |
 0:41 elapsed, ETA 1:10``) and ``harness sweep`` prints ``SweepProgress`` after every run (``sweep 3/16 runs (1
-failed) | 2:05 elapsed, ETA 9:00``), beside the per-epoch bar. These are log lines: they go to stderr also when it is
-not a terminal (a Slurm log keeps them), and ``--no-progress`` silences them too. The ETA assumes the remaining
+failed) | 2:05 elapsed, ETA 9:00``), beside the per-epoch bar; ``harness benchmark run`` prints
+``BenchmarkProgress`` over its lanes (``benchmark 14/57 cells (2 running) | 41:05 elapsed, ETA 1:32:10``).
+These are log lines: they go to stderr also when it is not a terminal (a Slurm log keeps them), and
+``--no-progress`` silences them too. The ETA assumes the remaining
 epochs (or runs) take as long as those done so far in this call; early stopping can only make it shorter.
 ``enabled=False`` (any process but the first under ``torchrun``) prints nothing.
 """
@@ -25,9 +27,11 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextvars import ContextVar, Token
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 #: Whether progress is shown in this invocation (``--no-progress`` sets it to False for the command it runs).
@@ -250,3 +254,104 @@ class SweepProgress:
         self.failed += 0 if ok else 1
         if self.enabled and progress_on():
             print(self.line(), file=self.stream or sys.stderr, flush=True)
+
+
+@dataclass
+class _Lane:
+    job: Any
+    started: float
+    epochs_done: int = 0  # epochs logged so far (a resumed cell starts with those of its earlier attempt)
+    epochs: int = 0
+    start_epochs: int = 0
+
+
+class BenchmarkProgress:
+    """Overall progress of the benchmark over all lanes, on stderr: cells done, running, failed, elapsed and ETA.
+
+    The ETA sums the epochs left (of the cells running and of those waiting) times each detector's seconds per epoch
+    measured in this call (its first epochs), or, before a detector has been timed, the mean of the others scaled by
+    ``relative_cost`` (``harness.benchmark.RELATIVE_COST``); divided by the lanes. Early stopping can only make it
+    shorter."""
+
+    def __init__(self, jobs: Sequence[Any], epochs: int, lanes: int, skipped: int = 0, enabled: bool = True,
+                 stream: TextIO | None = None, now: Callable[[], float] | None = None,
+                 relative_cost: Mapping[str, float] | None = None):
+        self.relative_cost = dict(relative_cost or {})
+        self.pending = list(jobs)
+        self.epochs, self.lanes, self.skipped = int(epochs), max(1, int(lanes)), int(skipped)
+        self.total = len(self.pending) + self.skipped
+        self.enabled, self.stream = enabled, stream
+        self._now = now or time.perf_counter
+        self.t0 = self._now()
+        self.done = 0
+        self.failed = 0
+        self.running: dict[str, _Lane] = {}
+        self._epoch_s: dict[str, list[float]] = {}  # detector -> seconds per epoch of each timed lane
+        self._lock = threading.Lock()
+        self._last_line = 0.0
+
+    def started(self, job: Any, epochs_done: int = 0) -> None:
+        with self._lock:
+            self.pending = [j for j in self.pending if str(j) != str(job)]
+            self.running[str(job)] = _Lane(job, self._now(), epochs_done, self.epochs, epochs_done)
+
+    def epoch(self, job: Any, epochs_done: int, epochs: int | None = None) -> None:
+        with self._lock:
+            lane = self.running.get(str(job))
+            if lane is None or epochs_done <= lane.epochs_done:
+                return
+            elapsed = self._now() - lane.started
+            lane.epochs_done = epochs_done
+            if epochs:
+                lane.epochs = int(epochs)
+            trained = epochs_done - lane.start_epochs  # in this call, start-up included
+            if trained > 0 and elapsed > 0:
+                self._epoch_s.setdefault(job.detector, []).append(elapsed / trained)
+        self.print_line(force=False)
+
+    def finished(self, job: Any, ok: bool) -> None:
+        with self._lock:
+            self.running.pop(str(job), None)
+            self.done += 1
+            self.failed += 0 if ok else 1
+        self.print_line(force=True)
+
+    def seconds_per_epoch(self, detector: str) -> float | None:
+        timed = {d: v[-1] for d, v in self._epoch_s.items() if v}
+        if detector in timed:
+            return timed[detector]
+        if not timed:
+            return None
+        unit = sum(s / self.relative_cost.get(d, 1.0) for d, s in timed.items()) / len(timed)
+        return unit * self.relative_cost.get(detector, 1.0)
+
+    def eta(self) -> float | None:
+        with self._lock:
+            left = 0.0
+            for lane in self.running.values():
+                spe = self.seconds_per_epoch(lane.job.detector)
+                if spe is None:
+                    return None
+                left += spe * max(lane.epochs - lane.epochs_done, 0)
+            for job in self.pending:
+                spe = self.seconds_per_epoch(job.detector)
+                if spe is None:
+                    return None
+                left += spe * self.epochs
+        return left / self.lanes
+
+    def line(self) -> str:
+        running = len(self.running)
+        failed = f", {self.failed} failed" if self.failed else ""
+        done = self.done + self.skipped
+        return (f"benchmark {done}/{self.total} cells ({running} running{failed}) | "
+                f"{clock(self._now() - self.t0)} elapsed, ETA {clock(self.eta())}")
+
+    def print_line(self, force: bool = True) -> None:
+        if not (self.enabled and progress_on()):
+            return
+        now = self._now()
+        if not force and now - self._last_line < 30.0:  # at most one line per 30 s between cell ends
+            return
+        self._last_line = now
+        print(self.line(), file=self.stream or sys.stderr, flush=True)

@@ -104,9 +104,10 @@ class ReferenceSet:
         """``m3t-synth (generator v2, small, seed 0), benchmark profile: 256 px, 20 epochs, scale n``."""
         g = self.manifest.get("generator") or {}
         t = self.manifest.get("training") or {}
-        gen = (f" (generator v{g.get('version')}, {g.get('profile')}, seed {g.get('seed')})" if g else "")
-        train = ", ".join(f"{v}{u}" for v, u in ((t.get("imgsz"), " px"), (t.get("epochs"), " epochs"))
-                          if v is not None)
+        gen = f" (generator v{g.get('version')}, {g.get('profile')}, seed {g.get('seed')})" if g else ""
+        train = ", ".join(
+            f"{v}{u}" for v, u in ((t.get("imgsz"), " px"), (t.get("epochs"), " epochs")) if v is not None
+        )
         scale = f", scale {t['scale']}" if t.get("scale") else ""
         return f"{self.dataset}{gen}, {self.profile} profile: {train}{scale}"
 
@@ -138,8 +139,11 @@ def load_references(spec: str | Path) -> ReferenceSet:
     root = resolve(spec)
     path = root / MANIFEST
     if not path.is_file():
-        hint = ("the shipped reference results are missing from this installation"
-                if str(spec) == "shipped" else "pass the folder `harness benchmark export` wrote, or `shipped`")
+        hint = (
+            "the shipped reference results are missing from this installation"
+            if str(spec) == "shipped"
+            else "pass the folder `harness benchmark export` wrote, or `shipped`"
+        )
         raise StoreError(f"{path}: no reference results here ({hint})")
     manifest = read_json(path)
     if not isinstance(manifest, dict) or manifest.get("schema") != MANIFEST_SCHEMA or "dataset" not in manifest:
@@ -159,8 +163,13 @@ def _generator_of(run: Any) -> dict[str, Any] | None:
         try:
             from adapters.datasets.synthetic.generation import default_root
 
-            candidates.append(default_root(str(ds.get("profile") or "small"), int(ds.get("seed") or 0),
-                                           str(ds.get("thermal_format") or "rjpeg")))
+            candidates.append(
+                default_root(
+                    str(ds.get("profile") or "small"),
+                    int(ds.get("seed") or 0),
+                    str(ds.get("thermal_format") or "rjpeg"),
+                )
+            )
         except Exception:  # the plugin is not importable here: nothing to say about the generator
             pass
     for folder in candidates:
@@ -216,15 +225,25 @@ def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
         ref_gen = refs.manifest.get("generator") or {}
         differs = ""
         if gen and ref_gen:
-            diffs = [f"{name} {gen.get(key)} vs {ref_gen.get(ref_key)}" for name, key, ref_key in
-                     (("generator version", "generator_version", "version"), ("profile", "profile", "profile"),
-                      ("seed", "seed", "seed")) if gen.get(key) != ref_gen.get(ref_key)]
+            diffs = [
+                f"{name} {gen.get(key)} vs {ref_gen.get(ref_key)}"
+                for name, key, ref_key in (
+                    ("generator version", "generator_version", "version"),
+                    ("profile", "profile", "profile"),
+                    ("seed", "seed", "seed"),
+                )
+                if gen.get(key) != ref_gen.get(ref_key)
+            ]
             if diffs:
                 differs = f" Your data ({gen['root']}) differs from the references' in: {', '.join(diffs)}."
         raise ReferenceMismatchError(
             f"the reference results ({refs.describe()}) were trained and scored on other samples than "
-            f"{len(mismatched)} of your run(s): " + "; ".join(mismatched[:4]) + (" ..." if len(mismatched) > 4 else "")
-            + "." + differs + " A comparison needs the same samples: generate the default synthetic set "
+            f"{len(mismatched)} of your run(s): "
+            + "; ".join(mismatched[:4])
+            + (" ..." if len(mismatched) > 4 else "")
+            + "."
+            + differs
+            + " A comparison needs the same samples: generate the default synthetic set "
             "(`harness synth`, seed 0) and prepare it with default sensing options, or leave out --reference-results."
         )
     return notes
@@ -233,8 +252,12 @@ def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
 def training_of(run: Any) -> dict[str, Any]:
     """What the references' ``training`` record holds, for one run (its config)."""
     cfg = run.config if isinstance(run.config, dict) else {}
-    return {"imgsz": (cfg.get("protocol") or {}).get("imgsz"), "epochs": (cfg.get("protocol") or {}).get("epochs"),
-            "scale": (cfg.get("model") or {}).get("scale"), "threads": (cfg.get("train") or {}).get("threads")}
+    return {
+        "imgsz": (cfg.get("protocol") or {}).get("imgsz"),
+        "epochs": (cfg.get("protocol") or {}).get("epochs"),
+        "scale": (cfg.get("model") or {}).get("scale"),
+        "threads": (cfg.get("train") or {}).get("threads"),
+    }
 
 
 def same_training(refs: ReferenceSet, runs: Sequence[Any]) -> bool:
@@ -253,8 +276,13 @@ def _gzip_copy(src: Path, dst: Path) -> None:
         f.write(data)
 
 
-def export_references(store: str | Path, out: str | Path, cells: Sequence[Any], benchmark: Mapping[str, Any] | None
-                      = None, generator: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def export_references(
+    store: str | Path,
+    out: str | Path,
+    cells: Sequence[Any],
+    benchmark: Mapping[str, Any] | None = None,
+    generator: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """Write the reference store of ``cells`` (``harness.sweep.JobResult``-like: ``.run`` is the run key text, or
     ``RunKey``) from ``store`` into ``out``. Every cell must be finished and carry its samples' digests, and every
     run of a (fold, encoding) must have used the same samples; the result must fit in ``MAX_BYTES``."""
@@ -279,8 +307,10 @@ def export_references(store: str | Path, out: str | Path, cells: Sequence[Any], 
             continue
         runs.append(read_run(r))
     if missing:
-        raise StoreError(f"{store}: {len(missing)} benchmark cell(s) not finished ({', '.join(missing[:4])}"
-                         f"{' ...' if len(missing) > 4 else ''}); run `harness benchmark run` first")
+        raise StoreError(
+            f"{store}: {len(missing)} benchmark cell(s) not finished ({', '.join(missing[:4])}"
+            f"{' ...' if len(missing) > 4 else ''}); run `harness benchmark run` first"
+        )
     samples: dict[str, dict[str, str]] = {}
     aligned: dict[str, dict[str, str]] = {}
     conflicts: list[str] = []
@@ -288,13 +318,16 @@ def export_references(store: str | Path, out: str | Path, cells: Sequence[Any], 
         d = _digests(r.metrics)
         if d is None:
             raise StoreError(f"{r.metrics_path}: no samples digest; rerun {r.key} with --force")
-        for table, key, rec in ((samples, f"{r.key.fold}/{r.key.encoding}", {k: d[k] for k in ("train", "held_out")}),
-                                (aligned, r.key.fold, d.get("aligned") or {})):
+        for table, key, rec in (
+            (samples, f"{r.key.fold}/{r.key.encoding}", {k: d[k] for k in ("train", "held_out")}),
+            (aligned, r.key.fold, d.get("aligned") or {}),
+        ):
             if table.setdefault(key, rec) != rec:
                 conflicts.append(f"{r.key} ({key})")
     if conflicts:
-        raise StoreError(f"{store}: runs of the same fold and encoding used different samples: "
-                         + ", ".join(conflicts[:4]))
+        raise StoreError(
+            f"{store}: runs of the same fold and encoding used different samples: " + ", ".join(conflicts[:4])
+        )
     datasets = sorted({k.dataset for k in keys})
     if len(datasets) != 1:
         raise StoreError(f"reference results hold one dataset; the cells name {', '.join(datasets)}")
@@ -331,8 +364,10 @@ def export_references(store: str | Path, out: str | Path, cells: Sequence[Any], 
     size = sum(p.stat().st_size for p in tmp.rglob("*") if p.is_file())
     if size > MAX_BYTES:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise StoreError(f"the reference store would take {size / 2**20:.1f} MiB, over the {MAX_BYTES / 2**20:.0f} MiB "
-                         f"the project ships")
+        raise StoreError(
+            f"the reference store would take {size / 2**20:.1f} MiB, over the {MAX_BYTES / 2**20:.0f} MiB "
+            f"the project ships"
+        )
     if out.exists():
         shutil.rmtree(out)
     tmp.rename(out)
@@ -344,9 +379,24 @@ def _generator_record(run: Any) -> dict[str, Any] | None:
     gen = _generator_of(run)
     if not gen:
         return None
-    return {"name": run.key.dataset, "version": gen.get("generator_version"), "profile": gen.get("profile"),
-            "seed": gen.get("seed")}
+    return {
+        "name": run.key.dataset,
+        "version": gen.get("generator_version"),
+        "profile": gen.get("profile"),
+        "seed": gen.get("seed"),
+    }
 
 
-__all__ = ["MANIFEST", "PREFIX", "SHIPPED", "ReferenceMismatchError", "ReferenceSet", "check_matched",
-           "export_references", "load_references", "resolve", "same_training", "shipped_root"]
+__all__ = [
+    "MANIFEST",
+    "PREFIX",
+    "SHIPPED",
+    "ReferenceMismatchError",
+    "ReferenceSet",
+    "check_matched",
+    "export_references",
+    "load_references",
+    "resolve",
+    "same_training",
+    "shipped_root",
+]

@@ -21,9 +21,19 @@ for _module in ("harness.evaluation", "harness.runner", "harness.cache"):
 
 REPO = Path(__file__).resolve().parent.parent
 TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16",
-        "dataset.profile=tiny"]
+FAST = [
+    "protocol.imgsz=64",
+    "protocol.epochs=1",
+    "protocol.patience=5",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0.5",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+    "dataset.profile=tiny",
+]
 FOLDS = "P1,P4+P5"
 
 
@@ -59,10 +69,41 @@ def bench(tmp_path_factory):
     store = root / "store"
     sets = [a for s in FAST for a in ("--set", s)]
     try:
-        first = _cli(["benchmark", "run", "--store", str(store), "--detectors", "tinydet", "--folds", FOLDS,
-                      "--seeds", "0,1", "--no-ablation", "--lanes", "2", *sets])
-        again = _cli(["benchmark", "run", "--store", str(store), "--detectors", "tinydet", "--folds", FOLDS,
-                      "--seeds", "0,1", "--no-ablation", "--dry-run", *sets])
+        first = _cli(
+            [
+                "benchmark",
+                "run",
+                "--store",
+                str(store),
+                "--detectors",
+                "tinydet",
+                "--folds",
+                FOLDS,
+                "--seeds",
+                "0,1",
+                "--no-ablation",
+                "--lanes",
+                "2",
+                *sets,
+            ]
+        )
+        again = _cli(
+            [
+                "benchmark",
+                "run",
+                "--store",
+                str(store),
+                "--detectors",
+                "tinydet",
+                "--folds",
+                FOLDS,
+                "--seeds",
+                "0,1",
+                "--no-ablation",
+                "--dry-run",
+                *sets,
+            ]
+        )
         yield {"root": root, "store": store, "first": first, "again": again, "sets": sets}
     finally:
         mp.undo()
@@ -111,8 +152,9 @@ def test_export_is_compact_and_reads_back(bench, tmp_path):
     assert manifest["generator"]["seed"] == 0 and manifest["training"]["imgsz"] == 64
     run = tmp_path / "refs" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0"
     assert not (run / "checkpoints").exists() and not (run / "predictions.json").exists()
-    original = json.loads((bench["store"] / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "predictions.json")
-                          .read_text())
+    original = json.loads(
+        (bench["store"] / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "predictions.json").read_text()
+    )
     assert json.loads(gzip.decompress((run / "predictions.json.gz").read_bytes())) == original
     refs = load_references(tmp_path / "refs")
     runs = refs.runs()
@@ -126,27 +168,85 @@ def test_a_users_detector_is_compared_with_the_references_without_training_them(
 
     _export(bench, tmp_path / "refs")
     user = tmp_path / "user"
-    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", FOLDS, "--seeds", "0",
-          "--store", str(user), *bench["sets"]])
-    report = build_report(user, ["m3t-synth"], resamples=20, references=load_references(tmp_path / "refs"),
-                          gallery=False)
+    _cli(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            FOLDS,
+            "--seeds",
+            "0",
+            "--store",
+            str(user),
+            *bench["sets"],
+        ]
+    )
+    report = build_report(
+        user, ["m3t-synth"], resamples=20, references=load_references(tmp_path / "refs"), gallery=False
+    )
     text = report.to_text()
     assert "ref:tinydet" in text and "Reference results (4 runs" in text
     paired = next(s for s in report.sections if s.key == "paired")
     assert paired.tables, paired.notes
     assert "ref:tinydet" in paired.tables[0].to_text() and "tinydet-dual" in paired.tables[0].to_text()
-    out = _cli(["compare-detectors", "ref:tinydet", "tinydet-dual", "--dataset", "m3t-synth", "--store", str(user),
-                "--reference-results", str(tmp_path / "refs"), "--resamples", "20", "--no-progress"])
+    out = _cli(
+        [
+            "compare-detectors",
+            "ref:tinydet",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--store",
+            str(user),
+            "--reference-results",
+            str(tmp_path / "refs"),
+            "--resamples",
+            "20",
+            "--no-progress",
+        ]
+    )
     assert "ref:tinydet" in out
 
 
 def test_references_on_other_samples_are_refused_naming_the_seed(bench, tmp_path):
     _export(bench, tmp_path / "refs")
     other = tmp_path / "other"
-    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", "P1", "--seeds", "0",
-          "--store", str(other), *bench["sets"], "--set", "dataset.seed=1"])
-    out = _cli(["report", "--store", str(other), "--reference-results", str(tmp_path / "refs"), "--out",
-                str(tmp_path / "r"), "--resamples", "0", "--no-progress"], code=2)
+    _cli(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            "P1",
+            "--seeds",
+            "0",
+            "--store",
+            str(other),
+            *bench["sets"],
+            "--set",
+            "dataset.seed=1",
+        ]
+    )
+    out = _cli(
+        [
+            "report",
+            "--store",
+            str(other),
+            "--reference-results",
+            str(tmp_path / "refs"),
+            "--out",
+            str(tmp_path / "r"),
+            "--resamples",
+            "0",
+            "--no-progress",
+        ],
+        code=2,
+    )
     assert "other samples" in out and "seed 1 vs 0" in out
 
 
@@ -156,10 +256,27 @@ def test_another_training_budget_is_shown_beside_not_paired(bench, tmp_path):
 
     _export(bench, tmp_path / "refs")
     user = tmp_path / "budget"
-    _cli(["run", "--detector", "tinydet-dual", "--dataset", "m3t-synth", "--folds", "P1", "--seeds", "0",
-          "--store", str(user), *bench["sets"], "--set", "protocol.imgsz=96"])
-    report = build_report(user, ["m3t-synth"], resamples=0, references=load_references(tmp_path / "refs"),
-                          gallery=False)
+    _cli(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            "P1",
+            "--seeds",
+            "0",
+            "--store",
+            str(user),
+            *bench["sets"],
+            "--set",
+            "protocol.imgsz=96",
+        ]
+    )
+    report = build_report(
+        user, ["m3t-synth"], resamples=0, references=load_references(tmp_path / "refs"), gallery=False
+    )
     folds = next(s for s in report.sections if s.key == "folds")
     assert "ref:tinydet" in folds.tables[0].to_text()
     assert any("not paired" in n for n in folds.notes)
@@ -192,7 +309,8 @@ def test_a_rerun_that_differs_is_reported(bench, tmp_path):
 
 
 def test_progress_eta_uses_measured_epochs_and_relative_costs():
-    from harness.benchmark import BenchmarkProgress
+    from harness.benchmark import RELATIVE_COST
+    from harness.progress import BenchmarkProgress
     from harness.sweep import SweepJob
 
     t = [0.0]
@@ -207,7 +325,14 @@ def test_progress_eta_uses_measured_epochs_and_relative_costs():
         def flush(self) -> None:
             pass
 
-    p = BenchmarkProgress(jobs, epochs=10, lanes=2, stream=Sink(), now=lambda: t[0])  # type: ignore[arg-type]
+    p = BenchmarkProgress(
+        jobs,
+        epochs=10,
+        lanes=2,
+        stream=Sink(),
+        now=lambda: t[0],  # type: ignore[arg-type]
+        relative_cost=RELATIVE_COST,
+    )
     assert p.eta() is None  # nothing timed yet
     p.started(jobs[0])
     t[0] = 20.0

@@ -29,7 +29,9 @@ OWN_MEANING = {("synth", "--seed")}
 #: Commands that show progress (bars, or run/sweep's progress lines).
 SHOWS_PROGRESS = {"run", "ablate", "sweep", "pretrain", "profile", "report", "compare-detectors", "prepare", "folds",
                   "score", "synth", "sensing decode", "sensing displacement", "show",
-                  "screen"}
+                  "screen", "benchmark run", "benchmark rerun"}
+#: Commands about one profile: their --profile defaults to it (the store rule, results/<profile>, is the same).
+OWN_PROFILE = {"benchmark run": "benchmark", "benchmark export": "benchmark"}
 
 
 def _walk(groups: bool = False) -> list[tuple[list[str], click.Command]]:
@@ -98,7 +100,8 @@ def test_shared_options_come_from_the_one_declaration(host):
             fmt = opts["--format"]
             assert set(fmt.type.choices) <= set(opt.FORMATS) and fmt.default == "text", name  # type: ignore[union-attr]
         if "--store" in opts:  # the one rule, results/<profile>, needs the profile
-            assert "--profile" in opts and opts["--profile"].default == opt.DEFAULT_PROFILE, name
+            want = OWN_PROFILE.get(name, opt.DEFAULT_PROFILE)
+            assert "--profile" in opts and opts["--profile"].default == want, name
         assert ("--no-progress" in opts) == (name in SHOWS_PROGRESS), f"harness {name}: --no-progress"
 
 
@@ -501,7 +504,7 @@ def test_progress_bars_are_set_up_in_one_place():
                 continue
             text = path.read_text(encoding="utf-8")
             if "rich.progress" in text or "Progress(" in text.replace("OverallProgress(", "").replace(
-                    "SweepProgress(", "").replace("_Progress(", ""):
+                    "SweepProgress(", "").replace("BenchmarkProgress(", "").replace("_Progress(", ""):
                 offenders.append(str(path.relative_to(REPO)))
     assert not offenders, f"progress bars set up outside harness/progress.py: {offenders}"
 

@@ -223,8 +223,8 @@ class PreparedDataset:
 
     def content_digest(self, indices: Sequence[int], encoding: Any = None, params: dict[str, Any] | None = None) -> str:
         """blake2b of what a detector sees of the samples at ``indices``, in that order: image id, group, RGB pixels,
-        the encoding's channel (none for RGB only; with ``encoding=None`` the temperatures, or the 8-bit thermal picture,
-        of the aligned sample instead), boxes and labels. It identifies samples by their content, so a
+        the encoding's channel (none for RGB only; with ``encoding=None`` the temperatures, or the 8-bit thermal
+        picture, of the aligned sample instead), boxes and labels. It identifies samples by their content, so a
         change to the code or the cache key that leaves the samples identical leaves it unchanged (reference results
         rest on it: ``harness.references``)."""
         h = hashlib.blake2b(digest_size=16)
@@ -234,6 +234,7 @@ class PreparedDataset:
             rgb = np.ascontiguousarray(self.rgb(i))
             h.update(f"{int(r['image_id'])}\t{r['group']}\t{rgb.shape}\n".encode())
             h.update(rgb.tobytes())
+            ch: np.ndarray | None
             if encoding is None:  # the aligned sample itself: temperatures (or the 8-bit thermal picture)
                 sample = self[i]
                 ch = sample.thermal if sample.thermal is not None else sample.ir8

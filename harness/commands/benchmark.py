@@ -39,8 +39,9 @@ def _cell_key(text: str) -> tuple[str, str, str, int]:
     if len(parts) == 5:  # with the dataset in front
         parts = parts[1:]
     if len(parts) != 4:
-        raise click.BadParameter(f"{text!r}: name a cell as DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0",
-                                 param_hint="CELL")
+        raise click.BadParameter(
+            f"{text!r}: name a cell as DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0", param_hint="CELL"
+        )
     det, enc, fold, seed = parts
     try:
         return det, enc, fold, int(seed.removeprefix("seed"))
@@ -56,22 +57,46 @@ def register_commands(cli: click.Group) -> None:
         at the benchmark profile (docs/benchmark.md)."""
 
     @benchmark_group.command(name="run")
-    @opt.store_option(help="Results store [default: results/benchmark].")
-    @click.option("--lanes", type=click.IntRange(min=1), default=None,
-                  help="Cells trained side by side, one core each [default: one per core].")
-    @click.option("--detectors", default=",".join(("ours", "eme", "icafusion", "cmadet")), show_default=True,
-                  help="Comma-separated detectors of the detector grid.")
+    @opt.profile_option(default="benchmark")
+    @opt.store_option()
+    @click.option(
+        "--lanes",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Cells trained side by side, one core each [default: one per core].",
+    )
+    @opt.names_option(
+        "--detectors",
+        help="Detectors of the detector grid, comma-separated or repeated [default: ours,eme,icafusion,cmadet].",
+    )
     @opt.folds_option()
     @opt.seeds_option(default="0,1,2")
-    @click.option("--ablation/--no-ablation", default=True, show_default=True,
-                  help="Also run the encoding ablation (ours: none, ir8, linear16, c2 on P4+P5).")
-    @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-                  help="Override one config key of every cell (the store then holds no reference benchmark).")
+    @click.option(
+        "--ablation/--no-ablation",
+        default=True,
+        show_default=True,
+        help="Also run the encoding ablation (ours: none, ir8, linear16, c2 on P4+P5).",
+    )
+    @opt.config_options(
+        help_set="Override one config key of every cell, e.g. --set protocol.imgsz=256 (such a "
+        "store is not comparable with the shipped references; a report says so)."
+    )
     @click.option("--dry-run", is_flag=True, help="List the cells left to do, and stop.")
     @click.option("--force", is_flag=True, help="Redo cells that already finished.")
     @opt.no_progress_option()
-    def run_cmd(store: Path | None, lanes: int | None, detectors: str, folds: str, seeds: str, ablation: bool,
-                overrides: tuple[str, ...], dry_run: bool, force: bool) -> None:
+    def run_cmd(
+        profile: str,
+        store: Path | None,
+        lanes: int | None,
+        detectors: tuple[str, ...],
+        folds: str,
+        seeds: str,
+        ablation: bool,
+        config_files: tuple[str, ...],
+        overrides: tuple[str, ...],
+        dry_run: bool,
+        force: bool,
+    ) -> None:
         """Run the benchmark's cells that are left to do, in lanes, with overall progress and ETA on stderr.
 
         Finished cells are skipped and interrupted ones resume from their last epoch, so running it again after an
@@ -82,9 +107,17 @@ def register_commands(cli: click.Group) -> None:
         from harness.sweep import SweepSummary, sweep_table
 
         seed_list = opt.parse_seeds(seeds) or list(B.SEEDS)
-        spec = B.BenchmarkSpec(store=store or B.DEFAULT_STORE, detectors=tuple(opt.split_list(detectors)),
-                               folds=folds, seeds=tuple(seed_list), ablation=ablation, overrides=overrides,
-                               force=force)
+        spec = B.BenchmarkSpec(
+            store=opt.resolve_store(store, profile),
+            detectors=detectors or B.DETECTORS,
+            folds=folds,
+            seeds=tuple(seed_list),
+            ablation=ablation,
+            overrides=overrides,
+            config_files=tuple(config_files),
+            force=force,
+            profile=profile,
+        )
         if dry_run:
             plan = B.plan_benchmark(spec)
             for job in plan.jobs:
@@ -96,24 +129,35 @@ def register_commands(cli: click.Group) -> None:
         summary = B.run_benchmark(spec, lanes=lanes, progress=progress_on())
         B.write_timing(summary, lanes or B.default_lanes())
         click.echo(sweep_table(SweepSummary(summary.store, summary.results, summary.invalid)))
-        click.echo(f"benchmark: {len(summary.results)} cells in {summary.store}; this call {summary.wall_s:.0f} s wall, "
-                   f"{summary.cpu_s:.0f} s CPU ({B.cpu_name()})")
+        click.echo(
+            f"benchmark: {len(summary.results)} cells in {summary.store}; this call "
+            f"{summary.wall_s:.0f} s wall, {summary.cpu_s:.0f} s CPU ({B.cpu_name()})"
+        )
         if summary.failed:
-            click.secho(f"{len(summary.failed)} cell(s) failed; run `harness benchmark run` again to retry them "
-                        f"(logs in {summary.store / '_benchmark' / 'logs'})", fg="red", err=True)
+            click.secho(
+                f"{len(summary.failed)} cell(s) failed; run `harness benchmark run` again to retry them "
+                f"(logs in {summary.store / '_benchmark' / 'logs'})",
+                fg="red",
+                err=True,
+            )
             raise SystemExit(1)
 
     @benchmark_group.command(name="export")
-    @opt.store_option(help="Results store of the benchmark [default: results/benchmark].")
-    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Folder to write [default: the shipped references, references/m3t-synth-benchmark].")
-    def export_cmd(store: Path | None, out: Path | None) -> None:
+    @opt.profile_option(default="benchmark", uses_config=False)
+    @opt.store_option(reads=True)
+    @click.option(
+        "--out",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=None,
+        help="Folder to write [default: the shipped references, references/m3t-synth-benchmark].",
+    )
+    def export_cmd(profile: str, store: Path | None, out: Path | None) -> None:
         """Export a finished benchmark store as reference results: metrics, error analysis, logs, and the ground
         truth and predictions the paired bootstrap re-scores (gzip), with the samples' digests (at most 10 MiB)."""
         from harness import benchmark as B
         from harness.references import export_references, resolve
 
-        spec = B.BenchmarkSpec(store=store or B.DEFAULT_STORE)
+        spec = B.BenchmarkSpec(store=opt.resolve_store(store, profile), profile=profile)
         root = Path(spec.store)
         if not root.is_dir():
             raise click.ClickException(f"{root}: no results store here; run `harness benchmark run` first")
@@ -121,19 +165,28 @@ def register_commands(cli: click.Group) -> None:
         if missing:
             raise click.ClickException(
                 f"{len(missing)} benchmark cell(s) are not finished in {root} (e.g. {', '.join(missing[:3])}); "
-                f"run `harness benchmark run --store {root}` first")
+                f"run `harness benchmark run --store {root}` first"
+            )
         manifest = export_references(root, out or resolve("shipped"), found, benchmark=B.read_timing(root))
-        click.echo(f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> "
-                   f"{out or resolve('shipped')}")
+        click.echo(
+            f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> "
+            f"{out or resolve('shipped')}"
+        )
 
     @benchmark_group.command(name="rerun")
     @click.argument("cell")
-    @click.option("--store", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Results store to train the cell into [default: results/benchmark-rerun].")
+    @click.option(
+        "--work-dir",
+        "work_dir",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=Path("results") / "benchmark-rerun",
+        show_default=True,
+        help="Results store the cell is trained into (a finished cell there is trained again).",
+    )
     @reference_results_option()
     @opt.format_option("text", "json")
     @opt.no_progress_option()
-    def rerun_cmd(cell: str, store: Path | None, reference_results: str | None, fmt: str) -> None:
+    def rerun_cmd(cell: str, work_dir: Path, reference_results: str | None, fmt: str) -> None:
         """Train one reference CELL again (DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0) and compare its
         metrics with the reference results' (default: the shipped ones): identical on the same torch build and
         thread count. Exits 1 when a number differs."""
@@ -141,7 +194,9 @@ def register_commands(cli: click.Group) -> None:
 
         det, enc, fold, seed = _cell_key(cell)
         refs = load_reference_option(reference_results or "shipped")
-        result = B.rerun_cell(refs, det, enc, fold, seed, store or Path("results") / "benchmark-rerun")
+        from harness.progress import progress_on
+
+        result = B.rerun_cell(refs, det, enc, fold, seed, work_dir, progress=progress_on())
         if fmt == "json":
             click.echo(json.dumps(result, indent=2))
         else:

@@ -286,16 +286,18 @@ def no_progress_option() -> Callable[[F], F]:
     return deco
 
 
-def profile_option(*, uses_config: bool = True, param: str = "profile", help: str | None = None) -> Callable[[F], F]:
-    """``--profile`` (default ``smoke``) -> parameter ``profile`` (or ``param``). ``uses_config=False``: the command
-    uses the profile only for its default store."""
+def profile_option(
+    *, uses_config: bool = True, param: str = "profile", help: str | None = None, default: str = DEFAULT_PROFILE
+) -> Callable[[F], F]:
+    """``--profile`` (default ``smoke``, or the profile a command is about: ``benchmark``) -> parameter ``profile``
+    (or ``param``). ``uses_config=False``: the command uses the profile only for its default store."""
     text = help or (
         "Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also "
         "names the default store, results/<profile>."
         if uses_config
         else "Run profile whose results store (results/<profile>) is used when --store is not given."
     )
-    return option("--profile", param, shared="profile", default=DEFAULT_PROFILE, show_default=True, help=text)
+    return option("--profile", param, shared="profile", default=default, show_default=True, help=text)
 
 
 def store_option(*, reads: bool = False, help: str | None = None) -> Callable[[F], F]:

@@ -102,7 +102,8 @@ def register_commands(cli: click.Group) -> None:
     @reference_results_option()
     @opt.no_progress_option()
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
-                              bootstrap_seed: int, workers: int, fmt: str, reference_results: str | None = None) -> None:
+                              bootstrap_seed: int, workers: int, fmt: str,
+                              reference_results: str | None = None) -> None:
         """Paired comparison of A and B (DETECTOR or DETECTOR/ENCODING) on the same held-out images.
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
@@ -116,7 +117,6 @@ def register_commands(cli: click.Group) -> None:
 
         from harness.progress import bar
         from harness.report import compare_detectors
-
         from harness.report.reader import StoreView
 
         root = opt.resolve_store(store, profile)

@@ -196,8 +196,11 @@ def _paired_section(
         return max(candidates, key=lambda e: (e.aggregate()["metrics"].get("mAP50_95") or {}).get("mean") or -1.0)
 
     if len(rows) >= 2:
-        ref = (next((e for e in rows if e.detector == reference), None)
-               or next((e for e in rows if e.detector == f"{REF_PREFIX}{reference}"), None) or best(rows))
+        ref = (
+            next((e for e in rows if e.detector == reference), None)
+            or next((e for e in rows if e.detector == f"{REF_PREFIX}{reference}"), None)
+            or best(rows)
+        )
         pairs += [(ref, e) for e in rows if e is not ref]
     by_det: dict[str, list[Entry]] = {}
     for e in entries:
@@ -287,18 +290,29 @@ PIPELINE_CHECK_PROFILES = {"demo": "5 epochs at 128 px", "smoke": "10 epochs at 
 def _scale_note(view: StoreView, dataset: str) -> str | None:
     """A note when the store's runs were trained at a pipeline-check profile (``make demo``): its numbers check the
     pipeline and do not rank detectors."""
-    profiles = sorted({str((r.config.get("meta") or {}).get("profile")) for r in view.finished_runs(dataset)
-                       if not r.key.detector.startswith(REF_PREFIX) and not r.metrics.get("external")})
+    profiles = sorted(
+        {
+            str((r.config.get("meta") or {}).get("profile"))
+            for r in view.finished_runs(dataset)
+            if not r.key.detector.startswith(REF_PREFIX) and not r.metrics.get("external")
+        }
+    )
     small = [p for p in profiles if p in PIPELINE_CHECK_PROFILES]
     if not small:
         return None
     what = ", ".join(f"{p} ({PIPELINE_CHECK_PROFILES[p]})" for p in small)
-    refs = (" The reference results (ref:DETECTOR, `make benchmark`'s profile, three seeds) are shown beside them for "
-            "scale." if view.references is not None else " `make benchmark` runs the reference benchmark, at a scale "
-            "where detectors learn, with three seeds; `harness report --reference-results shipped` shows its results "
-            "beside these.")
-    return (f"Scale: runs of profile {what} check that the pipeline works end to end; at this scale the detectors "
-            f"learn little beyond windows, so these numbers do not rank detectors.{refs}")
+    refs = (
+        " The reference results (ref:DETECTOR, `make benchmark`'s profile, three seeds) are shown beside them for "
+        "scale."
+        if view.references is not None
+        else " `make benchmark` runs the reference benchmark, at a scale "
+        "where detectors learn, with three seeds; `harness report --reference-results shipped` shows its results "
+        "beside these."
+    )
+    return (
+        f"Scale: runs of profile {what} check that the pipeline works end to end; at this scale the detectors "
+        f"learn little beyond windows, so these numbers do not rank detectors.{refs}"
+    )
 
 
 def _claims_section(view: StoreView, dataset: str, resamples: int, seed: int) -> Section | None:
@@ -313,9 +327,18 @@ def _claims_section(view: StoreView, dataset: str, resamples: int, seed: int) ->
     sec = Section("claims", "The paper's claims, tested", dataset)
     claims, notes = evaluate_claims(view, dataset, resamples=max(resamples, 0), seed=seed)
     rows = [{"n": c.number, "claim": c.text, "verdict": c.verdict, "evidence": "; ".join(c.evidence)} for c in claims]
-    table = Table(f"{dataset}-claims".replace("/", "-"), f"{dataset}: the paper's claims, tested on the data",
-                  [Column("n", "#", "int"), Column("claim", "claim"), Column("verdict", "verdict"),
-                   Column("evidence", "evidence: value [95 % interval]")], rows, records=list(claims_records(claims)))
+    table = Table(
+        f"{dataset}-claims".replace("/", "-"),
+        f"{dataset}: the paper's claims, tested on the data",
+        [
+            Column("n", "#", "int"),
+            Column("claim", "claim"),
+            Column("verdict", "verdict"),
+            Column("evidence", "evidence: value [95 % interval]"),
+        ],
+        rows,
+        records=list(claims_records(claims)),
+    )
     sec.tables.append(table)
     sec.notes += notes
     return sec
@@ -498,8 +521,9 @@ def build_report(
     ``formats``: any of ``md``, ``csv``, ``html``. ``resamples``: paired-bootstrap resamples per comparison (0: per-fold
     differences only); ``workers``: processes for the bootstrap; ``reference``: the detector compared with each
     other one (the most accurate when absent); ``cache_root``: the prepared cache the galleries draw their pixels
-    from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out; ``references``: reference
-    results (``harness.references.ReferenceSet``) read beside the store, as ``ref:<detector>`` entries. Returns the
+    from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out;
+    ``references``: reference results (``harness.references.ReferenceSet``) read beside the store, as
+    ``ref:<detector>`` entries. Returns the
     ``Report`` (its ``files`` lists what was written).
     """
     bad = [f for f in formats if f not in FORMATS]

@@ -71,8 +71,13 @@ class Claim:
     entries: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"claim": self.number, "text": self.text, "verdict": self.verdict, "evidence": self.evidence,
-                "entries": self.entries}
+        return {
+            "claim": self.number,
+            "text": self.text,
+            "verdict": self.verdict,
+            "evidence": self.evidence,
+            "entries": self.entries,
+        }
 
 
 def combine(verdicts: Sequence[str]) -> str:
@@ -87,8 +92,9 @@ class ColumnScorer:
     """Per run: mAP50, mAP50:95 and AP50 of each category on the original held-out images (row 0) and on the
     bootstrap's image resamples (rows 1..R; ``bootstrap_indices`` seeded per fold, as the paired comparisons)."""
 
-    def __init__(self, categories: Sequence[str], resamples: int, seed: int = 0,
-                 progress: Callable[[int], None] | None = None):
+    def __init__(
+        self, categories: Sequence[str], resamples: int, seed: int = 0, progress: Callable[[int], None] | None = None
+    ):
         self.categories = list(categories)
         self.columns = ["mAP50", "mAP50_95", *(f"AP50:{c}" for c in self.categories)]
         self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
@@ -127,8 +133,7 @@ class ColumnScorer:
         return np.stack([self.run_scores(fold, r) for r in entry.folds[fold].runs])
 
     def _levels(self, a: Entry, b: Entry, folds: Sequence[str]) -> list[dict[str, Any]]:
-        return two_level([self.fold_runs(a, f) for f in folds], [self.fold_runs(b, f) for f in folds], folds,
-                         self.seed)
+        return two_level([self.fold_runs(a, f) for f in folds], [self.fold_runs(b, f) for f in folds], folds, self.seed)
 
     def _observed(self, e: Entry, folds: Sequence[str], j: int) -> float | None:
         vals = []
@@ -176,8 +181,9 @@ def claim_entries(view: StoreView, dataset: str) -> tuple[str, list[Entry]]:
     return REFERENCE_PREFIX, refs
 
 
-def evaluate_claims(view: StoreView, dataset: str, resamples: int = 200, seed: int = 0,
-                    progress: Callable[[int], None] | None = None) -> tuple[list[Claim], list[str]]:
+def evaluate_claims(
+    view: StoreView, dataset: str, resamples: int = 200, seed: int = 0, progress: Callable[[int], None] | None = None
+) -> tuple[list[Claim], list[str]]:
     """The six claims on ``dataset`` (see the module docstring); returns (claims, notes on what was used)."""
     prefix, entries = claim_entries(view, dataset)
     notes: list[str] = []
@@ -250,8 +256,13 @@ def evaluate_claims(view: StoreView, dataset: str, resamples: int = 200, seed: i
             parts = []
             for enc in ENCODINGS:
                 v = scorer.single(E[enc], "AP50:water_seepage", folds)
-                parts.append(SUPPORTED if (v.value or 0.0) < 0.001 and not v.above(0.001)
-                             else CONTRADICTED if v.above(0.001) else INCONCLUSIVE)
+                parts.append(
+                    SUPPORTED
+                    if (v.value or 0.0) < 0.001 and not v.above(0.001)
+                    else CONTRADICTED
+                    if v.above(0.001)
+                    else INCONCLUSIVE
+                )
                 c.evidence.append(f"{enc}: water seepage AP50 {v.text()}")
             c.verdict = combine(parts)
         else:
@@ -278,13 +289,22 @@ def evaluate_claims(view: StoreView, dataset: str, resamples: int = 200, seed: i
             high = max(ivs[k].hi if ivs[k].hi is not None else 2.0 for k in rest)
             part_a = SUPPORTED if low > high else INCONCLUSIVE
         else:
-            beaten = [(o, k) for k in easy for o in rest if ivs[o].lo is not None and ivs[k].hi is not None
-                      and ivs[o].lo > ivs[k].hi]
+            beaten = [
+                (o, k)
+                for k in easy
+                for o in rest
+                if ivs[o].lo is not None and ivs[k].hi is not None and ivs[o].lo > ivs[k].hi
+            ]
             part_a = CONTRADICTED if beaten else INCONCLUSIVE
             if beaten:
                 c.evidence.append("easier than an 'easiest' category: " + ", ".join(f"{o} > {k}" for o, k in beaten))
-        part_b = combine([SUPPORTED if ivs[k].below(NEAR_ZERO) else CONTRADICTED if ivs[k].above(NEAR_ZERO)
-                          else INCONCLUSIVE for k in HARD if k in ivs])
+        part_b = combine(
+            [
+                SUPPORTED if ivs[k].below(NEAR_ZERO) else CONTRADICTED if ivs[k].above(NEAR_ZERO) else INCONCLUSIVE
+                for k in HARD
+                if k in ivs
+            ]
+        )
         c.evidence.append(f"easiest three: {part_a}; {', '.join(HARD)} below {NEAR_ZERO}: {part_b}")
         c.verdict = combine([part_a, part_b])
     claims.append(c)
@@ -305,23 +325,29 @@ def evaluate_claims(view: StoreView, dataset: str, resamples: int = 200, seed: i
             ok = diff.above(0.0) if want == "above" else diff.below(0.0)
             wrong = diff.below(0.0) if want == "above" else diff.above(0.0)
             parts.append(SUPPORTED if ok else CONTRADICTED if wrong else INCONCLUSIVE)
-            c.evidence.append(f"{d} - ours mAP50:95: {diff.text()} (paper: {d} {PAPER_MAP50_95[d]}, ours "
-                              f"{PAPER_MAP50_95['ours']})")
+            c.evidence.append(
+                f"{d} - ours mAP50:95: {diff.text()} (paper: {d} {PAPER_MAP50_95[d]}, ours {PAPER_MAP50_95['ours']})"
+            )
         for d in DETECTORS:
             c.evidence.append(f"{d}: mAP50:95 {scorer.single(M[d], 'mAP50_95', common).text()}")
         gf_vals = {d: _gflops(e) for d, e in M.items()}
         if all(v is not None for v in gf_vals.values()):
             fewest = min(gf_vals, key=lambda d: gf_vals[d] or 0.0)
             parts.append(SUPPORTED if fewest == "ours" else CONTRADICTED)
-            c.evidence.append("GFLOPs at 640 of the models trained: " + ", ".join(
-                f"{d} {gf_vals[d]:.2f}" for d in DETECTORS) + f" (fewest: {fewest})")
+            c.evidence.append(
+                "GFLOPs at 640 of the models trained: "
+                + ", ".join(f"{d} {gf_vals[d]:.2f}" for d in DETECTORS)
+                + f" (fewest: {fewest})"
+            )
         else:
             parts.append(INCONCLUSIVE)
             c.evidence.append("GFLOPs not recorded for every entry")
         c.verdict = combine(parts)
     claims.append(c)
-    notes.append(f"Claims tested on {source}; 95 % intervals from the two-level bootstrap ({resamples} resamples, "
-                 f"seed {seed}); 'near zero' is AP50 < {NEAR_ZERO}.")
+    notes.append(
+        f"Claims tested on {source}; 95 % intervals from the two-level bootstrap ({resamples} resamples, "
+        f"seed {seed}); 'near zero' is AP50 < {NEAR_ZERO}."
+    )
     return claims, notes
 
 
@@ -363,5 +389,4 @@ def claims_records(claims: Sequence[Claim]) -> list[Mapping[str, Any]]:
     return [c.to_dict() for c in claims]
 
 
-__all__ = ["CONTRADICTED", "INCONCLUSIVE", "SUPPORTED", "Claim", "ColumnScorer", "claims_markdown",
-           "evaluate_claims"]
+__all__ = ["CONTRADICTED", "INCONCLUSIVE", "SUPPORTED", "Claim", "ColumnScorer", "claims_markdown", "evaluate_claims"]
