@@ -235,7 +235,7 @@ def fake_fo(monkeypatch):
         monkeypatch.setitem(sys.modules, "fiftyone", fo)
         return fo
 
-    monkeypatch.setattr(fe, "_connect", lambda fo: None)
+    monkeypatch.setattr(fe, "_connect", lambda fo: None, raising=False)
     return install
 
 
@@ -259,7 +259,7 @@ def test_an_unreachable_database_is_exit_2_naming_the_address_before_anything_is
             ", connectTimeoutMS: 5000.0ms), Timeout: 5.0s, Topology Description: <TopologyDescription id: 1, ...>"
         )
 
-    monkeypatch.setattr(fe, "_ping", unreachable)
+    monkeypatch.setattr(fe, "_ping", unreachable, raising=False)
     out = tmp_path / "fo"
     res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), *STORE_ARGS, "--out", str(out)])
     assert res.exit_code == 2, res.output
@@ -281,7 +281,7 @@ def test_no_bundled_mongod_is_exit_2_naming_where_fiftyone_looked(shapes, tmp_pa
     _fake_run(tmp_path / "store")
     fake_fo(None)
     bin_dir = tmp_path / "site" / "fiftyone" / "db" / "bin"
-    monkeypatch.setattr(fe, "_bundled_mongod", lambda: bin_dir / "mongod")
+    monkeypatch.setattr(fe, "_bundled_mongod", lambda: bin_dir / "mongod", raising=False)
     out = tmp_path / "fo"
     res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), *STORE_ARGS, "--out", str(out)])
     assert res.exit_code == 2, res.output
@@ -299,7 +299,7 @@ def test_no_bundled_mongod_is_exit_2_naming_where_fiftyone_looked(shapes, tmp_pa
     def cannot_start(fo):
         raise ServiceListenTimeout("fiftyone.core.service.DatabaseService failed to bind to port")
 
-    monkeypatch.setattr(fe, "_connect", cannot_start)
+    monkeypatch.setattr(fe, "_connect", cannot_start, raising=False)
     res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), *STORE_ARGS, "--out", str(out)])
     assert res.exit_code == 2 and "\n" not in res.output.strip(), res.output
     assert f"FiftyOne's own mongod at {bin_dir / 'mongod'}" in res.output
@@ -312,7 +312,7 @@ def test_a_taken_name_stops_before_anything_is_written(shapes, tmp_path, cli_run
 
     _fake_run(tmp_path / "store")
     fo = fake_fo("mongodb://127.0.0.1:27017")
-    monkeypatch.setattr(fe, "_ping", lambda uri, timeout_s: None)
+    monkeypatch.setattr(fe, "_ping", lambda uri, timeout_s: None, raising=False)
     fo.Dataset("harness-shapes")
     fo.Dataset("My_Data")
     out = tmp_path / "fo"
@@ -333,7 +333,7 @@ def test_the_dataset_keeps_each_run_s_operating_point_and_stdout_is_the_harness_
 
     conf = _three_runs(tmp_path / "store")
     fo = fake_fo("mongodb://127.0.0.1:27017")
-    monkeypatch.setattr(fe, "_ping", lambda uri, timeout_s: None)
+    monkeypatch.setattr(fe, "_ping", lambda uri, timeout_s: None, raising=False)
     stdout_handler = logging.StreamHandler(sys.stdout)  # FiftyOne's handlers write to the stdout of their making
     logging.getLogger("fiftyone").addHandler(stdout_handler)
     try:
