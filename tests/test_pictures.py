@@ -1,10 +1,10 @@
-"""Pictures of prepared samples (``harness show``, the gallery's drawing) and the FiftyOne export's records."""
+"""Pictures of prepared samples (``harness show``, the gallery's drawing); ``_fake_run`` also serves the FiftyOne
+export's tests (test_fiftyone_export.py)."""
 
 from __future__ import annotations
 
 import base64
 import io
-import json
 
 import numpy as np
 import pytest
@@ -122,9 +122,10 @@ def shapes(host, tmp_path, monkeypatch):
         yield host
 
 
-def _fake_run(store, fold: str = "A", detector: str = "det"):
+def _fake_run(store, fold: str = "A", detector: str = "det", seed: int = 0, top: float | None = None):
     """A finished run of the shapes dataset made by hand: its held-out GT, one prediction per GT box (shifted by
-    one pixel) and one confident false positive per image."""
+    one pixel, score 0.9) and one false positive per image (score 0.1). ``top``: distinct scores instead, the
+    boxes' from ``top`` down in steps of 0.001, the false positives' from 0.1 down in steps of 0.0001."""
     from harness.cache import prepare
     from harness.config import load_config
     from harness.evaluation import evaluate
@@ -140,7 +141,13 @@ def _fake_run(store, fold: str = "A", detector: str = "det"):
     dets = [{"image_id": a["image_id"], "category_id": a["category_id"], "score": 0.9,
              "bbox": [a["bbox"][0] + 1, a["bbox"][1], a["bbox"][2], a["bbox"][3]]} for a in gt["annotations"]]
     dets += [{"image_id": im["id"], "category_id": 1, "score": 0.1, "bbox": [0, 0, 5, 5]} for im in gt["images"]]
-    run = Store(store).run(RunKey("shapes", detector, "test-ir8", fold, 0))
+    if top is not None:
+        boxes = [d for d in dets if d["score"] == 0.9]
+        for k, d in enumerate(boxes):
+            d["score"] = round(top - 0.001 * k, 6)
+        for k, d in enumerate(dets[len(boxes) :]):
+            d["score"] = round(0.1 - 0.0001 * k, 6)
+    run = Store(store).run(RunKey("shapes", detector, "test-ir8", fold, seed))
     run.path.mkdir(parents=True)
     if detector.startswith("external/"):  # as `harness score` stores it: no config.yaml, its identity in score.json
         identity = {"prepared_fingerprint": prepared.manifest["fingerprint"]}
@@ -182,69 +189,6 @@ def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path,
     none = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--store", str(tmp_path / "store"),
                        "--detector", "other"])
     assert none.exit_code == 2 and "no finished run of other on shapes" in none.output
-
-
-def test_fiftyone_records_hold_every_slice_and_every_run_s_predictions(shapes, tmp_path):
-    from harness.report.fiftyone_export import build_records
-
-    prepared, gt, _ = _fake_run(tmp_path / "store", "A", "det")
-    _fake_run(tmp_path / "store", "B", "det")
-    _fake_run(tmp_path / "store", "A", "external/x")
-    export = build_records(tmp_path / "store", "shapes", tmp_path / "fo")
-    assert len(export.records) == len(prepared)  # both held-out folds
-    assert set(export.fields) == {"det_test_ir8_s0", "external_x_test_ir8_s0"}
-    first = export.records[0]
-    assert set(first.slices) == {"rgb", "thermal", "fourth"} and all(
-        (tmp_path / "fo" / p).is_file() for p in first.slices.values())
-    assert set(first.fields) == {"ground_truth", "det_test_ir8_s0", "external_x_test_ir8_s0"}
-    ann = next(a for a in gt["annotations"] if a["image_id"] == first.image_id)
-    x, y, w, h = ann["bbox"]
-    box = first.fields["ground_truth"][0]
-    assert box["label"] == CATEGORIES[ann["category_id"] - 1] and "confidence" not in box
-    assert box["bounding_box"] == pytest.approx([x / first.width, y / first.height, w / first.width, h / first.height])
-    assert first.fields["det_test_ir8_s0"][0]["confidence"] in (0.9, 0.1)
-    stored = json.loads((tmp_path / "fo" / "records.json").read_text())
-    assert len(stored["records"]) == len(export.records) and stored["fields"]["det_test_ir8_s0"]["conf_threshold"]
-
-
-def test_fiftyone_missing_is_a_clear_error(shapes, tmp_path, monkeypatch, cli_runner):
-    import builtins
-
-    from harness.report.fiftyone_export import FiftyOneMissing, export_fiftyone
-
-    real = builtins.__import__
-
-    def no_fiftyone(name, *a, **kw):
-        if name == "fiftyone" or name.startswith("fiftyone."):
-            raise ImportError("No module named 'fiftyone'")
-        return real(name, *a, **kw)
-
-    monkeypatch.setattr(builtins, "__import__", no_fiftyone)
-    _fake_run(tmp_path / "store")
-    with pytest.raises(FiftyOneMissing, match=r"rgbt-harness\[fiftyone\]"):
-        export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo")
-    assert not (tmp_path / "fo").exists()  # nothing written before the check
-    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
-                      str(tmp_path / "fo2")])
-    assert res.exit_code == 2 and "rgbt-harness[fiftyone]" in res.output and "Traceback" not in res.output
-    export = export_fiftyone(tmp_path / "store", "shapes", tmp_path / "fo", records_only=True)
-    assert export.records_path.is_file() and export.name is None
-    res = cli_runner(["export-fiftyone", "--store", str(tmp_path / "store"), "--dataset", "shapes", "--out",
-                      str(tmp_path / "fo2"), "--records-only"])
-    assert res.exit_code == 0 and res.stdout.strip() == str(tmp_path / "fo2" / "records.json")
-
-
-def test_fiftyone_samples_are_grouped_slices_when_fiftyone_is_installed(shapes, tmp_path):
-    fo = pytest.importorskip("fiftyone")  # the optional extra; its database is not needed to build samples
-    from harness.report.fiftyone_export import build_records, fiftyone_samples
-
-    _fake_run(tmp_path / "store")
-    export = build_records(tmp_path / "store", "shapes", tmp_path / "fo")
-    samples = fiftyone_samples(export, fo)
-    assert len(samples) == 3 * len(export.records)
-    first = samples[:3]
-    assert [s.group.name for s in first] == ["rgb", "thermal", "fourth"] and len({s.group.id for s in first}) == 1
-    assert first[0]["det_test_ir8_s0"].detections[0].confidence in (0.9, 0.1)
 
 
 def test_harness_show_draws_inline_in_a_terminal_that_draws_images(shapes, monkeypatch, capsys):

