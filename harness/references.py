@@ -317,7 +317,7 @@ def export_references(
     for r in runs:
         d = _digests(r.metrics)
         if d is None:
-            raise StoreError(f"{r.metrics_path}: no samples digest; rerun {r.key} with --force")
+            raise StoreError(f"{r.path}: its metrics.json records no samples digest; rerun {r.key} with --force")
         for table, key, rec in (
             (samples, f"{r.key.fold}/{r.key.encoding}", {k: d[k] for k in ("train", "held_out")}),
             (aligned, r.key.fold, d.get("aligned") or {}),
