@@ -145,5 +145,6 @@ def frame_findings(
         rec.update(box_temperatures(frame.thermal, aligned))
         rec.update({k: getattr(frame.position, k) for k in FIELDS})
         rec["route"] = frame.route
+        rec["expected_error_px"] = frame.registration.get("expected_error_px")
         out.append(rec)
     return out

@@ -24,7 +24,7 @@ from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
 
 log = logging.getLogger(__name__)
 
-SCHEMA = 1
+SCHEMA = 2  # 2: inspection groups registered pooled over their captures
 
 
 @dataclass
@@ -308,11 +308,11 @@ class FrontEndThread:
 def group_registrations(
     fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
 ) -> dict[str, dict[str, Any]]:
-    """The registrations earlier calls accepted, per group (what a re-run's remaining frames reuse)."""
+    """The group registrations earlier calls made, per group (what a re-run's remaining frames reuse)."""
     out: dict[str, dict[str, Any]] = {}
     for name, rec in done.items():
         reg = rec.get("registered")
-        if groups is not None and reg and name in groups:
+        if groups is not None and reg and reg.get("group") is not None and name in groups:
             out.setdefault(groups[name], reg)
     return out
 
@@ -324,17 +324,20 @@ def frontend_results(
     groups: dict[str, str] | None = None,
     registered: dict[str, dict[str, Any]] | None = None,
     thread: FrontEndThread | None = None,
+    members: Sequence[Capture] | None = None,
 ) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
     """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each; with one
     worker, ``thread`` runs them beside the caller, else each is computed when the caller asks for it).
 
-    With ``groups`` (``{capture: inspection group}``) a group is registered once: its first capture whose automatic
-    registration passes the check registers it, and its later captures reuse that homography (until one passes,
-    each capture registers on its own), as the datasets register one homography per group."""
+    With ``groups`` (``{capture: inspection group}``) each group is registered once, pooled over all its captures
+    (``FrontEnd.register_group``; ``members``: the whole flight's captures, default ``caps``, in name order), when
+    its first capture comes up, and every capture of the group is screened with that registration (``registered``:
+    the groups registered already, by an earlier call)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     registered = dict(registered or {})
+    everyone = list(members if members is not None else caps)
     pool = None
     if workers > 1 and len(caps) > 1:
         import pickle
@@ -361,29 +364,31 @@ def frontend_results(
             return thread.submit(_run_frontend, fe, cap, i, given)
         return _Now(lambda: _run_frontend(fe, cap, i, given))
 
-    queue: deque = deque()  # (capture, future, group, registers its group)
+    failed: dict[str, str] = {}  # groups none of whose captures could be read, with the first error
+
+    def group_given(group: str) -> dict[str, Any] | None:
+        assert groups is not None
+        if group not in registered and group not in failed:
+            try:
+                registered[group] = fe.register_group([c for c in everyone if groups.get(c.name) == group], group)[0]
+            except ConfigError:
+                raise
+            except HarnessError as exc:
+                failed[group] = str(exc)
+        return registered.get(group)
+
+    queue: deque = deque()  # (capture, future)
     k = 0
     try:
         while k < len(caps) or queue:
             while k < len(caps) and len(queue) < 2 * max(1, workers):
                 cap = caps[k]
                 group = groups.get(cap.name) if groups is not None else None
-                given = None
-                if group is not None and group in registered:
-                    reg = registered[group]
-                    given = {
-                        "H": reg["H"],
-                        "registration": {**reg["registration"], "from": reg["capture"]},
-                        "route": f"auto (group {group})",
-                    }
-                elif group is not None and any(g == group for _, _, g, _ in queue):
-                    break  # the group's registration is pending: wait for it before its next capture
-                queue.append((cap, submit(cap, k, given), group, given is None and group is not None))
+                given = group_given(group) if group is not None else None
+                queue.append((cap, submit(cap, k, given)))
                 k += 1
-            cap, fut, group, leads = queue.popleft()
+            cap, fut = queue.popleft()
             frame, error, rejected = fut.result()
-            if leads and frame is not None and frame.registered is not None:
-                registered.setdefault(group, frame.registered)
             yield cap, frame, error, rejected
     finally:
         for item in queue:
@@ -606,7 +611,9 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     if req.workers == 1 and req.overlap and len(todo) > 1:
         thread = FrontEndThread()
     try:
-        results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
+        results = frontend_results(
+            fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread, flight.captures
+        )
         with _Bar(req.progress, len(flight.captures), len(done)) as bar:
             for cap, frame, error, rejected in results:
                 if frame is None:
@@ -644,6 +651,14 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     if stop is not None:
         raise DataError(f"{stop} (--fail-fast: stopped; the {screened} frame(s) screened before it are in {folder})")
     return result
+
+
+def _rejection(quality: dict[str, Any]) -> str:
+    """Why a frame was screened with the prior, and (a pooled group's) how far off the prior is expected to be."""
+    why = str(quality.get("reason", ""))
+    if quality.get("expected_error_px") is not None:
+        why += f"; expected registration error about {quality['expected_error_px']:g} px"
+    return why
 
 
 def _named(cap: Capture, error: str) -> tuple[str, str]:
@@ -699,9 +714,7 @@ def _finish(
     counts = Counter(f["class"] for f in findings)
     routes = Counter(r["route"] for r in frames)
     rejected = [
-        (r["frame"], str((r.get("registration") or {}).get("reason", "")))
-        for r in frames
-        if str(r["route"]).startswith("prior (")
+        (r["frame"], _rejection(r.get("registration") or {})) for r in frames if str(r["route"]).startswith("prior (")
     ]
     cpu = {k: timings.pop(k) for k in ("front_cpu", "model_cpu")}
     per = {k: (v / screened if screened else None) for k, v in timings.items()}

@@ -48,6 +48,7 @@ CSV_COLUMNS = (
     *TEMPERATURE_KEYS,
     *FIELDS,
     "route",
+    "expected_error_px",
     "rgb_file",
     "thermal_file",
     "overlay",
