@@ -120,7 +120,7 @@ def route_predictions(
 
 def _origins(cfg: dict[str, Any]) -> dict[int, tuple[float, float]]:
     """The crop origin of each of the run's prepared samples (the frame its ground truth is in)."""
-    from harness.prepare import prepare_dataset
+    from harness.runner import prepare_dataset
 
     prepared = prepare_dataset(str((cfg.get("meta") or {}).get("dataset")), cfg)
     out = {}

@@ -11,9 +11,10 @@ strong estimate:
    frame's RGB warped by the candidate; the best candidate wins;
 3. the candidates that **agree** with the winner (median distance over a grid of the thermal frame at most
    ``agree_px``) are averaged: a least-squares homography through all their grid correspondences;
-4. **the group's check**: enough frames agree (at least ``min_agreement`` of the frames used, and two), the pooled
-   correlation at the result beats the prior's, and no thermal corner moved more than ``max_corner_shift`` from the
-   prior. A group of one frame falls back on the single-frame check (``min_correlation``).
+4. **the group's check**: enough frames agree (at least ``min_agreement`` of the frames used, and two) or the pooled
+   correlation reaches ``min_correlation`` (the single-frame check, now over every frame: all a group of one frame
+   can offer), the pooled correlation at the result beats the prior's, and no thermal corner moved more than
+   ``max_corner_shift`` from the prior.
 
 A group that fails keeps the prior (``ok=False`` with the reason); ``PRIOR_ERROR_FRACTION`` is what the prior is then
 expected to be off by.
@@ -208,14 +209,14 @@ def register_pooled(
     shift = float(corner_error(H, H0, (w, h)).max())
     spread = float(np.median([_distance(W, W_pool, pts) for W in agree]))
     n = len(evidence)
+    need = max(2, math.ceil(min_agreement * n))
     reasons = []
-    if n == 1:
-        if not np.isfinite(rho) or rho < min_correlation:
-            reasons.append(f"one frame only, structure correlation {rho:.3f} below {min_correlation}")
-    else:
-        need = max(2, math.ceil(min_agreement * n))
-        if len(agree) < need:
-            reasons.append(f"{len(agree)} of {n} frames agree within {agree_px:.1f} px (need {need})")
+    if len(agree) < need and not (np.isfinite(rho) and rho >= min_correlation):
+        reasons.append(
+            (f"{len(agree)} of {n} frames agree within {agree_px:.1f} px (need {need}) and the " if n > 1 else
+             "one frame only, and its ")
+            + f"structure correlation {rho:.3f} is below {min_correlation}"
+        )
     if not rho > prior_rho:
         reasons.append(f"pooled correlation {rho:.3f} not above the prior's {prior_rho:.3f}")
     if shift > max_corner_shift:
