@@ -19,8 +19,18 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
 REPO = Path(__file__).resolve().parent.parent
 TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+FAST = [
+    "protocol.imgsz=64",
+    "protocol.epochs=1",
+    "protocol.patience=5",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0.5",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 FOLD = "P4+P5"
 
 
@@ -57,8 +67,21 @@ def trained(tiny_source, tmp_path_factory):
     sets = [a for s in [*FAST, f"dataset.root={tiny_source}"] for a in ("--set", s)]
     try:
         with temporary_plugin(tinydet, name="tinydet-route-test"):
-            _cli(["run", "--detector", "tinydet", "--dataset", "m3t-synth", "--folds", FOLD, "--store",
-                  str(root / "store"), "--no-progress", *sets])
+            _cli(
+                [
+                    "run",
+                    "--detector",
+                    "tinydet",
+                    "--dataset",
+                    "m3t-synth",
+                    "--folds",
+                    FOLD,
+                    "--store",
+                    str(root / "store"),
+                    "--no-progress",
+                    *sets,
+                ]
+            )
             run = root / "store" / "m3t-synth" / "tinydet" / "c2" / FOLD / "seed0"
             yield Trained(run, root / "store", tiny_source, root)
     finally:
@@ -133,8 +156,11 @@ def test_screening_a_multi_group_fold_with_default_options_gives_its_stored_pred
     for name, rec in frames.items():
         iid, stored_frame = route_frames[name]
         assert rec["route"] == stored_frame["route"] and rec["crop_origin"] == stored_frame["crop_origin"]
-        want = sorted((d["category_id"], d["bbox"], d["score"]) for d in stored
-                      if d["image_id"] == iid and d["score"] >= threshold)
+        want = sorted(
+            (d["category_id"], d["bbox"], d["score"])
+            for d in stored
+            if d["image_id"] == iid and d["score"] >= threshold
+        )
         got = sorted((f["class_id"] + 1, f["bbox"], f["score"]) for f in rec["findings"])
         assert got == want, name
         compared += len(want)

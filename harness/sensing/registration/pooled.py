@@ -173,7 +173,8 @@ def register_pooled(
     prior_rho = pooled(np.eye(3))
     best = int(np.argmax(scores))
     per_frame: list[dict[str, Any]] = []
-    if candidates[best] is None:
+    W_best = candidates[best]
+    if W_best is None:
         return PooledRegistration(
             H0,
             False,
@@ -186,14 +187,13 @@ def register_pooled(
             reason="ECC converged on no frame",
             expected_error_px=prior_error_px(size),
         )
-    W_best = candidates[best]
-    agree = []
-    for (i, *_), W, s in zip(evidence, candidates, scores):
-        d = _distance(W, W_best, pts) if W is not None else math.inf
+    agree: list[np.ndarray] = []
+    for (i, *_), cand, s in zip(evidence, candidates, scores):
+        d = _distance(cand, W_best, pts) if cand is not None else math.inf
         per_frame.append({"frame": i, "pooled_correlation": _r(s, 4), "distance_px": _r(d, 2)})
-        if d <= agree_px:
-            agree.append(W)
-    W_pool = W_best
+        if cand is not None and d <= agree_px:
+            agree.append(cand)
+    W_pool: np.ndarray = W_best
     if len(agree) > 1:  # least squares through every agreeing frame's correspondences
         import cv2
 
@@ -213,8 +213,11 @@ def register_pooled(
     reasons = []
     if len(agree) < need and not (np.isfinite(rho) and rho >= min_correlation):
         reasons.append(
-            (f"{len(agree)} of {n} frames agree within {agree_px:.1f} px (need {need}) and the " if n > 1 else
-             "one frame only, and its ")
+            (
+                f"{len(agree)} of {n} frames agree within {agree_px:.1f} px (need {need}) and the "
+                if n > 1
+                else "one frame only, and its "
+            )
             + f"structure correlation {rho:.3f} is below {min_correlation}"
         )
     if not rho > prior_rho:
