@@ -9,11 +9,13 @@ Every step is the one the raw datasets use (``harness.sensing``), driven by the 
 
    * ``file``: the ``--homography`` file (a homographies YAML, e.g. the ``homographies.yaml`` a prepared dataset
      holds: full-frame undistorted wide pixels of the calibration's ``K`` -> thermal pixels);
-   * ``auto``: automatic registration (ECC) from the factory prior, with its quality check
-     (``sensing.registration``); when the check rejects it the frame is listed and, by ``fallback``, screened with
-     the prior (``prior (automatic registration rejected)``) or not screened at all. An accepted registration
-     (``Frame.registered``) is handed to the later captures of its inspection group (``given``), as the datasets
-     register one homography per group;
+   * ``auto (group G)``: the inspection group's automatic registration, pooled over its captures
+     (``register_group``, ``harness.sensing.registration.pooled``) and handed to each of them (``given``), as the
+     datasets register one homography per group; when the group's check rejects it the group's frames are listed
+     and, by ``fallback``, screened with the prior (``prior (automatic registration rejected)``, with the error the
+     prior is expected to have) or not screened at all;
+   * ``auto``: with ``register="frame"``, automatic registration (ECC) of the capture alone from the factory prior,
+     with its single-frame check (``sensing.registration``), the prior when that fails;
    * ``prior``: the cameras' factory prior (35-mm focal lengths from the EXIF, centres aligned), when the run's
      ``sensing.registration.method`` is ``focal``;
 
@@ -428,8 +430,8 @@ class FrontEnd:
         """Decode, undistort, register, warp, crop and encode one capture. Bad files raise a ``HarnessError``
         naming the file; a rejected registration with ``fallback="skip"`` raises ``RegistrationRejected``.
 
-        ``given``: a registration made on another capture of the same inspection group (``Frame.registered`` of
-        that capture, with a ``route`` label), used instead of registering this one."""
+        ``given``: the registration of the capture's inspection group (``register_group``, with a ``route`` label),
+        used instead of registering this one."""
         from harness.sensing.pipeline import read_capture_thermal
         from harness.sensing.registration import HomographyEntry, normalize
 

@@ -384,6 +384,8 @@ def frontend_results(
             while k < len(caps) and len(queue) < 2 * max(1, workers):
                 cap = caps[k]
                 group = groups.get(cap.name) if groups is not None else None
+                if group is not None and group not in registered and group not in failed and queue:
+                    break  # a group is registered when the captures before it are done, with nothing beside it
                 given = group_given(group) if group is not None else None
                 queue.append((cap, submit(cap, k, given)))
                 k += 1

@@ -22,9 +22,10 @@ expected to be off by.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -104,6 +105,25 @@ def _distance(Wa: np.ndarray, Wb: np.ndarray, pts: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(apply_homography(Wa, pts) - apply_homography(Wb, pts), axis=1)))
 
 
+@contextlib.contextmanager
+def reproducible_opencv() -> Iterator[None]:
+    """OpenCV without Intel IPP in this thread, for the ``with`` block.
+
+    Some of IPP's kernels (``cv2.magnitude`` among those ECC's structure images use) take a path that depends on
+    where a buffer lies in memory, so the same registration of the same images could land a few hundredths of a
+    pixel (a candidate's ECC converging elsewhere) apart from one call to the next; without IPP it gives the same
+    digits every time, so a screen and ``harness score-route`` register a group identically. OpenCV keeps the
+    setting per thread."""
+    import cv2
+
+    before = cv2.ipp.useIPP()
+    cv2.ipp.setUseIPP(False)
+    try:
+        yield
+    finally:
+        cv2.ipp.setUseIPP(before)
+
+
 def evenly(n: int, k: int) -> list[int]:
     """``min(n, k)`` indices spread evenly over ``range(n)`` (all of them when ``n <= k``)."""
     if n <= k:
@@ -114,6 +134,17 @@ def evenly(n: int, k: int) -> list[int]:
 def register_pooled(
     pairs: Sequence[tuple[np.ndarray, np.ndarray]],
     init: np.ndarray,
+    **kwargs: Any,
+) -> PooledRegistration:
+    """One homography for an inspection group from its ``(rgb, thermal)`` pairs (see the module docstring), the same
+    to the last digit on every call (``reproducible_opencv``); ``kwargs``: those of ``_register_pooled``."""
+    with reproducible_opencv():
+        return _register_pooled(pairs, init, **kwargs)
+
+
+def _register_pooled(
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]],
+    init: np.ndarray,
     max_frames: int = 24,
     min_agreement: float = 0.25,
     agree_px: float | None = None,
@@ -122,7 +153,7 @@ def register_pooled(
     structure_sigma: float = 1.0,
     iterations: int = 100,
 ) -> PooledRegistration:
-    """One homography for an inspection group from its ``(rgb, thermal)`` pairs (see the module docstring).
+    """``register_pooled``'s work.
 
     ``pairs``: the group's frames in a fixed order (the result depends on it only through the choice of frames when
     there are more than ``max_frames``); RGB in the frame ``init`` starts from, thermal as temperature or 8-bit.
