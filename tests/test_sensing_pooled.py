@@ -76,3 +76,21 @@ def test_the_frames_looked_at_are_spread_over_the_group():
     picked = evenly(100, 24)
     assert len(picked) == 24 and picked[0] == 0 and picked[-1] == 99
     assert max(np.diff(picked)) - min(np.diff(picked)) <= 1
+
+
+def _shifted(a: np.ndarray, offset: int) -> np.ndarray:
+    """A copy of ``a`` starting ``offset`` bytes into a fresh buffer (another memory alignment, same values)."""
+    buf = np.zeros(a.nbytes + 64, np.uint8)
+    out = buf[offset : offset + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def test_a_group_registers_to_the_same_digits_wherever_its_images_lie_in_memory(weak_group):
+    """What lets a screen reproduce `harness score-route` exactly: OpenCV kernels whose path depends on a buffer's
+    alignment would move the result between calls."""
+    results = []
+    for offset in (0, 4, 8, 12, 36):
+        pairs = [(_shifted(rgb, offset), _shifted(th, offset)) for rgb, th in weak_group]
+        results.append(register_pooled(pairs, _prior()))
+    assert all(np.array_equal(r.H, results[0].H) and r.correlation == results[0].correlation for r in results)
