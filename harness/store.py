@@ -15,7 +15,6 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         checkpoints/         last.pt (resume) and best.pt (by fitness)
         screening_route.json the held-out fold scored under the registration route a new flight gets, written by
                              `harness score-route` (``harness.screen.route``); absent until then
-        screening_route/     that command's work folder
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
     <dataset>/_dataset.json                  {"dataset", "thermal", "sensing_stage"}: written with the runs, so that
                                              a report knows the dataset without its plugin

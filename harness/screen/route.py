@@ -203,8 +203,7 @@ def score_screening_route(run_dir: str | Path, routes: Sequence[str] = ("automat
         "predictions": {},
         "frames": {},
     }
-    work = run / "screening_route"
-    work.mkdir(exist_ok=True)
+    work = run  # the torch backend writes nothing there
     for route in routes:
         dets, frames, failures = route_predictions(sm, run, captures, route, work)
         scored = _scored(gt, dets, frames, origins, cfg)
