@@ -376,6 +376,9 @@ class FrontEnd:
             except HarnessError as exc:
                 error = error or exc
                 continue
+            except Exception as exc:  # noqa: BLE001 - a damaged file can make a decoder library raise anything
+                error = error or DataError(f"{caps[i].rgb}: {type(exc).__name__}: {exc}")
+                continue
             if first is None:
                 first = (prior, dreg, reduction, sizes)
             elif sizes != first[3] or not np.array_equal(prior, first[0]):
