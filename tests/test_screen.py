@@ -448,7 +448,8 @@ def test_a_rejected_registration_is_listed(trained, tmp_path):
     assert all(f["expected_error_px"] == 2.9 for f in rec["findings"]) and rec["findings"]
     with open(tmp_path / "prior" / "findings.csv", newline="") as f:
         assert {row["expected_error_px"] for row in csv.DictReader(f)} == {"2.90"}
-    assert "DJI_20240512094000_0001" in (tmp_path / "prior" / "index.html").read_text().split("Frames to check")[1]
+    to_check = (tmp_path / "prior" / "index.html").read_text().split("Frames to check")[1]
+    assert "DJI_20240512094000_0001" in to_check and "expected registration error about 2.9 px" in to_check
     text = _screen(trained, flight, tmp_path / "skip", "--fallback", "skip", code=1)
     assert "automatic registration rejected" in text and not _frames(tmp_path / "skip")
 

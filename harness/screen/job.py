@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator, Sequence
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.io import file_digest
 from harness.screen import outputs as out
-from harness.screen.findings import frame_findings
+from harness.screen.findings import frame_findings, registration_note
 from harness.screen.flight import Capture, Flight, find_captures, inspection_groups
 from harness.screen.frontend import Frame, FrontEnd, FrontEndSettings, RegistrationRejected
 from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
@@ -655,14 +655,6 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     return result
 
 
-def _rejection(quality: dict[str, Any]) -> str:
-    """Why a frame was screened with the prior, and (a pooled group's) how far off the prior is expected to be."""
-    why = str(quality.get("reason", ""))
-    if quality.get("expected_error_px") is not None:
-        why += f"; expected registration error about {quality['expected_error_px']:g} px"
-    return why
-
-
 def _named(cap: Capture, error: str) -> tuple[str, str]:
     """(the bad file, the reason) from an error text that starts with the file's path."""
     for path in (cap.thermal, cap.rgb):
@@ -716,7 +708,9 @@ def _finish(
     counts = Counter(f["class"] for f in findings)
     routes = Counter(r["route"] for r in frames)
     rejected = [
-        (r["frame"], _rejection(r.get("registration") or {})) for r in frames if str(r["route"]).startswith("prior (")
+        (r["frame"], registration_note(r.get("registration") or {}))
+        for r in frames
+        if str(r["route"]).startswith("prior (")
     ]
     cpu = {k: timings.pop(k) for k in ("front_cpu", "model_cpu")}
     per = {k: (v / screened if screened else None) for k, v in timings.items()}
