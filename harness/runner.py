@@ -189,8 +189,9 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
     for section, key in HASH_EXCLUDE | LOCATION_KEYS:
         if isinstance(trimmed.get(section), dict):
             trimmed[section].pop(key, None)
+    # the registration route is a record of how the prepared samples (identified by their fingerprint) were made
     trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items()
-                       if k != "sources" and ("meta", k) not in GUARD_KEYS}
+                       if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS}
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
     trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
@@ -310,6 +311,7 @@ def plan(request: RunRequest) -> RunPlan:
     # the cache key hashes what produced the samples: fingerprint, sensing settings, preparation version and the
     # dataset plugin's code, so a finished run on other samples is never reused as "same configuration"
     prepared_key = str(getattr(prepared, "key", None) or prepared.manifest.get("key", ""))
+    registration = _registration_routes(prepared)
     risks = [f"{r['kind']}: {r['message']}" for r in getattr(prepared, "input_risks", None) or []]
     if risks:
         cfg["meta"] = {**cfg.get("meta", {}), "input_risks": risks}
@@ -320,9 +322,20 @@ def plan(request: RunRequest) -> RunPlan:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
             rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "prepared_key": prepared_key,
                                          "val_groups": list(fold.val_groups),
-                                         "train_groups": list(fold.train_groups), **init_info})
+                                         "train_groups": list(fold.train_groups), **init_info,
+                                         **({"registration": registration} if registration else {})})
             runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
     return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
+
+
+def _registration_routes(prepared: Any) -> dict[str, Any] | None:
+    """The registration route the prepared samples were registered by, per inspection group (``meta.registration``
+    of every run on them; ``harness.sensing.registration.dataset.recorded_routes``); None for a prepared dataset
+    without a folder (a stand-in)."""
+    from harness.sensing.registration.dataset import recorded_routes
+
+    folder = getattr(prepared, "folder", None)
+    return recorded_routes(Path(folder)) if folder is not None else None
 
 
 def run(request: RunRequest) -> RunSummary:

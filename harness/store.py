@@ -13,6 +13,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
                              when the run is scored; absent for runs stored before it existed
         log.jsonl            one JSON object per epoch
         checkpoints/         last.pt (resume) and best.pt (by fitness)
+        screening_route.json the held-out fold scored under the registration route a new flight gets, written by
+                             `harness score-route` (``harness.screen.route``); absent until then
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
     <dataset>/_dataset.json                  {"dataset", "thermal", "sensing_stage"}: written with the runs, so that
                                              a report knows the dataset without its plugin

@@ -259,4 +259,4 @@ def test_the_report_knows_a_datasets_sensing_stage_from_the_store(labelled_store
                       {"dataset": "synth", "thermal": "radiometric", "sensing_stage": sensing_stage})
     sections, _ = dataset_sections(StoreView(labelled_store), "synth", 0, 0, ["window"])
     keys = {s.key for s in sections}
-    assert ({"registration", "displacement"} <= keys) is sensing_stage
+    assert ({"registration", "displacement", "screening-route"} <= keys) is sensing_stage

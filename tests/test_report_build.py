@@ -67,6 +67,7 @@ def test_absent_sections_are_stated_with_the_command_that_fills_them(built):
     absent = {s.key: s.absent for s in report.sections if s.absent}
     assert "harness sensing registration-error" in absent["registration"]
     assert "harness sensing displacement --dataset synth" in absent["displacement"]
+    assert "harness score-route RUN_DIR" in absent["screening-route"]
     md = (out / "report.md").read_text()
     assert md.count("*Absent.*") == len(absent)
     for title in (

@@ -73,6 +73,7 @@ def real_store(tmp_path_factory):
                   *sets])
             _cli(["ablate", "--detector", "tinydet", "--dataset", DATASET, "--encodings", "c2,ir8,none",
                   "--folds", "P4+P5", "--store", str(store), *sets])
+            _cli(["score-route", str(store / DATASET / "tinydet" / "c2" / "P4+P5" / "seed0")])
             for det in ("tinydet", "tinydet-dual"):
                 _cli(["run", "--detector", det, "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "all",
                       "--store", str(store), *sets[:-2]])
@@ -108,7 +109,10 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     # the seed's dataset has every section; the second dataset says what would fill its ablation, and has no sensing
     # sections: its runs recorded that it has no sensing stage (its plugin is not even loaded now)
     assert sorted(absent) == ["shapes/ablation"] and "harness ablate" in absent["shapes/ablation"]
-    assert not any(s.key in ("registration", "displacement") for s in report.sections if s.dataset == "shapes")
+    assert not any(s.key in ("registration", "displacement", "screening-route") for s in report.sections
+                   if s.dataset == "shapes")
+    (route,) = [s for s in report.sections if s.key == "screening-route" and s.dataset == DATASET]
+    assert [r["run"] for r in route.tables[0].rows] == ["tinydet/c2/P4+P5/seed0"]
     store = Store(real_store)
     titles = [t.title for t in report.tables]
     assert titles[:3] == [f"{DATASET}: project-grouped folds (held-out mAP, %)",

@@ -146,6 +146,30 @@ def test_screen_gives_exactly_the_runs_held_out_predictions(trained, screened):
     assert {k: manifest["frames"][k] for k in counts} == counts
 
 
+def test_a_default_screen_gives_the_runs_predictions_under_the_screening_route(trained, screened, tmp_path):
+    """No option but --run and --out: the group registered automatically, pooled over both captures, and the
+    findings exactly the predictions `harness score-route` stored for the run under that route."""
+    from harness.screen.route import score_screening_route
+
+    flight, _, _ = screened
+    result = score_screening_route(trained.run)
+    _screen(trained, flight, tmp_path / "default")
+    threshold = json.loads((tmp_path / "default" / "manifest.json").read_text())["model"]["threshold"]
+    stored = {f["frame"].split("/")[-1]: (int(i), f) for i, f in result["frames"]["automatic"].items()}
+    frames = _frames(tmp_path / "default")
+    found = 0
+    assert sorted(frames) == sorted(stored) == sorted(POSITIONS)
+    for name, rec in frames.items():
+        iid, want_frame = stored[name]
+        assert rec["route"] == want_frame["route"] == "auto (group G01)"
+        assert rec["registration"] == want_frame["registration"] and rec["registration"]["frames"] == 2
+        want = sorted((d["category_id"], d["bbox"], d["score"]) for d in result["predictions"]["automatic"]
+                      if d["image_id"] == iid and d["score"] >= threshold)
+        assert sorted((f["class_id"] + 1, f["bbox"], f["score"]) for f in rec["findings"]) == want, name
+        found += len(want)
+    assert found > 0
+
+
 def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):
     """Below the findings: the front end's [R, G, B, C2] and temperature map are the run's prepared samples."""
     from harness.cache import PreparedDataset
@@ -351,7 +375,7 @@ def test_the_front_end_beside_the_model_changes_nothing(trained, screened, tmp_p
         if route[0] is not None:
             assert [r["findings"] for r in recs[0].values()] == [r["findings"] for r in recs[1].values()]
         else:
-            assert [r["route"] for _, r in sorted(recs[0].items())] == ["auto", "auto (group G01)"]
+            assert [r["route"] for _, r in sorted(recs[0].items())] == ["auto (group G01)", "auto (group G01)"]
             _close(recs[0], recs[1], 1e-4, 0.01)
 
 
@@ -416,24 +440,32 @@ def test_a_rejected_registration_is_listed(trained, tmp_path):
     shutil.copy(trained.tiny / "images" / "P3" / "DJI_20240721131001_0001_W.JPG",
                 flight / "DJI_20240512094000_0001_W.JPG")
     text = _screen(trained, flight, tmp_path / "prior", "--conf", "0.001")
-    assert "registration check failed, screened with the factory prior: DJI_20240512094000_0001 (structure " \
-           "correlation" in text
+    assert "registration check failed, screened with the factory prior: DJI_20240512094000_0001 (one frame only, " \
+           "and its structure correlation" in text
+    assert "expected registration error about 2.9 px" in text  # 1.4 % of the 160x128 frame's diagonal
     (rec,) = _frames(tmp_path / "prior").values()
     assert rec["route"] == "prior (automatic registration rejected)" and rec["registration"]["ok"] is False
-    assert "DJI_20240512094000_0001" in (tmp_path / "prior" / "index.html").read_text().split("Frames to check")[1]
+    assert rec["registration"]["expected_error_px"] == 2.9
+    assert all(f["expected_error_px"] == 2.9 for f in rec["findings"]) and rec["findings"]
+    with open(tmp_path / "prior" / "findings.csv", newline="") as f:
+        assert {row["expected_error_px"] for row in csv.DictReader(f)} == {"2.90"}
+    to_check = (tmp_path / "prior" / "index.html").read_text().split("Frames to check")[1]
+    assert "DJI_20240512094000_0001" in to_check and "expected registration error about 2.9 px" in to_check
     text = _screen(trained, flight, tmp_path / "skip", "--fallback", "skip", code=1)
     assert "automatic registration rejected" in text and not _frames(tmp_path / "skip")
 
 
 def test_a_group_registers_once(trained, screened, tmp_path):
-    """Both P1 captures are 5 s apart: one inspection group, registered on its first capture."""
+    """Both P1 captures are 5 s apart: one inspection group, registered once from the evidence of both."""
     flight, _, _ = screened
     _screen(trained, flight, tmp_path / "group", "--conf", "0.001")
     recs = _frames(tmp_path / "group")
     first, second = (recs[n] for n in sorted(recs))
-    assert first["route"] == "auto" and first["registration"]["ok"] is True and first["registered"]
-    assert second["route"] == "auto (group G01)"
-    assert second["registration"]["from"] == first["frame"]
+    for rec in (first, second):
+        assert rec["route"] == "auto (group G01)" and rec["registration"]["ok"] is True
+        assert rec["registration"]["pooled"] is True and rec["registration"]["frames"] == 2
+        assert rec["registered"]["group"] == "G01"
+    assert first["registration"] == second["registration"]
     assert np.allclose(np.linalg.inv(first["H_rgb_to_aligned"]) @ second["H_rgb_to_aligned"], np.eye(3), atol=1e-9)
     _screen(trained, flight, tmp_path / "frame", "--conf", "0.001", "--register", "frame")
     assert [r["route"] for _, r in sorted(_frames(tmp_path / "frame").items())] == ["auto", "auto"]

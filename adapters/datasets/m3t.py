@@ -600,6 +600,27 @@ class M3TSource:
         if aligner is not None:
             aligner.registration.save(Path(folder) / "homographies.yaml", self.name)
 
+    def raw_captures(self, groups: Sequence[str]) -> list[tuple[int, str, Path, Path]]:
+        """``(image id, capture name, wide file, thermal file)`` of the raw captures of the projects ``groups``, as
+        ``harness screen`` would find them in the images folder (the capture name is the wide file's path under it
+        without the suffix and extension); captures without a thermal partner are left out."""
+        if self.manifest.format != "raw":
+            raise DataError(f"{self.root}: an aligned M3T dataset holds no raw captures")
+        out = []
+        for rec in self.records:
+            if rec.project not in groups:
+                continue
+            try:
+                thermal = self.thermal_partner(rec)
+            except SkipPair:
+                continue
+            rel = Path(rec.file_name)
+            stem = rel.stem
+            if self.manifest.rgb_suffix and stem.endswith(self.manifest.rgb_suffix):
+                stem = stem[: -len(self.manifest.rgb_suffix)]
+            out.append((rec.image_id, (rel.parent / stem).as_posix(), self.base / rec.file_name, thermal))
+        return out
+
     def thermal_partner(self, rec: ImageRecord) -> Path:
         m = self.manifest
         if rec.thermal_file:

@@ -14,6 +14,24 @@ def _fmt(v) -> str:
 
 @hookimpl
 def register_commands(cli: click.Group) -> None:
+    @cli.command(name="score-route")
+    @click.argument("runs", nargs=-1, required=True, type=click.Path(file_okay=False, exists=True))
+    def score_route_cmd(runs: tuple[str, ...]) -> None:
+        """Score finished runs' held-out folds under the registration route a new flight gets.
+
+        Each run's raw held-out captures go through `harness screen`'s front end with its default options (each
+        inspection group registered automatically, pooled over its captures; the factory prior where that fails),
+        and once with the prior alone; the scores are written to RUN/screening_route.json beside metrics.json and
+        shown by `harness report` ("accuracy under the screening route")."""
+        from harness.screen.route import score_screening_route, summary_lines
+
+        for run in runs:
+            result = score_screening_route(run)
+            click.echo(f"{run}:")
+            for line in summary_lines(result):
+                click.echo(f"  {line}")
+            click.echo(f"  -> {run}/screening_route.json")
+
     @cli.command(name="score")
     @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
     @opt.folds_option(one=True, required=True, old=("--fold",),

@@ -92,15 +92,16 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--focal-35mm", default=None, metavar="WIDE,THERMAL",
                   help="35-mm focal lengths for the factory prior when the EXIF lacks them, e.g. 24,40.")
     @click.option("--fallback", type=click.Choice(["prior", "skip"]), default="prior", show_default=True,
-                  help="A frame whose automatic registration fails its check: screened with the factory prior and "
-                       "listed, or listed and not screened.")
+                  help="A group (or frame) whose automatic registration fails its check: screened with the factory "
+                       "prior and listed with its expected error, or listed and not screened.")
     @click.option("--rgb-decode", type=click.Choice(["auto", "full"]), default="auto", show_default=True,
                   help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it by 2.2x or more, "
                        "keeping at least 0.85 wide pixel per thermal pixel; full: always in full (bit-identical "
                        "to the training data).")
     @click.option("--register", type=click.Choice(["group", "frame"]), default="group", show_default=True,
-                  help="Automatic registration once per inspection group (captures within the run's "
-                       "sensing.groups.gap_s of each other; as the datasets register), or for every frame.")
+                  help="Automatic registration once per inspection group, pooled over its captures (those within "
+                       "the run's sensing.groups.gap_s of each other; as the datasets register), or for every frame "
+                       "on its own.")
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
                   help="Processes for the front end (decode, register, warp, fourth channel).")
     @click.option("--threads", type=click.IntRange(min=1), default=None,

@@ -51,6 +51,7 @@ from harness.report.tables import (
     project_table,
     records_csv,
     registration_table,
+    screening_route_table,
 )
 from harness.store import Store
 
@@ -413,6 +414,16 @@ def dataset_sections(
     elif rows and not size_ap:
         sec.notes.append(f"AP per size bin: {evidence_secs[0].absent or 'not stored'}")
     sections.append(sec)
+
+    sec = Section("screening-route", "Accuracy under the screening route", dataset)
+    table = screening_route_table(view.finished_runs(dataset), dataset)
+    if table is not None:
+        sec.tables.append(table)
+    else:
+        sec.absent = (f"no run of {dataset} was scored under the screening route; fill with "
+                      f"`harness score-route RUN_DIR` (a finished run of the store).")
+    if table is not None or view.sensing_stage(dataset):
+        sections.append(sec)
 
     sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
     sections.append(sec)

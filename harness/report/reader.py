@@ -211,6 +211,17 @@ class StoredRun(Run):
         or None."""
         return self._analysis[1]
 
+    def screening_route(self) -> dict[str, Any] | None:
+        """The run's held-out fold scored under the screening route (``screening_route.json``, written by
+        ``harness score-route``; ``harness.screen.route``), or None when it was not scored so."""
+        path = self.path / "screening_route.json"
+        if not path.is_file():
+            return None
+        from harness.io import read_json
+
+        result = read_json(path)
+        return result if isinstance(result, dict) else None
+
     def ground_truth(self) -> dict[str, Any]:
         """The COCO ground truth the run was scored against (``gt.json``); a missing file is a ``StoreError``."""
         return self._json(self.gt_path, "ground truth")

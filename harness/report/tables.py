@@ -591,6 +591,41 @@ def registration_table(result: Mapping[str, Any], dataset: str) -> Table:
     return table
 
 
+def screening_route_table(runs: Sequence[Any], dataset: str) -> Table | None:
+    """``harness score-route``: each run's held-out mAP with its samples' registration (landmarks), under the route a
+    new flight gets (automatic registration pooled per inspection group, the prior where it fails) and with the
+    factory prior alone; None when no run of ``dataset`` was scored so."""
+    name = f"{_slug(dataset)}-screening-route"
+    cols = [Column("run", "Run"), Column("landmarks", "mAP50-95 landmarks", "pct"),
+            Column("automatic", "mAP50-95 automatic", "pct"), Column("prior", "mAP50-95 prior", "pct"),
+            Column("registered", "Registered automatically"), Column("route", "Samples registered by")]
+    table = Table(name, f"{dataset}: accuracy under the screening route (held-out fold, mAP50-95)", cols)
+    for run in runs:
+        result = run.screening_route()
+        if not result:
+            continue
+        routes = result.get("routes") or {}
+        auto = routes.get("automatic") or {}
+        row = {"run": f"{run.key.detector}/{run.key.encoding}/{run.name}",
+               **{r: (routes.get(r) or {}).get("mAP50_95") for r in ("landmarks", "automatic", "prior")},
+               "registered": f"{auto.get('registered_automatically', 0)} of {auto.get('screened', 0)} frames"
+               if auto else "-",
+               "route": str((result.get("recorded_route") or {}).get("route", "not recorded"))}
+        table.rows.append(row)
+        for r in ("landmarks", "automatic", "prior"):
+            if row[r] is not None:
+                table.records.append(record(name, f"mAP50_95_{r}", row[r], dataset=dataset,
+                                            detector=run.key.detector, encoding=run.key.encoding, fold=run.key.fold,
+                                            seeds=[run.key.seed], images=(routes.get(r) or {}).get("images")))
+    if not table.rows:
+        return None
+    table.notes.append("landmarks: the run's own score (its samples' registration); automatic: the held-out raw "
+                       "captures through `harness screen` with its default options (each inspection group registered "
+                       "automatically, pooled over its captures, the factory prior where that is rejected); prior: "
+                       "every group by the factory prior. Boxes are scored against the run's ground truth.")
+    return table
+
+
 def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
     """``harness sensing displacement``: relative in-box C2 amplitude R_c(d) per class and displacement."""
     name = f"{_slug(dataset)}-c2-displacement"

@@ -18,7 +18,7 @@ Missing temperatures (NaN) are left out of every statistic; a box or ring withou
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -120,6 +120,14 @@ def box_in_rgb(frame: Frame, box: Sequence[float]) -> list[float]:
     return _envelope(pts, frame.rgb_size)
 
 
+def registration_note(quality: Mapping[str, Any]) -> str:
+    """Why a frame was screened with the prior, and (a group's) how far off the prior is expected to be."""
+    why = str(quality.get("reason", ""))
+    if quality.get("expected_error_px") is not None:
+        why += f"; expected registration error about {quality['expected_error_px']:g} px"
+    return why
+
+
 def frame_findings(
     frame: Frame, detections: list[dict[str, Any]], categories: Sequence[str], threshold: float
 ) -> list[dict[str, Any]]:
@@ -148,5 +156,6 @@ def frame_findings(
         rec["temperature_route"] = "approximate" if frame.approximate_bound_c is not None else frame.thermal_decoder
         rec["t_bound_c"] = frame.approximate_bound_c
         rec["route"] = frame.route
+        rec["expected_error_px"] = frame.registration.get("expected_error_px")
         out.append(rec)
     return out

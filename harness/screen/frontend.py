@@ -9,11 +9,13 @@ Every step is the one the raw datasets use (``harness.sensing``), driven by the 
 
    * ``file``: the ``--homography`` file (a homographies YAML, e.g. the ``homographies.yaml`` a prepared dataset
      holds: full-frame undistorted wide pixels of the calibration's ``K`` -> thermal pixels);
-   * ``auto``: automatic registration (ECC) from the factory prior, with its quality check
-     (``sensing.registration``); when the check rejects it the frame is listed and, by ``fallback``, screened with
-     the prior (``prior (automatic registration rejected)``) or not screened at all. An accepted registration
-     (``Frame.registered``) is handed to the later captures of its inspection group (``given``), as the datasets
-     register one homography per group;
+   * ``auto (group G)``: the inspection group's automatic registration, pooled over its captures
+     (``register_group``, ``harness.sensing.registration.pooled``) and handed to each of them (``given``), as the
+     datasets register one homography per group; when the group's check rejects it the group's frames are listed
+     and, by ``fallback``, screened with the prior (``prior (automatic registration rejected)``, with the error the
+     prior is expected to have) or not screened at all;
+   * ``auto``: with ``register="frame"``, automatic registration (ECC) of the capture alone from the factory prior,
+     with its single-frame check (``sensing.registration``), the prior when that fails;
    * ``prior``: the cameras' factory prior (35-mm focal lengths from the EXIF, centres aligned), when the run's
      ``sensing.registration.method`` is ``focal``;
 
@@ -50,7 +52,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -72,6 +74,12 @@ REDUCTION_MARGIN = 1.1
 #: any other is decoded at the smallest scale that keeps at least this many pixels per thermal pixel
 MIN_SAMPLING = 0.85
 _IMREAD_REDUCED = {2: "IMREAD_REDUCED_COLOR_2", 4: "IMREAD_REDUCED_COLOR_4", 8: "IMREAD_REDUCED_COLOR_8"}
+
+
+#: frames of an inspection group its pooled automatic registration looks at (spread evenly over the group)
+POOLED_FRAMES = 24
+#: the route of a frame screened with the factory prior after its automatic registration was rejected
+REJECTED_ROUTE = "prior (automatic registration rejected)"
 
 
 class RegistrationRejected(HarnessError):
@@ -352,13 +360,123 @@ class FrontEnd:
             f_th = given[1]
         return (f_rgb, f_th) if f_rgb and f_th else None
 
+    # ------------------------------------------------------------------ an inspection group
+    def _registration_input(self, cap: Capture) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any, int, tuple]:
+        """(undistorted wide image, undistorted thermal map or preview, the factory prior in their frame, the
+        frame conversions, decode reduction, (wide size, thermal size)) of one capture, as ``process`` makes them."""
+        from harness.sensing.pipeline import read_capture_thermal
+
+        rgb_data = _read(cap.rgb)
+        layout = read_header(rgb_data, cap.rgb)
+        rgb_size = (layout.width, layout.height)
+        self._check_rgb_size(rgb_size, cap.rgb)
+        thermal_data = _read(cap.thermal)
+        temp, ir8, _ = read_capture_thermal(cap.thermal, self.options)
+        th, tw = temp.shape
+        is_jpeg = cap.thermal.suffix.lower() in (".jpg", ".jpeg")
+        th_layout = jpeg.read_segments(thermal_data, cap.thermal, require_eoi=False) if is_jpeg else None
+        focal = self._focal(layout, th_layout)
+        if focal is None:
+            raise DataError(
+                f"{cap.rgb}: no 35-mm focal length in the EXIF of the wide or thermal image, so no "
+                "factory prior; give --focal-35mm WIDE,THERMAL or --homography FILE"
+            )
+        _, full_reg = self._context(1, rgb_size)
+        full_reg.focal_35mm = focal
+        prior_full = full_reg.prior(rgb_size, (tw, th))
+        reduction = 1
+        if self.settings.rgb_decode == "auto":
+            reduction = reduction_for(source_scale(prior_full, (tw, th)), rgb_size)
+        rgb = decode_rgb(rgb_data, cap.rgb, reduction)
+        ctx, dreg = self._context(reduction, rgb_size)
+        prior = prior_full
+        if reduction != 1:
+            prior = self._to_frame(self._to_k(prior_full, full_reg, 1), dreg, reduction)
+        rgb_u, _ = ctx.undistort_rgb(rgb)
+        th_u, ir8_u, _ = ctx.undistort_thermal(temp, ir8)
+        return rgb_u, (th_u if th_u is not None else ir8_u), prior, dreg, reduction, (rgb_size, (tw, th))
+
+    def register_group(self, caps: Sequence[Capture], name: str = "") -> tuple[dict[str, Any], tuple[int, int]]:
+        """One automatic registration for the captures of an inspection group, pooled over them
+        (``harness.sensing.registration.pooled.register_pooled``, at most ``POOLED_FRAMES`` of them, spread evenly
+        in the order given); returns what ``process`` takes as ``given`` for each of them, and the thermal size.
+
+        ``given``: ``H`` (full-frame undistorted wide pixels of K -> thermal), ``prior`` (the same for the factory
+        prior), ``route`` (``auto (group NAME)``, or ``prior (automatic registration rejected)`` when the group's
+        evidence fails: then ``H`` is the prior), ``registration`` (``ok`` and the pooled quality; on a failure the
+        reason and the error the prior is expected to have). A capture that cannot be read gives no evidence (it
+        fails on its own later); a group of which none can be read raises its ``DataError``."""
+        from harness.sensing.registration.pooled import evenly, register_pooled
+
+        o = self.options.registration
+        pairs, first, error = [], None, None
+        for i in evenly(len(caps), POOLED_FRAMES):
+            try:
+                rgb_u, th_u, prior, dreg, reduction, sizes = self._registration_input(caps[i])
+            except ConfigError:
+                raise
+            except HarnessError as exc:
+                error = error or exc
+                continue
+            except Exception as exc:  # noqa: BLE001 - a damaged file can make a decoder library raise anything
+                error = error or DataError(f"{caps[i].rgb}: {type(exc).__name__}: {exc}")
+                continue
+            if first is None:
+                first = (prior, dreg, reduction, sizes)
+            elif sizes != first[3] or not np.array_equal(prior, first[0]):
+                log.warning(
+                    "%s: other image sizes or focal lengths than the rest of its inspection group; left out "
+                    "of the group's registration",
+                    caps[i].rgb,
+                )
+                continue
+            pairs.append((rgb_u, th_u))
+        if first is None:
+            raise error if error is not None else DataError("an empty inspection group")
+        prior, dreg, reduction, sizes = first
+        res = register_pooled(
+            pairs,
+            prior,
+            max_frames=POOLED_FRAMES,
+            min_correlation=o.min_correlation,
+            max_corner_shift=o.max_corner_shift,
+        )
+        quality = {"ok": res.ok, **res.quality()}
+        if res.ok:
+            log.info(
+                "inspection group %s registered automatically from %d frame(s) (%d agreeing, pooled "
+                "correlation %.3f, prior %.3f)",
+                name,
+                res.frames,
+                res.agreeing,
+                res.correlation,
+                res.prior_correlation,
+            )
+        else:
+            log.warning(
+                "inspection group %s: automatic registration rejected (%s); screened with the factory "
+                "prior, expected error about %s px",
+                name,
+                res.reason,
+                res.expected_error_px,
+            )
+        given = {
+            "H": self._to_k(res.H, dreg, reduction).tolist(),
+            "prior": self._to_k(prior, dreg, reduction).tolist(),
+            "registration": quality,
+            "route": f"auto (group {name})" if res.ok else REJECTED_ROUTE,
+            "group": name,
+            "capture": None,
+        }
+        return given, sizes[1]
+
     # ------------------------------------------------------------------ one capture
     def process(self, cap: Capture, image_id: int = 0, given: Mapping[str, Any] | None = None) -> Frame:
         """Decode, undistort, register, warp, crop and encode one capture. Bad files raise a ``HarnessError``
         naming the file; a rejected registration with ``fallback="skip"`` raises ``RegistrationRejected``.
 
-        ``given``: a registration made on another capture of the same inspection group (``Frame.registered`` of
-        that capture, with a ``route`` label), used instead of registering this one."""
+        ``given``: the registration of the capture's inspection group (``register_group``, with a ``route`` label),
+        used instead of registering this one."""
         from harness.sensing.pipeline import read_capture_thermal
         from harness.sensing.radiometry import route_meta
         from harness.sensing.registration import HomographyEntry, normalize
@@ -397,6 +515,10 @@ class FrontEnd:
             full_reg.focal_35mm = focal
             prior_full = full_reg.prior(rgb_size, (tw, th))
         # the scale the warp shrinks the wide image by decides the decode
+        if given is not None and (given.get("registration") or {}).get("ok") is False:
+            if self.settings.fallback == "skip":
+                reason = given["registration"].get("reason", "")
+                raise RegistrationRejected(f"{cap.rgb}: automatic registration rejected ({reason})")
         fixed = self.homography if given is None else np.asarray(given["H"], np.float64)
         if fixed is not None:
             H_full = self._to_frame(fixed, full_reg, 1)
@@ -426,6 +548,8 @@ class FrontEnd:
             ctx.entries[group] = HomographyEntry(self._to_frame(fixed, dreg, reduction), "given")
             if given is not None:
                 route, quality = str(given.get("route", "given")), dict(given.get("registration") or {})
+                if given.get("group") is not None:  # a pooled group registration: kept for a re-run's frames
+                    registered = dict(given)
             else:
                 route = "file"
         boxes, labels = np.zeros((0, 4), np.float32), np.zeros(0, np.int64)
@@ -448,7 +572,7 @@ class FrontEnd:
                 raise RegistrationRejected(f"{cap.rgb}: automatic registration rejected ({res.reason})") from None
             ctx.entries[group] = HomographyEntry(normalize(prior), "focal")  # type: ignore[arg-type]
             pair = ctx.align_capture(rgb, temp, ir8, boxes, labels, group, boxes_frame="thermal", prior=prior)
-            route = "prior (automatic registration rejected)"
+            route = REJECTED_ROUTE
         t2, c2 = time.perf_counter(), time.thread_time()
 
         sample = pair.to_sample(image_id, group, {"file_name": cap.rgb.name})

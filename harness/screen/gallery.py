@@ -14,6 +14,7 @@ from html import escape
 from typing import Any, Sequence
 
 from harness.screen.outputs import score_digits
+from harness.screen.findings import registration_note
 
 #: findings shown per class (all are in findings.csv)
 MAX_CARDS = 400
@@ -118,7 +119,7 @@ def render(
         out += [f"<li class='warn'>{escape(p)}: {escape(r)}</li>" for p, r in failures]
         out += [
             f"<li>{escape(f['frame'])}: {escape(f['route'])} "
-            f"({escape(str((f.get('registration') or {}).get('reason', '')))})</li>"
+            f"({escape(registration_note(f.get('registration') or {}))})</li>"
             for f in prior
         ]
         out.append("</ul>")

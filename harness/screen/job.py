@@ -20,14 +20,14 @@ from typing import Any, Callable, Iterator, Sequence
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.io import file_digest
 from harness.screen import outputs as out
-from harness.screen.findings import frame_findings
+from harness.screen.findings import frame_findings, registration_note
 from harness.screen.flight import Capture, Flight, find_captures, inspection_groups
 from harness.screen.frontend import Frame, FrontEnd, FrontEndSettings, RegistrationRejected
 from harness.screen.model import Predictor, ScreenModel, from_run, from_weights
 
 log = logging.getLogger(__name__)
 
-SCHEMA = 2  # 2: positions carry gps_source (XMP, EXIF)
+SCHEMA = 3  # 2: positions carry gps_source (XMP, EXIF); 3: inspection groups registered pooled
 
 
 @dataclass
@@ -349,11 +349,11 @@ class FrontEndThread:
 def group_registrations(
     fe: FrontEnd, groups: dict[str, str] | None, done: dict[str, dict[str, Any]]
 ) -> dict[str, dict[str, Any]]:
-    """The registrations earlier calls accepted, per group (what a re-run's remaining frames reuse)."""
+    """The group registrations earlier calls made, per group (what a re-run's remaining frames reuse)."""
     out: dict[str, dict[str, Any]] = {}
     for name, rec in done.items():
         reg = rec.get("registered")
-        if groups is not None and reg and name in groups:
+        if groups is not None and reg and reg.get("group") is not None and name in groups:
             out.setdefault(groups[name], reg)
     return out
 
@@ -365,17 +365,20 @@ def frontend_results(
     groups: dict[str, str] | None = None,
     registered: dict[str, dict[str, Any]] | None = None,
     thread: FrontEndThread | None = None,
+    members: Sequence[Capture] | None = None,
 ) -> Iterator[tuple[Capture, Frame | None, str | None, bool]]:
     """Each capture's front-end result, in order (``workers`` processes, at most two captures queued each; with one
     worker, ``thread`` runs them beside the caller, else each is computed when the caller asks for it).
 
-    With ``groups`` (``{capture: inspection group}``) a group is registered once: its first capture whose automatic
-    registration passes the check registers it, and its later captures reuse that homography (until one passes,
-    each capture registers on its own), as the datasets register one homography per group."""
+    With ``groups`` (``{capture: inspection group}``) each group is registered once, pooled over all its captures
+    (``FrontEnd.register_group``; ``members``: the whole flight's captures, default ``caps``, in name order), when
+    its first capture comes up, and every capture of the group is screened with that registration (``registered``:
+    the groups registered already, by an earlier call)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     registered = dict(registered or {})
+    everyone = list(members if members is not None else caps)
     pool = None
     if workers > 1 and len(caps) > 1:
         import pickle
@@ -402,29 +405,33 @@ def frontend_results(
             return thread.submit(_run_frontend, fe, cap, i, given)
         return _Now(lambda: _run_frontend(fe, cap, i, given))
 
-    queue: deque = deque()  # (capture, future, group, registers its group)
+    failed: dict[str, str] = {}  # groups none of whose captures could be read, with the first error
+
+    def group_given(group: str) -> dict[str, Any] | None:
+        assert groups is not None
+        if group not in registered and group not in failed:
+            try:
+                registered[group] = fe.register_group([c for c in everyone if groups.get(c.name) == group], group)[0]
+            except ConfigError:
+                raise
+            except HarnessError as exc:
+                failed[group] = str(exc)
+        return registered.get(group)
+
+    queue: deque = deque()  # (capture, future)
     k = 0
     try:
         while k < len(caps) or queue:
             while k < len(caps) and len(queue) < 2 * max(1, workers):
                 cap = caps[k]
                 group = groups.get(cap.name) if groups is not None else None
-                given = None
-                if group is not None and group in registered:
-                    reg = registered[group]
-                    given = {
-                        "H": reg["H"],
-                        "registration": {**reg["registration"], "from": reg["capture"]},
-                        "route": f"auto (group {group})",
-                    }
-                elif group is not None and any(g == group for _, _, g, _ in queue):
-                    break  # the group's registration is pending: wait for it before its next capture
-                queue.append((cap, submit(cap, k, given), group, given is None and group is not None))
+                if group is not None and group not in registered and group not in failed and queue:
+                    break  # a group is registered when the captures before it are done, with nothing beside it
+                given = group_given(group) if group is not None else None
+                queue.append((cap, submit(cap, k, given)))
                 k += 1
-            cap, fut, group, leads = queue.popleft()
+            cap, fut = queue.popleft()
             frame, error, rejected = fut.result()
-            if leads and frame is not None and frame.registered is not None:
-                registered.setdefault(group, frame.registered)
             yield cap, frame, error, rejected
     finally:
         for item in queue:
@@ -649,7 +656,9 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
         thread = FrontEndThread()
     interrupted = False
     try:
-        results = frontend_results(fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread)
+        results = frontend_results(
+            fe, todo, req.workers, groups, group_registrations(fe, groups, done), thread, flight.captures
+        )
         with _Bar(req.progress, len(flight.captures), len(done)) as bar:
             try:
                 for cap, frame, error, rejected in results:
@@ -867,7 +876,7 @@ def _finish(
     positions = position_counts(frames)
     temperatures = temperature_counts(frames)
     rejected = [
-        (r["frame"], str((r.get("registration") or {}).get("reason", "")))
+        (r["frame"], registration_note(r.get("registration") or {}))
         for r in frames
         if str(r["route"]).startswith("prior (")
     ]

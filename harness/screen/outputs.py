@@ -51,6 +51,7 @@ CSV_COLUMNS = (
     *FIELDS,
     "gps_source",
     "route",
+    "expected_error_px",
     "rgb_file",
     "thermal_file",
     "overlay",

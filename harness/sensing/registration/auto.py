@@ -184,12 +184,10 @@ def estimate_homography_auto(
     (default: 10 % of the thermal diagonal). A failed pair comes back with ``ok=False``, a ``reason`` and
     ``H = init``.
     """
-    import cv2
-
-    from harness.sensing.warp import warp_to_thermal
-
     th = np.asarray(thermal)
     if th.ndim != 2:
+        import cv2
+
         th = cv2.cvtColor(th, cv2.COLOR_RGB2GRAY)
     h, w = th.shape
     rgb_arr = np.asarray(rgb)
@@ -200,12 +198,8 @@ def estimate_homography_auto(
     H0 = normalize(init)
     if max_corner_shift is None:
         max_corner_shift = 0.1 * math.hypot(w, h)
-    warped, valid = warp_to_thermal(rgb_arr, H0, (h, w), fill="replicate")
-    tmpl = structure_image(th, structure_sigma)
-    img = structure_image(warped, structure_sigma)
-    # only where the pre-warped RGB is real (eroded: the replicated border carries no structure)
-    mask = cv2.erode(valid.astype(np.uint8), np.ones((9, 9), np.uint8))
-    if mask.sum() < 0.1 * h * w:
+    pair = structure_pair(rgb_arr, th, H0, structure_sigma)
+    if pair is None:
         return AutoRegistration(
             H0,
             False,
@@ -214,7 +208,63 @@ def estimate_homography_auto(
             0.0,
             reason="the initial homography puts less than 10% of the thermal frame on RGB pixels",
         )
+    tmpl, img, mask = pair
     init_rho = ecc_correlation(tmpl, img, mask)
+    W, converged, report = refine_warp(tmpl, img, mask, levels, motion, iterations, search_scale, search_rotation_deg)
+    final_rho = ecc_correlation(tmpl, _warp_inverse(img, W), mask)
+    H = normalize(np.linalg.inv(W) @ H0)
+    shift = float(corner_error(H, H0, (w, h)).max())
+    reasons = []
+    if not converged:
+        reasons.append("ECC did not converge at any level")
+    if not np.isfinite(final_rho) or final_rho < min_correlation:
+        reasons.append(f"structure correlation {final_rho:.3f} below {min_correlation}")
+    if shift > max_corner_shift:
+        reasons.append(f"a corner moved {shift:.1f} px from the initial homography (limit {max_corner_shift:.1f})")
+    ok = not reasons
+    return AutoRegistration(
+        H if ok else H0, ok, float(final_rho), float(init_rho), shift, reason="; ".join(reasons), levels=report
+    )
+
+
+def structure_pair(
+    rgb: np.ndarray, thermal: np.ndarray, H0: np.ndarray, structure_sigma: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(thermal structure, structure of the RGB warped into the thermal frame by ``H0``, mask) on the thermal pixel
+    grid, what ECC compares; the mask is where the pre-warped RGB is real (eroded: the replicated border carries no
+    structure). None when ``H0`` puts less than 10 % of the thermal frame on RGB pixels."""
+    import cv2
+
+    from harness.sensing.warp import warp_to_thermal
+
+    th = np.asarray(thermal)
+    if th.ndim != 2:
+        th = cv2.cvtColor(th, cv2.COLOR_RGB2GRAY)
+    h, w = th.shape
+    warped, valid = warp_to_thermal(np.asarray(rgb), H0, (h, w), fill="replicate")
+    tmpl = structure_image(th, structure_sigma)
+    img = structure_image(warped, structure_sigma)
+    mask = cv2.erode(valid.astype(np.uint8), np.ones((9, 9), np.uint8))
+    if mask.sum() < 0.1 * h * w:
+        return None
+    return tmpl, img, mask
+
+
+def refine_warp(
+    tmpl: np.ndarray,
+    img: np.ndarray,
+    mask: np.ndarray,
+    levels: int | None = None,
+    motion: str = "homography",
+    iterations: int = 100,
+    search_scale: float = 0.06,
+    search_rotation_deg: float = 4.0,
+) -> tuple[np.ndarray, int, list[dict[str, Any]]]:
+    """ECC coarse to fine from the identity (``estimate_homography_auto``'s steps 2 and 3): the warp ``W`` (thermal
+    pixel -> pre-warped pixel), how many levels converged, and a report per level."""
+    import cv2
+
+    h, w = tmpl.shape
     if levels is None:
         levels = 1
         while min(h, w) / 2**levels >= 64 and w / 2**levels >= 80:
@@ -254,20 +304,7 @@ def estimate_homography_auto(
         W = np.linalg.inv(S) @ W_l @ S
         converged += 1
         report.append({"level": lvl, "step": mot, "correlation": rho, "converged": True})
-    final_rho = ecc_correlation(tmpl, _warp_inverse(img, W), mask)
-    H = normalize(np.linalg.inv(W) @ H0)
-    shift = float(corner_error(H, H0, (w, h)).max())
-    reasons = []
-    if not converged:
-        reasons.append("ECC did not converge at any level")
-    if not np.isfinite(final_rho) or final_rho < min_correlation:
-        reasons.append(f"structure correlation {final_rho:.3f} below {min_correlation}")
-    if shift > max_corner_shift:
-        reasons.append(f"a corner moved {shift:.1f} px from the initial homography (limit {max_corner_shift:.1f})")
-    ok = not reasons
-    return AutoRegistration(
-        H if ok else H0, ok, float(final_rho), float(init_rho), shift, reason="; ".join(reasons), levels=report
-    )
+    return W, converged, report
 
 
 def read_image_rgb(path: str | Path) -> np.ndarray:

@@ -158,3 +158,25 @@ class DatasetRegistration:
             else "RGB pixels -> thermal pixels"
         )
         return save_homographies(path, entries, meta={"frame": frame, "dataset": dataset})
+
+
+#: how a homographies file's ``method`` names a registration route
+ROUTE_NAMES = {"landmarks": "landmarks", "auto": "automatic", "focal": "prior", "dataset file": "file",
+               "similarity": "similarity", "manual": "file"}
+
+
+def recorded_routes(folder: Path) -> dict[str, Any]:
+    """The registration route a prepared dataset's samples were registered by, per inspection group: read from the
+    ``homographies.yaml`` its raw-form adapter wrote beside the samples (``DatasetRegistration.save``).
+
+    Returns ``{"route": one route or "mixed", "groups": {group: route}}``; a route is ``landmarks``, ``automatic``,
+    ``prior``, ``file`` or ``similarity``. Without that file the samples came aligned (``route: "none (aligned by
+    the dataset)"``, no groups)."""
+    from harness.sensing.registration.files import load_homography_entries
+
+    path = Path(folder) / "homographies.yaml"
+    if not path.is_file():
+        return {"route": "none (aligned by the dataset)", "groups": {}}
+    groups = {g: ROUTE_NAMES.get(e.method, e.method) for g, e in sorted(load_homography_entries(path).items())}
+    kinds = sorted(set(groups.values()))
+    return {"route": kinds[0] if len(kinds) == 1 else "mixed", "groups": groups}
