@@ -420,8 +420,10 @@ def dataset_sections(
     if table is not None:
         sec.tables.append(table)
     else:
-        sec.absent = (f"no run of {dataset} was scored under the screening route; fill with "
-                      f"`harness score-route RUN_DIR` (a finished run of the store).")
+        sec.absent = (
+            f"no run of {dataset} was scored under the screening route; fill with "
+            f"`harness score-route RUN_DIR` (a finished run of the store)."
+        )
     if table is not None or view.sensing_stage(dataset):
         sections.append(sec)
 

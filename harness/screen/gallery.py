@@ -13,8 +13,8 @@ from collections import Counter
 from html import escape
 from typing import Any, Sequence
 
-from harness.screen.outputs import score_digits
 from harness.screen.findings import registration_note
+from harness.screen.outputs import score_digits
 
 #: findings shown per class (all are in findings.csv)
 MAX_CARDS = 400

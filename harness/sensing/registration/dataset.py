@@ -161,8 +161,14 @@ class DatasetRegistration:
 
 
 #: how a homographies file's ``method`` names a registration route
-ROUTE_NAMES = {"landmarks": "landmarks", "auto": "automatic", "focal": "prior", "dataset file": "file",
-               "similarity": "similarity", "manual": "file"}
+ROUTE_NAMES = {
+    "landmarks": "landmarks",
+    "auto": "automatic",
+    "focal": "prior",
+    "dataset file": "file",
+    "similarity": "similarity",
+    "manual": "file",
+}
 
 
 def recorded_routes(folder: Path) -> dict[str, Any]:
