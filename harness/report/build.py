@@ -367,7 +367,11 @@ def dataset_sections(
     root = view.root
     entries = view.entries(dataset)
     rows, _, _ = main_entries(entries)
-    evidence_secs, size_ap, evidence = evidence_sections(dataset, rows, _entry_names(rows), out, root)
+    shown = rows
+    if view.references is not None and not view.pairs_with_references(dataset):
+        # references trained at another budget: in the tables for scale, not in this store's error analysis
+        shown = [e for e in rows if not e.detector.startswith(REF_PREFIX)]
+    evidence_secs, size_ap, evidence = evidence_sections(dataset, shown, _entry_names(shown), out, root)
     sections: list[Section] = []
     run_cmd = f"`harness run --detector D --dataset {dataset} --folds all --store {root}`"
 
