@@ -64,6 +64,11 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     entropy-coded data of the main image has no end-of-image marker (a file cut inside the picture).
     """
     n = len(data)
+    if 2 <= n < 4 and data[0] == 0xFF and data[1] == SOI:
+        raise DataError(
+            f"{name}: truncated JPEG: the file holds only {n} bytes ({data.hex(' ')}), the start-of-image marker and "
+            "nothing after it; pass an R-JPEG straight from the camera"
+        )
     if n < 4 or data[0] != 0xFF or data[1] != SOI:
         head = data[:8].hex(" ") if n else "empty"
         raise DataError(
