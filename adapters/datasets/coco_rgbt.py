@@ -107,6 +107,8 @@ class PairEntry:
     homography: np.ndarray | None
     #: (annotation id, [x, y, w, h], label)
     boxes: list[tuple[Any, list[float], int]] = field(default_factory=list)
+    #: per box: ``iscrowd`` set (a crowd region: ignored by the evaluation, never a training instance)
+    crowd: list[bool] = field(default_factory=list)
 
 
 @dataclass
@@ -173,6 +175,7 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
         pair = pairs.get(ann.image_id)
         if pair is not None:  # not an image left out above for its malformed homography
             pair.boxes.append((ann.id, ann.bbox, label_of[ann.category_id]))
+            pair.crowd.append(bool(ann.entry.get("iscrowd")))
 
     folds = None
     if coco.get("folds") is not None:
@@ -359,6 +362,9 @@ class CocoRgbtSource:
             yield sample
         if stats.clipped:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
+        if stats.crowd:
+            report.note(f"{stats.crowd} crowd box(es) (iscrowd 1) kept as crowd regions: the evaluation ignores "
+                        "detections on them, as COCO does, and training does not use them as instances")
         if warped:
             report.note(f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
                         "homography" + (" and cropped to the common support" if self.sensing.warp.crop else ""))
@@ -408,6 +414,7 @@ class CocoRgbtSource:
         for i in np.nonzero(~keep)[0]:
             report.skip(f"{self.ann_path.name}#annotation={ids[i]}",
                         f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame")
+        crowd = np.asarray(p.crowd, bool).reshape(-1)[keep]
         boxes, labels, ids = boxes[keep], labels[keep], [a for a, k in zip(ids, keep) if k]
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
         from harness.sensing.radiometry import ROUTE_META_KEYS
@@ -416,6 +423,7 @@ class CocoRgbtSource:
                                 "thermal_unit": info.get("unit"), "thermal_format": info.get("format"),
                                 **{k: v for k, v in info.items() if k in ROUTE_META_KEYS}}
         if H is None:
+            _mark_crowd(meta, crowd, stats)
             sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
                                    labels=labels, group=p.group, meta=meta)
             return sample, stats
@@ -429,10 +437,19 @@ class CocoRgbtSource:
         except DataError as exc:
             raise SkipPair(f"registration failed: {exc}") from None
         meta["ann_ids"] = [a for a, k in zip(ids, pair.kept) if k]
+        _mark_crowd(meta, crowd[np.asarray(pair.kept, bool)], stats)
         dropped = int((~pair.kept).sum())
         if dropped:
             report.note(f"{p.file_name}: {dropped} box(es) outside the common support of RGB and thermal dropped")
         return pair.to_sample(p.image_id, p.group, meta), stats
+
+
+def _mark_crowd(meta: dict[str, Any], crowd: np.ndarray, stats: BoxStats) -> None:
+    """``meta["crowd"]``: the indices of the sample's crowd boxes (``iscrowd`` 1), when it has any; the prepared
+    cache keeps them as crowd regions (``PreparedDataset.targets`` leaves them out, its COCO files mark them)."""
+    if crowd.any():
+        meta["crowd"] = [int(k) for k in np.flatnonzero(crowd)]
+        stats.crowd += int(crowd.sum())
 
 
 def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
