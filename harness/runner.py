@@ -259,9 +259,9 @@ class PlannedRun:
     def _other_samples(self) -> str | None:
         """``meta.prepared_samples: OLD -> NEW ...`` when the finished run recorded which samples its image ids held
         and the prepared data under the same key now holds others; else None."""
-        now = (self.config.get("meta") or {}).get(SAMPLES_KEY[1])
-        then = ((self.stored_config() or {}).get("meta") or {}).get(SAMPLES_KEY[1])
-        if now and then and now != then:
+        meta_now, meta_then = self.config.get("meta") or {}, (self.stored_config() or {}).get("meta") or {}
+        now, then = meta_now.get(SAMPLES_KEY[1]), meta_then.get(SAMPLES_KEY[1])
+        if now and then and now != then and meta_now.get("prepared_key") == meta_then.get("prepared_key"):
             return (f"meta.prepared_samples: {then} -> {now} (the same cache key now holds other samples under "
                     "its image ids: the dataset plugin's sample order changed)")
         return None
