@@ -264,3 +264,26 @@ def test_a_finished_run_on_other_samples_under_the_same_key_is_a_conflict_not_sk
     assert same.state == "finished"
     old = PlannedRun(Fold("P1", ("a",), ("b",)), 0, run, {**now, "meta": {"prepared_key": "k"}}, run_hash(now))
     assert old.state == "finished"  # a run or plan without the record is compared as before
+
+
+def test_coco_rgbt_reads_the_nodata_pixels_sensing_decode_writes_as_missing(tmp_path):
+    """A decoded file with a few missing pixels (the sidecar's ``nodata`` value) is kept, those pixels missing and
+    counted, not a whole file skipped as implausible (0 centi-Kelvin read as -273.15 C)."""
+    import cv2
+
+    from coco_rgbt_helpers import make_coco_rgbt
+    from harness.cache import prepare
+    from harness.config import load_config
+    from harness.sensing.radiometry import sidecar_path
+
+    root = make_coco_rgbt(tmp_path / "coco", n=6)
+    for p in sorted((root / "thermal").glob("*.png")):
+        a = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        a[0, :2] = 0
+        cv2.imwrite(str(p), a)
+        sidecar_path(p).write_text('{"unit": "centikelvin", "nodata": 0, "missing": 2}')
+    cfg = load_config(protocol="default")
+    cfg["dataset"] = {"root": str(root)}
+    ds = prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
+    assert len(ds) == 6 and np.isnan(ds[0].thermal[0, :2]).all() and np.isfinite(ds[0].thermal[1:]).all()
+    assert ds.manifest["report"]["missing_temperatures"]["pixels"] == 12

@@ -81,8 +81,6 @@ ANNOTATIONS = "annotations.json"
 THERMAL_KINDS = ("radiometric", "8bit")
 #: centi-Kelvin, what ``harness sensing decode`` writes: C = value * 0.01 - 273.15
 CENTIKELVIN = (0.01, -273.15)
-#: temperatures outside this range (C) mean the scale or offset is wrong
-PLAUSIBLE_C = (-100.0, 800.0)
 OPTIONS = {
     "root": f"the folder the COCO JSON's paths are relative to (default: ${ROOT_ENV})",
     "annotations": f"the COCO JSON, relative to root (default {ANNOTATIONS})",
@@ -207,6 +205,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     """
     from harness.sensing.radiometry import (
         UNITS,
+        implausible_to_missing,
         load_thermal_array,
         read_sidecar,
         read_thermal,
@@ -230,6 +229,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     if arr.dtype == np.uint8:
         raise SkipPair(f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
                        "dataset.thermal=8bit (and use --encoding proxy8 or ir8)")
+    nodata = None
     if arr.dtype.kind in "iu":
         if scale is not None or offset is not None:
             s, o = (CENTIKELVIN[0] if scale is None else scale), (CENTIKELVIN[1] if offset is None else offset)
@@ -239,6 +239,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
                 side = read_sidecar(path)
             except DataError as exc:
                 raise SkipPair(f"thermal unreadable: {exc}") from None
+            nodata = side.get("nodata") if side else None  # what `harness sensing decode` writes for a missing pixel
             if side and ("scale" in side or "offset" in side):
                 s, o = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
                 unit = str(side.get("unit") or "sidecar")
@@ -247,6 +248,8 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             else:
                 (s, o), unit = CENTIKELVIN, "centikelvin"
         temp = (arr.astype(np.float64) * s + o).astype(np.float32)
+        if isinstance(nodata, (int, float)) and not isinstance(nodata, bool):
+            temp[arr == nodata] = np.nan
     elif arr.dtype.kind == "f":
         temp, unit = arr.astype(np.float32), "celsius"
     else:
@@ -261,9 +264,14 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             raise SkipPair(f"non-finite temperatures: {exc}") from None
         temp = np.where(finite, temp, np.float32(np.nan))
     lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
-    if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
+    try:  # a few values outside the plausible range are missing (counted at preparation); mostly outside: a skip
+        implausible_to_missing(temp, path.name, f"{unit}")
+        from harness.sensing.c2 import valid_mask
+
+        valid_mask(temp, path.name)
+    except HarnessError:
         raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
-                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")
+                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)") from None
     try:  # a file decoded by the approximate or converter route stays labelled
         route = route_meta(sidecar_route(read_sidecar(path)))
     except DataError:
