@@ -27,6 +27,8 @@ t = (20.0 + (np.arange(w * h) % 97) / 10.0).astype("<f4")
 for k, v in enumerate(os.environ.get("CONVERTER_SPECIAL", "").split(",")):
     if v:
         t[k * 7] = float(v)
+if os.environ.get("CONVERTER_ADD"):
+    t += float(os.environ["CONVERTER_ADD"])
 if os.environ.get("CONVERTER_ALL"):
     t[:] = float(os.environ["CONVERTER_ALL"])
 t.tofile(out)
@@ -176,3 +178,14 @@ def test_a_real_iirp_sidecar_is_strict_json(tmp_path, cli_runner):
     assert res.exit_code == 0, res.output
     side = strict_json(tmp_path / "m3t_a.png.json")
     assert side["correction"]["valid_up_to_c"] is None and "missing" not in side
+
+
+def test_a_converter_writing_kelvin_is_refused_against_the_files_own_counts(
+    tmp_path, cli_runner, converter, monkeypatch
+):
+    src = builtin_table_file(tmp_path / "m2ea.jpg")  # its blackbody reading is 30 C
+    monkeypatch.setenv("CONVERTER_ADD", "273.15")
+    res = _decode(cli_runner, src, "--out", tmp_path / "k", "--converter", converter)
+    assert res.exit_code == 1, res.output
+    text = " ".join(res.output.split())
+    assert "m2ea.jpg" in text and "above the file's own blackbody reading: Kelvin, not C" in text

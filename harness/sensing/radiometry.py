@@ -240,7 +240,14 @@ class RJpeg:
         if self.converter is None:
             raise DataError(f"{self.path}: no converter was given for this file")
         h, w = self.raw14.shape
-        return dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
+        temp, record = dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
+        if self.fmt == "iirp" and np.isfinite(temp).any():  # the file's own counts say roughly where the scene is
+            gap = float(np.nanmedian(temp)) - float(np.median(self.blackbody_c()))
+            if abs(gap - KELVIN) < KELVIN_GAP_C:
+                raise DataError(f"{self.path}: the converter ({self.converter.name}) wrote temperatures "
+                                f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
+                                "(float32 degrees Celsius)")
+        return temp, record
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
         """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
@@ -528,6 +535,9 @@ UNIT_DTYPE = {"celsius": np.float32, "kelvin": np.float32, "centikelvin": np.uin
 #: the value an integer unit stores for a missing pixel (``write_thermal``; float units store NaN)
 NODATA = {"centikelvin": 0, "raw14": 0, "decicelsius": -32768, "centicelsius": -32768}
 THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
+#: a converter's median this close to 273.15 C above the file's blackbody median wrote Kelvin (a correction for
+#: emissivity and atmosphere moves a scene by tens of degrees at most, never by 273)
+KELVIN_GAP_C = 60.0
 #: temperatures (C) a facade, a flight or any supported camera can give; values outside are not temperatures
 PLAUSIBLE_C = (-100.0, 800.0)
 
