@@ -171,6 +171,15 @@ def inspect(
             )
         )
     temps = report.get("implausible_temperatures")
+    if isinstance(temps, dict) and temps.get("kelvin_like") and not temps.get("samples"):
+        out.append(
+            _finding(
+                "temperature-range",
+                f"the coolest pixel of all {len(records)} sample(s) is {temps.get('coolest', 0):.2f} C: every "
+                f"temperature is above {temps['range_c'][0]:g} C + 273.15, as Kelvin read as C would be",
+                [],
+            )
+        )
     if isinstance(temps, dict) and temps.get("samples"):
         lo, hi = (temps.get("range_c") or [None, None])[:2]
         out.append(

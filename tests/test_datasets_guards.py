@@ -287,3 +287,14 @@ def test_coco_rgbt_reads_the_nodata_pixels_sensing_decode_writes_as_missing(tmp_
     ds = prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
     assert len(ds) == 6 and np.isnan(ds[0].thermal[0, :2]).all() and np.isfinite(ds[0].thermal[1:]).all()
     assert ds.manifest["report"]["missing_temperatures"]["pixels"] == 12
+
+
+def test_temperatures_left_in_kelvin_stop_although_each_lies_in_the_plausible_range(tmp_path):
+    samples = [_sample(i, "a" if i <= 3 else "b", thermal=np.full((H, W), 293.15 + i, np.float32)) for i in range(1, 7)]
+    with pytest.raises(DataError) as err:
+        _prepare(_spec(samples), tmp_path)
+    text = " ".join(str(err.value).split())
+    assert "temperature-range: the coolest pixel of all 6 sample(s) is 294.15 C" in text and "Kelvin" in text
+    assert [r["kind"] for r in _prepare(_spec(samples), tmp_path, "inputs.accept=[temperature-range]").input_risks] == [
+        "temperature-range"
+    ]

@@ -300,10 +300,15 @@ def _build(
         }
         if order:
             summary["category_order"] = order
-        if implausible["samples"] or implausible["pixels"]:
-            from harness.sensing.radiometry import PLAUSIBLE_C
+        from harness.sensing.radiometry import KELVIN, PLAUSIBLE_C
 
-            summary["implausible_temperatures"] = {**implausible, "range_c": list(PLAUSIBLE_C)}
+        kelvin_like = implausible.get("coolest", -KELVIN) >= PLAUSIBLE_C[0] + KELVIN
+        if implausible["samples"] or implausible["pixels"] or kelvin_like:
+            summary["implausible_temperatures"] = {
+                **implausible,
+                "range_c": list(PLAUSIBLE_C),
+                **({"kelvin_like": True} if kelvin_like else {}),
+            }
         if routes:
             summary.update(routes)
             if "approximate_temperatures" in routes:
@@ -340,7 +345,7 @@ def _plausible_temperatures(sample: Any, where: Any, implausible: dict[str, Any]
     """``sample`` with its temperatures held to ``radiometry.PLAUSIBLE_C``: a few pixels outside become missing (NaN,
     counted), a map mostly outside (a wrong unit: 8-bit counts read as centi-Kelvin give -273 C) is kept as it is and
     counted as an implausible sample, which the input guard refuses unless ``inputs.accept`` names
-    ``temperature-range``."""
+    ``temperature-range``; so is a dataset whose coolest pixel is above -100 C + 273.15 (temperatures in Kelvin)."""
     import dataclasses
 
     import numpy as np
@@ -352,6 +357,9 @@ def _plausible_temperatures(sample: Any, where: Any, implausible: dict[str, Any]
     if not isinstance(t, np.ndarray) or t.dtype.kind != "f" or t.ndim != 2:
         return sample  # the contract check names what is wrong
     finite = np.isfinite(t)
+    if finite.any():  # the coolest pixel of all samples: above -100 C + 273.15 everywhere reads as Kelvin
+        coolest = float(t[finite].min())
+        implausible["coolest"] = min(implausible.get("coolest", coolest), coolest)
     bad = finite & ((t < PLAUSIBLE_C[0]) | (t > PLAUSIBLE_C[1]))
     n_bad = int(np.count_nonzero(bad))
     if not n_bad:
