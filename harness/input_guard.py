@@ -1,14 +1,21 @@
 """The plausibility guard at the dataset input boundary: implausible labels stop a preparation with what was seen.
 
 The sample-matched guard checks what goes out of a run; this one checks what comes in. After a dataset is prepared
-(or read back from the cache), ``check(prepared, folds, cfg)`` looks for three findings:
+(or read back from the cache), ``check(prepared, folds, cfg)`` looks for these findings:
 
 * ``no-labels``: the dataset, or the training or held-out part of a fold, holds no box at all;
 * ``unlabelled-images``: more than ``inputs.max_unlabelled`` (default 20 %), and at least 5, of the images of the
   dataset or of a fold part have no box (a wrong label layout reads as "images without objects");
 * ``dropped-annotations``: annotations the dataset's files state but the adapter could not use (unknown image or
   category id, malformed box, box outside the image, duplicate id: the prepare report's skips whose label starts
-  with ``annotation``). A dropped box leaves an unlabelled object, which training learns as background.
+  with ``annotation``). A dropped box leaves an unlabelled object, which training learns as background;
+* ``category-order``: the plugin's ``DatasetSpec.categories`` and its opened source's ``categories`` hold the same
+  names in another order (labels follow the source, so a name the spec gives label 0 may be label 1);
+* ``temperature-range``: samples whose temperatures lie mostly outside ``radiometry.PLAUSIBLE_C`` (-100..800 C),
+  such as 8-bit counts read as centi-Kelvin (-273 C); a few pixels outside are made missing at preparation and
+  counted, not a finding;
+* ``empty-folds``: folds of the dataset's own whose held-out groups have no prepared sample (the plugin's
+  ``groups()`` or ``folds()`` name them, ``samples()`` yielded none): they are left out of every fold list.
 
 Each finding is a line with the counts and a few examples. An unaccepted one raises a ``DataError`` listing them all
 and naming the option; ``inputs.accept`` (a list of kinds, or ``all``) accepts them, and the accepted findings are
@@ -24,7 +31,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from harness.errors import ConfigError, DataError
 
-KINDS = ("no-labels", "unlabelled-images", "dropped-annotations")
+KINDS = ("no-labels", "unlabelled-images", "dropped-annotations", "category-order", "temperature-range", "empty-folds")
 #: Share of images without any box above which a dataset or fold part is implausible...
 DEFAULT_MAX_UNLABELLED = 0.2
 #: ... once at least this many of its images have none (a share of a handful of images says little).
@@ -110,8 +117,12 @@ def _parts(prepared: Any, folds: Iterable[Any]) -> list[tuple[str, list[int]]]:
     return parts
 
 
-def inspect(prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT_MAX_UNLABELLED) -> list[Finding]:
-    """Every finding on ``prepared`` and its ``folds`` (see the module docstring), in a fixed order."""
+def inspect(
+    prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT_MAX_UNLABELLED, own_folds: bool = True
+) -> list[Finding]:
+    """Every finding on ``prepared`` and its ``folds`` (see the module docstring), in a fixed order. ``own_folds``:
+    the folds are the dataset's own (recorded at preparation), not ``protocol.folds``."""
+    folds = list(folds)
     records = prepared.records
     out: list[Finding] = []
     covered: set[int] = set()  # images of the parts without labels: not counted again as unlabelled elsewhere
@@ -148,6 +159,54 @@ def inspect(prepared: Any, folds: Iterable[Any], max_unlabelled: float = DEFAULT
         kept = int(prepared.manifest.get("instances", 0))
         finding = _finding("dropped-annotations", f"{total} annotation(s) dropped, {kept} kept ({counts})", listed)
         out.append(Finding(finding.kind, finding.message, finding.examples, total - len(finding.examples)))
+    order = report.get("category_order")
+    if isinstance(order, dict):
+        out.append(
+            _finding(
+                "category-order",
+                f"the dataset's spec lists its categories as {', '.join(order['spec'])} but the opened source as "
+                f"{', '.join(order['source'])}; labels follow the source, so {len(order['moved'])} label(s) name "
+                f"another category than the spec says",
+                list(order.get("moved") or []),
+            )
+        )
+    temps = report.get("implausible_temperatures")
+    if isinstance(temps, dict) and temps.get("kelvin_like") and not temps.get("samples"):
+        out.append(
+            _finding(
+                "temperature-range",
+                f"the coolest pixel of all {len(records)} sample(s) is {temps.get('coolest', 0):.2f} C: every "
+                f"temperature is above {temps['range_c'][0]:g} C + 273.15, as Kelvin read as C would be",
+                [],
+            )
+        )
+    if isinstance(temps, dict) and temps.get("samples"):
+        lo, hi = (temps.get("range_c") or [None, None])[:2]
+        out.append(
+            _finding(
+                "temperature-range",
+                f"{temps['samples']} of {len(records)} sample(s) hold temperatures mostly outside the plausible "
+                f"{lo:g}..{hi:g} C (thermal read in the wrong unit or scale?)",
+                list(temps.get("examples") or []),
+            )
+        )
+    if own_folds:
+        present = set(prepared.groups)
+        in_use = {f.name for f in folds}
+        left_out = [
+            f"fold {f['name']!r} holds out {', '.join(map(repr, f['val_groups']))}: no prepared sample"
+            for f in prepared.manifest.get("folds") or []
+            if f.get("name") not in in_use and not any(g in present for g in f.get("val_groups") or [])
+        ]
+        if left_out:
+            out.append(
+                _finding(
+                    "empty-folds",
+                    f"{len(left_out)} of the dataset's folds hold out only groups without prepared samples and are "
+                    f"left out (groups with samples: {', '.join(sorted(present)) or 'none'})",
+                    left_out,
+                )
+            )
     return out
 
 
@@ -155,16 +214,17 @@ def check(prepared: Any, folds: Iterable[Any], cfg: Mapping[str, Any] | None) ->
     """The accepted findings on ``prepared``; unaccepted ones raise a ``DataError`` that lists every finding with its
     counts and examples and names the option that accepts them."""
     accept, share = settings(cfg)
-    findings = inspect(prepared, folds, share)
+    own_folds = not ((cfg or {}).get("protocol") or {}).get("folds")
+    findings = inspect(prepared, folds, share, own_folds)
     refused = [f for f in findings if f.kind not in accept]
     if refused:
         kinds = sorted({f.kind for f in refused})
         lines = "\n".join(line for f in refused for line in f.lines())
         raise DataError(
-            f"dataset {prepared.name!r}: implausible labels in {prepared.folder}:\n{lines}\n"
-            f"Check the dataset's layout and annotation files (docs/datasets.md). To use these samples anyway,\n"
-            f"accept the risk with --set 'inputs.accept=[{', '.join(kinds)}]' (the results are labelled with it;\n"
-            f"the prepared samples are kept)."
+            f"dataset {prepared.name!r}: implausible inputs in {prepared.folder}:\n{lines}\n"
+            f"Check the dataset's layout, annotation files and plugin (docs/datasets.md). To use these samples\n"
+            f"anyway, accept the risk with --set 'inputs.accept=[{', '.join(kinds)}]' (the results are labelled\n"
+            f"with it; the prepared samples are kept)."
         )
     return findings
 

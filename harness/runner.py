@@ -60,6 +60,10 @@ LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
 #: Keys that decide whether a run may use its samples, not what it computes (the plausibility guard's ``inputs``
 #: section and the accepted findings it labels the run with): left out of the identity.
 GUARD_KEYS = {("meta", "input_risks")}
+#: The digest of which sample each image id held when a run was planned (``harness.cache`` ``sample_identity``): not
+#: part of the identity (runs stored before it existed stay "finished"), but a finished run that recorded another
+#: one than the prepared data has now was scored on other pictures under the same cache key, and is a conflict.
+SAMPLES_KEY = ("meta", "prepared_samples")
 
 
 @dataclass
@@ -191,7 +195,8 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
             trimmed[section].pop(key, None)
     # the registration route is a record of how the prepared samples (identified by their fingerprint) were made
     trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items()
-                       if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS}
+                       if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS
+                       and ("meta", k) != SAMPLES_KEY}
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
     trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
@@ -237,6 +242,8 @@ class PlannedRun:
         """``finished`` (same configuration: skipped), ``conflict`` (finished with another one), or ``todo``."""
         if not self.run.is_finished():
             return "todo"
+        if self._other_samples():
+            return "conflict"
         if (self.run.status() or {}).get("config_hash") == self.digest:
             return "finished"
         stored = self.stored_config()  # a run stored before the identity left out locations: compare settings
@@ -251,7 +258,20 @@ class PlannedRun:
             return None
         return data if isinstance(data, dict) else None
 
+    def _other_samples(self) -> str | None:
+        """``meta.prepared_samples: OLD -> NEW ...`` when the finished run recorded which samples its image ids held
+        and the prepared data under the same key now holds others; else None."""
+        meta_now, meta_then = self.config.get("meta") or {}, (self.stored_config() or {}).get("meta") or {}
+        now, then = meta_now.get(SAMPLES_KEY[1]), meta_then.get(SAMPLES_KEY[1])
+        if now and then and now != then and meta_now.get("prepared_key") == meta_then.get("prepared_key"):
+            return (f"meta.prepared_samples: {then} -> {now} (the same cache key now holds other samples under "
+                    "its image ids: the dataset plugin's sample order changed)")
+        return None
+
     def differences(self) -> list[str]:
+        other = self._other_samples()
+        if other:
+            return [other]
         stored = self.stored_config()
         if stored is None:
             return [f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
@@ -320,7 +340,9 @@ def plan(request: RunRequest) -> RunPlan:
     for fold in folds:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
+            samples_digest = (prepared.manifest.get("report") or {}).get("samples_identity")
             rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "prepared_key": prepared_key,
+                                         **({SAMPLES_KEY[1]: samples_digest} if samples_digest else {}),
                                          "val_groups": list(fold.val_groups),
                                          "train_groups": list(fold.train_groups), **init_info,
                                          **({"registration": registration} if registration else {})})

@@ -254,9 +254,13 @@ def test_without_sidecar_the_dtype_decides_and_implausible_values_are_refused(tm
     cv2.imwrite(str(tmp_path / "words.png"), (celsius_to_raw14(t) << 2).astype(np.uint16) * 0 + 1000)
     with pytest.raises(DataError, match=r"words.png.*not plausible; write words.png.json"):
         read_thermal(tmp_path / "words.png")
-    (tmp_path / "words.png.json").write_text(json.dumps({"unit": "kelvin", "scale": 0.1, "offset": -273.15}))
+    (tmp_path / "words.png.json").write_text(json.dumps({"unit": "kelvin", "scale": 0.3, "offset": -273.15}))
     back, _ = read_thermal(tmp_path / "words.png")
-    assert back[0, 0] == pytest.approx(1000 * 0.1 - 273.15, abs=1e-4)
+    assert back[0, 0] == pytest.approx(1000 * 0.3 - 273.15, abs=1e-4)
+    # a sidecar is held to the plausible range too: a scale that gives -173 C everywhere is refused
+    (tmp_path / "words.png.json").write_text(json.dumps({"unit": "kelvin", "scale": 0.1, "offset": -273.15}))
+    with pytest.raises(DataError, match=r"words.png: the unit of words.png.json \(kelvin\) gives 3072 of 3072 values"):
+        read_thermal(tmp_path / "words.png")
     cv2.imwrite(str(tmp_path / "gray8.png"), np.zeros((4, 4), np.uint8))
     with pytest.raises(DataError, match=r"gray8.png.*8-bit"):
         read_thermal(tmp_path / "gray8.png")

@@ -297,3 +297,21 @@ def test_tensors_are_written_in_pieces_that_cover_them_in_row_major_order():
             pieces = list(_pieces(t, limit))
             assert torch.equal(torch.cat([p.reshape(-1) for p in pieces]), t.reshape(-1)), (t.shape, limit)
             assert all(p.numel() * 4 <= limit or p.numel() == 1 for p in pieces), (t.shape, limit)
+
+
+def test_a_legacy_whole_model_checkpoint_reads_like_its_zip_twin(tmp_path):
+    """A pre-1.6 file of a whole model names each module class by a ('module', class, file, source) persistent id;
+    it reads (the class as an inert placeholder, its source never used) and imports to the same tensors."""
+    model = _ours(nc=3, in_channels=3)
+    legacy, modern = tmp_path / "legacy.pt", tmp_path / "modern.pt"
+    torch.save({"model": model}, legacy, _use_new_zipfile_serialization=False)
+    torch.save({"model": model}, modern)
+    obj, stubs = load_checkpoint(legacy)
+    assert any(name.endswith("Conv2d") for name in stubs)
+    a = import_checkpoint(legacy, tmp_path / "a.safetensors")
+    b = import_checkpoint(modern, tmp_path / "b.safetensors")
+    assert a.info["layout"] == b.info["layout"]
+    from safetensors.torch import load_file
+
+    wa, wb = load_file(tmp_path / "a.safetensors"), load_file(tmp_path / "b.safetensors")
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)

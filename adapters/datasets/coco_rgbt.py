@@ -81,8 +81,6 @@ ANNOTATIONS = "annotations.json"
 THERMAL_KINDS = ("radiometric", "8bit")
 #: centi-Kelvin, what ``harness sensing decode`` writes: C = value * 0.01 - 273.15
 CENTIKELVIN = (0.01, -273.15)
-#: temperatures outside this range (C) mean the scale or offset is wrong
-PLAUSIBLE_C = (-100.0, 800.0)
 OPTIONS = {
     "root": f"the folder the COCO JSON's paths are relative to (default: ${ROOT_ENV})",
     "annotations": f"the COCO JSON, relative to root (default {ANNOTATIONS})",
@@ -107,6 +105,8 @@ class PairEntry:
     homography: np.ndarray | None
     #: (annotation id, [x, y, w, h], label)
     boxes: list[tuple[Any, list[float], int]] = field(default_factory=list)
+    #: per box: ``iscrowd`` set (a crowd region: ignored by the evaluation, never a training instance)
+    crowd: list[bool] = field(default_factory=list)
 
 
 @dataclass
@@ -173,6 +173,7 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
         pair = pairs.get(ann.image_id)
         if pair is not None:  # not an image left out above for its malformed homography
             pair.boxes.append((ann.id, ann.bbox, label_of[ann.category_id]))
+            pair.crowd.append(bool(ann.entry.get("iscrowd")))
 
     folds = None
     if coco.get("folds") is not None:
@@ -204,6 +205,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     """
     from harness.sensing.radiometry import (
         UNITS,
+        implausible_to_missing,
         load_thermal_array,
         read_sidecar,
         read_thermal,
@@ -227,6 +229,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     if arr.dtype == np.uint8:
         raise SkipPair(f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
                        "dataset.thermal=8bit (and use --encoding proxy8 or ir8)")
+    nodata = None
     if arr.dtype.kind in "iu":
         if scale is not None or offset is not None:
             s, o = (CENTIKELVIN[0] if scale is None else scale), (CENTIKELVIN[1] if offset is None else offset)
@@ -236,6 +239,7 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
                 side = read_sidecar(path)
             except DataError as exc:
                 raise SkipPair(f"thermal unreadable: {exc}") from None
+            nodata = side.get("nodata") if side else None  # what `harness sensing decode` writes for a missing pixel
             if side and ("scale" in side or "offset" in side):
                 s, o = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
                 unit = str(side.get("unit") or "sidecar")
@@ -244,6 +248,8 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             else:
                 (s, o), unit = CENTIKELVIN, "centikelvin"
         temp = (arr.astype(np.float64) * s + o).astype(np.float32)
+        if isinstance(nodata, (int, float)) and not isinstance(nodata, bool):
+            temp[arr == nodata] = np.nan
     elif arr.dtype.kind == "f":
         temp, unit = arr.astype(np.float32), "celsius"
     else:
@@ -258,9 +264,14 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
             raise SkipPair(f"non-finite temperatures: {exc}") from None
         temp = np.where(finite, temp, np.float32(np.nan))
     lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
-    if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
+    try:  # a few values outside the plausible range are missing (counted at preparation); mostly outside: a skip
+        implausible_to_missing(temp, path.name, f"{unit}")
+        from harness.sensing.c2 import valid_mask
+
+        valid_mask(temp, path.name)
+    except HarnessError:
         raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
-                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)")
+                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)") from None
     try:  # a file decoded by the approximate or converter route stays labelled
         route = route_meta(sidecar_route(read_sidecar(path)))
     except DataError:
@@ -359,6 +370,9 @@ class CocoRgbtSource:
             yield sample
         if stats.clipped:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
+        if stats.crowd:
+            report.note(f"{stats.crowd} crowd box(es) (iscrowd 1) kept as crowd regions: the evaluation ignores "
+                        "detections on them, as COCO does, and training does not use them as instances")
         if warped:
             report.note(f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
                         "homography" + (" and cropped to the common support" if self.sensing.warp.crop else ""))
@@ -408,6 +422,7 @@ class CocoRgbtSource:
         for i in np.nonzero(~keep)[0]:
             report.skip(f"{self.ann_path.name}#annotation={ids[i]}",
                         f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame")
+        crowd = np.asarray(p.crowd, bool).reshape(-1)[keep]
         boxes, labels, ids = boxes[keep], labels[keep], [a for a, k in zip(ids, keep) if k]
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
         from harness.sensing.radiometry import ROUTE_META_KEYS
@@ -416,6 +431,7 @@ class CocoRgbtSource:
                                 "thermal_unit": info.get("unit"), "thermal_format": info.get("format"),
                                 **{k: v for k, v in info.items() if k in ROUTE_META_KEYS}}
         if H is None:
+            _mark_crowd(meta, crowd, stats)
             sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
                                    labels=labels, group=p.group, meta=meta)
             return sample, stats
@@ -429,10 +445,19 @@ class CocoRgbtSource:
         except DataError as exc:
             raise SkipPair(f"registration failed: {exc}") from None
         meta["ann_ids"] = [a for a, k in zip(ids, pair.kept) if k]
+        _mark_crowd(meta, crowd[np.asarray(pair.kept, bool)], stats)
         dropped = int((~pair.kept).sum())
         if dropped:
             report.note(f"{p.file_name}: {dropped} box(es) outside the common support of RGB and thermal dropped")
         return pair.to_sample(p.image_id, p.group, meta), stats
+
+
+def _mark_crowd(meta: dict[str, Any], crowd: np.ndarray, stats: BoxStats) -> None:
+    """``meta["crowd"]``: the indices of the sample's crowd boxes (``iscrowd`` 1), when it has any; the prepared
+    cache keeps them as crowd regions (``PreparedDataset.targets`` leaves them out, its COCO files mark them)."""
+    if crowd.any():
+        meta["crowd"] = [int(k) for k in np.flatnonzero(crowd)]
+        stats.crowd += int(crowd.sum())
 
 
 def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATIONS, thermal: str = "radiometric",

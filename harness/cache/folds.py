@@ -45,22 +45,42 @@ def resolve_folds(
             if not held_t:
                 raise ConfigError(f"protocol.folds: fold {fold_name!r} holds out no group")
             folds.append(Fold(str(fold_name), tuple(g for g in present if g not in held_t), held_t))
-    else:
+    empty: dict[str, tuple[str, ...]] = {}
+    if not spec_folds:
         recorded = prepared.manifest.get("folds") or []
         for f in recorded:
             val = tuple(g for g in f["val_groups"] if g in present)
             if val:
                 folds.append(Fold(f["name"], tuple(g for g in f["train_groups"] if g in present), val))
+            else:
+                empty[f["name"]] = tuple(f["val_groups"])
         if not folds:  # nothing recorded: leave one group out
             folds = [Fold(g, tuple(x for x in present if x != g), (g,)) for g in present]
-    return select_folds(folds, selection)
+    return select_folds(folds, selection, empty, name)
 
 
-def select_folds(folds: list[Fold], selection: str | Sequence[str] | None) -> list[Fold]:
+def select_folds(
+    folds: list[Fold],
+    selection: str | Sequence[str] | None,
+    empty: Mapping[str, Sequence[str]] | None = None,
+    dataset: str = "",
+) -> list[Fold]:
+    """The folds ``selection`` names. ``empty``: the dataset's folds left out because their held-out groups have no
+    prepared sample (fold name -> those groups), named as such when asked for."""
     if selection is None or selection == "all" or selection == ["all"]:
         return folds
     names = [s.strip() for s in selection.split(",")] if isinstance(selection, str) else [str(s) for s in selection]
     by_name = {f.name: f for f in folds}
+    gone = [n for n in names if n not in by_name and n in (empty or {})]
+    if gone:
+        raise ConfigError(
+            "; ".join(
+                f"fold {n!r} of dataset {dataset!r} holds out {', '.join(map(repr, (empty or {})[n]))}, which "
+                f"ha{'s' if len((empty or {})[n]) == 1 else 've'} no prepared sample, so the fold is left out"
+                for n in gone
+            )
+            + f" (the prepare report says why their files were skipped; available: {', '.join(by_name)})"
+        )
     unknown = [n for n in names if n not in by_name]
     if unknown:
         raise ConfigError(

@@ -111,9 +111,68 @@ def prepare(
             mark_used(folder)
             log.info("using prepared %s from %s", spec.name, folder)
             return _checked(spec, ds, cfg, key, from_cache=True)
-    ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form)
+    earlier = earlier_identity(_cache_root(cache_root), spec.name, key)
+    ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form, earlier)
     mark_used(folder)
     return _checked(spec, ds, cfg, key, from_cache=False)
+
+
+#: The file of a prepared folder that records which sample each image id holds (``sample_identity``).
+IDENTITY_FILE = "identity.json"
+
+
+def sample_identity(sample: Any, where: Any) -> list[Any]:
+    """``[image_id, name, digest of the 8-bit thermal pixels]``: what an image id stands for in a preparation."""
+    import hashlib
+
+    import numpy as np
+
+    return [int(sample.image_id), str(where), hashlib.sha1(np.ascontiguousarray(sample.ir8).tobytes()).hexdigest()[:16]]
+
+
+def identity_digest(rows: list[list[Any]]) -> str:
+    """One digest of which sample every image id holds (a run records it as ``meta.prepared_samples``)."""
+    import hashlib
+    import json
+
+    return hashlib.sha1(json.dumps(sorted([r[0], r[2]] for r in rows)).encode()).hexdigest()[:16]
+
+
+def earlier_identity(root: Path, dataset: str, key: str) -> tuple[Path, dict[int, list[Any]]] | None:
+    """(folder, image id -> identity) of an earlier preparation under the same ``key`` (the folder being prepared
+    again, or the other cache form's), or None when there is none (or it predates identity records)."""
+    import json
+
+    for f in FORMS:
+        path = form_folder(root, dataset, key, f) / IDENTITY_FILE
+        try:
+            rows = json.loads(path.read_text(encoding="utf-8"))
+            return path.parent, {int(r[0]): list(r) for r in rows}
+        except (OSError, ValueError, TypeError, IndexError, KeyError):
+            continue
+    return None
+
+
+def _compare_identity(label: str, earlier: tuple[Path, dict[int, list[Any]]], rows: list[list[Any]]) -> None:
+    """A ``DataError`` when an image id of this preparation holds another sample than in the earlier preparation of
+    the same key (a plugin whose sample order or ids change between calls)."""
+    folder, old = earlier
+    new = {int(r[0]): r for r in rows}
+    changed = [i for i in sorted(set(old) & set(new)) if old[i][2] != new[i][2]]
+    gone, added = sorted(set(old) - set(new)), sorted(set(new) - set(old))
+    if not (changed or gone or added):
+        return
+    examples = [f"image_id {i}: {old[i][1]} before, {new[i][1]} now" for i in changed[:3]]
+    examples += [f"image_id {i}: {old[i][1]} before, absent now" for i in gone[: max(0, 3 - len(examples))]]
+    examples += [f"image_id {i}: new, {new[i][1]}" for i in added[: max(0, 3 - len(examples))]]
+    raise DataError(
+        f"{label}: samples() gave other samples under the same image ids than the earlier preparation with the "
+        f"same cache key ({folder}): {len(changed)} of {len(new)} id(s) hold another picture, {len(gone)} gone, "
+        f"{len(added)} new; e.g. " + "; ".join(examples) + ". The plugin's sample order or image ids change between "
+        "calls (a folder listing or a set iterated without sorting?): give every file the same image_id each time. "
+        "Runs and reports on the earlier samples would draw and score other pictures; nothing was cached. To "
+        f"replace the earlier samples anyway, remove {folder} (harness cache) and prepare again"
+    )
 
 
 def cached(dataset: str, key: str, cache_root: str | Path | None = None) -> PreparedDataset | None:
@@ -171,6 +230,7 @@ def _build(
     sensing: dict[str, Any],
     progress: bool,
     form: str = DEFAULT_FORM,
+    earlier: tuple[Path, dict[int, list[Any]]] | None = None,
 ) -> PreparedDataset:
     report = PrepareReport()
     label = plugin_label(spec)
@@ -185,6 +245,7 @@ def _build(
     categories = tuple(getattr(source, "categories", None) or spec.categories)
     if not categories:
         raise DataError(f"dataset {spec.name!r}: no categories (neither the opened source nor the spec names any)")
+    order = category_order(tuple(spec.categories or ()), categories)
     bases = _reference_bases(source)
     if bases:
         extra["source_bytes"] = folder_bytes(bases[-1] if getattr(source, "root", None) is None else Path(source.root))
@@ -199,18 +260,22 @@ def _build(
         pixel_files=getattr(source, "pixel_files", None),
     )
     seen: dict[int, str] = {}
+    implausible: dict[str, Any] = {"samples": 0, "examples": [], "pixels": 0}
+    identity: list[list[Any]] = []
     try:
         with progress_bar(f"preparing {spec.name}", total, enabled=progress, eta=True, transient=False) as bar:
             for sample in _plugin_samples(label, source, report):
                 where = _sample_where(sample)
                 contracts.check_unique_id(seen, sample, str(where), label)
                 try:
+                    sample = _plausible_temperatures(sample, where, implausible)
                     writer.add(sample)
                 except SampleError as exc:
                     report.skip(where, f"invalid sample: {exc}")
                 else:
                     _count_missing(missing, sample)
                     _count_route(routes, sample)
+                    identity.append(sample_identity(sample, where))
                 bar.advance()
         if not writer.records:
             summary = report.summary()
@@ -218,15 +283,32 @@ def _build(
                 f"dataset {spec.name!r}: no usable image pairs ({summary['skipped']} skipped: "
                 f"{_reasons_text(summary['skip_reasons'])}); nothing was cached"
             )
+        if earlier is not None:
+            _compare_identity(label, earlier, identity)
+        from harness.io import atomic_write_json
+
+        atomic_write_json(writer.tmp / IDENTITY_FILE, identity, indent=None)
         if hasattr(source, "write_artifacts"):
             contracts.plugin_call(label, "write_artifacts()", source.write_artifacts, writer.tmp)
         summary = report.summary()
         summary["skipped_files"] = [list(s) for s in report.skipped[:MAX_LISTED_SKIPS]]
+        summary["samples_identity"] = identity_digest(identity)
         summary["missing_temperatures"] = {
             "samples": len(missing),
             "pixels": sum(missing.values()),
             "per_sample": dict(list(missing.items())[:MAX_LISTED_SKIPS]),
         }
+        if order:
+            summary["category_order"] = order
+        from harness.sensing.radiometry import KELVIN, PLAUSIBLE_C
+
+        kelvin_like = implausible.get("coolest", -KELVIN) >= PLAUSIBLE_C[0] + KELVIN
+        if implausible["samples"] or implausible["pixels"] or kelvin_like:
+            summary["implausible_temperatures"] = {
+                **implausible,
+                "range_c": list(PLAUSIBLE_C),
+                **({"kelvin_like": True} if kelvin_like else {}),
+            }
         if routes:
             summary.update(routes)
             if "approximate_temperatures" in routes:
@@ -243,6 +325,56 @@ def _build(
         raise
     log.info("prepared %d samples of %s in %s (%.1f s)", len(writer.records), spec.name, folder, summary["seconds"])
     return PreparedDataset(folder)
+
+
+def category_order(spec_categories: tuple[str, ...], categories: tuple[str, ...]) -> dict[str, Any] | None:
+    """When the spec and the opened source name the same categories in another order (so label ``k`` names another
+    category than the spec says): ``{"spec": [...], "source": [...], "moved": ["label 0: 'b' (the spec's 1)", ...]}``,
+    else None. A source naming other categories than the spec (from its files or an option) is not this."""
+    if not spec_categories or spec_categories == categories or sorted(spec_categories) != sorted(categories):
+        return None
+    moved = [
+        f"label {k}: {name!r} (the spec's label {spec_categories.index(name)}, {spec_categories[k]!r})"
+        for k, name in enumerate(categories)
+        if spec_categories[k] != name
+    ]
+    return {"spec": list(spec_categories), "source": list(categories), "moved": moved}
+
+
+def _plausible_temperatures(sample: Any, where: Any, implausible: dict[str, Any]) -> Any:
+    """``sample`` with its temperatures held to ``radiometry.PLAUSIBLE_C``: a few pixels outside become missing (NaN,
+    counted), a map mostly outside (a wrong unit: 8-bit counts read as centi-Kelvin give -273 C) is kept as it is and
+    counted as an implausible sample, which the input guard refuses unless ``inputs.accept`` names
+    ``temperature-range``; so is a dataset whose coolest pixel is above -100 C + 273.15 (temperatures in Kelvin)."""
+    import dataclasses
+
+    import numpy as np
+
+    from harness.sensing.c2 import MAX_INVALID_FRACTION
+    from harness.sensing.radiometry import PLAUSIBLE_C
+
+    t = getattr(sample, "thermal", None)
+    if not isinstance(t, np.ndarray) or t.dtype.kind != "f" or t.ndim != 2:
+        return sample  # the contract check names what is wrong
+    finite = np.isfinite(t)
+    if finite.any():  # the coolest pixel of all samples: above -100 C + 273.15 everywhere reads as Kelvin
+        coolest = float(t[finite].min())
+        implausible["coolest"] = min(implausible.get("coolest", coolest), coolest)
+    bad = finite & ((t < PLAUSIBLE_C[0]) | (t > PLAUSIBLE_C[1]))
+    n_bad = int(np.count_nonzero(bad))
+    if not n_bad:
+        return sample
+    n_finite = int(np.count_nonzero(finite))
+    if n_bad > MAX_INVALID_FRACTION * n_finite:
+        implausible["samples"] += 1
+        if len(implausible["examples"]) < MAX_LISTED_SKIPS:
+            lo, hi = float(t[finite].min()), float(t[finite].max())
+            implausible["examples"].append(f"{where}: {n_bad} of {n_finite} values outside, {lo:.6g}..{hi:.6g} C")
+        return sample
+    implausible["pixels"] += n_bad
+    kept = t.copy()
+    kept[bad] = np.nan
+    return dataclasses.replace(sample, thermal=kept)
 
 
 def plugin_label(spec: DatasetSpec) -> str:

@@ -8,7 +8,8 @@ same arrays. An encoding's channel is computed for the whole dataset on first us
 uint8 (raw form), or compressed per sample or recomputed, whichever measured cheaper (compact form).
 
 COCO ground truth is derived from the same arrays (``coco()``): category ``id = label + 1``, boxes in the thermal
-frame, ``area = w * h``, ``iscrowd = 0``.
+frame, ``area = w * h``, ``iscrowd = 0``, and 1 for a crowd region (the box indices a sample's ``meta["crowd"]`` names;
+``targets`` leaves those out, so training never uses them as instances).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import hashlib
 import json
 import time
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -216,10 +217,37 @@ class PreparedDataset:
             yield self[i]
 
     def targets(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(boxes, labels) of sample ``i`` without touching the image arrays."""
+        """(boxes, labels) of sample ``i`` without touching the image arrays; crowd regions (``crowd_targets``) are
+        left out: they are never training instances."""
         r = self.records[i]
         b, n = r["box"], r["n"]
-        return self._boxes[b * 4 : (b + n) * 4].reshape(n, 4), self._labels[b : b + n]
+        boxes, labels = self._boxes[b * 4 : (b + n) * 4].reshape(n, 4), self._labels[b : b + n]
+        crowd = self._crowd(r)
+        if crowd is None:
+            return boxes, labels
+        keep = np.ones(n, bool)
+        keep[crowd] = False
+        return boxes[keep], labels[keep]
+
+    def crowd_targets(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(boxes, labels) of sample ``i``'s crowd regions (COCO ``iscrowd`` 1, the sample's ``meta["crowd"]``
+        indices): the evaluation ignores detections on them."""
+        r = self.records[i]
+        b, n = r["box"], r["n"]
+        crowd = self._crowd(r)
+        boxes, labels = self._boxes[b * 4 : (b + n) * 4].reshape(n, 4), self._labels[b : b + n]
+        if crowd is None:
+            return boxes[:0], labels[:0]
+        return boxes[crowd], labels[crowd]
+
+    @staticmethod
+    def _crowd(record: Mapping[str, Any]) -> np.ndarray | None:
+        meta = record.get("meta")
+        crowd = meta.get("crowd") if isinstance(meta, dict) else None
+        if not crowd:
+            return None
+        idx = np.asarray(crowd, np.int64).reshape(-1)
+        return idx[(idx >= 0) & (idx < int(record["n"]))]
 
     def content_digest(self, indices: Sequence[int], encoding: Any = None, params: dict[str, Any] | None = None) -> str:
         """blake2b of what a detector sees of the samples at ``indices``, in that order: image id, group, RGB pixels,
@@ -349,20 +377,20 @@ class PreparedDataset:
                     "group": r["group"],
                 }
             )
-            boxes, labels = self.targets(i)
-            for (x1, y1, x2, y2), lab in zip(boxes.tolist(), labels.tolist()):
-                w, h = x2 - x1, y2 - y1
-                anns.append(
-                    {
-                        "id": ann_id,
-                        "image_id": int(r["image_id"]),
-                        "category_id": int(lab) + 1,
-                        "bbox": [x1, y1, w, h],
-                        "area": w * h,
-                        "iscrowd": 0,
-                    }
-                )
-                ann_id += 1
+            for crowd, (boxes, labels) in ((0, self.targets(i)), (1, self.crowd_targets(i))):
+                for (x1, y1, x2, y2), lab in zip(boxes.tolist(), labels.tolist()):
+                    w, h = x2 - x1, y2 - y1
+                    anns.append(
+                        {
+                            "id": ann_id,
+                            "image_id": int(r["image_id"]),
+                            "category_id": int(lab) + 1,
+                            "bbox": [x1, y1, w, h],
+                            "area": w * h,
+                            "iscrowd": crowd,
+                        }
+                    )
+                    ann_id += 1
         cats = [{"id": k + 1, "name": n} for k, n in enumerate(self.categories)]
         return {
             "info": {"dataset": self.name, "frame": "thermal"},

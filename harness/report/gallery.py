@@ -202,6 +202,11 @@ def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[A
     if stored and stored != prepared.manifest.get("fingerprint"):
         return None, (f"{run.key}: the cached samples of {run.key.dataset} changed since the run (fingerprint "
                       f"{stored} then, {prepared.manifest.get('fingerprint')} now)")
+    then, now = meta.get("prepared_samples"), (prepared.manifest.get("report") or {}).get("samples_identity")
+    if then and now and then != now:
+        return None, (f"{run.key}: the cache key {key} of {run.key.dataset} now holds other samples under the run's "
+                      f"image ids (samples {then} then, {now} now: the dataset plugin's sample order changed), so "
+                      "its boxes would be drawn on other pictures; prepare the run's samples again or re-run it")
     return prepared, None
 
 

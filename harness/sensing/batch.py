@@ -2,7 +2,9 @@
 
 ``decode_batch(inputs, out_dir, options)`` takes files and folders (folders are searched recursively for
 ``.jpg``/``.jpeg`` files; a JPEG there without a radiometric payload, such as the visible-camera picture of the
-same capture, is passed over and counted, not failed). Every readable file is decoded; each output (the
+same capture, is passed over and counted, not failed; a radiometric JPEG of another make, such as a FLIR file with
+its APP1 ``FLIR`` container, is not passed over: it fails, naming the camera, as it does when named directly).
+Every readable file is decoded; each output (the
 temperature file, its sidecar and the optional preview) is written to a temporary name in the output folder and
 renamed into place, so an interrupted batch leaves whole files only. A file that cannot be decoded is recorded
 as ``(file, reason)`` and the batch goes on, unless ``fail_fast``, which raises the first error as it comes; a
@@ -143,6 +145,14 @@ def exact_params(data: bytes, name: str | Path, layout: Any = None) -> dict[str,
     return out
 
 
+def flir_payload(layout: Any) -> bool:
+    """Whether a JPEG carries FLIR's radiometric container (APP1 segments starting ``FLIR\\0``): a thermal
+    picture of another make, which a folder search must not pass over as a visible-camera JPEG."""
+    from harness.sensing import jpeg
+
+    return any(p.startswith(b"FLIR\x00") for p in layout.payloads(jpeg.APP1))
+
+
 def _temporary(target: Path) -> Path:
     """A hidden name beside ``target`` with the same suffix (the writers choose the format by it)."""
     return target.with_name(f".{target.stem}.{os.getpid()}.tmp{target.suffix}")
@@ -161,14 +171,15 @@ def decode_one(source: Path, target: Path, options: DecodeOptions, from_folder: 
     except OSError as exc:
         raise DataError(f"{source}: cannot read ({exc.strerror or exc})") from None
     layout = jpeg.read_segments(data, source, require_eoi=False)  # a damaged header fails here, naming the file
-    if from_folder and not layout.payloads(jpeg.APP3):  # no radiometric counts: e.g. the visible camera's JPEG
-        return {"passed_over": True}
+    if from_folder and not layout.payloads(jpeg.APP3) and not flir_payload(layout):
+        return {"passed_over": True}  # no radiometric counts: e.g. the visible camera's JPEG
     rj = read_rjpeg(source, options.decoder, options.approximate, options.converter)
     t, info = rjpeg_temperature(rj, dict(options.overrides))
     # the parameters the route applied: none for blackbody (the columns would show values that were not used)
     used = info.get("correction") or (info["converter"]["params"] if "converter" in info else {})
     route = info["route"]
-    params = exact_params(data, source, layout) or dict(rj.params)
+    # only an iirp APP4 block holds the five float32 parameters (an XT S keeps raw words there)
+    params = (exact_params(data, source, layout) if rj.fmt == "iirp" else {}) or dict(rj.params)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary(target)
     moves = [(tmp, target), (sidecar_path(tmp), sidecar_path(target))]

@@ -17,7 +17,9 @@ Nothing of DJI's is shipped with or downloaded by the harness. Each run gets its
 afterwards, whatever happens); a converter that cannot be started is a ``ConfigError`` (a setting, wrong for every
 file); one that fails, outlasts its time-out (it is stopped, with any process it started) or writes the wrong
 amount of data is a ``DataError`` naming the file. Values at or below -273 C (the SDK's "cannot measure") and
-non-finite values come back as missing (NaN).
+non-finite values come back as missing (NaN), and so do values outside the plausible range
+(``radiometry.PLAUSIBLE_C``, -100..800 C; counted as ``implausible`` in the record); an output mostly outside it is
+not temperatures in C and is a ``DataError`` naming the file.
 """
 
 from __future__ import annotations
@@ -210,7 +212,11 @@ def convert(conv: Converter, source: str | Path, width: int, height: int,
                         f"({width}x{height} float32 temperatures)")
     temp = np.frombuffer(data, dtype="<f4").reshape(height, width).astype(np.float32)
     temp = np.where(np.isfinite(temp) & (temp > NO_MEASUREMENT_C), temp, np.float32(np.nan)).astype(np.float32)
+    from harness.sensing.radiometry import implausible_to_missing
+
+    implausible = implausible_to_missing(temp, str(source), f"the converter ({conv.name})")
     shown = ["<output>" if a == str(output) else a for a in argv]
     record = {"converter": conv.name, "program": conv.program or None, "arguments": shown[1:] if conv.kind == DJI_IRP
-              else shown, "params": {k: float(v) for k, v in params.items()}, "timeout_s": conv.timeout_s}
+              else shown, "params": {k: float(v) for k, v in params.items()}, "timeout_s": conv.timeout_s,
+              **({"implausible": implausible} if implausible else {})}
     return temp, record

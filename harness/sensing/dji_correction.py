@@ -174,11 +174,14 @@ class TauTable:
         return float(self.temps_k[self.valid_rows - 1])
 
     def summary(self) -> dict[str, Any]:
+        """What a sidecar records of the table (``valid_up_to_c`` is ``None`` when every row is valid: JSON has no
+        infinity)."""
         rows = self.valid_rows or len(self.temps_k)
         return {"table_version": self.version, "shape": list(self.tau.shape), "humidity_version": self.humidity,
                 "separate_reflection": self.reflection, "tau_range": [int(self.tau[:rows].min()),
                                                                       int(self.tau[:rows].max())],
-                "max_distance_m": self.max_distance, "valid_up_to_c": round(self.valid_below_k - KELVIN, 2),
+                "max_distance_m": self.max_distance, "valid_up_to_c": (
+                    None if math.isinf(self.valid_below_k) else round(self.valid_below_k - KELVIN, 2)),
                 **({"approximation": self.approximation} if self.approximation else {})}
 
 

@@ -66,6 +66,11 @@ def read_segments(data: bytes, name: str | Path = "<bytes>", require_eoi: bool =
     n = len(data)
     if n == 0:
         raise DataError(f"{name}: empty file (0 bytes): nothing was copied into it; copy it again from the card")
+    if 2 <= n < 4 and data[0] == 0xFF and data[1] == SOI:
+        raise DataError(
+            f"{name}: truncated JPEG: the file holds only {n} bytes ({data.hex(' ')}), the start-of-image marker and "
+            "nothing after it; pass an R-JPEG straight from the camera"
+        )
     if n < 4 or data[0] != 0xFF or data[1] != SOI:
         head = data[:8].hex(" ")
         raise DataError(

@@ -243,7 +243,14 @@ class RJpeg:
         if self.converter is None:
             raise DataError(f"{self.path}: no converter was given for this file")
         h, w = self.raw14.shape
-        return dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
+        temp, record = dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
+        if self.fmt == "iirp" and np.isfinite(temp).any():  # the file's own counts say roughly where the scene is
+            gap = float(np.nanmedian(temp)) - float(np.median(self.blackbody_c()))
+            if abs(gap - KELVIN) < KELVIN_GAP_C:
+                raise DataError(f"{self.path}: the converter ({self.converter.name}) wrote temperatures "
+                                f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
+                                "(float32 degrees Celsius)")
+        return temp, record
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
         """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
@@ -528,8 +535,34 @@ DEFAULT_UNIT = {"uint16": "centikelvin", "int16": "decicelsius", "float32": "cel
 #: how each unit is stored
 UNIT_DTYPE = {"celsius": np.float32, "kelvin": np.float32, "centikelvin": np.uint16, "decicelsius": np.int16,
               "centicelsius": np.int16, "raw14": np.uint16}
+#: the value an integer unit stores for a missing pixel (``write_thermal``; float units store NaN)
+NODATA = {"centikelvin": 0, "raw14": 0, "decicelsius": -32768, "centicelsius": -32768}
 THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
+#: a converter's median this close to 273.15 C above the file's blackbody median wrote Kelvin (a correction for
+#: emissivity and atmosphere moves a scene by tens of degrees at most, never by 273)
+KELVIN_GAP_C = 60.0
+#: temperatures (C) a facade, a flight or any supported camera can give; values outside are not temperatures
 PLAUSIBLE_C = (-100.0, 800.0)
+
+
+def implausible_to_missing(temp: np.ndarray, name: str, what: str) -> int:
+    """Pixels of ``temp`` (float, changed in place) outside ``PLAUSIBLE_C`` become missing (NaN); returns how many.
+    When they are more than ``c2.MAX_INVALID_FRACTION`` of the finite pixels the map is not temperatures in C at all
+    (a wrong unit or scale): a ``DataError`` naming ``name``, ``what`` produced it, the span and the count."""
+    from harness.sensing.c2 import MAX_INVALID_FRACTION
+
+    finite = np.isfinite(temp)
+    bad = finite & ((temp < PLAUSIBLE_C[0]) | (temp > PLAUSIBLE_C[1]))
+    n_bad, n_finite = int(bad.sum()), int(finite.sum())
+    if not n_bad:
+        return 0
+    if n_bad > MAX_INVALID_FRACTION * n_finite:
+        lo, hi = float(temp[finite].min()), float(temp[finite].max())
+        raise DataError(f"{name}: {what} gives {n_bad} of {n_finite} values outside the plausible "
+                        f"{PLAUSIBLE_C[0]:g}..{PLAUSIBLE_C[1]:g} C (from {lo:.6g} to {hi:.6g} C); it is not "
+                        "temperatures in C: check its unit or scale")
+    temp[bad] = np.nan
+    return n_bad
 
 
 def sidecar_path(path: str | Path) -> Path:
@@ -732,13 +765,22 @@ def read_thermal(path: str | Path, decoder: str = "auto",
 
         temp[missing] = np.nan
         valid_mask(temp, str(path))  # no valid pixel, or too many missing: an error naming the file
-    if side is None:
+    implausible = 0
+    if side is not None:  # the stated unit: values outside the plausible range are missing, mostly so an error
+        implausible = implausible_to_missing(temp, str(path), f"the unit of {Path(side['_path']).name} ({unit})")
+        if implausible:
+            from harness.sensing.c2 import valid_mask
+
+            missing = missing | ~np.isfinite(temp)
+            valid_mask(temp, str(path))
+    else:
         lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
         if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
             raise DataError(f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
                             f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
     info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
             "params": dict(side.get("params", {})) if side else {}, "nodata": nodata, "missing": int(missing.sum()),
+            **({"implausible": implausible} if implausible else {}),
             "sidecar": side.get("_path") if side else None, **sidecar_route(side)}
     return temp, info
 
@@ -749,7 +791,10 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
 
     ``centikelvin``: uint16 ``round((T + 273.15) * 100)``; ``decicelsius``: int16 ``round(T * 10)`` (TIFF or
     npy only: PNG cannot hold int16); ``celsius``: float32 (TIFF or npy). The sidecar ``<file>.json`` records
-    unit, scale, offset, dtype, shape and ``params``. Returns the data file's path.
+    unit, scale, offset, dtype, shape and ``params`` (strict JSON: a non-finite number is ``null``). Missing pixels
+    (NaN, inf) stay missing: stored as the unit's ``NODATA`` value (NaN in a float file), with ``nodata`` and the
+    count ``missing`` in the sidecar; a map with none valid, or more than ``c2.MAX_INVALID_FRACTION`` missing, is a
+    ``DataError``. Returns the data file's path.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -758,16 +803,28 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
     if suffix not in (".png", ".tif", ".tiff", ".npy"):
         raise DataError(f"{path}: write thermal maps as .png, .tif/.tiff or .npy")
     t = np.asarray(temperature_c, dtype=np.float64)
-    if t.ndim != 2 or not np.isfinite(t).all():
-        raise DataError(f"{path}: temperature map must be a finite 2-D array, got shape {t.shape}")
+    if t.ndim != 2:
+        raise DataError(f"{path}: temperature map must be a 2-D array, got shape {t.shape}")
+    missing = ~np.isfinite(t)
+    n_missing = int(missing.sum())
+    if n_missing:  # missing pixels stay missing: the unit's nodata value (NaN in a float file), never a temperature
+        from harness.sensing.c2 import valid_mask
+
+        valid_mask(t, str(path))  # none valid, or more missing than a map may miss: an error naming the file
     scale, offset = UNITS[unit]
     dtype = np.dtype(UNIT_DTYPE[unit])
     values = (t - offset) / scale
+    nodata: int | None = None
     if dtype.kind in "iu":
         values = np.rint(values)
         info = np.iinfo(dtype)  # type: ignore[type-var]
-        if values.min() < info.min or values.max() > info.max:
-            raise DataError(f"{path}: temperatures {t.min():.2f}..{t.max():.2f} C do not fit {unit} ({dtype.name})")
+        nodata = NODATA[unit]
+        lowest = info.min + 1 if nodata == info.min else info.min  # the nodata value is never a temperature
+        valid = values[~missing]
+        if valid.min() < lowest or valid.max() > info.max:
+            tv = t[~missing]
+            raise DataError(f"{path}: temperatures {tv.min():.2f}..{tv.max():.2f} C do not fit {unit} ({dtype.name})")
+        values[missing] = nodata
     arr = values.astype(dtype)
     if suffix == ".png" and dtype not in (np.uint8, np.uint16):
         raise DataError(f"{path}: PNG cannot store {dtype.name} ({unit}); use .tif or unit='centikelvin'")
@@ -785,9 +842,12 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
             raise DataError(f"{path}: could not write PNG")
     from harness import __version__
     from harness.io import atomic_write_json
+    from harness.sensing.analyses import nan_to_none
 
     sidecar = {"unit": unit, "scale": scale, "offset": offset, "dtype": dtype.name, "shape": list(arr.shape),
                "formula": "C = value * scale + offset", "params": dict(params or {}),
                "writer": f"rgbt-harness {__version__}", **dict(extra or {})}
-    atomic_write_json(sidecar_path(path), sidecar)
+    if n_missing:
+        sidecar.update({"nodata": nodata, "missing": n_missing} if nodata is not None else {"missing": n_missing})
+    atomic_write_json(sidecar_path(path), nan_to_none(sidecar))  # strict JSON: a non-finite number is null
     return path

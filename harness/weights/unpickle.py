@@ -321,6 +321,12 @@ class _Unpickler(pickle._Unpickler):  # the pure-Python opcode handlers: a stack
         raise UnsafeCheckpointError("the checkpoint uses pickle extension codes (never written by torch.save); refused")
 
     def persistent_load(self, pid: Any) -> Any:
+        if isinstance(pid, tuple) and len(pid) == 4 and pid[0] == "module" and self._load_storage is not None:
+            # a pre-1.6 whole-model file names each module class with ('module', class, source file, source);
+            # the class came through find_class (a placeholder or a rebuild-list name): nothing else is used
+            if not isinstance(pid[1], type):
+                raise CheckpointFormatError(f"a module persistent id names {brief(pid[1])}, not a class")
+            return pid[1]
         if not isinstance(pid, tuple) or not pid or pid[0] != "storage" or self._load_storage is None:
             raise CheckpointFormatError(f"unknown persistent id {brief(pid)}")
         return self._load_storage(pid)
