@@ -48,6 +48,8 @@ MANIFEST_SCHEMA = 1
 PREFIX = REFERENCE_PREFIX
 #: The folder of the shipped references under ``references/`` (``harness.shipped_references`` when installed).
 SHIPPED = "m3t-synth-benchmark"
+#: The built-in synthetic dataset, whose generator a reference records.
+SYNTHETIC = "m3t-synth"
 #: Largest reference store the project ships.
 MAX_BYTES = 10 * 2**20
 #: Run files copied as they are, and those gzip-compressed.
@@ -153,34 +155,48 @@ def load_references(spec: str | Path) -> ReferenceSet:
 
 # ------------------------------------------------------------------------------------------------- matching
 def _generator_of(run: Any) -> dict[str, Any] | None:
-    """The synthetic generator's record (``synth.json``) of the data a run was trained on, when it can be found."""
+    """The synthetic set a run was trained on, as far as its data folder (``synth.json`` beside the images, written
+    by the generator) or, failing that, its dataset options (``dataset.profile``, ``dataset.seed``) tell."""
     from harness.io import read_json
 
     ds = (run.config.get("dataset") or {}) if isinstance(run.config, dict) else {}
     root = ds.get("root")
-    candidates = [Path(root)] if root else []
-    if not root and run.key.dataset == "m3t-synth":
+    if root and (Path(root) / "synth.json").is_file():
         try:
-            from adapters.datasets.synthetic.generation import default_root
-
-            candidates.append(
-                default_root(
-                    str(ds.get("profile") or "small"),
-                    int(ds.get("seed") or 0),
-                    str(ds.get("thermal_format") or "rjpeg"),
-                )
-            )
-        except Exception:  # the plugin is not importable here: nothing to say about the generator
+            info = read_json(Path(root) / "synth.json")
+        except Exception:
+            info = None
+        if isinstance(info, dict):
+            return {k: info.get(k) for k in ("generator_version", "profile", "seed")} | {"root": str(root)}
+    if run.key.dataset != SYNTHETIC:
+        return None
+    found = _opened_root(run.key.dataset, ds)
+    if found is not None and (found / "synth.json").is_file():
+        try:
+            info = read_json(found / "synth.json")
+            return {k: info.get(k) for k in ("generator_version", "profile", "seed")} | {"root": str(found)}
+        except Exception:
             pass
-    for folder in candidates:
-        p = folder / "synth.json"
-        if p.is_file():
-            try:
-                info = read_json(p)
-            except Exception:
-                return None
-            return {k: info.get(k) for k in ("generator_version", "profile", "seed")} | {"root": str(folder)}
-    return None
+    return {
+        "generator_version": None,
+        "profile": ds.get("profile", "small"),
+        "seed": ds.get("seed", 0),
+        "root": f"dataset options of {run.key}",
+    }
+
+
+def _opened_root(dataset: str, options: Mapping[str, Any]) -> Path | None:
+    """The folder the dataset plugin opens with ``options`` (its source's ``root``), or None."""
+    try:
+        from harness.plugins import get_host
+
+        spec = get_host().dataset(dataset)
+        opts = {k: v for k, v in options.items() if k != "root"}
+        source = spec.open(options.get("root"), **opts)
+        root = getattr(source, "root", None)
+        return Path(root) if root is not None else None
+    except Exception:  # no plugin here, or options it does not take: nothing to say about the data folder
+        return None
 
 
 def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
@@ -232,7 +248,7 @@ def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
                     ("profile", "profile", "profile"),
                     ("seed", "seed", "seed"),
                 )
-                if gen.get(key) != ref_gen.get(ref_key)
+                if gen.get(key) is not None and gen.get(key) != ref_gen.get(ref_key)
             ]
             if diffs:
                 differs = f" Your data ({gen['root']}) differs from the references' in: {', '.join(diffs)}."
