@@ -16,7 +16,8 @@ Verdicts:
 * **supported**: every part of the claim holds with its intervals on the claimed side;
 * **contradicted**: some part holds the other way with its interval (e.g. the difference's interval lies entirely on
   the other side of 0);
-* **inconclusive**: neither (an interval straddles the boundary).
+* **inconclusive**: neither (an interval straddles the boundary);
+* **not tested**: the entries the claim is about are not there.
 
 "Near zero" is AP50 below ``NEAR_ZERO`` (0.05); the paper's own thresholds (0.000, 0.001) are tested as written.
 """
@@ -32,6 +33,8 @@ from harness.report.reader import REFERENCE_PREFIX, Entry, StoreView
 from harness.report.stats import bootstrap_indices, percentile_ci, two_level
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE = "supported", "contradicted", "inconclusive"
+#: The verdict of a claim whose entries are not in the store (nor in the references read beside it).
+NOT_TESTED = "not tested"
 NEAR_ZERO = 0.05
 ABLATION_FOLD = "P4+P5"
 ENCODINGS = ("none", "ir8", "linear16", "c2")
@@ -204,7 +207,7 @@ def evaluate_claims(
         missing = [enc for enc, e in abl.items() if e is None or ABLATION_FOLD not in e.folds]
         why = f"no {ours} run with encoding(s) {', '.join(missing)} on {ABLATION_FOLD} in {source}"
         for n, text in ABLATION_CLAIMS:
-            claims.append(Claim(n, text, INCONCLUSIVE, [f"not tested: {why}"]))
+            claims.append(Claim(n, text, NOT_TESTED, [why]))
     else:
         E = {k: v for k, v in abl.items() if v is not None}
 
@@ -273,7 +276,8 @@ def evaluate_claims(
     main = _main(entries, ours)
     c = Claim(5, OTHER_CLAIMS[0][1])
     if main is None:
-        c.evidence.append(f"not tested: no {ours} runs in {source}")
+        c.verdict = NOT_TESTED
+        c.evidence.append(f"no {ours} runs in {source}")
     else:
         folds5 = list(main.folds)
         c.entries = f"{main.label}, folds {', '.join(folds5)}"
@@ -314,7 +318,8 @@ def evaluate_claims(
     mains = {d: _main(entries, prefix + d) for d in DETECTORS}
     if any(v is None for v in mains.values()):
         missing = [d for d, v in mains.items() if v is None]
-        c.evidence.append(f"not tested: no runs of {', '.join(prefix + m for m in missing)} in {source}")
+        c.verdict = NOT_TESTED
+        c.evidence.append(f"no runs of {', '.join(prefix + m for m in missing)} in {source}")
     else:
         M = {k: v for k, v in mains.items() if v is not None}
         common = [f for f in M["ours"].folds if all(f in e.folds for e in M.values())]
@@ -389,4 +394,13 @@ def claims_records(claims: Sequence[Claim]) -> list[Mapping[str, Any]]:
     return [c.to_dict() for c in claims]
 
 
-__all__ = ["CONTRADICTED", "INCONCLUSIVE", "SUPPORTED", "Claim", "ColumnScorer", "claims_markdown", "evaluate_claims"]
+__all__ = [
+    "CONTRADICTED",
+    "INCONCLUSIVE",
+    "NOT_TESTED",
+    "SUPPORTED",
+    "Claim",
+    "ColumnScorer",
+    "claims_markdown",
+    "evaluate_claims",
+]
