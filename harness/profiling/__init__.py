@@ -167,6 +167,12 @@ def build_detector(
             f"detector {name!r} could not be built (num_classes={num_classes}, "
             f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}"
         ) from exc
+    from harness.contracts import plugin_label
+    from harness.profiling.model_io import check_input_channels, require_forward_raw
+
+    label = plugin_label("detector", spec.name)
+    require_forward_raw(model, label)
+    check_input_channels(model, label, spec.input_kind, channels, spec.thermal_channels)
     return spec, model.eval()
 
 
