@@ -245,3 +245,16 @@ def test_the_testing_kit_refuses_a_nan_loss_as_harness_run_does():
     with pytest.raises(PluginError, match=r"loss 'box' is nan.*not finite"):
         check_losses({"cls": torch.tensor(1.0), "box": torch.tensor(float("nan"))}, "d")
     assert check_losses({"cls": torch.tensor(1.0)}, "d")
+
+
+def test_a_scored_run_records_its_prepared_samples_so_a_gallery_can_draw_it(framed):
+    from harness.report.gallery import prepared_of
+    from harness.report.reader import read_run
+    from harness.store import Store
+
+    tmp, perfect = framed
+    res = _score(tmp, "drawn", perfect["prepared"])
+    run = next(r for r in Store(tmp / "store").runs(detector="external/drawn"))
+    assert run.path == res.run_path
+    samples, why = prepared_of(read_run(run))
+    assert why is None and samples is not None and samples.manifest.get("fingerprint")

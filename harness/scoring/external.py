@@ -639,6 +639,13 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
             log.warning("%s", label)
     run.path.mkdir(parents=True, exist_ok=True)
     atomic_write_json(run.path / "score.json", {"identity": identity, "matching": m.to_dict()})
+    from harness.runner import run_config
+
+    # the configuration it was scored under, with the prepared samples it was scored on (what a gallery draws)
+    run.write_config(run_config(cfg, key, {"prepared_fingerprint": prepared.manifest.get("fingerprint"),
+                                           "prepared_key": str(getattr(prepared, "key", None)
+                                                               or prepared.manifest.get("key", "")),
+                                           "val_groups": list(f.val_groups), "external": True}))
     atomic_write_json(run.predictions_path, dets, indent=None)
     atomic_write_json(run.gt_path, gt, indent=None)
     store_analysis(run, gt, dets, cfg, evaluation["metrics"].get("conf_threshold"))
