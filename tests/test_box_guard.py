@@ -258,3 +258,11 @@ def test_a_scored_run_records_its_prepared_samples_so_a_gallery_can_draw_it(fram
     assert run.path == res.run_path
     samples, why = prepared_of(read_run(run))
     assert why is None and samples is not None and samples.manifest.get("fingerprint")
+
+
+def test_mostly_malformed_predictions_stop_and_name_box_format(framed):
+    tmp, perfect = framed
+    with pytest.raises(
+        DataError, match=r"(?s)implausible.*1\d of 20 predictions .* are malformed \(x2 < x1 or y2 < y1.*--box-format"
+    ):
+        _score(tmp, "read-as-corners", perfect["prepared"], box_format="xyxy")  # x, y, w, h read as corners

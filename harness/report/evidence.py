@@ -347,21 +347,28 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
                     )
             table.rows.append(row)
 
-        # the objects per bin: one row when every entry's runs saw the same objects, else one row per entry
-        def objects(ev: Evidence) -> dict[str, int]:
-            return {
-                b: sum(int(_get("sizes", scheme, "instances", b)(analyses[0]) or 0) for analyses in ev.folds.values())
-                for b in bins
-            }
+        # the objects per bin: one row when the entries' runs saw the same objects in every fold they share (a fold
+        # without an analysis says nothing), else one row per entry
+        def objects(analysis: dict[str, Any]) -> dict[str, int]:
+            return {b: int(_get("sizes", scheme, "instances", b)(analysis) or 0) for b in bins}
 
-        per_entry = [(ev, objects(ev)) for ev in have]
-        same = all(c == per_entry[0][1] for _, c in per_entry)
-        for ev, counts in per_entry[:1] if same else per_entry:
+        per_fold: dict[str, list[dict[str, int]]] = {}
+        for ev in have:
+            for fold, analyses in ev.folds.items():
+                per_fold.setdefault(fold, []).append(objects(analyses[0]))
+        same = all(all(c == counts[0] for c in counts) for counts in per_fold.values())
+        shown = (
+            [("instances", [c[0] for c in per_fold.values()])]
+            if same
+            else [(f"instances ({ev.name})", [objects(a[0]) for a in ev.folds.values()]) for ev in have]
+        )
+        for label, folds in shown:
+            total = {b: sum(c[b] for c in folds) for b in bins}
             table.rows.append(
                 {
-                    "detector": "instances" if same else f"instances ({ev.name})",
+                    "detector": label,
                     "_summary": True,
-                    **{f"{m}:{b}": f"{counts[b]:,}" for m in ("AP50", "AP50_95") for b in bins},
+                    **{f"{m}:{b}": f"{total[b]:,}" for m in ("AP50", "AP50_95") for b in bins},
                 }
             )
         _labels(table, evidence, [f"{m}:{b}" for m in ("AP50", "AP50_95") for b in bins])
