@@ -266,3 +266,13 @@ def test_mostly_malformed_predictions_stop_and_name_box_format(framed):
         DataError, match=r"(?s)implausible.*1\d of 20 predictions .* are malformed \(x2 < x1 or y2 < y1.*--box-format"
     ):
         _score(tmp, "read-as-corners", perfect["prepared"], box_format="xyxy")  # x, y, w, h read as corners
+
+
+def test_a_file_mixing_corner_and_xywh_boxes_stops(framed):
+    tmp, perfect = framed
+    mixed = [
+        corners if k % 2 else d
+        for k, (d, corners) in enumerate(zip(perfect["prepared"], _corners(perfect["prepared"])))
+    ]
+    with pytest.raises(DataError, match=r"only when read as corners x1, y1, x2, y2: a file mixing"):
+        _score(tmp, "mixed", mixed)

@@ -13,11 +13,12 @@ from harness.hookspecs import hookimpl
 
 def _check_reference(root: Path, reference: str, datasets: list[str] | None) -> None:
     """A ``--reference`` the user named must have finished runs in the store (in one of ``datasets``)."""
-    from harness.store import Store
+    from harness.report.reader import StoreView
 
     if not Path(root).is_dir():
         return  # the report itself says the store is missing
-    found = sorted({r.key.detector for r in Store(root).runs() if datasets is None or r.key.dataset in datasets})
+    view = StoreView(root)
+    found = sorted({e.detector for ds in (datasets or view.datasets()) for e in view.entries(ds)})
     if reference in found or any(d == f"external/{reference}" for d in found):
         return
     where = f" of {', '.join(datasets)}" if datasets else ""

@@ -144,8 +144,9 @@ class DegenerateBoxes:
             return None
         if allow:
             return text + "; stored anyway because eval.allow_degenerate is set"
+        sep = " " if text.endswith("?") else ". "
         raise PluginError(
-            text + f". {fix}: fix the detector, or set eval.allow_degenerate=true to store the run labelled"
+            text + f"{sep}{fix}: fix the detector, or set eval.allow_degenerate=true to store the run labelled"
         )
 
     def _shown(self, kind: str) -> str:

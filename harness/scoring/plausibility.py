@@ -95,6 +95,26 @@ def agreement(
     return hits / objects if objects else None
 
 
+def overlaps_truth(preds: Sequence[Pred], targets: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Per prediction: it overlaps an object of its category on its image with IoU >= 0.5 (``False`` without a
+    sample or a category)."""
+    out = np.zeros(len(preds), dtype=bool)
+    by_image: dict[int, list[int]] = {}
+    for k, (idx, _, _, label) in enumerate(preds):
+        if idx is not None and label is not None:
+            by_image.setdefault(idx, []).append(k)
+    for idx, ks in by_image.items():
+        gt_boxes, gt_labels = targets(idx)
+        if len(gt_boxes) == 0:
+            continue
+        boxes = np.asarray([preds[k][1] for k in ks], dtype=np.float64).reshape(-1, 4)
+        labels = np.asarray([preds[k][3] for k in ks])
+        iou = _iou(boxes, np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4))
+        same = labels[:, None] == np.asarray(gt_labels)[None, :]
+        out[ks] = ((iou >= 0.5) & same).any(axis=1)
+    return out
+
+
 def shift_found(given: float | None, shifted: float | None) -> bool:
     """Whether the shifted reading agrees with the ground truth so much better that the given one is a misreading."""
     if shifted is None or shifted < SHIFT_MIN_AGREEMENT:
@@ -148,7 +168,8 @@ def normalised(boxes: np.ndarray) -> np.ndarray:
     """Per box (any 4-number convention): every coordinate is finite and within 0..1 (``NORM_TOL``)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     with np.errstate(invalid="ignore"):
-        return np.isfinite(b).all(axis=1) & (b >= -NORM_TOL).all(axis=1) & (b <= 1 + NORM_TOL).all(axis=1)
+        inside = (b >= -NORM_TOL).all(axis=1) & (b <= 1 + NORM_TOL).all(axis=1)
+    return np.asarray(np.isfinite(b).all(axis=1) & inside, dtype=bool)
 
 
 def inside_share(boxes: np.ndarray, width: np.ndarray | float, height: np.ndarray | float) -> np.ndarray:
