@@ -276,3 +276,10 @@ def test_a_file_mixing_corner_and_xywh_boxes_stops(framed):
     ]
     with pytest.raises(DataError, match=r"only when read as corners x1, y1, x2, y2: a file mixing"):
         _score(tmp, "mixed", mixed)
+
+
+def test_an_empty_predictions_file_is_refused(framed):
+    tmp, _ = framed
+    with pytest.raises(DataError, match="holds no predictions; nothing was stored"):
+        _score(tmp, "empty", [])
+    assert not (tmp / "store" / "framed" / "external.empty").exists()

@@ -666,8 +666,12 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
             image_list = read_json(Path(images))
         except Exception as exc:
             raise DataError(f"--images {images}: not readable JSON ({exc})") from None
-    dets, scored_idx, m = match_predictions(prepared, val_idx, _load_predictions(pred_path), frame, image_list,
-                                            image_key, category_map, box_format)
+    loaded = _load_predictions(pred_path)
+    if not loaded:
+        raise DataError(f"--predictions {pred_path}: holds no predictions; nothing was stored (a detector that finds "
+                        f"nothing on {len(val_idx)} images is more likely an export that went wrong)")
+    dets, scored_idx, m = match_predictions(prepared, val_idx, loaded, frame, image_list, image_key, category_map,
+                                            box_format)
     if m.scored == 0 and m.predictions:
         raise DataError(f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
                         "images and categories:\n  " + "\n  ".join(m.lines() + [f"- {x}" for x in m.findings]))
