@@ -71,7 +71,8 @@ class DetectorSpec:
       ``(rgb [B,3,H,W], thermal [B,Ct,H,W])`` for ``"dual"``; ``targets`` is a list of per-image dicts with
       ``boxes`` (float ``[N,4]`` xyxy pixels of the input tensor) and ``labels`` (int64 ``[N]``, 0-based).
     * ``model(inputs)`` in eval mode returns one dict per image with ``boxes`` (xyxy pixels), ``scores`` and
-      ``labels``, after the model's own NMS (``model.conf``, ``model.iou`` and ``model.max_det`` attributes).
+      ``labels``, after the model's own NMS (``model.conf``, ``model.iou`` and ``model.max_det`` attributes, which
+      the host sets from ``eval.conf``, ``eval.iou`` and ``eval.max_det`` before predicting).
     * ``model.forward_raw(inputs)`` returns the raw head outputs (tensor or tuple of tensors) without decoding
       or NMS: what profiling counts and what ONNX export captures.
     * optional: ``harness_fuse()`` (or a ``fuse()`` method of the model's class) folds BatchNorm for profiling.

@@ -34,10 +34,12 @@ def measure(
     imgsz: int,
     num_classes: int,
     model_options: Mapping[str, Any] | None = None,
+    label: str = "the model",
 ) -> dict[str, Any]:
-    """The complexity record of ``model`` (see the module docstring); a failure is recorded, never raised."""
+    """The complexity record of ``model`` (see the module docstring); a failure is recorded, never raised.
+    ``label`` names the detector in the warning."""
     from harness.profiling.flops import exact_flops, paper_flops
-    from harness.profiling.model_io import example_inputs, fused_copy
+    from harness.profiling.model_io import example_inputs, fused_copy, require_forward_raw
     from harness.profiling.params import count_parameters, reachable_parameters
 
     rec: dict[str, Any] = {
@@ -49,6 +51,7 @@ def measure(
         "imgsz": int(imgsz),
     }
     try:
+        require_forward_raw(model, label)
         small = example_inputs(input_kind, int(imgsz), 1, in_channels, thermal_channels, device="meta")
         params = reachable_parameters(model, small)
         fused, did_fuse = fused_copy(model)
@@ -69,8 +72,9 @@ def measure(
             }
         rec["gflops"] = gflops
     except Exception as exc:  # noqa: BLE001 - the run goes on; the record says why its complexity is missing
-        log.warning("complexity of the trained model could not be measured: %s: %s", type(exc).__name__, exc)
-        rec["error"] = f"{type(exc).__name__}: {exc}"
+        said = str(exc) or repr(exc)  # an exception without a message still says what it was
+        log.warning("complexity of the trained model could not be measured: %s: %s", type(exc).__name__, said)
+        rec["error"] = f"{type(exc).__name__}: {said}"
     return rec
 
 

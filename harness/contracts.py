@@ -19,10 +19,14 @@ What a plugin's code returns:
   skip when a dataset is prepared);
 * ``encode(spec, sample, **overrides)``: an encoding run with both sides checked, ``check_encoding_input`` (it gets
   the field it needs) and ``check_encoding_output`` (it returns a uint8 array of the sample's size);
-* ``check_detections(det, detector, num_classes)``: one image's eval-mode output ``{"boxes" [K, 4] float,
-  "scores" [K] float, finite, "labels" [K] int in 0..num_classes-1}``; degenerate boxes (NaN, inverted) pass here
-  and are counted and dropped by ``harness.engine.predict``;
-* ``check_losses(losses, detector)``: the train-mode output, a non-empty dict of scalar (one-element) tensors;
+* ``check_detections(det, detector, num_classes, image_size)``: one image's eval-mode output ``{"boxes" [K, 4]
+  float, "scores" [K] float, finite, "labels" [K] int in 0..num_classes-1}``, and its boxes as ``harness run``
+  judges them: none malformed (NaN or inf, inverted as x, y, w, h boxes often are, zero width or height), and not
+  most of them normalised to 0..1 or (given the input's ``image_size``) mostly outside it (the box guard,
+  ``harness.scoring.plausibility``). The host itself passes ``counted=True``: it counts and drops malformed boxes
+  over the whole held-out fold (``harness.engine.predict``) and applies the guard there;
+* ``check_losses(losses, detector)``: the train-mode output, a non-empty dict of scalar (one-element) tensors,
+  finite (the host checks finiteness itself, ``finite=False``, to say at which epoch and what to try);
 * ``fold_batchnorm(model)``: the host's call of a detector's BatchNorm fold. The host looks for the namespaced
   ``harness_fuse()`` first, then a ``fuse()`` *method defined on the model's class*; an attribute, a sub-module or
   anything else a plugin happens to call ``fuse`` is never called.
@@ -413,8 +417,15 @@ def _shape(t: Any) -> str:
     return str(list(t.shape)) if hasattr(t, "shape") else type(t).__name__
 
 
-def check_detections(det: Any, detector: str, num_classes: int | None = None) -> tuple[Any, Any, Any]:
-    """(boxes [K, 4], scores [K], labels [K]) as numpy arrays, or a ``PluginError`` naming the field."""
+def check_detections(
+    det: Any,
+    detector: str,
+    num_classes: int | None = None,
+    image_size: tuple[int, int] | None = None,
+    counted: bool = False,
+) -> tuple[Any, Any, Any]:
+    """(boxes [K, 4], scores [K], labels [K]) as numpy arrays, or a ``PluginError`` naming the field (module
+    docstring). ``image_size``: the input's (width, height) in pixels, for the test of boxes outside it."""
     import numpy as np
     import torch
 
@@ -447,11 +458,46 @@ def check_detections(det: Any, detector: str, num_classes: int | None = None) ->
     if num_classes is not None and k and (lab.min() < 0 or lab.max() >= num_classes):
         bad = int(lab.min()) if lab.min() < 0 else int(lab.max())
         raise PluginError(f"{where} field 'labels' must lie in 0..{num_classes - 1}, got {bad}")
+    if not counted and k:
+        _check_boxes(b, where, image_size)
     return b, s, lab
 
 
-def check_losses(losses: Any, detector: str) -> Mapping[str, Any]:
-    """The train-mode output: a non-empty dict of scalar tensors, else a ``PluginError`` naming the entry."""
+def _check_boxes(b: Any, where: str, image_size: tuple[int, int] | None) -> None:
+    """What ``harness run`` says of one image's boxes: malformed ones (a warning there, counted over the fold),
+    and the box guard's findings (a stop there)."""
+    from harness.engine.predict import DEGENERATE, degenerate_kinds
+    from harness.scoring import plausibility as guard
+
+    kind = degenerate_kinds(b)
+    bad = kind >= 0
+    if bad.any():
+        seen = ", ".join(
+            f"{int((kind == i).sum())} {DEGENERATE[i].replace('_', ' ')}" for i in range(3) if (kind == i).any()
+        )
+        raise PluginError(
+            f"{where}: {int(bad.sum())} of {len(b)} boxes are malformed ({seen}; e.g. {guard.examples(b, bad)}); "
+            f"boxes must be finite x1, y1, x2, y2 with x2 > x1 and y2 > y1 (not x, y, w, h)"
+        )
+    w, h = image_size if image_size is not None else (float("inf"), float("inf"))
+    only = ("normalised", "outside") if image_size is not None else ("normalised",)
+    found = guard.box_findings(
+        b,
+        w,
+        h,
+        "boxes",
+        "input",
+        fix_outside="boxes must be in pixels of the input",
+        fix_normalised="boxes must be in input pixels",
+        only=only,
+    )
+    if found:
+        raise PluginError(f"{where}: {found[0].message}")
+
+
+def check_losses(losses: Any, detector: str, finite: bool = True) -> Mapping[str, Any]:
+    """The train-mode output: a non-empty dict of scalar tensors, finite unless ``finite=False``, else a
+    ``PluginError`` naming the entry."""
     import torch
 
     where = f"detector {detector!r}: in train mode model(inputs, targets)"
@@ -467,6 +513,11 @@ def check_losses(losses: Any, detector: str) -> Mapping[str, Any]:
             raise PluginError(
                 f"{where}: loss {k!r} must be a scalar (one element), got shape {_shape(v)}; "
                 f"reduce it over the batch (sum or mean) inside the detector"
+            )
+        if finite and not bool(torch.isfinite(v.detach()).all()):
+            raise PluginError(
+                f"{where}: loss {k!r} is {float(v.detach().float().reshape(-1)[0])}; harness run stops "
+                f"on a loss that is not finite"
             )
     return losses
 

@@ -167,15 +167,37 @@ def resolve_config(request: RunRequest, detector: DetectorSpec, dataset: Dataset
                        detector_defaults=detector.defaults, files=request.config_files, overrides=request.overrides)
 
 
+#: Training seeds seed numpy's generator, which takes 0 .. 2**32 - 1.
+SEED_RANGE = (0, 2**32 - 1)
+
+
 def parse_seeds(text: str | Sequence[int] | None) -> list[int] | None:
-    if text is None or text == "":
+    """``--seeds``: ``None`` when not given (the protocol's seeds); a given value must name at least one seed, each
+    once, within ``SEED_RANGE``: a seed given twice would run twice and count twice in the mean and SD."""
+    if text is None:
         return None
     if isinstance(text, str):
         try:
-            return [int(s) for s in text.split(",") if s.strip()]
+            seeds = [int(s) for s in text.split(",") if s.strip()]
         except ValueError:
             raise ConfigError(f"--seeds {text!r}: expected comma-separated integers such as 0,1,2") from None
-    return [int(s) for s in text]
+        if not seeds:
+            raise ConfigError(f"--seeds {text!r}: names no seed; give e.g. 0,1,2, or leave the option out for the "
+                              f"protocol's seeds")
+    else:
+        seeds = [int(s) for s in text]
+    bad = [s for s in seeds if not SEED_RANGE[0] <= s <= SEED_RANGE[1]]
+    if bad:
+        raise ConfigError(f"--seeds {_shown(text)}: seed {bad[0]} is outside {SEED_RANGE[0]}..{SEED_RANGE[1]}")
+    twice = sorted({s for s in seeds if seeds.count(s) > 1})
+    if twice:
+        raise ConfigError(f"--seeds {_shown(text)}: seed {', '.join(map(str, twice))} given more than once; each seed "
+                          f"is one run, and a repeated one would count twice in the mean and SD")
+    return seeds
+
+
+def _shown(value: str | Sequence[int]) -> str:
+    return repr(value) if isinstance(value, str) else repr(",".join(map(str, value)))
 
 
 def run_config(cfg: Mapping[str, Any], key: RunKey, extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -324,7 +346,7 @@ def plan(request: RunRequest) -> RunPlan:
 
     with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
         prepared = prepare_dataset(ds.name, cfg)
-    folds = resolve_folds(ds, prepared, cfg, request.folds or "all")
+    folds = resolve_folds(ds, prepared, cfg, "all" if request.folds is None else request.folds)
     if not folds:
         raise ConfigError(f"--folds {request.folds!r} selects no fold of dataset {ds.name!r}")
     fingerprint = str(prepared.manifest.get("fingerprint", ""))
@@ -506,7 +528,8 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
                 torch.set_rng_state(memo[arch][1])
             else:
                 record = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
-                                            settings.imgsz, ncls, cfg.get("model") or {})
+                                            settings.imgsz, ncls, cfg.get("model") or {},
+                                            label=f"detector {det.name!r}")
                 memo[arch] = (record, torch.get_rng_state())
             complexity = copy.deepcopy(memo[arch][0])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
@@ -553,6 +576,8 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         evaluation = evaluate_with_config(gt, dets, cfg)
         if degenerate_note:
             log.warning("%s", degenerate_note)
+        elif degenerate.warning(det.name):  # malformed boxes under the stop rule are said, and labelled when many
+            log.warning("%s", degenerate.warning(det.name))
         support = dict(evaluation["support"])
         support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
         params = sum(p.numel() for p in model.parameters())
@@ -601,6 +626,8 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         }
         if degenerate_note:
             metrics["labels"] = [degenerate_note]
+        elif degenerate.label(det.name):
+            metrics["labels"] = [f"{degenerate.label(det.name)} (under the stop rule: more than half)"]
         approx = (prepared.manifest.get("report") or {}).get("approximate_temperatures")
         if approx:  # the thermal input rests on approximate temperatures: every table built on this run says so
             metrics["temperatures"] = dict(approx)
@@ -636,6 +663,10 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         raise
 
 
+#: Detector attributes the host sets from ``eval.*`` before predicting (``harness.engine.predict.configure``).
+HOST_SET = ("conf", "iou", "max_det")
+
+
 def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, cfg: Mapping[str, Any]) -> None:
     """The training settings and the model options of a request, checked by building the model once (discarded):
     ``harness run``, ``sweep`` and ``sweep --dry-run`` refuse a bad ``--set`` before anything is stored."""
@@ -644,9 +675,16 @@ def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, c
     TrainSettings.from_config(cfg, 0)
     in_channels = det.model_channels(3 + int(enc.channels))
     options = dict(cfg.get("model") or {})
+    host_set = [k for k in HOST_SET if k in options]
+    if host_set:  # the host sets these attributes from eval.* before every prediction: a model.* value is lost
+        raise ConfigError(
+            f"--set {', '.join(f'model.{k}' for k in host_set)}: the host sets the detector's "
+            f"{', '.join(host_set)} from {', '.join(f'eval.{k}' for k in host_set)} before predicting, so a model "
+            f"option of that name would have no effect; use --set {', '.join(f'eval.{k}=...' for k in host_set)}"
+        )
     try:
         # a dataset whose categories come from its files (coco-rgbt) registers none: any count checks the options
-        build_model(det, len(dataset.categories) or 1, in_channels, options)
+        model = build_model(det, len(dataset.categories) or 1, in_channels, options)
     except HarnessError as exc:
         if repr(det.name) in str(exc):
             raise
@@ -654,6 +692,11 @@ def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, c
     except Exception as exc:  # noqa: BLE001 - a plugin's own exception, named with the options that caused it
         raise ConfigError(f"detector {det.name!r} could not be built with model options {options}: "
                           f"{type(exc).__name__}: {exc}") from exc
+    from harness.contracts import plugin_label
+    from harness.profiling.model_io import check_input_channels
+
+    check_input_channels(model, plugin_label("detector", det.name), det.input_kind, in_channels, in_channels,
+                         int((cfg.get("protocol") or {}).get("imgsz") or 64))
 
 
 def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> torch.nn.Module:

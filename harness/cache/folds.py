@@ -70,6 +70,15 @@ def select_folds(
     if selection is None or selection == "all" or selection == ["all"]:
         return folds
     names = [s.strip() for s in selection.split(",")] if isinstance(selection, str) else [str(s) for s in selection]
+    shown = selection if isinstance(selection, str) else ",".join(names)
+    if not any(names):
+        raise ConfigError(f"--folds {shown!r} names no fold; give fold names, or 'all' for every fold")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ConfigError(
+            f"--folds {shown!r}: {', '.join(map(repr, twice))} given more than once; each fold is "
+            f"scored once, and a repeated one would count twice in the mean and SD"
+        )
     by_name = {f.name: f for f in folds}
     gone = [n for n in names if n not in by_name and n in (empty or {})]
     if gone:

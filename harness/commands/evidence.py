@@ -11,11 +11,42 @@ from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
+def _not_a_run(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
+    """``harness show RUN_DIR`` (or any word): say what ``show`` draws, and which commands show a run."""
+    if value is None:
+        return
+    run = Path(value)
+    metrics = run / "metrics.json"
+    if metrics.is_file():
+        import json
+
+        try:
+            key = json.loads(metrics.read_text()).get("run") or {}
+        except (OSError, ValueError):
+            key = {}
+        dataset, detector = key.get("dataset", "D"), key.get("detector", "DET")
+        store = run.parents[4] if len(run.parents) > 4 else Path("STORE")
+        raise click.UsageError(
+            f"{value} is a run folder; `harness show` draws one prepared sample (--dataset D --image-id N). A run's "
+            f"numbers and error analysis (TIDE, confusion, PR, sizes; its analysis.json) are shown by "
+            f"`harness report --store {store} --dataset {dataset} --print`; its predictions on a sample by "
+            f"`harness show --dataset {dataset} --image-id N --store {store} --detector {detector}`",
+            ctx,
+        )
+    raise click.UsageError(
+        f"unexpected argument {value!r}: `harness show` draws one prepared sample, e.g. "
+        f"`harness show --dataset m3t-synth --image-id 12`; a run's analysis is shown by "
+        f"`harness report --store STORE --print`",
+        ctx,
+    )
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     from harness.commands.data import _config, _dataset_options
 
     @cli.command(name="show")
+    @click.argument("stray", required=False, metavar="", expose_value=False, callback=_not_a_run)
     @_dataset_options
     @click.option("--image-id", type=int, default=None, help="The sample's image id.")
     @click.option("--index", type=int, default=None, help="The sample's position in the prepared dataset [0].")

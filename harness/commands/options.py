@@ -100,10 +100,10 @@ def folds_option(
     required: bool = False,
     default: str | None = "all",
     help: str | None = None,
-    old: Sequence[str] = (),
+    old: Sequence[str] = ("--fold",),
 ) -> Callable[[F], F]:
     """``--folds`` -> parameter ``folds`` (a string: ``all``, ``P1`` or ``P1,P4+P5``). ``one=True``: the command
-    works on one fold, and a comma is a usage error."""
+    works on one fold, and a comma is a usage error. ``--fold`` is the deprecated spelling everywhere."""
     text = help or (
         "The one held-out fold to use, e.g. P4+P5."
         if one

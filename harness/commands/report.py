@@ -12,6 +12,21 @@ from harness.commands.benchmark import load_reference_option, reference_results_
 from harness.hookspecs import hookimpl
 
 
+def _check_reference(root: Path, reference: str, datasets: list[str] | None) -> None:
+    """A ``--reference`` the user named must have finished runs in the store (in one of ``datasets``)."""
+    from harness.report.reader import StoreView
+
+    if not Path(root).is_dir():
+        return  # the report itself says the store is missing
+    view = StoreView(root)
+    found = sorted({e.detector for ds in (datasets or view.datasets()) for e in view.entries(ds)})
+    if reference in found or any(d == f"external/{reference}" for d in found):
+        return
+    where = f" of {', '.join(datasets)}" if datasets else ""
+    raise click.BadParameter(f"{reference!r} has no runs in {root}{where}; detectors there: "
+                             f"{', '.join(found) or 'none'}", param_hint="--reference")
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
@@ -62,6 +77,9 @@ def register_commands(cli: click.Group) -> None:
             raise click.BadParameter(f"unknown file type(s) {', '.join(bad)}; use any of {', '.join(file_types)}",
                                      param_hint="--file-types")
         target = out or Path("reports") / Path(root).resolve().name
+        ctx = click.get_current_context()
+        if ctx.get_parameter_source("reference") is not click.core.ParameterSource.DEFAULT:
+            _check_reference(root, reference, names)  # the default falls back to the best; a named one must exist
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
         report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples,
                               seed=bootstrap_seed, ablation_categories=cats, title=title, progress=True,

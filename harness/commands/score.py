@@ -38,6 +38,8 @@ def register_commands(cli: click.Group) -> None:
                       help="The held-out fold the predictions are for, e.g. P1.")
     @click.option("--predictions", required=True, type=click.Path(dir_okay=False, exists=True),
                   help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].")
+    @click.option("--box-format", type=click.Choice(["xywh", "xyxy"]), default="xywh", show_default=True,
+                  help="How each bbox is written: COCO's x, y, w, h, or corners x1, y1, x2, y2.")
     @click.option("--name", required=True, help="Name of the external detector; stored as external/NAME.")
     @click.option("--frame", type=click.Choice(["prepared", "thermal", "rgb"]), default="prepared",
                   show_default=True, help="Frame of the boxes: the harness's prepared frame, or the original "
@@ -58,17 +60,18 @@ def register_commands(cli: click.Group) -> None:
     @opt.store_option()
     @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
     @click.option("--allow-implausible", is_flag=True,
-                  help="Score predictions that look misread (unknown images or categories, shifted ids) as read, "
-                       "and label the stored result, instead of refusing.")
+                  help="Score predictions that look misread (unknown images or categories, shifted ids, "
+                       "normalised or corner boxes, boxes mostly outside the frame) as read, and label the stored "
+                       "result, instead of refusing.")
     @opt.no_progress_option()
-    def score_cmd(dataset, folds, predictions, name, frame, images, image_key, category_map, params, gflops, root,
-                  profile, config_files, overrides, store, force, allow_implausible):
+    def score_cmd(dataset, folds, predictions, box_format, name, frame, images, image_key, category_map, params, gflops,
+                  root, profile, config_files, overrides, store, force, allow_implausible):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
         The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
         the paired bootstrap show it beside the trained detectors. Predictions that look misread (on unknown
-        images or categories, or with ids that fit only shifted by one) are refused with what was seen, unless
-        --allow-implausible.
+        images or categories, ids that fit only shifted by one, boxes normalised, written as corners or mostly
+        outside the frame) are refused with what was seen, unless --allow-implausible.
 
         \b
         Example:
@@ -81,7 +84,8 @@ def register_commands(cli: click.Group) -> None:
         res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
                              category_map=parse_category_map(category_map), profile=profile,
                              config_files=config_files, overrides=overrides, store=store, root=root,
-                             params=params, gflops=gflops, force=force, allow_implausible=allow_implausible)
+                             params=params, gflops=gflops, force=force, allow_implausible=allow_implausible,
+                             box_format=box_format)
         for line in res.matching.lines():
             click.echo(line, err=True)
         m = res.metrics["metrics"]

@@ -9,6 +9,12 @@ precision of the model's float32 output (``x``, ``y`` and the score are float32 
 Degenerate boxes are dropped and counted by kind (``DEGENERATE``): ``non_finite`` (NaN or inf), ``inverted``
 (``x2 < x1`` or ``y2 < y1``: e.g. ``x, y, w, h`` returned instead of ``x1, y1, x2, y2``), ``zero_size``
 (``x2 == x1`` or ``y2 == y1``), and ``outside_image`` (nothing left after clipping to the image).
+
+The box guard (``harness.scoring.plausibility``, shared with ``harness score``) looks at the boxes as returned: more
+than half of them malformed, within 0..1 of the input (normalised coordinates), or lying mostly outside the image
+(another scale) stops the run naming the detector (``DegenerateBoxes.check``), unless ``eval.allow_degenerate``,
+which stores the result labelled. Malformed boxes under that rule are still said (``DegenerateBoxes.warning``): a
+warning, and a label on the stored result when they are more than ``SHARE`` of the boxes.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from torch.utils.data import Subset
 from harness.engine.data import LetterboxDataset, SampleSource, eval_loader, to_inputs
 from harness.errors import PluginError
 from harness.progress import bar as progress_bar
+from harness.scoring import plausibility as guard
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +68,10 @@ class DegenerateBoxes:
     returned: int = 0
     counts: Counter = field(default_factory=Counter)
     examples: dict[str, list[list[float]]] = field(default_factory=dict)
+    #: the box guard's counts of boxes as returned (input pixels): ``normalised`` (within 0..1 of an input at least
+    #: ``guard.NORM_MIN_FRAME`` px wide) and ``mostly_outside`` (well-formed, more than half outside the image)
+    guarded: Counter = field(default_factory=Counter)
+    guard_examples: dict[str, list[list[float]]] = field(default_factory=dict)
 
     def add(self, kind: str, box: list[float]) -> None:
         self.counts[kind] += 1
@@ -68,42 +79,96 @@ class DegenerateBoxes:
         if len(shown) < 3:
             shown.append([round(float(v), 2) for v in box])
 
+    def add_guarded(self, kind: str, boxes: np.ndarray) -> None:
+        self.guarded[kind] += len(boxes)
+        shown = self.guard_examples.setdefault(kind, [])
+        shown += [[round(float(v), 4) for v in b] for b in boxes[: max(0, 3 - len(shown))].tolist()]
+
     def merge(self, other: DegenerateBoxes) -> None:
         self.returned += other.returned
         self.counts.update(other.counts)
         for kind, boxes in other.examples.items():
             self.examples[kind] = (self.examples.get(kind, []) + boxes)[:3]
+        self.guarded.update(other.guarded)
+        for kind, boxes in other.guard_examples.items():
+            self.guard_examples[kind] = (self.guard_examples.get(kind, []) + boxes)[:3]
 
     @property
     def malformed(self) -> int:
         return sum(self.counts[k] for k in MALFORMED)
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``metrics.json`` records (``metrics.degenerate_detections``)."""
+        """What ``metrics.json`` records (``metrics.degenerate_detections``); the box guard's counts only when a
+        box was normalised or mostly outside."""
         return {
             "returned": self.returned,
             **{k: int(self.counts[k]) for k in DEGENERATE},
             "examples": {k: v for k, v in self.examples.items()},
+            **{k: int(v) for k, v in self.guarded.items() if v},
         }
+
+    def _malformed_seen(self) -> tuple[str, str]:
+        seen = ", ".join(f"{self.counts[k]} {k.replace('_', ' ')}" for k in MALFORMED if self.counts[k])
+        shown = "; ".join(f"{k} {', '.join(map(str, v))}" for k, v in self.examples.items() if k in MALFORMED)
+        return seen, shown
 
     def check(self, detector: str, allow: bool = False) -> str | None:
         """Stop (``PluginError`` naming the detector) when most of the returned boxes were malformed
-        (``MALFORMED``); with ``allow``, return a note that labels the result instead. ``None`` when plausible."""
+        (``MALFORMED``), normalised, or mostly outside the image (module docstring); with ``allow``, return a note
+        that labels the result instead. ``None`` when plausible."""
         bad = self.malformed
-        if self.returned == 0 or 2 * bad <= self.returned:
+        n = self.returned
+        if n == 0:
             return None
-        seen = ", ".join(f"{self.counts[k]} {k.replace('_', ' ')}" for k in MALFORMED if self.counts[k])
-        shown = "; ".join(f"{k} {', '.join(map(str, v))}" for k, v in self.examples.items() if k in MALFORMED)
-        text = (
-            f"detector {detector!r}: {bad} of the {self.returned} boxes it returned in eval mode were degenerate "
-            f"({seen}; e.g. {shown})"
-        )
+        if 2 * bad > n:
+            seen, shown = self._malformed_seen()
+            text = (
+                f"detector {detector!r}: {bad} of the {n} boxes it returned in eval mode were degenerate ({seen}; "
+                f"e.g. {shown})"
+            )
+            fix = "Eval-mode boxes must be x1, y1, x2, y2 in input pixels (not x, y, w, h)"
+        elif guard.most(k := self.guarded["normalised"], n):
+            text = (
+                f"detector {detector!r}: {k} of the {n} boxes it returned in eval mode ({guard.pct(k, n)}) lie "
+                f"within 0..1 of the input, e.g. {self._shown('normalised')}: normalised coordinates?"
+            )
+            fix = "Eval-mode boxes must be x1, y1, x2, y2 in input pixels: multiply by the input width and height"
+        elif guard.most(k := self.guarded["mostly_outside"], n):
+            text = (
+                f"detector {detector!r}: {k} of the {n} boxes it returned in eval mode ({guard.pct(k, n)}) lie "
+                f"mostly outside the image, e.g. {self._shown('mostly_outside')} (input pixels): boxes at "
+                f"another scale, or of another input size?"
+            )
+            fix = "Eval-mode boxes must be x1, y1, x2, y2 in pixels of the input the model was given"
+        else:
+            return None
         if allow:
             return text + "; stored anyway because eval.allow_degenerate is set"
+        sep = " " if text.endswith("?") else ". "
         raise PluginError(
-            text + ". Eval-mode boxes must be x1, y1, x2, y2 in input pixels (not x, y, w, h): fix the "
-            "detector, or set eval.allow_degenerate=true to store the run labelled"
+            text + f"{sep}{fix}: fix the detector, or set eval.allow_degenerate=true to store the run labelled"
         )
+
+    def _shown(self, kind: str) -> str:
+        return "; ".join(str(b) for b in self.guard_examples.get(kind, []))
+
+    def warning(self, detector: str) -> str | None:
+        """Malformed boxes under the stop rule (``check``), said rather than dropped in silence: the line to log,
+        ``None`` when there were none."""
+        bad = self.malformed
+        if not bad or 2 * bad > self.returned:
+            return None
+        seen, shown = self._malformed_seen()
+        return (
+            f"detector {detector!r}: {bad} of the {self.returned} boxes it returned in eval mode "
+            f"({guard.pct(bad, self.returned)}) were malformed and left out ({seen}; e.g. {shown})"
+        )
+
+    def label(self, detector: str) -> str | None:
+        """The warning as a label of the stored result, when the malformed boxes are more than ``guard.SHARE`` of
+        those returned (fewer leave the numbers nearly as they are)."""
+        text = self.warning(detector)
+        return text if text and guard.too_many(self.malformed, self.returned) else None
 
 
 def detections_to_coco(
@@ -119,9 +184,20 @@ def detections_to_coco(
     Degenerate boxes are left out and, when ``degenerate`` is given, counted there."""
     from harness.contracts import check_detections
 
-    boxes, scores, labels = check_detections(det, name, num_classes)
+    boxes, scores, labels = check_detections(det, name, num_classes, counted=True)
     kind = degenerate_kinds(boxes)
     raw = boxes
+    if degenerate is not None and letterbox is not None and len(raw):
+        h, w = letterbox.shape
+        norm = guard.normalised(raw) & (min(w, h) * letterbox.ratio >= guard.NORM_MIN_FRAME)
+        if norm.any():
+            degenerate.add_guarded("normalised", raw[norm])
+        unpadded = np.asarray(raw, dtype=np.float64).copy()
+        unpadded[:, [0, 2]] = (unpadded[:, [0, 2]] - letterbox.pad[0]) / letterbox.ratio
+        unpadded[:, [1, 3]] = (unpadded[:, [1, 3]] - letterbox.pad[1]) / letterbox.ratio
+        outside = (kind < 0) & ~norm & guard.mostly_outside(unpadded, w, h)
+        if outside.any():
+            degenerate.add_guarded("mostly_outside", raw[outside])
     if letterbox is not None:
         boxes = letterbox.to_original(np.where(np.isfinite(boxes), boxes, 0.0))
     out = []

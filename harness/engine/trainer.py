@@ -360,7 +360,7 @@ class Trainer:
     def _total(self, losses: Any, epoch: int, i: int) -> torch.Tensor:
         from harness.contracts import check_losses
 
-        check_losses(losses, self.name)
+        check_losses(losses, self.name, finite=False)  # a loss gone NaN is said below, with what to try
         loss = sum(v.sum() for v in losses.values())
         if not torch.isfinite(loss):
             bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]

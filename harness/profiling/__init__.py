@@ -167,7 +167,19 @@ def build_detector(
             f"detector {name!r} could not be built (num_classes={num_classes}, "
             f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}"
         ) from exc
+    from harness.contracts import plugin_label
+    from harness.profiling.model_io import check_input_channels
+
+    check_input_channels(model, plugin_label("detector", spec.name), spec.input_kind, channels, spec.thermal_channels)
     return spec, model.eval()
+
+
+def _raw_forward_of(spec: Any, model: Any) -> None:
+    """Profiling and export of a registered detector need its ``forward_raw`` (``require_forward_raw``)."""
+    from harness.contracts import plugin_label
+    from harness.profiling.model_io import require_forward_raw
+
+    require_forward_raw(model, plugin_label("detector", spec.name))
 
 
 def profile_detector(
@@ -181,6 +193,7 @@ def profile_detector(
 ) -> dict[str, Any]:
     """Build a registered detector and profile it at ``imgsz`` x ``imgsz``, batch 1, both inputs when dual-stream."""
     spec, model = build_detector(name, num_classes, in_channels, host, model_options)
+    _raw_forward_of(spec, model)
     inputs = example_inputs(spec.input_kind, imgsz, 1, in_channels, spec.thermal_channels)
     result = profile_model(model, inputs, **kwargs)
     ref = spec.reference
@@ -211,5 +224,6 @@ def export_detector(
 ) -> dict[str, Any]:
     """``harness export``: a registered detector's raw forward to ONNX, checked against torch."""
     spec, model = build_detector(name, num_classes, in_channels, host)
+    _raw_forward_of(spec, model)
     inputs = example_inputs(spec.input_kind, imgsz, 1, in_channels, spec.thermal_channels)
     return {"detector": spec.name, "input_kind": spec.input_kind, **export_onnx(model, inputs, path, **kwargs)}

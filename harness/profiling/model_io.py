@@ -104,6 +104,50 @@ def fused_copy(model: nn.Module) -> tuple[nn.Module, bool]:
     return m.eval(), folded
 
 
+def require_forward_raw(model: nn.Module, label: str) -> None:
+    """Refuse (``ProfilingError`` naming ``label``, e.g. ``detector 'x' (plugin p)``) a detector model without
+    ``forward_raw``: its ``forward`` decodes and runs NMS, which neither a FLOP count nor an exported graph may hold
+    (``RawForward`` falls back to ``forward`` only for plain modules, not for a detector)."""
+    fn = getattr(model, "forward_raw", None)
+    if not callable(fn):
+        raise ProfilingError(
+            f"{label}: the model ({type(model).__name__}) has no forward_raw(inputs); profiling and ONNX export "
+            f"count and capture the raw head outputs without decoding or NMS, so the detector contract asks for "
+            f"model.forward_raw (docs/plugins.md, 'The detector contract')"
+        )
+
+
+def check_input_channels(
+    model: nn.Module, label: str, input_kind: str, in_channels: int, thermal_channels: int, imgsz: int = 64
+) -> None:
+    """Run ``forward_raw`` once on the meta device (shapes only) with the input the host will give; a model built
+    for another channel count stops with a ``PluginError`` naming ``label`` and the contract, instead of a
+    traceback from inside torch at the first batch. Other failures on the meta device say nothing here."""
+    from harness.errors import PluginError
+
+    fn = getattr(model, "forward_raw", None)
+    if not callable(fn):
+        return
+    inputs = example_inputs(input_kind, imgsz, 1, in_channels, thermal_channels, device="meta")
+    shapes = [list(t.shape) for t in as_tuple(inputs)]
+    try:
+        with torch.no_grad():
+            RawForward(to_meta(model), is_dual(inputs)).eval()(*as_tuple(inputs))
+    except Exception as exc:  # noqa: BLE001 - only a channel mismatch is this check's business
+        text = str(exc)
+        if "channel" in text.lower():
+            what = (
+                f"in_channels={in_channels}"
+                if input_kind == "single"
+                else f"in_channels={thermal_channels} (the thermal stream; RGB has 3)"
+            )
+            raise PluginError(
+                f"{label}: build(num_classes, {what}) made a model that does not take that input: forward_raw on "
+                f"{' and '.join(map(str, shapes))} raised {type(exc).__name__}: {text.splitlines()[0]}. The model "
+                f"must be built for the in_channels the host passes (docs/plugins.md, 'The detector contract')"
+            ) from None
+
+
 def to_meta(model: nn.Module) -> nn.Module:
     """A copy of ``model`` on the meta device (shapes only, no memory, no compute)."""
     return copy.deepcopy(model).to("meta")

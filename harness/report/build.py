@@ -53,7 +53,7 @@ from harness.report.tables import (
     registration_table,
     screening_route_table,
 )
-from harness.store import Store
+from harness.store import EXTERNAL, Store
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,24 @@ def _points(dataset: str, rows: Sequence[Entry]) -> list[PlotPoint]:
     return points
 
 
+def _remedy(labels: Sequence[str]) -> str:
+    """How to give these entries a complexity: trained runs measure it when re-run; predictions scored from
+    elsewhere (``external/NAME``) carry what ``harness score --params --gflops`` was given."""
+    external = [lab for lab in labels if lab.startswith(EXTERNAL)]
+    trained = [lab for lab in labels if not lab.startswith(EXTERNAL)]
+    out = []
+    if trained:
+        out.append(
+            f"re-run {'them' if not external else ', '.join(trained)} with `harness run ... --force` to measure it"
+        )
+    if external:
+        out.append(
+            f"re-score {'them' if not trained else ', '.join(external)} with `harness score ... --params M "
+            f"--gflops G --force` to give it"
+        )
+    return "; ".join(out) + "."
+
+
 def _conventions(view: StoreView, entries: Sequence[Entry]) -> str:
     profs = [c for c in (e.complexity() for e in entries) if c.get("gflops") is not None]
     sizes = sorted({p["imgsz"] for p in profs if p.get("imgsz")})
@@ -141,10 +159,7 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
         )
         return sec
     if not points:
-        sec.absent = (
-            f"no run recorded the complexity of its model ({', '.join(unprofiled)}); re-run them with "
-            f"`harness run ... --force --store {view.root}` to measure it."
-        )
+        sec.absent = f"no run recorded the complexity of its model ({', '.join(unprofiled)}); {_remedy(unprofiled)}"
         return sec
     conventions = _conventions(view, used)
     svg, files = accuracy_vs_gflops(
@@ -156,8 +171,7 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
     sec.figures.append(FigureOut("accuracy_vs_gflops", "Accuracy versus GFLOPs", svg, conventions, files, points))
     if unprofiled:
         sec.notes.append(
-            f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; re-run "
-            f"them with --force to measure it."
+            f"Not plotted (no complexity recorded in their runs): {', '.join(unprofiled)}; {_remedy(unprofiled)}"
         )
     sec.notes += label_notes([e.notes_item(f"{e.dataset} {e.label}") for e in used if e.complexity().get("gflops")])
     return sec

@@ -30,8 +30,8 @@ import numpy as np
 
 from harness.evaluation import mean_sd
 from harness.evaluation.analysis import ERROR_LABELS, ERROR_TYPES, NO_ANALYSIS, SPECIAL_TYPES
-from harness.report.reader import Entry, StoredRun
-from harness.report.tables import Column, Stat, Table, _slug, record
+from harness.report.reader import Entry, StoredRun, label_notes
+from harness.report.tables import Column, Stat, Table, _marks, _merge_warning, _slug, match_check, record
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,28 @@ class Evidence:
     def stat(self, get: Callable[[dict[str, Any]], Any]) -> Stat:
         """Mean ± sample SD over folds of the seed means of ``get(analysis)``; folds without a value left out."""
         return Stat.from_mean_sd(mean_sd(self.fold_values(get)))
+
+    def seeds_short(self, get: Callable[[dict[str, Any]], Any]) -> list[str]:
+        """The folds where ``get(analysis)`` has a value in fewer seeds than have an analysis: ``"P1 (2 of 3)"``."""
+        out = []
+        for fold, analyses in self.folds.items():
+            k = sum(get(a) is not None for a in analyses)
+            if 0 < k < len(analyses):
+                out.append(f"{fold} ({k} of {len(analyses)})")
+        return out
+
+
+def _labels(table: Table, evidence: Sequence[Evidence], keys: Sequence[str]) -> None:
+    """The labels of each entry's runs (approximate temperatures, accepted risks) as marks beside its numbers and
+    notes first among the table's, and a loud warning when the entries' runs were scored on different samples."""
+    for row, ev in zip((r for r in table.rows if not r.get("_summary")), evidence):
+        marks = _marks(keys, ev.entry.labels)
+        if marks:
+            row["_marks"] = marks
+    table.notes[:0] = label_notes([ev.entry.notes_item(ev.name) for ev in evidence])
+    runs = {f"{ev.name} {fold}/seed{r.key.seed}": r.metrics for ev in evidence for fold, rs in ev.runs.items()
+            for r in rs}
+    _merge_warning(table, *match_check(runs))
 
 
 def collect(rows: Sequence[Entry], names: dict[str, str]) -> list[Evidence]:
@@ -117,6 +139,7 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
                     short=ERROR_LABELS[t]) for t in ERROR_TYPES]
     cols += [Column(t, ERROR_LABELS[t], "pct", group="bounds", short=ERROR_LABELS[t]) for t in SPECIAL_TYPES]
     table = Table(name, f"{dataset}: error types (TIDE, mAP50 gained in points, IoU 0.50)", cols)
+    uneven: list[str] = []
     for ev in evidence:
         row: dict[str, Any] = {"detector": ev.name, "folds": len(ev.folds)}
         if ev.empty:
@@ -129,6 +152,12 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
         for t in SPECIAL_TYPES:
             row[t] = ev.stat(_get("tide", "special", t))
         for key in ("mAP50", *ERROR_TYPES, *SPECIAL_TYPES):
+            get = _get("tide", "mAP50") if key == "mAP50" else _get("tide", "dAP50" if key in ERROR_TYPES else
+                                                                      "special", key)
+            short = ev.seeds_short(get)
+            if short:
+                uneven.append(f"{ev.name}: {ERROR_LABELS.get(key, key)} averages fewer seeds than the runs have "
+                              f"analyses in {', '.join(short)} (a seed without the value is left out)")
             s = row[key]
             table.records.append(record(name, f"dAP50_{key}" if key != "mAP50" else "mAP50", s.mean, sd=s.sd, n=s.n,
                                         dataset=dataset, detector=ev.entry.detector, encoding=ev.entry.encoding,
@@ -142,6 +171,8 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
                        "error type alone were fixed; FP and FN bound what removing every false positive or finding "
                        "every object would give. Mean ± sample SD over the held-out folds (each fold the mean over its "
                        "seeds), in points.")
+    table.notes += uneven
+    _labels(table, evidence, ("mAP50", *ERROR_TYPES, *SPECIAL_TYPES))
     return table
 
 
@@ -261,19 +292,33 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
                                                 encoding=ev.entry.encoding, fold="mean", images=ev.entry.images,
                                                 seeds=ev.entry.seeds))
             table.rows.append(row)
-        # the objects per bin (the same for every entry: the tables' rows are sample-matched)
-        first = have[0]
-        counts = {b: sum(int(_get("sizes", scheme, "instances", b)(analyses[0]) or 0)
-                         for analyses in first.folds.values()) for b in bins}
-        table.rows.append({"detector": "instances", "_summary": True,
-                           **{f"{m}:{b}": f"{counts[b]:,}" for m in ("AP50", "AP50_95") for b in bins}})
+        # the objects per bin: one row when the entries' runs saw the same objects in every fold they share (a fold
+        # without an analysis says nothing), else one row per entry
+        def objects(analysis: dict[str, Any]) -> dict[str, int]:
+            return {b: int(_get("sizes", scheme, "instances", b)(analysis) or 0) for b in bins}
+
+        per_fold: dict[str, list[dict[str, int]]] = {}
+        for ev in have:
+            for fold, analyses in ev.folds.items():
+                per_fold.setdefault(fold, []).append(objects(analyses[0]))
+        same = all(all(c == counts[0] for c in counts) for counts in per_fold.values())
+        shown = ([("instances", [c[0] for c in per_fold.values()])] if same else
+                 [(f"instances ({ev.name})", [objects(a[0]) for a in ev.folds.values()]) for ev in have])
+        for label, folds in shown:
+            total = {b: sum(c[b] for c in folds) for b in bins}
+            table.rows.append({"detector": label, "_summary": True,
+                               **{f"{m}:{b}": f"{total[b]:,}" for m in ("AP50", "AP50_95") for b in bins}})
+        _labels(table, evidence, [f"{m}:{b}" for m in ("AP50", "AP50_95") for b in bins])
+        if not same:
+            table.notes.append("The entries' runs saw different objects per bin (one instances row each): their "
+                               "numbers are not sample-matched.")
         ranges = next(((a.get("sizes") or {}).get(scheme) or {}).get("ranges") for ev in have
                       for analyses in ev.folds.values() for a in analyses if (a.get("sizes") or {}).get(scheme))
         edges = ", ".join(f"{b} {_range_text(lo, hi)}" for b, (lo, hi) in (ranges or {}).items())
         table.notes.append(f"Bins on the ground-truth box area in px² of the prepared frame ({edges}); the evaluator's "
                            f"IoU matching per bin, as COCO's APs/APm/APl. Mean ± sample SD over held-out folds (each "
                            f"fold the mean over its seeds); a bin without objects in a fold is left out of its mean. "
-                           f"Last row: objects per bin over all folds.")
+                           f"Last row{'' if same else 's'}: objects per bin over all folds.")
         tables.append(table)
     return tables
 

@@ -44,12 +44,28 @@ from harness.errors import ConfigError, DataError, StoreError
 from harness.io import atomic_write_json, file_digest, read_json
 from harness.report.reader import normalise_category, read_run
 from harness.scoring.frames import FRAMES, image_name, to_prepared
-from harness.scoring.plausibility import Finding, agreement, pct, shift_found, too_many
+from harness.scoring.frames import moved as unclipped
+from harness.scoring.plausibility import (
+    XYXY_MIN_BOXES,
+    XYXY_SHARE,
+    Finding,
+    agreement,
+    box_findings,
+    corner_like,
+    examples,
+    mostly_outside,
+    overlaps_truth,
+    pct,
+    shift_found,
+    too_many,
+)
 
 log = logging.getLogger(__name__)
 
 ENCODING = "external"
 NOT_LISTED = "(not in the image list)"
+#: How a prediction's ``bbox`` is read: COCO's ``x, y, w, h`` (the default), or corners ``x1, y1, x2, y2``.
+BOX_FORMATS = ("xywh", "xyxy")
 
 
 @dataclass
@@ -67,6 +83,9 @@ class Matching:
     unmatched_categories: Counter = field(default_factory=Counter)
     dropped_outside_frame: int = 0
     invalid: int = 0
+    #: why predictions were malformed (no bbox or score, not finite, negative width or height), with examples
+    invalid_reasons: Counter = field(default_factory=Counter)
+    invalid_examples: list[str] = field(default_factory=list)
     #: predictions of fold images that the image list leaves out (also in ``unmatched_images``; not a misreading)
     not_listed: int = 0
     #: predictions whose image was found by reading their ``image_id`` as the harness's own image id
@@ -87,7 +106,24 @@ class Matching:
                 "unmatched_category_predictions": sum(self.unmatched_categories.values()),
                 "unmatched_categories": dict(self.unmatched_categories.most_common(20)),
                 "dropped_outside_frame": self.dropped_outside_frame, "invalid_predictions": self.invalid,
+                **({"invalid_reasons": dict(self.invalid_reasons), "invalid_examples": self.invalid_examples[:5]}
+                   if self.invalid else {}),
                 "by_harness_image_id": self.by_harness_id, "implausible": [f.kind for f in self.findings]}
+
+    def dropped(self) -> dict[str, int]:
+        """The predictions left out before scoring, by reason, as ``metrics.dropped_detections`` counts them: the
+        unknown categories and images of the matching added to the evaluation's own (only non-zero counts)."""
+        out = {"unknown_category": sum(self.unmatched_categories.values()),
+               "unknown_image": sum(self.unmatched_images.values()) - self.not_listed,
+               "not_in_image_list": self.not_listed, "outside_fold": self.outside_fold,
+               "outside_frame": self.dropped_outside_frame, "malformed": self.invalid}
+        return {k: v for k, v in out.items() if v}
+
+    def invalid_add(self, reason: str, det: Any) -> None:
+        self.invalid += 1
+        self.invalid_reasons[reason] += 1
+        if len(self.invalid_examples) < 5:
+            self.invalid_examples.append(_cut(json.dumps(det, default=str)))
 
     def lines(self) -> list[str]:
         out = [f"{self.scored} of {self.predictions} predictions scored on {self.images_scored} of "
@@ -109,7 +145,8 @@ class Matching:
         if self.dropped_outside_frame:
             out.append(f"{self.dropped_outside_frame} box(es) fell outside the prepared frame and were left out")
         if self.invalid:
-            out.append(f"{self.invalid} malformed prediction(s) left out")
+            why = ", ".join(f"{k}: {v}" for k, v in self.invalid_reasons.most_common())
+            out.append(f"{self.invalid} malformed prediction(s) left out ({why}), e.g. {self.invalid_examples[0]}")
         return out
 
 
@@ -167,6 +204,10 @@ def _load_predictions(path: Path) -> list[dict[str, Any]]:
     return data
 
 
+def _cut(text: str, width: int = 120) -> str:
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
 def _as_int(value: Any) -> int | None:
     """``12``, ``12.0`` and ``"12"`` as 12; anything else None."""
     if isinstance(value, bool):
@@ -210,13 +251,15 @@ def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str]
 
 def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[dict[str, Any]], frame: str,
                       images: Mapping[str, Any] | None = None, image_key: str = "file_name",
-                      category_map: Mapping[str, str] | None = None) -> tuple[list[dict[str, Any]], list[int],
-                                                                                Matching]:
+                      category_map: Mapping[str, str] | None = None,
+                      box_format: str = "xywh") -> tuple[list[dict[str, Any]], list[int], Matching]:
     """External predictions -> the harness's detections on the fold (prepared frame, its image and category ids),
     the indices of the images that were scored, and the matching counts with the plausibility findings (see the
     module docstring)."""
     if frame not in FRAMES:
         raise ConfigError(f"--frame {frame!r}: use one of {', '.join(FRAMES)}")
+    if box_format not in BOX_FORMATS:
+        raise ConfigError(f"--box-format {box_format!r}: use one of {', '.join(BOX_FORMATS)}")
     records = prepared.records
     fold = set(int(i) for i in val_idx)
     all_entries = []
@@ -252,10 +295,15 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
             x, y, w, h = (float(v) for v in det["bbox"])
             score = float(det["score"])
         except (KeyError, TypeError, ValueError):
-            m.invalid += 1
+            m.invalid_add("no bbox of four numbers or no score", det)
             continue
         if not all(np.isfinite([x, y, w, h, score])):
-            m.invalid += 1
+            m.invalid_add("not finite", det)
+            continue
+        if box_format == "xyxy":
+            w, h = w - x, h - y
+        if w < 0 or h < 0:
+            m.invalid_add("negative width or height" if box_format == "xywh" else "x2 < x1 or y2 < y1", det)
             continue
         box = [x, y, x + w, y + h]
         image_id = det.get("image_id")
@@ -317,6 +365,7 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
                          "bbox": [x1, y1, x2 - x1, y2 - y1], "score": score})
     m.scored = len(dets)
     m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)
+    m.findings += _box_guard(prepared, m, grouped, fold if listed is None else fold & listed, frame, box_format)
     return dets, scored_idx, m
 
 
@@ -328,6 +377,17 @@ def _findings(prepared: Any, m: Matching, moved: Moved, by_harness_id: list[tupl
     """What makes the matching implausible (``harness.scoring.plausibility``), with counts and examples."""
     out: list[Finding] = []
     n = m.predictions
+    if too_many(m.invalid, n):
+        why = ", ".join(f"{k}: {v}" for k, v in m.invalid_reasons.most_common())
+        out.append(
+            Finding(
+                "malformed",
+                f"{m.invalid} of {n} predictions ({pct(m.invalid, n)}) are malformed ({why}), "
+                f"e.g. {m.invalid_examples[0]}; check --box-format (x, y, w, h or x1, y1, x2, "
+                f"y2) and that every prediction has a bbox of four finite numbers and a "
+                f"score",
+            )
+        )
     unknown = sum(m.unmatched_images.values()) - m.not_listed
     if too_many(unknown, n):
         ex = ", ".join(str(k) for k, v in m.unmatched_images.most_common(4) if k != NOT_LISTED)
@@ -352,6 +412,160 @@ def _findings(prepared: Any, m: Matching, moved: Moved, by_harness_id: list[tupl
     out += _category_shift(prepared, moved, sorted(fold), many_unknown_cat)
     if by_harness_id:
         out += _image_shift(prepared, by_harness_id, by_id, fold, frame)
+    return out
+
+
+Grouped = Mapping[int, list[tuple[list[float], float, "int | None", "int | None"]]]
+
+
+def _box_guard(
+    prepared: Any, m: Matching, grouped: Grouped, images: set[int], frame: str, box_format: str
+) -> list[Finding]:
+    """The box guard (``harness.scoring.plausibility``) on the predictions of the scored fold images: normalised
+    coordinates, corners where ``x, y, w, h`` is expected, boxes mostly outside the prepared frame or agreeing with the
+    ground truth far better in another frame (``--frame``)."""
+    records = prepared.records
+    idxs = [i for i in sorted(images) if grouped.get(i)]
+    if not idxs:
+        return []
+    given = {i: np.array([b for b, _, _, _ in grouped[i]], dtype=np.float64).reshape(-1, 4) for i in idxs}
+    size = np.concatenate([np.tile([[records[i]["width"], records[i]["height"]]], (len(given[i]), 1)) for i in idxs])
+    as_given = np.concatenate([given[i] for i in idxs])
+    n = len(as_given)
+
+    def place(
+        boxes: Mapping[int, np.ndarray], in_frame: str, keep_all: bool = False
+    ) -> list[tuple[int | None, list[float], float, int | None]]:
+        """The predictions read as ``boxes`` in the prepared frame; ``keep_all``: one entry per prediction, in order,
+        a dropped one with no sample."""
+        out: list[tuple[int | None, list[float], float, int | None]] = []
+        for i in idxs:
+            r = records[i]
+            b, keep = to_prepared(
+                boxes[i],
+                in_frame,
+                r.get("meta") or {},
+                size=(r["width"], r["height"]),
+                min_size=None,
+                where=f"image {r['image_id']}",
+            )
+            kept = iter(b.tolist())
+            for (_, s, lab, _), k in zip(grouped[i], keep):
+                if k:
+                    out.append((i, next(kept), s, lab))
+                elif keep_all:
+                    out.append((None, [0.0, 0.0, 0.0, 0.0], s, lab))
+        return out
+
+    def in_prepared(in_frame: str) -> np.ndarray:
+        return np.concatenate([unclipped(given[i], in_frame, records[i].get("meta") or {}) for i in idxs])
+
+    fold = sorted(idxs)
+    moved_given = in_prepared(frame)
+    norm = box_findings(
+        moved_given,
+        size[:, 0],
+        size[:, 1],
+        "predictions",
+        "prepared frame",
+        fix_outside="",
+        fix_normalised="multiply x and w by the image width, y and h by its height",
+        given=as_given,
+        only=("normalised",),
+    )
+    if norm:
+        return norm
+    agree = agreement(place(given, frame), prepared.targets, fold)
+    if box_format == "xywh":  # corners x1, y1, x2, y2 written where COCO's x, y, w, h is expected
+        xywh = as_given.copy()
+        xywh[:, 2:] -= xywh[:, :2]
+        corners = {i: given[i].copy() for i in idxs}
+        for b in corners.values():
+            b[:, 2:] -= b[:, :2]  # the written w, h read as x2, y2
+            b[(b[:, 2] <= b[:, 0]) | (b[:, 3] <= b[:, 1])] = np.nan
+        as_corners = agreement(place(corners, frame), prepared.targets, fold)
+        like = corner_like(xywh)
+        k = int(like.sum())
+        # nearly all look like corners, and read as corners fewer lie outside the frame and none agree less
+        fewer_outside = (
+            mostly_outside(
+                np.concatenate([unclipped(corners[i], frame, records[i].get("meta") or {}) for i in idxs]),
+                size[:, 0],
+                size[:, 1],
+            ).sum()
+            < mostly_outside(moved_given, size[:, 0], size[:, 1]).sum()
+        )
+        structural = (
+            n >= XYXY_MIN_BOXES and k >= XYXY_SHARE * n and fewer_outside and (as_corners or 0.0) >= (agree or 0.0)
+        )
+        # a file mixing the two: many predictions overlap an object only when read as corners
+        only_corners = int(
+            (
+                overlaps_truth(place(corners, frame, keep_all=True), prepared.targets)
+                & ~overlaps_truth(place(given, frame, keep_all=True), prepared.targets)
+            ).sum()
+        )
+        mixed = too_many(only_corners, n) and only_corners >= XYXY_MIN_BOXES // 2
+        if mixed and not (shift_found(agree, as_corners) or structural):
+            return [
+                Finding(
+                    "box_format",
+                    f"{only_corners} of {n} predictions ({pct(only_corners, n)}) overlap an object of their category "
+                    f"only when read as corners x1, y1, x2, y2: a file mixing x, y, w, h and corner boxes? write "
+                    f"every box one way (x, y, w, h, or corners with --box-format xyxy)",
+                )
+            ]
+        if shift_found(agree, as_corners) or structural:
+            seen = (
+                f"; recall at IoU 0.50 {agree or 0:.0%} as x, y, w, h, {as_corners:.0%} as corners"
+                if as_corners is not None
+                else ""
+            )
+            return [
+                Finding(
+                    "box_format",
+                    f"{k} of {n} predictions ({pct(k, n)}) have w >= x and h >= y, as corners "
+                    f"x1, y1, x2, y2 do, e.g. {examples(xywh, like)}{seen}: if they are "
+                    f"corners, pass --box-format xyxy",
+                )
+            ]
+    # another frame: the boxes fit the prepared frame, or agree with the ground truth, far better read in it
+    others: list[tuple[str, float, float | None]] = []
+    for other in FRAMES:
+        if other == frame:
+            continue
+        try:
+            share = float(mostly_outside(in_prepared(other), size[:, 0], size[:, 1]).mean())
+            others.append((other, share, agreement(place(given, other), prepared.targets, fold)))
+        except (DataError, ValueError, np.linalg.LinAlgError):
+            continue  # the samples record no map from that frame
+    hint = "; ".join(
+        f"read as --frame {o}: {share:.0%} mostly outside" + (f", recall at IoU 0.50 {a:.0%}" if a is not None else "")
+        for o, share, a in others
+    )
+    fitting = [o for o in others if o[1] <= 0.5 and (o[2] or 0.0) > (agree or 0.0)]
+    fix = f"pass --frame {max(fitting, key=lambda o: o[2] or 0.0)[0]}" if fitting else "wrong --frame or scale?"
+    out = box_findings(
+        moved_given,
+        size[:, 0],
+        size[:, 1],
+        "predictions",
+        "prepared frame",
+        fix_outside=f"{fix} (as read with --frame {frame}" + (f"; {hint})" if hint else ")"),
+        fix_normalised="",
+        only=("outside",),
+    )
+    better = [o for o in others if shift_found(agree, o[2])]
+    if better and not out:
+        best = max(better, key=lambda o: o[2] or 0.0)
+        out.append(
+            Finding(
+                "frame",
+                f"the predictions agree with the ground truth far better read in another frame "
+                f"(recall at IoU 0.50 {agree or 0:.0%} as --frame {frame}, {best[2]:.0%} as "
+                f"--frame {best[0]}): pass --frame {best[0]}",
+            )
+        )
     return out
 
 
@@ -417,7 +631,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                    category_map: Mapping[str, str] | None = None, profile: str | None = "smoke",
                    config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
                    store: str | Path | None = None, root: str | None = None, params: float | None = None,
-                   gflops: float | None = None, force: bool = False, allow_implausible: bool = False) -> ScoreResult:
+                   gflops: float | None = None, force: bool = False, allow_implausible: bool = False,
+                   box_format: str = "xywh") -> ScoreResult:
     """Score ``predictions`` on ``fold`` of ``dataset`` and store them as run ``external/NAME`` (module docstring).
 
     Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
@@ -451,11 +666,15 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
             image_list = read_json(Path(images))
         except Exception as exc:
             raise DataError(f"--images {images}: not readable JSON ({exc})") from None
-    dets, scored_idx, m = match_predictions(prepared, val_idx, _load_predictions(pred_path), frame, image_list,
-                                            image_key, category_map)
+    loaded = _load_predictions(pred_path)
+    if not loaded:
+        raise DataError(f"--predictions {pred_path}: holds no predictions; nothing was stored (a detector that finds "
+                        f"nothing on {len(val_idx)} images is more likely an export that went wrong)")
+    dets, scored_idx, m = match_predictions(prepared, val_idx, loaded, frame, image_list, image_key, category_map,
+                                            box_format)
     if m.scored == 0 and m.predictions:
         raise DataError(f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
-                        "images and categories:\n  " + "\n  ".join(m.lines()))
+                        "images and categories:\n  " + "\n  ".join(m.lines() + [f"- {x}" for x in m.findings]))
     if m.findings and not allow_implausible:
         raise DataError(f"--predictions {pred_path}: implausible as read for fold {f.name} of {spec.name}, nothing "
                         f"was stored:\n  " + "\n  ".join(f"- {x}" for x in m.findings)
@@ -471,6 +690,8 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
                 "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
                 "val_groups": list(f.val_groups), "eval": _eval_identity(cfg["eval"]),
                 "params": params, "gflops": gflops}
+    if box_format != "xywh":  # the default leaves the identity of earlier scores as it was
+        identity["box_format"] = box_format
     digest = config_hash(identity)
     st = run.status() or {}
     if run.is_finished() and not force:
@@ -483,6 +704,10 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
     evaluation = evaluate_with_config(gt, dets, cfg)
     support = dict(evaluation["support"])
     support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
+    dropped = evaluation["metrics"].get("dropped_detections")
+    if isinstance(dropped, dict):  # what the matching left out counts as dropped too (0 everywhere: unchanged)
+        for k, v in m.dropped().items():
+            dropped[k] = int(dropped.get(k, 0)) + v
     metrics = {
         "support": support,
         "metrics": evaluation["metrics"],
@@ -498,6 +723,21 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
             log.warning("%s", label)
     run.path.mkdir(parents=True, exist_ok=True)
     atomic_write_json(run.path / "score.json", {"identity": identity, "matching": m.to_dict()})
+    from harness.runner import run_config
+
+    # the configuration it was scored under, with the prepared samples it was scored on (what a gallery draws)
+    run.write_config(
+        run_config(
+            cfg,
+            key,
+            {
+                "prepared_fingerprint": prepared.manifest.get("fingerprint"),
+                "prepared_key": str(getattr(prepared, "key", None) or prepared.manifest.get("key", "")),
+                "val_groups": list(f.val_groups),
+                "external": True,
+            },
+        )
+    )
     atomic_write_json(run.predictions_path, dets, indent=None)
     atomic_write_json(run.gt_path, gt, indent=None)
     store_analysis(run, gt, dets, cfg, evaluation["metrics"].get("conf_threshold"))

@@ -177,6 +177,14 @@ def to_prepared(
     return _finish(b, frame_wh, min_size if frame != "prepared" else None)
 
 
+def moved(boxes: np.ndarray, frame: str, meta: Mapping[str, Any], where: str = "sample") -> np.ndarray:
+    """Boxes (N x 4 xyxy) of ``frame`` -> the prepared frame, neither clipped nor dropped (what ``to_prepared`` clips):
+    how much of each lies inside the frame is the box guard's question (``harness.scoring.plausibility``)."""
+    _check(frame, meta, where)
+    b = _forward(boxes, frame, meta)
+    return _snap(b) if frame != "prepared" else b
+
+
 @dataclass
 class Preimage:
     """Boxes of an original frame whose forward map (``to_prepared``) is the given prepared boxes."""
