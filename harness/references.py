@@ -12,8 +12,8 @@ Layout (``export_references``)::
 
     <folder>/references.json             manifest (``MANIFEST_SCHEMA`` below)
     <folder>/<dataset>/<detector>/<encoding>/<fold>/seed<seed>/
-        config.yaml status.json metrics.json analysis.json log.jsonl
-        gt.json.gz predictions.json.gz   (gzip, read by ``harness.io.read_json``; no checkpoints)
+        config.yaml status.json metrics.json log.jsonl
+        gt.json.gz predictions.json.gz analysis.json.gz   (gzip, read by ``harness.io.read_json``; no checkpoints)
 
 ``references.json``::
 
@@ -53,8 +53,8 @@ SYNTHETIC = "m3t-synth"
 #: Largest reference store the project ships.
 MAX_BYTES = 10 * 2**20
 #: Run files copied as they are, and those gzip-compressed.
-COPIED = ("config.yaml", "status.json", "metrics.json", "analysis.json", "log.jsonl")
-PACKED = ("gt.json", "predictions.json")
+COPIED = ("config.yaml", "status.json", "metrics.json", "log.jsonl")
+PACKED = ("gt.json", "predictions.json", "analysis.json")
 
 
 class ReferenceMismatchError(StoreError):

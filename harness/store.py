@@ -334,13 +334,17 @@ class Run:
         atomic_write_json(self.analysis_path, {"run": asdict(self.key), **analysis}, indent=None)
 
     def read_analysis(self) -> dict[str, Any] | None:
-        """The stored error analysis, or None for a run stored before the analysis existed."""
-        if not self.analysis_path.exists():
+        """The stored error analysis (``analysis.json``, or ``analysis.json.gz`` in the shipped reference results),
+        or None for a run stored before the analysis existed."""
+        path = self.analysis_path
+        if not path.exists() and path.with_name(path.name + ".gz").exists():
+            path = path.with_name(path.name + ".gz")
+        if not path.exists():
             return None
-        data = read_json(self.analysis_path)
+        data = read_json(path)
         if not isinstance(data, dict) or data.get("schema") != ANALYSIS_SCHEMA:
             found = data.get("schema") if isinstance(data, dict) else None
-            raise StoreError(f"{self.analysis_path}: analysis schema {found!r}, expected {ANALYSIS_SCHEMA}")
+            raise StoreError(f"{path}: analysis schema {found!r}, expected {ANALYSIS_SCHEMA}")
         return data
 
     def read_metrics(self) -> dict[str, Any]:
