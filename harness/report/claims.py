@@ -218,7 +218,8 @@ def evaluate_claims(
         c = Claim(1, ABLATION_CLAIMS[0][1], entries=f"{ours} x 4 encodings on {ABLATION_FOLD}")
         if has("delamination"):
             none = scorer.single(E["none"], "AP50:delamination", folds)
-            parts = [SUPPORTED if (none.value or 0.0) < 0.0005 else (CONTRADICTED if none.above(0.0) else INCONCLUSIVE)]
+            # "0.000": below 0.0005 (what rounds to 0.000), with the interval on one side or the other
+            parts = [SUPPORTED if none.below(0.0005) else CONTRADICTED if none.above(0.0005) else INCONCLUSIVE]
             c.evidence.append(f"none: delamination AP50 {none.text()}")
             for enc in ("ir8", "linear16", "c2"):
                 d = scorer.difference(E[enc], E["none"], "AP50:delamination", folds)
@@ -259,13 +260,7 @@ def evaluate_claims(
             parts = []
             for enc in ENCODINGS:
                 v = scorer.single(E[enc], "AP50:water_seepage", folds)
-                parts.append(
-                    SUPPORTED
-                    if (v.value or 0.0) < 0.001 and not v.above(0.001)
-                    else CONTRADICTED
-                    if v.above(0.001)
-                    else INCONCLUSIVE
-                )
+                parts.append(SUPPORTED if v.below(0.001) else CONTRADICTED if v.above(0.001) else INCONCLUSIVE)
                 c.evidence.append(f"{enc}: water seepage AP50 {v.text()}")
             c.verdict = combine(parts)
         else:
