@@ -379,3 +379,33 @@ def test_verdicts_combine_parts():
     assert combine([INCONCLUSIVE, CONTRADICTED]) == CONTRADICTED
     assert Interval(0.1, 0.02, 0.2).above(0.0) and not Interval(0.1, -0.01, 0.2).above(0.0)
     assert Interval(-0.1, -0.2, -0.01).below(0.0) and Interval(0.1, 0.05, 0.2).text() == "0.100 [0.050, 0.200]"
+
+
+def test_a_detector_run_on_one_fold_is_paired_with_the_references_on_that_fold(bench, tmp_path):
+    from harness.references import load_references
+    from harness.report import build_report
+
+    _export(bench, tmp_path / "refs")
+    user = tmp_path / "onefold"
+    _cli(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            "P1",
+            "--seeds",
+            "0",
+            "--store",
+            str(user),
+            *bench["sets"],
+        ]
+    )
+    report = build_report(
+        user, ["m3t-synth"], resamples=10, references=load_references(tmp_path / "refs"), gallery=False
+    )
+    paired = next(s for s in report.sections if s.key == "paired")
+    rows = [line for t in paired.tables for line in t.to_text().splitlines() if "tinydet-dual" in line]
+    assert rows and "ref:tinydet" in rows[0], paired.tables[0].to_text() if paired.tables else paired.notes

@@ -217,6 +217,17 @@ def _paired_section(
             or best(rows)
         )
         pairs += [(ref, e) for e in rows if e is not ref]
+    if view.references is not None and view.pairs_with_references(dataset):
+        # the store's own entries on fewer folds than the references (a new detector on one fold) are paired with
+        # the reference detector on the folds they share
+        refs = [e for e in entries if e.detector.startswith(REF_PREFIX)]
+        anchor = next((e for e in refs if e.detector == f"{REF_PREFIX}{reference}"), None) if refs else None
+        anchor = anchor or (best(refs) if refs else None)
+        for e in entries:
+            if anchor is None or e.detector.startswith(REF_PREFIX) or any(e in p for p in pairs):
+                continue
+            if set(e.fold_names) & set(anchor.fold_names):
+                pairs.append((anchor, e))
     by_det: dict[str, list[Entry]] = {}
     for e in entries:
         by_det.setdefault(e.detector, []).append(e)
