@@ -136,3 +136,22 @@ def batched_nms(
     k = torch.cat(kept)
     k = k[scores[k].argsort(descending=True)]
     return k[:max_keep] if max_keep is not None else k
+
+
+#: The kinds of degenerate boxes a detector can return, in the order they are checked (``harness.engine.predict``).
+DEGENERATE = ("non_finite", "inverted", "zero_size", "outside_image")
+#: The kinds that mean the detector's boxes are malformed (``outside_image`` can be an honest, poor prediction).
+MALFORMED = ("non_finite", "inverted", "zero_size")
+
+
+def degenerate_kinds(boxes: np.ndarray) -> np.ndarray:
+    """Per box (xyxy), the index into ``DEGENERATE`` of the first check it fails before clipping, or -1."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    kind = np.full(len(b), -1, dtype=np.int64)
+    finite = np.isfinite(b).all(axis=1)
+    kind[~finite] = 0
+    with np.errstate(invalid="ignore"):
+        inverted = finite & ((b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1]))
+        kind[inverted] = 1
+        kind[finite & ~inverted & ((b[:, 2] == b[:, 0]) | (b[:, 3] == b[:, 1]))] = 2
+    return kind

@@ -466,7 +466,7 @@ def check_detections(
 def _check_boxes(b: Any, where: str, image_size: tuple[int, int] | None) -> None:
     """What ``harness run`` says of one image's boxes: malformed ones (a warning there, counted over the fold),
     and the box guard's findings (a stop there)."""
-    from harness.engine.predict import DEGENERATE, degenerate_kinds
+    from harness.boxes import DEGENERATE, degenerate_kinds
     from harness.scoring import plausibility as guard
 
     kind = degenerate_kinds(b)

@@ -10,6 +10,7 @@ that mode, for folders built under a temporary name and renamed into place."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -177,3 +178,14 @@ def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
             "paths in the manifest and the annotation files must stay inside the dataset folder"
         )
     return target
+
+
+def nan_to_none(obj: Any) -> Any:
+    """JSON-safe copy: NaN/inf become null (strict JSON has no NaN or Infinity)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [nan_to_none(v) for v in obj]
+    return obj

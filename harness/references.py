@@ -127,6 +127,14 @@ class ReferenceSet:
         self.problems += view.problems
         return out
 
+    def check_matched(self, runs: Iterable[Any]) -> list[str]:
+        """``check_matched(self, runs)``: the store's runs against these references (a mismatch is an error)."""
+        return check_matched(self, runs)
+
+    def same_training(self, runs: Sequence[Any]) -> bool:
+        """``same_training(self, runs)``: whether ``runs`` were trained at these references' budget."""
+        return same_training(self, runs)
+
     def held_out_digest(self, fold: str, encoding: str) -> str | None:
         return ((self.manifest.get("samples") or {}).get(f"{fold}/{encoding}") or {}).get("held_out")
 

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 from torch.utils.data import Subset
 
+from harness.boxes import DEGENERATE, MALFORMED, degenerate_kinds  # the degenerate kinds live with the box ops
 from harness.engine.data import LetterboxDataset, SampleSource, eval_loader, to_inputs
 from harness.errors import PluginError
 from harness.progress import bar as progress_bar
@@ -40,25 +41,6 @@ log = logging.getLogger(__name__)
 def configure(model: nn.Module, conf: float, iou: float, max_det: int) -> None:
     """Set the model's own NMS settings (the ``conf``, ``iou`` and ``max_det`` attributes of the contract)."""
     model.conf, model.iou, model.max_det = float(conf), float(iou), int(max_det)
-
-
-#: The kinds of degenerate boxes a detector can return, in the order they are checked (module docstring).
-DEGENERATE = ("non_finite", "inverted", "zero_size", "outside_image")
-#: The kinds that mean the detector's boxes are malformed (``outside_image`` can be an honest, poor prediction).
-MALFORMED = ("non_finite", "inverted", "zero_size")
-
-
-def degenerate_kinds(boxes: np.ndarray) -> np.ndarray:
-    """Per box (xyxy), the index into ``DEGENERATE`` of the first check it fails before clipping, or -1."""
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    kind = np.full(len(b), -1, dtype=np.int64)
-    finite = np.isfinite(b).all(axis=1)
-    kind[~finite] = 0
-    with np.errstate(invalid="ignore"):
-        inverted = finite & ((b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1]))
-        kind[inverted] = 1
-        kind[finite & ~inverted & ((b[:, 2] == b[:, 0]) | (b[:, 3] == b[:, 1]))] = 2
-    return kind
 
 
 @dataclass

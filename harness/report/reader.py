@@ -504,16 +504,14 @@ class StoreView:
         """The reference results' runs of ``dataset``, after checking that ``own`` (the store's runs) used the same
         samples (``harness.references.check_matched``: a mismatch is an error naming what differs)."""
         if dataset not in self._reference_runs:
-            from harness.references import check_matched, same_training
-
-            refs = self.references
-            notes = check_matched(refs, own)
+            refs = self.references  # a harness.references.ReferenceSet: it checks the store's runs itself
+            notes = refs.check_matched(own)
             runs = refs.runs()
             for text in refs.problems:
                 self.problem(f"reference results: {text}")
             self._reference_runs[dataset] = runs
             trained = [r for r in own if not r.metrics.get("external")]
-            same = same_training(refs, trained) if trained else True
+            same = refs.same_training(trained) if trained else True
             self.reference_notes[dataset] = [
                 f"Reference results ({len(runs)} runs, entries named ref:DETECTOR): {refs.describe()}; read from "
                 f"{refs.root}. The store's runs were checked to use the same samples (content digests)."

@@ -21,13 +21,13 @@ Both analyses return plain dicts (written as JSON) and have a text formatter who
 from __future__ import annotations
 
 import logging
-import math
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from harness.api import AlignedSample
 from harness.errors import DataError
+from harness.io import nan_to_none  # noqa: F401  (JSON-safe copies; its old home)
 from harness.sensing import c2 as c2mod
 from harness.textable import text_table
 
@@ -250,14 +250,3 @@ def format_registration_error(result: Mapping[str, Any]) -> str:
     if result.get("outside_support"):
         note += f"; {result['outside_support']} landmark(s) outside the common support left out"
     return f"{note}\n{head}\n\nper scene\n{per}"
-
-
-def nan_to_none(obj: Any) -> Any:
-    """JSON-safe copy: NaN/inf become null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: nan_to_none(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [nan_to_none(v) for v in obj]
-    return obj

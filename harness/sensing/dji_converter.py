@@ -212,7 +212,7 @@ def convert(conv: Converter, source: str | Path, width: int, height: int,
                         f"({width}x{height} float32 temperatures)")
     temp = np.frombuffer(data, dtype="<f4").reshape(height, width).astype(np.float32)
     temp = np.where(np.isfinite(temp) & (temp > NO_MEASUREMENT_C), temp, np.float32(np.nan)).astype(np.float32)
-    from harness.sensing.radiometry import implausible_to_missing
+    from harness.sensing.plausible import implausible_to_missing
 
     implausible = implausible_to_missing(temp, str(source), f"the converter ({conv.name})")
     shown = ["<output>" if a == str(output) else a for a in argv]

@@ -56,6 +56,7 @@ import numpy as np
 
 from harness.errors import ConfigError, DataError
 from harness.sensing import dji_approximate, dji_converter, dji_correction, dji_dirp, dji_formats, jpeg
+from harness.sensing.plausible import PLAUSIBLE_C, implausible_to_missing  # noqa: F401  (their old home)
 
 log = logging.getLogger(__name__)
 
@@ -541,30 +542,6 @@ THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
 #: a converter's median this close to 273.15 C above the file's blackbody median wrote Kelvin (a correction for
 #: emissivity and atmosphere moves a scene by tens of degrees at most, never by 273)
 KELVIN_GAP_C = 60.0
-#: temperatures (C) a facade, a flight or any supported camera can give; values outside are not temperatures
-PLAUSIBLE_C = (-100.0, 800.0)
-
-
-def implausible_to_missing(temp: np.ndarray, name: str, what: str) -> int:
-    """Pixels of ``temp`` (float, changed in place) outside ``PLAUSIBLE_C`` become missing (NaN); returns how many.
-    When they are more than ``c2.MAX_INVALID_FRACTION`` of the finite pixels the map is not temperatures in C at all
-    (a wrong unit or scale): a ``DataError`` naming ``name``, ``what`` produced it, the span and the count."""
-    from harness.sensing.c2 import MAX_INVALID_FRACTION
-
-    finite = np.isfinite(temp)
-    bad = finite & ((temp < PLAUSIBLE_C[0]) | (temp > PLAUSIBLE_C[1]))
-    n_bad, n_finite = int(bad.sum()), int(finite.sum())
-    if not n_bad:
-        return 0
-    if n_bad > MAX_INVALID_FRACTION * n_finite:
-        lo, hi = float(temp[finite].min()), float(temp[finite].max())
-        raise DataError(f"{name}: {what} gives {n_bad} of {n_finite} values outside the plausible "
-                        f"{PLAUSIBLE_C[0]:g}..{PLAUSIBLE_C[1]:g} C (from {lo:.6g} to {hi:.6g} C); it is not "
-                        "temperatures in C: check its unit or scale")
-    temp[bad] = np.nan
-    return n_bad
-
-
 def sidecar_path(path: str | Path) -> Path:
     """The sidecar of ``frame.png`` is ``frame.png.json``."""
     path = Path(path)
@@ -841,8 +818,7 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
         if not cv2.imwrite(str(path), arr):  # pragma: no cover
             raise DataError(f"{path}: could not write PNG")
     from harness import __version__
-    from harness.io import atomic_write_json
-    from harness.sensing.analyses import nan_to_none
+    from harness.io import atomic_write_json, nan_to_none
 
     sidecar = {"unit": unit, "scale": scale, "offset": offset, "dtype": dtype.name, "shape": list(arr.shape),
                "formula": "C = value * scale + offset", "params": dict(params or {}),
