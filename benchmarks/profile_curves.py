@@ -18,36 +18,24 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-
 
 def train(size: int, epochs: int, store: Path) -> subprocess.Popen:
-    cmd = [
-        sys.executable,
-        "-m",
-        "harness",
-        "run",
-        "--detector",
+    from harness.benchmark import detector_config, job_command
+    from harness.sweep import SweepJob
+
+    cfg = detector_config("ours")
+    job = SweepJob(
         "ours",
-        "--dataset",
         "m3t-synth",
-        "--folds",
+        "c2",
         "P4+P5",
-        "--profile",
-        "benchmark",
-        "--config",
-        str(REPO / "configs" / "benchmark" / "ours.yaml"),
-        "--store",
+        0,
         str(store / f"imgsz{size}"),
-        "--set",
-        f"protocol.imgsz={size}",
-        "--set",
-        f"protocol.epochs={epochs}",
-        "--set",
-        f"protocol.patience={epochs}",
-        "--no-progress",
-    ]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+        profile="benchmark",
+        config_files=(str(cfg),) if cfg else (),
+        overrides=(f"protocol.imgsz={size}", f"protocol.epochs={epochs}", f"protocol.patience={epochs}"),
+    )
+    return subprocess.Popen(job_command(job), stdout=subprocess.DEVNULL)
 
 
 def curve(store: Path, size: int) -> list[dict]:

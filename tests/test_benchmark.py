@@ -120,6 +120,27 @@ def _export(bench, out: Path):
     return export_references(bench["store"], out, found)
 
 
+def _user_run(bench, folds: str, store: Path, *extra: str) -> None:
+    """A user's run of the other TinyDet (dual-stream) at the tiny benchmark's settings, seed 0."""
+    _cli(
+        [
+            "run",
+            "--detector",
+            "tinydet-dual",
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            folds,
+            "--seeds",
+            "0",
+            "--store",
+            str(store),
+            *bench["sets"],
+            *extra,
+        ]
+    )
+
+
 def test_lanes_train_every_cell_and_a_second_call_has_nothing_left(bench):
     assert bench["first"].count("trained") == 4, bench["first"]
     assert "benchmark: 4 cells" in bench["first"]
@@ -168,22 +189,7 @@ def test_a_users_detector_is_compared_with_the_references_without_training_them(
 
     _export(bench, tmp_path / "refs")
     user = tmp_path / "user"
-    _cli(
-        [
-            "run",
-            "--detector",
-            "tinydet-dual",
-            "--dataset",
-            "m3t-synth",
-            "--folds",
-            FOLDS,
-            "--seeds",
-            "0",
-            "--store",
-            str(user),
-            *bench["sets"],
-        ]
-    )
+    _user_run(bench, FOLDS, user)
     report = build_report(
         user, ["m3t-synth"], resamples=20, references=load_references(tmp_path / "refs"), gallery=False
     )
@@ -214,24 +220,7 @@ def test_a_users_detector_is_compared_with_the_references_without_training_them(
 def test_references_on_other_samples_are_refused_naming_the_seed(bench, tmp_path):
     _export(bench, tmp_path / "refs")
     other = tmp_path / "other"
-    _cli(
-        [
-            "run",
-            "--detector",
-            "tinydet-dual",
-            "--dataset",
-            "m3t-synth",
-            "--folds",
-            "P1",
-            "--seeds",
-            "0",
-            "--store",
-            str(other),
-            *bench["sets"],
-            "--set",
-            "dataset.seed=1",
-        ]
-    )
+    _user_run(bench, "P1", other, "--set", "dataset.seed=1")
     out = _cli(
         [
             "report",
@@ -256,24 +245,7 @@ def test_another_training_budget_is_shown_beside_not_paired(bench, tmp_path):
 
     _export(bench, tmp_path / "refs")
     user = tmp_path / "budget"
-    _cli(
-        [
-            "run",
-            "--detector",
-            "tinydet-dual",
-            "--dataset",
-            "m3t-synth",
-            "--folds",
-            "P1",
-            "--seeds",
-            "0",
-            "--store",
-            str(user),
-            *bench["sets"],
-            "--set",
-            "protocol.imgsz=96",
-        ]
-    )
+    _user_run(bench, "P1", user, "--set", "protocol.imgsz=96")
     report = build_report(
         user, ["m3t-synth"], resamples=0, references=load_references(tmp_path / "refs"), gallery=False
     )
@@ -387,22 +359,7 @@ def test_a_detector_run_on_one_fold_is_paired_with_the_references_on_that_fold(b
 
     _export(bench, tmp_path / "refs")
     user = tmp_path / "onefold"
-    _cli(
-        [
-            "run",
-            "--detector",
-            "tinydet-dual",
-            "--dataset",
-            "m3t-synth",
-            "--folds",
-            "P1",
-            "--seeds",
-            "0",
-            "--store",
-            str(user),
-            *bench["sets"],
-        ]
-    )
+    _user_run(bench, "P1", user)
     report = build_report(
         user, ["m3t-synth"], resamples=10, references=load_references(tmp_path / "refs"), gallery=False
     )

@@ -83,6 +83,16 @@ class Claim:
         }
 
 
+def below(iv: Interval, x: float) -> str:
+    """The verdict on "``iv`` lies below ``x``": supported, contradicted (above it) or inconclusive (straddling)."""
+    return SUPPORTED if iv.below(x) else CONTRADICTED if iv.above(x) else INCONCLUSIVE
+
+
+def above(iv: Interval, x: float) -> str:
+    """The verdict on "``iv`` lies above ``x``"."""
+    return SUPPORTED if iv.above(x) else CONTRADICTED if iv.below(x) else INCONCLUSIVE
+
+
 def combine(verdicts: Sequence[str]) -> str:
     if any(v == CONTRADICTED for v in verdicts):
         return CONTRADICTED
@@ -219,12 +229,12 @@ def evaluate_claims(
         if has("delamination"):
             none = scorer.single(E["none"], "AP50:delamination", folds)
             # "0.000": below 0.0005 (what rounds to 0.000), with the interval on one side or the other
-            parts = [SUPPORTED if none.below(0.0005) else CONTRADICTED if none.above(0.0005) else INCONCLUSIVE]
+            parts = [below(none, 0.0005)]
             c.evidence.append(f"none: delamination AP50 {none.text()}")
             for enc in ("ir8", "linear16", "c2"):
                 d = scorer.difference(E[enc], E["none"], "AP50:delamination", folds)
                 v = scorer.single(E[enc], "AP50:delamination", folds)
-                parts.append(SUPPORTED if d.above(0.0) else CONTRADICTED if d.below(0.0) else INCONCLUSIVE)
+                parts.append(above(d, 0.0))
                 c.evidence.append(f"{enc}: {v.text()}, {enc} - none {d.text()}")
             c.verdict = combine(parts)
         else:
@@ -237,7 +247,7 @@ def evaluate_claims(
             parts = []
             for enc in ("ir8", "linear16"):
                 d = scorer.difference(E["c2"], E[enc], "AP50:delamination", folds)
-                parts.append(SUPPORTED if d.above(0.0) else CONTRADICTED if d.below(0.0) else INCONCLUSIVE)
+                parts.append(above(d, 0.0))
                 c.evidence.append(f"c2 - {enc}: {d.text()}")
             c.verdict = combine(parts)
         claims.append(c)
@@ -249,7 +259,7 @@ def evaluate_claims(
         c.evidence.append(f"c2 - none mAP50: {d.text()}")
         for enc in ("ir8", "linear16"):
             d = scorer.difference(E[enc], E["none"], "mAP50", folds)
-            parts.append(SUPPORTED if d.below(0.0) else CONTRADICTED if d.above(0.0) else INCONCLUSIVE)
+            parts.append(below(d, 0.0))
             c.evidence.append(f"{enc} - none mAP50: {d.text()}")
         c.verdict = combine(parts)
         claims.append(c)
@@ -260,7 +270,7 @@ def evaluate_claims(
             parts = []
             for enc in ENCODINGS:
                 v = scorer.single(E[enc], "AP50:water_seepage", folds)
-                parts.append(SUPPORTED if v.below(0.001) else CONTRADICTED if v.above(0.001) else INCONCLUSIVE)
+                parts.append(below(v, 0.001))
                 c.evidence.append(f"{enc}: water seepage AP50 {v.text()}")
             c.verdict = combine(parts)
         else:
@@ -297,13 +307,7 @@ def evaluate_claims(
             part_a = CONTRADICTED if beaten else INCONCLUSIVE
             if beaten:
                 c.evidence.append("easier than an 'easiest' category: " + ", ".join(f"{o} > {k}" for o, k in beaten))
-        part_b = combine(
-            [
-                SUPPORTED if ivs[k].below(NEAR_ZERO) else CONTRADICTED if ivs[k].above(NEAR_ZERO) else INCONCLUSIVE
-                for k in HARD
-                if k in ivs
-            ]
-        )
+        part_b = combine([below(ivs[k], NEAR_ZERO) for k in HARD if k in ivs])
         c.evidence.append(f"easiest three: {part_a}; {', '.join(HARD)} below {NEAR_ZERO}: {part_b}")
         c.verdict = combine([part_a, part_b])
     claims.append(c)
@@ -320,11 +324,9 @@ def evaluate_claims(
         common = [f for f in M["ours"].folds if all(f in e.folds for e in M.values())]
         c.entries = ", ".join(e.label for e in M.values()) + f"; folds {', '.join(common)}"
         parts = []
-        for d, want in (("icafusion", "above"), ("eme", "below"), ("cmadet", "below")):
+        for d, side in (("icafusion", above), ("eme", below), ("cmadet", below)):
             diff = scorer.difference(M[d], M["ours"], "mAP50_95", common)
-            ok = diff.above(0.0) if want == "above" else diff.below(0.0)
-            wrong = diff.below(0.0) if want == "above" else diff.above(0.0)
-            parts.append(SUPPORTED if ok else CONTRADICTED if wrong else INCONCLUSIVE)
+            parts.append(side(diff, 0.0))
             c.evidence.append(
                 f"{d} - ours mAP50:95: {diff.text()} (paper: {d} {PAPER_MAP50_95[d]}, ours {PAPER_MAP50_95['ours']})"
             )
