@@ -435,7 +435,17 @@ def _fiftyone_dirs() -> list[str]:
 
 def _fiftyone_in_process():
     """``fiftyone`` imported here (``$HARNESS_TEST_FIFTYONE_PATH`` appended to ``sys.path``), or a skip."""
-    sys.path.extend(d for d in _fiftyone_dirs() if d not in sys.path)
+    dirs = _fiftyone_dirs()
+    sys.path.extend(d for d in dirs if d not in sys.path)
+    # setuptools (imported by earlier tests) puts its vendored ``backports`` package first on the path, which hides
+    # the folder's ``backports.zstd`` (py7zr's, under FiftyOne): give the package that was found both halves
+    halves = [str(Path(d) / "backports") for d in dirs if (Path(d) / "backports").is_dir()]
+    if halves:
+        import backports
+
+        for half in halves:
+            if half not in backports.__path__:
+                backports.__path__.append(half)
     return pytest.importorskip("fiftyone", reason=f"FiftyOne (optional extra) is not installed, nor in {FIFTYONE_PATH}")
 
 
