@@ -35,7 +35,7 @@ import logging
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence, overload
 
 from harness.errors import StoreError
 from harness.report.reader import REFERENCE_PREFIX
@@ -142,8 +142,15 @@ class ReferenceSet:
         return ((self.manifest.get("aligned") or {}).get(fold) or {}).get("held_out")
 
 
-def load_references(spec: str | Path) -> ReferenceSet:
-    """The reference store at ``spec`` (``shipped`` or a folder); a missing or malformed one is a clear error."""
+@overload
+def load_references(spec: str | Path) -> ReferenceSet: ...
+@overload
+def load_references(spec: None) -> None: ...
+def load_references(spec: str | Path | None) -> ReferenceSet | None:
+    """The reference store at ``spec`` (``shipped`` or a folder; None: none); a missing or malformed one is a clear
+    error."""
+    if spec is None or str(spec) == "":
+        return None
     from harness.io import read_json
 
     root = resolve(spec)

@@ -170,11 +170,16 @@ class _RunFile:
 
     def __get__(self, run: Run, owner: type | None = None) -> Path:
         path = run.path / self.name
-        if self.packed and not path.exists():
-            gz = run.path / f"{self.name}.gz"
-            if gz.exists():
-                return gz
-        return path
+        return packed_or_plain(path) if self.packed else path
+
+
+def packed_or_plain(path: Path) -> Path:
+    """``path``, or its gzip-compressed ``<name>.gz`` when only that exists (read both with ``read_json``)."""
+    if not path.exists():
+        gz = path.with_name(path.name + ".gz")
+        if gz.exists():
+            return gz
+    return path
 
 
 class Run:
@@ -336,9 +341,7 @@ class Run:
     def read_analysis(self) -> dict[str, Any] | None:
         """The stored error analysis (``analysis.json``, or ``analysis.json.gz`` in the shipped reference results),
         or None for a run stored before the analysis existed."""
-        path = self.analysis_path
-        if not path.exists() and path.with_name(path.name + ".gz").exists():
-            path = path.with_name(path.name + ".gz")
+        path = packed_or_plain(self.analysis_path)
         if not path.exists():
             return None
         data = read_json(path)

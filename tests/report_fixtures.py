@@ -15,6 +15,11 @@ from harness.io import atomic_write_json
 from harness.store import RunKey, Store
 
 CATEGORIES = ("window", "crack", "delamination", "water_seepage")
+#: The example plugin's TinyDet, for tests that train real runs with a detector outside the built-ins.
+TINYDET_SRC = Path(__file__).resolve().parent.parent / "plugins" / "harness-tinydet" / "src"
+#: The smallest real run (``--set`` values): one epoch at 64 px, batch 8, one torch thread on the CPU.
+TINY_RUN = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
+            "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
 CHROMIUM = Path("/usr/bin/chromium")
 #: A test that opens a report in Debian's headless Chromium: skipped where it is not installed.
 needs_chromium = pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),

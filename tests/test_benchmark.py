@@ -16,24 +16,12 @@ from pathlib import Path
 
 import pytest
 
+from report_fixtures import TINY_RUN, TINYDET_SRC
+
 for _module in ("harness.evaluation", "harness.runner", "harness.cache"):
     pytest.importorskip(_module)
 
-REPO = Path(__file__).resolve().parent.parent
-TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-FAST = [
-    "protocol.imgsz=64",
-    "protocol.epochs=1",
-    "protocol.patience=5",
-    "train.batch=8",
-    "train.nominal_batch=8",
-    "train.warmup_epochs=0.5",
-    "train.close_mosaic=0",
-    "train.threads=1",
-    "train.device=cpu",
-    "eval.batch=16",
-    "dataset.profile=tiny",
-]
+FAST = [*TINY_RUN, "dataset.profile=tiny"]
 FOLDS = "P1,P4+P5"
 
 
@@ -69,41 +57,20 @@ def bench(tmp_path_factory):
     store = root / "store"
     sets = [a for s in FAST for a in ("--set", s)]
     try:
-        first = _cli(
-            [
-                "benchmark",
-                "run",
-                "--store",
-                str(store),
-                "--detectors",
-                "tinydet",
-                "--folds",
-                FOLDS,
-                "--seeds",
-                "0,1",
-                "--no-ablation",
-                "--lanes",
-                "2",
-                *sets,
-            ]
-        )
-        again = _cli(
-            [
-                "benchmark",
-                "run",
-                "--store",
-                str(store),
-                "--detectors",
-                "tinydet",
-                "--folds",
-                FOLDS,
-                "--seeds",
-                "0,1",
-                "--no-ablation",
-                "--dry-run",
-                *sets,
-            ]
-        )
+        cells = [
+            "benchmark",
+            "run",
+            "--store",
+            str(store),
+            "--detectors",
+            "tinydet",
+            "--folds",
+            FOLDS,
+            "--seeds",
+            "0,1",
+        ]
+        first = _cli([*cells, "--no-ablation", "--lanes", "2", *sets])
+        again = _cli([*cells, "--no-ablation", "--dry-run", *sets])
         yield {"root": root, "store": store, "first": first, "again": again, "sets": sets}
     finally:
         mp.undo()
@@ -334,7 +301,11 @@ def test_claims_are_tested_on_the_data_with_intervals(bench, tmp_path):
         shutil.copytree(src, store / "m3t-synth" / det / enc)
     for enc in ("none", "ir8", "linear16"):
         shutil.copytree(src / "P4+P5", store / "m3t-synth" / "ours" / enc / "P4+P5")
-    claims, notes = evaluate_claims(StoreView(store), "m3t-synth", resamples=20)
+    from harness.report.stats import BootstrapScorer
+
+    view = StoreView(store)
+    cats = list(view.entries("m3t-synth")[0].folds["P1"].metrics["per_category"])
+    claims, notes = evaluate_claims(view, "m3t-synth", BootstrapScorer(20, categories=cats))
     assert [c.number for c in claims] == [1, 2, 3, 4, 5, 6]
     assert all(c.verdict in (SUPPORTED, CONTRADICTED, INCONCLUSIVE) for c in claims)  # every entry is there
     # identical runs under every name: no difference can exclude 0, so the comparisons cannot be supported

@@ -21,14 +21,11 @@ import pytest
 for _module in ("harness.evaluation", "harness.runner", "harness.cache", "harness.profiling"):
     pytest.importorskip(_module)
 
-from report_fixtures import chromium_screenshot, needs_chromium  # noqa: E402
+from report_fixtures import TINY_RUN, TINYDET_SRC, chromium_screenshot, needs_chromium  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
-TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16",
-        "dataset.profile=tiny"]
+FAST = [*TINY_RUN, "dataset.profile=tiny"]
 DATASET = "m3t-synth"
 
 

@@ -15,22 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from report_fixtures import TINY_RUN, TINYDET_SRC
+
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
-REPO = Path(__file__).resolve().parent.parent
-TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
-FAST = [
-    "protocol.imgsz=64",
-    "protocol.epochs=1",
-    "protocol.patience=5",
-    "train.batch=8",
-    "train.nominal_batch=8",
-    "train.warmup_epochs=0.5",
-    "train.close_mosaic=0",
-    "train.threads=1",
-    "train.device=cpu",
-    "eval.batch=16",
-]
+FAST = list(TINY_RUN)
 FOLD = "P4+P5"
 
 

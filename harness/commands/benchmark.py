@@ -12,27 +12,6 @@ from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 
 
-def reference_results_option():  # type: ignore[no-untyped-def]
-    """``--reference-results shipped|DIR``: reference results read beside the store (``harness.references``)."""
-    return click.option(
-        "--reference-results",
-        "reference_results",
-        default=None,
-        metavar="shipped|DIR",
-        help="Also read reference results beside the store: `shipped` (the project's benchmark results) or a folder "
-        "`harness benchmark export` wrote. Their entries are named ref:DETECTOR; refused when the store's runs "
-        "used other samples.",
-    )
-
-
-def load_reference_option(value: str | None):  # type: ignore[no-untyped-def]
-    if not value:
-        return None
-    from harness.references import load_references
-
-    return load_references(value)
-
-
 def _cell_key(text: str) -> tuple[str, str, str, int]:
     """``ours/c2/P1/seed0`` (or ``ours/c2/P1/0``) -> (detector, encoding, fold, seed)."""
     parts = text.strip().strip("/").split("/")
@@ -183,7 +162,7 @@ def register_commands(cli: click.Group) -> None:
         show_default=True,
         help="Results store the cell is trained into (a finished cell there is trained again).",
     )
-    @reference_results_option()
+    @opt.reference_results_option()
     @opt.format_option("text", "json")
     @opt.no_progress_option()
     def rerun_cmd(cell: str, work_dir: Path, reference_results: str | None, fmt: str) -> None:
@@ -193,7 +172,9 @@ def register_commands(cli: click.Group) -> None:
         from harness import benchmark as B
 
         det, enc, fold, seed = _cell_key(cell)
-        refs = load_reference_option(reference_results or "shipped")
+        from harness.references import load_references
+
+        refs = load_references(reference_results or "shipped")
         from harness.progress import progress_on
 
         result = B.rerun_cell(refs, det, enc, fold, seed, work_dir, progress=progress_on())

@@ -418,6 +418,21 @@ def bootstrap_options(*, resamples: int, help_resamples: str, old_seed: Sequence
     )
 
 
+def reference_results_option() -> Callable[[F], F]:
+    """``--reference-results shipped|DIR`` -> parameter ``reference_results`` (``None`` when not given): reference
+    results read beside the store (``harness.references.load_references``)."""
+    return option(
+        "--reference-results",
+        "reference_results",
+        shared="reference-results",
+        default=None,
+        metavar="shipped|DIR",
+        help="Also read reference results beside the store: `shipped` (the project's benchmark results) or a folder "
+        "`harness benchmark export` wrote. Their entries are named ref:DETECTOR; refused when the store's runs "
+        "used other samples.",
+    )
+
+
 def default_store(profile: str | None) -> Path:
     """The one rule for a store not named with ``--store``: ``results/<profile>`` (``smoke`` when none)."""
     return STORE_PARENT / (profile or DEFAULT_PROFILE)

@@ -8,7 +8,6 @@ from pathlib import Path
 import click
 
 from harness.commands import options as opt
-from harness.commands.benchmark import load_reference_option, reference_results_option
 from harness.hookspecs import hookimpl
 
 
@@ -50,7 +49,7 @@ def register_commands(cli: click.Group) -> None:
                        "was not run).")
     @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
                   help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
-    @reference_results_option()
+    @opt.reference_results_option()
     @opt.no_progress_option()
     def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
                    print_tables: bool, resamples: int, bootstrap_seed: int, workers: int, ablation_categories: str,
@@ -66,6 +65,7 @@ def register_commands(cli: click.Group) -> None:
         figure and the cross-dataset table. Absent data is stated with the command that fills it; tables whose rows
         were not scored on the same samples are labelled.
         """
+        from harness.references import load_references
         from harness.report import build_report
         from harness.report.build import FORMATS as file_types
 
@@ -84,7 +84,7 @@ def register_commands(cli: click.Group) -> None:
         report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples,
                               seed=bootstrap_seed, ablation_categories=cats, title=title, progress=True,
                               workers=workers, reference=reference,
-                              references=load_reference_option(reference_results))
+                              references=load_references(reference_results))
         if print_tables:
             click.echo(report.to_text())
             return
@@ -117,7 +117,7 @@ def register_commands(cli: click.Group) -> None:
                            help_resamples="Paired-bootstrap resamples of the held-out images (0: per-fold differences "
                                           "only).")
     @opt.format_option("text", "json", old_json=True)
-    @reference_results_option()
+    @opt.reference_results_option()
     @opt.no_progress_option()
     def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
                               bootstrap_seed: int, workers: int, fmt: str,
@@ -134,11 +134,12 @@ def register_commands(cli: click.Group) -> None:
         import json
 
         from harness.progress import bar
+        from harness.references import load_references
         from harness.report import compare_detectors
         from harness.report.reader import StoreView
 
         root = opt.resolve_store(store, profile)
-        view = StoreView(root, references=load_reference_option(reference_results))
+        view = StoreView(root, references=load_references(reference_results))
         with bar("bootstrap") as b_bar:
             comp = compare_detectors(view, dataset, a, b, resamples=resamples, seed=bootstrap_seed,
                                      progress=b_bar.advance, on_total=lambda n: b_bar.update(total=n),

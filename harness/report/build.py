@@ -195,9 +195,11 @@ def _paired_section(
     progress: Any,
     workers: int = 1,
     reference: str | None = REFERENCE,
+    scorer: BootstrapScorer | None = None,
 ) -> tuple[Section, list[PairedComparison]]:
     """Paired comparisons: the ``reference`` detector's main entry against every other detector's (the most accurate
-    entry when the reference was not run), then, within one detector, its best encoding against the others."""
+    entry when the reference was not run), then, within one detector, its best encoding against the others.
+    ``scorer``: the dataset's bootstrap scorer, shared with the claims section (made here when None)."""
     sec = Section("paired", "Paired comparisons", dataset)
     entries = view.entries(dataset)
     if view.references is not None and not view.pairs_with_references(dataset):
@@ -246,7 +248,7 @@ def _paired_section(
         return sec, []
     from harness.evaluation import SampleMismatchError
 
-    scorer = BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None, workers)
+    scorer = scorer or BootstrapScorer(max(resamples, 0), seed, progress.advance if progress else None, workers)
     comps: list[PairedComparison] = []
     if progress is not None and resamples > 0:
         runs = {
@@ -341,17 +343,25 @@ def _scale_note(view: StoreView, dataset: str) -> str | None:
     )
 
 
-def _claims_section(view: StoreView, dataset: str, resamples: int, seed: int) -> Section | None:
-    """The paper's claims tested on the data (``harness.report.claims``); None for datasets without the paper's
-    categories."""
+def _claim_categories(view: StoreView, dataset: str) -> list[str]:
+    """The categories of ``dataset``'s stored runs when they include the paper's (delamination), else none: the
+    claims section is only for data with the paper's categories."""
+    cats: list[str] = []
+    for e in view.entries(dataset):
+        for f in e.folds.values():
+            cats += [c for c in (f.metrics.get("per_category") or {}) if c not in cats]
+    return cats if "delamination" in cats else []
+
+
+def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, progress: Any = None) -> Section:
+    """The paper's claims tested on the data (``harness.report.claims``), on ``scorer``'s resamples (the paired
+    comparisons' scorer, with the categories' AP50 columns: runs it scored already are not scored again)."""
     from harness.report.claims import claims_records, evaluate_claims
     from harness.report.tables import Column, Table
 
-    cats = {c for e in view.entries(dataset) for f in e.folds.values() for c in (f.metrics.get("per_category") or {})}
-    if "delamination" not in cats:
-        return None
     sec = Section("claims", "The paper's claims, tested", dataset)
-    claims, notes = evaluate_claims(view, dataset, resamples=max(resamples, 0), seed=seed)
+    start = (lambda n: progress.start(n, f"claims {dataset}")) if progress is not None else None
+    claims, notes = evaluate_claims(view, dataset, scorer, on_total=start)
     rows = [{"n": c.number, "claim": c.text, "verdict": c.verdict, "evidence": "; ".join(c.evidence)} for c in claims]
     table = Table(
         f"{dataset}-claims".replace("/", "-"),
@@ -456,11 +466,14 @@ def dataset_sections(
     if table is not None or view.sensing_stage(dataset):
         sections.append(sec)
 
-    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference)
+    claim_categories = _claim_categories(view, dataset)
+    scorer = BootstrapScorer(
+        max(resamples, 0), seed, progress.advance if progress else None, workers, categories=claim_categories
+    )
+    sec, comps = _paired_section(view, dataset, rows, resamples, seed, progress, workers, reference, scorer)
     sections.append(sec)
-    claims = _claims_section(view, dataset, resamples, seed)
-    if claims is not None:
-        sections.append(claims)
+    if claim_categories:
+        sections.append(_claims_section(view, dataset, scorer, progress))
     sections += evidence_secs
     if gallery:
         sections.append(gallery_section(dataset, evidence, out, cache_root))

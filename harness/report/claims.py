@@ -30,7 +30,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from harness.report.reader import REFERENCE_PREFIX, Entry, StoreView
-from harness.report.stats import bootstrap_indices, percentile_ci, two_level
+from harness.report.stats import METRICS, BootstrapScorer, percentile_ci, two_level
 
 SUPPORTED, CONTRADICTED, INCONCLUSIVE = "supported", "contradicted", "inconclusive"
 #: The verdict of a claim whose entries are not in the store (nor in the references read beside it).
@@ -102,48 +102,19 @@ def combine(verdicts: Sequence[str]) -> str:
 
 
 class ColumnScorer:
-    """Per run: mAP50, mAP50:95 and AP50 of each category on the original held-out images (row 0) and on the
-    bootstrap's image resamples (rows 1..R; ``bootstrap_indices`` seeded per fold, as the paired comparisons)."""
+    """The claims' view of a ``BootstrapScorer`` made with per-category columns: per run, mAP50, mAP50:95 and the AP50
+    of each of its ``categories`` on the original held-out images (row 0) and on the bootstrap's image resamples
+    (rows 1..R, the paired comparisons' own: a run they scored is not scored again)."""
 
-    def __init__(
-        self, categories: Sequence[str], resamples: int, seed: int = 0, progress: Callable[[int], None] | None = None
-    ):
-        self.categories = list(categories)
-        self.columns = ["mAP50", "mAP50_95", *(f"AP50:{c}" for c in self.categories)]
-        self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
-        self._cache: dict[str, np.ndarray] = {}
+    def __init__(self, scorer: BootstrapScorer):
+        self.scorer, self.seed = scorer, scorer.seed
+        self.columns = [*METRICS, *(f"AP50:{c}" for c in scorer.categories)]
 
     def column(self, name: str) -> int:
         return self.columns.index(name)
 
-    def run_scores(self, fold: str, run: Any) -> np.ndarray:
-        key = str(run.path)
-        if key in self._cache:
-            return self._cache[key]
-        from harness.evaluation import evaluate
-        from harness.io import read_json
-        from harness.report.stats import IndexedRun, _quiet_evaluation
-
-        indexed = IndexedRun.from_coco(read_json(run.gt_path), read_json(run.predictions_path))
-        engine = (run.metrics.get("metrics") or {}).get("engine") or "faster-coco-eval"
-        n = len(indexed.image_ids)
-        rows = np.concatenate([np.arange(n)[None, :], bootstrap_indices(n, self.resamples, self.seed, fold)])
-        out = np.full((len(rows), len(self.columns)), np.nan)
-        with _quiet_evaluation():
-            for i, row in enumerate(rows):
-                gt, dets = indexed.resample(row)
-                res = evaluate(gt, dets, engine=engine)
-                m = res["metrics"]
-                vals = [m.get("mAP50"), m.get("mAP50_95")]
-                vals += [(res["per_category"].get(c) or {}).get("AP50") for c in self.categories]
-                out[i] = [np.nan if v is None else v for v in vals]
-                if self.progress:
-                    self.progress(1)
-        self._cache[key] = out
-        return out
-
     def fold_runs(self, entry: Entry, fold: str) -> np.ndarray:
-        return np.stack([self.run_scores(fold, r) for r in entry.folds[fold].runs])
+        return self.scorer.fold_runs(entry, fold)
 
     def _levels(self, a: Entry, b: Entry, folds: Sequence[str]) -> list[dict[str, Any]]:
         return two_level([self.fold_runs(a, f) for f in folds], [self.fold_runs(b, f) for f in folds], folds, self.seed)
@@ -195,17 +166,19 @@ def claim_entries(view: StoreView, dataset: str) -> tuple[str, list[Entry]]:
 
 
 def evaluate_claims(
-    view: StoreView, dataset: str, resamples: int = 200, seed: int = 0, progress: Callable[[int], None] | None = None
+    view: StoreView, dataset: str, scorer: BootstrapScorer, on_total: Callable[[int], None] | None = None
 ) -> tuple[list[Claim], list[str]]:
-    """The six claims on ``dataset`` (see the module docstring); returns (claims, notes on what was used)."""
+    """The six claims on ``dataset`` (see the module docstring), on the resamples of ``scorer`` (a
+    ``BootstrapScorer`` made with the dataset's categories); ``on_total`` is told how many evaluations are left.
+    Returns (claims, notes on what was used)."""
     prefix, entries = claim_entries(view, dataset)
     notes: list[str] = []
     source = "the reference results (ref:DETECTOR)" if prefix else "this store's runs"
-    cats: list[str] = []
-    for e in entries:
-        for fr in e.folds.values():
-            cats += [c for c in (fr.metrics.get("per_category") or {}) if c not in cats]
-    scorer = ColumnScorer(cats, resamples, seed, progress)
+    if on_total is not None:
+        on_total(sum(scorer.evaluations([e], list(e.folds)) for e in entries))
+    resamples, seed = scorer.resamples, scorer.seed
+    cats = list(scorer.categories)
+    cols = ColumnScorer(scorer)
     ours = prefix + "ours"
     claims: list[Claim] = []
 
@@ -222,22 +195,23 @@ def evaluate_claims(
         E = {k: v for k, v in abl.items() if v is not None}
 
         def has(cat: str) -> bool:
-            return f"AP50:{cat}" in scorer.columns
+            return f"AP50:{cat}" in cols.columns
 
         # 1. RGB-only misses delamination (0.000) while the thermal encodings find some
         c = Claim(1, ABLATION_CLAIMS[0][1], entries=f"{ours} x 4 encodings on {ABLATION_FOLD}")
         if has("delamination"):
-            none = scorer.single(E["none"], "AP50:delamination", folds)
+            none = cols.single(E["none"], "AP50:delamination", folds)
             # "0.000": below 0.0005 (what rounds to 0.000), with the interval on one side or the other
             parts = [below(none, 0.0005)]
             c.evidence.append(f"none: delamination AP50 {none.text()}")
             for enc in ("ir8", "linear16", "c2"):
-                d = scorer.difference(E[enc], E["none"], "AP50:delamination", folds)
-                v = scorer.single(E[enc], "AP50:delamination", folds)
+                d = cols.difference(E[enc], E["none"], "AP50:delamination", folds)
+                v = cols.single(E[enc], "AP50:delamination", folds)
                 parts.append(above(d, 0.0))
                 c.evidence.append(f"{enc}: {v.text()}, {enc} - none {d.text()}")
             c.verdict = combine(parts)
         else:
+            c.verdict = NOT_TESTED
             c.evidence.append("no delamination instances in the held-out fold")
         claims.append(c)
 
@@ -246,19 +220,22 @@ def evaluate_claims(
         if has("delamination"):
             parts = []
             for enc in ("ir8", "linear16"):
-                d = scorer.difference(E["c2"], E[enc], "AP50:delamination", folds)
+                d = cols.difference(E["c2"], E[enc], "AP50:delamination", folds)
                 parts.append(above(d, 0.0))
                 c.evidence.append(f"c2 - {enc}: {d.text()}")
             c.verdict = combine(parts)
+        else:
+            c.verdict = NOT_TESTED
+            c.evidence.append("no delamination instances in the held-out fold")
         claims.append(c)
 
         # 3. C2 keeps RGB-only's mAP50 while ir8 and linear16 lower it
         c = Claim(3, ABLATION_CLAIMS[2][1], entries=f"{ours} on {ABLATION_FOLD}")
-        d = scorer.difference(E["c2"], E["none"], "mAP50", folds)
+        d = cols.difference(E["c2"], E["none"], "mAP50", folds)
         parts = [CONTRADICTED if d.below(0.0) else SUPPORTED]  # "keeps": not significantly lower
         c.evidence.append(f"c2 - none mAP50: {d.text()}")
         for enc in ("ir8", "linear16"):
-            d = scorer.difference(E[enc], E["none"], "mAP50", folds)
+            d = cols.difference(E[enc], E["none"], "mAP50", folds)
             parts.append(below(d, 0.0))
             c.evidence.append(f"{enc} - none mAP50: {d.text()}")
         c.verdict = combine(parts)
@@ -269,11 +246,12 @@ def evaluate_claims(
         if has("water_seepage"):
             parts = []
             for enc in ENCODINGS:
-                v = scorer.single(E[enc], "AP50:water_seepage", folds)
+                v = cols.single(E[enc], "AP50:water_seepage", folds)
                 parts.append(below(v, 0.001))
                 c.evidence.append(f"{enc}: water seepage AP50 {v.text()}")
             c.verdict = combine(parts)
         else:
+            c.verdict = NOT_TESTED
             c.evidence.append("no water-seepage instances in the held-out fold")
         claims.append(c)
 
@@ -286,8 +264,8 @@ def evaluate_claims(
     else:
         folds5 = list(main.folds)
         c.entries = f"{main.label}, folds {', '.join(folds5)}"
-        present = [k for k in cats if f"AP50:{k}" in scorer.columns]
-        ivs = {k: scorer.single(main, f"AP50:{k}", folds5) for k in present}
+        present = [k for k in cats if f"AP50:{k}" in cols.columns]
+        ivs = {k: cols.single(main, f"AP50:{k}", folds5) for k in present}
         ranked = sorted((k for k in ivs if ivs[k].value is not None), key=lambda k: -(ivs[k].value or 0.0))
         c.evidence.append("AP50 by category: " + ", ".join(f"{k} {ivs[k].text(2)}" for k in ranked))
         easy = [k for k in EASY if k in ivs]
@@ -325,13 +303,13 @@ def evaluate_claims(
         c.entries = ", ".join(e.label for e in M.values()) + f"; folds {', '.join(common)}"
         parts = []
         for d, side in (("icafusion", above), ("eme", below), ("cmadet", below)):
-            diff = scorer.difference(M[d], M["ours"], "mAP50_95", common)
+            diff = cols.difference(M[d], M["ours"], "mAP50_95", common)
             parts.append(side(diff, 0.0))
             c.evidence.append(
                 f"{d} - ours mAP50:95: {diff.text()} (paper: {d} {PAPER_MAP50_95[d]}, ours {PAPER_MAP50_95['ours']})"
             )
         for d in DETECTORS:
-            c.evidence.append(f"{d}: mAP50:95 {scorer.single(M[d], 'mAP50_95', common).text()}")
+            c.evidence.append(f"{d}: mAP50:95 {cols.single(M[d], 'mAP50_95', common).text()}")
         gf_vals = {d: _gflops(e) for d, e in M.items()}
         if all(v is not None for v in gf_vals.values()):
             fewest = min(gf_vals, key=lambda d: gf_vals[d] or 0.0)
@@ -354,12 +332,9 @@ def evaluate_claims(
 
 
 def _gflops(entry: Entry) -> float | None:
-    c = entry.complexity()
-    for key in ("gflops_paper", "gflops"):
-        v = c.get(key)
-        if isinstance(v, (int, float)):
-            return float(v)
-    return None
+    """GFLOPs (paper convention, 640 px) of the model the entry's runs trained, as they recorded it."""
+    v = entry.complexity().get("gflops")
+    return float(v) if isinstance(v, (int, float)) else None
 
 
 def _main(entries: Sequence[Entry], detector: str) -> Entry | None:

@@ -188,35 +188,43 @@ def score_resamples(
     rows: np.ndarray,
     engine: str = "faster-coco-eval",
     progress: Callable[[int], None] | None = None,
+    categories: Sequence[str] = (),
 ) -> np.ndarray:
-    """``[len(rows), 2]`` mAP50, mAP50:95 of ``harness.evaluation.evaluate`` on each resample (a row of image
-    positions); NaN where a metric is undefined (no ground truth drawn)."""
+    """``[len(rows), 2 + len(categories)]`` mAP50, mAP50:95 and the AP50 of each of ``categories`` from
+    ``harness.evaluation.evaluate`` on each resample (a row of image positions); NaN where a metric is undefined
+    (no ground truth drawn, none of a category)."""
     from harness.evaluation import evaluate
 
-    out = np.full((len(rows), 2), np.nan)
+    out = np.full((len(rows), len(METRICS) + len(categories)), np.nan)
     with _quiet_evaluation():
         for i, row in enumerate(rows):
             gt, dets = indexed.resample(row)
-            m = evaluate(gt, dets, engine=engine)["metrics"]
-            out[i] = [np.nan if m.get(k) is None else m[k] for k in METRICS]
+            res = evaluate(gt, dets, engine=engine)
+            m = res["metrics"]
+            values = [m.get(k) for k in METRICS]
+            values += [(res["per_category"].get(c) or {}).get("AP50") for c in categories]
+            out[i] = [np.nan if v is None else v for v in values]
             if progress:
                 progress(1)
     return out
 
 
-def _score_chunk(gt_path: str, predictions_path: str, engine: str, rows: np.ndarray) -> np.ndarray:
+def _score_chunk(
+    gt_path: str, predictions_path: str, engine: str, rows: np.ndarray, categories: Sequence[str] = ()
+) -> np.ndarray:
     """Worker process: read the run's files and score a chunk of resamples."""
     from harness.io import read_json
 
     indexed = IndexedRun.from_coco(read_json(gt_path), read_json(predictions_path))
-    return score_resamples(indexed, rows, engine)
+    return score_resamples(indexed, rows, engine, categories=categories)
 
 
 class BootstrapScorer:
     """Scores entries on shared image resamples; each (run, fold) is evaluated once per resample and cached.
 
-    ``scores(entry, folds)`` -> array ``[1 + resamples, 2]``: row 0 the original images, rows 1.. the resamples;
-    columns mAP50 and mAP50:95 as the mean over ``folds`` of the seed-averaged fold values (NaN where undefined).
+    ``scores(entry, folds)`` -> array ``[1 + resamples, 2 + len(categories)]``: row 0 the original images, rows 1..
+    the resamples; columns mAP50, mAP50:95 (and each of ``categories``' AP50) as the mean over ``folds`` of the
+    seed-averaged fold values (NaN where undefined).
     ``workers > 1`` scores chunks of resamples in that many processes (same numbers, in the same order).
     """
 
@@ -226,11 +234,14 @@ class BootstrapScorer:
         seed: int = 0,
         progress: Callable[[int], None] | None = None,
         workers: int = 1,
+        categories: Sequence[str] = (),
     ):
         if resamples < 0:
             raise ValueError("resamples must be >= 0")
         self.resamples, self.seed, self.progress = int(resamples), int(seed), progress
         self.workers = max(1, int(workers))
+        #: per-category AP50 columns after mAP50 and mAP50:95 (``harness.report.claims`` tests claims on them)
+        self.categories = tuple(categories)
         self._fold_ids: dict[tuple[str, str], list[Any]] = {}
         self._run_scores: dict[str, np.ndarray] = {}
 
@@ -266,7 +277,8 @@ class BootstrapScorer:
             )
 
     def run_scores(self, dataset: str, fold: str, run: Any) -> np.ndarray:
-        """``[1 + resamples, 2]`` mAP50, mAP50:95 of one run on the original images and on each resample."""
+        """``[1 + resamples, 2 + len(categories)]`` mAP50, mAP50:95 (and the categories' AP50) of one run on the
+        original images and on each resample."""
         cache_key = str(run.path)
         if cache_key in self._run_scores:
             return self._run_scores[cache_key]
@@ -282,7 +294,8 @@ class BootstrapScorer:
             chunks = np.array_split(rows, 4 * self.workers)
             with ProcessPoolExecutor(self.workers) as pool:
                 futures = [
-                    pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c) for c in chunks
+                    pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c, self.categories)
+                    for c in chunks
                 ]
                 parts = []
                 for fut, c in zip(futures, chunks):
@@ -291,7 +304,7 @@ class BootstrapScorer:
                         self.progress(len(c))
             out = np.concatenate(parts)
         else:
-            out = score_resamples(indexed, rows, engine, self.progress)
+            out = score_resamples(indexed, rows, engine, self.progress, self.categories)
         self._run_scores[cache_key] = out
         return out
 
