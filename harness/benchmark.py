@@ -155,6 +155,9 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
     missing: list[str] = []
     for det in spec.detectors:
         mine = [k for k in runs if k.detector == det]
+        if not mine:
+            missing.append(f"{det}: no runs")
+            continue
         encodings = sorted({k.encoding for k in mine})
         if det == ABLATION_DETECTOR and spec.ablation and len(encodings) > 1:  # its grid: the dataset's c2
             encodings = ["c2"] if "c2" in encodings else sorted({k.encoding for k in mine if k.fold != ABLATION_FOLD})

@@ -337,3 +337,10 @@ def test_a_detector_run_on_one_fold_is_paired_with_the_references_on_that_fold(b
     paired = next(s for s in report.sections if s.key == "paired")
     rows = [line for t in paired.tables for line in t.to_text().splitlines() if "tinydet-dual" in line]
     assert rows and "ref:tinydet" in rows[0], paired.tables[0].to_text() if paired.tables else paired.notes
+
+
+def test_exporting_an_unfinished_benchmark_is_refused(bench, tmp_path):
+    out = _cli(["benchmark", "export", "--store", str(bench["store"]), "--out", str(tmp_path / "refs")], code=2)
+    assert "is not finished" in out and "ours: no runs" in out and not (tmp_path / "refs").exists()
+    out = _cli(["benchmark", "export", "--store", str(tmp_path / "nowhere")], code=2)
+    assert "no results store here" in out

@@ -134,16 +134,17 @@ def register_commands(cli: click.Group) -> None:
         """Export a finished benchmark store as reference results: metrics, error analysis, logs, and the ground
         truth and predictions the paired bootstrap re-scores (gzip), with the samples' digests (at most 10 MiB)."""
         from harness import benchmark as B
+        from harness.errors import StoreError
         from harness.references import export_references, resolve
 
         spec = B.BenchmarkSpec(store=opt.resolve_store(store, profile), profile=profile)
         root = Path(spec.store)
         if not root.is_dir():
-            raise click.ClickException(f"{root}: no results store here; run `harness benchmark run` first")
+            raise StoreError(f"{root}: no results store here; run `harness benchmark run` first")
         found, missing = B.finished_cells(spec)
         if missing:
-            raise click.ClickException(
-                f"{len(missing)} benchmark cell(s) are not finished in {root} (e.g. {', '.join(missing[:3])}); "
+            raise StoreError(
+                f"the benchmark in {root} is not finished: {len(missing)} missing (e.g. {', '.join(missing[:3])}); "
                 f"run `harness benchmark run --store {root}` first"
             )
         manifest = export_references(root, out or resolve("shipped"), found, benchmark=B.read_timing(root))
