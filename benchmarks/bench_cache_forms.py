@@ -60,21 +60,33 @@ def _datasets(data: Path, cache: Path):
     from harness.cache import prepare
     from harness.config import load_config
 
-    S.PROFILES.setdefault("bench640", S.Profile("bench640", (4, 4, 4, 2, 2), (640, 512), (2000, 1500),
-                                                (1, 1, 1, 1, 1), description="loader benchmark: 16 pairs"))
+    S.PROFILES.setdefault(
+        "bench640",
+        S.Profile(
+            "bench640",
+            (4, 4, 4, 2, 2),
+            (640, 512),
+            (2000, 1500),
+            (1, 1, 1, 1, 1),
+            description="loader benchmark: 16 pairs",
+        ),
+    )
     m3t_root = data / "m3t-synth-bench640"
     if not m3t_root.exists():
         S.generate(m3t_root, profile="bench640", seed=0, workers=1, progress=False)
     rgbt_root = data / "rgbt-tiny-640"
     if not rgbt_root.exists():
-        write_rgbt_tiny(rgbt_root, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_seqs=("DJI_0101_1",), frames=4,
-                        size=(640, 512))
+        write_rgbt_tiny(
+            rgbt_root, train_seqs=("DJI_0001_1", "DJI_0002_1"), test_seqs=("DJI_0101_1",), frames=4, size=(640, 512)
+        )
     cfg = load_config(protocol="m3t-4fold")
     cfg["dataset"] = {"root": str(m3t_root), "profile": "bench640"}
     rcfg = load_config(protocol="rgbt-tiny", overrides=[f"dataset.root={rgbt_root}"])
     out = []
-    for name, dataset, c, enc, src in (("m3t-synth 640x512", "m3t-synth", cfg, "c2", m3t_root),
-                                       ("RGBT-Tiny layout 640x512", "rgbt-tiny", rcfg, "proxy8", rgbt_root / "images")):
+    for name, dataset, c, enc, src in (
+        ("m3t-synth 640x512", "m3t-synth", cfg, "c2", m3t_root),
+        ("RGBT-Tiny layout 640x512", "rgbt-tiny", rcfg, "proxy8", rgbt_root / "images"),
+    ):
         forms = {"raw": prepare(dataset, c, cache_root=cache / "raw", progress=False, form="raw")}
         for codec in CF.U8_CODECS:
             if codec == "png" or CF.default_u8_codec() == "zstd":
@@ -103,10 +115,14 @@ def main() -> None:
     encs = {e.name: e for e in ENCODINGS}
     sets = _datasets(args.data, args.data / "cache")
     print(f"{os.cpu_count()} CPU(s); per worker = 1 process, 1 thread; median of {args.repeat} passes")
-    print(f"{'':<25} {'':<12} {'':>8} {'':>6} {'read':>9} {'':>6}"
-          + "".join(f" {f'item {s}':>9} {'':>6}" for s in SIZES.values()))
-    print(f"{'data':<25} {'form':<12} {'size MB':>8} {'x src':>6} {'/s':>9} {'x raw':>6}"
-          + "".join(f" {'/s':>9} {'x raw':>6}" for _ in SIZES))
+    print(
+        f"{'':<25} {'':<12} {'':>8} {'':>6} {'read':>9} {'':>6}"
+        + "".join(f" {f'item {s}':>9} {'':>6}" for s in SIZES.values())
+    )
+    print(
+        f"{'data':<25} {'form':<12} {'size MB':>8} {'x src':>6} {'/s':>9} {'x raw':>6}"
+        + "".join(f" {'/s':>9} {'x raw':>6}" for _ in SIZES)
+    )
     worst: dict[str, tuple[float, str]] = {}
     worst_ratio: dict[str, float] = {}  # per compact set: its paper-size training-item rate as a share of raw's
     for name, enc_name, forms, src in sets:
@@ -146,8 +162,10 @@ def main() -> None:
     print("x src: cache bytes / source bytes (m3t: every file of the dataset folder; RGBT-Tiny: images/)")
     slowest = min(worst_ratio, key=worst_ratio.get, default="")
     ratio = worst_ratio.get(slowest, float("nan"))
-    print(f"target: every compact form >= {TARGET_VS_RAW:g}x the raw form's rate of paper-size training items -> "
-          f"{'met' if ratio >= TARGET_VS_RAW else 'NOT met'} (slowest {ratio:.2f}x: {slowest})")
+    print(
+        f"target: every compact form >= {TARGET_VS_RAW:g}x the raw form's rate of paper-size training items -> "
+        f"{'met' if ratio >= TARGET_VS_RAW else 'NOT met'} (slowest {ratio:.2f}x: {slowest})"
+    )
     if args.no_train_step:
         return
     from ours_train_step import measure
@@ -157,9 +175,11 @@ def main() -> None:
         r = measure(size, args.step_batch, 1, 20, max(1, args.repeat - 1), "s")
         per_img = r["full"] / args.step_batch
         rate, which = worst[profile]
-        print(f"{profile} (imgsz {size}): {per_img:.3f} s/image on this CPU; meanwhile one loader worker delivers "
-              f"{rate * per_img:,.1f} items\n  (slowest compact set: {which}; 8 workers: {8 * rate * per_img:,.0f})",
-              flush=True)
+        print(
+            f"{profile} (imgsz {size}): {per_img:.3f} s/image on this CPU; meanwhile one loader worker delivers "
+            f"{rate * per_img:,.1f} items\n  (slowest compact set: {which}; 8 workers: {8 * rate * per_img:,.0f})",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

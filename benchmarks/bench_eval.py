@@ -51,15 +51,25 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
     x, y = rng.uniform(0, W - w), rng.uniform(0, H - np.minimum(h, H - 1))
     cat = rng.integers(1, K + 1, G)
     crowd = rng.uniform(size=G) < 0.01
-    anns = [{"id": i + 1, "image_id": int(im), "category_id": int(c), "bbox": [float(a), float(b), float(c_), float(d)],
-             "area": float(c_ * d), "iscrowd": int(cr)}
-            for i, (im, c, a, b, c_, d, cr) in enumerate(zip(img_of_gt, cat, x, y, w, h, crowd))]
+    anns = [
+        {
+            "id": i + 1,
+            "image_id": int(im),
+            "category_id": int(c),
+            "bbox": [float(a), float(b), float(c_), float(d)],
+            "area": float(c_ * d),
+            "iscrowd": int(cr),
+        }
+        for i, (im, c, a, b, c_, d, cr) in enumerate(zip(img_of_gt, cat, x, y, w, h, crowd))
+    ]
     # detections: 0-2 jittered copies of each GT (10 % wrong class), then random false positives up to ~100 per image
     copies = rng.integers(0, 3, G)
     src = np.repeat(np.arange(G), copies)
     j = rng.normal(0, 0.15, (len(src), 4))
-    tp_boxes = np.stack([x[src] + j[:, 0] * w[src], y[src] + j[:, 1] * h[src],
-                         w[src] * np.exp(j[:, 2]), h[src] * np.exp(j[:, 3])], axis=1)
+    tp_boxes = np.stack(
+        [x[src] + j[:, 0] * w[src], y[src] + j[:, 1] * h[src], w[src] * np.exp(j[:, 2]), h[src] * np.exp(j[:, 3])],
+        axis=1,
+    )
     tp_cat = np.where(rng.uniform(size=len(src)) < 0.9, cat[src], rng.integers(1, K + 1, len(src)))
     tp_img = img_of_gt[src]
     tp_score = rng.uniform(0.2, 1.0, len(src))
@@ -82,9 +92,12 @@ def synthesize(n_images: int, gt_per_image: float, dets_per_image: int, seed: in
         {"image_id": int(i), "category_id": int(c), "bbox": b, "score": float(s)}
         for i, c, b, s in zip(imgs[order].tolist(), cats[order].tolist(), boxes[order].tolist(), scores[order].tolist())
     ]
-    gt = {"info": {"description": "synthetic RGBT-Tiny-sized set"},
-          "images": [{"id": i, "width": W, "height": H, "file_name": f"{i:05d}.jpg"} for i in range(1, n_images + 1)],
-          "annotations": anns, "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)]}
+    gt = {
+        "info": {"description": "synthetic RGBT-Tiny-sized set"},
+        "images": [{"id": i, "width": W, "height": H, "file_name": f"{i:05d}.jpg"} for i in range(1, n_images + 1)],
+        "annotations": anns,
+        "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)],
+    }
     return gt, dets
 
 
@@ -183,8 +196,11 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of the harness")
     ap.add_argument("--anchor-repeats", type=int, default=2, help="timed runs of pycocotools (about 1 CPU-minute each)")
-    ap.add_argument("--library", action="store_true",
-                    help="also run faster-coco-eval the documented way (its own C++ path) and compare bit for bit")
+    ap.add_argument(
+        "--library",
+        action="store_true",
+        help="also run faster-coco-eval the documented way (its own C++ path) and compare bit for bit",
+    )
     args = ap.parse_args()
 
     from harness.evaluation import evaluate
@@ -192,8 +208,10 @@ def main() -> int:
     n_images = max(1, round(12590 * args.scale))
     t0 = time.perf_counter()
     gt, dets = synthesize(n_images, 15.0, 100, args.seed)
-    print(f"synthetic set: {n_images:,} images, {len(gt['annotations']):,} GT boxes, {len(dets):,} detections "
-          f"(generated in {time.perf_counter() - t0:.1f} s)")
+    print(
+        f"synthetic set: {n_images:,} images, {len(gt['annotations']):,} GT boxes, {len(dets):,} detections "
+        f"(generated in {time.perf_counter() - t0:.1f} s)"
+    )
     for line in machine_lines():
         print(line)
 
@@ -219,17 +237,23 @@ def main() -> int:
     ours = [(-1.0 if s is None else s) for s in result["metrics"]["coco_stats"]]
     stat_diff = float(np.max(np.abs(np.array(ours) - np.array(ref_stats))))
     names = {c["id"]: c["name"] for c in gt["categories"]}
-    cat_diff = max(max(abs(result["per_category"][names[c]]["AP50"] - a50),
-                       abs(result["per_category"][names[c]]["AP50_95"] - a)) for c, (a50, a) in ref_cat.items())
+    cat_diff = max(
+        max(abs(result["per_category"][names[c]]["AP50"] - a50), abs(result["per_category"][names[c]]["AP50_95"] - a))
+        for c, (a50, a) in ref_cat.items()
+    )
     identical = stat_diff == 0.0 and cat_diff == 0.0
     # pycocotools divides by TP + FP + 2.2e-16, faster-coco-eval (and so the harness) by TP + FP: the last bits of
     # a mean can differ on some sets
     agree = max(stat_diff, cat_diff) <= 1e-12
     print(f"  {'':<34} {'runs':>4} {'CPU min':>9} {'CPU median':>11} {'wall median':>12}")
-    for label, cpu, wall in ((f"harness evaluate ({args.engine})", cpu_h, wall_h),
-                             ("pycocotools, as documented", cpu_a, wall_a)):
-        print(f"  {label:<34} {len(cpu):>4} {min(cpu):>7.2f} s {statistics.median(cpu):>9.2f} s "
-              f"{statistics.median(wall):>10.2f} s")
+    for label, cpu, wall in (
+        (f"harness evaluate ({args.engine})", cpu_h, wall_h),
+        ("pycocotools, as documented", cpu_a, wall_a),
+    ):
+        print(
+            f"  {label:<34} {len(cpu):>4} {min(cpu):>7.2f} s {statistics.median(cpu):>9.2f} s "
+            f"{statistics.median(wall):>10.2f} s"
+        )
     print("  (pycocotools: index, loadRes, evaluate, accumulate, summarize, per-category AP)")
     print(f"where the harness's CPU time goes (one more run with each phase timed: {cpu_p:.2f} s CPU):")
     for label, _, _ in PHASES:
@@ -245,17 +269,22 @@ def main() -> int:
         (lib_stats, lib_cat), c, _ = timed(lambda: run_library(copy.deepcopy(gt), copy.deepcopy(dets)))
         same = lib_stats == ours and all(
             (result["per_category"][names[k]]["AP50"], result["per_category"][names[k]]["AP50_95"]) == v
-            for k, v in lib_cat.items())
+            for k, v in lib_cat.items()
+        )
         said = "bit for bit the harness's" if same else "DIFFERENT from the harness's"
         print(f"faster-coco-eval's own path ({c:.2f} s CPU): stats and per-category AP {said}")
         agree = agree and same
     m = result["metrics"]
     print(f"operating point: conf {m['conf_threshold']:.4f}, precision {m['precision']:.4f}, recall {m['recall']:.4f}")
     ratio = statistics.median(cpu_a) / statistics.median(cpu_h)
-    print(f"speed-up vs pycocotools (same run): {ratio:.2f}x CPU time (medians; {min(cpu_a) / min(cpu_h):.2f}x "
-          f"the minima), {statistics.median(wall_a) / statistics.median(wall_h):.2f}x wall")
-    print(f"target: >= {TARGET:g}x in CPU time, statistics pycocotools' -> "
-          f"{'met' if ratio >= TARGET and agree else 'NOT met'}")
+    print(
+        f"speed-up vs pycocotools (same run): {ratio:.2f}x CPU time (medians; {min(cpu_a) / min(cpu_h):.2f}x "
+        f"the minima), {statistics.median(wall_a) / statistics.median(wall_h):.2f}x wall"
+    )
+    print(
+        f"target: >= {TARGET:g}x in CPU time, statistics pycocotools' -> "
+        f"{'met' if ratio >= TARGET and agree else 'NOT met'}"
+    )
     print(f"peak RSS: {peak_rss_gib():.2f} GiB (the whole process, pycocotools included)")
     return 0 if agree else 1
 

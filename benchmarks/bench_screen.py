@@ -82,8 +82,9 @@ def make_flight(folder: Path, copies: int) -> Path:
 
     new_cam, _ = undistorted_camera(cam, 0.0)
     prior = focal_prior(new_cam.image_size, (640, 512), (24.0, 40.0), f_rgb_px=new_cam.fx)
-    true = homography_from_similarity(14.0, -9.0, 1.0, prior[0, 0] * 1.03, image_center(new_cam.image_size),
-                                      image_center((640, 512)))
+    true = homography_from_similarity(
+        14.0, -9.0, 1.0, prior[0, 0] * 1.03, image_center(new_cam.image_size), image_center((640, 512))
+    )
     rng = np.random.default_rng(0)
     k = 0
     for rep in range(copies):
@@ -94,24 +95,34 @@ def make_flight(folder: Path, copies: int) -> Path:
             # the wide image as shot: each raw pixel -> undistorted pixel -> thermal pixel through the true H
             h, w = RGB_SIZE[1], RGB_SIZE[0]
             step = 8  # map on a coarse grid, then resize the maps (smooth)
-            gx, gy = np.meshgrid(np.arange(0, w + step, step, dtype=np.float64),
-                                 np.arange(0, h + step, step, dtype=np.float64))
+            gx, gy = np.meshgrid(
+                np.arange(0, w + step, step, dtype=np.float64), np.arange(0, h + step, step, dtype=np.float64)
+            )
             und = undistort_points(np.stack([gx.ravel(), gy.ravel()], 1), cam, new_cam)
             hom = np.hstack([und, np.ones((len(und), 1))]) @ true.T
             uv = (hom[:, :2] / hom[:, 2:3]).reshape(gx.shape + (2,)).astype(np.float32)
             mx = cv2.resize(uv[..., 0], (w, h), interpolation=cv2.INTER_LINEAR)
             my = cv2.resize(uv[..., 1], (w, h), interpolation=cv2.INTER_LINEAR)
-            img = cv2.remap(np.ascontiguousarray(preview[:, :, ::-1]), mx, my, cv2.INTER_CUBIC,
-                            borderMode=cv2.BORDER_REFLECT_101)
+            img = cv2.remap(
+                np.ascontiguousarray(preview[:, :, ::-1]), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT_101
+            )
             tint = np.array([40, 25, 10], np.int16) * (rep + 1) % 60
-            img = np.clip(img.astype(np.int16) // 2 + 60 + tint + rng.normal(0, 7, img.shape).astype(np.int16),
-                          0, 255).astype(np.uint8)
+            img = np.clip(
+                img.astype(np.int16) // 2 + 60 + tint + rng.normal(0, 7, img.shape).astype(np.int16), 0, 255
+            ).astype(np.uint8)
             ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 92])
-            exif = jpeg.build_exif({"Make": "DJI", "Model": "M3T", "FocalLengthIn35mmFilm": 24,
-                                    "ExifImageWidth": w, "ExifImageHeight": h})
+            exif = jpeg.build_exif(
+                {"Make": "DJI", "Model": "M3T", "FocalLengthIn35mmFilm": 24, "ExifImageWidth": w, "ExifImageHeight": h}
+            )
             data = b"\xff\xd8" + jpeg.segment(jpeg.APP1, exif) + enc.tobytes()[2:]
-            pos = {"lat": 48.137 + 1e-5 * k, "lon": 11.575 + 2e-5 * k, "alt_abs": 540.0, "alt_rel": 25.0,
-                   "gimbal_yaw": 90.0, "gimbal_pitch": 0.0}
+            pos = {
+                "lat": 48.137 + 1e-5 * k,
+                "lon": 11.575 + 2e-5 * k,
+                "alt_abs": 540.0,
+                "alt_rel": 25.0,
+                "gimbal_yaw": 90.0,
+                "gimbal_pitch": 0.0,
+            }
             (folder / f"{name}_W.JPG").write_bytes(add_xmp(data, pos))
             (folder / f"{name}_T.JPG").write_bytes(add_xmp(src.read_bytes(), pos))
     return cam_path
@@ -128,8 +139,18 @@ def weights_file(folder: Path, scale: str) -> Path:
     return path
 
 
-def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str, threads: int, cam: Path,
-               rgb_decode: str = "auto", workers: int = 1, overlap: bool = True) -> dict:
+def run_screen(
+    flight: Path,
+    out: Path,
+    weights: Path,
+    scale: str,
+    backend: str,
+    threads: int,
+    cam: Path,
+    rgb_decode: str = "auto",
+    workers: int = 1,
+    overlap: bool = True,
+) -> dict:
     """One screen of the flight; per-frame timings of the frames after the first (its one-time costs left out):
     means (``mean``: the automatic registrations, one per group of three, included), medians (``median``: a frame
     that reuses its group's registration), frames per second, and the registration's own cost."""
@@ -142,10 +163,25 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
         stamps.append(time.perf_counter())
         records.append(rec)
 
-    req = ScreenRequest(flight=flight, out=out, weights=weights, detector="ours", dataset="m3t", profile="paper",
-                        overrides=[f"model.scale={scale}", "eval.batch=1"], backend=backend, threads=threads,
-                        rgb_camera=cam, rgb_decode=rgb_decode, progress=False, overlays=False, force=True,
-                        conf=0.5, workers=workers, overlap=overlap)
+    req = ScreenRequest(
+        flight=flight,
+        out=out,
+        weights=weights,
+        detector="ours",
+        dataset="m3t",
+        profile="paper",
+        overrides=[f"model.scale={scale}", "eval.batch=1"],
+        backend=backend,
+        threads=threads,
+        rgb_camera=cam,
+        rgb_decode=rgb_decode,
+        progress=False,
+        overlays=False,
+        force=True,
+        conf=0.5,
+        workers=workers,
+        overlap=overlap,
+    )
     c0 = time.process_time()
     screen(req, on_frame=on_frame)
     steady = records[1:]
@@ -156,20 +192,25 @@ def run_screen(flight: Path, out: Path, weights: Path, scale: str, backend: str,
     front_cpu = [sum(r["timings"][f"{k}_cpu"] for k in STAGES) for r in steady]
     registering = [r["timings"]["align_cpu"] for r in steady if r["route"] == "auto"]
     reusing = [r["timings"]["align_cpu"] for r in steady if r["route"] != "auto"]
-    return {"fps": (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan"),
-            "mean": {k: statistics.fmean(v) for k, v in t.items()},
-            "mean_cpu": {k: statistics.fmean(v) for k, v in c.items()},
-            "median": {k: statistics.median(v) for k, v in t.items()},
-            "median_cpu": {k: statistics.median(v) for k, v in c.items()},
-            "front": statistics.fmean(front), "front_cpu": statistics.fmean(front_cpu),
-            "front_median_cpu": statistics.median(front_cpu),
-            # each frame's front end over its own model call, back to back (sequential runs): a load that changes
-            # during the run weighs on both alike
-            "cpu_ratio": statistics.median(f / r["timings"]["model_cpu"] for f, r in zip(front_cpu, steady)),
-            "register_cpu": (statistics.median(registering) - statistics.median(reusing))
-            if registering and reusing else float("nan"),
-            "process_cpu": (time.process_time() - c0) / max(1, len(records)),
-            "routes": {r["route"] for r in records}, "reduction": {r["reduction"] for r in records}}
+    return {
+        "fps": (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan"),
+        "mean": {k: statistics.fmean(v) for k, v in t.items()},
+        "mean_cpu": {k: statistics.fmean(v) for k, v in c.items()},
+        "median": {k: statistics.median(v) for k, v in t.items()},
+        "median_cpu": {k: statistics.median(v) for k, v in c.items()},
+        "front": statistics.fmean(front),
+        "front_cpu": statistics.fmean(front_cpu),
+        "front_median_cpu": statistics.median(front_cpu),
+        # each frame's front end over its own model call, back to back (sequential runs): a load that changes
+        # during the run weighs on both alike
+        "cpu_ratio": statistics.median(f / r["timings"]["model_cpu"] for f, r in zip(front_cpu, steady)),
+        "register_cpu": (statistics.median(registering) - statistics.median(reusing))
+        if registering and reusing
+        else float("nan"),
+        "process_cpu": (time.process_time() - c0) / max(1, len(records)),
+        "routes": {r["route"] for r in records},
+        "reduction": {r["reduction"] for r in records},
+    }
 
 
 def stage_split(flight: Path, cam: Path, r: int | None = None, repeats: int = 3) -> tuple[dict[str, float], int]:
@@ -198,8 +239,15 @@ def stage_split(flight: Path, cam: Path, r: int | None = None, repeats: int = 3)
         r = reduction_for(source_scale(reg_f.prior(RGB_SIZE, (640, 512)), (640, 512)), RGB_SIZE)
     ctx = SensingContext(opts, cam_full.scaled((RGB_SIZE[0] // r, RGB_SIZE[1] // r)) if r > 1 else cam_full)
     reg = DatasetRegistration(ctx, None, None, "undistorted", {}, (24.0, 40.0))
-    names = ("files + headers + SHA-1", "thermal R-JPEG", "wide decode", "undistort", "warp + crop", "C2",
-             "registration")
+    names = (
+        "files + headers + SHA-1",
+        "thermal R-JPEG",
+        "wide decode",
+        "undistort",
+        "warp + crop",
+        "C2",
+        "registration",
+    )
     times: dict[str, list[float]] = {k: [] for k in names}
     clock = time.thread_time
     for _ in range(repeats):
@@ -247,12 +295,15 @@ def detailed_flight(flight: Path, folder: Path) -> Path:
     img = np.clip((img - img.mean()) / img.std() * 40 + 128, 0, 255).astype(np.uint8)
     for _ in range(200):
         x, y = rng.integers(0, w - 60), rng.integers(0, h - 80)
-        img[y:y + rng.integers(10, 80), x:x + rng.integers(10, 60)] = rng.integers(0, 255, 3)
+        img[y : y + rng.integers(10, 80), x : x + rng.integers(10, 60)] = rng.integers(0, 255, 3)
     ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 92])
     assert ok
     data = cap.rgb.read_bytes()
-    app1 = b"".join(jpeg.segment(seg.marker, seg.payload) for seg in jpeg.read_segments(data, cap.rgb).segments
-                    if seg.marker == jpeg.APP1)
+    app1 = b"".join(
+        jpeg.segment(seg.marker, seg.payload)
+        for seg in jpeg.read_segments(data, cap.rgb).segments
+        if seg.marker == jpeg.APP1
+    )
     (folder / cap.rgb.name).write_bytes(b"\xff\xd8" + app1 + enc.tobytes()[2:])
     shutil.copy(cap.thermal, folder / cap.thermal.name)
     return folder
@@ -271,8 +322,9 @@ def input_difference(flight: Path, cam: Path, reductions: tuple[int, ...] = (2, 
 
     c2 = next(e for e in ENCODINGS if e.name == "c2")
     cap = find_captures(flight).captures[0]
-    st = frontend.FrontEndSettings(sensing={"registration": {"method": "focal"}}, encoding="c2",
-                                   rgb_camera=CameraModel.load(cam).to_dict())
+    st = frontend.FrontEndSettings(
+        sensing={"registration": {"method": "focal"}}, encoding="c2", rgb_camera=CameraModel.load(cam).to_dict()
+    )
     images = {}
     for r in (1, *reductions):
         with mock.patch.object(frontend, "reduction_for", lambda f, size, r=r: r):
@@ -282,7 +334,7 @@ def input_difference(flight: Path, cam: Path, reductions: tuple[int, ...] = (2, 
         a, b = images[1], images[r]
         assert a.shape == b.shape and np.array_equal(a[..., 3], b[..., 3])
         d = np.abs(a[..., :3] - b[..., :3]).astype(np.float64)
-        out[r] = (float(d.mean()), 10 * math.log10(255 ** 2 / max(float((d ** 2).mean()), 1e-12)))
+        out[r] = (float(d.mean()), 10 * math.log10(255**2 / max(float((d**2).mean()), 1e-12)))
     return out
 
 
@@ -296,8 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--scales", default="s,n")
     ap.add_argument("--backends", default="torch,onnx")
-    ap.add_argument("--workers", type=int, default=2, help="also time the first scale with this many front-end "
-                    "processes (1: skip)")
+    ap.add_argument(
+        "--workers", type=int, default=2, help="also time the first scale with this many front-end processes (1: skip)"
+    )
     ap.add_argument("--rounds", type=int, default=3, help="sequential and overlapped screens, alternated")
     ap.add_argument("--keep", type=Path, default=None, help="build the flight here and keep it")
     args = ap.parse_args(argv)
@@ -314,47 +367,69 @@ def main(argv: list[str] | None = None) -> int:
     try:
         flight = work / "flight"
         t0 = time.perf_counter()
-        cam = make_flight(flight, args.copies) if not (flight.is_dir() and any(flight.iterdir())) \
+        cam = (
+            make_flight(flight, args.copies)
+            if not (flight.is_dir() and any(flight.iterdir()))
             else work / "wide_camera.yaml"
+        )
         n = len(list(flight.glob("*_W.JPG")))
         size = statistics.median(p.stat().st_size for p in flight.glob("*_W.JPG")) / 1e6
-        print(f"flight: {n} captures (640x512 real M3T R-JPEGs, 4000x3000 wide JPEGs of {size:.1f} MB), built in "
-              f"{time.perf_counter() - t0:.0f} s")
+        print(
+            f"flight: {n} captures (640x512 real M3T R-JPEGs, 4000x3000 wide JPEGs of {size:.1f} MB), built in "
+            f"{time.perf_counter() - t0:.0f} s"
+        )
         for line in machine_lines():
             print(line)
-        print(f"model on {args.threads} threads, torch {torch.__version__}; front end on one OpenCV thread, in the "
-              "main process: sequential (before the model) or overlapped (a thread, one frame ahead)")
+        print(
+            f"model on {args.threads} threads, torch {torch.__version__}; front end on one OpenCV thread, in the "
+            "main process: sequential (before the model) or overlapped (a thread, one frame ahead)"
+        )
         rows = []
         for scale in [s.strip() for s in args.scales.split(",") if s.strip()]:
             w = weights_file(work, scale)
             for backend in [b.strip() for b in args.backends.split(",") if b.strip()]:
                 seqs, ovls = [], []
                 for _ in range(args.rounds):  # alternated, so both see the same load on a shared machine
-                    seqs.append(run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads,
-                                           cam, overlap=False))
-                    ovls.append(run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads,
-                                           cam))
+                    seqs.append(
+                        run_screen(
+                            flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam, overlap=False
+                        )
+                    )
+                    ovls.append(
+                        run_screen(flight, work / f"out-{scale}-{backend}", w, scale, backend, args.threads, cam)
+                    )
                 rows.append((f"ours-{scale}", backend, seqs, ovls))
                 print(f"  ours-{scale} {backend}: done", file=sys.stderr)
         med = statistics.median
-        print(f"\nper frame, ms (means over the frames after the first, an automatic registration every 3rd frame; "
-              f"medians of {args.rounds} rounds)")
-        head = (f"{'model':<7} {'backend':<7} | {'decode':>6} {'reg+warp':>8} {'C2':>3} {'front':>5} | "
-                f"{'model':>5} | {'front/model':>11} | {'median frame':>12}")
+        print(
+            f"\nper frame, ms (means over the frames after the first, an automatic registration every 3rd frame; "
+            f"medians of {args.rounds} rounds)"
+        )
+        head = (
+            f"{'model':<7} {'backend':<7} | {'decode':>6} {'reg+warp':>8} {'C2':>3} {'front':>5} | "
+            f"{'model':>5} | {'front/model':>11} | {'median frame':>12}"
+        )
         print("CPU time (sequential runs; front end: its thread's)\n" + head + "\n" + "-" * len(head))
         for name, backend, seqs, _ in rows:
             c = {k: med(q["mean_cpu"][k] for q in seqs) for k in (*STAGES, "model")}
             front = med(q["front_cpu"] for q in seqs)
             share = med(q["front_cpu"] / q["mean_cpu"]["model"] for q in seqs)
-            print(f"{name:<7} {backend:<7} | {1e3 * c['decode']:>6.0f} {1e3 * c['align']:>8.0f} "
-                  f"{1e3 * c['encode']:>3.0f} {1e3 * front:>5.0f} | {1e3 * c['model']:>5.0f} | "
-                  f"{share:>11.0%} | {med(q['cpu_ratio'] for q in seqs):>12.0%}")
-        head = (f"{'model':<7} {'backend':<7} | {'model':>5} | {'sequential':>16} | {'overlapped':>30} | "
-                f"<= {TARGET:.0%}")
+            print(
+                f"{name:<7} {backend:<7} | {1e3 * c['decode']:>6.0f} {1e3 * c['align']:>8.0f} "
+                f"{1e3 * c['encode']:>3.0f} {1e3 * front:>5.0f} | {1e3 * c['model']:>5.0f} | "
+                f"{share:>11.0%} | {med(q['cpu_ratio'] for q in seqs):>12.0%}"
+            )
+        head = f"{'model':<7} {'backend':<7} | {'model':>5} | {'sequential':>16} | {'overlapped':>30} | <= {TARGET:.0%}"
         units = f"{'':<7} {'':<7} | {'ms':>5} | {'fr/s  ms added':>16} | {'fr/s  ms added (range)':>30} |"
-        print("\nwall clock: the whole screen's time per frame (1 / frames per second) against the model's own "
-              "(its\ncalls in the sequential run of the same round); added: medians (and range) over the rounds\n"
-              + head + "\n" + units + "\n" + "-" * len(head))
+        print(
+            "\nwall clock: the whole screen's time per frame (1 / frames per second) against the model's own "
+            "(its\ncalls in the sequential run of the same round); added: medians (and range) over the rounds\n"
+            + head
+            + "\n"
+            + units
+            + "\n"
+            + "-" * len(head)
+        )
         for name, backend, seqs, ovls in rows:
             m = [q["mean"]["model"] for q in seqs]
             add_s = [(1 / q["fps"] - mi) / mi for q, mi in zip(seqs, m)]
@@ -362,30 +437,49 @@ def main(argv: list[str] | None = None) -> int:
             fs, fo = med(q["fps"] for q in seqs), med(q["fps"] for q in ovls)
             rng = f"({_pct(min(add_o))}..{_pct(max(add_o))})"
             verdict = "met" if med(add_o) <= TARGET else "not met"
-            print(f"{name:<7} {backend:<7} | {1e3 * med(m):>5.0f} | {fs:>4.2f} {1e3 / fs:>4.0f} "
-                  f"{_pct(med(add_s)):>6} | {fo:>4.2f} {1e3 / fo:>4.0f} {_pct(med(add_o)):>6} {rng:>13} | {verdict}")
+            print(
+                f"{name:<7} {backend:<7} | {1e3 * med(m):>5.0f} | {fs:>4.2f} {1e3 / fs:>4.0f} "
+                f"{_pct(med(add_s)):>6} | {fo:>4.2f} {1e3 / fo:>4.0f} {_pct(med(add_o)):>6} {rng:>13} | {verdict}"
+            )
         seq = rows[0][2][0]
-        print(f"\nroutes: {', '.join(sorted(seq['routes']))}; wide JPEG decoded at 1/{max(seq['reduction'])}; an "
-              f"automatic registration costs {1e3 * seq['register_cpu']:.0f} ms CPU once per inspection group")
+        print(
+            f"\nroutes: {', '.join(sorted(seq['routes']))}; wide JPEG decoded at 1/{max(seq['reduction'])}; an "
+            f"automatic registration costs {1e3 * seq['register_cpu']:.0f} ms CPU once per inspection group"
+        )
         if args.workers > 1:
             scale = args.scales.split(",")[0].strip()
-            r = run_screen(flight, work / f"out-{scale}-workers", work / f"ours-{scale}.pt", scale, "torch",
-                           args.threads, cam, workers=args.workers)
-            print(f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
-                  f"{r['fps']:.2f} frames/s")
-        print("\nfront-end steps on one thread by the wide decode's scale, CPU ms per frame (medians; the "
-              "registration once per group):")
+            r = run_screen(
+                flight,
+                work / f"out-{scale}-workers",
+                work / f"ours-{scale}.pt",
+                scale,
+                "torch",
+                args.threads,
+                cam,
+                workers=args.workers,
+            )
+            print(
+                f"ours-{scale} torch with the front end in --workers {args.workers} processes beside the model: "
+                f"{r['fps']:.2f} frames/s"
+            )
+        print(
+            "\nfront-end steps on one thread by the wide decode's scale, CPU ms per frame (medians; the "
+            "registration once per group):"
+        )
         red = stage_split(flight, cam)[1]
         for r in dict.fromkeys((red, 2, 1)):
             split, _ = stage_split(flight, cam, r)
             frame = sum(v for k, v in split.items() if k != "registration")
-            print(f"  1/{r}{' (default)' if r == red else ''}: " + ", ".join(
-                f"{k} {1e3 * v:.0f}" for k, v in split.items() if k != "registration")
-                + f" = {1e3 * frame:.0f}; registration {1e3 * split['registration']:.0f}")
-        print("\nreduced decode vs full, model input's RGB (same homography; C2 unchanged): mean |d| grey levels, "
-              "PSNR")
-        for label, fl in (("bench wide images", flight), ("natural-statistics image", detailed_flight(
-                flight, work / "detailed"))):
+            print(
+                f"  1/{r}{' (default)' if r == red else ''}: "
+                + ", ".join(f"{k} {1e3 * v:.0f}" for k, v in split.items() if k != "registration")
+                + f" = {1e3 * frame:.0f}; registration {1e3 * split['registration']:.0f}"
+            )
+        print("\nreduced decode vs full, model input's RGB (same homography; C2 unchanged): mean |d| grey levels, PSNR")
+        for label, fl in (
+            ("bench wide images", flight),
+            ("natural-statistics image", detailed_flight(flight, work / "detailed")),
+        ):
             diff = input_difference(fl, cam)
             print(f"  {label}: " + ", ".join(f"1/{r} {d:.2f} ({p:.1f} dB)" for r, (d, p) in diff.items()))
         print(f"load average at the end {os.getloadavg()[0]:.1f} (other work on the machine slows every figure)")

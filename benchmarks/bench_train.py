@@ -97,8 +97,8 @@ def write_samples(folder: Path, n: int, size: tuple[int, int], categories: int, 
             for _ in range(int(rng.integers(3, 9))):
                 bw, bh = int(rng.integers(16, w // 4)), int(rng.integers(16, h // 4))
                 x, y = int(rng.integers(0, w - bw)), int(rng.integers(0, h - bh))
-                rgb[y:y + bh, x:x + bw] = rng.integers(0, 256, 3)
-                temp[y:y + bh, x:x + bw] += 3
+                rgb[y : y + bh, x : x + bw] = rng.integers(0, 256, 3)
+                temp[y : y + bh, x : x + bw] += 3
                 boxes.append([x, y, x + bw, y + bh])
                 labels.append(int(rng.integers(0, categories)))
             ir8 = np.clip((temp - 15) * 20, 0, 255).astype(np.uint8)
@@ -162,24 +162,60 @@ def measure(args: argparse.Namespace) -> dict:
             src = SampleSource(prepared, None, enc)
             base = rss_mb()
             if args.measure == "engine-train":
-                settings = TrainSettings(imgsz=s, epochs=2, batch=b, nominal_batch=64, warmup_epochs=1.0,
-                                         warmup_min_iters=0, close_mosaic=0, threads=args.threads, device="cpu",
-                                         patience=10)
-                res = Trainer(model, TrainDataset(src, s, AugmentSettings()), settings, spec.input_kind,
-                              spec.thermal_channels, progress=False).fit()
+                settings = TrainSettings(
+                    imgsz=s,
+                    epochs=2,
+                    batch=b,
+                    nominal_batch=64,
+                    warmup_epochs=1.0,
+                    warmup_min_iters=0,
+                    close_mosaic=0,
+                    threads=args.threads,
+                    device="cpu",
+                    patience=10,
+                )
+                res = Trainer(
+                    model,
+                    TrainDataset(src, s, AugmentSettings()),
+                    settings,
+                    spec.input_kind,
+                    spec.thermal_channels,
+                    progress=False,
+                ).fit()
                 last = res.history[-1]  # the second epoch: no first-iteration overheads
                 out.update(s_per_step=last["time_s"] / args.steps, images_per_s=last["images_per_s"])
             else:
-                predict(model, SampleSource(prepared, [0], enc), s, batch=b, input_kind=spec.input_kind,
-                        thermal_channels=spec.thermal_channels, conf=0.001, iou=0.7, max_det=300)  # warm-up
+                predict(
+                    model,
+                    SampleSource(prepared, [0], enc),
+                    s,
+                    batch=b,
+                    input_kind=spec.input_kind,
+                    thermal_channels=spec.thermal_channels,
+                    conf=0.001,
+                    iou=0.7,
+                    max_det=300,
+                )  # warm-up
                 t0 = time.perf_counter()
-                dets = predict(model, src, s, batch=b, input_kind=spec.input_kind,
-                               thermal_channels=spec.thermal_channels, conf=0.001, iou=0.7, max_det=300)
+                dets = predict(
+                    model,
+                    src,
+                    s,
+                    batch=b,
+                    input_kind=spec.input_kind,
+                    thermal_channels=spec.thermal_channels,
+                    conf=0.001,
+                    iou=0.7,
+                    max_det=300,
+                )
                 dt = time.perf_counter() - t0
                 out.update(s_per_step=dt / args.steps, images_per_s=n / dt, detections_per_image=len(dets) / n)
-    out.update(peak_rss_mb=round(peak_mb(), 1), rss_before_mb=round(base, 1),
-               peak_over_start_mb=round(peak_mb() - base, 1),
-               model_params=int(sum(p.numel() for p in model.parameters())))
+    out.update(
+        peak_rss_mb=round(peak_mb(), 1),
+        rss_before_mb=round(base, 1),
+        peak_over_start_mb=round(peak_mb() - base, 1),
+        model_params=int(sum(p.numel() for p in model.parameters())),
+    )
     del np
     return out
 
@@ -194,8 +230,12 @@ def step_targets(batch: int, size: int, classes: int, boxes: int = 20, seed: int
     for _ in range(batch):
         wh = (torch.rand(boxes, 2, generator=g) * 0.25 + 0.02) * size
         c = torch.rand(boxes, 2, generator=g) * (size - wh) + wh / 2
-        out.append({"boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
-                    "labels": torch.randint(0, classes, (boxes,), generator=g)})
+        out.append(
+            {
+                "boxes": torch.cat((c - wh / 2, c + wh / 2), 1),
+                "labels": torch.randint(0, classes, (boxes,), generator=g),
+            }
+        )
     return x, out
 
 
@@ -292,13 +332,18 @@ def build_step(kind: str, size: int, batch: int, classes: int):
                 flat.clip_grad_norm_(10.0)
             else:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
-        what = "ours (the engine's step" + (", flat buffers" if flat is not None else "") + \
-            (", train.channels_last)" if kind == "ours-cl" else ")")
+
+        what = (
+            "ours (the engine's step"
+            + (", flat buffers" if flat is not None else "")
+            + (", train.channels_last)" if kind == "ours-cl" else ")")
+        )
     else:
         ema = FrozenEMA(model)
 
         def clip() -> None:
             torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm=10.0)
+
         what = "today's step, frozen (per-tensor optimiser, clipping and EMA)"
 
     def step() -> None:
@@ -336,8 +381,13 @@ def measure_step(args: argparse.Namespace) -> dict:
         t0 = time.thread_time()  # CPU time of this (the only torch) thread: robust to other processes' load
         step()
         times.append(time.thread_time() - t0)
-    return {"what": args.measure, "description": what, "s_per_step": statistics.median(times), "times": times,
-            "peak_rss_mb": round(peak_mb(), 1)}
+    return {
+        "what": args.measure,
+        "description": what,
+        "s_per_step": statistics.median(times),
+        "times": times,
+        "peak_rss_mb": round(peak_mb(), 1),
+    }
 
 
 #: how ``--breakdown`` groups ATen ops: (label, op names; "pool/cat/add" includes the upsampling); the rest (loss,
@@ -347,8 +397,18 @@ OP_GROUPS = (
     ("conv bwd", ("convolution_backward",)),
     ("BN", ("native_batch_norm", "native_batch_norm_backward")),
     ("SiLU", ("silu", "silu_backward")),
-    ("pool/cat/add", ("max_pool2d_with_indices", "max_pool2d_with_indices_backward", "upsample_nearest2d",
-                                  "upsample_nearest2d_backward", "cat", "add", "add_")),
+    (
+        "pool/cat/add",
+        (
+            "max_pool2d_with_indices",
+            "max_pool2d_with_indices_backward",
+            "upsample_nearest2d",
+            "upsample_nearest2d_backward",
+            "cat",
+            "add",
+            "add_",
+        ),
+    ),
 )
 
 
@@ -396,8 +456,13 @@ def measure_breakdown(args: argparse.Namespace) -> dict:
     groups["other ops"] = sum(times.values())
     groups["outside ops"] = total - sum(groups.values())
     conv = groups["conv fwd"] + groups["conv bwd"]
-    return {"what": args.measure, "description": what, "total_s": total, "groups_s": groups,
-            "conv_gflops_per_s": flops[0] / conv / 1e9 if conv else float("nan")}
+    return {
+        "what": args.measure,
+        "description": what,
+        "total_s": total,
+        "groups_s": groups,
+        "conv_gflops_per_s": flops[0] / conv / 1e9 if conv else float("nan"),
+    }
 
 
 def print_breakdown(args: argparse.Namespace, step_medians: dict[str, float]) -> None:
@@ -407,14 +472,19 @@ def print_breakdown(args: argparse.Namespace, step_medians: dict[str, float]) ->
     print("where one step's CPU time goes, ms (thread time per ATen op, one step after a warm-up):")
     print(f"  {'':<12}" + "".join(f"{lb[:12]:>13}" for lb in labels) + f"{'step':>8}{'conv GFLOP/s':>14}")
     for r in rows:
-        print(f"  {r['what'][10:]:<12}" + "".join(f"{1e3 * r['groups_s'][lb]:>13.0f}" for lb in labels)
-              + f"{1e3 * r['total_s']:>8.0f}{r['conv_gflops_per_s']:>14.0f}")
+        print(
+            f"  {r['what'][10:]:<12}"
+            + "".join(f"{1e3 * r['groups_s'][lb]:>13.0f}" for lb in labels)
+            + f"{1e3 * r['total_s']:>8.0f}{r['conv_gflops_per_s']:>14.0f}"
+        )
     if "step-ultralytics" in step_medians:
         ours = rows[0]["groups_s"]
         conv = ours["conv fwd"] + ours["conv bwd"]
         goal = TARGET * step_medians["step-ultralytics"]
-        print(f"  the convolutions of ours alone: {conv:.3f} s = {conv / step_medians['step-ultralytics']:.3f} x "
-              f"Ultralytics' step; the target ({TARGET:.2f} x) leaves {goal - conv:+.3f} s for everything else")
+        print(
+            f"  the convolutions of ours alone: {conv:.3f} s = {conv / step_medians['step-ultralytics']:.3f} x "
+            f"Ultralytics' step; the target ({TARGET:.2f} x) leaves {goal - conv:+.3f} s for everything else"
+        )
 
 
 def frozen_sources_changed() -> list[str]:
@@ -427,8 +497,11 @@ def frozen_sources_changed() -> list[str]:
 
 
 def run_measure(what: str, args: argparse.Namespace) -> dict:
-    cmd = [sys.executable, __file__, "--measure", what] + [f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items()
-                                                           if k not in ("measure", "step", "step_only", "breakdown")]
+    cmd = [sys.executable, __file__, "--measure", what] + [
+        f"--{k.replace('_', '-')}={v}"
+        for k, v in vars(args).items()
+        if k not in ("measure", "step", "step_only", "breakdown")
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode:
         sys.exit(f"{what} failed:\n{res.stderr[-3000:]}")
@@ -450,8 +523,10 @@ def compare_steps(args: argparse.Namespace) -> dict[str, float]:
 
     for line in machine_lines():
         print(line)
-    print(f"train step: YOLOv8s 4-channel, {args.classes} classes, {args.imgsz} px, batch {args.batch}, "
-          f"{args.step_threads} thread(s), CPU time per step (median of {args.rounds} rounds x {args.steps} steps)")
+    print(
+        f"train step: YOLOv8s 4-channel, {args.classes} classes, {args.imgsz} px, batch {args.batch}, "
+        f"{args.step_threads} thread(s), CPU time per step (median of {args.rounds} rounds x {args.steps} steps)"
+    )
     for k in kinds:
         r = rounds[k][0]
         if "missing" in r:
@@ -462,8 +537,10 @@ def compare_steps(args: argparse.Namespace) -> dict[str, float]:
     for ours in ("step-ours", "step-ours-cl"):
         ratio = med[ours] / med[anchor]
         verdict = ("met" if ratio <= TARGET else "NOT met") if anchor == "step-ultralytics" else "no Ultralytics here"
-        print(f"{ours[5:]} / {anchor[5:]}: {ratio:.3f}   target <= {TARGET:.2f} x Ultralytics: {verdict}"
-              + (f"   ({ours[5:]} / frozen: {med[ours] / med['step-frozen']:.3f})" if anchor != "step-frozen" else ""))
+        print(
+            f"{ours[5:]} / {anchor[5:]}: {ratio:.3f}   target <= {TARGET:.2f} x Ultralytics: {verdict}"
+            + (f"   ({ours[5:]} / frozen: {med[ours] / med['step-frozen']:.3f})" if anchor != "step-frozen" else "")
+        )
     changed = frozen_sources_changed()
     if changed:
         print(f"note: the frozen step runs the current {', '.join(changed)}, changed since it was frozen")
@@ -490,8 +567,11 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="rounds of the train-step comparison")
     p.add_argument("--no-step", dest="step", action="store_false", help="skip the train-step comparison")
     p.add_argument("--step-only", action="store_true", help="only the train-step comparison")
-    p.add_argument("--breakdown", action="store_true",
-                   help="also time every ATen op of one step of ours and of Ultralytics, grouped (convolutions, ...)")
+    p.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also time every ATen op of one step of ours and of Ultralytics, grouped (convolutions, ...)",
+    )
     p.add_argument("--measure", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure:
@@ -511,15 +591,21 @@ def main() -> None:
     for what in ("anchor-train", "engine-train", "anchor-eval", "engine-eval"):
         rows[what] = run_measure(what, args)
     r0 = rows["anchor-train"]
-    print(f"detector {args.detector} ({r0['model_params']:,} params), {args.imgsz} px, batch {args.batch}, "
-          f"{args.threads} threads, CPU")
-    print(f"{'measurement':<14} {'images/s':>9} {'s/step':>8} {'peak RSS MB':>12} {'+MB over start':>15} "
-          f"{'vs anchor':>10}")
+    print(
+        f"detector {args.detector} ({r0['model_params']:,} params), {args.imgsz} px, batch {args.batch}, "
+        f"{args.threads} threads, CPU"
+    )
+    print(
+        f"{'measurement':<14} {'images/s':>9} {'s/step':>8} {'peak RSS MB':>12} {'+MB over start':>15} "
+        f"{'vs anchor':>10}"
+    )
     for what, r in rows.items():
         anchor = rows["anchor-train" if "train" in what else "anchor-eval"]
         ratio = r["images_per_s"] / anchor["images_per_s"]
-        print(f"{what:<14} {r['images_per_s']:>9.2f} {r['s_per_step']:>8.3f} {r['peak_rss_mb']:>12.0f} "
-              f"{r['peak_over_start_mb']:>15.0f} {ratio:>10.2f}")
+        print(
+            f"{what:<14} {r['images_per_s']:>9.2f} {r['s_per_step']:>8.3f} {r['peak_rss_mb']:>12.0f} "
+            f"{r['peak_over_start_mb']:>15.0f} {ratio:>10.2f}"
+        )
     print("vs anchor: engine images/s divided by the model-only images/s of the same phase (1.00 = no overhead)")
 
 

@@ -91,8 +91,16 @@ class Bar:
     one in the same display (one bar per epoch).
     """
 
-    def __init__(self, description: str, total: float | None = None, *, enabled: bool = True, eta: bool = False,
-                 note: bool = False, transient: bool = True):
+    def __init__(
+        self,
+        description: str,
+        total: float | None = None,
+        *,
+        enabled: bool = True,
+        eta: bool = False,
+        note: bool = False,
+        transient: bool = True,
+    ):
         self.description, self.total = description, total
         self.shown = bool(enabled) and progress_on() and stderr_is_terminal()
         self._eta, self._note, self._transient = eta, note, transient
@@ -111,8 +119,12 @@ class Bar:
                 TimeRemainingColumn,
             )
 
-            columns: list[ProgressColumn] = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                             TimeElapsedColumn()]
+            columns: list[ProgressColumn] = [
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+            ]
             if self._eta:
                 columns.append(TimeRemainingColumn())
             if self._note:
@@ -138,8 +150,14 @@ class Bar:
         if self._progress is not None:
             self._progress.update(self._task, advance=k, **({} if note is None else {"note": note}))
 
-    def update(self, *, completed: float | None = None, total: float | None = None, description: str | None = None,
-               note: str | None = None) -> None:
+    def update(
+        self,
+        *,
+        completed: float | None = None,
+        total: float | None = None,
+        description: str | None = None,
+        note: str | None = None,
+    ) -> None:
         if self._progress is not None:
             fields = {} if note is None else {"note": note}
             self._progress.update(self._task, completed=completed, total=total, description=description, **fields)
@@ -152,8 +170,15 @@ class Bar:
             self._task = self._progress.add_task(description, total=total, note="")
 
 
-def bar(description: str, total: float | None = None, *, enabled: bool = True, eta: bool = False, note: bool = False,
-        transient: bool = True) -> Bar:
+def bar(
+    description: str,
+    total: float | None = None,
+    *,
+    enabled: bool = True,
+    eta: bool = False,
+    note: bool = False,
+    transient: bool = True,
+) -> Bar:
     """A progress bar on stderr (a context manager): ``with bar("preparing m3t", total=n) as b: ... b.advance()``."""
     return Bar(description, total, enabled=enabled, eta=eta, note=note, transient=transient)
 
@@ -171,8 +196,14 @@ def clock(seconds: float | None) -> str:
 class OverallProgress:
     """Progress over the runs of one ``harness run`` (``runs`` to do, ``epochs`` each at most)."""
 
-    def __init__(self, runs: int, epochs: int, enabled: bool = True, stream: TextIO | None = None,
-                 now: Callable[[], float] | None = None):
+    def __init__(
+        self,
+        runs: int,
+        epochs: int,
+        enabled: bool = True,
+        stream: TextIO | None = None,
+        now: Callable[[], float] | None = None,
+    ):
         self.runs, self.epochs_per_run = int(runs), int(epochs)
         self.enabled = enabled and runs > 0
         self.stream = stream
@@ -205,8 +236,10 @@ class OverallProgress:
         head = f"run {run_no}/{self.runs} {self.label}"
         if epoch is not None:
             head += f" epoch {epoch}/{epochs}"
-        return (f"{head} | {self.done_epochs}/{self.total_epochs} epochs | {clock(self._now() - self.t0)} elapsed, "
-                f"ETA {clock(self.eta())}")
+        return (
+            f"{head} | {self.done_epochs}/{self.total_epochs} epochs | {clock(self._now() - self.t0)} elapsed, "
+            f"ETA {clock(self.eta())}"
+        )
 
     def _print(self, text: str) -> None:
         if self.enabled and progress_on():
@@ -231,8 +264,9 @@ class OverallProgress:
 class SweepProgress:
     """Progress over the jobs of a sweep: one line after each job."""
 
-    def __init__(self, jobs: int, enabled: bool = True, stream: TextIO | None = None,
-                 now: Callable[[], float] | None = None):
+    def __init__(
+        self, jobs: int, enabled: bool = True, stream: TextIO | None = None, now: Callable[[], float] | None = None
+    ):
         self.jobs, self.enabled, self.stream = int(jobs), enabled and jobs > 0, stream
         self._now = now or time.perf_counter
         self.t0 = self._now()
@@ -246,8 +280,10 @@ class SweepProgress:
 
     def line(self) -> str:
         failed = f" ({self.failed} failed)" if self.failed else ""
-        return (f"sweep {self.done}/{self.jobs} runs{failed} | {clock(self._now() - self.t0)} elapsed, "
-                f"ETA {clock(self.eta())}")
+        return (
+            f"sweep {self.done}/{self.jobs} runs{failed} | {clock(self._now() - self.t0)} elapsed, "
+            f"ETA {clock(self.eta())}"
+        )
 
     def job_done(self, ok: bool = True) -> None:
         self.done += 1
@@ -273,9 +309,17 @@ class BenchmarkProgress:
     ``relative_cost`` (``harness.benchmark.RELATIVE_COST``); divided by the lanes. Early stopping can only make it
     shorter."""
 
-    def __init__(self, jobs: Sequence[Any], epochs: int, lanes: int, skipped: int = 0, enabled: bool = True,
-                 stream: TextIO | None = None, now: Callable[[], float] | None = None,
-                 relative_cost: Mapping[str, float] | None = None):
+    def __init__(
+        self,
+        jobs: Sequence[Any],
+        epochs: int,
+        lanes: int,
+        skipped: int = 0,
+        enabled: bool = True,
+        stream: TextIO | None = None,
+        now: Callable[[], float] | None = None,
+        relative_cost: Mapping[str, float] | None = None,
+    ):
         self.relative_cost = dict(relative_cost or {})
         self.pending = list(jobs)
         self.epochs, self.lanes, self.skipped = int(epochs), max(1, int(lanes)), int(skipped)
@@ -344,8 +388,10 @@ class BenchmarkProgress:
         running = len(self.running)
         failed = f", {self.failed} failed" if self.failed else ""
         done = self.done + self.skipped
-        return (f"benchmark {done}/{self.total} cells ({running} running{failed}) | "
-                f"{clock(self._now() - self.t0)} elapsed, ETA {clock(self.eta())}")
+        return (
+            f"benchmark {done}/{self.total} cells ({running} running{failed}) | "
+            f"{clock(self._now() - self.t0)} elapsed, ETA {clock(self.eta())}"
+        )
 
     def print_line(self, force: bool = True) -> None:
         if not (self.enabled and progress_on()):

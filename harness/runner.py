@@ -51,8 +51,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: Keys that change how fast a run goes but not what it computes; left out of the configuration hash.
-HASH_EXCLUDE = {("train", "workers"), ("eval", "batch"), ("train", "threads"), ("train", "cache_mb"),
-                ("eval", "allow_degenerate")}  # speed only, or whether a run is stored (labelled), not its numbers
+HASH_EXCLUDE = {
+    ("train", "workers"),
+    ("eval", "batch"),
+    ("train", "threads"),
+    ("train", "cache_mb"),
+    ("eval", "allow_degenerate"),
+}  # speed only, or whether a run is stored (labelled), not its numbers
 #: Keys that only say where something lies: the data is identified by the prepared data's fingerprint
 #: (``meta.prepared_fingerprint``) and cache key (``meta.prepared_key``, which also hashes the dataset plugin's code,
 #: the sensing settings and the preparation version) and an initial checkpoint by its content (``meta.init_sha1``).
@@ -127,8 +132,9 @@ def prepare_dataset(dataset: str, cfg: Mapping[str, Any]) -> PreparedDataset:
     return prepare(dataset, dict(cfg))
 
 
-def resolve_folds(dataset_spec: DatasetSpec, prepared: PreparedDataset, cfg: Mapping[str, Any],
-                  selection: str) -> list[Fold]:
+def resolve_folds(
+    dataset_spec: DatasetSpec, prepared: PreparedDataset, cfg: Mapping[str, Any], selection: str
+) -> list[Fold]:
     from harness.cache import resolve_folds as _resolve
 
     return _resolve(dataset_spec, prepared, dict(cfg), selection)
@@ -141,8 +147,9 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
     return list(train_idx), list(val_idx)
 
 
-def choose_encoding(detector: DetectorSpec, dataset: DatasetSpec, requested: str | None,
-                    host: PluginHost) -> EncodingSpec:
+def choose_encoding(
+    detector: DetectorSpec, dataset: DatasetSpec, requested: str | None, host: PluginHost
+) -> EncodingSpec:
     """The encoding a run uses: the requested one, else the detector's (dual-stream) or the dataset's default."""
     dual = detector.input_kind == "dual"
     name = requested or (detector.default_thermal_encoding if dual else dataset.default_encoding)
@@ -163,8 +170,14 @@ def choose_encoding(detector: DetectorSpec, dataset: DatasetSpec, requested: str
 def resolve_config(request: RunRequest, detector: DetectorSpec, dataset: DatasetSpec) -> dict[str, Any]:
     from harness.config import load_config
 
-    return load_config(request.profile, protocol=dataset.protocol, detector=detector.name,
-                       detector_defaults=detector.defaults, files=request.config_files, overrides=request.overrides)
+    return load_config(
+        request.profile,
+        protocol=dataset.protocol,
+        detector=detector.name,
+        detector_defaults=detector.defaults,
+        files=request.config_files,
+        overrides=request.overrides,
+    )
 
 
 #: Training seeds seed numpy's generator, which takes 0 .. 2**32 - 1.
@@ -182,8 +195,9 @@ def parse_seeds(text: str | Sequence[int] | None) -> list[int] | None:
         except ValueError:
             raise ConfigError(f"--seeds {text!r}: expected comma-separated integers such as 0,1,2") from None
         if not seeds:
-            raise ConfigError(f"--seeds {text!r}: names no seed; give e.g. 0,1,2, or leave the option out for the "
-                              f"protocol's seeds")
+            raise ConfigError(
+                f"--seeds {text!r}: names no seed; give e.g. 0,1,2, or leave the option out for the protocol's seeds"
+            )
     else:
         seeds = [int(s) for s in text]
     bad = [s for s in seeds if not SEED_RANGE[0] <= s <= SEED_RANGE[1]]
@@ -191,8 +205,10 @@ def parse_seeds(text: str | Sequence[int] | None) -> list[int] | None:
         raise ConfigError(f"--seeds {_shown(text)}: seed {bad[0]} is outside {SEED_RANGE[0]}..{SEED_RANGE[1]}")
     twice = sorted({s for s in seeds if seeds.count(s) > 1})
     if twice:
-        raise ConfigError(f"--seeds {_shown(text)}: seed {', '.join(map(str, twice))} given more than once; each seed "
-                          f"is one run, and a repeated one would count twice in the mean and SD")
+        raise ConfigError(
+            f"--seeds {_shown(text)}: seed {', '.join(map(str, twice))} given more than once; each seed "
+            f"is one run, and a repeated one would count twice in the mean and SD"
+        )
     return seeds
 
 
@@ -203,8 +219,15 @@ def _shown(value: str | Sequence[int]) -> str:
 def run_config(cfg: Mapping[str, Any], key: RunKey, extra: Mapping[str, Any]) -> dict[str, Any]:
     """The configuration recorded for one run: the resolved config plus the run's identity under ``meta``."""
     out = copy.deepcopy(dict(cfg))
-    out["meta"] = {**out.get("meta", {}), "detector": key.detector, "dataset": key.dataset, "encoding": key.encoding,
-                   "fold": key.fold, "seed": key.seed, **extra}
+    out["meta"] = {
+        **out.get("meta", {}),
+        "detector": key.detector,
+        "dataset": key.dataset,
+        "encoding": key.encoding,
+        "fold": key.fold,
+        "seed": key.seed,
+        **extra,
+    }
     return out
 
 
@@ -216,9 +239,11 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
         if isinstance(trimmed.get(section), dict):
             trimmed[section].pop(key, None)
     # the registration route is a record of how the prepared samples (identified by their fingerprint) were made
-    trimmed["meta"] = {k: v for k, v in trimmed.get("meta", {}).items()
-                       if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS
-                       and ("meta", k) != SAMPLES_KEY}
+    trimmed["meta"] = {
+        k: v
+        for k, v in trimmed.get("meta", {}).items()
+        if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS and ("meta", k) != SAMPLES_KEY
+    }
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
     trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
@@ -286,8 +311,10 @@ class PlannedRun:
         meta_now, meta_then = self.config.get("meta") or {}, (self.stored_config() or {}).get("meta") or {}
         now, then = meta_now.get(SAMPLES_KEY[1]), meta_then.get(SAMPLES_KEY[1])
         if now and then and now != then and meta_now.get("prepared_key") == meta_then.get("prepared_key"):
-            return (f"meta.prepared_samples: {then} -> {now} (the same cache key now holds other samples under "
-                    "its image ids: the dataset plugin's sample order changed)")
+            return (
+                f"meta.prepared_samples: {then} -> {now} (the same cache key now holds other samples under "
+                "its image ids: the dataset plugin's sample order changed)"
+            )
         return None
 
     def differences(self) -> list[str]:
@@ -296,8 +323,10 @@ class PlannedRun:
             return [other]
         stored = self.stored_config()
         if stored is None:
-            return [f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
-                    f"now {self.digest} (no readable {self.run.config_path})"]
+            return [
+                f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
+                f"now {self.digest} (no readable {self.run.config_path})"
+            ]
         return identity_diff(stored, self.config)
 
 
@@ -320,7 +349,8 @@ class RunPlan:
 
 def conflict_error(conflicts: Sequence[str], store: Store) -> StoreError:
     return StoreError(
-        "these runs already finished with a different configuration: " + "; ".join(conflicts)
+        "these runs already finished with a different configuration: "
+        + "; ".join(conflicts)
         + f". Re-run with --force to replace them, or choose another --store (now {store.root})"
     )
 
@@ -363,11 +393,19 @@ def plan(request: RunRequest) -> RunPlan:
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
             samples_digest = (prepared.manifest.get("report") or {}).get("samples_identity")
-            rcfg = run_config(cfg, key, {"prepared_fingerprint": fingerprint, "prepared_key": prepared_key,
-                                         **({SAMPLES_KEY[1]: samples_digest} if samples_digest else {}),
-                                         "val_groups": list(fold.val_groups),
-                                         "train_groups": list(fold.train_groups), **init_info,
-                                         **({"registration": registration} if registration else {})})
+            rcfg = run_config(
+                cfg,
+                key,
+                {
+                    "prepared_fingerprint": fingerprint,
+                    "prepared_key": prepared_key,
+                    **({SAMPLES_KEY[1]: samples_digest} if samples_digest else {}),
+                    "val_groups": list(fold.val_groups),
+                    "train_groups": list(fold.train_groups),
+                    **init_info,
+                    **({"registration": registration} if registration else {}),
+                },
+            )
             runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
     return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
 
@@ -395,11 +433,11 @@ def run(request: RunRequest) -> RunSummary:
     if hd.is_main():
         p.store.write_dataset(ds)
 
-    summary = RunSummary(det.name, ds.name, enc.name, request.profile, p.store.root, p.config,
-                         list(prepared.categories))
+    summary = RunSummary(
+        det.name, ds.name, enc.name, request.profile, p.store.root, p.config, list(prepared.categories)
+    )
     todo = [x for x in p.runs if x.state != "finished" or request.force]
-    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]),
-                              enabled=hd.is_main() and request.progress)
+    overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main() and request.progress)
     measured: dict[Any, Any] = {}  # complexity records of the architectures built so far (this process)
     for planned in p.runs:
         fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
@@ -410,15 +448,30 @@ def run(request: RunRequest) -> RunSummary:
             continue
         with _run_lock(r):
             st = r.status() or {}
-            if not request.force and r.is_finished() and st.get("config_hash") == digest \
-                    and not hd.info().active:  # finished by another process while this one waited its turn
+            if (
+                not request.force and r.is_finished() and st.get("config_hash") == digest and not hd.info().active
+            ):  # finished by another process while this one waited its turn
                 log.info("%s: finished by another process meanwhile, skipped", r.key)
                 summary.results.append(RunOutcome(read_run(r), "skipped", len(train_idx), len(val_idx)))
                 continue
             overall.start_run(str(r.key))
-            result = run_one(det, enc, prepared, fold, seed, r, rcfg, digest, train_idx, val_idx,
-                             init=init, force=request.force, progress=request.progress, overall=overall,
-                             complexity_memo=measured)
+            result = run_one(
+                det,
+                enc,
+                prepared,
+                fold,
+                seed,
+                r,
+                rcfg,
+                digest,
+                train_idx,
+                val_idx,
+                init=init,
+                force=request.force,
+                progress=request.progress,
+                overall=overall,
+                complexity_memo=measured,
+            )
             overall.finish_run()
         summary.results.append(result)
     return summary
@@ -443,10 +496,23 @@ def _run_lock(r: Run) -> Iterator[None]:
         yield
 
 
-def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fold: Fold, seed: int, r: Run,
-            cfg: dict[str, Any], digest: str, train_idx: Sequence[int], val_idx: Sequence[int],
-            init: str | Path | None = None, force: bool = False, progress: bool = True,
-            overall: OverallProgress | None = None, complexity_memo: dict[Any, Any] | None = None) -> RunOutcome:
+def run_one(
+    det: DetectorSpec,
+    enc: EncodingSpec,
+    prepared: PreparedDataset,
+    fold: Fold,
+    seed: int,
+    r: Run,
+    cfg: dict[str, Any],
+    digest: str,
+    train_idx: Sequence[int],
+    val_idx: Sequence[int],
+    init: str | Path | None = None,
+    force: bool = False,
+    progress: bool = True,
+    overall: OverallProgress | None = None,
+    complexity_memo: dict[Any, Any] | None = None,
+) -> RunOutcome:
     """Train, predict and evaluate one (fold, seed) and write its folder in the results store.
 
     ``complexity_memo`` keeps the complexity record of each architecture already measured (by the detector, its
@@ -482,13 +548,24 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         if replacing:
             shutil.rmtree(r.path, ignore_errors=True)
         elif fresh and r.path.exists():
-            for stale in (r.checkpoint_dir / "last.pt", r.checkpoint_dir / "best.pt", r.log_path, r.metrics_path,
-                          r.analysis_path):
+            for stale in (
+                r.checkpoint_dir / "last.pt",
+                r.checkpoint_dir / "best.pt",
+                r.log_path,
+                r.metrics_path,
+                r.analysis_path,
+            ):
                 stale.unlink(missing_ok=True)
         r.path.mkdir(parents=True, exist_ok=True)
         r.write_config(cfg)
-        r.set_status("running", config_hash=digest, fold=fold.name, seed=seed, error=None,
-                     **({"world_size": dist.world_size} if dist.active else {}))
+        r.set_status(
+            "running",
+            config_hash=digest,
+            fold=fold.name,
+            seed=seed,
+            error=None,
+            **({"world_size": dist.world_size} if dist.active else {}),
+        )
     hd.barrier()
     stored = False
     tracker = tracking.for_run(cfg, r.path.parents[len(r.key.parts()) - 1]) if main else tracking.Tracker()
@@ -519,25 +596,51 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
             # torch's generator, which training then continues from (dropout): a record is reused only from the
             # same generator state, and the state the measurement left behind is restored with it
             rng = torch.get_rng_state()
-            arch = (det.name, det.input_kind, in_channels, det.thermal_channels, settings.imgsz, ncls,
-                    json.dumps(cfg.get("model") or {}, sort_keys=True, default=str),
-                    tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()),
-                    hashlib.sha1(rng.numpy().tobytes()).hexdigest())
+            arch = (
+                det.name,
+                det.input_kind,
+                in_channels,
+                det.thermal_channels,
+                settings.imgsz,
+                ncls,
+                json.dumps(cfg.get("model") or {}, sort_keys=True, default=str),
+                tuple((k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()),
+                hashlib.sha1(rng.numpy().tobytes()).hexdigest(),
+            )
             memo = complexity_memo if complexity_memo is not None else {}
             if arch in memo:
                 torch.set_rng_state(memo[arch][1])
             else:
-                record = measure_complexity(model, det.input_kind, in_channels, det.thermal_channels,
-                                            settings.imgsz, ncls, cfg.get("model") or {},
-                                            label=f"detector {det.name!r}")
+                record = measure_complexity(
+                    model,
+                    det.input_kind,
+                    in_channels,
+                    det.thermal_channels,
+                    settings.imgsz,
+                    ncls,
+                    cfg.get("model") or {},
+                    label=f"detector {det.name!r}",
+                )
                 memo[arch] = (record, torch.get_rng_state())
             complexity = copy.deepcopy(memo[arch][0])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
         def validate(m: Any) -> dict[str, Any] | None:
-            dets = predict(m, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
-                           next(m.parameters()).device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                           name=det.name, distributed=dist.active)
+            dets = predict(
+                m,
+                val_src,
+                settings.imgsz,
+                int(eval_cfg["batch"]),
+                det.input_kind,
+                det.thermal_channels,
+                next(m.parameters()).device,
+                eval_cfg["conf"],
+                eval_cfg["iou"],
+                eval_cfg["max_det"],
+                ncls,
+                name=det.name,
+                distributed=dist.active,
+            )
             if not main:
                 return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
             res = evaluate_with_config(gt, dets, cfg)
@@ -551,9 +654,19 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
             if overall is not None:
                 overall.epoch_done(int(record["epoch"]), int(record["epochs"]))
 
-        trainer = Trainer(model, TrainDataset(train_src, settings.imgsz, aug, seed), settings, det.input_kind,
-                          det.thermal_channels, r.checkpoint_dir, validate,  # type: ignore[arg-type]
-                          on_epoch, progress, digest, name)
+        trainer = Trainer(
+            model,
+            TrainDataset(train_src, settings.imgsz, aug, seed),
+            settings,
+            det.input_kind,
+            det.thermal_channels,
+            r.checkpoint_dir,
+            validate,  # type: ignore[arg-type]
+            on_epoch,
+            progress,
+            digest,
+            name,
+        )
         resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model
@@ -563,10 +676,24 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         t0 = time.perf_counter()
         visited: list[int] = []
         degenerate = DegenerateBoxes()
-        dets = predict(final, val_src, settings.imgsz, int(eval_cfg["batch"]), det.input_kind, det.thermal_channels,
-                       trainer.device, eval_cfg["conf"], eval_cfg["iou"], eval_cfg["max_det"], ncls,
-                       progress=progress, name=det.name, distributed=dist.active, visited=visited,
-                       degenerate=degenerate)
+        dets = predict(
+            final,
+            val_src,
+            settings.imgsz,
+            int(eval_cfg["batch"]),
+            det.input_kind,
+            det.thermal_channels,
+            trainer.device,
+            eval_cfg["conf"],
+            eval_cfg["iou"],
+            eval_cfg["max_det"],
+            ncls,
+            progress=progress,
+            name=det.name,
+            distributed=dist.active,
+            visited=visited,
+            degenerate=degenerate,
+        )
         predict_s = time.perf_counter() - t0
         if not main:  # rank 0 scores and writes; the others read its metrics once they are stored
             hd.barrier()
@@ -648,8 +775,14 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
         tracker.finish("FINISHED")
         hd.barrier()
         m = evaluation["metrics"]
-        log.info("%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)", name, m.get("mAP50") or 0.0,
-                 m.get("mAP50_95") or 0.0, support.get("images", 0), support.get("instances", 0))
+        log.info(
+            "%s: mAP50 %.3f  mAP50:95 %.3f  (%d held-out images, %d instances)",
+            name,
+            m.get("mAP50") or 0.0,
+            m.get("mAP50_95") or 0.0,
+            support.get("images", 0),
+            support.get("instances", 0),
+        )
         return RunOutcome(read_run(r), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
     except BaseException as exc:
         if main and not stored:
@@ -658,8 +791,13 @@ def run_one(det: DetectorSpec, enc: EncodingSpec, prepared: PreparedDataset, fol
             tracker.finish("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
             if r is not target:
                 target.set_status("finished", replacement={"state": "failed", "error": reason, "path": str(r.path)})
-                log.error("%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "
-                          "attempt is in %s", target.key, reason, r.path)
+                log.error(
+                    "%s: the replacement run failed (%s); the finished run is kept unchanged, the failed "
+                    "attempt is in %s",
+                    target.key,
+                    reason,
+                    r.path,
+                )
         raise
 
 
@@ -690,13 +828,20 @@ def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, c
             raise
         raise type(exc)(f"detector {det.name!r}: {exc}") from exc
     except Exception as exc:  # noqa: BLE001 - a plugin's own exception, named with the options that caused it
-        raise ConfigError(f"detector {det.name!r} could not be built with model options {options}: "
-                          f"{type(exc).__name__}: {exc}") from exc
+        raise ConfigError(
+            f"detector {det.name!r} could not be built with model options {options}: {type(exc).__name__}: {exc}"
+        ) from exc
     from harness.contracts import plugin_label
     from harness.profiling.model_io import check_input_channels
 
-    check_input_channels(model, plugin_label("detector", det.name), det.input_kind, in_channels, in_channels,
-                         int((cfg.get("protocol") or {}).get("imgsz") or 64))
+    check_input_channels(
+        model,
+        plugin_label("detector", det.name),
+        det.input_kind,
+        in_channels,
+        in_channels,
+        int((cfg.get("protocol") or {}).get("imgsz") or 64),
+    )
 
 
 def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> torch.nn.Module:
@@ -705,8 +850,9 @@ def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg
         return det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
     except TypeError as exc:
         if "keyword argument" in str(exc):
-            raise ConfigError(f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: "
-                              f"{exc}") from None
+            raise ConfigError(
+                f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}"
+            ) from None
         raise
 
 
@@ -731,10 +877,20 @@ class AblationSummary:
     runs: dict[str, RunSummary]  # encoding -> its run
 
 
-def ablate(detector: str, dataset: str, encodings: Sequence[str], fold: str, seeds: Sequence[int] | None = None,
-           profile: str | None = "smoke", config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
-           store: str | Path | None = None, force: bool = False, progress: bool = True,
-           categories: Sequence[str] = DEFAULT_ABLATION_CATEGORIES) -> AblationSummary:
+def ablate(
+    detector: str,
+    dataset: str,
+    encodings: Sequence[str],
+    fold: str,
+    seeds: Sequence[int] | None = None,
+    profile: str | None = "smoke",
+    config_files: Sequence[str | Path] = (),
+    overrides: Sequence[str] = (),
+    store: str | Path | None = None,
+    force: bool = False,
+    progress: bool = True,
+    categories: Sequence[str] = DEFAULT_ABLATION_CATEGORIES,
+) -> AblationSummary:
     """The encoding ablation: the same detector, fold and seeds, once per encoding (runs are stored like any other)."""
     if not encodings:
         raise ConfigError("--encodings: name at least one encoding, e.g. none,ir8,linear16,c2")
@@ -742,9 +898,21 @@ def ablate(detector: str, dataset: str, encodings: Sequence[str], fold: str, see
         raise ConfigError(f"--folds {fold!r}: the ablation uses one fold, e.g. P4+P5")
     runs: dict[str, RunSummary] = {}
     for enc in encodings:
-        runs[enc] = run(RunRequest(detector=detector, dataset=dataset, encoding=enc, folds=fold, seeds=seeds,
-                                   profile=profile, config_files=config_files, overrides=overrides, store=store,
-                                   force=force, progress=progress))
+        runs[enc] = run(
+            RunRequest(
+                detector=detector,
+                dataset=dataset,
+                encoding=enc,
+                folds=fold,
+                seeds=seeds,
+                profile=profile,
+                config_files=config_files,
+                overrides=overrides,
+                store=store,
+                force=force,
+                progress=progress,
+            )
+        )
     first = next(iter(runs.values()))
     return AblationSummary(detector, dataset, fold, [match_category(c, first.categories) for c in categories], runs)
 

@@ -147,10 +147,19 @@ def expand(spec: SweepSpec) -> SweepPlan:
     for dataset in spec.datasets:
         for detector in spec.detectors:
             for encoding in spec.encodings or (None,):
-                request = RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=spec.folds,
-                                     seeds=list(spec.seeds) if spec.seeds is not None else None, profile=spec.profile,
-                                     config_files=config_files, overrides=list(spec.overrides), store=store,
-                                     force=spec.force, progress=False)
+                request = RunRequest(
+                    detector=detector,
+                    dataset=dataset,
+                    encoding=encoding,
+                    folds=spec.folds,
+                    seeds=list(spec.seeds) if spec.seeds is not None else None,
+                    profile=spec.profile,
+                    config_files=config_files,
+                    overrides=list(spec.overrides),
+                    store=store,
+                    force=spec.force,
+                    progress=False,
+                )
                 try:
                     p = plan(request)
                 except ConfigError as exc:
@@ -164,13 +173,25 @@ def expand(spec: SweepSpec) -> SweepPlan:
                     key = planned.run.key
                     if planned.state == "finished" and not spec.force:
                         m = read_run(planned.run).metrics.get("metrics", {})
-                        out.skipped.append(JobResult(str(key), "skipped", str(planned.run.path), m.get("mAP50"),
-                                                     m.get("mAP50_95")))
+                        out.skipped.append(
+                            JobResult(str(key), "skipped", str(planned.run.path), m.get("mAP50"), m.get("mAP50_95"))
+                        )
                         continue
-                    out.jobs.append(SweepJob(detector=key.detector, dataset=key.dataset, encoding=key.encoding,
-                                             fold=key.fold, seed=key.seed, store=str(store), profile=spec.profile,
-                                             config_files=config_files, overrides=tuple(spec.overrides),
-                                             force=spec.force, env=env))
+                    out.jobs.append(
+                        SweepJob(
+                            detector=key.detector,
+                            dataset=key.dataset,
+                            encoding=key.encoding,
+                            fold=key.fold,
+                            seed=key.seed,
+                            store=str(store),
+                            profile=spec.profile,
+                            config_files=config_files,
+                            overrides=tuple(spec.overrides),
+                            force=spec.force,
+                            env=env,
+                        )
+                    )
     if conflicts and not spec.force:
         from harness.store import Store
 
@@ -195,20 +216,49 @@ def run_job(job: SweepJob, progress: bool = False) -> JobResult:
     t0 = time.perf_counter()
     host = f"{socket.gethostname()}:{os.getpid()}"
     try:
-        summary = run(RunRequest(detector=job.detector, dataset=job.dataset, encoding=job.encoding, folds=job.fold,
-                                 seeds=[job.seed], profile=job.profile, config_files=job.config_files,
-                                 overrides=list(job.overrides), store=job.store, force=job.force, progress=progress))
+        summary = run(
+            RunRequest(
+                detector=job.detector,
+                dataset=job.dataset,
+                encoding=job.encoding,
+                folds=job.fold,
+                seeds=[job.seed],
+                profile=job.profile,
+                config_files=job.config_files,
+                overrides=list(job.overrides),
+                store=job.store,
+                force=job.force,
+                progress=progress,
+            )
+        )
     except HarnessError as exc:
-        return JobResult(str(job), "failed", error=f"{type(exc).__name__}: {exc}", worker=host,
-                         time_s=round(time.perf_counter() - t0, 2))
+        return JobResult(
+            str(job),
+            "failed",
+            error=f"{type(exc).__name__}: {exc}",
+            worker=host,
+            time_s=round(time.perf_counter() - t0, 2),
+        )
     except Exception as exc:  # a bug: keep the traceback in the report
         tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:])
-        return JobResult(str(job), "failed", error=f"{type(exc).__name__}: {exc}\n{tb}", worker=host,
-                         time_s=round(time.perf_counter() - t0, 2))
+        return JobResult(
+            str(job),
+            "failed",
+            error=f"{type(exc).__name__}: {exc}\n{tb}",
+            worker=host,
+            time_s=round(time.perf_counter() - t0, 2),
+        )
     r = summary.results[0]
     m = r.metrics.get("metrics", {})
-    return JobResult(str(r.key), r.state, str(r.path), m.get("mAP50"), m.get("mAP50_95"),
-                     round(time.perf_counter() - t0, 2), worker=host)
+    return JobResult(
+        str(r.key),
+        r.state,
+        str(r.path),
+        m.get("mAP50"),
+        m.get("mAP50_95"),
+        round(time.perf_counter() - t0, 2),
+        worker=host,
+    )
 
 
 def _failed(job: SweepJob, exc: BaseException) -> JobResult:
@@ -228,8 +278,12 @@ def _require(module: str, executor: str) -> Any:
         ) from None
 
 
-def run_local(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool = True,
-              on_result: Callable[[JobResult], None] | None = None) -> list[JobResult]:
+def run_local(
+    jobs: Sequence[SweepJob],
+    options: ExecutorOptions,
+    progress: bool = True,
+    on_result: Callable[[JobResult], None] | None = None,
+) -> list[JobResult]:
     results = []
     for i, job in enumerate(jobs, 1):
         log.info("sweep: run %d of %d: %s", i, len(jobs), job)
@@ -239,16 +293,22 @@ def run_local(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool
     return results
 
 
-def run_ray(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool = True,
-            on_result: Callable[[JobResult], None] | None = None) -> list[JobResult]:
+def run_ray(
+    jobs: Sequence[SweepJob],
+    options: ExecutorOptions,
+    progress: bool = True,
+    on_result: Callable[[JobResult], None] | None = None,
+) -> list[JobResult]:
     ray = _require("ray", "ray")
     started = False
     if not ray.is_initialized():
         try:
             ray.init(address=options.ray_address, include_dashboard=False, log_to_driver=False)
         except Exception as exc:
-            raise ExecutorError(f"cannot start or reach the Ray cluster (address {options.ray_address or 'local'}): "
-                                f"{type(exc).__name__}: {exc}") from None
+            raise ExecutorError(
+                f"cannot start or reach the Ray cluster (address {options.ray_address or 'local'}): "
+                f"{type(exc).__name__}: {exc}"
+            ) from None
         started = True
     try:
         gpus = options.gpus_per_run
@@ -294,10 +354,17 @@ def submitit_executor(options: ExecutorOptions, folder: Path) -> Any:
 
             gpus = 1 if torch.cuda.is_available() else 0
     params: dict[str, Any] = {
-        "name": "harness-sweep", "timeout_min": int(options.timeout_min), "nodes": 1, "tasks_per_node": 1,
-        "cpus_per_task": int(options.cpus_per_run), "gpus_per_node": int(gpus),
-        "mem_gb": options.mem_gb, "slurm_partition": options.partition, "slurm_account": options.account,
-        "slurm_qos": options.qos, "slurm_array_parallelism": int(options.array_parallelism),
+        "name": "harness-sweep",
+        "timeout_min": int(options.timeout_min),
+        "nodes": 1,
+        "tasks_per_node": 1,
+        "cpus_per_task": int(options.cpus_per_run),
+        "gpus_per_node": int(gpus),
+        "mem_gb": options.mem_gb,
+        "slurm_partition": options.partition,
+        "slurm_account": options.account,
+        "slurm_qos": options.qos,
+        "slurm_array_parallelism": int(options.array_parallelism),
         "slurm_setup": list(options.slurm_setup) or None,
         "slurm_additional_parameters": dict(options.slurm_extra) or None,
     }
@@ -308,16 +375,25 @@ def submitit_executor(options: ExecutorOptions, folder: Path) -> Any:
     return ex
 
 
-def run_submitit(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: bool = True,
-                 on_result: Callable[[JobResult], None] | None = None) -> list[JobResult]:
+def run_submitit(
+    jobs: Sequence[SweepJob],
+    options: ExecutorOptions,
+    progress: bool = True,
+    on_result: Callable[[JobResult], None] | None = None,
+) -> list[JobResult]:
     if not jobs:
         return []
     store = Path(jobs[0].store)
     folder = Path(options.log_dir) if options.log_dir else store / "_sweeps" / time.strftime("%Y%m%d-%H%M%S")
     ex = submitit_executor(options, folder / "%j")
     submitted = ex.map_array(run_job, list(jobs))  # one Slurm job array
-    log.info("sweep: %d jobs submitted to %s (logs in %s): %s", len(submitted), ex.cluster, folder,
-             ", ".join(str(j.job_id) for j in submitted[:5]) + (" ..." if len(submitted) > 5 else ""))
+    log.info(
+        "sweep: %d jobs submitted to %s (logs in %s): %s",
+        len(submitted),
+        ex.cluster,
+        folder,
+        ", ".join(str(j.job_id) for j in submitted[:5]) + (" ..." if len(submitted) > 5 else ""),
+    )
     results: list[JobResult | None] = [None] * len(submitted)
     with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=progress) as bar:
         waiting = set(range(len(submitted)))
@@ -341,8 +417,13 @@ def run_submitit(jobs: Sequence[SweepJob], options: ExecutorOptions, progress: b
 RUNNERS: dict[str, Callable[..., list[JobResult]]] = {"local": run_local, "ray": run_ray, "slurm": run_submitit}
 
 
-def execute(jobs: Sequence[SweepJob], executor: str = "local", options: ExecutorOptions | None = None,
-            progress: bool = True, on_result: Callable[[JobResult], None] | None = None) -> list[JobResult]:
+def execute(
+    jobs: Sequence[SweepJob],
+    executor: str = "local",
+    options: ExecutorOptions | None = None,
+    progress: bool = True,
+    on_result: Callable[[JobResult], None] | None = None,
+) -> list[JobResult]:
     if executor not in RUNNERS:
         raise ConfigError(f"--executor {executor!r}: choose one of {', '.join(EXECUTORS)}")
     return RUNNERS[executor](list(jobs), options or ExecutorOptions(), progress=progress, on_result=on_result)
@@ -359,19 +440,33 @@ class SweepSummary:
         return [r for r in self.results if r.state == "failed"]
 
 
-def sweep(spec: SweepSpec, executor: str = "local", options: ExecutorOptions | None = None,
-          progress: bool = True) -> SweepSummary:
+def sweep(
+    spec: SweepSpec, executor: str = "local", options: ExecutorOptions | None = None, progress: bool = True
+) -> SweepSummary:
     """Expand ``spec`` and run what is left to do with ``executor``; see the module docstring."""
     if executor not in RUNNERS:
         raise ConfigError(f"--executor {executor!r}: choose one of {', '.join(EXECUTORS)}")
     planned = expand(spec)
-    log.info("sweep: %d runs to do, %d finished earlier, %d combinations left out", len(planned.jobs),
-             len(planned.skipped), len(planned.invalid))
+    log.info(
+        "sweep: %d runs to do, %d finished earlier, %d combinations left out",
+        len(planned.jobs),
+        len(planned.skipped),
+        len(planned.invalid),
+    )
     from harness.progress import SweepProgress
 
     overall = SweepProgress(len(planned.jobs), enabled=progress)
-    results = execute(planned.jobs, executor, options, progress=progress,
-                      on_result=lambda r: overall.job_done(r.state != "failed")) if planned.jobs else []
+    results = (
+        execute(
+            planned.jobs,
+            executor,
+            options,
+            progress=progress,
+            on_result=lambda r: overall.job_done(r.state != "failed"),
+        )
+        if planned.jobs
+        else []
+    )
     assert planned.store is not None
     return SweepSummary(planned.store, [*planned.skipped, *results], planned.invalid)
 
@@ -380,11 +475,32 @@ def sweep_table(summary: SweepSummary) -> str:
     from harness.report.cells import format_value
     from harness.textable import text_table
 
-    rows = [[r.run, r.state, format_value(r.mAP50, "float", 3), format_value(r.mAP50_95, "float", 3),
-             "-" if r.time_s is None else f"{r.time_s:.1f}", (r.error or "").splitlines()[0][:80] if r.error else ""]
-            for r in sorted(summary.results, key=lambda r: r.run)]
+    rows = [
+        [
+            r.run,
+            r.state,
+            format_value(r.mAP50, "float", 3),
+            format_value(r.mAP50_95, "float", 3),
+            "-" if r.time_s is None else f"{r.time_s:.1f}",
+            (r.error or "").splitlines()[0][:80] if r.error else "",
+        ]
+        for r in sorted(summary.results, key=lambda r: r.run)
+    ]
     return text_table(["run", "state", "mAP50", "mAP50:95", "time s", "error"], rows, align="llrrrl")
 
 
-__all__ = ["EXECUTORS", "ExecutorError", "ExecutorOptions", "JobResult", "SweepJob", "SweepPlan", "SweepSpec",
-           "SweepSummary", "execute", "expand", "run_job", "sweep", "sweep_table"]
+__all__ = [
+    "EXECUTORS",
+    "ExecutorError",
+    "ExecutorOptions",
+    "JobResult",
+    "SweepJob",
+    "SweepPlan",
+    "SweepSpec",
+    "SweepSummary",
+    "execute",
+    "expand",
+    "run_job",
+    "sweep",
+    "sweep_table",
+]

@@ -26,8 +26,8 @@ def _kernel_spectrum(height: int, width: int, sigma: float) -> np.ndarray:
     g /= g.sum()
     kr = np.zeros(width)
     kc = np.zeros(height)
-    kr[:2 * r + 1] = g
-    kc[:2 * r + 1] = g
+    kr[: 2 * r + 1] = g
+    kc[: 2 * r + 1] = g
     kr, kc = np.roll(kr, -r), np.roll(kc, -r)
     return (np.fft.fft(kc)[:, None] * np.fft.rfft(kr)[None, :]).astype(np.complex64)
 
@@ -48,7 +48,7 @@ def _blur_padded(xp: np.ndarray, r: int, h: int, w: int, sigma: float) -> np.nda
     hp, wp = (scipy.fft.next_fast_len(n, real=True) for n in xp.shape)
     spec = scipy.fft.rfft2(xp, s=(hp, wp), workers=1)
     spec *= _kernel_spectrum(hp, wp, float(sigma))
-    return scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[r:r + h, r:r + w]
+    return scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[r : r + h, r : r + w]
 
 
 def _masked_background(src: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
@@ -62,10 +62,10 @@ def _masked_background(src: np.ndarray, mask: np.ndarray, sigma: float) -> np.nd
     hp, wp = (scipy.fft.next_fast_len(n + 2 * r, real=True) for n in (h, w))
     padded = np.zeros((2, hp, wp), np.float32)
     for k, plane in enumerate(planes):
-        padded[k, :h + 2 * r, :w + 2 * r] = cv2.copyMakeBorder(plane, r, r, r, r, cv2.BORDER_REFLECT_101)
+        padded[k, : h + 2 * r, : w + 2 * r] = cv2.copyMakeBorder(plane, r, r, r, r, cv2.BORDER_REFLECT_101)
     spec = scipy.fft.rfft2(padded, workers=1)
     spec *= _kernel_spectrum(hp, wp, float(sigma))
-    num, den = scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[:, r:r + h, r:r + w]
+    num, den = scipy.fft.irfft2(spec, s=(hp, wp), workers=1)[:, r : r + h, r : r + w]
     with np.errstate(divide="ignore", invalid="ignore"):
         out = num / np.maximum(den, np.float32(1e-12))
     out += m
@@ -95,7 +95,7 @@ def deviation(src: np.ndarray, sigma: float = 11.0) -> tuple[np.ndarray, np.ndar
         dt = src - _masked_background(src, mask, sigma)
         dt[~mask] = np.nan
         return dt, mask
-    return np.subtract(xp[r:r + h, r:r + w], _blur_padded(xp, r, h, w, sigma)), None
+    return np.subtract(xp[r : r + h, r : r + w], _blur_padded(xp, r, h, w, sigma)), None
 
 
 def fast_percentile(values: np.ndarray, q: float) -> float:

@@ -18,29 +18,62 @@ CATEGORIES = ("window", "crack", "delamination", "water_seepage")
 #: The example plugin's TinyDet, for tests that train real runs with a detector outside the built-ins.
 TINYDET_SRC = Path(__file__).resolve().parent.parent / "plugins" / "harness-tinydet" / "src"
 #: The smallest real run (``--set`` values): one epoch at 64 px, batch 8, one torch thread on the CPU.
-TINY_RUN = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
-            "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+TINY_RUN = [
+    "protocol.imgsz=64",
+    "protocol.epochs=1",
+    "protocol.patience=5",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0.5",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 CHROMIUM = Path("/usr/bin/chromium")
 #: A test that opens a report in Debian's headless Chromium: skipped where it is not installed.
-needs_chromium = pytest.mark.skipif(not CHROMIUM.exists() or not sys.platform.startswith("linux"),
-                                    reason="Debian's chromium is not installed (apt-get install chromium; .ci/run "
-                                           "installs it)")
+needs_chromium = pytest.mark.skipif(
+    not CHROMIUM.exists() or not sys.platform.startswith("linux"),
+    reason="Debian's chromium is not installed (apt-get install chromium; .ci/run installs it)",
+)
 
 
-def chromium_screenshot(page: Path, shot: Path, profile_dir: Path, size: str = "1400,5200"
-                        ) -> tuple[subprocess.CompletedProcess, list[str]]:
+def chromium_screenshot(
+    page: Path, shot: Path, profile_dir: Path, size: str = "1400,5200"
+) -> tuple[subprocess.CompletedProcess, list[str]]:
     """Open ``page`` headless, screenshot it into ``shot``; the finished process and the page's console messages."""
-    cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           "--disable-dev-shm-usage", f"--user-data-dir={profile_dir}", "--enable-logging=stderr", "--v=0",
-           "--hide-scrollbars", f"--window-size={size}", f"--screenshot={shot}", page.resolve().as_uri()]
+    cmd = [
+        str(CHROMIUM),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-dev-shm-usage",
+        f"--user-data-dir={profile_dir}",
+        "--enable-logging=stderr",
+        "--v=0",
+        "--hide-scrollbars",
+        f"--window-size={size}",
+        f"--screenshot={shot}",
+        page.resolve().as_uri(),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
     return proc, [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
 
 
-def make_gt(n_images: int, rng: np.random.Generator, first_id: int = 1, categories: Sequence[str] = CATEGORIES,
-            objects: tuple[int, int] = (1, 4), size: tuple[int, int] = (160, 128),
-            skip_category: str | None = None) -> dict[str, Any]:
+def make_gt(
+    n_images: int,
+    rng: np.random.Generator,
+    first_id: int = 1,
+    categories: Sequence[str] = CATEGORIES,
+    objects: tuple[int, int] = (1, 4),
+    size: tuple[int, int] = (160, 128),
+    skip_category: str | None = None,
+) -> dict[str, Any]:
     """COCO ground truth in the harness's convention (category_id = label + 1)."""
     w, h = size
     images, anns = [], []
@@ -53,14 +86,32 @@ def make_gt(n_images: int, rng: np.random.Generator, first_id: int = 1, categori
                 label = (label + 1) % len(categories)
             bw, bh = float(rng.uniform(12, 40)), float(rng.uniform(12, 40))
             x, y = float(rng.uniform(0, w - bw)), float(rng.uniform(0, h - bh))
-            anns.append({"id": len(anns) + 1, "image_id": iid, "category_id": label + 1, "bbox": [x, y, bw, bh],
-                         "area": bw * bh, "iscrowd": 0})
-    return {"info": {"dataset": "synthetic", "frame": "thermal"}, "images": images, "annotations": anns,
-            "categories": [{"id": i + 1, "name": n} for i, n in enumerate(categories)]}
+            anns.append(
+                {
+                    "id": len(anns) + 1,
+                    "image_id": iid,
+                    "category_id": label + 1,
+                    "bbox": [x, y, bw, bh],
+                    "area": bw * bh,
+                    "iscrowd": 0,
+                }
+            )
+    return {
+        "info": {"dataset": "synthetic", "frame": "thermal"},
+        "images": images,
+        "annotations": anns,
+        "categories": [{"id": i + 1, "name": n} for i, n in enumerate(categories)],
+    }
 
 
-def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float = 0.9, jitter: float = 1.0,
-                    false_positives: float = 1.0, label_noise: float = 0.0) -> list[dict[str, Any]]:
+def make_detections(
+    gt: dict[str, Any],
+    rng: np.random.Generator,
+    recall: float = 0.9,
+    jitter: float = 1.0,
+    false_positives: float = 1.0,
+    label_noise: float = 0.0,
+) -> list[dict[str, Any]]:
     """Detections of a given quality: each GT found with probability ``recall`` (box jittered by ``jitter`` px,
     score 0.5..1), plus on average ``false_positives`` random boxes per image (score 0..0.6)."""
     ncat = len(gt["categories"])
@@ -96,18 +147,38 @@ def make_detections(gt: dict[str, Any], rng: np.random.Generator, recall: float 
     return dets
 
 
-def complexity_record(params: float, gflops: float, options: dict[str, Any] | None = None,
-                      imgsz: int = 64) -> dict[str, Any]:
+def complexity_record(
+    params: float, gflops: float, options: dict[str, Any] | None = None, imgsz: int = 64
+) -> dict[str, Any]:
     """A ``metrics.json`` complexity record as ``harness run`` measures it (paper/exact GFLOPs at 640 and imgsz)."""
-    return {"schema": 1, "model_options": dict(options or {}), "num_classes": len(CATEGORIES), "input_kind": "single",
-            "in_channels": 4, "imgsz": imgsz, "params": int(params), "params_fused": int(params), "bn_folded": True,
-            "trainable": int(params), "unused_params": 0,
-            "gflops": {str(imgsz): {"paper": gflops / 100, "exact": gflops / 99},
-                       "640": {"paper": gflops, "exact": gflops * 1.01}}}
+    return {
+        "schema": 1,
+        "model_options": dict(options or {}),
+        "num_classes": len(CATEGORIES),
+        "input_kind": "single",
+        "in_channels": 4,
+        "imgsz": imgsz,
+        "params": int(params),
+        "params_fused": int(params),
+        "bn_folded": True,
+        "trainable": int(params),
+        "unused_params": 0,
+        "gflops": {
+            str(imgsz): {"paper": gflops / 100, "exact": gflops / 99},
+            "640": {"paper": gflops, "exact": gflops * 1.01},
+        },
+    }
 
 
-def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str, Any]],
-              imgsz: int = 64, complexity: dict[str, Any] | None = None, analysis: bool = True) -> dict[str, Any]:
+def write_run(
+    store: Store,
+    key: RunKey,
+    gt: dict[str, Any],
+    dets: list[dict[str, Any]],
+    imgsz: int = 64,
+    complexity: dict[str, Any] | None = None,
+    analysis: bool = True,
+) -> dict[str, Any]:
     """Score ``dets`` against ``gt`` and write the run's folder as the engine does (status last); ``analysis``:
     store its error analysis too (``analysis.json``), as every run since it existed does."""
     from harness.evaluation import evaluate
@@ -119,9 +190,15 @@ def write_run(store: Store, key: RunKey, gt: dict[str, Any], dets: list[dict[str
     ev = evaluate(gt, dets)
     atomic_write_json(run.predictions_path, dets, indent=None)
     atomic_write_json(run.gt_path, gt, indent=None)
-    run.write_metrics({**ev, "model": {"params": 1000}, "train": {"epochs": 1, "imgsz": imgsz},
-                       **({"complexity": complexity} if complexity else {}),
-                       "environment": {"device": "cpu", "threads": 1, "torch": "test"}})
+    run.write_metrics(
+        {
+            **ev,
+            "model": {"params": 1000},
+            "train": {"epochs": 1, "imgsz": imgsz},
+            **({"complexity": complexity} if complexity else {}),
+            "environment": {"device": "cpu", "threads": 1, "torch": "test"},
+        }
+    )
     if analysis:
         store_analysis(run, gt, dets, {}, ev["metrics"]["conf_threshold"])
     run.set_status("finished", config_hash="synthetic")
@@ -135,10 +212,18 @@ QUALITY = {
 }
 
 
-def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = ("P1", "P2"), per_fold: int = 6,
-                    detectors: dict[str, str] | None = None, encodings: dict[str, Sequence[str]] | None = None,
-                    seed: int = 0, profiles: dict[str, tuple[float, float]] | None = None,
-                    seeds: Sequence[int] = (0,), analysis: bool = True) -> Store:
+def synthetic_store(
+    root: Path,
+    dataset: str = "synth",
+    folds: Sequence[str] = ("P1", "P2"),
+    per_fold: int = 6,
+    detectors: dict[str, str] | None = None,
+    encodings: dict[str, Sequence[str]] | None = None,
+    seed: int = 0,
+    profiles: dict[str, tuple[float, float]] | None = None,
+    seeds: Sequence[int] = (0,),
+    analysis: bool = True,
+) -> Store:
     """A store with ``detectors`` ({name: quality}) on every fold and training seed (``seeds``: each seed's
     detections an independent draw of the same quality), optionally extra encodings of a detector on the last fold
     (``encodings``: {detector: [enc, ...]}), and profiles ({detector: (params, gflops)})."""
@@ -155,13 +240,25 @@ def synthetic_store(root: Path, dataset: str = "synth", folds: Sequence[str] = (
             for s in seeds:
                 drng = np.random.default_rng([seed, i, folds.index(f)] + ([s] if s else []))
                 comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
-                write_run(store, RunKey(dataset, det, "c2", f, s), gts[f],
-                          make_detections(gts[f], drng, **QUALITY[quality]), complexity=comp, analysis=analysis)
+                write_run(
+                    store,
+                    RunKey(dataset, det, "c2", f, s),
+                    gts[f],
+                    make_detections(gts[f], drng, **QUALITY[quality]),
+                    complexity=comp,
+                    analysis=analysis,
+                )
     for det, encs in (encodings or {}).items():
         for j, enc in enumerate(encs):
             drng = np.random.default_rng([seed, 100 + j])
             q = QUALITY["weak"] if j % 2 else QUALITY["strong"]
             comp = complexity_record(*profiles[det]) if det in (profiles or {}) else None
-            write_run(store, RunKey(dataset, det, enc, folds[-1], 0), gts[folds[-1]],
-                      make_detections(gts[folds[-1]], drng, **q), complexity=comp, analysis=analysis)
+            write_run(
+                store,
+                RunKey(dataset, det, enc, folds[-1], 0),
+                gts[folds[-1]],
+                make_detections(gts[folds[-1]], drng, **q),
+                complexity=comp,
+                analysis=analysis,
+            )
     return store

@@ -20,9 +20,19 @@ from harness_tinydet.plugin import register_detectors
 '''
 
 #: A run that takes a few seconds on one CPU core: 64 px images, 8 training and 8 held-out images per fold.
-TINY = ["protocol.imgsz=64", "protocol.epochs=2", "protocol.patience=10", "train.batch=4", "train.nominal_batch=4",
-        "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=1", "train.threads=1",
-        "train.device=cpu", "eval.batch=8"]
+TINY = [
+    "protocol.imgsz=64",
+    "protocol.epochs=2",
+    "protocol.patience=10",
+    "train.batch=4",
+    "train.nominal_batch=4",
+    "train.warmup_epochs=0.5",
+    "train.warmup_min_iters=0",
+    "train.close_mosaic=1",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=8",
+]
 
 
 def plugin_dir(folder: Path) -> Path:
@@ -35,9 +45,14 @@ def plugin_dir(folder: Path) -> Path:
 def subprocess_env(tmp_path: Path, **extra: str) -> dict[str, str]:
     """The environment of a harness process started by a test: only the test plugins, a private cache, one thread."""
     env = dict(os.environ)
-    env.update(HARNESS_DISABLE_PLUGIN_AUTOLOAD="1", HARNESS_PLUGINS_DIR=str(plugin_dir(tmp_path / "plugins")),
-               HARNESS_CACHE=str(tmp_path / "cache"), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
-               PYTHONPATH=os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    env.update(
+        HARNESS_DISABLE_PLUGIN_AUTOLOAD="1",
+        HARNESS_PLUGINS_DIR=str(plugin_dir(tmp_path / "plugins")),
+        HARNESS_CACHE=str(tmp_path / "cache"),
+        OMP_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        PYTHONPATH=os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+    )
     env.pop("HARNESS_LOAD_PLUGINS", None)
     env.update(extra)
     return env

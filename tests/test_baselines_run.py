@@ -21,14 +21,41 @@ def cache_dir(tmp_path_factory):
 
 
 @pytest.mark.parametrize("detector", ["icafusion", "eme", "cmadet"])
-def test_harness_run_trains_and_evaluates_every_fold(detector, tiny_source, cache_dir, tmp_path, cli_runner,  # noqa: F811
-                                                     monkeypatch):
+def test_harness_run_trains_and_evaluates_every_fold(
+    detector,
+    tiny_source,
+    cache_dir,
+    tmp_path,
+    cli_runner,  # noqa: F811
+    monkeypatch,
+):
     monkeypatch.setenv("HARNESS_CACHE", str(cache_dir))
     store = tmp_path / "store"
-    args = ["run", "--detector", detector, "--dataset", "m3t-synth", "--folds", "all", "--profile", "smoke",
-            "--store", str(store), "--no-progress"]
-    for kv in (f"dataset.root={tiny_source}", "model.width=0.125", "model.depth=0.33", "protocol.epochs=1",
-               "protocol.imgsz=128", "train.batch=4", "train.nominal_batch=4", "train.threads=1", "eval.batch=4"):
+    args = [
+        "run",
+        "--detector",
+        detector,
+        "--dataset",
+        "m3t-synth",
+        "--folds",
+        "all",
+        "--profile",
+        "smoke",
+        "--store",
+        str(store),
+        "--no-progress",
+    ]
+    for kv in (
+        f"dataset.root={tiny_source}",
+        "model.width=0.125",
+        "model.depth=0.33",
+        "protocol.epochs=1",
+        "protocol.imgsz=128",
+        "train.batch=4",
+        "train.nominal_batch=4",
+        "train.threads=1",
+        "eval.batch=4",
+    ):
         args += ["--set", kv]
     result = cli_runner(args)
     assert result.exit_code == 0, result.output

@@ -11,23 +11,55 @@ pytest.importorskip("harness.runner", reason="needs the training engine (`harnes
 
 RUNS = {
     "ours": ["--encoding", "c2", "--set", "model.scale=n", "--set", "protocol.imgsz=64"],
-    "icafusion": ["--encoding", "ir8", "--set", "model.width=0.125", "--set", "model.depth=0.33",
-                  "--set", "protocol.imgsz=64"],
+    "icafusion": [
+        "--encoding",
+        "ir8",
+        "--set",
+        "model.width=0.125",
+        "--set",
+        "model.depth=0.33",
+        "--set",
+        "protocol.imgsz=64",
+    ],
 }
 
 
 @pytest.mark.parametrize("detector", sorted(RUNS))
-def test_compact_and_raw_cache_give_identical_runs(detector, tiny_source, tmp_path, cli_runner,  # noqa: F811
-                                                   monkeypatch):
+def test_compact_and_raw_cache_give_identical_runs(
+    detector,
+    tiny_source,
+    tmp_path,
+    cli_runner,  # noqa: F811
+    monkeypatch,
+):
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
     out = {}
     for form in ("raw", "compact"):
         monkeypatch.setenv("HARNESS_CACHE_FORM", form)
         store = tmp_path / f"store-{form}"
-        args = ["run", "--detector", detector, "--dataset", "m3t-synth", "--folds", "P1", "--profile", "smoke",
-                "--store", str(store), "--no-progress", *RUNS[detector]]
-        for kv in (f"dataset.root={tiny_source}", "protocol.epochs=1", "train.batch=4", "train.nominal_batch=4",
-                   "train.threads=1", "eval.batch=4"):
+        args = [
+            "run",
+            "--detector",
+            detector,
+            "--dataset",
+            "m3t-synth",
+            "--folds",
+            "P1",
+            "--profile",
+            "smoke",
+            "--store",
+            str(store),
+            "--no-progress",
+            *RUNS[detector],
+        ]
+        for kv in (
+            f"dataset.root={tiny_source}",
+            "protocol.epochs=1",
+            "train.batch=4",
+            "train.nominal_batch=4",
+            "train.threads=1",
+            "eval.batch=4",
+        ):
             args += ["--set", kv]
         result = cli_runner(args)
         assert result.exit_code == 0, result.output

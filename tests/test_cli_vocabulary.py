@@ -20,16 +20,40 @@ from harness.errors import HarnessError
 REPO = Path(__file__).resolve().parent.parent
 WIDTH = 100
 #: The vocabulary's options and their shared names.
-VOCABULARY = {"--folds": "folds", "--seeds": "seeds", "--bootstrap-seed": "bootstrap-seed", "--format": "format",
-              "--store": "store", "--no-progress": "no-progress", "--config": "config", "--set": "set"}
+VOCABULARY = {
+    "--folds": "folds",
+    "--seeds": "seeds",
+    "--bootstrap-seed": "bootstrap-seed",
+    "--format": "format",
+    "--store": "store",
+    "--no-progress": "no-progress",
+    "--config": "config",
+    "--set": "set",
+}
 #: Spellings the vocabulary retired; `synth --seed` is the generator's seed, not a training or bootstrap seed.
 RETIRED = {"--fold", "--json", "--seed"}
 #: `synth --seed` is the generator's seed, not a training seed.
 OWN_MEANING = {("synth", "--seed")}
 #: Commands that show progress (bars, or run/sweep's progress lines).
-SHOWS_PROGRESS = {"run", "ablate", "sweep", "pretrain", "profile", "report", "compare-detectors", "prepare", "folds",
-                  "score", "synth", "sensing decode", "sensing displacement", "show",
-                  "screen", "benchmark run", "benchmark rerun"}
+SHOWS_PROGRESS = {
+    "run",
+    "ablate",
+    "sweep",
+    "pretrain",
+    "profile",
+    "report",
+    "compare-detectors",
+    "prepare",
+    "folds",
+    "score",
+    "synth",
+    "sensing decode",
+    "sensing displacement",
+    "show",
+    "screen",
+    "benchmark run",
+    "benchmark rerun",
+}
 #: Commands about one profile: their --profile defaults to it (the store rule, results/<profile>, is the same).
 OWN_PROFILE = {"benchmark run": "benchmark", "benchmark export": "benchmark"}
 
@@ -113,8 +137,10 @@ def test_one_store_rule():
 
 def _landmarks(path: Path) -> Path:
     pts = [(x, y) for x in (40.0, 300.0, 620.0) for y in (30.0, 250.0, 470.0)]
-    rows = [{"scene": "s1", "group": "g", "rgb": [x, y], "thermal": [0.5 * x + 10 + (i % 3) * 0.1, 0.5 * y + 5]}
-            for i, (x, y) in enumerate(pts)]
+    rows = [
+        {"scene": "s1", "group": "g", "rgb": [x, y], "thermal": [0.5 * x + 10 + (i % 3) * 0.1, 0.5 * y + 5]}
+        for i, (x, y) in enumerate(pts)
+    ]
     path.write_text(json.dumps({"landmarks": rows}))
     return path
 
@@ -167,41 +193,111 @@ def _predictions(tmp_path: Path) -> str:
 OLD_SPELLINGS = [
     # (old argv, function that receives the value, how to read it, expected value, deprecated spellings)
     (["ablate", "--dataset", "d", "--fold", "B"], ("harness.runner", "ablate"), lambda a, k: a[3], "B", ["--fold"]),
-    (["ablate", "--dataset", "d", "--fold=P4+P5"], ("harness.runner", "ablate"), lambda a, k: a[3], "P4+P5",
-     ["--fold"]),
-    (["pretrain", "--detector", "x", "--fold", "val", "--seed", "3"], ("harness.commands.pretrain", "pretrain"),
-     lambda a, k: (a[3], a[4]), ("val", 3), ["--fold", "--seed"]),
-    (["score", "--dataset", "d", "--fold", "P1", "--predictions", "PREDS", "--name", "n"],
-     ("harness.scoring.external", "score_external"), lambda a, k: a[1], "P1", ["--fold"]),
-    (["report", "--store", "STORE", "--seed", "7", "--format", "md"], ("harness.report", "build_report"),
-     lambda a, k: (k["seed"], k["formats"]), (7, ["md"]), ["--seed", "--format"]),
-    (["compare-detectors", "a", "b", "--dataset", "d", "--store", "STORE", "--seed", "5"],
-     ("harness.report", "compare_detectors"), lambda a, k: k["seed"], 5, ["--seed"]),
-    (["export-predictions", "--seed", "1", "--out", "OUT"], ("harness.scoring.export", "export_predictions"),
-     lambda a, k: (a[0], a[5]), (Path("results/smoke"), [1]), ["--seed"]),
-    (["sensing", "decode", "PREDS", "--out", "OUT", "--format", "tiff"], ("harness.sensing.batch", "decode_batch"),
-     lambda a, k: a[2].fmt, "tiff", ["--format"]),
-    (["report", "--store", "STORE", "--dataset", "a", "--dataset", "b,c"], ("harness.report", "build_report"),
-     lambda a, k: a[1], ["a", "b", "c"], ["--dataset"]),
-    (["show", "--dataset", "m3t-synth", "--store", "STORE", "--detector", "x", "--detector", "y"],
-     ("harness.report.show", "show"), lambda a, k: k["detectors"], ("x", "y"), ["--detector"]),
-    (["profile", "--detector", "ours", "--no-store"], ("harness.profiling", "profile_detector"), lambda a, k: a[0],
-     "ours", ["--detector"]),
-    (["export", "--detector", "x", "--onnx", "OUT"], ("harness.profiling", "export_detector"),
-     lambda a, k: (a[0], Path(a[1]).name), ("x", "out"), ["--onnx"]),
-    (["synth", "--profile", "tiny", "--out", "OUT"], ("adapters.datasets.synthetic", "generate"),
-     lambda a, k: k["profile"], "tiny", ["--profile"]),
-    (["sensing", "register", "--similarity", "g=0,0,0,1", "--init", "PREDS", "--out", "OUT"],
-     ("harness.sensing.registration", "load_homography_entries"), lambda a, k: Path(a[0]).name, "preds.json",
-     ["--init"]),
-    (["export-fiftyone", "--dataset", "d", "--seed", "1", "--out", "OUT"],
-     ("harness.report.fiftyone_export", "export_fiftyone"), lambda a, k: k["seed"], [1], ["--seed"]),
+    (
+        ["ablate", "--dataset", "d", "--fold=P4+P5"],
+        ("harness.runner", "ablate"),
+        lambda a, k: a[3],
+        "P4+P5",
+        ["--fold"],
+    ),
+    (
+        ["pretrain", "--detector", "x", "--fold", "val", "--seed", "3"],
+        ("harness.commands.pretrain", "pretrain"),
+        lambda a, k: (a[3], a[4]),
+        ("val", 3),
+        ["--fold", "--seed"],
+    ),
+    (
+        ["score", "--dataset", "d", "--fold", "P1", "--predictions", "PREDS", "--name", "n"],
+        ("harness.scoring.external", "score_external"),
+        lambda a, k: a[1],
+        "P1",
+        ["--fold"],
+    ),
+    (
+        ["report", "--store", "STORE", "--seed", "7", "--format", "md"],
+        ("harness.report", "build_report"),
+        lambda a, k: (k["seed"], k["formats"]),
+        (7, ["md"]),
+        ["--seed", "--format"],
+    ),
+    (
+        ["compare-detectors", "a", "b", "--dataset", "d", "--store", "STORE", "--seed", "5"],
+        ("harness.report", "compare_detectors"),
+        lambda a, k: k["seed"],
+        5,
+        ["--seed"],
+    ),
+    (
+        ["export-predictions", "--seed", "1", "--out", "OUT"],
+        ("harness.scoring.export", "export_predictions"),
+        lambda a, k: (a[0], a[5]),
+        (Path("results/smoke"), [1]),
+        ["--seed"],
+    ),
+    (
+        ["sensing", "decode", "PREDS", "--out", "OUT", "--format", "tiff"],
+        ("harness.sensing.batch", "decode_batch"),
+        lambda a, k: a[2].fmt,
+        "tiff",
+        ["--format"],
+    ),
+    (
+        ["report", "--store", "STORE", "--dataset", "a", "--dataset", "b,c"],
+        ("harness.report", "build_report"),
+        lambda a, k: a[1],
+        ["a", "b", "c"],
+        ["--dataset"],
+    ),
+    (
+        ["show", "--dataset", "m3t-synth", "--store", "STORE", "--detector", "x", "--detector", "y"],
+        ("harness.report.show", "show"),
+        lambda a, k: k["detectors"],
+        ("x", "y"),
+        ["--detector"],
+    ),
+    (
+        ["profile", "--detector", "ours", "--no-store"],
+        ("harness.profiling", "profile_detector"),
+        lambda a, k: a[0],
+        "ours",
+        ["--detector"],
+    ),
+    (
+        ["export", "--detector", "x", "--onnx", "OUT"],
+        ("harness.profiling", "export_detector"),
+        lambda a, k: (a[0], Path(a[1]).name),
+        ("x", "out"),
+        ["--onnx"],
+    ),
+    (
+        ["synth", "--profile", "tiny", "--out", "OUT"],
+        ("adapters.datasets.synthetic", "generate"),
+        lambda a, k: k["profile"],
+        "tiny",
+        ["--profile"],
+    ),
+    (
+        ["sensing", "register", "--similarity", "g=0,0,0,1", "--init", "PREDS", "--out", "OUT"],
+        ("harness.sensing.registration", "load_homography_entries"),
+        lambda a, k: Path(a[0]).name,
+        "preds.json",
+        ["--init"],
+    ),
+    (
+        ["export-fiftyone", "--dataset", "d", "--seed", "1", "--out", "OUT"],
+        ("harness.report.fiftyone_export", "export_fiftyone"),
+        lambda a, k: k["seed"],
+        [1],
+        ["--seed"],
+    ),
 ]
 
 
 @pytest.mark.parametrize("argv,target,read,expected,old", OLD_SPELLINGS, ids=lambda v: None)
-def test_old_spellings_still_work_with_one_deprecation_line(argv, target, read, expected, old, tmp_path, cli_runner,
-                                                             record, monkeypatch):
+def test_old_spellings_still_work_with_one_deprecation_line(
+    argv, target, read, expected, old, tmp_path, cli_runner, record, monkeypatch
+):
     monkeypatch.chdir(tmp_path)
     subs = {"PREDS": _predictions(tmp_path), "STORE": str(tmp_path), "OUT": str(tmp_path / "out")}
     calls = record(*target)
@@ -236,8 +332,10 @@ def test_old_json_flag_and_markdown_value_print_the_same_as_the_new_ones(tmp_pat
     res = cli_runner(["compare", "--datasets", "d", "--store", str(tmp_path), "--format", "markdown"])
     assert res.exit_code == 0 and res.stdout.strip() == "rendered as markdown"
     assert "deprecated: --format markdown, use --format md" in res.stderr
-    assert cli_runner(["compare", "--datasets", "d", "--store", str(tmp_path), "--format", "md"]).stdout.strip() \
+    assert (
+        cli_runner(["compare", "--datasets", "d", "--store", str(tmp_path), "--format", "md"]).stdout.strip()
         == "rendered as markdown"
+    )
 
     class Comparison:
         def to_dict(self) -> dict:
@@ -347,8 +445,14 @@ def test_batches_with_failures_exit_1(tmp_path, cli_runner, monkeypatch, record)
     """Partly done: the sweep ran what it could, `cache verify` checked every dataset, `decode` decoded the rest."""
     from harness.sweep import JobResult, SweepSummary
 
-    summary = SweepSummary(tmp_path, [JobResult("d/a/c2/P1/seed0", "trained", mAP50=0.5, mAP50_95=0.3),
-                                      JobResult("d/a/c2/P2/seed0", "failed", error="ValueError: x")], [])
+    summary = SweepSummary(
+        tmp_path,
+        [
+            JobResult("d/a/c2/P1/seed0", "trained", mAP50=0.5, mAP50_95=0.3),
+            JobResult("d/a/c2/P2/seed0", "failed", error="ValueError: x"),
+        ],
+        [],
+    )
     record("harness.sweep", "sweep", summary)
     res = cli_runner(["sweep", "--detectors", "a", "--datasets", "d"])
     assert res.exit_code == 1 and "d/a/c2/P1/seed0" in res.stdout
@@ -423,11 +527,13 @@ def test_a_bug_in_a_plugin_command_exits_70_from_the_console_entry_point(tmp_pat
     """The real `python -m harness` path: a plugin file whose command raises."""
     (tmp_path / "buggy_plugin.py").write_text(
         "import click\nfrom harness import hookimpl\n\n\n@hookimpl\ndef register_commands(cli):\n"
-        "    @cli.command(name='buggy')\n    def buggy():\n        '''Fails.'''\n        return {}['key']\n")
+        "    @cli.command(name='buggy')\n    def buggy():\n        '''Fails.'''\n        return {}['key']\n"
+    )
     env = {k: v for k, v in os.environ.items() if k != "HARNESS_DEBUG"}
     env.update(HARNESS_PLUGINS_DIR=str(tmp_path), PYTHONPATH=str(REPO))
-    res = subprocess.run([sys.executable, "-m", "harness", "buggy"], capture_output=True, text=True, env=env,
-                         timeout=120, cwd=tmp_path)
+    res = subprocess.run(
+        [sys.executable, "-m", "harness", "buggy"], capture_output=True, text=True, env=env, timeout=120, cwd=tmp_path
+    )
     assert res.returncode == 70, res.stderr
     assert "bug: KeyError: 'key' (at " in res.stderr and "buggy_plugin.py:10" in res.stderr
     assert "Traceback" not in res.stderr and res.stdout == ""
@@ -504,7 +610,8 @@ def test_progress_bars_are_set_up_in_one_place():
                 continue
             text = path.read_text(encoding="utf-8")
             if "rich.progress" in text or "Progress(" in text.replace("OverallProgress(", "").replace(
-                    "SweepProgress(", "").replace("BenchmarkProgress(", "").replace("_Progress(", ""):
+                "SweepProgress(", ""
+            ).replace("BenchmarkProgress(", "").replace("_Progress(", ""):
                 offenders.append(str(path.relative_to(REPO)))
     assert not offenders, f"progress bars set up outside harness/progress.py: {offenders}"
 
@@ -512,13 +619,16 @@ def test_progress_bars_are_set_up_in_one_place():
 # ------------------------------------------------------------------------------------------------ start-up
 def test_help_and_listing_import_no_heavy_module(tmp_path):
     """`harness --help`, a command's help and `harness list` import neither torch nor cv2, scipy or rich."""
-    code = ("import sys\nfrom harness.cli import main\n"
-            "for argv in (['--help'], ['run', '--help'], ['sensing', 'decode', '--help'], ['list']):\n"
-            "    try:\n        main(argv)\n    except SystemExit as e:\n        assert not e.code, (argv, e.code)\n"
-            "heavy = ('torch', 'cv2', 'scipy', 'rich', 'matplotlib', 'onnx', 'onnxruntime', 'pycocotools')\n"
-            "print(sorted(m for m in heavy if m in sys.modules), file=sys.stderr)\n")
+    code = (
+        "import sys\nfrom harness.cli import main\n"
+        "for argv in (['--help'], ['run', '--help'], ['sensing', 'decode', '--help'], ['list']):\n"
+        "    try:\n        main(argv)\n    except SystemExit as e:\n        assert not e.code, (argv, e.code)\n"
+        "heavy = ('torch', 'cv2', 'scipy', 'rich', 'matplotlib', 'onnx', 'onnxruntime', 'pycocotools')\n"
+        "print(sorted(m for m in heavy if m in sys.modules), file=sys.stderr)\n"
+    )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120,
-                         cwd=tmp_path)
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120, cwd=tmp_path
+    )
     assert res.returncode == 0, res.stderr
     assert res.stderr.strip().splitlines()[-1] == "[]", res.stderr

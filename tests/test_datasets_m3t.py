@@ -97,7 +97,7 @@ def test_prepared_thermal_is_the_decoded_rjpeg_unresampled(tiny, tmp_path):
     rj = read_rjpeg(tiny / s.meta["thermal_file"])
     x0, y0 = s.meta["crop_origin"]
     h, w = s.thermal.shape
-    assert np.array_equal(s.thermal, rj.temperature_c[y0:y0 + h, x0:x0 + w])
+    assert np.array_equal(s.thermal, rj.temperature_c[y0 : y0 + h, x0 : x0 + w])
 
 
 def test_fitted_homographies_are_saved_with_the_prepared_data(tiny, tmp_path):
@@ -116,12 +116,32 @@ def test_registration_error_command_on_the_synthetic_landmarks(tiny, tmp_path, c
     homographies fitted while preparing score about the same on those landmarks."""
     ds = _prepare(tiny, tmp_path / "cache")
     lm = tiny / "registration" / "landmarks.json"
-    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies",
-                      str(tiny / "ground_truth" / "homographies.yaml"), "--out", str(tmp_path / "true.json")])
+    res = cli_runner(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(lm),
+            "--homographies",
+            str(tiny / "ground_truth" / "homographies.yaml"),
+            "--out",
+            str(tmp_path / "true.json"),
+        ]
+    )
     assert res.exit_code == 0, res.output
     true = json.loads((tmp_path / "true.json").read_text())
-    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies",
-                      str(ds.folder / "homographies.yaml"), "--out", str(tmp_path / "fitted.json")])
+    res = cli_runner(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(lm),
+            "--homographies",
+            str(ds.folder / "homographies.yaml"),
+            "--out",
+            str(tmp_path / "fitted.json"),
+        ]
+    )
     assert res.exit_code == 0, res.output
     fitted = json.loads((tmp_path / "fitted.json").read_text())
     assert true["n"] == fitted["n"] > 50
@@ -211,12 +231,19 @@ def _export_aligned(prepared, out: Path) -> None:
         write_thermal(out / "aligned" / "thermal" / project / f"{stem}.png", s.thermal)
         images.append({"id": s.image_id, "file_name": f"{project}/{stem}.png", "width": s.width, "height": s.height})
         for b, lab in zip(np.asarray(s.boxes), s.labels):
-            anns.append({"id": len(anns) + 1, "image_id": s.image_id, "category_id": int(lab) + 1,
-                         "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])]})
+            anns.append(
+                {
+                    "id": len(anns) + 1,
+                    "image_id": s.image_id,
+                    "category_id": int(lab) + 1,
+                    "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
+                }
+            )
     cats = [{"id": i + 1, "name": n} for i, n in enumerate(M3T_CATEGORIES)]
     (out / "annotations").mkdir(parents=True)
-    (out / "annotations" / "instances_thermal.json").write_text(json.dumps({"images": images, "annotations": anns,
-                                                                           "categories": cats}))
+    (out / "annotations" / "instances_thermal.json").write_text(
+        json.dumps({"images": images, "annotations": anns, "categories": cats})
+    )
 
 
 def test_aligned_form_reads_back_what_was_prepared(tiny, tmp_path):
@@ -264,7 +291,8 @@ def test_manifest_maps_folder_names_and_categories(tiny):
     (tiny / "m3t.yaml").write_text(
         "format: raw\nannotations: labels/rgb.json\nthermal_size: [160, 128]\n"
         "projects: {P1: Site_Alpha, P2: P2, P3: P3, P4: P4, P5: P5}\n"
-        "categories: {surface_crack: crack}\n")
+        "categories: {surface_crack: crack}\n"
+    )
     src = open_m3t(tiny)
     assert src.groups() == ["P1", "P2", "P3", "P4", "P5"]
     report = PrepareReport()
@@ -274,10 +302,12 @@ def test_manifest_maps_folder_names_and_categories(tiny):
 
 
 def test_manifest_unknown_key_and_bad_values_are_errors(tiny):
-    for text, match in (("format: raw\nimage_dir: images\n", "unknown manifest key.*'image_dir'"),
-                        ("format: stacked\n", "'format' expects 'raw' or 'aligned'"),
-                        ("thermal_size: 640\n", "thermal_size"),
-                        ("categories: {cracks: fissure}\n", "neither one of")):
+    for text, match in (
+        ("format: raw\nimage_dir: images\n", "unknown manifest key.*'image_dir'"),
+        ("format: stacked\n", "'format' expects 'raw' or 'aligned'"),
+        ("thermal_size: 640\n", "thermal_size"),
+        ("categories: {cracks: fissure}\n", "neither one of"),
+    ):
         (tiny / "m3t.yaml").write_text(text)
         with pytest.raises(DataError, match=match):
             load_manifest(tiny)
@@ -293,8 +323,18 @@ def test_registration_error_with_the_truth_beside_it(tiny, tmp_path, cli_runner)
     """`--truth`: the landmarks' error under the true homographies and the fitted ones' distance from them."""
     lm = tiny / "registration" / "landmarks.json"
     truth = tiny / "ground_truth" / "homographies.yaml"
-    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--truth", str(truth),
-                      "--out", str(tmp_path / "r.json")])
+    res = cli_runner(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(lm),
+            "--truth",
+            str(truth),
+            "--out",
+            str(tmp_path / "r.json"),
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert "landmarks, true homography" in res.output and "fitted vs true homography" in res.output
     r = json.loads((tmp_path / "r.json").read_text())["truth"]
@@ -302,8 +342,20 @@ def test_registration_error_with_the_truth_beside_it(tiny, tmp_path, cli_runner)
     assert 0.3 < r["landmarks_on_true"]["mean"] < 1.0  # the tiny profile's precise clicks
     assert 0 < r["fitted_vs_true"]["mean"] < 2.0 and r["fitted_vs_true"]["n"] == 81 * 5  # 9x9 grid, 5 groups
     # the truth given as the evaluated homographies: the fitted-vs-true distance is zero
-    res = cli_runner(["sensing", "registration-error", "--landmarks", str(lm), "--homographies", str(truth),
-                      "--truth", str(truth), "--out", str(tmp_path / "t.json")])
+    res = cli_runner(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(lm),
+            "--homographies",
+            str(truth),
+            "--truth",
+            str(truth),
+            "--out",
+            str(tmp_path / "t.json"),
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "t.json").read_text())["truth"]["fitted_vs_true"]["mean"] < 1e-6
     # a synthetic set's own landmarks: its ground truth is found beside them

@@ -25,8 +25,18 @@ def prepared(tmp_path_factory):
 
 
 def settings(**kw) -> TrainSettings:
-    base = dict(imgsz=64, epochs=4, batch=8, nominal_batch=8, warmup_epochs=0.0, warmup_min_iters=0, close_mosaic=0,
-                threads=1, patience=100, device="cpu")
+    base = dict(
+        imgsz=64,
+        epochs=4,
+        batch=8,
+        nominal_batch=8,
+        warmup_epochs=0.0,
+        warmup_min_iters=0,
+        close_mosaic=0,
+        threads=1,
+        patience=100,
+        device="cpu",
+    )
     base.update(kw)
     return TrainSettings(**base)
 
@@ -44,7 +54,7 @@ def test_loss_decreases_on_a_tiny_batch(prepared):
     assert len(losses) == 12
     assert losses[-1] < 0.8 * losses[0], losses
     assert sum(b < a for a, b in zip(losses, losses[1:])) >= 9, losses  # it falls nearly every step
-    assert result.best_fitness == pytest.approx(-min(losses[result.best_epoch - 1:result.best_epoch]))
+    assert result.best_fitness == pytest.approx(-min(losses[result.best_epoch - 1 : result.best_epoch]))
 
 
 def _validate(src):
@@ -71,8 +81,16 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
 
     straight_log: list[dict] = []
     model_a = build()
-    trainer_a = Trainer(model_a, TrainDataset(train, 64, aug, seed=0), s, checkpoint_dir=tmp_path / "a",
-                        validate=_validate(val), on_epoch=straight_log.append, progress=False, config_hash="h")
+    trainer_a = Trainer(
+        model_a,
+        TrainDataset(train, 64, aug, seed=0),
+        s,
+        checkpoint_dir=tmp_path / "a",
+        validate=_validate(val),
+        on_epoch=straight_log.append,
+        progress=False,
+        config_hash="h",
+    )
     res_a = trainer_a.fit()
 
     class Crash(Exception):
@@ -87,12 +105,28 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
 
     model_b = build()
     with pytest.raises(Crash):
-        Trainer(model_b, TrainDataset(train, 64, aug, seed=0), s, checkpoint_dir=tmp_path / "b",
-                validate=_validate(val), on_epoch=crash_after_two, progress=False, config_hash="h").fit()
+        Trainer(
+            model_b,
+            TrainDataset(train, 64, aug, seed=0),
+            s,
+            checkpoint_dir=tmp_path / "b",
+            validate=_validate(val),
+            on_epoch=crash_after_two,
+            progress=False,
+            config_hash="h",
+        ).fit()
     assert ckpt.load(tmp_path / "b" / "last.pt")["epoch"] == 1  # 0-based: two epochs done
     model_c = build(seed=123)  # a different initialisation: everything must come from the checkpoint
-    trainer_c = Trainer(model_c, TrainDataset(train, 64, aug, seed=0), s, checkpoint_dir=tmp_path / "b",
-                        validate=_validate(val), on_epoch=resumed_log.append, progress=False, config_hash="h")
+    trainer_c = Trainer(
+        model_c,
+        TrainDataset(train, 64, aug, seed=0),
+        s,
+        checkpoint_dir=tmp_path / "b",
+        validate=_validate(val),
+        on_epoch=resumed_log.append,
+        progress=False,
+        config_hash="h",
+    )
     res_c = trainer_c.fit(resume=True)
 
     assert res_c.resumed_from == 2 and res_c.epochs_run == 4
@@ -107,8 +141,15 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
     assert best_a["epoch"] == best_c["epoch"]
     assert all(torch.equal(best_a["model"][k], best_c["model"][k]) for k in best_a["model"])
     # a finished run resumed again trains nothing and reports the same result
-    again = Trainer(build(), TrainDataset(train, 64, aug, seed=0), s, checkpoint_dir=tmp_path / "b",
-                    validate=_validate(val), progress=False, config_hash="h").fit(resume=True)
+    again = Trainer(
+        build(),
+        TrainDataset(train, 64, aug, seed=0),
+        s,
+        checkpoint_dir=tmp_path / "b",
+        validate=_validate(val),
+        progress=False,
+        config_hash="h",
+    ).fit(resume=True)
     assert again.epochs_run == 4 and again.best_fitness == res_a.best_fitness
 
 
@@ -145,8 +186,12 @@ def test_the_fourth_channel_is_what_tells_warm_from_cold(prepared):
     for enc in (IR8, NONE):
         train, val = SampleSource(prepared, train_idx, enc), SampleSource(prepared, val_idx, enc)
         model = build(train.channels)
-        trainer = Trainer(model, TrainDataset(train, 64, AugmentSettings(mosaic=0.0, hsv_h=0, hsv_s=0, hsv_v=0)),
-                          settings(epochs=30, batch=8, lr0=0.04), progress=False)
+        trainer = Trainer(
+            model,
+            TrainDataset(train, 64, AugmentSettings(mosaic=0.0, hsv_h=0, hsv_s=0, hsv_v=0)),
+            settings(epochs=30, batch=8, lr0=0.04),
+            progress=False,
+        )
         trainer.fit()
         acc[enc.name] = _label_accuracy(trainer.eval_model, val)
     assert acc["test-ir8"] > 0.8, acc  # the thermal channel separates them
@@ -184,8 +229,13 @@ def test_a_model_breaking_the_contract_is_named(prepared):
 def test_early_stopping_after_patience_epochs(prepared):
     scores = iter([0.5, 0.4, 0.45, 0.3, 0.9, 0.9])
     src = SampleSource(prepared, list(range(8)), IR8)
-    res = Trainer(build(), TrainDataset(src, 64, AugmentSettings.off()), settings(epochs=6, patience=3),
-                  validate=lambda m: {"mAP50": 0.0, "mAP50_95": next(scores)}, progress=False).fit()
+    res = Trainer(
+        build(),
+        TrainDataset(src, 64, AugmentSettings.off()),
+        settings(epochs=6, patience=3),
+        validate=lambda m: {"mAP50": 0.0, "mAP50_95": next(scores)},
+        progress=False,
+    ).fit()
     assert res.stopped_early and res.epochs_run == 4 and res.best_epoch == 1
     assert res.best_fitness == pytest.approx(0.9 * 0.5)
 
@@ -193,8 +243,13 @@ def test_early_stopping_after_patience_epochs(prepared):
 def test_init_from_checkpoint_loads_matching_tensors(prepared, tmp_path):
     src = SampleSource(prepared, list(range(8)), IR8)
     trained = build()
-    Trainer(trained, TrainDataset(src, 64, AugmentSettings.off()), settings(epochs=1), checkpoint_dir=tmp_path,
-            progress=False).fit()
+    Trainer(
+        trained,
+        TrainDataset(src, 64, AugmentSettings.off()),
+        settings(epochs=1),
+        checkpoint_dir=tmp_path,
+        progress=False,
+    ).fit()
     fresh = build(seed=5)
     report = ckpt.init_from(fresh, tmp_path / "last.pt")
     assert report["loaded"] == report["total"] and not report["missing"]

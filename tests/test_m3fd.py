@@ -50,8 +50,16 @@ def test_recorded_split_by_frame_blocks_matches_the_protocol_file(release):
     assert fold.name == "val" and fold.val_groups == ("00400-00499", "00900-00999")
     split = m3fd.recorded_split()
     assert len(split["val"]) == 8 and len(split["train"]) == 34  # 800 / 3,400 of 4,200
-    assert split["val"] == ["00400-00499", "00900-00999", "01400-01499", "01900-01999", "02400-02499",
-                            "02900-02999", "03400-03499", "03900-03999"]
+    assert split["val"] == [
+        "00400-00499",
+        "00900-00999",
+        "01400-01499",
+        "01900-01999",
+        "02400-02499",
+        "02900-02999",
+        "03400-03499",
+        "03900-03999",
+    ]
     # the split is recorded, block by block, where users look for it
     for doc in (REPO / "docs" / "datasets.md", REPO / "configs" / "protocols" / "m3fd.yaml"):
         text = doc.read_text()
@@ -86,7 +94,7 @@ def test_malformed_xml_names_file_and_position(release):
     ann.write_text("<annotation>\n  <size><width>64</width>\n</annotation>\n")
     samples, report = collect(m3fd.open_m3fd(root))
     assert len(samples) == 7
-    (path, reason), = report.skipped
+    ((path, reason),) = report.skipped
     assert reason.startswith("malformed annotation") and "00001.xml: malformed XML at line 3 column" in reason
 
 
@@ -104,8 +112,13 @@ def test_non_numeric_coordinates_and_size_mismatch(release):
 
 def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
     root, _ = release
-    write_voc(root / "M3FD_Detection" / "Annotation" / "00000.xml", "00000.png", 64, 48,
-              [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)])
+    write_voc(
+        root / "M3FD_Detection" / "Annotation" / "00000.xml",
+        "00000.png",
+        64,
+        48,
+        [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)],
+    )
     samples, report = collect(m3fd.open_m3fd(root))
     s = samples[0]
     np.testing.assert_array_equal(s.boxes, [[0, 1, 20, 48]])  # (xmin - 1, ymin - 1, xmax, ymax), then clipped
@@ -166,8 +179,17 @@ def test_prepared_manifest_records_the_split(release, tmp_path):
 
 # ------------------------------------------------------------------ the VOC pixel convention and the nine sizes
 #: The nine image sizes of the 4,200 M3FD pairs (width, height) and how many pairs have each.
-M3FD_SIZES = {(1024, 768): 3926, (880, 520): 49, (740, 400): 43, (780, 420): 41, (800, 480): 36, (480, 360): 34,
-              (440, 320): 32, (400, 280): 23, (440, 280): 16}
+M3FD_SIZES = {
+    (1024, 768): 3926,
+    (880, 520): 49,
+    (740, 400): 43,
+    (780, 420): 41,
+    (800, 480): 36,
+    (480, 360): 34,
+    (440, 320): 32,
+    (400, 280): 23,
+    (440, 280): 16,
+}
 
 
 def test_size_table_adds_up_to_the_release_and_is_documented():
@@ -210,8 +232,10 @@ def test_fixture_boxes_follow_the_voc_rule_exactly(release):
     checked = 0
     for s in samples:
         xml = ET.parse(root / "M3FD_Detection" / s.meta["annotation"]).getroot()
-        want = [[float(o.findtext(f"bndbox/{t}")) - d for t, d in (("xmin", 1), ("ymin", 1), ("xmax", 0), ("ymax", 0))]
-                for o in xml.findall("object")]
+        want = [
+            [float(o.findtext(f"bndbox/{t}")) - d for t, d in (("xmin", 1), ("ymin", 1), ("xmax", 0), ("ymax", 0))]
+            for o in xml.findall("object")
+        ]
         assert s.boxes.tolist() == want
         checked += len(want)
     assert checked == 16

@@ -33,14 +33,22 @@ def _sample(radiometric: bool = True) -> AlignedSample:
     thermal = np.linspace(10.0, 30.0, h * w, dtype=np.float32).reshape(h, w)
     thermal[0, 0] = np.nan  # a missing temperature
     ir8 = np.tile(np.arange(w, dtype=np.uint8) * 4, (h, 1))
-    return AlignedSample(1, rgb, thermal if radiometric else None, ir8, np.array([[10, 10, 30, 20]], np.float32),
-                         np.array([1], np.int64), "g", {"file_name": "a.jpg"})
+    return AlignedSample(
+        1,
+        rgb,
+        thermal if radiometric else None,
+        ir8,
+        np.array([[10, 10, 30, 20]], np.float32),
+        np.array([1], np.int64),
+        "g",
+        {"file_name": "a.jpg"},
+    )
 
 
 def _panel(img: np.ndarray, k: int, width: int, height: int) -> np.ndarray:
     """Panel ``k`` (0 RGB, 1 thermal, ...) of a picture whose panels are ``width`` wide (4 px gaps), no scale bar."""
     x0 = k * (width + 4)
-    return img[TITLE_H:TITLE_H + height, x0:x0 + width]
+    return img[TITLE_H : TITLE_H + height, x0 : x0 + width]
 
 
 def test_draw_sample_puts_boxes_on_every_panel_at_the_panel_scale():
@@ -65,7 +73,7 @@ def test_radiometric_thermal_is_a_colour_map_with_a_scale_bar():
     with_bar = draw_sample(s, gt=None, height=80)
     plain = draw_sample(_sample(radiometric=False), gt=None, height=80)
     assert with_bar.shape[1] > plain.shape[1]  # the scale bar beside the thermal panel
-    panel = with_bar[TITLE_H:TITLE_H + 80, 124:244]
+    panel = with_bar[TITLE_H : TITLE_H + 80, 124:244]
     assert not (panel[..., 0] == panel[..., 2]).all()  # colours, not grey levels
     assert tuple(panel[0, 0]) == (128, 128, 128)  # the missing temperature is grey
     # hot (bottom rows) is brighter than cold (top rows) in the inferno colour map
@@ -73,9 +81,11 @@ def test_radiometric_thermal_is_a_colour_map_with_a_scale_bar():
 
 
 def test_coco_boxes_and_thresholds():
-    records = [{"image_id": 3, "category_id": 2, "bbox": [1, 2, 3, 4], "score": 0.9},
-               {"image_id": 3, "category_id": 1, "bbox": [5, 5, 5, 5], "score": 0.2},
-               {"image_id": 4, "category_id": 1, "bbox": [0, 0, 1, 1], "score": 0.5}]
+    records = [
+        {"image_id": 3, "category_id": 2, "bbox": [1, 2, 3, 4], "score": 0.9},
+        {"image_id": 3, "category_id": 1, "bbox": [5, 5, 5, 5], "score": 0.2},
+        {"image_id": 4, "category_id": 1, "bbox": [0, 0, 1, 1], "score": 0.5},
+    ]
     b = coco_boxes(records, 3, "x")
     assert b.boxes.tolist() == [[1, 2, 4, 6], [5, 5, 10, 10]] and b.labels.tolist() == [1, 0]
     assert len(b.above(0.5)) == 1 and len(b.above(None)) == 2
@@ -138,8 +148,15 @@ def _fake_run(store, fold: str = "A", detector: str = "det", seed: int = 0, top:
     prepared = prepare("shapes", cfg)
     idx = prepared.indices([fold])
     gt = prepared.coco(idx)
-    dets = [{"image_id": a["image_id"], "category_id": a["category_id"], "score": 0.9,
-             "bbox": [a["bbox"][0] + 1, a["bbox"][1], a["bbox"][2], a["bbox"][3]]} for a in gt["annotations"]]
+    dets = [
+        {
+            "image_id": a["image_id"],
+            "category_id": a["category_id"],
+            "score": 0.9,
+            "bbox": [a["bbox"][0] + 1, a["bbox"][1], a["bbox"][2], a["bbox"][3]],
+        }
+        for a in gt["annotations"]
+    ]
     dets += [{"image_id": im["id"], "category_id": 1, "score": 0.1, "bbox": [0, 0, 5, 5]} for im in gt["images"]]
     if top is not None:
         boxes = [d for d in dets if d["score"] == 0.9]
@@ -171,8 +188,23 @@ def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path,
     prepared, gt, ev = _fake_run(tmp_path / "store")
     iid = gt["images"][0]["id"]
     out = tmp_path / "s.png"
-    res = cli_runner(["show", "--dataset", "shapes", "--image-id", str(iid), "--store", str(tmp_path / "store"),
-                      "--detector", "det", "--height", "128", "--out", str(out)])
+    res = cli_runner(
+        [
+            "show",
+            "--dataset",
+            "shapes",
+            "--image-id",
+            str(iid),
+            "--store",
+            str(tmp_path / "store"),
+            "--detector",
+            "det",
+            "--height",
+            "128",
+            "--out",
+            str(out),
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert res.stdout.strip() == str(out)
     pic = np.asarray(Image.open(out).convert("RGB"))
@@ -186,8 +218,9 @@ def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path,
     assert (tmp_path / "show_shapes_1.png").is_file()
     bad = cli_runner(["show", "--dataset", "shapes", "--image-id", "999"])
     assert bad.exit_code == 2 and "--image-id 999: not a sample of shapes" in bad.output
-    none = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--store", str(tmp_path / "store"),
-                       "--detector", "other"])
+    none = cli_runner(
+        ["show", "--dataset", "shapes", "--index", "0", "--store", str(tmp_path / "store"), "--detector", "other"]
+    )
     assert none.exit_code == 2 and "no finished run of other on shapes" in none.output
 
 

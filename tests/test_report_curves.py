@@ -14,13 +14,26 @@ pytest.importorskip("harness.evaluation")
 from harness.report.curves import METRICS, entry_curves, read_log
 from report_fixtures import chromium_screenshot, needs_chromium
 
-RUN = ["protocol.imgsz=64", "protocol.epochs=3", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
-       "train.warmup_epochs=0", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+RUN = [
+    "protocol.imgsz=64",
+    "protocol.epochs=3",
+    "protocol.patience=10",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 
 
 def _rec(epoch, box, cls, m50=None, m5095=None):
-    return {"epoch": epoch, "loss": {"box": box, "cls": cls}, "metrics": None if m50 is None else
-            {"mAP50": m50, "mAP50_95": m5095}}
+    return {
+        "epoch": epoch,
+        "loss": {"box": box, "cls": cls},
+        "metrics": None if m50 is None else {"mAP50": m50, "mAP50_95": m5095},
+    }
 
 
 def test_curves_average_the_runs_that_reached_each_epoch_and_leave_gaps_out(tmp_path):
@@ -62,8 +75,16 @@ def curves_report(tmp_path_factory):
             temporary_plugin(tinydet_plugin, name="tiny-curves"),
         ):
             for det in ("tinydet", "tinydet-dual"):
-                run(RunRequest(detector=det, dataset="shapes", encoding="test-ir8", store=root / "store",
-                               overrides=RUN, progress=False))
+                run(
+                    RunRequest(
+                        detector=det,
+                        dataset="shapes",
+                        encoding="test-ir8",
+                        store=root / "store",
+                        overrides=RUN,
+                        progress=False,
+                    )
+                )
             report = build_report(root / "store", out=root / "report", resamples=0)
     finally:
         torch.set_num_threads(threads)
@@ -101,7 +122,7 @@ def test_chromium_screenshot_shows_the_curves(curves_report, tmp_path):
     pixels = img.reshape(-1, 3).astype(int)
 
     def share(hex_color: str, tol: int = 10) -> float:
-        rgb = [int(hex_color[i:i + 2], 16) for i in (1, 3, 5)]
+        rgb = [int(hex_color[i : i + 2], 16) for i in (1, 3, 5)]
         return float(np.mean(np.all(np.abs(pixels - np.array(rgb[::-1])) <= tol, axis=1)))
 
     # the two mAP colours exist only in the curves figure (the store has no profile, so no accuracy figure)

@@ -66,21 +66,95 @@ def real_store(tmp_path_factory):
             temporary_plugin(ShapesPlugin(), name="shapes-report-test"),
         ):
             _cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
-            _cli(["run", "--detector", "tinydet-dual", "--dataset", DATASET, "--folds", "all", "--store", str(store),
-                  *sets])
-            _cli(["ablate", "--detector", "tinydet", "--dataset", DATASET, "--encodings", "c2,ir8,none",
-                  "--folds", "P4+P5", "--store", str(store), *sets])
+            _cli(
+                [
+                    "run",
+                    "--detector",
+                    "tinydet-dual",
+                    "--dataset",
+                    DATASET,
+                    "--folds",
+                    "all",
+                    "--store",
+                    str(store),
+                    *sets,
+                ]
+            )
+            _cli(
+                [
+                    "ablate",
+                    "--detector",
+                    "tinydet",
+                    "--dataset",
+                    DATASET,
+                    "--encodings",
+                    "c2,ir8,none",
+                    "--folds",
+                    "P4+P5",
+                    "--store",
+                    str(store),
+                    *sets,
+                ]
+            )
             _cli(["score-route", str(store / DATASET / "tinydet" / "c2" / "P4+P5" / "seed0")])
             for det in ("tinydet", "tinydet-dual"):
-                _cli(["run", "--detector", det, "--dataset", "shapes", "--encoding", "test-ir8", "--folds", "all",
-                      "--store", str(store), *sets[:-2]])
-                _cli(["profile", "--detector", det, "--imgsz", "64", "--no-latency", "--no-onnx", "--no-fvcore",
-                      "--store", str(store)])
+                _cli(
+                    [
+                        "run",
+                        "--detector",
+                        det,
+                        "--dataset",
+                        "shapes",
+                        "--encoding",
+                        "test-ir8",
+                        "--folds",
+                        "all",
+                        "--store",
+                        str(store),
+                        *sets[:-2],
+                    ]
+                )
+                _cli(
+                    [
+                        "profile",
+                        "--detector",
+                        det,
+                        "--imgsz",
+                        "64",
+                        "--no-latency",
+                        "--no-onnx",
+                        "--no-fvcore",
+                        "--store",
+                        str(store),
+                    ]
+                )
         landmarks = next((root / "data").glob("*/registration/landmarks.json"))
-        _cli(["sensing", "registration-error", "--landmarks", str(landmarks), "--dataset", DATASET,
-              "--store", str(store)])
-        _cli(["sensing", "displacement", "--dataset", DATASET, "--set", "dataset.profile=tiny", "--shifts", "2,5,10",
-              "--store", str(store)])
+        _cli(
+            [
+                "sensing",
+                "registration-error",
+                "--landmarks",
+                str(landmarks),
+                "--dataset",
+                DATASET,
+                "--store",
+                str(store),
+            ]
+        )
+        _cli(
+            [
+                "sensing",
+                "displacement",
+                "--dataset",
+                DATASET,
+                "--set",
+                "dataset.profile=tiny",
+                "--shifts",
+                "2,5,10",
+                "--store",
+                str(store),
+            ]
+        )
     finally:
         torch.set_num_threads(threads)
         mp.undo()
@@ -106,15 +180,18 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     # the seed's dataset has every section; the second dataset says what would fill its ablation, and has no sensing
     # sections: its runs recorded that it has no sensing stage (its plugin is not even loaded now)
     assert sorted(absent) == ["shapes/ablation"] and "harness ablate" in absent["shapes/ablation"]
-    assert not any(s.key in ("registration", "displacement", "screening-route") for s in report.sections
-                   if s.dataset == "shapes")
+    assert not any(
+        s.key in ("registration", "displacement", "screening-route") for s in report.sections if s.dataset == "shapes"
+    )
     (route,) = [s for s in report.sections if s.key == "screening-route" and s.dataset == DATASET]
     assert [r["run"] for r in route.tables[0].rows] == ["tinydet/c2/P4+P5/seed0"]
     store = Store(real_store)
     titles = [t.title for t in report.tables]
-    assert titles[:3] == [f"{DATASET}: project-grouped folds (held-out mAP, %)",
-                          f"{DATASET}: per category (AP over the folds that contain the category, %)",
-                          f"{DATASET}: encoding ablation of tinydet (held-out fold P4+P5, %)"]
+    assert titles[:3] == [
+        f"{DATASET}: project-grouped folds (held-out mAP, %)",
+        f"{DATASET}: per category (AP over the folds that contain the category, %)",
+        f"{DATASET}: encoding ablation of tinydet (held-out fold P4+P5, %)",
+    ]
     # project table: the numbers are the stored ones, the costs those each run measured on its model
     folds = report.tables[0]
     assert [r["detector"] for r in folds.rows] == ["tinydet", "tinydet-dual", "support"]
@@ -148,15 +225,25 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     assert [c.label for c in disp_table.columns][-3:] == ["R(2 px) %", "R(5 px) %", "R(10 px) %"]
     # the figure and every file
     fig = next(f for s in report.sections for f in s.figures if f.name == "accuracy_vs_gflops")
-    assert {(p.dataset, p.label) for p in fig.points} == {(d, det) for d in (DATASET, "shapes")
-                                                         for det in ("tinydet", "tinydet-dual")}
+    assert {(p.dataset, p.label) for p in fig.points} == {
+        (d, det) for d in (DATASET, "shapes") for det in ("tinydet", "tinydet-dual")
+    }
     assert "64x64" in fig.caption and "cpu" in fig.caption and "'paper' convention" in fig.caption
-    for name in ("report.md", "report.html", "tidy.csv", "figures/accuracy_vs_gflops.png",
-                 "figures/accuracy_vs_gflops.svg"):
+    for name in (
+        "report.md",
+        "report.html",
+        "tidy.csv",
+        "figures/accuracy_vs_gflops.png",
+        "figures/accuracy_vs_gflops.svg",
+    ):
         assert (out / name).stat().st_size > 500, name
     cross = next(t for t in report.tables if t.name == "cross-dataset")
     assert [(r["dataset"], r["detector"]) for r in cross.rows] == [
-        (DATASET, "tinydet"), (DATASET, "tinydet-dual"), ("shapes", "tinydet"), ("shapes", "tinydet-dual")]
+        (DATASET, "tinydet"),
+        (DATASET, "tinydet-dual"),
+        ("shapes", "tinydet"),
+        ("shapes", "tinydet-dual"),
+    ]
     assert cross.warning is None and cross.rows[0]["images"] == folds.rows[0]["images"]
     assert cross.rows[0]["mAP50_95"].mean == folds.rows[0]["mAP50_95"].mean
     tidy = (out / "tidy.csv").read_text().splitlines()
@@ -181,10 +268,28 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
 
 @pytest.mark.slow
 def test_report_command_prints_every_table_of_the_real_store(real_store, tmp_path):
-    out = _cli(["report", "--store", str(real_store), "--out", str(tmp_path / "r"), "--resamples", "0",
-                "--file-types", "csv", "--print"])
-    for title in ("project-grouped folds", "per category", "encoding ablation of tinydet", "paired comparisons",
-                  "registration error", "C2 amplitude kept under thermal displacement"):
+    out = _cli(
+        [
+            "report",
+            "--store",
+            str(real_store),
+            "--out",
+            str(tmp_path / "r"),
+            "--resamples",
+            "0",
+            "--file-types",
+            "csv",
+            "--print",
+        ]
+    )
+    for title in (
+        "project-grouped folds",
+        "per category",
+        "encoding ablation of tinydet",
+        "paired comparisons",
+        "registration error",
+        "C2 amplitude kept under thermal displacement",
+    ):
         assert title in out, title
     block = out.split("project-grouped folds (held-out mAP, %)")[1].splitlines()
     rule = block[3]
@@ -239,8 +344,9 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
         if not len(rows):
             return []
         cut = np.flatnonzero(np.diff(rows) > gap)
-        return list(zip([int(rows[0]), *(int(rows[c + 1]) for c in cut)], [*(int(rows[c]) for c in cut),
-                                                                            int(rows[-1])]))
+        return list(
+            zip([int(rows[0]), *(int(rows[c + 1]) for c in cut)], [*(int(rows[c]) for c in cut), int(rows[-1])])
+        )
 
     navy = rows_with((8, 48, 107), 10)  # the confusion matrices' darkest cells (Blues) and their colour bar
     legends = bands(rows_with(GT_COLOUR, 30), 100)  # the ground-truth key under each row of gallery pictures
@@ -254,7 +360,7 @@ def test_html_report_opens_in_chromium_without_console_errors(real_report, tmp_p
     between = img[matrices_end:pictures_top]  # after the confusion matrices, before the pictures: the PR panels
     for colour in ((31, 119, 180), (255, 127, 14)):  # both detectors' curves and legend keys (tab10)
         assert len(rows_with(colour, 12, between)) >= 3, colour
-    pictures = img[pictures_top:legends[-1][1]]
+    pictures = img[pictures_top : legends[-1][1]]
     orange = np.all(np.abs(pictures.astype(int) - np.array((60, 140, 245))) <= 60, axis=2)  # inferno's mid tones
     assert orange.mean() > 0.01  # the thermal panels' colour map
     html = (out / "report.html").read_text()

@@ -72,8 +72,14 @@ class OneBoxPerImage(nn.Module):
         self.rank = rank
 
     def forward(self, x, targets=None):
-        return [{"boxes": torch.tensor([[2.0, 2.0, 20.0, 20.0]]), "scores": torch.tensor([0.5 + 0.1 * self.rank]),
-                 "labels": torch.zeros(1, dtype=torch.long)} for _ in x]
+        return [
+            {
+                "boxes": torch.tensor([[2.0, 2.0, 20.0, 20.0]]),
+                "scores": torch.tensor([0.5 + 0.1 * self.rank]),
+                "labels": torch.zeros(1, dtype=torch.long),
+            }
+            for _ in x
+        ]
 
 
 class WithUnused(nn.Module):
@@ -94,8 +100,9 @@ def _free_port() -> int:
 
 
 def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
-    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
-                      MASTER_PORT=str(port))
+    os.environ.update(
+        RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port)
+    )
     torch.set_num_threads(1)
     from engine_helpers import ENCODINGS, tinydet_module
     from harness import distributed as hd
@@ -112,16 +119,27 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
         held_out = SampleSource(prepared, list(range(8, 15)), ENCODINGS[0])  # 7 images: shards of 4 and 3
         seed_everything(0)
         model = tinydet_module().build_tinydet(3, in_channels=4)
-        settings = TrainSettings(imgsz=64, epochs=2, batch=4, nominal_batch=4, warmup_epochs=0.0, warmup_min_iters=0,
-                                 close_mosaic=0, threads=1, device="cpu", seed=0)
+        settings = TrainSettings(
+            imgsz=64,
+            epochs=2,
+            batch=4,
+            nominal_batch=4,
+            warmup_epochs=0.0,
+            warmup_min_iters=0,
+            close_mosaic=0,
+            threads=1,
+            device="cpu",
+            seed=0,
+        )
         result = Trainer(model, TrainDataset(train, 64, AugmentSettings.off()), settings, progress=False).fit()
         flat = torch.cat([p.detach().flatten() for p in model.parameters()])
         weights = hd.gather_to_main(flat)
         # a detector with a parameter its forward never uses (as ICAFusion's layout has) still trains under DDP
         seed_everything(0)
         with_unused = WithUnused(tinydet_module().build_tinydet(3, in_channels=4))
-        unused_result = Trainer(with_unused, TrainDataset(train, 64, AugmentSettings.off()), settings,
-                                progress=False).fit()
+        unused_result = Trainer(
+            with_unused, TrainDataset(train, 64, AugmentSettings.off()), settings, progress=False
+        ).fit()
         visited: list[int] = []
         dets = predict(OneBoxPerImage(rank), held_out, 64, batch=2, distributed=True, visited=visited)
         if rank == 0:
@@ -153,8 +171,9 @@ def test_two_gloo_processes_train_with_ddp_and_predict_each_image_once(tmp_path)
     write_dataset(tmp_path / "ds", groups=("A", "B"), per_group=8)
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    mp.start_processes(_worker, args=(2, _free_port(), str(tmp_path / "ds"), queue), nprocs=2, join=True,
-                       start_method="spawn")
+    mp.start_processes(
+        _worker, args=(2, _free_port(), str(tmp_path / "ds"), queue), nprocs=2, join=True, start_method="spawn"
+    )
     out = {}
     for _ in range(2):
         out.update(queue.get(timeout=60))
@@ -172,9 +191,28 @@ def test_torchrun_harness_run_writes_the_store_from_rank_zero(tmp_path):
     from scale_helpers import TINY, sets, subprocess_env
 
     store = tmp_path / "store"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(_free_port()),
-           "-m", "harness", "run", "--detector", "tinydet", "--dataset", "shapes", "--folds", "A",
-           "--store", str(store), "--no-progress", *sets([*TINY, "eval.batch=3"])]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc-per-node",
+        "2",
+        "--master-port",
+        str(_free_port()),
+        "-m",
+        "harness",
+        "run",
+        "--detector",
+        "tinydet",
+        "--dataset",
+        "shapes",
+        "--folds",
+        "A",
+        "--store",
+        str(store),
+        "--no-progress",
+        *sets([*TINY, "eval.batch=3"]),
+    ]
     proc = subprocess.run(cmd, env=subprocess_env(tmp_path), capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert proc.stdout.count("tinydet on shapes") == 1  # rank 0 alone prints the tables

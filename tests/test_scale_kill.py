@@ -17,14 +17,36 @@ pytest.importorskip("harness.evaluation")
 from scale_helpers import harness_cmd, sets, subprocess_env
 
 # 32 training images in batches of 2 at 128 px: an epoch lasts long enough (about a second) to be killed in its middle
-KILL = ["dataset.per_group=32", "protocol.imgsz=128", "protocol.epochs=3", "protocol.patience=10", "train.batch=2",
-        "train.nominal_batch=4", "train.warmup_epochs=0.5", "train.warmup_min_iters=0", "train.close_mosaic=1",
-        "train.threads=1", "train.device=cpu", "eval.batch=16"]
+KILL = [
+    "dataset.per_group=32",
+    "protocol.imgsz=128",
+    "protocol.epochs=3",
+    "protocol.patience=10",
+    "train.batch=2",
+    "train.nominal_batch=4",
+    "train.warmup_epochs=0.5",
+    "train.warmup_min_iters=0",
+    "train.close_mosaic=1",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 
 
 def _cmd(store):
-    return harness_cmd("run", "--detector", "tinydet", "--dataset", "shapes", "--folds", "A", "--store", str(store),
-                       "--no-progress", *sets(KILL))
+    return harness_cmd(
+        "run",
+        "--detector",
+        "tinydet",
+        "--dataset",
+        "shapes",
+        "--folds",
+        "A",
+        "--store",
+        str(store),
+        "--no-progress",
+        *sets(KILL),
+    )
 
 
 def _run_dir(store):
@@ -70,8 +92,9 @@ def test_a_run_killed_mid_epoch_resumes_to_the_uninterrupted_result(tmp_path):
     assert last["epoch"] == 0 and not last["done"]  # killed inside epoch 2: only epoch 1 is checkpointed
 
     # the uninterrupted run (the dataset cache is ready now) goes on beside the resumed one
-    reference = subprocess.Popen(_cmd(tmp_path / "reference"), env=env, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.PIPE, text=True)
+    reference = subprocess.Popen(
+        _cmd(tmp_path / "reference"), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     again = subprocess.run(_cmd(store), env=env, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "resumed" in again.stdout

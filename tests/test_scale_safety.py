@@ -31,8 +31,10 @@ class _Payload:
 
 def _evil_checkpoint(path: Path, marker: Path) -> Path:
     weights = {"w": torch.zeros(2)}
-    torch.save({"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": 0, "model": weights,
-                "optimizer": _Payload(marker)}, path)
+    torch.save(
+        {"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": 0, "model": weights, "optimizer": _Payload(marker)},
+        path,
+    )
     return path
 
 
@@ -68,18 +70,26 @@ def test_resuming_from_a_tampered_last_checkpoint_is_refused(tmp_path):
     _evil_checkpoint(tmp_path / "ckpt" / "last.pt", marker)
     settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
     model = torch.nn.Conv2d(4, 1, 1)
-    trainer = Trainer(model, TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
-                      settings, checkpoint_dir=tmp_path / "ckpt", progress=False)
+    trainer = Trainer(
+        model,
+        TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
+        settings,
+        checkpoint_dir=tmp_path / "ckpt",
+        progress=False,
+    )
     with pytest.raises(ckpt.CheckpointError, match="last.pt: cannot be read as a weights-only checkpoint"):
         trainer.fit(resume=True)
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("text", [
-    "train: !!python/object/apply:pathlib.Path.write_text [marker, pwned]\n",
-    "train: !!python/object:harness.sweep.SweepSpec {detectors: [x]}\n",
-    "train: !!python/name:os.getcwd\n",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "train: !!python/object/apply:pathlib.Path.write_text [marker, pwned]\n",
+        "train: !!python/object:harness.sweep.SweepSpec {detectors: [x]}\n",
+        "train: !!python/name:os.getcwd\n",
+    ],
+)
 def test_yaml_with_python_tags_is_refused_everywhere(tmp_path, text):
     from harness.config import read_yaml
 
@@ -100,8 +110,15 @@ def test_yaml_with_python_tags_is_refused_everywhere(tmp_path, text):
     assert not (tmp_path / "marker").exists()
 
 
-@pytest.mark.parametrize("kw", [dict(profile="../../etc/passwd"), dict(profile="/etc/passwd"),
-                                dict(protocol="../profiles/smoke"), dict(profile="smoke", detector="../x")])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(profile="../../etc/passwd"),
+        dict(profile="/etc/passwd"),
+        dict(protocol="../profiles/smoke"),
+        dict(profile="smoke", detector="../x"),
+    ],
+)
 def test_config_names_cannot_reach_outside_the_config_folder(kw):
     from harness.config import load_config
 
@@ -140,8 +157,12 @@ def test_m3t_manifest_and_annotation_paths_cannot_leave_the_dataset_root(tmp_pat
 
 # ------------------------------------------------------------------------------------------------- the scan
 def _python_files() -> list[Path]:
-    listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "*.py"], cwd=REPO,
-                            capture_output=True, text=True)
+    listed = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "*.py"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     if listed.returncode == 0 and listed.stdout.strip():
         files = [REPO / line for line in listed.stdout.splitlines()]
     else:  # not a git checkout (an sdist): every .py outside virtual environments and caches
@@ -167,10 +188,16 @@ def _is_true(node: ast.AST | None) -> bool:
 
 
 UNSAFE_CALLS = {
-    "os.system": "starts a shell", "os.popen": "starts a shell", "subprocess.getoutput": "starts a shell",
-    "subprocess.getstatusoutput": "starts a shell", "pickle.load": "unpickles arbitrary objects",
-    "pickle.loads": "unpickles arbitrary objects", "yaml.unsafe_load": "constructs arbitrary Python objects",
-    "yaml.full_load": "constructs Python objects", "eval": "evaluates code", "exec": "executes code",
+    "os.system": "starts a shell",
+    "os.popen": "starts a shell",
+    "subprocess.getoutput": "starts a shell",
+    "subprocess.getstatusoutput": "starts a shell",
+    "pickle.load": "unpickles arbitrary objects",
+    "pickle.loads": "unpickles arbitrary objects",
+    "yaml.unsafe_load": "constructs arbitrary Python objects",
+    "yaml.full_load": "constructs Python objects",
+    "eval": "evaluates code",
+    "exec": "executes code",
 }
 
 
@@ -204,14 +231,18 @@ def unsafe_calls(source: str, filename: str = "<string>") -> list[str]:
 
 
 def test_the_scan_finds_what_it_looks_for():
-    bad = ("import os, subprocess, pickle, torch, yaml, numpy as np\nos.system('x')\n"
-           "subprocess.run('x', shell=True)\npickle.loads(b'')\ntorch.load('a')\n"
-           "torch.load('a', weights_only=False)\nnp.load('a', allow_pickle=True)\nyaml.load('a')\n"
-           "yaml.load('a', Loader=yaml.FullLoader)\n")
+    bad = (
+        "import os, subprocess, pickle, torch, yaml, numpy as np\nos.system('x')\n"
+        "subprocess.run('x', shell=True)\npickle.loads(b'')\ntorch.load('a')\n"
+        "torch.load('a', weights_only=False)\nnp.load('a', allow_pickle=True)\nyaml.load('a')\n"
+        "yaml.load('a', Loader=yaml.FullLoader)\n"
+    )
     assert len(unsafe_calls(bad)) == 8
-    good = ("import subprocess, torch, yaml\nsubprocess.run(['ls'])\ntorch.load('a', weights_only=True)\n"
-            "yaml.load('a', Loader=yaml.SafeLoader)\ns = 'os.system(1) shell=True'\nmodel.eval()\n"
-            "torch.load('a')  " + ALLOW + " (a test)\n")
+    good = (
+        "import subprocess, torch, yaml\nsubprocess.run(['ls'])\ntorch.load('a', weights_only=True)\n"
+        "yaml.load('a', Loader=yaml.SafeLoader)\ns = 'os.system(1) shell=True'\nmodel.eval()\n"
+        "torch.load('a')  " + ALLOW + " (a test)\n"
+    )
     assert unsafe_calls(good) == []
 
 

@@ -49,19 +49,29 @@ class FramedShapes(ShapesSource):
     def samples(self, report):
         for s in super().samples(report):
             w, h = s.width + 2 * ORIGIN[0], s.height + 2 * ORIGIN[1]  # the thermal image before the crop
-            s.meta.update(crop_origin=list(ORIGIN), crop_size=[s.width, s.height],
-                          H_rgb_to_frame=rotated_homography().tolist(),
-                          cameras={"thermal": lens(w, h), "rgb": lens(2 * w, 2 * h, -0.08, 0.01)},
-                          file_name=f"{s.group}/IMG_{s.image_id:04d}_W.JPG",
-                          thermal_file=f"{s.group}/IMG_{s.image_id:04d}_T.JPG")
+            s.meta.update(
+                crop_origin=list(ORIGIN),
+                crop_size=[s.width, s.height],
+                H_rgb_to_frame=rotated_homography().tolist(),
+                cameras={"thermal": lens(w, h), "rgb": lens(2 * w, 2 * h, -0.08, 0.01)},
+                file_name=f"{s.group}/IMG_{s.image_id:04d}_W.JPG",
+                thermal_file=f"{s.group}/IMG_{s.image_id:04d}_T.JPG",
+            )
             yield s
 
 
 class FramedPlugin:
     @hookimpl
     def register_datasets(self, register):
-        register(DatasetSpec(name="framed", open=lambda root=None, sensing=None, **o: FramedShapes(per_group=10),
-                             categories=CATEGORIES, default_encoding="test-ir8", description="framed shapes"))
+        register(
+            DatasetSpec(
+                name="framed",
+                open=lambda root=None, sensing=None, **o: FramedShapes(per_group=10),
+                categories=CATEGORIES,
+                default_encoding="test-ir8",
+                description="framed shapes",
+            )
+        )
 
 
 # ------------------------------------------------------------------------------------------------ frames
@@ -183,10 +193,16 @@ def finished_run(tmp_path_factory, one_torch_thread):
     from engine_helpers import ShapesPlugin
     from harness.runner import RunRequest, run
 
-    with temporary_plugin(ShapesPlugin(), name="shapes-test"), temporary_plugin(tinydet_plugin, name="tinydet-t"), \
-            temporary_plugin(FramedPlugin(), name="framed-test"):
-        summary = run(RunRequest(detector="tinydet", dataset="framed", folds="A", store=tmp / "store",
-                                 overrides=TINY, progress=False))
+    with (
+        temporary_plugin(ShapesPlugin(), name="shapes-test"),
+        temporary_plugin(tinydet_plugin, name="tinydet-t"),
+        temporary_plugin(FramedPlugin(), name="framed-test"),
+    ):
+        summary = run(
+            RunRequest(
+                detector="tinydet", dataset="framed", folds="A", store=tmp / "store", overrides=TINY, progress=False
+            )
+        )
         yield tmp, summary.results[0]
     if old is None:
         os.environ.pop("HARNESS_CACHE", None)
@@ -243,15 +259,29 @@ def test_shuffled_and_renumbered_exports_score_to_the_last_digit(finished_run, f
     rng = np.random.default_rng(7)
     new_image = {im["id"]: 5000 + int(k) for im, k in zip(listing["images"], rng.permutation(len(listing["images"])))}
     new_cat = {c["id"]: 40 - c["id"] for c in listing["categories"]}  # reversed, far from 1..3
-    theirs = [{"image_id": new_image[d["image_id"]], "category_id": new_cat[d["category_id"]], "bbox": d["bbox"],
-               "score": d["score"]} for d in exported]  # no file names or category names: ids only
+    theirs = [
+        {
+            "image_id": new_image[d["image_id"]],
+            "category_id": new_cat[d["category_id"]],
+            "bbox": d["bbox"],
+            "score": d["score"],
+        }
+        for d in exported
+    ]  # no file names or category names: ids only
     theirs = [theirs[i] for i in rng.permutation(len(theirs))]
-    their_list = {"images": [{**im, "id": new_image[im["id"]]} for im in listing["images"]],
-                  "categories": [{**c, "id": new_cat[c["id"]]} for c in listing["categories"]]}
+    their_list = {
+        "images": [{**im, "id": new_image[im["id"]]} for im in listing["images"]],
+        "categories": [{**c, "id": new_cat[c["id"]]} for c in listing["categories"]],
+    }
     (tmp / f"theirs-{frame}.json").write_text(json.dumps(theirs))
     (tmp / f"theirs-{frame}.images.json").write_text(json.dumps(their_list))
-    res = _score(tmp, f"renumbered-{frame}", tmp / f"theirs-{frame}.json", frame=frame,
-                 images=tmp / f"theirs-{frame}.images.json")
+    res = _score(
+        tmp,
+        f"renumbered-{frame}",
+        tmp / f"theirs-{frame}.json",
+        frame=frame,
+        images=tmp / f"theirs-{frame}.images.json",
+    )
     assert res.matching.scored == len(exported) and not res.matching.findings
     assert res.metrics["metrics"] == result.metrics["metrics"]
     assert res.metrics["per_category"] == result.metrics["per_category"]
@@ -289,9 +319,13 @@ def test_categories_by_name_or_map_and_unknown_ones_counted(finished_run):
     names = {1: "Window", 2: "WARM", 3: "cold"}
     theirs = [{**p, "category_id": {1: 7, 2: 8, 3: 9}[p["category_id"]]} for p in preds]
     theirs.append({**preds[0], "category_id": 99})
-    images = {"images": [{"id": r["id"], "file_name": r["file_name"]}
-                         for r in json.loads((result.path / "gt.json").read_text())["images"]],
-              "categories": [{"id": 6 + k, "name": n} for k, n in names.items()] + [{"id": 99, "name": "person"}]}
+    images = {
+        "images": [
+            {"id": r["id"], "file_name": r["file_name"]}
+            for r in json.loads((result.path / "gt.json").read_text())["images"]
+        ],
+        "categories": [{"id": 6 + k, "name": n} for k, n in names.items()] + [{"id": 99, "name": "person"}],
+    }
     (tmp / "cat_preds.json").write_text(json.dumps(theirs))
     (tmp / "cat_images.json").write_text(json.dumps(images))
     res = _score(tmp, "cats", tmp / "cat_preds.json", images=tmp / "cat_images.json")
@@ -311,8 +345,9 @@ def test_categories_by_name_or_map_and_unknown_ones_counted(finished_run):
 @pytest.mark.slow
 def test_predictions_of_no_known_image_are_a_clear_error(finished_run):
     tmp, _ = finished_run
-    (tmp / "bad.json").write_text(json.dumps([{"file_name": "nowhere.jpg", "category_id": 1,
-                                               "bbox": [1, 1, 5, 5], "score": 0.9}]))
+    (tmp / "bad.json").write_text(
+        json.dumps([{"file_name": "nowhere.jpg", "category_id": 1, "bbox": [1, 1, 5, 5], "score": 0.9}])
+    )
     with pytest.raises(DataError, match="unknown image"):
         _score(tmp, "bad", tmp / "bad.json")
 
@@ -355,7 +390,7 @@ def _thermal_truth(tmp, result):
     for a in gt["annotations"]:
         meta = records[a["image_id"]]["meta"]
         x, y, w, h = a["bbox"]
-        (x1, y1, x2, y2), = from_prepared(np.array([[x, y, x + w, y + h]]), "thermal", meta).tolist()
+        ((x1, y1, x2, y2),) = from_prepared(np.array([[x, y, x + w, y + h]]), "thermal", meta).tolist()
         out.append((meta["thermal_file"], [x1, y1, x2 - x1, y2 - y1], a["category_id"] - 1))
     return out
 
@@ -372,8 +407,11 @@ def _ultralytics(truth, zero_based: bool):
         d = {"image_id": int(stem) if stem.isnumeric() else stem}
         if not zero_based:
             d["file_name"] = PurePosixPath(fname).name
-        d.update(category_id=cls if zero_based else cls + 1, bbox=[round(v, 3) for v in box],
-                 score=round(0.95 - 0.001 * k, 5))
+        d.update(
+            category_id=cls if zero_based else cls + 1,
+            bbox=[round(v, 3) for v in box],
+            score=round(0.95 - 0.001 * k, 5),
+        )
         out.append(d)
     return out
 
@@ -383,12 +421,20 @@ def _mmdetection(truth):
     ``results.bbox.json`` that ``--format-only`` (CocoMetric.results2json) writes from it: image_id and
     category_id of that file, bbox [x, y, w, h] and score as float32 values."""
     names = sorted({f for f, _, _ in truth})
-    their = {"images": [{"id": k, "file_name": f, "width": 92, "height": 76} for k, f in enumerate(names)],
-             "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)]}
+    their = {
+        "images": [{"id": k, "file_name": f, "width": 92, "height": 76} for k, f in enumerate(names)],
+        "categories": [{"id": k + 1, "name": n} for k, n in enumerate(CATEGORIES)],
+    }
     ids = {f: k for k, f in enumerate(names)}
-    results = [{"image_id": ids[f], "bbox": np.asarray(box, np.float32).tolist(),
-                "score": float(np.float32(0.95 - 0.001 * k)), "category_id": cls + 1}
-               for k, (f, box, cls) in enumerate(truth)]
+    results = [
+        {
+            "image_id": ids[f],
+            "bbox": np.asarray(box, np.float32).tolist(),
+            "score": float(np.float32(0.95 - 0.001 * k)),
+            "category_id": cls + 1,
+        }
+        for k, (f, box, cls) in enumerate(truth)
+    ]
     return their, results
 
 
@@ -403,8 +449,13 @@ def test_ultralytics_zero_based_classes_without_a_map_stop_and_name_the_shift(fi
     assert "shift of +1" in text and "--category-map 0=window,1=warm,2=cold" in text
     assert "categories the dataset does not have: 0 (" in text and "--allow-implausible" in text
     assert not (tmp / "store" / "framed" / "external.yolo-zero").exists()  # nothing stored
-    mapped = _score(tmp, "yolo-zero-mapped", tmp / "yolo8.0.json", frame="thermal",
-                    category_map={"0": "window", "1": "warm", "2": "cold"})
+    mapped = _score(
+        tmp,
+        "yolo-zero-mapped",
+        tmp / "yolo8.0.json",
+        frame="thermal",
+        category_map={"0": "window", "1": "warm", "2": "cold"},
+    )
     assert mapped.metrics["metrics"]["mAP50"] == 1.0 and not mapped.matching.findings
 
 
@@ -459,8 +510,19 @@ def test_compare_detectors_addresses_external_runs(finished_run, cli_runner):
         comp = compare_detectors(tmp / "store", "framed", "tinydet", name, resamples=0)
         assert comp.b == "external/paired/external" and comp.folds == ["A"]
         assert comp.fold_differences["mAP50_95"].diffs == [0.0]  # the run's own predictions, scored as external
-    res = cli_runner(["compare-detectors", "tinydet", "external/paired", "--dataset", "framed", "--store",
-                      str(tmp / "store"), "--resamples", "0"])
+    res = cli_runner(
+        [
+            "compare-detectors",
+            "tinydet",
+            "external/paired",
+            "--dataset",
+            "framed",
+            "--store",
+            str(tmp / "store"),
+            "--resamples",
+            "0",
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert "external/paired" in res.stdout
 
@@ -475,8 +537,19 @@ def test_a_refused_pair_suggests_the_command_line_option_not_the_api_one(finishe
     images["images"].pop(0)
     (tmp / "fewer.images.json").write_text(json.dumps(images))
     _score(tmp, "fewer", e.path, images=tmp / "fewer.images.json")
-    res = cli_runner(["compare-detectors", "tinydet", "external/fewer", "--dataset", "framed", "--store",
-                      str(tmp / "store"), "--resamples", "0"])
+    res = cli_runner(
+        [
+            "compare-detectors",
+            "tinydet",
+            "external/fewer",
+            "--dataset",
+            "framed",
+            "--store",
+            str(tmp / "store"),
+            "--resamples",
+            "0",
+        ]
+    )
     assert res.exit_code == 2
     assert "refusing to compare" in res.output and "--allow-mismatched" in res.output
     assert "allow=True" not in res.output

@@ -24,8 +24,18 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 REPO = Path(__file__).resolve().parent.parent
 TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
 REAL = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
-FAST = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=5", "train.batch=8", "train.nominal_batch=8",
-        "train.warmup_epochs=0.5", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+FAST = [
+    "protocol.imgsz=64",
+    "protocol.epochs=1",
+    "protocol.patience=5",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0.5",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 
 
 @dataclass
@@ -65,8 +75,21 @@ def trained(tiny_source, tmp_path_factory):  # noqa: F811
     sets = [a for s in [*FAST, f"dataset.root={tiny_source}"] for a in ("--set", s)]
     try:
         with temporary_plugin(tinydet, name="tinydet-screen-test"):
-            _cli(["run", "--detector", "tinydet", "--dataset", "m3t-synth", "--folds", "P1", "--store",
-                  str(root / "store"), "--no-progress", *sets])
+            _cli(
+                [
+                    "run",
+                    "--detector",
+                    "tinydet",
+                    "--dataset",
+                    "m3t-synth",
+                    "--folds",
+                    "P1",
+                    "--store",
+                    str(root / "store"),
+                    "--no-progress",
+                    *sets,
+                ]
+            )
             run = root / "store" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0"
             yield Trained(run, next((root / "cache" / "m3t-synth").glob("*/homographies.yaml")), tiny_source, root)
     finally:
@@ -99,18 +122,28 @@ def _frames(out: Path) -> dict[str, dict]:
 def test_captures_pair_by_name_and_other_files_are_ignored(tmp_path):
     from harness.screen import find_captures
 
-    for name in ("DJI_20240101120000_0001_W.JPG", "DJI_20240101120000_0001_T.JPG", "DJI_20240101120000_0001_Z.JPG",
-                 "DJI_20240101120005_0002_W.jpg", "DJI_20240101120005_0002_T.png", "DJI_20240101120009_0003_V.MP4",
-                 "DJI_20240101120012_0004_W.JPG", "DJI_20240101120015_0005_T.JPG", "notes.txt", "sub/DJI_X_0006_W.JPG",
-                 "sub/DJI_X_0006_T.JPG"):
+    for name in (
+        "DJI_20240101120000_0001_W.JPG",
+        "DJI_20240101120000_0001_T.JPG",
+        "DJI_20240101120000_0001_Z.JPG",
+        "DJI_20240101120005_0002_W.jpg",
+        "DJI_20240101120005_0002_T.png",
+        "DJI_20240101120009_0003_V.MP4",
+        "DJI_20240101120012_0004_W.JPG",
+        "DJI_20240101120015_0005_T.JPG",
+        "notes.txt",
+        "sub/DJI_X_0006_W.JPG",
+        "sub/DJI_X_0006_T.JPG",
+    ):
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_bytes(b"x")
     flight = find_captures(tmp_path)
-    assert [c.name for c in flight.captures] == ["DJI_20240101120000_0001", "DJI_20240101120005_0002",
-                                                 "sub/DJI_X_0006"]
+    assert [c.name for c in flight.captures] == ["DJI_20240101120000_0001", "DJI_20240101120005_0002", "sub/DJI_X_0006"]
     assert flight.captures[1].thermal.name == "DJI_20240101120005_0002_T.png"
     assert sorted((Path(p).name, r.split(":")[0]) for p, r in flight.bad) == [
-        ("DJI_20240101120012_0004_W.JPG", "no thermal partner"), ("DJI_20240101120015_0005_T.JPG", "no wide partner")]
+        ("DJI_20240101120012_0004_W.JPG", "no thermal partner"),
+        ("DJI_20240101120015_0005_T.JPG", "no wide partner"),
+    ]
     assert flight.ignored == 3  # the zoom capture, the video, the notes
 
 
@@ -163,8 +196,11 @@ def test_a_default_screen_gives_the_runs_predictions_under_the_screening_route(t
         iid, want_frame = stored[name]
         assert rec["route"] == want_frame["route"] == "auto (group G01)"
         assert rec["registration"] == want_frame["registration"] and rec["registration"]["frames"] == 2
-        want = sorted((d["category_id"], d["bbox"], d["score"]) for d in result["predictions"]["automatic"]
-                      if d["image_id"] == iid and d["score"] >= threshold)
+        want = sorted(
+            (d["category_id"], d["bbox"], d["score"])
+            for d in result["predictions"]["automatic"]
+            if d["image_id"] == iid and d["score"] >= threshold
+        )
         assert sorted((f["class_id"] + 1, f["bbox"], f["score"]) for f in rec["findings"]) == want, name
         found += len(want)
     assert found > 0
@@ -182,8 +218,17 @@ def test_the_model_input_is_the_prepared_sample_bit_for_bit(trained, screened):
     req = ScreenRequest(flight=flight, out=trained.root / "unused", run=trained.run)
     sm = load_model(req)
     rgb_cam, th_cam, _ = resolve_cameras(req, sm)
-    fe = FrontEnd(FrontEndSettings(sm.sensing, sm.encoding.name, sm.encoding_params, rgb_cam, th_cam,
-                                   load_homography(trained.homographies, "P1-01")), sm.encoding)
+    fe = FrontEnd(
+        FrontEndSettings(
+            sm.sensing,
+            sm.encoding.name,
+            sm.encoding_params,
+            rgb_cam,
+            th_cam,
+            load_homography(trained.homographies, "P1-01"),
+        ),
+        sm.encoding,
+    )
     prepared = PreparedDataset(trained.homographies.parent)
     index = {Path(r["meta"]["file_name"]).name: i for i, r in enumerate(prepared.records)}
     enc = get_host().encoding("c2")
@@ -225,10 +270,14 @@ def test_box_temperatures_are_statistics_of_the_decoded_map(screened):
         cols = [j for j in range(t.shape[1]) if x0 <= j + 0.5 < x1]
         rws = [i for i in range(t.shape[0]) if y0 <= i + 0.5 < y1]
         inside = t[np.ix_(rws, cols)]
-        expect = {"t_min": inside.min(), "t_mean": inside.mean(), "t_max": inside.max(),
-                  "t_p95": np.percentile(inside, 95)}
+        expect = {
+            "t_min": inside.min(),
+            "t_mean": inside.mean(),
+            "t_max": inside.max(),
+            "t_p95": np.percentile(inside, 95),
+        }
         r = max(2, math.ceil(0.25 * min(len(rws), len(cols))))
-        yy, xx = np.mgrid[0:t.shape[0], 0:t.shape[1]]
+        yy, xx = np.mgrid[0 : t.shape[0], 0 : t.shape[1]]
         near = (yy >= rws[0] - r) & (yy <= rws[-1] + r) & (xx >= cols[0] - r) & (xx <= cols[-1] + r)
         box = (yy >= rws[0]) & (yy <= rws[-1]) & (xx >= cols[0]) & (xx <= cols[-1])
         expect["t_ring"] = np.median(t[near & ~box])
@@ -249,7 +298,8 @@ def test_positions_and_outputs_of_a_screen(screened):
     assert len(geo["features"]) == len(rows)
     first = geo["features"][0]
     assert first["geometry"]["coordinates"] == pytest.approx(
-        [POSITIONS[first["properties"]["frame"]][k] for k in ("lon", "lat", "alt_abs")])
+        [POSITIONS[first["properties"]["frame"]][k] for k in ("lon", "lat", "alt_abs")]
+    )
     assert sorted(p.name for p in (out / "overlays").iterdir()) == [f"{n}.jpg" for n in sorted(POSITIONS)]
     html = (out / "index.html").read_text()
     counts = {}
@@ -278,18 +328,37 @@ def test_gps_and_gimbal_equal_what_exiftool_reads(tmp_path):
     files = sorted(REAL.glob("m3t_?.jpg"))
     if len(files) != 3:
         pytest.skip(f"the real M3T files are not at {REAL}")
-    values = {"lat": -33.86785123, "lon": 151.20732411, "alt_abs": 58.123, "alt_rel": -3.5, "gimbal_yaw": -179.9,
-              "gimbal_pitch": -90.0, "gimbal_roll": 0.1, "flight_yaw": 12.34}
+    values = {
+        "lat": -33.86785123,
+        "lon": 151.20732411,
+        "alt_abs": 58.123,
+        "alt_rel": -3.5,
+        "gimbal_yaw": -179.9,
+        "gimbal_pitch": -90.0,
+        "gimbal_roll": 0.1,
+        "flight_yaw": 12.34,
+    }
     written = []
     for k, f in enumerate(files):
         copy = tmp_path / f"DJI_20220723151219_{k:04d}_T.JPG"
         copy.write_bytes(add_xmp(f.read_bytes(), {**values, "lat": values["lat"] + k * 1e-6}))
         written.append(copy)
-    names = {"lat": "GPSLatitude", "lon": "GPSLongitude", "alt_abs": "AbsoluteAltitude",
-             "alt_rel": "RelativeAltitude", "gimbal_yaw": "GimbalYawDegree", "gimbal_pitch": "GimbalPitchDegree",
-             "gimbal_roll": "GimbalRollDegree", "flight_yaw": "FlightYawDegree"}
-    proc = subprocess.run(["exiftool", "-j", "-n", "-XMP-drone-dji:all", *map(str, files + written)],
-                          capture_output=True, text=True, check=True)
+    names = {
+        "lat": "GPSLatitude",
+        "lon": "GPSLongitude",
+        "alt_abs": "AbsoluteAltitude",
+        "alt_rel": "RelativeAltitude",
+        "gimbal_yaw": "GimbalYawDegree",
+        "gimbal_pitch": "GimbalPitchDegree",
+        "gimbal_roll": "GimbalRollDegree",
+        "flight_yaw": "FlightYawDegree",
+    }
+    proc = subprocess.run(
+        ["exiftool", "-j", "-n", "-XMP-drone-dji:all", *map(str, files + written)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     by_file = {Path(r["SourceFile"]).name: r for r in json.loads(proc.stdout)}
     for path in files + written:
         ours = {k: v for k, v in read_position(path.read_bytes(), str(path)).to_dict().items() if k in names}
@@ -310,8 +379,11 @@ def test_bad_files_are_named_and_skipped_and_the_rest_screened(trained, tmp_path
     shutil.copy(flight / "DJI_20240512094000_0001_W.JPG", flight / "DJI_20240512094003_0005_W.JPG")  # no partner
     text = _screen(trained, flight, tmp_path / "out", *_file_route(trained), code=1)
     assert "3 bad file(s), skipped:" in text
-    for bad in ("DJI_20240512094001_0003_W.JPG: not a JPEG file", "DJI_20240512094002_0004_T.JPG: truncated JPEG",
-                "DJI_20240512094003_0005_W.JPG: no thermal partner"):
+    for bad in (
+        "DJI_20240512094001_0003_W.JPG: not a JPEG file",
+        "DJI_20240512094002_0004_T.JPG: truncated JPEG",
+        "DJI_20240512094003_0005_W.JPG: no thermal partner",
+    ):
         assert f"{flight}/{bad}" in text, bad
     assert sorted(_frames(tmp_path / "out")) == sorted(POSITIONS)
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
@@ -334,12 +406,10 @@ def test_a_rerun_skips_frames_done_and_refuses_other_settings(trained, screened,
     first = changed / "DJI_20240512094000_0001_W.JPG"
     first.write_bytes(first.read_bytes() + b"\x00")  # bytes after the image: a new file, the same picture
     shutil.copytree(out, tmp_path / "again2")
-    assert "screened 1 frame(s) now, 1 earlier" in _screen(trained, changed, tmp_path / "again2",
-                                                             *_file_route(trained))
+    assert "screened 1 frame(s) now, 1 earlier" in _screen(trained, changed, tmp_path / "again2", *_file_route(trained))
     text = _screen(trained, flight, out, *_file_route(trained), "--conf", "0.5", code=2)
     assert "holds a screen with another model or other settings" in text
-    assert "screened 2 frame(s) now" in _screen(trained, flight, out, *_file_route(trained), "--conf", "0.5",
-                                                "--force")
+    assert "screened 2 frame(s) now" in _screen(trained, flight, out, *_file_route(trained), "--conf", "0.5", "--force")
 
 
 def test_workers_give_the_same_findings(trained, screened, tmp_path):
@@ -361,14 +431,29 @@ def test_the_front_end_beside_the_model_changes_nothing(trained, screened, tmp_p
         recs = []
         for overlap in (True, False):
             out = tmp_path / f"{route[1]}-{overlap}"
-            screen(ScreenRequest(flight=flight, out=out, run=trained.run, conf=0.001, progress=False,
-                                 homography=route[0], group=route[1], overlap=overlap))
+            screen(
+                ScreenRequest(
+                    flight=flight,
+                    out=out,
+                    run=trained.run,
+                    conf=0.001,
+                    progress=False,
+                    homography=route[0],
+                    group=route[1],
+                    overlap=overlap,
+                )
+            )
             recs.append(_frames(out))
             assert len(recs[-1]) == 2 and all(r["timings"]["model_cpu"] >= 0 for r in recs[-1].values())
             timings = json.loads((out / "manifest.json").read_text())["timings"]
             assert timings["overlapped"] is overlap and timings["frontend_over_model_cpu"] > 0
-        a, b = ({n: {k: v for k, v in r.items() if k not in ("timings", "H_rgb_to_aligned", "registered",
-                                                             "findings")} for n, r in x.items()} for x in recs)
+        a, b = (
+            {
+                n: {k: v for k, v in r.items() if k not in ("timings", "H_rgb_to_aligned", "registered", "findings")}
+                for n, r in x.items()
+            }
+            for x in recs
+        )
         assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN != NaN
         for n in recs[0]:
             assert np.allclose(recs[0][n]["H_rgb_to_aligned"], recs[1][n]["H_rgb_to_aligned"], rtol=1e-6, atol=1e-6)
@@ -423,11 +508,15 @@ def test_the_wide_header_is_read_without_a_pass_over_the_picture(tmp_path, monke
     monkeypatch.setattr(jpeg, "_find_eoi", lambda d, start: scanned.append(len(d) - start) or find_eoi(d, start))
     full = jpeg.read_segments(data, "wide.jpg")
     head = read_header(data, Path("wide.jpg"))
-    assert (head.segments, head.width, head.height, head.components) == \
-        (full.segments, full.width, full.height, full.components) and (head.width, head.height) == (1000, 800)
+    assert (head.segments, head.width, head.height, head.components) == (
+        full.segments,
+        full.width,
+        full.height,
+        full.components,
+    ) and (head.width, head.height) == (1000, 800)
     assert scanned[0] > 2 * HEADER_BYTES and scanned[1] < HEADER_BYTES
     with pytest.raises(DataError, match="wide.jpg: truncated JPEG"):
-        read_header(data[:len(data) // 2], Path("wide.jpg"))
+        read_header(data[: len(data) // 2], Path("wide.jpg"))
     assert read_header(data + b"trailer", Path("wide.jpg")).segments == full.segments
     assert scanned[-1] > 2 * HEADER_BYTES
 
@@ -437,11 +526,14 @@ def test_a_rejected_registration_is_listed(trained, tmp_path):
     flight = tmp_path / "flight"
     flight.mkdir()
     shutil.copy(trained.tiny / "images" / "P1" / "DJI_20240512094000_0001_T.JPG", flight)
-    shutil.copy(trained.tiny / "images" / "P3" / "DJI_20240721131001_0001_W.JPG",
-                flight / "DJI_20240512094000_0001_W.JPG")
+    shutil.copy(
+        trained.tiny / "images" / "P3" / "DJI_20240721131001_0001_W.JPG", flight / "DJI_20240512094000_0001_W.JPG"
+    )
     text = _screen(trained, flight, tmp_path / "prior", "--conf", "0.001")
-    assert "registration check failed, screened with the factory prior: DJI_20240512094000_0001 (one frame only, " \
-           "and its structure correlation" in text
+    assert (
+        "registration check failed, screened with the factory prior: DJI_20240512094000_0001 (one frame only, "
+        "and its structure correlation" in text
+    )
     assert "expected registration error about 2.9 px" in text  # 1.4 % of the 160x128 frame's diagonal
     (rec,) = _frames(tmp_path / "prior").values()
     assert rec["route"] == "prior (automatic registration rejected)" and rec["registration"]["ok"] is False
@@ -487,8 +579,7 @@ def _close(a: dict[str, dict], b: dict[str, dict], score_tol: float, box_tol: fl
 def test_onnx_runtime_gives_the_same_findings_as_pytorch(trained, screened, tmp_path):
     """Tolerance (docs/screening.md): scores within 1e-4, boxes within 0.02 px."""
     flight, out, _ = screened
-    _screen(trained, flight, tmp_path / "onnx", *_file_route(trained), "--conf", trained.eval_conf,
-            "--backend", "onnx")
+    _screen(trained, flight, tmp_path / "onnx", *_file_route(trained), "--conf", trained.eval_conf, "--backend", "onnx")
     onnx = json.loads((tmp_path / "onnx" / "model.onnx.json").read_text())
     assert onnx["max_abs_diff"] <= 1e-4
     _close(_frames(out), _frames(tmp_path / "onnx"), 1e-4, 0.02)
@@ -545,8 +636,12 @@ def test_reduced_decoding_changes_the_model_input_little(trained, tmp_path):
     cam2 = cam.scaled((2 * cam.image_size[0], 2 * cam.image_size[1])).to_dict()
     c2 = next(e for e in ENCODINGS if e.name == "c2")
     cap = find_captures(flight).captures[0]
-    images = [FrontEnd(FrontEndSettings({"registration": {"method": "focal"}}, "c2", rgb_camera=cam2,
-                                        rgb_decode=mode), c2).process(cap) for mode in ("full", "auto")]
+    images = [
+        FrontEnd(
+            FrontEndSettings({"registration": {"method": "focal"}}, "c2", rgb_camera=cam2, rgb_decode=mode), c2
+        ).process(cap)
+        for mode in ("full", "auto")
+    ]
     assert [f.reduction for f in images] == [1, 2]
     a, b = (f.image.astype(np.int16) for f in images)
     assert np.abs(a[..., :3] - b[..., :3]).mean() < 1.2  # grey levels (measured 0.84)
@@ -557,10 +652,37 @@ def test_screening_with_a_weights_file(trained, screened, tmp_path):
     """``--weights`` with the detector and dataset: the run's findings again when configured like the run."""
     flight, out, _ = screened
     sets = [a for s in ["protocol.imgsz=64", "eval.batch=16"] for a in ("--set", s)]
-    _cli(["screen", str(flight), "--weights", str(trained.run / "checkpoints" / "best.pt"), "--detector", "tinydet",
-          "--dataset", "m3t-synth", *sets, "--out", str(tmp_path / "w"), "--no-progress", *_file_route(trained),
-          "--rgb-camera", str(trained.tiny / "calibration" / "wide_camera.yaml"), "--conf", trained.eval_conf])
+    _cli(
+        [
+            "screen",
+            str(flight),
+            "--weights",
+            str(trained.run / "checkpoints" / "best.pt"),
+            "--detector",
+            "tinydet",
+            "--dataset",
+            "m3t-synth",
+            *sets,
+            "--out",
+            str(tmp_path / "w"),
+            "--no-progress",
+            *_file_route(trained),
+            "--rgb-camera",
+            str(trained.tiny / "calibration" / "wide_camera.yaml"),
+            "--conf",
+            trained.eval_conf,
+        ]
+    )
     _close(_frames(out), _frames(tmp_path / "w"), 0.0, 0.0)
-    text = _cli(["screen", str(flight), "--weights", str(trained.run / "checkpoints" / "best.pt"), "--out",
-                 str(tmp_path / "x")], code=2)
+    text = _cli(
+        [
+            "screen",
+            str(flight),
+            "--weights",
+            str(trained.run / "checkpoints" / "best.pt"),
+            "--out",
+            str(tmp_path / "x"),
+        ],
+        code=2,
+    )
     assert "--weights needs --detector NAME and --dataset NAME" in text

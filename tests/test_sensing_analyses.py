@@ -21,15 +21,22 @@ def _blob_scene(blobs, h=96, w=128, seed=0) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w]
     t = np.full((h, w), 25.0) + rng.normal(0, 0.02, (h, w))
     for cx, cy, r, amp in blobs:
-        t += amp * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * r ** 2))
+        t += amp * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * r**2))
     return t.astype(np.float32)
 
 
 def _sample(image_id, blobs, boxes, labels, seed=0) -> AlignedSample:
     t = _blob_scene(blobs, seed=seed)
-    return AlignedSample(image_id=image_id, rgb=np.zeros(t.shape + (3,), np.uint8), thermal=t,
-                         ir8=np.zeros(t.shape, np.uint8), boxes=np.asarray(boxes, np.float32),
-                         labels=np.asarray(labels, np.int64), group="P1", meta={"file_name": f"img{image_id}"})
+    return AlignedSample(
+        image_id=image_id,
+        rgb=np.zeros(t.shape + (3,), np.uint8),
+        thermal=t,
+        ir8=np.zeros(t.shape, np.uint8),
+        boxes=np.asarray(boxes, np.float32),
+        labels=np.asarray(labels, np.int64),
+        group="P1",
+        meta={"file_name": f"img{image_id}"},
+    )
 
 
 def _samples():
@@ -57,8 +64,12 @@ def test_box_amplitudes_at_zero_shift_are_the_mean_absolute_contrast():
     # shifting by 5 px moves a 2-px hot spot out of its 8-px box: the box keeps little of its contrast
     assert amps[0, 2] < 0.6 * amps[0, 0]
     # a direction average, computed by hand for d = 2
-    by_hand = np.mean([contrast_amplitude(c2(shift_replicate(s.thermal, dx, dy)), s.boxes[0])
-                       for dx, dy in ((2, 0), (-2, 0), (0, 2), (0, -2))])
+    by_hand = np.mean(
+        [
+            contrast_amplitude(c2(shift_replicate(s.thermal, dx, dy)), s.boxes[0])
+            for dx, dy in ((2, 0), (-2, 0), (0, 2), (0, -2))
+        ]
+    )
     assert amps[0, 1] == pytest.approx(by_hand)
 
 
@@ -112,8 +123,20 @@ def _prepared(tmp_path):
 def test_displacement_command_on_a_prepared_dataset(tmp_path, cli_runner):
     folder = _prepared(tmp_path)
     out = tmp_path / "disp.json"
-    res = cli_runner(["sensing", "displacement", "--prepared", str(folder), "--shifts", "2,5",
-                      "--store", str(tmp_path / "store"), "--out", str(out)])
+    res = cli_runner(
+        [
+            "sensing",
+            "displacement",
+            "--prepared",
+            str(folder),
+            "--shifts",
+            "2,5",
+            "--store",
+            str(tmp_path / "store"),
+            "--out",
+            str(out),
+        ]
+    )
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())
     assert data["dataset"] == "toy" and data["shifts"] == [0, 2, 5] and data["classes"]["crack"]["boxes"] == 2
@@ -121,8 +144,21 @@ def test_displacement_command_on_a_prepared_dataset(tmp_path, cli_runner):
     assert stored["classes"] == data["classes"]
     assert "R(5 px)" in res.output and "crack" in res.output
     # encoding parameters come from the config, like everywhere else
-    res = cli_runner(["sensing", "displacement", "--prepared", str(folder), "--shifts", "2", "--no-store",
-                      "--set", "encoding.c2.sigma=5.0", "--out", str(tmp_path / "s5.json")])
+    res = cli_runner(
+        [
+            "sensing",
+            "displacement",
+            "--prepared",
+            str(folder),
+            "--shifts",
+            "2",
+            "--no-store",
+            "--set",
+            "encoding.c2.sigma=5.0",
+            "--out",
+            str(tmp_path / "s5.json"),
+        ]
+    )
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "s5.json").read_text())["params"]["sigma"] == 5.0
 

@@ -19,8 +19,13 @@ CAMERAS = SHARED / "data" / "dji-rjpeg-cameras"
 M3T = SHARED / "data" / "dji-m3t-rjpeg"
 needs_cameras = pytest.mark.skipif(not CAMERAS.is_dir(), reason=f"{CAMERAS} not present")
 DECODED = {"h20t_dirp": ("dirp", "ZH20T"), "m2ea_iirp": ("iirp", "MAVIC2-ENTERPRISE-ADVANCED")}
-ALL = {**DECODED, "m4t_iirp": ("iirp", "M4T"), "m3td_hirp_a": ("hirp", "M3TD"), "m3td_hirp_b": ("hirp", "M3TD"),
-       "m3td_hirp_c": ("hirp", "M3TD")}
+ALL = {
+    **DECODED,
+    "m4t_iirp": ("iirp", "M4T"),
+    "m3td_hirp_a": ("hirp", "M3TD"),
+    "m3td_hirp_b": ("hirp", "M3TD"),
+    "m3td_hirp_c": ("hirp", "M3TD"),
+}
 
 
 @needs_cameras
@@ -49,8 +54,11 @@ def test_original_raw_of_every_camera_is_exact(name):
 @needs_cameras
 @pytest.mark.parametrize("decoder", ["auto", "dji", "blackbody"])
 def test_hirp_is_refused_naming_camera_and_format(decoder):
-    with pytest.raises(dji_formats.UnsupportedFormat, match=r"m3td_hirp_a\.jpg: camera 'M3TD', DJI R-JPEG "
-                                                            r"format 'hirp'.*--converter dji_irp.*no approximate"):
+    with pytest.raises(
+        dji_formats.UnsupportedFormat,
+        match=r"m3td_hirp_a\.jpg: camera 'M3TD', DJI R-JPEG "
+        r"format 'hirp'.*--converter dji_irp.*no approximate",
+    ):
         read_rjpeg(CAMERAS / "m3td_hirp_a.jpg", decoder)
     with pytest.raises(dji_formats.UnsupportedFormat, match=r"format 'hirp'.*no approximate route"):
         read_rjpeg(CAMERAS / "m3td_hirp_a.jpg", approximate=True)
@@ -59,11 +67,17 @@ def test_hirp_is_refused_naming_camera_and_format(decoder):
 @needs_cameras
 def test_m4t_is_refused_by_default_naming_camera_format_and_both_options():
     path = CAMERAS / "m4t_iirp.jpg"
-    with pytest.raises(dc.UnsupportedCorrection, match=r"camera 'M4T', DJI R-JPEG format 'iirp' \(APP4 format "
-                                                       r"version 0x300\).*emissivity.*--converter dji_irp"):
+    with pytest.raises(
+        dc.UnsupportedCorrection,
+        match=r"camera 'M4T', DJI R-JPEG format 'iirp' \(APP4 format "
+        r"version 0x300\).*emissivity.*--converter dji_irp",
+    ):
         read_rjpeg(path, decoder="dji")
-    with pytest.raises(dc.UnsupportedCorrection, match=r"m4t_iirp\.jpg: camera 'M4T', DJI R-JPEG format 'iirp'.*"
-                                                       r"--converter dji_irp.*--approximate") as err:
+    with pytest.raises(
+        dc.UnsupportedCorrection,
+        match=r"m4t_iirp\.jpg: camera 'M4T', DJI R-JPEG format 'iirp'.*"
+        r"--converter dji_irp.*--approximate",
+    ) as err:
         read_rjpeg(path)
     assert err.value.kind == "emissivity-remap"
     rj = read_rjpeg(path, decoder="blackbody")  # uncorrected only when asked for
@@ -101,10 +115,11 @@ def test_decode_command_decodes_what_it_can_and_names_the_rest(tmp_path, cli_run
 
 
 def test_unknown_camera_is_refused_naming_the_model(tmp_path):
-    data = bytearray(write_rjpeg(tmp_path / "ok.jpg", np.full((8, 8), 20.0, np.float32),
-                                 exif={"Model": "XT2"}).read_bytes())
+    data = bytearray(
+        write_rjpeg(tmp_path / "ok.jpg", np.full((8, 8), 20.0, np.float32), exif={"Model": "XT2"}).read_bytes()
+    )
     app4 = next(s for s in jpeg.read_segments(bytes(data)).segments if s.marker == jpeg.APP4)
-    data[app4.offset + 4:app4.offset + 8] = b"\x00\x00\x00\x00"  # no format tag: the model decides
+    data[app4.offset + 4 : app4.offset + 8] = b"\x00\x00\x00\x00"  # no format tag: the model decides
     path = tmp_path / "xt2.jpg"
     path.write_bytes(bytes(data))
     with pytest.raises(dji_formats.UnsupportedFormat, match=r"xt2\.jpg: camera 'XT2' does not write"):
@@ -119,8 +134,7 @@ def test_lookup_table_equals_the_per_value_correction(path):
     rj = read_rjpeg(path)
     p = rj.correction_params()
     args = (rj.tau_table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"])
-    np.testing.assert_array_equal(dc.correct_raw14(rj.raw14, *args),
-                                  dc.correct_temperature(rj.blackbody_c(), *args))
+    np.testing.assert_array_equal(dc.correct_raw14(rj.raw14, *args), dc.correct_temperature(rj.blackbody_c(), *args))
 
 
 @needs_cameras
@@ -130,8 +144,7 @@ def test_temperatures_past_the_filled_table_rows_are_missing_not_invented():
     assert 0 < table.valid_rows < len(table.temps_k)  # M2EA fills the rows up to its measuring range
     raw = np.array([[4800, int((table.valid_below_k + 10.0) * 16)]], dtype=np.uint16)
     p = rj.correction_params()
-    out = dc.correct_raw14(raw, table, p["emissivity"], p["distance"], p["humidity"], p["reflected"],
-                           p["atmosphere"])
+    out = dc.correct_raw14(raw, table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"])
     assert np.isfinite(out[0, 0]) and np.isnan(out[0, 1])
 
 

@@ -78,12 +78,14 @@ def calls(log: Path) -> list[dict]:
 def builtin_table_file(path: Path, params: dict | None = None) -> Path:
     """A camera-layout iirp file whose APP5 says "the camera's built-in table" (as four of five public M2EA files):
     the harness cannot correct it."""
-    src = write_rjpeg(path.with_name("src_" + path.name), np.full((16, 20), 30.0, np.float32),
-                      params=params or {"emissivity": 0.9, "distance": 7.0, "humidity": 40.0, "reflected": 21.0,
-                                        "ambient": 21.0}).read_bytes()
+    src = write_rjpeg(
+        path.with_name("src_" + path.name),
+        np.full((16, 20), 30.0, np.float32),
+        params=params or {"emissivity": 0.9, "distance": 7.0, "humidity": 40.0, "reflected": 21.0, "ambient": 21.0},
+    ).read_bytes()
     seg = next(s for s in jpeg.read_segments(src).segments if s.marker == jpeg.APP5)
     end = seg.offset + 4 + len(seg.payload)
-    path.write_bytes(src[:seg.offset] + jpeg.segment(jpeg.APP5, b"\xff" * (dc.HEADER_BYTES + 0x1C00)) + src[end:])
+    path.write_bytes(src[: seg.offset] + jpeg.segment(jpeg.APP5, b"\xff" * (dc.HEADER_BYTES + 0x1C00)) + src[end:])
     return path
 
 
@@ -101,8 +103,12 @@ def test_dji_irp_on_path_decodes_a_file_the_harness_cannot_correct(standin, tmp_
     assert args[:4] == ["-s", str(path.resolve()), "-a", "measure"] and args[6:8] == ["--measurefmt", "float32"]
     opts = dict(zip(args[8::2], args[9::2]))
     assert opts == {"--distance": "7", "--humidity": "40", "--emissivity": "0.9", "--reflection": "21"}
-    assert info["converter"]["params"] == {"emissivity": pytest.approx(0.9), "distance": 7.0, "humidity": 40.0,
-                                           "reflected": 21.0}
+    assert info["converter"]["params"] == {
+        "emissivity": pytest.approx(0.9),
+        "distance": 7.0,
+        "humidity": 40.0,
+        "reflected": 21.0,
+    }
     out_dir = Path(call["out"]).parent
     assert out_dir.name.startswith("harness-convert-") and not out_dir.exists()  # the temporary folder is gone
     # overrides reach the converter
@@ -115,12 +121,18 @@ def test_failures_are_clear_errors_naming_the_file_and_leave_no_temporary_files(
     path = builtin_table_file(tmp_path / "f.jpg")
     conv = dji_converter.resolve("dji_irp")
     monkeypatch.setenv("STANDIN_MODE", "fail")
-    with pytest.raises(DataError, match=r"f\.jpg: the converter \(dji_irp\) failed with exit status 3: "
-                                        r"dirp_create_from_rjpeg failed"):
+    with pytest.raises(
+        DataError,
+        match=r"f\.jpg: the converter \(dji_irp\) failed with exit status 3: "
+        r"dirp_create_from_rjpeg failed",
+    ):
         read_thermal(path, converter=conv)
     monkeypatch.setenv("STANDIN_MODE", "short")
-    with pytest.raises(DataError, match=r"f\.jpg: the converter \(dji_irp\) wrote 1252 bytes, expected 1280 "
-                                        r"\(20x16 float32"):
+    with pytest.raises(
+        DataError,
+        match=r"f\.jpg: the converter \(dji_irp\) wrote 1252 bytes, expected 1280 "
+        r"\(20x16 float32",
+    ):
         read_thermal(path, converter=conv)
     monkeypatch.setenv("STANDIN_MODE", "nooutput")
     with pytest.raises(DataError, match=r"f\.jpg: .*without writing its output"):
@@ -162,8 +174,9 @@ def test_settings_that_cannot_work_are_config_errors(tmp_path, monkeypatch):
 def test_a_command_template_names_any_other_converter(standin, tmp_path):
     folder, log = standin
     path = builtin_table_file(tmp_path / "t.jpg")
-    conv = dji_converter.resolve(f"{folder / 'dji_irp'} --emissivity={{emissivity}} {{width}}x{{height}} "
-                                 f"{{input}} {{output}}")
+    conv = dji_converter.resolve(
+        f"{folder / 'dji_irp'} --emissivity={{emissivity}} {{width}}x{{height}} {{input}} {{output}}"
+    )
     temp, info = read_thermal(path, converter=conv)
     np.testing.assert_array_equal(temp, known(20, 16))
     args = calls(log)[-1]["args"]
@@ -180,8 +193,9 @@ def test_decode_command_and_dataset_prepare_use_the_converter(standin, tmp_path,
     src = builtin_table_file(tmp_path / "flight" / "DJI_0001_T.jpg")
     res = cli_runner(["sensing", "decode", str(src), "--out", str(tmp_path / "out")])
     assert res.exit_code == 1 and "DJI_0001_T.jpg: camera 'M3T'" in res.output and "--converter" in res.output
-    res = cli_runner(["sensing", "decode", str(src), "--out", str(tmp_path / "out"), "--unit", "celsius",
-                      "--converter", "dji_irp"])
+    res = cli_runner(
+        ["sensing", "decode", str(src), "--out", str(tmp_path / "out"), "--unit", "celsius", "--converter", "dji_irp"]
+    )
     assert res.exit_code == 0, res.output
     assert "dji_irp" in res.output and "decoded 1 of 1" in res.output
     t, info = read_thermal(tmp_path / "out" / "DJI_0001_T.tif")

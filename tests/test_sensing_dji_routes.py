@@ -67,34 +67,43 @@ def test_c2_from_approximate_temperatures_is_within_one_grey_level_of_c2_from_th
 @needs_cameras
 @pytest.mark.parametrize("name", ["m3td_hirp_a", "m3td_hirp_b", "m3td_hirp_c"])
 def test_hirp_has_no_approximate_route_and_says_why(name):
-    with pytest.raises(dji_formats.UnsupportedFormat, match=rf"{name}\.jpg: camera 'M3TD'.*'hirp'.*--converter "
-                                                             r"dji_irp.*no approximate route"):
+    with pytest.raises(
+        dji_formats.UnsupportedFormat,
+        match=rf"{name}\.jpg: camera 'M3TD'.*'hirp'.*--converter "
+        r"dji_irp.*no approximate route",
+    ):
         read_thermal(CAMERAS / f"{name}.jpg", approximate=True)
 
 
 # ---------------------------------------------------------------------------------------------- approximate
 def test_remapping_tables_are_refused_by_default_and_approximate_on_request(tmp_path):
     path = camera_file(tmp_path / "m4t_like.jpg", np.full((12, 16), 20.0), remap_table(), model="M4T")
-    with pytest.raises(dc.UnsupportedCorrection, match=r"m4t_like\.jpg: camera 'M4T', DJI R-JPEG format 'iirp' "
-                                                       r"\(APP4 format version 0x200\).*re-mapping.*--converter "
-                                                       r"dji_irp.*--approximate.*measured within 3.2 C"):
+    with pytest.raises(
+        dc.UnsupportedCorrection,
+        match=r"m4t_like\.jpg: camera 'M4T', DJI R-JPEG format 'iirp' "
+        r"\(APP4 format version 0x200\).*re-mapping.*--converter "
+        r"dji_irp.*--approximate.*measured within 3.2 C",
+    ):
         read_thermal(path)
     temp, info = read_thermal(path, approximate=True)
     skipped = dc.parse_app5(remap_table(), 0x200, skip_emissivity_remap=True)
     exact = dc.correct_raw14(read_rjpeg(path, decoder="blackbody").raw14, skipped, 0.95, 5.0, 50.0, 25.0, 25.0)
     np.testing.assert_array_equal(temp, exact)  # DJI's correction with the file's own table, re-mapping left out
-    assert info["approximate"]["bound_c"] == 0.009 and info["correction"]["approximation"] == \
-        "emissivity-remap-skipped"
-    with pytest.raises(DataError, match=r"m4t_like\.jpg: the approximate route .* measured for emissivity "
-                                        r"0.6-0.98 only; emissivity 0.3"):
+    assert info["approximate"]["bound_c"] == 0.009 and info["correction"]["approximation"] == "emissivity-remap-skipped"
+    with pytest.raises(
+        DataError,
+        match=r"m4t_like\.jpg: the approximate route .* measured for emissivity "
+        r"0.6-0.98 only; emissivity 0.3",
+    ):
         read_thermal(path, approximate=True, overrides={"emissivity": 0.3})
 
 
 def test_builtin_tables_approximate_with_the_balance_the_file_allows_and_hot_pixels_go_missing(tmp_path):
     t = np.full((12, 16), 40.0, np.float32)
     t[0, 0] = 90.0  # above the measured range (63 C)
-    path = camera_file(tmp_path / "m2ea_like.jpg", t, BUILTIN, model="MAVIC2-ENTERPRISE-ADVANCED",
-                       emissivity=0.9, reflected=20.0)
+    path = camera_file(
+        tmp_path / "m2ea_like.jpg", t, BUILTIN, model="MAVIC2-ENTERPRISE-ADVANCED", emissivity=0.9, reflected=20.0
+    )
     temp, info = read_thermal(path, approximate=True)
     w = lambda c: (c + 273.15) ** 4  # noqa: E731
     t0 = read_rjpeg(path, decoder="blackbody").blackbody_c().astype(np.float64)
@@ -118,8 +127,12 @@ def test_decode_command_labels_approximate_files_in_the_table_and_the_sidecar(tm
     from harness.sensing.radiometry import route_meta
 
     _, info = read_thermal(tmp_path / "o" / "a.png")  # read back (as a dataset would): still labelled
-    assert route_meta(info) == {"thermal_route": "approximate", "temperatures": "approximate temperatures",
-                                "temperature_bound_c": 0.009, "approximation": "emissivity-remap-skipped"}
+    assert route_meta(info) == {
+        "thermal_route": "approximate",
+        "temperatures": "approximate temperatures",
+        "temperature_bound_c": 0.009,
+        "approximation": "emissivity-remap-skipped",
+    }
 
 
 # ---------------------------------------------------------------------------------------------- batches
@@ -136,8 +149,9 @@ def test_an_impossible_emissivity_fails_that_file_only(tmp_path, cli_runner):
     assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == [f"DJI_{k:04d}_T.png" for k in range(3)]
     assert "Traceback" not in res.output
     # an override of the impossible value decodes it
-    res = cli_runner(["sensing", "decode", str(flight / "DJI_0009_T.jpg"), "--out", str(tmp_path / "o2"),
-                      "--emissivity", "0.9"])
+    res = cli_runner(
+        ["sensing", "decode", str(flight / "DJI_0009_T.jpg"), "--out", str(tmp_path / "o2"), "--emissivity", "0.9"]
+    )
     assert res.exit_code == 0, res.output
 
 
@@ -159,7 +173,7 @@ def test_original_raw_of_a_1280x1024_picture_with_a_640x512_frame(tmp_path):
     small = write_rjpeg(tmp_path / "s.jpg", t, exif={"Model": "M30T"}).read_bytes()
     layout = jpeg.read_segments(small)
     app5 = next(s for s in layout.segments if s.marker == jpeg.APP5)
-    head = small[:app5.offset + 4 + len(app5.payload)]
+    head = small[: app5.offset + 4 + len(app5.payload)]
     ok, big = cv2.imencode(".jpg", np.zeros((96, 128, 3), np.uint8))  # the super-resolution picture, twice the size
     path = tmp_path / "m30t_uhr.jpg"
     path.write_bytes(head + big.tobytes()[2:])
@@ -179,9 +193,14 @@ def xts_file(path, eoi: bool) -> bytes:
     body = pic.tobytes()[2:]
     if not eoi:
         body = body[:-2]
-    data = (b"\xff\xd8" + jpeg.segment(jpeg.APP1, jpeg.build_exif({"Make": "DJI", "Model": "XT S"}))
-            + jpeg.segment(jpeg.APP2, b"Plug" + bytes(60)) + jpeg.segment(jpeg.APP3, bytes(256))
-            + jpeg.segment(jpeg.APP4, words.tobytes()) + body)
+    data = (
+        b"\xff\xd8"
+        + jpeg.segment(jpeg.APP1, jpeg.build_exif({"Make": "DJI", "Model": "XT S"}))
+        + jpeg.segment(jpeg.APP2, b"Plug" + bytes(60))
+        + jpeg.segment(jpeg.APP3, bytes(256))
+        + jpeg.segment(jpeg.APP4, words.tobytes())
+        + body
+    )
     path.write_bytes(data)
     return words.reshape(12, 16)
 
@@ -190,8 +209,11 @@ def test_xt_s_files_are_refused_naming_camera_and_format_even_without_an_end_mar
     for eoi in (True, False):
         path = tmp_path / f"xts_{eoi}.jpg"
         words = xts_file(path, eoi)
-        with pytest.raises(dji_formats.UnsupportedFormat, match=r"camera 'XT S', DJI R-JPEG format 'dirp-g'.*"
-                                                                r"--converter dji_irp"):
+        with pytest.raises(
+            dji_formats.UnsupportedFormat,
+            match=r"camera 'XT S', DJI R-JPEG format 'dirp-g'.*"
+            r"--converter dji_irp",
+        ):
             read_rjpeg(path)
         fmt, model, raw = dji_formats.read_original_raw(path)
         assert (fmt, model) == ("dirp-g", "XT S")
@@ -237,8 +259,12 @@ def test_a_dataset_prepared_on_approximate_temperatures_says_so(tmp_path):
     cfg["sensing"]["radiometry"]["approximate"] = True
     ds = prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
     rep = ds.manifest["report"]
-    assert rep["approximate_temperatures"] == {"label": "approximate temperatures", "samples": 6, "bound_c": 0.009,
-                                               "approximations": ["emissivity-remap-skipped"]}
+    assert rep["approximate_temperatures"] == {
+        "label": "approximate temperatures",
+        "samples": 6,
+        "bound_c": 0.009,
+        "approximations": ["emissivity-remap-skipped"],
+    }
     assert any("6 sample(s) hold approximate temperatures" in n for n in rep["notes"])
     assert ds[0].meta["temperatures"] == "approximate temperatures" and ds[0].meta["temperature_bound_c"] == 0.009
 
@@ -252,11 +278,20 @@ def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path
     from harness.store import RunKey
     from report_fixtures import synthetic_store
 
-    store = synthetic_store(tmp_path / "store", folds=("P1", "P2"), per_fold=4,
-                            detectors={"alpha": "strong", "beta": "weak"}, encodings={"alpha": ["ir8"]},
-                            profiles={"alpha": (2.0e6, 5.0), "beta": (1.0e6, 3.0)})
-    approx = {"label": "approximate temperatures", "samples": 8, "bound_c": 0.2,
-              "approximations": ["emissivity-remap-skipped"]}
+    store = synthetic_store(
+        tmp_path / "store",
+        folds=("P1", "P2"),
+        per_fold=4,
+        detectors={"alpha": "strong", "beta": "weak"},
+        encodings={"alpha": ["ir8"]},
+        profiles={"alpha": (2.0e6, 5.0), "beta": (1.0e6, 3.0)},
+    )
+    approx = {
+        "label": "approximate temperatures",
+        "samples": 8,
+        "bound_c": 0.2,
+        "approximations": ["emissivity-remap-skipped"],
+    }
     for fold in ("P1", "P2"):
         run = store.run(RunKey("synth", "alpha", "c2", fold, 0))
         run.write_metrics({**run.read_metrics(), "temperatures": approx})
@@ -265,8 +300,9 @@ def test_every_number_of_a_report_on_approximate_temperatures_is_marked(tmp_path
     text = table.to_text()
     rows = {r["detector"]: r for r in table.rows}
     mean = table.cell(rows["alpha"], next(c for c in table.columns if c.key == "mAP50"))
-    assert mean.endswith(" ~") and not table.cell(rows["beta"], next(c for c in table.columns
-                                                                     if c.key == "mAP50")).endswith("~")
+    assert mean.endswith(" ~") and not table.cell(
+        rows["beta"], next(c for c in table.columns if c.key == "mAP50")
+    ).endswith("~")
     assert "~ measured on approximate temperatures (alpha/c2: within 0.2 C" in text
     params = next(c for c in table.columns if c.key == "params")  # the model's size rests on no temperature
     assert table.cell(rows["alpha"], params) == "2"

@@ -150,8 +150,13 @@ def test_structure_images_are_bounded_and_modality_agnostic():
 
 # ---------------------------------------------------------------------------------------------- groups and files
 def test_groups_from_capture_time():
-    times = {"a": "2022:07:23 15:12:19", "b": "2022:07:23 15:13:38", "c": datetime(2022, 7, 23, 15, 40, 0),
-             "d": "2022:07:23 15:41:00", "e": "2022:07:24 09:00:00"}
+    times = {
+        "a": "2022:07:23 15:12:19",
+        "b": "2022:07:23 15:13:38",
+        "c": datetime(2022, 7, 23, 15, 40, 0),
+        "d": "2022:07:23 15:41:00",
+        "e": "2022:07:24 09:00:00",
+    }
     assert group_by_capture_time(times, gap_s=300) == {"a": "G01", "b": "G01", "c": "G02", "d": "G02", "e": "G03"}
     assert set(group_by_capture_time(times, gap_s=86400).values()) == {"G01"}
     with pytest.raises(DataError, match="no capture time for 1 capture"):
@@ -161,8 +166,9 @@ def test_groups_from_capture_time():
 def test_capture_time_from_exif(tmp_path):
     from harness.sensing.radiometry import write_rjpeg
 
-    path = write_rjpeg(tmp_path / "t.jpg", np.full((8, 8), 25.0, np.float32),
-                       exif={"DateTimeOriginal": "2023:03:04 05:06:07"})
+    path = write_rjpeg(
+        tmp_path / "t.jpg", np.full((8, 8), 25.0, np.float32), exif={"DateTimeOriginal": "2023:03:04 05:06:07"}
+    )
     assert reg.capture_time(path) == datetime(2023, 3, 4, 5, 6, 7)
 
 
@@ -243,8 +249,10 @@ def test_registration_error_command(tmp_path, cli_runner):
     rgb, th = _landmarks(16, seed=2, noise=0.3)
     rows = [(f"s{i % 3}", "P1" if i < 8 else "P2", *rgb[i], *th[i]) for i in range(16)]
     _write_csv(tmp_path / "lm.csv", rows)
-    save_homographies(tmp_path / "H.yaml", {"P1": _true_h(), "P2": reg.HomographyEntry(_true_h(), "landmarks", None,
-                                                                                          RGB_SIZE, TH_SIZE)})
+    save_homographies(
+        tmp_path / "H.yaml",
+        {"P1": _true_h(), "P2": reg.HomographyEntry(_true_h(), "landmarks", None, RGB_SIZE, TH_SIZE)},
+    )
     out = tmp_path / "err.json"
     res = cli_runner(
         [
@@ -271,8 +279,9 @@ def test_registration_error_command(tmp_path, cli_runner):
     header = next(ln for ln in lines if ln.startswith("scene"))
     rows_out = [ln for ln in lines if ln.startswith("s0") or ln.startswith("s1")]
     assert all(len(r) == len(header) for r in rows_out)  # columns line up
-    loo = cli_runner(["sensing", "registration-error", "--landmarks", str(tmp_path / "lm.csv"), "--out",
-                      str(tmp_path / "loo.json")])
+    loo = cli_runner(
+        ["sensing", "registration-error", "--landmarks", str(tmp_path / "lm.csv"), "--out", str(tmp_path / "loo.json")]
+    )
     assert loo.exit_code == 0 and "leave-one-out" in loo.output
 
 
@@ -282,11 +291,35 @@ def test_register_command_from_landmarks_similarity_and_images(tmp_path, cli_run
     rgb, th = _landmarks(10, seed=5)
     _write_csv(tmp_path / "lm.csv", [("s", "P1", *rgb[i], *th[i]) for i in range(10)])
     out = tmp_path / "H.yaml"
-    res = cli_runner(["sensing", "register", "--landmarks", str(tmp_path / "lm.csv"), "--out", str(out),
-                      "--rgb-size", "4000x3000", "--thermal-size", "640x512"])
+    res = cli_runner(
+        [
+            "sensing",
+            "register",
+            "--landmarks",
+            str(tmp_path / "lm.csv"),
+            "--out",
+            str(out),
+            "--rgb-size",
+            "4000x3000",
+            "--thermal-size",
+            "640x512",
+        ]
+    )
     assert res.exit_code == 0, res.output
-    res = cli_runner(["sensing", "register", "--similarity", "P2=1,2,0.5,0.27", "--out", str(out),
-                      "--rgb-size", "4000x3000", "--thermal-size", "640x512"])
+    res = cli_runner(
+        [
+            "sensing",
+            "register",
+            "--similarity",
+            "P2=1,2,0.5,0.27",
+            "--out",
+            str(out),
+            "--rgb-size",
+            "4000x3000",
+            "--thermal-size",
+            "640x512",
+        ]
+    )
     assert res.exit_code == 0, res.output
     H_true = _scene_truth()
     scene_rgb, scene_th = render_pair(2, H_true, SCENE_RGB, SCENE_TH)
@@ -295,8 +328,18 @@ def test_register_command_from_landmarks_similarity_and_images(tmp_path, cli_run
 
     write_thermal(tmp_path / "th.tif", scene_th, unit="celsius")
     save_homographies(tmp_path / "init.yaml", {"P3": _prior()})
-    res = cli_runner(["sensing", "register", "--auto", f"P3={tmp_path / 'rgb.png'},{tmp_path / 'th.tif'}",
-                      "--start-homographies", str(tmp_path / "init.yaml"), "--out", str(out)])
+    res = cli_runner(
+        [
+            "sensing",
+            "register",
+            "--auto",
+            f"P3={tmp_path / 'rgb.png'},{tmp_path / 'th.tif'}",
+            "--start-homographies",
+            str(tmp_path / "init.yaml"),
+            "--out",
+            str(out),
+        ]
+    )
     assert res.exit_code == 0, res.output
     Hs = load_homographies(out)
     assert set(Hs) == {"P1", "P2", "P3"}
@@ -315,7 +358,9 @@ def test_sensing_context_registers_unknown_groups_automatically_or_refuses():
     ir8 = np.zeros(thermal.shape, np.uint8)
     pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 40, 30]]), np.array([0]), "G01", prior=_prior())
     assert np.median(corner_error(ctx.entries["G01"].H, H_true, SCENE_TH)) < 1.0 and ctx.auto_results["G01"].ok
-    np.testing.assert_array_equal(pair.thermal, thermal[pair.origin[1]:, pair.origin[0]:][:pair.size[1], :pair.size[0]])
+    np.testing.assert_array_equal(
+        pair.thermal, thermal[pair.origin[1] :, pair.origin[0] :][: pair.size[1], : pair.size[0]]
+    )
     _, other = render_pair(77, H_true, SCENE_RGB, SCENE_TH)
     with pytest.raises(DataError, match="group 'G02': automatic registration rejected"):
         ctx.align_capture(rgb, other, ir8, np.zeros((0, 4)), np.zeros(0), "G02", prior=_prior())

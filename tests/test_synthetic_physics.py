@@ -74,8 +74,14 @@ def test_vents_have_a_thermal_signature_and_a_visible_grille(small_frames):
             if x0 < 3 or y0 < 3 or x1 > tw - 3 or y1 > th - 3:
                 continue
             inner = t[y0:y1, x0:x1]
-            ring = np.concatenate([t[y0 - 3:y0, x0:x1].ravel(), t[y1:y1 + 3, x0:x1].ravel(),
-                                   t[y0:y1, x0 - 3:x0].ravel(), t[y0:y1, x1:x1 + 3].ravel()])
+            ring = np.concatenate(
+                [
+                    t[y0 - 3 : y0, x0:x1].ravel(),
+                    t[y1 : y1 + 3, x0:x1].ravel(),
+                    t[y0:y1, x0 - 3 : x0].ravel(),
+                    t[y0:y1, x1 : x1 + 3].ravel(),
+                ]
+            )
             deltas.append(float(inner.mean() - np.median(ring)))
     assert len(deltas) >= 8 and np.median(deltas) > 1.0, deltas
 
@@ -117,8 +123,16 @@ def test_precise_clicks_stay_for_the_test_profile():
 
 
 def test_categories_are_the_m3t_order():
-    assert M3T_CATEGORIES == ("window", "ac_unit", "vent", "crack", "paint_peeling", "efflorescence",
-                              "delamination", "water_seepage")
+    assert M3T_CATEGORIES == (
+        "window",
+        "ac_unit",
+        "vent",
+        "crack",
+        "paint_peeling",
+        "efflorescence",
+        "delamination",
+        "water_seepage",
+    )
 
 
 def test_no_import_circle_between_the_generator_and_the_commands():
@@ -140,8 +154,10 @@ def test_no_import_circle_between_the_generator_and_the_commands():
     gen = set().union(*(imports(p) for p in (root / "adapters" / "datasets" / "synthetic").glob("*.py")))
     assert "adapters.datasets.synthetic.generation" in gen  # the package's modules were read
     assert not any(m.startswith("harness.commands") for m in gen), gen
-    offenders = {str(p.relative_to(root)): sorted(m for m in imports(p) if m.split(".")[0] == "adapters")
-                 for p in (root / "harness").rglob("*.py")}
+    offenders = {
+        str(p.relative_to(root)): sorted(m for m in imports(p) if m.split(".")[0] == "adapters")
+        for p in (root / "harness").rglob("*.py")
+    }
     assert not {k: v for k, v in offenders.items() if v}
 
 

@@ -20,18 +20,30 @@ from harness.tracking import LoggerSpec, Tracker, epoch_metrics, final_metrics, 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-ONE_EPOCH = ["protocol.imgsz=64", "protocol.epochs=1", "protocol.patience=10", "train.batch=8", "train.nominal_batch=8",
-             "train.warmup_epochs=0", "train.close_mosaic=0", "train.threads=1", "train.device=cpu", "eval.batch=16"]
+ONE_EPOCH = [
+    "protocol.imgsz=64",
+    "protocol.epochs=1",
+    "protocol.patience=10",
+    "train.batch=8",
+    "train.nominal_batch=8",
+    "train.warmup_epochs=0",
+    "train.close_mosaic=0",
+    "train.threads=1",
+    "train.device=cpu",
+    "eval.batch=16",
+]
 
 
 def _has(*modules: str) -> bool:
     return all(importlib.util.find_spec(m) is not None for m in modules)
 
 
-needs_mlflow = pytest.mark.skipif(not _has("mlflow", "sqlalchemy", "alembic"),
-                                  reason="MLflow is not installed (pip install 'rgbt-harness[mlflow]')")
-needs_tensorboard = pytest.mark.skipif(not _has("tensorboard"),
-                                       reason="TensorBoard is not installed (pip install 'rgbt-harness[tensorboard]')")
+needs_mlflow = pytest.mark.skipif(
+    not _has("mlflow", "sqlalchemy", "alembic"), reason="MLflow is not installed (pip install 'rgbt-harness[mlflow]')"
+)
+needs_tensorboard = pytest.mark.skipif(
+    not _has("tensorboard"), reason="TensorBoard is not installed (pip install 'rgbt-harness[tensorboard]')"
+)
 
 
 @pytest.fixture
@@ -45,8 +57,15 @@ def plugins(host, tmp_path, monkeypatch):
 def one_run(tmp_path, loggers: str, **kw):
     from harness.runner import RunRequest, run
 
-    req = RunRequest(detector="tinydet", dataset="shapes", folds="A", store=tmp_path / "store", progress=False,
-                     overrides=[*ONE_EPOCH, *log_to_overrides(loggers)], **kw)
+    req = RunRequest(
+        detector="tinydet",
+        dataset="shapes",
+        folds="A",
+        store=tmp_path / "store",
+        progress=False,
+        overrides=[*ONE_EPOCH, *log_to_overrides(loggers)],
+        **kw,
+    )
     summary = run(req)
     (result,) = summary.results
     log = [json.loads(line) for line in (result.path / "log.jsonl").read_text().splitlines()]
@@ -169,17 +188,37 @@ def test_unknown_or_uninstalled_loggers_stop_the_run_before_training(plugins, tm
 
 # ------------------------------------------------------------------------------------------------- pieces
 def test_metrics_are_flat_and_missing_values_are_left_out():
-    rec = {"epoch": 2, "loss": {"box": 1.0, "cls": 0.5}, "lr": {"bias": 0.01, "weight": 0.002},
-           "metrics": {"mAP50": 0.25, "mAP50_95": float("nan"), "AP50_per_category": {"a": 0.1}},
-           "fitness": None, "time_s": 3.0}
+    rec = {
+        "epoch": 2,
+        "loss": {"box": 1.0, "cls": 0.5},
+        "lr": {"bias": 0.01, "weight": 0.002},
+        "metrics": {"mAP50": 0.25, "mAP50_95": float("nan"), "AP50_per_category": {"a": 0.1}},
+        "fitness": None,
+        "time_s": 3.0,
+    }
     out = epoch_metrics(rec)
     assert out == {"loss/box": 1.0, "loss/cls": 0.5, "loss/total": 1.5, "val/mAP50": 0.25, "lr": 0.01, "time_s": 3.0}
-    fin = final_metrics({"metrics": {"mAP50": 0.5, "recall": None}, "per_category": {"crack": {"AP50": 0.4}},
-                         "support": {"images": 8, "instances": 20}, "model": {"params": 1234}})
-    assert fin == {"test/mAP50": 0.5, "test/AP50/crack": 0.4, "support/images": 8.0, "support/instances": 20.0,
-                   "model/params": 1234.0}
+    fin = final_metrics(
+        {
+            "metrics": {"mAP50": 0.5, "recall": None},
+            "per_category": {"crack": {"AP50": 0.4}},
+            "support": {"images": 8, "instances": 20},
+            "model": {"params": 1234},
+        }
+    )
+    assert fin == {
+        "test/mAP50": 0.5,
+        "test/AP50/crack": 0.4,
+        "support/images": 8.0,
+        "support/instances": 20.0,
+        "model/params": 1234.0,
+    }
     assert all(math.isfinite(v) for v in fin.values())
     assert flatten_params({"train": {"lr0": 0.01, "init": None}, "protocol": {"folds": None, "seeds": [0]}}) == {
-        "train.lr0": "0.01", "train.init": "", "protocol.folds": "", "protocol.seeds": "[0]"}
+        "train.lr0": "0.01",
+        "train.init": "",
+        "protocol.folds": "",
+        "protocol.seeds": "[0]",
+    }
     assert log_to_overrides(" mlflow, tensorboard ,mlflow") == ("tracking.loggers=[mlflow,tensorboard]",)
     assert log_to_overrides("") == () and not Tracker()

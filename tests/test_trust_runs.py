@@ -18,15 +18,24 @@ FAST = fast_overrides(epochs=1, close_mosaic=0)
 def request(tmp_path, extra=(), **kw):
     from harness.runner import RunRequest
 
-    base = dict(detector="tinydet", dataset="shapes", folds="A", store=tmp_path / "store",
-                overrides=[*FAST, *extra], progress=False)
+    base = dict(
+        detector="tinydet",
+        dataset="shapes",
+        folds="A",
+        store=tmp_path / "store",
+        overrides=[*FAST, *extra],
+        progress=False,
+    )
     base.update(kw)
     return RunRequest(**base)
 
 
 def _files(path):
-    return {p.relative_to(path).as_posix(): p.read_bytes() for p in sorted(path.rglob("*"))
-            if p.is_file() and p.name not in (".lock", "status.json")}
+    return {
+        p.relative_to(path).as_posix(): p.read_bytes()
+        for p in sorted(path.rglob("*"))
+        if p.is_file() and p.name not in (".lock", "status.json")
+    }
 
 
 def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only_that(shapes_run_plugins, tmp_path):
@@ -47,9 +56,17 @@ def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only
     # a profile of another model (the old source of the report's numbers) is ignored
     store = summary.store
     (store / "_profiles").mkdir()
-    (store / "_profiles" / "tinydet.json").write_text(json.dumps(
-        {"detector": "tinydet", "imgsz": 640, "num_classes": 8, "params": {"fused": 11_100_000},
-         "flops": {"paper": {"gflops": 28.5}, "exact": {"gflops": 28.6}}}))
+    (store / "_profiles" / "tinydet.json").write_text(
+        json.dumps(
+            {
+                "detector": "tinydet",
+                "imgsz": 640,
+                "num_classes": 8,
+                "params": {"fused": 11_100_000},
+                "flops": {"paper": {"gflops": 28.5}, "exact": {"gflops": 28.6}},
+            }
+        )
+    )
     table = project_table(StoreView(store), "shapes")
     row = table.rows[0]
     assert row["detector"] == "tinydet [width=8]"
@@ -65,8 +82,22 @@ def test_run_stores_the_complexity_of_the_model_it_trained_and_reports_read_only
 
 def test_profile_takes_the_run_options_and_writes_the_run_store(shapes_run_plugins, tmp_path, monkeypatch, cli_runner):
     monkeypatch.chdir(tmp_path)
-    res = cli_runner(["profile", "--detector", "tinydet", "--set", "model.width=8", "--imgsz", "64", "--no-latency",
-                      "--no-onnx", "--no-fvcore", "--format", "json"])
+    res = cli_runner(
+        [
+            "profile",
+            "--detector",
+            "tinydet",
+            "--set",
+            "model.width=8",
+            "--imgsz",
+            "64",
+            "--no-latency",
+            "--no-onnx",
+            "--no-fvcore",
+            "--format",
+            "json",
+        ]
+    )
     assert res.exit_code == 0, res.output
     stored = json.loads((tmp_path / "results" / "smoke" / "_profiles" / "tinydet.json").read_text())
     from harness_tinydet.model import TinyDet
@@ -75,8 +106,9 @@ def test_profile_takes_the_run_options_and_writes_the_run_store(shapes_run_plugi
     assert stored["params"]["total"] == sum(p.numel() for p in TinyDet(8, in_channels=4, width=8).parameters())
 
 
-def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(shapes_run_plugins, tmp_path,
-                                                                                  monkeypatch):
+def test_force_with_a_bad_option_keeps_the_finished_run_and_fails_the_new_attempt(
+    shapes_run_plugins, tmp_path, monkeypatch
+):
     from harness.engine.trainer import Trainer
     from harness.runner import run
 
@@ -176,8 +208,21 @@ def test_a_dataset_given_from_another_folder_is_the_same_run(shapes_run_plugins,
     from harness.runner import run
 
     run(request(tmp_path, [f"dataset.root={tmp_path / 'here'}"]))
-    args = ["run", "--detector", "tinydet", "--dataset", "shapes", "--folds", "A", "--store", str(tmp_path / "store"),
-            "--root", str(tmp_path / "moved"), "--no-progress", *[a for s in FAST for a in ("--set", s)]]
+    args = [
+        "run",
+        "--detector",
+        "tinydet",
+        "--dataset",
+        "shapes",
+        "--folds",
+        "A",
+        "--store",
+        str(tmp_path / "store"),
+        "--root",
+        str(tmp_path / "moved"),
+        "--no-progress",
+        *[a for s in FAST for a in ("--set", s)],
+    ]
     res = cli_runner(args)
     assert res.exit_code == 0, res.output
     assert "skipped" in res.output

@@ -29,11 +29,29 @@ REPO = Path(__file__).resolve().parent.parent
 MiB = 1 << 20
 PEAK_FLOOR, PEAK_MULTIPLE = 64 * MiB, 8  # the stated bound (docs/detectors.md): 64 MiB + 8 x the file's size
 SECONDS = 5.0  # a read that takes longer counts as a hang (the runner kills one at 30 s)
-KINDS = ("code execution", "persistent_load", "genuine checkpoints", "archive", "tensor sizes",
-         "allowed calls and floods", "shared and nested", "legacy format", "not checkpoints")
+KINDS = (
+    "code execution",
+    "persistent_load",
+    "genuine checkpoints",
+    "archive",
+    "tensor sizes",
+    "allowed calls and floods",
+    "shared and nested",
+    "legacy format",
+    "not checkpoints",
+)
 ROOM_MIB = (1, 4, 16)  # address space left to reads of genuine files: allocations fail at different places
-CLI_CASES = ("reduce_os_system", "ultralytics_payload_in_model", "zip_deflate_bomb", "expand_40gb", "bytearray_8e9",
-             "doubled_40_small_file", "deep_module_tree_3000", "legacy_missing_storage", "ultralytics_clean")
+CLI_CASES = (
+    "reduce_os_system",
+    "ultralytics_payload_in_model",
+    "zip_deflate_bomb",
+    "expand_40gb",
+    "bytearray_8e9",
+    "doubled_40_small_file",
+    "deep_module_tree_3000",
+    "legacy_missing_storage",
+    "ultralytics_clean",
+)
 
 
 @pytest.fixture(scope="module")
@@ -46,19 +64,39 @@ def corpus(tmp_path_factory):
     runs += [{"name": c.name, "path": str(c.path), "mode": "cli"} for c in cases if c.name in CLI_CASES]
     # first, while the worker's address space has little free room inside it: reads with too little memory left
     genuine, plain = (next(c for c in cases if c.name == n) for n in ("ultralytics_clean", "plain_state_dict"))
-    runs = [{"name": f"{c.name}@{m}", "path": str(c.path), "mode": mode, "allowance": m * MiB}
-            for c, mode in ((genuine, "import"), (plain, "plain")) for m in ROOM_MIB] + runs
+    runs = [
+        {"name": f"{c.name}@{m}", "path": str(c.path), "mode": mode, "allowance": m * MiB}
+        for c, mode in ((genuine, "import"), (plain, "plain"))
+        for m in ROOM_MIB
+    ] + runs
     spec = folder / "runs.json"
     spec.write_text(json.dumps(runs))
     allowance = PEAK_FLOOR + PEAK_MULTIPLE * max(c.path.stat().st_size for c in cases) + 256 * MiB
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
-    proc = subprocess.run([sys.executable, str(REPO / "tests" / "hostile_runner.py"), str(spec), "--allowance",
-                           str(allowance), "--timeout", "30"], capture_output=True, text=True, env=env, timeout=900)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "tests" / "hostile_runner.py"),
+            str(spec),
+            "--allowance",
+            str(allowance),
+            "--timeout",
+            "30",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads(proc.stdout)
     assert len(results) == len(runs)
-    return {"folder": folder, "marker": marker, "cases": {c.name: c for c in cases},
-            "results": {(r["name"], r["mode"]): r for r in results}}
+    return {
+        "folder": folder,
+        "marker": marker,
+        "cases": {c.name: c for c in cases},
+        "results": {(r["name"], r["mode"]): r for r in results},
+    }
 
 
 def _bound(size: int) -> int:
@@ -86,8 +124,10 @@ def _problems(r: dict, case, expect_from_case: bool) -> list[str]:
     if r["seconds"] > SECONDS:
         out.append(f"took {r['seconds']:.1f} s")
     if r["peak_bytes"] > _bound(size):
-        out.append(f"peak memory {r['peak_bytes'] / MiB:.1f} MiB, over {_bound(size) / MiB:.1f} MiB "
-                   f"({PEAK_FLOOR // MiB} MiB + {PEAK_MULTIPLE} x {size} bytes)")
+        out.append(
+            f"peak memory {r['peak_bytes'] / MiB:.1f} MiB, over {_bound(size) / MiB:.1f} MiB "
+            f"({PEAK_FLOOR // MiB} MiB + {PEAK_MULTIPLE} x {size} bytes)"
+        )
     return out
 
 
@@ -96,8 +136,9 @@ def test_each_hostile_checkpoint_imports_or_fails_with_one_line_in_time_and_memo
     cases = [c for c in corpus["cases"].values() if c.kind == kind]
     assert cases
     problems = {c.name: p for c in cases if (p := _problems(corpus["results"][(c.name, "import")], c, True))}
-    assert not problems, "\n".join(f"{name} ({corpus['cases'][name].why}): {'; '.join(p)}"
-                                   for name, p in problems.items())
+    assert not problems, "\n".join(
+        f"{name} ({corpus['cases'][name].why}): {'; '.join(p)}" for name, p in problems.items()
+    )
 
 
 def test_nothing_from_any_hostile_checkpoint_runs_or_lands_outside_its_folder(corpus):
@@ -110,8 +151,11 @@ def test_nothing_from_any_hostile_checkpoint_runs_or_lands_outside_its_folder(co
 def test_the_init_and_resume_reader_gives_one_line_errors_in_time_and_memory(corpus):
     """``--init``, ``model.weights`` and resuming read with the same bounded reader in its plain mode: pickled
     objects are refused, and no file makes it hang, crash or run out of memory."""
-    runs = [(corpus["cases"][name], r) for (name, mode), r in corpus["results"].items()
-            if mode == "plain" and name in corpus["cases"]]
+    runs = [
+        (corpus["cases"][name], r)
+        for (name, mode), r in corpus["results"].items()
+        if mode == "plain" and name in corpus["cases"]
+    ]
     assert len(runs) > 50
     problems = {c.name: p for c, r in runs if (p := _problems(r, c, False))}
     assert not problems, "\n".join(f"{name}: {'; '.join(p)}" for name, p in problems.items())
@@ -135,8 +179,17 @@ def test_the_command_line_prints_one_line_and_exits_2(corpus):
             assert re.search(case.expect, lines[0]), (name, lines[0])
 
 
-@pytest.mark.parametrize("name", ["doubled_40_small_file", "ultralytics_doubled_train_args", "ultralytics_doubled_yaml",
-                                  "ultralytics_doubled_names", "ultralytics_self_reference", "deep_list_20k"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "doubled_40_small_file",
+        "ultralytics_doubled_train_args",
+        "ultralytics_doubled_yaml",
+        "ultralytics_doubled_names",
+        "ultralytics_self_reference",
+        "deep_list_20k",
+    ],
+)
 def test_shared_and_deep_metadata_writes_a_small_sidecar(corpus, name):
     r = corpus["results"][(name, "import")]
     assert r["outcome"] == "ok" and r["sidecar_bytes"] < 32_000 and r["seconds"] < SECONDS, r
@@ -170,8 +223,9 @@ def test_the_stated_memory_bound_is_the_one_the_code_and_docs_state():
     assert "64 MiB + 8 x" in docs and f"{unpickle.SIZE_MULTIPLE} x the file" in docs
 
 
-@pytest.mark.parametrize("field,value", [("model", [1, 2]), ("optimizer", {"state": 3}), ("rng", None),
-                                         ("history", [[0] * 3])])
+@pytest.mark.parametrize(
+    "field,value", [("model", [1, 2]), ("optimizer", {"state": 3}), ("rng", None), ("history", [[0] * 3])]
+)
 def test_resuming_from_a_last_checkpoint_that_does_not_fit_is_a_one_line_error(tmp_path, field, value):
     """A ``last.pt`` that reads as plain tensors and containers but is not this run's checkpoint (tampered or
     corrupt) stops the run with an error naming it, not a traceback from deep inside PyTorch."""
@@ -183,11 +237,27 @@ def test_resuming_from_a_last_checkpoint_that_does_not_fit_is_a_one_line_error(t
     prepared = write_dataset(tmp_path / "ds", groups=("A",), per_group=2)
     settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
     model = torch.nn.Conv2d(4, 1, 1)
-    trainer = Trainer(model, TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
-                      settings, checkpoint_dir=tmp_path / "ckpt", progress=False, config_hash="abc")
-    good = {"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": 0, "done": False, "config_hash": "abc",
-            "model": model.state_dict(), "optimizer": torch.optim.SGD(model.parameters(), lr=0.1).state_dict(),
-            "rng": ckpt.rng_state(), "history": [], "scaler": None, "ema": None}
+    trainer = Trainer(
+        model,
+        TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
+        settings,
+        checkpoint_dir=tmp_path / "ckpt",
+        progress=False,
+        config_hash="abc",
+    )
+    good = {
+        "format": ckpt.FORMAT,
+        "version": ckpt.VERSION,
+        "epoch": 0,
+        "done": False,
+        "config_hash": "abc",
+        "model": model.state_dict(),
+        "optimizer": torch.optim.SGD(model.parameters(), lr=0.1).state_dict(),
+        "rng": ckpt.rng_state(),
+        "history": [],
+        "scaler": None,
+        "ema": None,
+    }
     (tmp_path / "ckpt").mkdir()
     ckpt.save(tmp_path / "ckpt" / "last.pt", {**good, field: value})
     with pytest.raises(ckpt.CheckpointError, match=r"last\.pt: cannot resume from it \(") as err:

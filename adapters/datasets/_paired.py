@@ -69,8 +69,9 @@ class PairedSource:
         self._log.warning("%s: %s %s (%s)", self.log_name, self.skip_verb, path, reason)
         report.skip(path, reason)
 
-    def _samples(self, report: PrepareReport, items: Iterable[T],
-                 make: Callable[[T], tuple[AlignedSample, BoxStats]]) -> Iterator[AlignedSample]:
+    def _samples(
+        self, report: PrepareReport, items: Iterable[T], make: Callable[[T], tuple[AlignedSample, BoxStats]]
+    ) -> Iterator[AlignedSample]:
         """The opening drops and notes, then ``make(item)`` for every item; a ``SkipPair`` is a counted skip of its
         path (else of ``str(item)``). The closing notes are written even when the preparation stops early."""
         for path, reason in self.dropped:
@@ -114,8 +115,9 @@ class SplitSource(PairedSource):
         return f"{counts['train']} train / {counts['test']} test pairs, {len(self.dropped)} dropped"
 
 
-def read_pair(thermal: Path, visible: Path, where: Path, names: tuple[str, str] = ("visible", "infrared")
-              ) -> tuple[np.ndarray, bool, np.ndarray]:
+def read_pair(
+    thermal: Path, visible: Path, where: Path, names: tuple[str, str] = ("visible", "infrared")
+) -> tuple[np.ndarray, bool, np.ndarray]:
     """The 8-bit thermal image (uint8 HxW), whether it was converted from colour, and the visible image (uint8
     HxWx3); ``SkipPair`` on ``where`` when either cannot be decoded or their sizes differ (``names`` name the
     visible and thermal sides in the message)."""
@@ -130,8 +132,22 @@ def read_pair(thermal: Path, visible: Path, where: Path, names: tuple[str, str] 
     return ir8, was_colour, rgb
 
 
-def eightbit_spec(name: str, open: Callable[..., Any], categories: tuple[str, ...], description: str,
-                  root_env: str, default_encoding: str = "proxy8") -> DatasetSpec:
+def eightbit_spec(
+    name: str,
+    open: Callable[..., Any],
+    categories: tuple[str, ...],
+    description: str,
+    root_env: str,
+    default_encoding: str = "proxy8",
+) -> DatasetSpec:
     """The spec of a release with 8-bit thermal images; its protocol is named like the dataset."""
-    return DatasetSpec(name=name, open=open, categories=categories, description=description, thermal="8bit",
-                       default_encoding=default_encoding, protocol=name, root_env=root_env)
+    return DatasetSpec(
+        name=name,
+        open=open,
+        categories=categories,
+        description=description,
+        thermal="8bit",
+        default_encoding=default_encoding,
+        protocol=name,
+        root_env=root_env,
+    )

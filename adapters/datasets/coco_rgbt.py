@@ -167,8 +167,15 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
                 issues.append((fname, f"homography malformed: {exc}"))
                 continue
         group = entry.get("group")
-        pairs[iid] = PairEntry(iid, fname, entry.get("thermal_file_name"),
-                               str(group) if group not in (None, "") else "", image.width, image.height, H)
+        pairs[iid] = PairEntry(
+            iid,
+            fname,
+            entry.get("thermal_file_name"),
+            str(group) if group not in (None, "") else "",
+            image.width,
+            image.height,
+            H,
+        )
     for ann in checked.annotations:
         pair = pairs.get(ann.image_id)
         if pair is not None:  # not an image left out above for its malformed homography
@@ -186,16 +193,20 @@ def read_coco_rgbt(path: Path) -> CocoRgbt:
             held_t = (str(held),) if isinstance(held, str) else tuple(str(g) for g in (held or ()))
             missing = [g for g in held_t if g not in present]
             if not held_t or missing:
-                raise DataError(f"{path}: fold {name!r} holds out {', '.join(map(repr, missing)) or 'no group'}; "
-                                f"the groups of the images are {', '.join(sorted(present)) or 'none'}")
+                raise DataError(
+                    f"{path}: fold {name!r} holds out {', '.join(map(repr, missing)) or 'no group'}; "
+                    f"the groups of the images are {', '.join(sorted(present)) or 'none'}"
+                )
             folds[str(name)] = held_t
-    return CocoRgbt(path, tuple(cats[c] for c in order), sorted(pairs.values(), key=lambda p: p.image_id), folds,
-                    group_h, issues)
+    return CocoRgbt(
+        path, tuple(cats[c] for c in order), sorted(pairs.values(), key=lambda p: p.image_id), folds, group_h, issues
+    )
 
 
 # ------------------------------------------------------------------------------------------------ thermal files
-def read_temperature(path: Path, scale: float | None = None, offset: float | None = None,
-                     sensing: SensingOptions | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+def read_temperature(
+    path: Path, scale: float | None = None, offset: float | None = None, sensing: SensingOptions | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) from a radiometric thermal file, and how it was read.
 
     Integer images: ``C = value * scale + offset`` with ``scale``/``offset`` when given, else the sidecar's
@@ -227,8 +238,10 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
     except DataError as exc:
         raise SkipPair(f"thermal unreadable: {exc}") from None
     if arr.dtype == np.uint8:
-        raise SkipPair(f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
-                       "dataset.thermal=8bit (and use --encoding proxy8 or ir8)")
+        raise SkipPair(
+            f"8-bit thermal: {path.name} holds no temperatures; for 8-bit thermal images set "
+            "dataset.thermal=8bit (and use --encoding proxy8 or ir8)"
+        )
     nodata = None
     if arr.dtype.kind in "iu":
         if scale is not None or offset is not None:
@@ -270,8 +283,10 @@ def read_temperature(path: Path, scale: float | None = None, offset: float | Non
 
         valid_mask(temp, path.name)
     except HarnessError:
-        raise SkipPair(f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
-                       "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)") from None
+        raise SkipPair(
+            f"implausible temperatures: {path.name} read as {unit} spans {lo:.1f}..{hi:.1f} C; "
+            "set dataset.thermal_scale and thermal_offset (C = value * scale + offset)"
+        ) from None
     try:  # a file decoded by the approximate or converter route stays labelled
         route = route_meta(sidecar_route(read_sidecar(path)))
     except DataError:
@@ -285,9 +300,15 @@ class CocoRgbtSource:
 
     name = DATASET
 
-    def __init__(self, root: Path, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
-                 thermal_scale: float | None = None, thermal_offset: float | None = None,
-                 sensing: SensingOptions | None = None):
+    def __init__(
+        self,
+        root: Path,
+        annotations: str = ANNOTATIONS,
+        thermal: str = "radiometric",
+        thermal_scale: float | None = None,
+        thermal_offset: float | None = None,
+        sensing: SensingOptions | None = None,
+    ):
         self.root = root
         self.ann_path = safe_join(root, annotations, "dataset.annotations")
         self.thermal, self.scale, self.offset = thermal, thermal_scale, thermal_offset
@@ -298,16 +319,22 @@ class CocoRgbtSource:
         self.pairs: list[PairEntry] = []
         for p in self.coco.pairs:
             if not p.group:
-                self.issues.append((p.file_name, f"no group: image {p.image_id} has no 'group' (the unit folds "
-                                                 "hold out); give every images[] entry one"))
+                self.issues.append(
+                    (
+                        p.file_name,
+                        f"no group: image {p.image_id} has no 'group' (the unit folds "
+                        "hold out); give every images[] entry one",
+                    )
+                )
                 continue
             self.pairs.append(p)
         if self.coco.folds is not None:
             present = {p.group for p in self.pairs}
             for name, held in self.coco.folds.items():
                 if not set(held) & present:
-                    raise DataError(f"{self.ann_path}: fold {name!r} holds out {', '.join(held)}, which has no "
-                                    "usable image")
+                    raise DataError(
+                        f"{self.ann_path}: fold {name!r} holds out {', '.join(held)}, which has no usable image"
+                    )
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -319,12 +346,21 @@ class CocoRgbtSource:
         groups = self.groups()
         if self.coco.folds is None:
             return [Fold(g, tuple(x for x in groups if x != g), (g,)) for g in groups]
-        return [Fold(name, tuple(g for g in groups if g not in held), tuple(g for g in held if g in groups))
-                for name, held in self.coco.folds.items()]
+        return [
+            Fold(name, tuple(g for g in groups if g not in held), tuple(g for g in held if g in groups))
+            for name, held in self.coco.folds.items()
+        ]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.thermal, self.scale, self.offset,
-                            hashlib.sha1(self.ann_path.read_bytes()).hexdigest()]
+        parts: list[Any] = [
+            DATASET,
+            ADAPTER_VERSION,
+            str(self.root.resolve()),
+            self.thermal,
+            self.scale,
+            self.offset,
+            hashlib.sha1(self.ann_path.read_bytes()).hexdigest(),
+        ]
         for p in self.pairs:
             for rel in (p.file_name, p.thermal_file_name):
                 parts.append((rel, self._stat(rel)))
@@ -348,8 +384,10 @@ class CocoRgbtSource:
         if self.thermal != "8bit" or "H_rgb_to_frame" in meta:
             return None
         try:
-            return (safe_join(self.root, str(meta["file_name"]), "file_name"),
-                    safe_join(self.root, str(meta["thermal_file"]), "thermal_file_name"))
+            return (
+                safe_join(self.root, str(meta["file_name"]), "file_name"),
+                safe_join(self.root, str(meta["thermal_file"]), "thermal_file_name"),
+            )
         except (KeyError, DataError):
             return None
 
@@ -371,11 +409,15 @@ class CocoRgbtSource:
         if stats.clipped:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
         if stats.crowd:
-            report.note(f"{stats.crowd} crowd box(es) (iscrowd 1) kept as crowd regions: the evaluation ignores "
-                        "detections on them, as COCO does, and training does not use them as instances")
+            report.note(
+                f"{stats.crowd} crowd box(es) (iscrowd 1) kept as crowd regions: the evaluation ignores "
+                "detections on them, as COCO does, and training does not use them as instances"
+            )
         if warped:
-            report.note(f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
-                        "homography" + (" and cropped to the common support" if self.sensing.warp.crop else ""))
+            report.note(
+                f"{warped} RGB image(s) of another size were warped into the thermal frame by their "
+                "homography" + (" and cropped to the common support" if self.sensing.warp.crop else "")
+            )
 
     def _path(self, rel: Any, what: str, p: PairEntry) -> Path:
         try:
@@ -408,40 +450,68 @@ class CocoRgbtSource:
             thermal, info = None, {"unit": None, "format": "8bit", "colour": colour}
         h, w = ir8.shape
         if p.width is not None and p.height is not None and (p.width, p.height) != (w, h):
-            raise SkipPair(f"size mismatch: the JSON says {p.width}x{p.height}, the thermal frame "
-                           f"{p.thermal_file_name} is {w}x{h}")
+            raise SkipPair(
+                f"size mismatch: the JSON says {p.width}x{p.height}, the thermal frame {p.thermal_file_name} is {w}x{h}"
+            )
         H = p.homography if p.homography is not None else self.coco.homographies.get(p.group)
         if H is None and rgb.shape[:2] != (h, w):
-            raise SkipPair(f"size mismatch: RGB {p.file_name} is {rgb.shape[1]}x{rgb.shape[0]}, thermal "
-                           f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
-                           f"images[].homography or homographies[{p.group!r}] in the JSON")
+            raise SkipPair(
+                f"size mismatch: RGB {p.file_name} is {rgb.shape[1]}x{rgb.shape[0]}, thermal "
+                f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
+                f"images[].homography or homographies[{p.group!r}] in the JSON"
+            )
         xywh = np.asarray([b[1] for b in p.boxes], np.float64).reshape(-1, 4)
         labels = np.asarray([b[2] for b in p.boxes], np.int64)
         ids = [b[0] for b in p.boxes]
         boxes, keep, clipped = clip_boxes(xywh_to_xyxy(xywh), w, h)
         for i in np.nonzero(~keep)[0]:
-            report.skip(f"{self.ann_path.name}#annotation={ids[i]}",
-                        f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame")
+            report.skip(
+                f"{self.ann_path.name}#annotation={ids[i]}",
+                f"annotation box outside the image: {xywh[i].tolist()} in the {w}x{h} thermal frame",
+            )
         crowd = np.asarray(p.crowd, bool).reshape(-1)[keep]
         boxes, labels, ids = boxes[keep], labels[keep], [a for a, k in zip(ids, keep) if k]
         stats = BoxStats(kept=int(keep.sum()), clipped=clipped, degenerate=0)
         from harness.sensing.radiometry import ROUTE_META_KEYS
 
-        meta: dict[str, Any] = {"file_name": p.file_name, "thermal_file": p.thermal_file_name, "ann_ids": ids,
-                                "thermal_unit": info.get("unit"), "thermal_format": info.get("format"),
-                                **{k: v for k, v in info.items() if k in ROUTE_META_KEYS}}
+        meta: dict[str, Any] = {
+            "file_name": p.file_name,
+            "thermal_file": p.thermal_file_name,
+            "ann_ids": ids,
+            "thermal_unit": info.get("unit"),
+            "thermal_format": info.get("format"),
+            **{k: v for k, v in info.items() if k in ROUTE_META_KEYS},
+        }
         if H is None:
             _mark_crowd(meta, crowd, stats)
-            sample = AlignedSample(image_id=p.image_id, rgb=rgb, thermal=thermal, ir8=ir8, boxes=boxes,
-                                   labels=labels, group=p.group, meta=meta)
+            sample = AlignedSample(
+                image_id=p.image_id,
+                rgb=rgb,
+                thermal=thermal,
+                ir8=ir8,
+                boxes=boxes,
+                labels=labels,
+                group=p.group,
+                meta=meta,
+            )
             return sample, stats
         from harness.sensing.warp import align_pair
 
         try:
             warp = self.sensing.warp
-            pair = align_pair(rgb, thermal, ir8, boxes, labels, H, boxes_frame="thermal", crop=warp.crop,
-                              min_box_size=warp.min_box_size, interpolation=warp.interpolation,
-                              antialias=warp.antialias)
+            pair = align_pair(
+                rgb,
+                thermal,
+                ir8,
+                boxes,
+                labels,
+                H,
+                boxes_frame="thermal",
+                crop=warp.crop,
+                min_box_size=warp.min_box_size,
+                interpolation=warp.interpolation,
+                antialias=warp.antialias,
+            )
         except DataError as exc:
             raise SkipPair(f"registration failed: {exc}") from None
         meta["ann_ids"] = [a for a, k in zip(ids, pair.kept) if k]
@@ -460,17 +530,24 @@ def _mark_crowd(meta: dict[str, Any], crowd: np.ndarray, stats: BoxStats) -> Non
         stats.crowd += int(crowd.sum())
 
 
-def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATIONS, thermal: str = "radiometric",
-                   thermal_scale: float | None = None, thermal_offset: float | None = None,
-                   sensing: Mapping[str, Any] | None = None) -> CocoRgbtSource:
+def open_coco_rgbt(
+    root: str | Path | None = None,
+    annotations: str = ANNOTATIONS,
+    thermal: str = "radiometric",
+    thermal_scale: float | None = None,
+    thermal_offset: float | None = None,
+    sensing: Mapping[str, Any] | None = None,
+) -> CocoRgbtSource:
     """Open a ``coco-rgbt`` dataset (the options are the ``dataset:`` config keys, see ``OPTIONS``; ``sensing`` is
     the config's ``sensing`` section, which the host passes because this function names it)."""
     if thermal not in THERMAL_KINDS:
-        raise ConfigError(f"dataset {DATASET!r}: option 'thermal' must be one of {', '.join(THERMAL_KINDS)}, "
-                          f"got {thermal!r}")
+        raise ConfigError(
+            f"dataset {DATASET!r}: option 'thermal' must be one of {', '.join(THERMAL_KINDS)}, got {thermal!r}"
+        )
     for key, value in (("thermal_scale", thermal_scale), ("thermal_offset", thermal_offset)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                  or not math.isfinite(value)):
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+        ):
             raise ConfigError(f"dataset {DATASET!r}: option {key!r} must be a number, got {value!r}")
     if thermal_scale is not None and thermal_scale == 0:
         raise ConfigError(f"dataset {DATASET!r}: option 'thermal_scale' must not be 0")
@@ -480,18 +557,25 @@ def open_coco_rgbt(root: str | Path | None = None, annotations: str = ANNOTATION
 
     opts = SensingOptions.from_config(sensing)
     if opts.warp.interpolation not in _INTERP:
-        raise ConfigError(f"sensing.warp.interpolation must be one of {', '.join(_INTERP)}, "
-                          f"got {opts.warp.interpolation!r}")
+        raise ConfigError(
+            f"sensing.warp.interpolation must be one of {', '.join(_INTERP)}, got {opts.warp.interpolation!r}"
+        )
     path = resolve_root(root, ROOT_ENV, DATASET, ())
     return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, opts)
 
 
-SPEC = DatasetSpec(name=DATASET, open=open_coco_rgbt, categories=(),  # the categories come from the COCO JSON
-                   description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
-                   thermal="radiometric", default_encoding="c2", protocol="default", root_env=ROOT_ENV)
+SPEC = DatasetSpec(
+    name=DATASET,
+    open=open_coco_rgbt,
+    categories=(),  # the categories come from the COCO JSON
+    description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
+    thermal="radiometric",
+    default_encoding="c2",
+    protocol="default",
+    root_env=ROOT_ENV,
+)
 
 
 @hookimpl
 def register_datasets(register: Any) -> None:
     register(SPEC)
-

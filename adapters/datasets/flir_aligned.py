@@ -79,7 +79,7 @@ OPTIONS = {
     "root": f"FLIR-align-3class/ or the folder holding it (default: ${ROOT_ENV})",
     "labels": "visible (default in the YOLO layouts) or infrared (default and only choice in the release layout)",
     "layout": "auto (default: found from the folders), icafusion (labels/<split>/), "
-              "yolov5 (<modality>/<split>/labels/) or release (align/JPEGImages + Annotations)",
+    "yolov5 (<modality>/<split>/labels/) or release (align/JPEGImages + Annotations)",
     "classes": "names of the label ids 0, 1, ... (default person, car, bicycle)",
     "strict": "raise instead of skipping a pair that cannot be used (default false)",
     "voc_convention": "release layout (align/) only: one-based (VOC, default) or zero-based VOC boxes",
@@ -121,11 +121,14 @@ def detect_layout(root: Path) -> str:
         return "release"
     if not (root / "labels").is_dir():
         return "yolov5"
-    nested = sorted(str(p.relative_to(root)) for m in MODALITIES for s in SPLITS for p in [root / m / s / "labels"]
-                    if p.is_dir())
+    nested = sorted(
+        str(p.relative_to(root)) for m in MODALITIES for s in SPLITS for p in [root / m / s / "labels"] if p.is_dir()
+    )
     if nested:
-        raise ConfigError(f"dataset {DATASET!r}: {root} holds labels in ICAFusion's layout (labels/) and in YOLOv5's "
-                          f"({', '.join(nested)}); set dataset.layout=icafusion or dataset.layout=yolov5")
+        raise ConfigError(
+            f"dataset {DATASET!r}: {root} holds labels in ICAFusion's layout (labels/) and in YOLOv5's "
+            f"({', '.join(nested)}); set dataset.layout=icafusion or dataset.layout=yolov5"
+        )
     return "icafusion"
 
 
@@ -169,8 +172,16 @@ class FlirAlignedSource(SplitSource):
     name = DATASET
     log_name = "FLIR-aligned"
 
-    def __init__(self, root: Path, labels: str = "visible", classes: Sequence[str] = CATEGORIES, strict: bool = False,
-                 voc_convention: str = "one-based", difficult: str = "drop", layout: str | None = None):
+    def __init__(
+        self,
+        root: Path,
+        labels: str = "visible",
+        classes: Sequence[str] = CATEGORIES,
+        strict: bool = False,
+        voc_convention: str = "one-based",
+        difficult: str = "drop",
+        layout: str | None = None,
+    ):
         self.root, self.labels, self.categories, self.strict = root, labels, tuple(classes), strict
         self.voc_convention, self.difficult = voc_convention, difficult
         #: "icafusion" (labels/<split>/), "yolov5" (<modality>/<split>/labels/) or "release" (align/)
@@ -184,36 +195,50 @@ class FlirAlignedSource(SplitSource):
             vis, ir = (_images(root / m / split) for m in MODALITIES)
             for key in sorted(set(vis) | set(ir)):
                 if key not in ir:
-                    self.dropped.append((str(vis[key]), f"missing infrared frame: no {key}_PreviewData image in "
-                                                        f"infrared/{split}"))
+                    self.dropped.append(
+                        (str(vis[key]), f"missing infrared frame: no {key}_PreviewData image in infrared/{split}")
+                    )
                 elif key not in vis:
                     self.dropped.append((str(ir[key]), f"missing visible frame: no {key}_RGB image in visible/{split}"))
                 else:
                     self.frames.append((split, key, vis[key], ir[key]))
         if not self.frames:
-            raise DataError(f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
-                            f"visible/{{train,test}}/[images/]FLIR_<n>_RGB.jpg and "
-                            f"infrared/.../[images/]FLIR_<n>_PreviewData.jpeg)")
-        self.notes = [f"{self._split_note()}; boxes from the {labels} labels ({self.layout} layout); "
-                      f"classes {', '.join(self.categories)}"]
+            raise DataError(
+                f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
+                f"visible/{{train,test}}/[images/]FLIR_<n>_RGB.jpg and "
+                f"infrared/.../[images/]FLIR_<n>_PreviewData.jpeg)"
+            )
+        self.notes = [
+            f"{self._split_note()}; boxes from the {labels} labels ({self.layout} layout); "
+            f"classes {', '.join(self.categories)}"
+        ]
         self._check_drops()
 
     def _release_frames(self) -> None:
         if self.labels != "infrared":
-            raise ConfigError(f"dataset {DATASET!r}: {self.root} is the release layout (JPEGImages/, Annotations/), "
-                              f"whose labels belong to the thermal images; set dataset.labels=infrared")
+            raise ConfigError(
+                f"dataset {DATASET!r}: {self.root} is the release layout (JPEGImages/, Annotations/), "
+                f"whose labels belong to the thermal images; set dataset.labels=infrared"
+            )
         images = self.root / "JPEGImages"
         for split, name in RELEASE_SPLITS.items():
             listed = [self.root / name, self.root / "ImageSets" / "Main" / name]
             path = next((q for q in listed if q.is_file()), None)
             if path is None:
-                raise DataError(f"dataset {DATASET!r}: split list {name} not found (looked for "
-                                f"{', '.join(str(q) for q in listed)})")
-            keys = [frame_key(Path(line.strip()).stem if "." in line.strip() else line.strip())
-                    for line in path.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()]
+                raise DataError(
+                    f"dataset {DATASET!r}: split list {name} not found (looked for {', '.join(str(q) for q in listed)})"
+                )
+            keys = [
+                frame_key(Path(line.strip()).stem if "." in line.strip() else line.strip())
+                for line in path.read_text(encoding="utf-8", errors="replace").splitlines()
+                if line.strip()
+            ]
             for key in keys:
-                vis, ir, xml = (images / f"{key}_RGB.jpg", images / f"{key}_PreviewData.jpeg",
-                                self.root / "Annotations" / f"{key}_PreviewData.xml")
+                vis, ir, xml = (
+                    images / f"{key}_RGB.jpg",
+                    images / f"{key}_PreviewData.jpeg",
+                    self.root / "Annotations" / f"{key}_PreviewData.xml",
+                )
                 if not ir.is_file():
                     self.dropped.append((str(ir), f"missing infrared frame: {ir.name} not found ({name})"))
                 elif not vis.is_file():
@@ -230,8 +255,17 @@ class FlirAlignedSource(SplitSource):
         return icafusion_label_path(image, self.root) if self.layout == "icafusion" else label_path(image)
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.labels, self.categories,
-                            self.strict, self.layout, self.voc_convention, self.difficult]
+        parts: list[Any] = [
+            DATASET,
+            ADAPTER_VERSION,
+            str(self.root.resolve()),
+            self.labels,
+            self.categories,
+            self.strict,
+            self.layout,
+            self.voc_convention,
+            self.difficult,
+        ]
         parts += [(s, k, file_stat(v), file_stat(i), file_stat(self._label_file(v, i))) for s, k, v, i in self.frames]
         return stat_digest(parts)
 
@@ -251,19 +285,27 @@ class FlirAlignedSource(SplitSource):
         lab = self._label_file(vis_path, ir_path)
         missing = not lab.is_file()
         if self.layout == "release":
-            ann = read_known(lab, [c.lower() for c in self.categories],
-                             f"one of {', '.join(self.categories)} (dataset.classes)")
+            ann = read_known(
+                lab, [c.lower() for c in self.categories], f"one of {', '.join(self.categories)} (dataset.classes)"
+            )
             check_size(ann, lab, w, h)
             xyxy, labels = self._voc.targets(ann, [c.lower() for c in self.categories])
         else:
             try:
-                xyxy, labels = (np.zeros((0, 4)), np.zeros(0, np.int64)) if missing else parse_yolo(
-                    lab, len(self.categories), w, h)
+                xyxy, labels = (
+                    (np.zeros((0, 4)), np.zeros(0, np.int64))
+                    if missing
+                    else parse_yolo(lab, len(self.categories), w, h)
+                )
             except DataError as exc:
                 raise SkipPair(f"malformed labels: {exc}", lab) from None
-        meta = {"file_name": ir_path.relative_to(self.root).as_posix(),
-                "rgb_file": vis_path.relative_to(self.root).as_posix(), "frame": key, "split": split,
-                "labels": self.labels}
+        meta = {
+            "file_name": ir_path.relative_to(self.root).as_posix(),
+            "rgb_file": vis_path.relative_to(self.root).as_posix(),
+            "frame": key,
+            "split": split,
+            "labels": self.labels,
+        }
         sample, stats = pair_sample(k + 1, rgb, ir8, xyxy, labels, split, meta)
         stats.unlabelled = int(missing)
         return sample, stats
@@ -283,9 +325,15 @@ def _classes(value: Any) -> tuple[str, ...]:
     return tuple(names)
 
 
-def open_flir_aligned(root: str | Path | None = None, labels: str | None = None, classes: Any = CATEGORIES,
-                      strict: bool = False, voc_convention: str = "one-based",
-                      difficult: str = "drop", layout: str = "auto") -> FlirAlignedSource:
+def open_flir_aligned(
+    root: str | Path | None = None,
+    labels: str | None = None,
+    classes: Any = CATEGORIES,
+    strict: bool = False,
+    voc_convention: str = "one-based",
+    difficult: str = "drop",
+    layout: str = "auto",
+) -> FlirAlignedSource:
     """Open a FLIR-aligned copy (the options are the ``dataset:`` config keys, see ``OPTIONS``); ``labels``
     defaults to ``visible`` in the YOLO layouts and ``infrared`` in the release layout."""
     strict = check_strict(DATASET, strict)
@@ -301,9 +349,15 @@ def open_flir_aligned(root: str | Path | None = None, labels: str | None = None,
     side = {"rgb": "visible", "ir": "infrared", "thermal": "infrared"}.get(side, side)
     if side not in MODALITIES:
         raise ConfigError(f"dataset {DATASET!r}: option 'labels' must be visible or infrared, got {labels!r}")
-    return FlirAlignedSource(path, labels=side, classes=_classes(classes), strict=strict,
-                             voc_convention=normalise_convention(DATASET, voc_convention),
-                             difficult=normalise_difficult(DATASET, difficult), layout=chosen)
+    return FlirAlignedSource(
+        path,
+        labels=side,
+        classes=_classes(classes),
+        strict=strict,
+        voc_convention=normalise_convention(DATASET, voc_convention),
+        difficult=normalise_difficult(DATASET, difficult),
+        layout=chosen,
+    )
 
 
 SPEC = eightbit_spec(DATASET, open_flir_aligned, CATEGORIES, DESCRIPTION, ROOT_ENV)

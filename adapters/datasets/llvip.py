@@ -74,8 +74,9 @@ class LlvipSource(SplitSource):
             ir, vis = _index(root / "infrared" / split), _index(root / "visible" / split)
             for stem in sorted(set(ir) | set(vis)):
                 if stem not in ir:
-                    self.dropped.append((str(vis[stem]),
-                                         f"missing infrared frame: infrared/{split}/{stem}.jpg not found"))
+                    self.dropped.append(
+                        (str(vis[stem]), f"missing infrared frame: infrared/{split}/{stem}.jpg not found")
+                    )
                 elif stem not in vis:
                     self.dropped.append((str(ir[stem]), f"missing visible frame: visible/{split}/{stem}.jpg not found"))
                 elif stem not in self.xml:
@@ -83,14 +84,22 @@ class LlvipSource(SplitSource):
                 else:
                     self.frames.append((split, stem, ir[stem], vis[stem], self.xml[stem]))
         if not self.frames:
-            raise DataError(f"dataset {DATASET!r}: no complete infrared/visible/Annotations triple under {root} "
-                            f"(expected infrared/{{train,test}}/<name>.jpg, visible/... and Annotations/<name>.xml)")
+            raise DataError(
+                f"dataset {DATASET!r}: no complete infrared/visible/Annotations triple under {root} "
+                f"(expected infrared/{{train,test}}/<name>.jpg, visible/... and Annotations/<name>.xml)"
+            )
         self.notes = [self._split_note()]
         self._check_drops()
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, self.voc_convention,
-                            self.difficult]
+        parts: list[Any] = [
+            DATASET,
+            ADAPTER_VERSION,
+            str(self.root.resolve()),
+            self.strict,
+            self.voc_convention,
+            self.difficult,
+        ]
         parts += [(s, stem, file_stat(i), file_stat(v), file_stat(a)) for s, stem, i, v, a in self.frames]
         return stat_digest(parts)
 
@@ -108,8 +117,12 @@ class LlvipSource(SplitSource):
         ir8, _, rgb = read_pair(ir_path, vis_path, ir_path)
         h, w = ir8.shape
         check_size(ann, xml_path, w, h)
-        meta = {"file_name": f"infrared/{split}/{ir_path.name}", "rgb_file": f"visible/{split}/{vis_path.name}",
-                "annotation": f"Annotations/{xml_path.name}", "split": split}
+        meta = {
+            "file_name": f"infrared/{split}/{ir_path.name}",
+            "rgb_file": f"visible/{split}/{vis_path.name}",
+            "annotation": f"Annotations/{xml_path.name}",
+            "split": split,
+        }
         return pair_sample(k + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), split, meta)
 
 
@@ -118,12 +131,17 @@ def find_root(root: str | Path | None) -> Path:
     return find_release_root(root, ROOT_ENV, DATASET, ("LLVIP",), [("Annotations", "infrared", "visible")])
 
 
-def open_llvip(root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based",
-               difficult: str = "drop") -> LlvipSource:
+def open_llvip(
+    root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based", difficult: str = "drop"
+) -> LlvipSource:
     """Open an LLVIP release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     strict = check_strict(DATASET, strict)
-    return LlvipSource(find_root(root), strict=strict, voc_convention=normalise_convention(DATASET, voc_convention),
-                       difficult=normalise_difficult(DATASET, difficult))
+    return LlvipSource(
+        find_root(root),
+        strict=strict,
+        voc_convention=normalise_convention(DATASET, voc_convention),
+        difficult=normalise_difficult(DATASET, difficult),
+    )
 
 
 SPEC = eightbit_spec(DATASET, open_llvip, CATEGORIES, DESCRIPTION, ROOT_ENV)

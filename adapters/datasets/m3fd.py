@@ -125,12 +125,16 @@ class M3fdSource(PairedSource):
                 self.stems.append(s)
         if not self.stems:
             raise DataError(f"dataset {DATASET!r}: no complete Annotation/Ir/Vis triple under {root}")
-        self.notes.append(f"{len(self.xml)} annotations, {len(self.ir)} infrared, {len(self.vis)} visible images; "
-                          f"{len(self.stems)} complete pairs, {len(self.dropped)} dropped")
+        self.notes.append(
+            f"{len(self.xml)} annotations, {len(self.ir)} infrared, {len(self.vis)} visible images; "
+            f"{len(self.stems)} complete pairs, {len(self.dropped)} dropped"
+        )
         self._check_drops()
         n_val = sum(1 for s in self.stems if is_val_block(block_of(int(s))))
-        self.notes.append(f"recorded split (blocks of {BLOCK} frames, every {VAL_EVERY}th held out): "
-                          f"{len(self.stems) - n_val} train / {n_val} val pairs")
+        self.notes.append(
+            f"recorded split (blocks of {BLOCK} frames, every {VAL_EVERY}th held out): "
+            f"{len(self.stems) - n_val} train / {n_val} val pairs"
+        )
 
     # ------------------------------------------------------------------ DatasetSource
     def __len__(self) -> int:
@@ -146,8 +150,16 @@ class M3fdSource(PairedSource):
         ]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.strict, BLOCK, VAL_EVERY,
-                            self.voc_convention, self.difficult]
+        parts: list[Any] = [
+            DATASET,
+            ADAPTER_VERSION,
+            str(self.root.resolve()),
+            self.strict,
+            BLOCK,
+            VAL_EVERY,
+            self.voc_convention,
+            self.difficult,
+        ]
         for s in self.stems:
             parts.append((s, file_stat(self.xml[s]), file_stat(self.ir[s]), file_stat(self.vis[s])))
         return stat_digest(parts)
@@ -170,8 +182,12 @@ class M3fdSource(PairedSource):
         check_size(ann, xml_path, w, h)
         number = int(stem)
         group = block_of(number)
-        meta = {"file_name": f"Ir/{self.ir[stem].name}", "rgb_file": f"Vis/{self.vis[stem].name}",
-                "annotation": f"Annotation/{xml_path.name}", "split": "val" if is_val_block(group) else "train"}
+        meta = {
+            "file_name": f"Ir/{self.ir[stem].name}",
+            "rgb_file": f"Vis/{self.vis[stem].name}",
+            "annotation": f"Annotation/{xml_path.name}",
+            "split": "val" if is_val_block(group) else "train",
+        }
         sample, stats = pair_sample(number + 1, rgb, ir8, *self._voc.targets(ann, CATEGORIES), group, meta)
         stats.colour = int(was_colour)
         return sample, stats
@@ -182,8 +198,9 @@ def find_root(root: str | Path | None) -> Path:
     return find_release_root(root, ROOT_ENV, DATASET, ("M3FD_Detection",), [SUBDIRS])
 
 
-def open_m3fd(root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based",
-              difficult: str = "drop") -> M3fdSource:
+def open_m3fd(
+    root: str | Path | None = None, strict: bool = False, voc_convention: str = "one-based", difficult: str = "drop"
+) -> M3fdSource:
     """Open an M3FD detection release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     strict = check_strict(DATASET, strict)
     convention, difficult = normalise_convention(DATASET, voc_convention), normalise_difficult(DATASET, difficult)

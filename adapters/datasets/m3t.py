@@ -44,11 +44,26 @@ log = logging.getLogger(__name__)
 
 #: The eight M3T categories, in the order used everywhere (label = index, COCO category_id = index + 1):
 #: openings and equipment first (visible geometry), then defects from the most to the least visible in RGB.
-M3T_CATEGORIES = ("window", "ac_unit", "vent", "crack", "paint_peeling", "efflorescence", "delamination",
-                  "water_seepage")
-SUPERCATEGORY = {"window": "opening", "ac_unit": "equipment", "vent": "equipment", "crack": "defect",
-                 "paint_peeling": "defect", "efflorescence": "defect", "delamination": "defect",
-                 "water_seepage": "defect"}
+M3T_CATEGORIES = (
+    "window",
+    "ac_unit",
+    "vent",
+    "crack",
+    "paint_peeling",
+    "efflorescence",
+    "delamination",
+    "water_seepage",
+)
+SUPERCATEGORY = {
+    "window": "opening",
+    "ac_unit": "equipment",
+    "vent": "equipment",
+    "crack": "defect",
+    "paint_peeling": "defect",
+    "efflorescence": "defect",
+    "delamination": "defect",
+    "water_seepage": "defect",
+}
 #: The seed's project-grouped folds: each held out in turn, trained on the rest.
 M3T_FOLDS: dict[str, tuple[str, ...]] = {"P1": ("P1",), "P2": ("P2",), "P3": ("P3",), "P4+P5": ("P4", "P5")}
 #: 35-mm-equivalent focal lengths of the M3T's wide (RGB) and thermal cameras: the registration prior's scale.
@@ -86,8 +101,17 @@ class Manifest:
     categories: Mapping[str, str] = field(default_factory=dict)  # name in the annotation file -> ours or "ignore"
     source: str | None = None  # the manifest file, for messages
 
-    PATH_KEYS = ("images", "rgb", "thermal", "annotations", "rgb_camera", "thermal_camera", "homographies",
-                 "landmarks", "captures")
+    PATH_KEYS = (
+        "images",
+        "rgb",
+        "thermal",
+        "annotations",
+        "rgb_camera",
+        "thermal_camera",
+        "homographies",
+        "landmarks",
+        "captures",
+    )
 
     def path(self, key: str, value: str | None = None) -> Path:
         """The absolute path of manifest entry ``key`` (or of ``value`` under it), refused if it leaves the root."""
@@ -103,8 +127,9 @@ class Manifest:
 
     @property
     def annotations_path(self) -> Path:
-        rel = self.annotations or ("annotations/instances_rgb.json" if self.format == "raw"
-                                   else "annotations/instances_thermal.json")
+        rel = self.annotations or (
+            "annotations/instances_rgb.json" if self.format == "raw" else "annotations/instances_thermal.json"
+        )
         return safe_join(self.root, rel, "manifest key 'annotations'")
 
 
@@ -112,8 +137,9 @@ def _manifest_fields() -> dict[str, Any]:
     return {f.name: f for f in fields(Manifest) if f.name not in ("root", "source")}
 
 
-def load_manifest(root: str | Path, manifest: str | Path | None = None,
-                  overrides: Mapping[str, Any] | None = None) -> Manifest:
+def load_manifest(
+    root: str | Path, manifest: str | Path | None = None, overrides: Mapping[str, Any] | None = None
+) -> Manifest:
     """Read the manifest (``manifest``, else ``m3t.yaml``/``m3t.json`` at ``root``, else defaults) and apply
     ``overrides`` (the ``dataset`` config section). Unknown keys and wrong types are ``DataError``s."""
     root = Path(os.path.abspath(root))  # every path below is compared against the absolute root
@@ -132,14 +158,18 @@ def load_manifest(root: str | Path, manifest: str | Path | None = None,
     if bad_options:
         from harness.errors import ConfigError
 
-        raise ConfigError(f"the M3T dataset does not take option(s) {', '.join(map(repr, bad_options))} "
-                          f"(dataset.<option>); it takes root, manifest and the manifest keys "
-                          f"{', '.join(sorted(known))}")
+        raise ConfigError(
+            f"the M3T dataset does not take option(s) {', '.join(map(repr, bad_options))} "
+            f"(dataset.<option>); it takes root, manifest and the manifest keys "
+            f"{', '.join(sorted(known))}"
+        )
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise DataError(f"{source or 'dataset options'}: unknown manifest key(s) {', '.join(map(repr, unknown))}; "
-                        f"known keys: {', '.join(sorted(known))}")
+        raise DataError(
+            f"{source or 'dataset options'}: unknown manifest key(s) {', '.join(map(repr, unknown))}; "
+            f"known keys: {', '.join(sorted(known))}"
+        )
     kwargs: dict[str, Any] = {}
     where = str(source or "dataset options")
     for key, value in data.items():
@@ -184,20 +214,26 @@ def _check_manifest_value(key: str, value: Any, where: str) -> Any:
             raise bad("'raw' or 'aligned'")
         return value
     if key in ("projects", "categories"):
-        if not isinstance(value, Mapping) or not all(isinstance(k, str) and isinstance(v, str)
-                                                     for k, v in value.items()):
+        if not isinstance(value, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in value.items()
+        ):
             raise bad("a mapping of names to names")
         if key == "categories":
             for v in value.values():
                 if v not in M3T_CATEGORIES and v != "ignore":
-                    raise DataError(f"{where}: manifest 'categories' maps to {v!r}, which is neither one of "
-                                    f"{', '.join(M3T_CATEGORIES)} nor 'ignore'")
+                    raise DataError(
+                        f"{where}: manifest 'categories' maps to {v!r}, which is neither one of "
+                        f"{', '.join(M3T_CATEGORIES)} nor 'ignore'"
+                    )
         return dict(value)
     if key == "thermal_size":
         if value is None:
             return None
-        if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(
-                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value):
+        if (
+            not isinstance(value, (list, tuple))
+            or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+        ):
             raise bad("[width, height] in pixels")
         return (int(value[0]), int(value[1]))
     if key == "landmarks_rgb":
@@ -236,8 +272,9 @@ class Annotations:
     ignored: int = 0  # annotations of categories mapped to "ignore"
 
 
-def read_coco_annotations(path: Path, category_map: Mapping[str, str] | None = None,
-                          categories: Sequence[str] = M3T_CATEGORIES) -> Annotations:
+def read_coco_annotations(
+    path: Path, category_map: Mapping[str, str] | None = None, categories: Sequence[str] = M3T_CATEGORIES
+) -> Annotations:
     """Parse a COCO detection file into image records with labels in ``categories`` order.
 
     The shared COCO checks apply (``adapters.datasets._coco``): a missing, empty or invalid file, a file without
@@ -260,16 +297,23 @@ def read_coco_annotations(path: Path, category_map: Mapping[str, str] | None = N
         else:
             unknown.append(name)
     if unknown:
-        raise DataError(f"{path}: unknown category name(s) {', '.join(map(repr, unknown))}; the M3T categories are "
-                        f"{', '.join(categories)}. Map each to one of them (or to 'ignore') with the manifest key "
-                        f"'categories', e.g. categories: {{{unknown[0]!r}: crack}}")
+        raise DataError(
+            f"{path}: unknown category name(s) {', '.join(map(repr, unknown))}; the M3T categories are "
+            f"{', '.join(categories)}. Map each to one of them (or to 'ignore') with the manifest key "
+            f"'categories', e.g. categories: {{{unknown[0]!r}: crack}}"
+        )
 
     images: dict[int, ImageRecord] = {}
     for im in checked.images:
-        images[im.id] = ImageRecord(im.id, im.file_name, im.width, im.height,
-                                    project=str(im.entry.get("project", "")),
-                                    captured=parse_time(im.entry.get("date_captured")),
-                                    thermal_file=im.entry.get("thermal_file_name"))
+        images[im.id] = ImageRecord(
+            im.id,
+            im.file_name,
+            im.width,
+            im.height,
+            project=str(im.entry.get("project", "")),
+            captured=parse_time(im.entry.get("date_captured")),
+            thermal_file=im.entry.get("thermal_file_name"),
+        )
     ignored = 0
     for ann in checked.annotations:
         label = label_of[ann.category_id]
@@ -288,8 +332,13 @@ def parse_time(value: Any) -> datetime | None:
     if not isinstance(value, str) or not value.strip():
         return None
     text = value.strip()
-    for fmt in ("%Y-%m-%d %H:%M:%S", "%Y-%m-%dT%H:%M:%S", "%Y:%m:%d %H:%M:%S", "%Y-%m-%d %H:%M:%S.%f",
-                "%Y-%m-%dT%H:%M:%S.%f"):
+    for fmt in (
+        "%Y-%m-%d %H:%M:%S",
+        "%Y-%m-%dT%H:%M:%S",
+        "%Y:%m:%d %H:%M:%S",
+        "%Y-%m-%d %H:%M:%S.%f",
+        "%Y-%m-%dT%H:%M:%S.%f",
+    ):
         try:
             return datetime.strptime(text, fmt)
         except ValueError:
@@ -353,8 +402,13 @@ def _content_hash(path: Path | None) -> str:
 class M3TSource:
     """An opened M3T-layout dataset (``harness.api.DatasetSource``)."""
 
-    def __init__(self, manifest: Manifest, name: str = "m3t", sensing: Mapping[str, Any] | None = None,
-                 categories: Sequence[str] = M3T_CATEGORIES):
+    def __init__(
+        self,
+        manifest: Manifest,
+        name: str = "m3t",
+        sensing: Mapping[str, Any] | None = None,
+        categories: Sequence[str] = M3T_CATEGORIES,
+    ):
         self.manifest = manifest
         self.root = manifest.root
         self.name = name
@@ -366,9 +420,11 @@ class M3TSource:
         m = manifest
         base = m.path("images") if m.format == "raw" else m.path("rgb")
         if not base.is_dir():
-            raise DataError(f"{base}: folder not found; a {m.format} M3T dataset keeps its "
-                            f"{'captures' if m.format == 'raw' else 'aligned RGB'} there (manifest key "
-                            f"{'images' if m.format == 'raw' else 'rgb'!r})")
+            raise DataError(
+                f"{base}: folder not found; a {m.format} M3T dataset keeps its "
+                f"{'captures' if m.format == 'raw' else 'aligned RGB'} there (manifest key "
+                f"{'images' if m.format == 'raw' else 'rgb'!r})"
+            )
         self.base = base
         ann = read_coco_annotations(m.annotations_path, m.categories, self.categories)
         self.issues = list(ann.issues)
@@ -386,8 +442,13 @@ class M3TSource:
             if not rec.project:
                 if m.projects:
                     if folder not in folder_to_project:
-                        self.issues.append((rec.file_name, f"project folder not in the manifest: {folder!r} "
-                                                           f"(known: {', '.join(sorted(folder_to_project))})"))
+                        self.issues.append(
+                            (
+                                rec.file_name,
+                                f"project folder not in the manifest: {folder!r} "
+                                f"(known: {', '.join(sorted(folder_to_project))})",
+                            )
+                        )
                         continue
                     rec.project = folder_to_project[folder]
                 else:
@@ -412,8 +473,10 @@ class M3TSource:
             with path.open(newline="", encoding="utf-8") as f:
                 reader = csv.DictReader(f)
                 if reader.fieldnames is None or "file" not in reader.fieldnames:
-                    raise DataError(f"{path}: a captures file is CSV with a 'file' column and 'time' and/or 'group' "
-                                    f"columns; found columns {reader.fieldnames}")
+                    raise DataError(
+                        f"{path}: a captures file is CSV with a 'file' column and 'time' and/or 'group' "
+                        f"columns; found columns {reader.fieldnames}"
+                    )
                 for row in reader:
                     out[row["file"]] = {"time": parse_time(row.get("time")), "group": (row.get("group") or "").strip()}
         except (OSError, UnicodeDecodeError, csv.Error) as exc:
@@ -470,10 +533,16 @@ class M3TSource:
             if tdir.is_dir():
                 files += sorted(p for p in tdir.rglob("*") if p.is_file())
         h = hashlib.sha1()
-        manifest_view = {k: (sorted(v.items()) if isinstance(v, Mapping) else v) for k, v in vars(m).items()
-                         if k not in ("root", "source")}
-        h.update(json.dumps({"adapter": ADAPTER_VERSION, "name": self.name, "manifest": manifest_view},
-                            sort_keys=True, default=str).encode())
+        manifest_view = {
+            k: (sorted(v.items()) if isinstance(v, Mapping) else v)
+            for k, v in vars(m).items()
+            if k not in ("root", "source")
+        }
+        h.update(
+            json.dumps(
+                {"adapter": ADAPTER_VERSION, "name": self.name, "manifest": manifest_view}, sort_keys=True, default=str
+            ).encode()
+        )
         h.update(_content_hash(m.annotations_path).encode())
         for key in ("rgb_camera", "thermal_camera", "homographies", "landmarks", "captures"):
             h.update(_content_hash(m.optional(key)).encode())
@@ -519,16 +588,19 @@ class M3TSource:
     def _expected_thermal_size(self) -> tuple[int, int] | None:
         return self.manifest.thermal_size
 
-    def _boxes_in(self, rec: ImageRecord, width: int, height: int, report: PrepareReport
-                  ) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    def _boxes_in(
+        self, rec: ImageRecord, width: int, height: int, report: PrepareReport
+    ) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """The record's boxes clipped to its image; boxes entirely outside are counted skips."""
         boxes, labels, ids = [], [], []
         clipped = 0
         for ann_id, xywh, label in rec.boxes:
             box, changed = clip_box_xywh(xywh, width, height)
             if box is None:
-                report.skip(f"{rec.file_name}#annotation={ann_id}",
-                            f"annotation box outside the image: {xywh} in a {width}x{height} image")
+                report.skip(
+                    f"{rec.file_name}#annotation={ann_id}",
+                    f"annotation box outside the image: {xywh} in a {width}x{height} image",
+                )
                 continue
             clipped += changed
             boxes.append(box)
@@ -554,18 +626,33 @@ class M3TSource:
                 if rgb.shape[:2] != (h, w):
                     raise SkipPair(f"RGB size mismatch: {rgb.shape[1]}x{rgb.shape[0]}, the thermal frame is {w}x{h}")
                 if rec.width is not None and (rec.width, rec.height) != (w, h):
-                    raise SkipPair(f"image size mismatch: the annotation file says {rec.width}x{rec.height}, "
-                                   f"the images are {w}x{h}")
+                    raise SkipPair(
+                        f"image size mismatch: the annotation file says {rec.width}x{rec.height}, "
+                        f"the images are {w}x{h}"
+                    )
                 boxes, labels, ids = self._boxes_in(rec, w, h, report)
             except SkipPair as exc:
                 report.skip(rec.file_name, str(exc))
                 continue
             yield AlignedSample(
-                image_id=rec.image_id, rgb=rgb, thermal=temp, ir8=ir8_from_temperature(temp), boxes=boxes,
-                labels=labels, group=rec.project,
-                meta={"file_name": rec.file_name, "thermal_file": str(tpath.relative_to(self.root)),
-                      "project": rec.project, "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
-                      "ann_ids": ids, "origin": [0, 0], "thermal_unit": info.get("unit"), **route_meta(info)})
+                image_id=rec.image_id,
+                rgb=rgb,
+                thermal=temp,
+                ir8=ir8_from_temperature(temp),
+                boxes=boxes,
+                labels=labels,
+                group=rec.project,
+                meta={
+                    "file_name": rec.file_name,
+                    "thermal_file": str(tpath.relative_to(self.root)),
+                    "project": rec.project,
+                    "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
+                    "ann_ids": ids,
+                    "origin": [0, 0],
+                    "thermal_unit": info.get("unit"),
+                    **route_meta(info),
+                },
+            )
         if self._clipped:
             report.note(f"{self._clipped} box(es) reaching past the image edge were clipped to it")
 
@@ -684,9 +771,14 @@ class RawAligner:
             self.ctx.rgb_camera = CameraModel.load(m.optional("rgb_camera"))  # type: ignore[arg-type]
         if self.ctx.thermal_camera is None and m.optional("thermal_camera") is not None:
             self.ctx.thermal_camera = CameraModel.load(m.optional("thermal_camera"))  # type: ignore[arg-type]
-        self.registration = DatasetRegistration(self.ctx, m.optional("homographies"), m.optional("landmarks"),
-                                                m.landmarks_rgb, {r.file_name: r.group for r in source.records},
-                                                M3T_FOCAL_35MM)
+        self.registration = DatasetRegistration(
+            self.ctx,
+            m.optional("homographies"),
+            m.optional("landmarks"),
+            m.landmarks_rgb,
+            {r.file_name: r.group for r in source.records},
+            M3T_FOCAL_35MM,
+        )
         self.thermal_size: tuple[int, int] | None = m.thermal_size
         self.dropped = 0
 
@@ -717,53 +809,78 @@ class RawAligner:
         th, tw = temp.shape
         if self.thermal_size is None:
             self.thermal_size = (tw, th)
-            report.note(f"thermal frame size {tw}x{th} taken from the first pair (set thermal_size in the manifest "
-                        "to fix it)")
+            report.note(
+                f"thermal frame size {tw}x{th} taken from the first pair (set thermal_size in the manifest to fix it)"
+            )
         if (tw, th) != self.thermal_size:
             raise SkipPair(f"thermal size mismatch: {tw}x{th}, expected {self.thermal_size[0]}x{self.thermal_size[1]}")
         rh, rw = rgb.shape[:2]
         if rec.width is not None and rec.height is not None and (rec.width, rec.height) != (rw, rh):
-            raise SkipPair(f"RGB size mismatch: the annotation file says {rec.width}x{rec.height}, "
-                           f"the image is {rw}x{rh}")
+            raise SkipPair(
+                f"RGB size mismatch: the annotation file says {rec.width}x{rec.height}, the image is {rw}x{rh}"
+            )
         cam = self.ctx.rgb_camera
         if cam is not None and cam.image_size != (rw, rh):
-            raise SkipPair(f"RGB size mismatch: the camera calibration is for {cam.image_size[0]}x{cam.image_size[1]}, "
-                           f"the image is {rw}x{rh}")
+            raise SkipPair(
+                f"RGB size mismatch: the camera calibration is for {cam.image_size[0]}x{cam.image_size[1]}, "
+                f"the image is {rw}x{rh}"
+            )
         boxes, labels, ids = src._boxes_in(rec, rw, rh, report)
         self.registration.register_group(rec.group)
         prior = self.registration.prior((rw, rh), (tw, th))
         try:
             pair = self.ctx.align_capture(rgb, temp, ir8, boxes, labels, rec.group, boxes_frame="rgb", prior=prior)
         except HarnessError as exc:
-            raise SkipPair(f"registration failed: {exc}" if "registration" in str(exc) or "homography" in str(exc)
-                           else f"alignment failed: {exc}") from None
+            raise SkipPair(
+                f"registration failed: {exc}"
+                if "registration" in str(exc) or "homography" in str(exc)
+                else f"alignment failed: {exc}"
+            ) from None
         self.dropped += pair.dropped
         kept_ids = [i for i, k in zip(ids, pair.kept) if k]
-        return pair.to_sample(rec.image_id, rec.project, {
-            "file_name": rec.file_name, "thermal_file": str(tpath.relative_to(src.root)), "project": rec.project,
-            "inspection_group": rec.group, "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
-            "ann_ids": kept_ids, "thermal_format": info.get("format"), **route_meta(info),
-        })
+        return pair.to_sample(
+            rec.image_id,
+            rec.project,
+            {
+                "file_name": rec.file_name,
+                "thermal_file": str(tpath.relative_to(src.root)),
+                "project": rec.project,
+                "inspection_group": rec.group,
+                "captured": rec.captured.isoformat(sep=" ") if rec.captured else None,
+                "ann_ids": kept_ids,
+                "thermal_format": info.get("format"),
+                **route_meta(info),
+            },
+        )
 
     def finish(self, report: PrepareReport) -> None:
         if self.dropped:
-            report.note(f"{self.dropped} RGB-frame box(es) fell outside the thermal frame (or below "
-                        f"{self.opts.warp.min_box_size} px) after registration and were left out")
+            report.note(
+                f"{self.dropped} RGB-frame box(es) fell outside the thermal frame (or below "
+                f"{self.opts.warp.min_box_size} px) after registration and were left out"
+            )
         self.src.registration.update({g: self.registration.how(g) for g in sorted(self.ctx.entries)})
         for line in self.registration.notes():
             report.note(line)
 
 
 # ------------------------------------------------------------------------------------------------ opening
-def open_m3t(root: str | Path | None = None, manifest: str | Path | None = None,
-             sensing: Mapping[str, Any] | None = None, name: str = "m3t", **overrides: Any) -> M3TSource:
+def open_m3t(
+    root: str | Path | None = None,
+    manifest: str | Path | None = None,
+    sensing: Mapping[str, Any] | None = None,
+    name: str = "m3t",
+    **overrides: Any,
+) -> M3TSource:
     """Open an M3T-layout dataset at ``root`` (or ``$HARNESS_M3T_ROOT``). ``overrides`` are manifest keys."""
     if root is None:
         root = os.environ.get(ENV_ROOT)
     if not root:
-        raise DataError(f"dataset {name!r}: no data folder. Set dataset.root (--set dataset.root=/path/to/M3T) or "
-                        f"the environment variable {ENV_ROOT}; the layout is described in docs/datasets.md. "
-                        "To try the harness without the release, use --dataset m3t-synth.")
+        raise DataError(
+            f"dataset {name!r}: no data folder. Set dataset.root (--set dataset.root=/path/to/M3T) or "
+            f"the environment variable {ENV_ROOT}; the layout is described in docs/datasets.md. "
+            "To try the harness without the release, use --dataset m3t-synth."
+        )
     root = Path(root)
     if not root.is_dir():
         raise DataError(f"dataset {name!r}: {root} is not a folder (dataset.root / {ENV_ROOT})")
@@ -773,8 +890,16 @@ def open_m3t(root: str | Path | None = None, manifest: str | Path | None = None,
 
 @hookimpl
 def register_datasets(register: Any) -> None:
-    register(DatasetSpec(
-        name="m3t", open=open_m3t, categories=M3T_CATEGORIES,
-        description="DJI M3T facade captures (raw R-JPEG + wide RGB, or already aligned); set dataset.root",
-        thermal="radiometric", default_encoding="c2", protocol="m3t-4fold", root_env=ENV_ROOT, sensing_stage=True,
-    ))
+    register(
+        DatasetSpec(
+            name="m3t",
+            open=open_m3t,
+            categories=M3T_CATEGORIES,
+            description="DJI M3T facade captures (raw R-JPEG + wide RGB, or already aligned); set dataset.root",
+            thermal="radiometric",
+            default_encoding="c2",
+            protocol="m3t-4fold",
+            root_env=ENV_ROOT,
+            sensing_stage=True,
+        )
+    )

@@ -75,13 +75,21 @@ DIR_MODALITY = {v: k for k, v in MODALITY_DIR.items()}
 #: Short names of the annotation sources, as the paper writes them.
 SOURCE_LABEL = {"thermal": "T", "visible": "RGB"}
 SPLITS = ("train", "test")
-_GT_ALIASES = {"thermal": "thermal", "t": "thermal", "ir": "thermal", "01": "thermal",
-               "visible": "visible", "rgb": "visible", "vis": "visible", "00": "visible"}
+_GT_ALIASES = {
+    "thermal": "thermal",
+    "t": "thermal",
+    "ir": "thermal",
+    "01": "thermal",
+    "visible": "visible",
+    "rgb": "visible",
+    "vis": "visible",
+    "00": "visible",
+}
 OPTIONS = {
     "root": f"folder holding images/ and annotations_coco/ (default: ${ROOT_ENV})",
     "gt": "annotation source, thermal (T, default) or visible (RGB)",
     "train_stride": "keep every k-th paired frame of each training sequence (default 1: all; not the official "
-                    "protocol)",
+    "protocol)",
     "test_stride": "keep every k-th paired frame of each test sequence (default 1: all; not the official protocol)",
     "strict": "raise instead of dropping frames whose visible and thermal sides do not match (default false)",
 }
@@ -135,8 +143,11 @@ def find_layout(root: Path) -> Layout:
 
     Raises ``DataError`` naming the folders expected and the ``unzip`` commands that produce them."""
     images = root / "images" if (root / "images").is_dir() else (root if _sequence_dirs(root) else None)
-    annotations = root / "annotations_coco" if (root / "annotations_coco").is_dir() else (
-        root if _has_annotations(root) else None)
+    annotations = (
+        root / "annotations_coco"
+        if (root / "annotations_coco").is_dir()
+        else (root if _has_annotations(root) else None)
+    )
     if images is None or annotations is None:
         missing = [name for name, found in (("images", images), ("annotations_coco", annotations)) if found is None]
         found = sorted(p.name for p in root.iterdir())[:12]
@@ -161,7 +172,7 @@ def parse_file_name(name: str) -> tuple[str, FrameKey, str]:
     """
     rel = str(name).replace("\\", "/").lstrip("./")
     if rel.startswith("images/"):
-        rel = rel[len("images/"):]
+        rel = rel[len("images/") :]
     parts = [p for p in rel.split("/") if p]
     if ".." in parts or (parts and ":" in parts[0]):  # "a/../../x", "C:/x": the file must be under images/
         raise ValueError(f"{name!r} leads outside the dataset's images folder; file names must stay inside it")
@@ -266,8 +277,11 @@ def load_coco_file(path: Path, modality: str, split: str) -> CocoFile:
             raise DataError(f"{path}: {where}: image_id {raw_iid!r} is not in 'images'")
         if cid not in label_of:
             raise DataError(f"{path}: {where}: category_id {raw_cid!r} is not in 'categories' (ids {sorted(label_of)})")
-        if (not isinstance(bbox, (list, tuple)) or len(bbox) != 4
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in bbox)):
+        if (
+            not isinstance(bbox, (list, tuple))
+            or len(bbox) != 4
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in bbox)
+        ):
             raise DataError(f"{path}: {where}: bbox must be four finite numbers [x, y, w, h], got {bbox!r}")
         per_image[iid].append((list(bbox), label_of[cid], bool(ann.get("iscrowd", 0))))
 
@@ -307,8 +321,10 @@ class SplitPairing:
 
     def describe(self) -> str:
         v, t = (f"instances_{MODALITY_DIR[m]}_{self.split}2017.json" for m in ("visible", "thermal"))
-        text = (f"{self.split}: {v} lists {self.listed_visible} images, {t} lists {self.listed_thermal}; "
-                f"{len(self.pairs)} pairs kept")
+        text = (
+            f"{self.split}: {v} lists {self.listed_visible} images, {t} lists {self.listed_thermal}; "
+            f"{len(self.pairs)} pairs kept"
+        )
         if self.dropped:
             why = ", ".join(f"{n} {k}" for k, n in sorted(self.reasons().items()))
             text += f", {len(self.dropped)} frames dropped ({why})"
@@ -372,7 +388,7 @@ def read_split_file(path: Path) -> set[FrameKey]:
         if not line:
             continue
         if line.startswith("images/"):
-            line = line[len("images/"):]
+            line = line[len("images/") :]
         m = _SPLIT_LINE.match(line)
         if not m:
             raise DataError(f"{path}: line {n}: expected '<SEQ>/00|01/<frame>', got {line!r}")
@@ -402,8 +418,9 @@ class RgbtTinySource(PairedSource):
     skip_verb = "dropped"
     categories = CATEGORIES
 
-    def __init__(self, root: Path, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
-                 strict: bool = False):
+    def __init__(
+        self, root: Path, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1, strict: bool = False
+    ):
         self.root = root
         self.layout = find_layout(root)
         self.images_dir = self.layout.images
@@ -435,7 +452,8 @@ class RgbtTinySource(PairedSource):
                 f"test2017 annotation files; the split is by sequence, so the files are inconsistent"
             )
         self.pairs: list[Pair] = sorted(
-            (p for s in SPLITS for p in apply_stride(self.pairing[s].pairs, self.strides[s])), key=lambda p: p.key)
+            (p for s in SPLITS for p in apply_stride(self.pairing[s].pairs, self.strides[s])), key=lambda p: p.key
+        )
         if not self.pairs:
             raise DataError(f"dataset {DATASET!r}: no usable frame pair under {root} ({self._drop_text()})")
         # stable ids: position in the sorted union of every frame any annotation file lists (independent of the
@@ -458,8 +476,13 @@ class RgbtTinySource(PairedSource):
             sp = self.pairing[s]
             self.notes.append(sp.describe())
             if sp.listed_visible != sp.listed_thermal:
-                log.warning("RGBT-Tiny %s: the visible and thermal annotation files list different numbers of images "
-                            "(%d vs %d)", s, sp.listed_visible, sp.listed_thermal)
+                log.warning(
+                    "RGBT-Tiny %s: the visible and thermal annotation files list different numbers of images "
+                    "(%d vs %d)",
+                    s,
+                    sp.listed_visible,
+                    sp.listed_thermal,
+                )
             if sp.dropped:
                 log.warning("RGBT-Tiny %s", sp.describe())
             else:
@@ -495,7 +518,8 @@ class RgbtTinySource(PairedSource):
     def _check_split_files(self) -> None:
         for split, files in find_split_files(self.root).items():
             annotated = {p.key for p in self.pairing[split].pairs} | {
-                k for m in MODALITY_DIR for k in self.coco[m, split].images}
+                k for m in MODALITY_DIR for k in self.coco[m, split].images
+            }
             for path in files:
                 listed = read_split_file(path)
                 other = SPLITS[1 - SPLITS.index(split)]
@@ -507,8 +531,10 @@ class RgbtTinySource(PairedSource):
                     )
                 missing, extra = len(listed - annotated), len(annotated - listed)
                 if missing or extra:
-                    self.notes.append(f"{path.name}: {missing} listed frame(s) have no annotation entry, "
-                                      f"{extra} annotated frame(s) are not listed")
+                    self.notes.append(
+                        f"{path.name}: {missing} listed frame(s) have no annotation entry, "
+                        f"{extra} annotated frame(s) are not listed"
+                    )
                     log.warning("RGBT-Tiny %s", self.notes[-1])
 
     # ------------------------------------------------------------------ DatasetSource
@@ -529,23 +555,38 @@ class RgbtTinySource(PairedSource):
         return [Fold(self.fold_name(), tuple(self.split_groups("train")), tuple(self.split_groups("test")))]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [DATASET, ADAPTER_VERSION, str(self.root.resolve()), self.gt, self.strides["train"],
-                            self.strides["test"], self.strict]
+        parts: list[Any] = [
+            DATASET,
+            ADAPTER_VERSION,
+            str(self.root.resolve()),
+            self.gt,
+            self.strides["train"],
+            self.strides["test"],
+            self.strict,
+        ]
         for (m, s), c in sorted(self.coco.items()):
             parts.append((m, s, file_stat(c.path)))
         for s, files in sorted(find_split_files(self.root).items()):
             parts.extend((s, str(p), file_stat(p)) for p in files)
         for p in self.pairs:
-            parts.append((p.thermal.file_name, file_stat(self.images_dir / p.thermal.file_name),
-                          p.visible.file_name, file_stat(self.images_dir / p.visible.file_name)))
+            parts.append(
+                (
+                    p.thermal.file_name,
+                    file_stat(self.images_dir / p.thermal.file_name),
+                    p.visible.file_name,
+                    file_stat(self.images_dir / p.visible.file_name),
+                )
+            )
         return stat_digest(parts)
 
     def samples(self, report: PrepareReport) -> Iterator[AlignedSample]:
         yield from self._samples(report, self.pairs, self._sample)
 
     def _closing_notes(self, report: PrepareReport, stats: BoxStats) -> None:
-        report.note(f"boxes ({self.gt} annotations): {stats.kept} kept, {stats.clipped} clipped to the frame, "
-                    f"{stats.degenerate} dropped with no area inside the frame, {stats.crowd} crowd boxes dropped")
+        report.note(
+            f"boxes ({self.gt} annotations): {stats.kept} kept, {stats.clipped} clipped to the frame, "
+            f"{stats.degenerate} dropped with no area inside the frame, {stats.crowd} crowd boxes dropped"
+        )
         if stats.colour:
             report.note(f"{stats.colour} thermal frame(s) were colour images and were converted to luminance")
             log.warning("RGBT-Tiny: %d thermal frame(s) were colour images, converted to luminance", stats.colour)
@@ -555,23 +596,41 @@ class RgbtTinySource(PairedSource):
         ir8, was_colour, rgb = read_pair(t_path, v_path, t_path, names=("visible", "thermal"))
         entry = pair.thermal if self.gt == "thermal" else pair.visible
         xyxy, labels, crowd = self.coco[self.gt, pair.split].boxes.get(
-            entry.id, (np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0, bool)))
-        meta = {"file_name": pair.thermal.file_name, "rgb_file": pair.visible.file_name,
-                "sequence": pair.key.sequence, "frame": pair.key.frame, "split": pair.split, "gt": self.gt,
-                "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id}}
-        sample, stats = pair_sample(self.image_ids[pair.key], rgb, ir8, xyxy[~crowd], labels[~crowd],
-                                        pair.key.sequence, meta)
+            entry.id, (np.zeros((0, 4)), np.zeros(0, np.int64), np.zeros(0, bool))
+        )
+        meta = {
+            "file_name": pair.thermal.file_name,
+            "rgb_file": pair.visible.file_name,
+            "sequence": pair.key.sequence,
+            "frame": pair.key.frame,
+            "split": pair.split,
+            "gt": self.gt,
+            "coco_image_ids": {"00": pair.visible.id, "01": pair.thermal.id},
+        }
+        sample, stats = pair_sample(
+            self.image_ids[pair.key], rgb, ir8, xyxy[~crowd], labels[~crowd], pair.key.sequence, meta
+        )
         stats.crowd, stats.colour = int(crowd.sum()), int(was_colour)
         return sample, stats
 
 
-def open_rgbt_tiny(root: str | Path | None = None, gt: str = "thermal", train_stride: int = 1, test_stride: int = 1,
-                   strict: bool = False) -> RgbtTinySource:
+def open_rgbt_tiny(
+    root: str | Path | None = None,
+    gt: str = "thermal",
+    train_stride: int = 1,
+    test_stride: int = 1,
+    strict: bool = False,
+) -> RgbtTinySource:
     """Open an RGBT-Tiny release (the options are the ``dataset:`` config keys, see ``OPTIONS``)."""
     path = resolve_root(root, ROOT_ENV, DATASET, ())
     strict = check_strict(DATASET, strict)
-    return RgbtTinySource(path, gt=normalise_gt(gt), train_stride=positive_int(DATASET, "train_stride", train_stride),
-                          test_stride=positive_int(DATASET, "test_stride", test_stride), strict=strict)
+    return RgbtTinySource(
+        path,
+        gt=normalise_gt(gt),
+        train_stride=positive_int(DATASET, "train_stride", train_stride),
+        test_stride=positive_int(DATASET, "test_stride", test_stride),
+        strict=strict,
+    )
 
 
 SPEC = eightbit_spec(DATASET, open_rgbt_tiny, CATEGORIES, DESCRIPTION, ROOT_ENV)

@@ -37,9 +37,17 @@ from harness.errors import ConfigError, DataError
 
 CONVENTIONS = ("one-based", "zero-based")
 DIFFICULT = ("drop", "keep")
-_CONVENTION_ALIASES = {"one-based": "one-based", "1": "one-based", "1-based": "one-based", "voc": "one-based",
-                       "labelimg": "one-based", "zero-based": "zero-based", "0": "zero-based", "0-based": "zero-based",
-                       "continuous": "zero-based"}
+_CONVENTION_ALIASES = {
+    "one-based": "one-based",
+    "1": "one-based",
+    "1-based": "one-based",
+    "voc": "one-based",
+    "labelimg": "one-based",
+    "zero-based": "zero-based",
+    "0": "zero-based",
+    "0-based": "zero-based",
+    "continuous": "zero-based",
+}
 
 
 @dataclass(frozen=True)
@@ -70,16 +78,20 @@ class VocAnnotation:
 def normalise_convention(dataset: str, value: object) -> str:
     key = str(value).strip().lower()
     if key not in _CONVENTION_ALIASES:
-        raise ConfigError(f"dataset {dataset!r}: option 'voc_convention' must be one-based (VOC/labelImg, default) or "
-                          f"zero-based (0-based corners taken as written), got {value!r}")
+        raise ConfigError(
+            f"dataset {dataset!r}: option 'voc_convention' must be one-based (VOC/labelImg, default) or "
+            f"zero-based (0-based corners taken as written), got {value!r}"
+        )
     return _CONVENTION_ALIASES[key]
 
 
 def normalise_difficult(dataset: str, value: object) -> str:
     key = str(value).strip().lower()
     if key not in DIFFICULT:
-        raise ConfigError(f"dataset {dataset!r}: option 'difficult' must be drop (left out of training and scoring, "
-                          f"default) or keep (an ordinary object), got {value!r}")
+        raise ConfigError(
+            f"dataset {dataset!r}: option 'difficult' must be drop (left out of training and scoring, "
+            f"default) or keep (an ordinary object), got {value!r}"
+        )
     return key
 
 
@@ -178,13 +190,17 @@ class VocStats:
 
     def note(self) -> str:
         if self.convention == "one-based":
-            rule = ("VOC boxes read as 1-based inclusive pixel indices (VOC/labelImg) and converted to 0-based "
-                    "corners (xmin - 1, ymin - 1, xmax, ymax)")
+            rule = (
+                "VOC boxes read as 1-based inclusive pixel indices (VOC/labelImg) and converted to 0-based "
+                "corners (xmin - 1, ymin - 1, xmax, ymax)"
+            )
         else:
             rule = "VOC boxes read as 0-based corners, as written (voc_convention: zero-based)"
         if self.difficult_mode == "drop":
-            diff = (f"{self.difficult} difficult box(es) left out of training targets and scoring "
-                    f"(a detection on one counts as a false positive)")
+            diff = (
+                f"{self.difficult} difficult box(es) left out of training targets and scoring "
+                f"(a detection on one counts as a false positive)"
+            )
         else:
             diff = f"{self.difficult} difficult box(es) kept as ordinary objects (difficult: keep)"
         return f"{rule}; {self.boxes} boxes read, {self.floats} with fractional coordinates; {diff}"

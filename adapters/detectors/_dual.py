@@ -33,8 +33,16 @@ def finish_options(name: str, options: dict[str, Any], known: tuple[str, ...] = 
     return finish
 
 
-def finish_build(model: Any, name: str, weights: Any = None, conf: float | None = None, iou: float | None = None,
-                 max_det: int | None = None, multi_label: bool | None = None, max_nms: int | None = None) -> Any:
+def finish_build(
+    model: Any,
+    name: str,
+    weights: Any = None,
+    conf: float | None = None,
+    iou: float | None = None,
+    max_det: int | None = None,
+    multi_label: bool | None = None,
+    max_nms: int | None = None,
+) -> Any:
     """The end of every dual-stream build: the NMS settings of the config (``None`` keeps the model's), then
     ``weights`` (a YOLOv5-layout state dict or file, when given) with the key report kept as ``model.load_report``."""
     from adapters.detectors.yolo.v5 import set_inference_options
@@ -45,9 +53,16 @@ def finish_build(model: Any, name: str, weights: Any = None, conf: float | None 
     return model
 
 
-def dual_stream_spec(name: str, build: Callable[..., Any], description: str, label: str, *,
-                     seed: tuple[float, float], nms_iou: float, load_official: Callable[..., dict] | None
-                     ) -> DetectorSpec:
+def dual_stream_spec(
+    name: str,
+    build: Callable[..., Any],
+    description: str,
+    label: str,
+    *,
+    seed: tuple[float, float],
+    nms_iou: float,
+    load_official: Callable[..., dict] | None,
+) -> DetectorSpec:
     """A dual-stream detector fed ``(rgb, thermal)``, the thermal encoding (ir8 by default, as the baselines' own
     code reads its thermal images) replicated to three channels. ``seed``: the parameters (M) and GFLOPs the seed
     paper publishes for it (8 classes, 640 x 640)."""

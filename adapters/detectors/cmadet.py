@@ -15,17 +15,38 @@ from adapters.detectors._dual import dual_stream_spec, finish_build, finish_opti
 from harness.hookspecs import hookimpl
 
 NAME = "cmadet"
-DESCRIPTION = ("CMA-Det: dual YOLOv5s backbones, alignment network warping the visible features into the thermal "
-               "frame (global FC field + residual refinement at P5/P4/P3), object search rectification (training "
-               "only), bi-directional channel/spatial correction fusion, YOLOv5 PAN neck and anchor head")
+DESCRIPTION = (
+    "CMA-Det: dual YOLOv5s backbones, alignment network warping the visible features into the thermal "
+    "frame (global FC field + residual refinement at P5/P4/P3), object search rectification (training "
+    "only), bi-directional channel/spatial correction fusion, YOLOv5 PAN neck and anchor head"
+)
 LABEL = "reconstructed from the paper"
 #: Options of the network itself (``CMADet``), beyond the trunk size, the weights and the NMS settings.
-NET_OPTIONS = ("align_width", "hidden", "reduce", "grid", "flow_gain", "reduction", "osr", "osr_weight", "tv_weight",
-               "osr_points", "osr_radius", "osr_temperature", "prior_bias")
+NET_OPTIONS = (
+    "align_width",
+    "hidden",
+    "reduce",
+    "grid",
+    "flow_gain",
+    "reduction",
+    "osr",
+    "osr_weight",
+    "tv_weight",
+    "osr_points",
+    "osr_radius",
+    "osr_temperature",
+    "prior_bias",
+)
 
 
-def build(num_classes: int, in_channels: int = 3, scale: str = "s", width: float | None = None,
-          depth: float | None = None, **options: Any):
+def build(
+    num_classes: int,
+    in_channels: int = 3,
+    scale: str = "s",
+    width: float | None = None,
+    depth: float | None = None,
+    **options: Any,
+):
     """Build the CMA-Det reconstruction; ``in_channels`` is the thermal stream's (3: the encoding replicated);
     ``options``: ``NET_OPTIONS``, the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.cmadet_net import CMADet

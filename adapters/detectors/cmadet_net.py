@@ -88,8 +88,14 @@ def _sample(feat: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     return out.view(c, *pts.shape[:-1])
 
 
-def osr_search(thermal: torch.Tensor, visible: torch.Tensor, boxes: torch.Tensor, points: int = 5,
-               radius: int = 3, temperature: float = 0.1) -> tuple[torch.Tensor, torch.Tensor]:
+def osr_search(
+    thermal: torch.Tensor,
+    visible: torch.Tensor,
+    boxes: torch.Tensor,
+    points: int = 5,
+    radius: int = 3,
+    temperature: float = 0.1,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Object search: similarity of each box's thermal template with the visible map at every integer shift.
 
     ``thermal``/``visible``: ``[C, H, W]``; ``boxes``: ``[n, 4]`` xyxy in cell units. A ``points x points``
@@ -119,8 +125,15 @@ def osr_offset(logits: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
     return torch.softmax(logits, -1) @ shifts
 
 
-def osr_loss(thermal3: torch.Tensor, visible3: torch.Tensor, targets: Sequence[Mapping[str, torch.Tensor]],
-             stride: int = P3_STRIDE, points: int = 5, radius: int = 3, temperature: float = 0.1) -> torch.Tensor:
+def osr_loss(
+    thermal3: torch.Tensor,
+    visible3: torch.Tensor,
+    targets: Sequence[Mapping[str, torch.Tensor]],
+    stride: int = P3_STRIDE,
+    points: int = 5,
+    radius: int = 3,
+    temperature: float = 0.1,
+) -> torch.Tensor:
     """Object Search Rectification: after alignment, each object's best match must be at zero shift.
 
     Cross-entropy over the (2 radius + 1)^2 shifts of :func:`osr_search` with the zero shift as the target,
@@ -165,8 +178,7 @@ class FlowRefiner(nn.Module):
 class AlignmentNetwork(nn.Module):
     """Global deformation regressor at P5, then coarse-to-fine residual refinement at P5, P4, P3."""
 
-    def __init__(self, chans: Sequence[int], width: int, hidden: int, reduce: int, grid: int = 20,
-                 gain: float = 1.0):
+    def __init__(self, chans: Sequence[int], width: int, hidden: int, reduce: int, grid: int = 20, gain: float = 1.0):
         super().__init__()
         self.gain = gain
         c3, c4, c5 = chans
@@ -185,8 +197,9 @@ class AlignmentNetwork(nn.Module):
         phi = self.fc2(F.relu(self.fc1(x.flatten(1)))).view(-1, 2, self.grid, self.grid) * self.gain
         return resize_flow(phi, v5.shape[-2:])
 
-    def forward(self, visible: Sequence[torch.Tensor], thermal: Sequence[torch.Tensor]
-                ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    def forward(
+        self, visible: Sequence[torch.Tensor], thermal: Sequence[torch.Tensor]
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """``visible``/``thermal``: (P3, P4, P5). Returns warped visible (P3, P4, P5) and flows (P3, P4, P5)."""
         phi = self.global_flow(visible[2], thermal[2])
         warped: list[torch.Tensor] = []
@@ -292,8 +305,15 @@ class CMADet(v5.AnchorDetector):
         bs = raw[0].shape[0]
         losses["tv"] = self.tv_weight * sum(total_variation(f) for f in aux["flows"]) * bs
         if self.osr:
-            l_osr = osr_loss(aux["thermal"][0], aux["warped"][0], targets, P3_STRIDE,
-                             self.osr_points, self.osr_radius, self.osr_temperature)
+            l_osr = osr_loss(
+                aux["thermal"][0],
+                aux["warped"][0],
+                targets,
+                P3_STRIDE,
+                self.osr_points,
+                self.osr_radius,
+                self.osr_temperature,
+            )
         else:
             l_osr = aux["flows"][0].sum() * 0.0
         losses["osr"] = self.osr_weight * l_osr * bs

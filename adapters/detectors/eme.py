@@ -17,14 +17,24 @@ from adapters.detectors._dual import dual_stream_spec, finish_build, finish_opti
 from harness.hookspecs import hookimpl
 
 NAME = "eme"
-DESCRIPTION = ("EME: YOLOv5l on the 6-channel early-fusion input [RGB, thermal x3] (the configuration the seed's "
-               "46.15 M / 109.2 GFLOPs describe); model.shape=true adds the ShaPE shape-priority stem. The public "
-               "EME code is MMDetection GFL-R50 with CLIP weak supervision and CoreKD distillation")
+DESCRIPTION = (
+    "EME: YOLOv5l on the 6-channel early-fusion input [RGB, thermal x3] (the configuration the seed's "
+    "46.15 M / 109.2 GFLOPs describe); model.shape=true adds the ShaPE shape-priority stem. The public "
+    "EME code is MMDetection GFL-R50 with CLIP weak supervision and CoreKD distillation"
+)
 LABEL = "YOLOv5l early fusion (+ShaPE option); weak supervision and distillation omitted"
 
 
-def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float | None = None,
-          depth: float | None = None, shape: bool = False, prior_bias: bool = True, **options: Any):
+def build(
+    num_classes: int,
+    in_channels: int = 3,
+    scale: str = "l",
+    width: float | None = None,
+    depth: float | None = None,
+    shape: bool = False,
+    prior_bias: bool = True,
+    **options: Any,
+):
     """Build EME for ``num_classes``; ``in_channels`` is the thermal stream's (concatenated after RGB);
     ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.eme_net import EME
@@ -43,5 +53,6 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 
 @hookimpl
 def register_detectors(register):
-    register(dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(46.15, 109.2), nms_iou=0.6,
-                              load_official=load_official))
+    register(
+        dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(46.15, 109.2), nms_iou=0.6, load_official=load_official)
+    )

@@ -41,8 +41,9 @@ def sobel_magnitude(x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     return torch.sqrt(g[:, :1] ** 2 + g[:, 1:] ** 2 + eps)
 
 
-def gaussian_kernel(size: int = 7, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
-                    device: torch.device | None = None) -> torch.Tensor:
+def gaussian_kernel(
+    size: int = 7, sigma: float = 1.5, dtype: torch.dtype = torch.float32, device: torch.device | None = None
+) -> torch.Tensor:
     """Normalised 2-D Gaussian window ``[size, size]`` centred on the middle tap."""
     x = torch.arange(size, dtype=dtype, device=device) - size // 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
@@ -90,7 +91,7 @@ class ShaPE(nn.Module):
         return torch.softmax(s, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        rgb, thermal = x[:, : self.rgb_channels], x[:, self.rgb_channels:]
+        rgb, thermal = x[:, : self.rgb_channels], x[:, self.rgb_channels :]
         w = self.fusion_weights(rgb, thermal)
         return self.conv(torch.cat((rgb * w[:, :1], thermal * w[:, 1:]), 1))
 
@@ -100,8 +101,15 @@ class EME(v5.AnchorDetector):
 
     name = "eme"
 
-    def __init__(self, nc: int, in_channels: int = 3, width: float = 1.0, depth: float = 1.0, shape: bool = False,
-                 prior_bias: bool = True):
+    def __init__(
+        self,
+        nc: int,
+        in_channels: int = 3,
+        width: float = 1.0,
+        depth: float = 1.0,
+        shape: bool = False,
+        prior_bias: bool = True,
+    ):
         super().__init__(nc)
         fused_channels = 3 + in_channels
         self.in_channels_total = fused_channels
@@ -124,8 +132,10 @@ class EME(v5.AnchorDetector):
         else:
             x = torch.cat(v5.as_pair(inputs, self.name), 1)
         if x.shape[1] != self.in_channels_total:
-            raise HarnessError(f"detector {self.name!r}: early fusion expects {self.in_channels_total} channels "
-                               f"(RGB + {self.in_channels_total - 3} thermal), got {x.shape[1]}")
+            raise HarnessError(
+                f"detector {self.name!r}: early fusion expects {self.in_channels_total} channels "
+                f"(RGB + {self.in_channels_total - 3} thermal), got {x.shape[1]}"
+            )
         v5.check_size(x.shape[-2], x.shape[-1], self.name)
         return self.stem(x) if self.stem is not None else x
 

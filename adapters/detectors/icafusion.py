@@ -15,14 +15,27 @@ from adapters.detectors._dual import dual_stream_spec, finish_build, finish_opti
 from harness.hookspecs import hookimpl
 
 NAME = "icafusion"
-DESCRIPTION = ("ICAFusion: two YOLOv5l streams (RGB, thermal) fused by iterative cross-attention blocks at P3/P4/P5, "
-               "YOLOv5 PAN neck and anchor head; official yolov5l_Transfusion layout")
+DESCRIPTION = (
+    "ICAFusion: two YOLOv5l streams (RGB, thermal) fused by iterative cross-attention blocks at P3/P4/P5, "
+    "YOLOv5 PAN neck and anchor head; official yolov5l_Transfusion layout"
+)
 LABEL = "official architecture and checkpoint layout"
 
 
-def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float | None = None,
-          depth: float | None = None, tokens: Any = (20, 16, 10), heads: int = 8, block_exp: int = 4,
-          dropout: float = 0.1, prior_bias: bool = False, sort_obj_iou: bool = True, **options: Any):
+def build(
+    num_classes: int,
+    in_channels: int = 3,
+    scale: str = "l",
+    width: float | None = None,
+    depth: float | None = None,
+    tokens: Any = (20, 16, 10),
+    heads: int = 8,
+    block_exp: int = 4,
+    dropout: float = 0.1,
+    prior_bias: bool = False,
+    sort_obj_iou: bool = True,
+    **options: Any,
+):
     """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated);
     ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
     from adapters.detectors.icafusion_net import ICAFusion
@@ -30,8 +43,18 @@ def build(num_classes: int, in_channels: int = 3, scale: str = "l", width: float
 
     finish = finish_options(NAME, options)
     w, d = resolve_scale(NAME, scale, width, depth)
-    model = ICAFusion(num_classes, in_channels, width=w, depth=d, tokens=tuple(tokens), heads=heads,
-                      block_exp=block_exp, dropout=dropout, prior_bias=prior_bias, sort_obj_iou=sort_obj_iou)
+    model = ICAFusion(
+        num_classes,
+        in_channels,
+        width=w,
+        depth=d,
+        tokens=tuple(tokens),
+        heads=heads,
+        block_exp=block_exp,
+        dropout=dropout,
+        prior_bias=prior_bias,
+        sort_obj_iou=sort_obj_iou,
+    )
     return finish_build(model, NAME, **finish)
 
 
@@ -45,5 +68,8 @@ def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:
 
 @hookimpl
 def register_detectors(register):
-    register(dual_stream_spec(NAME, build, DESCRIPTION, LABEL, seed=(120.24, 191.68), nms_iou=0.5,
-                              load_official=load_official))
+    register(
+        dual_stream_spec(
+            NAME, build, DESCRIPTION, LABEL, seed=(120.24, 191.68), nms_iou=0.5, load_official=load_official
+        )
+    )

@@ -46,7 +46,12 @@ from harness.errors import HarnessError
 TOKENS = (20, 16, 10)
 #: Official layer indices.
 RGB_LAYERS, THERMAL_LAYERS, FUSION_LAYERS, NECK_LAYERS, DETECT_LAYER = (
-    range(0, 10), range(10, 20), range(20, 23), range(23, 37), 37)
+    range(0, 10),
+    range(10, 20),
+    range(20, 23),
+    range(23, 37),
+    37,
+)
 
 
 def pool_geometry(size: int, grid: int) -> tuple[int, int] | None:
@@ -166,8 +171,15 @@ class CrossTransformerBlock(nn.Module):
     forward (nor by this one).
     """
 
-    def __init__(self, d_model: int, heads: int = 8, block_exp: int = 4, attn_pdrop: float = 0.1,
-                 resid_pdrop: float = 0.1, loops: int = 1):
+    def __init__(
+        self,
+        d_model: int,
+        heads: int = 8,
+        block_exp: int = 4,
+        attn_pdrop: float = 0.1,
+        resid_pdrop: float = 0.1,
+        loops: int = 1,
+    ):
         super().__init__()
         self.loops = loops
         self.ln_input = nn.LayerNorm(d_model)  # unused by forward
@@ -194,16 +206,26 @@ class CrossTransformerBlock(nn.Module):
 class TransformerFusionBlock(nn.Module):
     """Pool both modalities to a fixed token grid, cross-attend, upsample back, add, and fuse with a 1x1 conv."""
 
-    def __init__(self, d_model: int, vert_anchors: int = 16, horz_anchors: int = 16, heads: int = 8,
-                 block_exp: int = 4, n_layer: int = 1, attn_pdrop: float = 0.1, resid_pdrop: float = 0.1):
+    def __init__(
+        self,
+        d_model: int,
+        vert_anchors: int = 16,
+        horz_anchors: int = 16,
+        heads: int = 8,
+        block_exp: int = 4,
+        n_layer: int = 1,
+        attn_pdrop: float = 0.1,
+        resid_pdrop: float = 0.1,
+    ):
         super().__init__()
         self.grid = (vert_anchors, horz_anchors)
         self.pos_emb_vis = nn.Parameter(torch.zeros(1, vert_anchors * horz_anchors, d_model))
         self.pos_emb_ir = nn.Parameter(torch.zeros(1, vert_anchors * horz_anchors, d_model))
         self.vis_coefficient = LearnableWeights()
         self.ir_coefficient = LearnableWeights()
-        self.crosstransformer = nn.Sequential(*(
-            CrossTransformerBlock(d_model, heads, block_exp, attn_pdrop, resid_pdrop) for _ in range(n_layer)))
+        self.crosstransformer = nn.Sequential(
+            *(CrossTransformerBlock(d_model, heads, block_exp, attn_pdrop, resid_pdrop) for _ in range(n_layer))
+        )
         self.conv1x1_out = Conv(2 * d_model, d_model, 1, 1, 0)
 
     def _tokens(self, x: torch.Tensor, weights: LearnableWeights, pos: torch.Tensor) -> torch.Tensor:
@@ -232,9 +254,19 @@ class ICAFusion(v5.AnchorDetector):
 
     name = "icafusion"
 
-    def __init__(self, nc: int, in_channels: int = 3, width: float = 1.0, depth: float = 1.0,
-                 tokens: Sequence[int] = TOKENS, heads: int = 8, block_exp: int = 4, dropout: float = 0.1,
-                 prior_bias: bool = False, sort_obj_iou: bool = True):
+    def __init__(
+        self,
+        nc: int,
+        in_channels: int = 3,
+        width: float = 1.0,
+        depth: float = 1.0,
+        tokens: Sequence[int] = TOKENS,
+        heads: int = 8,
+        block_exp: int = 4,
+        dropout: float = 0.1,
+        prior_bias: bool = False,
+        sort_obj_iou: bool = True,
+    ):
         super().__init__(nc)
         if len(tokens) != 3:
             raise HarnessError(f"ICAFusion: 'tokens' needs three grid sizes (P3, P4, P5), got {list(tokens)}")
@@ -242,8 +274,10 @@ class ICAFusion(v5.AnchorDetector):
         layers: list[nn.Module] = []
         layers += v5.backbone_layers(3, width, depth)
         layers += v5.backbone_layers(in_channels, width, depth)
-        layers += [TransformerFusionBlock(c, int(t), int(t), heads, block_exp, 1, dropout, dropout)
-                   for c, t in zip(chans, tokens)]
+        layers += [
+            TransformerFusionBlock(c, int(t), int(t), heads, block_exp, 1, dropout, dropout)
+            for c, t in zip(chans, tokens)
+        ]
         layers += v5.pan_layers(width, depth)
         layers.append(v5.Detect(nc, chans, anchor_grid_buffer=True))
         self.model = nn.ModuleList(layers)

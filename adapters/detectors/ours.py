@@ -14,8 +14,17 @@ from harness.hookspecs import hookimpl
 DESCRIPTION = "YOLOv8s, 4-channel [R,G,B,C2] input (the seed's detector)"
 
 
-def build(num_classes: int, in_channels: int = 4, scale: str = "s", conf: float = 0.001, iou: float = 0.7,
-          max_det: int = 300, weights: str | None = None, extra_channels: str = "zeros", **kw: Any):
+def build(
+    num_classes: int,
+    in_channels: int = 4,
+    scale: str = "s",
+    conf: float = 0.001,
+    iou: float = 0.7,
+    max_det: int = 300,
+    weights: str | None = None,
+    extra_channels: str = "zeros",
+    **kw: Any,
+):
     """Build "ours": a YOLOv8 (``scale`` n/s/m/l/x, default s) for ``in_channels`` = 3 + encoding channels.
 
     ``weights``: a public-layout YOLOv8 state dict file (``.pt`` of plain tensors or ``.safetensors``, 3 or 4 input

@@ -32,10 +32,17 @@ def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root
 
 def _dataset_options(func: Any) -> Any:
     func = opt.no_progress_option()(func)
-    func = opt.config_options(after_profile=False, help_set="Override a config key, e.g. --set dataset.profile=full "
-                                                            "or --set sensing.warp.crop=false (repeatable).")(func)
-    func = click.option("--cache", type=click.Path(file_okay=False, path_type=Path), default=None,
-                        help="Cache folder (default: $HARNESS_CACHE or ./cache).")(func)
+    func = opt.config_options(
+        after_profile=False,
+        help_set="Override a config key, e.g. --set dataset.profile=full "
+        "or --set sensing.warp.crop=false (repeatable).",
+    )(func)
+    func = click.option(
+        "--cache",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=None,
+        help="Cache folder (default: $HARNESS_CACHE or ./cache).",
+    )(func)
     func = click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")(func)
     func = click.option("--dataset", required=True, help="Dataset name (see `harness list`).")(func)
     return func
@@ -45,17 +52,23 @@ def prepare_summary(ds: Any) -> str:
     """What ``harness prepare`` prints: where, how many, what was skipped and why."""
     m = ds.manifest
     rep = m.get("report", {})
-    lines = [f"{'reused' if getattr(ds, 'from_cache', False) else 'prepared'} {m['dataset']}: {m['count']} aligned "
-             f"samples, {m['instances']} instances -> {ds.folder}"]
+    lines = [
+        f"{'reused' if getattr(ds, 'from_cache', False) else 'prepared'} {m['dataset']}: {m['count']} aligned "
+        f"samples, {m['instances']} instances -> {ds.folder}"
+    ]
     from harness.cache.admin import size_line
 
     lines.append(size_line(ds))
     pairs = {k: v for k, v in rep.get("skip_reasons", {}).items() if not k.startswith("annotation")}
     anns = {k: v for k, v in rep.get("skip_reasons", {}).items() if k.startswith("annotation")}
-    lines.append(f"skipped pairs: {sum(pairs.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in pairs.items())
-                                                            + ")" if pairs else ""))
-    lines.append(f"skipped annotations: {sum(anns.values())}" + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items())
-                                                                 + ")" if anns else ""))
+    lines.append(
+        f"skipped pairs: {sum(pairs.values())}"
+        + (" (" + ", ".join(f"{k}: {v}" for k, v in pairs.items()) + ")" if pairs else "")
+    )
+    lines.append(
+        f"skipped annotations: {sum(anns.values())}"
+        + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items()) + ")" if anns else "")
+    )
     for where, reason in (rep.get("skipped_files") or [])[:3]:
         lines.append(_cut(f"  e.g. {where}: {reason}"))
     from harness.input_guard import describe
@@ -64,21 +77,26 @@ def prepare_summary(ds: Any) -> str:
     lines += [fit_text(line) for line in describe(getattr(ds, "input_risks", None) or [])]
     missing = rep.get("missing_temperatures") or {}
     if missing.get("pixels"):
-        lines.append(f"missing temperatures (NaN/inf, left out of the encodings): {missing['pixels']} pixels in "
-                     f"{missing['samples']} sample(s)")
+        lines.append(
+            f"missing temperatures (NaN/inf, left out of the encodings): {missing['pixels']} pixels in "
+            f"{missing['samples']} sample(s)"
+        )
     for note in rep.get("notes", []):
         lines.append(f"note: {note}")
     from harness.summary import SizeSummary
 
     sizes = SizeSummary.of_prepared(ds)
-    lines += [sizes.headline(), "boxes per category and size bin (SAFit bins, box side sqrt(w*h) in px):",
-              sizes.to_text()]
+    lines += [
+        sizes.headline(),
+        "boxes per category and size bin (SAFit bins, box side sqrt(w*h) in px):",
+        sizes.to_text(),
+    ]
     return "\n".join(lines)
 
 
 def _cut(line: str, width: int = 100) -> str:
     """``line`` cut to ``width`` characters (an example of a long reason: its start says what it is)."""
-    return line if len(line) <= width else line[:width - 3] + "..."
+    return line if len(line) <= width else line[: width - 3] + "..."
 
 
 def folds_table(ds: Any, folds: Sequence[Any]) -> str:
@@ -95,11 +113,22 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="prepare")
     @_dataset_options
     @click.option("--force", is_flag=True, help="Prepare again even if a cached copy exists.")
-    @click.option("--cache-form", type=click.Choice(["compact", "raw"]), default=None,
-                  help="compact (default, lossless, 8-bit sources referenced) or raw (uncompressed, memory-mapped); "
-                       "default $HARNESS_CACHE_FORM or compact.")
-    def prepare_cmd(dataset: str, root: str | None, cache: Path | None, config_files: tuple[str, ...],
-                    overrides: tuple[str, ...], force: bool, cache_form: str | None) -> None:
+    @click.option(
+        "--cache-form",
+        type=click.Choice(["compact", "raw"]),
+        default=None,
+        help="compact (default, lossless, 8-bit sources referenced) or raw (uncompressed, memory-mapped); "
+        "default $HARNESS_CACHE_FORM or compact.",
+    )
+    def prepare_cmd(
+        dataset: str,
+        root: str | None,
+        cache: Path | None,
+        config_files: tuple[str, ...],
+        overrides: tuple[str, ...],
+        force: bool,
+        cache_form: str | None,
+    ) -> None:
         """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
         from harness.cache import prepare
 
@@ -110,16 +139,24 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="folds")
     @_dataset_options
     @opt.folds_option()
-    def folds_cmd(dataset: str, root: str | None, cache: Path | None, config_files: tuple[str, ...],
-                  overrides: tuple[str, ...], folds: str) -> None:
+    def folds_cmd(
+        dataset: str,
+        root: str | None,
+        cache: Path | None,
+        config_files: tuple[str, ...],
+        overrides: tuple[str, ...],
+        folds: str,
+    ) -> None:
         """Print train/val image and instance counts per fold (prepares the dataset if needed)."""
         from harness.cache import prepare, resolve_folds
 
         spec, cfg = _config(dataset, config_files, overrides, root)
         ds = prepare(dataset, cfg, cache_root=cache)
         selected = resolve_folds(spec, ds, cfg, folds)
-        click.echo(f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "
-                   f"{', '.join(sorted(set(ds.groups)))}")
+        click.echo(
+            f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "
+            f"{', '.join(sorted(set(ds.groups)))}"
+        )
         click.echo(folds_table(ds, selected))
         from harness.input_guard import describe
         from harness.textable import fit_text

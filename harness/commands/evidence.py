@@ -51,21 +51,51 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--image-id", type=int, default=None, help="The sample's image id.")
     @click.option("--index", type=int, default=None, help="The sample's position in the prepared dataset [0].")
     @click.option("--name", default=None, help="The sample's file name (RGB or thermal; base name or stem).")
-    @click.option("--encoding", default=None,
-                  help="Encoding drawn as the fourth channel [default: the dataset's]; 'none' for none.")
+    @click.option(
+        "--encoding",
+        default=None,
+        help="Encoding drawn as the fourth channel [default: the dataset's]; 'none' for none.",
+    )
     @opt.profile_option(uses_config=False)
-    @opt.store_option(reads=True, help="Results store to read --detectors predictions from "
-                                       "[default: results/<profile>].")
-    @opt.names_option("--detectors", old=("--detector",),
-                      help="Draw these detectors' predictions (finished runs holding the image, at their operating "
-                           "point), comma-separated or repeated.")
-    @click.option("--height", type=click.IntRange(64, 4000), default=400, show_default=True,
-                  help="Height of each panel in pixels.")
-    @click.option("--out", type=click.Path(dir_okay=False), default=None,
-                  help="Write the picture here (.png or .jpg) [default: inline in an iTerm2 or kitty terminal, "
-                       "else show_<dataset>_<id>.png].")
-    def show_cmd(dataset, root, cache, config_files, overrides, image_id, index, name, encoding, profile, store,
-                 detectors, height, out):
+    @opt.store_option(
+        reads=True, help="Results store to read --detectors predictions from [default: results/<profile>]."
+    )
+    @opt.names_option(
+        "--detectors",
+        old=("--detector",),
+        help="Draw these detectors' predictions (finished runs holding the image, at their operating "
+        "point), comma-separated or repeated.",
+    )
+    @click.option(
+        "--height",
+        type=click.IntRange(64, 4000),
+        default=400,
+        show_default=True,
+        help="Height of each panel in pixels.",
+    )
+    @click.option(
+        "--out",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="Write the picture here (.png or .jpg) [default: inline in an iTerm2 or kitty terminal, "
+        "else show_<dataset>_<id>.png].",
+    )
+    def show_cmd(
+        dataset,
+        root,
+        cache,
+        config_files,
+        overrides,
+        image_id,
+        index,
+        name,
+        encoding,
+        profile,
+        store,
+        detectors,
+        height,
+        out,
+    ):
         """Draw one prepared sample: RGB, thermal (°C colour map with a scale bar, or grey levels for 8-bit
         data) and the fourth channel side by side, with its boxes (and predictions from a results store).
 
@@ -78,8 +108,19 @@ def register_commands(cli: click.Group) -> None:
 
         _, cfg = _config(dataset, config_files, overrides, root)
         store = opt.resolve_store(store, profile) if detectors else store
-        shown = show(dataset, cfg, image_id=image_id, index=index, name=name, encoding=encoding, store=store,
-                     detectors=detectors, height=height, out=out, cache_root=cache)
+        shown = show(
+            dataset,
+            cfg,
+            image_id=image_id,
+            index=index,
+            name=name,
+            encoding=encoding,
+            store=store,
+            detectors=detectors,
+            height=height,
+            out=out,
+            cache_root=cache,
+        )
         if shown.path is not None:
             click.echo(str(shown.path))
             click.echo(f"sample {shown.image_id} drawn to {shown.path}", err=True)
@@ -90,15 +131,24 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset whose finished runs are exported.")
     @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
     @opt.seeds_option(old=("--seed",), help="Only runs of these training seeds, comma-separated [default: all].")
-    @click.option("--encoding", default=None,
-                  help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.")
-    @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
-                  help="Folder for the slice images (FiftyOne reads samples from files).")
-    @click.option("--name", default=None,
-                  help="FiftyOne dataset name, with a letter or digit [default: harness-<dataset>].")
+    @click.option(
+        "--encoding",
+        default=None,
+        help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.",
+    )
+    @click.option(
+        "--out",
+        required=True,
+        type=click.Path(file_okay=False, path_type=Path),
+        help="Folder for the slice images (FiftyOne reads samples from files).",
+    )
+    @click.option(
+        "--name", default=None, help="FiftyOne dataset name, with a letter or digit [default: harness-<dataset>]."
+    )
     @click.option("--overwrite", is_flag=True, help="Replace a FiftyOne dataset of the same name.")
-    @click.option("--records-only", is_flag=True,
-                  help="Write the images and records.json without FiftyOne (no import needed).")
+    @click.option(
+        "--records-only", is_flag=True, help="Write the images and records.json without FiftyOne (no import needed)."
+    )
     def export_fiftyone_cmd(profile, store, dataset, folds, seeds, encoding, out, name, overwrite, records_only):
         """Export held-out samples and every detector's predictions to a FiftyOne grouped dataset.
 
@@ -111,9 +161,17 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.report.fiftyone_export import export_fiftyone
 
-        result = export_fiftyone(opt.resolve_store(store, profile), dataset, out, folds=opt.split_list(folds) or None,
-                                 seed=opt.parse_seeds(seeds), encoding=encoding, name=name,
-                                 overwrite=overwrite, records_only=records_only)
+        result = export_fiftyone(
+            opt.resolve_store(store, profile),
+            dataset,
+            out,
+            folds=opt.split_list(folds) or None,
+            seed=opt.parse_seeds(seeds),
+            encoding=encoding,
+            name=name,
+            overwrite=overwrite,
+            records_only=records_only,
+        )
         for line in result.lines():
             click.echo(line, err=True)
         click.echo(result.name or str(result.records_path))

@@ -43,10 +43,21 @@ class PretrainResult:
     state: str
 
 
-def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, fold: str | None = None,
-             seed: int = 0, profile: str | None = "smoke", config_files: Sequence[str | Path] = (),
-             overrides: Sequence[str] = (), store: str | Path | None = None, force: bool = False,
-             progress: bool = True, out: str | Path | None = None, init: str | Path | None = None) -> PretrainResult:
+def pretrain(
+    detector: str,
+    dataset: str = "m3fd",
+    encoding: str | None = None,
+    fold: str | None = None,
+    seed: int = 0,
+    profile: str | None = "smoke",
+    config_files: Sequence[str | Path] = (),
+    overrides: Sequence[str] = (),
+    store: str | Path | None = None,
+    force: bool = False,
+    progress: bool = True,
+    out: str | Path | None = None,
+    init: str | Path | None = None,
+) -> PretrainResult:
     """Train ``detector`` on ``dataset``'s training groups and return the checkpoint for ``harness run --init``."""
     from harness.errors import ConfigError, StoreError
     from harness.io import atomic_write_json
@@ -58,18 +69,37 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
     if fold is None:
         from harness.config import load_config
 
-        folds = (load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)
-                 ["protocol"].get("folds") or {})
+        folds = (
+            load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)["protocol"].get(
+                "folds"
+            )
+            or {}
+        )
         if len(folds) > 1:
-            raise ConfigError(f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with "
-                              f"--folds")
+            raise ConfigError(
+                f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with --folds"
+            )
         fold = next(iter(folds), "all")
-    summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=fold, seeds=[seed],
-                             profile=profile, config_files=config_files, overrides=overrides, store=store, force=force,
-                             progress=progress, init=init))
+    summary = run(
+        RunRequest(
+            detector=detector,
+            dataset=dataset,
+            encoding=encoding,
+            folds=fold,
+            seeds=[seed],
+            profile=profile,
+            config_files=config_files,
+            overrides=overrides,
+            store=store,
+            force=force,
+            progress=progress,
+            init=init,
+        )
+    )
     if len(summary.results) != 1:
-        raise ConfigError(f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected "
-                          f"{len(summary.results)}; use --folds")
+        raise ConfigError(
+            f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected {len(summary.results)}; use --folds"
+        )
     result = summary.results[0]
     ckpt_dir = Path(result.path) / "checkpoints"
     checkpoint = next((p for p in (ckpt_dir / "best.pt", ckpt_dir / "last.pt") if p.exists()), None)
@@ -108,8 +138,9 @@ def pretrain(detector: str, dataset: str = "m3fd", encoding: str | None = None, 
         tmp = out.with_name(f".{out.name}.tmp")
         shutil.copyfile(checkpoint, tmp)
         tmp.replace(out)
-        atomic_write_json(out.with_name(out.name + ".json"),
-                          {**record, "copied_from": str(checkpoint), "checkpoint": str(out)})
+        atomic_write_json(
+            out.with_name(out.name + ".json"), {**record, "copied_from": str(checkpoint), "checkpoint": str(out)}
+        )
         checkpoint = out
     return PretrainResult(checkpoint, record, result.state)
 
@@ -119,22 +150,44 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="pretrain")
     @click.option("--detector", required=True, help="Detector name (see `harness list`).")
     @click.option("--dataset", default="m3fd", show_default=True, help="Pretraining dataset.")
-    @click.option("--encoding", default=None,
-                  help="Extra-channel encoding [default: the dataset's, ir8 for m3fd; proxy8 is closer to c2].")
-    @opt.folds_option(one=True, default=None, old=("--fold",),
-                      help="Held-out fold to select the checkpoint on [default: the protocol's only fold].")
+    @click.option(
+        "--encoding",
+        default=None,
+        help="Extra-channel encoding [default: the dataset's, ir8 for m3fd; proxy8 is closer to c2].",
+    )
+    @opt.folds_option(
+        one=True,
+        default=None,
+        old=("--fold",),
+        help="Held-out fold to select the checkpoint on [default: the protocol's only fold].",
+    )
     @opt.seeds_option(one=True, default=0, old=("--seed",), help="The training seed of the pretraining run.")
     @opt.profile_option()
     @opt.config_options()
     @opt.store_option()
     @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also copy the checkpoint here.")
-    @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained).")
+    @click.option(
+        "--init",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained).",
+    )
     @click.option("--force", is_flag=True, help="Redo the pretraining run even if it finished.")
     @opt.no_progress_option()
-    def pretrain_cmd(detector: str, dataset: str, encoding: str | None, folds: str | None, seeds: int, profile: str,
-                     config_files: tuple[str, ...], overrides: tuple[str, ...], store: Path | None, out: str | None,
-                     init: str | None, force: bool) -> None:
+    def pretrain_cmd(
+        detector: str,
+        dataset: str,
+        encoding: str | None,
+        folds: str | None,
+        seeds: int,
+        profile: str,
+        config_files: tuple[str, ...],
+        overrides: tuple[str, ...],
+        store: Path | None,
+        out: str | None,
+        init: str | None,
+        force: bool,
+    ) -> None:
         """Pretrain DETECTOR on DATASET (M3FD) and print the checkpoint to fine-tune from.
 
         \b
@@ -144,12 +197,27 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.progress import progress_on
 
-        res = pretrain(detector, dataset, encoding, folds, seeds, profile, config_files, overrides, store, force,
-                       progress_on(), out, init)
+        res = pretrain(
+            detector,
+            dataset,
+            encoding,
+            folds,
+            seeds,
+            profile,
+            config_files,
+            overrides,
+            store,
+            force,
+            progress_on(),
+            out,
+            init,
+        )
         r = res.record
-        click.echo(f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val "
-                   f"images, encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 "
-                   f"{_fmt(r['val_mAP50_95'])} [{res.state}]")
+        click.echo(
+            f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val "
+            f"images, encoding {r['encoding']}): val mAP50 {_fmt(r['val_mAP50'])}, mAP50:95 "
+            f"{_fmt(r['val_mAP50_95'])} [{res.state}]"
+        )
         click.echo(f"checkpoint: {res.checkpoint}")
         click.echo(f"fine-tune:  harness run --detector {r['detector']} --dataset m3t --init {res.checkpoint}")
         record_path = Path(r["checkpoint"]).parent.parent / "pretrain.json"

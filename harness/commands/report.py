@@ -22,39 +22,85 @@ def _check_reference(root: Path, reference: str, datasets: list[str] | None) -> 
     if reference in found or any(d == f"external/{reference}" for d in found):
         return
     where = f" of {', '.join(datasets)}" if datasets else ""
-    raise click.BadParameter(f"{reference!r} has no runs in {root}{where}; detectors there: "
-                             f"{', '.join(found) or 'none'}", param_hint="--reference")
+    raise click.BadParameter(
+        f"{reference!r} has no runs in {root}{where}; detectors there: {', '.join(found) or 'none'}",
+        param_hint="--reference",
+    )
 
 
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
-    @opt.names_option("--datasets", old=("--dataset",),
-                      help="Datasets to report, comma-separated or repeated [default: every dataset in the store].")
+    @opt.names_option(
+        "--datasets",
+        old=("--dataset",),
+        help="Datasets to report, comma-separated or repeated [default: every dataset in the store].",
+    )
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-                  help="Output folder [default: reports/<store folder name>].")
-    @opt.option("--file-types", "formats", old=("--format",), default="md,csv,html", show_default=True,
-                help="Comma-separated file types to write: md, csv, html.")
-    @click.option("--print", "print_tables", is_flag=True,
-                  help="Print every table in the terminal (aligned) instead of writing the report files.")
-    @opt.bootstrap_options(resamples=200, old_seed=("--seed",),
-                           help_resamples="Paired-bootstrap resamples per comparison (0: per-fold differences only).")
-    @click.option("--ablation-categories", default="delamination,water seepage", show_default=True,
-                  help="Comma-separated categories whose AP50 the encoding-ablation table shows.")
+    @click.option(
+        "--out",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=None,
+        help="Output folder [default: reports/<store folder name>].",
+    )
+    @opt.option(
+        "--file-types",
+        "formats",
+        old=("--format",),
+        default="md,csv,html",
+        show_default=True,
+        help="Comma-separated file types to write: md, csv, html.",
+    )
+    @click.option(
+        "--print",
+        "print_tables",
+        is_flag=True,
+        help="Print every table in the terminal (aligned) instead of writing the report files.",
+    )
+    @opt.bootstrap_options(
+        resamples=200,
+        old_seed=("--seed",),
+        help_resamples="Paired-bootstrap resamples per comparison (0: per-fold differences only).",
+    )
+    @click.option(
+        "--ablation-categories",
+        default="delamination,water seepage",
+        show_default=True,
+        help="Comma-separated categories whose AP50 the encoding-ablation table shows.",
+    )
     @click.option("--title", default=None, help="Title of the report.")
-    @click.option("--reference", default="ours", show_default=True,
-                  help="Detector compared with each other one in the paired comparisons (the most accurate when it "
-                       "was not run).")
-    @click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
-                  help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.")
+    @click.option(
+        "--reference",
+        default="ours",
+        show_default=True,
+        help="Detector compared with each other one in the paired comparisons (the most accurate when it was not run).",
+    )
+    @click.option(
+        "--log-to",
+        "log_to",
+        default=None,
+        metavar="LOGGERS",
+        help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.",
+    )
     @opt.reference_results_option()
     @opt.no_progress_option()
-    def report_cmd(datasets: tuple[str, ...], store: Path | None, profile: str, out: Path | None, formats: str,
-                   print_tables: bool, resamples: int, bootstrap_seed: int, workers: int, ablation_categories: str,
-                   title: str | None, reference: str, log_to: str | None = None,
-                   reference_results: str | None = None) -> None:
+    def report_cmd(
+        datasets: tuple[str, ...],
+        store: Path | None,
+        profile: str,
+        out: Path | None,
+        formats: str,
+        print_tables: bool,
+        resamples: int,
+        bootstrap_seed: int,
+        workers: int,
+        ablation_categories: str,
+        title: str | None,
+        reference: str,
+        log_to: str | None = None,
+        reference_results: str | None = None,
+    ) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
         Per dataset: the project-grouped folds table (per-fold mAP50 and mAP50:95, mean ± sample SD, Params,
@@ -74,27 +120,41 @@ def register_commands(cli: click.Group) -> None:
         fmts = [f.lower() for f in opt.split_list(formats)]
         bad = [f for f in fmts if f not in file_types]
         if bad:
-            raise click.BadParameter(f"unknown file type(s) {', '.join(bad)}; use any of {', '.join(file_types)}",
-                                     param_hint="--file-types")
+            raise click.BadParameter(
+                f"unknown file type(s) {', '.join(bad)}; use any of {', '.join(file_types)}", param_hint="--file-types"
+            )
         target = out or Path("reports") / Path(root).resolve().name
         ctx = click.get_current_context()
         if ctx.get_parameter_source("reference") is not click.core.ParameterSource.DEFAULT:
             _check_reference(root, reference, names)  # the default falls back to the best; a named one must exist
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
-        report = build_report(root, names, out=None if print_tables else target, formats=fmts, resamples=resamples,
-                              seed=bootstrap_seed, ablation_categories=cats, title=title, progress=True,
-                              workers=workers, reference=reference,
-                              references=load_references(reference_results))
+        report = build_report(
+            root,
+            names,
+            out=None if print_tables else target,
+            formats=fmts,
+            resamples=resamples,
+            seed=bootstrap_seed,
+            ablation_categories=cats,
+            title=title,
+            progress=True,
+            workers=workers,
+            reference=reference,
+            references=load_references(reference_results),
+        )
         if print_tables:
             click.echo(report.to_text())
             return
         warned = [t.title for t in report.tables if t.warning]
         absent = [f"{s.dataset or 'all'}: {s.title}" for s in report.sections if s.absent]
-        click.echo(f"report of {report.store} ({', '.join(report.datasets)}): {len(report.tables)} tables, "
-                   f"{sum(len(s.figures) for s in report.sections)} figure(s)")
+        click.echo(
+            f"report of {report.store} ({', '.join(report.datasets)}): {len(report.tables)} tables, "
+            f"{sum(len(s.figures) for s in report.sections)} figure(s)"
+        )
         if warned:
-            click.secho(f"NOT sample-matched: {len(warned)} table(s) labelled: " + "; ".join(warned), fg="red",
-                        err=True)
+            click.secho(
+                f"NOT sample-matched: {len(warned)} table(s) labelled: " + "; ".join(warned), fg="red", err=True
+            )
         if absent:
             from harness.textable import fit_text
 
@@ -113,15 +173,26 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--dataset", required=True, help="Dataset both were evaluated on.")
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @opt.bootstrap_options(resamples=1000, old_seed=("--seed",),
-                           help_resamples="Paired-bootstrap resamples of the held-out images (0: per-fold differences "
-                                          "only).")
+    @opt.bootstrap_options(
+        resamples=1000,
+        old_seed=("--seed",),
+        help_resamples="Paired-bootstrap resamples of the held-out images (0: per-fold differences only).",
+    )
     @opt.format_option("text", "json", old_json=True)
     @opt.reference_results_option()
     @opt.no_progress_option()
-    def compare_detectors_cmd(a: str, b: str, dataset: str, store: Path | None, profile: str, resamples: int,
-                              bootstrap_seed: int, workers: int, fmt: str,
-                              reference_results: str | None = None) -> None:
+    def compare_detectors_cmd(
+        a: str,
+        b: str,
+        dataset: str,
+        store: Path | None,
+        profile: str,
+        resamples: int,
+        bootstrap_seed: int,
+        workers: int,
+        fmt: str,
+        reference_results: str | None = None,
+    ) -> None:
         """Paired comparison of A and B (DETECTOR or DETECTOR/ENCODING) on the same held-out images.
 
         Per-fold differences of mAP50 and mAP50:95, and a paired bootstrap over images: each fold's held-out images
@@ -141,9 +212,17 @@ def register_commands(cli: click.Group) -> None:
         root = opt.resolve_store(store, profile)
         view = StoreView(root, references=load_references(reference_results))
         with bar("bootstrap") as b_bar:
-            comp = compare_detectors(view, dataset, a, b, resamples=resamples, seed=bootstrap_seed,
-                                     progress=b_bar.advance, on_total=lambda n: b_bar.update(total=n),
-                                     workers=workers)
+            comp = compare_detectors(
+                view,
+                dataset,
+                a,
+                b,
+                resamples=resamples,
+                seed=bootstrap_seed,
+                progress=b_bar.advance,
+                on_total=lambda n: b_bar.update(total=n),
+                workers=workers,
+            )
         if fmt == "json":
             click.echo(json.dumps(comp.to_dict(), indent=2))
         else:

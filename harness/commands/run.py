@@ -26,9 +26,14 @@ def _common(f):
         opt.store_option(),
         click.option("--force", is_flag=True, help="Redo runs that already finished."),
         opt.no_progress_option(),
-        click.option("--log-to", "log_to", default=None, metavar="LOGGERS",
-                     help="Also log runs to these trackers, e.g. mlflow,tensorboard (same as --set "
-                          "tracking.loggers=[...]; built in: tensorboard, mlflow)."),
+        click.option(
+            "--log-to",
+            "log_to",
+            default=None,
+            metavar="LOGGERS",
+            help="Also log runs to these trackers, e.g. mlflow,tensorboard (same as --set "
+            "tracking.loggers=[...]; built in: tensorboard, mlflow).",
+        ),
     ]
     f = _with_log_to(f)
     for option in reversed(options):
@@ -54,11 +59,18 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="run")
     @click.option("--detector", required=True, help="Detector name (see `harness list`).")
     @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
-    @click.option("--encoding", default=None,
-                  help="Encoding of the extra channel [default: the dataset's, or the detector's for dual-stream].")
+    @click.option(
+        "--encoding",
+        default=None,
+        help="Encoding of the extra channel [default: the dataset's, or the detector's for dual-stream].",
+    )
     @opt.folds_option()
-    @click.option("--init", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict).")
+    @click.option(
+        "--init",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict).",
+    )
     @click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")
     @_common
     def run_cmd(detector, dataset, encoding, folds, init, root, profile, config_files, overrides, store, seeds, force):
@@ -79,9 +91,22 @@ def register_commands(cli: click.Group) -> None:
 
         try:
             overrides = (*overrides, *([f"dataset.root={root}"] if root else []))
-            summary = run(RunRequest(detector=detector, dataset=dataset, encoding=encoding, folds=folds, seeds=seeds,
-                                     profile=profile, config_files=config_files, overrides=overrides, store=store,
-                                     force=force, init=init, progress=progress_on()))
+            summary = run(
+                RunRequest(
+                    detector=detector,
+                    dataset=dataset,
+                    encoding=encoding,
+                    folds=folds,
+                    seeds=seeds,
+                    profile=profile,
+                    config_files=config_files,
+                    overrides=overrides,
+                    store=store,
+                    force=force,
+                    init=init,
+                    progress=progress_on(),
+                )
+            )
             if not hd.is_main():  # under torchrun rank 0 prints the tables
                 return
         finally:
@@ -94,14 +119,20 @@ def register_commands(cli: click.Group) -> None:
     @cli.command(name="ablate")
     @click.option("--detector", default="ours", show_default=True, help="Detector name.")
     @click.option("--dataset", required=True, help="Dataset name.")
-    @click.option("--encodings", default="none,ir8,linear16,c2", show_default=True,
-                  help="Comma-separated encodings to compare.")
+    @click.option(
+        "--encodings", default="none,ir8,linear16,c2", show_default=True, help="Comma-separated encodings to compare."
+    )
     @opt.folds_option(one=True, required=True, help="The one fold to train and evaluate, e.g. P4+P5.", old=("--fold",))
-    @click.option("--categories", default="delamination,water seepage", show_default=True,
-                  help="Categories whose AP50 gets a column.")
+    @click.option(
+        "--categories",
+        default="delamination,water seepage",
+        show_default=True,
+        help="Categories whose AP50 gets a column.",
+    )
     @_common
-    def ablate_cmd(detector, dataset, encodings, folds, categories, profile, config_files, overrides, store, seeds,
-                   force):
+    def ablate_cmd(
+        detector, dataset, encodings, folds, categories, profile, config_files, overrides, store, seeds, force
+    ):
         """The encoding ablation: train DETECTOR on one fold once per encoding and compare.
 
         Prints P, R, mAP50, mAP50:95 and the AP50 of the chosen categories per encoding (the seed's ablation
@@ -116,7 +147,18 @@ def register_commands(cli: click.Group) -> None:
         from harness.report.run_tables import ablation_table
         from harness.runner import ablate, parse_seeds
 
-        ab = ablate(detector, dataset, _split(encodings), folds, seeds=parse_seeds(seeds), profile=profile,
-                    config_files=config_files, overrides=overrides, store=store, force=force,
-                    progress=progress_on(), categories=_split(categories))
+        ab = ablate(
+            detector,
+            dataset,
+            _split(encodings),
+            folds,
+            seeds=parse_seeds(seeds),
+            profile=profile,
+            config_files=config_files,
+            overrides=overrides,
+            store=store,
+            force=force,
+            progress=progress_on(),
+            categories=_split(categories),
+        )
         click.echo(ablation_table(ab))

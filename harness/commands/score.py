@@ -34,24 +34,51 @@ def register_commands(cli: click.Group) -> None:
 
     @cli.command(name="score")
     @click.option("--dataset", required=True, help="Dataset name (see `harness list`).")
-    @opt.folds_option(one=True, required=True, old=("--fold",),
-                      help="The held-out fold the predictions are for, e.g. P1.")
-    @click.option("--predictions", required=True, type=click.Path(dir_okay=False, exists=True),
-                  help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].")
-    @click.option("--box-format", type=click.Choice(["xywh", "xyxy"]), default="xywh", show_default=True,
-                  help="How each bbox is written: COCO's x, y, w, h, or corners x1, y1, x2, y2.")
+    @opt.folds_option(
+        one=True, required=True, old=("--fold",), help="The held-out fold the predictions are for, e.g. P1."
+    )
+    @click.option(
+        "--predictions",
+        required=True,
+        type=click.Path(dir_okay=False, exists=True),
+        help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].",
+    )
+    @click.option(
+        "--box-format",
+        type=click.Choice(["xywh", "xyxy"]),
+        default="xywh",
+        show_default=True,
+        help="How each bbox is written: COCO's x, y, w, h, or corners x1, y1, x2, y2.",
+    )
     @click.option("--name", required=True, help="Name of the external detector; stored as external/NAME.")
-    @click.option("--frame", type=click.Choice(["prepared", "thermal", "rgb"]), default="prepared",
-                  show_default=True, help="Frame of the boxes: the harness's prepared frame, or the original "
-                                          "thermal or RGB image (moved like the ground truth).")
-    @click.option("--images", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
-                       "not list count as missing.")
-    @click.option("--image-key", default="file_name", show_default=True,
-                  help="Field naming each image (in the predictions or the image list); image_id reads the "
-                       "numeric file stems Ultralytics writes as ids.")
-    @click.option("--category-map", default=None, metavar="THEIR=OURS,...|FILE.json",
-                  help="Their category ids or names -> the dataset's names [default: by name].")
+    @click.option(
+        "--frame",
+        type=click.Choice(["prepared", "thermal", "rgb"]),
+        default="prepared",
+        show_default=True,
+        help="Frame of the boxes: the harness's prepared frame, or the original "
+        "thermal or RGB image (moved like the ground truth).",
+    )
+    @click.option(
+        "--images",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
+        "not list count as missing.",
+    )
+    @click.option(
+        "--image-key",
+        default="file_name",
+        show_default=True,
+        help="Field naming each image (in the predictions or the image list); image_id reads the "
+        "numeric file stems Ultralytics writes as ids.",
+    )
+    @click.option(
+        "--category-map",
+        default=None,
+        metavar="THEIR=OURS,...|FILE.json",
+        help="Their category ids or names -> the dataset's names [default: by name].",
+    )
     @click.option("--params", type=float, default=None, help="Parameters of the external model, millions.")
     @click.option("--gflops", type=float, default=None, help="GFLOPs of the external model at 640.")
     @click.option("--root", default=None, help="Dataset root folder (as for prepare).")
@@ -59,13 +86,34 @@ def register_commands(cli: click.Group) -> None:
     @opt.config_options()
     @opt.store_option()
     @click.option("--force", is_flag=True, help="Replace an earlier score of the same name.")
-    @click.option("--allow-implausible", is_flag=True,
-                  help="Score predictions that look misread (unknown images or categories, shifted ids, "
-                       "normalised or corner boxes, boxes mostly outside the frame) as read, and label the stored "
-                       "result, instead of refusing.")
+    @click.option(
+        "--allow-implausible",
+        is_flag=True,
+        help="Score predictions that look misread (unknown images or categories, shifted ids, "
+        "normalised or corner boxes, boxes mostly outside the frame) as read, and label the stored "
+        "result, instead of refusing.",
+    )
     @opt.no_progress_option()
-    def score_cmd(dataset, folds, predictions, box_format, name, frame, images, image_key, category_map, params, gflops,
-                  root, profile, config_files, overrides, store, force, allow_implausible):
+    def score_cmd(
+        dataset,
+        folds,
+        predictions,
+        box_format,
+        name,
+        frame,
+        images,
+        image_key,
+        category_map,
+        params,
+        gflops,
+        root,
+        profile,
+        config_files,
+        overrides,
+        store,
+        force,
+        allow_implausible,
+    ):
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
         The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
@@ -81,18 +129,35 @@ def register_commands(cli: click.Group) -> None:
         from harness.scoring.external import parse_category_map, score_external
 
         fold = folds
-        res = score_external(dataset, fold, predictions, name, frame=frame, images=images, image_key=image_key,
-                             category_map=parse_category_map(category_map), profile=profile,
-                             config_files=config_files, overrides=overrides, store=store, root=root,
-                             params=params, gflops=gflops, force=force, allow_implausible=allow_implausible,
-                             box_format=box_format)
+        res = score_external(
+            dataset,
+            fold,
+            predictions,
+            name,
+            frame=frame,
+            images=images,
+            image_key=image_key,
+            category_map=parse_category_map(category_map),
+            profile=profile,
+            config_files=config_files,
+            overrides=overrides,
+            store=store,
+            root=root,
+            params=params,
+            gflops=gflops,
+            force=force,
+            allow_implausible=allow_implausible,
+            box_format=box_format,
+        )
         for line in res.matching.lines():
             click.echo(line, err=True)
         m = res.metrics["metrics"]
         s = res.metrics["support"]
-        click.echo(f"external/{name} on {dataset} fold {fold}: mAP50 {_fmt(m.get('mAP50'))}  "
-                   f"mAP50:95 {_fmt(m.get('mAP50_95'))}  P {_fmt(m.get('precision'))}  "
-                   f"R {_fmt(m.get('recall'))}  ({s['images']} images, {s['instances']} instances) [{res.state}]")
+        click.echo(
+            f"external/{name} on {dataset} fold {fold}: mAP50 {_fmt(m.get('mAP50'))}  "
+            f"mAP50:95 {_fmt(m.get('mAP50_95'))}  P {_fmt(m.get('precision'))}  "
+            f"R {_fmt(m.get('recall'))}  ({s['images']} images, {s['instances']} instances) [{res.state}]"
+        )
         click.echo(f"stored: {res.run_path}")
 
     @cli.command(name="export-predictions")
@@ -103,10 +168,14 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--encoding", default=None, help="Only runs with this encoding.")
     @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
     @opt.seeds_option(old=("--seed",), help="Only runs of these training seeds, comma-separated [default: all].")
-    @click.option("--frame", type=click.Choice(["thermal", "rgb", "prepared"]), default="thermal",
-                  show_default=True, help="Frame of the exported boxes.")
-    @click.option("--out", required=True, type=click.Path(),
-                  help="Output .json for one run, or a folder for several.")
+    @click.option(
+        "--frame",
+        type=click.Choice(["thermal", "rgb", "prepared"]),
+        default="thermal",
+        show_default=True,
+        help="Frame of the exported boxes.",
+    )
+    @click.option("--out", required=True, type=click.Path(), help="Output .json for one run, or a folder for several.")
     def export_cmd(profile, store, dataset, detector, encoding, folds, seeds, frame, out):
         """Write finished runs' held-out predictions as COCO results in an original image frame.
 
@@ -116,8 +185,18 @@ def register_commands(cli: click.Group) -> None:
         from harness.scoring.export import export_predictions
 
         fold_list = opt.split_list(folds) or None
-        for e in export_predictions(opt.resolve_store(store, profile), dataset, detector, encoding, fold_list,
-                                    opt.parse_seeds(seeds), frame, out):
+        for e in export_predictions(
+            opt.resolve_store(store, profile),
+            dataset,
+            detector,
+            encoding,
+            fold_list,
+            opt.parse_seeds(seeds),
+            frame,
+            out,
+        ):
             inexact = f", {e.inexact} inexact" if e.inexact else ""
-            click.echo(f"{e.run}: {e.detections} detections{inexact} on {e.images} images -> {e.path} "
-                       f"(image list {e.images_path.name})")
+            click.echo(
+                f"{e.run}: {e.detections} detections{inexact} on {e.images} images -> {e.path} "
+                f"(image list {e.images_path.name})"
+            )

@@ -26,8 +26,10 @@ def summary_lines(res) -> list[str]:
     """What the command prints: counts per class, timings, failures and the frames registered by the prior."""
     from harness.textable import text_table
 
-    lines = [f"screened {res.screened} frame(s) now, {res.skipped_done} earlier; {res.with_findings} with findings "
-             f"(threshold {res.threshold:g}: {res.threshold_source})"]
+    lines = [
+        f"screened {res.screened} frame(s) now, {res.skipped_done} earlier; {res.with_findings} with findings "
+        f"(threshold {res.threshold:g}: {res.threshold_source})"
+    ]
     if res.counts:
         from harness.screen.job import count_line
 
@@ -38,18 +40,22 @@ def summary_lines(res) -> list[str]:
     t = res.timings.get("per_frame_s") or {}
     if res.screened and t.get("model"):
         ms = {k: 1000 * (v or 0.0) for k, v in t.items()}
-        lines.append(f"per frame: decode {ms['decode']:.0f} ms, undistort+register+warp {ms['align']:.0f} ms, "
-                     f"fourth channel {ms['encode']:.0f} ms, model {ms['model']:.0f} ms; front end = "
-                     f"{100 * res.timings['frontend_over_model']:.0f} % of the model's time; "
-                     f"{res.timings['frames_per_s']:.2f} frames/s overall")
+        lines.append(
+            f"per frame: decode {ms['decode']:.0f} ms, undistort+register+warp {ms['align']:.0f} ms, "
+            f"fourth channel {ms['encode']:.0f} ms, model {ms['model']:.0f} ms; front end = "
+            f"{100 * res.timings['frontend_over_model']:.0f} % of the model's time; "
+            f"{res.timings['frames_per_s']:.2f} frames/s overall"
+        )
     if (res.temperatures or {}).get("approximate_frames"):
         from harness.screen.job import approximate_line
 
         lines.append(approximate_line(res.temperatures))
     pos = res.positions or {}
     if pos.get("exif") or pos.get("none"):
-        lines.append(f"positions: {pos.get('xmp', 0)} frame(s) from DJI XMP, {pos.get('exif', 0)} from EXIF GPS "
-                     f"(gps_source exif in the outputs), {pos.get('none', 0)} without GPS")
+        lines.append(
+            f"positions: {pos.get('xmp', 0)} frame(s) from DJI XMP, {pos.get('exif', 0)} from EXIF GPS "
+            f"(gps_source exif in the outputs), {pos.get('none', 0)} without GPS"
+        )
     for frame, why in res.rejected:
         lines.append(f"registration check failed, screened with the factory prior: {frame} ({why})")
     if res.failures:
@@ -65,56 +71,143 @@ def summary_lines(res) -> list[str]:
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="screen")
     @click.argument("flight", type=click.Path(file_okay=False, path_type=str))
-    @click.option("--run", "run_dir", type=click.Path(file_okay=False, exists=True), default=None,
-                  help="A finished run's folder in the results store: its model, sensing and encoding are used.")
-    @click.option("--weights", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="A checkpoint instead of a run (with --detector and --dataset).")
+    @click.option(
+        "--run",
+        "run_dir",
+        type=click.Path(file_okay=False, exists=True),
+        default=None,
+        help="A finished run's folder in the results store: its model, sensing and encoding are used.",
+    )
+    @click.option(
+        "--weights",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="A checkpoint instead of a run (with --detector and --dataset).",
+    )
     @click.option("--detector", default=None, help="With --weights: the detector the checkpoint is of.")
     @click.option("--dataset", default=None, help="With --weights: its categories, protocol and encoding.")
     @click.option("--encoding", default=None, help="With --weights: the encoding [default: the dataset's].")
     @opt.profile_option(help="With --weights: the run profile (configs/profiles/).")
     @opt.config_options(help_set="With --weights: override one config key (repeatable).")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
-    @click.option("--backend", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
-                  help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).")
+    @click.option(
+        "--backend",
+        type=click.Choice(["torch", "onnx"]),
+        default="torch",
+        show_default=True,
+        help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).",
+    )
     @click.option("--device", default="cpu", show_default=True, help="Torch device (cpu, cuda).")
-    @click.option("--conf", type=click.FloatRange(0.0, 1.0), default=None,
-                  help="Report findings scoring at least this [default: the run's operating point].")
-    @click.option("--homography", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="A homographies YAML (undistorted wide pixels of the calibration K -> thermal pixels) used for "
-                       "every frame instead of automatic registration.")
+    @click.option(
+        "--conf",
+        type=click.FloatRange(0.0, 1.0),
+        default=None,
+        help="Report findings scoring at least this [default: the run's operating point].",
+    )
+    @click.option(
+        "--homography",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="A homographies YAML (undistorted wide pixels of the calibration K -> thermal pixels) used for "
+        "every frame instead of automatic registration.",
+    )
     @click.option("--group", default=None, help="The entry of --homography to use when it holds several.")
-    @click.option("--rgb-camera", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="Wide camera calibration [default: the run's, from its config or prepared data].")
-    @click.option("--thermal-camera", type=click.Path(dir_okay=False, exists=True), default=None,
-                  help="Thermal camera calibration [default: the run's].")
+    @click.option(
+        "--rgb-camera",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="Wide camera calibration [default: the run's, from its config or prepared data].",
+    )
+    @click.option(
+        "--thermal-camera",
+        type=click.Path(dir_okay=False, exists=True),
+        default=None,
+        help="Thermal camera calibration [default: the run's].",
+    )
     @click.option("--no-undistort", is_flag=True, help="No lens undistortion (a run whose data had none).")
-    @click.option("--focal-35mm", default=None, metavar="WIDE,THERMAL",
-                  help="35-mm focal lengths for the factory prior when the EXIF lacks them, e.g. 24,40.")
-    @click.option("--fallback", type=click.Choice(["prior", "skip"]), default="prior", show_default=True,
-                  help="A group (or frame) whose automatic registration fails its check: screened with the factory "
-                       "prior and listed with its expected error, or listed and not screened.")
-    @click.option("--rgb-decode", type=click.Choice(["auto", "full"]), default="auto", show_default=True,
-                  help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it by 2.2x or more, "
-                       "keeping at least 0.85 wide pixel per thermal pixel; full: always in full (bit-identical "
-                       "to the training data).")
-    @click.option("--register", type=click.Choice(["group", "frame"]), default="group", show_default=True,
-                  help="Automatic registration once per inspection group, pooled over its captures (those within "
-                       "the run's sensing.groups.gap_s of each other; as the datasets register), or for every frame "
-                       "on its own.")
-    @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                  help="Processes for the front end (decode, register, warp, fourth channel).")
-    @click.option("--threads", type=click.IntRange(min=1), default=None,
-                  help="Threads for the model (torch and ONNX Runtime) [default: torch's].")
+    @click.option(
+        "--focal-35mm",
+        default=None,
+        metavar="WIDE,THERMAL",
+        help="35-mm focal lengths for the factory prior when the EXIF lacks them, e.g. 24,40.",
+    )
+    @click.option(
+        "--fallback",
+        type=click.Choice(["prior", "skip"]),
+        default="prior",
+        show_default=True,
+        help="A group (or frame) whose automatic registration fails its check: screened with the factory "
+        "prior and listed with its expected error, or listed and not screened.",
+    )
+    @click.option(
+        "--rgb-decode",
+        type=click.Choice(["auto", "full"]),
+        default="auto",
+        show_default=True,
+        help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it by 2.2x or more, "
+        "keeping at least 0.85 wide pixel per thermal pixel; full: always in full (bit-identical "
+        "to the training data).",
+    )
+    @click.option(
+        "--register",
+        type=click.Choice(["group", "frame"]),
+        default="group",
+        show_default=True,
+        help="Automatic registration once per inspection group, pooled over its captures (those within "
+        "the run's sensing.groups.gap_s of each other; as the datasets register), or for every frame "
+        "on its own.",
+    )
+    @click.option(
+        "--workers",
+        type=click.IntRange(min=1),
+        default=1,
+        show_default=True,
+        help="Processes for the front end (decode, register, warp, fourth channel).",
+    )
+    @click.option(
+        "--threads",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Threads for the model (torch and ONNX Runtime) [default: torch's].",
+    )
     @opt.decode_route_options()
     @click.option("--fail-fast", is_flag=True, help="Stop at the first bad file.")
     @click.option("--force", is_flag=True, help="Replace a screen in --out made with another model or settings.")
     @click.option("--no-overlays", is_flag=True, help="No overlay and thumbnail pictures.")
     @opt.no_progress_option()
-    def screen_cmd(flight, run_dir, weights, detector, dataset, encoding, profile, config_files, overrides, out,
-                   backend, device, conf, homography, group, rgb_camera, thermal_camera, no_undistort, focal_35mm,
-                   fallback, rgb_decode, register, workers, threads, approximate, converter, dji_irp,
-                   converter_timeout, fail_fast, force, no_overlays):
+    def screen_cmd(
+        flight,
+        run_dir,
+        weights,
+        detector,
+        dataset,
+        encoding,
+        profile,
+        config_files,
+        overrides,
+        out,
+        backend,
+        device,
+        conf,
+        homography,
+        group,
+        rgb_camera,
+        thermal_camera,
+        no_undistort,
+        focal_35mm,
+        fallback,
+        rgb_decode,
+        register,
+        workers,
+        threads,
+        approximate,
+        converter,
+        dji_irp,
+        converter_timeout,
+        fail_fast,
+        force,
+        no_overlays,
+    ):
         """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
 
         Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
@@ -131,15 +224,40 @@ def register_commands(cli: click.Group) -> None:
         from harness.progress import progress_on
         from harness.screen import ScreenRequest, screen
 
-        req = ScreenRequest(flight=flight, out=out, run=run_dir, weights=weights, detector=detector, dataset=dataset,
-                            encoding=encoding, profile=profile, config_files=config_files, overrides=overrides,
-                            backend=backend, device=device, conf=conf, homography=homography, group=group,
-                            rgb_camera=rgb_camera, thermal_camera=thermal_camera, no_undistort=no_undistort,
-                            focal_35mm=_focal(focal_35mm), fallback=fallback, rgb_decode=rgb_decode,
-                            register=register, workers=workers, threads=threads, approximate=approximate,
-                            converter=converter, dji_irp=dji_irp, converter_timeout=converter_timeout,
-                            fail_fast=fail_fast, force=force,
-                            progress=progress_on(), overlays=not no_overlays)
+        req = ScreenRequest(
+            flight=flight,
+            out=out,
+            run=run_dir,
+            weights=weights,
+            detector=detector,
+            dataset=dataset,
+            encoding=encoding,
+            profile=profile,
+            config_files=config_files,
+            overrides=overrides,
+            backend=backend,
+            device=device,
+            conf=conf,
+            homography=homography,
+            group=group,
+            rgb_camera=rgb_camera,
+            thermal_camera=thermal_camera,
+            no_undistort=no_undistort,
+            focal_35mm=_focal(focal_35mm),
+            fallback=fallback,
+            rgb_decode=rgb_decode,
+            register=register,
+            workers=workers,
+            threads=threads,
+            approximate=approximate,
+            converter=converter,
+            dji_irp=dji_irp,
+            converter_timeout=converter_timeout,
+            fail_fast=fail_fast,
+            force=force,
+            progress=progress_on(),
+            overlays=not no_overlays,
+        )
         res = screen(req)
         for line in summary_lines(res):
             click.echo(line)

@@ -28,41 +28,101 @@ def _key_values(items: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="sweep")
-    @opt.names_option("--detectors", required=True,
-                      help="Detectors, comma-separated or repeated, e.g. ours,eme,icafusion,cmadet.")
+    @opt.names_option(
+        "--detectors", required=True, help="Detectors, comma-separated or repeated, e.g. ours,eme,icafusion,cmadet."
+    )
     @opt.names_option("--datasets", required=True, help="Datasets, comma-separated or repeated, e.g. m3t.")
-    @click.option("--encodings", default=None,
-                  help="Comma-separated encodings [default: each detector's / dataset's own].")
+    @click.option(
+        "--encodings", default=None, help="Comma-separated encodings [default: each detector's / dataset's own]."
+    )
     @opt.folds_option()
-    @click.option("--executor", type=click.Choice(["local", "ray", "slurm"]), default="local", show_default=True,
-                  help="local: one run after the other here; ray: one Ray task per run; slurm: a submitit job array.")
+    @click.option(
+        "--executor",
+        type=click.Choice(["local", "ray", "slurm"]),
+        default="local",
+        show_default=True,
+        help="local: one run after the other here; ray: one Ray task per run; slurm: a submitit job array.",
+    )
     @click.option("--dry-run", is_flag=True, help="List the runs the sweep would do, and stop.")
     @click.option("--cpus-per-run", type=int, default=1, show_default=True, help="CPUs per run (ray, slurm).")
-    @click.option("--gpus-per-run", type=int, default=None,
-                  help="GPUs per run (ray, slurm) [default: 1 where there are GPUs, else 0].")
-    @click.option("--ray-address", default=None,
-                  help="Ray cluster to join, e.g. auto or ray://host:10001 [default: $RAY_ADDRESS, else a local one].")
+    @click.option(
+        "--gpus-per-run",
+        type=int,
+        default=None,
+        help="GPUs per run (ray, slurm) [default: 1 where there are GPUs, else 0].",
+    )
+    @click.option(
+        "--ray-address",
+        default=None,
+        help="Ray cluster to join, e.g. auto or ray://host:10001 [default: $RAY_ADDRESS, else a local one].",
+    )
     @click.option("--slurm-partition", default=None, help="Slurm partition.")
     @click.option("--slurm-account", default=None, help="Slurm account.")
     @click.option("--slurm-qos", default=None, help="Slurm QOS.")
-    @click.option("--slurm-time", "timeout_min", type=int, default=24 * 60, show_default=True,
-                  help="Time limit per run, minutes.")
+    @click.option(
+        "--slurm-time", "timeout_min", type=int, default=24 * 60, show_default=True, help="Time limit per run, minutes."
+    )
     @click.option("--slurm-mem-gb", type=float, default=None, help="Memory per run, GB.")
-    @click.option("--slurm-array-parallelism", type=int, default=16, show_default=True,
-                  help="At most this many runs of the job array at once.")
-    @click.option("--slurm-setup", multiple=True, metavar="LINE",
-                  help="Shell line run before each job, e.g. 'source .venv/bin/activate' (repeatable).")
-    @click.option("--slurm-opt", multiple=True, metavar="KEY=VALUE",
-                  help="Any other sbatch option, e.g. constraint=a100 (repeatable).")
-    @click.option("--submitit-cluster", type=click.Choice(["auto", "slurm", "local", "debug"]), default="auto",
-                  show_default=True, help="For --executor slurm: auto uses Slurm when present, else local processes.")
-    @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
-                  help="submitit job logs [default: <store>/_sweeps/<time>].")
+    @click.option(
+        "--slurm-array-parallelism",
+        type=int,
+        default=16,
+        show_default=True,
+        help="At most this many runs of the job array at once.",
+    )
+    @click.option(
+        "--slurm-setup",
+        multiple=True,
+        metavar="LINE",
+        help="Shell line run before each job, e.g. 'source .venv/bin/activate' (repeatable).",
+    )
+    @click.option(
+        "--slurm-opt",
+        multiple=True,
+        metavar="KEY=VALUE",
+        help="Any other sbatch option, e.g. constraint=a100 (repeatable).",
+    )
+    @click.option(
+        "--submitit-cluster",
+        type=click.Choice(["auto", "slurm", "local", "debug"]),
+        default="auto",
+        show_default=True,
+        help="For --executor slurm: auto uses Slurm when present, else local processes.",
+    )
+    @click.option(
+        "--log-dir",
+        type=click.Path(file_okay=False),
+        default=None,
+        help="submitit job logs [default: <store>/_sweeps/<time>].",
+    )
     @_common
-    def sweep_cmd(detectors, datasets, encodings, folds, executor, dry_run, cpus_per_run, gpus_per_run, ray_address,
-                  slurm_partition, slurm_account, slurm_qos, timeout_min, slurm_mem_gb, slurm_array_parallelism,
-                  slurm_setup, slurm_opt, submitit_cluster, log_dir, profile, config_files, overrides, store, seeds,
-                  force):
+    def sweep_cmd(
+        detectors,
+        datasets,
+        encodings,
+        folds,
+        executor,
+        dry_run,
+        cpus_per_run,
+        gpus_per_run,
+        ray_address,
+        slurm_partition,
+        slurm_account,
+        slurm_qos,
+        timeout_min,
+        slurm_mem_gb,
+        slurm_array_parallelism,
+        slurm_setup,
+        slurm_opt,
+        submitit_cluster,
+        log_dir,
+        profile,
+        config_files,
+        overrides,
+        store,
+        seeds,
+        force,
+    ):
         """Run every combination of DETECTORS x DATASETS x ENCODINGS x FOLDS x SEEDS into one results store.
 
         Each run is an ordinary `harness run` of one fold and seed: finished runs with the same configuration are
@@ -82,11 +142,18 @@ def register_commands(cli: click.Group) -> None:
         from harness.sweep import ExecutorOptions, SweepSpec, expand, sweep, sweep_table
 
         parsed = parse_seeds(seeds)
-        spec = SweepSpec(detectors=tuple(detectors), datasets=tuple(datasets), folds=folds,
-                         seeds=tuple(parsed) if parsed is not None else None, encodings=tuple(_split(encodings)),
-                         profile=profile, config_files=tuple(config_files), overrides=tuple(overrides),
-                         store=None if store is None else str(store),
-                         force=force)
+        spec = SweepSpec(
+            detectors=tuple(detectors),
+            datasets=tuple(datasets),
+            folds=folds,
+            seeds=tuple(parsed) if parsed is not None else None,
+            encodings=tuple(_split(encodings)),
+            profile=profile,
+            config_files=tuple(config_files),
+            overrides=tuple(overrides),
+            store=None if store is None else str(store),
+            force=force,
+        )
         if dry_run:
             planned = expand(spec)
             for job in planned.jobs:
@@ -98,11 +165,20 @@ def register_commands(cli: click.Group) -> None:
             click.echo(f"{len(planned.jobs)} runs to do, {len(planned.skipped)} finished, store {planned.store}")
             return
         options = ExecutorOptions(
-            cpus_per_run=cpus_per_run, gpus_per_run=gpus_per_run, ray_address=ray_address,
-            cluster=None if submitit_cluster == "auto" else submitit_cluster, log_dir=log_dir, timeout_min=timeout_min,
-            mem_gb=slurm_mem_gb, partition=slurm_partition, account=slurm_account, qos=slurm_qos,
-            array_parallelism=slurm_array_parallelism, slurm_setup=tuple(slurm_setup),
-            slurm_extra=_key_values(slurm_opt))
+            cpus_per_run=cpus_per_run,
+            gpus_per_run=gpus_per_run,
+            ray_address=ray_address,
+            cluster=None if submitit_cluster == "auto" else submitit_cluster,
+            log_dir=log_dir,
+            timeout_min=timeout_min,
+            mem_gb=slurm_mem_gb,
+            partition=slurm_partition,
+            account=slurm_account,
+            qos=slurm_qos,
+            array_parallelism=slurm_array_parallelism,
+            slurm_setup=tuple(slurm_setup),
+            slurm_extra=_key_values(slurm_opt),
+        )
         summary = sweep(spec, executor, options, progress=progress_on())
         click.echo(sweep_table(summary))
         click.echo(f"\nresults: {summary.store}")

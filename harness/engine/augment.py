@@ -84,7 +84,7 @@ def pad_letterbox(img: np.ndarray, ratio: float, shape: tuple[int, int], size: i
     dw, dh = (size - nw) / 2, (size - nh) / 2
     top, left = int(round(dh - 0.1)), int(round(dw - 0.1))
     out = np.full((size, size, img.shape[2]), PAD_VALUE, dtype=img.dtype)
-    out[top:top + nh, left:left + nw] = img
+    out[top : top + nh, left : left + nw] = img
     return out, Letterbox(ratio=ratio, pad=(float(left), float(top)), shape=(int(shape[0]), int(shape[1])))
 
 
@@ -96,8 +96,9 @@ def scale_boxes(boxes: np.ndarray, ratio: float, pad: tuple[float, float] = (0.0
 
 
 # ------------------------------------------------------------------------------------------------ mosaic
-def mosaic4(images: list[np.ndarray], boxes: list[np.ndarray], labels: list[np.ndarray], size: int,
-            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mosaic4(
+    images: list[np.ndarray], boxes: list[np.ndarray], labels: list[np.ndarray], size: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four images (each already resized so its long side is ``size``) on a ``2size x 2size`` canvas.
 
     A centre ``(xc, yc)`` is drawn uniformly in ``[size/2, 3size/2]``; image 0 ends at the centre from the top-left,
@@ -142,9 +143,16 @@ def mosaic4(images: list[np.ndarray], boxes: list[np.ndarray], labels: list[np.n
 
 
 # ------------------------------------------------------------------------------------------------ affine
-def affine_matrix(in_shape: tuple[int, int], out_shape: tuple[int, int], rng: np.random.Generator,
-                  degrees: float = 0.0, translate: float = 0.1, scale: float = 0.5, shear: float = 0.0,
-                  perspective: float = 0.0) -> np.ndarray:
+def affine_matrix(
+    in_shape: tuple[int, int],
+    out_shape: tuple[int, int],
+    rng: np.random.Generator,
+    degrees: float = 0.0,
+    translate: float = 0.1,
+    scale: float = 0.5,
+    shear: float = 0.0,
+    perspective: float = 0.0,
+) -> np.ndarray:
     """A random 3x3 matrix ``M = T @ Sh @ R @ P @ C`` mapping input pixels to output pixels.
 
     ``C`` moves the input centre to the origin, ``P`` adds perspective terms in ``[-perspective, perspective]``,
@@ -176,7 +184,7 @@ def warp_image(img: np.ndarray, M: np.ndarray, out_shape: tuple[int, int]) -> np
     oh, ow = out_shape
     c = img.shape[2]
     if c > 4:  # OpenCV's border value has four components
-        return np.concatenate([warp_image(img[:, :, k:k + 4], M, out_shape) for k in range(0, c, 4)], axis=2)
+        return np.concatenate([warp_image(img[:, :, k : k + 4], M, out_shape) for k in range(0, c, 4)], axis=2)
     if np.allclose(M[2], (0.0, 0.0, 1.0)):
         out = cv2.warpAffine(img, M[:2], dsize=(ow, oh), flags=cv2.INTER_LINEAR, borderValue=fill(4))
     else:
@@ -202,8 +210,14 @@ def transform_boxes(boxes: np.ndarray, M: np.ndarray, out_shape: tuple[int, int]
     return out.astype(np.float32)
 
 
-def box_candidates(before: np.ndarray, after: np.ndarray, wh_thr: float = 2.0, ar_thr: float = 100.0,
-                   area_thr: float = 0.1, eps: float = 1e-16) -> np.ndarray:
+def box_candidates(
+    before: np.ndarray,
+    after: np.ndarray,
+    wh_thr: float = 2.0,
+    ar_thr: float = 100.0,
+    area_thr: float = 0.1,
+    eps: float = 1e-16,
+) -> np.ndarray:
     """Keep boxes still at least ``wh_thr`` px wide and high, with ``area_thr`` of their (scaled) area left and an
     aspect ratio under ``ar_thr``; ``before`` are the boxes scaled by the warp's scale, ``after`` the warped ones."""
     w1, h1 = before[:, 2] - before[:, 0], before[:, 3] - before[:, 1]
@@ -212,9 +226,18 @@ def box_candidates(before: np.ndarray, after: np.ndarray, wh_thr: float = 2.0, a
     return (w2 > wh_thr) & (h2 > wh_thr) & (w2 * h2 / (w1 * h1 + eps) > area_thr) & (ar < ar_thr)
 
 
-def random_affine(img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                  degrees: float = 0.0, translate: float = 0.1, scale: float = 0.5, shear: float = 0.0,
-                  perspective: float = 0.0, border: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def random_affine(
+    img: np.ndarray,
+    boxes: np.ndarray,
+    labels: np.ndarray,
+    rng: np.random.Generator,
+    degrees: float = 0.0,
+    translate: float = 0.1,
+    scale: float = 0.5,
+    shear: float = 0.0,
+    perspective: float = 0.0,
+    border: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Warp image and boxes by one random matrix (``affine_matrix``); ``border < 0`` crops (mosaic: ``-size/2``).
 
     The output is ``(H + 2 border) x (W + 2 border)``. Boxes that leave the image or shrink too much are dropped
@@ -234,8 +257,9 @@ def random_affine(img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, rng: n
 
 
 # ------------------------------------------------------------------------------------------------ photometric
-def augment_hsv(img: np.ndarray, rng: np.random.Generator, hgain: float = 0.015, sgain: float = 0.7,
-                vgain: float = 0.4) -> np.ndarray:
+def augment_hsv(
+    img: np.ndarray, rng: np.random.Generator, hgain: float = 0.015, sgain: float = 0.7, vgain: float = 0.4
+) -> np.ndarray:
     """Random hue, saturation and value gains on the RGB channels (0, 1, 2) only; other channels are copied as is.
 
     Gains are ``1 + U(-1, 1) * gain``; hue is rotated modulo 180 (OpenCV's 8-bit hue range), saturation and value

@@ -63,15 +63,16 @@ def load(path: str | Path) -> dict[str, Any]:
     except HarnessError as exc:  # unreadable, truncated, or asking for more than the file's size allows
         raise CheckpointError(str(exc)) from None
     if not isinstance(obj, dict):
-        raise CheckpointError(f"{path}: expected a dictionary (a state dict or a harness checkpoint), "
-                              f"got {type(obj).__name__}")
+        raise CheckpointError(
+            f"{path}: expected a dictionary (a state dict or a harness checkpoint), got {type(obj).__name__}"
+        )
     return obj
 
 
 def _reason(exc: Exception, path: Path) -> str:
     """An error's message without the file name it starts with (the caller's message names the file)."""
     text = str(exc)
-    return text[len(str(path)) + 2:] if text.startswith(f"{path}: ") else text
+    return text[len(str(path)) + 2 :] if text.startswith(f"{path}: ") else text
 
 
 def rng_state() -> dict[str, Any]:
@@ -79,8 +80,13 @@ def rng_state() -> dict[str, Any]:
     name, keys, pos, has_gauss, cached = np.random.get_state()
     state: dict[str, Any] = {
         "python": random.getstate(),
-        "numpy": {"name": name, "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)), "pos": int(pos),
-                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "numpy": {
+            "name": name,
+            "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)),
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached": float(cached),
+        },
         "torch": torch.get_rng_state(),
     }
     if torch.cuda.is_available():
@@ -128,8 +134,9 @@ def load_matching(model: nn.Module, state: Mapping[str, torch.Tensor]) -> dict[s
     }
 
 
-def init_from(model: nn.Module, path: str | Path,
-              load_official: Callable[[nn.Module, Mapping[str, Any]], dict] | None = None) -> dict[str, Any]:
+def init_from(
+    model: nn.Module, path: str | Path, load_official: Callable[[nn.Module, Mapping[str, Any]], dict] | None = None
+) -> dict[str, Any]:
     """Initialise ``model`` from a checkpoint (``--init``): the detector's own importer when it has one (it knows
     its official layout, e.g. inflating a 3-channel stem to 4 channels), else every tensor matching by name and
     shape."""

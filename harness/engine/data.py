@@ -74,8 +74,14 @@ class SampleSource:
     own); what it returns is what decoding again would return.
     """
 
-    def __init__(self, prepared: Any, indices: Sequence[int] | None = None, encoding: Any = None,
-                 params: Mapping[str, Any] | None = None, cache_mb: float = 0.0):
+    def __init__(
+        self,
+        prepared: Any,
+        indices: Sequence[int] | None = None,
+        encoding: Any = None,
+        params: Mapping[str, Any] | None = None,
+        cache_mb: float = 0.0,
+    ):
         self.prepared = prepared
         self.indices = list(range(len(prepared))) if indices is None else [int(i) for i in indices]
         self.encoding = encoding
@@ -137,8 +143,9 @@ class SampleSource:
         return int(r["height"]), int(r["width"])
 
 
-def _item(img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, image_id: int,
-          letterbox: A.Letterbox | None = None) -> dict[str, Any]:
+def _item(
+    img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, image_id: int, letterbox: A.Letterbox | None = None
+) -> dict[str, Any]:
     return {
         "image": torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))),
         "boxes": torch.from_numpy(np.asarray(boxes, dtype=np.float32).reshape(-1, 4)),
@@ -192,9 +199,18 @@ class TrainDataset(Dataset):
             img, lb = A.pad_letterbox(*self.source.resized(k, s), size=s)
             boxes = A.scale_boxes(boxes, lb.ratio, lb.pad)
             border = 0
-        img, boxes, labels = A.random_affine(img, boxes, labels, rng, degrees=aug.degrees, translate=aug.translate,
-                                             scale=aug.scale, shear=aug.shear, perspective=aug.perspective,
-                                             border=border)
+        img, boxes, labels = A.random_affine(
+            img,
+            boxes,
+            labels,
+            rng,
+            degrees=aug.degrees,
+            translate=aug.translate,
+            scale=aug.scale,
+            shear=aug.shear,
+            perspective=aug.perspective,
+            border=border,
+        )
         img = A.augment_hsv(img, rng, aug.hsv_h, aug.hsv_s, aug.hsv_v)
         if rng.random() < aug.flipud:
             img, boxes = A.flip_ud(img, boxes)
@@ -240,9 +256,13 @@ def collate(items: list[dict[str, Any]]) -> Batch:
     )
 
 
-def to_inputs(images: torch.Tensor, input_kind: str = "single", thermal_channels: int = 3,
-              device: torch.device | str = "cpu",
-              channels_last: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+def to_inputs(
+    images: torch.Tensor,
+    input_kind: str = "single",
+    thermal_channels: int = 3,
+    device: torch.device | str = "cpu",
+    channels_last: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """uint8 ``[B, C, H, W]`` -> the detector's inputs, floats in 0..1 (see the module docstring)."""
     x = images.to(device, non_blocking=True).float().div_(255.0)
     if input_kind == "single":
@@ -274,8 +294,9 @@ class EpochSampler(Sampler[int]):
     runs the same number of iterations); together the processes see the order a single process would see.
     """
 
-    def __init__(self, n: int, seed: int = 0, max_images: int | None = None, shuffle: bool = True,
-                 rank: int = 0, world: int = 1):
+    def __init__(
+        self, n: int, seed: int = 0, max_images: int | None = None, shuffle: bool = True, rank: int = 0, world: int = 1
+    ):
         self.n, self.seed, self.shuffle = int(n), int(seed), shuffle
         self.max_images = None if max_images is None else max(1, int(max_images))
         self.rank, self.world = int(rank), int(world)
@@ -309,13 +330,27 @@ class EpochSampler(Sampler[int]):
         return -(-total // self.world) if self.world > 1 else total
 
 
-def train_loader(dataset: TrainDataset, batch: int, workers: int = 0, seed: int = 0,
-                 max_images: int | None = None, rank: int = 0, world: int = 1) -> DataLoader:
+def train_loader(
+    dataset: TrainDataset,
+    batch: int,
+    workers: int = 0,
+    seed: int = 0,
+    max_images: int | None = None,
+    rank: int = 0,
+    world: int = 1,
+) -> DataLoader:
     """Training batches of ``batch`` images for process ``rank`` of ``world`` (one process: the whole order)."""
     sampler = EpochSampler(len(dataset), seed=seed, max_images=max_images, rank=rank, world=world)
-    return DataLoader(dataset, batch_size=int(batch), sampler=sampler, num_workers=int(workers), collate_fn=collate,
-                      drop_last=False, generator=torch.Generator().manual_seed(int(seed)),
-                      persistent_workers=False)
+    return DataLoader(
+        dataset,
+        batch_size=int(batch),
+        sampler=sampler,
+        num_workers=int(workers),
+        collate_fn=collate,
+        drop_last=False,
+        generator=torch.Generator().manual_seed(int(seed)),
+        persistent_workers=False,
+    )
 
 
 def eval_loader(dataset: Dataset, batch: int, workers: int = 0) -> DataLoader:

@@ -95,8 +95,12 @@ class TrainSettings:
         known = {f.name for f in fields(cls)}
         values = {k: v for k, v in dict(cfg.get("train", {})).items() if k in known}
         proto = cfg.get("protocol", {})
-        values.update(imgsz=int(proto.get("imgsz", 640)), epochs=int(proto.get("epochs", 150)),
-                      patience=int(proto.get("patience", 50)), seed=int(seed))
+        values.update(
+            imgsz=int(proto.get("imgsz", 640)),
+            epochs=int(proto.get("epochs", 150)),
+            patience=int(proto.get("patience", 50)),
+            seed=int(seed),
+        )
         s = cls(**values)
         s.check()
         return s
@@ -138,11 +142,20 @@ class Trainer:
     epoch's record (the runner appends it to ``log.jsonl``).
     """
 
-    def __init__(self, model: nn.Module, dataset: TrainDataset, settings: TrainSettings, input_kind: str = "single",
-                 thermal_channels: int = 3, checkpoint_dir: str | Path | None = None,
-                 validate: Callable[[nn.Module], Mapping[str, Any]] | None = None,
-                 on_epoch: Callable[[dict[str, Any]], None] | None = None, progress: bool = True,
-                 config_hash: str = "", name: str = "model"):
+    def __init__(
+        self,
+        model: nn.Module,
+        dataset: TrainDataset,
+        settings: TrainSettings,
+        input_kind: str = "single",
+        thermal_channels: int = 3,
+        checkpoint_dir: str | Path | None = None,
+        validate: Callable[[nn.Module], Mapping[str, Any]] | None = None,
+        on_epoch: Callable[[dict[str, Any]], None] | None = None,
+        progress: bool = True,
+        config_hash: str = "",
+        name: str = "model",
+    ):
         self.model, self.dataset, self.s = model, dataset, settings
         self.input_kind, self.thermal_channels = input_kind, thermal_channels
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
@@ -195,8 +208,12 @@ class Trainer:
         if d.active:
             batch = max(1, s.batch // d.world_size)
             if s.batch % d.world_size:
-                log.warning("train.batch=%d is not a multiple of %d processes; each process takes %d images",
-                            s.batch, d.world_size, batch)
+                log.warning(
+                    "train.batch=%d is not a multiple of %d processes; each process takes %d images",
+                    s.batch,
+                    d.world_size,
+                    batch,
+                )
         loader = train_loader(self.dataset, batch, s.workers, s.seed, s.max_images, d.rank, d.world_size)
         nb = len(loader)
         accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
@@ -238,8 +255,9 @@ class Trainer:
                 resumed_from = start_epoch
                 if state.get("done"):
                     log.info("%s: training already complete (%d epochs)", self.name, start_epoch)
-                    return self._result(start_epoch, best_epoch, best_fit, bool(state.get("stopped_early")), 0.0,
-                                        history, resumed_from)
+                    return self._result(
+                        start_epoch, best_epoch, best_fit, bool(state.get("stopped_early")), 0.0, history, resumed_from
+                    )
                 log.info("%s: resuming after epoch %d of %d", self.name, start_epoch, s.epochs)
 
         train_model: nn.Module = model
@@ -250,11 +268,17 @@ class Trainer:
             # layers): DDP must then look for unused parameters at every step, or it waits for their gradients
             unused = self._unused_parameters(model, loader, start_epoch, amp)
             if unused:
-                log.info("%s: %d parameters get no gradient (e.g. %s); DDP looks for unused parameters every step",
-                         self.name, len(unused), unused[0])
+                log.info(
+                    "%s: %d parameters get no gradient (e.g. %s); DDP looks for unused parameters every step",
+                    self.name,
+                    len(unused),
+                    unused[0],
+                )
             train_model = DistributedDataParallel(
-                model, device_ids=[self.device.index] if self.device.type == "cuda" else None,
-                find_unused_parameters=bool(hd.any_process(bool(unused))))
+                model,
+                device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=bool(hd.any_process(bool(unused))),
+            )
 
         t_start = time.perf_counter()
         stopped_early = False
@@ -282,8 +306,9 @@ class Trainer:
                             start = s.warmup_bias_lr if g["name"] == "bias" else 0.0
                             g["lr"] = optim.interp(ni, nw, start, g["initial_lr"] * factor)
                             optim.set_momentum(g, optim.interp(ni, nw, s.warmup_momentum, s.momentum))
-                    inputs = to_inputs(batch.images, self.input_kind, self.thermal_channels, self.device,
-                                       s.channels_last)
+                    inputs = to_inputs(
+                        batch.images, self.input_kind, self.thermal_channels, self.device, s.channels_last
+                    )
                     targets = targets_to(batch.targets, self.device)
                     with torch.autocast(self.device.type, enabled=amp):
                         losses = train_model(inputs, targets)
@@ -318,43 +343,76 @@ class Trainer:
                 if improved:
                     best_fit, best_epoch = fit, epoch + 1
                     if self.best_path is not None and main:
-                        ckpt.save(self.best_path, {"format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch,
-                                                   "model": _cpu_state(self.eval_model), "fitness": fit,
-                                                   "config_hash": self.config_hash})
+                        ckpt.save(
+                            self.best_path,
+                            {
+                                "format": ckpt.FORMAT,
+                                "version": ckpt.VERSION,
+                                "epoch": epoch,
+                                "model": _cpu_state(self.eval_model),
+                                "fitness": fit,
+                                "config_hash": self.config_hash,
+                            },
+                        )
                 dt = time.perf_counter() - t0
                 record = {
-                    "epoch": epoch + 1, "epochs": s.epochs, "time_s": round(dt, 3),
+                    "epoch": epoch + 1,
+                    "epochs": s.epochs,
+                    "time_s": round(dt, 3),
                     "images_per_s": round(seen / dt, 2) if dt > 0 else None,
-                    "lr": {g["name"]: g["lr"] for g in opt.param_groups}, "mosaic": mosaic,
+                    "lr": {g["name"]: g["lr"] for g in opt.param_groups},
+                    "mosaic": mosaic,
                     "loss": {k: round(v, 5) for k, v in mean_losses.items()},
-                    "metrics": _brief(metrics), "fitness": fit, "best_fitness": best_fit, "best_epoch": best_epoch,
+                    "metrics": _brief(metrics),
+                    "fitness": fit,
+                    "best_fitness": best_fit,
+                    "best_epoch": best_epoch,
                     "improved": improved,
                 }
                 history.append(record)
                 if main:
                     log.info(_line(record, self.name))
-                stopped_early = (best_epoch is not None and (epoch + 1) - best_epoch >= s.patience
-                                 and epoch + 1 < s.epochs)
+                stopped_early = (
+                    best_epoch is not None and (epoch + 1) - best_epoch >= s.patience and epoch + 1 < s.epochs
+                )
                 done = stopped_early or epoch + 1 == s.epochs
                 if self.last_path is not None and main:
-                    ckpt.save(self.last_path, {
-                        "format": ckpt.FORMAT, "version": ckpt.VERSION, "epoch": epoch, "done": done,
-                        "stopped_early": stopped_early, "model": _cpu_state(model), "optimizer": opt.state_dict(),
-                        "scaler": scaler.state_dict() if amp else None,
-                        "ema": self.ema.state_dict() if self.ema is not None else None,
-                        "rng": ckpt.rng_state(), "best_fitness": best_fit, "best_epoch": best_epoch,
-                        "history": history, "last_opt_step": last_opt_step, "config_hash": self.config_hash,
-                        "settings": asdict(s),
-                    })
+                    ckpt.save(
+                        self.last_path,
+                        {
+                            "format": ckpt.FORMAT,
+                            "version": ckpt.VERSION,
+                            "epoch": epoch,
+                            "done": done,
+                            "stopped_early": stopped_early,
+                            "model": _cpu_state(model),
+                            "optimizer": opt.state_dict(),
+                            "scaler": scaler.state_dict() if amp else None,
+                            "ema": self.ema.state_dict() if self.ema is not None else None,
+                            "rng": ckpt.rng_state(),
+                            "best_fitness": best_fit,
+                            "best_epoch": best_epoch,
+                            "history": history,
+                            "last_opt_step": last_opt_step,
+                            "config_hash": self.config_hash,
+                            "settings": asdict(s),
+                        },
+                    )
                 if self.on_epoch is not None and main:  # after the checkpoint: a resumed run never logs an epoch twice
                     self.on_epoch(record)
                 if stopped_early:
-                    log.info("%s: no better fitness for %d epochs, stopping after epoch %d (best: epoch %d)",
-                             self.name, s.patience, epoch + 1, best_epoch)
+                    log.info(
+                        "%s: no better fitness for %d epochs, stopping after epoch %d (best: epoch %d)",
+                        self.name,
+                        s.patience,
+                        epoch + 1,
+                        best_epoch,
+                    )
                     break
         hd.barrier()  # the other processes may now read what rank 0 wrote (best.pt)
-        return self._result(epoch + 1, best_epoch, best_fit, stopped_early, time.perf_counter() - t_start, history,
-                            resumed_from)
+        return self._result(
+            epoch + 1, best_epoch, best_fit, stopped_early, time.perf_counter() - t_start, history, resumed_from
+        )
 
     # ------------------------------------------------------------------ pieces
     def _total(self, losses: Any, epoch: int, i: int) -> torch.Tensor:
@@ -424,14 +482,27 @@ class Trainer:
         finally:
             self.eval_model.train(was_training)
 
-    def _result(self, epochs_run: int, best_epoch: int | None, best_fit: float | None, stopped: bool, t: float,
-                history: list[dict[str, Any]], resumed_from: int | None) -> TrainResult:
+    def _result(
+        self,
+        epochs_run: int,
+        best_epoch: int | None,
+        best_fit: float | None,
+        stopped: bool,
+        t: float,
+        history: list[dict[str, Any]],
+        resumed_from: int | None,
+    ) -> TrainResult:
         return TrainResult(
-            epochs_run=epochs_run, best_epoch=best_epoch, best_fitness=best_fit, stopped_early=stopped,
-            time_s=round(sum(r.get("time_s", 0.0) for r in history), 3) if history else t, history=history,
+            epochs_run=epochs_run,
+            best_epoch=best_epoch,
+            best_fitness=best_fit,
+            stopped_early=stopped,
+            time_s=round(sum(r.get("time_s", 0.0) for r in history), 3) if history else t,
+            history=history,
             best_path=str(self.best_path) if self.best_path and self.best_path.exists() else None,
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
-            resumed_from=resumed_from, device=str(self.device),
+            resumed_from=resumed_from,
+            device=str(self.device),
         )
 
 
@@ -448,8 +519,14 @@ def pointwise_convs_on_onednn(model: nn.Module, on: bool) -> int:
     for m in model.modules():
         if not isinstance(m, nn.Conv2d):
             continue
-        if on and m.kernel_size == (1, 1) and m.stride == (1, 1) and m.padding in ((0, 0), "valid") \
-                and m.dilation == (1, 1) and m.padding_mode == "zeros":
+        if (
+            on
+            and m.kernel_size == (1, 1)
+            and m.stride == (1, 1)
+            and m.padding in ((0, 0), "valid")
+            and m.dilation == (1, 1)
+            and m.padding_mode == "zeros"
+        ):
             m.dilation, m._onednn_pointwise = (2, 2), True
             changed += 1
         elif not on and getattr(m, "_onednn_pointwise", False):
@@ -459,8 +536,9 @@ def pointwise_convs_on_onednn(model: nn.Module, on: bool) -> int:
     return changed
 
 
-def flat_buffers(model: nn.Module, opt: torch.optim.Optimizer, device: torch.device, distributed: bool = False,
-                 name: str = "model") -> FlatState | None:
+def flat_buffers(
+    model: nn.Module, opt: torch.optim.Optimizer, device: torch.device, distributed: bool = False, name: str = "model"
+) -> FlatState | None:
     """Flat buffers for the optimiser step and the EMA (``harness.engine.flat``) on a CPU in one process, when the
     model and the optimiser allow them; None (torch's optimiser and the per-tensor EMA) otherwise."""
     if device.type != "cpu" or distributed:
@@ -510,12 +588,17 @@ def _brief(metrics: Mapping[str, Any] | None) -> dict[str, Any] | None:
 
 def _line(r: Mapping[str, Any], name: str) -> str:
     loss = " ".join(f"{k} {v:.3f}" for k, v in r["loss"].items())
-    parts = [f"{name} epoch {r['epoch']}/{r['epochs']}", f"loss {sum(r['loss'].values()):.3f} ({loss})",
-             f"lr {max(r['lr'].values()):.5f}"]
+    parts = [
+        f"{name} epoch {r['epoch']}/{r['epochs']}",
+        f"loss {sum(r['loss'].values()):.3f} ({loss})",
+        f"lr {max(r['lr'].values()):.5f}",
+    ]
     m = r.get("metrics")
     if m:
-        parts.append(f"P {m.get('precision', math.nan):.3f} R {m.get('recall', math.nan):.3f} "
-                     f"mAP50 {m.get('mAP50', math.nan):.3f} mAP50:95 {m.get('mAP50_95', math.nan):.3f}")
+        parts.append(
+            f"P {m.get('precision', math.nan):.3f} R {m.get('recall', math.nan):.3f} "
+            f"mAP50 {m.get('mAP50', math.nan):.3f} mAP50:95 {m.get('mAP50_95', math.nan):.3f}"
+        )
     if r.get("fitness") is not None:
         parts.append(f"fitness {r['fitness']:.4f}{' *' if r['improved'] else ''}")
     parts.append(f"{r['time_s']:.1f} s")

@@ -75,8 +75,9 @@ def iou_values(layout: PairLayout, prep: PreparedEval) -> np.ndarray:
     return values
 
 
-def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] | np.ndarray,
-              ignored: np.ndarray) -> Matches:
+def match_all(
+    layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] | np.ndarray, ignored: np.ndarray
+) -> Matches:
     """COCO's greedy matching at every IoU threshold and area range (``ignored`` from ``gt_ignored``).
 
     Only entries with a value at or above the lowest threshold can match. Each such entry is expanded to the
@@ -103,13 +104,15 @@ def match_all(layout: PairLayout, values: np.ndarray, iou_thrs: Sequence[float] 
     pair = layout.pair[e].astype(np.int64)
     group = combo.astype(np.int64) * len(layout.keys) + pair
     taken_key = combo.astype(np.int64) * len(layout.gt_crowd) + g
-    chosen = greedy_rounds(layout.row[e], group, nonign, crowd, taken_key, n_thr * n_area * len(layout.gt_crowd),
-                           layout.col[e], values[e])
+    chosen = greedy_rounds(
+        layout.row[e], group, nonign, crowd, taken_key, n_thr * n_area * len(layout.gt_crowd), layout.col[e], values[e]
+    )
     return Matches(combo[chosen].astype(np.int64), layout.det[e[chosen]], g[chosen], n_thr, n_area)
 
 
-def accumulate(prep: PreparedEval, layout: PairLayout, matches: Matches, ignored: np.ndarray, params: Any
-               ) -> dict[str, Any]:
+def accumulate(
+    prep: PreparedEval, layout: PairLayout, matches: Matches, ignored: np.ndarray, params: Any
+) -> dict[str, Any]:
     """``COCOeval.eval`` (``precision``, ``recall``, ``scores``, ``counts``, ``params``) of the summarized cells."""
     rec_thrs = np.asarray(params.recThrs, dtype=np.float64)
     max_dets = [int(m) for m in params.maxDets]
@@ -161,7 +164,7 @@ def accumulate(prep: PreparedEval, layout: PairLayout, matches: Matches, ignored
         for k in range(n_cat):
             if n_valid_gt[k] == 0:
                 continue
-            seq_all = by_cat[cat_start[k]:cat_start[k + 1]]
+            seq_all = by_cat[cat_start[k] : cat_start[k + 1]]
             g = slice(group_start[a * n_cat + k], group_start[a * n_cat + k + 1])
             for m in (m for a2, m in cells if a2 == a):
                 keep = rank[seq_all] < max_dets[m]
@@ -171,15 +174,24 @@ def accumulate(prep: PreparedEval, layout: PairLayout, matches: Matches, ignored
                 else:
                     seq, place = seq_all[keep], (np.cumsum(keep) - 1)[index_in_cat[m_pos[g]][live]]
                 inside = None if outside is None else ~outside[seq]
-                cell = _cell(seq, score, inside, place, m_thr[g][live], m_ign[g][live], int(n_valid_gt[k]), n_thr,
-                             rec_thrs)
+                cell = _cell(
+                    seq, score, inside, place, m_thr[g][live], m_ign[g][live], int(n_valid_gt[k]), n_thr, rec_thrs
+                )
                 precision[:, :, k, a, m], scores[:, :, k, a, m], recall[:, k, a, m] = cell
     return {"params": params, "counts": counts, "precision": precision, "recall": recall, "scores": scores}
 
 
-def _cell(seq: np.ndarray, score: np.ndarray, inside: np.ndarray | None, place: np.ndarray, thr: np.ndarray,
-          ignored: np.ndarray, n_gt: int, n_thr: int, rec_thrs: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _cell(
+    seq: np.ndarray,
+    score: np.ndarray,
+    inside: np.ndarray | None,
+    place: np.ndarray,
+    thr: np.ndarray,
+    ignored: np.ndarray,
+    n_gt: int,
+    n_thr: int,
+    rec_thrs: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One (category, area range, maxDets) cell: precision and scores ``[T, R]`` and recall ``[T]``.
 
     ``seq``: the cell's detections in ranking order; ``inside``: whether each lies inside the area range (``None``:

@@ -66,7 +66,7 @@ class PairLayout:
     def blocks(self, values: np.ndarray) -> list[np.ndarray]:
         """The ``[D, G]`` matrix of every pair with both detections and GT, in ``keys`` order (views of ``values``)."""
         ends = np.cumsum(self.rows * self.cols).tolist()
-        return [values[e - r * c:e].reshape(r, c) for e, r, c in zip(ends, self.rows.tolist(), self.cols.tolist())]
+        return [values[e - r * c : e].reshape(r, c) for e, r, c in zip(ends, self.rows.tolist(), self.cols.tolist())]
 
     def matrices(self, values: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
         """``{(image_id, category_id): [D, G] matrix}`` for the pairs with both detections and GT."""
@@ -87,8 +87,16 @@ class PairLayout:
         cand = cand[np.argsort(self.row[cand], kind="stable")]
         cand_gt = self.gt[cand]
         cand_crowd = self.gt_crowd[cand_gt]
-        chosen = greedy_rounds(self.row[cand], self.pair[cand], ~cand_crowd, cand_crowd, cand_gt, len(self.gt_box),
-                               self.col[cand], values[cand])
+        chosen = greedy_rounds(
+            self.row[cand],
+            self.pair[cand],
+            ~cand_crowd,
+            cand_crowd,
+            cand_gt,
+            len(self.gt_box),
+            self.col[cand],
+            values[cand],
+        )
         if len(chosen) == 0:
             return none, none
         return self.det[cand[chosen]], cand_gt[chosen]
@@ -99,8 +107,16 @@ class PairLayout:
         return dict(zip((dets + 1).tolist(), self.gt_id[gts].tolist()))
 
 
-def greedy_rounds(row: np.ndarray, group: np.ndarray, preferred: np.ndarray, crowd: np.ndarray,
-                  taken_key: np.ndarray, n_keys: int, col: np.ndarray, value: np.ndarray) -> np.ndarray:
+def greedy_rounds(
+    row: np.ndarray,
+    group: np.ndarray,
+    preferred: np.ndarray,
+    crowd: np.ndarray,
+    taken_key: np.ndarray,
+    n_keys: int,
+    col: np.ndarray,
+    value: np.ndarray,
+) -> np.ndarray:
     """COCO's greedy matching loop (``COCOeval.evaluateImg``), one pass per detection rank for every group at once:
     the positions of the chosen entries, rank by rank.
 
@@ -174,8 +190,30 @@ def pair_layout(prep: PreparedEval, max_det: int = 100) -> PairLayout:
     col = offset % cols[pair]
     det = det_order[d_start[di][pair] + row]
     gt = gt_order[g_start[gi][pair] + col]
-    return PairLayout(img_ids, cat_ids, det_order, dk, d_start, d_count, gt_order, gk, g_start, g_count,
-                      keys, rows, cols, det, gt, pair, row, col, g_box, g_crowd, g_id, evaluated)
+    return PairLayout(
+        img_ids,
+        cat_ids,
+        det_order,
+        dk,
+        d_start,
+        d_count,
+        gt_order,
+        gk,
+        g_start,
+        g_count,
+        keys,
+        rows,
+        cols,
+        det,
+        gt,
+        pair,
+        row,
+        col,
+        g_box,
+        g_crowd,
+        g_id,
+        evaluated,
+    )
 
 
 def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -36,8 +36,16 @@ def input_names(dual: bool) -> list[str]:
     return ["rgb", "thermal"] if dual else ["images"]
 
 
-def export_onnx(model: nn.Module, example_inputs: Any, path: str | Path, opset: int = DEFAULT_OPSET, fuse: bool = True,
-                dynamic_batch: bool = False, check: bool = True, atol: float = 1e-4) -> dict[str, Any]:
+def export_onnx(
+    model: nn.Module,
+    example_inputs: Any,
+    path: str | Path,
+    opset: int = DEFAULT_OPSET,
+    fuse: bool = True,
+    dynamic_batch: bool = False,
+    check: bool = True,
+    atol: float = 1e-4,
+) -> dict[str, Any]:
     """Export ``model.forward_raw`` to ``path``; returns a record of what was exported and how well it matches."""
     if opset < 17:
         raise ExportError(f"opset {opset} is too old: use 17 or newer")
@@ -56,27 +64,43 @@ def export_onnx(model: nn.Module, example_inputs: Any, path: str | Path, opset: 
         _export_dynamo(wrapper, inputs, path, names_in, names_out, opset, dynamic_batch)
     except Exception as exc:  # noqa: BLE001 (any exporter failure: try the other exporter, then report both)
         first = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip().splitlines()
-        log.warning("dynamo ONNX export failed (%s: %s); trying the TorchScript-based exporter",
-                    type(exc).__name__, first[0] if first else "")
+        log.warning(
+            "dynamo ONNX export failed (%s: %s); trying the TorchScript-based exporter",
+            type(exc).__name__,
+            first[0] if first else "",
+        )
         exporter = "torchscript"
         try:
             _export_torchscript(wrapper, inputs, path, names_in, names_out, opset, dynamic_batch)
         except Exception as exc2:
-            raise ExportError(f"ONNX export of the model failed with both exporters: dynamo: {exc}; "
-                              f"torchscript: {type(exc2).__name__}: {exc2}") from exc2
+            raise ExportError(
+                f"ONNX export of the model failed with both exporters: dynamo: {exc}; "
+                f"torchscript: {type(exc2).__name__}: {exc2}"
+            ) from exc2
     record: dict[str, Any] = {
-        "path": str(path), "opset": _file_opset(path), "exporter": exporter, "fused": fused,
+        "path": str(path),
+        "opset": _file_opset(path),
+        "exporter": exporter,
+        "fused": fused,
         "inputs": {n: list(t.shape) for n, t in zip(names_in, inputs)},
         "outputs": {n: list(t.shape) for n, t in zip(names_out, expected)},
-        "dynamic_batch": dynamic_batch, "nms_in_graph": False,
+        "dynamic_batch": dynamic_batch,
+        "nms_in_graph": False,
     }
     if check:
         record.update(check_onnx(path, inputs, expected, atol=atol))
     return record
 
 
-def _export_dynamo(wrapper: nn.Module, inputs: tuple, path: Path, names_in: list[str], names_out: list[str],
-                   opset: int, dynamic_batch: bool) -> None:
+def _export_dynamo(
+    wrapper: nn.Module,
+    inputs: tuple,
+    path: Path,
+    names_in: list[str],
+    names_out: list[str],
+    opset: int,
+    dynamic_batch: bool,
+) -> None:
     kwargs: dict[str, Any] = {}
     if dynamic_batch:
         batch = torch.export.Dim("batch", min=1, max=1024)
@@ -88,8 +112,16 @@ def _export_dynamo(wrapper: nn.Module, inputs: tuple, path: Path, names_in: list
     quiet.setLevel(logging.ERROR)
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), _restore_level(quiet, level):
         warnings.simplefilter("ignore")
-        program = torch.onnx.export(wrapper, inputs, dynamo=True, input_names=names_in, output_names=names_out,
-                                    opset_version=opset, verbose=False, **kwargs)
+        program = torch.onnx.export(
+            wrapper,
+            inputs,
+            dynamo=True,
+            input_names=names_in,
+            output_names=names_out,
+            opset_version=opset,
+            verbose=False,
+            **kwargs,
+        )
         program.save(str(path))  # type: ignore[union-attr]
 
 
@@ -101,13 +133,28 @@ def _restore_level(logger: logging.Logger, level: int) -> Any:
         logger.setLevel(level)
 
 
-def _export_torchscript(wrapper: nn.Module, inputs: tuple, path: Path, names_in: list[str], names_out: list[str],
-                        opset: int, dynamic_batch: bool) -> None:
+def _export_torchscript(
+    wrapper: nn.Module,
+    inputs: tuple,
+    path: Path,
+    names_in: list[str],
+    names_out: list[str],
+    opset: int,
+    dynamic_batch: bool,
+) -> None:
     axes = {n: {0: "batch"} for n in names_in + names_out} if dynamic_batch else None
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
         warnings.simplefilter("ignore")
-        torch.onnx.export(wrapper, inputs, str(path), dynamo=False, input_names=names_in, output_names=names_out,
-                          opset_version=opset, dynamic_axes=axes)
+        torch.onnx.export(
+            wrapper,
+            inputs,
+            str(path),
+            dynamo=False,
+            input_names=names_in,
+            output_names=names_out,
+            opset_version=opset,
+            dynamic_axes=axes,
+        )
 
 
 def _file_opset(path: Path) -> int | None:
@@ -135,8 +182,9 @@ def ort_session(path: str | Path, threads: int | None = None, providers: list[st
     return session
 
 
-def check_onnx(path: str | Path, inputs: tuple[torch.Tensor, ...], expected: tuple[torch.Tensor, ...],
-               atol: float = 1e-4) -> dict[str, Any]:
+def check_onnx(
+    path: str | Path, inputs: tuple[torch.Tensor, ...], expected: tuple[torch.Tensor, ...], atol: float = 1e-4
+) -> dict[str, Any]:
     """Run the file in onnxruntime and compare every output with torch's; raises ``ExportError`` beyond ``atol``."""
     session = ort_session(path)
     feeds = {i.name: t.numpy() for i, t in zip(session.get_inputs(), inputs)}
@@ -154,6 +202,8 @@ def check_onnx(path: str | Path, inputs: tuple[torch.Tensor, ...], expected: tup
     worst = max(diffs) if diffs else 0.0
     if worst > atol:
         i = int(np.argmax(diffs))
-        raise ExportError(f"{path}: output{i} differs from torch by up to {worst:.3g} (tolerance {atol:g}); "
-                          f"the exported graph does not reproduce the model")
+        raise ExportError(
+            f"{path}: output{i} differs from torch by up to {worst:.3g} (tolerance {atol:g}); "
+            f"the exported graph does not reproduce the model"
+        )
     return {"max_abs_diff": worst, "atol": atol, "matches_torch": True}

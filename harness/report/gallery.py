@@ -132,28 +132,47 @@ def worst_picks(ev: Any) -> list[Pick]:
         cats.extend(c for c in a.get("worst") or {} if c not in cats)
     picks: list[Pick] = []
     for cat in cats:
-        misses = [(f, m) for f, (_, a) in firsts.items() for m in ((a.get("worst") or {}).get(cat) or {}).get(
-            "misses") or []]
-        misses.sort(key=lambda fm: (_REASONS.index(fm[1].get("reason")) if fm[1].get("reason") in _REASONS else 9,
-                                    fm[1].get("best_iou") or 0.0, -(fm[1].get("area") or 0.0)))
+        misses = [
+            (f, m) for f, (_, a) in firsts.items() for m in ((a.get("worst") or {}).get(cat) or {}).get("misses") or []
+        ]
+        misses.sort(
+            key=lambda fm: (
+                _REASONS.index(fm[1].get("reason")) if fm[1].get("reason") in _REASONS else 9,
+                fm[1].get("best_iou") or 0.0,
+                -(fm[1].get("area") or 0.0),
+            )
+        )
         for f, m in misses:
             why = str(m.get("reason") or "missed").replace("_", " ")
             iou = f", nearest IoU {m['best_iou']:.2f}" if m.get("best_iou") else ""
             picks.append(Pick(f, int(m["image_id"]), f"worst miss, {cat}: {why}{iou}", "miss", m.get("bbox"), cat))
-        fps = [(f, p) for f, (_, a) in firsts.items() for p in ((a.get("worst") or {}).get(cat) or {}).get(
-            "false_positives") or [] if p.get("kept")]
+        fps = [
+            (f, p)
+            for f, (_, a) in firsts.items()
+            for p in ((a.get("worst") or {}).get(cat) or {}).get("false_positives") or []
+            if p.get("kept")
+        ]
         fps.sort(key=lambda fp: -(fp[1].get("score") or 0.0))
         for f, p in fps:
             err = str(p.get("error") or "")
             on = f" on a {p['gt_category']}" if p.get("gt_category") and p.get("gt_category") != cat else ""
-            picks.append(Pick(f, int(p["image_id"]), f"worst false positive, {cat} {p.get('score', 0):.2f}: "
-                                                     f"{err}{on}", "false positive", p.get("bbox"), cat,
-                              p.get("score")))
+            picks.append(
+                Pick(
+                    f,
+                    int(p["image_id"]),
+                    f"worst false positive, {cat} {p.get('score', 0):.2f}: {err}{on}",
+                    "false positive",
+                    p.get("bbox"),
+                    cat,
+                    p.get("score"),
+                )
+            )
     return picks
 
 
-def choose(common: Sequence[Pick], own: Sequence[Pick], per_category: int = PER_CATEGORY,
-           disagree: int = DISAGREE) -> list[Pick]:
+def choose(
+    common: Sequence[Pick], own: Sequence[Pick], per_category: int = PER_CATEGORY, disagree: int = DISAGREE
+) -> list[Pick]:
     """The pictures of one gallery: the first ``disagree`` common picks, then per category and kind the first
     ``per_category`` picks of an image not shown yet."""
     out = list(common[:disagree])
@@ -195,18 +214,24 @@ def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[A
         return None, f"{run.key}: the prepared data in the cache is unreadable ({exc})"
     where = Path(cache_root) if cache_root is not None else default_root()
     if prepared is None:
-        return None, (f"the prepared samples of {run.key.dataset} (key {key}) are not in the cache {where} "
-                      f"(HARNESS_CACHE); `harness prepare --dataset {run.key.dataset}` with the runs' settings, or "
-                      f"point HARNESS_CACHE at the cache the runs used, then rebuild the report")
+        return None, (
+            f"the prepared samples of {run.key.dataset} (key {key}) are not in the cache {where} "
+            f"(HARNESS_CACHE); `harness prepare --dataset {run.key.dataset}` with the runs' settings, or "
+            f"point HARNESS_CACHE at the cache the runs used, then rebuild the report"
+        )
     stored = meta.get("prepared_fingerprint")
     if stored and stored != prepared.manifest.get("fingerprint"):
-        return None, (f"{run.key}: the cached samples of {run.key.dataset} changed since the run (fingerprint "
-                      f"{stored} then, {prepared.manifest.get('fingerprint')} now)")
+        return None, (
+            f"{run.key}: the cached samples of {run.key.dataset} changed since the run (fingerprint "
+            f"{stored} then, {prepared.manifest.get('fingerprint')} now)"
+        )
     then, now = meta.get("prepared_samples"), (prepared.manifest.get("report") or {}).get("samples_identity")
     if then and now and then != now:
-        return None, (f"{run.key}: the cache key {key} of {run.key.dataset} now holds other samples under the run's "
-                      f"image ids (samples {then} then, {now} now: the dataset plugin's sample order changed), so "
-                      "its boxes would be drawn on other pictures; prepare the run's samples again or re-run it")
+        return None, (
+            f"{run.key}: the cache key {key} of {run.key.dataset} now holds other samples under the run's "
+            f"image ids (samples {then} then, {now} now: the dataset plugin's sample order changed), so "
+            "its boxes would be drawn on other pictures; prepare the run's samples again or re-run it"
+        )
     return prepared, None
 
 
@@ -228,15 +253,28 @@ def source_of(run: StoredRun, prepared: Any) -> Source:
     return src
 
 
-def _boxes(records: Sequence[dict[str, Any]], image_id: int, categories: Sequence[str], name: str,
-           colour: tuple[int, int, int] | None, threshold: float | None = None) -> Any:
+def _boxes(
+    records: Sequence[dict[str, Any]],
+    image_id: int,
+    categories: Sequence[str],
+    name: str,
+    colour: tuple[int, int, int] | None,
+    threshold: float | None = None,
+) -> Any:
     from harness.report.pictures import coco_boxes
 
     return coco_boxes(records, image_id, name, colour).above(threshold)
 
 
-def draw(pick: Pick, src: Source, gt: dict[str, Any], predictions: Sequence[dict[str, Any]],
-         conf: float | None, detector: str, height: int = HEIGHT) -> np.ndarray:
+def draw(
+    pick: Pick,
+    src: Source,
+    gt: dict[str, Any],
+    predictions: Sequence[dict[str, Any]],
+    conf: float | None,
+    detector: str,
+    height: int = HEIGHT,
+) -> np.ndarray:
     """The picture of one pick (module docstring)."""
     from harness.report.pictures import GT_COLOUR, BoxSet, draw_sample
 
@@ -250,18 +288,39 @@ def draw(pick: Pick, src: Source, gt: dict[str, Any], predictions: Sequence[dict
     if pick.box is not None:
         x, y, w, h = (float(v) for v in pick.box)
         label = cats.index(pick.category) if pick.category in cats else -1
-        sets.append(BoxSet(np.array([[x, y, x + w, y + h]]), np.array([max(label, 0)]),
-                           None if pick.score is None else np.array([pick.score]), pick.kind, HIGHLIGHT))
+        sets.append(
+            BoxSet(
+                np.array([[x, y, x + w, y + h]]),
+                np.array([max(label, 0)]),
+                None if pick.score is None else np.array([pick.score]),
+                pick.kind,
+                HIGHLIGHT,
+            )
+        )
     fourth = None
     if src.encoding is not None:
         fourth = prepared.channel(i, src.encoding, dict(src.params))
-    return draw_sample(sample, fourth=fourth, fourth_name=getattr(src.encoding, "name", ""), categories=cats,
-                       gt=gt_set, predictions=sets, height=height, title=f"{pick.fold} · image {pick.image_id}")
+    return draw_sample(
+        sample,
+        fourth=fourth,
+        fourth_name=getattr(src.encoding, "name", ""),
+        categories=cats,
+        gt=gt_set,
+        predictions=sets,
+        height=height,
+        title=f"{pick.fold} · image {pick.image_id}",
+    )
 
 
 # ------------------------------------------------------------------------------------------------ the section
-def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cache_root: str | Path | None = None,
-                    disagree: int = DISAGREE, per_category: int = PER_CATEGORY) -> Any:
+def gallery_section(
+    dataset: str,
+    evidence: Sequence[Any],
+    out: Path | None,
+    cache_root: str | Path | None = None,
+    disagree: int = DISAGREE,
+    per_category: int = PER_CATEGORY,
+) -> Any:
     """The "Galleries" section of ``dataset``: one gallery per entry with an analysis (``evidence.Evidence``)."""
     from harness.evaluation.analysis import NO_ANALYSIS
     from harness.io import atomic_write_bytes
@@ -335,14 +394,23 @@ def gallery_section(dataset: str, evidence: Sequence[Any], out: Path | None, cac
             data = encode_image(img, "jpeg", QUALITY)
             path = folder / _slug(ev.name) / f"{k:02d}_{_slug(pick.fold)}_{pick.image_id}.jpg"
             atomic_write_bytes(path, data)
-            gallery.thumbs.append(Thumb(f"{pick.fold} · image {pick.image_id} · {pick.caption}", data, path,
-                                        pick.kind, path.relative_to(out).as_posix(),
-                                        getattr(src.encoding, "name", "")))
-    sec.notes.append(f"Per detector: first the {disagree} held-out samples where the detectors disagree most (the "
-                     f"same in every gallery), then per category its worst miss and its most confident false "
-                     f"positive (docs/reports.md). Green: ground truth; red: the detector's predictions at its "
-                     f"operating point (score shown); magenta: the object the picture is about. Thermal in °C "
-                     f"(1st-99th percentile of the sample), the fourth channel of the detector's encoding in grey.")
+            gallery.thumbs.append(
+                Thumb(
+                    f"{pick.fold} · image {pick.image_id} · {pick.caption}",
+                    data,
+                    path,
+                    pick.kind,
+                    path.relative_to(out).as_posix(),
+                    getattr(src.encoding, "name", ""),
+                )
+            )
+    sec.notes.append(
+        f"Per detector: first the {disagree} held-out samples where the detectors disagree most (the "
+        f"same in every gallery), then per category its worst miss and its most confident false "
+        f"positive (docs/reports.md). Green: ground truth; red: the detector's predictions at its "
+        f"operating point (score shown); magenta: the object the picture is about. Thermal in °C "
+        f"(1st-99th percentile of the sample), the fourth channel of the detector's encoding in grey."
+    )
     if not any(g.thumbs for g in sec.galleries):
         reasons = list(dict.fromkeys(n for g in sec.galleries for n in g.notes))
         sec.absent = "no picture could be drawn: " + "; ".join(reasons or ["no sample to show"])

@@ -45,8 +45,16 @@ SEED_METRICS = ("mAP50", "mAP50_95", "precision", "recall", "f1")
 SEED_CATEGORY_METRICS = ("AP50", "AP50_95")
 
 #: Short names of annotation sources, as the seed's tables write them.
-SOURCE_LABELS = {"thermal": "T", "t": "T", "ir": "T", "01": "T", "visible": "RGB", "rgb": "RGB", "vis": "RGB",
-                 "00": "RGB"}
+SOURCE_LABELS = {
+    "thermal": "T",
+    "t": "T",
+    "ir": "T",
+    "01": "T",
+    "visible": "RGB",
+    "rgb": "RGB",
+    "vis": "RGB",
+    "00": "RGB",
+}
 NO_SOURCE = "-"
 
 
@@ -150,9 +158,11 @@ def label_notes(items: Sequence[tuple[str | None, Sequence[ResultLabel], Sequenc
         names = ", ".join(dict.fromkeys(name for name, _ in approx if name))
         worst = max(lab.bound_c for _, lab in approx)
         kinds = sorted({a for _, lab in approx for a in (lab.record or {}).get("approximations") or []})
-        out.append(f"{MARKS[APPROXIMATE]} measured on approximate temperatures ({names + ': ' if names else ''}"
-                   f"within {worst:g} C of DJI's SDK at worst; {', '.join(kinds) or 'approximate route'}; "
-                   f"docs/sensing.md)")
+        out.append(
+            f"{MARKS[APPROXIMATE]} measured on approximate temperatures ({names + ': ' if names else ''}"
+            f"within {worst:g} C of DJI's SDK at worst; {', '.join(kinds) or 'approximate route'}; "
+            f"docs/sensing.md)"
+        )
     for name, labels, runs in items:
         for lab in labels:
             if lab.kind == APPROXIMATE:
@@ -234,8 +244,10 @@ class StoredRun(Run):
         from harness.io import read_json
 
         if not path.is_file():
-            raise StoreError(f"{path}: missing; the run's {what} are needed here. Re-run the fold with `harness run "
-                             f"... --force` to write them")
+            raise StoreError(
+                f"{path}: missing; the run's {what} are needed here. Re-run the fold with `harness run "
+                f"... --force` to write them"
+            )
         return read_json(path)
 
     @cached_property
@@ -278,8 +290,9 @@ def average_seeds(dataset: str, fold: str, metrics: Sequence[Mapping[str, Any]])
         out = dict(first)
         out["run"] = {**(first.get("run") or {}), "dataset": dataset, "fold": fold}
         return out
-    head: dict[str, Any] = {k: _mean(m["metrics"].get(k) for m in metrics) for k in SEED_METRICS
-                            if any(k in m["metrics"] for m in metrics)}
+    head: dict[str, Any] = {
+        k: _mean(m["metrics"].get(k) for m in metrics) for k in SEED_METRICS if any(k in m["metrics"] for m in metrics)
+    }
     head["seeds"] = len(metrics)
     names: list[str] = []
     for m in metrics:
@@ -290,8 +303,12 @@ def average_seeds(dataset: str, fold: str, metrics: Sequence[Mapping[str, Any]])
         rec: dict[str, Any] = {k: _mean(e.get(k) for e in entries) for k in SEED_CATEGORY_METRICS}
         rec["instances"] = int(entries[0].get("instances") or 0)
         per_category[name] = rec
-    return {"run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
-            "support": first.get("support") or {}, "metrics": head, "per_category": per_category}
+    return {
+        "run": {"dataset": dataset, "fold": fold, "seeds": [m.get("run", {}).get("seed") for m in metrics]},
+        "support": first.get("support") or {},
+        "metrics": head,
+        "per_category": per_category,
+    }
 
 
 @dataclass
@@ -457,8 +474,9 @@ class StoreView:
     def __init__(self, store: Store | str | Path, references: Any = None):
         self.store = store if isinstance(store, Store) else Store(store)
         if not self.store.root.is_dir():
-            raise StoreError(f"{self.store.root}: no results store here; pass --store (the folder `harness run` wrote "
-                             f"into)")
+            raise StoreError(
+                f"{self.store.root}: no results store here; pass --store (the folder `harness run` wrote into)"
+            )
         self._entries: dict[str, list[Entry]] = {}
         #: files that could not be read (named, with the reason); the report lists them instead of failing
         self.problems: list[str] = []
@@ -512,12 +530,22 @@ class StoreView:
             self._reference_runs[dataset] = runs
             trained = [r for r in own if not r.metrics.get("external")]
             same = refs.same_training(trained) if trained else True
-            self.reference_notes[dataset] = [
-                f"Reference results ({len(runs)} runs, entries named ref:DETECTOR): {refs.describe()}; read from "
-                f"{refs.root}. The store's runs were checked to use the same samples (content digests)."
-            ] + (["The store's runs were trained at another image size or number of epochs than the reference "
-                  "results: they are shown side by side, not paired (a comparison of two training budgets, "
-                  "not of detectors)."] if not same else []) + notes
+            self.reference_notes[dataset] = (
+                [
+                    f"Reference results ({len(runs)} runs, entries named ref:DETECTOR): {refs.describe()}; read from "
+                    f"{refs.root}. The store's runs were checked to use the same samples (content digests)."
+                ]
+                + (
+                    [
+                        "The store's runs were trained at another image size or number of epochs than the reference "
+                        "results: they are shown side by side, not paired (a comparison of two training budgets, "
+                        "not of detectors)."
+                    ]
+                    if not same
+                    else []
+                )
+                + notes
+            )
             self._references_paired = same
         return list(self._reference_runs[dataset])
 
@@ -569,13 +597,20 @@ class StoreView:
         available = ", ".join(e.label for e in entries) or "none"
         if not found:
             det = spec if spec.startswith("external/") else spec.partition("/")[0]
-            how = (f"harness score --dataset {dataset} --name {det.partition('/')[2]} ..."
-                   if det.startswith("external/") else f"harness run --detector {det} --dataset {dataset}")
-            raise StoreError(f"{self.root}: no finished runs of {spec!r} on dataset {dataset!r} (available: "
-                             f"{available}); run `{how}` into this store")
+            how = (
+                f"harness score --dataset {dataset} --name {det.partition('/')[2]} ..."
+                if det.startswith("external/")
+                else f"harness run --detector {det} --dataset {dataset}"
+            )
+            raise StoreError(
+                f"{self.root}: no finished runs of {spec!r} on dataset {dataset!r} (available: "
+                f"{available}); run `{how}` into this store"
+            )
         if len(found) > 1:
-            raise HarnessError(f"{spec!r} has runs with several encodings on {dataset!r} "
-                               f"({', '.join(e.label for e in found)}); name one as DETECTOR/ENCODING")
+            raise HarnessError(
+                f"{spec!r} has runs with several encodings on {dataset!r} "
+                f"({', '.join(e.label for e in found)}); name one as DETECTOR/ENCODING"
+            )
         return found[0]
 
     # ------------------------------------------------------------------------------------------ other files

@@ -45,13 +45,15 @@ def find_sample(prepared: Any, image_id: int | None = None, index: int | None = 
             return prepared.index_of(int(image_id))
         except KeyError:
             ids = prepared.image_ids
-            raise ConfigError(f"--image-id {image_id}: not a sample of {prepared.name} ({n} samples, ids "
-                              f"{min(ids)}..{max(ids)})") from None
+            raise ConfigError(
+                f"--image-id {image_id}: not a sample of {prepared.name} ({n} samples, ids {min(ids)}..{max(ids)})"
+            ) from None
     if name is not None:
         hits = [i for i, r in enumerate(prepared.records) if _names_match(r.get("meta") or {}, name)]
         if len(hits) != 1:
-            raise ConfigError(f"--name {name!r}: {len(hits)} samples of {prepared.name} match; give a longer name "
-                              f"or --image-id")
+            raise ConfigError(
+                f"--name {name!r}: {len(hits)} samples of {prepared.name} match; give a longer name or --image-id"
+            )
         return hits[0]
     index = 0 if index is None else int(index)
     if not 0 <= index < n:
@@ -70,28 +72,46 @@ def _names_match(meta: Mapping[str, Any], name: str) -> bool:
     return False
 
 
-def fourth_channel(prepared: Any, index: int, encoding: Any,
-                   params: Mapping[str, Any] | None = None) -> np.ndarray | None:
+def fourth_channel(
+    prepared: Any, index: int, encoding: Any, params: Mapping[str, Any] | None = None
+) -> np.ndarray | None:
     """The encoding's channel of sample ``index`` (None for an encoding that adds no channel)."""
     if encoding is None or getattr(encoding, "channels", 0) == 0:
         return None
     if getattr(encoding, "needs", None) == "thermal" and not prepared.radiometric:
-        raise ConfigError(f"encoding {encoding.name!r} needs radiometric thermal, but {prepared.name} has only 8-bit "
-                          f"thermal; use an 8-bit encoding such as 'proxy8' or 'ir8'")
+        raise ConfigError(
+            f"encoding {encoding.name!r} needs radiometric thermal, but {prepared.name} has only 8-bit "
+            f"thermal; use an 8-bit encoding such as 'proxy8' or 'ir8'"
+        )
     return prepared.channel(index, encoding, dict(params or {}))
 
 
-def sample_picture(prepared: Any, index: int, *, encoding: Any = None, encoding_params: Mapping[str, Any] | None = None,
-                   predictions: Sequence[BoxSet] = (), height: int = 400, title: str | None = None) -> np.ndarray:
+def sample_picture(
+    prepared: Any,
+    index: int,
+    *,
+    encoding: Any = None,
+    encoding_params: Mapping[str, Any] | None = None,
+    predictions: Sequence[BoxSet] = (),
+    height: int = 400,
+    title: str | None = None,
+) -> np.ndarray:
     """Sample ``index`` of ``prepared`` drawn with its ground truth and ``predictions`` (RGB uint8)."""
     s = prepared[index]
     fourth = fourth_channel(prepared, index, encoding, encoding_params)
     if title is None:
         fname = (s.meta or {}).get("file_name")
         title = f"{prepared.name} {s.image_id}" + (f" ({fname})" if fname else "") + f" group {s.group}"
-    return draw_sample(s, fourth=fourth, fourth_name=getattr(encoding, "name", "fourth channel"),
-                       categories=list(prepared.categories), gt=True, predictions=predictions, height=height,
-                       title=title)
+    return draw_sample(
+        s,
+        fourth=fourth,
+        fourth_name=getattr(encoding, "name", "fourth channel"),
+        categories=list(prepared.categories),
+        gt=True,
+        predictions=predictions,
+        height=height,
+        title=title,
+    )
 
 
 def run_predictions(store: str | Path, dataset: str, detector: str, image_id: int) -> list[BoxSet]:
@@ -111,14 +131,19 @@ def run_predictions(store: str | Path, dataset: str, detector: str, image_id: in
         if int(image_id) not in {int(im["id"]) for im in gt.get("images") or []}:
             continue
         conf = (run.metrics.get("metrics") or {}).get("conf_threshold")
-        boxes = coco_boxes(read_json(run.predictions_path), int(image_id), name=f"{run.key.detector}/"
-                           f"{run.key.encoding}/{run.key.fold}/seed{run.key.seed}").above(conf)
+        boxes = coco_boxes(
+            read_json(run.predictions_path),
+            int(image_id),
+            name=f"{run.key.detector}/{run.key.encoding}/{run.key.fold}/seed{run.key.seed}",
+        ).above(conf)
         if conf is not None:
             boxes.name += f" >= {conf:.2f}"
         out.append(boxes)
     if not out:
-        raise StoreError(f"image {image_id} is in no held-out fold of {detector}'s finished runs on {dataset} "
-                         f"({len(runs)} run(s) in {st.root})")
+        raise StoreError(
+            f"image {image_id} is in no held-out fold of {detector}'s finished runs on {dataset} "
+            f"({len(runs)} run(s) in {st.root})"
+        )
     return out
 
 
@@ -131,10 +156,21 @@ class Shown:
     image_id: int | None = None
 
 
-def show(dataset: str, cfg: Mapping[str, Any], *, image_id: int | None = None, index: int | None = None,
-         name: str | None = None, encoding: str | None = None, store: str | Path | None = None,
-         detectors: Sequence[str] = (), height: int = 400, out: str | Path | None = None,
-         cache_root: str | Path | None = None, inline: bool | None = None) -> Shown:
+def show(
+    dataset: str,
+    cfg: Mapping[str, Any],
+    *,
+    image_id: int | None = None,
+    index: int | None = None,
+    name: str | None = None,
+    encoding: str | None = None,
+    store: str | Path | None = None,
+    detectors: Sequence[str] = (),
+    height: int = 400,
+    out: str | Path | None = None,
+    cache_root: str | Path | None = None,
+    inline: bool | None = None,
+) -> Shown:
     """Draw one prepared sample (module docstring). Without ``out``, a terminal that draws images gets it inline
     (``inline=None``: when stdout is such a terminal); otherwise it is written to ``show_<dataset>_<id>.png``."""
     from harness.cache import prepare

@@ -51,8 +51,23 @@ from harness.textable import text_table
 ABLATION_CATEGORIES = ("delamination", "water seepage")
 
 #: Columns of the tidy long-format records (``tidy.csv``).
-RECORD_FIELDS = ("table", "dataset", "detector", "encoding", "fold", "category", "metric", "value", "sd", "n", "unit",
-                 "images", "instances", "seeds", "sample_matched")
+RECORD_FIELDS = (
+    "table",
+    "dataset",
+    "detector",
+    "encoding",
+    "fold",
+    "category",
+    "metric",
+    "value",
+    "sd",
+    "n",
+    "unit",
+    "images",
+    "instances",
+    "seeds",
+    "sample_matched",
+)
 
 
 @dataclass(frozen=True)
@@ -198,14 +213,42 @@ def _md_escape(text: str) -> str:
     return str(text).replace("|", "\\|")
 
 
-def record(table: str, metric: str, value: Any, *, dataset: str = "", detector: str = "", encoding: str = "",
-           fold: str = "", category: str = "", sd: float | None = None, n: int | None = None, unit: str = "fraction",
-           images: int | None = None, instances: int | None = None, seeds: Iterable[int] = (),
-           sample_matched: bool | None = True) -> dict[str, Any]:
+def record(
+    table: str,
+    metric: str,
+    value: Any,
+    *,
+    dataset: str = "",
+    detector: str = "",
+    encoding: str = "",
+    fold: str = "",
+    category: str = "",
+    sd: float | None = None,
+    n: int | None = None,
+    unit: str = "fraction",
+    images: int | None = None,
+    instances: int | None = None,
+    seeds: Iterable[int] = (),
+    sample_matched: bool | None = True,
+) -> dict[str, Any]:
     """One tidy long-format record (the columns of ``tidy.csv``)."""
-    return {"table": table, "dataset": dataset, "detector": detector, "encoding": encoding, "fold": fold,
-            "category": category, "metric": metric, "value": value, "sd": sd, "n": n, "unit": unit, "images": images,
-            "instances": instances, "seeds": " ".join(str(s) for s in seeds), "sample_matched": sample_matched}
+    return {
+        "table": table,
+        "dataset": dataset,
+        "detector": detector,
+        "encoding": encoding,
+        "fold": fold,
+        "category": category,
+        "metric": metric,
+        "value": value,
+        "sd": sd,
+        "n": n,
+        "unit": unit,
+        "images": images,
+        "instances": instances,
+        "seeds": " ".join(str(s) for s in seeds),
+        "sample_matched": sample_matched,
+    }
 
 
 def records_csv(records: Sequence[Mapping[str, Any]]) -> str:
@@ -277,13 +320,17 @@ def _fold_matching(rows: Sequence[Entry], folds: Sequence[str]) -> tuple[str | N
     """Sample-matched check of the rows' fold results, fold by fold, plus rows that miss folds or mix seeds."""
     label, details = match_check({f"{e.label}@{f}": e.folds[f].metrics for e in rows for f in folds if f in e.folds})
     kinds = [label] if label else []
-    missing = [f"{e.label}: not evaluated on fold(s) {', '.join(f for f in folds if f not in e.folds)}"
-               for e in rows if any(f not in e.folds for f in folds)]
+    missing = [
+        f"{e.label}: not evaluated on fold(s) {', '.join(f for f in folds if f not in e.folds)}"
+        for e in rows
+        if any(f not in e.folds for f in folds)
+    ]
     if missing:
         kinds.append("NOT sample-matched: rows cover different folds")
         details = details + missing
-    seed_issues = [f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items()
-                   if fr.seed_mismatch]
+    seed_issues = [
+        f"{e.label} fold {f}: seeds {fr.seed_mismatch}" for e in rows for f, fr in e.folds.items() if fr.seed_mismatch
+    ]
     if seed_issues:
         kinds.append("NOT sample-matched: seeds of a fold differ")
         details = details + seed_issues
@@ -312,8 +359,9 @@ def _options_suffix(e: Entry) -> str:
 
 def _seeds_note(rows: Sequence[Entry]) -> str:
     seeds = sorted({s for e in rows for s in e.seeds})
-    return (f"seed(s) {', '.join(map(str, seeds))}"
-            + ("; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""))
+    return f"seed(s) {', '.join(map(str, seeds))}" + (
+        "; each fold's value is the mean over its seeds" if len(seeds) > 1 else ""
+    )
 
 
 # -------------------------------------------------------------------------------------------------- project table
@@ -326,12 +374,18 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
     name = f"{_slug(dataset)}-folds"
     cols = [Column("detector", "Detector"), Column("encoding", "Encoding")]
     for f in folds:
-        cols += [Column(f"{f}:mAP50", f"{f} mAP50", "pct", best="max", group=f, short="mAP50"),
-                 Column(f"{f}:mAP50_95", f"{f} mAP50:95", "pct", best="max", group=f, short="mAP50:95")]
-    cols += [Column("mAP50", "mAP50 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50"),
-             Column("mAP50_95", "mAP50:95 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50:95"),
-             Column("params", "Params (M)", "sig", best="min"), Column("gflops", "GFLOPs", "sig", best="min"),
-             Column("images", "Images", "int"), Column("instances", "Inst.", "int")]
+        cols += [
+            Column(f"{f}:mAP50", f"{f} mAP50", "pct", best="max", group=f, short="mAP50"),
+            Column(f"{f}:mAP50_95", f"{f} mAP50:95", "pct", best="max", group=f, short="mAP50:95"),
+        ]
+    cols += [
+        Column("mAP50", "mAP50 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50"),
+        Column("mAP50_95", "mAP50:95 mean ± SD", "pct", best="max", group="mean ± SD", short="mAP50:95"),
+        Column("params", "Params (M)", "sig", best="min"),
+        Column("gflops", "GFLOPs", "sig", best="min"),
+        Column("images", "Images", "int"),
+        Column("instances", "Inst.", "int"),
+    ]
     if pareto is not None:
         cols.append(Column("pareto", "Pareto"))
     table = Table(name, f"{dataset}: project-grouped folds (held-out mAP, %)", cols)
@@ -343,11 +397,16 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
         prof = e.complexity()
         if not prof.get("params_m"):
             no_profile.append(e)
-        row: dict[str, Any] = {"detector": names[e.label], "encoding": e.encoding,
-                               "mAP50": Stat.from_mean_sd(agg.get("mAP50")),
-                               "mAP50_95": Stat.from_mean_sd(agg.get("mAP50_95")),
-                               "params": prof.get("params_m"), "gflops": prof.get("gflops"),
-                               "images": e.images, "instances": e.instances}
+        row: dict[str, Any] = {
+            "detector": names[e.label],
+            "encoding": e.encoding,
+            "mAP50": Stat.from_mean_sd(agg.get("mAP50")),
+            "mAP50_95": Stat.from_mean_sd(agg.get("mAP50_95")),
+            "params": prof.get("params_m"),
+            "gflops": prof.get("gflops"),
+            "images": e.images,
+            "instances": e.instances,
+        }
         if pareto is not None:
             row["pareto"] = "yes" if e.label in pareto else ""
         row["_marks"] = _marks(("mAP50", "mAP50_95"), e.labels)
@@ -359,41 +418,91 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
             row["_marks"].update(_marks((f"{f}:mAP50", f"{f}:mAP50_95"), fr.labels))
             for key in ("mAP50", "mAP50_95"):
                 row[f"{f}:{key}"] = fr.metrics["metrics"].get(key)
-                table.records.append(record(name, key, row[f"{f}:{key}"], dataset=dataset, detector=e.detector,
-                                            encoding=e.encoding, fold=f, images=fr.images, instances=fr.instances,
-                                            seeds=fr.seeds, sample_matched=matched))
+                table.records.append(
+                    record(
+                        name,
+                        key,
+                        row[f"{f}:{key}"],
+                        dataset=dataset,
+                        detector=e.detector,
+                        encoding=e.encoding,
+                        fold=f,
+                        images=fr.images,
+                        instances=fr.instances,
+                        seeds=fr.seeds,
+                        sample_matched=matched,
+                    )
+                )
         for key in ("mAP50", "mAP50_95"):
             s = row[key]
-            table.records.append(record(name, f"{key}_mean", s.mean, sd=s.sd, n=s.n, dataset=dataset,
-                                        detector=e.detector, encoding=e.encoding, fold="mean", images=e.images,
-                                        instances=e.instances, seeds=e.seeds, sample_matched=matched))
+            table.records.append(
+                record(
+                    name,
+                    f"{key}_mean",
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=dataset,
+                    detector=e.detector,
+                    encoding=e.encoding,
+                    fold="mean",
+                    images=e.images,
+                    instances=e.instances,
+                    seeds=e.seeds,
+                    sample_matched=matched,
+                )
+            )
         for key, unit in (("params", "M"), ("gflops", "GFLOPs")):
             if row[key] is not None:
-                table.records.append(record(name, key, row[key], dataset=dataset, detector=e.detector,
-                                            encoding=e.encoding, unit=unit, sample_matched=None))
+                table.records.append(
+                    record(
+                        name,
+                        key,
+                        row[key],
+                        dataset=dataset,
+                        detector=e.detector,
+                        encoding=e.encoding,
+                        unit=unit,
+                        sample_matched=None,
+                    )
+                )
         table.rows.append(row)
     if table.warning is None and rows_e:
         ref = rows_e[0]
-        sup: dict[str, Any] = {"detector": "support", "encoding": "img / inst", "_summary": True,
-                               "images": ref.images, "instances": ref.instances, "pareto": ""}
+        sup: dict[str, Any] = {
+            "detector": "support",
+            "encoding": "img / inst",
+            "_summary": True,
+            "images": ref.images,
+            "instances": ref.instances,
+            "pareto": "",
+        }
         for f in folds:
             fr = ref.folds[f]
             sup[f"{f}:mAP50"] = f"{fr.images} img"
             sup[f"{f}:mAP50_95"] = f"{fr.instances} inst"
         table.rows.append(sup)
     n_folds = len(folds)
-    table.notes.append(f"Held-out folds {', '.join(folds)}; mean ± sample SD (n - 1) over the {n_folds} fold(s); "
-                       f"{_seeds_note(rows_e)}. AP is COCO box AP (mAP50: IoU 0.50; mAP50:95: IoU 0.50:0.05:0.95; "
-                       f"101 recall points, maxDets 100), in %.")
-    table.notes.append("Images and Inst.: held-out images and instances summed over the folds (each image is held out "
-                       "once); the support row gives them per fold.")
+    table.notes.append(
+        f"Held-out folds {', '.join(folds)}; mean ± sample SD (n - 1) over the {n_folds} fold(s); "
+        f"{_seeds_note(rows_e)}. AP is COCO box AP (mAP50: IoU 0.50; mAP50:95: IoU 0.50:0.05:0.95; "
+        f"101 recall points, maxDets 100), in %."
+    )
+    table.notes.append(
+        "Images and Inst.: held-out images and instances summed over the folds (each image is held out "
+        "once); the support row gives them per fold."
+    )
     _profile_notes(table, rows_e, no_profile, view)
     if left_out:
-        table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablation): "
-                           + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out))
+        table.notes.append(
+            "Not in this table (evaluated on fewer folds; see the encoding ablation): "
+            + ", ".join(f"{e.label} [{', '.join(e.fold_names)}]" for e in left_out)
+        )
     if pareto is not None:
-        table.notes.append("Pareto: on the accuracy (mAP50:95) vs GFLOPs front: no other row has fewer or equal "
-                           "GFLOPs and a higher mean mAP50:95.")
+        table.notes.append(
+            "Pareto: on the accuracy (mAP50:95) vs GFLOPs front: no other row has fewer or equal "
+            "GFLOPs and a higher mean mAP50:95."
+        )
     _label_notes(table, rows_e)
     return table
 
@@ -403,27 +512,41 @@ def _profile_notes(table: Table, rows: Sequence[Entry], missing: Sequence[Entry]
     if profs:
         ncls = sorted({p.get("num_classes") for p in profs if p.get("num_classes")})
         folded = {p.get("bn_folded") for p in profs}
-        params = ("after BatchNorm folding" if folded == {True} else "as built (no BatchNorm fold declared)"
-                  if folded == {False} else "after BatchNorm folding where the detector declares one")
+        params = (
+            "after BatchNorm folding"
+            if folded == {True}
+            else "as built (no BatchNorm fold declared)"
+            if folded == {False}
+            else "after BatchNorm folding where the detector declares one"
+        )
         table.notes.append(
             f"Params (M): parameter count {params}; GFLOPs: 'paper' convention (BN folded, 1 multiply-add = 2 FLOPs, "
             f"forward_raw without decoding/NMS) at 640x640, batch 1, both inputs for dual-stream detectors, "
-            f"{'/'.join(map(str, ncls))} class(es); measured on the model each run trained (metrics.json complexity).")
+            f"{'/'.join(map(str, ncls))} class(es); measured on the model each run trained (metrics.json complexity)."
+        )
     for e in rows:
         if e.complexity().get("source") == "given":
-            table.notes.append(f"{e.label}: Params and GFLOPs as given with `harness score`, not measured by the "
-                               "harness (its predictions came from outside).")
+            table.notes.append(
+                f"{e.label}: Params and GFLOPs as given with `harness score`, not measured by the "
+                "harness (its predictions came from outside)."
+            )
     for e in missing:
         mixed = e.complexity().get("mixed")
         if e.detector.startswith("external/") and not mixed:
-            table.notes.append(f"{e.label}: Params and GFLOPs not given; re-score with `harness score ... --params M "
-                               "--gflops G --force` to show them.")
+            table.notes.append(
+                f"{e.label}: Params and GFLOPs not given; re-score with `harness score ... --params M "
+                "--gflops G --force` to show them."
+            )
         elif mixed:
-            table.notes.append(f"{e.label}: Params and GFLOPs absent, its runs were built with different model "
-                               f"options ({'; '.join(mixed)}); re-run them with one setting.")
+            table.notes.append(
+                f"{e.label}: Params and GFLOPs absent, its runs were built with different model "
+                f"options ({'; '.join(mixed)}); re-run them with one setting."
+            )
         else:
-            table.notes.append(f"{e.label}: Params and GFLOPs absent, run(s) without a complexity record "
-                               f"({', '.join(e.unmeasured_runs()[:3])}); re-run with --force to measure them.")
+            table.notes.append(
+                f"{e.label}: Params and GFLOPs absent, run(s) without a complexity record "
+                f"({', '.join(e.unmeasured_runs()[:3])}); re-run with --force to measure them."
+            )
 
 
 # -------------------------------------------------------------------------------------------------- per category
@@ -446,31 +569,59 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
     for e in rows_e:
         prefix = f"{names[e.label]} " if multi else ""
         group = names[e.label] if multi else None
-        cols += [Column(f"{e.label}:AP50", f"{prefix}AP50", "pct", best="max" if not multi else None, group=group,
-                        short="AP50"),
-                 Column(f"{e.label}:AP50_95", f"{prefix}AP50:95", "pct", best="max" if not multi else None,
-                        group=group, short="AP50:95")]
+        cols += [
+            Column(
+                f"{e.label}:AP50", f"{prefix}AP50", "pct", best="max" if not multi else None, group=group, short="AP50"
+            ),
+            Column(
+                f"{e.label}:AP50_95",
+                f"{prefix}AP50:95",
+                "pct",
+                best="max" if not multi else None,
+                group=group,
+                short="AP50:95",
+            ),
+        ]
     table = Table(name, f"{dataset}: per category (AP over the folds that contain the category, %)", cols)
     _merge_warning(table, *_fold_matching(rows_e, folds))
     ref = aggs[rows_e[0].label]["per_category"]
     for c in cats:
         ref_c = ref.get(c) or {}
-        row: dict[str, Any] = {"category": c, "instances": ref_c.get("instances", 0),
-                               "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}", "_marks": {}}
+        row: dict[str, Any] = {
+            "category": c,
+            "instances": ref_c.get("instances", 0),
+            "folds": f"{ref_c.get('folds_present', 0)}/{len(folds)}",
+            "_marks": {},
+        }
         for e in rows_e:
             row["_marks"].update(_marks((f"{e.label}:AP50", f"{e.label}:AP50_95"), e.labels))
             pc = aggs[e.label]["per_category"].get(c) or {}
             for key in ("AP50", "AP50_95"):
                 s = Stat.from_mean_sd(pc.get(key))
                 row[f"{e.label}:{key}"] = s
-                table.records.append(record(name, key, s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=e.detector,
-                                            encoding=e.encoding, fold="mean", category=c,
-                                            instances=int(pc.get("instances") or 0), seeds=e.seeds,
-                                            sample_matched=table.warning is None))
+                table.records.append(
+                    record(
+                        name,
+                        key,
+                        s.mean,
+                        sd=s.sd,
+                        n=s.n,
+                        dataset=dataset,
+                        detector=e.detector,
+                        encoding=e.encoding,
+                        fold="mean",
+                        category=c,
+                        instances=int(pc.get("instances") or 0),
+                        seeds=e.seeds,
+                        sample_matched=table.warning is None,
+                    )
+                )
         table.rows.append(row)
-    table.notes.append("Instances: ground-truth instances summed over the held-out folds; Folds: held-out folds "
-                       "containing the category / all folds. A category absent from a fold has no AP there and is "
-                       "excluded from its mean (not counted as zero); SD is the sample SD over those folds.")
+    table.notes.append(
+        "Instances: ground-truth instances summed over the held-out folds; Folds: held-out folds "
+        "containing the category / all folds. A category absent from a fold has no AP there and is "
+        "excluded from its mean (not counted as zero); SD is the sample SD over those folds."
+    )
     if multi:
         table.notes.append("Columns per detector: " + ", ".join(f"{names[e.label]} = {e.label}" for e in rows_e))
     _label_notes(table, rows_e)
@@ -478,8 +629,9 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
 
 
 # -------------------------------------------------------------------------------------------------- ablation
-def ablation_tables(view: StoreView, dataset: str,
-                    categories: Sequence[str] = ABLATION_CATEGORIES) -> tuple[list[Table], list[str]]:
+def ablation_tables(
+    view: StoreView, dataset: str, categories: Sequence[str] = ABLATION_CATEGORIES
+) -> tuple[list[Table], list[str]]:
     """One encoding-ablation table per detector run with two or more encodings on common folds.
 
     Returns (tables, notes): notes say why a detector's encodings could not be tabulated (no common fold).
@@ -494,16 +646,19 @@ def ablation_tables(view: StoreView, dataset: str,
             continue
         common = sorted(set.intersection(*(set(e.fold_names) for e in entries)), key=natural_key)
         if not common:
-            notes.append(f"{det}: encodings {', '.join(e.encoding for e in entries)} share no held-out fold; "
-                         f"run them on the same fold (`harness ablate --detector {det} --dataset {dataset} "
-                         f"--encodings ... --folds F`).")
+            notes.append(
+                f"{det}: encodings {', '.join(e.encoding for e in entries)} share no held-out fold; "
+                f"run them on the same fold (`harness ablate --detector {det} --dataset {dataset} "
+                f"--encodings ... --folds F`)."
+            )
             continue
         tables.append(_ablation_table(dataset, det, entries, common, categories))
     return tables, notes
 
 
-def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Sequence[str],
-                    categories: Sequence[str]) -> Table:
+def _ablation_table(
+    dataset: str, det: str, entries: Sequence[Entry], folds: Sequence[str], categories: Sequence[str]
+) -> Table:
     from harness.evaluation import aggregate_folds
 
     present: list[str] = []
@@ -515,13 +670,22 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
         hit = find_category(want, present)
         (chosen if hit else missing).append(hit or want)
     name = f"{_slug(dataset)}-ablation-{_slug(det)}"
-    cols = [Column("encoding", "Encoding"), Column("images", "Images", "int"), Column("instances", "Inst.", "int"),
-            Column("precision", "P", "pct", best="max"), Column("recall", "R", "pct", best="max"),
-            Column("mAP50", "mAP50", "pct", best="max"), Column("mAP50_95", "mAP50:95", "pct", best="max")]
+    cols = [
+        Column("encoding", "Encoding"),
+        Column("images", "Images", "int"),
+        Column("instances", "Inst.", "int"),
+        Column("precision", "P", "pct", best="max"),
+        Column("recall", "R", "pct", best="max"),
+        Column("mAP50", "mAP50", "pct", best="max"),
+        Column("mAP50_95", "mAP50:95", "pct", best="max"),
+    ]
     cols += [Column(f"cat:{c}", f"AP50 {c}", "pct", best="max") for c in chosen]
     fold_text = ", ".join(folds)
-    table = Table(name, f"{dataset}: encoding ablation of {det} (held-out fold{'s' if len(folds) > 1 else ''} "
-                        f"{fold_text}, %)", cols)
+    table = Table(
+        name,
+        f"{dataset}: encoding ablation of {det} (held-out fold{'s' if len(folds) > 1 else ''} {fold_text}, %)",
+        cols,
+    )
     _merge_warning(table, *_fold_matching(entries, folds))
     shown = [e.restricted(folds) for e in entries]  # the labels of the folds in this table
     for e, s_e in zip(entries, shown):
@@ -530,29 +694,61 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
         images = sum(e.folds[f].images for f in folds)
         instances = sum(e.folds[f].instances for f in folds)
         seeds = sorted({s for f in folds for s in e.folds[f].seeds})
-        row: dict[str, Any] = {"encoding": e.encoding, "images": images, "instances": instances,
-                               "_marks": _marks(("precision", "recall", "mAP50", "mAP50_95",
-                                                 *(f"cat:{c}" for c in chosen)), s_e.labels)}
+        row: dict[str, Any] = {
+            "encoding": e.encoding,
+            "images": images,
+            "instances": instances,
+            "_marks": _marks(("precision", "recall", "mAP50", "mAP50_95", *(f"cat:{c}" for c in chosen)), s_e.labels),
+        }
         for key in ("precision", "recall", "mAP50", "mAP50_95"):
             s = Stat.from_mean_sd(agg["metrics"].get(key))
             row[key] = s if len(folds) > 1 else s.mean
-            table.records.append(record(name, key, s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=det,
-                                        encoding=e.encoding, fold=fold_text, images=images, instances=instances,
-                                        seeds=seeds, sample_matched=table.warning is None))
+            table.records.append(
+                record(
+                    name,
+                    key,
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=dataset,
+                    detector=det,
+                    encoding=e.encoding,
+                    fold=fold_text,
+                    images=images,
+                    instances=instances,
+                    seeds=seeds,
+                    sample_matched=table.warning is None,
+                )
+            )
         for c in chosen:
             pc = agg["per_category"].get(c) or {}
             s = Stat.from_mean_sd(pc.get("AP50"))
             row[f"cat:{c}"] = s if len(folds) > 1 else s.mean
-            table.records.append(record(name, "AP50", s.mean, sd=s.sd, n=s.n, dataset=dataset, detector=det,
-                                        encoding=e.encoding, fold=fold_text, category=c,
-                                        instances=int(pc.get("instances") or 0), seeds=seeds,
-                                        sample_matched=table.warning is None))
+            table.records.append(
+                record(
+                    name,
+                    "AP50",
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=dataset,
+                    detector=det,
+                    encoding=e.encoding,
+                    fold=fold_text,
+                    category=c,
+                    instances=int(pc.get("instances") or 0),
+                    seeds=seeds,
+                    sample_matched=table.warning is None,
+                )
+            )
         table.rows.append(row)
     first = aggregate_folds([entries[0].folds[f].metrics for f in folds])["per_category"]
     cat_support = ", ".join(f"{c} {int((first.get(c) or {}).get('instances') or 0)}" for c in chosen)
-    table.notes.append(f"Same detector, same held-out images, one row per encoding of the fourth channel; "
-                       f"{_seeds_note(entries)}. P and R at the confidence that maximises the mean F1 over categories "
-                       f"(IoU 0.50); AP in %." + (" Values are means over the folds." if len(folds) > 1 else ""))
+    table.notes.append(
+        f"Same detector, same held-out images, one row per encoding of the fourth channel; "
+        f"{_seeds_note(entries)}. P and R at the confidence that maximises the mean F1 over categories "
+        f"(IoU 0.50); AP in %." + (" Values are means over the folds." if len(folds) > 1 else "")
+    )
     if chosen:
         table.notes.append(f"Instances of the AP50 columns: {cat_support}.")
     if missing:
@@ -565,9 +761,14 @@ def _ablation_table(dataset: str, det: str, entries: Sequence[Entry], folds: Seq
 def registration_table(result: Mapping[str, Any], dataset: str) -> Table:
     """``harness sensing registration-error``: mean, median, P95 and max error (thermal px), overall and per scene."""
     name = f"{_slug(dataset)}-registration-error"
-    cols = [Column("scene", "Scene"), Column("n", "Landmarks", "int"), Column("mean", "Mean (px)", "float", 2),
-            Column("median", "Median (px)", "float", 2), Column("p95", "P95 (px)", "float", 2),
-            Column("max", "Max (px)", "float", 2)]
+    cols = [
+        Column("scene", "Scene"),
+        Column("n", "Landmarks", "int"),
+        Column("mean", "Mean (px)", "float", 2),
+        Column("median", "Median (px)", "float", 2),
+        Column("p95", "P95 (px)", "float", 2),
+        Column("max", "Max (px)", "float", 2),
+    ]
     table = Table(name, f"{dataset}: RGB-to-thermal registration error (thermal pixels)", cols)
     rows = [{"scene": "all", **{k: result.get(k) for k in ("n", "mean", "median", "p95", "max")}, "_summary": True}]
     for scene, v in (result.get("per_scene") or {}).items():
@@ -576,18 +777,32 @@ def registration_table(result: Mapping[str, Any], dataset: str) -> Table:
     for r in table.rows:
         for k in ("mean", "median", "p95", "max"):
             if r.get(k) is not None:
-                table.records.append(record(name, f"registration_error_{k}", r[k], dataset=dataset,
-                                            category=r["scene"], n=r.get("n"), unit="px", sample_matched=None))
+                table.records.append(
+                    record(
+                        name,
+                        f"registration_error_{k}",
+                        r[k],
+                        dataset=dataset,
+                        category=r["scene"],
+                        n=r.get("n"),
+                        unit="px",
+                        sample_matched=None,
+                    )
+                )
     mode = result.get("mode", "")
-    table.notes.append(f"Error = distance between a landmark's thermal position and its RGB position mapped by the "
-                       f"homography ({mode}); Landmarks = point pairs scored.")
+    table.notes.append(
+        f"Error = distance between a landmark's thermal position and its RGB position mapped by the "
+        f"homography ({mode}); Landmarks = point pairs scored."
+    )
     if result.get("outside_support"):
         table.notes.append(f"{result['outside_support']} landmark(s) outside the common support left out.")
     if result.get("groups_skipped"):
         table.notes.append(f"Groups with too few landmarks for leave-one-out: {', '.join(result['groups_skipped'])}.")
     if result.get("landmarks_file"):
-        table.notes.append(f"Landmarks: {result['landmarks_file']}" + (
-            f"; homographies: {result['homographies_file']}" if result.get("homographies_file") else ""))
+        table.notes.append(
+            f"Landmarks: {result['landmarks_file']}"
+            + (f"; homographies: {result['homographies_file']}" if result.get("homographies_file") else "")
+        )
     return table
 
 
@@ -596,9 +811,14 @@ def screening_route_table(runs: Sequence[Any], dataset: str) -> Table | None:
     new flight gets (automatic registration pooled per inspection group, the prior where it fails) and with the
     factory prior alone; None when no run of ``dataset`` was scored so."""
     name = f"{_slug(dataset)}-screening-route"
-    cols = [Column("run", "Run"), Column("landmarks", "mAP50-95 landmarks", "pct"),
-            Column("automatic", "mAP50-95 automatic", "pct"), Column("prior", "mAP50-95 prior", "pct"),
-            Column("registered", "Registered automatically"), Column("route", "Samples registered by")]
+    cols = [
+        Column("run", "Run"),
+        Column("landmarks", "mAP50-95 landmarks", "pct"),
+        Column("automatic", "mAP50-95 automatic", "pct"),
+        Column("prior", "mAP50-95 prior", "pct"),
+        Column("registered", "Registered automatically"),
+        Column("route", "Samples registered by"),
+    ]
     table = Table(name, f"{dataset}: accuracy under the screening route (held-out fold, mAP50-95)", cols)
     for run in runs:
         result = run.screening_route()
@@ -606,23 +826,38 @@ def screening_route_table(runs: Sequence[Any], dataset: str) -> Table | None:
             continue
         routes = result.get("routes") or {}
         auto = routes.get("automatic") or {}
-        row = {"run": f"{run.key.detector}/{run.key.encoding}/{run.name}",
-               **{r: (routes.get(r) or {}).get("mAP50_95") for r in ("landmarks", "automatic", "prior")},
-               "registered": f"{auto.get('registered_automatically', 0)} of {auto.get('screened', 0)} frames"
-               if auto else "-",
-               "route": str((result.get("recorded_route") or {}).get("route", "not recorded"))}
+        row = {
+            "run": f"{run.key.detector}/{run.key.encoding}/{run.name}",
+            **{r: (routes.get(r) or {}).get("mAP50_95") for r in ("landmarks", "automatic", "prior")},
+            "registered": f"{auto.get('registered_automatically', 0)} of {auto.get('screened', 0)} frames"
+            if auto
+            else "-",
+            "route": str((result.get("recorded_route") or {}).get("route", "not recorded")),
+        }
         table.rows.append(row)
         for r in ("landmarks", "automatic", "prior"):
             if row[r] is not None:
-                table.records.append(record(name, f"mAP50_95_{r}", row[r], dataset=dataset,
-                                            detector=run.key.detector, encoding=run.key.encoding, fold=run.key.fold,
-                                            seeds=[run.key.seed], images=(routes.get(r) or {}).get("images")))
+                table.records.append(
+                    record(
+                        name,
+                        f"mAP50_95_{r}",
+                        row[r],
+                        dataset=dataset,
+                        detector=run.key.detector,
+                        encoding=run.key.encoding,
+                        fold=run.key.fold,
+                        seeds=[run.key.seed],
+                        images=(routes.get(r) or {}).get("images"),
+                    )
+                )
     if not table.rows:
         return None
-    table.notes.append("landmarks: the run's own score (its samples' registration); automatic: the held-out raw "
-                       "captures through `harness screen` with its default options (each inspection group registered "
-                       "automatically, pooled over its captures, the factory prior where that is rejected); prior: "
-                       "every group by the factory prior. Boxes are scored against the run's ground truth.")
+    table.notes.append(
+        "landmarks: the run's own score (its samples' registration); automatic: the held-out raw "
+        "captures through `harness screen` with its default options (each inspection group registered "
+        "automatically, pooled over its captures, the factory prior where that is rejected); prior: "
+        "every group by the factory prior. Boxes are scored against the run's ground truth."
+    )
     return table
 
 
@@ -640,10 +875,31 @@ def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
             row["A0"] = A[0]
             for d, r in zip(shifts, (R or [])[1:]):
                 row[f"R{d}"] = r
-                table.records.append(record(name, "R", r, dataset=dataset, category=cls, fold=f"{d}px",
-                                            n=v.get("boxes"), unit="%", sample_matched=None))
-            table.records.append(record(name, "A0", A[0], dataset=dataset, category=cls, n=v.get("boxes"),
-                                        unit="|C2-0.5|", sample_matched=None))
+                table.records.append(
+                    record(
+                        name,
+                        "R",
+                        r,
+                        dataset=dataset,
+                        category=cls,
+                        fold=f"{d}px",
+                        n=v.get("boxes"),
+                        unit="%",
+                        sample_matched=None,
+                    )
+                )
+            table.records.append(
+                record(
+                    name,
+                    "A0",
+                    A[0],
+                    dataset=dataset,
+                    category=cls,
+                    n=v.get("boxes"),
+                    unit="|C2-0.5|",
+                    sample_matched=None,
+                )
+            )
         table.rows.append(row)
     mean = result.get("mean_over_classes")
     if mean:
@@ -652,10 +908,12 @@ def displacement_table(result: Mapping[str, Any], dataset: str) -> Table:
             row[f"R{d}"] = r
         table.rows.append(row)
     params = result.get("params") or {}
-    table.notes.append(f"R_c(d) = 100 A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the mean |C2 - 0.5| in "
-                       f"the box after shifting the thermal map d px ({params.get('directions', 'four directions')}, "
-                       f"C2 recomputed; sigma {params.get('sigma')}, percentile {params.get('percentile')}, floor "
-                       f"{params.get('floor')} C).")
+    table.notes.append(
+        f"R_c(d) = 100 A_c(d) / A_c(0); A_c(d) = mean over class-c boxes of the mean |C2 - 0.5| in "
+        f"the box after shifting the thermal map d px ({params.get('directions', 'four directions')}, "
+        f"C2 recomputed; sigma {params.get('sigma')}, percentile {params.get('percentile')}, floor "
+        f"{params.get('floor')} C)."
+    )
     table.notes.append(f"Support: {result.get('images', '-')} images, {result.get('boxes', '-')} boxes.")
     return table
 
@@ -684,10 +942,17 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
         if label:
             bad.add(ds)
             _merge_warning(table, label, [f"{ds}: {d}" for d in details])
-    cols = [Column("dataset", "Dataset"), Column("source", "GT"), Column("detector", "Detector"),
-            Column("encoding", "Encoding"), Column("folds", "Folds", "int"), Column("images", "Images", "int"),
-            Column("instances", "Instances", "int"), Column("mAP50", "mAP50", "pct"),
-            Column("mAP50_95", "mAP50:95", "pct")]
+    cols = [
+        Column("dataset", "Dataset"),
+        Column("source", "GT"),
+        Column("detector", "Detector"),
+        Column("encoding", "Encoding"),
+        Column("folds", "Folds", "int"),
+        Column("images", "Images", "int"),
+        Column("instances", "Instances", "int"),
+        Column("mAP50", "mAP50", "pct"),
+        Column("mAP50_95", "mAP50:95", "pct"),
+    ]
     if ct.safit:
         cols += [Column("safit50", "SAFit-AP50", "pct"), Column("safit50_95", "SAFit-AP50:95", "pct")]
     table.columns = cols
@@ -700,25 +965,49 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
         shown.append(r)
         matched = r.dataset not in bad
         row: dict[str, Any] = {
-            "dataset": r.dataset, "source": r.source, "detector": r.detector + ("" if matched else " !"),
-            "encoding": r.encoding, "folds": len(r.folds), "images": r.images, "instances": r.instances,
-            "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)), "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds)),
-            "_marks": _marks(("mAP50", "mAP50_95", "safit50", "safit50_95"), r.labels)}
+            "dataset": r.dataset,
+            "source": r.source,
+            "detector": r.detector + ("" if matched else " !"),
+            "encoding": r.encoding,
+            "folds": len(r.folds),
+            "images": r.images,
+            "instances": r.instances,
+            "mAP50": Stat(r.map50, r.map50_sd, len(r.folds)),
+            "mAP50_95": Stat(r.map50_95, r.map50_95_sd, len(r.folds)),
+            "_marks": _marks(("mAP50", "mAP50_95", "safit50", "safit50_95"), r.labels),
+        }
         if ct.safit:
             row["safit50"] = Stat(r.safit50, r.safit50_sd, len(r.folds))
             row["safit50_95"] = Stat(r.safit50_95, r.safit50_95_sd, len(r.folds))
         table.rows.append(row)
         for key, s in (("mAP50", row["mAP50"]), ("mAP50_95", row["mAP50_95"])):
-            table.records.append(record("cross-dataset", f"{key}_mean", s.mean, sd=s.sd, n=s.n, dataset=r.dataset,
-                                        detector=r.detector, encoding=r.encoding, fold=" ".join(r.folds),
-                                        category=f"GT {r.source}", images=r.images, instances=r.instances,
-                                        seeds=r.seeds, sample_matched=matched))
-    table.notes.append("One row per dataset, annotation source (GT: T thermal, RGB visible, - single set), detector "
-                       "and encoding, aggregated by `harness compare`; AP in %, mean ± sample SD over held-out folds; "
-                       "images and instances summed over held-out folds.")
+            table.records.append(
+                record(
+                    "cross-dataset",
+                    f"{key}_mean",
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=r.dataset,
+                    detector=r.detector,
+                    encoding=r.encoding,
+                    fold=" ".join(r.folds),
+                    category=f"GT {r.source}",
+                    images=r.images,
+                    instances=r.instances,
+                    seeds=r.seeds,
+                    sample_matched=matched,
+                )
+            )
+    table.notes.append(
+        "One row per dataset, annotation source (GT: T thermal, RGB visible, - single set), detector "
+        "and encoding, aggregated by `harness compare`; AP in %, mean ± sample SD over held-out folds; "
+        "images and instances summed over held-out folds."
+    )
     if left_out:
-        table.notes.append("Not in this table (evaluated on fewer folds; see the encoding ablations): "
-                           + ", ".join(left_out))
+        table.notes.append(
+            "Not in this table (evaluated on fewer folds; see the encoding ablations): " + ", ".join(left_out)
+        )
     table.notes[:0] = label_notes([r.notes_item(len(with_runs) > 1) for r in shown])
     return table
 
@@ -727,12 +1016,22 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
 def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
     """Paired comparisons (``stats.PairedComparison``): per-fold differences and paired bootstrap 95 % CIs; a verdict
     only where both sides were trained with three or more seeds per fold (the two-level bootstrap)."""
-    cols = [Column("a", "A"), Column("b", "B"), Column("folds", "Folds", "int"), Column("seeds", "Seeds (A/B)"),
-            Column("images", "Images", "int"), Column("instances", "Inst.", "int"),
-            Column("fold_d50", "Δ mAP50 per fold", "pp"), Column("boot_d50", "Δ mAP50 [95 % CI]", "pp"),
-            Column("fold_d5095", "Δ mAP50:95 per fold", "pp"), Column("boot_d5095", "Δ mAP50:95 [95 % CI]", "pp"),
-            Column("wins", "A better (folds)"), Column("p_beats", "P(A > B), new run (mAP50:95)", "float", 2),
-            Column("needed", "Seeds needed (mAP50:95)"), Column("verdict", "CI excludes 0")]
+    cols = [
+        Column("a", "A"),
+        Column("b", "B"),
+        Column("folds", "Folds", "int"),
+        Column("seeds", "Seeds (A/B)"),
+        Column("images", "Images", "int"),
+        Column("instances", "Inst.", "int"),
+        Column("fold_d50", "Δ mAP50 per fold", "pp"),
+        Column("boot_d50", "Δ mAP50 [95 % CI]", "pp"),
+        Column("fold_d5095", "Δ mAP50:95 per fold", "pp"),
+        Column("boot_d5095", "Δ mAP50:95 [95 % CI]", "pp"),
+        Column("wins", "A better (folds)"),
+        Column("p_beats", "P(A > B), new run (mAP50:95)", "float", 2),
+        Column("needed", "Seeds needed (mAP50:95)"),
+        Column("verdict", "CI excludes 0"),
+    ]
     if not any(c.verdict_allowed for c in comparisons):  # about new training runs: only with three seeds or more
         cols = [c for c in cols if c.key not in ("p_beats", "needed")]
     from harness.report.stats import SEEDS_IMAGES as SEEDS_LEVEL
@@ -741,11 +1040,17 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
     resamples: dict[str, set[tuple[int, int, int]]] = {}
     for c in comparisons:
         fd = c.fold_differences
-        row: dict[str, Any] = {"a": c.a, "b": c.b, "folds": len(c.folds), "images": c.images,
-                               "instances": c.instances, "fold_d50": fd["mAP50"].stat,
-                               "fold_d5095": fd["mAP50_95"].stat,
-                               "seeds": "/".join(_seed_counts(c.seeds.get(k, [])) for k in ("a", "b")),
-                               "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}"}
+        row: dict[str, Any] = {
+            "a": c.a,
+            "b": c.b,
+            "folds": len(c.folds),
+            "images": c.images,
+            "instances": c.instances,
+            "fold_d50": fd["mAP50"].stat,
+            "fold_d5095": fd["mAP50_95"].stat,
+            "seeds": "/".join(_seed_counts(c.seeds.get(k, [])) for k in ("a", "b")),
+            "wins": f"{fd['mAP50_95'].wins}/{len(c.folds)}",
+        }
         shown = "".join(c.fold_marks.get("a", []) + c.fold_marks.get("b", []))  # a difference rests on both sides
         m = "".join(ch for ch in dict.fromkeys(MARKS.values()) if ch in shown)
         row["_marks"] = {k: m for k in ("fold_d50", "boot_d50", "fold_d5095", "boot_d5095")} if m else {}
@@ -757,24 +1062,73 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
                 resamples.setdefault(b.level, set()).add((b.resamples, b.valid, b.seed))
                 if c.verdict(key) is not None:
                     verdicts.append(f"{key.replace('_', ':')} {c.verdict(key)}")
-                table.records.append(record(name, f"delta_{key}_bootstrap", b.delta, dataset=c.dataset,
-                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
-                                            instances=c.instances, n=b.valid, unit="fraction"))
-                table.records.append(record(name, f"delta_{key}_ci_low", b.ci_low, dataset=c.dataset,
-                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
-                table.records.append(record(name, f"delta_{key}_ci_high", b.ci_high, dataset=c.dataset,
-                                            detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid))
+                table.records.append(
+                    record(
+                        name,
+                        f"delta_{key}_bootstrap",
+                        b.delta,
+                        dataset=c.dataset,
+                        detector=f"{c.a} - {c.b}",
+                        fold=" ".join(c.folds),
+                        images=c.images,
+                        instances=c.instances,
+                        n=b.valid,
+                        unit="fraction",
+                    )
+                )
+                table.records.append(
+                    record(
+                        name,
+                        f"delta_{key}_ci_low",
+                        b.ci_low,
+                        dataset=c.dataset,
+                        detector=f"{c.a} - {c.b}",
+                        fold=" ".join(c.folds),
+                        n=b.valid,
+                    )
+                )
+                table.records.append(
+                    record(
+                        name,
+                        f"delta_{key}_ci_high",
+                        b.ci_high,
+                        dataset=c.dataset,
+                        detector=f"{c.a} - {c.b}",
+                        fold=" ".join(c.folds),
+                        n=b.valid,
+                    )
+                )
                 if b.p_a_beats_b is not None:
-                    table.records.append(record(name, f"p_a_beats_b_{key}", b.p_a_beats_b, dataset=c.dataset,
-                                                detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), n=b.valid,
-                                                unit="probability"))
+                    table.records.append(
+                        record(
+                            name,
+                            f"p_a_beats_b_{key}",
+                            b.p_a_beats_b,
+                            dataset=c.dataset,
+                            detector=f"{c.a} - {c.b}",
+                            fold=" ".join(c.folds),
+                            n=b.valid,
+                            unit="probability",
+                        )
+                    )
                 if key == "mAP50_95" and b.level == SEEDS_LEVEL:
                     row["p_beats"] = b.p_a_beats_b
                     row["needed"] = str(b.seeds_needed) if b.seeds_needed is not None else "-"
             s = fd[key].stat
-            table.records.append(record(name, f"delta_{key}_per_fold", s.mean, sd=s.sd, n=s.n, dataset=c.dataset,
-                                        detector=f"{c.a} - {c.b}", fold=" ".join(c.folds), images=c.images,
-                                        instances=c.instances))
+            table.records.append(
+                record(
+                    name,
+                    f"delta_{key}_per_fold",
+                    s.mean,
+                    sd=s.sd,
+                    n=s.n,
+                    dataset=c.dataset,
+                    detector=f"{c.a} - {c.b}",
+                    fold=" ".join(c.folds),
+                    images=c.images,
+                    instances=c.instances,
+                )
+            )
         if not c.bootstrap:
             row["verdict"] = "no bootstrap"
         elif not c.verdict_allowed:
@@ -782,24 +1136,30 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
         else:
             row["verdict"] = ", ".join(verdicts)
         table.rows.append(row)
-    table.notes.append("Δ = A - B in percentage points. Per fold: mean ± sample SD of the per-fold differences "
-                       "(each fold's value averaged over its seeds); 'A better': folds where A's mAP50:95 is higher. "
-                       "Seeds: training seeds per fold (the fewest of any fold).")
+    table.notes.append(
+        "Δ = A - B in percentage points. Per fold: mean ± sample SD of the per-fold differences "
+        "(each fold's value averaged over its seeds); 'A better': folds where A's mAP50:95 is higher. "
+        "Seeds: training seeds per fold (the fewest of any fold)."
+    )
     for level, runs in sorted(resamples.items()):
         desc = "; ".join(f"{r} resamples ({v} valid), seed {s}" for r, v, s in sorted(runs))
         if level == SEEDS_LEVEL:
-            table.notes.append(f"Three or more seeds per fold: two-level bootstrap (training seeds resampled, then "
-                               f"held-out images, within each fold), statistic = mean over folds; percentile 95 % CI; "
-                               f"'CI excludes 0' is its verdict. P(A > B), new run: the probability that one new "
-                               f"training run of A beats one of B (Bouthillier et al., MLSys 2021). Seeds needed: the "
-                               f"seeds per fold at which the observed spread would resolve the difference "
-                               f"(docs/reports.md); {desc}.")
+            table.notes.append(
+                f"Three or more seeds per fold: two-level bootstrap (training seeds resampled, then "
+                f"held-out images, within each fold), statistic = mean over folds; percentile 95 % CI; "
+                f"'CI excludes 0' is its verdict. P(A > B), new run: the probability that one new "
+                f"training run of A beats one of B (Bouthillier et al., MLSys 2021). Seeds needed: the "
+                f"seeds per fold at which the observed spread would resolve the difference "
+                f"(docs/reports.md); {desc}."
+            )
         else:
-            table.notes.append(f"Fewer than three seeds per fold: paired bootstrap over images only (same resample "
-                               f"for A and B, duplicated images given new ids, statistic = mean over folds, percentile "
-                               f"95 % CI): it holds the trained models fixed, so it compares trained models, not "
-                               f"detectors, and gives no significance verdict; train with --seeds 0,1,2 for one; "
-                               f"{desc}.")
+            table.notes.append(
+                f"Fewer than three seeds per fold: paired bootstrap over images only (same resample "
+                f"for A and B, duplicated images given new ids, statistic = mean over folds, percentile "
+                f"95 % CI): it holds the trained models fixed, so it compares trained models, not "
+                f"detectors, and gives no significance verdict; train with --seeds 0,1,2 for one; "
+                f"{desc}."
+            )
     if not resamples:
         table.notes.append("No bootstrap (resamples = 0): per-fold differences only.")
     table.notes[:0] = list(dict.fromkeys(n for c in comparisons for n in c.label_notes))

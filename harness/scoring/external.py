@@ -96,27 +96,41 @@ class Matching:
     findings: list[Finding] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"predictions": self.predictions, "scored_predictions": self.scored,
-                "fold_images": self.fold_images, "images_scored": self.images_scored,
-                "missing_images": len(self.missing_images), "missing_examples": self.missing_images[:10],
-                "images_without_predictions": self.images_without_predictions,
-                "unmatched_image_predictions": sum(self.unmatched_images.values()),
-                "unmatched_image_examples": [k for k, _ in self.unmatched_images.most_common(10)],
-                "predictions_outside_fold": self.outside_fold,
-                "unmatched_category_predictions": sum(self.unmatched_categories.values()),
-                "unmatched_categories": dict(self.unmatched_categories.most_common(20)),
-                "dropped_outside_frame": self.dropped_outside_frame, "invalid_predictions": self.invalid,
-                **({"invalid_reasons": dict(self.invalid_reasons), "invalid_examples": self.invalid_examples[:5]}
-                   if self.invalid else {}),
-                "by_harness_image_id": self.by_harness_id, "implausible": [f.kind for f in self.findings]}
+        return {
+            "predictions": self.predictions,
+            "scored_predictions": self.scored,
+            "fold_images": self.fold_images,
+            "images_scored": self.images_scored,
+            "missing_images": len(self.missing_images),
+            "missing_examples": self.missing_images[:10],
+            "images_without_predictions": self.images_without_predictions,
+            "unmatched_image_predictions": sum(self.unmatched_images.values()),
+            "unmatched_image_examples": [k for k, _ in self.unmatched_images.most_common(10)],
+            "predictions_outside_fold": self.outside_fold,
+            "unmatched_category_predictions": sum(self.unmatched_categories.values()),
+            "unmatched_categories": dict(self.unmatched_categories.most_common(20)),
+            "dropped_outside_frame": self.dropped_outside_frame,
+            "invalid_predictions": self.invalid,
+            **(
+                {"invalid_reasons": dict(self.invalid_reasons), "invalid_examples": self.invalid_examples[:5]}
+                if self.invalid
+                else {}
+            ),
+            "by_harness_image_id": self.by_harness_id,
+            "implausible": [f.kind for f in self.findings],
+        }
 
     def dropped(self) -> dict[str, int]:
         """The predictions left out before scoring, by reason, as ``metrics.dropped_detections`` counts them: the
         unknown categories and images of the matching added to the evaluation's own (only non-zero counts)."""
-        out = {"unknown_category": sum(self.unmatched_categories.values()),
-               "unknown_image": sum(self.unmatched_images.values()) - self.not_listed,
-               "not_in_image_list": self.not_listed, "outside_fold": self.outside_fold,
-               "outside_frame": self.dropped_outside_frame, "malformed": self.invalid}
+        out = {
+            "unknown_category": sum(self.unmatched_categories.values()),
+            "unknown_image": sum(self.unmatched_images.values()) - self.not_listed,
+            "not_in_image_list": self.not_listed,
+            "outside_fold": self.outside_fold,
+            "outside_frame": self.dropped_outside_frame,
+            "malformed": self.invalid,
+        }
         return {k: v for k, v in out.items() if v}
 
     def invalid_add(self, reason: str, det: Any) -> None:
@@ -126,17 +140,23 @@ class Matching:
             self.invalid_examples.append(_cut(json.dumps(det, default=str)))
 
     def lines(self) -> list[str]:
-        out = [f"{self.scored} of {self.predictions} predictions scored on {self.images_scored} of "
-               f"{self.fold_images} fold images"]
+        out = [
+            f"{self.scored} of {self.predictions} predictions scored on {self.images_scored} of "
+            f"{self.fold_images} fold images"
+        ]
         if self.missing_images:
-            out.append(f"{len(self.missing_images)} fold image(s) missing from the image list (left out of the "
-                       f"ground truth: not sample-matched), e.g. {', '.join(self.missing_images[:3])}")
+            out.append(
+                f"{len(self.missing_images)} fold image(s) missing from the image list (left out of the "
+                f"ground truth: not sample-matched), e.g. {', '.join(self.missing_images[:3])}"
+            )
         if self.images_without_predictions:
             out.append(f"{self.images_without_predictions} scored image(s) without any prediction")
         if self.unmatched_images:
             ex = ", ".join(str(k) for k, _ in self.unmatched_images.most_common(3))
-            out.append(f"{sum(self.unmatched_images.values())} prediction(s) of {len(self.unmatched_images)} "
-                       f"unknown image(s) left out, e.g. {ex}")
+            out.append(
+                f"{sum(self.unmatched_images.values())} prediction(s) of {len(self.unmatched_images)} "
+                f"unknown image(s) left out, e.g. {ex}"
+            )
         if self.outside_fold:
             out.append(f"{self.outside_fold} prediction(s) of images outside the fold left out")
         if self.unmatched_categories:
@@ -221,15 +241,17 @@ def _as_int(value: Any) -> int | None:
     return None
 
 
-def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str],
-                       mapping: Mapping[str, str] | None) -> Any:
+def _category_resolver(
+    categories: Sequence[str], names_by_id: Mapping[Any, str], mapping: Mapping[str, str] | None
+) -> Any:
     """``resolve(det) -> (label or None, reference shown to the user, the id when it was read as the harness's)``."""
     ours = {normalise_category(c): i for i, c in enumerate(categories)}
     explicit = {str(k): v for k, v in (mapping or {}).items()}
     for their, our in explicit.items():
         if normalise_category(our) not in ours:
-            raise ConfigError(f"--category-map {their}={our}: {our!r} is not a category of the dataset "
-                              f"({', '.join(categories)})")
+            raise ConfigError(
+                f"--category-map {their}={our}: {our!r} is not a category of the dataset ({', '.join(categories)})"
+            )
 
     def resolve(det: Mapping[str, Any]) -> tuple[int | None, str, int | None]:
         cid = det.get("category_id")
@@ -249,10 +271,16 @@ def _category_resolver(categories: Sequence[str], names_by_id: Mapping[Any, str]
     return resolve
 
 
-def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[dict[str, Any]], frame: str,
-                      images: Mapping[str, Any] | None = None, image_key: str = "file_name",
-                      category_map: Mapping[str, str] | None = None,
-                      box_format: str = "xywh") -> tuple[list[dict[str, Any]], list[int], Matching]:
+def match_predictions(
+    prepared: Any,
+    val_idx: Sequence[int],
+    predictions: list[dict[str, Any]],
+    frame: str,
+    images: Mapping[str, Any] | None = None,
+    image_key: str = "file_name",
+    category_map: Mapping[str, str] | None = None,
+    box_format: str = "xywh",
+) -> tuple[list[dict[str, Any]], list[int], Matching]:
     """External predictions -> the harness's detections on the fold (prepared frame, its image and category ids),
     the indices of the images that were scored, and the matching counts with the plausibility findings (see the
     module docstring)."""
@@ -338,17 +366,26 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
     moved: dict[int, list[tuple[list[float], float, int | None, int | None]]] = {}
     for i, items in grouped.items():
         r = records[i]
-        boxes, keep = to_prepared(np.array([b for b, _, _, _ in items]), frame, r.get("meta") or {},
-                                  size=(r["width"], r["height"]), min_size=None, where=f"image {r['image_id']}")
-        moved[i] = [(b, score, label, bare) for b, (_, score, label, bare) in
-                    zip(boxes.tolist(), (it for it, k in zip(items, keep) if k))]
+        boxes, keep = to_prepared(
+            np.array([b for b, _, _, _ in items]),
+            frame,
+            r.get("meta") or {},
+            size=(r["width"], r["height"]),
+            min_size=None,
+            where=f"image {r['image_id']}",
+        )
+        moved[i] = [
+            (b, score, label, bare)
+            for b, (_, score, label, bare) in zip(boxes.tolist(), (it for it, k in zip(items, keep) if k))
+        ]
         if listed is None or i in listed:
             m.dropped_outside_frame += int((~keep).sum())
 
     scored_idx = sorted(fold if listed is None else fold & listed)
     if listed is not None:
-        m.missing_images = sorted(str((records[i].get("meta") or {}).get("file_name", records[i]["image_id"]))
-                                  for i in fold - listed)
+        m.missing_images = sorted(
+            str((records[i].get("meta") or {}).get("file_name", records[i]["image_id"])) for i in fold - listed
+        )
         dropped_unlisted = sum(len(v) for k, v in grouped.items() if k not in listed)
         if dropped_unlisted:
             log.warning("%d prediction(s) of images the image list does not name were left out", dropped_unlisted)
@@ -361,8 +398,14 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
         if not grouped.get(i):
             m.images_without_predictions += 1
         for (x1, y1, x2, y2), score, label, _ in items:
-            dets.append({"image_id": int(records[i]["image_id"]), "category_id": int(label) + 1,  # type: ignore[arg-type]
-                         "bbox": [x1, y1, x2 - x1, y2 - y1], "score": score})
+            dets.append(
+                {
+                    "image_id": int(records[i]["image_id"]),
+                    "category_id": int(label) + 1,  # type: ignore[arg-type]
+                    "bbox": [x1, y1, x2 - x1, y2 - y1],
+                    "score": score,
+                }
+            )
     m.scored = len(dets)
     m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)
     m.findings += _box_guard(prepared, m, grouped, fold if listed is None else fold & listed, frame, box_format)
@@ -372,8 +415,15 @@ def match_predictions(prepared: Any, val_idx: Sequence[int], predictions: list[d
 Moved = Mapping[int, list[tuple[list[float], float, "int | None", "int | None"]]]
 
 
-def _findings(prepared: Any, m: Matching, moved: Moved, by_harness_id: list[tuple[int, list[float], float, int | None]],
-              by_id: Mapping[int, int], fold: set[int], frame: str) -> list[Finding]:
+def _findings(
+    prepared: Any,
+    m: Matching,
+    moved: Moved,
+    by_harness_id: list[tuple[int, list[float], float, int | None]],
+    by_id: Mapping[int, int],
+    fold: set[int],
+    frame: str,
+) -> list[Finding]:
     """What makes the matching implausible (``harness.scoring.plausibility``), with counts and examples."""
     out: list[Finding] = []
     n = m.predictions
@@ -391,24 +441,42 @@ def _findings(prepared: Any, m: Matching, moved: Moved, by_harness_id: list[tupl
     unknown = sum(m.unmatched_images.values()) - m.not_listed
     if too_many(unknown, n):
         ex = ", ".join(str(k) for k, v in m.unmatched_images.most_common(4) if k != NOT_LISTED)
-        hint = ("; their image_id values were read as the harness's image ids: give the other codebase's image list "
-                "with --images (for MMDetection, the annotation file it was tested on)" if m.by_harness_id else
-                "; check --image-key and --images")
-        out.append(Finding("unknown_images", f"{unknown} of {n} predictions ({pct(unknown, n)}) are on images the "
-                                             f"dataset does not have, e.g. {ex}{hint}"))
+        hint = (
+            "; their image_id values were read as the harness's image ids: give the other codebase's image list "
+            "with --images (for MMDetection, the annotation file it was tested on)"
+            if m.by_harness_id
+            else "; check --image-key and --images"
+        )
+        out.append(
+            Finding(
+                "unknown_images",
+                f"{unknown} of {n} predictions ({pct(unknown, n)}) are on images the "
+                f"dataset does not have, e.g. {ex}{hint}",
+            )
+        )
     other = m.outside_fold_by_id
     if too_many(other, n):
-        out.append(Finding("other_folds_by_id", f"{other} of {n} predictions ({pct(other, n)}) name images of other "
-                                                f"folds by the harness's image ids; if these are the other codebase's "
-                                                f"own ids, give its image list with --images"))
+        out.append(
+            Finding(
+                "other_folds_by_id",
+                f"{other} of {n} predictions ({pct(other, n)}) name images of other "
+                f"folds by the harness's image ids; if these are the other codebase's "
+                f"own ids, give its image list with --images",
+            )
+        )
     on_fold = sum(len(v) for v in moved.values())
     unknown_cat = sum(m.unmatched_categories.values())
     many_unknown_cat = too_many(unknown_cat, on_fold)
     if many_unknown_cat:
         ex = ", ".join(f"{k} ({v})" for k, v in m.unmatched_categories.most_common(4))
-        out.append(Finding("unknown_categories", f"{unknown_cat} of {on_fold} predictions on the fold's images "
-                                                 f"({pct(unknown_cat, on_fold)}) are in categories the dataset does "
-                                                 f"not have: {ex}"))
+        out.append(
+            Finding(
+                "unknown_categories",
+                f"{unknown_cat} of {on_fold} predictions on the fold's images "
+                f"({pct(unknown_cat, on_fold)}) are in categories the dataset does "
+                f"not have: {ex}",
+            )
+        )
     out += _category_shift(prepared, moved, sorted(fold), many_unknown_cat)
     if by_harness_id:
         out += _image_shift(prepared, by_harness_id, by_id, fold, frame)
@@ -590,14 +658,24 @@ def _category_shift(prepared: Any, moved: Moved, fold: list[int], many_unknown: 
                 f"; recall at IoU 0.50 {given or 0:.0%} as read, {shifted:.0%} shifted" if shifted is not None else ""
             )
             guess = "0-based class ids, as Ultralytics 8.0 writes them? " if shift == 1 else ""
-            return [Finding("category_shift", f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} "
-                                              f"only after a shift of {shift:+d}{seen} ({guess}map them: "
-                                              f"--category-map {mapping})")]
+            return [
+                Finding(
+                    "category_shift",
+                    f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} "
+                    f"only after a shift of {shift:+d}{seen} ({guess}map them: "
+                    f"--category-map {mapping})",
+                )
+            ]
     return []
 
 
-def _image_shift(prepared: Any, by_harness_id: list[tuple[int, list[float], float, int | None]],
-                 by_id: Mapping[int, int], fold: set[int], frame: str) -> list[Finding]:
+def _image_shift(
+    prepared: Any,
+    by_harness_id: list[tuple[int, list[float], float, int | None]],
+    by_id: Mapping[int, int],
+    fold: set[int],
+    frame: str,
+) -> list[Finding]:
     """Image ids read as the harness's whose predictions agree with the ground truth only shifted by one."""
 
     def place(shift: int) -> list[tuple[int, list[float], float, int | None]]:
@@ -609,8 +687,13 @@ def _image_shift(prepared: Any, by_harness_id: list[tuple[int, list[float], floa
         out: list[tuple[int, list[float], float, int | None]] = []
         for idx, items in groups.items():
             r = prepared.records[idx]
-            boxes, keep = to_prepared(np.array([b for b, _, _ in items]), frame, r.get("meta") or {},
-                                      size=(r["width"], r["height"]), min_size=None)
+            boxes, keep = to_prepared(
+                np.array([b for b, _, _ in items]),
+                frame,
+                r.get("meta") or {},
+                size=(r["width"], r["height"]),
+                min_size=None,
+            )
             kept = (it for it, k in zip(items, keep) if k)
             out += [(idx, b, s, lab) for b, (_, s, lab) in zip(boxes.tolist(), kept)]
         return out
@@ -619,20 +702,38 @@ def _image_shift(prepared: Any, by_harness_id: list[tuple[int, list[float], floa
     for shift in (1, -1):
         shifted = agreement(place(shift), prepared.targets, sorted(fold))
         if shift_found(given, shifted):
-            return [Finding("image_shift", f"image ids read as the harness's match the fold's images only after a "
-                                           f"shift of {shift:+d} (recall at IoU 0.50 {given or 0:.0%} as read, "
-                                           f"{shifted:.0%} shifted): are they the other codebase's own ids? give its "
-                                           f"image list with --images")]
+            return [
+                Finding(
+                    "image_shift",
+                    f"image ids read as the harness's match the fold's images only after a "
+                    f"shift of {shift:+d} (recall at IoU 0.50 {given or 0:.0%} as read, "
+                    f"{shifted:.0%} shifted): are they the other codebase's own ids? give its "
+                    f"image list with --images",
+                )
+            ]
     return []
 
 
-def score_external(dataset: str, fold: str, predictions: str | Path, name: str, frame: str = "prepared",
-                   images: str | Path | None = None, image_key: str = "file_name",
-                   category_map: Mapping[str, str] | None = None, profile: str | None = "smoke",
-                   config_files: Sequence[str | Path] = (), overrides: Sequence[str] = (),
-                   store: str | Path | None = None, root: str | None = None, params: float | None = None,
-                   gflops: float | None = None, force: bool = False, allow_implausible: bool = False,
-                   box_format: str = "xywh") -> ScoreResult:
+def score_external(
+    dataset: str,
+    fold: str,
+    predictions: str | Path,
+    name: str,
+    frame: str = "prepared",
+    images: str | Path | None = None,
+    image_key: str = "file_name",
+    category_map: Mapping[str, str] | None = None,
+    profile: str | None = "smoke",
+    config_files: Sequence[str | Path] = (),
+    overrides: Sequence[str] = (),
+    store: str | Path | None = None,
+    root: str | None = None,
+    params: float | None = None,
+    gflops: float | None = None,
+    force: bool = False,
+    allow_implausible: bool = False,
+    box_format: str = "xywh",
+) -> ScoreResult:
     """Score ``predictions`` on ``fold`` of ``dataset`` and store them as run ``external/NAME`` (module docstring).
 
     Predictions that look misread (``harness.scoring.plausibility``) are refused with what was seen, unless
@@ -668,28 +769,45 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
             raise DataError(f"--images {images}: not readable JSON ({exc})") from None
     loaded = _load_predictions(pred_path)
     if not loaded:
-        raise DataError(f"--predictions {pred_path}: holds no predictions; nothing was stored (a detector that finds "
-                        f"nothing on {len(val_idx)} images is more likely an export that went wrong)")
-    dets, scored_idx, m = match_predictions(prepared, val_idx, loaded, frame, image_list, image_key, category_map,
-                                            box_format)
+        raise DataError(
+            f"--predictions {pred_path}: holds no predictions; nothing was stored (a detector that finds "
+            f"nothing on {len(val_idx)} images is more likely an export that went wrong)"
+        )
+    dets, scored_idx, m = match_predictions(
+        prepared, val_idx, loaded, frame, image_list, image_key, category_map, box_format
+    )
     if m.scored == 0 and m.predictions:
-        raise DataError(f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
-                        "images and categories:\n  " + "\n  ".join(m.lines() + [f"- {x}" for x in m.findings]))
+        raise DataError(
+            f"--predictions {pred_path}: none of the {m.predictions} predictions matched the fold's "
+            "images and categories:\n  " + "\n  ".join(m.lines() + [f"- {x}" for x in m.findings])
+        )
     if m.findings and not allow_implausible:
-        raise DataError(f"--predictions {pred_path}: implausible as read for fold {f.name} of {spec.name}, nothing "
-                        f"was stored:\n  " + "\n  ".join(f"- {x}" for x in m.findings)
-                        + "\nAs read:\n  " + "\n  ".join(m.lines())
-                        + "\nFix the mapping as suggested, or pass --allow-implausible to score them as read "
-                          "(the stored result is labelled).")
+        raise DataError(
+            f"--predictions {pred_path}: implausible as read for fold {f.name} of {spec.name}, nothing "
+            f"was stored:\n  "
+            + "\n  ".join(f"- {x}" for x in m.findings)
+            + "\nAs read:\n  "
+            + "\n  ".join(m.lines())
+            + "\nFix the mapping as suggested, or pass --allow-implausible to score them as read "
+            "(the stored result is labelled)."
+        )
 
     key = RunKey(spec.name, EXTERNAL + name, ENCODING, f.name, 0)
     results = Store(store or Path("results") / (profile or "default"))
     run = results.run(key)
-    identity = {"predictions_sha1": file_digest(pred_path), "frame": frame, "image_key": image_key,
-                "images_sha1": file_digest(images) if images else None, "category_map": dict(category_map or {}),
-                "prepared_fingerprint": prepared.manifest.get("fingerprint"), "fold": f.name,
-                "val_groups": list(f.val_groups), "eval": _eval_identity(cfg["eval"]),
-                "params": params, "gflops": gflops}
+    identity = {
+        "predictions_sha1": file_digest(pred_path),
+        "frame": frame,
+        "image_key": image_key,
+        "images_sha1": file_digest(images) if images else None,
+        "category_map": dict(category_map or {}),
+        "prepared_fingerprint": prepared.manifest.get("fingerprint"),
+        "fold": f.name,
+        "val_groups": list(f.val_groups),
+        "eval": _eval_identity(cfg["eval"]),
+        "params": params,
+        "gflops": gflops,
+    }
     if box_format != "xywh":  # the default leaves the identity of earlier scores as it was
         identity["box_format"] = box_format
     digest = config_hash(identity)
@@ -698,8 +816,9 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
         if st.get("config_hash") == digest:
             log.info("%s: scored earlier from the same file, skipped (use --force to redo)", key)
             return ScoreResult(run.path, read_run(run).metrics, m, "skipped")
-        raise StoreError(f"{key} was scored earlier from other predictions or options; use --force to replace it, "
-                         f"or another --name")
+        raise StoreError(
+            f"{key} was scored earlier from other predictions or options; use --force to replace it, or another --name"
+        )
     gt = prepared.coco(scored_idx)
     evaluation = evaluate_with_config(gt, dets, cfg)
     support = dict(evaluation["support"])
@@ -714,8 +833,12 @@ def score_external(dataset: str, fold: str, predictions: str | Path, name: str, 
         "per_category": evaluation["per_category"],
         "model": {"input_kind": "external"},
         "complexity": given(params, gflops),
-        "external": {**identity, "predictions": str(pred_path), "images": str(images) if images else None,
-                     "matching": m.to_dict()},
+        "external": {
+            **identity,
+            "predictions": str(pred_path),
+            "images": str(images) if images else None,
+            "matching": m.to_dict(),
+        },
     }
     if m.findings:
         metrics["labels"] = [f"implausible predictions scored as read (--allow-implausible): {x}" for x in m.findings]

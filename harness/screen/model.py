@@ -63,12 +63,21 @@ class ScreenModel:
     def describe(self) -> dict[str, Any]:
         """What the manifest records about the model."""
         ev = self.config.get("eval") or {}
-        return {"detector": self.detector.name, "input_kind": self.detector.input_kind,
-                "encoding": self.encoding.name, "encoding_params": self.encoding_params,
-                "categories": self.categories, "imgsz": self.imgsz, "model_options": self.config.get("model") or {},
-                "nms": {k: ev.get(k) for k in ("conf", "iou", "max_det")}, "weights": str(self.weights),
-                "weights_sha1": self.weights_sha1, "threshold": self.threshold,
-                "threshold_source": self.threshold_source, "run": self.run}
+        return {
+            "detector": self.detector.name,
+            "input_kind": self.detector.input_kind,
+            "encoding": self.encoding.name,
+            "encoding_params": self.encoding_params,
+            "categories": self.categories,
+            "imgsz": self.imgsz,
+            "model_options": self.config.get("model") or {},
+            "nms": {k: ev.get(k) for k in ("conf", "iou", "max_det")},
+            "weights": str(self.weights),
+            "weights_sha1": self.weights_sha1,
+            "threshold": self.threshold,
+            "threshold_source": self.threshold_source,
+            "run": self.run,
+        }
 
 
 def _build(det: Any, categories: Sequence[str], enc: Any, cfg: dict[str, Any], weights: Path) -> Any:
@@ -83,9 +92,11 @@ def _build(det: Any, categories: Sequence[str], enc: Any, cfg: dict[str, Any], w
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         what = " ".join(lines[1:2])[:300] or (lines[0] if lines else str(exc))
-        raise ConfigError(f"{weights}: its weights do not fit detector {det.name!r} with {len(categories)} classes "
-                          f"and {in_channels} input channels ({what}); is it a checkpoint of this detector, dataset "
-                          f"and encoding?") from None
+        raise ConfigError(
+            f"{weights}: its weights do not fit detector {det.name!r} with {len(categories)} classes "
+            f"and {in_channels} input channels ({what}); is it a checkpoint of this detector, dataset "
+            f"and encoding?"
+        ) from None
     return model.eval()
 
 
@@ -98,14 +109,18 @@ def from_run(run_dir: str | Path, threshold: float | None = None) -> ScreenModel
     path = Path(run_dir)
     cfg_path = path / "config.yaml"
     if not cfg_path.is_file():
-        raise StoreError(f"{path}: not a run folder (no config.yaml); give a run of the results store, e.g. "
-                         "results/smoke/m3t/ours/c2/P1/seed0")
+        raise StoreError(
+            f"{path}: not a run folder (no config.yaml); give a run of the results store, e.g. "
+            "results/smoke/m3t/ours/c2/P1/seed0"
+        )
     cfg = read_yaml(cfg_path)
     meta = cfg.get("meta") or {}
     status = read_json(path / "status.json") if (path / "status.json").exists() else {}
     if status.get("state") != "finished":
-        raise StoreError(f"{path}: the run has not finished (state {status.get('state', 'unknown')!r}); screen with "
-                         "a finished run, or pass its checkpoint with --weights")
+        raise StoreError(
+            f"{path}: the run has not finished (state {status.get('state', 'unknown')!r}); screen with "
+            "a finished run, or pass its checkpoint with --weights"
+        )
     host = get_host()
     det = host.detector(str(meta.get("detector")))
     enc = host.encoding(str(meta.get("encoding")))
@@ -130,16 +145,37 @@ def from_run(run_dir: str | Path, threshold: float | None = None) -> ScreenModel
         thr, source = float(op), "the run's operating point (metrics.json conf_threshold: best mean F1, held-out)"
     else:
         thr, source = float(cfg["eval"]["conf"]), "the run's eval.conf"
-    run = {"path": str(path.resolve()), "key": {k: meta.get(k) for k in ("dataset", "detector", "encoding", "fold",
-                                                                          "seed")},
-           "config_hash": status.get("config_hash"), "held_out": meta.get("val_groups")}
-    return ScreenModel(det, model, categories, enc, dict((cfg.get("encoding") or {}).get(enc.name) or {}), cfg,
-                       weights, file_digest(weights), thr, source, run)
+    run = {
+        "path": str(path.resolve()),
+        "key": {k: meta.get(k) for k in ("dataset", "detector", "encoding", "fold", "seed")},
+        "config_hash": status.get("config_hash"),
+        "held_out": meta.get("val_groups"),
+    }
+    return ScreenModel(
+        det,
+        model,
+        categories,
+        enc,
+        dict((cfg.get("encoding") or {}).get(enc.name) or {}),
+        cfg,
+        weights,
+        file_digest(weights),
+        thr,
+        source,
+        run,
+    )
 
 
-def from_weights(weights: str | Path, detector: str, dataset: str, encoding: str | None = None,
-                 profile: str | None = "smoke", config_files: Sequence[str | Path] = (),
-                 overrides: Sequence[str] = (), threshold: float | None = None) -> ScreenModel:
+def from_weights(
+    weights: str | Path,
+    detector: str,
+    dataset: str,
+    encoding: str | None = None,
+    profile: str | None = "smoke",
+    config_files: Sequence[str | Path] = (),
+    overrides: Sequence[str] = (),
+    threshold: float | None = None,
+) -> ScreenModel:
     """A checkpoint of ``detector`` trained on ``dataset``'s categories, configured as ``harness run`` would."""
     from harness.config import load_config
     from harness.plugins import get_host
@@ -151,16 +187,33 @@ def from_weights(weights: str | Path, detector: str, dataset: str, encoding: str
     host = get_host()
     det, ds = host.detector(detector), host.dataset(dataset)
     enc = choose_encoding(det, ds, encoding, host)
-    cfg = load_config(profile, protocol=ds.protocol, detector=det.name, detector_defaults=det.defaults,
-                      files=config_files, overrides=overrides)
+    cfg = load_config(
+        profile,
+        protocol=ds.protocol,
+        detector=det.name,
+        detector_defaults=det.defaults,
+        files=config_files,
+        overrides=overrides,
+    )
     categories = list(ds.categories)
     if not categories:
         raise ConfigError(f"dataset {ds.name!r} registers no categories; screen with --run instead")
     model = _build(det, categories, enc, cfg, path)
     thr = float(threshold) if threshold is not None else float(cfg["eval"]["conf"])
     source = "--conf" if threshold is not None else "eval.conf of the configuration (no run: no operating point)"
-    return ScreenModel(det, model, categories, enc, dict((cfg.get("encoding") or {}).get(enc.name) or {}), cfg,
-                       path, file_digest(path), thr, source, {"dataset": ds.name})
+    return ScreenModel(
+        det,
+        model,
+        categories,
+        enc,
+        dict((cfg.get("encoding") or {}).get(enc.name) or {}),
+        cfg,
+        path,
+        file_digest(path),
+        thr,
+        source,
+        {"dataset": ds.name},
+    )
 
 
 # ------------------------------------------------------------------------------------------------ prediction
@@ -191,8 +244,14 @@ class FrameImages:
 class Predictor:
     """Detections (COCO results per image) of a ``ScreenModel`` on a batch of front-end images."""
 
-    def __init__(self, sm: ScreenModel, backend: str = "torch", device: str = "cpu", work_dir: Path | None = None,
-                 threads: int | None = None):
+    def __init__(
+        self,
+        sm: ScreenModel,
+        backend: str = "torch",
+        device: str = "cpu",
+        work_dir: Path | None = None,
+        threads: int | None = None,
+    ):
         import torch
 
         from harness.engine.predict import configure
@@ -223,14 +282,16 @@ class Predictor:
         inputs = example_inputs(det.input_kind, sm.imgsz, 2, sm.in_channels, det.thermal_channels)
         path = work_dir / "model.onnx"
         record_path = work_dir / "model.onnx.json"
-        want = {"weights_sha1": sm.weights_sha1, "imgsz": sm.imgsz, "detector": det.name,
-                "in_channels": sm.in_channels}
+        want = {"weights_sha1": sm.weights_sha1, "imgsz": sm.imgsz, "detector": det.name, "in_channels": sm.in_channels}
         record = read_json(record_path) if record_path.exists() and path.exists() else {}
         if {k: record.get(k) for k in want} != want:
             log.info("exporting the model to %s (ONNX, BatchNorm folded, dynamic batch)", path)
             rec = export_onnx(sm.model, inputs, path, dynamic_batch=True, check=True)
-            record = {**want, **{k: rec.get(k) for k in ("opset", "exporter", "fused", "max_abs_diff", "atol")},
-                      "onnx_sha1": file_digest(path)}
+            record = {
+                **want,
+                **{k: rec.get(k) for k in ("opset", "exporter", "fused", "max_abs_diff", "atol")},
+                "onnx_sha1": file_digest(path),
+            }
             atomic_write_json(record_path, record)
         self.onnx = {"path": str(path), **record}
         session = ort_session(path, threads)
@@ -242,9 +303,17 @@ class Predictor:
         from harness.engine.predict import predict
 
         sm = self.sm
-        dets = predict(self.net, FrameImages(images), sm.imgsz, self.batch, sm.detector.input_kind,
-                       sm.detector.thermal_channels, self.device, num_classes=len(sm.categories),
-                       name=sm.detector.name)
+        dets = predict(
+            self.net,
+            FrameImages(images),
+            sm.imgsz,
+            self.batch,
+            sm.detector.input_kind,
+            sm.detector.thermal_channels,
+            self.device,
+            num_classes=len(sm.categories),
+            name=sm.detector.name,
+        )
         out: list[list[dict[str, Any]]] = [[] for _ in images]
         for d in dets:
             out[int(d["image_id"])].append(d)
@@ -260,8 +329,9 @@ def ort_model(model: Any, session: Any, dual: bool, example_raw: Any, name: str)
 
     leaves, spec = _pytree.tree_flatten(example_raw)
     if not all(isinstance(t, torch.Tensor) for t in leaves):
-        raise PluginError(f"detector {name!r}: forward_raw returns non-tensor values; the ONNX backend needs "
-                          "tensors only")
+        raise PluginError(
+            f"detector {name!r}: forward_raw returns non-tensor values; the ONNX backend needs tensors only"
+        )
     input_names = [i.name for i in session.get_inputs()]
 
     class OrtModel(nn.Module):
@@ -285,8 +355,10 @@ def ort_model(model: Any, session: Any, dual: bool, example_raw: Any, name: str)
             finally:
                 del self.model.forward_raw
             if not called:
-                raise PluginError(f"detector {name!r}: its eval forward does not call self.forward_raw, so the ONNX "
-                                  "backend cannot run its decoding and NMS on the graph's outputs; use --backend torch")
+                raise PluginError(
+                    f"detector {name!r}: its eval forward does not call self.forward_raw, so the ONNX "
+                    "backend cannot run its decoding and NMS on the graph's outputs; use --backend torch"
+                )
             return out
 
     return OrtModel()

@@ -31,8 +31,13 @@ XMP_HEADER = b"http://ns.adobe.com/xap/1.0/\x00"
 DJI_NS = "http://www.dji.com/drone-dji/1.0/"
 #: our field -> DJI's XMP name
 FIELDS = {
-    "lat": "GpsLatitude", "lon": "GpsLongitude", "alt_abs": "AbsoluteAltitude", "alt_rel": "RelativeAltitude",
-    "gimbal_yaw": "GimbalYawDegree", "gimbal_pitch": "GimbalPitchDegree", "gimbal_roll": "GimbalRollDegree",
+    "lat": "GpsLatitude",
+    "lon": "GpsLongitude",
+    "alt_abs": "AbsoluteAltitude",
+    "alt_rel": "RelativeAltitude",
+    "gimbal_yaw": "GimbalYawDegree",
+    "gimbal_pitch": "GimbalPitchDegree",
+    "gimbal_roll": "GimbalRollDegree",
     "flight_yaw": "FlightYawDegree",
 }
 #: our field -> the XMP names read, first found wins (DJI firmware of some models writes ``GpsLongtitude``, sic)
@@ -89,14 +94,14 @@ def xmp_packets(data: bytes, name: str = "<bytes>", layout: jpeg.JpegLayout | No
     file's ``jpeg.read_segments`` when already read."""
     if layout is None:
         layout = jpeg.read_segments(data, name, require_eoi=False)
-    return [p[len(XMP_HEADER):] for p in layout.payloads(jpeg.APP1) if p.startswith(XMP_HEADER)]
+    return [p[len(XMP_HEADER) :] for p in layout.payloads(jpeg.APP1) if p.startswith(XMP_HEADER)]
 
 
 def _dji_values(packet: bytes) -> dict[str, str]:
     """``{DJI name: text}`` of every drone-dji attribute or element of one XMP packet."""
     text = packet.decode("utf-8", "replace")
     start, end = text.find("<x:xmpmeta"), text.rfind("</x:xmpmeta>")
-    body = text[start:end + len("</x:xmpmeta>")] if start >= 0 and end > start else text
+    body = text[start : end + len("</x:xmpmeta>")] if start >= 0 and end > start else text
     prefix = "{" + DJI_NS + "}"
     out: dict[str, str] = {}
     try:
@@ -108,9 +113,9 @@ def _dji_values(packet: bytes) -> dict[str, str]:
     for el in root.iter():
         for key, value in el.attrib.items():
             if key.startswith(prefix):
-                out.setdefault(key[len(prefix):], value)
+                out.setdefault(key[len(prefix) :], value)
         if el.tag.startswith(prefix) and el.text and el.text.strip():
-            out.setdefault(el.tag[len(prefix):], el.text)
+            out.setdefault(el.tag[len(prefix) :], el.text)
     return out
 
 
@@ -227,7 +232,7 @@ def add_xmp(data: bytes, values: Mapping[str, Any], model: str = "M3T", longitud
         raise ValueError("not a JPEG")
     i = 2
     while i + 4 <= len(data) and data[i] == 0xFF and data[i + 1] in (jpeg.APP0, jpeg.APP1):
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
         i += 2 + length
     return data[:i] + jpeg.segment(jpeg.APP1, XMP_HEADER + xmp_packet(values, model, longitude)) + data[i:]
 

@@ -66,7 +66,7 @@ FLOOR = 0.05  # C
 #: few measurements to compare with the others.
 MAX_INVALID_FRACTION = 0.5
 #: Integers at or below this magnitude are exact in float32.
-_FLOAT32_EXACT_INT = 2 ** 24
+_FLOAT32_EXACT_INT = 2**24
 
 
 def _named(name: str | None) -> str:
@@ -98,8 +98,10 @@ def check_map(temperature_c: object, name: str | None = None) -> np.ndarray:
     if a.dtype.kind in "iu" and a.dtype.itemsize > 2:
         lo, hi = int(a.min()), int(a.max())
         if max(-lo, hi) > _FLOAT32_EXACT_INT:
-            raise DataError(f"{what}, got integers {lo}..{hi}, beyond float32's exact range (+-2**24); "
-                            "convert the counts to C first")
+            raise DataError(
+                f"{what}, got integers {lo}..{hi}, beyond float32's exact range (+-2**24); "
+                "convert the counts to C first"
+            )
     elif a.dtype.kind == "f" and a.dtype.itemsize > 4:
         finite = a[np.isfinite(a)] if not np.isfinite(a.sum()) else a
         big = float(np.abs(finite).max()) if finite.size else 0.0
@@ -114,8 +116,9 @@ def _finite_sum(a: np.ndarray) -> bool:
         return bool(np.isfinite(a.sum(dtype=np.float64)))
 
 
-def valid_mask(t: np.ndarray, name: str | None = None,
-               max_invalid_fraction: float = MAX_INVALID_FRACTION) -> np.ndarray:
+def valid_mask(
+    t: np.ndarray, name: str | None = None, max_invalid_fraction: float = MAX_INVALID_FRACTION
+) -> np.ndarray:
     """``isfinite(t)``, after checking that at least one pixel, and at least ``1 - max_invalid_fraction`` of
     them, is valid (else a ``DataError`` naming the map and the count)."""
     mask = np.isfinite(t)
@@ -123,8 +126,10 @@ def valid_mask(t: np.ndarray, name: str | None = None,
     if bad == n:
         raise DataError(f"{_named(name)}no valid temperature: all {n} pixels are NaN or infinite")
     if bad > max_invalid_fraction * n:
-        raise DataError(f"{_named(name)}{bad} of {n} pixels ({100.0 * bad / n:.1f} %) are NaN or infinite, more than "
-                        f"the {100.0 * max_invalid_fraction:g} % a temperature map may miss")
+        raise DataError(
+            f"{_named(name)}{bad} of {n} pixels ({100.0 * bad / n:.1f} %) are NaN or infinite, more than "
+            f"the {100.0 * max_invalid_fraction:g} % a temperature map may miss"
+        )
     return mask
 
 
@@ -150,8 +155,8 @@ def _kernel_spectrum(height: int, width: int, sigma: float) -> np.ndarray:
     g /= g.sum()
     kr = np.zeros(width)
     kc = np.zeros(height)
-    kr[:2 * r + 1] = g
-    kc[:2 * r + 1] = g
+    kr[: 2 * r + 1] = g
+    kc[: 2 * r + 1] = g
     kr, kc = np.roll(kr, -r), np.roll(kc, -r)  # centre tap at index 0
     return (np.fft.fft(kc)[:, None] * np.fft.rfft(kr)[None, :]).astype(np.complex64)
 
@@ -159,7 +164,7 @@ def _kernel_spectrum(height: int, width: int, sigma: float) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- FFT workspace
 #: Largest deviation from the mean that is convolved unscaled: the unnormalised transforms of a map of N pixels
 #: stay below N**2 times it, far from float32's 2**128 for any frame that fits in memory.
-_SAFE_SPAN = 2.0 ** 64
+_SAFE_SPAN = 2.0**64
 #: Masks whose normaliser ``G * M`` each thread keeps (per frame size): frames of a flight share their missing
 #: pixels (dead pixels, a no-data border), and a few cameras may be interleaved.
 KEPT_MASKS = 4
@@ -218,7 +223,7 @@ class _Workspace:
         import cv2
 
         r = self.r
-        dst = self.pad[k, :self.h + 2 * r, :self.w + 2 * r]
+        dst = self.pad[k, : self.h + 2 * r, : self.w + 2 * r]
         out = cv2.copyMakeBorder(plane, r, r, r, r, cv2.BORDER_REFLECT_101, dst=dst)
         if not np.shares_memory(out, dst):  # OpenCV allocated its own result
             dst[...] = out
@@ -233,21 +238,21 @@ class _Workspace:
 
             s = scipy.fft.rfft2(pad, workers=1)
             s *= self.spectrum
-            return scipy.fft.irfft2(s, s=(self.hp, self.wp), workers=1)[:, r:r + h, r:r + w]
+            return scipy.fft.irfft2(s, s=(self.hp, self.wp), workers=1)[:, r : r + h, r : r + w]
         back = self.back[:k]
         if h > r:  # the reflected rows' transforms are the transforms of the rows they copy
-            pp.r2c(pad[:, r:r + h], axes=(2,), forward=True, inorm=0, out=spec[:, r:r + h], nthreads=1)
+            pp.r2c(pad[:, r : r + h], axes=(2,), forward=True, inorm=0, out=spec[:, r : r + h], nthreads=1)
             if self.hp > h + 2 * r:  # zero rows below the padding
-                pp.r2c(pad[:, h + 2 * r:], axes=(2,), forward=True, inorm=0, out=spec[:, h + 2 * r:], nthreads=1)
-            spec[:, :r] = spec[:, 2 * r:r:-1]  # row r - i is row r + i
-            spec[:, h + r:h + 2 * r] = spec[:, h + r - 2:h - 2:-1]  # row h + r - 1 + i is row h + r - 1 - i
+                pp.r2c(pad[:, h + 2 * r :], axes=(2,), forward=True, inorm=0, out=spec[:, h + 2 * r :], nthreads=1)
+            spec[:, :r] = spec[:, 2 * r : r : -1]  # row r - i is row r + i
+            spec[:, h + r : h + 2 * r] = spec[:, h + r - 2 : h - 2 : -1]  # row h + r - 1 + i is row h + r - 1 - i
         else:
             pp.r2c(pad, axes=(2,), forward=True, inorm=0, out=spec, nthreads=1)
         pp.c2c(spec, axes=(1,), forward=True, inorm=0, out=spec, nthreads=1)
         spec *= self.spectrum
         pp.c2c(spec, axes=(1,), forward=False, inorm=0, out=spec, nthreads=1)
-        pp.c2r(spec[:, r:r + h], axes=(2,), lastsize=self.wp, forward=False, inorm=0, out=back, nthreads=1)
-        out = back[:, :, r:r + w]
+        pp.c2r(spec[:, r : r + h], axes=(2,), lastsize=self.wp, forward=False, inorm=0, out=back, nthreads=1)
+        out = back[:, :, r : r + w]
         out *= self.fct
         return out
 
@@ -300,14 +305,15 @@ def _masked_background(src: np.ndarray, mask: np.ndarray, m: np.float32, ws: _Wo
         num, den = ws.blur(2)
         den = np.maximum(den, np.float32(1e-12))
         kept = (missing, mask.copy(), den)
-    ws.normalisers = [kept] + ws.normalisers[:KEPT_MASKS - 1]
+    ws.normalisers = [kept] + ws.normalisers[: KEPT_MASKS - 1]
     out = num / den
     out += m
     return out
 
 
-def _prepared(src: np.ndarray, sigma: float, name: str | None) -> tuple[np.ndarray, np.ndarray | None, float,
-                                                                       np.float32, _Workspace]:
+def _prepared(
+    src: np.ndarray, sigma: float, name: str | None
+) -> tuple[np.ndarray, np.ndarray | None, float, np.float32, _Workspace]:
     """``(T', mask, s, mean, workspace)``: ``T' = s T`` with ``s`` a power of two (1 unless the map is huge),
     ``mask`` ``None`` when every pixel is finite, ``mean`` that of the valid pixels of ``T'`` (float32)."""
     h, w = src.shape
@@ -363,8 +369,9 @@ def gaussian_background(t: np.ndarray, sigma: float = SIGMA, method: str = "fft"
         import cv2
 
         k = 2 * kernel_radius(sigma) + 1
-        return cv2.GaussianBlur(src, (k, k), sigmaX=float(sigma), sigmaY=float(sigma),
-                                borderType=cv2.BORDER_REFLECT_101)
+        return cv2.GaussianBlur(
+            src, (k, k), sigmaX=float(sigma), sigmaY=float(sigma), borderType=cv2.BORDER_REFLECT_101
+        )
     t2, mask, s, m, ws = _prepared(src, sigma, None)
     out = _masked_background(t2, mask, m, ws) if mask is not None else np.add(_clean_background(t2, m, ws)[1], m)
     if s != 1.0:
@@ -443,8 +450,9 @@ def c2_from_deviation(dt: np.ndarray, percentile: float = PERCENTILE, floor: flo
     return out
 
 
-def _c2_in_place(temperature_c: np.ndarray, sigma: float, percentile: float, floor: float,
-                 name: str | None) -> np.ndarray:
+def _c2_in_place(
+    temperature_c: np.ndarray, sigma: float, percentile: float, floor: float, name: str | None
+) -> np.ndarray:
     """C2 (float32), computed in the deviation's own array; missing pixels have ``dT' = 0``, hence 0.5."""
     dt, mask, s = _deviation(check_map(temperature_c, name), sigma, name)
     a = np.abs(dt) if mask is None else np.abs(dt[mask])
@@ -455,8 +463,13 @@ def _c2_in_place(temperature_c: np.ndarray, sigma: float, percentile: float, flo
     return np.clip(dt, 0.0, 1.0, out=dt)
 
 
-def c2(temperature_c: np.ndarray, sigma: float = SIGMA, percentile: float = PERCENTILE,
-       floor: float = FLOOR, name: str | None = None) -> np.ndarray:
+def c2(
+    temperature_c: np.ndarray,
+    sigma: float = SIGMA,
+    percentile: float = PERCENTILE,
+    floor: float = FLOOR,
+    name: str | None = None,
+) -> np.ndarray:
     """C2 of a temperature map in C: float32 HxW in 0..1, neutral 0.5 (see the module docstring); ``name`` (a
     file or sample) is named in errors."""
     return _c2_in_place(temperature_c, sigma, percentile, floor, name)
@@ -469,8 +482,13 @@ def to_uint8(c: np.ndarray) -> np.ndarray:
     return out.astype(np.uint8)
 
 
-def c2_uint8(temperature_c: np.ndarray, sigma: float = SIGMA, percentile: float = PERCENTILE,
-             floor: float = FLOOR, name: str | None = None) -> np.ndarray:
+def c2_uint8(
+    temperature_c: np.ndarray,
+    sigma: float = SIGMA,
+    percentile: float = PERCENTILE,
+    floor: float = FLOOR,
+    name: str | None = None,
+) -> np.ndarray:
     """``round(255 * C2)`` as uint8 HxW: what the prepared cache stores and detectors read (missing pixels 128)."""
     out = _c2_in_place(temperature_c, sigma, percentile, floor, name)
     out *= np.float32(255.0)
@@ -478,8 +496,9 @@ def c2_uint8(temperature_c: np.ndarray, sigma: float = SIGMA, percentile: float 
     return out.astype(np.uint8)
 
 
-def contrast_amplitude(c: np.ndarray, box: tuple[float, float, float, float] | np.ndarray,
-                       valid: np.ndarray | None = None) -> float:
+def contrast_amplitude(
+    c: np.ndarray, box: tuple[float, float, float, float] | np.ndarray, valid: np.ndarray | None = None
+) -> float:
     """Mean ``|C2 - 0.5|`` over the pixels a box ``(x1, y1, x2, y2)`` covers (NaN when it covers none).
 
     A pixel ``(i, j)`` is covered when its centre ``(j + 0.5, i + 0.5)`` lies inside the box. With ``valid`` (the

@@ -45,7 +45,7 @@ class CameraModel:
         given = np.asarray(self.dist, dtype=np.float64).ravel()
         if given.size > 5:
             raise DataError(f"camera {self.name or '?'}: expected at most 5 distortion coefficients, got {given.size}")
-        d[:given.size] = given
+        d[: given.size] = given
         self.dist = d
         self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
 
@@ -102,22 +102,34 @@ class CameraModel:
             size = data["image_size"]
             intr = data["intrinsics"]
             dist = data.get("distortion", {}) or {}
-            K = np.array([[intr["fx"], intr.get("skew", 0.0), intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1]],
-                         dtype=np.float64)
+            K = np.array(
+                [[intr["fx"], intr.get("skew", 0.0), intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1]],
+                dtype=np.float64,
+            )
             d = [float(dist.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
-            return cls(K, np.array(d), (int(size["width"]), int(size["height"])), name=str(data.get("name", "")),
-                       rms=data.get("rms_px"), extra=dict(data.get("extra", {}) or {}))
+            return cls(
+                K,
+                np.array(d),
+                (int(size["width"]), int(size["height"])),
+                name=str(data.get("name", "")),
+                rms=data.get("rms_px"),
+                extra=dict(data.get("extra", {}) or {}),
+            )
         except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{source}: not a camera model ({type(exc).__name__}: {exc}); expected keys image_size "
-                            "{width, height}, intrinsics {fx, fy, cx, cy}, distortion {k1, k2, p1, p2, k3}") from None
+            raise DataError(
+                f"{source}: not a camera model ({type(exc).__name__}: {exc}); expected keys image_size "
+                "{width, height}, intrinsics {fx, fy, cx, cy}, distortion {k1, k2, p1, p2, k3}"
+            ) from None
 
     def save(self, path: str | Path) -> Path:
         """Write a readable YAML file (``intrinsics``, ``distortion``, ``image_size``; pixels, OpenCV model)."""
         from harness.config import dump_yaml
         from harness.io import atomic_write_text
 
-        head = ("# camera model: pinhole + Brown-Conrady distortion (OpenCV convention), pixels;\n"
-                "# K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]], distortion (k1, k2, p1, p2, k3)\n")
+        head = (
+            "# camera model: pinhole + Brown-Conrady distortion (OpenCV convention), pixels;\n"
+            "# K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]], distortion (k1, k2, p1, p2, k3)\n"
+        )
         return atomic_write_text(path, head + dump_yaml(self.to_dict()))
 
     @classmethod
@@ -133,8 +145,9 @@ class CameraModel:
 
 
 # ---------------------------------------------------------------------------------------------- calibration
-def stretch_to_uint8(img: np.ndarray, low: float = 1.0, high: float = 99.0, clahe: bool = True,
-                     invert: bool = False) -> np.ndarray:
+def stretch_to_uint8(
+    img: np.ndarray, low: float = 1.0, high: float = 99.0, clahe: bool = True, invert: bool = False
+) -> np.ndarray:
     """Robust percentile stretch of any single-channel image to uint8, optional CLAHE and inversion.
 
     What thermal frames need before corner detection (the board's contrast is a few kelvin).
@@ -162,16 +175,21 @@ def find_checkerboard(img: np.ndarray, pattern: tuple[int, int], thermal: bool =
     import cv2
 
     if thermal or img.dtype != np.uint8:
-        candidates = [stretch_to_uint8(img, clahe=False), stretch_to_uint8(img),
-                      stretch_to_uint8(img, clahe=False, invert=True), stretch_to_uint8(img, invert=True)]
+        candidates = [
+            stretch_to_uint8(img, clahe=False),
+            stretch_to_uint8(img),
+            stretch_to_uint8(img, clahe=False, invert=True),
+            stretch_to_uint8(img, invert=True),
+        ]
     else:
         candidates = [cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img]
     for gray in candidates:
         ok, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         if ok:
             return corners.reshape(-1, 2).astype(np.float32)
-        ok, corners = cv2.findChessboardCorners(gray, pattern,
-                                                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        ok, corners = cv2.findChessboardCorners(
+            gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        )
         if ok:
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
             corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), crit)
@@ -203,9 +221,15 @@ class CalibrationResult:
     per_view_error: list[float]
 
 
-def calibrate_checkerboard(images: Sequence[np.ndarray] | Iterable[tuple[str, np.ndarray]],
-                           pattern: tuple[int, int], square_size: float = 1.0, thermal: bool = False,
-                           name: str = "", fix_k3: bool = True, min_views: int = 3) -> CalibrationResult:
+def calibrate_checkerboard(
+    images: Sequence[np.ndarray] | Iterable[tuple[str, np.ndarray]],
+    pattern: tuple[int, int],
+    square_size: float = 1.0,
+    thermal: bool = False,
+    name: str = "",
+    fix_k3: bool = True,
+    min_views: int = 3,
+) -> CalibrationResult:
     """Calibrate one camera from checkerboard views with ``cv2.calibrateCamera``.
 
     ``images``: arrays, or ``(name, array)`` pairs so rejected views can be named. ``pattern`` = inner corners
@@ -225,8 +249,9 @@ def calibrate_checkerboard(images: Sequence[np.ndarray] | Iterable[tuple[str, np
         if size is None:
             size = this
         elif this != size:
-            raise DataError(f"{label}: image size {this[0]}x{this[1]} differs from the first view's "
-                            f"{size[0]}x{size[1]}")
+            raise DataError(
+                f"{label}: image size {this[0]}x{this[1]} differs from the first view's {size[0]}x{size[1]}"
+            )
         corners = find_checkerboard(img, pattern, thermal=thermal)
         if corners is None:
             rejected.append(label)
@@ -235,18 +260,26 @@ def calibrate_checkerboard(images: Sequence[np.ndarray] | Iterable[tuple[str, np
         img_pts.append(corners.reshape(-1, 1, 2))
         used.append(label)
     if size is None or len(used) < min_views:
-        raise DataError(f"checkerboard {pattern[0]}x{pattern[1]} found in {len(used)} view(s), "
-                        f"need at least {min_views}"
-                        + (f"; not found in: {', '.join(rejected[:10])}" if rejected else "")
-                        + ". Check the pattern size (inner corners, cols x rows) and the board's contrast.")
+        raise DataError(
+            f"checkerboard {pattern[0]}x{pattern[1]} found in {len(used)} view(s), "
+            f"need at least {min_views}"
+            + (f"; not found in: {', '.join(rejected[:10])}" if rejected else "")
+            + ". Check the pattern size (inner corners, cols x rows) and the board's contrast."
+        )
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_pts, img_pts, size, None, None, flags=flags)
     errors = []
     for o, i, rv, tv in zip(obj_pts, img_pts, rvecs, tvecs):
         proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
         errors.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=1)))))
-    cam = CameraModel(K, dist.ravel()[:5], size, name=name, rms=float(rms),
-                      extra={"pattern": list(pattern), "square_size": square_size, "views": len(used)})
+    cam = CameraModel(
+        K,
+        dist.ravel()[:5],
+        size,
+        name=name,
+        rms=float(rms),
+        extra={"pattern": list(pattern), "square_size": square_size, "views": len(used)},
+    )
     log.info("calibrated %s from %d views: rms %.3f px", name or "camera", len(used), rms)
     return CalibrationResult(cam, float(rms), used, rejected, errors)
 
@@ -268,13 +301,14 @@ def undistorted_camera(cam: CameraModel, alpha: float = 0.0) -> tuple[CameraMode
 
 #: undistortion maps kept per (K, distortion, size, alpha): a flight or a dataset reuses one calibration, and building
 #: the maps costs about as much as the remap itself. Bounded in bytes; the latest entry always stays.
-MAPS_CACHE_BYTES = 256 * 2 ** 20
+MAPS_CACHE_BYTES = 256 * 2**20
 _MAPS: OrderedDict[tuple, tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray]] = OrderedDict()
 _MAPS_LOCK = threading.Lock()
 
 
-def _undistort_maps(cam: CameraModel, alpha: float) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray,
-                                                                np.ndarray]:
+def _undistort_maps(
+    cam: CameraModel, alpha: float
+) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray]:
     """(new K, roi, map x, map y) of ``undistort_image``: float32 maps of the cropped output, cached (read-only)."""
     import cv2
 
@@ -289,7 +323,7 @@ def _undistort_maps(cam: CameraModel, alpha: float) -> tuple[np.ndarray, tuple[i
     full_K[0, 2] += x
     full_K[1, 2] += y
     mx, my = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, full_K, cam.image_size, cv2.CV_32FC1)
-    mx, my = np.ascontiguousarray(mx[y:y + rh, x:x + rw]), np.ascontiguousarray(my[y:y + rh, x:x + rw])
+    mx, my = np.ascontiguousarray(mx[y : y + rh, x : x + rw]), np.ascontiguousarray(my[y : y + rh, x : x + rw])
     mx.flags.writeable = False
     my.flags.writeable = False
     new_K = new_cam.K.copy()
@@ -302,8 +336,9 @@ def _undistort_maps(cam: CameraModel, alpha: float) -> tuple[np.ndarray, tuple[i
     return entry
 
 
-def undistort_image(img: np.ndarray, cam: CameraModel, alpha: float = 0.0,
-                    interpolation: str = "linear") -> tuple[np.ndarray, CameraModel, tuple[int, int, int, int]]:
+def undistort_image(
+    img: np.ndarray, cam: CameraModel, alpha: float = 0.0, interpolation: str = "linear"
+) -> tuple[np.ndarray, CameraModel, tuple[int, int, int, int]]:
     """Undistort ``img`` (RGB, preview or float temperature map) and crop to the valid region.
 
     Returns ``(image, new_cam, roi)``: the cropped undistorted image, the distortion-free camera that describes
@@ -316,13 +351,14 @@ def undistort_image(img: np.ndarray, cam: CameraModel, alpha: float = 0.0,
 
     h, w = img.shape[:2]
     if (w, h) != cam.image_size:
-        raise DataError(f"camera {cam.name or '?'} was calibrated at {cam.image_size[0]}x{cam.image_size[1]}, "
-                        f"image is {w}x{h}; use CameraModel.scaled() for a resized image")
+        raise DataError(
+            f"camera {cam.name or '?'} was calibrated at {cam.image_size[0]}x{cam.image_size[1]}, "
+            f"image is {w}x{h}; use CameraModel.scaled() for a resized image"
+        )
     if not np.any(cam.dist):
         return img, CameraModel(cam.K.copy(), np.zeros(5), cam.image_size, name=cam.name), (0, 0, w, h)
     new_K, (x, y, rw, rh), mx, my = _undistort_maps(cam, alpha)
-    new_cam = CameraModel(new_K.copy(), np.zeros(5), (rw, rh), name=cam.name,
-                          extra={"undistorted_from": cam.to_dict()})
+    new_cam = CameraModel(new_K.copy(), np.zeros(5), (rw, rh), name=cam.name, extra={"undistorted_from": cam.to_dict()})
     interp = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}[interpolation]
     out = cv2.remap(img, mx, my, interp, borderMode=cv2.BORDER_REPLICATE)
     return out, new_cam, (x, y, rw, rh)

@@ -41,8 +41,12 @@ from harness.errors import ConfigError, DataError
 DJI_IRP = "dji_irp"
 DEFAULT_TIMEOUT_S = 120.0
 #: the file's parameters as dji_irp's options name them
-DJI_IRP_OPTIONS = (("distance", "--distance"), ("humidity", "--humidity"), ("emissivity", "--emissivity"),
-                   ("reflected", "--reflection"))
+DJI_IRP_OPTIONS = (
+    ("distance", "--distance"),
+    ("humidity", "--humidity"),
+    ("emissivity", "--emissivity"),
+    ("reflected", "--reflection"),
+)
 PLACEHOLDERS = ("input", "output", "width", "height", "emissivity", "distance", "humidity", "reflected", "ambient")
 #: at or below this a converter's value means "not measured"
 NO_MEASUREMENT_C = -273.0
@@ -75,16 +79,20 @@ def _find_dji_irp(setting: str | None) -> Path:
         for c in candidates:
             if c.is_file():
                 return c.resolve()
-        raise ConfigError(f"DJI Thermal SDK's dji_irp not found at {setting} (sensing.radiometry.dji_irp / "
-                          "--dji-irp: the program or its folder)")
+        raise ConfigError(
+            f"DJI Thermal SDK's dji_irp not found at {setting} (sensing.radiometry.dji_irp / "
+            "--dji-irp: the program or its folder)"
+        )
     for n in names:
         found = shutil.which(n)
         if found:
             return Path(found).resolve()
-    raise ConfigError("the converter 'dji_irp' was asked for, but DJI Thermal SDK's dji_irp is not on PATH; install "
-                      "DJI Thermal SDK (a download from DJI; its utility/bin/<os>/release_x64/ folder holds dji_irp) "
-                      "and put that folder on PATH, or give its path with --dji-irp "
-                      "(sensing.radiometry.dji_irp)")
+    raise ConfigError(
+        "the converter 'dji_irp' was asked for, but DJI Thermal SDK's dji_irp is not on PATH; install "
+        "DJI Thermal SDK (a download from DJI; its utility/bin/<os>/release_x64/ folder holds dji_irp) "
+        "and put that folder on PATH, or give its path with --dji-irp "
+        "(sensing.radiometry.dji_irp)"
+    )
 
 
 def resolve(spec: str | None, dji_irp: str | None = None, timeout_s: float | None = None) -> Converter | None:
@@ -106,8 +114,10 @@ def resolve(spec: str | None, dji_irp: str | None = None, timeout_s: float | Non
         env = {"LD_LIBRARY_PATH": str(program.parent) + (os.pathsep + old if old else "")}
         return Converter(DJI_IRP, program=str(program), timeout_s=timeout, env=env)
     if "{input}" not in spec or "{output}" not in spec:
-        raise ConfigError(f"converter {spec!r}: give 'dji_irp' or a command template holding {{input}} and "
-                          "{output} (e.g. 'my-converter {input} {output}')")
+        raise ConfigError(
+            f"converter {spec!r}: give 'dji_irp' or a command template holding {{input}} and "
+            "{output} (e.g. 'my-converter {input} {output}')"
+        )
     try:
         tokens = shlex.split(spec)
     except ValueError as exc:
@@ -115,8 +125,10 @@ def resolve(spec: str | None, dji_irp: str | None = None, timeout_s: float | Non
     for token in tokens:
         for name in _names(token):
             if name not in PLACEHOLDERS:
-                raise ConfigError(f"converter template {spec!r}: unknown placeholder {{{name}}}; known: "
-                                  f"{', '.join('{' + p + '}' for p in PLACEHOLDERS)}")
+                raise ConfigError(
+                    f"converter template {spec!r}: unknown placeholder {{{name}}}; known: "
+                    f"{', '.join('{' + p + '}' for p in PLACEHOLDERS)}"
+                )
     return Converter("template", template=spec, timeout_s=timeout)
 
 
@@ -129,8 +141,9 @@ def _names(token: str) -> list[str]:
         raise ConfigError(f"converter template argument {token!r}: {exc}") from None
 
 
-def arguments(conv: Converter, source: Path, output: Path, width: int, height: int,
-              params: Mapping[str, float]) -> list[str]:
+def arguments(
+    conv: Converter, source: Path, output: Path, width: int, height: int, params: Mapping[str, float]
+) -> list[str]:
     """The command line for one file (no shell). ``params``: the measurement parameters to pass (``emissivity``,
     ``distance``, ``humidity`` in %, ``reflected`` and ``ambient`` in C); for ``dji_irp`` those present are passed
     as options; a template placeholder whose value the file does not state is a ``DataError``."""
@@ -146,8 +159,10 @@ def arguments(conv: Converter, source: Path, output: Path, width: int, height: i
     for token in shlex.split(conv.template):
         missing = [n for n in _names(token) if n not in values]
         if missing:
-            raise DataError(f"{source}: the converter template uses {{{missing[0]}}}, which this file does not "
-                            "state; give it as an override or drop it from the template")
+            raise DataError(
+                f"{source}: the converter template uses {{{missing[0]}}}, which this file does not "
+                "state; give it as an override or drop it from the template"
+            )
         argv.append(token.format(**values))
     return argv
 
@@ -172,8 +187,9 @@ def _tail(text: bytes) -> str:
     return lines[-1][:200] if lines else ""
 
 
-def convert(conv: Converter, source: str | Path, width: int, height: int,
-            params: Mapping[str, float]) -> tuple[np.ndarray, dict[str, Any]]:
+def convert(
+    conv: Converter, source: str | Path, width: int, height: int, params: Mapping[str, float]
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Run ``conv`` on ``source`` and read back its ``height`` x ``width`` float32 temperatures (C).
 
     Returns (temperatures, record): the record names the converter, the arguments (the temporary output shown as
@@ -185,38 +201,56 @@ def convert(conv: Converter, source: str | Path, width: int, height: int,
         env = {**os.environ, **conv.env}
         cwd = str(Path(conv.program).parent) if conv.kind == DJI_IRP else tmp
         try:
-            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    cwd=cwd, env=env, start_new_session=True)
+            proc = subprocess.Popen(
+                argv,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                cwd=cwd,
+                env=env,
+                start_new_session=True,
+            )
         except OSError as exc:
             raise ConfigError(f"converter {conv.describe()} cannot be started: {exc.strerror or exc}") from None
         try:
             out, err = proc.communicate(timeout=conv.timeout_s)
         except subprocess.TimeoutExpired:
             _stop(proc)
-            raise DataError(f"{source}: the converter ({conv.name}) did not finish within {conv.timeout_s:g} s and "
-                            "was stopped; raise the time-out (--converter-timeout, "
-                            "sensing.radiometry.converter_timeout_s) if the file is large") from None
+            raise DataError(
+                f"{source}: the converter ({conv.name}) did not finish within {conv.timeout_s:g} s and "
+                "was stopped; raise the time-out (--converter-timeout, "
+                "sensing.radiometry.converter_timeout_s) if the file is large"
+            ) from None
         except BaseException:
             _stop(proc)
             raise
         if proc.returncode != 0:
             said = _tail(err) or _tail(out)
-            raise DataError(f"{source}: the converter ({conv.name}) failed with exit status {proc.returncode}"
-                            f"{': ' + said if said else ''}")
+            raise DataError(
+                f"{source}: the converter ({conv.name}) failed with exit status {proc.returncode}"
+                f"{': ' + said if said else ''}"
+            )
         if not output.is_file():
             raise DataError(f"{source}: the converter ({conv.name}) exited without writing its output file")
         data = output.read_bytes()
     expected = width * height * 4
     if len(data) != expected:
-        raise DataError(f"{source}: the converter ({conv.name}) wrote {len(data)} bytes, expected {expected} "
-                        f"({width}x{height} float32 temperatures)")
+        raise DataError(
+            f"{source}: the converter ({conv.name}) wrote {len(data)} bytes, expected {expected} "
+            f"({width}x{height} float32 temperatures)"
+        )
     temp = np.frombuffer(data, dtype="<f4").reshape(height, width).astype(np.float32)
     temp = np.where(np.isfinite(temp) & (temp > NO_MEASUREMENT_C), temp, np.float32(np.nan)).astype(np.float32)
     from harness.sensing.plausible import implausible_to_missing
 
     implausible = implausible_to_missing(temp, str(source), f"the converter ({conv.name})")
     shown = ["<output>" if a == str(output) else a for a in argv]
-    record = {"converter": conv.name, "program": conv.program or None, "arguments": shown[1:] if conv.kind == DJI_IRP
-              else shown, "params": {k: float(v) for k, v in params.items()}, "timeout_s": conv.timeout_s,
-              **({"implausible": implausible} if implausible else {})}
+    record = {
+        "converter": conv.name,
+        "program": conv.program or None,
+        "arguments": shown[1:] if conv.kind == DJI_IRP else shown,
+        "params": {k: float(v) for k, v in params.items()},
+        "timeout_s": conv.timeout_s,
+        **({"implausible": implausible} if implausible else {}),
+    }
     return temp, record

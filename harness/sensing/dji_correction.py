@@ -86,7 +86,10 @@ TABLE_BYTES = 0x1F00
 
 #: what ``set_measurement_params`` accepts (distance up to 300 m for tables that say so).
 OVERRIDE_RANGES: dict[str, tuple[float, float]] = {
-    "distance": (1.0, 25.0), "humidity": (1.0, 100.0), "emissivity": (0.1, 1.0), "reflected": (-40.0, 100.0),
+    "distance": (1.0, 25.0),
+    "humidity": (1.0, 100.0),
+    "emissivity": (0.1, 1.0),
+    "reflected": (-40.0, 100.0),
     "ambient": (-40.0, 80.0),
 }
 OVERRIDE_UNITS = {"distance": "m", "humidity": "%", "emissivity": "0-1", "reflected": "C", "ambient": "C"}
@@ -114,8 +117,15 @@ def _ladder(*runs: tuple[str, str, str]) -> np.ndarray:
     return np.asarray(out, dtype=np.float64)
 
 
-_NEAR = (("0.25", "0.05", "1.2"), ("1.3", "0.1", "2.0"), ("2.2", "0.2", "4.0"), ("4.5", "0.5", "8.0"),
-         ("9", "1", "14"), ("16", "2", "30"), ("35", "5", "50"))
+_NEAR = (
+    ("0.25", "0.05", "1.2"),
+    ("1.3", "0.1", "2.0"),
+    ("2.2", "0.2", "4.0"),
+    ("4.5", "0.5", "8.0"),
+    ("9", "1", "14"),
+    ("16", "2", "30"),
+    ("35", "5", "50"),
+)
 _FAR = (("60", "10", "100"), ("120", "20", "300"), ("350", "50", "500"), ("600", "100", "1000"))
 
 
@@ -177,16 +187,21 @@ class TauTable:
         """What a sidecar records of the table (``valid_up_to_c`` is ``None`` when every row is valid: JSON has no
         infinity)."""
         rows = self.valid_rows or len(self.temps_k)
-        return {"table_version": self.version, "shape": list(self.tau.shape), "humidity_version": self.humidity,
-                "separate_reflection": self.reflection, "tau_range": [int(self.tau[:rows].min()),
-                                                                      int(self.tau[:rows].max())],
-                "max_distance_m": self.max_distance, "valid_up_to_c": (
-                    None if math.isinf(self.valid_below_k) else round(self.valid_below_k - KELVIN, 2)),
-                **({"approximation": self.approximation} if self.approximation else {})}
+        return {
+            "table_version": self.version,
+            "shape": list(self.tau.shape),
+            "humidity_version": self.humidity,
+            "separate_reflection": self.reflection,
+            "tau_range": [int(self.tau[:rows].min()), int(self.tau[:rows].max())],
+            "max_distance_m": self.max_distance,
+            "valid_up_to_c": (None if math.isinf(self.valid_below_k) else round(self.valid_below_k - KELVIN, 2)),
+            **({"approximation": self.approximation} if self.approximation else {}),
+        }
 
 
-def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "<APP5>",
-               skip_emissivity_remap: bool = False) -> TauTable:
+def parse_app5(
+    payload: bytes, format_version: int = 0x100, name: str | Path = "<APP5>", skip_emissivity_remap: bool = False
+) -> TauTable:
     """Parse an iirp APP5 payload (header + tau table) into a ``TauTable``; layout in the module docstring.
 
     ``format_version`` is the APP4 format version (``header["version"]``, 0x200 in M3T files; 0x100 when the
@@ -197,27 +212,35 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     re-mapping (the approximate route; the table's ``approximation`` says so).
     """
     if len(payload) < HEADER_BYTES:
-        raise DataError(f"{name}: APP5 calibration segment is {len(payload)} bytes, shorter than its "
-                        f"{HEADER_BYTES}-byte header; the file is damaged (decode it with the blackbody decoder)")
+        raise DataError(
+            f"{name}: APP5 calibration segment is {len(payload)} bytes, shorter than its "
+            f"{HEADER_BYTES}-byte header; the file is damaged (decode it with the blackbody decoder)"
+        )
     head = payload[:HEADER_BYTES]
     if head[:4] == b"\xff\xff\xff\xff":
-        raise UnsupportedCorrection(f"{name}: APP5 says the camera's built-in default transmission table applies, "
-                                    "which the file does not carry", kind="builtin-tau")
+        raise UnsupportedCorrection(
+            f"{name}: APP5 says the camera's built-in default transmission table applies, "
+            "which the file does not carry",
+            kind="builtin-tau",
+        )
     old = ((format_version - 0x100) & 0xFFFFFEFF) == 0
     size = OLD_TABLE_BYTES if old else TABLE_BYTES
     max_distance = 25.0 if old or struct.unpack_from("<H", head, 2)[0] <= 0x3F else 300.0
-    words = np.frombuffer(payload[:(min(len(payload), HEADER_BYTES + size) // 2) * 2], dtype="<u2")
-    h = words[:HEADER_BYTES // 2]
+    words = np.frombuffer(payload[: (min(len(payload), HEADER_BYTES + size) // 2) * 2], dtype="<u2")
+    h = words[: HEADER_BYTES // 2]
     if h[2] == 0xFFFF and h[3] == 0xFFFF:
         version, ems_on, hum_on, hum_ver, refl_on, refl_ver = (int(h[k]) for k in (1, 4, 6, 7, 10, 11))
-        table = words[HEADER_BYTES // 2:]
+        table = words[HEADER_BYTES // 2 :]
     else:  # no header fields: the table is read from the start of the payload
         version, ems_on, hum_on, hum_ver, refl_on, refl_ver = 0, 0, 0, 0, 0, 0
         table = words
     remap = ems_on == 1 or version == 0x101
     if remap and not skip_emissivity_remap:
-        raise UnsupportedCorrection(f"{name}: APP5 table version {version:#x} asks for DJI's emissivity re-mapping "
-                                    "tables, which the file does not carry", kind="emissivity-remap")
+        raise UnsupportedCorrection(
+            f"{name}: APP5 table version {version:#x} asks for DJI's emissivity re-mapping "
+            "tables, which the file does not carry",
+            kind="emissivity-remap",
+        )
     if refl_on == 1 and refl_ver != 1:
         raise UnsupportedCorrection(f"{name}: APP5 reflected-temperature table version {refl_ver} is not known")
     hum = humidity_version(version, hum_on, hum_ver)
@@ -226,23 +249,34 @@ def parse_app5(payload: bytes, format_version: int = 0x100, name: str | Path = "
     temps, dists = tau_axes(version)
     n = len(temps) * len(dists)
     if table.size < n:
-        raise DataError(f"{name}: APP5 holds {table.size} table words, table version {version:#x} needs "
-                        f"{len(temps)}x{len(dists)} = {n} (APP4 format version {format_version:#x}); the "
-                        "transmission table is cut short (decode the file with the blackbody decoder)")
+        raise DataError(
+            f"{name}: APP5 holds {table.size} table words, table version {version:#x} needs "
+            f"{len(temps)}x{len(dists)} = {n} (APP4 format version {format_version:#x}); the "
+            "transmission table is cut short (decode the file with the blackbody decoder)"
+        )
     tau = table[:n].reshape(len(temps), len(dists)).copy()
     # Some cameras (M2EA) fill only the rows up to their measuring range; the rest of the read holds other data.
     # Those rows are never used for temperatures below them; temperatures that would use them come out NaN.
     good = ((tau >= 1) & (tau <= Q14)).all(axis=1)
     valid_rows = len(temps) if good.all() else int(np.argmin(good))
     if valid_rows < 2:
-        raise DataError(f"{name}: APP5 transmission values span {int(tau.min())}..{int(tau.max())}, outside the "
-                        f"Q14 range 1..{Q14} from the first rows on; the table is damaged (decode the file with "
-                        "the blackbody decoder)")
+        raise DataError(
+            f"{name}: APP5 transmission values span {int(tau.min())}..{int(tau.max())}, outside the "
+            f"Q14 range 1..{Q14} from the first rows on; the table is damaged (decode the file with "
+            "the blackbody decoder)"
+        )
     tau.flags.writeable = False
-    return TauTable(tau=tau, temps_k=temps, distances_m=dists, version=version, humidity=hum,
-                    reflection=refl_on == 1, max_distance=max_distance,
-                    valid_rows=0 if valid_rows == len(temps) else valid_rows,
-                    approximation="emissivity-remap-skipped" if remap else "")
+    return TauTable(
+        tau=tau,
+        temps_k=temps,
+        distances_m=dists,
+        version=version,
+        humidity=hum,
+        reflection=refl_on == 1,
+        max_distance=max_distance,
+        valid_rows=0 if valid_rows == len(temps) else valid_rows,
+        approximation="emissivity-remap-skipped" if remap else "",
+    )
 
 
 # ---------------------------------------------------------------------------------------------- maths
@@ -284,9 +318,13 @@ def interpolate_tau(table: TauTable, temperature_c: Any, distance_m: float) -> n
     if j < nd - 1:
         d_lo, d_hi = dg[j], dg[j + 1]
         area = abs(d_hi - d_lo) * abs(t_hi - t_lo)
-        v = (tau[i0, j] * (((d_hi - y) * (t_hi - x)) / area) + tau[i0, j + 1] * (((y - d_lo) * (t_hi - x)) / area)
-             + tau[i0 + 1, j] * (((d_hi - y) * (x - t_lo)) / area)
-             + tau[i0 + 1, j + 1] * (((y - d_lo) * (x - t_lo)) / area) + 0.5)
+        v = (
+            tau[i0, j] * (((d_hi - y) * (t_hi - x)) / area)
+            + tau[i0, j + 1] * (((y - d_lo) * (t_hi - x)) / area)
+            + tau[i0 + 1, j] * (((d_hi - y) * (x - t_lo)) / area)
+            + tau[i0 + 1, j + 1] * (((y - d_lo) * (x - t_lo)) / area)
+            + 0.5
+        )
         return np.where(inner, np.trunc(v), tau[nt - 1, j])
     span = abs(t_hi - t_lo)
     v = tau[i0 + 1, j] * ((x - t_lo) / span) + tau[i0, j] * ((t_hi - x) / span)
@@ -304,14 +342,21 @@ def humidity_exponent_coefficient(temperature_c: Any, version: int = 1) -> np.nd
     """``k(Tk)`` of the humidity correction (module docstring) per target temperature, float32 steps."""
     tk = _kelvin(temperature_c)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        k = np.where(tk < KELVIN, 0.0,
-                     np.where(tk < 410.15, ((410.15 / tk) ** 4 - 1.0) * 0.01 - 0.04,
-                              np.where(tk < 1273.1501, ((tk / 410.15) ** 4 - 1.0) * -0.003 - 0.04, 0.0)))
+        k = np.where(
+            tk < KELVIN,
+            0.0,
+            np.where(
+                tk < 410.15,
+                ((410.15 / tk) ** 4 - 1.0) * 0.01 - 0.04,
+                np.where(tk < 1273.1501, ((tk / 410.15) ** 4 - 1.0) * -0.003 - 0.04, 0.0),
+            ),
+        )
     return _f32(_f32(k) * {1: 1.0, 2: 0.6, 3: 0.3}[version])
 
 
-def humidity_adjusted_tau(tau_q14: Any, temperature_c: Any, humidity_frac: float, air_c: float,
-                          distance_m: float, version: int = 1) -> np.ndarray:
+def humidity_adjusted_tau(
+    tau_q14: Any, temperature_c: Any, humidity_frac: float, air_c: float, distance_m: float, version: int = 1
+) -> np.ndarray:
     """``tau_h = trunc(tau * (p_w / 1425) ^ (k(T) * ln(d_h) * 1.4427))`` (version 0: ``tau`` unchanged)."""
     tau = np.asarray(tau_q14, dtype=np.float64)
     if version == 0:
@@ -325,8 +370,9 @@ def humidity_adjusted_tau(tau_q14: Any, temperature_c: Any, humidity_frac: float
     return np.trunc(_f32(_f32(tau) * factor))
 
 
-def radiance_balance(t0_c: Any, tau_q14: Any, emissivity: float, atmosphere_c: float,
-                     reflected_c: float | None = None) -> np.ndarray:
+def radiance_balance(
+    t0_c: Any, tau_q14: Any, emissivity: float, atmosphere_c: float, reflected_c: float | None = None
+) -> np.ndarray:
     """Object temperature (C, float32) from the apparent temperature ``t0_c``, ``W(T) = (T + 273.15)^4``:
 
     ``W0 = t e W + (1 - t e) W_atm`` (``reflected_c`` None: the atmosphere stands in for the reflection), or
@@ -347,8 +393,15 @@ def radiance_balance(t0_c: Any, tau_q14: Any, emissivity: float, atmosphere_c: f
     return (t_k - KELVIN).astype(F32)
 
 
-def correct_temperature(t0_c: Any, table: TauTable, emissivity: float, distance_m: float,
-                        humidity_pct: float, reflected_c: float, atmosphere_c: float) -> np.ndarray:
+def correct_temperature(
+    t0_c: Any,
+    table: TauTable,
+    emissivity: float,
+    distance_m: float,
+    humidity_pct: float,
+    reflected_c: float,
+    atmosphere_c: float,
+) -> np.ndarray:
     """DJI's corrected temperature (C, float32) from blackbody temperatures ``t0_c`` (any shape), in two passes:
 
     ``T1 = balance(T0, tau(T0, d))``, then ``T = balance(T0, tau_h(T1, tau(T1, d)))`` (module docstring), with
@@ -363,13 +416,21 @@ def correct_temperature(t0_c: Any, table: TauTable, emissivity: float, distance_
     return out[inverse.reshape(-1)].reshape(t0.shape)
 
 
-def _correct_values(values: np.ndarray, table: TauTable, emissivity: float, distance_m: float,
-                    humidity_pct: float, reflected_c: float, atmosphere_c: float) -> np.ndarray:
+def _correct_values(
+    values: np.ndarray,
+    table: TauTable,
+    emissivity: float,
+    distance_m: float,
+    humidity_pct: float,
+    reflected_c: float,
+    atmosphere_c: float,
+) -> np.ndarray:
     """The two-pass correction of the blackbody temperatures ``values`` (1-D float32), element by element."""
     refl = reflected_c if table.reflection else None
     t1 = radiance_balance(values, interpolate_tau(table, values, distance_m), emissivity, atmosphere_c, refl)
-    tau2 = humidity_adjusted_tau(interpolate_tau(table, t1, distance_m), t1, humidity_pct / 100.0, atmosphere_c,
-                                 distance_m, table.humidity)
+    tau2 = humidity_adjusted_tau(
+        interpolate_tau(table, t1, distance_m), t1, humidity_pct / 100.0, atmosphere_c, distance_m, table.humidity
+    )
     tau2 = np.maximum(tau2, 1.0)  # a zero transmission leaves nothing to measure; keep the division defined
     out = radiance_balance(values, tau2, emissivity, atmosphere_c, refl)
     limit = table.valid_below_k
@@ -380,8 +441,15 @@ def _correct_values(values: np.ndarray, table: TauTable, emissivity: float, dist
     return out
 
 
-def correct_raw14(raw14: Any, table: TauTable, emissivity: float, distance_m: float,
-                  humidity_pct: float, reflected_c: float, atmosphere_c: float) -> np.ndarray:
+def correct_raw14(
+    raw14: Any,
+    table: TauTable,
+    emissivity: float,
+    distance_m: float,
+    humidity_pct: float,
+    reflected_c: float,
+    atmosphere_c: float,
+) -> np.ndarray:
     """``correct_temperature`` of the blackbody temperatures ``raw14 / 16 - 273.15`` by a lookup table.
 
     A raw count is an integer, so the correction is evaluated once for each count between the frame's smallest
@@ -422,8 +490,10 @@ def check_overrides(overrides: Mapping[str, float | None], max_distance: float =
         if key == "distance":
             hi = max_distance
         if not (lo <= v <= hi) or math.isnan(v):
-            raise ConfigError(f"measurement parameter {key}={v:g} {OVERRIDE_UNITS[key]} is outside the range the "
-                              f"correction accepts ({lo:g}..{hi:g} {OVERRIDE_UNITS[key]})")
+            raise ConfigError(
+                f"measurement parameter {key}={v:g} {OVERRIDE_UNITS[key]} is outside the range the "
+                f"correction accepts ({lo:g}..{hi:g} {OVERRIDE_UNITS[key]})"
+            )
         out[key] = v
     return out
 
@@ -435,12 +505,22 @@ MIN_EMISSIVITY = 1e-4
 def check_file_params(params: Mapping[str, float], name: str | Path = "<APP4>") -> None:
     """The file's own parameters must be in the range the SDK measures with, else ``DataError`` naming ``name``
     (a property of that file: a batch lists it and decodes the others)."""
-    limits = {"emissivity": (MIN_EMISSIVITY, 1.0, ""), "humidity": (0.0, 100.0, " %"),
-              "distance": (0.0, 1000.0, " m"), "ambient": (-KELVIN, 100.0, " C"), "reflected": (-KELVIN, 100.0, " C")}
+    limits = {
+        "emissivity": (MIN_EMISSIVITY, 1.0, ""),
+        "humidity": (0.0, 100.0, " %"),
+        "distance": (0.0, 1000.0, " m"),
+        "ambient": (-KELVIN, 100.0, " C"),
+        "reflected": (-KELVIN, 100.0, " C"),
+    }
     for key, (lo, hi, unit) in limits.items():
         v = params.get(key)
         if v is None or not (lo <= float(v) <= hi):
-            what = (" (a surface that emits nothing cannot be measured)" if key == "emissivity" and v is not None
-                    and float(v) < lo else "")
-            raise DataError(f"{name}: APP4 measurement parameter {key}={v}{unit} is outside {lo:g}..{hi:g}{what}; "
-                            "give it explicitly or use the blackbody decoder")
+            what = (
+                " (a surface that emits nothing cannot be measured)"
+                if key == "emissivity" and v is not None and float(v) < lo
+                else ""
+            )
+            raise DataError(
+                f"{name}: APP4 measurement parameter {key}={v}{unit} is outside {lo:g}..{hi:g}{what}; "
+                "give it explicitly or use the blackbody decoder"
+            )

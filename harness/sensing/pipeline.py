@@ -65,8 +65,9 @@ class SensingContext:
         out, new_cam, _ = undistort_image(rgb, self.rgb_camera, self.options.undistort.alpha)
         return out, new_cam
 
-    def undistort_thermal(self, thermal: np.ndarray | None, ir8: np.ndarray
-                          ) -> tuple[np.ndarray | None, np.ndarray, CameraModel | None]:
+    def undistort_thermal(
+        self, thermal: np.ndarray | None, ir8: np.ndarray
+    ) -> tuple[np.ndarray | None, np.ndarray, CameraModel | None]:
         """The same geometric correction for the temperature map and the preview."""
         if self.thermal_camera is None:
             return thermal, ir8, None
@@ -75,8 +76,9 @@ class SensingContext:
         th_u = None if thermal is None else undistort_image(np.asarray(thermal, np.float32), self.thermal_camera, a)[0]
         return th_u, ir8_u, new_cam
 
-    def homography(self, group: str, rgb: np.ndarray, thermal: np.ndarray, prior: np.ndarray | None = None
-                   ) -> np.ndarray:
+    def homography(
+        self, group: str, rgb: np.ndarray, thermal: np.ndarray, prior: np.ndarray | None = None
+    ) -> np.ndarray:
         """The group's H: from the homographies file; else ``registration.method`` decides: ``auto`` registers
         this pair (from ``prior``, else the default start) and keeps the result for the group's later pairs;
         ``focal`` uses ``prior``; ``file`` is an error. A rejected automatic registration is an error naming the
@@ -85,8 +87,10 @@ class SensingContext:
             return self.entries[group].H
         method = self.options.registration.method
         if method == "file":
-            raise DataError(f"group {group!r} has no homography in {self.options.registration.homographies}; add it "
-                            "with `harness sensing register` or set sensing.registration.method to auto")
+            raise DataError(
+                f"group {group!r} has no homography in {self.options.registration.homographies}; add it "
+                "with `harness sensing register` or set sensing.registration.method to auto"
+            )
         if method == "focal":
             if prior is None:
                 raise DataError(f"group {group!r}: registration method 'focal' needs the focal-length prior")
@@ -94,20 +98,36 @@ class SensingContext:
         if method != "auto":
             raise DataError(f"unknown sensing.registration.method {method!r}; use auto, focal or file")
         o = self.options.registration
-        res = reg.estimate_homography_auto(rgb, thermal, init=prior, min_correlation=o.min_correlation,
-                                           max_corner_shift=o.max_corner_shift, search_scale=o.search_scale,
-                                           search_rotation_deg=o.search_rotation_deg)
+        res = reg.estimate_homography_auto(
+            rgb,
+            thermal,
+            init=prior,
+            min_correlation=o.min_correlation,
+            max_corner_shift=o.max_corner_shift,
+            search_scale=o.search_scale,
+            search_rotation_deg=o.search_rotation_deg,
+        )
         self.auto_results[group] = res
         if not res.ok:
-            raise DataError(f"group {group!r}: automatic registration rejected ({res.reason}); register the group "
-                            "with landmarks or similarity parameters (`harness sensing register`)")
+            raise DataError(
+                f"group {group!r}: automatic registration rejected ({res.reason}); register the group "
+                "with landmarks or similarity parameters (`harness sensing register`)"
+            )
         log.info("group %s registered automatically (structure correlation %.3f)", group, res.correlation)
         self.entries[group] = res.entry()
         return res.H
 
-    def align_capture(self, rgb: np.ndarray, thermal: np.ndarray | None, ir8: np.ndarray, boxes: np.ndarray,
-                      labels: np.ndarray, group: str, boxes_frame: str = "thermal",
-                      prior: np.ndarray | None = None) -> AlignedPair:
+    def align_capture(
+        self,
+        rgb: np.ndarray,
+        thermal: np.ndarray | None,
+        ir8: np.ndarray,
+        boxes: np.ndarray,
+        labels: np.ndarray,
+        group: str,
+        boxes_frame: str = "thermal",
+        prior: np.ndarray | None = None,
+    ) -> AlignedPair:
         """Undistort both sensors, get the group's homography, and align (see the module docstring)."""
         rgb_u, rgb_cam = self.undistort_rgb(rgb)
         th_u, ir8_u, th_cam = self.undistort_thermal(thermal, ir8)
@@ -118,8 +138,19 @@ class SensingContext:
             b = undistort_boxes(b, self.thermal_camera, th_cam)  # type: ignore[arg-type]
         H = self.homography(group, rgb_u, th_u if th_u is not None else ir8_u, prior)
         w = self.options.warp
-        pair = align_pair(rgb_u, th_u, ir8_u, b, labels, H, boxes_frame=boxes_frame, crop=w.crop,
-                          min_box_size=w.min_box_size, interpolation=w.interpolation, antialias=w.antialias)
+        pair = align_pair(
+            rgb_u,
+            th_u,
+            ir8_u,
+            b,
+            labels,
+            H,
+            boxes_frame=boxes_frame,
+            crop=w.crop,
+            min_box_size=w.min_box_size,
+            interpolation=w.interpolation,
+            antialias=w.antialias,
+        )
         # what maps an original image's pixels into the frame H starts from (for boxes made on the original images)
         for sensor, cam, new in (("rgb", self.rgb_camera, rgb_cam), ("thermal", self.thermal_camera, th_cam)):
             if cam is not None and new is not None:
@@ -127,8 +158,9 @@ class SensingContext:
         return pair
 
 
-def read_capture_thermal(path: str | Path, options: SensingOptions | None = None
-                         ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+def read_capture_thermal(
+    path: str | Path, options: SensingOptions | None = None
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """(temperature C float32, 8-bit preview, info) of a raw capture's thermal file, as the raw datasets and
     ``harness screen`` read it.
 
@@ -156,8 +188,16 @@ def read_capture_thermal(path: str | Path, options: SensingOptions | None = None
             ir8 = ir8_from_temperature(temp)
     except HarnessError:
         ir8 = ir8_from_temperature(temp)
-    return temp, ir8, {"format": "rjpeg", "params": dict(rj.params), "decoder": tinfo["decoder"],
-                       **{k: tinfo[k] for k in ("approximate", "converter") if k in tinfo}}
+    return (
+        temp,
+        ir8,
+        {
+            "format": "rjpeg",
+            "params": dict(rj.params),
+            "decoder": tinfo["decoder"],
+            **{k: tinfo[k] for k in ("approximate", "converter") if k in tinfo},
+        },
+    )
 
 
 def ir8_from_temperature(temp: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:

@@ -69,8 +69,13 @@ APP4_MAGIC = b"\xff\xd2\xd1\xff"
 IIRP_MODELS = dji_formats.IIRP_MODELS
 PARAM_KEYS = ("ambient", "distance", "emissivity", "humidity", "reflected")
 #: Measurement parameters of the public M3T samples; used by ``write_rjpeg`` when none are given.
-DEFAULT_PARAMS: dict[str, float] = {"ambient": 25.0, "distance": 5.0, "emissivity": 0.95, "humidity": 50.0,
-                                    "reflected": 25.0}
+DEFAULT_PARAMS: dict[str, float] = {
+    "ambient": 25.0,
+    "distance": 5.0,
+    "emissivity": 0.95,
+    "humidity": 50.0,
+    "reflected": 25.0,
+}
 PARAM_UNITS = {"ambient": "C", "distance": "m", "emissivity": "0-1", "humidity": "%", "reflected": "C"}
 #: the parameters a converter is handed (DJI's ``dji_irp`` takes these four)
 CONVERTER_KEYS = ("emissivity", "distance", "humidity", "reflected")
@@ -96,8 +101,10 @@ def celsius_to_raw14(temperature_c: np.ndarray) -> np.ndarray:
         raise DataError("temperature map has NaN or infinite values; cannot encode raw counts")
     raw = np.rint((t + KELVIN) * COUNTS_PER_K)
     if raw.min() < 0 or raw.max() > 0x3FFF:
-        raise DataError(f"temperatures {t.min():.2f}..{t.max():.2f} C are outside the 14-bit range "
-                        f"({-KELVIN:.2f}..{0x3FFF / COUNTS_PER_K - KELVIN:.2f} C)")
+        raise DataError(
+            f"temperatures {t.min():.2f}..{t.max():.2f} C are outside the 14-bit range "
+            f"({-KELVIN:.2f}..{0x3FFF / COUNTS_PER_K - KELVIN:.2f} C)"
+        )
     return raw.astype(np.uint16)
 
 
@@ -146,8 +153,10 @@ class RJpeg:
     def blackbody_c(self) -> np.ndarray:
         """Blackbody temperature ``raw14 / 16 - 273.15`` in C (float32 HxW): emissivity 1, no atmosphere."""
         if self.fmt != "iirp":
-            raise DataError(f"{self.path}: {self.exif.get('Model', 'this camera')} ({self.fmt}) raw counts are "
-                            "not blackbody counts; only the corrected temperature (decoder 'auto' or 'dji') exists")
+            raise DataError(
+                f"{self.path}: {self.exif.get('Model', 'this camera')} ({self.fmt}) raw counts are "
+                "not blackbody counts; only the corrected temperature (decoder 'auto' or 'dji') exists"
+            )
         return raw14_to_celsius(self.raw14)
 
     @property
@@ -159,22 +168,34 @@ class RJpeg:
             return True
         return (version & 0xFFFEFFFF) == 0x200 or version == 0x20200
 
-    def correction_params(self, emissivity: float | None = None, distance: float | None = None,
-                          humidity: float | None = None, reflected: float | None = None,
-                          ambient: float | None = None) -> dict[str, float]:
+    def correction_params(
+        self,
+        emissivity: float | None = None,
+        distance: float | None = None,
+        humidity: float | None = None,
+        reflected: float | None = None,
+        ambient: float | None = None,
+    ) -> dict[str, float]:
         """The parameters ``corrected_c`` uses: the file's, with the given overrides (checked against the
         ranges DJI's SDK accepts), plus ``atmosphere`` (C): the file's ambient temperature without overrides;
         with overrides, the reflected temperature for pre-v0300 files (M3T), else the ambient one."""
         table = self.tau_table
-        given = {"emissivity": emissivity, "distance": distance, "humidity": humidity, "reflected": reflected,
-                 "ambient": ambient}
+        given = {
+            "emissivity": emissivity,
+            "distance": distance,
+            "humidity": humidity,
+            "reflected": reflected,
+            "ambient": ambient,
+        }
         if self.fmt == "dirp":
             return dji_dirp.measurement_params(given)
         over = dji_correction.check_overrides(given, table.max_distance if table else 25.0)
         if "ambient" in over and self.pre_v0300:
-            raise ConfigError(f"{self.path}: this file's format (APP4 version {self.header.get('version', 0x100):#x}) "
-                              "takes the air temperature from the reflected temperature; set 'reflected' instead of "
-                              "'ambient'")
+            raise ConfigError(
+                f"{self.path}: this file's format (APP4 version {self.header.get('version', 0x100):#x}) "
+                "takes the air temperature from the reflected temperature; set 'reflected' instead of "
+                "'ambient'"
+            )
         p = {k: float(self.params[k]) for k in PARAM_KEYS if k in self.params}
         if over:
             p.update(over)
@@ -184,9 +205,14 @@ class RJpeg:
         p["atmosphere"] = p["ambient"]
         return p
 
-    def corrected_c(self, emissivity: float | None = None, distance: float | None = None,
-                    humidity: float | None = None, reflected: float | None = None,
-                    ambient: float | None = None) -> np.ndarray:
+    def corrected_c(
+        self,
+        emissivity: float | None = None,
+        distance: float | None = None,
+        humidity: float | None = None,
+        reflected: float | None = None,
+        ambient: float | None = None,
+    ) -> np.ndarray:
         """DJI Thermal SDK's corrected temperature in C (float32 HxW), at the file's measurement parameters or
         the given overrides (emissivity 0.1-1, distance m, humidity %, reflected C; ``ambient`` C only for v0300
         formats). Equations: ``harness.sensing.dji_correction``. A ``DataError`` when the file has no usable
@@ -195,18 +221,26 @@ class RJpeg:
             p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
             return dji_dirp.measure(self.raw14, self.dirp, p, self.path)
         if self.tau_table is None:
-            raise DataError(f"{self.path}: no atmospheric-transmission table to correct with"
-                            f"{' (' + self.decoder_note + ')' if self.decoder_note else ''}; "
-                            "use the blackbody temperature (decoder 'blackbody')")
+            raise DataError(
+                f"{self.path}: no atmospheric-transmission table to correct with"
+                f"{' (' + self.decoder_note + ')' if self.decoder_note else ''}; "
+                "use the blackbody temperature (decoder 'blackbody')"
+            )
         if self.approximation is not None:
             return self.approximate_c(emissivity, distance, humidity, reflected, ambient)[0]
         p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
-        return dji_correction.correct_raw14(self.raw14, self.tau_table, p["emissivity"], p["distance"],
-                                            p["humidity"], p["reflected"], p["atmosphere"])
+        return dji_correction.correct_raw14(
+            self.raw14, self.tau_table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"]
+        )
 
-    def approximate_c(self, emissivity: float | None = None, distance: float | None = None,
-                      humidity: float | None = None, reflected: float | None = None,
-                      ambient: float | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    def approximate_c(
+        self,
+        emissivity: float | None = None,
+        distance: float | None = None,
+        humidity: float | None = None,
+        reflected: float | None = None,
+        ambient: float | None = None,
+    ) -> tuple[np.ndarray, dict[str, Any]]:
         """(temperature C, record) of the ``approximate`` route: DJI's correction with the file's stand-in table
         (``dji_approximate``); temperatures above the measured range are missing (NaN); the record names the
         approximation and its measured bound for this frame. An emissivity outside the measured range is a
@@ -216,8 +250,9 @@ class RJpeg:
             raise DataError(f"{self.path}: this file was not read by the approximate route")
         p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
         dji_approximate.check_emissivity(approx, p["emissivity"], self.path)
-        t = dji_correction.correct_raw14(self.raw14, table, p["emissivity"], p["distance"], p["humidity"],
-                                         p["reflected"], p["atmosphere"])
+        t = dji_correction.correct_raw14(
+            self.raw14, table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"]
+        )
         return dji_approximate.apply(t, approx, p["emissivity"])
 
     def converter_params(self, overrides: Mapping[str, float | None] | None = None) -> dict[str, float]:
@@ -225,17 +260,24 @@ class RJpeg:
         given overrides (checked against DJI's ranges). A pre-v0300 iirp file whose ambient and reflected
         temperatures differ is passed none of its own (DJI's SDK then reads them itself, as setting them would
         make it take the air temperature from the reflected one); a file emissivity of about 0 is a ``DataError``."""
-        over = dji_correction.check_overrides({k: v for k, v in dict(overrides or {}).items()
-                                               if k in CONVERTER_KEYS}, 25.0)
+        over = dji_correction.check_overrides(
+            {k: v for k, v in dict(overrides or {}).items() if k in CONVERTER_KEYS}, 25.0
+        )
         own = {k: float(self.params[k]) for k in CONVERTER_KEYS if k in self.params}
-        if not over and self.fmt == "iirp" and self.pre_v0300 and \
-                self.params.get("ambient") != self.params.get("reflected"):
+        if (
+            not over
+            and self.fmt == "iirp"
+            and self.pre_v0300
+            and self.params.get("ambient") != self.params.get("reflected")
+        ):
             own = {}
         p = {**own, **over}
         e = p.get("emissivity")
         if e is not None and not e >= dji_correction.MIN_EMISSIVITY:
-            raise DataError(f"{self.path}: measurement parameter emissivity={e:g} is physically impossible (a "
-                            "surface that emits nothing cannot be measured); give --emissivity")
+            raise DataError(
+                f"{self.path}: measurement parameter emissivity={e:g} is physically impossible (a "
+                "surface that emits nothing cannot be measured); give --emissivity"
+            )
         return p
 
     def converted_c(self, **overrides: float | None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -248,9 +290,11 @@ class RJpeg:
         if self.fmt == "iirp" and np.isfinite(temp).any():  # the file's own counts say roughly where the scene is
             gap = float(np.nanmedian(temp)) - float(np.median(self.blackbody_c()))
             if abs(gap - KELVIN) < KELVIN_GAP_C:
-                raise DataError(f"{self.path}: the converter ({self.converter.name}) wrote temperatures "
-                                f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
-                                "(float32 degrees Celsius)")
+                raise DataError(
+                    f"{self.path}: the converter ({self.converter.name}) wrote temperatures "
+                    f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
+                    "(float32 degrees Celsius)"
+                )
         return temp, record
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
@@ -275,8 +319,9 @@ class RJpeg:
         return img if grayscale else img[:, :, ::-1].copy()
 
 
-def read_rjpeg(path: str | Path, decoder: str = "auto", approximate: bool = False,
-               converter: dji_converter.Converter | None = None) -> RJpeg:
+def read_rjpeg(
+    path: str | Path, decoder: str = "auto", approximate: bool = False, converter: dji_converter.Converter | None = None
+) -> RJpeg:
     """Decode a DJI R-JPEG: ``raw14`` from APP3, measurement parameters from APP4, EXIF from APP1, the
     transmission table from APP5, and choose its route (module docstring). A dirp (H20T) file is read by
     ``dji_dirp`` (``fmt == "dirp"``, corrected route only).
@@ -317,20 +362,26 @@ def read_rjpeg(path: str | Path, decoder: str = "auto", approximate: bool = Fals
         header["version"] = 0x100
     chunks = layout.payloads(jpeg.APP3)
     if not chunks:
-        raise DataError(f"{path}: no radiometric payload (APP3 segments): this is a plain JPEG, not a DJI R-JPEG; "
-                        "export the original R-JPEG from the drone, or give a decoded temperature file")
+        raise DataError(
+            f"{path}: no radiometric payload (APP3 segments): this is a plain JPEG, not a DJI R-JPEG; "
+            "export the original R-JPEG from the drone, or give a decoded temperature file"
+        )
     raw = b"".join(chunks)
     w, h = layout.width, layout.height
     if header.get("width") and header.get("height") and (header["width"], header["height"]) != (w, h):
         log.debug("%s: APP4 says %dx%d, frame is %dx%d; using APP4", path, header["width"], header["height"], w, h)
         w, h = header["width"], header["height"]
     if len(raw) != w * h * 2:
-        raise DataError(f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
-                        "16-bit words; the file is damaged or of an unsupported layout")
+        raise DataError(
+            f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
+            "16-bit words; the file is damaged or of an unsupported layout"
+        )
     words = np.frombuffer(raw, dtype="<u2").reshape(h, w)
     if np.any(words & 3):
-        raise DataError(f"{path}: radiometric words have their two low bits set; not the iirp layout "
-                        "(14-bit counts shifted left by 2)")
+        raise DataError(
+            f"{path}: radiometric words have their two low bits set; not the iirp layout "
+            "(14-bit counts shifted left by 2)"
+        )
     raw14 = (words >> 2).astype(np.uint16)
     rj = RJpeg(path=path, raw14=raw14, params=params, exif=exif, header=header)
     if decoder != "blackbody":
@@ -338,8 +389,9 @@ def read_rjpeg(path: str | Path, decoder: str = "auto", approximate: bool = Fals
     return rj
 
 
-def _read_for_converter(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, fmt: str,
-                        converter: dji_converter.Converter) -> RJpeg:
+def _read_for_converter(
+    path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, fmt: str, converter: dji_converter.Converter
+) -> RJpeg:
     """A file only a converter decodes: its stored words (for the frame size) and the parameters it states."""
     words = dji_formats.frame_words(layout, fmt, model, path)
     app4 = layout.payloads(jpeg.APP4)
@@ -348,30 +400,56 @@ def _read_for_converter(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any
     if fmt == "hirp" and app4:
         params = dji_formats.hirp_params(app4[0])
     note = str(dji_formats.refusal(path, fmt, model)).removeprefix(f"{path}: ").split("; ")[0]
-    return RJpeg(path=path, raw14=dji_formats.original_raw(words, fmt), params=params, exif=exif, header=header,
-                 decoder="converter", decoder_note=note, fmt=fmt or "unknown", converter=converter)
+    return RJpeg(
+        path=path,
+        raw14=dji_formats.original_raw(words, fmt),
+        params=params,
+        exif=exif,
+        header=header,
+        decoder="converter",
+        decoder_note=note,
+        fmt=fmt or "unknown",
+        converter=converter,
+    )
 
 
 def _read_dirp(path: Path, layout: jpeg.JpegLayout, exif: dict[str, Any], model: str, decoder: str) -> RJpeg:
     """A dirp (class D, H20T) file: raw words from APP3, calibration from APP4, curve from APP5."""
     if decoder == "blackbody":
-        raise DataError(f"{path}: camera {model or 'unknown'!r} writes DJI's dirp format, whose raw counts are not "
-                        "blackbody counts; use decoder 'auto' or 'dji'")
+        raise DataError(
+            f"{path}: camera {model or 'unknown'!r} writes DJI's dirp format, whose raw counts are not "
+            "blackbody counts; use decoder 'auto' or 'dji'"
+        )
     app5 = layout.payloads(jpeg.APP5)
     cal = dji_dirp.parse(layout.payloads(jpeg.APP4)[0], app5[0] if app5 else None, path)
     raw = b"".join(layout.payloads(jpeg.APP3))
     w, h = layout.width, layout.height
     if len(raw) != w * h * 2:
-        raise DataError(f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
-                        "16-bit words; the file is damaged")
+        raise DataError(
+            f"{path}: radiometric payload holds {len(raw)} bytes, expected {w * h * 2} for {w}x{h} "
+            "16-bit words; the file is damaged"
+        )
     words = np.frombuffer(raw, dtype="<u2").reshape(h, w)
     header = {"format": "dirp", "version": cal.header_version, "width": w, "height": h}
-    return RJpeg(path=path, raw14=dji_formats.original_raw(words, "dirp"), params=dict(cal.stored_params),
-                 exif=exif, header=header, decoder="dji", fmt="dirp", dirp=cal)
+    return RJpeg(
+        path=path,
+        raw14=dji_formats.original_raw(words, "dirp"),
+        params=dict(cal.stored_params),
+        exif=exif,
+        header=header,
+        decoder="dji",
+        fmt="dirp",
+        dirp=cal,
+    )
 
 
-def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str, approximate: bool = False,
-                      converter: dji_converter.Converter | None = None) -> None:
+def _attach_tau_table(
+    rj: RJpeg,
+    app5: list[bytes],
+    decoder: str,
+    approximate: bool = False,
+    converter: dji_converter.Converter | None = None,
+) -> None:
     """Set ``rj.tau_table`` and ``rj.decoder`` from the file's first APP5 payload (``decoder`` auto or dji): DJI's
     correction when the file carries its table; the blackbody route for the files ``write_rjpeg`` writes; else
     the converter, the approximate route or a refusal (``read_rjpeg``)."""
@@ -405,7 +483,9 @@ def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str, approximate: b
         if approx is None:
             raise dji_correction.UnsupportedCorrection(
                 f"{rj.path}: {what}: {note}; there is no approximate route for it (no measured stand-in); "
-                f"{dji_formats.CONVERTER_HINT}", kind=kind)
+                f"{dji_formats.CONVERTER_HINT}",
+                kind=kind,
+            )
         if kind == "emissivity-remap":
             rj.tau_table = dji_correction.parse_app5(app5[0], version, rj.path, skip_emissivity_remap=True)
         else:
@@ -413,12 +493,15 @@ def _attach_tau_table(rj: RJpeg, app5: list[bytes], decoder: str, approximate: b
         rj.decoder, rj.approximation = "approximate", approx
         return
     if decoder == "dji":
-        raise dji_correction.UnsupportedCorrection(f"{rj.path}: {what}: cannot apply DJI's correction: {note}; "
-                                                   f"{dji_formats.CONVERTER_HINT}", kind=kind)
+        raise dji_correction.UnsupportedCorrection(
+            f"{rj.path}: {what}: cannot apply DJI's correction: {note}; {dji_formats.CONVERTER_HINT}", kind=kind
+        )
     raise dji_correction.UnsupportedCorrection(
         f"{rj.path}: {what}: temperatures are not decoded by default: {note}; "
         f"{dji_formats.options_text(approx, 'nothing measured stands in for it')}; uncorrected (blackbody) "
-        "temperatures only with --decoder blackbody", kind=kind)
+        "temperatures only with --decoder blackbody",
+        kind=kind,
+    )
 
 
 def parse_app4(payload: bytes, name: str | Path = "<APP4>") -> tuple[dict[str, Any], dict[str, float]]:
@@ -432,7 +515,7 @@ def parse_app4(payload: bytes, name: str | Path = "<APP4>") -> tuple[dict[str, A
         return header, {}
     if len(payload) < base + 20:
         raise DataError(f"{name}: APP4 parameter block is {len(payload)} bytes, too short for the five parameters")
-    ambient, distance, emissivity, humidity, reflected = struct.unpack("<5f", payload[base:base + 20])
+    ambient, distance, emissivity, humidity, reflected = struct.unpack("<5f", payload[base : base + 20])
     params = {
         "ambient": round(float(ambient), 6),
         "distance": round(float(distance), 6),
@@ -464,18 +547,25 @@ def build_app4(params: Mapping[str, Any] | None, width: int, height: int) -> byt
     p = _checked_params(params)
     buf = bytearray(256)
     buf[0:8] = APP4_MAGIC + IIRP_TAG
-    struct.pack_into("<5f", buf, 32, p["ambient"], p["distance"], p["emissivity"], p["humidity"] / 100.0,
-                     p["reflected"])
+    struct.pack_into(
+        "<5f", buf, 32, p["ambient"], p["distance"], p["emissivity"], p["humidity"] / 100.0, p["reflected"]
+    )
     buf[64:68] = b"\x2c\x01\x20\x00"  # marks the table at offset 32 (as in camera files)
     buf[0x80] = 1  # gain mode
-    buf[0x85:0x85 + 9] = b"synthetic"
+    buf[0x85 : 0x85 + 9] = b"synthetic"
     struct.pack_into("<I", buf, 0x99, 0x200)
     struct.pack_into("<HH", buf, 0x9D, width, height)
     return bytes(buf)
 
 
-def write_rjpeg(path: str | Path, temperature_c: np.ndarray, params: Mapping[str, Any] | None = None,
-                preview: np.ndarray | None = None, exif: Mapping[str, Any] | None = None, quality: int = 95) -> Path:
+def write_rjpeg(
+    path: str | Path,
+    temperature_c: np.ndarray,
+    params: Mapping[str, Any] | None = None,
+    preview: np.ndarray | None = None,
+    exif: Mapping[str, Any] | None = None,
+    quality: int = 95,
+) -> Path:
     """Write a DJI-layout iirp R-JPEG whose blackbody temperature is ``temperature_c`` (exact to 1/16 K).
 
     Layout: SOI, APP1 Exif (Make ``DJI``, Model ``M3T``, size, focal length 9.1 mm, plus ``exif``), APP3 chunks of
@@ -506,16 +596,29 @@ def write_rjpeg(path: str | Path, temperature_c: np.ndarray, params: Mapping[str
     if not ok:  # pragma: no cover
         raise DataError(f"{path}: could not encode the preview")
     picture = encoded.tobytes()
-    tags: dict[str, Any] = {"Make": "DJI", "Model": "M3T", "ImageDescription": "WhiteHot", "Software": "rgbt-harness",
-                            "FocalLength": 9.1, "FocalLengthIn35mmFilm": 40, "ExifImageWidth": w,
-                            "ExifImageHeight": h}
+    tags: dict[str, Any] = {
+        "Make": "DJI",
+        "Model": "M3T",
+        "ImageDescription": "WhiteHot",
+        "Software": "rgbt-harness",
+        "FocalLength": 9.1,
+        "FocalLengthIn35mmFilm": 40,
+        "ExifImageWidth": w,
+        "ExifImageHeight": h,
+    }
     tags.update(exif or {})
     words = (raw14.astype("<u2") << 2).tobytes()
     chunk = 65532  # what the camera uses; even, so no word is split across segments
-    app3 = b"".join(jpeg.segment(jpeg.APP3, words[i:i + chunk]) for i in range(0, len(words), chunk))
+    app3 = b"".join(jpeg.segment(jpeg.APP3, words[i : i + chunk]) for i in range(0, len(words), chunk))
     app5 = jpeg.segment(jpeg.APP5, b"\x00\x00\x00\x00" + b"\xff" * (dji_correction.HEADER_BYTES - 4))
-    out = (b"\xff\xd8" + jpeg.segment(jpeg.APP1, jpeg.build_exif(tags)) + app3
-           + jpeg.segment(jpeg.APP4, build_app4(params, w, h)) + app5 + picture[2:])
+    out = (
+        b"\xff\xd8"
+        + jpeg.segment(jpeg.APP1, jpeg.build_exif(tags))
+        + app3
+        + jpeg.segment(jpeg.APP4, build_app4(params, w, h))
+        + app5
+        + picture[2:]
+    )
     from harness.io import atomic_write_bytes
 
     return atomic_write_bytes(path, out)
@@ -534,14 +637,22 @@ UNITS: dict[str, tuple[float, float]] = {
 #: what a file's unit is assumed to be when it has no sidecar, by dtype
 DEFAULT_UNIT = {"uint16": "centikelvin", "int16": "decicelsius", "float32": "celsius", "float64": "celsius"}
 #: how each unit is stored
-UNIT_DTYPE = {"celsius": np.float32, "kelvin": np.float32, "centikelvin": np.uint16, "decicelsius": np.int16,
-              "centicelsius": np.int16, "raw14": np.uint16}
+UNIT_DTYPE = {
+    "celsius": np.float32,
+    "kelvin": np.float32,
+    "centikelvin": np.uint16,
+    "decicelsius": np.int16,
+    "centicelsius": np.int16,
+    "raw14": np.uint16,
+}
 #: the value an integer unit stores for a missing pixel (``write_thermal``; float units store NaN)
 NODATA = {"centikelvin": 0, "raw14": 0, "decicelsius": -32768, "centicelsius": -32768}
 THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
 #: a converter's median this close to 273.15 C above the file's blackbody median wrote Kelvin (a correction for
 #: emissivity and atmosphere moves a scene by tens of degrees at most, never by 273)
 KELVIN_GAP_C = 60.0
+
+
 def sidecar_path(path: str | Path) -> Path:
     """The sidecar of ``frame.png`` is ``frame.png.json``."""
     path = Path(path)
@@ -600,14 +711,20 @@ def route_label(info: Mapping[str, Any]) -> str:
     """One line naming the route of a decoded R-JPEG (from ``rjpeg_temperature``'s info), for tables and sidecars."""
     decoder = info.get("decoder")
     if decoder == "dji":
-        return ("dji: dirp curve, corrected (emissivity, reflected)" if info.get("format_dji") == "dirp"
-                else "dji: corrected (emissivity, reflected, atmosphere)")
+        return (
+            "dji: dirp curve, corrected (emissivity, reflected)"
+            if info.get("format_dji") == "dirp"
+            else "dji: corrected (emissivity, reflected, atmosphere)"
+        )
     if decoder == "approximate":
         return "approximate: " + dji_approximate.describe(info["approximate"])
     if decoder == "converter":
         conv = info.get("converter", {})
-        return ("converter: DJI Thermal SDK dji_irp" if conv.get("converter") == dji_converter.DJI_IRP
-                else "converter: user command")
+        return (
+            "converter: DJI Thermal SDK dji_irp"
+            if conv.get("converter") == dji_converter.DJI_IRP
+            else "converter: user command"
+        )
     note = info.get("decoder_note")
     return f"blackbody raw14/16-273.15, uncorrected{' (' + note + ')' if note else ''}"
 
@@ -643,35 +760,58 @@ def route_meta(info: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def rjpeg_temperature(rj: RJpeg, overrides: Mapping[str, float | None] | None = None
-                      ) -> tuple[np.ndarray, dict[str, Any]]:
+def rjpeg_temperature(
+    rj: RJpeg, overrides: Mapping[str, float | None] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     """(temperature C float32, info) of a read R-JPEG by its route (``rj.decoder``), with measurement
     ``overrides`` for the corrected, approximate and converter routes; overrides on a blackbody-route file are a
     ``DataError``. ``info`` as ``read_thermal`` documents it, plus ``route`` (``route_label``)."""
     over = {k: v for k, v in dict(overrides or {}).items() if v is not None}
-    info: dict[str, Any] = {"format": "rjpeg", "format_dji": rj.fmt, "decoder": rj.decoder, "params": dict(rj.params),
-                            "exif": rj.exif, "header": rj.header, "nodata": 0}
+    info: dict[str, Any] = {
+        "format": "rjpeg",
+        "format_dji": rj.fmt,
+        "decoder": rj.decoder,
+        "params": dict(rj.params),
+        "exif": rj.exif,
+        "header": rj.header,
+        "nodata": 0,
+    }
     if rj.decoder == "dji":
         temp = rj.corrected_c(**over)
         table = rj.dirp if rj.dirp is not None else rj.tau_table
-        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32",
-                    correction={**rj.correction_params(**over), **table.summary()})  # type: ignore[union-attr]
+        info.update(
+            unit="celsius",
+            scale=1.0,
+            offset=0.0,
+            dtype="float32",
+            correction={**rj.correction_params(**over), **table.summary()},
+        )  # type: ignore[union-attr]
     elif rj.decoder == "approximate":
         temp, record = rj.approximate_c(**over)
-        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32", decoder_note=rj.decoder_note,
-                    approximate=record,
-                    correction={**rj.correction_params(**over), **rj.tau_table.summary()})  # type: ignore[union-attr]
+        info.update(
+            unit="celsius",
+            scale=1.0,
+            offset=0.0,
+            dtype="float32",
+            decoder_note=rj.decoder_note,
+            approximate=record,
+            correction={**rj.correction_params(**over), **rj.tau_table.summary()},
+        )  # type: ignore[union-attr]
     elif rj.decoder == "converter":
         temp, record = rj.converted_c(**over)
-        info.update(unit="celsius", scale=1.0, offset=0.0, dtype="float32", decoder_note=rj.decoder_note,
-                    converter=record)
+        info.update(
+            unit="celsius", scale=1.0, offset=0.0, dtype="float32", decoder_note=rj.decoder_note, converter=record
+        )
     else:
         if over:
-            raise DataError(f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file "
-                            f"is read by the blackbody route ({rj.decoder_note or 'decoder blackbody'}), which uses "
-                            "none")
-        info.update(unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16",
-                    decoder_note=rj.decoder_note)
+            raise DataError(
+                f"{rj.path}: measurement parameters {', '.join(sorted(over))} were given, but the file "
+                f"is read by the blackbody route ({rj.decoder_note or 'decoder blackbody'}), which uses "
+                "none"
+            )
+        info.update(
+            unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16", decoder_note=rj.decoder_note
+        )
         temp = rj.blackbody_c()
     missing = ~np.isfinite(temp)
     if missing.any():  # the converter's "not measured", or temperatures above an approximation's measured range
@@ -683,9 +823,13 @@ def rjpeg_temperature(rj: RJpeg, overrides: Mapping[str, float | None] | None = 
     return temp, info
 
 
-def read_thermal(path: str | Path, decoder: str = "auto",
-                 overrides: Mapping[str, float | None] | None = None, approximate: bool = False,
-                 converter: dji_converter.Converter | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+def read_thermal(
+    path: str | Path,
+    decoder: str = "auto",
+    overrides: Mapping[str, float | None] | None = None,
+    approximate: bool = False,
+    converter: dji_converter.Converter | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Temperature in C (float32 HxW) and an info dict, from any supported thermal file.
 
     * ``.jpg``/``.jpeg``: a DJI R-JPEG (``read_rjpeg(path, decoder, approximate, converter)``): DJI's corrected
@@ -723,12 +867,16 @@ def read_thermal(path: str | Path, decoder: str = "auto",
         elif unit in UNITS:
             scale, offset = UNITS[unit]
         else:
-            raise DataError(f"{side['_path']}: unknown unit {unit!r}; use one of {', '.join(UNITS)} "
-                            "or give 'scale' and 'offset' (C = value * scale + offset)")
+            raise DataError(
+                f"{side['_path']}: unknown unit {unit!r}; use one of {', '.join(UNITS)} "
+                "or give 'scale' and 'offset' (C = value * scale + offset)"
+            )
     else:
         if dtype not in DEFAULT_UNIT:
-            raise DataError(f"{path}: {dtype} image without a sidecar: an 8-bit or colour image carries no "
-                            f"temperatures; write {sidecar_path(path).name} with its 'unit' if it does")
+            raise DataError(
+                f"{path}: {dtype} image without a sidecar: an 8-bit or colour image carries no "
+                f"temperatures; write {sidecar_path(path).name} with its 'unit' if it does"
+            )
         unit = DEFAULT_UNIT[dtype]
         scale, offset = UNITS[unit]
     temp = (arr.astype(np.float64) * scale + offset).astype(np.float32)
@@ -753,17 +901,33 @@ def read_thermal(path: str | Path, decoder: str = "auto",
     else:
         lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
         if lo < PLAUSIBLE_C[0] or hi > PLAUSIBLE_C[1]:
-            raise DataError(f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
-                            f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'")
-    info = {"format": suffix.lstrip("."), "unit": unit, "scale": scale, "offset": offset, "dtype": dtype,
-            "params": dict(side.get("params", {})) if side else {}, "nodata": nodata, "missing": int(missing.sum()),
-            **({"implausible": implausible} if implausible else {}),
-            "sidecar": side.get("_path") if side else None, **sidecar_route(side)}
+            raise DataError(
+                f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
+                f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'"
+            )
+    info = {
+        "format": suffix.lstrip("."),
+        "unit": unit,
+        "scale": scale,
+        "offset": offset,
+        "dtype": dtype,
+        "params": dict(side.get("params", {})) if side else {},
+        "nodata": nodata,
+        "missing": int(missing.sum()),
+        **({"implausible": implausible} if implausible else {}),
+        "sidecar": side.get("_path") if side else None,
+        **sidecar_route(side),
+    }
     return temp, info
 
 
-def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "centikelvin",
-                  params: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None) -> Path:
+def write_thermal(
+    path: str | Path,
+    temperature_c: np.ndarray,
+    unit: str = "centikelvin",
+    params: Mapping[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> Path:
     """Write a temperature map (C) as ``path`` (.png, .tif/.tiff or .npy) in ``unit``, plus its sidecar.
 
     ``centikelvin``: uint16 ``round((T + 273.15) * 100)``; ``decicelsius``: int16 ``round(T * 10)`` (TIFF or
@@ -820,9 +984,17 @@ def write_thermal(path: str | Path, temperature_c: np.ndarray, unit: str = "cent
     from harness import __version__
     from harness.io import atomic_write_json, nan_to_none
 
-    sidecar = {"unit": unit, "scale": scale, "offset": offset, "dtype": dtype.name, "shape": list(arr.shape),
-               "formula": "C = value * scale + offset", "params": dict(params or {}),
-               "writer": f"rgbt-harness {__version__}", **dict(extra or {})}
+    sidecar = {
+        "unit": unit,
+        "scale": scale,
+        "offset": offset,
+        "dtype": dtype.name,
+        "shape": list(arr.shape),
+        "formula": "C = value * scale + offset",
+        "params": dict(params or {}),
+        "writer": f"rgbt-harness {__version__}",
+        **dict(extra or {}),
+    }
     if n_missing:
         sidecar.update({"nodata": nodata, "missing": n_missing} if nodata is not None else {"missing": n_missing})
     atomic_write_json(sidecar_path(path), nan_to_none(sidecar))  # strict JSON: a non-finite number is null

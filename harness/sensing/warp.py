@@ -33,14 +33,24 @@ def _linear_scale(H: np.ndarray, at: tuple[float, float]) -> float:
     den = Hi[2, 0] * u + Hi[2, 1] * v + Hi[2, 2]
     x = (Hi[0, 0] * u + Hi[0, 1] * v + Hi[0, 2]) / den
     y = (Hi[1, 0] * u + Hi[1, 1] * v + Hi[1, 2]) / den
-    J = np.array([[Hi[0, 0] - x * Hi[2, 0], Hi[0, 1] - x * Hi[2, 1]],
-                  [Hi[1, 0] - y * Hi[2, 0], Hi[1, 1] - y * Hi[2, 1]]]) / den
+    J = (
+        np.array(
+            [[Hi[0, 0] - x * Hi[2, 0], Hi[0, 1] - x * Hi[2, 1]], [Hi[1, 0] - y * Hi[2, 0], Hi[1, 1] - y * Hi[2, 1]]]
+        )
+        / den
+    )
     det = abs(np.linalg.det(J))
     return 1.0 / math.sqrt(det) if det > 0 else 1.0
 
 
-def warp_to_thermal(rgb: np.ndarray, H: np.ndarray, thermal_shape: tuple[int, int], interpolation: str = "linear",
-                    antialias: bool = True, fill: str = "zero") -> tuple[np.ndarray, np.ndarray]:
+def warp_to_thermal(
+    rgb: np.ndarray,
+    H: np.ndarray,
+    thermal_shape: tuple[int, int],
+    interpolation: str = "linear",
+    antialias: bool = True,
+    fill: str = "zero",
+) -> tuple[np.ndarray, np.ndarray]:
     """Warp ``rgb`` (HxW or HxWx3, any dtype) into the thermal frame of shape ``(h, w)``.
 
     Each thermal pixel ``u`` samples the RGB image at ``H^-1 u``. Returns ``(warped, valid_mask)``: pixels whose
@@ -62,7 +72,7 @@ def warp_to_thermal(rgb: np.ndarray, H: np.ndarray, thermal_shape: tuple[int, in
             H = H @ np.diag([2.0, 2.0, 1.0])  # rgb(p) with p = 2 p' in the halved image
             factor /= 2.0
         if factor > 1.25:
-            sigma = 0.5 * math.sqrt(factor ** 2 - 1.0)
+            sigma = 0.5 * math.sqrt(factor**2 - 1.0)
             src = cv2.GaussianBlur(src, (0, 0), sigma, borderType=cv2.BORDER_REFLECT_101)
     sh, sw = src.shape[:2]
     mx, my, den = _source_coords(H, (h, w))
@@ -114,8 +124,13 @@ def common_support_box(valid_mask: np.ndarray) -> tuple[int, int, int, int]:
     return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
-def transform_boxes(boxes: np.ndarray, H: np.ndarray | None, origin: tuple[float, float] = (0.0, 0.0),
-                    size: tuple[int, int] | None = None, min_size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def transform_boxes(
+    boxes: np.ndarray,
+    H: np.ndarray | None,
+    origin: tuple[float, float] = (0.0, 0.0),
+    size: tuple[int, int] | None = None,
+    min_size: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Map boxes (N x 4 xyxy) through ``H``, shift by ``-origin``, clip to ``size = (w, h)``, drop degenerate ones.
 
     For each box the four corners go through ``H`` (centre-coordinate convention, see the module docstring),
@@ -144,8 +159,12 @@ def transform_boxes(boxes: np.ndarray, H: np.ndarray | None, origin: tuple[float
         w, h = size
         out[:, [0, 2]] = np.clip(out[:, [0, 2]], 0, w)
         out[:, [1, 3]] = np.clip(out[:, [1, 3]], 0, h)
-    keep = finite & np.isfinite(out).all(axis=1) & ((out[:, 2] - out[:, 0]) >= min_size) & \
-        ((out[:, 3] - out[:, 1]) >= min_size)
+    keep = (
+        finite
+        & np.isfinite(out).all(axis=1)
+        & ((out[:, 2] - out[:, 0]) >= min_size)
+        & ((out[:, 3] - out[:, 1]) >= min_size)
+    )
     return out[keep].astype(np.float32), keep
 
 
@@ -175,23 +194,45 @@ class AlignedPair:
         return float(self.valid.mean()) if self.valid.size else 0.0
 
     def meta(self) -> dict[str, Any]:
-        out = {"crop_origin": list(self.origin), "crop_size": list(self.size), "H_rgb_to_frame": self.H.tolist(),
-               "support_fraction": round(self.support_fraction, 6), "boxes_dropped": self.dropped}
+        out = {
+            "crop_origin": list(self.origin),
+            "crop_size": list(self.size),
+            "H_rgb_to_frame": self.H.tolist(),
+            "support_fraction": round(self.support_fraction, 6),
+            "boxes_dropped": self.dropped,
+        }
         if self.cameras:
             out["cameras"] = self.cameras
         return out
 
     def to_sample(self, image_id: int, group: str, meta: dict[str, Any] | None = None) -> AlignedSample:
         """An ``AlignedSample`` with the alignment's provenance merged into ``meta``."""
-        return AlignedSample(image_id=int(image_id), rgb=self.rgb, thermal=self.thermal, ir8=self.ir8,
-                             boxes=self.boxes, labels=self.labels, group=group,
-                             meta={**self.meta(), **dict(meta or {})})
+        return AlignedSample(
+            image_id=int(image_id),
+            rgb=self.rgb,
+            thermal=self.thermal,
+            ir8=self.ir8,
+            boxes=self.boxes,
+            labels=self.labels,
+            group=group,
+            meta={**self.meta(), **dict(meta or {})},
+        )
 
 
-def align_pair(rgb: np.ndarray, thermal: np.ndarray | None, ir8: np.ndarray, boxes: np.ndarray, labels: np.ndarray,
-               H: np.ndarray, boxes_frame: str = "thermal", thermal_valid: np.ndarray | None = None,
-               crop: bool = True, min_box_size: float = 1.0, interpolation: str = "linear",
-               antialias: bool = True) -> AlignedPair:
+def align_pair(
+    rgb: np.ndarray,
+    thermal: np.ndarray | None,
+    ir8: np.ndarray,
+    boxes: np.ndarray,
+    labels: np.ndarray,
+    H: np.ndarray,
+    boxes_frame: str = "thermal",
+    thermal_valid: np.ndarray | None = None,
+    crop: bool = True,
+    min_box_size: float = 1.0,
+    interpolation: str = "linear",
+    antialias: bool = True,
+) -> AlignedPair:
     """Register one capture: RGB warped into the thermal frame, both cropped to the common support, boxes moved.
 
     ``rgb`` uint8 HxWx3 (RGB order, its own resolution); ``thermal`` float32 temperature map in C (or None for
@@ -227,6 +268,11 @@ def align_pair(rgb: np.ndarray, thermal: np.ndarray | None, ir8: np.ndarray, box
         rgb=np.ascontiguousarray(warped[y0:y1, x0:x1]),
         thermal=None if thermal is None else np.ascontiguousarray(thermal[y0:y1, x0:x1], dtype=np.float32),
         ir8=np.ascontiguousarray(ir8[y0:y1, x0:x1]),
-        boxes=out_boxes, labels=labels[keep], origin=(x0, y0), size=size,
-        valid=valid[y0:y1, x0:x1], kept=keep, H=T @ H,
+        boxes=out_boxes,
+        labels=labels[keep],
+        origin=(x0, y0),
+        size=size,
+        valid=valid[y0:y1, x0:x1],
+        kept=keep,
+        H=T @ H,
     )

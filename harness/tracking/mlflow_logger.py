@@ -43,8 +43,10 @@ class MLflowLogger:
 
             missing = [m for m in ("sqlalchemy", "alembic") if importlib.util.find_spec(m) is None]
             if missing:
-                raise RuntimeError(f"the SQLite store {self.uri} needs {', '.join(missing)}; pip install "
-                                   f"'rgbt-harness[mlflow]', or give a server as tracking.mlflow_uri")
+                raise RuntimeError(
+                    f"the SQLite store {self.uri} needs {', '.join(missing)}; pip install "
+                    f"'rgbt-harness[mlflow]', or give a server as tracking.mlflow_uri"
+                )
         self.client: Any = None
         self.run_id: str | None = None
         self.step = 0
@@ -73,12 +75,15 @@ class MLflowLogger:
         if self.uri.startswith("sqlite:"):
             self.options.store.mkdir(parents=True, exist_ok=True)
         self.client = MlflowClient(tracking_uri=self.uri)
-        run = self.client.create_run(self._experiment(), run_name=name,
-                                     tags={"harness.kind": self.options.group, **{k: str(v) for k, v in tags.items()}})
+        run = self.client.create_run(
+            self._experiment(),
+            run_name=name,
+            tags={"harness.kind": self.options.group, **{k: str(v) for k, v in tags.items()}},
+        )
         self.run_id = run.info.run_id
         items = [Param(k, str(v)[:MAX_PARAM_CHARS]) for k, v in params.items()]
         for i in range(0, len(items), BATCH):
-            self.client.log_batch(self.run_id, params=items[i:i + BATCH])
+            self.client.log_batch(self.run_id, params=items[i : i + BATCH])
         self.client.log_batch(self.run_id, tags=[RunTag("harness.uri", self.uri)])
 
     def _metrics(self, metrics: Mapping[str, float], step: int) -> None:
@@ -87,7 +92,7 @@ class MLflowLogger:
         now = int(time.time() * 1000)
         items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
         for i in range(0, len(items), BATCH):
-            self.client.log_batch(self.run_id, metrics=items[i:i + BATCH])
+            self.client.log_batch(self.run_id, metrics=items[i : i + BATCH])
 
     def log_epoch(self, step: int, metrics: Mapping[str, float]) -> None:
         self.step = int(step)
@@ -107,6 +112,13 @@ class MLflowLogger:
 
 @hookimpl
 def register_loggers(register):
-    register(LoggerSpec(name="mlflow", create=MLflowLogger, requires=("mlflow",),
-                        extra="mlflow", description="MLflow runs (local sqlite:///<store>/mlflow.db unless "
-                                                    "tracking.mlflow_uri / MLFLOW_TRACKING_URI)"))
+    register(
+        LoggerSpec(
+            name="mlflow",
+            create=MLflowLogger,
+            requires=("mlflow",),
+            extra="mlflow",
+            description="MLflow runs (local sqlite:///<store>/mlflow.db unless "
+            "tracking.mlflow_uri / MLFLOW_TRACKING_URI)",
+        )
+    )

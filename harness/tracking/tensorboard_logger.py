@@ -63,5 +63,12 @@ class TensorBoardLogger:
 
 @hookimpl
 def register_loggers(register):
-    register(LoggerSpec(name="tensorboard", create=TensorBoardLogger, requires=("tensorboard",), extra="tensorboard",
-                        description="TensorBoard event files under <store>/tensorboard (tracking.tensorboard_dir)"))
+    register(
+        LoggerSpec(
+            name="tensorboard",
+            create=TensorBoardLogger,
+            requires=("tensorboard",),
+            extra="tensorboard",
+            description="TensorBoard event files under <store>/tensorboard (tracking.tensorboard_dir)",
+        )
+    )

@@ -20,8 +20,17 @@ def autopad(k: int, p: int | None = None, d: int = 1) -> int:
 class Conv(nn.Module):
     """Conv2d (no bias) -> BatchNorm2d -> SiLU. After ``fuse()`` the BN is folded into a biased conv."""
 
-    def __init__(self, c1: int, c2: int, k: int = 1, s: int = 1, p: int | None = None, g: int = 1, d: int = 1,
-                 act: bool | nn.Module = True):
+    def __init__(
+        self,
+        c1: int,
+        c2: int,
+        k: int = 1,
+        s: int = 1,
+        p: int | None = None,
+        g: int = 1,
+        d: int = 1,
+        act: bool | nn.Module = True,
+    ):
         super().__init__()
         self.conv = nn.Conv2d(c1, c2, k, s, autopad(k, p, d), groups=g, dilation=d, bias=False)
         self.bn = nn.BatchNorm2d(c2, eps=BN_EPS, momentum=BN_MOMENTUM)
@@ -42,8 +51,16 @@ class Conv(nn.Module):
 
 def fuse_conv_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
     """Fold an inference-mode BatchNorm into the preceding convolution: w' = w * g / s, b' = beta + (b - mu) * g / s."""
-    fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
-                      dilation=conv.dilation, groups=conv.groups, bias=True).to(conv.weight.device, conv.weight.dtype)
+    fused = nn.Conv2d(
+        conv.in_channels,
+        conv.out_channels,
+        conv.kernel_size,
+        conv.stride,
+        conv.padding,
+        dilation=conv.dilation,
+        groups=conv.groups,
+        bias=True,
+    ).to(conv.weight.device, conv.weight.dtype)
     scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
     fused.weight.data.copy_(conv.weight.detach() * scale.view(-1, 1, 1, 1))
     bias = conv.bias.detach() if conv.bias is not None else torch.zeros_like(bn.running_mean)
@@ -143,9 +160,15 @@ def pool_in_channels_last(x: torch.Tensor) -> bool:
     compiling (an exported graph keeps the plain pools), and not for a tensor already channels-last
     (``train.channels_last``).
     """
-    return (x.device.type == "cpu" and x.dim() == 4 and x.is_contiguous()
-            and not x.is_contiguous(memory_format=torch.channels_last)
-            and not torch.jit.is_tracing() and not torch.jit.is_scripting() and not torch.compiler.is_compiling())
+    return (
+        x.device.type == "cpu"
+        and x.dim() == 4
+        and x.is_contiguous()
+        and not x.is_contiguous(memory_format=torch.channels_last)
+        and not torch.jit.is_tracing()
+        and not torch.jit.is_scripting()
+        and not torch.compiler.is_compiling()
+    )
 
 
 class Concat(nn.Module):

@@ -25,16 +25,20 @@ from harness.boxes import bbox_iou
 from harness.errors import HarnessError
 
 
-def make_anchors(maps: Sequence[torch.Tensor], strides: Sequence[float],
-                 offset: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+def make_anchors(
+    maps: Sequence[torch.Tensor], strides: Sequence[float], offset: float = 0.5
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Anchor points at cell centres, in grid units of each level ``[A, 2]`` (x, y), and each point's stride
     ``[A, 1]``; levels are concatenated in order, each row-major (y outer, x inner)."""
     points, stride_col = [], []
     dtype, device = maps[0].dtype, maps[0].device
     for m, s in zip(maps, strides):
         h, w = m.shape[-2:]
-        sy, sx = torch.meshgrid(torch.arange(h, device=device, dtype=dtype) + offset,
-                                torch.arange(w, device=device, dtype=dtype) + offset, indexing="ij")
+        sy, sx = torch.meshgrid(
+            torch.arange(h, device=device, dtype=dtype) + offset,
+            torch.arange(w, device=device, dtype=dtype) + offset,
+            indexing="ij",
+        )
         points.append(torch.stack((sx, sy), -1).reshape(-1, 2))
         stride_col.append(torch.full((h * w, 1), float(s), dtype=dtype, device=device))
     return torch.cat(points), torch.cat(stride_col)
@@ -67,12 +71,15 @@ def dfl_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     right = left + 1
     w_left = right.to(target.dtype) - target
     w_right = 1 - w_left
-    return (F.cross_entropy(logits, left, reduction="none") * w_left
-            + F.cross_entropy(logits, right, reduction="none") * w_right)
+    return (
+        F.cross_entropy(logits, left, reduction="none") * w_left
+        + F.cross_entropy(logits, right, reduction="none") * w_right
+    )
 
 
-def pad_targets(targets: Sequence[dict[str, torch.Tensor]], batch: int, nc: int,
-                device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def pad_targets(
+    targets: Sequence[dict[str, torch.Tensor]], batch: int, nc: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-image ``{"boxes" [N,4] xyxy, "labels" [N]}`` -> padded ``boxes [B,M,4]``, ``labels [B,M]``,
     ``mask [B,M]``."""
     if not isinstance(targets, (list, tuple)) or len(targets) != batch:
@@ -115,8 +122,18 @@ def pad_targets(targets: Sequence[dict[str, torch.Tensor]], batch: int, nc: int,
 class V8DetectionLoss:
     """Loss of the YOLOv8 detector; ``strides`` is set by the model (its computed output strides)."""
 
-    def __init__(self, nc: int, reg_max: int = 16, box: float = 7.5, cls: float = 0.5, dfl: float = 1.5,
-                 topk: int = 10, alpha: float = 0.5, beta: float = 6.0, assign_min_side: float = 0.0):
+    def __init__(
+        self,
+        nc: int,
+        reg_max: int = 16,
+        box: float = 7.5,
+        cls: float = 0.5,
+        dfl: float = 1.5,
+        topk: int = 10,
+        alpha: float = 0.5,
+        beta: float = 6.0,
+        assign_min_side: float = 0.0,
+    ):
         self.nc = nc
         self.reg_max = reg_max
         self.gains = {"box": box, "cls": cls, "dfl": dfl}
@@ -144,8 +161,14 @@ class V8DetectionLoss:
         gt_boxes, gt_labels, gt_mask = pad_targets(targets, b, self.nc, flat.device)
         pred_boxes = dist2bbox(dfl_expectation(pred_dist, self.reg_max), points)  # grid units
         with torch.no_grad():
-            assigned = self.assigner(pred_logits.detach().sigmoid(), pred_boxes.detach() * stride_col,
-                                     points * stride_col, gt_labels, gt_boxes, gt_mask)
+            assigned = self.assigner(
+                pred_logits.detach().sigmoid(),
+                pred_boxes.detach() * stride_col,
+                points * stride_col,
+                gt_labels,
+                gt_boxes,
+                gt_mask,
+            )
         target_sum = assigned.scores.sum().clamp(min=1)
 
         loss_cls = F.binary_cross_entropy_with_logits(pred_logits, assigned.scores, reduction="sum") / target_sum

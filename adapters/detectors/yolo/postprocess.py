@@ -22,8 +22,9 @@ def clip_boxes(boxes: torch.Tensor, image_hw: tuple[int, int]) -> torch.Tensor:
     return out
 
 
-def select_candidates(scores: torch.Tensor, conf: float,
-                      multi_label: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def select_candidates(
+    scores: torch.Tensor, conf: float, multi_label: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``[A, C]`` probabilities -> (anchor index, class index, score) of every candidate above ``conf``."""
     if multi_label:
         anchor, label = torch.nonzero(scores > conf, as_tuple=True)
@@ -33,9 +34,16 @@ def select_candidates(scores: torch.Tensor, conf: float,
     return anchor, label[anchor], best[anchor]
 
 
-def postprocess(boxes: torch.Tensor, scores: torch.Tensor, conf: float = 0.001, iou: float = 0.7, max_det: int = 300,
-                multi_label: bool = True, max_nms: int = 30000,
-                image_hw: tuple[int, int] | None = None) -> list[dict[str, torch.Tensor]]:
+def postprocess(
+    boxes: torch.Tensor,
+    scores: torch.Tensor,
+    conf: float = 0.001,
+    iou: float = 0.7,
+    max_det: int = 300,
+    multi_label: bool = True,
+    max_nms: int = 30000,
+    image_hw: tuple[int, int] | None = None,
+) -> list[dict[str, torch.Tensor]]:
     """``boxes [B, A, 4]`` xyxy pixels, ``scores [B, A, C]`` probabilities -> per image ``{"boxes" [K,4],
     "scores" [K], "labels" [K] int64}`` sorted by decreasing score, ``K <= max_det``."""
     out = []

@@ -37,8 +37,9 @@ class Assignment:
     gt_index: torch.Tensor  # [B, A] int64 (meaningful where fg_mask)
 
 
-def anchors_inside_boxes(points: torch.Tensor, gt_boxes: torch.Tensor, eps: float = 1e-9,
-                         min_side: float = 0.0) -> torch.Tensor:
+def anchors_inside_boxes(
+    points: torch.Tensor, gt_boxes: torch.Tensor, eps: float = 1e-9, min_side: float = 0.0
+) -> torch.Tensor:
     """``[A, 2]`` points and ``[B, M, 4]`` xyxy boxes -> ``[B, M, A]`` True where the point is strictly inside.
 
     ``min_side > 0`` widens, for this test only, every box side shorter than ``min_side`` to ``min_side`` about the
@@ -58,8 +59,15 @@ def anchors_inside_boxes(points: torch.Tensor, gt_boxes: torch.Tensor, eps: floa
 class TaskAlignedAssigner:
     """Batched task-aligned assigner (no parameters; call it under ``torch.no_grad``)."""
 
-    def __init__(self, num_classes: int, topk: int = 10, alpha: float = 0.5, beta: float = 6.0, eps: float = 1e-9,
-                 min_side: float = 0.0):
+    def __init__(
+        self,
+        num_classes: int,
+        topk: int = 10,
+        alpha: float = 0.5,
+        beta: float = 6.0,
+        eps: float = 1e-9,
+        min_side: float = 0.0,
+    ):
         self.num_classes = num_classes
         self.min_side = min_side
         self.topk = topk
@@ -68,8 +76,15 @@ class TaskAlignedAssigner:
         self.eps = eps
 
     @torch.no_grad()
-    def __call__(self, pd_scores: torch.Tensor, pd_boxes: torch.Tensor, anchor_points: torch.Tensor,
-                 gt_labels: torch.Tensor, gt_boxes: torch.Tensor, gt_mask: torch.Tensor) -> Assignment:
+    def __call__(
+        self,
+        pd_scores: torch.Tensor,
+        pd_boxes: torch.Tensor,
+        anchor_points: torch.Tensor,
+        gt_labels: torch.Tensor,
+        gt_boxes: torch.Tensor,
+        gt_mask: torch.Tensor,
+    ) -> Assignment:
         """
         pd_scores ``[B, A, C]`` class probabilities; pd_boxes ``[B, A, 4]`` predicted xyxy; anchor_points ``[A, 2]``
         (same units as the boxes, pixels here); gt_labels ``[B, M]`` int64; gt_boxes ``[B, M, 4]`` xyxy; gt_mask

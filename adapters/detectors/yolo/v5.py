@@ -52,7 +52,12 @@ ANCHORS_P3_P5: tuple[tuple[int, ...], ...] = (
 STRIDES: tuple[int, int, int] = (8, 16, 32)
 #: YOLOv5 size presets: (depth multiple, width multiple).
 SCALES: dict[str, tuple[float, float]] = {
-    "n": (0.33, 0.25), "s": (0.33, 0.50), "m": (0.67, 0.75), "l": (1.0, 1.0), "x": (1.33, 1.25)}
+    "n": (0.33, 0.25),
+    "s": (0.33, 0.50),
+    "m": (0.67, 0.75),
+    "l": (1.0, 1.0),
+    "x": (1.33, 1.25),
+}
 #: Backbone layers whose outputs feed the neck (P3, P4); P5 is the last layer.
 BACKBONE_TAPS = (4, 6)
 
@@ -106,9 +111,9 @@ def run_backbone(layers: Sequence[nn.Module], x: torch.Tensor) -> tuple[torch.Te
     return taps[0], taps[1], x
 
 
-def run_two_backbones(rgb_layers: Sequence[nn.Module], thermal_layers: Sequence[nn.Module], inputs: Any, name: str
-                      ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-                                 tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+def run_two_backbones(
+    rgb_layers: Sequence[nn.Module], thermal_layers: Sequence[nn.Module], inputs: Any, name: str
+) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
     """A two-stream detector's start: ``(rgb, thermal)`` from ``inputs`` (``as_pair``, size checked), each through
     its own backbone; returns (P3, P4, P5) of the visible stream and of the thermal stream."""
     rgb, thermal = as_pair(inputs, name)
@@ -139,13 +144,14 @@ def pan_layers(width: float = 1.0, depth: float = 1.0) -> list[nn.Module]:
     ]
 
 
-def run_pan(layers: Sequence[nn.Module], p3: torch.Tensor, p4: torch.Tensor, p5: torch.Tensor
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def run_pan(
+    layers: Sequence[nn.Module], p3: torch.Tensor, p4: torch.Tensor, p5: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Top-down then bottom-up path; returns the three detection maps (P3 out, P4 out, P5 out)."""
-    lat5 = layers[0](p5)                                   # 10
-    x = layers[3](layers[2]([layers[1](lat5), p4]))        # 11-13
-    lat4 = layers[4](x)                                    # 14
-    out3 = layers[7](layers[6]([layers[5](lat4), p3]))     # 15-17
+    lat5 = layers[0](p5)  # 10
+    x = layers[3](layers[2]([layers[1](lat5), p4]))  # 11-13
+    lat4 = layers[4](x)  # 14
+    out3 = layers[7](layers[6]([layers[5](lat4), p3]))  # 15-17
     out4 = layers[10](layers[9]([layers[8](out3), lat4]))  # 18-20
     out5 = layers[13](layers[12]([layers[11](out4), lat5]))  # 21-23
     return out3, out4, out5
@@ -160,8 +166,14 @@ class Detect(nn.Module):
     later keep only ``anchors``. ``stride`` is a non-persistent buffer (not part of official checkpoints).
     """
 
-    def __init__(self, nc: int, ch: Sequence[int], anchors: Sequence[Sequence[float]] = ANCHORS_P3_P5,
-                 strides: Sequence[int] = STRIDES, anchor_grid_buffer: bool = False):
+    def __init__(
+        self,
+        nc: int,
+        ch: Sequence[int],
+        anchors: Sequence[Sequence[float]] = ANCHORS_P3_P5,
+        strides: Sequence[int] = STRIDES,
+        anchor_grid_buffer: bool = False,
+    ):
         super().__init__()
         if len(anchors) != len(ch) or len(strides) != len(ch):
             raise HarnessError(
@@ -200,8 +212,11 @@ class Detect(nn.Module):
         out = []
         for i, p in enumerate(raw):
             b, na, ny, nx, no = p.shape
-            gy, gx = torch.meshgrid(torch.arange(ny, device=p.device, dtype=p.dtype),
-                                    torch.arange(nx, device=p.device, dtype=p.dtype), indexing="ij")
+            gy, gx = torch.meshgrid(
+                torch.arange(ny, device=p.device, dtype=p.dtype),
+                torch.arange(nx, device=p.device, dtype=p.dtype),
+                indexing="ij",
+            )
             cell = torch.stack((gx, gy), -1).view(1, 1, ny, nx, 2)
             s = p.sigmoid()
             xy = (s[..., :2] * 2.0 - 0.5 + cell) * self.stride[i]
@@ -215,13 +230,19 @@ class Detect(nn.Module):
         for conv, s in zip(self.m, self.strides):
             b = conv.bias.view(self.na, -1)
             b[:, 4] += math.log(8.0 / (image_size / s) ** 2)
-            b[:, 5:5 + self.nc] += math.log(0.6 / (self.nc - 0.99999))
+            b[:, 5 : 5 + self.nc] += math.log(0.6 / (self.nc - 0.99999))
 
 
 # ------------------------------------------------------------------------------------------------ NMS
-def postprocess(pred: torch.Tensor, conf: float = 0.001, iou: float = 0.6, max_det: int = 300,
-                multi_label: bool = True, max_nms: int = 30000,
-                image_size: tuple[int, int] | None = None) -> list[dict[str, torch.Tensor]]:
+def postprocess(
+    pred: torch.Tensor,
+    conf: float = 0.001,
+    iou: float = 0.6,
+    max_det: int = 300,
+    multi_label: bool = True,
+    max_nms: int = 30000,
+    image_size: tuple[int, int] | None = None,
+) -> list[dict[str, torch.Tensor]]:
     """YOLOv5 non-maximum suppression of decoded predictions ``[B, N, 5 + nc]`` (cxcywh pixels, obj, classes).
 
     A class score is obj * cls; a (box, class) pair is a candidate when its score exceeds ``conf`` (which implies
@@ -242,15 +263,19 @@ def as_pair(inputs: Any, name: str, rgb_channels: int = 3) -> tuple[torch.Tensor
     """``(rgb, thermal)`` from a tuple or from one stacked tensor ``[B, 3 + Ct, H, W]``, checked."""
     if isinstance(inputs, torch.Tensor):
         if inputs.dim() != 4 or inputs.shape[1] <= rgb_channels:
-            raise HarnessError(f"detector {name!r}: expected (rgb, thermal) or a stacked [B, 3 + Ct, H, W] tensor, "
-                               f"got a tensor of shape {tuple(inputs.shape)}")
+            raise HarnessError(
+                f"detector {name!r}: expected (rgb, thermal) or a stacked [B, 3 + Ct, H, W] tensor, "
+                f"got a tensor of shape {tuple(inputs.shape)}"
+            )
         return inputs[:, :rgb_channels], inputs[:, rgb_channels:]
     if not isinstance(inputs, (tuple, list)) or len(inputs) != 2:
         raise HarnessError(f"detector {name!r} is dual-stream: pass (rgb [B,3,H,W], thermal [B,Ct,H,W])")
     rgb, thermal = inputs
     if rgb.dim() != 4 or thermal.dim() != 4 or rgb.shape[0] != thermal.shape[0] or rgb.shape[2:] != thermal.shape[2:]:
-        raise HarnessError(f"detector {name!r}: rgb {tuple(rgb.shape)} and thermal {tuple(thermal.shape)} must be "
-                           f"[B, C, H, W] with the same batch size and image size")
+        raise HarnessError(
+            f"detector {name!r}: rgb {tuple(rgb.shape)} and thermal {tuple(thermal.shape)} must be "
+            f"[B, C, H, W] with the same batch size and image size"
+        )
     if rgb.shape[1] != rgb_channels:
         raise HarnessError(f"detector {name!r}: the RGB stream must have {rgb_channels} channels, got {rgb.shape[1]}")
     return rgb, thermal
@@ -258,8 +283,10 @@ def as_pair(inputs: Any, name: str, rgb_channels: int = 3) -> tuple[torch.Tensor
 
 def check_size(h: int, w: int, name: str, multiple: int = 32) -> None:
     if h % multiple or w % multiple:
-        raise HarnessError(f"detector {name!r}: input size {h}x{w} must be a multiple of {multiple} "
-                           f"(letterbox to a multiple of {multiple}, e.g. imgsz 640 or 256)")
+        raise HarnessError(
+            f"detector {name!r}: input size {h}x{w} must be a multiple of {multiple} "
+            f"(letterbox to a multiple of {multiple}, e.g. imgsz 640 or 256)"
+        )
 
 
 def targets_to_tensor(targets: Sequence[Mapping[str, torch.Tensor]], device: torch.device, name: str) -> torch.Tensor:
@@ -331,8 +358,10 @@ class AnchorDetector(nn.Module):
         """Targets as YOLO rows (image, class, cx, cy, w, h), with the labels checked against ``nc``."""
         rows = targets_to_tensor(targets, device, self.name)
         if len(rows) and (rows[:, 1].min() < 0 or rows[:, 1].max() >= self.nc):
-            raise HarnessError(f"detector {self.name!r}: target labels must be 0..{self.nc - 1} (built for "
-                               f"{self.nc} classes), got labels {sorted(set(rows[:, 1].long().tolist()))}")
+            raise HarnessError(
+                f"detector {self.name!r}: target labels must be 0..{self.nc - 1} (built for "
+                f"{self.nc} classes), got labels {sorted(set(rows[:, 1].long().tolist()))}"
+            )
         return rows
 
     def compute_loss(self, inputs: Any, targets: Sequence[Mapping[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -342,8 +371,15 @@ class AnchorDetector(nn.Module):
     @torch.no_grad()
     def predict(self, inputs: Any) -> list[dict[str, torch.Tensor]]:
         raw = self.forward_raw(inputs)
-        return postprocess(self.head.decode(raw), self.conf, self.iou, self.max_det, self.multi_label,
-                           self.max_nms, self.image_size(inputs))
+        return postprocess(
+            self.head.decode(raw),
+            self.conf,
+            self.iou,
+            self.max_det,
+            self.multi_label,
+            self.max_nms,
+            self.image_size(inputs),
+        )
 
     def fuse(self) -> "AnchorDetector":
         """Fold every Conv's BatchNorm (inference only)."""
@@ -373,8 +409,10 @@ def load_state_dict_report(model: nn.Module, state_dict: Mapping[str, Any], name
         )
     own = model.state_dict()
     if any(k.endswith(".bn.weight") for k in sd) and not any(k.endswith(".bn.weight") for k in own):
-        raise HarnessError(f"detector {name!r}: the model's BatchNorm is already folded (fuse()); load weights "
-                           f"into an unfused model, then call fuse()")
+        raise HarnessError(
+            f"detector {name!r}: the model's BatchNorm is already folded (fuse()); load weights "
+            f"into an unfused model, then call fuse()"
+        )
     loaded: dict[str, torch.Tensor] = {}
     mismatched: list[tuple[str, tuple[int, ...], tuple[int, ...]]] = []
     for k, v in sd.items():
@@ -398,8 +436,10 @@ def check_options(name: str, options: Mapping[str, Any], known: Sequence[str]) -
     if unknown:
         from harness.errors import ConfigError
 
-        raise ConfigError(f"detector {name!r}: unknown model option(s) {', '.join(unknown)}; "
-                          f"known: {', '.join(sorted(known))} (config section 'model')")
+        raise ConfigError(
+            f"detector {name!r}: unknown model option(s) {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(known))} (config section 'model')"
+        )
 
 
 def resolve_scale(name: str, scale: str, width: float | None, depth: float | None) -> tuple[float, float]:
@@ -427,8 +467,10 @@ def read_weights(source: Any, name: str) -> Mapping[str, Any]:
         try:
             return load_file(str(path))
         except Exception as exc:  # the library's own errors for a malformed header or truncated data
-            raise HarnessError(f"detector {name!r}: weights file {path}: not a readable safetensors file "
-                               f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+            raise HarnessError(
+                f"detector {name!r}: weights file {path}: not a readable safetensors file "
+                f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})"
+            ) from None
     from harness.weights.unpickle import UnsafeCheckpointError, load_plain
 
     try:
@@ -443,11 +485,21 @@ def read_weights(source: Any, name: str) -> Mapping[str, Any]:
         raise HarnessError(f"detector {name!r}: {exc}") from None
 
 
-def set_inference_options(model: AnchorDetector, conf: float | None = None, iou: float | None = None,
-                          max_det: int | None = None, multi_label: bool | None = None,
-                          max_nms: int | None = None) -> None:
+def set_inference_options(
+    model: AnchorDetector,
+    conf: float | None = None,
+    iou: float | None = None,
+    max_det: int | None = None,
+    multi_label: bool | None = None,
+    max_nms: int | None = None,
+) -> None:
     """Override the NMS attributes the evaluation uses (``None`` keeps the model's default)."""
-    for key, value in (("conf", conf), ("iou", iou), ("max_det", max_det), ("multi_label", multi_label),
-                       ("max_nms", max_nms)):
+    for key, value in (
+        ("conf", conf),
+        ("iou", iou),
+        ("max_det", max_det),
+        ("multi_label", multi_label),
+        ("max_nms", max_nms),
+    ):
         if value is not None:
             setattr(model, key, value)

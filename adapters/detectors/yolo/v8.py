@@ -83,8 +83,15 @@ LAYERS: tuple[tuple[int | tuple[int, ...], int, str, tuple], ...] = (
 #: public YOLOv8 defaults) and ``assign_min_side``: box sides shorter than this many pixels are widened to it when
 #: choosing candidate anchors (0 = off, the original YOLOv8 rule; recent releases of the public trainer use the
 #: middle stride, 16).
-LOSS_DEFAULTS: dict[str, float] = {"box": 7.5, "cls": 0.5, "dfl": 1.5, "topk": 10, "alpha": 0.5, "beta": 6.0,
-                                   "assign_min_side": 0.0}
+LOSS_DEFAULTS: dict[str, float] = {
+    "box": 7.5,
+    "cls": 0.5,
+    "dfl": 1.5,
+    "topk": 10,
+    "alpha": 0.5,
+    "beta": 6.0,
+    "assign_min_side": 0.0,
+}
 
 
 def make_divisible(x: float, divisor: int = 8) -> int:
@@ -161,9 +168,19 @@ def cls_bias_prior(nc: int, stride: float) -> float:
 class YOLOv8(nn.Module):
     """YOLOv8 detector for ``in_channels``-channel input (``[R, G, B, C2]`` for the seed), ``nc`` classes."""
 
-    def __init__(self, nc: int = 8, in_channels: int = 4, scale: str = "s", reg_max: int = 16, conf: float = 0.001,
-                 iou: float = 0.7, max_det: int = 300, multi_label: bool = True, max_nms: int = 30000,
-                 loss: dict[str, float] | None = None):
+    def __init__(
+        self,
+        nc: int = 8,
+        in_channels: int = 4,
+        scale: str = "s",
+        reg_max: int = 16,
+        conf: float = 0.001,
+        iou: float = 0.7,
+        max_det: int = 300,
+        multi_label: bool = True,
+        max_nms: int = 30000,
+        loss: dict[str, float] | None = None,
+    ):
         super().__init__()
         if scale not in SCALES:
             raise ConfigError(f"model.scale: unknown YOLOv8 scale {scale!r}; use one of {', '.join(SCALES)}")
@@ -306,8 +323,15 @@ class YOLOv8(nn.Module):
 
             h = self.hyp
             self._criterion = V8DetectionLoss(
-                nc=self.nc, reg_max=self.reg_max, box=h["box"], cls=h["cls"], dfl=h["dfl"],
-                topk=int(h["topk"]), alpha=h["alpha"], beta=h["beta"], assign_min_side=h["assign_min_side"],
+                nc=self.nc,
+                reg_max=self.reg_max,
+                box=h["box"],
+                cls=h["cls"],
+                dfl=h["dfl"],
+                topk=int(h["topk"]),
+                alpha=h["alpha"],
+                beta=h["beta"],
+                assign_min_side=h["assign_min_side"],
             )
         self._criterion.strides = self.strides
         return self._criterion
@@ -331,8 +355,16 @@ class YOLOv8(nn.Module):
         from adapters.detectors.yolo.postprocess import postprocess
 
         boxes, scores = self.decode(maps)
-        return postprocess(boxes, scores, conf=self.conf, iou=self.iou, max_det=self.max_det,
-                           multi_label=self.multi_label, max_nms=self.max_nms, image_hw=image_hw)
+        return postprocess(
+            boxes,
+            scores,
+            conf=self.conf,
+            iou=self.iou,
+            max_det=self.max_det,
+            multi_label=self.multi_label,
+            max_nms=self.max_nms,
+            image_hw=image_hw,
+        )
 
     # ------------------------------------------------------------------ inference-time folding
     def fuse(self) -> "YOLOv8":
@@ -344,8 +376,15 @@ class YOLOv8(nn.Module):
         return f"scale={self.scale!r}, in_channels={self.in_channels}, nc={self.nc}, reg_max={self.reg_max}"
 
 
-def build_yolov8(num_classes: int, in_channels: int = 4, scale: str = "s", conf: float = 0.001, iou: float = 0.7,
-                 max_det: int = 300, **kw: Any) -> YOLOv8:
+def build_yolov8(
+    num_classes: int,
+    in_channels: int = 4,
+    scale: str = "s",
+    conf: float = 0.001,
+    iou: float = 0.7,
+    max_det: int = 300,
+    **kw: Any,
+) -> YOLOv8:
     """Build a YOLOv8 model; ``kw`` may hold ``reg_max``, ``multi_label``, ``max_nms`` and the loss options
     ``box``, ``cls``, ``dfl`` (gains), ``topk``, ``alpha``, ``beta`` (assigner)."""
     loss = {k: kw.pop(k) for k in list(kw) if k in LOSS_DEFAULTS}
@@ -356,5 +395,6 @@ def build_yolov8(num_classes: int, in_channels: int = 4, scale: str = "s", conf:
             f"model: unknown YOLOv8 option(s) {sorted(unknown)}; known: "
             f"{sorted(known | set(LOSS_DEFAULTS) | {'scale', 'conf', 'iou', 'max_det'})}"
         )
-    return YOLOv8(nc=num_classes, in_channels=in_channels, scale=scale, conf=conf, iou=iou, max_det=max_det,
-                  loss=loss, **kw)
+    return YOLOv8(
+        nc=num_classes, in_channels=in_channels, scale=scale, conf=conf, iou=iou, max_det=max_det, loss=loss, **kw
+    )

@@ -84,7 +84,7 @@ def unwrap_state_dict(obj: Any, where: str = "state dict") -> dict[str, torch.Te
     for k, v in obj.items():
         if not isinstance(v, torch.Tensor):
             raise HarnessError(f"{where}: entry {k!r} is a {type(v).__name__}, not a tensor")
-        out[k[len("module."):] if k.startswith("module.") else k] = v
+        out[k[len("module.") :] if k.startswith("module.") else k] = v
     return out
 
 
@@ -123,8 +123,9 @@ def inflate_stem(own: torch.Tensor, src: torch.Tensor, mode: str = "zeros") -> t
     return out
 
 
-def load_yolov8_weights(model: nn.Module, state_dict: Mapping[str, Any] | str | Path, extra_channels: str = "zeros",
-                        strict: bool = True) -> dict[str, Any]:
+def load_yolov8_weights(
+    model: nn.Module, state_dict: Mapping[str, Any] | str | Path, extra_channels: str = "zeros", strict: bool = True
+) -> dict[str, Any]:
     """Load public-layout YOLOv8 weights into ``model`` (a ``YOLOv8``); returns a JSON-ready report.
 
     ``strict``: a parameter of the model absent from the checkpoint is an error (otherwise it keeps its init and
@@ -135,8 +136,15 @@ def load_yolov8_weights(model: nn.Module, state_dict: Mapping[str, Any] | str | 
     sd = dict(sd)
     own = model.state_dict()
     eps_of = {n: m.eps for n, m in model.named_modules() if isinstance(m, nn.BatchNorm2d)}
-    report: dict[str, Any] = {"loaded": 0, "fused_source": [], "stem": None, "reinitialised": [], "missing": [],
-                              "unexpected": [], "notes": []}
+    report: dict[str, Any] = {
+        "loaded": 0,
+        "fused_source": [],
+        "stem": None,
+        "reinitialised": [],
+        "missing": [],
+        "unexpected": [],
+        "notes": [],
+    }
     report["fused_source"] = _unfuse(sd, own, eps_of)
 
     head_idx = len(model.model) - 1
@@ -156,8 +164,11 @@ def load_yolov8_weights(model: nn.Module, state_dict: Mapping[str, Any] | str | 
             new_sd[key] = src.to(value.dtype)
         elif key == stem_key and src.dim() == 4 and src.shape[0] == value.shape[0] and src.shape[2:] == value.shape[2:]:
             new_sd[key] = inflate_stem(value, src.to(value.dtype), extra_channels)
-            report["stem"] = {"checkpoint_channels": int(src.shape[1]), "model_channels": int(value.shape[1]),
-                              "extra_channels": extra_channels if value.shape[1] > src.shape[1] else None}
+            report["stem"] = {
+                "checkpoint_channels": int(src.shape[1]),
+                "model_channels": int(value.shape[1]),
+                "extra_channels": extra_channels if value.shape[1] > src.shape[1] else None,
+            }
             if value.shape[1] > src.shape[1]:
                 report["notes"].append(
                     f"stem inflated from {src.shape[1]} to {value.shape[1]} input channels: channels "
@@ -179,8 +190,11 @@ def load_yolov8_weights(model: nn.Module, state_dict: Mapping[str, Any] | str | 
             hint = f" The checkpoint looks like scale {_STEM_WIDTH_TO_SCALE[int(stem.shape[0])]!r}"
             hint += f" and the model is scale {getattr(model, 'scale', '?')!r}: build the model with that scale."
         raise HarnessError(
-            f"{len(mismatched)} tensor(s) of the checkpoint do not fit the model: " + "; ".join(mismatched[:4])
-            + (" ..." if len(mismatched) > 4 else "") + "." + hint
+            f"{len(mismatched)} tensor(s) of the checkpoint do not fit the model: "
+            + "; ".join(mismatched[:4])
+            + (" ..." if len(mismatched) > 4 else "")
+            + "."
+            + hint
         )
     report["unexpected"] = sorted(k for k in sd if k not in own)
     if strict and report["missing"]:
@@ -198,8 +212,11 @@ def load_yolov8_weights(model: nn.Module, state_dict: Mapping[str, Any] | str | 
         report["reinitialised"] = sorted(reinit)
         ck_nc = [int(sd[k].shape[0]) for k in sd if cls_out.match(k)]
         report["checkpoint_nc"] = ck_nc[0] if ck_nc else None
-        layers = "the last layer of every class branch" if all(
-            k.rsplit(".", 2)[-2] == "2" for k in reinit) else "the class branches"
+        layers = (
+            "the last layer of every class branch"
+            if all(k.rsplit(".", 2)[-2] == "2" for k in reinit)
+            else "the class branches"
+        )
         report["notes"].append(
             f"the checkpoint has {report['checkpoint_nc']} classes and the model {model.nc}: {layers} "
             f"re-initialised (default init, prior bias on the class logits)"

@@ -104,14 +104,20 @@ class ExampleFoldersSource:
             if not row:
                 continue
             if len(row) != 5 or row[0] not in CATEGORIES:
-                raise _Skip(f"bad box line {','.join(row)!r}: expected category,x1,y1,x2,y2 with a category in "
-                            f"{', '.join(CATEGORIES)}")
+                raise _Skip(
+                    f"bad box line {','.join(row)!r}: expected category,x1,y1,x2,y2 with a category in "
+                    f"{', '.join(CATEGORIES)}"
+                )
             x1, y1, x2, y2 = np.clip(np.asarray(row[1:], np.float64), 0, [w, h, w, h])
             if x2 - x1 >= self.min_box and y2 - y1 >= self.min_box:
                 boxes.append([x1, y1, x2, y2])
                 labels.append(CATEGORIES.index(row[0]))
-        return (np.ascontiguousarray(bgr[:, :, ::-1]), temp.astype(np.float32),
-                np.asarray(boxes, np.float32).reshape(-1, 4), np.asarray(labels, np.int64))
+        return (
+            np.ascontiguousarray(bgr[:, :, ::-1]),
+            temp.astype(np.float32),
+            np.asarray(boxes, np.float32).reshape(-1, 4),
+            np.asarray(labels, np.int64),
+        )
 
 
 class _Skip(Exception):
@@ -140,8 +146,9 @@ def open_example(root: str | Path | None = None, min_box: float = 1.0) -> Exampl
     return ExampleFoldersSource(path, float(min_box))
 
 
-def make_example(root: str | Path, sites: int = 3, per_site: int = 4, size: tuple[int, int] = (64, 48),
-                 seed: int = 0) -> Path:
+def make_example(
+    root: str | Path, sites: int = 3, per_site: int = 4, size: tuple[int, int] = (64, 48), seed: int = 0
+) -> Path:
     """Write ``sites x per_site`` pairs: a facade at about 18 C with one warm patch and one cool window each."""
     import cv2
 
@@ -154,13 +161,14 @@ def make_example(root: str | Path, sites: int = 3, per_site: int = 4, size: tupl
         for k in range(per_site):
             t = 18.0 + 0.2 * rng.standard_normal((h, w))
             x, y = int(rng.integers(2, w // 2 - 10)), int(rng.integers(2, h - 12))
-            t[y:y + 10, x:x + 10] += 6.0
-            t[h // 2 - 6:h // 2 + 6, w - 20:w - 8] -= 4.0
+            t[y : y + 10, x : x + 10] += 6.0
+            t[h // 2 - 6 : h // 2 + 6, w - 20 : w - 8] -= 4.0
             grey = np.clip((t - 10) * 12, 0, 255).astype(np.uint8)
             cv2.imwrite(str(site / f"{k:03d}.rgb.png"), np.stack([255 - grey, grey, grey], axis=2))
             np.save(site / f"{k:03d}.thermal.npy", t.astype(np.float32))
             (site / f"{k:03d}.boxes.csv").write_text(
-                f"hot_spot,{x},{y},{x + 10},{y + 10}\nwindow,{w - 20},{h // 2 - 6},{w - 8},{h // 2 + 6}\n")
+                f"hot_spot,{x},{y},{x + 10},{y + 10}\nwindow,{w - 20},{h // 2 - 6},{w - 8},{h // 2 + 6}\n"
+            )
     return root
 
 

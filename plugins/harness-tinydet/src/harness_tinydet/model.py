@@ -65,9 +65,18 @@ class Head(nn.Module):
 class TinyDet(nn.Module):
     strides = (8, 16)
 
-    def __init__(self, num_classes: int, in_channels: int = 4, width: int = 16, radius: float = 2.5,
-                 box_gain: float = 2.0, cls_gain: float = 1.0, conf: float = 0.25, iou: float = 0.6,
-                 max_det: int = 300):
+    def __init__(
+        self,
+        num_classes: int,
+        in_channels: int = 4,
+        width: int = 16,
+        radius: float = 2.5,
+        box_gain: float = 2.0,
+        cls_gain: float = 1.0,
+        conf: float = 0.25,
+        iou: float = 0.6,
+        max_det: int = 300,
+    ):
         super().__init__()
         w = int(width)
         self.nc = int(num_classes)
@@ -147,8 +156,14 @@ class TinyDet(nn.Module):
         best, which = cost.min(1)
         return torch.where(torch.isfinite(best), which, torch.full_like(which, -1))
 
-    def loss(self, boxes: torch.Tensor, logits: torch.Tensor, pts: torch.Tensor, strides: torch.Tensor,
-             targets: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    def loss(
+        self,
+        boxes: torch.Tensor,
+        logits: torch.Tensor,
+        pts: torch.Tensor,
+        strides: torch.Tensor,
+        targets: list[dict[str, torch.Tensor]],
+    ) -> dict[str, torch.Tensor]:
         bsz = len(targets)
         box_sum = boxes.new_zeros(())
         cls_target = torch.zeros_like(logits)
