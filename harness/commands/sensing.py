@@ -205,9 +205,9 @@ def register_commands(cli: click.Group) -> None:
         views = [(str(p), load_view(p, thermal=thermal)) for p in images]
         res = calibrate_checkerboard(
             views,
-            pat,
+            pat,  # type: ignore[arg-type]
             square_size=square,
-            thermal=thermal,  # type: ignore[arg-type]
+            thermal=thermal,
             name=name,
         )
         res.camera.save(out)
