@@ -12,7 +12,7 @@ import hashlib
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -194,6 +194,16 @@ def check_strict(dataset: str, strict: Any) -> bool:
     if not isinstance(strict, bool):
         raise ConfigError(f"dataset {dataset!r}: option 'strict' must be true or false, got {strict!r}")
     return strict
+
+
+def option_choice(dataset: str, name: str, value: Any, names: Mapping[str, Sequence[str]], expected: str) -> str:
+    """The option ``name`` given as one of the spellings in ``names`` (choice: its spellings, compared without case
+    and outer spaces): the choice; otherwise a ``ConfigError`` saying it ``must be {expected}``."""
+    key = str(value).strip().lower()
+    for choice, spellings in names.items():
+        if key in spellings:
+            return choice
+    raise ConfigError(f"dataset {dataset!r}: option {name!r} must be {expected}, got {value!r}")
 
 
 def positive_int(dataset: str, name: str, value: Any) -> int:
