@@ -212,6 +212,12 @@ def positive_int(dataset: str, name: str, value: Any) -> int:
     return int(value)
 
 
+def source_parts(dataset: str, version: int, root: Path, *options: Any) -> list[Any]:
+    """The first parts of a source fingerprint: the dataset, its adapter's version, the resolved root and the
+    values of the options that change the samples."""
+    return [dataset, version, str(root.resolve()), *options]
+
+
 def stat_digest(parts: Iterable[Any]) -> str:
     """SHA-1 of the string forms of ``parts`` (file stats, option values): a source fingerprint."""
     h = hashlib.sha1()

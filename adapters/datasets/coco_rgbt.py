@@ -61,6 +61,7 @@ from adapters.datasets._eightbit import (
     read_rgb,
     read_thermal8,
     resolve_root,
+    source_parts,
     stat_digest,
     xywh_to_xyxy,
 )
@@ -352,15 +353,8 @@ class CocoRgbtSource:
         ]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.thermal,
-            self.scale,
-            self.offset,
-            hashlib.sha1(self.ann_path.read_bytes()).hexdigest(),
-        ]
+        annotations = hashlib.sha1(self.ann_path.read_bytes()).hexdigest()
+        parts = source_parts(DATASET, ADAPTER_VERSION, self.root, self.thermal, self.scale, self.offset, annotations)
         for p in self.pairs:
             for rel in (p.file_name, p.thermal_file_name):
                 parts.append((rel, self._stat(rel)))

@@ -545,15 +545,9 @@ class RgbtTinySource(PairedSource):
         return [Fold(self.fold_name(), tuple(self.split_groups("train")), tuple(self.split_groups("test")))]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.gt,
-            self.strides["train"],
-            self.strides["test"],
-            self.strict,
-        ]
+        parts = self._fingerprint_parts(
+            ADAPTER_VERSION, self.gt, self.strides["train"], self.strides["test"], self.strict
+        )
         for (m, s), c in sorted(self.coco.items()):
             parts.append((m, s, file_stat(c.path)))
         for s, files in sorted(find_split_files(self.root).items()):
