@@ -197,8 +197,8 @@ def check_strict(dataset: str, strict: Any) -> bool:
 
 
 def option_choice(dataset: str, name: str, value: Any, names: Mapping[str, Sequence[str]], expected: str) -> str:
-    """The option ``name`` given as one of the spellings in ``names`` (choice: its spellings, compared without case
-    and outer spaces): the choice; otherwise a ``ConfigError`` saying it ``must be {expected}``."""
+    """The choice that ``value`` of option ``name`` spells: ``names`` maps each choice to its spellings, compared in
+    lower case without outer spaces; any other value is a ``ConfigError`` saying the option must be ``expected``."""
     key = str(value).strip().lower()
     for choice, spellings in names.items():
         if key in spellings:

@@ -4,8 +4,9 @@
   adapter raises it too).
 * ``PairedSource``: the skeleton of such a source: the pairs dropped while opening and the opening notes go to the
   prepare report first, then one sample per item, a ``SkipPair`` becoming a counted skip (an error in strict mode),
-  and the closing notes (``BoxStats``) even when the preparation stops early.
-* ``SplitSource``: a release with an official ``train``/``test`` split, which is its one fold.
+  and the closing notes (``BoxStats``) even when the preparation stops early; the fingerprint's first parts.
+* ``SplitSource``: a release with an official ``train``/``test`` split, which is its one fold, whose infrared and
+  visible images pair by name.
 * ``read_pair``: the 8-bit thermal and visible images of a pair, which must have one size.
 * ``eightbit_spec``: the ``DatasetSpec`` of a release that ships 8-bit thermal images.
 """
@@ -39,8 +40,9 @@ class SkipPair(Exception):
 class PairedSource:
     """The part of a ``DatasetSource`` that every paired release shares (see the module docstring).
 
-    A subclass sets ``name`` (the dataset), ``log_name`` (how its log lines name it), ``strict``, ``dropped``
-    (``(path, reason)`` of the pairs left out while opening) and ``notes``, and implements ``_closing_notes``.
+    A subclass sets ``name`` (the dataset), ``log_name`` (how its log lines name it), ``root``, ``strict``,
+    ``dropped`` (``(path, reason)`` of the pairs left out while opening) and ``notes``, and implements
+    ``_closing_notes``.
     """
 
     name: str
