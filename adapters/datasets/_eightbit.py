@@ -12,7 +12,7 @@ import hashlib
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -196,10 +196,26 @@ def check_strict(dataset: str, strict: Any) -> bool:
     return strict
 
 
+def option_choice(dataset: str, name: str, value: Any, names: Mapping[str, Sequence[str]], expected: str) -> str:
+    """The choice that ``value`` of option ``name`` spells: ``names`` maps each choice to its spellings, compared in
+    lower case without outer spaces; any other value is a ``ConfigError`` saying the option must be ``expected``."""
+    key = str(value).strip().lower()
+    for choice, spellings in names.items():
+        if key in spellings:
+            return choice
+    raise ConfigError(f"dataset {dataset!r}: option {name!r} must be {expected}, got {value!r}")
+
+
 def positive_int(dataset: str, name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < 1:
         raise ConfigError(f"dataset {dataset!r}: option {name!r} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def source_parts(dataset: str, version: int, root: Path, *options: Any) -> list[Any]:
+    """The first parts of a source fingerprint: the dataset, its adapter's version, the resolved root and the
+    values of the options that change the samples."""
+    return [dataset, version, str(root.resolve()), *options]
 
 
 def stat_digest(parts: Iterable[Any]) -> str:

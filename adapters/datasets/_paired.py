@@ -4,8 +4,9 @@
   adapter raises it too).
 * ``PairedSource``: the skeleton of such a source: the pairs dropped while opening and the opening notes go to the
   prepare report first, then one sample per item, a ``SkipPair`` becoming a counted skip (an error in strict mode),
-  and the closing notes (``BoxStats``) even when the preparation stops early.
-* ``SplitSource``: a release with an official ``train``/``test`` split, which is its one fold.
+  and the closing notes (``BoxStats``) even when the preparation stops early; the fingerprint's first parts.
+* ``SplitSource``: a release with an official ``train``/``test`` split, which is its one fold, whose infrared and
+  visible images pair by name.
 * ``read_pair``: the 8-bit thermal and visible images of a pair, which must have one size.
 * ``eightbit_spec``: the ``DatasetSpec`` of a release that ships 8-bit thermal images.
 """
@@ -14,11 +15,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from typing import Any, Callable, Iterable, Iterator, Mapping, TypeVar
 
 import numpy as np
 
-from adapters.datasets._eightbit import BoxStats, ImageReadError, read_rgb, read_thermal8
+from adapters.datasets._eightbit import BoxStats, ImageReadError, read_rgb, read_thermal8, source_parts
 from harness.api import DatasetSpec, Fold, PrepareReport
 from harness.errors import DataError
 from harness.sample import AlignedSample
@@ -39,12 +40,14 @@ class SkipPair(Exception):
 class PairedSource:
     """The part of a ``DatasetSource`` that every paired release shares (see the module docstring).
 
-    A subclass sets ``name`` (the dataset), ``log_name`` (how its log lines name it), ``strict``, ``dropped``
-    (``(path, reason)`` of the pairs left out while opening) and ``notes``, and implements ``_closing_notes``.
+    A subclass sets ``name`` (the dataset), ``log_name`` (how its log lines name it), ``root``, ``strict``,
+    ``dropped`` (``(path, reason)`` of the pairs left out while opening) and ``notes``, and implements
+    ``_closing_notes``.
     """
 
     name: str
     log_name: str
+    root: Path
     strict: bool = False
     dropped: list[tuple[str, str]]
     notes: list[str]
@@ -94,6 +97,10 @@ class PairedSource:
     def _closing_notes(self, report: PrepareReport, stats: BoxStats) -> None:
         raise NotImplementedError
 
+    def _fingerprint_parts(self, version: int, *options: Any) -> list[Any]:
+        """``source_parts`` of this source: its name, the adapter's ``version``, its root, then ``options``."""
+        return source_parts(self.name, version, self.root, *options)
+
 
 class SplitSource(PairedSource):
     """A release with the official ``train``/``test`` split: ``frames`` are tuples whose first item is the split;
@@ -109,6 +116,19 @@ class SplitSource(PairedSource):
 
     def folds(self) -> list[Fold]:
         return [Fold("test", ("train",), ("test",))] if self.groups() == list(SPLITS) else []
+
+    def _pairs_by_name(
+        self, ir: Mapping[str, Path], vis: Mapping[str, Path], not_found: Callable[[str, str], str]
+    ) -> Iterator[tuple[str, Path, Path]]:
+        """``(name, infrared image, visible image)`` of the names that have both images, in name order; a name with
+        one image only is dropped as ``missing <modality> frame: <not_found(modality, name)>``."""
+        for name in sorted(set(ir) | set(vis)):
+            if name not in ir:
+                self.dropped.append((str(vis[name]), f"missing infrared frame: {not_found('infrared', name)}"))
+            elif name not in vis:
+                self.dropped.append((str(ir[name]), f"missing visible frame: {not_found('visible', name)}"))
+            else:
+                yield name, ir[name], vis[name]
 
     def _split_note(self) -> str:
         counts = {s: sum(f[0] == s for f in self.frames) for s in SPLITS}

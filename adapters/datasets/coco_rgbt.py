@@ -61,6 +61,7 @@ from adapters.datasets._eightbit import (
     read_rgb,
     read_thermal8,
     resolve_root,
+    source_parts,
     stat_digest,
     xywh_to_xyxy,
 )
@@ -77,6 +78,7 @@ log = logging.getLogger(__name__)
 
 DATASET = "coco-rgbt"
 ROOT_ENV = "HARNESS_COCO_RGBT_ROOT"
+DESCRIPTION = "your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root"
 ANNOTATIONS = "annotations.json"
 THERMAL_KINDS = ("radiometric", "8bit")
 #: centi-Kelvin, what ``harness sensing decode`` writes: C = value * 0.01 - 273.15
@@ -352,15 +354,8 @@ class CocoRgbtSource:
         ]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.thermal,
-            self.scale,
-            self.offset,
-            hashlib.sha1(self.ann_path.read_bytes()).hexdigest(),
-        ]
+        annotations = hashlib.sha1(self.ann_path.read_bytes()).hexdigest()
+        parts = source_parts(DATASET, ADAPTER_VERSION, self.root, self.thermal, self.scale, self.offset, annotations)
         for p in self.pairs:
             for rel in (p.file_name, p.thermal_file_name):
                 parts.append((rel, self._stat(rel)))
@@ -564,16 +559,9 @@ def open_coco_rgbt(
     return CocoRgbtSource(path, annotations, thermal, thermal_scale, thermal_offset, opts)
 
 
-SPEC = DatasetSpec(
-    name=DATASET,
-    open=open_coco_rgbt,
-    categories=(),  # the categories come from the COCO JSON
-    description="your own aligned RGB-thermal pairs described by one COCO JSON; set dataset.root",
-    thermal="radiometric",
-    default_encoding="c2",
-    protocol="default",
-    root_env=ROOT_ENV,
-)
+#: Radiometric thermal, encoded as C2 unless a run names another encoding, on the default protocol (``DatasetSpec``'s
+#: defaults); the categories come from the COCO JSON.
+SPEC = DatasetSpec(name=DATASET, open=open_coco_rgbt, categories=(), description=DESCRIPTION, root_env=ROOT_ENV)
 
 
 @hookimpl

@@ -71,6 +71,8 @@ DESCRIPTION = (
 )
 CATEGORIES = ("person", "car", "bicycle")
 MODALITIES = ("visible", "infrared")
+#: How a frame's image of each modality is named after its frame key: ``FLIR_00002_RGB``, ``FLIR_00002_PreviewData``.
+NAME_SUFFIX = {"visible": "RGB", "infrared": "PreviewData"}
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp")
 #: Release folder names looked for under a root that holds the dataset folder.
 FOLDER_NAMES = ("FLIR-align-3class", "FLIR-align", "FLIR_aligned", "FLIR-aligned")
@@ -193,15 +195,8 @@ class FlirAlignedSource(SplitSource):
             self._release_frames()
         for split in SPLITS if self.layout != "release" else ():
             vis, ir = (_images(root / m / split) for m in MODALITIES)
-            for key in sorted(set(vis) | set(ir)):
-                if key not in ir:
-                    self.dropped.append(
-                        (str(vis[key]), f"missing infrared frame: no {key}_PreviewData image in infrared/{split}")
-                    )
-                elif key not in vis:
-                    self.dropped.append((str(ir[key]), f"missing visible frame: no {key}_RGB image in visible/{split}"))
-                else:
-                    self.frames.append((split, key, vis[key], ir[key]))
+            pairs = self._pairs_by_name(ir, vis, lambda m, key: f"no {key}_{NAME_SUFFIX[m]} image in {m}/{split}")
+            self.frames += [(split, key, vis_path, ir_path) for key, ir_path, vis_path in pairs]
         if not self.frames:
             raise DataError(
                 f"dataset {DATASET!r}: no visible/infrared pair under {root} (expected "
@@ -255,17 +250,9 @@ class FlirAlignedSource(SplitSource):
         return icafusion_label_path(image, self.root) if self.layout == "icafusion" else label_path(image)
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.labels,
-            self.categories,
-            self.strict,
-            self.layout,
-            self.voc_convention,
-            self.difficult,
-        ]
+        parts = self._fingerprint_parts(
+            ADAPTER_VERSION, self.labels, self.categories, self.strict, self.layout, self.voc_convention, self.difficult
+        )
         parts += [(s, k, file_stat(v), file_stat(i), file_stat(self._label_file(v, i))) for s, k, v, i in self.frames]
         return stat_digest(parts)
 

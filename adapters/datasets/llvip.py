@@ -72,17 +72,12 @@ class LlvipSource(SplitSource):
         self.dropped: list[tuple[str, str]] = []
         for split in SPLITS:
             ir, vis = _index(root / "infrared" / split), _index(root / "visible" / split)
-            for stem in sorted(set(ir) | set(vis)):
-                if stem not in ir:
-                    self.dropped.append(
-                        (str(vis[stem]), f"missing infrared frame: infrared/{split}/{stem}.jpg not found")
-                    )
-                elif stem not in vis:
-                    self.dropped.append((str(ir[stem]), f"missing visible frame: visible/{split}/{stem}.jpg not found"))
-                elif stem not in self.xml:
-                    self.dropped.append((str(ir[stem]), f"no annotation: Annotations/{stem}.xml not found"))
+            pairs = self._pairs_by_name(ir, vis, lambda modality, stem: f"{modality}/{split}/{stem}.jpg not found")
+            for stem, ir_path, vis_path in pairs:
+                if stem not in self.xml:
+                    self.dropped.append((str(ir_path), f"no annotation: Annotations/{stem}.xml not found"))
                 else:
-                    self.frames.append((split, stem, ir[stem], vis[stem], self.xml[stem]))
+                    self.frames.append((split, stem, ir_path, vis_path, self.xml[stem]))
         if not self.frames:
             raise DataError(
                 f"dataset {DATASET!r}: no complete infrared/visible/Annotations triple under {root} "
@@ -92,14 +87,7 @@ class LlvipSource(SplitSource):
         self._check_drops()
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.strict,
-            self.voc_convention,
-            self.difficult,
-        ]
+        parts = self._fingerprint_parts(ADAPTER_VERSION, self.strict, self.voc_convention, self.difficult)
         parts += [(s, stem, file_stat(i), file_stat(v), file_stat(a)) for s, stem, i, v, a in self.frames]
         return stat_digest(parts)
 

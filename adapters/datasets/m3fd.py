@@ -150,16 +150,9 @@ class M3fdSource(PairedSource):
         ]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.strict,
-            BLOCK,
-            VAL_EVERY,
-            self.voc_convention,
-            self.difficult,
-        ]
+        parts = self._fingerprint_parts(
+            ADAPTER_VERSION, self.strict, BLOCK, VAL_EVERY, self.voc_convention, self.difficult
+        )
         for s in self.stems:
             parts.append((s, file_stat(self.xml[s]), file_stat(self.ir[s]), file_stat(self.vis[s])))
         return stat_digest(parts)

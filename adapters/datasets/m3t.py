@@ -28,7 +28,7 @@ import re
 from dataclasses import dataclass, field, fields
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -69,6 +69,7 @@ M3T_FOLDS: dict[str, tuple[str, ...]] = {"P1": ("P1",), "P2": ("P2",), "P3": ("P
 #: 35-mm-equivalent focal lengths of the M3T's wide (RGB) and thermal cameras: the registration prior's scale.
 M3T_FOCAL_35MM = (24.0, 40.0)
 ENV_ROOT = "HARNESS_M3T_ROOT"
+DESCRIPTION = "DJI M3T facade captures (raw R-JPEG + wide RGB, or already aligned); set dataset.root"
 MANIFEST_NAMES = ("m3t.yaml", "m3t.yml", "m3t.json")
 #: Bumped when the adapter's output changes for the same input files (part of the cache key).
 ADAPTER_VERSION = 1
@@ -888,18 +889,15 @@ def open_m3t(
     return M3TSource(m, name=name, sensing=sensing)
 
 
+def m3t_spec(name: str, open: Callable[..., Any], description: str, root_env: str | None = None) -> DatasetSpec:
+    """The spec of a dataset this adapter reads (the release, the synthetic set): the M3T categories, radiometric
+    thermal encoded as C2 unless a run names another encoding (``DatasetSpec``'s defaults), the 4-fold protocol and
+    a sensing stage."""
+    return DatasetSpec(
+        name, open, M3T_CATEGORIES, description, protocol="m3t-4fold", root_env=root_env, sensing_stage=True
+    )
+
+
 @hookimpl
 def register_datasets(register: Any) -> None:
-    register(
-        DatasetSpec(
-            name="m3t",
-            open=open_m3t,
-            categories=M3T_CATEGORIES,
-            description="DJI M3T facade captures (raw R-JPEG + wide RGB, or already aligned); set dataset.root",
-            thermal="radiometric",
-            default_encoding="c2",
-            protocol="m3t-4fold",
-            root_env=ENV_ROOT,
-            sensing_stage=True,
-        )
-    )
+    register(m3t_spec("m3t", open_m3t, DESCRIPTION, ENV_ROOT))

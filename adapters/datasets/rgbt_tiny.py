@@ -50,6 +50,7 @@ from adapters.datasets._eightbit import (
     BoxStats,
     check_strict,
     file_stat,
+    option_choice,
     pair_sample,
     positive_int,
     resolve_root,
@@ -58,7 +59,7 @@ from adapters.datasets._eightbit import (
 )
 from adapters.datasets._paired import PairedSource, eightbit_spec, read_pair
 from harness.api import Fold, PrepareReport
-from harness.errors import ConfigError, DataError
+from harness.errors import DataError
 from harness.hookspecs import hookimpl
 from harness.io import read_json
 from harness.sample import AlignedSample
@@ -75,16 +76,8 @@ DIR_MODALITY = {v: k for k, v in MODALITY_DIR.items()}
 #: Short names of the annotation sources, as the paper writes them.
 SOURCE_LABEL = {"thermal": "T", "visible": "RGB"}
 SPLITS = ("train", "test")
-_GT_ALIASES = {
-    "thermal": "thermal",
-    "t": "thermal",
-    "ir": "thermal",
-    "01": "thermal",
-    "visible": "visible",
-    "rgb": "visible",
-    "vis": "visible",
-    "00": "visible",
-}
+#: The spellings of each annotation source that the ``gt`` option accepts.
+_GT_NAMES = {"thermal": ("thermal", "t", "ir", "01"), "visible": ("visible", "rgb", "vis", "00")}
 OPTIONS = {
     "root": f"folder holding images/ and annotations_coco/ (default: ${ROOT_ENV})",
     "gt": "annotation source, thermal (T, default) or visible (RGB)",
@@ -182,10 +175,7 @@ def parse_file_name(name: str) -> tuple[str, FrameKey, str]:
 
 
 def normalise_gt(value: Any) -> str:
-    key = str(value).strip().lower()
-    if key not in _GT_ALIASES:
-        raise ConfigError(f"dataset {DATASET!r}: option 'gt' must be thermal (T) or visible (RGB), got {value!r}")
-    return _GT_ALIASES[key]
+    return option_choice(DATASET, "gt", value, _GT_NAMES, "thermal (T) or visible (RGB)")
 
 
 # ---------------------------------------------------------------------------------------------- COCO files
@@ -555,15 +545,9 @@ class RgbtTinySource(PairedSource):
         return [Fold(self.fold_name(), tuple(self.split_groups("train")), tuple(self.split_groups("test")))]
 
     def fingerprint(self) -> str:
-        parts: list[Any] = [
-            DATASET,
-            ADAPTER_VERSION,
-            str(self.root.resolve()),
-            self.gt,
-            self.strides["train"],
-            self.strides["test"],
-            self.strict,
-        ]
+        parts = self._fingerprint_parts(
+            ADAPTER_VERSION, self.gt, self.strides["train"], self.strides["test"], self.strict
+        )
         for (m, s), c in sorted(self.coco.items()):
             parts.append((m, s, file_stat(c.path)))
         for s, files in sorted(find_split_files(self.root).items()):

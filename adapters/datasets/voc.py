@@ -32,21 +32,16 @@ from typing import Sequence
 
 import numpy as np
 
+from adapters.datasets._eightbit import option_choice
 from adapters.datasets._paired import SkipPair
-from harness.errors import ConfigError, DataError
+from harness.errors import DataError
 
 CONVENTIONS = ("one-based", "zero-based")
 DIFFICULT = ("drop", "keep")
-_CONVENTION_ALIASES = {
-    "one-based": "one-based",
-    "1": "one-based",
-    "1-based": "one-based",
-    "voc": "one-based",
-    "labelimg": "one-based",
-    "zero-based": "zero-based",
-    "0": "zero-based",
-    "0-based": "zero-based",
-    "continuous": "zero-based",
+#: The spellings of each convention that the ``voc_convention`` option accepts.
+_CONVENTION_NAMES = {
+    "one-based": ("one-based", "1", "1-based", "voc", "labelimg"),
+    "zero-based": ("zero-based", "0", "0-based", "continuous"),
 }
 
 
@@ -76,23 +71,13 @@ class VocAnnotation:
 
 
 def normalise_convention(dataset: str, value: object) -> str:
-    key = str(value).strip().lower()
-    if key not in _CONVENTION_ALIASES:
-        raise ConfigError(
-            f"dataset {dataset!r}: option 'voc_convention' must be one-based (VOC/labelImg, default) or "
-            f"zero-based (0-based corners taken as written), got {value!r}"
-        )
-    return _CONVENTION_ALIASES[key]
+    expected = "one-based (VOC/labelImg, default) or zero-based (0-based corners taken as written)"
+    return option_choice(dataset, "voc_convention", value, _CONVENTION_NAMES, expected)
 
 
 def normalise_difficult(dataset: str, value: object) -> str:
-    key = str(value).strip().lower()
-    if key not in DIFFICULT:
-        raise ConfigError(
-            f"dataset {dataset!r}: option 'difficult' must be drop (left out of training and scoring, "
-            f"default) or keep (an ordinary object), got {value!r}"
-        )
-    return key
+    expected = "drop (left out of training and scoring, default) or keep (an ordinary object)"
+    return option_choice(dataset, "difficult", value, {d: (d,) for d in DIFFICULT}, expected)
 
 
 def parse_voc(path: Path) -> VocAnnotation:

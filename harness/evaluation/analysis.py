@@ -60,17 +60,10 @@ MAX_DETS = 100
 #: TIDE's fix order (``tidecv.TIDE._error_types``): the order of the ``dAP50`` keys.
 ERROR_TYPES = ("classification", "localisation", "both", "duplicate", "background", "missed")
 SPECIAL_TYPES = ("false_positives", "false_negatives")
-#: Display names of the error types (TIDE's abbreviations) and of the two bounds.
-ERROR_LABELS = {
-    "classification": "Cls",
-    "localisation": "Loc",
-    "both": "Both",
-    "duplicate": "Dupe",
-    "background": "Bkg",
-    "missed": "Miss",
-    "false_positives": "FP",
-    "false_negatives": "FN",
-}
+#: Display names of the error types (TIDE's abbreviations) and of the two bounds, in the order above.
+ERROR_LABELS = dict(
+    zip(ERROR_TYPES + SPECIAL_TYPES, ("Cls", "Loc", "Both", "Dupe", "Bkg", "Miss", "FP", "FN"), strict=True)
+)
 #: COCO's 101 recall points, exactly as ``COCOeval.Params`` builds them.
 RECALL_POINTS = np.linspace(0.0, 1.00, int(np.round((1.00 - 0.0) / 0.01)) + 1, endpoint=True)
 COCO_AREA_RANGES: dict[str, tuple[float, float]] = {

@@ -10,11 +10,12 @@ from typing import Any, Iterator
 from adapters.datasets.synthetic import generation
 from adapters.datasets.synthetic.generation import GENERATOR_VERSION, MARKER, default_root
 from adapters.datasets.synthetic.profiles import get_profile
-from harness.api import DatasetSpec
 from harness.errors import DataError
 from harness.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
+
+DESCRIPTION = "synthetic M3T-like facades, generated on first use (dataset.profile small|full, dataset.seed)"
 
 
 @contextlib.contextmanager
@@ -82,17 +83,6 @@ def open_synthetic(
 
 @hookimpl
 def register_datasets(register: Any) -> None:
-    from adapters.datasets.m3t import M3T_CATEGORIES
+    from adapters.datasets.m3t import m3t_spec
 
-    register(
-        DatasetSpec(
-            name="m3t-synth",
-            open=open_synthetic,
-            categories=M3T_CATEGORIES,
-            description="synthetic M3T-like facades, generated on first use (dataset.profile small|full, dataset.seed)",
-            thermal="radiometric",
-            default_encoding="c2",
-            protocol="m3t-4fold",
-            sensing_stage=True,
-        )
-    )
+    register(m3t_spec("m3t-synth", open_synthetic, DESCRIPTION))

@@ -27,32 +27,21 @@ class Profile:
         return sum(self.images)
 
 
+#: The sizes, a row each: name, images per project, thermal (width, height), RGB (width, height), inspection groups
+#: per project, landmark clicking.
+_SIZES = (
+    ("tiny", (2, 2, 2, 1, 1), (160, 128), (480, 360), (1, 1, 1, 1, 1), "precise"),
+    ("small", (32, 20, 28, 16, 16), (320, 256), (960, 720), (2, 2, 2, 1, 1), "human"),
+    ("full", (256, 87, 201, 70, 60), (640, 512), (2000, 1500), (4, 2, 3, 2, 2), "human"),
+)
+_DESCRIPTIONS = {
+    "tiny": "8 pairs, for tests (precise landmark clicks: the geometry is checked to < 1 px)",
+    "small": "112 pairs, thermal 320x256, RGB 960x720: the demo and CPU runs",
+    "full": "674 pairs with the seed's fold sizes, thermal 640x512, RGB 2000x1500",
+}
 PROFILES: dict[str, Profile] = {
-    "tiny": Profile(
-        "tiny",
-        (2, 2, 2, 1, 1),
-        (160, 128),
-        (480, 360),
-        (1, 1, 1, 1, 1),
-        description="8 pairs, for tests (precise landmark clicks: the geometry is checked to < 1 px)",
-        clicks="precise",
-    ),
-    "small": Profile(
-        "small",
-        (32, 20, 28, 16, 16),
-        (320, 256),
-        (960, 720),
-        (2, 2, 2, 1, 1),
-        description="112 pairs, thermal 320x256, RGB 960x720: the demo and CPU runs",
-    ),
-    "full": Profile(
-        "full",
-        (256, 87, 201, 70, 60),
-        (640, 512),
-        (2000, 1500),
-        (4, 2, 3, 2, 2),
-        description="674 pairs with the seed's fold sizes, thermal 640x512, RGB 2000x1500",
-    ),
+    name: Profile(name, images, thermal, rgb, sessions, description=_DESCRIPTIONS[name], clicks=clicks)
+    for name, images, thermal, rgb, sessions, clicks in _SIZES
 }
 
 
