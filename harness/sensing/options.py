@@ -20,12 +20,8 @@ class RegistrationOptions:
 
     def search(self) -> dict[str, Any]:
         """The automatic registration's settings, as ``registration.estimate_homography_auto`` takes them."""
-        return {
-            "min_correlation": self.min_correlation,
-            "max_corner_shift": self.max_corner_shift,
-            "search_scale": self.search_scale,
-            "search_rotation_deg": self.search_rotation_deg,
-        }
+        keys = ("min_correlation", "max_corner_shift", "search_scale", "search_rotation_deg")
+        return {k: getattr(self, k) for k in keys}
 
 
 @dataclass(frozen=True)
