@@ -24,7 +24,7 @@ Verdicts:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -74,13 +74,8 @@ class Claim:
     entries: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "claim": self.number,
-            "text": self.text,
-            "verdict": self.verdict,
-            "evidence": self.evidence,
-            "entries": self.entries,
-        }
+        """The fields in order, ``number`` written as ``claim``."""
+        return {"claim": self.number, **{k: v for k, v in asdict(self).items() if k != "number"}}
 
     def decide(self, checks: Iterable[tuple[str, str]]) -> None:
         """The verdict of the ``(verdict, evidence line)`` checks taken together (``combine``); their lines become
