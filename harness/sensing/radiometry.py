@@ -758,8 +758,8 @@ def rjpeg_temperature(
             scale=1.0,
             offset=0.0,
             dtype="float32",
-            correction={**rj.correction_params(**over), **table.summary()},
-        )  # type: ignore[union-attr]
+            correction={**rj.correction_params(**over), **table.summary()},  # type: ignore[union-attr]
+        )
     elif rj.decoder == "approximate":
         temp, record = rj.approximate_c(**over)
         info.update(
@@ -769,8 +769,8 @@ def rjpeg_temperature(
             dtype="float32",
             decoder_note=rj.decoder_note,
             approximate=record,
-            correction={**rj.correction_params(**over), **rj.tau_table.summary()},
-        )  # type: ignore[union-attr]
+            correction={**rj.correction_params(**over), **rj.tau_table.summary()},  # type: ignore[union-attr]
+        )
     elif rj.decoder == "converter":
         temp, record = rj.converted_c(**over)
         info.update(
