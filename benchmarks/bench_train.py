@@ -185,22 +185,7 @@ def measure(args: argparse.Namespace) -> dict:
                 last = res.history[-1]  # the second epoch: no first-iteration overheads
                 out.update(s_per_step=last["time_s"] / args.steps, images_per_s=last["images_per_s"])
             else:
-                predict(
-                    model,
-                    SampleSource(prepared, [0], enc),
-                    s,
-                    batch=b,
-                    input_kind=spec.input_kind,
-                    thermal_channels=spec.thermal_channels,
-                    conf=0.001,
-                    iou=0.7,
-                    max_det=300,
-                )  # warm-up
-                t0 = time.perf_counter()
-                dets = predict(
-                    model,
-                    src,
-                    s,
+                options = dict(
                     batch=b,
                     input_kind=spec.input_kind,
                     thermal_channels=spec.thermal_channels,
@@ -208,6 +193,9 @@ def measure(args: argparse.Namespace) -> dict:
                     iou=0.7,
                     max_det=300,
                 )
+                predict(model, SampleSource(prepared, [0], enc), s, **options)  # warm-up
+                t0 = time.perf_counter()
+                dets = predict(model, src, s, **options)
                 dt = time.perf_counter() - t0
                 out.update(s_per_step=dt / args.steps, images_per_s=n / dt, detections_per_image=len(dets) / n)
     out.update(

@@ -170,17 +170,8 @@ class Bar:
             self._task = self._progress.add_task(description, total=total, note="")
 
 
-def bar(
-    description: str,
-    total: float | None = None,
-    *,
-    enabled: bool = True,
-    eta: bool = False,
-    note: bool = False,
-    transient: bool = True,
-) -> Bar:
-    """A progress bar on stderr (a context manager): ``with bar("preparing m3t", total=n) as b: ... b.advance()``."""
-    return Bar(description, total, enabled=enabled, eta=eta, note=note, transient=transient)
+#: A progress bar on stderr (a context manager): ``with bar("preparing m3t", total=n) as b: ... b.advance()``.
+bar = Bar
 
 
 def clock(seconds: float | None) -> str:

@@ -24,8 +24,8 @@ Verdicts:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -74,13 +74,21 @@ class Claim:
     entries: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "claim": self.number,
-            "text": self.text,
-            "verdict": self.verdict,
-            "evidence": self.evidence,
-            "entries": self.entries,
-        }
+        """The fields in order, ``number`` written as ``claim``."""
+        return {"claim": self.number, **{k: v for k, v in asdict(self).items() if k != "number"}}
+
+    def decide(self, checks: Iterable[tuple[str, str]]) -> None:
+        """The verdict of the ``(verdict, evidence line)`` checks taken together (``combine``); their lines become
+        the evidence."""
+        parts = []
+        for verdict, line in checks:
+            parts.append(verdict)
+            self.evidence.append(line)
+        self.verdict = combine(parts)
+
+    def not_tested(self, why: str) -> None:
+        self.verdict = NOT_TESTED
+        self.evidence.append(why)
 
 
 def below(iv: Interval, x: float) -> str:
@@ -202,65 +210,50 @@ def evaluate_claims(
         if has("delamination"):
             none = cols.single(E["none"], "AP50:delamination", folds)
             # "0.000": below 0.0005 (what rounds to 0.000), with the interval on one side or the other
-            parts = [below(none, 0.0005)]
-            c.evidence.append(f"none: delamination AP50 {none.text()}")
+            checks = [(below(none, 0.0005), f"none: delamination AP50 {none.text()}")]
             for enc in ("ir8", "linear16", "c2"):
                 d = cols.difference(E[enc], E["none"], "AP50:delamination", folds)
                 v = cols.single(E[enc], "AP50:delamination", folds)
-                parts.append(above(d, 0.0))
-                c.evidence.append(f"{enc}: {v.text()}, {enc} - none {d.text()}")
-            c.verdict = combine(parts)
+                checks.append((above(d, 0.0), f"{enc}: {v.text()}, {enc} - none {d.text()}"))
+            c.decide(checks)
         else:
-            c.verdict = NOT_TESTED
-            c.evidence.append("no delamination instances in the held-out fold")
+            c.not_tested("no delamination instances in the held-out fold")
         claims.append(c)
 
         # 2. C2 gives the highest delamination AP50 of the thermal encodings
         c = Claim(2, ABLATION_CLAIMS[1][1], entries=f"{ours} on {ABLATION_FOLD}")
         if has("delamination"):
-            parts = []
-            for enc in ("ir8", "linear16"):
-                d = cols.difference(E["c2"], E[enc], "AP50:delamination", folds)
-                parts.append(above(d, 0.0))
-                c.evidence.append(f"c2 - {enc}: {d.text()}")
-            c.verdict = combine(parts)
+            diffs = {enc: cols.difference(E["c2"], E[enc], "AP50:delamination", folds) for enc in ("ir8", "linear16")}
+            c.decide((above(d, 0.0), f"c2 - {enc}: {d.text()}") for enc, d in diffs.items())
         else:
-            c.verdict = NOT_TESTED
-            c.evidence.append("no delamination instances in the held-out fold")
+            c.not_tested("no delamination instances in the held-out fold")
         claims.append(c)
 
         # 3. C2 keeps RGB-only's mAP50 while ir8 and linear16 lower it
         c = Claim(3, ABLATION_CLAIMS[2][1], entries=f"{ours} on {ABLATION_FOLD}")
         d = cols.difference(E["c2"], E["none"], "mAP50", folds)
-        parts = [CONTRADICTED if d.below(0.0) else SUPPORTED]  # "keeps": not significantly lower
-        c.evidence.append(f"c2 - none mAP50: {d.text()}")
+        keeps = CONTRADICTED if d.below(0.0) else SUPPORTED  # "keeps": not significantly lower
+        checks = [(keeps, f"c2 - none mAP50: {d.text()}")]
         for enc in ("ir8", "linear16"):
             d = cols.difference(E[enc], E["none"], "mAP50", folds)
-            parts.append(below(d, 0.0))
-            c.evidence.append(f"{enc} - none mAP50: {d.text()}")
-        c.verdict = combine(parts)
+            checks.append((below(d, 0.0), f"{enc} - none mAP50: {d.text()}"))
+        c.decide(checks)
         claims.append(c)
 
         # 4. water seepage below 0.001 AP50 for every encoding
         c = Claim(4, ABLATION_CLAIMS[3][1], entries=f"{ours} x 4 encodings on {ABLATION_FOLD}")
         if has("water_seepage"):
-            parts = []
-            for enc in ENCODINGS:
-                v = cols.single(E[enc], "AP50:water_seepage", folds)
-                parts.append(below(v, 0.001))
-                c.evidence.append(f"{enc}: water seepage AP50 {v.text()}")
-            c.verdict = combine(parts)
+            aps = {enc: cols.single(E[enc], "AP50:water_seepage", folds) for enc in ENCODINGS}
+            c.decide((below(v, 0.001), f"{enc}: water seepage AP50 {v.text()}") for enc, v in aps.items())
         else:
-            c.verdict = NOT_TESTED
-            c.evidence.append("no water-seepage instances in the held-out fold")
+            c.not_tested("no water-seepage instances in the held-out fold")
         claims.append(c)
 
     # ------------------------------------------------------------------ per-category ordering (claim 5)
     main = _main(entries, ours)
     c = Claim(5, OTHER_CLAIMS[0][1])
     if main is None:
-        c.verdict = NOT_TESTED
-        c.evidence.append(f"no {ours} runs in {source}")
+        c.not_tested(f"no {ours} runs in {source}")
     else:
         folds5 = list(main.folds)
         c.entries = f"{main.label}, folds {', '.join(folds5)}"
@@ -295,8 +288,7 @@ def evaluate_claims(
     mains = {d: _main(entries, prefix + d) for d in DETECTORS}
     if any(v is None for v in mains.values()):
         missing = [d for d, v in mains.items() if v is None]
-        c.verdict = NOT_TESTED
-        c.evidence.append(f"no runs of {', '.join(prefix + m for m in missing)} in {source}")
+        c.not_tested(f"no runs of {', '.join(prefix + m for m in missing)} in {source}")
     else:
         M = {k: v for k, v in mains.items() if v is not None}
         common = [f for f in M["ours"].folds if all(f in e.folds for e in M.values())]

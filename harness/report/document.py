@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from harness.report.plots import PlotPoint
 from harness.report.stats import PairedComparison
@@ -65,17 +65,22 @@ class Report:
     def records(self) -> list[dict[str, Any]]:
         return [r for t in self.tables for r in t.records]
 
+    def _by_dataset(self) -> Iterator[tuple[bool, Section]]:
+        """The sections in order, each with whether it begins the part of another dataset than the one before (the
+        first section does unless it is about all datasets)."""
+        current = None
+        for s in self.sections:
+            yield s.dataset != current, s
+            current = s.dataset
+
     def to_text(self) -> str:
         """Every table and note, aligned for the terminal (``harness report --print``)."""
         out = [self.title, f"store: {self.store}   generated: {self.generated}", ""]
         if self.problems:
             out += ["!!! UNREADABLE FILES IN THE STORE (skipped) !!!", *[f"!!!   {p}" for p in self.problems], ""]
-        current = None
-        for s in self.sections:
-            if s.dataset != current:
-                current = s.dataset
-                head = f"# {current}" if current else "# all datasets"
-                out += [head, ""]
+        for new_dataset, s in self._by_dataset():
+            if new_dataset:
+                out += [f"# {s.dataset}" if s.dataset else "# all datasets", ""]
             if s.absent:
                 out += [f"{s.title}: ABSENT. {s.absent}", ""]
                 continue
@@ -98,11 +103,9 @@ class Report:
         out = [f"# {self.title}", "", f"Results store `{self.store}`, generated {self.generated}.", ""]
         if self.problems:
             out += ["> **⚠ Unreadable files in the store (skipped)**", *[f"> - {p}" for p in self.problems], ""]
-        current = None
-        for s in self.sections:
-            if s.dataset != current:
-                current = s.dataset
-                out += [f"## {current or 'All datasets'}", ""]
+        for new_dataset, s in self._by_dataset():
+            if new_dataset:
+                out += [f"## {s.dataset or 'All datasets'}", ""]
             if s.absent:
                 out += [f"### {s.title}", "", f"*Absent.* {s.absent}", ""]
                 continue

@@ -31,7 +31,7 @@ import numpy as np
 from harness.evaluation import mean_sd
 from harness.evaluation.analysis import ERROR_LABELS, ERROR_TYPES, NO_ANALYSIS, SPECIAL_TYPES
 from harness.report.reader import Entry, StoredRun, label_notes
-from harness.report.tables import Column, Stat, Table, _marks, _merge_warning, _slug, match_check, record
+from harness.report.tables import Column, Stat, Table, _marks, _merge_warning, _slug, match_check, record, stat_record
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,11 @@ class Evidence:
     def stat(self, get: Callable[[dict[str, Any]], Any]) -> Stat:
         """Mean ± sample SD over folds of the seed means of ``get(analysis)``; folds without a value left out."""
         return Stat.from_mean_sd(mean_sd(self.fold_values(get)))
+
+    def record_fields(self, dataset: str) -> dict[str, Any]:
+        """The fields of a tidy record (``tables.record``) naming this entry's runs."""
+        e = self.entry
+        return {"dataset": dataset, "detector": e.detector, "encoding": e.encoding, "seeds": e.seeds}
 
     def seeds_short(self, get: Callable[[dict[str, Any]], Any]) -> list[str]:
         """The folds where ``get(analysis)`` has a value in fewer seeds than have an analysis: ``"P1 (2 of 3)"``."""
@@ -168,19 +173,14 @@ def tide_table(dataset: str, evidence: Sequence[Evidence]) -> Table:
                 )
             s = row[key]
             table.records.append(
-                record(
+                stat_record(
                     name,
                     f"dAP50_{key}" if key != "mAP50" else "mAP50",
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
-                    dataset=dataset,
-                    detector=ev.entry.detector,
-                    encoding=ev.entry.encoding,
+                    s,
+                    **ev.record_fields(dataset),
                     fold="mean",
                     images=ev.entry.images,
                     instances=ev.entry.instances,
-                    seeds=ev.entry.seeds,
                 )
             )
         table.rows.append(row)
@@ -236,13 +236,10 @@ def confusion_records(dataset: str, ev: Evidence, labels: Sequence[str], matrix:
             f"{_slug(dataset)}-confusion",
             f"confusion:{p}",
             float(matrix[i, j]),
-            dataset=dataset,
-            detector=ev.entry.detector,
-            encoding=ev.entry.encoding,
+            **ev.record_fields(dataset),
             fold="sum",
             category=g,
             unit="count",
-            seeds=ev.entry.seeds,
         )
         for i, p in enumerate(labels)
         for j, g in enumerate(labels)
@@ -331,18 +328,13 @@ def size_ap_tables(dataset: str, evidence: Sequence[Evidence]) -> list[Table]:
                     s = ev.stat(_get("sizes", scheme, metric, b))
                     row[f"{metric}:{b}"] = s
                     table.records.append(
-                        record(
+                        stat_record(
                             name,
                             f"{metric}_{scheme}_{b}",
-                            s.mean,
-                            sd=s.sd,
-                            n=s.n,
-                            dataset=dataset,
-                            detector=ev.entry.detector,
-                            encoding=ev.entry.encoding,
+                            s,
+                            **ev.record_fields(dataset),
                             fold="mean",
                             images=ev.entry.images,
-                            seeds=ev.entry.seeds,
                         )
                     )
             table.rows.append(row)

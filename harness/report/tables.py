@@ -251,6 +251,11 @@ def record(
     }
 
 
+def stat_record(table: str, metric: str, s: Stat, **where: Any) -> dict[str, Any]:
+    """``record`` of a mean ± sample SD: its mean as the value, with its SD and n."""
+    return record(table, metric, s.mean, sd=s.sd, n=s.n, **where)
+
+
 def records_csv(records: Sequence[Mapping[str, Any]]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(RECORD_FIELDS), lineterminator="\n")
@@ -436,12 +441,10 @@ def project_table(view: StoreView, dataset: str, pareto: set[str] | None = None)
         for key in ("mAP50", "mAP50_95"):
             s = row[key]
             table.records.append(
-                record(
+                stat_record(
                     name,
                     f"{key}_mean",
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
+                    s,
                     dataset=dataset,
                     detector=e.detector,
                     encoding=e.encoding,
@@ -600,12 +603,10 @@ def category_table(view: StoreView, dataset: str) -> Table | None:
                 s = Stat.from_mean_sd(pc.get(key))
                 row[f"{e.label}:{key}"] = s
                 table.records.append(
-                    record(
+                    stat_record(
                         name,
                         key,
-                        s.mean,
-                        sd=s.sd,
-                        n=s.n,
+                        s,
                         dataset=dataset,
                         detector=e.detector,
                         encoding=e.encoding,
@@ -704,12 +705,10 @@ def _ablation_table(
             s = Stat.from_mean_sd(agg["metrics"].get(key))
             row[key] = s if len(folds) > 1 else s.mean
             table.records.append(
-                record(
+                stat_record(
                     name,
                     key,
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
+                    s,
                     dataset=dataset,
                     detector=det,
                     encoding=e.encoding,
@@ -725,12 +724,10 @@ def _ablation_table(
             s = Stat.from_mean_sd(pc.get("AP50"))
             row[f"cat:{c}"] = s if len(folds) > 1 else s.mean
             table.records.append(
-                record(
+                stat_record(
                     name,
                     "AP50",
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
+                    s,
                     dataset=dataset,
                     detector=det,
                     encoding=e.encoding,
@@ -982,12 +979,10 @@ def cross_dataset_table(view: StoreView, datasets: Sequence[str]) -> Table:
         table.rows.append(row)
         for key, s in (("mAP50", row["mAP50"]), ("mAP50_95", row["mAP50_95"])):
             table.records.append(
-                record(
+                stat_record(
                     "cross-dataset",
                     f"{key}_mean",
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
+                    s,
                     dataset=r.dataset,
                     detector=r.detector,
                     encoding=r.encoding,
@@ -1055,6 +1050,7 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
         m = "".join(ch for ch in dict.fromkeys(MARKS.values()) if ch in shown)
         row["_marks"] = {k: m for k in ("fold_d50", "boot_d50", "fold_d5095", "boot_d5095")} if m else {}
         verdicts = []
+        pair: dict[str, Any] = {"dataset": c.dataset, "detector": f"{c.a} - {c.b}", "fold": " ".join(c.folds)}
         for key, col in (("mAP50", "boot_d50"), ("mAP50_95", "boot_d5095")):
             b = (c.bootstrap or {}).get(key)
             if b is not None:
@@ -1067,67 +1063,24 @@ def paired_table(comparisons: Sequence[Any], name: str, title: str) -> Table:
                         name,
                         f"delta_{key}_bootstrap",
                         b.delta,
-                        dataset=c.dataset,
-                        detector=f"{c.a} - {c.b}",
-                        fold=" ".join(c.folds),
+                        **pair,
                         images=c.images,
                         instances=c.instances,
                         n=b.valid,
                         unit="fraction",
                     )
                 )
-                table.records.append(
-                    record(
-                        name,
-                        f"delta_{key}_ci_low",
-                        b.ci_low,
-                        dataset=c.dataset,
-                        detector=f"{c.a} - {c.b}",
-                        fold=" ".join(c.folds),
-                        n=b.valid,
-                    )
-                )
-                table.records.append(
-                    record(
-                        name,
-                        f"delta_{key}_ci_high",
-                        b.ci_high,
-                        dataset=c.dataset,
-                        detector=f"{c.a} - {c.b}",
-                        fold=" ".join(c.folds),
-                        n=b.valid,
-                    )
-                )
+                for bound, value in (("ci_low", b.ci_low), ("ci_high", b.ci_high)):
+                    table.records.append(record(name, f"delta_{key}_{bound}", value, **pair, n=b.valid))
                 if b.p_a_beats_b is not None:
                     table.records.append(
-                        record(
-                            name,
-                            f"p_a_beats_b_{key}",
-                            b.p_a_beats_b,
-                            dataset=c.dataset,
-                            detector=f"{c.a} - {c.b}",
-                            fold=" ".join(c.folds),
-                            n=b.valid,
-                            unit="probability",
-                        )
+                        record(name, f"p_a_beats_b_{key}", b.p_a_beats_b, **pair, n=b.valid, unit="probability")
                     )
                 if key == "mAP50_95" and b.level == SEEDS_LEVEL:
                     row["p_beats"] = b.p_a_beats_b
                     row["needed"] = str(b.seeds_needed) if b.seeds_needed is not None else "-"
-            s = fd[key].stat
             table.records.append(
-                record(
-                    name,
-                    f"delta_{key}_per_fold",
-                    s.mean,
-                    sd=s.sd,
-                    n=s.n,
-                    dataset=c.dataset,
-                    detector=f"{c.a} - {c.b}",
-                    fold=" ".join(c.folds),
-                    images=c.images,
-                    instances=c.instances,
-                )
+                stat_record(name, f"delta_{key}_per_fold", fd[key].stat, **pair, images=c.images, instances=c.instances)
             )
         if not c.bootstrap:
             row["verdict"] = "no bootstrap"

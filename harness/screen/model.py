@@ -39,13 +39,17 @@ class ScreenModel:
     model: Any  # torch.nn.Module, eval mode, weights loaded
     categories: list[str]
     encoding: Any  # EncodingSpec
-    encoding_params: dict[str, Any]
+    encoding_params: dict[str, Any] = field(init=False)  # the encoding's section of ``config``
     config: dict[str, Any]
     weights: Path
-    weights_sha1: str
+    weights_sha1: str = field(init=False)  # the digest of ``weights``
     threshold: float
     threshold_source: str
     run: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.encoding_params = dict((self.config.get("encoding") or {}).get(self.encoding.name) or {})
+        self.weights_sha1 = file_digest(self.weights)
 
     @property
     def imgsz(self) -> int:
@@ -151,19 +155,7 @@ def from_run(run_dir: str | Path, threshold: float | None = None) -> ScreenModel
         "config_hash": status.get("config_hash"),
         "held_out": meta.get("val_groups"),
     }
-    return ScreenModel(
-        det,
-        model,
-        categories,
-        enc,
-        dict((cfg.get("encoding") or {}).get(enc.name) or {}),
-        cfg,
-        weights,
-        file_digest(weights),
-        thr,
-        source,
-        run,
-    )
+    return ScreenModel(det, model, categories, enc, cfg, weights, thr, source, run)
 
 
 def from_weights(
@@ -201,19 +193,7 @@ def from_weights(
     model = _build(det, categories, enc, cfg, path)
     thr = float(threshold) if threshold is not None else float(cfg["eval"]["conf"])
     source = "--conf" if threshold is not None else "eval.conf of the configuration (no run: no operating point)"
-    return ScreenModel(
-        det,
-        model,
-        categories,
-        enc,
-        dict((cfg.get("encoding") or {}).get(enc.name) or {}),
-        cfg,
-        path,
-        file_digest(path),
-        thr,
-        source,
-        {"dataset": ds.name},
-    )
+    return ScreenModel(det, model, categories, enc, cfg, path, thr, source, {"dataset": ds.name})
 
 
 # ------------------------------------------------------------------------------------------------ prediction

@@ -18,6 +18,11 @@ class RegistrationOptions:
     search_scale: float = 0.06
     search_rotation_deg: float = 4.0
 
+    def search(self) -> dict[str, Any]:
+        """The automatic registration's settings, as ``registration.estimate_homography_auto`` takes them."""
+        keys = ("min_correlation", "max_corner_shift", "search_scale", "search_rotation_deg")
+        return {k: getattr(self, k) for k in keys}
+
 
 @dataclass(frozen=True)
 class UndistortOptions:
@@ -32,6 +37,10 @@ class WarpOptions:
     min_box_size: float = 1.0
     antialias: bool = True
     interpolation: str = "linear"
+
+    def arguments(self) -> dict[str, Any]:
+        """The settings as ``warp.align_pair`` takes them."""
+        return asdict(self)
 
 
 @dataclass(frozen=True)

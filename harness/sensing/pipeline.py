@@ -97,16 +97,7 @@ class SensingContext:
             return reg.normalize(prior)
         if method != "auto":
             raise DataError(f"unknown sensing.registration.method {method!r}; use auto, focal or file")
-        o = self.options.registration
-        res = reg.estimate_homography_auto(
-            rgb,
-            thermal,
-            init=prior,
-            min_correlation=o.min_correlation,
-            max_corner_shift=o.max_corner_shift,
-            search_scale=o.search_scale,
-            search_rotation_deg=o.search_rotation_deg,
-        )
+        res = reg.estimate_homography_auto(rgb, thermal, init=prior, **self.options.registration.search())
         self.auto_results[group] = res
         if not res.ok:
             raise DataError(
@@ -137,20 +128,7 @@ class SensingContext:
         elif boxes_frame == "thermal" and th_cam is not None:
             b = undistort_boxes(b, self.thermal_camera, th_cam)  # type: ignore[arg-type]
         H = self.homography(group, rgb_u, th_u if th_u is not None else ir8_u, prior)
-        w = self.options.warp
-        pair = align_pair(
-            rgb_u,
-            th_u,
-            ir8_u,
-            b,
-            labels,
-            H,
-            boxes_frame=boxes_frame,
-            crop=w.crop,
-            min_box_size=w.min_box_size,
-            interpolation=w.interpolation,
-            antialias=w.antialias,
-        )
+        pair = align_pair(rgb_u, th_u, ir8_u, b, labels, H, boxes_frame=boxes_frame, **self.options.warp.arguments())
         # what maps an original image's pixels into the frame H starts from (for boxes made on the original images)
         for sensor, cam, new in (("rgb", self.rgb_camera, rgb_cam), ("thermal", self.thermal_camera, th_cam)):
             if cam is not None and new is not None:

@@ -79,6 +79,8 @@ DEFAULT_PARAMS: dict[str, float] = {
 PARAM_UNITS = {"ambient": "C", "distance": "m", "emissivity": "0-1", "humidity": "%", "reflected": "C"}
 #: the parameters a converter is handed (DJI's ``dji_irp`` takes these four)
 CONVERTER_KEYS = ("emissivity", "distance", "humidity", "reflected")
+#: the measurement overrides ``RJpeg.corrected_c`` takes, in the order they are checked
+OVERRIDE_KEYS = (*CONVERTER_KEYS, "ambient")
 #: ``read_rjpeg`` decoders: auto (corrected, or the chosen route, else refused), dji (corrected or error), blackbody.
 DECODERS = ("auto", "dji", "blackbody")
 #: the APP5 ``write_rjpeg`` writes: the header alone, no table (its files read back by the blackbody route)
@@ -168,25 +170,12 @@ class RJpeg:
             return True
         return (version & 0xFFFEFFFF) == 0x200 or version == 0x20200
 
-    def correction_params(
-        self,
-        emissivity: float | None = None,
-        distance: float | None = None,
-        humidity: float | None = None,
-        reflected: float | None = None,
-        ambient: float | None = None,
-    ) -> dict[str, float]:
-        """The parameters ``corrected_c`` uses: the file's, with the given overrides (checked against the
-        ranges DJI's SDK accepts), plus ``atmosphere`` (C): the file's ambient temperature without overrides;
-        with overrides, the reflected temperature for pre-v0300 files (M3T), else the ambient one."""
+    def correction_params(self, **overrides: float | None) -> dict[str, float]:
+        """The parameters ``corrected_c`` uses: the file's, with the given overrides (``OVERRIDE_KEYS``, checked
+        against the ranges DJI's SDK accepts), plus ``atmosphere`` (C): the file's ambient temperature without
+        overrides; with overrides, the reflected temperature for pre-v0300 files (M3T), else the ambient one."""
         table = self.tau_table
-        given = {
-            "emissivity": emissivity,
-            "distance": distance,
-            "humidity": humidity,
-            "reflected": reflected,
-            "ambient": ambient,
-        }
+        given = {**dict.fromkeys(OVERRIDE_KEYS), **overrides}
         if self.fmt == "dirp":
             return dji_dirp.measurement_params(given)
         over = dji_correction.check_overrides(given, table.max_distance if table else 25.0)
@@ -205,21 +194,13 @@ class RJpeg:
         p["atmosphere"] = p["ambient"]
         return p
 
-    def corrected_c(
-        self,
-        emissivity: float | None = None,
-        distance: float | None = None,
-        humidity: float | None = None,
-        reflected: float | None = None,
-        ambient: float | None = None,
-    ) -> np.ndarray:
+    def corrected_c(self, **overrides: float | None) -> np.ndarray:
         """DJI Thermal SDK's corrected temperature in C (float32 HxW), at the file's measurement parameters or
         the given overrides (emissivity 0.1-1, distance m, humidity %, reflected C; ``ambient`` C only for v0300
         formats). Equations: ``harness.sensing.dji_correction``. A ``DataError`` when the file has no usable
         transmission table (``decoder_note`` says why)."""
         if self.dirp is not None:
-            p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
-            return dji_dirp.measure(self.raw14, self.dirp, p, self.path)
+            return dji_dirp.measure(self.raw14, self.dirp, self.correction_params(**overrides), self.path)
         if self.tau_table is None:
             raise DataError(
                 f"{self.path}: no atmospheric-transmission table to correct with"
@@ -227,20 +208,10 @@ class RJpeg:
                 "use the blackbody temperature (decoder 'blackbody')"
             )
         if self.approximation is not None:
-            return self.approximate_c(emissivity, distance, humidity, reflected, ambient)[0]
-        p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
-        return dji_correction.correct_raw14(
-            self.raw14, self.tau_table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"]
-        )
+            return self.approximate_c(**overrides)[0]
+        return self._correct_raw14(self.tau_table, self.correction_params(**overrides))
 
-    def approximate_c(
-        self,
-        emissivity: float | None = None,
-        distance: float | None = None,
-        humidity: float | None = None,
-        reflected: float | None = None,
-        ambient: float | None = None,
-    ) -> tuple[np.ndarray, dict[str, Any]]:
+    def approximate_c(self, **overrides: float | None) -> tuple[np.ndarray, dict[str, Any]]:
         """(temperature C, record) of the ``approximate`` route: DJI's correction with the file's stand-in table
         (``dji_approximate``); temperatures above the measured range are missing (NaN); the record names the
         approximation and its measured bound for this frame. An emissivity outside the measured range is a
@@ -248,12 +219,15 @@ class RJpeg:
         approx, table = self.approximation, self.tau_table
         if approx is None or table is None:
             raise DataError(f"{self.path}: this file was not read by the approximate route")
-        p = self.correction_params(emissivity, distance, humidity, reflected, ambient)
+        p = self.correction_params(**overrides)
         dji_approximate.check_emissivity(approx, p["emissivity"], self.path)
-        t = dji_correction.correct_raw14(
+        return dji_approximate.apply(self._correct_raw14(table, p), approx, p["emissivity"])
+
+    def _correct_raw14(self, table: dji_correction.TauTable, p: Mapping[str, float]) -> np.ndarray:
+        """DJI's correction of this file's raw counts by ``table`` at the measurement parameters ``p``."""
+        return dji_correction.correct_raw14(
             self.raw14, table, p["emissivity"], p["distance"], p["humidity"], p["reflected"], p["atmosphere"]
         )
-        return dji_approximate.apply(t, approx, p["emissivity"])
 
     def converter_params(self, overrides: Mapping[str, float | None] | None = None) -> dict[str, float]:
         """The measurement parameters handed to the converter: the file's (as this module reads them) with the

@@ -23,12 +23,17 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from harness.api import LoggerSpec, RunLogger, TrackingOptions  # re-exported for plugins
 from harness.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+
+def builtin_spec(name: str, create: Callable[[TrackingOptions], RunLogger], description: str) -> LoggerSpec:
+    """A built-in tracker's ``LoggerSpec``: it needs the package of its name, installed by the extra of its name."""
+    return LoggerSpec(name=name, create=create, requires=(name,), extra=name, description=description)
 
 
 def parse_names(text: str | Sequence[str] | None) -> list[str]:

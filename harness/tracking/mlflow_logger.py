@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from harness.hookspecs import hookimpl
-from harness.tracking import LoggerSpec, TrackingOptions
+from harness.tracking import TrackingOptions, builtin_spec
 
 DEFAULT_EXPERIMENT = "rgbt-harness"
 #: MLflow's limits: entries per log_batch call, characters per parameter value
@@ -32,6 +32,10 @@ def tracking_uri(options: TrackingOptions) -> str:
     if env:
         return env
     return f"sqlite:///{options.store.resolve() / 'mlflow.db'}"
+
+
+#: the description of this tracker in its ``LoggerSpec``
+DESCRIPTION = "MLflow runs (local sqlite:///<store>/mlflow.db unless tracking.mlflow_uri / MLFLOW_TRACKING_URI)"
 
 
 class MLflowLogger:
@@ -112,13 +116,4 @@ class MLflowLogger:
 
 @hookimpl
 def register_loggers(register):
-    register(
-        LoggerSpec(
-            name="mlflow",
-            create=MLflowLogger,
-            requires=("mlflow",),
-            extra="mlflow",
-            description="MLflow runs (local sqlite:///<store>/mlflow.db unless "
-            "tracking.mlflow_uri / MLFLOW_TRACKING_URI)",
-        )
-    )
+    register(builtin_spec("mlflow", MLflowLogger, DESCRIPTION))

@@ -14,11 +14,13 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from harness.hookspecs import hookimpl
-from harness.tracking import LoggerSpec, TrackingOptions
+from harness.tracking import TrackingOptions, builtin_spec
 
 #: text artefacts up to this size are copied into the event file; larger or binary ones are named only
 MAX_TEXT_BYTES = 200_000
 TEXT_SUFFIXES = {".md", ".txt", ".csv", ".json", ".yaml"}
+#: the description of this tracker in its ``LoggerSpec``
+DESCRIPTION = "TensorBoard event files under <store>/tensorboard (tracking.tensorboard_dir)"
 
 
 class TensorBoardLogger:
@@ -63,12 +65,4 @@ class TensorBoardLogger:
 
 @hookimpl
 def register_loggers(register):
-    register(
-        LoggerSpec(
-            name="tensorboard",
-            create=TensorBoardLogger,
-            requires=("tensorboard",),
-            extra="tensorboard",
-            description="TensorBoard event files under <store>/tensorboard (tracking.tensorboard_dir)",
-        )
-    )
+    register(builtin_spec("tensorboard", TensorBoardLogger, DESCRIPTION))
