@@ -41,6 +41,10 @@ Usage (decorators, applied like ``click.option``)::
         root = opt.resolve_store(store, profile)
         ...
 
+Options of a common kind rather than a shared word have builders too: ``choice_option`` (its default shown),
+``input_file_option`` and ``input_path_option`` (an existing file, or file or folder, read), ``folder_option`` (a
+folder written), ``path_option`` (any ``click.Path``) and ``workers_option``.
+
 Old spellings (``--fold``, ``--seed`` for the bootstrap seed, ``--json``, ``--format markdown``, ``report --dataset``,
 ``show``/``profile --detector``, ``export --onnx``, ``synth --profile``, ``sensing register --init``, ...) keep
 working for one release: the CLI rewrites them to the new ones before parsing and prints one ``deprecated:`` line on
@@ -385,9 +389,7 @@ def stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
 
 
 # ------------------------------------------------------------------------------------------------ option kinds
-def choice_option(
-    *decls: str, choices: Sequence[str], help: str, default: str | None = None, **kwargs: Any
-) -> Callable[[F], F]:
+def choice_option(*decls: str, choices: Sequence[str], help: str, default: str | None = None) -> Callable[[F], F]:
     """One of ``choices`` (``click.Choice``), by default the first, shown in help."""
     return click.option(
         *decls,
@@ -395,7 +397,6 @@ def choice_option(
         default=choices[0] if default is None else default,
         show_default=True,
         help=help,
-        **kwargs,
     )
 
 
