@@ -30,9 +30,9 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence, TypedDict, Unpack
 
 from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
@@ -87,6 +87,19 @@ class RunRequest:
     force: bool = False
     init: str | Path | None = None
     progress: bool = True
+
+
+class RunSettings(TypedDict, total=False):
+    """How a request runs, as keyword arguments of ``RunRequest`` (which holds their defaults): what the functions that
+    build requests for ``run`` (``ablate``, ``harness.commands.pretrain.pretrain``) pass on unchanged."""
+
+    profile: str | None
+    config_files: Sequence[str | Path]
+    overrides: Sequence[str]
+    store: str | Path | None
+    force: bool
+    init: str | Path | None
+    progress: bool
 
 
 @dataclass
@@ -167,16 +180,16 @@ def choose_encoding(
     return enc
 
 
-def resolve_config(request: RunRequest, detector: DetectorSpec, dataset: DatasetSpec) -> dict[str, Any]:
+def resolve_config(request: RunRequest, detector: DetectorSpec | None, dataset: DatasetSpec) -> dict[str, Any]:
+    """The request's configuration (``harness.config.load_config``); without ``detector``, the one before a detector
+    is known: its profile, the dataset's protocol, the files and overrides (``pretrain`` reads its folds there)."""
     from harness.config import load_config
 
+    own: dict[str, Any] = (
+        {"detector": detector.name, "detector_defaults": detector.defaults} if detector is not None else {}
+    )
     return load_config(
-        request.profile,
-        protocol=dataset.protocol,
-        detector=detector.name,
-        detector_defaults=detector.defaults,
-        files=request.config_files,
-        overrides=request.overrides,
+        request.profile, protocol=dataset.protocol, files=request.config_files, overrides=request.overrides, **own
     )
 
 
@@ -203,12 +216,9 @@ def parse_seeds(text: str | Sequence[int] | None) -> list[int] | None:
     bad = [s for s in seeds if not SEED_RANGE[0] <= s <= SEED_RANGE[1]]
     if bad:
         raise ConfigError(f"--seeds {_shown(text)}: seed {bad[0]} is outside {SEED_RANGE[0]}..{SEED_RANGE[1]}")
-    twice = sorted({s for s in seeds if seeds.count(s) > 1})
-    if twice:
-        raise ConfigError(
-            f"--seeds {_shown(text)}: seed {', '.join(map(str, twice))} given more than once; each seed "
-            f"is one run, and a repeated one would count twice in the mean and SD"
-        )
+    from harness.cache.folds import refuse_repeats
+
+    refuse_repeats(seeds, f"--seeds {_shown(text)}: seed ", "each seed is one run", str)
     return seeds
 
 
@@ -440,7 +450,7 @@ def run(request: RunRequest) -> RunSummary:
     overall = OverallProgress(len(todo), int(p.config["protocol"]["epochs"]), enabled=hd.is_main() and request.progress)
     measured: dict[Any, Any] = {}  # complexity records of the architectures built so far (this process)
     for planned in p.runs:
-        fold, seed, r, rcfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
+        fold, r, digest = planned.fold, planned.run, planned.digest
         train_idx, val_idx = fold_indices(prepared, fold)
         if planned.state == "finished" and not request.force:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
@@ -459,16 +469,11 @@ def run(request: RunRequest) -> RunSummary:
                 det,
                 enc,
                 prepared,
-                fold,
-                seed,
-                r,
-                rcfg,
-                digest,
+                planned,
                 train_idx,
                 val_idx,
-                init=init,
-                force=request.force,
-                progress=request.progress,
+                request,
+                init,
                 overall=overall,
                 complexity_memo=measured,
             )
@@ -500,20 +505,16 @@ def run_one(
     det: DetectorSpec,
     enc: EncodingSpec,
     prepared: PreparedDataset,
-    fold: Fold,
-    seed: int,
-    r: Run,
-    cfg: dict[str, Any],
-    digest: str,
+    planned: PlannedRun,
     train_idx: Sequence[int],
     val_idx: Sequence[int],
+    request: RunRequest,
     init: str | Path | None = None,
-    force: bool = False,
-    progress: bool = True,
     overall: OverallProgress | None = None,
     complexity_memo: dict[Any, Any] | None = None,
 ) -> RunOutcome:
-    """Train, predict and evaluate one (fold, seed) and write its folder in the results store.
+    """Train, predict and evaluate one (fold, seed) of ``request`` (``planned``: its store folder, configuration and
+    hash; ``init``: the checkpoint the plan resolved) and write its folder in the results store.
 
     ``complexity_memo`` keeps the complexity record of each architecture already measured (by the detector, its
     model options, classes, input, the names and shapes of its state and the random generator's state), so the
@@ -530,6 +531,8 @@ def run_one(
     from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
 
+    fold, seed, r, cfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
+    force, progress = request.force, request.progress
     if not train_idx:
         raise ConfigError(f"fold {fold.name!r}: no training images (train groups {list(fold.train_groups)})")
     if not val_idx:
@@ -883,36 +886,18 @@ def ablate(
     encodings: Sequence[str],
     fold: str,
     seeds: Sequence[int] | None = None,
-    profile: str | None = "smoke",
-    config_files: Sequence[str | Path] = (),
-    overrides: Sequence[str] = (),
-    store: str | Path | None = None,
-    force: bool = False,
-    progress: bool = True,
+    *,
     categories: Sequence[str] = DEFAULT_ABLATION_CATEGORIES,
+    **settings: Unpack[RunSettings],
 ) -> AblationSummary:
-    """The encoding ablation: the same detector, fold and seeds, once per encoding (runs are stored like any other)."""
+    """The encoding ablation: the same detector, fold and seeds, once per encoding (runs are stored like any other);
+    ``settings`` as for ``run``."""
     if not encodings:
         raise ConfigError("--encodings: name at least one encoding, e.g. none,ir8,linear16,c2")
     if "," in fold or fold == "all":
         raise ConfigError(f"--folds {fold!r}: the ablation uses one fold, e.g. P4+P5")
-    runs: dict[str, RunSummary] = {}
-    for enc in encodings:
-        runs[enc] = run(
-            RunRequest(
-                detector=detector,
-                dataset=dataset,
-                encoding=enc,
-                folds=fold,
-                seeds=seeds,
-                profile=profile,
-                config_files=config_files,
-                overrides=overrides,
-                store=store,
-                force=force,
-                progress=progress,
-            )
-        )
+    request = RunRequest(detector, dataset, folds=fold, seeds=seeds, **settings)
+    runs = {enc: run(replace(request, encoding=enc)) for enc in encodings}
     first = next(iter(runs.values()))
     return AblationSummary(detector, dataset, fold, [match_category(c, first.categories) for c in categories], runs)
 

@@ -23,12 +23,7 @@ def add_synth_command(cli: click.Group) -> None:
         show_default=True,
         help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.",
     )
-    @click.option(
-        "--out",
-        type=click.Path(file_okay=False, path_type=Path),
-        default=None,
-        help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<size>-seed<seed>).",
-    )
+    @opt.folder_option("--out", help="Output folder (default: $HARNESS_DATA or ./data, /m3t-synth-<size>-seed<seed>).")
     @click.option(
         "--seed",
         type=int,

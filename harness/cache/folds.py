@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from harness.api import DatasetSpec, Fold
 from harness.cache.reader import PreparedDataset
@@ -59,6 +59,18 @@ def resolve_folds(
     return select_folds(folds, selection, empty, name)
 
 
+def refuse_repeats(given: Sequence[Any], head: str, each: str, shown: Callable[[Any], str] = repr) -> None:
+    """An option's list (``--folds``, ``--seeds``) names each value once: one given twice would count twice in the
+    mean and SD. The error starts with ``head`` (the option and its value), lists the repeated values (``shown``)
+    and says what each stands for (``each``)."""
+    twice = sorted({v for v in given if given.count(v) > 1})
+    if twice:
+        raise ConfigError(
+            f"{head}{', '.join(map(shown, twice))} given more than once; {each}, and a repeated one would count "
+            f"twice in the mean and SD"
+        )
+
+
 def select_folds(
     folds: list[Fold],
     selection: str | Sequence[str] | None,
@@ -73,12 +85,7 @@ def select_folds(
     shown = selection if isinstance(selection, str) else ",".join(names)
     if not any(names):
         raise ConfigError(f"--folds {shown!r} names no fold; give fold names, or 'all' for every fold")
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise ConfigError(
-            f"--folds {shown!r}: {', '.join(map(repr, twice))} given more than once; each fold is "
-            f"scored once, and a repeated one would count twice in the mean and SD"
-        )
+    refuse_repeats(names, f"--folds {shown!r}: ", "each fold is scored once")
     by_name = {f.name: f for f in folds}
     gone = [n for n in names if n not in by_name and n in (empty or {})]
     if gone:

@@ -99,11 +99,10 @@ def register_commands(cli: click.Group) -> None:
         )
         if dry_run:
             plan = B.plan_benchmark(spec)
-            for job in plan.jobs:
-                click.echo(f"todo  {job}")
-            for done in plan.skipped:
-                click.echo(f"done  {done.run}")
-            click.echo(f"{len(plan.jobs)} cell(s) to run, {len(plan.skipped)} finished, in {plan.store}")
+            opt.echo_plan(
+                [("todo  ", plan.jobs), ("done  ", [done.run for done in plan.skipped])],
+                f"{len(plan.jobs)} cell(s) to run, {len(plan.skipped)} finished, in {plan.store}",
+            )
             return
         summary = B.run_benchmark(spec, lanes=lanes, progress=progress_on())
         B.write_timing(summary, lanes or B.default_lanes())
@@ -124,10 +123,8 @@ def register_commands(cli: click.Group) -> None:
     @benchmark_group.command(name="export")
     @opt.profile_option(default="benchmark", uses_config=False)
     @opt.store_option(reads=True)
-    @click.option(
+    @opt.folder_option(
         "--out",
-        type=click.Path(file_okay=False, path_type=Path),
-        default=None,
         help="Folder to write [default: the shipped references, references/m3t-synth-benchmark].",
     )
     def export_cmd(profile: str, store: Path | None, out: Path | None) -> None:

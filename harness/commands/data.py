@@ -3,6 +3,8 @@ by the synthetic dataset's plugin, ``adapters.datasets.synth_command``)."""
 
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,8 +32,31 @@ def _config(dataset: str, configs: Sequence[str], overrides: Sequence[str], root
     return spec, load_config(protocol=spec.protocol, files=configs, overrides=extra)
 
 
-def _dataset_options(func: Any) -> Any:
-    func = opt.no_progress_option()(func)
+@dataclass(frozen=True)
+class DatasetArgs:
+    """The dataset a command prepares or reads, as ``_dataset_options`` gives it: ``--dataset``, ``--root``,
+    ``--cache``, ``--config`` and ``--set``."""
+
+    dataset: str
+    root: str | None
+    cache: Path | None
+    config_files: tuple[str, ...]
+    overrides: tuple[str, ...]
+
+    def config(self) -> tuple[Any, dict]:
+        """The dataset's plugin spec and its configuration (protocol, files, overrides, root)."""
+        return _config(self.dataset, self.config_files, self.overrides, self.root)
+
+
+def _dataset_options(command: Any) -> Any:
+    """The options of ``DatasetArgs``; the command gets them as one parameter, ``data``."""
+
+    @functools.wraps(command)
+    def with_dataset(*args: Any, **kwargs: Any) -> Any:
+        data = DatasetArgs(**{f.name: kwargs.pop(f.name) for f in fields(DatasetArgs)})
+        return command(*args, data=data, **kwargs)
+
+    func = opt.no_progress_option()(with_dataset)
     func = opt.config_options(
         after_profile=False,
         help_set="Override a config key, e.g. --set dataset.profile=full "
@@ -120,38 +145,23 @@ def register_commands(cli: click.Group) -> None:
         help="compact (default, lossless, 8-bit sources referenced) or raw (uncompressed, memory-mapped); "
         "default $HARNESS_CACHE_FORM or compact.",
     )
-    def prepare_cmd(
-        dataset: str,
-        root: str | None,
-        cache: Path | None,
-        config_files: tuple[str, ...],
-        overrides: tuple[str, ...],
-        force: bool,
-        cache_form: str | None,
-    ) -> None:
+    def prepare_cmd(data: DatasetArgs, force: bool, cache_form: str | None) -> None:
         """Run the sensing pipeline once and cache the aligned samples (+ COCO JSON per fold split)."""
         from harness.cache import prepare
 
-        _, cfg = _config(dataset, config_files, overrides, root)
-        ds = prepare(dataset, cfg, cache_root=cache, force=force, form=cache_form)
+        _, cfg = data.config()
+        ds = prepare(data.dataset, cfg, cache_root=data.cache, force=force, form=cache_form)
         click.echo(prepare_summary(ds))
 
     @cli.command(name="folds")
     @_dataset_options
     @opt.folds_option()
-    def folds_cmd(
-        dataset: str,
-        root: str | None,
-        cache: Path | None,
-        config_files: tuple[str, ...],
-        overrides: tuple[str, ...],
-        folds: str,
-    ) -> None:
+    def folds_cmd(data: DatasetArgs, folds: str) -> None:
         """Print train/val image and instance counts per fold (prepares the dataset if needed)."""
         from harness.cache import prepare, resolve_folds
 
-        spec, cfg = _config(dataset, config_files, overrides, root)
-        ds = prepare(dataset, cfg, cache_root=cache)
+        spec, cfg = data.config()
+        ds = prepare(data.dataset, cfg, cache_root=data.cache)
         selected = resolve_folds(spec, ds, cfg, folds)
         click.echo(
             f"{spec.name}: {len(ds)} images, {ds.manifest['instances']} instances, groups "

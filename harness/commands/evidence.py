@@ -4,6 +4,7 @@ detector's predictions as a FiftyOne grouped dataset)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -43,7 +44,7 @@ def _not_a_run(ctx: click.Context, param: click.Parameter, value: str | None) ->
 
 @hookimpl
 def register_commands(cli: click.Group) -> None:
-    from harness.commands.data import _config, _dataset_options
+    from harness.commands.data import DatasetArgs, _dataset_options
 
     @cli.command(name="show")
     @click.argument("stray", required=False, metavar="", expose_value=False, callback=_not_a_run)
@@ -73,29 +74,15 @@ def register_commands(cli: click.Group) -> None:
         show_default=True,
         help="Height of each panel in pixels.",
     )
-    @click.option(
+    @opt.path_option(
         "--out",
-        type=click.Path(dir_okay=False),
-        default=None,
+        dir_okay=False,
         help="Write the picture here (.png or .jpg) [default: inline in an iTerm2 or kitty terminal, "
         "else show_<dataset>_<id>.png].",
     )
     def show_cmd(
-        dataset,
-        root,
-        cache,
-        config_files,
-        overrides,
-        image_id,
-        index,
-        name,
-        encoding,
-        profile,
-        store,
-        detectors,
-        height,
-        out,
-    ):
+        data: DatasetArgs, profile: str, store: Path | None, detectors: tuple[str, ...], **sample: Any
+    ) -> None:
         """Draw one prepared sample: RGB, thermal (°C colour map with a scale bar, or grey levels for 8-bit
         data) and the fourth channel side by side, with its boxes (and predictions from a results store).
 
@@ -106,21 +93,9 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.report.show import show
 
-        _, cfg = _config(dataset, config_files, overrides, root)
+        _, cfg = data.config()
         store = opt.resolve_store(store, profile) if detectors else store
-        shown = show(
-            dataset,
-            cfg,
-            image_id=image_id,
-            index=index,
-            name=name,
-            encoding=encoding,
-            store=store,
-            detectors=detectors,
-            height=height,
-            out=out,
-            cache_root=cache,
-        )
+        shown = show(data.dataset, cfg, store=store, detectors=detectors, cache_root=data.cache, **sample)
         if shown.path is not None:
             click.echo(str(shown.path))
             click.echo(f"sample {shown.image_id} drawn to {shown.path}", err=True)
@@ -136,10 +111,9 @@ def register_commands(cli: click.Group) -> None:
         default=None,
         help="Encoding of the fourth-channel slice [default: the dataset's]; 'none' for none.",
     )
-    @click.option(
+    @opt.folder_option(
         "--out",
         required=True,
-        type=click.Path(file_okay=False, path_type=Path),
         help="Folder for the slice images (FiftyOne reads samples from files).",
     )
     @click.option(

@@ -41,6 +41,10 @@ Usage (decorators, applied like ``click.option``)::
         root = opt.resolve_store(store, profile)
         ...
 
+Options of a common kind rather than a shared word have builders too: ``choice_option`` (its default shown),
+``input_file_option`` and ``input_path_option`` (an existing file, or file or folder, read), ``folder_option`` (a
+folder written), ``path_option`` (any ``click.Path``) and ``workers_option``.
+
 Old spellings (``--fold``, ``--seed`` for the bootstrap seed, ``--json``, ``--format markdown``, ``report --dataset``,
 ``show``/``profile --detector``, ``export --onnx``, ``synth --profile``, ``sensing register --init``, ...) keep
 working for one release: the CLI rewrites them to the new ones before parsing and prints one ``deprecated:`` line on
@@ -50,7 +54,7 @@ stderr (``rewrite_deprecated``). An option declares its old spellings with ``old
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -384,6 +388,43 @@ def stack(*decorators: Callable[[F], F]) -> Callable[[F], F]:
     return deco
 
 
+# ------------------------------------------------------------------------------------------------ option kinds
+def choice_option(*decls: str, choices: Sequence[str], help: str, default: str | None = None) -> Callable[[F], F]:
+    """One of ``choices`` (``click.Choice``), by default the first, shown in help."""
+    return click.option(
+        *decls,
+        type=click.Choice(list(choices)),
+        default=choices[0] if default is None else default,
+        show_default=True,
+        help=help,
+    )
+
+
+def path_option(*decls: str, help: str, required: bool = False, **path: Any) -> Callable[[F], F]:
+    """A ``click.Path(**path)`` option, ``None`` when not given."""
+    return click.option(*decls, type=click.Path(**path), required=required, default=None, help=help)
+
+
+def input_file_option(*decls: str, help: str, required: bool = False) -> Callable[[F], F]:
+    """An existing file the command reads (a ``str``; ``None`` when not given)."""
+    return path_option(*decls, help=help, required=required, dir_okay=False, exists=True)
+
+
+def input_path_option(*decls: str, help: str, required: bool = False) -> Callable[[F], F]:
+    """An existing file or folder the command reads (a ``Path``; ``None`` when not given)."""
+    return path_option(*decls, help=help, required=required, exists=True, path_type=Path)
+
+
+def folder_option(*decls: str, help: str, required: bool = False) -> Callable[[F], F]:
+    """A folder the command writes (a ``Path``; ``None`` when not given)."""
+    return path_option(*decls, help=help, required=required, file_okay=False, path_type=Path)
+
+
+def workers_option(help: str) -> Callable[[F], F]:
+    """``--workers`` -> parameter ``workers``: processes, at least 1 [default: 1]."""
+    return click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help=help)
+
+
 def model_shape_options(*, imgsz_help: str = "Square input size.") -> Callable[[F], F]:
     """``--imgsz`` (640), ``--num-classes`` (8) and ``--in-channels`` (4): the model a command builds (``profile``,
     ``export``) -> parameters ``imgsz``, ``num_classes``, ``in_channels``."""
@@ -408,13 +449,7 @@ def bootstrap_options(*, resamples: int, help_resamples: str, old_seed: Sequence
             "--resamples", type=click.IntRange(min=0), default=resamples, show_default=True, help=help_resamples
         ),
         bootstrap_seed_option(old=old_seed),
-        click.option(
-            "--workers",
-            type=click.IntRange(min=1),
-            default=1,
-            show_default=True,
-            help="Processes for the bootstrap's re-scoring.",
-        ),
+        workers_option("Processes for the bootstrap's re-scoring."),
     )
 
 
@@ -431,6 +466,15 @@ def reference_results_option() -> Callable[[F], F]:
         "`harness benchmark export` wrote. Their entries are named ref:DETECTOR; refused when the store's runs "
         "used other samples.",
     )
+
+
+def echo_plan(groups: Sequence[tuple[str, Iterable[Any]]], total: str) -> None:
+    """What a ``--dry-run`` prints: one line per item of each ``(label, items)`` group, the label first, then
+    ``total``."""
+    for label, items in groups:
+        for item in items:
+            click.echo(f"{label}{item}")
+    click.echo(total)
 
 
 def default_store(profile: str | None) -> Path:

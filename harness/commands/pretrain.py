@@ -14,15 +14,18 @@ from __future__ import annotations
 
 import logging
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Unpack
 
 import click
 
 from harness.commands import options as opt
 from harness.hookspecs import hookimpl
 from harness.io import file_digest
+
+if TYPE_CHECKING:
+    from harness.runner import RunSettings
 
 log = logging.getLogger(__name__)
 
@@ -49,53 +52,28 @@ def pretrain(
     encoding: str | None = None,
     fold: str | None = None,
     seed: int = 0,
-    profile: str | None = "smoke",
-    config_files: Sequence[str | Path] = (),
-    overrides: Sequence[str] = (),
-    store: str | Path | None = None,
-    force: bool = False,
-    progress: bool = True,
     out: str | Path | None = None,
-    init: str | Path | None = None,
+    **settings: Unpack[RunSettings],
 ) -> PretrainResult:
-    """Train ``detector`` on ``dataset``'s training groups and return the checkpoint for ``harness run --init``."""
+    """Train ``detector`` on ``dataset``'s training groups and return the checkpoint for ``harness run --init``
+    (``settings`` as for ``harness run``; ``out``: also copy the checkpoint there)."""
     from harness.errors import ConfigError, StoreError
     from harness.io import atomic_write_json
     from harness.plugins import get_host
-    from harness.runner import RunRequest, run
+    from harness.runner import RunRequest, resolve_config, run
 
     host = get_host()
     spec = host.dataset(dataset)
+    request = RunRequest(detector, dataset, encoding, "all" if fold is None else fold, [seed], **settings)
     if fold is None:
-        from harness.config import load_config
-
-        folds = (
-            load_config(profile, protocol=spec.protocol, files=config_files, overrides=overrides)["protocol"].get(
-                "folds"
-            )
-            or {}
-        )
+        folds = resolve_config(request, None, spec)["protocol"].get("folds") or {}
         if len(folds) > 1:
             raise ConfigError(
                 f"dataset {dataset!r} has folds {', '.join(folds)}; choose the one to select on with --folds"
             )
         fold = next(iter(folds), "all")
-    summary = run(
-        RunRequest(
-            detector=detector,
-            dataset=dataset,
-            encoding=encoding,
-            folds=fold,
-            seeds=[seed],
-            profile=profile,
-            config_files=config_files,
-            overrides=overrides,
-            store=store,
-            force=force,
-            progress=progress,
-            init=init,
-        )
-    )
+        request = replace(request, folds=fold)
+    summary = run(request)
     if len(summary.results) != 1:
         raise ConfigError(
             f"pretraining needs exactly one fold of {dataset!r}; {fold!r} selected {len(summary.results)}; use --folds"
@@ -166,27 +144,13 @@ def register_commands(cli: click.Group) -> None:
     @opt.config_options()
     @opt.store_option()
     @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also copy the checkpoint here.")
-    @click.option(
-        "--init",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
-        help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained).",
+    @opt.input_file_option(
+        "--init", help="Start from these weights (e.g. `harness weights import` output, COCO-pretrained)."
     )
     @click.option("--force", is_flag=True, help="Redo the pretraining run even if it finished.")
     @opt.no_progress_option()
     def pretrain_cmd(
-        detector: str,
-        dataset: str,
-        encoding: str | None,
-        folds: str | None,
-        seeds: int,
-        profile: str,
-        config_files: tuple[str, ...],
-        overrides: tuple[str, ...],
-        store: Path | None,
-        out: str | None,
-        init: str | None,
-        force: bool,
+        detector: str, dataset: str, encoding: str | None, folds: str | None, seeds: int, **settings: Any
     ) -> None:
         """Pretrain DETECTOR on DATASET (M3FD) and print the checkpoint to fine-tune from.
 
@@ -197,21 +161,7 @@ def register_commands(cli: click.Group) -> None:
         """
         from harness.progress import progress_on
 
-        res = pretrain(
-            detector,
-            dataset,
-            encoding,
-            folds,
-            seeds,
-            profile,
-            config_files,
-            overrides,
-            store,
-            force,
-            progress_on(),
-            out,
-            init,
-        )
+        res = pretrain(detector, dataset, encoding, folds, seeds, progress=progress_on(), **settings)
         r = res.record
         click.echo(
             f"pretrained {r['detector']} on {r['dataset']} ({r['train_images']} train / {r['val_images']} val "

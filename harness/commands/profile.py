@@ -154,22 +154,13 @@ def register_commands(cli: click.Group) -> None:
     def profile_cmd(
         detectors: tuple[str, ...],
         fmt: str,
-        imgsz: int,
-        num_classes: int,
-        in_channels: int,
-        runs: int,
-        warmup: int,
-        threads: int | None,
-        device: str,
-        latency: bool,
-        onnx: bool,
-        fvcore: bool,
         show_table: bool,
         store: Path | None,
         run_profile: str,
         config_files: tuple[str, ...],
         overrides: tuple[str, ...],
         no_store: bool,
+        **measure: Any,
     ) -> None:
         """Parameters, GFLOPs ("paper" and "exact" conventions, fvcore) and latency of detectors at IMGSZ, batch 1."""
         from harness.config import load_config
@@ -197,23 +188,7 @@ def register_commands(cli: click.Group) -> None:
             for name in names:
                 progress.update(description=f"profiling {name}")
                 try:
-                    results.append(
-                        profile_detector(
-                            name,
-                            imgsz=imgsz,
-                            num_classes=num_classes,
-                            in_channels=in_channels,
-                            host=host,
-                            latency=latency,
-                            onnx=onnx,
-                            fvcore=fvcore,
-                            warmup=warmup,
-                            runs=runs,
-                            threads=threads,
-                            device=device,
-                            model_options=options[name],
-                        )
-                    )
+                    results.append(profile_detector(name, host=host, model_options=options[name], **measure))
                 except HarnessError as exc:
                     if len(names) == 1:
                         raise
@@ -258,29 +233,11 @@ def register_commands(cli: click.Group) -> None:
         show_default=True,
         help="Run the file in onnxruntime and require outputs equal to torch within 1e-4.",
     )
-    def export_cmd(
-        detector: str,
-        onnx_path: Path,
-        imgsz: int,
-        num_classes: int,
-        in_channels: int,
-        opset: int,
-        dynamic_batch: bool,
-        check: bool,
-    ) -> None:
+    def export_cmd(detector: str, onnx_path: Path, check: bool, **settings: Any) -> None:
         """Export a detector's raw forward (BN folded, no NMS) to ONNX and check it against torch."""
         from harness.profiling import export_detector
 
-        rec = export_detector(
-            detector,
-            onnx_path,
-            imgsz=imgsz,
-            num_classes=num_classes,
-            in_channels=in_channels,
-            opset=opset,
-            dynamic_batch=dynamic_batch,
-            check=check,
-        )
+        rec = export_detector(detector, onnx_path, check=check, **settings)
         ins = ", ".join(f"{k} {v}" for k, v in rec["inputs"].items())
         outs = ", ".join(f"{k} {v}" for k, v in rec["outputs"].items())
         click.echo(

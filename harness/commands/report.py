@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -38,12 +39,7 @@ def register_commands(cli: click.Group) -> None:
     )
     @opt.store_option(reads=True)
     @opt.profile_option(uses_config=False)
-    @click.option(
-        "--out",
-        type=click.Path(file_okay=False, path_type=Path),
-        default=None,
-        help="Output folder [default: reports/<store folder name>].",
-    )
+    @opt.folder_option("--out", help="Output folder [default: reports/<store folder name>].")
     @opt.option(
         "--file-types",
         "formats",
@@ -92,14 +88,12 @@ def register_commands(cli: click.Group) -> None:
         out: Path | None,
         formats: str,
         print_tables: bool,
-        resamples: int,
         bootstrap_seed: int,
-        workers: int,
         ablation_categories: str,
-        title: str | None,
         reference: str,
         log_to: str | None = None,
         reference_results: str | None = None,
+        **settings: Any,
     ) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
 
@@ -133,14 +127,12 @@ def register_commands(cli: click.Group) -> None:
             names,
             out=None if print_tables else target,
             formats=fmts,
-            resamples=resamples,
             seed=bootstrap_seed,
             ablation_categories=cats,
-            title=title,
             progress=True,
-            workers=workers,
             reference=reference,
             references=load_references(reference_results),
+            **settings,  # resamples, workers, title
         )
         if print_tables:
             click.echo(report.to_text())

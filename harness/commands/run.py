@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import click
 
@@ -65,15 +66,12 @@ def register_commands(cli: click.Group) -> None:
         help="Encoding of the extra channel [default: the dataset's, or the detector's for dual-stream].",
     )
     @opt.folds_option()
-    @click.option(
-        "--init",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
-        help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict).",
+    @opt.input_file_option(
+        "--init", help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict)."
     )
     @click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")
     @_common
-    def run_cmd(detector, dataset, encoding, folds, init, root, profile, config_files, overrides, store, seeds, force):
+    def run_cmd(root: str | None, overrides: tuple[str, ...], **request: Any) -> None:
         """Train and evaluate DETECTOR on every selected fold and seed of DATASET.
 
         Finished runs with the same configuration are skipped, interrupted ones resume from their last checkpoint.
@@ -91,22 +89,7 @@ def register_commands(cli: click.Group) -> None:
 
         try:
             overrides = (*overrides, *([f"dataset.root={root}"] if root else []))
-            summary = run(
-                RunRequest(
-                    detector=detector,
-                    dataset=dataset,
-                    encoding=encoding,
-                    folds=folds,
-                    seeds=seeds,
-                    profile=profile,
-                    config_files=config_files,
-                    overrides=overrides,
-                    store=store,
-                    force=force,
-                    init=init,
-                    progress=progress_on(),
-                )
-            )
+            summary = run(RunRequest(overrides=overrides, progress=progress_on(), **request))
             if not hd.is_main():  # under torchrun rank 0 prints the tables
                 return
         finally:
@@ -131,8 +114,8 @@ def register_commands(cli: click.Group) -> None:
     )
     @_common
     def ablate_cmd(
-        detector, dataset, encodings, folds, categories, profile, config_files, overrides, store, seeds, force
-    ):
+        detector: str, dataset: str, encodings: str, folds: str, categories: str, seeds: str | None, **settings: Any
+    ) -> None:
         """The encoding ablation: train DETECTOR on one fold once per encoding and compare.
 
         Prints P, R, mAP50, mAP50:95 and the AP50 of the chosen categories per encoding (the seed's ablation
@@ -152,13 +135,9 @@ def register_commands(cli: click.Group) -> None:
             dataset,
             _split(encodings),
             folds,
-            seeds=parse_seeds(seeds),
-            profile=profile,
-            config_files=config_files,
-            overrides=overrides,
-            store=store,
-            force=force,
-            progress=progress_on(),
+            parse_seeds(seeds),
             categories=_split(categories),
+            progress=progress_on(),
+            **settings,
         )
         click.echo(ablation_table(ab))

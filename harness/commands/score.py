@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import click
 
 from harness.commands import options as opt
@@ -10,6 +12,11 @@ from harness.hookspecs import hookimpl
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{100 * float(v):.1f}"
+
+
+def _frame_option(frames: tuple[str, ...], help: str) -> Callable[[Any], Any]:
+    """``--frame``: the image frame boxes are in, one of ``frames`` (the first by default)."""
+    return opt.choice_option("--frame", choices=frames, help=help)
 
 
 @hookimpl
@@ -37,32 +44,24 @@ def register_commands(cli: click.Group) -> None:
     @opt.folds_option(
         one=True, required=True, old=("--fold",), help="The held-out fold the predictions are for, e.g. P1."
     )
-    @click.option(
+    @opt.input_file_option(
         "--predictions",
         required=True,
-        type=click.Path(dir_okay=False, exists=True),
         help="COCO results JSON: [{image_id, category_id, bbox [x,y,w,h], score}, ...].",
     )
-    @click.option(
+    @opt.choice_option(
         "--box-format",
-        type=click.Choice(["xywh", "xyxy"]),
-        default="xywh",
-        show_default=True,
+        choices=("xywh", "xyxy"),
         help="How each bbox is written: COCO's x, y, w, h, or corners x1, y1, x2, y2.",
     )
     @click.option("--name", required=True, help="Name of the external detector; stored as external/NAME.")
-    @click.option(
-        "--frame",
-        type=click.Choice(["prepared", "thermal", "rgb"]),
-        default="prepared",
-        show_default=True,
-        help="Frame of the boxes: the harness's prepared frame, or the original "
+    @_frame_option(
+        ("prepared", "thermal", "rgb"),
+        "Frame of the boxes: the harness's prepared frame, or the original "
         "thermal or RGB image (moved like the ground truth).",
     )
-    @click.option(
+    @opt.input_file_option(
         "--images",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
         help="COCO JSON of the images (and categories) the predictions refer to; fold images it does "
         "not list count as missing.",
     )
@@ -95,25 +94,8 @@ def register_commands(cli: click.Group) -> None:
     )
     @opt.no_progress_option()
     def score_cmd(
-        dataset,
-        folds,
-        predictions,
-        box_format,
-        name,
-        frame,
-        images,
-        image_key,
-        category_map,
-        params,
-        gflops,
-        root,
-        profile,
-        config_files,
-        overrides,
-        store,
-        force,
-        allow_implausible,
-    ):
+        dataset: str, folds: str, predictions: str, name: str, category_map: str | None, **settings: Any
+    ) -> None:
         """Score predictions made by another codebase against the prepared ground truth of one fold.
 
         The result is stored as a run of detector external/NAME, so `harness report`, `compare-detectors` and
@@ -130,24 +112,7 @@ def register_commands(cli: click.Group) -> None:
 
         fold = folds
         res = score_external(
-            dataset,
-            fold,
-            predictions,
-            name,
-            frame=frame,
-            images=images,
-            image_key=image_key,
-            category_map=parse_category_map(category_map),
-            profile=profile,
-            config_files=config_files,
-            overrides=overrides,
-            store=store,
-            root=root,
-            params=params,
-            gflops=gflops,
-            force=force,
-            allow_implausible=allow_implausible,
-            box_format=box_format,
+            dataset, fold, predictions, name, category_map=parse_category_map(category_map), **settings
         )
         for line in res.matching.lines():
             click.echo(line, err=True)
@@ -168,13 +133,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--encoding", default=None, help="Only runs with this encoding.")
     @opt.folds_option(default=None, help="Only runs of these held-out folds, comma-separated [default: all].")
     @opt.seeds_option(old=("--seed",), help="Only runs of these training seeds, comma-separated [default: all].")
-    @click.option(
-        "--frame",
-        type=click.Choice(["thermal", "rgb", "prepared"]),
-        default="thermal",
-        show_default=True,
-        help="Frame of the exported boxes.",
-    )
+    @_frame_option(("thermal", "rgb", "prepared"), "Frame of the exported boxes.")
     @click.option("--out", required=True, type=click.Path(), help="Output .json for one run, or a folder for several.")
     def export_cmd(profile, store, dataset, detector, encoding, folds, seeds, frame, out):
         """Write finished runs' held-out predictions as COCO results in an original image frame.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import click
 
@@ -71,30 +72,22 @@ def summary_lines(res) -> list[str]:
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="screen")
     @click.argument("flight", type=click.Path(file_okay=False, path_type=str))
-    @click.option(
+    @opt.path_option(
         "--run",
-        "run_dir",
-        type=click.Path(file_okay=False, exists=True),
-        default=None,
+        file_okay=False,
+        exists=True,
         help="A finished run's folder in the results store: its model, sensing and encoding are used.",
     )
-    @click.option(
-        "--weights",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
-        help="A checkpoint instead of a run (with --detector and --dataset).",
-    )
+    @opt.input_file_option("--weights", help="A checkpoint instead of a run (with --detector and --dataset).")
     @click.option("--detector", default=None, help="With --weights: the detector the checkpoint is of.")
     @click.option("--dataset", default=None, help="With --weights: its categories, protocol and encoding.")
     @click.option("--encoding", default=None, help="With --weights: the encoding [default: the dataset's].")
     @opt.profile_option(help="With --weights: the run profile (configs/profiles/).")
     @opt.config_options(help_set="With --weights: override one config key (repeatable).")
     @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
-    @click.option(
+    @opt.choice_option(
         "--backend",
-        type=click.Choice(["torch", "onnx"]),
-        default="torch",
-        show_default=True,
+        choices=("torch", "onnx"),
         help="PyTorch, or the model's ONNX export in ONNX Runtime (exported into --out).",
     )
     @click.option("--device", default="cpu", show_default=True, help="Torch device (cpu, cuda).")
@@ -104,26 +97,16 @@ def register_commands(cli: click.Group) -> None:
         default=None,
         help="Report findings scoring at least this [default: the run's operating point].",
     )
-    @click.option(
+    @opt.input_file_option(
         "--homography",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
         help="A homographies YAML (undistorted wide pixels of the calibration K -> thermal pixels) used for "
         "every frame instead of automatic registration.",
     )
     @click.option("--group", default=None, help="The entry of --homography to use when it holds several.")
-    @click.option(
-        "--rgb-camera",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
-        help="Wide camera calibration [default: the run's, from its config or prepared data].",
+    @opt.input_file_option(
+        "--rgb-camera", help="Wide camera calibration [default: the run's, from its config or prepared data]."
     )
-    @click.option(
-        "--thermal-camera",
-        type=click.Path(dir_okay=False, exists=True),
-        default=None,
-        help="Thermal camera calibration [default: the run's].",
-    )
+    @opt.input_file_option("--thermal-camera", help="Thermal camera calibration [default: the run's].")
     @click.option("--no-undistort", is_flag=True, help="No lens undistortion (a run whose data had none).")
     @click.option(
         "--focal-35mm",
@@ -131,39 +114,27 @@ def register_commands(cli: click.Group) -> None:
         metavar="WIDE,THERMAL",
         help="35-mm focal lengths for the factory prior when the EXIF lacks them, e.g. 24,40.",
     )
-    @click.option(
+    @opt.choice_option(
         "--fallback",
-        type=click.Choice(["prior", "skip"]),
-        default="prior",
-        show_default=True,
+        choices=("prior", "skip"),
         help="A group (or frame) whose automatic registration fails its check: screened with the factory "
         "prior and listed with its expected error, or listed and not screened.",
     )
-    @click.option(
+    @opt.choice_option(
         "--rgb-decode",
-        type=click.Choice(["auto", "full"]),
-        default="auto",
-        show_default=True,
+        choices=("auto", "full"),
         help="auto: decode the wide JPEG at 1/2, 1/4 or 1/8 where the warp shrinks it by 2.2x or more, "
         "keeping at least 0.85 wide pixel per thermal pixel; full: always in full (bit-identical "
         "to the training data).",
     )
-    @click.option(
+    @opt.choice_option(
         "--register",
-        type=click.Choice(["group", "frame"]),
-        default="group",
-        show_default=True,
+        choices=("group", "frame"),
         help="Automatic registration once per inspection group, pooled over its captures (those within "
         "the run's sensing.groups.gap_s of each other; as the datasets register), or for every frame "
         "on its own.",
     )
-    @click.option(
-        "--workers",
-        type=click.IntRange(min=1),
-        default=1,
-        show_default=True,
-        help="Processes for the front end (decode, register, warp, fourth channel).",
-    )
+    @opt.workers_option("Processes for the front end (decode, register, warp, fourth channel).")
     @click.option(
         "--threads",
         type=click.IntRange(min=1),
@@ -175,39 +146,7 @@ def register_commands(cli: click.Group) -> None:
     @click.option("--force", is_flag=True, help="Replace a screen in --out made with another model or settings.")
     @click.option("--no-overlays", is_flag=True, help="No overlay and thumbnail pictures.")
     @opt.no_progress_option()
-    def screen_cmd(
-        flight,
-        run_dir,
-        weights,
-        detector,
-        dataset,
-        encoding,
-        profile,
-        config_files,
-        overrides,
-        out,
-        backend,
-        device,
-        conf,
-        homography,
-        group,
-        rgb_camera,
-        thermal_camera,
-        no_undistort,
-        focal_35mm,
-        fallback,
-        rgb_decode,
-        register,
-        workers,
-        threads,
-        approximate,
-        converter,
-        dji_irp,
-        converter_timeout,
-        fail_fast,
-        force,
-        no_overlays,
-    ):
+    def screen_cmd(focal_35mm: str | None, no_overlays: bool, **request: Any) -> None:
         """Screen FLIGHT (a folder of DJI _W / _T captures) with a benchmarked detector.
 
         Each capture goes through the sensing pipeline and encoding the run was trained with (decode to C,
@@ -224,40 +163,7 @@ def register_commands(cli: click.Group) -> None:
         from harness.progress import progress_on
         from harness.screen import ScreenRequest, screen
 
-        req = ScreenRequest(
-            flight=flight,
-            out=out,
-            run=run_dir,
-            weights=weights,
-            detector=detector,
-            dataset=dataset,
-            encoding=encoding,
-            profile=profile,
-            config_files=config_files,
-            overrides=overrides,
-            backend=backend,
-            device=device,
-            conf=conf,
-            homography=homography,
-            group=group,
-            rgb_camera=rgb_camera,
-            thermal_camera=thermal_camera,
-            no_undistort=no_undistort,
-            focal_35mm=_focal(focal_35mm),
-            fallback=fallback,
-            rgb_decode=rgb_decode,
-            register=register,
-            workers=workers,
-            threads=threads,
-            approximate=approximate,
-            converter=converter,
-            dji_irp=dji_irp,
-            converter_timeout=converter_timeout,
-            fail_fast=fail_fast,
-            force=force,
-            progress=progress_on(),
-            overlays=not no_overlays,
-        )
+        req = ScreenRequest(focal_35mm=_focal(focal_35mm), progress=progress_on(), overlays=not no_overlays, **request)
         res = screen(req)
         for line in summary_lines(res):
             click.echo(line)

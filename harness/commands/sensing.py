@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import click
 
@@ -54,6 +54,15 @@ def _num(value: float, digits: int) -> str:
     return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
 
 
+def _method_option(what: str) -> Callable[[Any], Any]:
+    """``--method lsq|ransac``: how ``register`` and ``registration-error`` fit a group's homography."""
+    return opt.choice_option(
+        "--method",
+        choices=("lsq", "ransac"),
+        help=f"{what}: least squares over all pairs, or RANSAC (outliers left out).",
+    )
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.group(name="sensing")
@@ -64,12 +73,8 @@ def register_commands(cli: click.Group) -> None:
     @sensing.command(name="decode")
     @click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
     @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")
-    @click.option(
-        "--unit",
-        type=click.Choice(["centikelvin", "decicelsius", "celsius"]),
-        default="centikelvin",
-        show_default=True,
-        help="Storage unit of the temperature file.",
+    @opt.choice_option(
+        "--unit", choices=("centikelvin", "decicelsius", "celsius"), help="Storage unit of the temperature file."
     )
     @opt.option(
         "--file-type",
@@ -80,11 +85,9 @@ def register_commands(cli: click.Group) -> None:
         help="File type of the temperature files [default: png for centikelvin, tiff otherwise].",
     )
     @click.option("--preview/--no-preview", default=False, help="Also write the 8-bit preview as <name>_ir8.png.")
-    @click.option(
+    @opt.choice_option(
         "--decoder",
-        type=click.Choice(["auto", "dji", "blackbody"]),
-        default="auto",
-        show_default=True,
+        choices=("auto", "dji", "blackbody"),
         help="auto: DJI's corrected temperature, or the route chosen below for files the harness cannot "
         "correct, else an error; dji: corrected or an error; blackbody: raw14/16-273.15, uncorrected.",
     )
@@ -99,9 +102,7 @@ def register_commands(cli: click.Group) -> None:
         default=None,
         help="Override the reflected temperature, C (-40..100; M3T files also use it for the air).",
     )
-    @click.option(
-        "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Decode in this many processes."
-    )
+    @opt.workers_option("Decode in this many processes.")
     @click.option("--fail-fast", is_flag=True, help="Stop at the first file that cannot be decoded.")
     @opt.no_progress_option()
     def decode_cmd(
@@ -228,19 +229,8 @@ def register_commands(cli: click.Group) -> None:
         required=True,
         help="Homographies YAML to write (groups already in it are kept unless replaced).",
     )
-    @click.option(
-        "--landmarks",
-        type=click.Path(exists=True, path_type=Path),
-        default=None,
-        help="Landmarks CSV/JSON: one homography per group from its point pairs.",
-    )
-    @click.option(
-        "--method",
-        type=click.Choice(["lsq", "ransac"]),
-        default="lsq",
-        show_default=True,
-        help="Fit to the landmarks: least squares over all pairs, or RANSAC (outliers left out).",
-    )
+    @opt.input_path_option("--landmarks", help="Landmarks CSV/JSON: one homography per group from its point pairs.")
+    @_method_option("Fit to the landmarks")
     @click.option("--threshold", type=float, default=2.0, show_default=True, help="RANSAC inlier threshold, px.")
     @click.option(
         "--similarity",
@@ -334,35 +324,22 @@ def register_commands(cli: click.Group) -> None:
 
     # ------------------------------------------------------------------------------------------------ analyses
     @sensing.command(name="registration-error")
-    @click.option(
-        "--landmarks",
-        type=click.Path(exists=True, path_type=Path),
-        required=True,
-        help="Landmarks CSV (scene,group,rgb_x,rgb_y,thermal_x,thermal_y) or JSON.",
+    @opt.input_path_option(
+        "--landmarks", required=True, help="Landmarks CSV (scene,group,rgb_x,rgb_y,thermal_x,thermal_y) or JSON."
     )
-    @click.option(
+    @opt.input_path_option(
         "--homographies",
-        type=click.Path(exists=True, path_type=Path),
-        default=None,
         help="Evaluate these per-group homographies; without, fit per group and score leave-one-out.",
     )
-    @click.option(
-        "--method",
-        type=click.Choice(["lsq", "ransac"]),
-        default="lsq",
-        show_default=True,
-        help="Fit per group: least squares over all pairs, or RANSAC (outliers left out).",
-    )
+    @_method_option("Fit per group")
     @click.option(
         "--dataset", default=None, help="Dataset name: also write <store>/<dataset>/_sensing/registration_error.json."
     )
     @opt.profile_option(uses_config=False)
     @opt.store_option()
     @click.option("--out", type=click.Path(path_type=Path), default=None, help="Also write the JSON here.")
-    @click.option(
+    @opt.input_path_option(
         "--truth",
-        type=click.Path(exists=True, path_type=Path),
-        default=None,
         help="True per-group homographies: also report the landmarks' error under them and the fitted "
         "homographies' distance from them (default: ground_truth/homographies.yaml of a synthetic set "
         "when the landmarks are its registration/landmarks.json).",

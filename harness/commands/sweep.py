@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import click
 
@@ -25,6 +26,67 @@ def _key_values(items: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
+def _executor_options(command: Any) -> Any:
+    """The options that set ``harness.sweep.ExecutorOptions`` (resources per run, Ray and Slurm settings), in the order
+    of ``--help``. Each passes its field by name (``sweep_cmd``'s ``resources``), except ``--slurm-setup``,
+    ``--slurm-opt`` and ``--submitit-cluster``, which the command turns into ``slurm_setup``, ``slurm_extra`` and
+    ``cluster``."""
+    return opt.stack(
+        click.option("--cpus-per-run", type=int, default=1, show_default=True, help="CPUs per run (ray, slurm)."),
+        click.option(
+            "--gpus-per-run",
+            type=int,
+            default=None,
+            help="GPUs per run (ray, slurm) [default: 1 where there are GPUs, else 0].",
+        ),
+        click.option(
+            "--ray-address",
+            default=None,
+            help="Ray cluster to join, e.g. auto or ray://host:10001 [default: $RAY_ADDRESS, else a local one].",
+        ),
+        click.option("--slurm-partition", "partition", default=None, help="Slurm partition."),
+        click.option("--slurm-account", "account", default=None, help="Slurm account."),
+        click.option("--slurm-qos", "qos", default=None, help="Slurm QOS."),
+        click.option(
+            "--slurm-time",
+            "timeout_min",
+            type=int,
+            default=24 * 60,
+            show_default=True,
+            help="Time limit per run, minutes.",
+        ),
+        click.option("--slurm-mem-gb", "mem_gb", type=float, default=None, help="Memory per run, GB."),
+        click.option(
+            "--slurm-array-parallelism",
+            "array_parallelism",
+            type=int,
+            default=16,
+            show_default=True,
+            help="At most this many runs of the job array at once.",
+        ),
+        click.option(
+            "--slurm-setup",
+            multiple=True,
+            metavar="LINE",
+            help="Shell line run before each job, e.g. 'source .venv/bin/activate' (repeatable).",
+        ),
+        click.option(
+            "--slurm-opt",
+            multiple=True,
+            metavar="KEY=VALUE",
+            help="Any other sbatch option, e.g. constraint=a100 (repeatable).",
+        ),
+        click.option(
+            "--submitit-cluster",
+            type=click.Choice(["auto", "slurm", "local", "debug"]),
+            default="auto",
+            show_default=True,
+            help="For --executor slurm: auto uses Slurm when present, else local processes.",
+        ),
+        opt.path_option("--log-dir", file_okay=False, help="submitit job logs [default: <store>/_sweeps/<time>]."),
+    )(command)
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="sweep")
@@ -44,57 +106,7 @@ def register_commands(cli: click.Group) -> None:
         help="local: one run after the other here; ray: one Ray task per run; slurm: a submitit job array.",
     )
     @click.option("--dry-run", is_flag=True, help="List the runs the sweep would do, and stop.")
-    @click.option("--cpus-per-run", type=int, default=1, show_default=True, help="CPUs per run (ray, slurm).")
-    @click.option(
-        "--gpus-per-run",
-        type=int,
-        default=None,
-        help="GPUs per run (ray, slurm) [default: 1 where there are GPUs, else 0].",
-    )
-    @click.option(
-        "--ray-address",
-        default=None,
-        help="Ray cluster to join, e.g. auto or ray://host:10001 [default: $RAY_ADDRESS, else a local one].",
-    )
-    @click.option("--slurm-partition", default=None, help="Slurm partition.")
-    @click.option("--slurm-account", default=None, help="Slurm account.")
-    @click.option("--slurm-qos", default=None, help="Slurm QOS.")
-    @click.option(
-        "--slurm-time", "timeout_min", type=int, default=24 * 60, show_default=True, help="Time limit per run, minutes."
-    )
-    @click.option("--slurm-mem-gb", type=float, default=None, help="Memory per run, GB.")
-    @click.option(
-        "--slurm-array-parallelism",
-        type=int,
-        default=16,
-        show_default=True,
-        help="At most this many runs of the job array at once.",
-    )
-    @click.option(
-        "--slurm-setup",
-        multiple=True,
-        metavar="LINE",
-        help="Shell line run before each job, e.g. 'source .venv/bin/activate' (repeatable).",
-    )
-    @click.option(
-        "--slurm-opt",
-        multiple=True,
-        metavar="KEY=VALUE",
-        help="Any other sbatch option, e.g. constraint=a100 (repeatable).",
-    )
-    @click.option(
-        "--submitit-cluster",
-        type=click.Choice(["auto", "slurm", "local", "debug"]),
-        default="auto",
-        show_default=True,
-        help="For --executor slurm: auto uses Slurm when present, else local processes.",
-    )
-    @click.option(
-        "--log-dir",
-        type=click.Path(file_okay=False),
-        default=None,
-        help="submitit job logs [default: <store>/_sweeps/<time>].",
-    )
+    @_executor_options
     @_common
     def sweep_cmd(
         detectors,
@@ -103,25 +115,16 @@ def register_commands(cli: click.Group) -> None:
         folds,
         executor,
         dry_run,
-        cpus_per_run,
-        gpus_per_run,
-        ray_address,
-        slurm_partition,
-        slurm_account,
-        slurm_qos,
-        timeout_min,
-        slurm_mem_gb,
-        slurm_array_parallelism,
         slurm_setup,
         slurm_opt,
         submitit_cluster,
-        log_dir,
         profile,
         config_files,
         overrides,
         store,
         seeds,
         force,
+        **resources,
     ):
         """Run every combination of DETECTORS x DATASETS x ENCODINGS x FOLDS x SEEDS into one results store.
 
@@ -156,28 +159,17 @@ def register_commands(cli: click.Group) -> None:
         )
         if dry_run:
             planned = expand(spec)
-            for job in planned.jobs:
-                click.echo(f"run   {job}")
-            for r in planned.skipped:
-                click.echo(f"skip  {r.run} (finished)")
-            for text in planned.invalid:
-                click.echo(f"left out  {text}")
-            click.echo(f"{len(planned.jobs)} runs to do, {len(planned.skipped)} finished, store {planned.store}")
+            skipped = [f"{r.run} (finished)" for r in planned.skipped]
+            opt.echo_plan(
+                [("run   ", planned.jobs), ("skip  ", skipped), ("left out  ", planned.invalid)],
+                f"{len(planned.jobs)} runs to do, {len(planned.skipped)} finished, store {planned.store}",
+            )
             return
         options = ExecutorOptions(
-            cpus_per_run=cpus_per_run,
-            gpus_per_run=gpus_per_run,
-            ray_address=ray_address,
             cluster=None if submitit_cluster == "auto" else submitit_cluster,
-            log_dir=log_dir,
-            timeout_min=timeout_min,
-            mem_gb=slurm_mem_gb,
-            partition=slurm_partition,
-            account=slurm_account,
-            qos=slurm_qos,
-            array_parallelism=slurm_array_parallelism,
             slurm_setup=tuple(slurm_setup),
             slurm_extra=_key_values(slurm_opt),
+            **resources,
         )
         summary = sweep(spec, executor, options, progress=progress_on())
         click.echo(sweep_table(summary))
