@@ -194,11 +194,22 @@ class RJpeg:
         p["atmosphere"] = p["ambient"]
         return p
 
-    def corrected_c(self, **overrides: float | None) -> np.ndarray:
+    def corrected_c(
+        self,
+        emissivity: float | None = None,
+        distance: float | None = None,
+        humidity: float | None = None,
+        reflected: float | None = None,
+        ambient: float | None = None,
+    ) -> np.ndarray:
         """DJI Thermal SDK's corrected temperature in C (float32 HxW), at the file's measurement parameters or
         the given overrides (emissivity 0.1-1, distance m, humidity %, reflected C; ``ambient`` C only for v0300
         formats). Equations: ``harness.sensing.dji_correction``. A ``DataError`` when the file has no usable
-        transmission table (``decoder_note`` says why)."""
+        transmission table (``decoder_note`` says why). ``correction_params`` and ``approximate_c`` take the same
+        overrides by keyword."""
+        overrides = dict(
+            emissivity=emissivity, distance=distance, humidity=humidity, reflected=reflected, ambient=ambient
+        )
         if self.dirp is not None:
             return dji_dirp.measure(self.raw14, self.dirp, self.correction_params(**overrides), self.path)
         if self.tau_table is None:
