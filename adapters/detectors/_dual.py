@@ -1,14 +1,17 @@
-"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec, the options at the end of
-their build (NMS settings, weights) and their weight loading.
+"""What the dual-stream YOLOv5-family plugins (ICAFusion, EME, CMA-Det) share: their spec, their build (the trunk
+size, the network's own options, then the NMS settings and the weights) and their weight loading.
 
 Kept free of torch imports so that registering the plugins stays fast (``harness --help``, ``harness list``).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 from harness.api import DetectorSpec, Reference
+
+if TYPE_CHECKING:
+    from adapters.detectors.yolo.v5 import AnchorDetector
 
 
 def load_weights(model: Any, state_dict: Mapping[str, Any] | Any, name: str) -> dict:
@@ -21,6 +24,34 @@ def load_weights(model: Any, state_dict: Mapping[str, Any] | Any, name: str) -> 
 
 #: The build options every dual-stream detector takes besides its network's own: the weights and the NMS settings.
 FINISH_OPTIONS = ("weights", "conf", "iou", "max_det", "multi_label", "max_nms")
+#: The trunk size options of every dual-stream build: a YOLOv5 size letter, or explicit width and depth multiples.
+TRUNK_OPTIONS = ("scale", "width", "depth")
+
+
+def build_dual(
+    network: type[AnchorDetector],
+    num_classes: int,
+    in_channels: int,
+    options: dict[str, Any],
+    net_options: tuple[str, ...] = (),
+    known: tuple[str, ...] = (),
+) -> Any:
+    """A dual-stream build: ``network(num_classes, trunk, **its own options)``, then ``finish_build``; errors name
+    the detector by ``network.name``.
+
+    ``options`` (the build's keyword options) hold the ``TRUNK_OPTIONS`` (a ``scale`` letter, each multiple
+    overridable by an explicit ``width``/``depth``), the network's ``net_options`` (those not given keep the
+    network's defaults) and the ``FINISH_OPTIONS``; anything else must be among ``known`` (also passed on to the
+    network), else a ``ConfigError`` naming it."""
+    from adapters.detectors.yolo.v5 import Trunk, resolve_scale
+
+    name = network.name
+    size = {k: options.pop(k) for k in TRUNK_OPTIONS if k in options}
+    own = {k: options.pop(k) for k in net_options if k in options}
+    finish = finish_options(name, options, known)
+    width, depth = resolve_scale(name, size["scale"], size.get("width"), size.get("depth"))
+    model = network(num_classes, Trunk(in_channels, width, depth), **own, **options)
+    return finish_build(model, name, **finish)
 
 
 def finish_options(name: str, options: dict[str, Any], known: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -33,21 +64,13 @@ def finish_options(name: str, options: dict[str, Any], known: tuple[str, ...] = 
     return finish
 
 
-def finish_build(
-    model: Any,
-    name: str,
-    weights: Any = None,
-    conf: float | None = None,
-    iou: float | None = None,
-    max_det: int | None = None,
-    multi_label: bool | None = None,
-    max_nms: int | None = None,
-) -> Any:
-    """The end of every dual-stream build: the NMS settings of the config (``None`` keeps the model's), then
-    ``weights`` (a YOLOv5-layout state dict or file, when given) with the key report kept as ``model.load_report``."""
+def finish_build(model: Any, name: str, weights: Any = None, **nms: Any) -> Any:
+    """The end of every dual-stream build: the NMS settings of the config (``nms``, the keywords of
+    ``set_inference_options``; ``None`` keeps the model's), then ``weights`` (a YOLOv5-layout state dict or file,
+    when given) with the key report kept as ``model.load_report``."""
     from adapters.detectors.yolo.v5 import set_inference_options
 
-    set_inference_options(model, conf, iou, max_det, multi_label, max_nms)
+    set_inference_options(model, **nms)
     if weights is not None:
         model.load_report = load_weights(model, weights, name)
     return model

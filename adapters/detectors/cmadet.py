@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options
+from adapters.detectors._dual import build_dual, dual_stream_spec
 from harness.hookspecs import hookimpl
 
 NAME = "cmadet"
@@ -39,23 +39,13 @@ NET_OPTIONS = (
 )
 
 
-def build(
-    num_classes: int,
-    in_channels: int = 3,
-    scale: str = "s",
-    width: float | None = None,
-    depth: float | None = None,
-    **options: Any,
-):
+def build(num_classes: int, in_channels: int = 3, **options: Any):
     """Build the CMA-Det reconstruction; ``in_channels`` is the thermal stream's (3: the encoding replicated);
-    ``options``: ``NET_OPTIONS``, the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
+    ``options``: ``scale`` (default s) or ``width``/``depth``, ``NET_OPTIONS`` (named in the error for an unknown
+    option), the weights and the NMS settings (``adapters.detectors._dual.build_dual``)."""
     from adapters.detectors.cmadet_net import CMADet
-    from adapters.detectors.yolo.v5 import resolve_scale
 
-    finish = finish_options(NAME, options, NET_OPTIONS)
-    w, d = resolve_scale(NAME, scale, width, depth)
-    model = CMADet(num_classes, in_channels, width=w, depth=d, **options)
-    return finish_build(model, NAME, **finish)
+    return build_dual(CMADet, num_classes, in_channels, {"scale": "s", **options}, known=NET_OPTIONS)
 
 
 @hookimpl

@@ -235,16 +235,14 @@ class BFCFM(nn.Module):
 
 
 class CMADet(v5.AnchorDetector):
-    """Dual YOLOv5 (``width`` 0.5, ``depth`` 0.33: the s size) with alignment, OSR and BFCFM; see the module text."""
+    """Dual YOLOv5 (``trunk`` width 0.5, depth 0.33: the s size) with alignment, OSR and BFCFM; see the module text."""
 
     name = "cmadet"
 
     def __init__(
         self,
         nc: int,
-        in_channels: int = 3,
-        width: float = 0.5,
-        depth: float = 0.33,
+        trunk: v5.Trunk = v5.Trunk(3, 0.5, 0.33),
         align_width: int | None = None,
         hidden: int | None = None,
         reduce: int | None = None,
@@ -260,6 +258,7 @@ class CMADet(v5.AnchorDetector):
         prior_bias: bool = True,
     ):
         super().__init__(nc)
+        in_channels, width, depth = trunk
         chans = v5.level_channels(width)
         self.backbone_rgb = nn.ModuleList(v5.backbone_layers(3, width, depth))
         self.backbone_thermal = nn.ModuleList(v5.backbone_layers(in_channels, width, depth))

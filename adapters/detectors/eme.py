@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options, load_weights
+from adapters.detectors._dual import build_dual, dual_stream_spec, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "eme"
@@ -23,27 +23,18 @@ DESCRIPTION = (
     "EME code is MMDetection GFL-R50 with CLIP weak supervision and CoreKD distillation"
 )
 LABEL = "YOLOv5l early fusion (+ShaPE option); weak supervision and distillation omitted"
+#: Options of the network itself (``EME``: ShaPE off, the bias prior on), beyond the trunk size, the weights and the
+#: NMS settings.
+NET_OPTIONS = ("shape", "prior_bias")
 
 
-def build(
-    num_classes: int,
-    in_channels: int = 3,
-    scale: str = "l",
-    width: float | None = None,
-    depth: float | None = None,
-    shape: bool = False,
-    prior_bias: bool = True,
-    **options: Any,
-):
+def build(num_classes: int, in_channels: int = 3, **options: Any):
     """Build EME for ``num_classes``; ``in_channels`` is the thermal stream's (concatenated after RGB);
-    ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
+    ``options``: ``scale`` (default l) or ``width``/``depth``, ``NET_OPTIONS``, the weights and the NMS settings
+    (``adapters.detectors._dual.build_dual``)."""
     from adapters.detectors.eme_net import EME
-    from adapters.detectors.yolo.v5 import resolve_scale
 
-    finish = finish_options(NAME, options)
-    w, d = resolve_scale(NAME, scale, width, depth)
-    model = EME(num_classes, in_channels, width=w, depth=d, shape=shape, prior_bias=prior_bias)
-    return finish_build(model, NAME, **finish)
+    return build_dual(EME, num_classes, in_channels, {"scale": "l", **options}, NET_OPTIONS)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:

@@ -97,20 +97,13 @@ class ShaPE(nn.Module):
 
 
 class EME(v5.AnchorDetector):
-    """YOLOv5 early fusion; ``width``/``depth`` 1.0 is YOLOv5l (the seed's EME figures), ``shape`` adds ShaPE."""
+    """YOLOv5 early fusion; ``trunk`` width/depth 1.0 is YOLOv5l (the seed's EME figures), ``shape`` adds ShaPE."""
 
     name = "eme"
 
-    def __init__(
-        self,
-        nc: int,
-        in_channels: int = 3,
-        width: float = 1.0,
-        depth: float = 1.0,
-        shape: bool = False,
-        prior_bias: bool = True,
-    ):
+    def __init__(self, nc: int, trunk: v5.Trunk = v5.Trunk(3, 1.0, 1.0), shape: bool = False, prior_bias: bool = True):
         super().__init__(nc)
+        in_channels, width, depth = trunk
         fused_channels = 3 + in_channels
         self.in_channels_total = fused_channels
         self.stem = ShaPE(3, in_channels, 3) if shape else None

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from adapters.detectors._dual import dual_stream_spec, finish_build, finish_options, load_weights
+from adapters.detectors._dual import build_dual, dual_stream_spec, load_weights
 from harness.hookspecs import hookimpl
 
 NAME = "icafusion"
@@ -20,42 +20,18 @@ DESCRIPTION = (
     "YOLOv5 PAN neck and anchor head; official yolov5l_Transfusion layout"
 )
 LABEL = "official architecture and checkpoint layout"
+#: Options of the network itself (``ICAFusion``, defaults as published: tokens 20/16/10, 8 heads, expansion 4,
+#: dropout 0.1, no bias prior, IoU-sorted objectness), beyond the trunk size, the weights and the NMS settings.
+NET_OPTIONS = ("tokens", "heads", "block_exp", "dropout", "prior_bias", "sort_obj_iou")
 
 
-def build(
-    num_classes: int,
-    in_channels: int = 3,
-    scale: str = "l",
-    width: float | None = None,
-    depth: float | None = None,
-    tokens: Any = (20, 16, 10),
-    heads: int = 8,
-    block_exp: int = 4,
-    dropout: float = 0.1,
-    prior_bias: bool = False,
-    sort_obj_iou: bool = True,
-    **options: Any,
-):
+def build(num_classes: int, in_channels: int = 3, **options: Any):
     """Build ICAFusion for ``num_classes``; ``in_channels`` is the thermal stream's (3: the encoding replicated);
-    ``options``: the weights and the NMS settings (``adapters.detectors._dual.FINISH_OPTIONS``)."""
+    ``options``: ``scale`` (default l) or ``width``/``depth``, ``NET_OPTIONS``, the weights and the NMS settings
+    (``adapters.detectors._dual.build_dual``)."""
     from adapters.detectors.icafusion_net import ICAFusion
-    from adapters.detectors.yolo.v5 import resolve_scale
 
-    finish = finish_options(NAME, options)
-    w, d = resolve_scale(NAME, scale, width, depth)
-    model = ICAFusion(
-        num_classes,
-        in_channels,
-        width=w,
-        depth=d,
-        tokens=tuple(tokens),
-        heads=heads,
-        block_exp=block_exp,
-        dropout=dropout,
-        prior_bias=prior_bias,
-        sort_obj_iou=sort_obj_iou,
-    )
-    return finish_build(model, NAME, **finish)
+    return build_dual(ICAFusion, num_classes, in_channels, {"scale": "l", **options}, NET_OPTIONS)
 
 
 def load_official(model: Any, state_dict: Mapping[str, Any] | Any) -> dict:

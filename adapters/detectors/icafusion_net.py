@@ -31,7 +31,7 @@ they receive no gradient and a reachable-parameter count leaves them out.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Iterable, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -164,6 +164,15 @@ class CrossAttention(nn.Module):
         return self.resid_drop(self.out_proj_vis(out_v)), self.resid_drop(self.out_proj_ir(out_t))
 
 
+class Attention(NamedTuple):
+    """The settings of a cross-attention block: heads, MLP expansion, attention and residual dropout."""
+
+    heads: int = 8
+    block_exp: int = 4
+    attn_pdrop: float = 0.1
+    resid_pdrop: float = 0.1
+
+
 class CrossTransformerBlock(nn.Module):
     """Cross-attention, learnable-coefficient residuals and per-modality MLPs behind one shared LayerNorm (LN2).
 
@@ -171,23 +180,16 @@ class CrossTransformerBlock(nn.Module):
     forward (nor by this one).
     """
 
-    def __init__(
-        self,
-        d_model: int,
-        heads: int = 8,
-        block_exp: int = 4,
-        attn_pdrop: float = 0.1,
-        resid_pdrop: float = 0.1,
-        loops: int = 1,
-    ):
+    def __init__(self, d_model: int, attention: Attention = Attention(), loops: int = 1):
         super().__init__()
+        a = attention
         self.loops = loops
         self.ln_input = nn.LayerNorm(d_model)  # unused by forward
         self.ln_output = nn.LayerNorm(d_model)  # unused by forward
-        self.crossatt = CrossAttention(d_model, heads, attn_pdrop, resid_pdrop)
-        self.mlp_vis = _mlp(d_model, block_exp, resid_pdrop)
-        self.mlp_ir = _mlp(d_model, block_exp, resid_pdrop)
-        self.mlp = _mlp(d_model, block_exp, resid_pdrop)  # unused by forward
+        self.crossatt = CrossAttention(d_model, a.heads, a.attn_pdrop, a.resid_pdrop)
+        self.mlp_vis = _mlp(d_model, a.block_exp, a.resid_pdrop)
+        self.mlp_ir = _mlp(d_model, a.block_exp, a.resid_pdrop)
+        self.mlp = _mlp(d_model, a.block_exp, a.resid_pdrop)  # unused by forward
         self.LN1 = nn.LayerNorm(d_model)  # unused by forward
         self.LN2 = nn.LayerNorm(d_model)  # shared by both modalities
         for i in range(1, 9):
@@ -207,25 +209,18 @@ class TransformerFusionBlock(nn.Module):
     """Pool both modalities to a fixed token grid, cross-attend, upsample back, add, and fuse with a 1x1 conv."""
 
     def __init__(
-        self,
-        d_model: int,
-        vert_anchors: int = 16,
-        horz_anchors: int = 16,
-        heads: int = 8,
-        block_exp: int = 4,
-        n_layer: int = 1,
-        attn_pdrop: float = 0.1,
-        resid_pdrop: float = 0.1,
+        self, d_model: int, vert_anchors: int = 16, horz_anchors: int = 16, n_layer: int = 1, **attention: Any
     ):
+        """``attention``: the ``Attention`` settings of its blocks (``heads``, ``block_exp``, ``attn_pdrop``,
+        ``resid_pdrop``), the rest keep their defaults."""
         super().__init__()
         self.grid = (vert_anchors, horz_anchors)
         self.pos_emb_vis = nn.Parameter(torch.zeros(1, vert_anchors * horz_anchors, d_model))
         self.pos_emb_ir = nn.Parameter(torch.zeros(1, vert_anchors * horz_anchors, d_model))
         self.vis_coefficient = LearnableWeights()
         self.ir_coefficient = LearnableWeights()
-        self.crosstransformer = nn.Sequential(
-            *(CrossTransformerBlock(d_model, heads, block_exp, attn_pdrop, resid_pdrop) for _ in range(n_layer))
-        )
+        settings = Attention(**attention)
+        self.crosstransformer = nn.Sequential(*(CrossTransformerBlock(d_model, settings) for _ in range(n_layer)))
         self.conv1x1_out = Conv(2 * d_model, d_model, 1, 1, 0)
 
     def _tokens(self, x: torch.Tensor, weights: LearnableWeights, pos: torch.Tensor) -> torch.Tensor:
@@ -250,17 +245,15 @@ class TransformerFusionBlock(nn.Module):
 
 
 class ICAFusion(v5.AnchorDetector):
-    """Two-stream YOLOv5 with three TransformerFusionBlocks; ``width``/``depth`` 1.0 is the published ``l`` size."""
+    """Two-stream YOLOv5 with three TransformerFusionBlocks; ``trunk`` width/depth 1.0 is the published ``l`` size."""
 
     name = "icafusion"
 
     def __init__(
         self,
         nc: int,
-        in_channels: int = 3,
-        width: float = 1.0,
-        depth: float = 1.0,
-        tokens: Sequence[int] = TOKENS,
+        trunk: v5.Trunk = v5.Trunk(3, 1.0, 1.0),
+        tokens: Iterable[int] = TOKENS,
         heads: int = 8,
         block_exp: int = 4,
         dropout: float = 0.1,
@@ -268,6 +261,8 @@ class ICAFusion(v5.AnchorDetector):
         sort_obj_iou: bool = True,
     ):
         super().__init__(nc)
+        in_channels, width, depth = trunk
+        tokens = tuple(tokens)
         if len(tokens) != 3:
             raise HarnessError(f"ICAFusion: 'tokens' needs three grid sizes (P3, P4, P5), got {list(tokens)}")
         chans = v5.level_channels(width)
@@ -275,7 +270,9 @@ class ICAFusion(v5.AnchorDetector):
         layers += v5.backbone_layers(3, width, depth)
         layers += v5.backbone_layers(in_channels, width, depth)
         layers += [
-            TransformerFusionBlock(c, int(t), int(t), heads, block_exp, 1, dropout, dropout)
+            TransformerFusionBlock(
+                c, int(t), int(t), heads=heads, block_exp=block_exp, attn_pdrop=dropout, resid_pdrop=dropout
+            )
             for c, t in zip(chans, tokens)
         ]
         layers += v5.pan_layers(width, depth)

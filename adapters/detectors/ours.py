@@ -14,29 +14,20 @@ from harness.hookspecs import hookimpl
 DESCRIPTION = "YOLOv8s, 4-channel [R,G,B,C2] input (the seed's detector)"
 
 
-def build(
-    num_classes: int,
-    in_channels: int = 4,
-    scale: str = "s",
-    conf: float = 0.001,
-    iou: float = 0.7,
-    max_det: int = 300,
-    weights: str | None = None,
-    extra_channels: str = "zeros",
-    **kw: Any,
-):
+def build(num_classes: int, in_channels: int = 4, weights: str | None = None, extra_channels: str = "zeros", **kw: Any):
     """Build "ours": a YOLOv8 (``scale`` n/s/m/l/x, default s) for ``in_channels`` = 3 + encoding channels.
 
     ``weights``: a public-layout YOLOv8 state dict file (``.pt`` of plain tensors or ``.safetensors``, 3 or 4 input
     channels, any number of classes) to initialise from; ``extra_channels`` says how input channels the weights lack
     start ("zeros", "mean" or "random", see ``adapters.detectors.yolo.weights``). The import report is kept in
-    ``model.load_report``. Other keyword options: ``multi_label``, ``max_nms``, ``reg_max``, loss gains ``box``,
-    ``cls``, ``dfl`` and assigner ``topk``, ``alpha``, ``beta``.
+    ``model.load_report``. Other keyword options (``build_yolov8``'s, with its defaults): ``scale``, ``conf``,
+    ``iou``, ``max_det``, ``multi_label``, ``max_nms``, ``reg_max``, loss gains ``box``, ``cls``, ``dfl`` and assigner
+    ``topk``, ``alpha``, ``beta``.
     """
     from adapters.detectors.yolo.v8 import build_yolov8
     from adapters.detectors.yolo.weights import load_yolov8_weights
 
-    model = build_yolov8(num_classes, in_channels=in_channels, scale=scale, conf=conf, iou=iou, max_det=max_det, **kw)
+    model = build_yolov8(num_classes, in_channels=in_channels, **kw)
     if weights:
         model.load_report = load_yolov8_weights(model, weights, extra_channels=extra_channels)
     return model

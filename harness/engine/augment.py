@@ -143,6 +143,10 @@ def mosaic4(
 
 
 # ------------------------------------------------------------------------------------------------ affine
+#: The settings of the random geometric warp (``affine_matrix``'s keywords).
+AFFINE_SETTINGS = ("degrees", "translate", "scale", "shear", "perspective")
+
+
 def affine_matrix(
     in_shape: tuple[int, int],
     out_shape: tuple[int, int],
@@ -227,25 +231,17 @@ def box_candidates(
 
 
 def random_affine(
-    img: np.ndarray,
-    boxes: np.ndarray,
-    labels: np.ndarray,
-    rng: np.random.Generator,
-    degrees: float = 0.0,
-    translate: float = 0.1,
-    scale: float = 0.5,
-    shear: float = 0.0,
-    perspective: float = 0.0,
-    border: int = 0,
+    img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, rng: np.random.Generator, border: int = 0, **affine: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Warp image and boxes by one random matrix (``affine_matrix``); ``border < 0`` crops (mosaic: ``-size/2``).
+    """Warp image and boxes by one random matrix (``affine_matrix``, ``affine`` its settings ``AFFINE_SETTINGS``
+    with its defaults for those not given); ``border < 0`` crops (mosaic: ``-size/2``).
 
     The output is ``(H + 2 border) x (W + 2 border)``. Boxes that leave the image or shrink too much are dropped
     (``box_candidates``).
     """
     h, w = img.shape[:2]
     out_shape = (h + 2 * border, w + 2 * border)
-    M = affine_matrix((h, w), out_shape, rng, degrees, translate, scale, shear, perspective)
+    M = affine_matrix((h, w), out_shape, rng, **affine)
     if border != 0 or not np.allclose(M, np.eye(3)):
         img = warp_image(img, M, out_shape)
     new = transform_boxes(boxes, M, out_shape)

@@ -52,6 +52,10 @@ class AugmentSettings:
             values.update(hsv_h=0.0, hsv_s=0.0, hsv_v=0.0)
         return cls(**values)
 
+    def affine(self) -> dict[str, float]:
+        """The random-warp settings, as keywords for ``augment.random_affine``."""
+        return {k: getattr(self, k) for k in A.AFFINE_SETTINGS}
+
     @classmethod
     def off(cls) -> "AugmentSettings":
         return cls(mosaic=0.0, hsv_h=0.0, hsv_s=0.0, hsv_v=0.0, translate=0.0, scale=0.0, fliplr=0.0)
@@ -199,18 +203,7 @@ class TrainDataset(Dataset):
             img, lb = A.pad_letterbox(*self.source.resized(k, s), size=s)
             boxes = A.scale_boxes(boxes, lb.ratio, lb.pad)
             border = 0
-        img, boxes, labels = A.random_affine(
-            img,
-            boxes,
-            labels,
-            rng,
-            degrees=aug.degrees,
-            translate=aug.translate,
-            scale=aug.scale,
-            shear=aug.shear,
-            perspective=aug.perspective,
-            border=border,
-        )
+        img, boxes, labels = A.random_affine(img, boxes, labels, rng, border=border, **aug.affine())
         img = A.augment_hsv(img, rng, aug.hsv_h, aug.hsv_s, aug.hsv_v)
         if rng.random() < aug.flipud:
             img, boxes = A.flip_ud(img, boxes)
@@ -330,17 +323,10 @@ class EpochSampler(Sampler[int]):
         return -(-total // self.world) if self.world > 1 else total
 
 
-def train_loader(
-    dataset: TrainDataset,
-    batch: int,
-    workers: int = 0,
-    seed: int = 0,
-    max_images: int | None = None,
-    rank: int = 0,
-    world: int = 1,
-) -> DataLoader:
-    """Training batches of ``batch`` images for process ``rank`` of ``world`` (one process: the whole order)."""
-    sampler = EpochSampler(len(dataset), seed=seed, max_images=max_images, rank=rank, world=world)
+def train_loader(dataset: TrainDataset, batch: int, workers: int = 0, seed: int = 0, **order: Any) -> DataLoader:
+    """Training batches of ``batch`` images for process ``rank`` of ``world`` (one process: the whole order);
+    ``order``: the rest of ``EpochSampler``'s settings (``max_images``, ``rank``, ``world``)."""
+    sampler = EpochSampler(len(dataset), seed=seed, **order)
     return DataLoader(
         dataset,
         batch_size=int(batch),

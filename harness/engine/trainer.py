@@ -214,7 +214,9 @@ class Trainer:
                     d.world_size,
                     batch,
                 )
-        loader = train_loader(self.dataset, batch, s.workers, s.seed, s.max_images, d.rank, d.world_size)
+        loader = train_loader(
+            self.dataset, batch, s.workers, s.seed, max_images=s.max_images, rank=d.rank, world=d.world_size
+        )
         nb = len(loader)
         accumulate_target = optim.accumulate_steps(s.batch, s.nominal_batch)
         wd = optim.scaled_weight_decay(s.weight_decay, s.batch, accumulate_target, s.nominal_batch)

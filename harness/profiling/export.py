@@ -15,7 +15,7 @@ import logging
 import re
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -30,6 +30,23 @@ DEFAULT_OPSET = 18
 
 class ExportError(ProfilingError):
     """ONNX export failed or its outputs do not match torch."""
+
+
+class _Export(NamedTuple):
+    """What either exporter is given: the wrapped model, its example inputs, the output file, the graph's input and
+    output names, the opset and whether the batch dimension is dynamic."""
+
+    wrapper: nn.Module
+    inputs: tuple
+    path: Path
+    names_in: list[str]
+    names_out: list[str]
+    opset: int
+    dynamic_batch: bool
+
+    def graph_options(self) -> dict[str, Any]:
+        """The ``torch.onnx.export`` keywords both exporters pass alike: the graph's names and the opset."""
+        return {"input_names": self.names_in, "output_names": self.names_out, "opset_version": self.opset}
 
 
 def input_names(dual: bool) -> list[str]:
@@ -60,8 +77,9 @@ def export_onnx(
     names_in = input_names(dual)
     names_out = [f"output{i}" for i in range(len(expected))]
     exporter = "dynamo"
+    job = _Export(wrapper, inputs, path, names_in, names_out, opset, dynamic_batch)
     try:
-        _export_dynamo(wrapper, inputs, path, names_in, names_out, opset, dynamic_batch)
+        _export_dynamo(job)
     except Exception as exc:  # noqa: BLE001 (any exporter failure: try the other exporter, then report both)
         first = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip().splitlines()
         log.warning(
@@ -71,7 +89,7 @@ def export_onnx(
         )
         exporter = "torchscript"
         try:
-            _export_torchscript(wrapper, inputs, path, names_in, names_out, opset, dynamic_batch)
+            _export_torchscript(job)
         except Exception as exc2:
             raise ExportError(
                 f"ONNX export of the model failed with both exporters: dynamo: {exc}; "
@@ -92,17 +110,10 @@ def export_onnx(
     return record
 
 
-def _export_dynamo(
-    wrapper: nn.Module,
-    inputs: tuple,
-    path: Path,
-    names_in: list[str],
-    names_out: list[str],
-    opset: int,
-    dynamic_batch: bool,
-) -> None:
+def _export_dynamo(job: _Export) -> None:
+    wrapper, inputs = job.wrapper, job.inputs
     kwargs: dict[str, Any] = {}
-    if dynamic_batch:
+    if job.dynamic_batch:
         batch = torch.export.Dim("batch", min=1, max=1024)
         kwargs["dynamic_shapes"] = tuple({0: batch} for _ in inputs)
         if inputs[0].shape[0] == 1:  # torch.export specialises a dimension whose example size is 1
@@ -112,17 +123,8 @@ def _export_dynamo(
     quiet.setLevel(logging.ERROR)
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), _restore_level(quiet, level):
         warnings.simplefilter("ignore")
-        program = torch.onnx.export(
-            wrapper,
-            inputs,
-            dynamo=True,
-            input_names=names_in,
-            output_names=names_out,
-            opset_version=opset,
-            verbose=False,
-            **kwargs,
-        )
-        program.save(str(path))  # type: ignore[union-attr]
+        program = torch.onnx.export(wrapper, inputs, dynamo=True, verbose=False, **job.graph_options(), **kwargs)
+        program.save(str(job.path))  # type: ignore[union-attr]
 
 
 @contextlib.contextmanager
@@ -133,27 +135,12 @@ def _restore_level(logger: logging.Logger, level: int) -> Any:
         logger.setLevel(level)
 
 
-def _export_torchscript(
-    wrapper: nn.Module,
-    inputs: tuple,
-    path: Path,
-    names_in: list[str],
-    names_out: list[str],
-    opset: int,
-    dynamic_batch: bool,
-) -> None:
-    axes = {n: {0: "batch"} for n in names_in + names_out} if dynamic_batch else None
+def _export_torchscript(job: _Export) -> None:
+    axes = {n: {0: "batch"} for n in job.names_in + job.names_out} if job.dynamic_batch else None
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
         warnings.simplefilter("ignore")
         torch.onnx.export(
-            wrapper,
-            inputs,
-            str(path),
-            dynamo=False,
-            input_names=names_in,
-            output_names=names_out,
-            opset_version=opset,
-            dynamic_axes=axes,
+            job.wrapper, job.inputs, str(job.path), dynamo=False, dynamic_axes=axes, **job.graph_options()
         )
 
 

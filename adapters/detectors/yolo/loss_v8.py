@@ -24,6 +24,20 @@ from adapters.detectors.yolo.tal import TaskAlignedAssigner
 from harness.boxes import bbox_iou
 from harness.errors import HarnessError
 
+#: Training hyper-parameters of the loss and the assigner: gains box/cls/dfl, assigner top-k, alpha, beta (the
+#: public YOLOv8 defaults) and ``assign_min_side``: box sides shorter than this many pixels are widened to it when
+#: choosing candidate anchors (0 = off, the original YOLOv8 rule; recent releases of the public trainer use the
+#: middle stride, 16).
+LOSS_DEFAULTS: dict[str, float] = {
+    "box": 7.5,
+    "cls": 0.5,
+    "dfl": 1.5,
+    "topk": 10,
+    "alpha": 0.5,
+    "beta": 6.0,
+    "assign_min_side": 0.0,
+}
+
 
 def make_anchors(
     maps: Sequence[torch.Tensor], strides: Sequence[float], offset: float = 0.5
@@ -120,24 +134,22 @@ def pad_targets(
 
 
 class V8DetectionLoss:
-    """Loss of the YOLOv8 detector; ``strides`` is set by the model (its computed output strides)."""
+    """Loss of the YOLOv8 detector; ``strides`` is set by the model (its computed output strides).
 
-    def __init__(
-        self,
-        nc: int,
-        reg_max: int = 16,
-        box: float = 7.5,
-        cls: float = 0.5,
-        dfl: float = 1.5,
-        topk: int = 10,
-        alpha: float = 0.5,
-        beta: float = 6.0,
-        assign_min_side: float = 0.0,
-    ):
+    ``hyp``: any of ``LOSS_DEFAULTS`` (the gains and the assigner settings), the rest keep their defaults.
+    """
+
+    def __init__(self, nc: int, reg_max: int = 16, **hyp: float):
+        unknown = sorted(set(hyp) - set(LOSS_DEFAULTS))
+        if unknown:
+            raise TypeError(f"V8DetectionLoss: unknown loss option(s) {unknown}; known: {sorted(LOSS_DEFAULTS)}")
+        h = {**LOSS_DEFAULTS, **hyp}
         self.nc = nc
         self.reg_max = reg_max
-        self.gains = {"box": box, "cls": cls, "dfl": dfl}
-        self.assigner = TaskAlignedAssigner(nc, topk=topk, alpha=alpha, beta=beta, min_side=assign_min_side)
+        self.gains = {"box": h["box"], "cls": h["cls"], "dfl": h["dfl"]}
+        self.assigner = TaskAlignedAssigner(
+            nc, topk=int(h["topk"]), alpha=h["alpha"], beta=h["beta"], min_side=h["assign_min_side"]
+        )
         self.strides: Sequence[float] = ()
         self._anchors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 

@@ -8,9 +8,21 @@ other); the first ``max_det`` survivors are kept and clipped to the image.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from harness.boxes import batched_nms
+
+#: The inference settings a detector keeps as attributes and passes to ``postprocess``, with the public YOLOv8
+#: validator's values (``postprocess``'s defaults).
+INFERENCE_DEFAULTS: dict[str, Any] = {"conf": 0.001, "iou": 0.7, "max_det": 300, "multi_label": True, "max_nms": 30000}
+
+
+def inference_settings(model: Any) -> dict[str, Any]:
+    """The model's inference settings (its attributes named in ``INFERENCE_DEFAULTS``), as keywords for
+    ``postprocess``."""
+    return {k: getattr(model, k) for k in INFERENCE_DEFAULTS}
 
 
 def clip_boxes(boxes: torch.Tensor, image_hw: tuple[int, int]) -> torch.Tensor:
@@ -35,17 +47,18 @@ def select_candidates(
 
 
 def postprocess(
-    boxes: torch.Tensor,
-    scores: torch.Tensor,
-    conf: float = 0.001,
-    iou: float = 0.7,
-    max_det: int = 300,
-    multi_label: bool = True,
-    max_nms: int = 30000,
-    image_hw: tuple[int, int] | None = None,
+    boxes: torch.Tensor, scores: torch.Tensor, image_hw: tuple[int, int] | None = None, **settings: Any
 ) -> list[dict[str, torch.Tensor]]:
     """``boxes [B, A, 4]`` xyxy pixels, ``scores [B, A, C]`` probabilities -> per image ``{"boxes" [K,4],
-    "scores" [K], "labels" [K] int64}`` sorted by decreasing score, ``K <= max_det``."""
+    "scores" [K], "labels" [K] int64}`` sorted by decreasing score, ``K <= max_det``.
+
+    ``settings``: any of ``INFERENCE_DEFAULTS`` (``conf``, ``iou``, ``max_det``, ``multi_label``, ``max_nms``), the
+    rest keep their defaults."""
+    unknown = sorted(set(settings) - set(INFERENCE_DEFAULTS))
+    if unknown:
+        raise TypeError(f"postprocess: unknown setting(s) {unknown}; known: {list(INFERENCE_DEFAULTS)}")
+    s = {**INFERENCE_DEFAULTS, **settings}
+    conf, iou, max_det, multi_label, max_nms = (s[k] for k in INFERENCE_DEFAULTS)
     out = []
     for bx, sc in zip(boxes, scores):
         anchor, label, score = select_candidates(sc, conf, multi_label)

@@ -56,24 +56,16 @@ def anchors_inside_boxes(
     return (x > x1 + eps) & (y > y1 + eps) & (x < x2 - eps) & (y < y2 - eps)
 
 
+@dataclass(eq=False)
 class TaskAlignedAssigner:
     """Batched task-aligned assigner (no parameters; call it under ``torch.no_grad``)."""
 
-    def __init__(
-        self,
-        num_classes: int,
-        topk: int = 10,
-        alpha: float = 0.5,
-        beta: float = 6.0,
-        eps: float = 1e-9,
-        min_side: float = 0.0,
-    ):
-        self.num_classes = num_classes
-        self.min_side = min_side
-        self.topk = topk
-        self.alpha = alpha
-        self.beta = beta
-        self.eps = eps
+    num_classes: int
+    topk: int = 10
+    alpha: float = 0.5
+    beta: float = 6.0
+    eps: float = 1e-9
+    min_side: float = 0.0
 
     @torch.no_grad()
     def __call__(

@@ -33,12 +33,13 @@ Module and parameter names follow the official checkpoint layout (``model.24.m.0
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import torch
 from torch import nn
 
 from adapters.detectors.yolo.blocks import C3, SPPF, Concat, Conv, fuse_model
+from adapters.detectors.yolo.postprocess import inference_settings
 from adapters.detectors.yolo.postprocess import postprocess as nms_candidates
 from harness.boxes import cxcywh_to_xyxy
 from harness.errors import HarnessError
@@ -60,6 +61,15 @@ SCALES: dict[str, tuple[float, float]] = {
 }
 #: Backbone layers whose outputs feed the neck (P3, P4); P5 is the last layer.
 BACKBONE_TAPS = (4, 6)
+
+
+class Trunk(NamedTuple):
+    """What a dual-stream YOLOv5 network is built on: the thermal stream's input channels and the width and depth
+    multiples of its YOLOv5 trunk (1.0 / 1.0 is the l size)."""
+
+    in_channels: int
+    width: float
+    depth: float
 
 
 # ------------------------------------------------------------------------------------------------ scaling
@@ -235,13 +245,7 @@ class Detect(nn.Module):
 
 # ------------------------------------------------------------------------------------------------ NMS
 def postprocess(
-    pred: torch.Tensor,
-    conf: float = 0.001,
-    iou: float = 0.6,
-    max_det: int = 300,
-    multi_label: bool = True,
-    max_nms: int = 30000,
-    image_size: tuple[int, int] | None = None,
+    pred: torch.Tensor, iou: float = 0.6, image_size: tuple[int, int] | None = None, **settings: Any
 ) -> list[dict[str, torch.Tensor]]:
     """YOLOv5 non-maximum suppression of decoded predictions ``[B, N, 5 + nc]`` (cxcywh pixels, obj, classes).
 
@@ -251,11 +255,12 @@ def postprocess(
     exact per-class NMS (``harness.boxes.batched_nms``) and the first ``max_det`` survivors are kept, then clipped
     to ``image_size`` (h, w) when given. Returns one ``{"boxes" [K,4] xyxy, "scores" [K], "labels" [K] int64}`` per
     image, sorted by decreasing score. The candidate selection and NMS are the ones the anchor-free head uses
-    (``adapters.detectors.yolo.postprocess``), fed with the YOLOv5 scores.
+    (``adapters.detectors.yolo.postprocess``), fed with the YOLOv5 scores; ``settings`` are its other keywords
+    (``conf`` 0.001, ``max_det`` 300, ``multi_label`` on, ``max_nms`` 30000 by default).
     """
     boxes = cxcywh_to_xyxy(pred[..., :4])
     scores = pred[..., 5:] * pred[..., 4:5]
-    return nms_candidates(boxes, scores, conf, iou, max_det, multi_label, max_nms, image_size)
+    return nms_candidates(boxes, scores, iou=iou, image_hw=image_size, **settings)
 
 
 # ------------------------------------------------------------------------------------------------ inputs
@@ -371,15 +376,7 @@ class AnchorDetector(nn.Module):
     @torch.no_grad()
     def predict(self, inputs: Any) -> list[dict[str, torch.Tensor]]:
         raw = self.forward_raw(inputs)
-        return postprocess(
-            self.head.decode(raw),
-            self.conf,
-            self.iou,
-            self.max_det,
-            self.multi_label,
-            self.max_nms,
-            self.image_size(inputs),
-        )
+        return postprocess(self.head.decode(raw), **inference_settings(self), image_size=self.image_size(inputs))
 
     def fuse(self) -> "AnchorDetector":
         """Fold every Conv's BatchNorm (inference only)."""

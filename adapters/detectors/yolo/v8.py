@@ -26,6 +26,8 @@ import torch
 from torch import nn
 
 from adapters.detectors.yolo.blocks import DFL, SPPF, C2f, Concat, Conv, fuse_model
+from adapters.detectors.yolo.loss_v8 import LOSS_DEFAULTS
+from adapters.detectors.yolo.postprocess import INFERENCE_DEFAULTS, inference_settings, postprocess
 from harness.errors import ConfigError, HarnessError
 
 log = logging.getLogger(__name__)
@@ -78,20 +80,6 @@ LAYERS: tuple[tuple[int | tuple[int, ...], int, str, tuple], ...] = (
     (-1, 3, "C2f", (1024, False)),  # 21  P5/32 out
     ((15, 18, 21), 1, "Detect", ()),  # 22
 )
-
-#: Training hyper-parameters of the loss and the assigner: gains box/cls/dfl, assigner top-k, alpha, beta (the
-#: public YOLOv8 defaults) and ``assign_min_side``: box sides shorter than this many pixels are widened to it when
-#: choosing candidate anchors (0 = off, the original YOLOv8 rule; recent releases of the public trainer use the
-#: middle stride, 16).
-LOSS_DEFAULTS: dict[str, float] = {
-    "box": 7.5,
-    "cls": 0.5,
-    "dfl": 1.5,
-    "topk": 10,
-    "alpha": 0.5,
-    "beta": 6.0,
-    "assign_min_side": 0.0,
-}
 
 
 def make_divisible(x: float, divisor: int = 8) -> int:
@@ -174,23 +162,27 @@ class YOLOv8(nn.Module):
         in_channels: int = 4,
         scale: str = "s",
         reg_max: int = 16,
-        conf: float = 0.001,
-        iou: float = 0.7,
-        max_det: int = 300,
-        multi_label: bool = True,
-        max_nms: int = 30000,
         loss: dict[str, float] | None = None,
+        **inference: Any,
     ):
+        """``inference``: any of ``postprocess.INFERENCE_DEFAULTS`` (``conf``, ``iou``, ``max_det``, ``multi_label``,
+        ``max_nms``), the rest keep their defaults."""
         super().__init__()
         if scale not in SCALES:
             raise ConfigError(f"model.scale: unknown YOLOv8 scale {scale!r}; use one of {', '.join(SCALES)}")
         nc, in_channels = _positive_int("num_classes", nc), _positive_int("in_channels", in_channels)
+        unknown_inference = sorted(set(inference) - set(INFERENCE_DEFAULTS))
+        if unknown_inference:
+            raise TypeError(
+                f"YOLOv8: unknown inference setting(s) {unknown_inference}; known: {list(INFERENCE_DEFAULTS)}"
+            )
+        s = {**INFERENCE_DEFAULTS, **inference}
         self.nc = nc
         self.in_channels = in_channels
         self.scale = scale
         self.reg_max = reg_max
-        self.conf, self.iou, self.max_det = float(conf), float(iou), int(max_det)
-        self.multi_label, self.max_nms = bool(multi_label), int(max_nms)
+        self.conf, self.iou, self.max_det = float(s["conf"]), float(s["iou"]), int(s["max_det"])
+        self.multi_label, self.max_nms = bool(s["multi_label"]), int(s["max_nms"])
         self.hyp = dict(LOSS_DEFAULTS)
         unknown = set(loss or {}) - set(LOSS_DEFAULTS)
         if unknown:
@@ -321,18 +313,7 @@ class YOLOv8(nn.Module):
         if self._criterion is None:
             from adapters.detectors.yolo.loss_v8 import V8DetectionLoss
 
-            h = self.hyp
-            self._criterion = V8DetectionLoss(
-                nc=self.nc,
-                reg_max=self.reg_max,
-                box=h["box"],
-                cls=h["cls"],
-                dfl=h["dfl"],
-                topk=int(h["topk"]),
-                alpha=h["alpha"],
-                beta=h["beta"],
-                assign_min_side=h["assign_min_side"],
-            )
+            self._criterion = V8DetectionLoss(self.nc, self.reg_max, **self.hyp)
         self._criterion.strides = self.strides
         return self._criterion
 
@@ -352,19 +333,8 @@ class YOLOv8(nn.Module):
         return boxes, cls.sigmoid().transpose(1, 2)
 
     def postprocess(self, maps: Sequence[torch.Tensor], image_hw: tuple[int, int]) -> list[dict[str, torch.Tensor]]:
-        from adapters.detectors.yolo.postprocess import postprocess
-
         boxes, scores = self.decode(maps)
-        return postprocess(
-            boxes,
-            scores,
-            conf=self.conf,
-            iou=self.iou,
-            max_det=self.max_det,
-            multi_label=self.multi_label,
-            max_nms=self.max_nms,
-            image_hw=image_hw,
-        )
+        return postprocess(boxes, scores, **inference_settings(self), image_hw=image_hw)
 
     # ------------------------------------------------------------------ inference-time folding
     def fuse(self) -> "YOLOv8":

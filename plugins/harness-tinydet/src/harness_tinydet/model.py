@@ -41,7 +41,10 @@ from adapters.detectors.yolo.blocks import SPPF, C2f, Conv, fuse_model
 from harness.boxes import batched_nms, bbox_iou
 from harness.errors import ConfigError
 
-OPTIONS = ("width", "radius", "box_gain", "cls_gain", "conf", "iou", "max_det")
+#: TinyDet's settings besides its width, with their defaults: the centre-sampling radius (in strides), the loss
+#: gains and the inference settings.
+SETTINGS = {"radius": 2.5, "box_gain": 2.0, "cls_gain": 1.0, "conf": 0.25, "iou": 0.6, "max_det": 300}
+OPTIONS = ("width", *SETTINGS)
 
 
 def _stem(c_in: int, w: int) -> nn.Sequential:
@@ -65,24 +68,18 @@ class Head(nn.Module):
 class TinyDet(nn.Module):
     strides = (8, 16)
 
-    def __init__(
-        self,
-        num_classes: int,
-        in_channels: int = 4,
-        width: int = 16,
-        radius: float = 2.5,
-        box_gain: float = 2.0,
-        cls_gain: float = 1.0,
-        conf: float = 0.25,
-        iou: float = 0.6,
-        max_det: int = 300,
-    ):
+    def __init__(self, num_classes: int, in_channels: int = 4, width: int = 16, **settings: float):
+        """``settings``: any of ``SETTINGS``, the rest keep their defaults."""
+        unknown = sorted(set(settings) - set(SETTINGS))
+        if unknown:
+            raise TypeError(f"TinyDet: unknown setting(s) {unknown}; known: {', '.join(SETTINGS)}")
+        s = {**SETTINGS, **settings}
         super().__init__()
         w = int(width)
         self.nc = int(num_classes)
         self.in_channels = int(in_channels)
-        self.radius, self.box_gain, self.cls_gain = float(radius), float(box_gain), float(cls_gain)
-        self.conf, self.iou, self.max_det = float(conf), float(iou), int(max_det)
+        self.radius, self.box_gain, self.cls_gain = float(s["radius"]), float(s["box_gain"]), float(s["cls_gain"])
+        self.conf, self.iou, self.max_det = float(s["conf"]), float(s["iou"]), int(s["max_det"])
         self.stem = _stem(in_channels, w)
         self.p3 = nn.Sequential(Conv(2 * w, 4 * w, 3, 2), C2f(4 * w, 4 * w, 1, True))
         self.p4 = nn.Sequential(Conv(4 * w, 8 * w, 3, 2), C2f(8 * w, 8 * w, 1, True), SPPF(8 * w, 8 * w))
