@@ -99,6 +99,20 @@ def shapes_run_args(store: Path, *extra: str) -> list[str]:
     return run_args("tinydet", "shapes", "A", store, *extra)
 
 
+def one_conv_trainer(folder: Path, **kw: Any) -> Any:
+    """A trainer of one 1x1 convolution on two shapes images (one epoch, batch 2) with its checkpoints in
+    ``folder / "ckpt"``: for the tests of what resuming makes of a given ``last.pt``; ``kw`` goes to ``Trainer``."""
+    import torch
+
+    from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
+    from harness.engine.trainer import Trainer, TrainSettings
+
+    prepared = write_dataset(folder / "ds", groups=("A",), per_group=2)
+    settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
+    data = TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off())
+    return Trainer(torch.nn.Conv2d(4, 1, 1), data, settings, checkpoint_dir=folder / "ckpt", progress=False, **kw)
+
+
 def train_settings(**kw: Any) -> Any:
     """Trainer settings for a tiny CPU run: 64 px, no warm-up, no mosaic to close, one thread; ``kw`` sets the rest
     (epochs, batch ...) or overrides these."""
