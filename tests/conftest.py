@@ -17,9 +17,10 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-# Fixtures for every test module: ``datasets_helpers`` (the tiny synthetic M3T set: ``tiny_source``, ``tiny``) and
-# ``engine_helpers`` (``shapes_run_plugins``: the shapes dataset and the example TinyDet registered for one test)
-pytest_plugins = ["harness.testing", "pytester", "datasets_helpers", "engine_helpers"]
+# Fixtures for every test module: ``engine_helpers`` (``shapes_run_plugins``: the shapes dataset and the example
+# TinyDet registered for one test) and ``datasets_helpers`` (the tiny synthetic M3T set: ``tiny_source``, ``tiny``),
+# in that order: ``datasets_helpers`` imports ``engine_helpers``, which pytest must load first to rewrite its asserts
+pytest_plugins = ["harness.testing", "pytester", "engine_helpers", "datasets_helpers"]
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"

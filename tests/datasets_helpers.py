@@ -11,6 +11,8 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
+from engine_helpers import run_args, set_args
+
 
 @pytest.fixture(scope="session")
 def tiny_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -29,6 +31,20 @@ def tiny(tiny_source: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "m3t"
     shutil.copytree(tiny_source, dst)
     return dst
+
+
+def smoke_run_args(detector: str, folds: str, store: Path, root: Path, *extra: str) -> list[str]:
+    """The arguments of ``harness run`` for one epoch of the smoke profile on the synthetic M3T set at ``root`` (batch
+    4, one thread); ``extra`` (more options, ``--set`` pairs) comes last."""
+    overrides = [
+        f"dataset.root={root}",
+        "protocol.epochs=1",
+        "train.batch=4",
+        "train.nominal_batch=4",
+        "train.threads=1",
+        "eval.batch=4",
+    ]
+    return run_args(detector, "m3t-synth", folds, store, "--profile", "smoke", *set_args(overrides), *extra)
 
 
 def skip_reasons(prepared: Any) -> dict[str, int]:

@@ -10,12 +10,12 @@ from __future__ import annotations
 import contextlib
 import sys
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import pytest
 
-from harness import AlignedSample, DatasetSpec, EncodingSpec, Fold, hookimpl
+from harness import AlignedSample, DatasetSpec, DetectorSpec, EncodingSpec, Fold, hookimpl
 from harness.cache import PreparedDataset, PreparedWriter
 
 REPO = Path(__file__).resolve().parent.parent
@@ -32,7 +32,7 @@ def tinydet_module():
     return m
 
 
-def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
+def fast_overrides(epochs: int = 1, close_mosaic: int = 0, warmup_epochs: float = 0.5) -> list[str]:
     """``--set`` overrides for a tiny CPU run of TinyDet on the shapes dataset (64 px, batch 8, one thread)."""
     return [
         "protocol.imgsz=64",
@@ -40,13 +40,88 @@ def fast_overrides(epochs: int = 1, close_mosaic: int = 0) -> list[str]:
         "protocol.patience=10",
         "train.batch=8",
         "train.nominal_batch=8",
-        "train.warmup_epochs=0.5",
+        f"train.warmup_epochs={warmup_epochs}",
         "train.warmup_min_iters=0",
         f"train.close_mosaic={close_mosaic}",
         "train.threads=1",
         "train.device=cpu",
         "eval.batch=16",
     ]
+
+
+def set_args(overrides: Sequence[str]) -> list[str]:
+    """``--set`` options for the ``key=value`` overrides, in order."""
+    return [a for s in overrides for a in ("--set", s)]
+
+
+def run_args(detector: str, dataset: str, folds: str, store: Path, *extra: str) -> list[str]:
+    """The arguments of ``harness run`` for one detector on some folds of a dataset into ``store``, with no progress
+    bars; ``extra`` (more options, ``--set`` pairs) comes last."""
+    return [
+        "run",
+        "--detector",
+        detector,
+        "--dataset",
+        dataset,
+        "--folds",
+        folds,
+        "--store",
+        str(store),
+        "--no-progress",
+        *extra,
+    ]
+
+
+class DetectorsPlugin:
+    """A plugin that registers the given detectors (for ``temporary_plugin``)."""
+
+    def __init__(self, *specs: DetectorSpec):
+        self.specs = specs
+
+    @hookimpl
+    def register_detectors(self, register: Any) -> None:
+        for spec in self.specs:
+            register(spec)
+
+
+def single_stream(name: str, description: str, model: Any) -> DetectorSpec:
+    """A single-stream detector whose build is ``model(num_classes, in_channels)`` (a test's own TinyDet variant)."""
+    return DetectorSpec(
+        name=name,
+        input_kind="single",
+        description=description,
+        build=lambda num_classes, in_channels=4, **cfg: model(num_classes, in_channels),
+    )
+
+
+def shapes_run_args(store: Path, *extra: str) -> list[str]:
+    """The arguments of ``harness run`` for TinyDet on fold A of the shapes dataset (see ``run_args``)."""
+    return run_args("tinydet", "shapes", "A", store, *extra)
+
+
+def one_conv_trainer(folder: Path, **kw: Any) -> Any:
+    """A trainer of one 1x1 convolution on two shapes images (one epoch, batch 2) with its checkpoints in
+    ``folder / "ckpt"``: for the tests of what resuming makes of a given ``last.pt``; ``kw`` goes to ``Trainer``."""
+    import torch
+
+    from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
+    from harness.engine.trainer import Trainer, TrainSettings
+
+    prepared = write_dataset(folder / "ds", groups=("A",), per_group=2)
+    settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
+    data = TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off())
+    return Trainer(torch.nn.Conv2d(4, 1, 1), data, settings, checkpoint_dir=folder / "ckpt", progress=False, **kw)
+
+
+def train_settings(**kw: Any) -> Any:
+    """Trainer settings for a tiny CPU run: 64 px, no warm-up, no mosaic to close, one thread; ``kw`` sets the rest
+    (epochs, batch ...) or overrides these."""
+    from harness.engine.trainer import TrainSettings
+
+    base: dict[str, Any] = dict(
+        imgsz=64, warmup_epochs=0.0, warmup_min_iters=0, close_mosaic=0, threads=1, device="cpu"
+    )
+    return TrainSettings(**{**base, **kw})
 
 
 @pytest.fixture

@@ -3,14 +3,16 @@ detections of a chosen quality, scored by ``harness.evaluation.evaluate`` (no ha
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import pytest
 
+from engine_helpers import run_args, set_args
 from harness.io import atomic_write_json
 from harness.store import RunKey, Store
 
@@ -30,6 +32,53 @@ TINY_RUN = [
     "train.device=cpu",
     "eval.batch=16",
 ]
+
+
+def cli(args: list[str], code: int = 0) -> str:
+    """``harness ARGS`` run in this process: its output, once its exit code is checked against ``code``."""
+    from click.testing import CliRunner
+
+    from harness.cli import get_cli
+
+    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
+    assert res.exit_code == code, f"harness {' '.join(args)} exited {res.exit_code}:\n{res.output}"
+    return res.output
+
+
+@contextlib.contextmanager
+def tinydet_on_path(root: Path, **env: str) -> Iterator[None]:
+    """For a fixture that trains real runs: the example TinyDet importable (the test is skipped where it is not in
+    this checkout), a prepared-data cache of its own in ``root / "cache"`` and the environment variables ``env``, all
+    undone when the block ends."""
+    if not TINYDET_SRC.is_dir():
+        pytest.skip("the example TinyDet plugin is not in this checkout")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("HARNESS_CACHE", str(root / "cache"))
+    for name, value in env.items():
+        mp.setenv(name, value)
+    mp.syspath_prepend(str(TINYDET_SRC))
+    try:
+        yield
+    finally:
+        mp.undo()
+
+
+@contextlib.contextmanager
+def tiny_run(tiny_source: Path, root: Path, fold: str, tag: str) -> Iterator[Path]:
+    """TinyDet trained by ``harness run`` (``TINY_RUN``) on the tiny synthetic M3T set at ``tiny_source`` with
+    ``fold`` held out, stored in ``root / "store"``: its run folder, with the plugin registered (as ``tinydet-<tag>``,
+    see ``tinydet_on_path``) until the block ends."""
+    with tinydet_on_path(root):
+        import harness_tinydet.plugin as tinydet
+
+        from harness.testing import temporary_plugin
+
+        with temporary_plugin(tinydet, name=f"tinydet-{tag}"):
+            store = root / "store"
+            cli(run_args("tinydet", "m3t-synth", fold, store, *set_args([*TINY_RUN, f"dataset.root={tiny_source}"])))
+            yield store / "m3t-synth" / "tinydet" / "c2" / fold / "seed0"
+
+
 CHROMIUM = Path("/usr/bin/chromium")
 #: A test that opens a report in Debian's headless Chromium: skipped where it is not installed.
 needs_chromium = pytest.mark.skipif(

@@ -60,7 +60,3 @@ def subprocess_env(tmp_path: Path, **extra: str) -> dict[str, str]:
 
 def harness_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "harness", *args]
-
-
-def sets(overrides: list[str]) -> list[str]:
-    return [a for s in overrides for a in ("--set", s)]

@@ -6,6 +6,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from harness.sensing.registration import homography_from_focal_lengths, homography_from_similarity, image_center
+
+#: the RGB and thermal frame sizes of the scenes
+SCENE_RGB, SCENE_TH = (480, 384), (160, 128)
+
+
+def scene_truth() -> np.ndarray:
+    """The true RGB -> thermal homography of the scenes: a similarity (shifted 3, -2 px, rotated 1.5 degrees, scale
+    0.408) with a little perspective."""
+    H = homography_from_similarity(3.0, -2.0, 1.5, 0.4 * 1.02, image_center(SCENE_RGB), image_center(SCENE_TH))
+    H[2, 0] = 2e-5
+    return H / H[2, 2]
+
+
+def focal_prior() -> np.ndarray:
+    """The prior the focal lengths give for the scenes: scale 0.4, centres aligned."""
+    return homography_from_focal_lengths(1000.0, 400.0, SCENE_RGB, SCENE_TH)
+
 
 def facade_labels(seed: int, width: int, height: int, up: int = 4) -> np.ndarray:
     """Material labels (0 wall, 1 floor band, 2-3 window glass, 4-5 round patches) at ``up`` x the thermal grid."""

@@ -11,6 +11,9 @@ import json
 
 import pytest
 
+from datasets_helpers import smoke_run_args
+from engine_helpers import set_args
+
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 pytest.importorskip("harness.runner", reason="needs the training engine (`harness run`), absent from this checkout")
 
@@ -31,33 +34,8 @@ def test_harness_run_trains_and_evaluates_every_fold(
 ):
     monkeypatch.setenv("HARNESS_CACHE", str(cache_dir))
     store = tmp_path / "store"
-    args = [
-        "run",
-        "--detector",
-        detector,
-        "--dataset",
-        "m3t-synth",
-        "--folds",
-        "all",
-        "--profile",
-        "smoke",
-        "--store",
-        str(store),
-        "--no-progress",
-    ]
-    for kv in (
-        f"dataset.root={tiny_source}",
-        "model.width=0.125",
-        "model.depth=0.33",
-        "protocol.epochs=1",
-        "protocol.imgsz=128",
-        "train.batch=4",
-        "train.nominal_batch=4",
-        "train.threads=1",
-        "eval.batch=4",
-    ):
-        args += ["--set", kv]
-    result = cli_runner(args)
+    tiny = ["model.width=0.125", "model.depth=0.33", "protocol.imgsz=128"]
+    result = cli_runner(smoke_run_args(detector, "all", store, tiny_source, *set_args(tiny)))
     assert result.exit_code == 0, result.output
     runs = sorted(store.glob(f"m3t-synth/{detector}/ir8/*/seed0/metrics.json"))
     assert [p.parent.parent.name for p in runs] == ["P1", "P2", "P3", "P4+P5"]

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from report_fixtures import TINY_RUN, TINYDET_SRC
+from engine_helpers import set_args
+from report_fixtures import TINY_RUN, TINYDET_SRC, cli, tinydet_on_path
 
 for _module in ("harness.evaluation", "harness.runner", "harness.cache"):
     pytest.importorskip(_module)
@@ -25,56 +26,43 @@ FAST = [*TINY_RUN, "dataset.profile=tiny"]
 FOLDS = "P1,P4+P5"
 
 
-def _cli(args: list[str], code: int = 0) -> str:
-    from click.testing import CliRunner
-
-    from harness.cli import get_cli
-
-    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
-    assert res.exit_code == code, f"harness {' '.join(args)} exited {res.exit_code}:\n{res.output}"
-    return res.output
-
-
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     """A tiny benchmark (TinyDet, 2 folds x 2 seeds, 1 epoch at 64 px) run in lanes, and its export."""
-    if not TINYDET_SRC.is_dir():
-        pytest.skip("the example TinyDet plugin is not in this checkout")
     root = tmp_path_factory.mktemp("bench")
     shim = root / "plugins"
     shim.mkdir()
     # the lanes' `harness run` processes find the plugin the way an unpackaged plugin is found
     (shim / "tinydet_shim.py").write_text("from harness_tinydet.plugin import *  # noqa: F401,F403\n")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HARNESS_CACHE", str(root / "cache"))
-    mp.setenv("HARNESS_DATA", str(root / "data"))
-    mp.setenv("HARNESS_PLUGINS_DIR", str(shim))
-    mp.setenv("PYTHONPATH", os.pathsep.join([str(TINYDET_SRC), os.environ.get("PYTHONPATH", "")]))
-    mp.syspath_prepend(str(TINYDET_SRC))
     from harness.testing import reset_plugins
 
-    reset_plugins()  # this process loads the plugin from HARNESS_PLUGINS_DIR too, as the lanes do
     store = root / "store"
-    sets = [a for s in FAST for a in ("--set", s)]
-    try:
-        cells = [
-            "benchmark",
-            "run",
-            "--store",
-            str(store),
-            "--detectors",
-            "tinydet",
-            "--folds",
-            FOLDS,
-            "--seeds",
-            "0,1",
-        ]
-        first = _cli([*cells, "--no-ablation", "--lanes", "2", *sets])
-        again = _cli([*cells, "--no-ablation", "--dry-run", *sets])
-        yield {"root": root, "store": store, "first": first, "again": again, "sets": sets}
-    finally:
-        mp.undo()
-        reset_plugins()
+    sets = set_args(FAST)
+    with tinydet_on_path(
+        root,
+        HARNESS_DATA=str(root / "data"),
+        HARNESS_PLUGINS_DIR=str(shim),
+        PYTHONPATH=os.pathsep.join([str(TINYDET_SRC), os.environ.get("PYTHONPATH", "")]),
+    ):
+        reset_plugins()  # this process loads the plugin from HARNESS_PLUGINS_DIR too, as the lanes do
+        try:
+            cells = [
+                "benchmark",
+                "run",
+                "--store",
+                str(store),
+                "--detectors",
+                "tinydet",
+                "--folds",
+                FOLDS,
+                "--seeds",
+                "0,1",
+            ]
+            first = cli([*cells, "--no-ablation", "--lanes", "2", *sets])
+            again = cli([*cells, "--no-ablation", "--dry-run", *sets])
+            yield {"root": root, "store": store, "first": first, "again": again, "sets": sets}
+        finally:
+            reset_plugins()
 
 
 def _export(bench, out: Path):
@@ -89,7 +77,7 @@ def _export(bench, out: Path):
 
 def _user_run(bench, folds: str, store: Path, *extra: str) -> None:
     """A user's run of the other TinyDet (dual-stream) at the tiny benchmark's settings, seed 0."""
-    _cli(
+    cli(
         [
             "run",
             "--detector",
@@ -165,7 +153,7 @@ def test_a_users_detector_is_compared_with_the_references_without_training_them(
     paired = next(s for s in report.sections if s.key == "paired")
     assert paired.tables, paired.notes
     assert "ref:tinydet" in paired.tables[0].to_text() and "tinydet-dual" in paired.tables[0].to_text()
-    out = _cli(
+    out = cli(
         [
             "compare-detectors",
             "ref:tinydet",
@@ -188,7 +176,7 @@ def test_references_on_other_samples_are_refused_naming_the_seed(bench, tmp_path
     _export(bench, tmp_path / "refs")
     other = tmp_path / "other"
     _user_run(bench, "P1", other, "--set", "dataset.seed=1")
-    out = _cli(
+    out = cli(
         [
             "report",
             "--store",
@@ -283,7 +271,7 @@ def test_progress_eta_uses_measured_epochs_and_relative_costs():
 
 
 def test_unknown_reference_folder_is_a_clear_error(tmp_path):
-    out = _cli(["report", "--store", str(tmp_path), "--reference-results", str(tmp_path / "nowhere")], code=2)
+    out = cli(["report", "--store", str(tmp_path), "--reference-results", str(tmp_path / "nowhere")], code=2)
     assert "no reference results here" in out
 
 
@@ -340,7 +328,7 @@ def test_a_detector_run_on_one_fold_is_paired_with_the_references_on_that_fold(b
 
 
 def test_exporting_an_unfinished_benchmark_is_refused(bench, tmp_path):
-    out = _cli(["benchmark", "export", "--store", str(bench["store"]), "--out", str(tmp_path / "refs")], code=2)
+    out = cli(["benchmark", "export", "--store", str(bench["store"]), "--out", str(tmp_path / "refs")], code=2)
     assert "is not finished" in out and "ours: no runs" in out and not (tmp_path / "refs").exists()
-    out = _cli(["benchmark", "export", "--store", str(tmp_path / "nowhere")], code=2)
+    out = cli(["benchmark", "export", "--store", str(tmp_path / "nowhere")], code=2)
     assert "no results store here" in out

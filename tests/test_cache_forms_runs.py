@@ -6,6 +6,8 @@ import json
 
 import pytest
 
+from datasets_helpers import smoke_run_args
+
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 pytest.importorskip("harness.runner", reason="needs the training engine (`harness run`)")
 
@@ -37,31 +39,7 @@ def test_compact_and_raw_cache_give_identical_runs(
     for form in ("raw", "compact"):
         monkeypatch.setenv("HARNESS_CACHE_FORM", form)
         store = tmp_path / f"store-{form}"
-        args = [
-            "run",
-            "--detector",
-            detector,
-            "--dataset",
-            "m3t-synth",
-            "--folds",
-            "P1",
-            "--profile",
-            "smoke",
-            "--store",
-            str(store),
-            "--no-progress",
-            *RUNS[detector],
-        ]
-        for kv in (
-            f"dataset.root={tiny_source}",
-            "protocol.epochs=1",
-            "train.batch=4",
-            "train.nominal_batch=4",
-            "train.threads=1",
-            "eval.batch=4",
-        ):
-            args += ["--set", kv]
-        result = cli_runner(args)
+        result = cli_runner(smoke_run_args(detector, "P1", store, tiny_source, *RUNS[detector]))
         assert result.exit_code == 0, result.output
         (run,) = store.glob(f"m3t-synth/{detector}/*/P1/seed0")
         out[form] = ((run / "predictions.json").read_bytes(), json.loads((run / "metrics.json").read_text()))

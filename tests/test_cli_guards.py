@@ -11,8 +11,7 @@ import pytest
 
 pytest.importorskip("harness.cache")
 
-from engine_helpers import shapes_and_tinydet, tinydet_module
-from harness import DetectorSpec, hookimpl
+from engine_helpers import DetectorsPlugin, shapes_and_tinydet, single_stream, tinydet_module
 from harness.errors import ConfigError, PluginError
 from harness.testing import temporary_plugin
 
@@ -107,27 +106,11 @@ def _plugin():
         def __init__(self, num_classes, in_channels=4, **kw):
             super().__init__(num_classes, 3, **kw)
 
-    class Plugin:
-        @hookimpl
-        def register_detectors(self, register):
-            register(
-                DetectorSpec(
-                    name="noraw",
-                    input_kind="single",
-                    description="no forward_raw",
-                    build=lambda num_classes, in_channels=4, **cfg: NoRaw(num_classes, in_channels),
-                )
-            )
-            register(
-                DetectorSpec(
-                    name="threech",
-                    input_kind="single",
-                    description="ignores in_channels",
-                    build=lambda num_classes, in_channels=4, **cfg: ThreeChannels(num_classes, in_channels),
-                )
-            )
-
-    return Plugin(), NoRaw
+    plugin = DetectorsPlugin(
+        single_stream("noraw", "no forward_raw", NoRaw),
+        single_stream("threech", "ignores in_channels", ThreeChannels),
+    )
+    return plugin, NoRaw
 
 
 @pytest.fixture

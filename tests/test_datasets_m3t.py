@@ -115,35 +115,17 @@ def test_registration_error_command_on_the_synthetic_landmarks(tiny, tmp_path, c
     """`harness sensing registration-error` against the true homography measures the click noise; the
     homographies fitted while preparing score about the same on those landmarks."""
     ds = _prepare(tiny, tmp_path / "cache")
-    lm = tiny / "registration" / "landmarks.json"
-    res = cli_runner(
-        [
-            "sensing",
-            "registration-error",
-            "--landmarks",
-            str(lm),
-            "--homographies",
-            str(tiny / "ground_truth" / "homographies.yaml"),
-            "--out",
-            str(tmp_path / "true.json"),
-        ]
-    )
-    assert res.exit_code == 0, res.output
-    true = json.loads((tmp_path / "true.json").read_text())
-    res = cli_runner(
-        [
-            "sensing",
-            "registration-error",
-            "--landmarks",
-            str(lm),
-            "--homographies",
-            str(ds.folder / "homographies.yaml"),
-            "--out",
-            str(tmp_path / "fitted.json"),
-        ]
-    )
-    assert res.exit_code == 0, res.output
-    fitted = json.loads((tmp_path / "fitted.json").read_text())
+
+    def registration_error(homographies: Path, name: str) -> dict:
+        landmarks = str(tiny / "registration" / "landmarks.json")
+        out = tmp_path / f"{name}.json"
+        args = ["--landmarks", landmarks, "--homographies", str(homographies), "--out", str(out)]
+        res = cli_runner(["sensing", "registration-error", *args])
+        assert res.exit_code == 0, res.output
+        return json.loads(out.read_text())
+
+    true = registration_error(tiny / "ground_truth" / "homographies.yaml", "true")
+    fitted = registration_error(ds.folder / "homographies.yaml", "fitted")
     assert true["n"] == fitted["n"] > 50
     assert 0.3 < true["mean"] < 1.0  # 0.8 RGB px and 0.35 thermal px click noise per axis
     assert fitted["mean"] <= true["mean"] + 0.05  # least squares fits the clicks it was fitted on

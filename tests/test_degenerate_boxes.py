@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from engine_helpers import ShapesPlugin, tinydet_module
-from harness import DetectorSpec, hookimpl
+from engine_helpers import DetectorsPlugin, ShapesPlugin, single_stream, tinydet_module
 from harness.engine.augment import Letterbox
 from harness.engine.predict import DegenerateBoxes, detections_to_coco
 from harness.errors import PluginError
@@ -43,19 +42,7 @@ def _faulty_plugin():
                 for _ in range(len(inputs))
             ]
 
-    class Plugin:
-        @hookimpl
-        def register_detectors(self, register):
-            register(
-                DetectorSpec(
-                    name="xywh-det",
-                    input_kind="single",
-                    description="returns x, y, w, h boxes",
-                    build=lambda num_classes, in_channels=4, **cfg: XywhDet(num_classes, in_channels),
-                )
-            )
-
-    return Plugin()
+    return DetectorsPlugin(single_stream("xywh-det", "returns x, y, w, h boxes", XywhDet))
 
 
 def test_degenerate_boxes_are_counted_by_kind():

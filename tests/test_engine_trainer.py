@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from engine_helpers import ENCODINGS, tinydet_module, write_dataset
+from engine_helpers import ENCODINGS, tinydet_module, train_settings, write_dataset
 from harness.engine import checkpoint as ckpt
 from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
 from harness.engine.predict import predict
@@ -25,20 +25,7 @@ def prepared(tmp_path_factory):
 
 
 def settings(**kw) -> TrainSettings:
-    base = dict(
-        imgsz=64,
-        epochs=4,
-        batch=8,
-        nominal_batch=8,
-        warmup_epochs=0.0,
-        warmup_min_iters=0,
-        close_mosaic=0,
-        threads=1,
-        patience=100,
-        device="cpu",
-    )
-    base.update(kw)
-    return TrainSettings(**base)
+    return train_settings(**{"epochs": 4, "batch": 8, "nominal_batch": 8, "patience": 100, **kw})
 
 
 def build(in_channels: int = 4, seed: int = 0) -> nn.Module:
@@ -79,18 +66,14 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
     s = settings(epochs=4, batch=4, nominal_batch=8, warmup_epochs=2.5, close_mosaic=1, max_images=12)
     aug = AugmentSettings(mosaic=0.7)
 
+    def trainer(model: nn.Module, folder: str, on_epoch=None) -> Trainer:
+        data = TrainDataset(train, 64, aug, seed=0)
+        kw = dict(validate=_validate(val), on_epoch=on_epoch, progress=False, config_hash="h")
+        return Trainer(model, data, s, checkpoint_dir=tmp_path / folder, **kw)
+
     straight_log: list[dict] = []
     model_a = build()
-    trainer_a = Trainer(
-        model_a,
-        TrainDataset(train, 64, aug, seed=0),
-        s,
-        checkpoint_dir=tmp_path / "a",
-        validate=_validate(val),
-        on_epoch=straight_log.append,
-        progress=False,
-        config_hash="h",
-    )
+    trainer_a = trainer(model_a, "a", straight_log.append)
     res_a = trainer_a.fit()
 
     class Crash(Exception):
@@ -105,28 +88,10 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
 
     model_b = build()
     with pytest.raises(Crash):
-        Trainer(
-            model_b,
-            TrainDataset(train, 64, aug, seed=0),
-            s,
-            checkpoint_dir=tmp_path / "b",
-            validate=_validate(val),
-            on_epoch=crash_after_two,
-            progress=False,
-            config_hash="h",
-        ).fit()
+        trainer(model_b, "b", crash_after_two).fit()
     assert ckpt.load(tmp_path / "b" / "last.pt")["epoch"] == 1  # 0-based: two epochs done
     model_c = build(seed=123)  # a different initialisation: everything must come from the checkpoint
-    trainer_c = Trainer(
-        model_c,
-        TrainDataset(train, 64, aug, seed=0),
-        s,
-        checkpoint_dir=tmp_path / "b",
-        validate=_validate(val),
-        on_epoch=resumed_log.append,
-        progress=False,
-        config_hash="h",
-    )
+    trainer_c = trainer(model_c, "b", resumed_log.append)
     res_c = trainer_c.fit(resume=True)
 
     assert res_c.resumed_from == 2 and res_c.epochs_run == 4
@@ -141,15 +106,7 @@ def test_resume_reaches_the_same_state_as_an_uninterrupted_run(prepared, tmp_pat
     assert best_a["epoch"] == best_c["epoch"]
     assert all(torch.equal(best_a["model"][k], best_c["model"][k]) for k in best_a["model"])
     # a finished run resumed again trains nothing and reports the same result
-    again = Trainer(
-        build(),
-        TrainDataset(train, 64, aug, seed=0),
-        s,
-        checkpoint_dir=tmp_path / "b",
-        validate=_validate(val),
-        progress=False,
-        config_hash="h",
-    ).fit(resume=True)
+    again = trainer(build(), "b").fit(resume=True)
     assert again.epochs_run == 4 and again.best_fitness == res_a.best_fitness
 
 

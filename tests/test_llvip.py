@@ -54,13 +54,8 @@ def test_missing_partner_and_unknown_class_are_counted(release):
 
 def test_difficult_person_and_zero_based_option(release):
     root, _ = release
-    write_voc(
-        root / "LLVIP" / "Annotations" / "010001.xml",
-        "010001.jpg",
-        80,
-        64,
-        [("person", 1, 1, 80, 64), ("person", 5, 5, 20, 30, 1)],
-    )
+    ann = root / "LLVIP" / "Annotations" / "010001.xml"
+    write_voc(ann, "010001.jpg", 80, 64, [("person", 1, 1, 80, 64), ("person", 5, 5, 20, 30, 1)])
     (s, *_), report = collect(llvip.open_llvip(root))
     np.testing.assert_array_equal(s.boxes, [[0, 0, 80, 64]])
     assert any("1 difficult box(es) left out" in n for n in report.notes)

@@ -112,13 +112,8 @@ def test_non_numeric_coordinates_and_size_mismatch(release):
 
 def test_boxes_outside_the_frame_are_clipped_or_dropped(release):
     root, _ = release
-    write_voc(
-        root / "M3FD_Detection" / "Annotation" / "00000.xml",
-        "00000.png",
-        64,
-        48,
-        [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)],
-    )
+    ann = root / "M3FD_Detection" / "Annotation" / "00000.xml"
+    write_voc(ann, "00000.png", 64, 48, [("Truck", -4, 2, 20, 60), ("Lamp", 70, 10, 80, 20)])
     samples, report = collect(m3fd.open_m3fd(root))
     s = samples[0]
     np.testing.assert_array_equal(s.boxes, [[0, 1, 20, 48]])  # (xmin - 1, ymin - 1, xmax, ymax), then clipped

@@ -255,55 +255,20 @@ def test_every_table_shows_the_labels_of_a_seed_beside_the_numbers_it_concerns(l
     rows_json = {(r["detector"], r["encoding"]): r for r in json.loads(res.stdout)["rows"]}
     assert [lab["kind"] for lab in rows_json[("alpha", "c2")]["labels"]] == [ACCEPTED, APPROXIMATE]
     assert "labels" not in rows_json[("beta", "c2")]  # rows without labels are written as before
-    res = cli_runner(
-        [
-            "compare-detectors",
-            "alpha/c2",
-            "beta",
-            "--dataset",
-            "synth",
-            "--store",
-            str(labelled_store.root),
-            "--resamples",
-            "0",
-        ]
-    )
+
+    def compare_detectors(a: str, b: str, *extra: str):
+        args = ["--dataset", "synth", "--store", str(labelled_store.root), "--resamples", "0", *extra]
+        return cli_runner(["compare-detectors", a, b, *args])
+
+    res = compare_detectors("alpha/c2", "beta")
     assert res.exit_code == 0, res.output
     p1 = next(line for line in res.stdout.splitlines() if line.startswith("P1"))
     assert "†" in p1 and "~" not in p1 and ACCEPTED_NOTE.split(":")[0] in res.stdout
-    res = cli_runner(
-        [
-            "compare-detectors",
-            "alpha/c2",
-            "beta",
-            "--dataset",
-            "synth",
-            "--store",
-            str(labelled_store.root),
-            "--resamples",
-            "0",
-            "--format",
-            "json",
-        ]
-    )
+    res = compare_detectors("alpha/c2", "beta", "--format", "json")
     paired = json.loads(res.stdout)
     assert [lab["kind"] for lab in paired["labels"]["a"]] == [ACCEPTED, APPROXIMATE] and paired["labels"]["b"] == []
     assert paired["fold_marks"] == {"a": ["†", "~"], "b": ["", ""]}
-    res = cli_runner(
-        [
-            "compare-detectors",
-            "beta",
-            "alpha/ir8",
-            "--dataset",
-            "synth",
-            "--store",
-            str(labelled_store.root),
-            "--resamples",
-            "0",
-            "--format",
-            "json",
-        ]
-    )
+    res = compare_detectors("beta", "alpha/ir8", "--format", "json")
     assert "label_notes" not in json.loads(res.stdout)  # a pair without labels is written as before
 
 

@@ -10,19 +10,7 @@ import numpy as np
 import pytest
 
 from engine_helpers import CATEGORIES, ShapesPlugin
-from harness.report.pictures import (
-    GT_COLOUR,
-    PRED_COLOURS,
-    TITLE_H,
-    BoxSet,
-    coco_boxes,
-    draw_sample,
-    encode_image,
-    inline_image,
-    save_image,
-    terminal_protocol,
-    thermal_range,
-)
+from harness.report import pictures
 from harness.sample import AlignedSample
 from harness.testing import temporary_plugin
 
@@ -48,32 +36,34 @@ def _sample(radiometric: bool = True) -> AlignedSample:
 def _panel(img: np.ndarray, k: int, width: int, height: int) -> np.ndarray:
     """Panel ``k`` (0 RGB, 1 thermal, ...) of a picture whose panels are ``width`` wide (4 px gaps), no scale bar."""
     x0 = k * (width + 4)
-    return img[TITLE_H : TITLE_H + height, x0 : x0 + width]
+    return img[pictures.TITLE_H : pictures.TITLE_H + height, x0 : x0 + width]
 
 
 def test_draw_sample_puts_boxes_on_every_panel_at_the_panel_scale():
     s = _sample(radiometric=False)
     fourth = np.full((40, 60), 200, np.uint8)
-    pred = BoxSet([[40, 25, 55, 35]], [0], [0.87], "det")
-    img = draw_sample(s, fourth=fourth, fourth_name="c2", categories=CATEGORIES, predictions=[pred], height=80)
+    pred = pictures.BoxSet([[40, 25, 55, 35]], [0], [0.87], "det")
+    img = pictures.draw_sample(s, fourth=fourth, fourth_name="c2", categories=CATEGORIES, predictions=[pred], height=80)
     assert img.dtype == np.uint8 and img.shape[2] == 3
     assert img.shape[1] == 3 * 120 + 2 * 4  # three panels, twice the sample's size, 4 px apart
     for k in range(3):
         panel = _panel(img, k, 120, 80)
         # the GT box [10, 10, 30, 20] drawn at twice the size: its left edge at x = 20, its top at y = 20
-        assert tuple(panel[30, 20]) == GT_COLOUR and tuple(panel[20, 40]) == GT_COLOUR
-        assert tuple(panel[60, 80]) == PRED_COLOURS[0]  # the prediction's left edge (x 80, y 50..70)
+        assert tuple(panel[30, 20]) == pictures.GT_COLOUR and tuple(panel[20, 40]) == pictures.GT_COLOUR
+        assert tuple(panel[60, 80]) == pictures.PRED_COLOURS[0]  # the prediction's left edge (x 80, y 50..70)
     thermal = _panel(img, 1, 120, 80)[2:10, 90:118]  # 8-bit thermal (away from boxes): grey, no colour map
     assert (thermal[..., 0] == thermal[..., 1]).all() and (thermal[..., 1] == thermal[..., 2]).all()
 
 
 def test_radiometric_thermal_is_a_colour_map_with_a_scale_bar():
     s = _sample(radiometric=True)
-    assert thermal_range(s.thermal) == pytest.approx((np.nanpercentile(s.thermal, 1), np.nanpercentile(s.thermal, 99)))
-    with_bar = draw_sample(s, gt=None, height=80)
-    plain = draw_sample(_sample(radiometric=False), gt=None, height=80)
+    assert pictures.thermal_range(s.thermal) == pytest.approx(
+        (np.nanpercentile(s.thermal, 1), np.nanpercentile(s.thermal, 99))
+    )
+    with_bar = pictures.draw_sample(s, gt=None, height=80)
+    plain = pictures.draw_sample(_sample(radiometric=False), gt=None, height=80)
     assert with_bar.shape[1] > plain.shape[1]  # the scale bar beside the thermal panel
-    panel = with_bar[TITLE_H : TITLE_H + 80, 124:244]
+    panel = with_bar[pictures.TITLE_H : pictures.TITLE_H + 80, 124:244]
     assert not (panel[..., 0] == panel[..., 2]).all()  # colours, not grey levels
     assert tuple(panel[0, 0]) == (128, 128, 128)  # the missing temperature is grey
     # hot (bottom rows) is brighter than cold (top rows) in the inferno colour map
@@ -86,40 +76,40 @@ def test_coco_boxes_and_thresholds():
         {"image_id": 3, "category_id": 1, "bbox": [5, 5, 5, 5], "score": 0.2},
         {"image_id": 4, "category_id": 1, "bbox": [0, 0, 1, 1], "score": 0.5},
     ]
-    b = coco_boxes(records, 3, "x")
+    b = pictures.coco_boxes(records, 3, "x")
     assert b.boxes.tolist() == [[1, 2, 4, 6], [5, 5, 10, 10]] and b.labels.tolist() == [1, 0]
     assert len(b.above(0.5)) == 1 and len(b.above(None)) == 2
-    assert coco_boxes([{"image_id": 3, "category_id": 1, "bbox": [0, 0, 1, 1]}], 3).scores is None
+    assert pictures.coco_boxes([{"image_id": 3, "category_id": 1, "bbox": [0, 0, 1, 1]}], 3).scores is None
 
 
 def test_pictures_are_compressed_jpeg_or_palette_png(tmp_path):
     from PIL import Image
 
-    img = draw_sample(_sample(), height=120)
-    png8 = encode_image(img, "png", palette=True)
-    full = encode_image(img, "png")
-    jpeg = encode_image(img, "jpeg", quality=70)
+    img = pictures.draw_sample(_sample(), height=120)
+    png8 = pictures.encode_image(img, "png", palette=True)
+    full = pictures.encode_image(img, "png")
+    jpeg = pictures.encode_image(img, "jpeg", quality=70)
     assert Image.open(io.BytesIO(png8)).mode == "P" and len(png8) < len(full)
     assert jpeg[:2] == b"\xff\xd8"
-    path = save_image(img, tmp_path / "x.jpg")
+    path = pictures.save_image(img, tmp_path / "x.jpg")
     assert Image.open(path).size == (img.shape[1], img.shape[0])
     from harness.errors import ConfigError
 
     with pytest.raises(ConfigError, match="png or .jpg"):
-        save_image(img, tmp_path / "x.gif")
+        pictures.save_image(img, tmp_path / "x.gif")
 
 
 def test_terminal_image_protocols():
-    assert terminal_protocol({"TERM_PROGRAM": "iTerm.app"}) == "iterm2"
-    assert terminal_protocol({"LC_TERMINAL": "iTerm2"}) == "iterm2"
-    assert terminal_protocol({"TERM": "xterm-kitty"}) == "kitty"
-    assert terminal_protocol({"TERM": "xterm-256color"}) is None
-    png = encode_image(np.zeros((4, 4, 3), np.uint8), "png")
-    seq = inline_image(png, "iterm2")
+    assert pictures.terminal_protocol({"TERM_PROGRAM": "iTerm.app"}) == "iterm2"
+    assert pictures.terminal_protocol({"LC_TERMINAL": "iTerm2"}) == "iterm2"
+    assert pictures.terminal_protocol({"TERM": "xterm-kitty"}) == "kitty"
+    assert pictures.terminal_protocol({"TERM": "xterm-256color"}) is None
+    png = pictures.encode_image(np.zeros((4, 4, 3), np.uint8), "png")
+    seq = pictures.inline_image(png, "iterm2")
     assert seq.startswith("\033]1337;File=inline=1;size=") and seq.rstrip("\n").endswith("\a")
     assert base64.b64decode(seq.split(":", 1)[1].rstrip("\a\n")) == png
     big = bytes(range(256)) * 30  # 10,240 base64 characters: kitty takes 4,096 at a time, m=1 until the last
-    chunks = inline_image(big, "kitty").rstrip("\n").split("\033\\")[:-1]
+    chunks = pictures.inline_image(big, "kitty").rstrip("\n").split("\033\\")[:-1]
     assert len(chunks) == 3 and chunks[0].startswith("\033_Ga=T,f=100,m=1;") and chunks[-1].startswith("\033_Gm=0;")
     assert base64.b64decode("".join(c.split(";", 1)[1] for c in chunks)) == big
 
@@ -211,7 +201,7 @@ def test_harness_show_draws_a_prepared_sample_with_predictions(shapes, tmp_path,
     assert pic.shape[0] > 128 and pic.shape[1] >= 2 * 160  # RGB, thermal (8-bit here), test-ir8 channel
     # the prediction set is drawn in its own colour (its boxes at the operating point: the 0.9 ones)
     assert ev["metrics"]["conf_threshold"] == 0.9
-    assert (np.abs(pic.astype(int) - PRED_COLOURS[0]).sum(axis=2) < 30).any()
+    assert (np.abs(pic.astype(int) - pictures.PRED_COLOURS[0]).sum(axis=2) < 30).any()
     # without --out and without an image-drawing terminal: a file in the current folder, named after the sample
     res = cli_runner(["show", "--dataset", "shapes", "--index", "0", "--encoding", "test-none"])
     assert res.exit_code == 0 and res.stdout.strip() == "show_shapes_1.png"

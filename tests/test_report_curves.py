@@ -11,21 +11,11 @@ import pytest
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
+from engine_helpers import fast_overrides
 from harness.report.curves import METRICS, entry_curves, read_log
 from report_fixtures import chromium_screenshot, needs_chromium
 
-RUN = [
-    "protocol.imgsz=64",
-    "protocol.epochs=3",
-    "protocol.patience=10",
-    "train.batch=8",
-    "train.nominal_batch=8",
-    "train.warmup_epochs=0",
-    "train.close_mosaic=0",
-    "train.threads=1",
-    "train.device=cpu",
-    "eval.batch=16",
-]
+RUN = fast_overrides(epochs=3, warmup_epochs=0)
 
 
 def _rec(epoch, box, cls, m50=None, m5095=None):

@@ -21,7 +21,8 @@ import pytest
 for _module in ("harness.evaluation", "harness.runner", "harness.cache", "harness.profiling"):
     pytest.importorskip(_module)
 
-from report_fixtures import TINY_RUN, TINYDET_SRC, chromium_screenshot, needs_chromium  # noqa: E402
+from engine_helpers import set_args  # noqa: E402
+from report_fixtures import TINY_RUN, chromium_screenshot, cli, needs_chromium, tinydet_on_path  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -29,135 +30,123 @@ FAST = [*TINY_RUN, "dataset.profile=tiny"]
 DATASET = "m3t-synth"
 
 
-def _cli(args: list[str]) -> str:
-    from click.testing import CliRunner
+def _fill(root: Path, store: Path) -> None:
+    """The runs, ablation, profiles and sensing analyses of ``real_store``, as a user runs them."""
+    import harness_tinydet.plugin as tinydet
 
-    from harness.cli import get_cli
+    from engine_helpers import ShapesPlugin
+    from harness.testing import temporary_plugin
 
-    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
-    assert res.exit_code == 0, f"harness {' '.join(args)} failed:\n{res.output}"
-    return res.output
+    sets = set_args(FAST)
+    with (
+        temporary_plugin(tinydet, name="tinydet-report-test"),
+        temporary_plugin(ShapesPlugin(), name="shapes-report-test"),
+    ):
+        cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
+        cli(
+            [
+                "run",
+                "--detector",
+                "tinydet-dual",
+                "--dataset",
+                DATASET,
+                "--folds",
+                "all",
+                "--store",
+                str(store),
+                *sets,
+            ]
+        )
+        cli(
+            [
+                "ablate",
+                "--detector",
+                "tinydet",
+                "--dataset",
+                DATASET,
+                "--encodings",
+                "c2,ir8,none",
+                "--folds",
+                "P4+P5",
+                "--store",
+                str(store),
+                *sets,
+            ]
+        )
+        cli(["score-route", str(store / DATASET / "tinydet" / "c2" / "P4+P5" / "seed0")])
+        for det in ("tinydet", "tinydet-dual"):
+            cli(
+                [
+                    "run",
+                    "--detector",
+                    det,
+                    "--dataset",
+                    "shapes",
+                    "--encoding",
+                    "test-ir8",
+                    "--folds",
+                    "all",
+                    "--store",
+                    str(store),
+                    *sets[:-2],
+                ]
+            )
+            cli(
+                [
+                    "profile",
+                    "--detector",
+                    det,
+                    "--imgsz",
+                    "64",
+                    "--no-latency",
+                    "--no-onnx",
+                    "--no-fvcore",
+                    "--store",
+                    str(store),
+                ]
+            )
+    landmarks = next((root / "data").glob("*/registration/landmarks.json"))
+    cli(
+        [
+            "sensing",
+            "registration-error",
+            "--landmarks",
+            str(landmarks),
+            "--dataset",
+            DATASET,
+            "--store",
+            str(store),
+        ]
+    )
+    cli(
+        [
+            "sensing",
+            "displacement",
+            "--dataset",
+            DATASET,
+            "--set",
+            "dataset.profile=tiny",
+            "--shifts",
+            "2,5,10",
+            "--store",
+            str(store),
+        ]
+    )
 
 
 @pytest.fixture(scope="session")
 def real_store(tmp_path_factory):
     """Tiny real runs, profiles and sensing analyses in one results store (about 15 s on 2 cores)."""
-    if not TINYDET_SRC.is_dir():
-        pytest.skip("the example TinyDet plugin is not in this checkout")
-    root = tmp_path_factory.mktemp("real")
-    store = root / "store"
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HARNESS_CACHE", str(root / "cache"))
-    mp.setenv("HARNESS_DATA", str(root / "data"))
-    mp.syspath_prepend(str(TINYDET_SRC))
     import torch
 
+    root = tmp_path_factory.mktemp("real")
+    store = root / "store"
     threads = torch.get_num_threads()
-    import harness_tinydet.plugin as tinydet
-
-    from harness.testing import temporary_plugin
-
-    sets = [a for s in FAST for a in ("--set", s)]
-    from engine_helpers import ShapesPlugin
-
-    try:
-        with (
-            temporary_plugin(tinydet, name="tinydet-report-test"),
-            temporary_plugin(ShapesPlugin(), name="shapes-report-test"),
-        ):
-            _cli(["run", "--detector", "tinydet", "--dataset", DATASET, "--folds", "all", "--store", str(store), *sets])
-            _cli(
-                [
-                    "run",
-                    "--detector",
-                    "tinydet-dual",
-                    "--dataset",
-                    DATASET,
-                    "--folds",
-                    "all",
-                    "--store",
-                    str(store),
-                    *sets,
-                ]
-            )
-            _cli(
-                [
-                    "ablate",
-                    "--detector",
-                    "tinydet",
-                    "--dataset",
-                    DATASET,
-                    "--encodings",
-                    "c2,ir8,none",
-                    "--folds",
-                    "P4+P5",
-                    "--store",
-                    str(store),
-                    *sets,
-                ]
-            )
-            _cli(["score-route", str(store / DATASET / "tinydet" / "c2" / "P4+P5" / "seed0")])
-            for det in ("tinydet", "tinydet-dual"):
-                _cli(
-                    [
-                        "run",
-                        "--detector",
-                        det,
-                        "--dataset",
-                        "shapes",
-                        "--encoding",
-                        "test-ir8",
-                        "--folds",
-                        "all",
-                        "--store",
-                        str(store),
-                        *sets[:-2],
-                    ]
-                )
-                _cli(
-                    [
-                        "profile",
-                        "--detector",
-                        det,
-                        "--imgsz",
-                        "64",
-                        "--no-latency",
-                        "--no-onnx",
-                        "--no-fvcore",
-                        "--store",
-                        str(store),
-                    ]
-                )
-        landmarks = next((root / "data").glob("*/registration/landmarks.json"))
-        _cli(
-            [
-                "sensing",
-                "registration-error",
-                "--landmarks",
-                str(landmarks),
-                "--dataset",
-                DATASET,
-                "--store",
-                str(store),
-            ]
-        )
-        _cli(
-            [
-                "sensing",
-                "displacement",
-                "--dataset",
-                DATASET,
-                "--set",
-                "dataset.profile=tiny",
-                "--shifts",
-                "2,5,10",
-                "--store",
-                str(store),
-            ]
-        )
-    finally:
-        torch.set_num_threads(threads)
-        mp.undo()
+    with tinydet_on_path(root, HARNESS_DATA=str(root / "data")):
+        try:
+            _fill(root, store)
+        finally:
+            torch.set_num_threads(threads)
     return store
 
 
@@ -268,7 +257,7 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
 
 @pytest.mark.slow
 def test_report_command_prints_every_table_of_the_real_store(real_store, tmp_path):
-    out = _cli(
+    out = cli(
         [
             "report",
             "--store",

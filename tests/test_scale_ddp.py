@@ -104,13 +104,13 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
         RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port)
     )
     torch.set_num_threads(1)
-    from engine_helpers import ENCODINGS, tinydet_module
+    from engine_helpers import ENCODINGS, tinydet_module, train_settings
     from harness import distributed as hd
     from harness.cache import PreparedDataset
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
     from harness.engine.predict import predict
     from harness.engine.runtime import seed_everything
-    from harness.engine.trainer import Trainer, TrainSettings
+    from harness.engine.trainer import Trainer
 
     try:
         assert hd.init_from_env() == DistInfo(rank, world, rank)
@@ -119,18 +119,7 @@ def _worker(rank: int, world: int, port: int, folder: str, queue) -> None:
         held_out = SampleSource(prepared, list(range(8, 15)), ENCODINGS[0])  # 7 images: shards of 4 and 3
         seed_everything(0)
         model = tinydet_module().build_tinydet(3, in_channels=4)
-        settings = TrainSettings(
-            imgsz=64,
-            epochs=2,
-            batch=4,
-            nominal_batch=4,
-            warmup_epochs=0.0,
-            warmup_min_iters=0,
-            close_mosaic=0,
-            threads=1,
-            device="cpu",
-            seed=0,
-        )
+        settings = train_settings(epochs=2, batch=4, nominal_batch=4, seed=0)
         result = Trainer(model, TrainDataset(train, 64, AugmentSettings.off()), settings, progress=False).fit()
         flat = torch.cat([p.detach().flatten() for p in model.parameters()])
         weights = hd.gather_to_main(flat)
@@ -188,7 +177,8 @@ def test_two_gloo_processes_train_with_ddp_and_predict_each_image_once(tmp_path)
 
 @pytest.mark.slow
 def test_torchrun_harness_run_writes_the_store_from_rank_zero(tmp_path):
-    from scale_helpers import TINY, sets, subprocess_env
+    from engine_helpers import set_args, shapes_run_args
+    from scale_helpers import TINY, subprocess_env
 
     store = tmp_path / "store"
     cmd = [
@@ -201,17 +191,7 @@ def test_torchrun_harness_run_writes_the_store_from_rank_zero(tmp_path):
         str(_free_port()),
         "-m",
         "harness",
-        "run",
-        "--detector",
-        "tinydet",
-        "--dataset",
-        "shapes",
-        "--folds",
-        "A",
-        "--store",
-        str(store),
-        "--no-progress",
-        *sets([*TINY, "eval.batch=3"]),
+        *shapes_run_args(store, *set_args([*TINY, "eval.batch=3"])),
     ]
     proc = subprocess.run(cmd, env=subprocess_env(tmp_path), capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-4000:]

@@ -14,39 +14,23 @@ import torch
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from scale_helpers import harness_cmd, sets, subprocess_env
+from engine_helpers import set_args, shapes_run_args
+from scale_helpers import TINY, harness_cmd, subprocess_env
 
-# 32 training images in batches of 2 at 128 px: an epoch lasts long enough (about a second) to be killed in its middle
+# The tiny run with 32 training images in batches of 2 at 128 px (later overrides win): an epoch lasts long enough
+# (about a second) to be killed in its middle
 KILL = [
+    *TINY,
     "dataset.per_group=32",
     "protocol.imgsz=128",
     "protocol.epochs=3",
-    "protocol.patience=10",
     "train.batch=2",
-    "train.nominal_batch=4",
-    "train.warmup_epochs=0.5",
-    "train.warmup_min_iters=0",
-    "train.close_mosaic=1",
-    "train.threads=1",
-    "train.device=cpu",
     "eval.batch=16",
 ]
 
 
 def _cmd(store):
-    return harness_cmd(
-        "run",
-        "--detector",
-        "tinydet",
-        "--dataset",
-        "shapes",
-        "--folds",
-        "A",
-        "--store",
-        str(store),
-        "--no-progress",
-        *sets(KILL),
-    )
+    return harness_cmd(*shapes_run_args(store, *set_args(KILL)))
 
 
 def _run_dir(store):

@@ -60,23 +60,12 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_the_code_does_not_run(t
 
 
 def test_resuming_from_a_tampered_last_checkpoint_is_refused(tmp_path):
-    from engine_helpers import ENCODINGS, write_dataset
-    from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
-    from harness.engine.trainer import Trainer, TrainSettings
+    from engine_helpers import one_conv_trainer
 
-    prepared = write_dataset(tmp_path / "ds", groups=("A",), per_group=2)
     marker = tmp_path / "marker"
     (tmp_path / "ckpt").mkdir()
     _evil_checkpoint(tmp_path / "ckpt" / "last.pt", marker)
-    settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
-    model = torch.nn.Conv2d(4, 1, 1)
-    trainer = Trainer(
-        model,
-        TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
-        settings,
-        checkpoint_dir=tmp_path / "ckpt",
-        progress=False,
-    )
+    trainer = one_conv_trainer(tmp_path)
     with pytest.raises(ckpt.CheckpointError, match="last.pt: cannot be read as a weights-only checkpoint"):
         trainer.fit(resume=True)
     assert not marker.exists()

@@ -500,6 +500,12 @@ def test_mmdetection_own_image_ids_without_the_image_list_stop(finished_run):
     assert res.metrics["metrics"]["mAP50"] == 1.0 and not res.matching.findings
 
 
+def _compare_with_tinydet(cli_runner, tmp, other: str):
+    """``harness compare-detectors tinydet OTHER`` on the framed dataset of the finished run's store, no resamples."""
+    args = ["--dataset", "framed", "--store", str(tmp / "store"), "--resamples", "0"]
+    return cli_runner(["compare-detectors", "tinydet", other, *args])
+
+
 @pytest.mark.slow
 def test_compare_detectors_addresses_external_runs(finished_run, cli_runner):
     from harness.report import compare_detectors
@@ -510,19 +516,7 @@ def test_compare_detectors_addresses_external_runs(finished_run, cli_runner):
         comp = compare_detectors(tmp / "store", "framed", "tinydet", name, resamples=0)
         assert comp.b == "external/paired/external" and comp.folds == ["A"]
         assert comp.fold_differences["mAP50_95"].diffs == [0.0]  # the run's own predictions, scored as external
-    res = cli_runner(
-        [
-            "compare-detectors",
-            "tinydet",
-            "external/paired",
-            "--dataset",
-            "framed",
-            "--store",
-            str(tmp / "store"),
-            "--resamples",
-            "0",
-        ]
-    )
+    res = _compare_with_tinydet(cli_runner, tmp, "external/paired")
     assert res.exit_code == 0, res.output
     assert "external/paired" in res.stdout
 
@@ -537,19 +531,7 @@ def test_a_refused_pair_suggests_the_command_line_option_not_the_api_one(finishe
     images["images"].pop(0)
     (tmp / "fewer.images.json").write_text(json.dumps(images))
     _score(tmp, "fewer", e.path, images=tmp / "fewer.images.json")
-    res = cli_runner(
-        [
-            "compare-detectors",
-            "tinydet",
-            "external/fewer",
-            "--dataset",
-            "framed",
-            "--store",
-            str(tmp / "store"),
-            "--resamples",
-            "0",
-        ]
-    )
+    res = _compare_with_tinydet(cli_runner, tmp, "external/fewer")
     assert res.exit_code == 2
     assert "refusing to compare" in res.output and "--allow-mismatched" in res.output
     assert "allow=True" not in res.output

@@ -17,25 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from report_fixtures import cli, tiny_run
 from screen_helpers import POSITIONS, p1_flight, upscaled_flight
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
 REPO = Path(__file__).resolve().parent.parent
-TINYDET_SRC = REPO / "plugins" / "harness-tinydet" / "src"
 REAL = REPO.parent / "shared" / "data" / "dji-m3t-rjpeg"
-FAST = [
-    "protocol.imgsz=64",
-    "protocol.epochs=1",
-    "protocol.patience=5",
-    "train.batch=8",
-    "train.nominal_batch=8",
-    "train.warmup_epochs=0.5",
-    "train.close_mosaic=0",
-    "train.threads=1",
-    "train.device=cpu",
-    "eval.batch=16",
-]
 
 
 @dataclass
@@ -50,54 +38,15 @@ class Trained:
         return "0.001"
 
 
-def _cli(args: list[str], code: int = 0) -> str:
-    from click.testing import CliRunner
-
-    from harness.cli import get_cli
-
-    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
-    assert res.exit_code == code, f"harness {' '.join(args)} exited {res.exit_code}:\n{res.output}"
-    return res.output
-
-
 @pytest.fixture(scope="module")
 def trained(tiny_source, tmp_path_factory):  # noqa: F811
-    if not TINYDET_SRC.is_dir():
-        pytest.skip("the example TinyDet plugin is not in this checkout")
     root = tmp_path_factory.mktemp("screen")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HARNESS_CACHE", str(root / "cache"))
-    mp.syspath_prepend(str(TINYDET_SRC))
-    import harness_tinydet.plugin as tinydet
-
-    from harness.testing import temporary_plugin
-
-    sets = [a for s in [*FAST, f"dataset.root={tiny_source}"] for a in ("--set", s)]
-    try:
-        with temporary_plugin(tinydet, name="tinydet-screen-test"):
-            _cli(
-                [
-                    "run",
-                    "--detector",
-                    "tinydet",
-                    "--dataset",
-                    "m3t-synth",
-                    "--folds",
-                    "P1",
-                    "--store",
-                    str(root / "store"),
-                    "--no-progress",
-                    *sets,
-                ]
-            )
-            run = root / "store" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0"
-            yield Trained(run, next((root / "cache" / "m3t-synth").glob("*/homographies.yaml")), tiny_source, root)
-    finally:
-        mp.undo()
+    with tiny_run(tiny_source, root, "P1", "screen-test") as run:
+        yield Trained(run, next((root / "cache" / "m3t-synth").glob("*/homographies.yaml")), tiny_source, root)
 
 
 def _screen(trained: Trained, flight: Path, out: Path, *extra: str, code: int = 0) -> str:
-    return _cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out), "--no-progress", *extra], code)
+    return cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out), "--no-progress", *extra], code)
 
 
 def _file_route(trained: Trained) -> list[str]:
@@ -652,7 +601,7 @@ def test_screening_with_a_weights_file(trained, screened, tmp_path):
     """``--weights`` with the detector and dataset: the run's findings again when configured like the run."""
     flight, out, _ = screened
     sets = [a for s in ["protocol.imgsz=64", "eval.batch=16"] for a in ("--set", s)]
-    _cli(
+    cli(
         [
             "screen",
             str(flight),
@@ -674,7 +623,7 @@ def test_screening_with_a_weights_file(trained, screened, tmp_path):
         ]
     )
     _close(_frames(out), _frames(tmp_path / "w"), 0.0, 0.0)
-    text = _cli(
+    text = cli(
         [
             "screen",
             str(flight),

@@ -15,11 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from report_fixtures import TINY_RUN, TINYDET_SRC
+from report_fixtures import cli, tiny_run
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
-FAST = list(TINY_RUN)
 FOLD = "P4+P5"
 
 
@@ -31,55 +30,16 @@ class Trained:
     root: Path
 
 
-def _cli(args: list[str], code: int = 0) -> str:
-    from click.testing import CliRunner
-
-    from harness.cli import get_cli
-
-    res = CliRunner().invoke(get_cli(), args, catch_exceptions=False)
-    assert res.exit_code == code, f"harness {' '.join(args)} exited {res.exit_code}:\n{res.output}"
-    return res.output
-
-
 @pytest.fixture(scope="module")
 def trained(tiny_source, tmp_path_factory):
-    if not TINYDET_SRC.is_dir():
-        pytest.skip("the example TinyDet plugin is not in this checkout")
     root = tmp_path_factory.mktemp("route")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HARNESS_CACHE", str(root / "cache"))
-    mp.syspath_prepend(str(TINYDET_SRC))
-    import harness_tinydet.plugin as tinydet
-
-    from harness.testing import temporary_plugin
-
-    sets = [a for s in [*FAST, f"dataset.root={tiny_source}"] for a in ("--set", s)]
-    try:
-        with temporary_plugin(tinydet, name="tinydet-route-test"):
-            _cli(
-                [
-                    "run",
-                    "--detector",
-                    "tinydet",
-                    "--dataset",
-                    "m3t-synth",
-                    "--folds",
-                    FOLD,
-                    "--store",
-                    str(root / "store"),
-                    "--no-progress",
-                    *sets,
-                ]
-            )
-            run = root / "store" / "m3t-synth" / "tinydet" / "c2" / FOLD / "seed0"
-            yield Trained(run, root / "store", tiny_source, root)
-    finally:
-        mp.undo()
+    with tiny_run(tiny_source, root, FOLD, "route-test") as run:
+        yield Trained(run, root / "store", tiny_source, root)
 
 
 @pytest.fixture(scope="module")
 def scored(trained):
-    text = _cli(["score-route", str(trained.run)])
+    text = cli(["score-route", str(trained.run)])
     return json.loads((trained.run / "screening_route.json").read_text()), text
 
 
@@ -134,7 +94,7 @@ def test_screening_a_multi_group_fold_with_default_options_gives_its_stored_pred
     result, _ = scored
     flight = _flight(trained, tmp_path / "card")
     out = tmp_path / "screen"
-    _cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out), "--no-progress"])
+    cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out), "--no-progress"])
     manifest = json.loads((out / "manifest.json").read_text())
     threshold = manifest["model"]["threshold"]
     stored = result["predictions"]["automatic"]
@@ -156,7 +116,7 @@ def test_screening_a_multi_group_fold_with_default_options_gives_its_stored_pred
     # and every stored detection, at the run's NMS threshold
     out_all = tmp_path / "screen-all"
     conf = str(json.loads(json.dumps(manifest["config"]["eval"]["conf"])))
-    _cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out_all), "--no-progress", "--conf", conf])
+    cli(["screen", str(flight), "--run", str(trained.run), "--out", str(out_all), "--no-progress", "--conf", conf])
     for name, rec in _frames(out_all).items():
         iid, _ = route_frames[name]
         want = sorted((d["category_id"], d["bbox"], d["score"]) for d in stored if d["image_id"] == iid)

@@ -123,43 +123,20 @@ def _prepared(tmp_path):
 def test_displacement_command_on_a_prepared_dataset(tmp_path, cli_runner):
     folder = _prepared(tmp_path)
     out = tmp_path / "disp.json"
-    res = cli_runner(
-        [
-            "sensing",
-            "displacement",
-            "--prepared",
-            str(folder),
-            "--shifts",
-            "2,5",
-            "--store",
-            str(tmp_path / "store"),
-            "--out",
-            str(out),
-        ]
-    )
-    assert res.exit_code == 0, res.output
+
+    def displacement(*args: str):
+        res = cli_runner(["sensing", "displacement", "--prepared", str(folder), *args])
+        assert res.exit_code == 0, res.output
+        return res
+
+    res = displacement("--shifts", "2,5", "--store", str(tmp_path / "store"), "--out", str(out))
     data = json.loads(out.read_text())
     assert data["dataset"] == "toy" and data["shifts"] == [0, 2, 5] and data["classes"]["crack"]["boxes"] == 2
     stored = json.loads((tmp_path / "store" / "toy" / "_sensing" / "displacement.json").read_text())
     assert stored["classes"] == data["classes"]
     assert "R(5 px)" in res.output and "crack" in res.output
     # encoding parameters come from the config, like everywhere else
-    res = cli_runner(
-        [
-            "sensing",
-            "displacement",
-            "--prepared",
-            str(folder),
-            "--shifts",
-            "2",
-            "--no-store",
-            "--set",
-            "encoding.c2.sigma=5.0",
-            "--out",
-            str(tmp_path / "s5.json"),
-        ]
-    )
-    assert res.exit_code == 0, res.output
+    displacement("--shifts", "2", "--no-store", "--set", "encoding.c2.sigma=5.0", "--out", str(tmp_path / "s5.json"))
     assert json.loads((tmp_path / "s5.json").read_text())["params"]["sigma"] == 5.0
 
 

@@ -120,23 +120,15 @@ def test_failures_are_clear_errors_naming_the_file_and_leave_no_temporary_files(
     _, log = standin
     path = builtin_table_file(tmp_path / "f.jpg")
     conv = dji_converter.resolve("dji_irp")
-    monkeypatch.setenv("STANDIN_MODE", "fail")
-    with pytest.raises(
-        DataError,
-        match=r"f\.jpg: the converter \(dji_irp\) failed with exit status 3: "
-        r"dirp_create_from_rjpeg failed",
-    ):
-        read_thermal(path, converter=conv)
-    monkeypatch.setenv("STANDIN_MODE", "short")
-    with pytest.raises(
-        DataError,
-        match=r"f\.jpg: the converter \(dji_irp\) wrote 1252 bytes, expected 1280 "
-        r"\(20x16 float32",
-    ):
-        read_thermal(path, converter=conv)
-    monkeypatch.setenv("STANDIN_MODE", "nooutput")
-    with pytest.raises(DataError, match=r"f\.jpg: .*without writing its output"):
-        read_thermal(path, converter=conv)
+
+    def fails(mode: str, message: str) -> None:
+        monkeypatch.setenv("STANDIN_MODE", mode)
+        with pytest.raises(DataError, match=message):
+            read_thermal(path, converter=conv)
+
+    fails("fail", r"f\.jpg: the converter \(dji_irp\) failed with exit status 3: dirp_create_from_rjpeg failed")
+    fails("short", r"f\.jpg: the converter \(dji_irp\) wrote 1252 bytes, expected 1280 \(20x16 float32")
+    fails("nooutput", r"f\.jpg: .*without writing its output")
     monkeypatch.setenv("STANDIN_MODE", "nodata")  # the SDK's "cannot measure" is missing, not -273 C
     temp, info = read_thermal(path, converter=conv)
     assert np.isnan(temp[0, 0]) and info["missing"] == 1

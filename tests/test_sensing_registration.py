@@ -25,7 +25,7 @@ from harness.sensing.registration import (
     registration_error,
     save_homographies,
 )
-from sensing_scenes import render_pair
+from sensing_scenes import SCENE_RGB, SCENE_TH, focal_prior, render_pair, scene_truth
 
 RGB_SIZE, TH_SIZE = (4000, 3000), (640, 512)
 
@@ -102,47 +102,36 @@ def test_focal_length_prior_for_the_m3t():
 
 
 # ---------------------------------------------------------------------------------------------- automatic
-SCENE_RGB, SCENE_TH = (480, 384), (160, 128)
-
-
-def _scene_truth() -> np.ndarray:
-    H = homography_from_similarity(3.0, -2.0, 1.5, 0.4 * 1.02, image_center(SCENE_RGB), image_center(SCENE_TH))
-    H[2, 0] = 2e-5
-    return H / H[2, 2]
-
-
-def _prior() -> np.ndarray:
-    return homography_from_focal_lengths(1000.0, 400.0, SCENE_RGB, SCENE_TH)  # scale 0.4, centres aligned
 
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_automatic_registration_recovers_a_known_misalignment(seed):
-    H_true = _scene_truth()
+    H_true = scene_truth()
     rgb, thermal = render_pair(seed, H_true, SCENE_RGB, SCENE_TH)
-    start = corner_error(_prior(), H_true, SCENE_TH)
+    start = corner_error(focal_prior(), H_true, SCENE_TH)
     assert np.median(start) > 3.0  # the prior is off by several pixels (1.5 deg, 2 % scale, (3, -2) px)
-    res = estimate_homography_auto(rgb, thermal, init=_prior())
+    res = estimate_homography_auto(rgb, thermal, init=focal_prior())
     assert res.ok, res.reason
     assert np.median(corner_error(res.H, H_true, SCENE_TH)) < 1.0
     assert res.correlation > res.initial_correlation
 
 
 def test_automatic_registration_rejects_a_scrambled_pair():
-    H_true = _scene_truth()
+    H_true = scene_truth()
     rgb, _ = render_pair(1, H_true, SCENE_RGB, SCENE_TH)
     _, other = render_pair(77, H_true, SCENE_RGB, SCENE_TH)  # the thermal frame of another facade
-    res = estimate_homography_auto(rgb, other, init=_prior())
+    res = estimate_homography_auto(rgb, other, init=focal_prior())
     assert not res.ok and "correlation" in res.reason
-    np.testing.assert_allclose(res.H, reg.normalize(_prior()))  # nothing is made up: H stays the prior
+    np.testing.assert_allclose(res.H, reg.normalize(focal_prior()))  # nothing is made up: H stays the prior
     rng = np.random.default_rng(0)
     _, thermal = render_pair(1, H_true, SCENE_RGB, SCENE_TH)
     blocks = thermal.reshape(4, 32, 4, 40).transpose(0, 2, 1, 3).reshape(16, 32, 40)[rng.permutation(16)]
     shuffled = np.ascontiguousarray(blocks.reshape(4, 4, 32, 40).transpose(0, 2, 1, 3).reshape(128, 160))
-    assert not estimate_homography_auto(rgb, shuffled, init=_prior()).ok
+    assert not estimate_homography_auto(rgb, shuffled, init=focal_prior()).ok
 
 
 def test_structure_images_are_bounded_and_modality_agnostic():
-    rgb, thermal = render_pair(3, _scene_truth(), SCENE_RGB, SCENE_TH)
+    rgb, thermal = render_pair(3, scene_truth(), SCENE_RGB, SCENE_TH)
     for img in (rgb, thermal, (thermal * 10).astype(np.uint8)):
         s = reg.structure_image(img)
         assert s.dtype == np.float32 and s.min() >= 0 and s.max() < 1
@@ -291,56 +280,24 @@ def test_register_command_from_landmarks_similarity_and_images(tmp_path, cli_run
     rgb, th = _landmarks(10, seed=5)
     _write_csv(tmp_path / "lm.csv", [("s", "P1", *rgb[i], *th[i]) for i in range(10)])
     out = tmp_path / "H.yaml"
-    res = cli_runner(
-        [
-            "sensing",
-            "register",
-            "--landmarks",
-            str(tmp_path / "lm.csv"),
-            "--out",
-            str(out),
-            "--rgb-size",
-            "4000x3000",
-            "--thermal-size",
-            "640x512",
-        ]
-    )
-    assert res.exit_code == 0, res.output
-    res = cli_runner(
-        [
-            "sensing",
-            "register",
-            "--similarity",
-            "P2=1,2,0.5,0.27",
-            "--out",
-            str(out),
-            "--rgb-size",
-            "4000x3000",
-            "--thermal-size",
-            "640x512",
-        ]
-    )
-    assert res.exit_code == 0, res.output
-    H_true = _scene_truth()
+
+    def register(*how: str):
+        res = cli_runner(["sensing", "register", *how, "--out", str(out)])
+        assert res.exit_code == 0, res.output
+        return res
+
+    sizes = ["--rgb-size", "4000x3000", "--thermal-size", "640x512"]
+    register("--landmarks", str(tmp_path / "lm.csv"), *sizes)
+    register("--similarity", "P2=1,2,0.5,0.27", *sizes)
+    H_true = scene_truth()
     scene_rgb, scene_th = render_pair(2, H_true, SCENE_RGB, SCENE_TH)
     cv2.imwrite(str(tmp_path / "rgb.png"), scene_rgb[:, :, ::-1])
     from harness.sensing.radiometry import write_thermal
 
     write_thermal(tmp_path / "th.tif", scene_th, unit="celsius")
-    save_homographies(tmp_path / "init.yaml", {"P3": _prior()})
-    res = cli_runner(
-        [
-            "sensing",
-            "register",
-            "--auto",
-            f"P3={tmp_path / 'rgb.png'},{tmp_path / 'th.tif'}",
-            "--start-homographies",
-            str(tmp_path / "init.yaml"),
-            "--out",
-            str(out),
-        ]
-    )
-    assert res.exit_code == 0, res.output
+    save_homographies(tmp_path / "init.yaml", {"P3": focal_prior()})
+    images = f"P3={tmp_path / 'rgb.png'},{tmp_path / 'th.tif'}"
+    res = register("--auto", images, "--start-homographies", str(tmp_path / "init.yaml"))
     Hs = load_homographies(out)
     assert set(Hs) == {"P1", "P2", "P3"}
     np.testing.assert_allclose(apply_homography(Hs["P1"], rgb), th, atol=0.05)
@@ -352,15 +309,15 @@ def test_sensing_context_registers_unknown_groups_automatically_or_refuses():
     from harness.config import load_config
     from harness.sensing.pipeline import SensingContext
 
-    H_true = _scene_truth()
+    H_true = scene_truth()
     rgb, thermal = render_pair(2, H_true, SCENE_RGB, SCENE_TH)
     ctx = SensingContext.from_config(load_config())
     ir8 = np.zeros(thermal.shape, np.uint8)
-    pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 40, 30]]), np.array([0]), "G01", prior=_prior())
+    pair = ctx.align_capture(rgb, thermal, ir8, np.array([[10, 10, 40, 30]]), np.array([0]), "G01", prior=focal_prior())
     assert np.median(corner_error(ctx.entries["G01"].H, H_true, SCENE_TH)) < 1.0 and ctx.auto_results["G01"].ok
     np.testing.assert_array_equal(
         pair.thermal, thermal[pair.origin[1] :, pair.origin[0] :][: pair.size[1], : pair.size[0]]
     )
     _, other = render_pair(77, H_true, SCENE_RGB, SCENE_TH)
     with pytest.raises(DataError, match="group 'G02': automatic registration rejected"):
-        ctx.align_capture(rgb, other, ir8, np.zeros((0, 4)), np.zeros(0), "G02", prior=_prior())
+        ctx.align_capture(rgb, other, ir8, np.zeros((0, 4)), np.zeros(0), "G02", prior=focal_prior())

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import shapes_and_tinydet
+from engine_helpers import fast_overrides, shapes_and_tinydet
 from harness import hookimpl
 from harness.errors import ConfigError
 from harness.testing import temporary_plugin
@@ -20,18 +20,7 @@ from harness.tracking import LoggerSpec, Tracker, epoch_metrics, final_metrics, 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-ONE_EPOCH = [
-    "protocol.imgsz=64",
-    "protocol.epochs=1",
-    "protocol.patience=10",
-    "train.batch=8",
-    "train.nominal_batch=8",
-    "train.warmup_epochs=0",
-    "train.close_mosaic=0",
-    "train.threads=1",
-    "train.device=cpu",
-    "eval.batch=16",
-]
+ONE_EPOCH = fast_overrides(epochs=1, warmup_epochs=0)
 
 
 def _has(*modules: str) -> bool:

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import CATEGORIES, fast_overrides  # noqa: E402
+from engine_helpers import CATEGORIES, fast_overrides, set_args, shapes_run_args  # noqa: E402
 from harness.errors import ConfigError  # noqa: E402
 
 FAST = fast_overrides(epochs=1, close_mosaic=0)
@@ -208,22 +208,7 @@ def test_a_dataset_given_from_another_folder_is_the_same_run(shapes_run_plugins,
     from harness.runner import run
 
     run(request(tmp_path, [f"dataset.root={tmp_path / 'here'}"]))
-    args = [
-        "run",
-        "--detector",
-        "tinydet",
-        "--dataset",
-        "shapes",
-        "--folds",
-        "A",
-        "--store",
-        str(tmp_path / "store"),
-        "--root",
-        str(tmp_path / "moved"),
-        "--no-progress",
-        *[a for s in FAST for a in ("--set", s)],
-    ]
-    res = cli_runner(args)
+    res = cli_runner(shapes_run_args(tmp_path / "store", "--root", str(tmp_path / "moved"), *set_args(FAST)))
     assert res.exit_code == 0, res.output
     assert "skipped" in res.output
 

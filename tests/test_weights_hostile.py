@@ -229,22 +229,11 @@ def test_the_stated_memory_bound_is_the_one_the_code_and_docs_state():
 def test_resuming_from_a_last_checkpoint_that_does_not_fit_is_a_one_line_error(tmp_path, field, value):
     """A ``last.pt`` that reads as plain tensors and containers but is not this run's checkpoint (tampered or
     corrupt) stops the run with an error naming it, not a traceback from deep inside PyTorch."""
-    from engine_helpers import ENCODINGS, write_dataset
+    from engine_helpers import one_conv_trainer
     from harness.engine import checkpoint as ckpt
-    from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
-    from harness.engine.trainer import Trainer, TrainSettings
 
-    prepared = write_dataset(tmp_path / "ds", groups=("A",), per_group=2)
-    settings = TrainSettings(imgsz=64, epochs=1, batch=2, nominal_batch=2, threads=1, device="cpu")
-    model = torch.nn.Conv2d(4, 1, 1)
-    trainer = Trainer(
-        model,
-        TrainDataset(SampleSource(prepared, None, ENCODINGS[0]), 64, AugmentSettings.off()),
-        settings,
-        checkpoint_dir=tmp_path / "ckpt",
-        progress=False,
-        config_hash="abc",
-    )
+    trainer = one_conv_trainer(tmp_path, config_hash="abc")
+    model = trainer.model
     good = {
         "format": ckpt.FORMAT,
         "version": ckpt.VERSION,
