@@ -190,123 +190,73 @@ def _predictions(tmp_path: Path) -> str:
     return str(p)
 
 
+#: The library function each command hands its values to.
+RECEIVER = {
+    "ablate": "harness.runner:ablate",
+    "pretrain": "harness.commands.pretrain:pretrain",
+    "score": "harness.scoring.external:score_external",
+    "report": "harness.report:build_report",
+    "compare-detectors": "harness.report:compare_detectors",
+    "export-predictions": "harness.scoring.export:export_predictions",
+    "sensing decode": "harness.sensing.batch:decode_batch",
+    "show": "harness.report.show:show",
+    "profile": "harness.profiling:profile_detector",
+    "export": "harness.profiling:export_detector",
+    "synth": "adapters.datasets.synthetic:generate",
+    "sensing register": "harness.sensing.registration:load_homography_entries",
+    "export-fiftyone": "harness.report.fiftyone_export:export_fiftyone",
+}
 OLD_SPELLINGS = [
-    # (old argv, function that receives the value, how to read it, expected value, deprecated spellings)
-    (["ablate", "--dataset", "d", "--fold", "B"], ("harness.runner", "ablate"), lambda a, k: a[3], "B", ["--fold"]),
+    # (old command line, how to read the value from the receiver's (args, kwargs), expected value, deprecated
+    # spellings)
+    ("ablate --dataset d --fold B", lambda a, k: a[3], "B", "--fold"),
+    ("ablate --dataset d --fold=P4+P5", lambda a, k: a[3], "P4+P5", "--fold"),
+    ("pretrain --detector x --fold val --seed 3", lambda a, k: (a[3], a[4]), ("val", 3), "--fold --seed"),
+    ("score --dataset d --fold P1 --predictions PREDS --name n", lambda a, k: a[1], "P1", "--fold"),
     (
-        ["ablate", "--dataset", "d", "--fold=P4+P5"],
-        ("harness.runner", "ablate"),
-        lambda a, k: a[3],
-        "P4+P5",
-        ["--fold"],
-    ),
-    (
-        ["pretrain", "--detector", "x", "--fold", "val", "--seed", "3"],
-        ("harness.commands.pretrain", "pretrain"),
-        lambda a, k: (a[3], a[4]),
-        ("val", 3),
-        ["--fold", "--seed"],
-    ),
-    (
-        ["score", "--dataset", "d", "--fold", "P1", "--predictions", "PREDS", "--name", "n"],
-        ("harness.scoring.external", "score_external"),
-        lambda a, k: a[1],
-        "P1",
-        ["--fold"],
-    ),
-    (
-        ["report", "--store", "STORE", "--seed", "7", "--format", "md"],
-        ("harness.report", "build_report"),
+        "report --store STORE --seed 7 --format md",
         lambda a, k: (k["seed"], k["formats"]),
         (7, ["md"]),
-        ["--seed", "--format"],
+        "--seed --format",
     ),
+    ("compare-detectors a b --dataset d --store STORE --seed 5", lambda a, k: k["seed"], 5, "--seed"),
+    ("export-predictions --seed 1 --out OUT", lambda a, k: (a[0], a[5]), (Path("results/smoke"), [1]), "--seed"),
+    ("sensing decode PREDS --out OUT --format tiff", lambda a, k: a[2].fmt, "tiff", "--format"),
+    ("report --store STORE --dataset a --dataset b,c", lambda a, k: a[1], ["a", "b", "c"], "--dataset"),
     (
-        ["compare-detectors", "a", "b", "--dataset", "d", "--store", "STORE", "--seed", "5"],
-        ("harness.report", "compare_detectors"),
-        lambda a, k: k["seed"],
-        5,
-        ["--seed"],
-    ),
-    (
-        ["export-predictions", "--seed", "1", "--out", "OUT"],
-        ("harness.scoring.export", "export_predictions"),
-        lambda a, k: (a[0], a[5]),
-        (Path("results/smoke"), [1]),
-        ["--seed"],
-    ),
-    (
-        ["sensing", "decode", "PREDS", "--out", "OUT", "--format", "tiff"],
-        ("harness.sensing.batch", "decode_batch"),
-        lambda a, k: a[2].fmt,
-        "tiff",
-        ["--format"],
-    ),
-    (
-        ["report", "--store", "STORE", "--dataset", "a", "--dataset", "b,c"],
-        ("harness.report", "build_report"),
-        lambda a, k: a[1],
-        ["a", "b", "c"],
-        ["--dataset"],
-    ),
-    (
-        ["show", "--dataset", "m3t-synth", "--store", "STORE", "--detector", "x", "--detector", "y"],
-        ("harness.report.show", "show"),
+        "show --dataset m3t-synth --store STORE --detector x --detector y",
         lambda a, k: k["detectors"],
         ("x", "y"),
-        ["--detector"],
+        "--detector",
     ),
+    ("profile --detector ours --no-store", lambda a, k: a[0], "ours", "--detector"),
+    ("export --detector x --onnx OUT", lambda a, k: (a[0], Path(a[1]).name), ("x", "out"), "--onnx"),
+    ("synth --profile tiny --out OUT", lambda a, k: k["profile"], "tiny", "--profile"),
     (
-        ["profile", "--detector", "ours", "--no-store"],
-        ("harness.profiling", "profile_detector"),
-        lambda a, k: a[0],
-        "ours",
-        ["--detector"],
-    ),
-    (
-        ["export", "--detector", "x", "--onnx", "OUT"],
-        ("harness.profiling", "export_detector"),
-        lambda a, k: (a[0], Path(a[1]).name),
-        ("x", "out"),
-        ["--onnx"],
-    ),
-    (
-        ["synth", "--profile", "tiny", "--out", "OUT"],
-        ("adapters.datasets.synthetic", "generate"),
-        lambda a, k: k["profile"],
-        "tiny",
-        ["--profile"],
-    ),
-    (
-        ["sensing", "register", "--similarity", "g=0,0,0,1", "--init", "PREDS", "--out", "OUT"],
-        ("harness.sensing.registration", "load_homography_entries"),
+        "sensing register --similarity g=0,0,0,1 --init PREDS --out OUT",
         lambda a, k: Path(a[0]).name,
         "preds.json",
-        ["--init"],
+        "--init",
     ),
-    (
-        ["export-fiftyone", "--dataset", "d", "--seed", "1", "--out", "OUT"],
-        ("harness.report.fiftyone_export", "export_fiftyone"),
-        lambda a, k: k["seed"],
-        [1],
-        ["--seed"],
-    ),
+    ("export-fiftyone --dataset d --seed 1 --out OUT", lambda a, k: k["seed"], [1], "--seed"),
 ]
 
 
-@pytest.mark.parametrize("argv,target,read,expected,old", OLD_SPELLINGS, ids=lambda v: None)
+@pytest.mark.parametrize("argv,read,expected,old", OLD_SPELLINGS, ids=lambda v: None)
 def test_old_spellings_still_work_with_one_deprecation_line(
-    argv, target, read, expected, old, tmp_path, cli_runner, record, monkeypatch
+    argv, read, expected, old, tmp_path, cli_runner, record, monkeypatch
 ):
     monkeypatch.chdir(tmp_path)
     subs = {"PREDS": _predictions(tmp_path), "STORE": str(tmp_path), "OUT": str(tmp_path / "out")}
-    calls = record(*target)
-    res = cli_runner([subs.get(a, a) for a in argv])
+    words = argv.split()
+    module, function = (RECEIVER.get(" ".join(words[:2])) or RECEIVER[words[0]]).split(":")
+    calls = record(module, function)
+    res = cli_runner([subs.get(a, a) for a in words])
     assert res.exit_code == 2 and "recorded" in res.stderr, res.output  # the library function got the call
-    args, kwargs = calls[target[1]]
+    args, kwargs = calls[function]
     assert read(args, kwargs) == expected
     lines = [line for line in res.stderr.splitlines() if line.startswith("deprecated:")]
-    assert [line.split(",")[0] for line in lines] == [f"deprecated: {o}" for o in old], res.stderr
+    assert [line.split(",")[0] for line in lines] == [f"deprecated: {o}" for o in old.split()], res.stderr
     assert all("next release" in line for line in lines) and "deprecated" not in res.stdout
 
 
