@@ -276,7 +276,7 @@ class ExecutorCall:
     progress: bool = True
     on_result: Callable[[JobResult], None] | None = None
 
-    def done(self, result: JobResult) -> JobResult:
+    def deliver(self, result: JobResult) -> JobResult:
         """``result``, after handing it to ``on_result`` (when there is one)."""
         if self.on_result:
             self.on_result(result)
@@ -287,7 +287,7 @@ def run_local(call: ExecutorCall) -> list[JobResult]:
     results = []
     for i, job in enumerate(call.jobs, 1):
         log.info("sweep: run %d of %d: %s", i, len(call.jobs), job)
-        results.append(call.done(run_job(job, progress=call.progress)))
+        results.append(call.deliver(run_job(job, progress=call.progress)))
     return results
 
 
@@ -321,7 +321,7 @@ def run_ray(call: ExecutorCall) -> list[JobResult]:
                         result = ray.get(ref)
                     except Exception as exc:  # the worker died (out of memory, killed node)
                         result = _failed(refs[ref], exc)
-                    by_ref[ref] = call.done(result)
+                    by_ref[ref] = call.deliver(result)
                     bar.advance()
         return [by_ref[ref] for ref in refs]
     finally:
@@ -395,7 +395,7 @@ def run_submitit(call: ExecutorCall) -> list[JobResult]:
                 except Exception as exc:  # the job crashed, timed out or was cancelled; submitit says why
                     result = _failed(jobs[i], exc)
                 waiting.discard(i)
-                results[i] = call.done(result)
+                results[i] = call.deliver(result)
                 bar.advance()
             if waiting:
                 time.sleep(0.5)
