@@ -231,23 +231,11 @@ def run_job(job: SweepJob, progress: bool = False) -> JobResult:
                 progress=progress,
             )
         )
-    except HarnessError as exc:
-        return JobResult(
-            str(job),
-            "failed",
-            error=f"{type(exc).__name__}: {exc}",
-            worker=host,
-            time_s=round(time.perf_counter() - t0, 2),
-        )
-    except Exception as exc:  # a bug: keep the traceback in the report
-        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:])
-        return JobResult(
-            str(job),
-            "failed",
-            error=f"{type(exc).__name__}: {exc}\n{tb}",
-            worker=host,
-            time_s=round(time.perf_counter() - t0, 2),
-        )
+    except Exception as exc:
+        error = f"{type(exc).__name__}: {exc}"
+        if not isinstance(exc, HarnessError):  # a bug: keep the traceback in the report
+            error += "\n" + "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:])
+        return JobResult(str(job), "failed", error=error, worker=host, time_s=round(time.perf_counter() - t0, 2))
     r = summary.results[0]
     m = r.metrics.get("metrics", {})
     return JobResult(
@@ -278,28 +266,34 @@ def _require(module: str, executor: str) -> Any:
         ) from None
 
 
-def run_local(
-    jobs: Sequence[SweepJob],
-    options: ExecutorOptions,
-    progress: bool = True,
-    on_result: Callable[[JobResult], None] | None = None,
-) -> list[JobResult]:
+@dataclass(frozen=True)
+class ExecutorCall:
+    """What ``execute`` hands an executor: the jobs, its options, whether to draw a progress bar, and a callback
+    that hears each job's result as it comes in."""
+
+    jobs: list[SweepJob]
+    options: ExecutorOptions
+    progress: bool = True
+    on_result: Callable[[JobResult], None] | None = None
+
+    def deliver(self, result: JobResult) -> JobResult:
+        """``result``, after handing it to ``on_result`` (when there is one)."""
+        if self.on_result:
+            self.on_result(result)
+        return result
+
+
+def run_local(call: ExecutorCall) -> list[JobResult]:
     results = []
-    for i, job in enumerate(jobs, 1):
-        log.info("sweep: run %d of %d: %s", i, len(jobs), job)
-        results.append(run_job(job, progress=progress))
-        if on_result:
-            on_result(results[-1])
+    for i, job in enumerate(call.jobs, 1):
+        log.info("sweep: run %d of %d: %s", i, len(call.jobs), job)
+        results.append(call.deliver(run_job(job, progress=call.progress)))
     return results
 
 
-def run_ray(
-    jobs: Sequence[SweepJob],
-    options: ExecutorOptions,
-    progress: bool = True,
-    on_result: Callable[[JobResult], None] | None = None,
-) -> list[JobResult]:
+def run_ray(call: ExecutorCall) -> list[JobResult]:
     ray = _require("ray", "ray")
+    options = call.options
     started = False
     if not ray.is_initialized():
         try:
@@ -315,20 +309,19 @@ def run_ray(
         if gpus is None:
             gpus = 1 if ray.cluster_resources().get("GPU", 0) > 0 else 0
         task = ray.remote(num_cpus=options.cpus_per_run, num_gpus=gpus, max_retries=0)(run_job)
-        refs = {task.remote(job): job for job in jobs}
+        refs = {task.remote(job): job for job in call.jobs}
         log.info("sweep: %d Ray tasks submitted (%d CPU, %d GPU each)", len(refs), options.cpus_per_run, gpus)
         by_ref: dict[Any, JobResult] = {}
         pending = list(refs)
-        with progress_bar("sweep (ray)", len(refs), enabled=progress) as bar:
+        with progress_bar("sweep (ray)", len(refs), enabled=call.progress) as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 for ref in done:
                     try:
-                        by_ref[ref] = ray.get(ref)
+                        result = ray.get(ref)
                     except Exception as exc:  # the worker died (out of memory, killed node)
-                        by_ref[ref] = _failed(refs[ref], exc)
-                    if on_result:
-                        on_result(by_ref[ref])
+                        result = _failed(refs[ref], exc)
+                    by_ref[ref] = call.deliver(result)
                     bar.advance()
         return [by_ref[ref] for ref in refs]
     finally:
@@ -375,12 +368,8 @@ def submitit_executor(options: ExecutorOptions, folder: Path) -> Any:
     return ex
 
 
-def run_submitit(
-    jobs: Sequence[SweepJob],
-    options: ExecutorOptions,
-    progress: bool = True,
-    on_result: Callable[[JobResult], None] | None = None,
-) -> list[JobResult]:
+def run_submitit(call: ExecutorCall) -> list[JobResult]:
+    jobs, options = call.jobs, call.options
     if not jobs:
         return []
     store = Path(jobs[0].store)
@@ -395,26 +384,29 @@ def run_submitit(
         ", ".join(str(j.job_id) for j in submitted[:5]) + (" ..." if len(submitted) > 5 else ""),
     )
     results: list[JobResult | None] = [None] * len(submitted)
-    with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=progress) as bar:
+    with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=call.progress) as bar:
         waiting = set(range(len(submitted)))
         while waiting:
             for i in sorted(waiting):
                 if not submitted[i].done():
                     continue
                 try:
-                    results[i] = submitted[i].result()
+                    result = submitted[i].result()
                 except Exception as exc:  # the job crashed, timed out or was cancelled; submitit says why
-                    results[i] = _failed(jobs[i], exc)
+                    result = _failed(jobs[i], exc)
                 waiting.discard(i)
-                if on_result:
-                    on_result(results[i])  # type: ignore[arg-type]
+                results[i] = call.deliver(result)
                 bar.advance()
             if waiting:
                 time.sleep(0.5)
     return [r for r in results if r is not None]
 
 
-RUNNERS: dict[str, Callable[..., list[JobResult]]] = {"local": run_local, "ray": run_ray, "slurm": run_submitit}
+RUNNERS: dict[str, Callable[[ExecutorCall], list[JobResult]]] = {
+    "local": run_local,
+    "ray": run_ray,
+    "slurm": run_submitit,
+}
 
 
 def execute(
@@ -426,7 +418,7 @@ def execute(
 ) -> list[JobResult]:
     if executor not in RUNNERS:
         raise ConfigError(f"--executor {executor!r}: choose one of {', '.join(EXECUTORS)}")
-    return RUNNERS[executor](list(jobs), options or ExecutorOptions(), progress=progress, on_result=on_result)
+    return RUNNERS[executor](ExecutorCall(list(jobs), options or ExecutorOptions(), progress, on_result))
 
 
 @dataclass

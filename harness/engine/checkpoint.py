@@ -43,16 +43,11 @@ def load(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"{path}: checkpoint not found")
-    if path.suffix == ".safetensors":  # what `harness weights import` writes: a plain state dict
-        from safetensors.torch import load_file
-
-        try:
-            return dict(load_file(str(path)))
-        except Exception as exc:
-            raise CheckpointError(f"{path}: not a readable safetensors file ({exc})") from None
-    from harness.weights.unpickle import UnsafeCheckpointError, load_plain
+    from harness.weights import UnsafeCheckpointError, load_plain, read_safetensors
 
     try:
+        if path.suffix == ".safetensors":  # what `harness weights import` writes: a plain state dict
+            return read_safetensors(path)
         obj = load_plain(path)
     except UnsafeCheckpointError as exc:  # a pickled object or a call outside the tensor-rebuild list
         raise CheckpointError(

@@ -450,10 +450,16 @@ def c2_from_deviation(dt: np.ndarray, percentile: float = PERCENTILE, floor: flo
     return out
 
 
-def _c2_in_place(
-    temperature_c: np.ndarray, sigma: float, percentile: float, floor: float, name: str | None
+def c2(
+    temperature_c: np.ndarray,
+    sigma: float = SIGMA,
+    percentile: float = PERCENTILE,
+    floor: float = FLOOR,
+    name: str | None = None,
 ) -> np.ndarray:
-    """C2 (float32), computed in the deviation's own array; missing pixels have ``dT' = 0``, hence 0.5."""
+    """C2 of a temperature map in C: float32 HxW in 0..1, neutral 0.5 (see the module docstring); ``name`` (a
+    file or sample) is named in errors. Computed in the deviation's own array (missing pixels have ``dT' = 0``,
+    hence 0.5), which is returned: a new array the caller owns."""
     dt, mask, s = _deviation(check_map(temperature_c, name), sigma, name)
     a = np.abs(dt) if mask is None else np.abs(dt[mask])
     p = max(fast_percentile(a, percentile), float(floor) * s)  # both in the units of dT' = s dT
@@ -463,23 +469,16 @@ def _c2_in_place(
     return np.clip(dt, 0.0, 1.0, out=dt)
 
 
-def c2(
-    temperature_c: np.ndarray,
-    sigma: float = SIGMA,
-    percentile: float = PERCENTILE,
-    floor: float = FLOOR,
-    name: str | None = None,
-) -> np.ndarray:
-    """C2 of a temperature map in C: float32 HxW in 0..1, neutral 0.5 (see the module docstring); ``name`` (a
-    file or sample) is named in errors."""
-    return _c2_in_place(temperature_c, sigma, percentile, floor, name)
+def _to_uint8_in_place(c: np.ndarray) -> np.ndarray:
+    """``round(255 * c)`` as uint8, scaling the float32 array ``c`` itself on the way."""
+    c *= np.float32(255.0)
+    np.rint(c, out=c)
+    return c.astype(np.uint8)
 
 
 def to_uint8(c: np.ndarray) -> np.ndarray:
     """``round(255 * C2)`` as uint8 (round half to even)."""
-    out = np.asarray(c, dtype=np.float32) * np.float32(255.0)
-    np.rint(out, out=out)
-    return out.astype(np.uint8)
+    return _to_uint8_in_place(np.array(c, dtype=np.float32))
 
 
 def c2_uint8(
@@ -490,10 +489,7 @@ def c2_uint8(
     name: str | None = None,
 ) -> np.ndarray:
     """``round(255 * C2)`` as uint8 HxW: what the prepared cache stores and detectors read (missing pixels 128)."""
-    out = _c2_in_place(temperature_c, sigma, percentile, floor, name)
-    out *= np.float32(255.0)
-    np.rint(out, out=out)
-    return out.astype(np.uint8)
+    return _to_uint8_in_place(c2(temperature_c, sigma, percentile, floor, name))
 
 
 def contrast_amplitude(

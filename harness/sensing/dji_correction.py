@@ -408,31 +408,35 @@ def correct_temperature(
     ``atmosphere_c`` as the air temperature (and, without the table's reflection flag, the reflected one).
     Evaluated once per distinct value of ``t0_c`` (a 640x512 frame has a few thousand).
     """
-    if not emissivity >= 1e-4:
-        raise ConfigError(f"emissivity {emissivity} is too small to correct for")
+    m = _Measurement(emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
     t0 = np.asarray(t0_c, dtype=F32)
     values, inverse = np.unique(t0, return_inverse=True)
-    out = _correct_values(values, table, emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
-    return out[inverse.reshape(-1)].reshape(t0.shape)
+    return _correct_values(values, table, m)[inverse.reshape(-1)].reshape(t0.shape)
 
 
-def _correct_values(
-    values: np.ndarray,
-    table: TauTable,
-    emissivity: float,
-    distance_m: float,
-    humidity_pct: float,
-    reflected_c: float,
-    atmosphere_c: float,
-) -> np.ndarray:
+@dataclass(frozen=True)
+class _Measurement:
+    """The measurement parameters of ``correct_temperature`` and ``correct_raw14``, checked once."""
+
+    emissivity: float
+    distance_m: float
+    humidity_pct: float
+    reflected_c: float
+    atmosphere_c: float
+
+    def __post_init__(self) -> None:
+        if not self.emissivity >= 1e-4:
+            raise ConfigError(f"emissivity {self.emissivity} is too small to correct for")
+
+
+def _correct_values(values: np.ndarray, table: TauTable, m: _Measurement) -> np.ndarray:
     """The two-pass correction of the blackbody temperatures ``values`` (1-D float32), element by element."""
-    refl = reflected_c if table.reflection else None
-    t1 = radiance_balance(values, interpolate_tau(table, values, distance_m), emissivity, atmosphere_c, refl)
-    tau2 = humidity_adjusted_tau(
-        interpolate_tau(table, t1, distance_m), t1, humidity_pct / 100.0, atmosphere_c, distance_m, table.humidity
-    )
+    refl = m.reflected_c if table.reflection else None
+    t1 = radiance_balance(values, interpolate_tau(table, values, m.distance_m), m.emissivity, m.atmosphere_c, refl)
+    tau1 = interpolate_tau(table, t1, m.distance_m)
+    tau2 = humidity_adjusted_tau(tau1, t1, m.humidity_pct / 100.0, m.atmosphere_c, m.distance_m, table.humidity)
     tau2 = np.maximum(tau2, 1.0)  # a zero transmission leaves nothing to measure; keep the division defined
-    out = radiance_balance(values, tau2, emissivity, atmosphere_c, refl)
+    out = radiance_balance(values, tau2, m.emissivity, m.atmosphere_c, refl)
     limit = table.valid_below_k
     if limit < math.inf:
         unusable = (_kelvin(values) >= limit) | (_kelvin(t1) >= limit)
@@ -456,15 +460,14 @@ def correct_raw14(
     and largest (a few hundred for a facade scene) and the frame indexes that table: the same float32 values as
     ``correct_temperature``, without sorting the frame. Temperatures the table cannot correct are NaN.
     """
-    if not emissivity >= 1e-4:
-        raise ConfigError(f"emissivity {emissivity} is too small to correct for")
+    m = _Measurement(emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
     raw = np.asarray(raw14)
     if raw.size == 0:
         return np.zeros(raw.shape, dtype=F32)
     lo, hi = int(raw.min()), int(raw.max())
     counts = np.arange(lo, hi + 1, dtype=np.float64)
     t0 = (counts / 16.0 - KELVIN).astype(F32)  # the blackbody temperature, as ``radiometry.raw14_to_celsius``
-    lut = _correct_values(t0, table, emissivity, distance_m, humidity_pct, reflected_c, atmosphere_c)
+    lut = _correct_values(t0, table, m)
     index = raw.astype(np.intp, copy=False) - lo if lo else raw
     return lut[index]
 

@@ -47,6 +47,7 @@ __all__ = [
     "ImportResult",
     "import_checkpoint",
     "read_checkpoint_weights",
+    "read_safetensors",
     "write_safetensors",
     "CheckpointFormatError",
     "CheckpointLimitError",
@@ -200,6 +201,17 @@ def _pieces(t: torch.Tensor, limit: int) -> Iterator[torch.Tensor]:
             continue
         step = max(1, limit // max(p[0].numel() * 4, 1))  # slices along the first dimension per piece
         stack.extend(reversed(p.unbind(0) if step == 1 else p.split(step)))
+
+
+def read_safetensors(path: Path) -> dict[str, torch.Tensor]:
+    """Every tensor of the ``.safetensors`` file ``path``; a file the library cannot read is a
+    ``CheckpointFormatError`` ``"<path>: not a readable safetensors file (<why>)"``, as ``load_plain``'s start."""
+    from safetensors.torch import load_file
+
+    try:
+        return dict(load_file(str(path)))
+    except Exception as exc:
+        raise CheckpointFormatError(f"{path}: not a readable safetensors file ({exc})") from None
 
 
 def write_safetensors(f: IO[bytes], tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> None:

@@ -50,16 +50,11 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     path = Path(path)
     if not path.is_file():
         raise HarnessError(f"weights file {path} does not exist")
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        try:
-            return dict(load_file(str(path)))
-        except Exception as exc:
-            raise HarnessError(f"weights file {path}: not a readable safetensors file ({exc})") from None
-    from harness.weights.unpickle import UnsafeCheckpointError, load_plain
+    from harness.weights import UnsafeCheckpointError, load_plain, read_safetensors
 
     try:
+        if path.suffix == ".safetensors":
+            return read_safetensors(path)
         obj = load_plain(path)
     except UnsafeCheckpointError as exc:
         raise HarnessError(
