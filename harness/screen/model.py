@@ -169,9 +169,8 @@ def from_weights(
     threshold: float | None = None,
 ) -> ScreenModel:
     """A checkpoint of ``detector`` trained on ``dataset``'s categories, configured as ``harness run`` would."""
-    from harness.config import load_config
     from harness.plugins import get_host
-    from harness.runner import choose_encoding
+    from harness.runner import RunRequest, choose_encoding, resolve_config
 
     path = Path(weights)
     if not path.is_file():
@@ -179,14 +178,8 @@ def from_weights(
     host = get_host()
     det, ds = host.detector(detector), host.dataset(dataset)
     enc = choose_encoding(det, ds, encoding, host)
-    cfg = load_config(
-        profile,
-        protocol=ds.protocol,
-        detector=det.name,
-        detector_defaults=det.defaults,
-        files=config_files,
-        overrides=overrides,
-    )
+    request = RunRequest(det.name, ds.name, profile=profile, config_files=config_files, overrides=overrides)
+    cfg = resolve_config(request, det, ds)
     categories = list(ds.categories)
     if not categories:
         raise ConfigError(f"dataset {ds.name!r} registers no categories; screen with --run instead")
