@@ -19,6 +19,9 @@ encoding-ablation table.
 
 Under ``torchrun`` every process runs this same job (``harness.distributed``): rank 0 prepares the dataset first and
 is the only one that writes the store; training and prediction are shared by all processes.
+
+Kept in one module: the request, the plan, the run identity that decides skip/resume/refuse and the per-run job are
+one lifecycle, read in order from ``RunRequest`` to ``run_one``.
 """
 
 from __future__ import annotations

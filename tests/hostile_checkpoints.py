@@ -8,6 +8,8 @@ Pickles are assembled opcode by opcode (:class:`Pk`) where Python's own pickler 
 list, a storage of 10**12 elements, a call of ``bytearray(8e9)``), or written by ``torch.save`` from objects whose
 ``__reduce__`` names the payload. Genuine-looking checkpoints come from the Ultralytics and ICAFusion stand-ins of
 ``weights_standins``, with the payload added to the checkpoint or inside the model.
+
+Kept in one module: the corpus is one list of cases, each next to the opcodes that build it.
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ samples every harness detector is scored on:
 The result is stored as a run of detector ``external/NAME`` (``harness.store``), with ``predictions.json``,
 ``gt.json`` and ``metrics.json``, so ``harness report``, ``compare-detectors`` and the paired bootstrap show it
 beside the trained detectors. Complexity is what the user gives (``params``, ``gflops``) or left empty.
+
+Kept in one module: the image and category matching, the guards over what it matched and the scoring share one
+``Matching`` record, filled and read in order from ``match_predictions`` to ``score_external``.
 """
 
 from __future__ import annotations
