@@ -116,8 +116,8 @@ def _tensors(obj: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
 def _same_tensors(a: Path, b: Path) -> bool:
     import torch
 
-    ta = dict(_tensors(torch.load(a, map_location="cpu", weights_only=False)))
-    tb = dict(_tensors(torch.load(b, map_location="cpu", weights_only=False)))
+    ta = dict(_tensors(torch.load(a, map_location="cpu", weights_only=True)))
+    tb = dict(_tensors(torch.load(b, map_location="cpu", weights_only=True)))
     return ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
 
 
