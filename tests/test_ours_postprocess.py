@@ -67,6 +67,14 @@ def test_no_candidates_gives_empty_tensors_of_the_right_shape():
     assert out["boxes"].shape == (0, 4) and out["scores"].shape == (0,) and out["labels"].shape == (0,)
 
 
+def test_settings_are_keywords_and_an_unknown_one_is_refused():
+    boxes, scores = torch.zeros(1, 5, 4), torch.zeros(1, 5, 2)
+    with pytest.raises(TypeError, match="positional argument"):  # conf, iou, ...: keywords, never read by position
+        postprocess(boxes, scores, 0.25)
+    with pytest.raises(TypeError, match="unknown setting.*confidence"):
+        postprocess(boxes, scores, confidence=0.25)
+
+
 def test_clip_boxes():
     b = torch.tensor([[-1.0, -2.0, 70.0, 30.0]])
     assert clip_boxes(b, (20, 64)).tolist() == [[0.0, 0.0, 64.0, 20.0]]

@@ -52,6 +52,7 @@ def pretrain(
     encoding: str | None = None,
     fold: str | None = None,
     seed: int = 0,
+    *,
     out: str | Path | None = None,
     **settings: Unpack[RunSettings],
 ) -> PretrainResult:

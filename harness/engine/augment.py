@@ -231,7 +231,13 @@ def box_candidates(
 
 
 def random_affine(
-    img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, rng: np.random.Generator, border: int = 0, **affine: float
+    img: np.ndarray,
+    boxes: np.ndarray,
+    labels: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    border: int = 0,
+    **affine: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Warp image and boxes by one random matrix (``affine_matrix``, ``affine`` its settings ``AFFINE_SETTINGS``
     with its defaults for those not given); ``border < 0`` crops (mosaic: ``-size/2``).

@@ -47,7 +47,7 @@ def select_candidates(
 
 
 def postprocess(
-    boxes: torch.Tensor, scores: torch.Tensor, image_hw: tuple[int, int] | None = None, **settings: Any
+    boxes: torch.Tensor, scores: torch.Tensor, *, image_hw: tuple[int, int] | None = None, **settings: Any
 ) -> list[dict[str, torch.Tensor]]:
     """``boxes [B, A, 4]`` xyxy pixels, ``scores [B, A, C]`` probabilities -> per image ``{"boxes" [K,4],
     "scores" [K], "labels" [K] int64}`` sorted by decreasing score, ``K <= max_det``.

@@ -245,7 +245,7 @@ class Detect(nn.Module):
 
 # ------------------------------------------------------------------------------------------------ NMS
 def postprocess(
-    pred: torch.Tensor, iou: float = 0.6, image_size: tuple[int, int] | None = None, **settings: Any
+    pred: torch.Tensor, *, iou: float = 0.6, image_size: tuple[int, int] | None = None, **settings: Any
 ) -> list[dict[str, torch.Tensor]]:
     """YOLOv5 non-maximum suppression of decoded predictions ``[B, N, 5 + nc]`` (cxcywh pixels, obj, classes).
 
