@@ -130,8 +130,13 @@ def _listing(root: Path) -> dict[str, Path]:
 
 
 def compare(a_root: Path, b_root: Path) -> int:
-    where = [(r / "where.txt").read_text().split() for r in (a_root, b_root)]
+    for root in (a_root, b_root):
+        if not (root / "where.txt").is_file():
+            raise SystemExit(f"{root}: not a folder made by `parity_outputs.py run` (no where.txt)")
+    where = [(r / "where.txt").read_text().splitlines() for r in (a_root, b_root)]
     la, lb = _listing(a_root), _listing(b_root)
+    if not la or not lb:
+        raise SystemExit(f"{a_root if not la else b_root}: no outputs to compare")
     bad = [f"only in {a_root if n in la else b_root}: {n}" for n in sorted(set(la) ^ set(lb))]
     same = masked = 0
     for name in sorted(set(la) & set(lb)):
