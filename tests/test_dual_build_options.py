@@ -32,5 +32,8 @@ def test_every_dual_stream_build_takes_the_nms_settings_and_names_an_unknown_opt
     torch.manual_seed(0)
     model = module.build(8, **options, conf=0.3, iou=0.45, max_det=7, multi_label=False, max_nms=99, weights=None)
     assert (model.conf, model.iou, model.max_det) == (0.3, 0.45, 7)
-    with pytest.raises(ConfigError, match="unknown model option"):
+    with pytest.raises(ConfigError, match="unknown model option") as err:
         module.build(8, **options, max_dets=7)
+    known = str(err.value).split("known: ")[1].split(" (config section")[0].split(", ")
+    assert {"scale", "width", "depth", *FINISH_OPTIONS} <= set(known)  # the error lists what the build takes
+    assert {"eme": "shape", "icafusion": "tokens", "cmadet": "align_width"}[name] in known

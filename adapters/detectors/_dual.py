@@ -48,7 +48,7 @@ def build_dual(
     name = network.name
     size = {k: options.pop(k) for k in TRUNK_OPTIONS if k in options}
     own = {k: options.pop(k) for k in net_options if k in options}
-    finish = finish_options(name, options, known)
+    finish = finish_options(name, options, (*TRUNK_OPTIONS, *net_options, *known))
     width, depth = resolve_scale(name, size["scale"], size.get("width"), size.get("depth"))
     model = network(num_classes, Trunk(in_channels, width, depth), **own, **options)
     return finish_build(model, name, **finish)
@@ -56,11 +56,12 @@ def build_dual(
 
 def finish_options(name: str, options: dict[str, Any], known: tuple[str, ...] = ()) -> dict[str, Any]:
     """Take the ``FINISH_OPTIONS`` out of a build's keyword ``options`` (for ``finish_build``); what is left must be
-    among ``known`` (the network's own options), else a ``ConfigError`` naming the unknown ones."""
+    among ``known`` (the build's other options), else a ``ConfigError`` naming the unknown ones and every option the
+    build takes."""
     from adapters.detectors.yolo.v5 import check_options
 
     finish = {k: options.pop(k) for k in FINISH_OPTIONS if k in options}
-    check_options(name, options, known)
+    check_options(name, options, (*known, *FINISH_OPTIONS))
     return finish
 
 
