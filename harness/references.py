@@ -62,15 +62,13 @@ class ReferenceMismatchError(StoreError):
 
 
 def shipped_root() -> Path:
-    """The folder holding the shipped reference stores: ``references/`` of the checkout, or the installed copy."""
-    try:
-        from importlib.resources import files
+    """The folder holding the shipped reference stores: the installed copy (``harness.shipped_references``), or
+    ``references/`` of the checkout the code runs from."""
+    from harness.config import data_package_dir
 
-        installed = Path(str(files("harness.shipped_references")))
-        if (installed / SHIPPED / MANIFEST).exists():
-            return installed
-    except (ModuleNotFoundError, TypeError):
-        pass
+    installed = data_package_dir("harness.shipped_references", f"{SHIPPED}/{MANIFEST}")
+    if installed is not None:
+        return installed
     return Path(__file__).resolve().parent.parent / "references"
 
 
@@ -216,9 +214,13 @@ def _opened_root(dataset: str, options: Mapping[str, Any]) -> Path | None:
 
 def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
     """Check the user's ``runs`` of the reference dataset against ``refs``; raise ``ReferenceMismatchError`` when any
-    was trained or scored on other samples (or recorded no digest), naming the runs and what differs. Returns notes
-    (runs of folds or encodings the references do not hold, which are compared on their aligned samples)."""
-    mismatched: list[str] = []
+    was trained or scored on other samples (or recorded no digest), naming the runs, what differs, the package
+    versions that differ and the command that installs the locked environment. Returns notes: runs of folds or
+    encodings the references do not hold (compared on their aligned samples), and runs whose samples differ from the
+    references' only within the tolerance of a library release (``harness.cache.fingerprint``), each labelled with
+    the measured difference and the package versions that differ."""
+    runs = list(runs)
+    mismatched: list[tuple[Any, str]] = []
     undigested: list[str] = []
     notes: list[str] = []
     for run in runs:
@@ -239,45 +241,215 @@ def check_matched(refs: ReferenceSet, runs: Iterable[Any]) -> list[str]:
                 notes.append(f"{k}: fold {k.fold} is not in the reference results")
                 continue
         if want != have:
-            mismatched.append(f"{k}: {what} digest {str(have)[:12]}, references {str(want)[:12]}")
+            mismatched.append((run, f"{k}: {what} digest {str(have)[:12]}, references {str(want)[:12]}"))
     if undigested:
         raise ReferenceMismatchError(
             f"cannot verify that {len(undigested)} run(s) used the reference results' samples: they were stored "
             f"before runs recorded their samples' digest ({', '.join(undigested[:4])}"
             f"{' ...' if len(undigested) > 4 else ''}); rerun them with --force, or leave out --reference-results"
         )
-    if mismatched:
-        gen = None
-        for run in runs:
-            if not run.key.detector.startswith(PREFIX) and run.key.dataset == refs.dataset:
-                gen = _generator_of(run)
-                if gen:
-                    break
-        ref_gen = refs.manifest.get("generator") or {}
-        differs = ""
-        if gen and ref_gen:
-            diffs = [
-                f"{name} {gen.get(key)} vs {ref_gen.get(ref_key)}"
-                for name, key, ref_key in (
-                    ("generator version", "generator_version", "version"),
-                    ("profile", "profile", "profile"),
-                    ("seed", "seed", "seed"),
-                )
-                if gen.get(key) is not None and gen.get(key) != ref_gen.get(ref_key)
-            ]
-            if diffs:
-                differs = f" Your data ({gen['root']}) differs from the references' in: {', '.join(diffs)}."
-        raise ReferenceMismatchError(
-            f"the reference results ({refs.describe()}) were trained and scored on other samples than "
-            f"{len(mismatched)} of your run(s): "
-            + "; ".join(mismatched[:4])
-            + (" ..." if len(mismatched) > 4 else "")
-            + "."
-            + differs
-            + " A comparison needs the same samples: generate the default synthetic set "
-            "(`harness synth`, seed 0) and prepare it with default sensing options, or leave out --reference-results."
+    if not mismatched:
+        return notes
+    tolerated, refused, measured = _within_tolerance(refs, [r for r, _ in mismatched])
+    notes += tolerated
+    mismatched = [(r, text) for r, text in mismatched if str(r.key) in refused]
+    if not mismatched:
+        return notes
+    gen = None
+    for run in runs:
+        if not run.key.detector.startswith(PREFIX) and run.key.dataset == refs.dataset:
+            gen = _generator_of(run)
+            if gen:
+                break
+    ref_gen = refs.manifest.get("generator") or {}
+    differs = ""
+    if gen and ref_gen:
+        diffs = [
+            f"{name} {gen.get(key)} vs {ref_gen.get(ref_key)}"
+            for name, key, ref_key in (
+                ("generator version", "generator_version", "version"),
+                ("profile", "profile", "profile"),
+                ("seed", "seed", "seed"),
+            )
+            if gen.get(key) is not None and gen.get(key) != ref_gen.get(ref_key)
+        ]
+        if diffs:
+            differs = f" Your data ({gen['root']}) differs from the references' in: {', '.join(diffs)}."
+    versions = _version_differences(refs, [r for r, _ in mismatched])
+    shown = [text + (f" ({refused[str(r.key)]})" if refused.get(str(r.key)) else "") for r, text in mismatched]
+    raise ReferenceMismatchError(
+        f"the reference results ({refs.describe()}) were trained and scored on other samples than "
+        f"{len(mismatched)} of your run(s): "
+        + "; ".join(shown[:4])
+        + (" ..." if len(shown) > 4 else "")
+        + "."
+        + differs
+        + (
+            f" Package versions that differ from the references': {', '.join(versions)}; install the locked "
+            f"environment ({LOCK_COMMAND}) and prepare again (`harness prepare --force`)."
+            if versions
+            else ""
         )
-    return notes
+        + (f" {measured}" if measured else "")
+        + " A comparison needs the same samples: generate the default synthetic set "
+        "(`harness synth`, seed 0) and prepare it with default sensing options, or leave out --reference-results."
+    )
+
+
+#: The one command that installs the locked environment the shipped references were made in.
+LOCK_COMMAND = "`make venv` in a checkout of the harness: the versions pinned in requirements.lock"
+#: The fingerprint of the references' samples (``harness.cache.fingerprint``), beside the manifest.
+FINGERPRINT = "samples.npz"
+
+
+def _version_differences(refs: ReferenceSet, runs: Sequence[Any]) -> list[str]:
+    """``["OpenCV 5.1.0, references 5.0.0"]``: sample- or training-shaping packages whose versions differ between
+    the runs' environment (or this one, for runs that recorded none) and the references'."""
+    from harness import provenance
+
+    theirs = {**(refs.manifest.get("environment") or {}), **(refs.manifest.get("samples_environment") or {})}
+    keys = [*provenance.SAMPLE_PACKAGES, *provenance.TRAINING_PACKAGES]
+    out: list[str] = []
+    for run in runs:
+        env = run.metrics.get("environment") if isinstance(run.metrics, dict) else None
+        mine = env if isinstance(env, dict) and env else provenance.package_versions()
+        for d in provenance.differences(mine, theirs, keys, "references"):
+            if d not in out:
+                out.append(d)
+    return out
+
+
+def prepared_folder(run: Any) -> Path | None:
+    """The prepared-data folder ``run`` read its samples from (recorded in its metrics, or found in the cache by its
+    ``meta.prepared_key``), when it is still there."""
+    from harness.cache.forms import FORMS
+    from harness.cache.key import cache_root, form_folder
+
+    recorded = (run.metrics.get("samples") or {}).get("prepared") if isinstance(run.metrics, dict) else None
+    candidates = [Path(recorded)] if recorded else []
+    meta = (run.config.get("meta") or {}) if isinstance(run.config, dict) else {}
+    key = meta.get("prepared_key")
+    if key:
+        candidates += [form_folder(cache_root(None), run.key.dataset, str(key), form) for form in FORMS]
+    return next((c for c in candidates if (c / "manifest.json").is_file()), None)
+
+
+def _within_tolerance(refs: ReferenceSet, runs: Sequence[Any]) -> tuple[list[str], dict[str, str], str]:
+    """Measure the samples of ``runs`` (whose digests differ from the references') against the references'
+    fingerprint: (notes for the runs within ``fingerprint.TOLERANCE``, ``{run key: why not}`` for the others, one
+    sentence on what was measured)."""
+    from harness.cache import fingerprint as FP
+
+    path = refs.root / FINGERPRINT
+    if not path.is_file():
+        return [], {str(r.key): "" for r in runs}, ""
+    try:
+        ref_fp = FP.load(path)
+    except (OSError, ValueError) as exc:
+        log.warning("reference results: %s", exc)
+        return [], {str(r.key): "" for r in runs}, ""
+    measured: dict[tuple[str, str, str], tuple[FP.Difference | None, str]] = {}
+    refused: dict[str, str] = {}
+    accepted: dict[str, list[str]] = {}
+    for run in runs:
+        diff, why = _measure(run, ref_fp, measured)
+        if diff is None or not diff.within(FP.TOLERANCE):
+            refused[str(run.key)] = (f"measured: {diff.describe()}" if diff is not None else "") or why
+            continue
+        accepted.setdefault(diff.describe(), []).append(str(run.key).removeprefix(f"{refs.dataset}/"))
+    notes = []
+    versions = _version_differences(refs, [r for r in runs if str(r.key) not in refused])
+    for text, keys in accepted.items():
+        notes.append(
+            f"Compared within the tolerance of a library release, not on identical samples: {len(keys)} run(s) "
+            f"({', '.join(keys[:3])}{' ...' if len(keys) > 3 else ''}) used samples that differ from the references' "
+            f"as measured: {text} (tolerance: {FP.TOLERANCE.describe()})."
+            + (f" Package versions that differ: {', '.join(versions)}." if versions else "")
+        )
+    summary = ""
+    if refused and any(refused.values()):
+        summary = f"Beyond the tolerance of a library release ({FP.TOLERANCE.describe()})."
+    return notes, refused, summary
+
+
+def _measure(run: Any, ref_fp: dict[str, Any], memo: dict[tuple[str, str, str], tuple[Any, str]]) -> tuple[Any, str]:
+    """(the fingerprint difference of ``run``'s samples from the references', or None, and why none)."""
+    from harness.cache import fingerprint as FP
+    from harness.cache.reader import PreparedDataset
+    from harness.errors import HarnessError
+    from harness.plugins import get_host
+
+    folder = prepared_folder(run)
+    if folder is None:
+        return None, "its prepared data is no longer in the cache, so the difference cannot be measured"
+    cfg = run.config if isinstance(run.config, dict) else {}
+    params = dict((cfg.get("encoding") or {}).get(run.key.encoding) or {})
+    memo_key = (str(folder), run.key.encoding, json.dumps(params, sort_keys=True, default=str))
+    if memo_key not in memo:
+        try:
+            prepared = PreparedDataset(folder)
+            enc = get_host().encoding(run.key.encoding)
+            meta = cfg.get("meta") or {}
+            held_out = prepared.indices(list(meta.get("val_groups") or []))
+            if prepared.content_digest(held_out, enc, params) != (run.metrics.get("samples") or {}).get("held_out"):
+                memo[memo_key] = (None, f"the prepared data in {folder} no longer holds the samples it was run on")
+            else:
+                fp = FP.compute(prepared, [(enc, params)])
+                planes = ["rgb", "aligned"] + ([f"enc:{enc.name}"] if f"enc:{enc.name}/hash" in ref_fp else [])
+                memo[memo_key] = (FP.compare(fp, ref_fp, planes), "")
+        except (HarnessError, OSError, ValueError, KeyError) as exc:
+            memo[memo_key] = (None, f"its samples could not be measured ({exc})")
+    return memo[memo_key]
+
+
+def write_fingerprint(root: str | Path, prepared: Any, encodings: Sequence[str] | None = None) -> dict[str, Any]:
+    """Write the fingerprint of the reference results' samples (``FINGERPRINT``) and the sample-shaping package
+    versions (``samples_environment``) into the reference store at ``root``, from ``prepared`` (a
+    ``PreparedDataset``) after checking that it holds exactly the samples every digest of the manifest names."""
+    from harness import provenance
+    from harness.cache import fingerprint as FP
+    from harness.cache.folds import resolve_folds
+    from harness.plugins import get_host
+
+    refs = load_references(root)
+    host = get_host()
+    spec = host.dataset(refs.dataset)
+    folds = {f.name: f for f in resolve_folds(spec, prepared, {"protocol": _protocol_of(refs)})}
+    names = encodings or sorted({key.split("/")[1] for key in refs.manifest.get("samples") or {}})
+    wrong = []
+    for key, want in (refs.manifest.get("samples") or {}).items():
+        fold, enc_name = key.split("/")
+        f = folds.get(fold)
+        if f is None:
+            wrong.append(f"{key}: fold not in the prepared data")
+            continue
+        enc = host.encoding(enc_name)
+        have = prepared.content_digest(prepared.indices(list(f.val_groups)), enc, {})
+        if have != want.get("held_out"):
+            wrong.append(f"{key}: held-out digest {have[:12]}, references {str(want.get('held_out'))[:12]}")
+    if wrong:
+        raise ReferenceMismatchError(
+            f"{prepared.folder}: not the samples of the reference results at {refs.root} ({'; '.join(wrong[:4])}); "
+            f"the fingerprint is written only from the references' own samples"
+        )
+    fp = FP.compute(prepared, [(host.encoding(n), {}) for n in names])
+    FP.save(refs.root / FINGERPRINT, fp)
+    manifest = dict(refs.manifest)
+    manifest["samples_environment"] = provenance.sample_environment()
+    (refs.root / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
+    return {"fingerprint": str(refs.root / FINGERPRINT), "bytes": (refs.root / FINGERPRINT).stat().st_size}
+
+
+def _protocol_of(refs: ReferenceSet) -> dict[str, Any]:
+    """The folds of the references' runs (``protocol`` of a run's config)."""
+    from harness.config import load_config
+
+    for cfg_path in sorted(refs.root.rglob("config.yaml"))[:1]:
+        import yaml
+
+        cfg = yaml.safe_load(cfg_path.read_text(encoding="utf-8")) or {}
+        return dict(cfg.get("protocol") or {})
+    return dict(load_config().get("protocol") or {})
 
 
 def training_of(run: Any) -> dict[str, Any]:
@@ -392,6 +564,14 @@ def export_references(
         "benchmark": dict(benchmark) if benchmark else None,
     }
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
+    folder = prepared_folder(first)
+    if folder is not None:  # what matching across library releases measures against
+        from harness.cache.reader import PreparedDataset
+
+        write_fingerprint(tmp, PreparedDataset(folder))
+        manifest = load_references(tmp).manifest
+    else:
+        log.warning("%s: the prepared data of the runs is gone; the references get no sample fingerprint", store)
     size = sum(p.stat().st_size for p in tmp.rglob("*") if p.is_file())
     if size > MAX_BYTES:
         shutil.rmtree(tmp, ignore_errors=True)

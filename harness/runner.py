@@ -42,7 +42,7 @@ from harness.errors import ConfigError, HarnessError, StoreError
 from harness.io import atomic_write_json, file_digest
 from harness.progress import OverallProgress
 from harness.report.reader import StoredRun, read_run
-from harness.store import Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
+from harness.store import KEEP_WEIGHTS, Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
 
 if TYPE_CHECKING:
     import torch
@@ -90,6 +90,8 @@ class RunRequest:
     force: bool = False
     init: str | Path | None = None
     progress: bool = True
+    #: the checkpoints a finished run keeps: ``all`` or ``final`` (``harness.store.KEEP_WEIGHTS``)
+    keep_weights: str = "all"
 
 
 class RunSettings(TypedDict, total=False):
@@ -103,6 +105,7 @@ class RunSettings(TypedDict, total=False):
     force: bool
     init: str | Path | None
     progress: bool
+    keep_weights: str
 
 
 @dataclass
@@ -437,6 +440,8 @@ def run(request: RunRequest) -> RunSummary:
     """Train and evaluate every selected fold and seed; see the module docstring."""
     from harness import distributed as hd
 
+    if request.keep_weights not in KEEP_WEIGHTS:
+        raise ConfigError(f"--keep-weights {request.keep_weights!r}: use one of {', '.join(KEEP_WEIGHTS)}")
     hd.init_from_env()
     p = plan(request)
     det, ds, enc, prepared, init = p.detector, p.dataset, p.encoding, p.prepared, p.init
@@ -458,6 +463,7 @@ def run(request: RunRequest) -> RunSummary:
         if planned.state == "finished" and not request.force:
             log.info("%s: finished earlier with the same configuration, skipped (use --force to redo)", r.key)
             summary.results.append(RunOutcome(read_run(r), "skipped", len(train_idx), len(val_idx)))
+            _keep_weights(r, request.keep_weights)
             continue
         with _run_lock(r):
             st = r.status() or {}
@@ -466,6 +472,7 @@ def run(request: RunRequest) -> RunSummary:
             ):  # finished by another process while this one waited its turn
                 log.info("%s: finished by another process meanwhile, skipped", r.key)
                 summary.results.append(RunOutcome(read_run(r), "skipped", len(train_idx), len(val_idx)))
+                _keep_weights(r, request.keep_weights)
                 continue
             overall.start_run(str(r.key))
             result = run_one(
@@ -481,8 +488,22 @@ def run(request: RunRequest) -> RunSummary:
                 complexity_memo=measured,
             )
             overall.finish_run()
+            _keep_weights(r, request.keep_weights)
         summary.results.append(result)
     return summary
+
+
+def _keep_weights(r: Run, keep: str) -> None:
+    """``keep="final"``: the finished run ``r`` keeps only the checkpoint that predicted its held-out fold, the one
+    ``harness screen --run`` loads (a report reads no checkpoint); ``last.pt`` serves only to resume an interrupted
+    run, which a finished one never is. The process that writes the store (rank 0) deletes."""
+    from harness import distributed as hd
+
+    if keep == "all" or not hd.is_main():
+        return
+    dropped = r.keep_final_checkpoint()
+    if dropped:
+        log.info("%s: kept only the final weights; deleted checkpoints/%s", r.key, ", ".join(p.name for p in dropped))
 
 
 @contextlib.contextmanager
@@ -754,6 +775,9 @@ def run_one(
                 "train": prepared.content_digest(train_idx, enc, enc_params),
                 "held_out": prepared.content_digest(val_idx, enc, enc_params),
                 "aligned": {"train": prepared.content_digest(train_idx), "held_out": prepared.content_digest(val_idx)},
+                # where they were read from: a comparison that finds other digests measures by how much they differ
+                # (harness.references, harness.cache.fingerprint)
+                **({"prepared": str(prepared.folder)} if getattr(prepared, "folder", None) else {}),
             },
             "input_risks": list((cfg.get("meta") or {}).get("input_risks") or []),  # accepted by inputs.accept
         }

@@ -110,6 +110,7 @@ def prepare(
         if ds is not None and ds.form == form:
             mark_used(folder)
             log.info("using prepared %s from %s", spec.name, folder)
+            note_other_versions(ds)
             return _checked(spec, ds, cfg, key, from_cache=True)
     earlier = earlier_identity(_cache_root(cache_root), spec.name, key)
     ds = _build(spec, source, folder, key, fingerprint, sensing, progress, form, earlier)
@@ -187,6 +188,27 @@ def cached(dataset: str, key: str, cache_root: str | Path | None = None) -> Prep
             ds.check_sizes()
             return ds
     return None
+
+
+def note_other_versions(ds: PreparedDataset) -> list[str]:
+    """Warn when the prepared samples were made with other releases of the packages that shape samples than this
+    environment has (``harness.provenance``): they are used as they are, so every run on them stays on one set of
+    samples, and ``--force`` prepares them again here. Returns the differences."""
+    from harness import provenance
+
+    then = ds.manifest.get("environment")
+    if not isinstance(then, dict):
+        log.info("prepared data in %s does not record the package versions that made it", ds.folder)
+        return []
+    diffs = provenance.differences(provenance.sample_environment(), then, provenance.SAMPLE_PACKAGES, "prepared with")
+    if diffs:
+        log.warning(
+            "prepared data in %s was made with other package versions than this environment has (%s); its samples "
+            "are used as they are (`harness prepare --force` prepares them again with these versions)",
+            ds.folder,
+            "; ".join(diffs),
+        )
+    return diffs
 
 
 def _checked(

@@ -32,6 +32,7 @@ from harness.cache.forms import PREPARED_SCHEMA
 from harness.contracts import validate_sample
 from harness.errors import SampleError
 from harness.io import atomic_write_json, make_temp_dir
+from harness.provenance import sample_environment
 
 
 class PreparedWriter:
@@ -151,6 +152,8 @@ class PreparedWriter:
             "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "report": report or {},
             "form": self.form,
+            # the packages that shaped these samples (a release of OpenCV can move them): harness.provenance
+            "environment": sample_environment(),
             **self.extra,
         }
         if self.form != "raw":

@@ -150,6 +150,28 @@ def register_commands(cli: click.Group) -> None:
             f"{out or resolve('shipped')}"
         )
 
+    @benchmark_group.command(name="fingerprint")
+    @opt.reference_results_option()
+    @click.option(
+        "--prepared",
+        type=click.Path(file_okay=False, exists=True, path_type=Path),
+        default=None,
+        help="A prepared-data folder holding the references' samples [default: prepare the references' dataset "
+        "with default options, in $HARNESS_CACHE or ./cache].",
+    )
+    def fingerprint_cmd(reference_results: str | None, prepared: Path | None) -> None:
+        """Store the fingerprint of the reference results' samples beside them (what matching across library
+        releases measures against), after checking that the prepared samples are exactly the references'."""
+        from harness.cache import PreparedDataset
+        from harness.config import load_config
+        from harness.references import load_references, write_fingerprint
+        from harness.runner import prepare_dataset
+
+        refs = load_references(reference_results or "shipped")
+        data = PreparedDataset(prepared) if prepared else prepare_dataset(refs.dataset, load_config(refs.profile))
+        out = write_fingerprint(refs.root, data)
+        click.echo(f"sample fingerprint: {out['bytes'] / 2**10:.0f} KiB -> {out['fingerprint']}")
+
     @benchmark_group.command(name="rerun")
     @click.argument("cell")
     @click.option(

@@ -98,6 +98,9 @@ def environment(device: torch.device | None = None) -> dict[str, Any]:
         env["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     except Exception:
         pass
+    from harness.provenance import environment_facts
+
+    env.update(environment_facts())  # every package that shapes samples or training, torch's BLAS/oneDNN, the CPU
     if device is not None and device.type == "cuda":
         env["gpu"] = torch.cuda.get_device_name(device)
         env["cuda"] = torch.version.cuda
