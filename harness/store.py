@@ -12,7 +12,8 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
         analysis.json        error analysis of the held-out predictions (``ANALYSIS_SCHEMA`` below), computed once
                              when the run is scored; absent for runs stored before it existed
         log.jsonl            one JSON object per epoch
-        checkpoints/         last.pt (resume) and best.pt (by fitness)
+        checkpoints/         last.pt (resume) and best.pt (by fitness); a run finished under `harness run
+                             --keep-weights final` keeps only the one that predicted the held-out fold
         screening_route.json the held-out fold scored under the registration route a new flight gets, written by
                              `harness score-route` (``harness.screen.route``); absent until then
     <dataset>/_sensing/<analysis>.json      sensing-level analyses (registration error, displacement study)
@@ -376,6 +377,37 @@ class Run:
             except json.JSONDecodeError:
                 continue
         return out
+
+    # weights
+    def final_checkpoint(self) -> Path | None:
+        """The checkpoint whose weights predicted the held-out fold, as ``train.final`` in ``config.yaml`` says:
+        ``best.pt``, or ``last.pt`` under ``final: last`` or when no ``best.pt`` was written (what ``harness screen
+        --run`` loads); None when neither exists."""
+        from harness.config import read_yaml
+
+        final = "best"
+        if self.config_path.is_file():
+            final = str((read_yaml(self.config_path).get("train") or {}).get("final", "best"))
+        best, last = self.checkpoint_dir / "best.pt", self.checkpoint_dir / "last.pt"
+        chosen = best if final == "best" and best.exists() else last
+        return chosen if chosen.exists() else None
+
+    def keep_final_checkpoint(self) -> list[Path]:
+        """Delete the checkpoints of a finished run other than ``final_checkpoint`` (``last.pt`` with its optimiser
+        state, kept to resume an interrupted run, which a finished one never is); returns what was deleted. A run
+        that has not finished keeps everything."""
+        if not self.is_finished() or not self.checkpoint_dir.is_dir():
+            return []
+        keep = self.final_checkpoint()
+        dropped = [p for p in sorted(self.checkpoint_dir.iterdir()) if p.is_file() and p != keep]
+        for p in dropped:
+            p.unlink()
+        return dropped
+
+
+#: What ``harness run --keep-weights`` keeps of a finished run's checkpoints: ``all`` (``last.pt`` and ``best.pt``),
+#: ``final`` (only the weights that predicted the held-out fold, ``Run.keep_final_checkpoint``).
+KEEP_WEIGHTS = ("all", "final")
 
 
 class Store:

@@ -80,6 +80,13 @@ def register_commands(cli: click.Group) -> None:
         help="Also log the report's files as artefacts to these trackers, e.g. mlflow,tensorboard.",
     )
     @opt.reference_results_option()
+    @click.option(
+        "--references-optional",
+        "references_optional",
+        is_flag=True,
+        help="Write the report without the reference results when they cannot be compared (the store's runs used "
+        "other samples) or read, saying why in one line at its top and on stderr, instead of stopping.",
+    )
     @opt.no_progress_option()
     def report_cmd(
         datasets: tuple[str, ...],
@@ -93,6 +100,7 @@ def register_commands(cli: click.Group) -> None:
         reference: str,
         log_to: str | None = None,
         reference_results: str | None = None,
+        references_optional: bool = False,
         **settings: Any,
     ) -> None:
         """Write the benchmark report of a results store: Markdown, CSV and one self-contained HTML page.
@@ -105,6 +113,7 @@ def register_commands(cli: click.Group) -> None:
         figure and the cross-dataset table. Absent data is stated with the command that fills it; tables whose rows
         were not scored on the same samples are labelled.
         """
+        from harness.errors import StoreError
         from harness.references import load_references
         from harness.report import build_report
         from harness.report.build import FORMATS as file_types
@@ -122,6 +131,13 @@ def register_commands(cli: click.Group) -> None:
         if ctx.get_parameter_source("reference") is not click.core.ParameterSource.DEFAULT:
             _check_reference(root, reference, names)  # the default falls back to the best; a named one must exist
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
+        refs, unread = None, None
+        try:
+            refs = load_references(reference_results)
+        except StoreError as exc:
+            if not references_optional:
+                raise
+            unread = f"Reference results not shown: {str(exc).rstrip('.')}."
         report = build_report(
             root,
             names,
@@ -131,7 +147,9 @@ def register_commands(cli: click.Group) -> None:
             ablation_categories=cats,
             progress=True,
             reference=reference,
-            references=load_references(reference_results),
+            references=refs,
+            references_optional=references_optional,
+            references_note=unread,
             **settings,  # resamples, workers, title
         )
         if print_tables:

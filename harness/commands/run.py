@@ -55,6 +55,18 @@ def _with_log_to(f):
     return wrapper
 
 
+def _keep_weights_option(f):
+    """``--keep-weights all|final`` -> ``RunRequest.keep_weights`` (``harness.store.KEEP_WEIGHTS``)."""
+    return opt.choice_option(
+        "--keep-weights",
+        "keep_weights",
+        choices=("all", "final"),
+        help="Checkpoints a finished run keeps: all (last.pt, to resume from, and best.pt) or final (only the "
+        "weights that predicted the held-out fold, which `harness screen --run` loads; a report reads none). "
+        "Runs finished earlier are trimmed too.",
+    )(f)
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="run")
@@ -70,6 +82,7 @@ def register_commands(cli: click.Group) -> None:
         "--init", help="Initialise the model from this checkpoint (a harness best.pt/last.pt or a state dict)."
     )
     @click.option("--root", default=None, help="Dataset folder (same as --set dataset.root=...).")
+    @_keep_weights_option
     @_common
     def run_cmd(root: str | None, overrides: tuple[str, ...], **request: Any) -> None:
         """Train and evaluate DETECTOR on every selected fold and seed of DATASET.
@@ -112,6 +125,7 @@ def register_commands(cli: click.Group) -> None:
         show_default=True,
         help="Categories whose AP50 gets a column.",
     )
+    @_keep_weights_option
     @_common
     def ablate_cmd(
         detector: str, dataset: str, encodings: str, folds: str, categories: str, seeds: str | None, **settings: Any

@@ -570,6 +570,8 @@ def build_report(
     cache_root: str | Path | None = None,
     gallery: bool = True,
     references: Any = None,
+    references_optional: bool = False,
+    references_note: str | None = None,
 ) -> Report:
     """Build the report of ``store`` (all its datasets unless ``datasets``) and write it under ``out``.
 
@@ -578,13 +580,25 @@ def build_report(
     other one (the most accurate when absent); ``cache_root``: the prepared cache the galleries draw their pixels
     from (default ``$HARNESS_CACHE``, else ``./cache``); ``gallery=False`` leaves the galleries out;
     ``references``: reference results (``harness.references.ReferenceSet``) read beside the store, as
-    ``ref:<detector>`` entries. Returns the
-    ``Report`` (its ``files`` lists what was written).
+    ``ref:<detector>`` entries; ``references_optional``: when the store's runs used other samples than theirs
+    (``ReferenceMismatchError``) the report is written without them, saying why in one line
+    (``unavailable_references_line``; also logged); ``references_note``: such a line from the caller (reference
+    results that could not be read). Returns the ``Report`` (its ``files`` lists what was written).
     """
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise HarnessError(f"unknown report format(s) {', '.join(bad)}; use any of {', '.join(FORMATS)}")
     view = StoreView(store, references=references)
+    if references is not None and references_optional:
+        from harness.references import ReferenceMismatchError
+
+        try:
+            view.finished_runs(references.dataset)  # checks the store's runs against the references' samples
+        except ReferenceMismatchError as exc:
+            view.references = None  # nothing of theirs was read: the check comes first
+            references_note = unavailable_references_line(exc)
+    if references_note:
+        log.warning("%s", references_note)
     available = view.datasets()
     if datasets:
         missing = [d for d in datasets if d not in available]
@@ -609,6 +623,7 @@ def build_report(
         chosen,
         time.strftime("%Y-%m-%d %H:%M:%S"),
         environment={"python": platform.python_version(), "machine": platform.machine()},
+        references_note=references_note,
     )
     with _Progress(progress) as bar:
         for ds in chosen:
@@ -624,6 +639,67 @@ def build_report(
     if out_dir is not None:
         report.files += write_report(report, out_dir, formats)
     return report
+
+
+def _top_level(text: str, sep: str) -> list[str]:
+    """``text`` split at each ``sep`` outside parentheses and backticks."""
+    parts, depth, quoted, start, i = [], 0, False, 0, 0
+    while i < len(text):
+        ch = text[i]
+        if ch == "`":
+            quoted = not quoted
+        elif not quoted and ch in "([":
+            depth += 1
+        elif not quoted and ch in ")]":
+            depth = max(depth - 1, 0)
+        elif depth == 0 and not quoted and text.startswith(sep, i):
+            parts.append(text[start:i])
+            start = i = i + len(sep)
+            continue
+        i += 1
+    return parts + [text[start:]]
+
+
+def _sentences(text: str) -> list[str]:
+    """``text``'s sentences: split at ``. `` before a capital letter, outside parentheses (``e.g. x`` stays)."""
+    out: list[str] = []
+    for part in _top_level(text, ". "):
+        if out and not part[:1].isupper():
+            out[-1] += ". " + part
+        else:
+            out.append(part)
+    return [s.strip().rstrip(".") for s in out if s.strip()]
+
+
+def _without_asides(text: str) -> str:
+    """``text`` without its parenthesised asides (`` (...)``; ``run(s)`` stays)."""
+    out, depth = [], 0
+    for i, ch in enumerate(text):
+        if ch == "(" and (depth or text[i - 1 : i] == " "):
+            depth += 1
+        elif ch == ")" and depth:
+            depth -= 1
+        elif not depth:
+            out.append(ch)
+    return " ".join("".join(out).split())
+
+
+def unavailable_references_line(error: BaseException) -> str:
+    """One line saying why reference results are not beside the store's runs, from the error that refused them:
+    its first sentence up to the details (the runs and digests that differ, the references' description) and the fix
+    it ends with (its last sentence, or the last clause of a one-sentence error). "Leave out --reference-results",
+    which the report has just done, is left out of the fix."""
+    sentences = _sentences(" ".join(str(error).split()))
+    if not sentences:
+        return "Reference results not shown."
+    first = _top_level(sentences[0], "; ")
+    head = _without_asides(_top_level(first[0], ": ")[0])
+    if len(sentences) > 1:
+        fix = _top_level(sentences[-1], ": ")[-1]
+    else:
+        fix = first[-1] if len(first) > 1 else ""
+    fix = fix.strip().removesuffix("or leave out --reference-results").rstrip(" ,;").removesuffix(" or")
+    return f"Reference results not shown: {head}" + (f"; to compare with them, {fix}." if fix else ".")
 
 
 def write_report(report: Report, out: Path, formats: Sequence[str] = FORMATS) -> list[Path]:

@@ -57,6 +57,8 @@ class Report:
     environment: dict[str, Any] = field(default_factory=dict)
     #: store files that could not be read (skipped, named with the reason)
     problems: list[str] = field(default_factory=list)
+    #: one line: why the reference results asked for are not beside the store's runs (``--references-optional``)
+    references_note: str | None = None
 
     @property
     def tables(self) -> list[Table]:
@@ -76,6 +78,8 @@ class Report:
     def to_text(self) -> str:
         """Every table and note, aligned for the terminal (``harness report --print``)."""
         out = [self.title, f"store: {self.store}   generated: {self.generated}", ""]
+        if self.references_note:
+            out += [self.references_note, ""]
         if self.problems:
             out += ["!!! UNREADABLE FILES IN THE STORE (skipped) !!!", *[f"!!!   {p}" for p in self.problems], ""]
         for new_dataset, s in self._by_dataset():
@@ -101,6 +105,8 @@ class Report:
 
     def to_markdown(self, figure_dir: str = "figures") -> str:
         out = [f"# {self.title}", "", f"Results store `{self.store}`, generated {self.generated}.", ""]
+        if self.references_note:
+            out += [f"> {self.references_note}", ""]
         if self.problems:
             out += ["> **⚠ Unreadable files in the store (skipped)**", *[f"> - {p}" for p in self.problems], ""]
         for new_dataset, s in self._by_dataset():

@@ -170,7 +170,7 @@ def render_html(report: Report) -> str:
         nav.append(f'<a{cls} href="#{escape(s.anchor)}">{escape(s.title)}{warn}{" (absent)" if s.absent else ""}</a>')
         body.append(render_section(s))
     warned = [t.title for t in report.tables if t.warning]
-    banner = ""
+    banner = f'<p class="absent">{_code(report.references_note)}</p>' if report.references_note else ""
     if report.problems:
         banner += (
             f'<div class="loud" role="alert">⚠ unreadable files in the store (skipped)<ul>'
