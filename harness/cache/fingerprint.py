@@ -126,7 +126,7 @@ def save(path: str | Path, fp: Mapping[str, np.ndarray]) -> None:
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        np.savez_compressed(f, **dict(fp))
+        np.savez_compressed(f, allow_pickle=False, **dict(fp))
     tmp.replace(path)
 
 
@@ -220,9 +220,7 @@ def compare(mine: Mapping[str, np.ndarray], ref: Mapping[str, np.ndarray], plane
         n = int((mine["nbox"][order] != ref["nbox"]).sum())
         d.other.append(f"other numbers of boxes in {n} of {len(ids_r)} samples")
         return d
-    starts_m = np.concatenate([[0], np.cumsum(mine["nbox"])])
-    rows = np.concatenate([np.arange(starts_m[j], starts_m[j + 1]) for j in order]) if len(order) else []
-    rows = np.asarray(rows, np.int64)
+    rows = _tile_rows(np.asarray(mine["nbox"]), order)  # mine's box rows, in ref's sample order
     if not np.array_equal(mine["labels"][rows], ref["labels"]):
         d.other.append(f"other labels on {int((mine['labels'][rows] != ref['labels']).sum())} boxes")
         return d
