@@ -3,15 +3,48 @@
 #   make test   creates .venv on first use, then runs the test suite
 #   make benchmark  the reference benchmark (85 CPU-min: about 45-75 min on 2 cores; resumable), then its report
 #   make lint   creates .venv on first use, then runs ruff (lint and format check) over the tree and mypy over harness/
+#   make lock   refreshes the lock files below (tools/lock.py): run it after changing constraints.txt or the
+#               dependencies in pyproject.toml, and commit the lock files it rewrites
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-# The stamp changes whenever the dependency files change, so `make` re-installs exactly when needed.
-HASH   := $(shell cat pyproject.toml setup.py constraints.txt | sha1sum | cut -c1-12)
+# The locked environment: every package the set-up installs, at one version each, with the sha256 of its file
+# (written by `make lock` from constraints.txt, the hand-set pins, and pyproject.toml). `make demo` installs
+# requirements.lock; `make test` and `make lint` add requirements-dev.lock (the dev extra, and tidecv). The hashes are
+# for Linux x86-64, CPython 3.11; with another platform or Python the same pins are installed without them.
+LOCK     := requirements.lock
+DEV_LOCK := requirements-dev.lock
+# torch is installed in a step of its own, after the lock: by default the CPU build of the release the lock was made
+# with. On a GPU machine, swap in a CUDA build of the same release from the PyTorch CUDA wheel index for your CUDA
+# version (the lock's packages stay as pinned; the CUDA libraries come with torch, unlocked):
+#   make clean-venv && make venv TORCH_INDEX='--index-url URL'
+# TORCH takes any pip requirement, a local wheel file included.
+TORCH       ?= torch==2.13.0
+TORCH_INDEX ?=
+# The stamp changes whenever the dependency files or the torch choice change, so `make` re-installs exactly when needed.
+HASH   := $(shell { cat pyproject.toml setup.py $(LOCK) $(DEV_LOCK); echo '$(TORCH) $(TORCH_INDEX)'; } | sha1sum | cut -c1-12)
 STAMP  := $(VENV)/.installed-$(HASH)
 # `make test` and `make lint` also need the dev extra (pytest, ray, submitit, the trackers, ruff, mypy); `make demo`
 # only the harness itself
 DEV_STAMP := $(VENV)/.installed-dev-$(HASH)
+# $(call install_lock,FILE): FILE's pins, each without its dependencies (the lock lists them all), with the hashes
+# checked where they apply
+HASHES_APPLY := import sys, sysconfig; \
+  sys.exit(sysconfig.get_platform() != "linux-x86_64" or sys.implementation.cache_tag != "cpython-311")
+define install_lock
+	@if $(BIN)/python -c '$(HASHES_APPLY)'; then \
+	  echo "$(BIN)/python -m pip install --require-hashes --no-deps -r $(1)"; \
+	  $(BIN)/python -m pip install --require-hashes --no-deps -r $(1); \
+	else \
+	  echo "venv: the hashes in $(1) are for Linux x86-64, CPython 3.11, not this Python:" \
+	    "installing the same pins without hashes" >&2; \
+	  sed 's/ --hash=.*//' $(1) > $(VENV)/$(1).nohash && \
+	  $(BIN)/python -m pip install --no-deps -r $(VENV)/$(1).nohash; \
+	fi
+endef
+# pip check, less the one gap left on purpose: tidecv asks for the GUI build of OpenCV (see requirements-dev.lock)
+PIP_CHECK := $(BIN)/python -m pip check | grep -v -e '^No broken requirements' -e '^tidecv .* requires opencv-python,' \
+  >&2 && { echo "venv: pip check found the broken requirements above" >&2; exit 1; } || true
 
 # The demo benchmark: four detectors at the demo sizes (configs/profiles/demo.yaml, configs/demo/<detector>.yaml) on
 # all four folds, in two lanes of folds that train side by side (one torch thread each, one lane per core; the first
@@ -41,16 +74,27 @@ DEMO_REFS   := $(if $(wildcard references/m3t-synth-benchmark/references.json),-
 
 venv: $(DEV_STAMP)
 
-$(STAMP): pyproject.toml setup.py constraints.txt
+# the lock, then torch, then the harness itself from the checkout
+$(STAMP): pyproject.toml setup.py $(LOCK) $(DEV_LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -c constraints.txt -e .
+	$(call install_lock,$(LOCK))
+	$(BIN)/python -m pip install $(TORCH_INDEX) '$(TORCH)'
+	$(BIN)/python -m pip install --no-deps -e .
+	@$(PIP_CHECK)
 	@rm -f $(VENV)/.installed-*
 	@touch $@
 
 $(DEV_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -c constraints.txt -e '.[dev]'
-	$(BIN)/python -m pip install --no-deps 'tidecv==1.0.1'
+	$(call install_lock,$(DEV_LOCK))
+	@$(PIP_CHECK)
 	@touch $@
+
+# Resolve again (torch, the harness and its dev extra, with constraints.txt's pins) and rewrite the lock files with
+# their hashes; needs Python 3.11 on Linux x86-64 (PYTHON=...) and the package registry. LOCK_ARGS: see
+# `python3 tools/lock.py --help`.
+.PHONY: lock
+lock:
+	$(PYTHON) tools/lock.py $(LOCK_ARGS)
 
 demo: $(STAMP)
 	$(BIN)/harness prepare --dataset m3t-synth
