@@ -533,7 +533,13 @@ class StoreView:
             self.reference_notes[dataset] = (
                 [
                     f"Reference results ({len(runs)} runs, entries named ref:DETECTOR): {refs.describe()}; read from "
-                    f"{refs.root}. The store's runs were checked to use the same samples (content digests)."
+                    f"{refs.root}. "
+                    + (
+                        "The store's runs were checked against the references' samples: identical content digests "
+                        "except where a note below measures a difference within a library release's tolerance."
+                        if any(n.startswith("Compared within the tolerance") for n in notes)
+                        else "The store's runs were checked to use the same samples (content digests)."
+                    )
                 ]
                 + (
                     [
