@@ -13,12 +13,16 @@ Order of precedence (later wins):
 A key that is not in the schema is an error naming the key and the file; so is a value of the wrong type. A
 mapping written as ``{}`` in ``default.yaml`` is open (free-form options handed to a plugin, e.g. ``model``), and
 a key whose default is ``null`` accepts any type.
+
+``configs/`` is the checkout's folder, or the copy a regular install carries as ``harness.configs`` (``config_dir``);
+a ``--config configs/...`` path that is not in the working folder is that copy's file (``config_file``).
 """
 
 from __future__ import annotations
 
 import copy
 import difflib
+import logging
 import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -28,23 +32,59 @@ import yaml
 from harness.errors import ConfigError
 from harness.io import read_text
 
+log = logging.getLogger(__name__)
+
 ENV_CONFIG_DIR = "HARNESS_CONFIG_DIR"
+#: The package ``configs/`` is installed as (setup.py); a ``--config configs/...`` path falls back to it.
+CONFIGS_PACKAGE = "harness.configs"
+BUNDLED_PREFIX = "configs"
+
+
+def data_package_dir(package: str, marker: str) -> Path | None:
+    """The folder of a data package the harness installs (``harness.configs``, ``harness.shipped_references``) that
+    holds ``marker``, or None when it is not installed.
+
+    These packages have no ``__init__.py`` (they are namespace packages), so the folder is read from the package's
+    search locations: ``importlib.resources.files`` gives a ``MultiplexedPath`` for them, whose ``str`` is not a path.
+    A regular install finds ``site-packages/harness/configs``; an editable one the checkout's ``configs/``.
+    """
+    from importlib.util import find_spec
+
+    try:
+        spec = find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    for location in (spec.submodule_search_locations or []) if spec is not None else []:
+        if (Path(location) / marker).exists():
+            return Path(location)
+    return None
 
 
 def config_dir() -> Path:
-    """The folder holding default.yaml, protocols/, profiles/ and detectors/."""
+    """The folder holding default.yaml, protocols/, profiles/ and detectors/: ``$HARNESS_CONFIG_DIR``, the installed
+    ``harness.configs``, or ``configs/`` of the checkout the code runs from."""
     env = os.environ.get(ENV_CONFIG_DIR)
     if env:
         return Path(env)
-    try:  # a regular (non-editable) install ships configs/ as harness.configs
-        from importlib.resources import files
-
-        installed = Path(str(files("harness.configs")))
-        if (installed / "default.yaml").exists():
-            return installed
-    except (ModuleNotFoundError, TypeError):
-        pass
+    installed = data_package_dir(CONFIGS_PACKAGE, "default.yaml")
+    if installed is not None:
+        return installed
     return Path(__file__).resolve().parent.parent / "configs"
+
+
+def config_file(path: str | Path) -> Path:
+    """A ``--config`` file: the path as given when it exists; otherwise a relative ``configs/<rest>`` (the files the
+    project ships, e.g. ``configs/demo/ours.yaml``) is the installed copy ``<config_dir()>/<rest>`` when that exists,
+    so the commands of the documentation work from any folder. Anything else is returned unchanged (and reading it
+    names the missing file)."""
+    given = Path(path)
+    if given.exists() or given.is_absolute() or not given.parts or given.parts[0] != BUNDLED_PREFIX:
+        return given
+    bundled = config_dir().joinpath(*given.parts[1:])
+    if bundled.is_file():
+        log.debug("%s: not in %s, using the installed copy %s", path, Path.cwd(), bundled)
+        return bundled
+    return given
 
 
 class _Loader(yaml.SafeLoader):
@@ -278,7 +318,8 @@ def load_config(
             raise ConfigError(f"unknown profile {profile!r}: no {path} (available: {', '.join(available('profiles'))})")
         layers.append((str(path), read_yaml(path)))
     for f in files:
-        layers.append((str(f), read_yaml(f)))
+        path = config_file(f)
+        layers.append((str(f) if path == Path(f) else str(path), read_yaml(path)))
     for item in overrides:
         layers.append((f"--set {item}", parse_override(item)))
     for source, layer in layers:

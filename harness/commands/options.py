@@ -316,6 +316,13 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
     """``--config`` (parameter ``config_files``) and ``--set`` (parameter ``overrides``), both repeatable."""
     where = ", applied after the profile" if after_profile else ""
 
+    def bundled(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> tuple[str, ...]:
+        from harness.config import config_file
+
+        # configs/... not in the working folder: the copy installed with the harness (config_file)
+        found = [(v, config_file(v)) for v in value]
+        return tuple(v if path == Path(v) else str(path) for v, path in found)
+
     def deco(f: F) -> F:
         f = option(
             "--set",
@@ -331,7 +338,9 @@ def config_options(*, help_set: str | None = None, after_profile: bool = True) -
             shared="config",
             multiple=True,
             type=click.Path(dir_okay=False),
-            help=f"Extra YAML config file(s){where} (repeatable).",
+            callback=bundled,
+            help=f"Extra YAML config file(s){where}; configs/... names the installed copy when the working folder "
+            "has no such file (repeatable).",
         )(f)
 
     return deco
