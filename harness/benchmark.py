@@ -7,12 +7,16 @@ finished cell with another configuration stops everything before anything trains
 from its ``last.pt`` when it runs again. ``run_benchmark`` then runs the cells left in ``lanes`` worker processes at
 a time (``harness run`` for one fold and seed, one torch thread each, its log in ``<store>/_benchmark/logs``),
 longest first, and prints the overall progress with an ETA after every epoch of any lane (``BenchmarkProgress``).
-A cell that fails is listed at the end; the others go on.
+A cell that fails is listed at the end; the others go on. With ``executor="ray"`` or ``"slurm"`` the same cells run
+through the sweep's executors instead (``run_on_executor``: one Ray task per cell with one GPU where the cluster has
+GPUs, or one submitit job array, submitit's local executor where there is no Slurm), each as a lane runs it
+(``run_cell``), into the same store with the same logs and the same resume.
 
 The cells:
 
 * every detector of ``DETECTORS`` on every fold of the dataset, with the dataset's encoding (``c2``), seeds 0, 1, 2,
-  each with ``configs/benchmark/<detector>.yaml`` on top of the profile;
+  each with ``configs/benchmark/<detector>.yaml`` on top of the profile (not at the ``paper`` profile, where the
+  detectors keep their own, published sizes);
 * the encoding ablation: ``ours`` with each of ``ENCODINGS`` on ``P4+P5`` (the seed's ablation split), seeds 0, 1, 2
   (its ``c2`` cells are the detector grid's own).
 
@@ -21,6 +25,7 @@ The shipped reference results (``harness.references``) are this benchmark's stor
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -33,7 +38,7 @@ from typing import Any, Mapping, Sequence, TextIO
 
 from harness.errors import ConfigError
 from harness.progress import BenchmarkProgress
-from harness.sweep import JobResult, SweepJob, SweepSpec
+from harness.sweep import ExecutorOptions, JobResult, SweepJob, SweepSpec
 
 log = logging.getLogger(__name__)
 
@@ -52,10 +57,18 @@ DEFAULT_STORE = Path("results") / PROFILE
 RELATIVE_COST = {"ours": 1.0, "eme": 0.8, "icafusion": 1.9, "cmadet": 2.3}
 
 
-def detector_config(detector: str) -> Path | None:
-    """``configs/benchmark/<detector>.yaml`` when it exists (the per-detector options of the benchmark)."""
+#: Profiles at which the detectors run at their own, published sizes (``s``) and options: the benchmark's per-detector
+#: files (``n`` sizes for 192 px) are not applied.
+OWN_SIZES_PROFILES = ("paper",)
+
+
+def detector_config(detector: str, profile: str | None = PROFILE) -> Path | None:
+    """``configs/benchmark/<detector>.yaml`` when it exists (the per-detector options of the benchmark), except at a
+    profile of ``OWN_SIZES_PROFILES``."""
     from harness.config import config_dir
 
+    if profile in OWN_SIZES_PROFILES:
+        return None
     path = config_dir() / "benchmark" / f"{detector}.yaml"
     return path if path.is_file() else None
 
@@ -92,7 +105,7 @@ class BenchmarkPlan:
 def _specs(spec: BenchmarkSpec) -> list[SweepSpec]:
     out = []
     for det in spec.detectors:
-        cfg = detector_config(det)
+        cfg = detector_config(det, spec.profile)
         common = dict(
             datasets=(spec.dataset,),
             seeds=tuple(spec.seeds),
@@ -275,8 +288,7 @@ def run_lanes(
     queue = list(jobs)
     running: dict[str, tuple[SweepJob, subprocess.Popen[bytes], float, Path, bool, Any]] = {}
     results: list[JobResult] = []
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    env = _cell_env()
     try:
         while queue or running:
             while queue and len(running) < lanes:
@@ -321,6 +333,137 @@ def run_lanes(
     return results
 
 
+def _cell_env(threads: int = 1, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The environment of a cell's ``harness run`` process: ``threads`` threads per library."""
+    n = str(max(1, int(threads)))
+    env = {**(os.environ if base is None else base), "OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n}
+    env["OPENBLAS_NUM_THREADS"] = n
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return env
+
+
+def _stop_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """In a cell's process: be interrupted (as Ctrl-C) when the worker that started it dies (Linux)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGINT)  # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+#: ``SweepJob.env`` entry that carries the threads of a cell run by an executor (``ExecutorOptions.cpus_per_run``).
+THREADS_ENV = "HARNESS_BENCHMARK_THREADS"
+
+
+def run_cell(job: SweepJob) -> JobResult:
+    """One cell in a worker of an executor (a Ray task, a submitit job), run as a local lane runs it: ``harness run``
+    in a child process, its output appended to ``<store>/_benchmark/logs/<cell>.log``, one thread per library (or
+    ``THREADS_ENV``). A cell interrupted earlier resumes from its ``last.pt``. When the worker is stopped (Ray's
+    cancel, submitit's or Slurm's signals) or dies, the child is interrupted as Ctrl-C interrupts a lane: its status
+    says interrupted and ``last.pt`` keeps its last epoch, for the next ``benchmark run``."""
+    import resource
+    import socket
+
+    env = dict(os.environ)
+    env.update(job.env)
+    threads = int(env.pop(THREADS_ENV, "1") or 1)
+    store = Path(job.store)
+    log_file = _log_path(store, job)
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    before = _epochs_logged(store, job)
+    cmd = job_command(job)
+    usage0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    with open(log_file, "ab") as fh:
+        fh.write(f"\n$ {' '.join(cmd)}\n".encode())
+        fh.flush()
+        proc = subprocess.Popen(
+            cmd,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=_cell_env(threads, env),
+            start_new_session=True,
+            preexec_fn=_stop_with_parent if sys.platform.startswith("linux") else None,
+        )
+        try:
+            rc = proc.wait()
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+            raise
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    res = _result(store, job, rc, time.perf_counter() - t0, log_file, before > 0)
+    res.worker = f"{socket.gethostname()}:{os.getpid()}"
+    res.cpu_s = round(usage.ru_utime + usage.ru_stime - usage0.ru_utime - usage0.ru_stime, 1)
+    return res
+
+
+def run_on_executor(
+    jobs: Sequence[SweepJob],
+    executor: str,
+    options: ExecutorOptions,
+    store: Path,
+    progress: BenchmarkProgress,
+    poll_s: float = 5.0,
+) -> list[JobResult]:
+    """Run ``jobs`` with the sweep's ``executor`` (``ray``: one task per cell, one GPU each where the cluster has
+    GPUs; ``slurm``: one submitit job array), each cell by ``run_cell``; the results in order of ``jobs``.
+
+    The cells write into ``store`` (a folder every worker reaches); progress and ETA are read from it, as for the
+    lanes, by a thread that looks at the cells' logs every ``poll_s`` seconds. A submitit job array's own logs go to
+    ``options.log_dir`` [default: ``<store>/_sweeps/<time>``, as a sweep's]."""
+    import dataclasses
+    import threading
+
+    from harness.sweep import execute
+
+    threads = ((THREADS_ENV, str(max(1, options.cpus_per_run))),)
+    jobs = [dataclasses.replace(job, env=(*job.env, *threads)) for job in jobs]
+    ended: set[str] = set()
+    sizes = {str(job): _log_size(store, job) for job in jobs}
+    epochs0 = {str(job): _epochs_logged(store, job) for job in jobs}
+    stop = threading.Event()
+
+    def watch() -> None:
+        while not stop.wait(poll_s):
+            for job in jobs:
+                key = str(job)
+                if key in ended:
+                    continue
+                if key not in progress.running and _log_size(store, job) > sizes[key]:
+                    progress.started(job, epochs0[key])
+                    progress.lanes = max(progress.lanes, len(progress.running))
+                progress.epoch(job, _epochs_logged(store, job))
+
+    def on_result(res: JobResult) -> None:
+        job = next((j for j in jobs if str(j) == res.run), None)
+        ended.add(res.run)
+        if res.state == "failed":
+            log.error("benchmark: %s failed: %s", res.run, res.error)
+        if job is not None:
+            progress.finished(job, res.state != "failed")
+
+    watcher = threading.Thread(target=watch, name="benchmark-progress", daemon=True)
+    watcher.start()
+    try:
+        return execute(jobs, executor, options, progress=False, on_result=on_result, task=run_cell)
+    finally:
+        stop.set()
+        watcher.join(timeout=poll_s + 5)
+
+
+def _log_size(store: Path, job: SweepJob) -> int:
+    try:
+        return _log_path(store, job).stat().st_size
+    except OSError:
+        return 0
+
+
 def default_lanes() -> int:
     """One lane per core this process may use."""
     try:
@@ -335,7 +478,9 @@ class BenchmarkSummary:
     results: list[JobResult]
     invalid: list[str]
     wall_s: float
-    cpu_s: float
+    cpu_s: float  # of the cells trained in this call
+    executor: str = "local"
+    lanes: int = 1  # local: the lanes; ray, slurm: the most cells seen running at once
 
     @property
     def failed(self) -> list[JobResult]:
@@ -343,20 +488,32 @@ class BenchmarkSummary:
 
 
 def run_benchmark(
-    spec: BenchmarkSpec, lanes: int | None = None, progress: bool = True, stream: TextIO | None = None
+    spec: BenchmarkSpec,
+    lanes: int | None = None,
+    progress: bool = True,
+    stream: TextIO | None = None,
+    executor: str = "local",
+    options: ExecutorOptions | None = None,
 ) -> BenchmarkSummary:
-    """Plan the benchmark and run the cells left to do in ``lanes`` processes (default: one per core)."""
+    """Plan the benchmark and run the cells left to do: ``local``, in ``lanes`` processes (default: one per core);
+    ``ray`` or ``slurm``, with the sweep's executors (``run_on_executor``, ``options`` their resources and cluster
+    settings). Either way the store, its logs and the resume are the same."""
     from harness.config import load_config
+    from harness.sweep import EXECUTORS
 
-    lanes = lanes or default_lanes()
+    if executor not in EXECUTORS:
+        raise ConfigError(f"--executor {executor!r}: choose one of {', '.join(EXECUTORS)}")
+    if executor != "local" and lanes is not None:
+        raise ConfigError(f"--lanes is for --executor local; with --executor {executor} the cluster decides")
+    lanes = lanes or (default_lanes() if executor == "local" else 1)
     plan = plan_benchmark(spec)
     epochs = int(load_config(profile=spec.profile, overrides=list(spec.overrides))["protocol"]["epochs"])
     log.info(
-        "benchmark: %d cells, %d finished earlier, %d to run in %d lane(s); store %s",
+        "benchmark: %d cells, %d finished earlier, %d to run %s; store %s",
         plan.cells,
         len(plan.skipped),
         len(plan.jobs),
-        lanes,
+        f"in {lanes} lane(s)" if executor == "local" else f"with --executor {executor}",
         plan.store,
     )
     bar = BenchmarkProgress(
@@ -369,10 +526,19 @@ def run_benchmark(
         relative_cost=RELATIVE_COST,
     )
     t0, c0 = time.perf_counter(), _children_cpu()
-    results = run_lanes(plan.jobs, lanes, plan.store, bar) if plan.jobs else []
-    return BenchmarkSummary(
-        plan.store, [*plan.skipped, *results], plan.invalid, time.perf_counter() - t0, _children_cpu() - c0
-    )
+    if not plan.jobs:
+        results: list[JobResult] = []
+    elif executor == "local":
+        results = run_lanes(plan.jobs, lanes, plan.store, bar)
+    else:
+        results = run_on_executor(plan.jobs, executor, options or ExecutorOptions(), plan.store, bar)
+    wall = time.perf_counter() - t0
+    if executor == "local":
+        cpu = _children_cpu() - c0
+    else:  # the cells ran in workers: the CPU time each measured of its own process
+        cpu = sum(r.cpu_s or 0.0 for r in results)
+        lanes = bar.lanes
+    return BenchmarkSummary(plan.store, [*plan.skipped, *results], plan.invalid, wall, cpu, executor, lanes)
 
 
 def cpu_name() -> str:
@@ -408,9 +574,10 @@ def read_timing(store: Path) -> dict[str, Any] | None:
     return read_json(path) if path.is_file() else None
 
 
-def write_timing(summary: BenchmarkSummary, lanes: int) -> dict[str, Any]:
+def write_timing(summary: BenchmarkSummary, lanes: int | None = None) -> dict[str, Any]:
     """Add this call's wall and CPU time to ``<store>/_benchmark/timing.json`` (a resumed benchmark adds up its
-    calls); the calls are listed with their lanes, cells and CPU."""
+    calls); the calls are listed with their executor, lanes (``summary.lanes`` unless given), cells and the CPU
+    of this machine."""
     from harness.io import atomic_write_json
 
     old = read_timing(summary.store) or {"wall_s": 0.0, "cpu_s": 0.0, "calls": []}
@@ -418,7 +585,8 @@ def write_timing(summary: BenchmarkSummary, lanes: int) -> dict[str, Any]:
     call = {
         "wall_s": round(summary.wall_s, 1),
         "cpu_s": round(summary.cpu_s, 1),
-        "lanes": int(lanes),
+        "executor": summary.executor,
+        "lanes": int(summary.lanes if lanes is None else lanes),
         "cells": len(trained),
         "failed": len(summary.failed),
         "cpu": cpu_name(),
@@ -574,6 +742,8 @@ __all__ = [
     "rerun_cell",
     "rerun_text",
     "run_benchmark",
+    "run_cell",
     "run_lanes",
+    "run_on_executor",
     "write_timing",
 ]

@@ -23,6 +23,7 @@ on another machine loads the same plugins and the same prepared-dataset cache.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -93,6 +94,7 @@ class JobResult:
     time_s: float | None = None
     error: str | None = None
     worker: str | None = None  # host:pid of the process that ran the job
+    cpu_s: float | None = None  # CPU time of the job's own processes, where the worker measures it
 
 
 @dataclass
@@ -275,6 +277,9 @@ class ExecutorCall:
     options: ExecutorOptions
     progress: bool = True
     on_result: Callable[[JobResult], None] | None = None
+    #: What a worker runs for one job: ``run_job`` (the sweep's), or another module-level function of a job (the
+    #: benchmark's ``harness.benchmark.run_cell``); Ray and submitit pickle it by reference.
+    task: Callable[[SweepJob], JobResult] = run_job
 
     def deliver(self, result: JobResult) -> JobResult:
         """``result``, after handing it to ``on_result`` (when there is one)."""
@@ -287,7 +292,7 @@ def run_local(call: ExecutorCall) -> list[JobResult]:
     results = []
     for i, job in enumerate(call.jobs, 1):
         log.info("sweep: run %d of %d: %s", i, len(call.jobs), job)
-        results.append(call.deliver(run_job(job, progress=call.progress)))
+        results.append(call.deliver(run_job(job, progress=call.progress) if call.task is run_job else call.task(job)))
     return results
 
 
@@ -308,7 +313,7 @@ def run_ray(call: ExecutorCall) -> list[JobResult]:
         gpus = options.gpus_per_run
         if gpus is None:
             gpus = 1 if ray.cluster_resources().get("GPU", 0) > 0 else 0
-        task = ray.remote(num_cpus=options.cpus_per_run, num_gpus=gpus, max_retries=0)(run_job)
+        task = ray.remote(num_cpus=options.cpus_per_run, num_gpus=gpus, max_retries=0)(call.task)
         refs = {task.remote(job): job for job in call.jobs}
         log.info("sweep: %d Ray tasks submitted (%d CPU, %d GPU each)", len(refs), options.cpus_per_run, gpus)
         by_ref: dict[Any, JobResult] = {}
@@ -375,7 +380,7 @@ def run_submitit(call: ExecutorCall) -> list[JobResult]:
     store = Path(jobs[0].store)
     folder = Path(options.log_dir) if options.log_dir else store / "_sweeps" / time.strftime("%Y%m%d-%H%M%S")
     ex = submitit_executor(options, folder / "%j")
-    submitted = ex.map_array(run_job, list(jobs))  # one Slurm job array
+    submitted = ex.map_array(call.task, list(jobs))  # one Slurm job array
     log.info(
         "sweep: %d jobs submitted to %s (logs in %s): %s",
         len(submitted),
@@ -384,21 +389,27 @@ def run_submitit(call: ExecutorCall) -> list[JobResult]:
         ", ".join(str(j.job_id) for j in submitted[:5]) + (" ..." if len(submitted) > 5 else ""),
     )
     results: list[JobResult | None] = [None] * len(submitted)
-    with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=call.progress) as bar:
-        waiting = set(range(len(submitted)))
-        while waiting:
-            for i in sorted(waiting):
-                if not submitted[i].done():
-                    continue
-                try:
-                    result = submitted[i].result()
-                except Exception as exc:  # the job crashed, timed out or was cancelled; submitit says why
-                    result = _failed(jobs[i], exc)
-                waiting.discard(i)
-                results[i] = call.deliver(result)
-                bar.advance()
-            if waiting:
-                time.sleep(0.5)
+    waiting = set(range(len(submitted)))
+    try:
+        with progress_bar(f"sweep ({ex.cluster})", len(submitted), enabled=call.progress) as bar:
+            while waiting:
+                for i in sorted(waiting):
+                    if not submitted[i].done():
+                        continue
+                    try:
+                        result = submitted[i].result()
+                    except Exception as exc:  # the job crashed, timed out or was cancelled; submitit says why
+                        result = _failed(jobs[i], exc)
+                    waiting.discard(i)
+                    results[i] = call.deliver(result)
+                    bar.advance()
+                if waiting:
+                    time.sleep(0.5)
+    except BaseException:  # Ctrl-C: the jobs left are cancelled (scancel), not left running without a driver
+        for i in sorted(waiting):
+            with contextlib.suppress(Exception):
+                submitted[i].cancel(check=False)
+        raise
     return [r for r in results if r is not None]
 
 
@@ -415,10 +426,12 @@ def execute(
     options: ExecutorOptions | None = None,
     progress: bool = True,
     on_result: Callable[[JobResult], None] | None = None,
+    task: Callable[[SweepJob], JobResult] = run_job,
 ) -> list[JobResult]:
+    """Run ``jobs`` with ``executor`` (``task`` runs one job in a worker, see ``ExecutorCall``)."""
     if executor not in RUNNERS:
         raise ConfigError(f"--executor {executor!r}: choose one of {', '.join(EXECUTORS)}")
-    return RUNNERS[executor](ExecutorCall(list(jobs), options or ExecutorOptions(), progress, on_result))
+    return RUNNERS[executor](ExecutorCall(list(jobs), options or ExecutorOptions(), progress, on_result, task))
 
 
 @dataclass

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import click
 
 from harness.commands import options as opt
+from harness.commands.sweep import _executor_options, _key_values
 from harness.hookspecs import hookimpl
 
 
@@ -42,7 +44,15 @@ def register_commands(cli: click.Group) -> None:
         "--lanes",
         type=click.IntRange(min=1),
         default=None,
-        help="Cells trained side by side, one core each [default: one per core].",
+        help="Cells trained side by side, one core each (--executor local) [default: one per core].",
+    )
+    @click.option(
+        "--executor",
+        type=click.Choice(["local", "ray", "slurm"]),
+        default="local",
+        show_default=True,
+        help="local: lanes on this machine; ray: one Ray task per cell (one GPU each where the cluster has GPUs); "
+        "slurm: one submitit job array (submitit's local executor where there is no Slurm).",
     )
     @opt.names_option(
         "--detectors",
@@ -62,11 +72,13 @@ def register_commands(cli: click.Group) -> None:
     )
     @click.option("--dry-run", is_flag=True, help="List the cells left to do, and stop.")
     @click.option("--force", is_flag=True, help="Redo cells that already finished.")
+    @_executor_options
     @opt.no_progress_option()
     def run_cmd(
         profile: str,
         store: Path | None,
         lanes: int | None,
+        executor: str,
         detectors: tuple[str, ...],
         folds: str,
         seeds: str,
@@ -75,15 +87,30 @@ def register_commands(cli: click.Group) -> None:
         overrides: tuple[str, ...],
         dry_run: bool,
         force: bool,
+        slurm_setup: tuple[str, ...],
+        slurm_opt: tuple[str, ...],
+        submitit_cluster: str,
+        **resources: Any,
     ) -> None:
-        """Run the benchmark's cells that are left to do, in lanes, with overall progress and ETA on stderr.
+        """Run the benchmark's cells that are left to do, in lanes or on a cluster, with overall progress and ETA
+        on stderr.
 
         Finished cells are skipped and interrupted ones resume from their last epoch, so running it again after an
-        interrupt (Ctrl-C, a closed laptop) does only what is left. Prints one line per cell on stdout and the
-        wall and CPU time; exits 1 when a cell failed (the others still ran)."""
+        interrupt (Ctrl-C, a closed laptop, a cancelled job) does only what is left. With --executor ray or slurm
+        every worker must reach the store, the prepared-data cache and the plugins ($HARNESS_* is handed on); the
+        store is the same as the lanes'. Prints one line per cell on stdout and the wall and CPU time; exits 1
+        when a cell failed (the others still ran).
+
+        \b
+        Examples:
+          harness benchmark run                       # the reference benchmark, one lane per core
+          harness benchmark run --executor ray --ray-address auto
+          harness benchmark run --profile paper --executor slurm --slurm-partition gpu \\
+              --slurm-setup 'source .venv/bin/activate'   # 640 px, the detectors' s sizes: GPUs
+        """
         from harness import benchmark as B
         from harness.progress import progress_on
-        from harness.sweep import SweepSummary, sweep_table
+        from harness.sweep import ExecutorOptions, SweepSummary, sweep_table
 
         seed_list = opt.parse_seeds(seeds) or list(B.SEEDS)
         spec = B.BenchmarkSpec(
@@ -104,11 +131,18 @@ def register_commands(cli: click.Group) -> None:
                 f"{len(plan.jobs)} cell(s) to run, {len(plan.skipped)} finished, in {plan.store}",
             )
             return
-        summary = B.run_benchmark(spec, lanes=lanes, progress=progress_on())
-        B.write_timing(summary, lanes or B.default_lanes())
+        options = ExecutorOptions(
+            cluster=None if submitit_cluster == "auto" else submitit_cluster,
+            slurm_setup=tuple(slurm_setup),
+            slurm_extra=_key_values(slurm_opt),
+            **resources,
+        )
+        summary = B.run_benchmark(spec, lanes=lanes, progress=progress_on(), executor=executor, options=options)
+        B.write_timing(summary)
         click.echo(sweep_table(SweepSummary(summary.store, summary.results, summary.invalid)))
+        where = f"{summary.lanes} lane(s)" if executor == "local" else f"--executor {executor}"
         click.echo(
-            f"benchmark: {len(summary.results)} cells in {summary.store}; this call "
+            f"benchmark: {len(summary.results)} cells in {summary.store}; this call ({where}) "
             f"{summary.wall_s:.0f} s wall, {summary.cpu_s:.0f} s CPU ({B.cpu_name()})"
         )
         if summary.failed:
