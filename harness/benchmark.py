@@ -606,54 +606,34 @@ def write_timing(summary: BenchmarkSummary, lanes: int | None = None) -> dict[st
 
 #: What ``rerun_cell`` compares: the metrics.json sections that hold numbers of the evaluation.
 RERUN_SECTIONS = ("support", "metrics", "per_category")
+#: Configuration keys that name where the prepared samples lie or how they are cached, not what training computes:
+#: when the samples' digests match (or differ within the tolerance of a library release, said as such), they are not
+#: differences of the rerun.
+RERUN_NEUTRAL_KEYS = ("meta.prepared_fingerprint", "meta.prepared_key", "meta.prepared_samples")
 
 
 def rerun_cell(
     refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path, progress: bool = False
 ) -> dict[str, Any]:
-    """Train one reference cell again into ``store`` with the benchmark's recipe and compare it with the reference
-    run: the evaluation's numbers (``RERUN_SECTIONS``), the predictions, and the run's identity (its configuration
-    without locations)."""
+    """Train one reference cell again into ``store`` with the reference run's own configuration and compare it with
+    the reference run.
+
+    Before anything trains (``check_rerun``): the samples (the content digests of the cell's training and held-out
+    samples as prepared here, against those the reference run recorded; digests that differ are measured against the
+    references' sample fingerprint, and beyond the tolerance of a library release the rerun stops at once with
+    ``ReferenceMismatchError``), the configuration that changes training, and the environment (every recorded fact
+    that differs, and those the reference did not record). After training: the evaluation's numbers
+    (``RERUN_SECTIONS``) and the predictions; a rerun that is not identical gets a verdict against the references'
+    training variance (``harness.verdict.judge``: the cell's seeds in the reference store)."""
     from harness.io import read_json
     from harness.report.reader import read_run
-    from harness.runner import RunRequest, identity_diff, run
+    from harness.runner import run
     from harness.store import Run, RunKey
+    from harness.verdict import judge
 
-    ref_run = Run(refs.root, RunKey(refs.dataset, detector, encoding, fold, seed))
-    if not ref_run.is_finished():
-        cells = ", ".join((refs.manifest.get("cells") or [])[:3])
-        raise ConfigError(
-            f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
-            f"{refs.root} (cells look like {cells} ...)"
-        )
-    ref = read_run(ref_run)
-    # the reference run's own configuration, as the last layer: the rerun resolves to the same settings whatever
-    # the checkout's profiles say (its locations and its record of the run left out)
-    layer = {k: v for k, v in ref.config.items() if k != "meta"}
-    for section, key in (("dataset", "root"), ("train", "init")):
-        if isinstance(layer.get(section), dict):
-            layer[section].pop(key, None)
-    import yaml
-
-    from harness.io import atomic_write_text
-
-    cfg_file = Path(store) / "_rerun" / f"{detector}_{encoding}_{fold}_seed{seed}.yaml"
-    cfg_file.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(cfg_file, yaml.safe_dump(layer, sort_keys=True))
-    run(
-        RunRequest(
-            detector=detector,
-            dataset=refs.dataset,
-            encoding=encoding,
-            folds=fold,
-            seeds=[seed],
-            profile=(ref.config.get("meta") or {}).get("profile"),
-            config_files=[str(cfg_file)],
-            store=store,
-            force=True,
-            progress=progress,
-        )
-    )
+    request, ref = rerun_request(refs, detector, encoding, fold, seed, store, progress)
+    checked = check_rerun(refs, ref, request)
+    run(request)
     new_run = read_run(Run(Path(store), RunKey(refs.dataset, detector, encoding, fold, seed)))
     differences: list[str] = []
     for section in RERUN_SECTIONS:
@@ -668,51 +648,292 @@ def rerun_cell(
     same_predictions = read_json(ref.predictions_path) == read_json(new_run.predictions_path)
     if not same_predictions:
         differences.append("predictions differ")
-    config_diff = identity_diff(ref.config, new_run.config)
-    env_ref, env_new = ref.metrics.get("environment") or {}, new_run.metrics.get("environment") or {}
-    env_diff = [
-        f"{k}: {env_ref.get(k)!r} vs {env_new.get(k)!r}"
-        for k in sorted({*env_ref, *env_new})
-        if env_ref.get(k) != env_new.get(k) and k in ("torch", "numpy", "opencv", "threads", "cpu_capability")
-    ]
-    if env_ref.get("cpu_capability") and env_ref.get("cpu_capability") != env_new.get("cpu_capability"):
-        cap = str(env_ref["cpu_capability"])
-        onednn = f"ONEDNN_MAX_CPU_ISA={cap.upper()} " if cap.upper() == "AVX2" else ""
-        env_diff.append(
-            f"the references ran torch's {cap} kernels: rerun with {onednn}"
-            f"ATEN_CPU_CAPABILITY={cap.lower()} for the same rounding"
-        )
+    ref_m, new_m = ref.metrics.get("metrics") or {}, new_run.metrics.get("metrics") or {}
+    verdict = judge(
+        {k: ref_m.get(k) for k in ("mAP50", "mAP50_95")},
+        {k: new_m.get(k) for k in ("mAP50", "mAP50_95")},
+        reference_seeds(refs, detector, encoding, fold),
+        identical=not differences,
+    )
+    env = checked["environment"]
     return {
         "cell": f"{detector}/{encoding}/{fold}/seed{seed}",
-        "reference": str(ref_run.path),
+        "reference": str(ref.path),
         "rerun": str(new_run.path),
         "identical": not differences,
+        "verdict": verdict.to_dict(),
         "differences": differences,
-        "config_differences": config_diff,
-        "environment_differences": env_diff,
-        "mAP50": [(ref.metrics.get("metrics") or {}).get("mAP50"), (new_run.metrics.get("metrics") or {}).get("mAP50")],
-        "mAP50_95": [
-            (ref.metrics.get("metrics") or {}).get("mAP50_95"),
-            (new_run.metrics.get("metrics") or {}).get("mAP50_95"),
-        ],
+        "samples": checked["samples"],
+        "config_differences": checked["config_differences"],
+        "environment": env,
+        "environment_differences": [f"{d['label']}: {d['reference']!r} vs {d['here']!r}" for d in env["differ"]],
+        "check_s": checked["check_s"],
+        "mAP50": [ref_m.get("mAP50"), new_m.get("mAP50")],
+        "mAP50_95": [ref_m.get("mAP50_95"), new_m.get("mAP50_95")],
     }
 
 
-def rerun_text(result: Mapping[str, Any]) -> str:
-    lines = [
-        f"cell {result['cell']}: reference {result['reference']}",
-        f"  rerun     {result['rerun']}",
-        f"  mAP50     reference {result['mAP50'][0]!r}  rerun {result['mAP50'][1]!r}",
-        f"  mAP50:95  reference {result['mAP50_95'][0]!r}  rerun {result['mAP50_95'][1]!r}",
+def rerun_request(
+    refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path, progress: bool = False
+) -> tuple[Any, Any]:
+    """(the ``RunRequest`` that trains reference cell ``detector/encoding/fold/seed`` again into ``store``, the
+    reference run as read by the store's reader). The reference run's own configuration is the last layer, so the
+    rerun resolves to the same settings whatever the checkout's profiles say (its locations and its record of the run
+    left out)."""
+    import yaml
+
+    from harness.io import atomic_write_text
+    from harness.report.reader import read_run
+    from harness.runner import RunRequest
+    from harness.store import Run, RunKey
+
+    ref_run = Run(refs.root, RunKey(refs.dataset, detector, encoding, fold, seed))
+    if not ref_run.is_finished():
+        cells = ", ".join((refs.manifest.get("cells") or [])[:3])
+        raise ConfigError(
+            f"{detector}/{encoding}/{fold}/seed{seed} is not a cell of the reference results in "
+            f"{refs.root} (cells look like {cells} ...)"
+        )
+    ref = read_run(ref_run)
+    layer = {k: v for k, v in ref.config.items() if k != "meta"}
+    for section, key in (("dataset", "root"), ("train", "init")):
+        if isinstance(layer.get(section), dict):
+            layer[section].pop(key, None)
+    cfg_file = Path(store) / "_rerun" / f"{detector}_{encoding}_{fold}_seed{seed}.yaml"
+    cfg_file.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(cfg_file, yaml.safe_dump(layer, sort_keys=True))
+    request = RunRequest(
+        detector=detector,
+        dataset=refs.dataset,
+        encoding=encoding,
+        folds=fold,
+        seeds=[seed],
+        profile=(ref.config.get("meta") or {}).get("profile"),
+        config_files=[str(cfg_file)],
+        store=store,
+        force=True,
+        progress=progress,
+    )
+    return request, ref
+
+
+def check_rerun(refs: Any, ref: Any, request: Any) -> dict[str, Any]:
+    """What ``rerun_cell`` checks before it trains: plan ``request`` as the run will (its prepared samples, folds and
+    configuration), then compare with the reference run ``ref``:
+
+    * ``samples``: the content digests of the training and held-out samples with the cell's encoding (and of the
+      aligned samples), here and in the reference run's ``metrics.json``; ``state`` is ``identical``, ``within
+      tolerance`` (digests differ, the measured difference from the references' sample fingerprint is within
+      ``harness.cache.fingerprint.TOLERANCE``: ``measured`` says by how much) or ``not recorded`` (the reference run
+      holds no digests). Beyond the tolerance, or not measurable, it raises ``ReferenceMismatchError`` naming the
+      digests, the measured difference, the package versions that differ and the command that installs the locked
+      environment, and the seconds it took to find out;
+    * ``config_differences``: the settings of the run identity that differ (``identity_diff``), without the keys of
+      ``RERUN_NEUTRAL_KEYS`` when the samples match;
+    * ``environment``: ``harness.verdict.environment_differences`` of the reference run's record and this machine's
+      (the threads the configuration sets, the instruction-set caps of the environment).
+
+    Also returns ``check_s``, the seconds the checks took."""
+    import time as _time
+
+    from harness.runner import fold_indices, identity_diff, plan
+
+    t0 = _time.perf_counter()
+    p = plan(request)
+    planned = p.runs[0]
+    prepared, enc = p.prepared, p.encoding
+    train_idx, val_idx = fold_indices(prepared, planned.fold)
+    params = dict((planned.config.get("encoding") or {}).get(enc.name) or {})
+    here = {
+        "train": prepared.content_digest(train_idx, enc, params),
+        "held_out": prepared.content_digest(val_idx, enc, params),
+        "aligned": {"train": prepared.content_digest(train_idx), "held_out": prepared.content_digest(val_idx)},
+    }
+    theirs = ref.metrics.get("samples") if isinstance(ref.metrics.get("samples"), dict) else {}
+    samples = _compare_samples(refs, ref, planned, prepared, here, theirs, t0)
+    neutral = samples["state"] in ("identical", "within tolerance")
+    config_diff = [
+        d
+        for d in identity_diff(ref.config, planned.config, limit=10**6)
+        if not (neutral and d.split(":", 1)[0] in RERUN_NEUTRAL_KEYS)
     ]
+    env = _environment_check(refs, ref, planned.config)
+    return {
+        "samples": samples,
+        "config_differences": config_diff,
+        "environment": env.to_dict(),
+        "check_s": round(_time.perf_counter() - t0, 2),
+    }
+
+
+def _compare_samples(
+    refs: Any,
+    ref: Any,
+    planned: Any,
+    prepared: Any,
+    here: Mapping[str, Any],
+    theirs: Mapping[str, Any],
+    t0: float,
+) -> dict[str, Any]:
+    """The samples part of ``check_rerun``."""
+    import time as _time
+    from types import SimpleNamespace
+
+    from harness import provenance
+    from harness.cache import fingerprint as FP
+    from harness.references import FINGERPRINT, LOCK_COMMAND, ReferenceMismatchError, _measure
+
+    rows = [
+        ("train", here.get("train"), theirs.get("train")),
+        ("held-out", here.get("held_out"), theirs.get("held_out")),
+        ("aligned train", (here.get("aligned") or {}).get("train"), (theirs.get("aligned") or {}).get("train")),
+        (
+            "aligned held-out",
+            (here.get("aligned") or {}).get("held_out"),
+            (theirs.get("aligned") or {}).get("held_out"),
+        ),
+    ]
+    out: dict[str, Any] = {"here": dict(here), "reference": dict(theirs), "measured": None}
+    if not theirs.get("held_out"):
+        out["state"] = "not recorded"
+        return out
+    differ = [f"{name} {str(a)[:12]} vs {str(b)[:12]}" for name, a, b in rows if b is not None and a != b]
+    if not differ:
+        out["state"] = "identical"
+        return out
+    run = SimpleNamespace(
+        key=planned.run.key,
+        config=planned.config,
+        metrics={"samples": {**here, "prepared": str(prepared.folder)}, "environment": provenance.package_versions()},
+    )
+    diff, why = None, f"the references in {refs.root} hold no sample fingerprint ({FINGERPRINT}) to measure against"
+    if (refs.root / FINGERPRINT).is_file():
+        try:
+            diff, why = _measure(run, FP.load(refs.root / FINGERPRINT), {})
+        except (OSError, ValueError) as exc:
+            why = f"the references' sample fingerprint could not be read ({exc})"
+    if diff is not None:
+        out["measured"] = diff.describe()
+        if diff.within(FP.TOLERANCE):
+            out["state"] = "within tolerance"
+            return out
+    theirs_env = {**(refs.manifest.get("environment") or {}), **(refs.manifest.get("samples_environment") or {})}
+    versions = provenance.differences(
+        provenance.package_versions(),
+        {**theirs_env, **(ref.metrics.get("environment") or {})},
+        [*provenance.SAMPLE_PACKAGES, *provenance.TRAINING_PACKAGES],
+        "reference",
+    )
+    measured = (
+        f"measured against the references' sample fingerprint: {diff.describe()}, beyond the tolerance of a library "
+        f"release ({FP.TOLERANCE.describe()})"
+        if diff is not None
+        else f"the difference could not be measured: {why}"
+    )
+    raise ReferenceMismatchError(
+        f"{planned.run.key}: stopped before training: the samples prepared here are not the reference run's "
+        f"(digests here vs reference: {'; '.join(differ)}); {measured}. "
+        + (
+            f"Package versions that differ from the reference's: {', '.join(versions)}. "
+            if versions
+            else "No sample- or training-shaping package version differs from the reference's; check the data "
+            f"folder ({prepared.folder}) and the dataset's options. "
+        )
+        + f"Install the locked environment ({LOCK_COMMAND}), prepare again (`harness prepare --force`) and rerun. "
+        f"(Checked in {_time.perf_counter() - t0:.1f} s, nothing trained.)"
+    )
+
+
+def _environment_check(refs: Any, ref: Any, cfg: Mapping[str, Any]) -> Any:
+    """``harness.verdict.environment_differences`` of the reference run's recorded environment (completed by what the
+    reference manifest records: the sample-shaping package versions, and of the benchmark that made it the CPU model
+    and the instruction-set caps) and this
+    machine's, with the threads the configuration sets."""
+    from harness.engine.runtime import environment
+    from harness.verdict import environment_differences
+
+    theirs = dict(ref.metrics.get("environment") or {})
+    calls = ((refs.manifest.get("benchmark") or {}).get("calls") or [{}])[-1:]
+    call = calls[0] if calls else {}
+    if "cpu" not in theirs and call.get("cpu"):  # "AMD EPYC (torch CPU capability AVX2)"
+        theirs["cpu"] = {"model": str(call["cpu"]).split(" (torch CPU capability")[0]}
+    packages = dict(theirs.get("packages") or {})
+    for k, v in (refs.manifest.get("samples_environment") or {}).items():  # the versions that made its samples
+        if k != "python" and k not in theirs:
+            packages.setdefault(k, v)
+    if packages:
+        theirs["packages"] = packages
+    isa = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
+    if call.get("isa_env") is not None:
+        theirs["isa_env"] = {k: call["isa_env"].get(k, "<unset>") for k in isa}
+    here = dict(environment(None))
+    threads = (cfg.get("train") or {}).get("threads")
+    if threads:
+        here["threads"] = int(threads)
+    here["isa_env"] = {k: os.environ.get(k, "<unset>") for k in isa}
+    return environment_differences(theirs, here, ignore=("harness", "platform"))
+
+
+def reference_seeds(refs: Any, detector: str, encoding: str, fold: str) -> dict[int, dict[str, Any]]:
+    """``{seed: {"mAP50": .., "mAP50_95": ..}}`` of every finished reference run of ``detector/encoding/fold``."""
+    from harness.report.reader import read_run
+    from harness.store import Run, RunKey
+
+    out: dict[int, dict[str, Any]] = {}
+    prefix = f"{detector}/{encoding}/{fold}/seed"
+    for cell in refs.manifest.get("cells") or []:
+        if not str(cell).startswith(prefix):
+            continue
+        try:
+            s = int(str(cell).removeprefix(prefix))
+        except ValueError:
+            continue
+        r = Run(refs.root, RunKey(refs.dataset, detector, encoding, fold, s))
+        if r.is_finished():
+            m = read_run(r).metrics.get("metrics") or {}
+            out[s] = {"mAP50": m.get("mAP50"), "mAP50_95": m.get("mAP50_95")}
+    return out
+
+
+def rerun_text(result: Mapping[str, Any]) -> str:
+    """``rerun_cell``'s result as text, under 100 columns."""
+    import textwrap
+
+    from harness.verdict import EnvironmentComparison, Verdict, verdict_lines
+
+    def wrap(text: str, indent: str = "  ") -> list[str]:
+        return textwrap.wrap(text, 100, initial_indent=indent, subsequent_indent=indent + "  ")
+
+    lines = [*wrap(f"cell {result['cell']}: reference {result['reference']}", ""), *wrap(f"rerun {result['rerun']}")]
+    s = result.get("samples") or {}
+    state = s.get("state")
+    if state == "identical":
+        lines.append("samples: identical (train, held-out and aligned digests equal the reference run's)")
+    elif state == "within tolerance":
+        lines += wrap(f"samples: differ within the tolerance of a library release, measured: {s.get('measured')}", "")
+    elif state:
+        lines.append(f"samples: {state} by the reference run (not checked)")
     if result["identical"]:
         lines.append("identical: metrics, per-category AP, support and predictions equal the reference run's")
     else:
-        lines.append("DIFFERENT: " + "; ".join(result["differences"]))
-        if result["config_differences"]:
-            lines.append("  configuration differs: " + "; ".join(result["config_differences"]))
-        if result["environment_differences"]:
-            lines.append("  environment differs: " + "; ".join(result["environment_differences"]))
+        lines += wrap("DIFFERENT: " + "; ".join(result["differences"]), "")
+    v = result.get("verdict")
+    if v:
+        from harness.verdict import Interval, MetricVerdict
+
+        rows = [
+            MetricVerdict(**{**m, "interval": Interval(**m["interval"]) if m.get("interval") else None})
+            for m in v["metrics"]
+        ]
+        lines += verdict_lines(Verdict(v["result"], list(v["seeds"]), rows, v.get("why", "")))
+    if result["config_differences"]:
+        lines += wrap("configuration differs: " + "; ".join(result["config_differences"]), "")
+    else:
+        lines.append("configuration: every setting that changes training equals the reference run's")
+    env = result.get("environment")
+    if env:
+        lines += EnvironmentComparison(env["differ"], env["unknown"], env["same"]).lines()
+    lines.append(f"checked before training in {result.get('check_s', 0):.1f} s")
     return "\n".join(lines)
 
 

@@ -220,17 +220,20 @@ def register_commands(cli: click.Group) -> None:
     @opt.format_option("text", "json")
     @opt.no_progress_option()
     def rerun_cmd(cell: str, work_dir: Path, reference_results: str | None, fmt: str) -> None:
-        """Train one reference CELL again (DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0) and compare its
-        metrics with the reference results' (default: the shipped ones): identical on the same torch build and
-        thread count. Exits 1 when a number differs."""
-        from harness import benchmark as B
+        """Train one reference CELL again (DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0) and compare it with the
+        reference results' (default: the shipped ones).
 
-        det, enc, fold, seed = _cell_key(cell)
+        Before training it checks the samples (their digests, or within a library release's tolerance), the
+        configuration and the environment: other samples stop it at once, naming the digests, the measured
+        difference and the package versions that differ. After training: identical, or a verdict against the
+        references' training variance (the cell's seeds: within or outside a 95 % prediction interval for one
+        training run), with the environment facts that differ. Exits 1 when a number differs."""
+        from harness import benchmark as B
+        from harness.progress import progress_on
         from harness.references import load_references
 
+        det, enc, fold, seed = _cell_key(cell)
         refs = load_references(reference_results or "shipped")
-        from harness.progress import progress_on
-
         result = B.rerun_cell(refs, det, enc, fold, seed, work_dir, progress=progress_on())
         if fmt == "json":
             click.echo(json.dumps(result, indent=2))
