@@ -836,8 +836,8 @@ def _compare_samples(
         + (
             f"Package versions that differ from the reference's: {', '.join(versions)}. "
             if versions
-            else "No sample- or training-shaping package version differs from the reference's; check the data "
-            f"folder ({prepared.folder}) and the dataset's options. "
+            else "No sample- or training-shaping package version differs from the reference's: check the dataset's "
+            f"source folder and options (the samples prepared here: {prepared.folder}). "
         )
         + f"Install the locked environment ({LOCK_COMMAND}), prepare again (`harness prepare --force`) and rerun. "
         f"(Checked in {_time.perf_counter() - t0:.1f} s, nothing trained.)"
