@@ -24,7 +24,13 @@ Layout (``export_references``)::
      "cells": ["<detector>/<encoding>/<fold>/seed<seed>", ...],
      "training": {"imgsz", "epochs", "scale", "threads"},
      "environment": {...},                                           # torch build, CPU, threads of the runs
-     "benchmark": {"wall_s", "cpu_s", "lanes", "cpu"} | null}        # how long `harness benchmark run` took
+     "benchmark": {"wall_s", "cpu_s", "lanes", "cpu"} | null,        # how long `harness benchmark run` took
+     "samples_environment": {...},   # Python and the sample-shaping packages the samples were reproduced with
+     "torch_build": {...}}           # BLAS, LAPACK, oneDNN builds of the runs' torch build
+
+``samples.npz`` beside it is the fingerprint of the samples (``harness.cache.fingerprint``): a user's samples whose
+digests differ are measured against it, and compared, labelled, when they differ only as a library release makes
+them differ (``check_matched``).
 """
 
 from __future__ import annotations
@@ -436,6 +442,10 @@ def write_fingerprint(root: str | Path, prepared: Any, encodings: Sequence[str] 
     FP.save(refs.root / FINGERPRINT, fp)
     manifest = dict(refs.manifest)
     manifest["samples_environment"] = provenance.sample_environment()
+    ran_with = str((manifest.get("environment") or {}).get("torch") or "")
+    if ran_with and ran_with == provenance.package_versions().get("torch"):
+        # the BLAS, LAPACK and oneDNN builds of the torch build the runs record (read from that same build here)
+        manifest["torch_build"] = provenance.torch_build()
     (refs.root / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
     return {"fingerprint": str(refs.root / FINGERPRINT), "bytes": (refs.root / FINGERPRINT).stat().st_size}
 
