@@ -178,6 +178,17 @@ def _plot_section(view: StoreView, datasets: Sequence[str], out: Path | None) ->
 
 
 def _pareto_labels(dataset: str, rows: Sequence[Entry]) -> set[str] | None:
+    """The entries on the accuracy-versus-GFLOPs Pareto front, the store's own and the reference results' (``ref:``)
+    each their own front."""
+    refs = [e for e in rows if e.detector.startswith(REF_PREFIX)]
+    own = [e for e in rows if not e.detector.startswith(REF_PREFIX)]
+    if refs and own:
+        parts = [_front(own), _front(refs)]
+        return None if all(p is None for p in parts) else set().union(*(p or set() for p in parts))
+    return _front(rows)
+
+
+def _front(rows: Sequence[Entry]) -> set[str] | None:
     pts = [(e.label, e.complexity().get("gflops"), e.aggregate()["metrics"].get("mAP50_95")) for e in rows]
     pts = [(lab, g, m["mean"]) for lab, g, m in pts if g is not None and m and m.get("mean") is not None]
     if not pts:
@@ -229,7 +240,7 @@ def _paired_section(
             if anchor is None or e.detector.startswith(REF_PREFIX) or any(e in p for p in pairs):
                 continue
             if set(e.fold_names) & set(anchor.fold_names):
-                pairs.append((anchor, e))
+                pairs.append((e, anchor))  # A - B: the store's detector minus the reference, as compare-detectors
     by_det: dict[str, list[Entry]] = {}
     for e in entries:
         by_det.setdefault(e.detector, []).append(e)
@@ -267,9 +278,11 @@ def _paired_section(
             paired_table(
                 comps,
                 f"{dataset}-paired".replace("/", "-"),
-                f"{dataset}: paired comparisons (A - B, percentage points)",
+                f"{dataset}: paired comparisons (A - B, percentage points; against a reference result, A is the "
+                "store's detector and B the reference, as in `harness compare-detectors A B`)",
             )
         )
+        _split(sec.tables[-1], lambda r: str(r.get("a", "")).startswith(REF_PREFIX))
     if skipped:
         sec.notes += [f"Not compared: {s}" for s in skipped]
         if not comps:
@@ -343,6 +356,14 @@ def _scale_note(view: StoreView, dataset: str) -> str | None:
     )
 
 
+#: The labels of a table's two blocks when it holds the store's runs and reference results (``Table.split_blocks``).
+OWN_BLOCK, REFERENCE_BLOCK = "this store's runs", "reference results (ref:DETECTOR)"
+
+
+def _split(table: Any, is_reference: Callable[[Mapping[str, Any]], bool]) -> None:
+    table.split_blocks(is_reference, OWN_BLOCK, REFERENCE_BLOCK)
+
+
 def _claim_categories(view: StoreView, dataset: str) -> list[str]:
     """The categories of ``dataset``'s stored runs when they include the paper's (delamination), else none: the
     claims section is only for data with the paper's categories."""
@@ -356,16 +377,17 @@ def _claim_categories(view: StoreView, dataset: str) -> list[str]:
 def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, progress: Any = None) -> Section:
     """The paper's claims tested on the data (``harness.report.claims``), on ``scorer``'s resamples (the paired
     comparisons' scorer, with the categories' AP50 columns: runs it scored already are not scored again)."""
-    from harness.report.claims import claims_records, evaluate_claims
+    from harness.report.claims import claims_records, evaluate_claims, is_synthetic, standin_lead
     from harness.report.tables import Column, Table
 
-    sec = Section("claims", "The paper's claims, tested", dataset)
+    where = "on the synthetic stand-in" if is_synthetic(view, dataset) else "on these data"
+    sec = Section("claims", f"The paper's claims, tested {where}", dataset)
     start = (lambda n: progress.start(n, f"claims {dataset}")) if progress is not None else None
     claims, notes = evaluate_claims(view, dataset, scorer, on_total=start)
     rows = [{"n": c.number, "claim": c.text, "verdict": c.verdict, "evidence": "; ".join(c.evidence)} for c in claims]
     table = Table(
         f"{dataset}-claims".replace("/", "-"),
-        f"{dataset}: the paper's claims, tested on the data",
+        f"{dataset}: the paper's claims, tested {where} at the benchmark's model sizes",
         [
             Column("n", "#", "int"),
             Column("claim", "claim"),
@@ -376,6 +398,7 @@ def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, prog
         records=list(claims_records(claims)),
     )
     sec.tables.append(table)
+    sec.lead.append(standin_lead(view, dataset))
     sec.notes += notes
     return sec
 
@@ -407,6 +430,12 @@ def dataset_sections(
         # references trained at another budget: in the tables for scale, not in this store's error analysis
         shown = [e for e in rows if not e.detector.startswith(REF_PREFIX)]
     evidence_secs, size_ap, evidence = evidence_sections(dataset, shown, _entry_names(shown), out, root)
+    if len(shown) < len(rows) and evidence_secs and view.references is not None:
+        evidence_secs[0].notes.append(
+            "The reference results' error analysis (each run's analysis.json.gz, stored beside its metrics): "
+            f"`harness report --store {view.references.root} --resamples 0 --print` shows it (TIDE, confusion, PR "
+            "curves per reference detector)."
+        )
     sections: list[Section] = []
     run_cmd = f"`harness run --detector D --dataset {dataset} --folds all --store {root}`"
 
@@ -415,6 +444,7 @@ def dataset_sections(
     if table is None:
         sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
     else:
+        _split(table, lambda r: str(r.get("detector", "")).startswith(REF_PREFIX))
         sec.tables.append(table)
     sec.notes += view.reference_notes.get(dataset, [])
     scale = _scale_note(view, dataset)
@@ -506,6 +536,10 @@ def dataset_sections(
     # sensor-level sections belong to datasets with a sensing stage; a stored analysis is shown whatever the dataset
     keep_absent = view.sensing_stage(dataset)
     sections += [s for s in sensing if keep_absent or not s.absent]
+    for s in sections:  # every table with a row per detector: the store's runs and the references apart
+        for t in s.tables:
+            if s.key != "paired" and any("detector" in r for r in t.rows):
+                _split(t, lambda r: str(r.get("detector", "")).startswith(REF_PREFIX))
     return sections, comps
 
 

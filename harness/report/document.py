@@ -37,6 +37,8 @@ class Section:
     figures: list[FigureOut] = field(default_factory=list)
     absent: str | None = None
     notes: list[str] = field(default_factory=list)
+    #: what the section's numbers are about, shown above its tables (the claims: the data and sizes tested)
+    lead: list[str] = field(default_factory=list)
     #: pictures (``harness.report.gallery.Gallery``): one gallery per detector
     galleries: list[Any] = field(default_factory=list)
 
@@ -88,6 +90,8 @@ class Report:
             if s.absent:
                 out += [f"{s.title}: ABSENT. {s.absent}", ""]
                 continue
+            if s.lead:
+                out += [f"{s.title}: {s.lead[0]}", *s.lead[1:], ""]
             for t in s.tables:
                 out += [t.to_text(), ""]
             for f in s.figures:
@@ -115,6 +119,8 @@ class Report:
             if s.absent:
                 out += [f"### {s.title}", "", f"*Absent.* {s.absent}", ""]
                 continue
+            if s.lead:
+                out += [f"**{s.title}.** " + " ".join(s.lead), ""]
             for t in s.tables:
                 out += [t.to_markdown(), ""]
             for f in s.figures:

@@ -38,6 +38,7 @@ th.group { text-align: center; border-bottom-color: #aeb8c2; }
 td.r, th.r { text-align: right; }
 td.l, th.l { text-align: left; }
 td.best { font-weight: 700; color: var(--best); }
+tr.block th { background: #fff; color: var(--best); font-style: italic; border-top: 2px solid #aeb8c2; }
 tr.summary td { color: var(--muted); font-style: italic; background: #fafbfc; }
 td.pareto { color: #1b7f3b; font-weight: 700; text-align: center; }
 .loud { border: 3px solid var(--warn); background: #fff1f3; color: var(--warn); padding: 8px 12px; margin: 8px 0;
@@ -45,6 +46,7 @@ td.pareto { color: #1b7f3b; font-weight: 700; text-align: center; }
 .loud ul { margin: 4px 0 0; padding-left: 20px; text-transform: none; font-weight: 400; color: #5a0010; }
 .absent { border: 2px dashed var(--line); color: var(--muted); padding: 8px 12px; border-radius: 4px; margin: 8px 0; }
 .absent b { color: var(--fg); }
+p.lead { border-left: 4px solid var(--best); background: var(--head); padding: 6px 10px; margin: 8px 0; }
 ul.notes { color: var(--muted); font-size: 12.5px; margin: 4px 0 12px; padding-left: 18px; }
 code { background: var(--head); padding: 1px 4px; border-radius: 3px; font-size: 12.5px; }
 figure { margin: 10px 0; }
@@ -93,7 +95,10 @@ def render_table(t: Table) -> str:
     best = {c.key: t.best_rows(c) for c in t.columns}
     head = _header(t)
     body = []
+    starts = t.block_starts()
     for i, r in enumerate(t.rows):
+        if i in starts:
+            body.append(f'<tr class="block"><th class="l" colspan="{len(t.columns)}">{escape(starts[i])}</th></tr>')
         cells = []
         for c in t.columns:
             text = t.cell(r, c)
@@ -139,6 +144,8 @@ def render_section(s: Section) -> str:
     if s.absent:
         out.append(f"<h3>{escape(s.title)}</h3>")
         out.append(f'<div class="absent"><b>Absent.</b> {_code(s.absent)}</div>')
+    if s.lead and not s.absent:
+        out.append(f'<p class="lead"><b>{escape(s.title)}.</b> {" ".join(_code(x) for x in s.lead)}</p>')
     for t in s.tables:
         out.append(render_table(t))
     for f in s.figures:

@@ -32,7 +32,7 @@ import io
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from harness.report.cells import Interval, Stat, format_value
 from harness.report.reader import (
@@ -115,20 +115,56 @@ class Table:
         summary rows never)."""
         if not col.best:
             return set()
-        vals = [(i, _number(r.get(col.key))) for i, r in enumerate(self.rows) if not r.get("_summary")]
-        vals = [(i, v) for i, v in vals if v is not None]
-        if len(vals) < 2:
-            return set()
-        lo, hi = min(v for _, v in vals), max(v for _, v in vals)
-        if math.isclose(lo, hi, rel_tol=1e-12, abs_tol=1e-12):
-            return set()  # all equal: nothing stands out
-        target = hi if col.best == "max" else lo
-        return {i for i, v in vals if math.isclose(v, target, rel_tol=1e-12, abs_tol=1e-12)}
+        out: set[int] = set()
+        for block in dict.fromkeys(r.get("_block") for r in self.rows):  # each block's best apart (``split_blocks``)
+            vals = [
+                (i, _number(r.get(col.key)))
+                for i, r in enumerate(self.rows)
+                if not r.get("_summary") and r.get("_block") == block
+            ]
+            vals = [(i, v) for i, v in vals if v is not None]
+            if len(vals) < 2:
+                continue
+            lo, hi = min(v for _, v in vals), max(v for _, v in vals)
+            if math.isclose(lo, hi, rel_tol=1e-12, abs_tol=1e-12):
+                continue  # all equal: nothing stands out
+            target = hi if col.best == "max" else lo
+            out |= {i for i, v in vals if math.isclose(v, target, rel_tol=1e-12, abs_tol=1e-12)}
+        return out
+
+    def split_blocks(self, is_reference: Callable[[Mapping[str, Any]], bool], own: str, references: str) -> None:
+        """Put the rows ``is_reference`` picks after the others, each group a labelled block (``own``,
+        ``references``) with its own best values; summary rows stay last. Nothing changes unless both are there."""
+        body = [r for r in self.rows if not r.get("_summary")]
+        refs = [r for r in body if is_reference(r)]
+        if not refs or len(refs) == len(body):
+            return
+        mine = [r for r in body if not is_reference(r)]
+        for r in mine:
+            r["_block"] = own
+        for r in refs:
+            r["_block"] = references
+        self.rows = mine + refs + [r for r in self.rows if r.get("_summary")]
+
+    def block_starts(self) -> dict[int, str]:
+        """Row index -> the label of the block that begins there."""
+        out, current = {}, None
+        for i, r in enumerate(self.rows):
+            b = r.get("_block")
+            if b and b != current:
+                out[i] = b
+            current = b
+        return out
 
     # ---------------------------------------------------------------------------------------------- renderers
     def to_text(self) -> str:
         header = [c.label for c in self.columns]
-        body = [[self.cell(r, c) for c in self.columns] for r in self.rows]
+        starts = self.block_starts()
+        body = []
+        for i, r in enumerate(self.rows):
+            if i in starts:
+                body.append([f"-- {starts[i]}"] + [""] * (len(self.columns) - 1))
+            body.append([self.cell(r, c) for c in self.columns])
         out = [self.title, "=" * len(self.title)]
         if self.warning:
             out += [f"!!! {self.warning.upper()} !!!", *[f"!!!   {d}" for d in self.warning_details]]
@@ -143,7 +179,10 @@ class Table:
         best = {c.key: self.best_rows(c) for c in self.columns}
         out.append("| " + " | ".join(_md_escape(c.label) for c in self.columns) + " |")
         out.append("|" + "|".join(":---" if c.align == "l" else "---:" for c in self.columns) + "|")
+        starts = self.block_starts()
         for i, r in enumerate(self.rows):
+            if i in starts:
+                out.append(f"| *{_md_escape(starts[i])}* |" + " |" * (len(self.columns) - 1))
             cells = []
             for c in self.columns:
                 text = _md_escape(self.cell(r, c))
