@@ -262,8 +262,8 @@ def main() -> None:
         est = "".join(f"{report_s_per_eval * n_runs * (1 + r):>23.0f}" for r in counts)
         print("report s/seed" + est[7:] + "  (estimated)")
     print(
-        f"weighted scoring: {scoring_s:.1f} s for {args.seeds} seeds x {n_runs} runs x {top} resamples, the matching included "
-        f"({cpu_name()}, one process)"
+        f"weighted scoring: {scoring_s:.1f} s for {args.seeds} seeds x {n_runs} runs x {top} resamples, the "
+        f"matching included ({cpu_name()}, one process)"
     )
 
 
