@@ -325,6 +325,8 @@ def test_a_detector_run_on_one_fold_is_paired_with_the_references_on_that_fold(b
     paired = next(s for s in report.sections if s.key == "paired")
     rows = [line for t in paired.tables for line in t.to_text().splitlines() if "tinydet-dual" in line]
     assert rows and "ref:tinydet" in rows[0], paired.tables[0].to_text() if paired.tables else paired.notes
+    # A - B is the store's detector minus the reference, as `harness compare-detectors tinydet-dual ref:...` reads
+    assert rows[0].index("tinydet-dual") < rows[0].index("ref:tinydet")
 
 
 def test_exporting_an_unfinished_benchmark_is_refused(bench, tmp_path):
