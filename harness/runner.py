@@ -8,9 +8,23 @@ same cached, aligned samples), resolves the folds, and then for each fold and se
 * a run that already **finished** with the same configuration hash is skipped (its stored metrics are reused);
   one that finished with a different configuration is refused before anything is trained, unless ``force``;
 * a run that was **interrupted** resumes from its last checkpoint (``checkpoints/last.pt``);
-* otherwise the detector is built (seeded), optionally initialised from ``init``, trained on the fold's training
-  groups with the EMA weights validated on the held-out groups each epoch (the best by fitness is kept), then the
-  best weights predict the held-out images and ``harness.evaluation.evaluate`` scores them.
+* otherwise the detector is built (seeded), optionally initialised from ``init``, trained, and the selected weights
+  predict the held-out images once, which ``harness.evaluation.evaluate`` scores.
+
+Which weights predict the held-out fold is ``protocol.selection`` (``SELECTIONS``), recorded in each run's
+``config.yaml`` and ``metrics.json`` (``selection``):
+
+* ``validation``: the fold's training groups are divided (``harness.cache.folds.validation_split``: the smallest
+  training group held back whole, or ``protocol.validation_groups``); the model trains on the others, its EMA weights
+  are scored on the validation group each epoch, the best by fitness is kept and early stopping watches it. The
+  held-out images are predicted once, at the end;
+* ``last``: trained on every training group for ``protocol.epochs``; the last epoch's EMA weights, no per-epoch
+  scoring and no early stopping;
+* ``held-out``: the seed's protocol: scored on the held-out fold each epoch, the best epoch on it kept (so the
+  reported number was chosen on the data it reports).
+
+``eval.log_held_out: true`` (``validation``/``last``) also scores the held-out fold each epoch into ``log.jsonl``
+(``observed``) to measure what selecting on it would have gained; it never selects anything.
 
 Everything lands in the results store (``harness.store``): ``config.yaml``, ``status.json``, ``log.jsonl``,
 ``checkpoints/``, ``predictions.json``, ``gt.json`` and ``metrics.json`` (support, metrics, per-category AP, model
@@ -35,7 +49,7 @@ import shutil
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping, Sequence, TypedDict, Unpack
 
 from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
@@ -68,6 +82,18 @@ LOCATION_KEYS = {("dataset", "root"), ("train", "init")}
 #: Keys that decide whether a run may use its samples, not what it computes (the plausibility guard's ``inputs``
 #: section and the accepted findings it labels the run with): left out of the identity.
 GUARD_KEYS = {("meta", "input_risks")}
+#: ``protocol.selection``: what chooses the weights that predict the held-out fold (see the module docstring).
+SELECTIONS = ("validation", "last", "held-out")
+
+
+def selection_of(cfg: Mapping[str, Any]) -> str:
+    """The config's ``protocol.selection`` (``held-out`` when unset, as runs stored before it existed were made)."""
+    sel = str((cfg.get("protocol") or {}).get("selection") or "held-out")
+    if sel not in SELECTIONS:
+        raise ConfigError(f"protocol.selection: {sel!r} is not one of {', '.join(SELECTIONS)}")
+    return sel
+
+
 #: The digest of which sample each image id held when a run was planned (``harness.cache`` ``sample_identity``): not
 #: part of the identity (runs stored before it existed stay "finished"), but a finished run that recorded another
 #: one than the prepared data has now was scored on other pictures under the same cache key, and is a conflict.
@@ -260,6 +286,15 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
         for k, v in trimmed.get("meta", {}).items()
         if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS and ("meta", k) != SAMPLES_KEY
     }
+    proto, ev = trimmed.get("protocol"), trimmed.get("eval")
+    if isinstance(proto, dict) and proto.get("selection", "held-out") == "held-out":
+        # the seed's protocol, which runs stored before the key existed used: their identity is unchanged
+        proto.pop("selection", None)
+        proto.pop("validation_groups", None)
+    if isinstance(proto, dict) and not proto.get("validation_groups"):
+        proto.pop("validation_groups", None)
+    if isinstance(ev, dict):
+        ev.pop("log_held_out", None)  # per-epoch held-out scores in the log only: never used, never change a number
     trimmed.pop("tracking", None)  # where copies of the run are logged, not what it computes
     trimmed.pop("inputs", None)  # the plausibility guard's settings: whether the samples may be used
     return trimmed
@@ -388,6 +423,7 @@ def plan(request: RunRequest) -> RunPlan:
     store = Store(request.store or Path("results") / (request.profile or "default"))
     init_info = _init_info(init)
     check_settings(det, ds, enc, cfg)  # bad options fail here, before any store folder is touched
+    selection = selection_of(cfg)
     tracking.resolve((cfg.get("tracking") or {}).get("loggers") or [])  # unknown or uninstalled: stop before work
 
     with hd.main_first():  # under torchrun rank 0 fills the cache, then the others read it
@@ -406,6 +442,11 @@ def plan(request: RunRequest) -> RunPlan:
 
     runs = []
     for fold in folds:
+        carved: dict[str, Any] = {}
+        if selection == "validation":  # a fold that cannot be divided fails here, before anything trains
+            from harness.cache.folds import validation_split
+
+            carved = {"validation_groups": list(validation_split(prepared, fold, cfg).groups)}
         for seed in seeds:
             key = RunKey(ds.name, det.name, enc.name, fold.name, seed)
             samples_digest = (prepared.manifest.get("report") or {}).get("samples_identity")
@@ -418,6 +459,7 @@ def plan(request: RunRequest) -> RunPlan:
                     **({SAMPLES_KEY[1]: samples_digest} if samples_digest else {}),
                     "val_groups": list(fold.val_groups),
                     "train_groups": list(fold.train_groups),
+                    **carved,
                     **init_info,
                     **({"registration": registration} if registration else {}),
                 },
@@ -546,6 +588,7 @@ def run_one(
     import torch
 
     from harness import distributed as hd
+    from harness.cache.folds import validation_split
     from harness.complexity import measure as measure_complexity
     from harness.engine import checkpoint as ckpt
     from harness.engine.data import AugmentSettings, SampleSource, TrainDataset
@@ -604,10 +647,18 @@ def run_one(
     try:
         settings = TrainSettings.from_config(cfg, seed)
         eval_cfg = cfg["eval"]
+        selection = selection_of(cfg)
+        split = validation_split(prepared, fold, cfg) if selection == "validation" else None
+        fit_idx = list(split.train) if split is not None else list(train_idx)
         enc_params = dict((cfg.get("encoding") or {}).get(enc.name, {}) or {})
         cache_mb = float(cfg["train"].get("cache_mb") or 0)
-        train_src = SampleSource(prepared, train_idx, enc, enc_params, cache_mb=cache_mb)
+        train_src = SampleSource(prepared, fit_idx, enc, enc_params, cache_mb=cache_mb)
         val_src = SampleSource(prepared, val_idx, enc, enc_params, cache_mb=cache_mb)
+        sel_src = (
+            SampleSource(prepared, list(split.validation), enc, enc_params, cache_mb=cache_mb)
+            if split is not None
+            else None
+        )
         train_src.warm()
         aug = AugmentSettings.from_config(cfg["augment"], train_src.extra)
         gt = prepared.coco(val_idx)
@@ -652,10 +703,16 @@ def run_one(
             complexity = copy.deepcopy(memo[arch][0])
         name = f"{det.name}/{enc.name}/{fold.name}/seed{seed}"
 
-        def validate(m: Any) -> dict[str, Any] | None:
+        def scorer(src: Any, truth: dict[str, Any]) -> Callable[[Any], dict[str, Any] | None]:
+            def score(m: Any) -> dict[str, Any] | None:
+                return _score(m, src, truth)
+
+            return score
+
+        def _score(m: Any, src: Any, truth: dict[str, Any]) -> dict[str, Any] | None:
             dets = predict(
                 m,
-                val_src,
+                src,
                 settings.imgsz,
                 int(eval_cfg["batch"]),
                 det.input_kind,
@@ -670,7 +727,7 @@ def run_one(
             )
             if not main:
                 return None  # rank 0 scores the gathered predictions; the trainer broadcasts its metrics
-            res = evaluate_with_config(gt, dets, cfg)
+            res = evaluate_with_config(truth, dets, cfg)
             out = {k: res["metrics"].get(k) for k in ("precision", "recall", "mAP50", "mAP50_95")}
             out["AP50_per_category"] = {c: v.get("AP50") for c, v in res["per_category"].items()}
             return out
@@ -681,6 +738,15 @@ def run_one(
             if overall is not None:
                 overall.epoch_done(int(record["epoch"]), int(record["epochs"]))
 
+        # the weights' per-epoch score that selects them: the validation split, the held-out fold (the seed's
+        # protocol), or none (the last epoch); the held-out fold scored for the log only under eval.log_held_out
+        if sel_src is not None:
+            validate = scorer(sel_src, prepared.coco(list(sel_src.indices)))
+        elif selection == "held-out":
+            validate = scorer(val_src, gt)
+        else:
+            validate = None
+        observe = scorer(val_src, gt) if selection != "held-out" and bool(eval_cfg.get("log_held_out", False)) else None
         trainer = Trainer(
             model,
             TrainDataset(train_src, settings.imgsz, aug, seed),
@@ -693,12 +759,17 @@ def run_one(
             progress,
             digest,
             name,
+            observe=observe,  # type: ignore[arg-type]
+            select=selection != "last",
         )
         resumed = (r.checkpoint_dir / "last.pt").exists() and not fresh
         result = trainer.fit(resume=not fresh)
         final = trainer.eval_model
-        if cfg["train"].get("final", "best") == "best" and result.best_path:
+        weights = "best" if selection != "last" and cfg["train"].get("final", "best") == "best" else "last"
+        if weights == "best" and result.best_path:
             final.load_state_dict(ckpt.load(result.best_path)["model"])
+        elif weights == "best":
+            weights = "last"
         final.eval()
         t0 = time.perf_counter()
         visited: list[int] = []
@@ -736,6 +807,8 @@ def run_one(
         support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
         params = sum(p.numel() for p in model.parameters())
         train_summary = result.summary()
+        if train_summary.get("plateau"):  # the slope of the selecting score: say which images it was measured on
+            train_summary["plateau"]["metric"] = f"{'held-out' if selection == 'held-out' else 'validation'} fitness"
         if r is not target:  # checkpoint paths as they will be once the replacement is swapped in
             for k in ("best_path", "last_path"):
                 if train_summary.get(k):
@@ -749,11 +822,28 @@ def run_one(
                 "trainable": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
                 "in_channels": in_channels,
                 "input_kind": det.input_kind,
-                "weights": cfg["train"].get("final", "best"),
+                "weights": weights,
+            },
+            # what chose the weights that predicted the held-out fold (protocol.selection), and on which images
+            "selection": {
+                "protocol": selection,
+                "weights": weights,
+                "best_epoch": result.best_epoch if weights == "best" else None,
+                "epochs_run": result.epochs_run,
+                **(
+                    split.record()
+                    if split is not None
+                    else {"validation_groups": [], "validation_images": 0, "train_images": len(fit_idx)}
+                ),
+                **(
+                    {"validation_digest": prepared.content_digest(list(split.validation), enc, enc_params)}
+                    if split is not None
+                    else {}
+                ),
             },
             "train": {
                 **train_summary,
-                "images": len(train_idx),
+                "images": len(fit_idx),
                 "imgsz": settings.imgsz,
                 "batch": settings.batch,
                 "init": init_report,

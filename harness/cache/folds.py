@@ -1,8 +1,9 @@
 """The folds of a prepared dataset and the COCO ground truth of their splits, written into its cache folder.
 
 ``resolve_folds`` reads the config's ``protocol.folds`` or the folds recorded at preparation; ``fold_indices`` the
-samples of a fold's training and held-out groups; ``coco_path`` the COCO file (thermal frame) of a split, written
-on first use under ``<prepared folder>/coco/``.
+samples of a fold's training and held-out groups; ``validation_split`` the validation split carved from a fold's
+training groups for model selection (``protocol.selection: validation``); ``coco_path`` the COCO file (thermal frame)
+of a split, written on first use under ``<prepared folder>/coco/``.
 """
 
 from __future__ import annotations
@@ -119,6 +120,82 @@ def fold_indices(prepared: PreparedDataset, fold: Fold) -> tuple[list[int], list
     if not train:
         raise DataError(f"fold {fold.name!r}: no prepared images to train on (groups {', '.join(fold.train_groups)})")
     return train, val
+
+
+#: Under ``protocol.selection: validation`` with a single training group: every ``IMAGE_SPLIT_EVERY``-th of its images
+#: (in prepared order, starting with the last of each run of five) is the validation split.
+IMAGE_SPLIT_EVERY = 5
+
+
+@dataclass(frozen=True)
+class ValidationSplit:
+    """A fold's training part divided for model selection: the model trains on ``train`` and is scored each epoch on
+    ``validation``; the fold's held-out groups are in neither. ``groups``: the training groups held back whole (empty
+    when ``how`` is ``"images"``: one training group only, so every ``IMAGE_SPLIT_EVERY``-th image of it)."""
+
+    fold: str
+    groups: tuple[str, ...]
+    train: tuple[int, ...]
+    validation: tuple[int, ...]
+    how: str  # "smallest-group" | "configured" | "images"
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "validation_groups": list(self.groups),
+            "validation_images": len(self.validation),
+            "train_images": len(self.train),
+            "how": self.how,
+        }
+
+
+def validation_split(prepared: PreparedDataset, fold: Fold, cfg: Mapping[str, Any] | None = None) -> ValidationSplit:
+    """The validation split of ``fold``, carved from its training groups, deterministic per fold:
+
+    * ``protocol.validation_groups: {fold name: [groups]}`` names the groups for a fold (training groups only);
+    * otherwise the training group with the fewest prepared images (ties: the first by name), so that selection costs
+      the fewest training images; on m3t-synth P4 (16 images) for folds P1, P2 and P3 and P2 (20) for P4+P5;
+    * a fold with a single training group keeps it and validates on every ``IMAGE_SPLIT_EVERY``-th of its images
+      (in prepared order): the only split left, and not group-disjoint within that group (``how: images``).
+
+    The model then trains on the other training groups; the held-out groups are never part of either."""
+    train_idx, _ = fold_indices(prepared, fold)
+    present = [g for g in fold.train_groups if prepared.indices([g])]
+    configured = ((cfg or {}).get("protocol") or {}).get("validation_groups") or {}
+    if not isinstance(configured, Mapping):
+        raise ConfigError(
+            f"protocol.validation_groups must map fold names to lists of training groups, got {configured!r}"
+        )
+    if fold.name in configured:
+        wanted = configured[fold.name]
+        groups = tuple([wanted] if isinstance(wanted, str) else [str(g) for g in wanted or []])
+        bad = [g for g in groups if g not in present]
+        if not groups or bad:
+            raise ConfigError(
+                f"protocol.validation_groups: fold {fold.name!r} must name one or more of its training groups "
+                f"({', '.join(present)}); {', '.join(map(repr, bad)) or 'none named'} "
+                f"{'is' if len(bad) == 1 else 'are'} not"
+            )
+        if set(groups) >= set(present):
+            raise ConfigError(
+                f"protocol.validation_groups: fold {fold.name!r} holds back every training group "
+                f"({', '.join(groups)}); nothing is left to train on"
+            )
+        how = "configured"
+    elif len(present) > 1:
+        sizes = {g: len(prepared.indices([g])) for g in present}
+        groups = (min(sorted(present), key=lambda g: sizes[g]),)
+        how = "smallest-group"
+    else:
+        val = tuple(i for k, i in enumerate(train_idx) if k % IMAGE_SPLIT_EVERY == IMAGE_SPLIT_EVERY - 1)
+        if not val:
+            raise DataError(
+                f"fold {fold.name!r}: {len(train_idx)} training image(s) in one group are too few to hold back a "
+                f"validation split; use protocol.selection=last"
+            )
+        return ValidationSplit(fold.name, (), tuple(i for i in train_idx if i not in set(val)), val, "images")
+    held = set(groups)
+    val = tuple(prepared.indices(groups))
+    return ValidationSplit(fold.name, groups, tuple(i for i in train_idx if prepared.groups[i] not in held), val, how)
 
 
 @dataclass

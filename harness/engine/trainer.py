@@ -13,6 +13,13 @@ weights saved to ``best.pt``, a log line and a ``log.jsonl`` record, the full st
 stopping after ``patience`` epochs without a better fitness. ``fit(resume=True)`` continues from ``last.pt`` to the
 same state an uninterrupted run would have reached.
 
+Model selection is the caller's choice of ``validate`` (the runner's ``protocol.selection``): a validation split carved
+from the training groups, the held-out fold (the seed's protocol), or none with ``select=False`` (the last epoch's
+weights: no fitness, no ``best.pt``, no early stopping). ``observe(model) -> metrics`` scores the weights each epoch
+for the log only (``record["observed"]``; the runner's ``eval.log_held_out``): it never decides anything.
+The run's plateau record (``plateau``) is the least-squares slope of the fitness over the last ``PLATEAU_EPOCHS``
+validated epochs, in points (fitness x 100) per epoch, and whether it is under ``PLATEAU_SLOPE``.
+
 Under ``torchrun`` (``harness.distributed``) the model is wrapped in ``DistributedDataParallel``; ``train.batch`` stays
 the global batch, split evenly over the processes, each of which takes its share of the epoch's order. The summed
 loss is multiplied by the number of processes because DDP averages gradients over them, so a gradient is the same
@@ -28,7 +35,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 from torch import nn
@@ -48,6 +55,32 @@ log = logging.getLogger(__name__)
 
 class TrainingError(HarnessError):
     """Training cannot go on (e.g. the loss became NaN); the message says at which epoch and what to try."""
+
+
+#: The plateau record: the slope of the fitness over this many last validated epochs ...
+PLATEAU_EPOCHS = 5
+#: ... counts as a plateau below this many points (fitness x 100) per epoch. Chosen from the learning curves of the
+#: four reference detectors on m3t-synth (docs/learning-curves/): TODO
+PLATEAU_SLOPE = 0.1
+
+
+def plateau(history: Sequence[Mapping[str, Any]], epochs: int = PLATEAU_EPOCHS) -> dict[str, Any] | None:
+    """``{"slope_per_epoch", "epochs", "reached", "threshold"}``: the least-squares slope of ``fitness`` over the
+    last ``epochs`` records that have one, in points (x 100) per epoch; None with fewer than two such records."""
+    pts = [(float(r["epoch"]), 100.0 * float(r["fitness"])) for r in history if r.get("fitness") is not None]
+    pts = pts[-epochs:]
+    if len(pts) < 2:
+        return None
+    mx = sum(x for x, _ in pts) / len(pts)
+    my = sum(y for _, y in pts) / len(pts)
+    sxx = sum((x - mx) ** 2 for x, _ in pts)
+    slope = sum((x - mx) * (y - my) for x, y in pts) / sxx
+    return {
+        "slope_per_epoch": round(slope, 4),
+        "epochs": len(pts),
+        "reached": slope < PLATEAU_SLOPE,
+        "threshold": PLATEAU_SLOPE,
+    }
 
 
 def fitness(metrics: Mapping[str, Any]) -> float:
@@ -127,6 +160,7 @@ class TrainResult:
     last_path: str | None = None
     resumed_from: int | None = None  # epochs already done when the run was resumed
     device: str = "cpu"
+    plateau: dict[str, Any] | None = None  # ``plateau(history)``: the fitness slope over the last epochs
 
     def summary(self) -> dict[str, Any]:
         out = asdict(self)
@@ -137,9 +171,12 @@ class TrainResult:
 class Trainer:
     """Train ``model`` on ``dataset``; see the module docstring.
 
-    ``validate(model) -> metrics`` scores a model in eval mode (the runner predicts the held-out images and
-    evaluates them); without it, the fitness is the negative mean training loss. ``on_epoch(record)`` receives each
-    epoch's record (the runner appends it to ``log.jsonl``).
+    ``validate(model) -> metrics`` scores a model in eval mode for selection and early stopping (the runner
+    predicts its validation split, or the held-out fold under the seed's protocol); without it, the fitness is the
+    negative mean training loss, unless ``select=False``: then no fitness, no ``best.pt`` and no early stopping (the
+    last epoch's weights are the result). ``observe(model) -> metrics`` scores the EMA weights each epoch for the
+    log only (``record["observed"]``). ``on_epoch(record)`` receives each epoch's record (the runner appends it to
+    ``log.jsonl``).
     """
 
     def __init__(
@@ -155,12 +192,15 @@ class Trainer:
         progress: bool = True,
         config_hash: str = "",
         name: str = "model",
+        observe: Callable[[nn.Module], Mapping[str, Any] | None] | None = None,
+        select: bool = True,
     ):
         self.model, self.dataset, self.s = model, dataset, settings
         self.input_kind, self.thermal_channels = input_kind, thermal_channels
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
         self.validate, self.on_epoch, self.progress = validate, on_epoch, progress
         self.config_hash, self.name = config_hash, name
+        self.observe, self.select = observe, select
         self.dist = hd.info()
         self.device = select_device(settings.device)
         if self.dist.active and self.device.type == "cuda":
@@ -337,10 +377,13 @@ class Trainer:
                 if validated:
                     metrics = dict(self._validate())
                     fit = fitness(metrics)
-                elif self.validate is None:
+                elif self.validate is None and self.select:
                     fit = -sum(mean_losses.values())
                 else:
                     fit = None
+                observed = None
+                if self.observe is not None and ((epoch + 1) % s.val_period == 0 or epoch + 1 == s.epochs):
+                    observed = self._validate(self.observe)
                 improved = fit is not None and (best_fit is None or fit > best_fit)
                 if improved:
                     best_fit, best_epoch = fit, epoch + 1
@@ -366,6 +409,7 @@ class Trainer:
                     "mosaic": mosaic,
                     "loss": {k: round(v, 5) for k, v in mean_losses.items()},
                     "metrics": _brief(metrics),
+                    **({"observed": _brief(observed)} if self.observe is not None else {}),
                     "fitness": fit,
                     "best_fitness": best_fit,
                     "best_epoch": best_epoch,
@@ -471,16 +515,17 @@ class Trainer:
             if cuda_rng is not None:
                 torch.cuda.set_rng_state_all(cuda_rng)
 
-    def _validate(self) -> Mapping[str, Any]:
+    def _validate(self, score: Callable[[nn.Module], Any] | None = None) -> Mapping[str, Any]:
         m = self.eval_model
         was_training = m.training
         m.eval()
         try:
-            assert self.validate is not None
+            score = score or self.validate
+            assert score is not None
             if self.s.fused_validation:
                 m = inference_copy(m)
             # under torchrun rank 0 scores the gathered predictions; every process takes its metrics
-            return hd.broadcast_object(self.validate(m))
+            return hd.broadcast_object(score(m))
         finally:
             self.eval_model.train(was_training)
 
@@ -505,6 +550,7 @@ class Trainer:
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
             resumed_from=resumed_from,
             device=str(self.device),
+            plateau=plateau(history) if self.validate is not None else None,
         )
 
 
@@ -601,6 +647,9 @@ def _line(r: Mapping[str, Any], name: str) -> str:
             f"P {m.get('precision', math.nan):.3f} R {m.get('recall', math.nan):.3f} "
             f"mAP50 {m.get('mAP50', math.nan):.3f} mAP50:95 {m.get('mAP50_95', math.nan):.3f}"
         )
+    o = r.get("observed")
+    if o:
+        parts.append(f"observed mAP50:95 {o.get('mAP50_95', math.nan):.3f}")
     if r.get("fitness") is not None:
         parts.append(f"fitness {r['fitness']:.4f}{' *' if r['improved'] else ''}")
     parts.append(f"{r['time_s']:.1f} s")

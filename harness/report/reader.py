@@ -79,6 +79,36 @@ def _mean(values: Iterable[Any]) -> float | None:
     return mean_sd(list(values))["mean"]
 
 
+# ---------------------------------------------------------------------------------------------------- selection
+def run_selection(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """How one run's held-out weights were chosen (``metrics.json`` ``selection``, written by ``harness.runner``):
+    ``protocol`` (``validation``, ``last`` or ``held-out``), ``validation_groups``, ``best_epoch``, ``epochs_run``.
+    A run stored before the field existed selected its best epoch on the held-out fold: ``held-out``, with the
+    best epoch of its training summary."""
+    sel = metrics.get("selection")
+    if isinstance(sel, Mapping):
+        return dict(sel)
+    train = metrics.get("train") or {}
+    weights = str((metrics.get("model") or {}).get("weights") or "best")
+    return {
+        "protocol": "held-out",
+        "weights": weights,
+        "best_epoch": train.get("best_epoch") if weights == "best" else None,
+        "epochs_run": train.get("epochs_run"),
+        "validation_groups": [],
+    }
+
+
+def run_plateau(metrics: Mapping[str, Any]) -> dict[str, Any] | None:
+    """Whether one run had stopped improving (``metrics.json`` ``train.plateau``, ``harness.engine.trainer.plateau``):
+    ``slope_per_epoch`` (least-squares slope of the selecting fitness over the last ``epochs`` scored epochs, points
+    per epoch), ``reached`` (under ``threshold``) and ``metric`` (``validation fitness``, or ``held-out fitness``
+    under the seed's protocol); None for a run without per-epoch scores (``protocol.selection=last``) or stored
+    before the record existed."""
+    rec = (metrics.get("train") or {}).get("plateau")
+    return dict(rec) if isinstance(rec, Mapping) else None
+
+
 # ---------------------------------------------------------------------------------------------------- labels
 APPROXIMATE = "approximate-temperatures"
 ACCEPTED = "accepted-risk"
