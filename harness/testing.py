@@ -20,6 +20,10 @@ Fixtures:
 ``fresh_harness``
     the ``harness.plugins`` module with nothing registered, for tests of loading itself (entry points, plugin
     folders, the allow-list): call ``fresh_harness.load_plugins()``; the normal state is restored afterwards.
+``harness_batch_check``
+    ``harness_batch_check(model, inputs, batches=(1, 2, 8))`` fails the test when the model's eval-mode detections
+    of ``inputs`` (a ``[N, C, H, W]`` tensor, or a tuple of them for a dual-stream model) change with the number of
+    images predicted at once (``eval.batch``) beyond the harness's bound (``assert_batch_independent``).
 
 For a ``with`` block (or a fixture of wider scope) use ``temporary_plugin(obj, name)``; ``reset_plugins()`` forgets
 everything registered. Set ``HARNESS_DISABLE_PLUGIN_AUTOLOAD=1`` before the harness loads its plugins to keep other
@@ -34,7 +38,16 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 import pytest
 
 # temporary_plugin and reset_plugins come from __getattr__ below
-__all__ = ["temporary_plugin", "reset_plugins", "harness_host", "harness_plugin", "harness_cli", "fresh_harness"]  # noqa: F822
+__all__ = [  # noqa: F822
+    "temporary_plugin",
+    "reset_plugins",
+    "assert_batch_independent",
+    "harness_host",
+    "harness_plugin",
+    "harness_cli",
+    "fresh_harness",
+    "harness_batch_check",
+]
 
 
 def __getattr__(name: str) -> Any:
@@ -112,3 +125,34 @@ def fresh_harness() -> Iterator[ModuleType]:
         yield plugins
     finally:
         plugins.reset_plugins(plugins.load_plugins)
+
+
+def assert_batch_independent(
+    model: Any,
+    inputs: Any,
+    batches: tuple[int, ...] = (1, 2, 8),
+    score_tol: float | None = None,
+    box_tol: float | None = None,
+) -> None:
+    """Fail (``AssertionError``) when ``model``'s eval-mode detections of ``inputs`` change with the prediction batch:
+    every detection at each batch of ``batches`` needs a counterpart at the first (same image and label) within
+    ``score_tol`` in score and ``box_tol`` pixels in each box coordinate, both ways. The defaults are the harness's
+    bounds (``harness.engine.predict.BATCH_SCORE_TOL``, ``BATCH_BOX_TOL``): what kernel arithmetic may change. Use
+    inputs whose detections are not at a threshold (the model's ``conf``, its ``max_det``)."""
+    from harness.engine import predict as P
+
+    score_tol = P.BATCH_SCORE_TOL if score_tol is None else score_tol
+    box_tol = P.BATCH_BOX_TOL if box_tol is None else box_tol
+    for b, ch in P.batch_changes(model, inputs, batches).items():
+        assert ch.within(score_tol, box_tol), (
+            f"predictions {b} images at a time differ from {batches[0]} at a time: largest score change "
+            f"{ch.score:.3g} (bound {score_tol:g}), largest box change {ch.box:.3g} px (bound {box_tol:g}), "
+            f"{ch.unmatched} of {ch.detections} detections without a counterpart: does the model mix the images of a "
+            f"batch (BatchNorm in train mode, padding to the batch's largest image, a batch-wide threshold)?"
+        )
+
+
+@pytest.fixture
+def harness_batch_check() -> Callable[..., None]:
+    """``harness_batch_check(model, inputs, batches=(1, 2, 8))``: ``assert_batch_independent``."""
+    return assert_batch_independent

@@ -281,3 +281,99 @@ def predict(
     if degenerate is not None:
         degenerate.merge(counts)
     return results
+
+
+#: How much a detection may change when the same model predicts the same image within another batch (``eval.batch``):
+#: the score, and each box coordinate in input pixels. Every image is letterboxed alone onto the same canvas, eval
+#: mode uses BatchNorm's running statistics and NMS works per image, so what a batch changes is only kernel arithmetic:
+#: oneDNN picks a convolution's blocking by the batch size, and a GEMM over the batch (attention, fully connected
+#: layers) is blocked by its row count. Measured by ``benchmarks/prediction_batch.py`` for the built-in detectors and
+#: TinyDet (batches 1, 2, 8): at most 5.1e-7 in a score and 6.1e-5 image pixels in a box; with ATen's convolutions
+#: (``HARNESS_ONEDNN=0``) ours, EME and TinyDet predict identically, ICAFusion and CMA-Det change as much (CMA-Det
+#: once traded one of its 3,200 detections for another). mAP moved by at most 3.6e-7.
+#: The bounds leave about 20x that; a detector that mixes the images of a batch (BatchNorm in train mode, padding to
+#: the batch's largest image, a batch-wide threshold) changes far more.
+BATCH_SCORE_TOL = 1e-5
+BATCH_BOX_TOL = 2e-3
+
+
+@dataclass
+class DetectionChanges:
+    """How two predictions of the same images differ (``detection_changes``)."""
+
+    #: the largest score change of a detection and its counterpart
+    score: float = 0.0
+    #: the largest change of a box coordinate of a detection and its counterpart (input or image pixels)
+    box: float = 0.0
+    #: detections (of either prediction) without a counterpart within ``tol`` pixels
+    unmatched: int = 0
+    #: detections in all, both predictions
+    detections: int = 0
+
+    def within(self, score_tol: float = BATCH_SCORE_TOL, box_tol: float = BATCH_BOX_TOL) -> bool:
+        return self.unmatched == 0 and self.score <= score_tol and self.box <= box_tol
+
+
+def detection_changes(
+    a: list[dict[str, Any]] | tuple[dict[str, Any], ...],
+    b: list[dict[str, Any]] | tuple[dict[str, Any], ...],
+    tol: float = 1.0,
+) -> DetectionChanges:
+    """Compare two predictions of the same images, one ``{"boxes", "scores", "labels"}`` dict per image (tensors or
+    arrays, boxes ``x1, y1, x2, y2``): each detection's counterpart is the detection of the other prediction of the
+    same image and label whose box is nearest (the largest coordinate difference; among equally near boxes the
+    nearest score), both ways; one farther than ``tol`` pixels counts as unmatched."""
+    if len(a) != len(b):
+        raise ValueError(f"detection_changes: {len(a)} images against {len(b)}")
+    out = DetectionChanges()
+
+    def arrays(d: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def np_(v: Any) -> np.ndarray:
+            return v.detach().cpu().double().numpy() if isinstance(v, torch.Tensor) else np.asarray(v, np.float64)
+
+        return np_(d["boxes"]).reshape(-1, 4), np_(d["scores"]).reshape(-1), np_(d["labels"]).reshape(-1)
+
+    for da, db in zip(a, b):
+        pa, pb = arrays(da), arrays(db)
+        out.detections += len(pa[1]) + len(pb[1])
+        for (bx, sc, lb), (ob, os_, ol) in ((pa, pb), (pb, pa)):
+            if not len(sc):
+                continue
+            if not len(os_):
+                out.unmatched += len(sc)
+                continue
+            dist = np.abs(bx[:, None, :] - ob[None, :, :]).max(2)
+            dist[lb[:, None] != ol[None, :]] = np.inf
+            near = dist <= dist.min(1, keepdims=True)
+            j = np.where(near, np.abs(sc[:, None] - os_[None, :]), np.inf).argmin(1)
+            d = dist[np.arange(len(sc)), j]
+            ok = d <= tol
+            out.unmatched += int((~ok).sum())
+            if ok.any():
+                out.box = max(out.box, float(d[ok].max()))
+                out.score = max(out.score, float(np.abs(sc[ok] - os_[j[ok]]).max()))
+    return out
+
+
+@torch.inference_mode()
+def batch_changes(model: nn.Module, inputs: Any, batches: tuple[int, ...] = (1, 2, 8)) -> dict[int, DetectionChanges]:
+    """Run ``model`` in eval mode over ``inputs`` (a ``[N, C, H, W]`` tensor, or a tuple of them for a dual-stream
+    model) ``b`` images at a time for every ``b`` of ``batches`` and compare each with the first
+    (``detection_changes``, input pixels): what ``eval.batch`` changes in its predictions."""
+    was_training = model.training
+    model.eval()
+    try:
+        parts = inputs if isinstance(inputs, (tuple, list)) else (inputs,)
+        n = len(parts[0])
+
+        def run(b: int) -> list[dict[str, Any]]:
+            out: list[dict[str, Any]] = []
+            for i in range(0, n, b):
+                chunk = tuple(p[i : i + b] for p in parts)
+                out.extend(model(chunk if isinstance(inputs, (tuple, list)) else chunk[0]))
+            return out
+
+        base = run(batches[0])
+        return {b: detection_changes(base, run(b)) for b in batches}
+    finally:
+        model.train(was_training)

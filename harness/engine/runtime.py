@@ -6,20 +6,52 @@ import os
 import platform
 import random
 import sys
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import torch
 
 from harness.errors import ConfigError
 
+#: ``HARNESS_ONEDNN=0`` (or ``off``/``false``) turns torch's oneDNN (MKL-DNN) kernels off for the whole run
+ENV_ONEDNN = "HARNESS_ONEDNN"
+_OFF, _ON = ("0", "off", "false", "no"), ("1", "on", "true", "yes")
+
+
+def onednn_setting(environ: Mapping[str, str] | None = None) -> bool | None:
+    """What ``HARNESS_ONEDNN`` asks for: True (torch's oneDNN kernels on), False (off) or None (unset or empty:
+    torch's own choice, on); any other value is a ``ConfigError`` naming the variable.
+
+    Off, convolutions run on ATen's own kernels (im2col and the BLAS's GEMM), whose blocking does not depend on the
+    CPU's caches; with ``MKL_CBWR`` fixing the BLAS's code path this is the setting that
+    ``benchmarks/reproducibility.py`` measures."""
+    value = (os.environ if environ is None else environ).get(ENV_ONEDNN, "").strip().lower()
+    if not value:
+        return None
+    if value in _OFF:
+        return False
+    if value in _ON:
+        return True
+    raise ConfigError(f"{ENV_ONEDNN}={value!r}: use 1 (torch's oneDNN kernels, the default) or 0 (off)")
+
+
+def apply_onednn_setting(environ: Mapping[str, str] | None = None) -> bool:
+    """Turn torch's oneDNN kernels on or off as ``HARNESS_ONEDNN`` says (``onednn_setting``; unset leaves them as
+    they are); returns whether they are on."""
+    on = onednn_setting(environ)
+    if on is not None:
+        torch.backends.mkldnn.enabled = on
+    return bool(torch.backends.mkldnn.enabled)
+
 
 def seed_everything(seed: int, deterministic: bool = True) -> None:
     """Seed Python, NumPy and torch; with ``deterministic`` ask torch for deterministic kernels.
 
     On CPU a seeded run is bit-for-bit repeatable with the same torch build and thread count. On CUDA some kernels
-    have no deterministic version; torch then warns instead of failing (``warn_only``).
+    have no deterministic version; torch then warns instead of failing (``warn_only``). ``HARNESS_ONEDNN`` is applied
+    here (``apply_onednn_setting``), so it holds for the whole run that is seeded.
     """
+    apply_onednn_setting()
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
