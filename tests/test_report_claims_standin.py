@@ -131,3 +131,25 @@ def test_a_table_of_one_kind_has_no_blocks():
     t = Table("t", "t", cols, [{"detector": "a", "map": 0.1}, {"detector": "b", "map": 0.2}])
     t.split_blocks(lambda r: r["detector"].startswith("ref:"), "own", "refs")
     assert "-- own" not in t.to_text() and t.best_rows(cols[1]) == {1}
+
+
+def test_a_bound_within_its_monte_carlo_error_of_the_threshold_decides_nothing():
+    """The verdict of "above 0" on resamples whose 2.5th percentile lies just above 0 would flip with the bootstrap
+    seed: it is inconclusive; clear of 0 by the percentile's Monte-Carlo error, it is supported for every seed."""
+    from harness.report.claims import INCONCLUSIVE, Interval, above, bound_bands
+    from harness.report.stats import percentile_ci
+
+    def verdict(shift: float, seed: int, n: int) -> str:
+        v = np.random.default_rng(seed).normal(size=n) + shift
+        return above(Interval(float(v.mean()), *percentile_ci(v), *bound_bands(v)), 0.0)
+
+    edge = 1.96  # the 2.5th percentile of N(1.96, 1) is 0
+    assert {verdict(edge + 0.02, s, 200) for s in range(20)} == {INCONCLUSIVE}
+    assert {verdict(edge + 0.02, s, 2000) for s in range(20)} == {INCONCLUSIVE}
+    assert {verdict(edge + 1.5, s, 200) for s in range(20)} == {SUPPORTED}
+    # without the bands the same resamples flip between the two
+    plain = {
+        above(Interval(0.0, *percentile_ci(np.random.default_rng(s).normal(size=200) + edge + 0.02)), 0.0)
+        for s in range(20)
+    }
+    assert plain == {SUPPORTED, INCONCLUSIVE}

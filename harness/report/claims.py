@@ -11,6 +11,10 @@ over folds of the seed-averaged metric, and a difference A - B is paired (the sa
 metrics resampled are mAP50, mAP50:95 and AP50 of each category (``ColumnScorer``; a resample without an instance
 of a category leaves that category's AP undefined there, and it is dropped).
 
+Verdicts do not flip with the bootstrap seed or the number of resamples: a bound decides a part only when it clears
+the threshold by ``MC_Z`` (3) Monte-Carlo standard errors of its percentile (``bound_band``: the order statistics that
+far either side); within them, where another seed would put the bound on the other side, the part is inconclusive.
+
 Verdicts:
 
 * **supported**: every part of the claim holds with its intervals on the claimed side;
@@ -64,17 +68,27 @@ PAPER_COMPLEXITY = {
 LEARNED_NOTHING = 0.01
 
 
+#: How many standard errors of a percentile's order statistic a bound must clear a threshold by to decide a verdict.
+MC_Z = 3.0
+
+
 @dataclass
 class Interval:
+    """A value with its 95 % interval; ``lo_band``/``hi_band``: the range each bound takes within ``MC_Z`` Monte-Carlo
+    standard errors (another bootstrap seed or resample count moves a bound within it, ``bound_band``)."""
+
     value: float | None
     lo: float | None
     hi: float | None
+    lo_band: tuple[float, float] | None = None
+    hi_band: tuple[float, float] | None = None
 
     def above(self, x: float) -> bool:
-        return self.lo is not None and self.lo > x
+        """The interval lies above ``x``, its lower bound clear of ``x`` by its Monte-Carlo error."""
+        return self.lo is not None and (self.lo_band[0] if self.lo_band else self.lo) > x
 
     def below(self, x: float) -> bool:
-        return self.hi is not None and self.hi < x
+        return self.hi is not None and (self.hi_band[1] if self.hi_band else self.hi) < x
 
     def text(self, digits: int = 3) -> str:
         if self.value is None:
@@ -162,8 +176,9 @@ class ColumnScorer:
         """The entry's statistic with its two-level interval."""
         j = self.column(column)
         lv = self._levels(e, e, folds)[j]["a"]
-        lo, hi = percentile_ci(lv[np.isfinite(lv)])
-        return Interval(self._observed(e, folds, j), lo, hi)
+        v = lv[np.isfinite(lv)]
+        lo, hi = percentile_ci(v)
+        return Interval(self._observed(e, folds, j), lo, hi, *bound_bands(v))
 
     def learned_nothing(self, e: Entry, folds: Sequence[str]) -> str | None:
         """Why ``e``'s runs on ``folds`` learned nothing (every category's AP50 exactly 0 on the held-out images, or
@@ -182,9 +197,27 @@ class ColumnScorer:
         j = self.column(column)
         lv = self._levels(a, b, folds)[j]
         ok = np.isfinite(lv["a"]) & np.isfinite(lv["b"])
-        lo, hi = percentile_ci(lv["a"][ok] - lv["b"][ok])
+        v = lv["a"][ok] - lv["b"][ok]
+        lo, hi = percentile_ci(v)
         oa, ob = self._observed(a, folds, j), self._observed(b, folds, j)
-        return Interval(None if oa is None or ob is None else oa - ob, lo, hi)
+        return Interval(None if oa is None or ob is None else oa - ob, lo, hi, *bound_bands(v))
+
+
+def bound_band(values: np.ndarray, q: float, z: float = MC_Z) -> tuple[float, float] | None:
+    """The range of the ``q`` percentile of ``values`` (R bootstrap resamples) within ``z`` Monte-Carlo standard
+    errors: the order statistics ``z * sqrt(R q (1 - q))`` ranks either side of its position. A verdict decided by a
+    bound inside this range would flip with the bootstrap seed or resample count; one decided outside it does not."""
+    v = np.sort(np.asarray(values, dtype=np.float64))
+    n = v.size
+    if n == 0:
+        return None
+    pos, se = q * (n - 1), z * float(np.sqrt(n * q * (1.0 - q)))
+    return float(v[max(int(np.floor(pos - se)), 0)]), float(v[min(int(np.ceil(pos + se)), n - 1)])
+
+
+def bound_bands(values: np.ndarray) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+    """``bound_band`` of the lower and upper bound of the 95 % interval."""
+    return bound_band(values, 0.025), bound_band(values, 0.975)
 
 
 def _find(entries: Sequence[Entry], detector: str, encoding: str | None = None) -> Entry | None:
@@ -373,7 +406,9 @@ def evaluate_claims(
     claims.append(c)
     notes.append(
         f"Claims tested on {source}; 95 % intervals from the two-level bootstrap ({resamples} resamples, "
-        f"seed {seed}); 'near zero' is AP50 < {NEAR_ZERO}."
+        f"seed {seed}); a bound decides a part only when it clears the threshold by {MC_Z:g} Monte-Carlo standard "
+        f"errors of its percentile (else inconclusive), so the verdicts do not flip with the bootstrap seed or the "
+        f"resample count; 'near zero' is AP50 < {NEAR_ZERO}."
     )
     return claims, notes
 
