@@ -16,6 +16,14 @@ the settings alternated, ``--repeat`` times, median.
     .venv/bin/python benchmarks/reproducibility.py --epochs 2 --repeat 1 --settings avx2,native
 
 The data are prepared on first use (``harness prepare --dataset m3t-synth``, into ./data and ./cache).
+
+Measured on the 2-core AMD EPYC (AVX-512) of the development machines, torch 2.13.0 (oneDNN 3.12, oneMKL 2024.2),
+ours, P1, 3 epochs, 3 repeats: every setting repeats itself bit for bit, and no two settings are identical. Changing
+the instruction-set cap changes whole runs under every kernel policy, oneDNN off and ``MKL_CBWR=AVX2`` included:
+there one step's gradients are identical under ATen's AVX2 and AVX-512 kernels, but the trained weights are not
+(ATen's vectorised kernels differ by width, e.g. a softmax over rows of 8 or 256). Cost against ``avx2``: native
+1.00x, ``MKL_CBWR=AVX2`` 1.04x (0.96x native), oneDNN off 1.19-1.26x, oneDNN off with ``MKL_CBWR=COMPATIBLE`` (the
+one MKL branch it keeps on every x86 CPU; its AVX2 branch is kept on Intel CPUs only) 2.09x.
 """
 
 from __future__ import annotations
@@ -259,13 +267,13 @@ def main() -> None:
     for line in machine_lines():
         print(line)
     print(
-        f"{args.detector}, benchmark profile, fold {args.fold}, seed 0, {args.epochs} epochs, one thread; "
-        f"cost = CPU s/epoch of the training loop, median of {args.repeat}, / avx2's"
+        f"{args.detector}, benchmark profile, fold {args.fold}, seed 0, {args.epochs} epochs, one thread\n"
+        f"cost: CPU s/epoch of the training loop, median of {args.repeat}, against avx2's"
     )
     anchor = statistics.median(r["epoch_s"] for r in runs["avx2"]) if "avx2" in runs else None
     head = (
         f"{'setting':<17} {'CPU s/ep':>8} {'x avx2':>6} {'rep':>3} {'weights':>12} {'grad':>12} {'box loss 1':>11} "
-        "mAP50"
+        f"{'dets':>5} mAP50"
     )
     print(head)
     print("-" * len(head))
@@ -276,9 +284,11 @@ def main() -> None:
         ratio = f"{med / anchor:6.2f}" if anchor else "     -"
         print(
             f"{name:<17} {med:8.2f} {ratio} {'yes' if same else 'NO':>3} {rs[0]['weights']:>12} "
-            f"{rs[0].get('grad', '-'):>12} {rs[0]['box_loss_1']:11.5f} {rs[0]['mAP'][0]}"
+            f"{rs[0].get('grad', '-'):>12} {rs[0]['box_loss_1']:11.5f} {rs[0]['n_predictions']:>5} "
+            f"{rs[0]['mAP'][0]:.4f}"
         )
-    print("rep: every repeat of the setting identical to its first (weights, predictions, metrics, losses, probe)")
+    print("rep: every repeat identical to the first (weights, predictions, metrics, losses, probe);")
+    print("dets: held-out detections of the first run; grad: one step of a fixed model and batch")
     print()
     print(f"{'pair':<36} identical? (what differs)")
     for a, b in PAIRS:
@@ -289,7 +299,8 @@ def main() -> None:
     print()
     for name, (env, what) in SETTINGS.items():
         if name in runs:
-            print(f"{name:<17} {what}: {' '.join(f'{k}={v}' for k, v in env.items()) or '(nothing set)'}")
+            print(f"{name:<17} {what}")
+            print(f"{'':<17} {' '.join(f'{k}={v}' for k, v in env.items()) or '(nothing set)'}")
     print(f"rule: a setting identical across its ISA caps at <= {MAX_COST}x avx2's cost can be the default")
 
 
