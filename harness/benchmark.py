@@ -38,6 +38,7 @@ from typing import Any, Mapping, Sequence, TextIO
 
 from harness.errors import ConfigError
 from harness.progress import BenchmarkProgress
+from harness.provenance import KERNEL_VARIABLES
 from harness.sweep import ExecutorOptions, JobResult, SweepJob, SweepSpec
 
 log = logging.getLogger(__name__)
@@ -590,7 +591,7 @@ def write_timing(summary: BenchmarkSummary, lanes: int | None = None) -> dict[st
         "cells": len(trained),
         "failed": len(summary.failed),
         "cpu": cpu_name(),
-        "isa_env": {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY") if k in os.environ},
+        "isa_env": {k: os.environ[k] for k in KERNEL_VARIABLES if k in os.environ},
         "ended": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     out = {

@@ -143,9 +143,40 @@ def cpu_facts() -> dict[str, Any]:
     return out
 
 
+#: Environment variables that choose the CPU kernels a run computes with (and so its last digits).
+KERNEL_VARIABLES = (
+    "ONEDNN_MAX_CPU_ISA",
+    "ATEN_CPU_CAPABILITY",
+    "MKL_CBWR",
+    "HARNESS_ONEDNN",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+)
+
+
+def kernel_settings() -> dict[str, Any]:
+    """The kernel-choosing variables that are set, and whether torch's oneDNN kernels are on."""
+    import os
+
+    out: dict[str, Any] = {k: os.environ[k] for k in KERNEL_VARIABLES if os.environ.get(k)}
+    try:
+        import torch
+
+        out["onednn_enabled"] = bool(torch.backends.mkldnn.enabled)
+    except Exception:
+        pass
+    return out
+
+
 def environment_facts() -> dict[str, Any]:
-    """The package versions, torch build and CPU recorded beside a run's metrics (``environment``)."""
-    return {"packages": package_versions(), "torch_build": torch_build(), "cpu": cpu_facts()}
+    """The package versions, torch build, kernel settings and CPU recorded beside a run's metrics
+    (``environment``)."""
+    return {
+        "packages": package_versions(),
+        "torch_build": torch_build(),
+        "kernels": kernel_settings(),
+        "cpu": cpu_facts(),
+    }
 
 
 def flat_versions(env: Mapping[str, Any]) -> dict[str, str]:
@@ -185,6 +216,7 @@ __all__ = [
     "differences",
     "environment_facts",
     "flat_versions",
+    "kernel_settings",
     "package_versions",
     "sample_environment",
     "torch_build",
