@@ -59,8 +59,9 @@ DEMO_DATA      := $${HARNESS_DATA:-data}/m3t-synth-small-seed0
 
 # The reference benchmark (docs/benchmark.md): the four detectors x four folds x seeds 0,1,2 and the encoding ablation
 # at the benchmark profile, one lane per core, resumed where it stopped; torch's AVX2 kernels by default (the shipped
-# reference results were made with them, so a cell reruns to the same digits on any x86 CPU with AVX2; set
-# BENCH_ISA=native to use the CPU's own). Then its report, with the paper's claims tested.
+# reference results were made with them on an AMD EPYC: a cell reruns to the same digits on that CPU model, and on
+# others within the references' training variance, as `harness benchmark rerun` judges; set BENCH_ISA=native to use
+# the CPU's own). Then its report, with the paper's claims tested.
 BENCH_STORE ?= results/benchmark
 BENCH_OUT   ?= reports/benchmark
 BENCH_ISA   ?= avx2
