@@ -807,8 +807,12 @@ def run_one(
         support.setdefault("image_ids_sha1", image_ids_hash([int(i["id"]) for i in gt["images"]]))
         params = sum(p.numel() for p in model.parameters())
         train_summary = result.summary()
-        if train_summary.get("plateau"):  # the slope of the selecting score: say which images it was measured on
-            train_summary["plateau"]["metric"] = f"{'held-out' if selection == 'held-out' else 'validation'} fitness"
+        if train_summary.get("plateau"):  # the slope of the per-epoch score: say which images it was measured on
+            train_summary["plateau"]["metric"] = {
+                "validation": "validation fitness",
+                "held-out": "held-out fitness",
+                "last": "held-out fitness, logged only",  # eval.log_held_out: the last epoch's weights regardless
+            }[selection]
         if r is not target:  # checkpoint paths as they will be once the replacement is swapped in
             for k in ("best_path", "last_path"):
                 if train_summary.get(k):

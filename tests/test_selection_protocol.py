@@ -91,11 +91,12 @@ def test_a_single_training_group_gives_a_documented_image_split(tmp_path):
 def test_the_plateau_record_is_the_least_squares_slope_of_the_last_epochs():
     from harness.engine.trainer import PLATEAU_EPOCHS, PLATEAU_SLOPE, plateau
 
-    rising = [{"epoch": e, "fitness": 0.01 * e} for e in range(1, 11)]  # 1 point per epoch
+    rising = [{"epoch": e, "fitness": 0.01 * e} for e in range(1, 16)]  # 1 point per epoch
     p = plateau(rising)
     assert p == {"slope_per_epoch": 1.0, "epochs": PLATEAU_EPOCHS, "reached": False, "threshold": PLATEAU_SLOPE}
-    flat = rising[:5] + [{"epoch": e, "fitness": 0.3 + (0.0001 if e % 2 else 0.0)} for e in range(6, 11)]
+    flat = rising[:5] + [{"epoch": e, "fitness": 0.3 + (0.0001 if e % 2 else 0.0)} for e in range(6, 16)]
     assert plateau(flat)["reached"] is True and abs(plateau(flat)["slope_per_epoch"]) < 0.01
+    assert plateau(flat[:7])["epochs"] == 7  # fewer scored epochs than the window: all of them
     # epochs without a score are skipped; fewer than two scored epochs: no record
     assert plateau([{"epoch": 1, "fitness": None}, {"epoch": 2, "fitness": 0.2}]) is None
 
@@ -148,7 +149,7 @@ def test_validation_never_predicts_the_held_out_fold_until_the_end(shapes_run_pl
     assert sel["protocol"] == "validation" and sel["how"] == "images" and sel["validation_images"] == 1
     assert set(during[0]) == {sorted(train)[4]} and m["train"]["images"] == 7 == sel["train_images"]
     assert sel["best_epoch"] == m["train"]["best_epoch"] and sel["weights"] == "best"
-    assert m["train"]["plateau"]["metric"] == "validation fitness" and m["train"]["plateau"]["epochs"] == 3
+    assert m["train"]["plateau"]["metric"] == "validation fitness" and m["train"]["plateau"]["epochs"] == 3  # all 3
     assert all("observed" not in rec for rec in log)
     cfg = (r.path / "config.yaml").read_text()
     assert "selection: validation" in cfg
@@ -194,14 +195,20 @@ def test_held_out_is_the_seeds_protocol_with_an_unchanged_identity(shapes_run_pl
 
 
 @pytest.mark.slow
-def test_logging_the_held_out_fold_changes_no_number(shapes_run_plugins, tmp_path, predicted):
-    _, quiet, _ = _run(tmp_path, "protocol.selection=validation", store="a")
-    _, logged, log = _run(tmp_path, "protocol.selection=validation", "eval.log_held_out=true", store="b")
+@pytest.mark.parametrize("selection", ["validation", "last"])
+def test_logging_the_held_out_fold_changes_no_number(shapes_run_plugins, tmp_path, predicted, selection):
+    _, quiet, _ = _run(tmp_path, f"protocol.selection={selection}", store="a")
+    _, logged, log = _run(tmp_path, f"protocol.selection={selection}", "eval.log_held_out=true", store="b")
     assert quiet["metrics"] == logged["metrics"] and quiet["selection"] == logged["selection"]
     assert all(rec["observed"]["mAP50_95"] is not None for rec in log)
-    # the final held-out score is the one logged at the selected epoch
-    at_best = next(rec for rec in log if rec["epoch"] == logged["selection"]["best_epoch"])
+    # the final held-out score is the one logged at the selected epoch (the last under selection=last)
+    epoch = logged["selection"]["best_epoch"] or logged["selection"]["epochs_run"]
+    at_best = next(rec for rec in log if rec["epoch"] == epoch)
     assert at_best["observed"]["mAP50_95"] == pytest.approx(logged["metrics"]["mAP50_95"], abs=1e-9)
+    # the plateau record: of the selecting score, or of the logged one when nothing selects
+    expected = {"validation": "validation fitness", "last": "held-out fitness, logged only"}[selection]
+    assert logged["train"]["plateau"]["metric"] == expected
+    assert (quiet["train"]["plateau"] is None) == (selection == "last")
 
 
 def test_an_unknown_selection_is_a_clear_error(shapes_run_plugins, tmp_path):

@@ -18,7 +18,8 @@ from the training groups, the held-out fold (the seed's protocol), or none with 
 weights: no fitness, no ``best.pt``, no early stopping). ``observe(model) -> metrics`` scores the weights each epoch
 for the log only (``record["observed"]``; the runner's ``eval.log_held_out``): it never decides anything.
 The run's plateau record (``plateau``) is the least-squares slope of the fitness over the last ``PLATEAU_EPOCHS``
-validated epochs, in points (fitness x 100) per epoch, and whether it is under ``PLATEAU_SLOPE``.
+validated epochs, in points (fitness x 100) per epoch, and whether it is under ``PLATEAU_SLOPE``; without ``validate``
+it is that of the observed scores (which then chose nothing: the last epoch's weights are the result either way).
 
 Under ``torchrun`` (``harness.distributed``) the model is wrapped in ``DistributedDataParallel``; ``train.batch`` stays
 the global batch, split evenly over the processes, each of which takes its share of the epoch's order. The summed
@@ -58,16 +59,22 @@ class TrainingError(HarnessError):
 
 
 #: The plateau record: the slope of the fitness over this many last validated epochs ...
-PLATEAU_EPOCHS = 5
-#: ... counts as a plateau below this many points (fitness x 100) per epoch. Chosen from the learning curves of the
-#: four reference detectors on m3t-synth (docs/learning-curves/): TODO
-PLATEAU_SLOPE = 0.1
+PLATEAU_EPOCHS = 10
+#: ... counts as a plateau below this many points (fitness x 100) per epoch. From the learning curves on m3t-synth
+#: (docs/learning-curves/): on a 16-image validation group the fitness of a model that no longer improves (ours,
+#: epochs 30-60) scatters by 1.0 point (SD) around its trend, so a 10-epoch slope has a standard error of 0.11 and a
+#: 5-epoch one of 0.32 points per epoch; 0.2 is under 2 standard errors above a flat curve (a flat curve passes about
+#: 96 % of the time) and below the 0.34 of CMA-Det still learning at epoch 40.
+PLATEAU_SLOPE = 0.2
 
 
-def plateau(history: Sequence[Mapping[str, Any]], epochs: int = PLATEAU_EPOCHS) -> dict[str, Any] | None:
-    """``{"slope_per_epoch", "epochs", "reached", "threshold"}``: the least-squares slope of ``fitness`` over the
-    last ``epochs`` records that have one, in points (x 100) per epoch; None with fewer than two such records."""
-    pts = [(float(r["epoch"]), 100.0 * float(r["fitness"])) for r in history if r.get("fitness") is not None]
+def plateau(
+    history: Sequence[Mapping[str, Any]], epochs: int = PLATEAU_EPOCHS, key: str = "fitness"
+) -> dict[str, Any] | None:
+    """``{"slope_per_epoch", "epochs", "reached", "threshold"}``: the least-squares slope of ``key`` (``fitness``, or
+    ``observed_fitness``: the fitness of the scores logged only) over the last ``epochs`` records that have one, in
+    points (x 100) per epoch; None with fewer than two such records."""
+    pts = [(float(r["epoch"]), 100.0 * float(r[key])) for r in history if r.get(key) is not None]
     pts = pts[-epochs:]
     if len(pts) < 2:
         return None
@@ -409,7 +416,11 @@ class Trainer:
                     "mosaic": mosaic,
                     "loss": {k: round(v, 5) for k, v in mean_losses.items()},
                     "metrics": _brief(metrics),
-                    **({"observed": _brief(observed)} if self.observe is not None else {}),
+                    **(
+                        {"observed": _brief(observed), "observed_fitness": fitness(observed) if observed else None}
+                        if self.observe is not None
+                        else {}
+                    ),
                     "fitness": fit,
                     "best_fitness": best_fit,
                     "best_epoch": best_epoch,
@@ -550,7 +561,13 @@ class Trainer:
             last_path=str(self.last_path) if self.last_path and self.last_path.exists() else None,
             resumed_from=resumed_from,
             device=str(self.device),
-            plateau=plateau(history) if self.validate is not None else None,
+            plateau=(
+                plateau(history)
+                if self.validate is not None
+                else plateau(history, key="observed_fitness")
+                if self.observe is not None
+                else None
+            ),
         )
 
 
