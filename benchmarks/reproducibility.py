@@ -120,7 +120,7 @@ def probe(weights: str, scale: str, size: int) -> None:
     losses = model(x, targets)
     sum(losses.values()).backward()
     grads = {k: p.grad for k, p in model.named_parameters() if p.grad is not None}
-    state = torch.load(weights, map_location="cpu", weights_only=False)["model"]
+    state = torch.load(weights, map_location="cpu", weights_only=True)["model"]
     model.load_state_dict(state)
     with torch.inference_mode():
         raw = model.eval().forward_raw(x)
@@ -201,7 +201,7 @@ def train(setting: str, store: Path, args: argparse.Namespace) -> dict[str, Any]
 
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
     metrics = json.loads((run / "metrics.json").read_text())
-    state = torch.load(run / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)["model"]
+    state = torch.load(run / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)["model"]
     preds = (run / "predictions.json").read_bytes()
     m = metrics.get("metrics", metrics)
     fit = json.loads(timing.read_text())
