@@ -34,14 +34,19 @@ Layout under the store root (``--store``, default ``results/<profile>``)::
       "model":   {"params": int, ...},               # optional
       "complexity": {"model_options", "params", "params_fused", "bn_folded", "unused_params",
                      "gflops": {"<imgsz>": {"paper", "exact"}, "640": {...}}, ...},   # harness.complexity
-      "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...},   # optional
-      "environment": {...},                          # optional: versions, device, threads
+      "train":   {"epochs": int, "best_epoch": int, "time_s": float, ...,   # optional
+                  "plateau": {"slope_per_epoch", "epochs", "reached", "metric"}},   # harness.engine.trainer
+      "selection": {"protocol": "last" | "validation" | "held-out", "weights", "best_epoch", "epochs_run",
+                    "validation_groups", ...},      # how the weights that predicted the held-out fold were chosen
+      "environment": {...},                          # optional: versions, device, threads, packages, torch_build,
+                                                     # kernels, cpu (harness.provenance)
       "degenerate_detections": {"returned", "non_finite", "inverted", "zero_size", "outside_image", "examples"},
                                                      # trained runs: boxes the detector returned, those dropped
       "external": {...},                             # runs of `harness score`: identity and matching counts
       "labels": [str, ...],                          # optional: a risk accepted when the result was stored
       "input_risks": [str, ...],                     # trained runs: dataset input risks accepted (inputs.accept)
-      "samples": {"encoding", "train", "held_out"},  # trained runs: content digests of the samples trained on and
+      "samples": {"encoding", "train", "held_out", "aligned", "prepared"},  # trained runs: content digests of the
+                                                     # samples trained on and
                                                      # scored (PreparedDataset.content_digest); reference results
                                                      # are matched on them (harness.references)
       "temperatures": {"label", "samples", "bound_c", "approximations"}   # optional: approximate temperatures
