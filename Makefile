@@ -111,7 +111,7 @@ demo: $(STAMP)
 	fail=0; wait $$a || fail=1; wait $$b || fail=1; exit $$fail
 	$(BIN)/harness ablate --detector ours --encodings none,c2 --folds P1 $(DEMO_RUN) --config configs/demo/ours.yaml \
 		--no-progress
-	$(BIN)/harness report --store $(DEMO_STORE) --out $(DEMO_OUT) --resamples 50 --workers 2 $(DEMO_REFS)
+	$(BIN)/harness report --store $(DEMO_STORE) --out $(DEMO_OUT) --resamples 200 --workers 2 $(DEMO_REFS)
 
 benchmark: $(STAMP)
 	$(BIN)/harness prepare --dataset m3t-synth
