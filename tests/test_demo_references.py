@@ -210,3 +210,34 @@ def test_keep_weights_final_leaves_what_report_screen_and_a_rerun_need(tiny_sour
         manifest = json.loads((tmp_path / "screen" / "manifest.json").read_text())
         assert manifest["model"]["weights"] == str(run / "checkpoints" / "best.pt")
         assert list((tmp_path / "screen" / "frames").glob("*.json"))
+
+
+def test_a_kept_last_checkpoint_is_slimmed_to_the_weights_that_predicted(tmp_path):
+    """Under ``final: last`` (and ``protocol.selection: last``) the run's ``last.pt`` is its final weights: kept
+    without the optimiser and resume state, and read back as the same EMA weights."""
+    import torch
+
+    from harness.engine import checkpoint as ckpt
+
+    run = _fake_run(tmp_path, "finished", final="last")
+    model = torch.nn.Linear(64, 64)
+    ema = {k: v + 1 for k, v in model.state_dict().items()}
+    full = {
+        "format": ckpt.FORMAT,
+        "version": ckpt.VERSION,
+        "epoch": 4,
+        "done": True,
+        "model": model.state_dict(),
+        "optimizer": torch.optim.AdamW(model.parameters()).state_dict() | {"pad": torch.zeros(20000)},
+        "ema": {"module": ema, "updates": 10},
+        "rng": {"torch": torch.get_rng_state()},
+        "history": [{"epoch": 1}],
+    }
+    ckpt.save(run.checkpoint_dir / "last.pt", full)
+    before = (run.checkpoint_dir / "last.pt").stat().st_size
+    assert run.keep_final_checkpoint() == [run.checkpoint_dir / "best.pt"]
+    slim = ckpt.load(run.checkpoint_dir / "last.pt")
+    assert set(slim) == {"format", "version", "epoch", "done", "model"}
+    assert all(torch.equal(ckpt.state_dict_of(slim)[k], ema[k]) for k in ema)
+    assert (run.checkpoint_dir / "last.pt").stat().st_size < before / 2
+    assert run.keep_final_checkpoint() == []  # a second pass leaves it as it is
