@@ -1,14 +1,14 @@
 """``build_report``: every table, the accuracy-versus-GFLOPs figure and the paired comparisons of a results store,
 written as Markdown, CSV and one self-contained HTML page.
 
-The report reads only the store (and, for the galleries' pixels, the prepared cache its runs name). For each dataset
-it has, in order: the project-grouped table, the per-category table, the encoding ablation, object sizes (counts,
-and AP per size bin), paired comparisons, error types (TIDE), confusion matrices, precision-recall curves, one
-gallery per detector (``harness.report.evidence``, ``harness.report.gallery``), the registration-error table and
-the C2 displacement table; then the accuracy-versus-GFLOPs figure and the cross-dataset table; last, the training
-curves of each dataset (``harness.report.curves``). A section whose data the store does not hold is kept
-and says so, with the command that would fill it. A table whose rows were not scored on the same samples carries a
-loud label (and the list of differences) in every format.
+The report reads only the store (and, for the galleries' pixels, the prepared cache its runs name). For each dataset it
+has, in order: the project-grouped table, the training budget (epochs, selection protocol, plateau), the per-category
+table, the encoding ablation, object sizes (counts, and AP per size bin), paired comparisons, error types (TIDE),
+confusion matrices, precision-recall curves, one gallery per detector (``harness.report.evidence``,
+``harness.report.gallery``), the registration-error table and the C2 displacement table; then the accuracy-versus-GFLOPs
+figure and the cross-dataset table; last, the training curves of each dataset (``harness.report.curves``). A section
+whose data the store does not hold is kept and says so, with the command that would fill it. A table whose rows were not
+scored on the same samples carries a loud label (and the list of differences) in every format.
 
 Output folder (``out``)::
 
@@ -43,9 +43,11 @@ from harness.report.tables import (
     ABLATION_CATEGORIES,
     _entry_names,
     ablation_tables,
+    budget_table,
     category_table,
     cross_dataset_table,
     displacement_table,
+    held_out_note,
     main_entries,
     paired_table,
     project_table,
@@ -283,6 +285,8 @@ def _paired_section(
             )
         )
         _split(sec.tables[-1], lambda r: str(r.get("a", "")).startswith(REF_PREFIX))
+        compared = list({id(e): e for a, b in pairs for e in (a, b)}.values())
+        sec.tables[-1].notes += [n for n in [held_out_note(compared)] if n]
     if skipped:
         sec.notes += [f"Not compared: {s}" for s in skipped]
         if not comps:
@@ -364,6 +368,20 @@ def _split(table: Any, is_reference: Callable[[Mapping[str, Any]], bool]) -> Non
     table.split_blocks(is_reference, OWN_BLOCK, REFERENCE_BLOCK)
 
 
+def _budget_section(entries: Sequence[Entry], dataset: str, run_cmd: str) -> Section:
+    """The training budget of each detector and encoding (``tables.budget_table``), with a sentence under it for each
+    whose runs had not stopped improving and one for the runs that recorded no plateau."""
+    sec = Section("budget", "Training budget", dataset)
+    table, sentences = budget_table(entries, dataset)
+    if table is None:
+        sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
+        return sec
+    _split(table, lambda r: str(r.get("detector", "")).startswith(REF_PREFIX))
+    sec.tables.append(table)
+    sec.notes += sentences
+    return sec
+
+
 def _claim_categories(view: StoreView, dataset: str) -> list[str]:
     """The categories of ``dataset``'s stored runs when they include the paper's (delamination), else none: the
     claims section is only for data with the paper's categories."""
@@ -377,7 +395,7 @@ def _claim_categories(view: StoreView, dataset: str) -> list[str]:
 def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, progress: Any = None) -> Section:
     """The paper's claims tested on the data (``harness.report.claims``), on ``scorer``'s resamples (the paired
     comparisons' scorer, with the categories' AP50 columns: runs it scored already are not scored again)."""
-    from harness.report.claims import claims_records, evaluate_claims, is_synthetic, standin_lead
+    from harness.report.claims import claim_entries, claims_records, evaluate_claims, is_synthetic, standin_lead
     from harness.report.tables import Column, Table
 
     where = "on the synthetic stand-in" if is_synthetic(view, dataset) else "on these data"
@@ -397,6 +415,7 @@ def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, prog
         rows,
         records=list(claims_records(claims)),
     )
+    table.notes += [n for n in [held_out_note(claim_entries(view, dataset)[1])] if n]
     sec.tables.append(table)
     sec.lead.append(standin_lead(view, dataset))
     sec.notes += notes
@@ -445,6 +464,7 @@ def dataset_sections(
         sec.absent = f"no finished runs of {dataset}; fill with {run_cmd}."
     else:
         _split(table, lambda r: str(r.get("detector", "")).startswith(REF_PREFIX))
+        table.notes += [n for n in [held_out_note(rows)] if n]
         sec.tables.append(table)
     sec.notes += view.reference_notes.get(dataset, [])
     scale = _scale_note(view, dataset)
@@ -456,6 +476,7 @@ def dataset_sections(
             "Runs in the store that are not finished (not shown): " + ", ".join(f"{k} ({s})" for k, s in unfinished)
         )
     sections.append(sec)
+    sections.append(_budget_section(entries, dataset, run_cmd))
 
     sec = Section("categories", "Per category", dataset)
     table = category_table(view, dataset)

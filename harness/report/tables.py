@@ -9,6 +9,9 @@ Tables (builders below, all reading only the store through ``reader.StoreView``)
 
 * ``project_table``: the seed's project-grouped table: per held-out fold mAP50 and mAP50:95, their mean ± sample
   SD over folds, Params (M) and GFLOPs measured on the model each run trained;
+* ``budget_table``: per detector and encoding, the training budget: epochs run, the selection protocol, how many
+  runs reached the plateau and the slope of their last scored epochs (``held_out_note`` names the entries whose
+  weights were chosen on the held-out fold);
 * ``category_table``: per category, instances and AP50 / AP50:95 as means over the folds that contain it;
 * ``ablation_tables``: one per detector run with several encodings on common folds: P, R, mAP50, mAP50:95 and
   AP50 of the seed's two thermal-only defects (delamination, water seepage);
@@ -44,6 +47,8 @@ from harness.report.reader import (
     label_notes,
     marks,
     natural_key,
+    run_plateau,
+    run_selection,
 )
 from harness.textable import text_table
 
@@ -589,6 +594,155 @@ def _profile_notes(table: Table, rows: Sequence[Entry], missing: Sequence[Entry]
                 f"{e.label}: Params and GFLOPs absent, run(s) without a complexity record "
                 f"({', '.join(e.unmeasured_runs()[:3])}); re-run with --force to measure them."
             )
+
+
+# -------------------------------------------------------------------------------------------------- training budget
+#: What the seed's protocol (weights chosen on the held-out fold) added to the number it reports, measured on the
+#: benchmark's learning-curve runs: docs/learning-curves/README.md, table "Which weights" (largest "inflation of the
+#: seed's protocol", ours/c2 over 60 epochs: +5.09 points of held-out mAP50:95, best held-out epoch over the last).
+HELD_OUT_INFLATION_POINTS = 5.09
+
+#: The plateau record's metric when a run stored none, by selection protocol (as ``harness.runner`` names them).
+_PLATEAU_METRIC = {
+    "validation": "validation fitness",
+    "held-out": "held-out fitness",
+    "last": "held-out fitness, logged only",
+}
+
+
+def _epochs_run(metrics: Mapping[str, Any]) -> int | None:
+    sel = run_selection(metrics)
+    n = sel.get("epochs_run")
+    if n is None:
+        n = (metrics.get("train") or {}).get("epochs_run")
+    return int(n) if isinstance(n, (int, float)) and not isinstance(n, bool) else None
+
+
+def _range(values: Sequence[int]) -> str:
+    if not values:
+        return "-"
+    lo, hi = min(values), max(values)
+    return str(lo) if lo == hi else f"{lo}-{hi}"
+
+
+def budget_table(entries: Sequence[Entry], dataset: str) -> tuple[Table | None, list[str]]:
+    """The training budget of each (detector, encoding) of ``dataset``: epochs run (min-max over its runs), the
+    selection protocol(s) (``reader.run_selection``), how many runs reached the plateau (``reader.run_plateau``), the
+    mean and largest slope of the plateau records (points per epoch over the last epochs) and the metric it was
+    measured on. Returns (table, sentences): one sentence per entry with runs still rising, one naming the entries
+    with runs that recorded no plateau. None when there are no entries."""
+    if not entries:
+        return None, []
+    name = f"{_slug(dataset)}-budget"
+    cols = [
+        Column("detector", "Detector"),
+        Column("encoding", "Encoding"),
+        Column("runs", "Runs", "int"),
+        Column("epochs", "Epochs run"),
+        Column("selection", "Selection"),
+        Column("reached", "Plateau reached"),
+        Column("slope_mean", "Slope mean", "float", digits=2),
+        Column("slope_max", "Slope max", "float", digits=2),
+        Column("metric", "Slope of"),
+    ]
+    table = Table(name, f"{dataset}: training budget (plateau slope in points/epoch)", cols)
+    names = _entry_names(entries)
+    plain = _plain_names(entries)
+    rising: list[str] = []
+    unrecorded: list[str] = []
+    window: set[int] = set()
+    threshold: set[float] = set()
+    for e in entries:
+        runs = e.runs()
+        epochs = [n for n in (_epochs_run(r.metrics) for r in runs) if n is not None]
+        protocols = list(dict.fromkeys(str(run_selection(r.metrics).get("protocol")) for r in runs))
+        recs = [(r, p) for r in runs if (p := run_plateau(r.metrics)) is not None]
+        slopes = [float(p["slope_per_epoch"]) for _, p in recs if p.get("slope_per_epoch") is not None]
+        reached = sum(1 for _, p in recs if p.get("reached"))
+        metrics = list(
+            dict.fromkeys(
+                str(p.get("metric") or _PLATEAU_METRIC.get(str(run_selection(r.metrics).get("protocol")), "?"))
+                for r, p in recs
+            )
+        )
+        window |= {int(p["epochs"]) for _, p in recs if p.get("epochs")}
+        threshold |= {float(p["threshold"]) for _, p in recs if p.get("threshold") is not None}
+        mean = sum(slopes) / len(slopes) if slopes else None
+        top = max(slopes) if slopes else None
+        table.rows.append(
+            {
+                "detector": names[e.label],
+                "encoding": e.encoding,
+                "runs": len(runs),
+                "epochs": _range(epochs),
+                "selection": ", ".join(protocols),
+                "reached": f"{reached} of {len(recs)}" if recs else "not recorded",
+                "slope_mean": mean,
+                "slope_max": top,
+                "metric": "; ".join(metrics) or "-",
+            }
+        )
+        where = {"dataset": dataset, "detector": e.detector, "encoding": e.encoding, "seeds": e.seeds}
+        table.records += [
+            record(name, "epochs_run_max", max(epochs) if epochs else None, n=len(epochs), unit="epochs", **where),
+            record(name, "plateau_reached_runs", reached if recs else None, n=len(recs), unit="runs", **where),
+            record(name, "plateau_slope_mean", mean, n=len(slopes), unit="points/epoch", **where),
+            record(name, "plateau_slope_max", top, n=len(slopes), unit="points/epoch", **where),
+        ]
+        still = len(recs) - reached
+        if still:
+            over = max(int(p.get("epochs") or 0) for _, p in recs if not p.get("reached"))
+            rising.append(
+                f"{plain[e.label]}: {still} of {len(recs)} runs still rising (slope up to {top:.2f} point/epoch over "
+                f"the last {over} epochs): its numbers may rise with more epochs."
+            )
+        if len(recs) < len(runs):
+            gap = len(runs) - len(recs)
+            unrecorded.append(plain[e.label] + (f" ({gap} of {len(runs)} runs)" if recs else ""))
+    sentences = list(rising)
+    if unrecorded:
+        sentences.append(
+            f"Plateau not recorded for {', '.join(unrecorded)}: runs made before plateau records, or without "
+            "per-epoch scores."
+        )
+    over = " " + "/".join(str(n) for n in sorted(window)) if window else ""
+    below = (
+        "; the plateau is reached below " + "/".join(f"{t:g}" for t in sorted(threshold)) + " point/epoch"
+        if threshold
+        else ""
+    )
+    table.notes.append(
+        f"Slope: least-squares slope of the per-epoch fitness (0.1 mAP50 + 0.9 mAP50:95, points) over the last{over} "
+        f"scored epochs of each run (metrics.json train.plateau){below}. Epochs run: min-max over the runs; "
+        "selection: which weights predicted the held-out fold (protocol.selection)."
+    )
+    return table, sentences
+
+
+def _plain_names(entries: Sequence[Entry]) -> dict[str, str]:
+    """Entry names for sentences: the detector alone when each detector appears once, else detector/encoding."""
+    dets = [e.detector for e in entries]
+    return {e.label: e.detector if dets.count(e.detector) == 1 else e.label for e in entries}
+
+
+def held_out_note(entries: Sequence[Entry]) -> str | None:
+    """The note a table carries when some of its entries' weights were chosen on the held-out fold (the seed's
+    protocol, ``reader.run_selection``: runs stored before the record existed count as such), else None."""
+    names = _plain_names(entries)
+    chosen = []
+    for e in entries:
+        runs = e.runs()
+        k = sum(1 for r in runs if run_selection(r.metrics).get("protocol") == "held-out")
+        if k:
+            chosen.append(names[e.label] + (f" ({k} of {len(runs)} runs)" if k < len(runs) else ""))
+    if not chosen:
+        return None
+    return (
+        f"Weights chosen on the held-out fold (the seed's protocol) for: {', '.join(chosen)}; their numbers are "
+        "optimistic: on the benchmark's learning-curve runs choosing the best held-out epoch added up to "
+        f"{HELD_OUT_INFLATION_POINTS:.1f} points of mAP50:95 over the last epoch (docs/learning-curves/README.md, "
+        'table "Which weights").'
+    )
 
 
 # -------------------------------------------------------------------------------------------------- per category
