@@ -329,6 +329,11 @@ def validate_sample(
                     f"{bad} of {th.size} pixels are non-finite temperature values (NaN or "
                     f"inf), more than the {100 * MAX_INVALID_FRACTION:g} % a map may miss",
                 )
+        from harness.sensing.plausible import sample_problem  # the check every thermal input passes
+
+        problem = sample_problem(th, sample.meta)  # 8-bit counts, byte-swapped floats, Fahrenheit declared as C
+        if problem:
+            raise _fail(sample, "thermal", problem)
 
     boxes = _check_array(sample, "boxes", sample.boxes, np.float32, 2)
     if boxes.shape[1] != 4:

@@ -269,8 +269,8 @@ def test_without_sidecar_the_dtype_decides_and_implausible_values_are_refused(tm
 def test_sidecar_errors_and_unsupported_outputs(tmp_path):
     t = _temperature()
     np.save(tmp_path / "a.npy", t.astype(np.float32))
-    (tmp_path / "a.npy.json").write_text(json.dumps({"unit": "fahrenheit"}))
-    with pytest.raises(DataError, match="unknown unit 'fahrenheit'"):
+    (tmp_path / "a.npy.json").write_text(json.dumps({"unit": "rankine"}))
+    with pytest.raises(DataError, match="unknown unit 'rankine'"):
         read_thermal(tmp_path / "a.npy")
     # an unrelated a.json (no unit) beside b.npy is not taken for a sidecar
     np.save(tmp_path / "b.npy", t)

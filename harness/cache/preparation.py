@@ -364,38 +364,34 @@ def category_order(spec_categories: tuple[str, ...], categories: tuple[str, ...]
 
 
 def _plausible_temperatures(sample: Any, where: Any, implausible: dict[str, Any]) -> Any:
-    """``sample`` with its temperatures held to ``radiometry.PLAUSIBLE_C``: a few pixels outside become missing (NaN,
-    counted), a map mostly outside (a wrong unit: 8-bit counts read as centi-Kelvin give -273 C) is kept as it is and
-    counted as an implausible sample, which the input guard refuses unless ``inputs.accept`` names
-    ``temperature-range``; so is a dataset whose coolest pixel is above -100 C + 273.15 (temperatures in Kelvin)."""
+    """``sample`` with its temperatures held to ``radiometry.PLAUSIBLE_C`` (``harness.sensing.plausible``): a few
+    pixels outside become missing (NaN, counted on the console), a map more than 5 % outside (a wrong unit: 8-bit
+    counts read as centi-Kelvin give -273 C) is kept as it is and counted as an implausible sample, which the input
+    guard refuses unless ``inputs.accept`` names ``temperature-range``; so is a dataset whose coolest pixel is above
+    -100 C + 273.15 (temperatures in Kelvin)."""
     import dataclasses
 
     import numpy as np
 
-    from harness.sensing.c2 import MAX_INVALID_FRACTION
-    from harness.sensing.radiometry import PLAUSIBLE_C
+    from harness.sensing import plausible
 
     t = getattr(sample, "thermal", None)
     if not isinstance(t, np.ndarray) or t.dtype.kind != "f" or t.ndim != 2:
         return sample  # the contract check names what is wrong
-    finite = np.isfinite(t)
-    if finite.any():  # the coolest pixel of all samples: above -100 C + 273.15 everywhere reads as Kelvin
-        coolest = float(t[finite].min())
-        implausible["coolest"] = min(implausible.get("coolest", coolest), coolest)
-    bad = finite & ((t < PLAUSIBLE_C[0]) | (t > PLAUSIBLE_C[1]))
-    n_bad = int(np.count_nonzero(bad))
-    if not n_bad:
+    seen = plausible.classify(t, units=False)  # the one check every thermal input passes
+    if seen.finite:  # the coolest pixel of all samples: above -100 C + 273.15 everywhere reads as Kelvin
+        implausible["coolest"] = min(implausible.get("coolest", seen.lo), seen.lo)
+    if not seen.outside:
         return sample
-    n_finite = int(np.count_nonzero(finite))
-    if n_bad > MAX_INVALID_FRACTION * n_finite:
+    if seen.refused:  # more than plausible.GARBAGE_FRACTION outside (or byte-swapped): counted, kept for the guard
         implausible["samples"] += 1
         if len(implausible["examples"]) < MAX_LISTED_SKIPS:
-            lo, hi = float(t[finite].min()), float(t[finite].max())
-            implausible["examples"].append(f"{where}: {n_bad} of {n_finite} values outside, {lo:.6g}..{hi:.6g} C")
+            implausible["examples"].append(
+                f"{where}: {seen.outside} of {seen.finite} values outside, {seen.lo:.6g}..{seen.hi:.6g} C"
+            )
         return sample
-    implausible["pixels"] += n_bad
     kept = t.copy()
-    kept[bad] = np.nan
+    implausible["pixels"] += plausible.check(kept, str(where), "the dataset plugin", units=False)
     return dataclasses.replace(sample, thermal=kept)
 
 

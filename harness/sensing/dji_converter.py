@@ -18,8 +18,9 @@ afterwards, whatever happens); a converter that cannot be started is a ``ConfigE
 file); one that fails, outlasts its time-out (it is stopped, with any process it started) or writes the wrong
 amount of data is a ``DataError`` naming the file. Values at or below -273 C (the SDK's "cannot measure") and
 non-finite values come back as missing (NaN), and so do values outside the plausible range
-(``radiometry.PLAUSIBLE_C``, -100..800 C; counted as ``implausible`` in the record); an output mostly outside it is
-not temperatures in C and is a ``DataError`` naming the file.
+(``radiometry.PLAUSIBLE_C``, -100..800 C; counted as ``implausible`` in the record and on the console); an output
+that is no temperature map in C (``harness.sensing.plausible``: more than 5 % outside, big-endian floats, Kelvin,
+8-bit counts) is a ``DataError`` naming the file.
 """
 
 from __future__ import annotations
@@ -241,9 +242,10 @@ def convert(
         )
     temp = np.frombuffer(data, dtype="<f4").reshape(height, width).astype(np.float32)
     temp = np.where(np.isfinite(temp) & (temp > NO_MEASUREMENT_C), temp, np.float32(np.nan)).astype(np.float32)
-    from harness.sensing.plausible import implausible_to_missing
+    from harness.sensing import plausible
 
-    implausible = implausible_to_missing(temp, str(source), f"the converter ({conv.name})")
+    # random bytes, big-endian floats, Kelvin or 8-bit counts: refused; a few values outside: missing, on the console
+    implausible = plausible.check(temp, str(source), f"the converter ({conv.name})", units=("counts8",))
     shown = ["<output>" if a == str(output) else a for a in argv]
     record = {
         "converter": conv.name,

@@ -55,7 +55,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from harness.errors import ConfigError, DataError
-from harness.sensing import dji_approximate, dji_converter, dji_correction, dji_dirp, dji_formats, jpeg
+from harness.sensing import dji_approximate, dji_converter, dji_correction, dji_dirp, dji_formats, jpeg, plausible
 from harness.sensing.plausible import PLAUSIBLE_C, implausible_to_missing  # noqa: F401  (their old home)
 
 log = logging.getLogger(__name__)
@@ -280,6 +280,12 @@ class RJpeg:
                     f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
                     "(float32 degrees Celsius)"
                 )
+        seen = plausible.classify(temp, units=("kelvin",))  # any format: a scene's median of 223..373 in C
+        if seen.kind == "kelvin":
+            raise DataError(
+                f"{self.path}: the converter ({self.converter.name}) wrote {seen.detail}; make it write C "
+                "(float32 degrees Celsius)"
+            )
         return temp, record
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
@@ -614,6 +620,7 @@ def write_rjpeg(
 UNITS: dict[str, tuple[float, float]] = {
     "celsius": (1.0, 0.0),
     "kelvin": (1.0, -KELVIN),
+    "fahrenheit": (1.0 / 1.8, -32.0 / 1.8),
     "centikelvin": (0.01, -KELVIN),
     "decicelsius": (0.1, 0.0),
     "centicelsius": (0.01, 0.0),
@@ -625,6 +632,7 @@ DEFAULT_UNIT = {"uint16": "centikelvin", "int16": "decicelsius", "float32": "cel
 UNIT_DTYPE = {
     "celsius": np.float32,
     "kelvin": np.float32,
+    "fahrenheit": np.float32,
     "centikelvin": np.uint16,
     "decicelsius": np.int16,
     "centicelsius": np.int16,
@@ -798,6 +806,11 @@ def rjpeg_temperature(
             unit="raw14", scale=1.0 / COUNTS_PER_K, offset=-KELVIN, dtype="uint16", decoder_note=rj.decoder_note
         )
         temp = rj.blackbody_c()
+    if rj.decoder != "converter":  # a converter's output is checked where it is read (dji_converter.convert)
+        temp = np.array(temp, np.float32)
+        implausible = implausible_to_missing(temp, str(rj.path), f"the {rj.decoder} route")
+        if implausible:
+            info["implausible"] = implausible
     missing = ~np.isfinite(temp)
     if missing.any():  # the converter's "not measured", or temperatures above an approximation's measured range
         from harness.sensing.c2 import valid_mask
@@ -876,8 +889,11 @@ def read_thermal(
         temp[missing] = np.nan
         valid_mask(temp, str(path))  # no valid pixel, or too many missing: an error naming the file
     implausible = 0
-    if side is not None:  # the stated unit: values outside the plausible range are missing, mostly so an error
-        implausible = implausible_to_missing(temp, str(path), f"the unit of {Path(side['_path']).name} ({unit})")
+    if side is not None:  # the stated unit: values outside the plausible range are missing, mostly so an error;
+        # a unit mix-up (Kelvin, Fahrenheit, 8-bit counts) is a console warning, the unit having been stated
+        implausible = plausible.check(
+            temp, str(path), f"the unit of {Path(side['_path']).name} ({unit})", units=True, declared=True
+        )
         if implausible:
             from harness.sensing.c2 import valid_mask
 
@@ -890,6 +906,9 @@ def read_thermal(
                 f"{path}: read as {unit} ({dtype}, no sidecar) the values span {lo:.1f}..{hi:.1f} C, "
                 f"which is not plausible; write {sidecar_path(path).name} with the right 'unit'"
             )
+        plausible.check(  # Kelvin, Fahrenheit or 8-bit counts in a file read as C: refused with the fix
+            temp, str(path), f"read as {unit} ({dtype}, no sidecar; write {sidecar_path(path).name} with its 'unit')"
+        )
     info = {
         "format": suffix.lstrip("."),
         "unit": unit,
