@@ -462,7 +462,11 @@ def check_detections(
         raise PluginError(f"{where} field 'scores' must be finite, got {int((~np.isfinite(s)).sum())} NaN/inf value(s)")
     if num_classes is not None and k and (lab.min() < 0 or lab.max() >= num_classes):
         bad = int(lab.min()) if lab.min() < 0 else int(lab.max())
-        raise PluginError(f"{where} field 'labels' must lie in 0..{num_classes - 1}, got {bad}")
+        hint = f": a model built for {bad + 1} or more classes?" if bad >= num_classes else ": 0-based labels expected"
+        raise PluginError(
+            f"{where} field 'labels' must lie in 0..{num_classes - 1}, got {bad} (the dataset has {num_classes} "
+            f"categories{hint})"
+        )
     if not counted and k:
         _check_boxes(b, where, image_size)
     return b, s, lab

@@ -597,6 +597,7 @@ def run_one(
     from harness.engine.trainer import Trainer, TrainSettings
     from harness.evaluation import evaluate_with_config
     from harness.evaluation.analysis import store_analysis
+    from harness.scoring.agreement import check_run
 
     fold, seed, r, cfg, digest = planned.fold, planned.seed, planned.run, planned.config, planned.digest
     force, progress = request.force, request.progress
@@ -798,6 +799,10 @@ def run_one(
             return RunOutcome(read_run(r), "resumed" if resumed else "trained", len(train_idx), len(val_idx))
         # most boxes malformed (e.g. x, y, w, h returned): stop naming the detector, unless accepted (then labelled)
         degenerate_note = degenerate.check(det.name, bool(eval_cfg.get("allow_degenerate", False)))
+        # the predictions as a whole against the ground truth: another reading far better stops naming the detector
+        misread = check_run(det.name, dets, gt, ncls, bool(eval_cfg.get("allow_degenerate", False)))
+        for note in misread:
+            log.warning("%s", note)
         evaluation = evaluate_with_config(gt, dets, cfg)
         if degenerate_note:
             log.warning("%s", degenerate_note)
@@ -879,6 +884,8 @@ def run_one(
             metrics["labels"] = [degenerate_note]
         elif degenerate.label(det.name):
             metrics["labels"] = [f"{degenerate.label(det.name)} (under the stop rule: more than half)"]
+        if misread:
+            metrics["labels"] = list(metrics.get("labels") or []) + misread
         approx = (prepared.manifest.get("report") or {}).get("approximate_temperatures")
         if approx:  # the thermal input rests on approximate temperatures: every table built on this run says so
             metrics["temperatures"] = dict(approx)

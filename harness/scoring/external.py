@@ -17,7 +17,10 @@ samples every harness detector is scored on:
   homography and crop as the ground truth (``harness.scoring.frames``); only boxes wholly outside are dropped.
 * **plausibility**: before anything is scored, ids that look misread (many predictions on unknown images or in
   unknown categories, ids that fit only shifted by one) stop with what was seen (``harness.scoring.plausibility``),
-  unless ``allow_implausible`` (``--allow-implausible``), which labels the stored result.
+  and so do the findings of the agreement check every prediction set gets, a detector plugin's in ``harness run``
+  too (``harness.scoring.agreement``: scores outside 0..1, duplicates, labels that fit only shifted or rolled,
+  boxes that fit only in another convention, image ids off by one), and a ``category_id`` and ``category_name``
+  that disagree; unless ``allow_implausible`` (``--allow-implausible``), which labels the stored result.
 * **which images were scored**: with an image list, the fold images it does not list are *missing*: they are left
   out of the ground truth, so the support differs from the trained detectors' and the sample-matched guard labels
   the comparison. Without an image list, every fold image is scored and those without any prediction are counted.
@@ -319,6 +322,10 @@ def match_predictions(
 
     # per fold image: (box in `frame`, score, label or None, category id read as the harness's or None)
     grouped: dict[int, list[tuple[list[float], float, int | None, int | None]]] = {}
+    # per fold image, in the order of ``grouped``: the label its category_id gives where a category_name was also
+    # written (None elsewhere), and how often each (id, name) pair was written
+    by_cid: dict[int, list[int | None]] = {}
+    pairs: Counter = Counter()
     # predictions whose image id was read as the harness's: (that id, box, score, label or None)
     by_harness_id: list[tuple[int, list[float], float, int | None]] = []
     for det in predictions:
@@ -364,6 +371,7 @@ def match_predictions(
         if label is None:
             m.unmatched_categories[cref] += 1
         grouped.setdefault(idx, []).append((box, score, label, bare_cat))
+        by_cid.setdefault(idx, []).append(_id_label(det, names_by_id, prepared.categories, pairs))
 
     # every fold image's predictions in the prepared frame (also those of unknown categories, for the guard)
     moved: dict[int, list[tuple[list[float], float, int | None, int | None]]] = {}
@@ -381,6 +389,7 @@ def match_predictions(
             (b, score, label, bare)
             for b, (_, score, label, bare) in zip(boxes.tolist(), (it for it, k in zip(items, keep) if k))
         ]
+        by_cid[i] = [c for c, k in zip(by_cid[i], keep) if k]
         if listed is None or i in listed:
             m.dropped_outside_frame += int((~keep).sum())
 
@@ -412,6 +421,7 @@ def match_predictions(
     m.scored = len(dets)
     m.findings = _findings(prepared, m, moved, by_harness_id, by_id, fold, frame)
     m.findings += _box_guard(prepared, m, grouped, fold if listed is None else fold & listed, frame, box_format)
+    m.findings += _agreement(prepared, m, moved, by_cid, pairs, scored_idx)
     return dets, scored_idx, m
 
 
@@ -483,6 +493,92 @@ def _findings(
     out += _category_shift(prepared, moved, sorted(fold), many_unknown_cat)
     if by_harness_id:
         out += _image_shift(prepared, by_harness_id, by_id, fold, frame)
+    return out
+
+
+def _id_label(det: Mapping[str, Any], names_by_id: Mapping[Any, str], categories: Sequence[str], pairs: Counter) -> Any:
+    """The label a prediction's ``category_id`` gives where it also has a ``category_name`` (the names win; this is
+    the other reading), counting the (id, name) pair; None without both."""
+    cid, name = det.get("category_id"), det.get("category_name")
+    if cid is None or name is None:
+        return None
+    pairs[(str(cid), normalise_category(str(name)))] += 1
+    ours = {normalise_category(c): i for i, c in enumerate(categories)}
+    their = names_by_id.get(cid, names_by_id.get(str(cid)))
+    if their is not None:
+        return ours.get(normalise_category(their))
+    bare = _as_int(cid)
+    return bare - 1 if bare is not None and 1 <= bare <= len(categories) else None
+
+
+#: What ``harness score`` says to do about a finding of the agreement check (``harness.scoring.agreement``).
+AGREEMENT_FIXES = {
+    "score_scale": "write scores as probabilities in 0..1 (percentages divided by 100, logits through the sigmoid)",
+    "duplicates": "write each detection once",
+    "label_shift": "map the categories with --category-map THEIR=OURS",
+    "box_format": "write boxes as x, y, w, h (or corners with --box-format xyxy)",
+    "image_shift": "check the image ids (and the image list given with --images)",
+}
+
+
+def _agreement(
+    prepared: Any,
+    m: Matching,
+    moved: Moved,
+    by_cid: Mapping[int, list[int | None]],
+    pairs: Counter,
+    scored: Sequence[int],
+) -> list[Finding]:
+    """The agreement check shared with ``harness run`` (``harness.scoring.agreement``) on the predictions of the
+    scored images, for what the guards above did not find, and ``category_conflict``: ``category_id`` and
+    ``category_name`` that disagree (the names are read), inconsistently, or with the ids agreeing far better."""
+    from harness.scoring import agreement as ag
+
+    records = prepared.records
+    order = sorted(scored, key=lambda i: int(records[i]["image_id"]))
+    preds = [(i, b, s, lab) for i in order for b, s, lab, _ in moved.get(i, [])]
+    if not preds:
+        return []
+    kinds = {f.kind for f in m.findings}
+    only = [
+        c
+        for c, blocked in (
+            ("score_scale", ()),
+            ("duplicates", ()),
+            ("label_shift", ("category_shift", "unknown_categories")),
+            ("box_format", ("box_format", "normalised", "outside", "frame")),
+            ("image_shift", ("image_shift", "unknown_images", "other_folds_by_id")),
+        )
+        if not kinds & set(blocked)
+    ]
+    out: list[Finding] = []
+    n = sum(pairs.values())
+    if n:  # names and ids that disagree: the names are read; say so before any other reading of the labels
+        by_id: dict[str, Counter] = {}
+        by_name: dict[str, Counter] = {}
+        for (cid, name), c in pairs.items():
+            by_id.setdefault(cid, Counter())[name] += c
+            by_name.setdefault(name, Counter())[cid] += c
+        odd = max(n - sum(c.most_common(1)[0][1] for c in d.values()) for d in (by_id, by_name))
+        both = [(i, it, c) for i in order for it, c in zip(moved.get(i, []), by_cid[i]) if c is not None]
+        as_named = agreement([(i, it[0], it[1], it[2]) for i, it, _ in both], prepared.targets, order)
+        as_ids = agreement([(i, it[0], it[1], c) for i, it, c in both], prepared.targets, order)
+        if too_many(odd, n) or shift_found(as_named, as_ids):
+            ex = ", ".join(f"{cid}/{name}" for (cid, name), _ in pairs.most_common(4))
+            out.append(
+                Finding(
+                    "category_conflict",
+                    f"category_id and category_name disagree: {len(pairs)} id/name pairs in {n} predictions, "
+                    f"e.g. {ex}{f' ({odd} against the pairing of the others)' if odd else ''}; recall at IoU 0.50 "
+                    f"{as_named or 0:.0%} by name (as read), {as_ids or 0:.0%} by id: write one of them, or map "
+                    f"them with --category-map",
+                )
+            )
+            only = [c for c in only if c != "label_shift"]
+    out += [
+        Finding(f.kind, f"{f.message}; {AGREEMENT_FIXES[f.kind]}")
+        for f in ag.check(preds, prepared.targets, order, len(prepared.categories), only=only)
+    ]
     return out
 
 
@@ -651,10 +747,25 @@ def _category_shift(prepared: Any, moved: Moved, fold: list[int], many_unknown: 
     def read(shift: int) -> list[tuple[int, list[float], float, int | None]]:
         return [(i, b, s, c - 1 + shift if 0 <= c - 1 + shift < len(cats) else None) for i, b, s, c in bare]
 
+    def roll(shift: int) -> list[tuple[int, list[float], float, int | None]]:
+        return [(i, b, s, (c - 1 + shift) % len(cats)) for i, b, s, c in bare]
+
     given = agreement(read(0), prepared.targets, fold)
     for shift in (1, -1):
         shifted = agreement(read(shift), prepared.targets, fold)
         fits_only_shifted = (ids[0] < 1 or ids[-1] > len(cats)) and all(1 <= c + shift <= len(cats) for c in ids)
+        rolled = agreement(roll(shift), prepared.targets, fold) if 1 <= ids[0] and ids[-1] <= len(cats) else None
+        if len(cats) > 1 and shift_found(given, rolled) and (rolled or 0.0) > (shifted or 0.0):
+            mapping = ",".join(f"{c}={cats[(c - 1 + shift) % len(cats)]}" for c in range(1, len(cats) + 1))
+            return [
+                Finding(
+                    "category_shift",
+                    f"category ids {ids[0]}..{ids[-1]} match the dataset's 1..{len(cats)} only rolled by "
+                    f"{shift:+d} (id {len(cats) if shift == 1 else 1} as {cats[0] if shift == 1 else cats[-1]}; "
+                    f"recall at IoU 0.50 {given or 0:.0%} as read, {rolled:.0%} rolled): map them: "
+                    f"--category-map {mapping}",
+                )
+            ]
         if shift_found(given, shifted) or (fits_only_shifted and many_unknown):
             mapping = ",".join(f"{k + 1 - shift}={c}" for k, c in enumerate(cats))
             seen = (
