@@ -504,6 +504,19 @@ def _check_boxes(b: Any, where: str, image_size: tuple[int, int] | None) -> None
         raise PluginError(f"{where}: {found[0].message}")
 
 
+def check_class_count(model: Any, detector: str, num_classes: int) -> None:
+    """A model that declares fewer classes (``nc`` or ``num_classes``, as an int) than the dataset has: a
+    ``PluginError`` naming the detector and both counts, before training would fail on a label it has no output for.
+    More is allowed (a background class)."""
+    for attr in ("nc", "num_classes"):
+        declared = getattr(model, attr, None)
+        if isinstance(declared, int) and not isinstance(declared, bool) and declared < num_classes:
+            raise PluginError(
+                f"detector {detector!r}: the model was built for {declared} classes (model.{attr}), the dataset has "
+                f"{num_classes}; build(num_classes, ...) must make a model with num_classes outputs"
+            )
+
+
 def check_losses(losses: Any, detector: str, finite: bool = True) -> Mapping[str, Any]:
     """The train-mode output: a non-empty dict of scalar tensors, finite unless ``finite=False``, else a
     ``PluginError`` naming the entry."""

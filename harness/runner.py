@@ -977,14 +977,18 @@ def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, c
 
 def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> torch.nn.Module:
     """``det.build(num_classes, in_channels=..., **model_cfg)`` with bad options reported as a config error."""
+    from harness.contracts import check_class_count
+
     try:
-        return det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
+        model = det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
     except TypeError as exc:
         if "keyword argument" in str(exc):
             raise ConfigError(
                 f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}"
             ) from None
         raise
+    check_class_count(model, det.name, num_classes)
+    return model
 
 
 def _init_info(init: str | Path | None) -> dict[str, Any]:

@@ -67,7 +67,8 @@ def _logit(s: np.ndarray) -> np.ndarray:
 class Operator:
     """One mistake: ``image`` changes one image's predictions (both boundaries), ``file`` the written results list
     (``harness score`` only); ``images``: the results come with an image list (``--images``); ``run`` and ``score``:
-    what the refusal must say at each boundary."""
+    what the refusal must say at each boundary; ``classes``: the model is built for this many classes more than the
+    dataset has (``harness run`` only)."""
 
     name: str
     image: Callable[[np.ndarray, np.ndarray, np.ndarray, int, int], Arrays] | None = None
@@ -75,6 +76,7 @@ class Operator:
     score: str = ""
     file: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None
     images: bool = False
+    classes: int = 0
 
 
 def _same(b: np.ndarray, s: np.ndarray, lab: np.ndarray, w: int, h: int) -> Arrays:
@@ -126,9 +128,10 @@ OPERATORS = (
     Operator("category_name disagrees with category_id", score="category_id and category_name", file=_name_conflict),
     Operator("image ids +1", score="shift of -1", file=_image_shift),
     Operator("image ids +1 with --images", score="previous image", file=_image_shift, images=True),
+    Operator("model built for fewer classes", run="built for 2 classes (model.nc), the dataset has 3", classes=-1),
 )
 BOUNDARIES = ("run", "score")
-CASES = [(b, op) for op in OPERATORS for b in BOUNDARIES if op.image is not None or b == "score"]
+CASES = [(b, op) for op in OPERATORS for b in BOUNDARIES if getattr(op, b)]
 
 # ------------------------------------------------------------------------------------------------ the known-good set
 
@@ -167,6 +170,8 @@ class Mutant(nn.Module):
     def __init__(self, num_classes: int, in_channels: int = 4):
         super().__init__()
         self.w = nn.Parameter(torch.zeros(1))
+        op = MUTATION["op"]
+        self.nc = num_classes + (op.classes if op is not None else 0)
 
     def forward(self, inputs: Any, targets: Any = None) -> Any:
         if self.training:
@@ -339,7 +344,8 @@ def test_an_accepted_mutant_is_stored_with_the_finding_as_label(boundary, op, wo
 
 
 def test_the_table_covers_both_boundaries():
-    assert len(CASES) == 2 * sum(op.image is not None for op in OPERATORS) + sum(op.image is None for op in OPERATORS)
+    assert len(CASES) == sum(bool(op.run) + bool(op.score) for op in OPERATORS)
+    assert all((op.image is not None) == bool(op.run and op.score) for op in OPERATORS)
 
 
 def test_random_predictions_raise_no_finding(world):
