@@ -800,7 +800,7 @@ def run_one(
         # most boxes malformed (e.g. x, y, w, h returned): stop naming the detector, unless accepted (then labelled)
         degenerate_note = degenerate.check(det.name, bool(eval_cfg.get("allow_degenerate", False)))
         # the predictions as a whole against the ground truth: another reading far better stops naming the detector
-        misread = check_run(det.name, dets, gt, ncls, bool(eval_cfg.get("allow_degenerate", False)))
+        misread = check_run(det.name, dets, gt, ncls, bool(eval_cfg.get("allow_degenerate", False)), settings.imgsz)
         for note in misread:
             log.warning("%s", note)
         evaluation = evaluate_with_config(gt, dets, cfg)

@@ -1,7 +1,7 @@
 """The mutation suite of the prediction boundaries: every misreading of a known-good prediction set is refused or
 labelled, never scored silently.
 
-A known-good set (the objects of the square shapes data found by colour, nearly perfect, with one low-scored false
+A known-good set (the objects of the shapes data found by colour, nearly perfect, with one low-scored false
 positive per image) goes through each boundary where predictions enter the harness: (a) a detector plugin's eval-mode
 output during ``harness run``, (b) a COCO results file for ``harness score``. Each operator of ``OPERATORS`` makes one
 mistake a producer of predictions makes (a class list off by one, logits for scores, boxes in another convention,
@@ -30,7 +30,9 @@ from harness.testing import temporary_plugin
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 NC = len(CATEGORIES)
-#: The run: one epoch of a model with one parameter on 64 px square images (no letterbox padding), no validation.
+#: The images' height and width: wider than high, so the run's 64 px input is letterboxed (padded above and below).
+SIZE = (64, 80)
+#: The run: one epoch of a model with one parameter at 64 px, no validation.
 RUN = [
     "protocol.imgsz=64",
     "protocol.epochs=1",
@@ -193,7 +195,7 @@ class Mutant(nn.Module):
 
 
 class MutationPlugin:
-    """The square shapes dataset, the test encodings and the ``mutant`` detector."""
+    """The shapes dataset (``SIZE``), the test encodings and the ``mutant`` detector."""
 
     @hookimpl
     def register_encodings(self, register: Any) -> None:
@@ -204,11 +206,11 @@ class MutationPlugin:
     def register_datasets(self, register: Any) -> None:
         register(
             DatasetSpec(
-                name="square-shapes",
-                open=lambda root=None, sensing=None, **opts: ShapesSource(size=(64, 64)),
+                name="wide-shapes",
+                open=lambda root=None, sensing=None, **opts: ShapesSource(size=SIZE),
                 categories=CATEGORIES,
                 default_encoding="test-ir8",
-                description="coloured shapes on 64 x 64 images",
+                description="coloured shapes on 80 x 64 images",
             )
         )
 
@@ -239,7 +241,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
     old = os.environ.get("HARNESS_CACHE")
     os.environ["HARNESS_CACHE"] = str(tmp / "cache")
     with temporary_plugin(MutationPlugin(), name="mutation-test"):
-        spec = get_host().dataset("square-shapes")
+        spec = get_host().dataset("wide-shapes")
         cfg = load_config("smoke", protocol=spec.protocol, overrides=RUN)
         prepared = prepare(spec.name, cfg)
         (fold,) = resolve_folds(spec, prepared, cfg, "A")
@@ -248,7 +250,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
         for i in val_idx:
             r = prepared.records[i]
             ir8 = prepared.channel(i, ENCODINGS[0])
-            img = torch.from_numpy(np.concatenate([prepared.rgb(i), np.asarray(ir8).reshape(64, 64, 1)], axis=2))
+            img = torch.from_numpy(np.concatenate([prepared.rgb(i), np.asarray(ir8).reshape(*SIZE, 1)], axis=2))
             per_image.append((int(r["image_id"]), r["width"], r["height"], found_by_colour(img.permute(2, 0, 1) / 255)))
         names = [
             {"id": int(prepared.records[i]["image_id"]), "file_name": prepared.records[i]["meta"]["file_name"]}
@@ -283,17 +285,17 @@ def outcome(
     if boundary == "run":
         MUTATION["op"] = op
         try:
-            res = cli_runner(run_args("mutant", "square-shapes", "A", store, *set_args(RUN), *more))
+            res = cli_runner(run_args("mutant", "wide-shapes", "A", store, *set_args(RUN), *more))
         finally:
             MUTATION["op"] = None
-        found = sorted(store.glob("square-shapes/mutant/*/A/seed0/metrics.json"))
+        found = sorted(store.glob("wide-shapes/mutant/*/A/seed0/metrics.json"))
     else:
         (tmp / "preds.json").write_text(json.dumps(results_file(per_image, op), allow_nan=True))
         extra = ["--images", str(tmp / "images.json")] if op is not None and op.images else []
         (tmp / "images.json").write_text(json.dumps({"images": names}))
-        args = ["score", "--dataset", "square-shapes", "--folds", "A", "--predictions", str(tmp / "preds.json")]
+        args = ["score", "--dataset", "wide-shapes", "--folds", "A", "--predictions", str(tmp / "preds.json")]
         res = cli_runner([*args, "--name", "x", "--store", str(store), *extra, *set_args(RUN), *more])
-        found = sorted(store.glob("square-shapes/external.x/*/A/seed0/metrics.json"))
+        found = sorted(store.glob("wide-shapes/external.x/*/A/seed0/metrics.json"))
     metrics = json.loads(found[0].read_text()) if found else None
     return res.exit_code, res.output, metrics
 

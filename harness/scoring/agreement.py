@@ -13,13 +13,14 @@ x2, y2`` in the frame the ground truth is in, the score, the 0-based label) befo
 * ``box_format``: the boxes agree far better read as ``x, y, w, h``, as ``cx, cy, w, h`` or with ``y`` first;
 * ``image_shift``: the predictions agree far better moved to the neighbouring image in image-id order (ids off by one).
 
-"Far better" is ``shift_found`` of ``harness.scoring.plausibility``: recall at IoU 0.50 (``agreement``) of at least
-``SHIFT_MIN_AGREEMENT`` read the other way and at least ``SHIFT_FACTOR`` times the reading as given. An untrained or
-weak detector agrees little under every reading and raises nothing; a misreading shows as one reading far above the
-others. Each finding says what was seen with the recall of both readings; the caller prefixes who made the set and
-adds what to do. ``harness score`` refuses the file (exit status 2) unless ``--allow-implausible``, which labels the
-stored result; ``harness run`` stops naming the detector (exit status 2) unless ``eval.allow_degenerate=true``,
-which stores the result labelled with the same finding.
+"Far better" (``found``): the AP50 of the other reading (``ap50``: average precision at IoU 0.50, all classes pooled,
+each image's ``TOP_PER_IMAGE`` highest-scoring predictions) is at least ``MIN_GAIN`` above the reading as given and at
+least ``FACTOR`` times it. AP, not recall: a hundred random boxes per image reach a fair recall under every reading,
+but no precision, so an untrained or weak detector raises nothing under any reading, while a misread good one shows
+as one reading far above the others. Each finding says what was seen with the AP50 of both readings; the caller
+prefixes who made the set and adds what to do. ``harness score`` refuses the file (exit status 2) unless
+``--allow-implausible``, which labels the stored result; ``harness run`` stops naming the detector (exit status 2)
+unless ``eval.allow_degenerate=true``, which stores the result labelled with the same finding.
 """
 
 from __future__ import annotations
@@ -29,8 +30,15 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from harness.scoring.plausibility import Finding, Pred, agreement, pct, shift_found, too_many
+from harness.scoring.plausibility import TOP_PER_IMAGE, Finding, Pred, _iou, pct, too_many
 
+#: Another reading is a finding when its AP50 is at least ``MIN_GAIN`` above the reading as given and at least
+#: ``FACTOR`` times it (module docstring).
+MIN_GAIN = 0.05
+FACTOR = 3.0
+#: ... and the gain is worth at least this many objects (``MIN_OBJECTS / objects``): on a few images one chance
+#: match is worth more than ``MIN_GAIN``.
+MIN_OBJECTS = 3
 #: How far outside 0..1 a score may lie before it counts (float rounding of a product of probabilities).
 SCORE_TOL = 1e-6
 #: The checks of ``check``, in the order they are made (``only`` picks some).
@@ -39,8 +47,65 @@ CHECKS = ("score_scale", "duplicates", "label_shift", "box_format", "image_shift
 Targets = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 
+def ap50(preds: Sequence[Pred], targets: Targets, images: Sequence[int], top: int = TOP_PER_IMAGE) -> float | None:
+    """Average precision at IoU 0.50 of ``preds`` on ``images``, all classes pooled: each image's ``top``
+    highest-scoring predictions matched greedily (highest score first) to unmatched objects of their label, the
+    precision made monotone as COCO's is, summed at every true positive over the number of objects. ``None`` when
+    the images hold no objects."""
+    wanted = set(images)
+    by_image: dict[int, list[tuple[float, Sequence[float], int]]] = {}
+    for idx, box, score, label in preds:
+        if idx in wanted and label is not None:
+            by_image.setdefault(idx, []).append((score, box, label))  # type: ignore[arg-type]
+    objects = 0
+    scores: list[float] = []
+    hits: list[bool] = []
+    for idx in wanted:
+        gt_boxes, gt_labels = targets(idx)
+        objects += len(gt_boxes)
+        items = sorted(by_image.get(idx, []), key=lambda t: -t[0])[:top]
+        if not items:
+            continue
+        scores += [t[0] for t in items]
+        if len(gt_boxes) == 0:
+            hits += [False] * len(items)
+            continue
+        boxes = np.asarray([b for _, b, _ in items], dtype=np.float64).reshape(-1, 4)
+        with np.errstate(invalid="ignore"):
+            iou = np.nan_to_num(_iou(boxes, np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)))
+        ok = (iou >= 0.5) & (np.asarray([lab for _, _, lab in items])[:, None] == np.asarray(gt_labels)[None, :])
+        used = np.zeros(len(gt_boxes), dtype=bool)
+        for k in range(len(items)):
+            free = ok[k] & ~used
+            if free.any():
+                used[int(np.argmax(np.where(free, iou[k], -1.0)))] = True
+            hits.append(bool(free.any()))
+    if not objects:
+        return None
+    if not hits:
+        return 0.0
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    tp = np.asarray(hits)[order]
+    precision = np.cumsum(tp) / np.arange(1, len(tp) + 1)
+    precision = np.maximum.accumulate(precision[::-1])[::-1]
+    return float(precision[tp].sum() / objects)
+
+
+def found(given: float | None, other: float | None, objects: int = 0) -> bool:
+    """Whether the other reading agrees so much better (AP50) that the reading as given is a misreading, on images
+    holding ``objects`` objects."""
+    if other is None:
+        return False
+    g = given or 0.0
+    return other - g >= max(MIN_GAIN, MIN_OBJECTS / objects if objects else 0.0) and other >= FACTOR * g
+
+
+def count_objects(targets: Targets, images: Sequence[int]) -> int:
+    return sum(len(targets(i)[0]) for i in set(images))
+
+
 def _seen(given: float | None, other: float | None, as_given: str, as_other: str) -> str:
-    return f"recall at IoU 0.50 {given or 0:.0%} {as_given}, {other or 0:.0%} {as_other}"
+    return f"AP50 {given or 0:.3f} {as_given}, {other or 0:.3f} {as_other}"
 
 
 def score_findings(scores: Sequence[float]) -> list[Finding]:
@@ -105,62 +170,96 @@ def label_readings(num_classes: int) -> list[tuple[str, Callable[[int], int | No
     return out
 
 
+Candidate = tuple[float, Finding]
+
+
 def label_findings(preds: Sequence[Pred], targets: Targets, images: Sequence[int], num_classes: int) -> list[Finding]:
     """``label_shift`` when the labels agree with the ground truth far better shifted or rolled (module docstring)."""
-    given = agreement(preds, targets, images)
+    return [f for _, f in _label_best(preds, targets, images, num_classes)]
+
+
+def _label_best(preds: Sequence[Pred], targets: Targets, images: Sequence[int], num_classes: int) -> list[Candidate]:
+    given, n_obj = ap50(preds, targets, images), count_objects(targets, images)
     best: tuple[str, float] | None = None
     for what, read in label_readings(num_classes):
-        alt = agreement([(i, b, s, None if lab is None else read(lab)) for i, b, s, lab in preds], targets, images)
-        if shift_found(given, alt) and (best is None or (alt or 0.0) > best[1]):
+        alt = ap50([(i, b, s, None if lab is None else read(lab)) for i, b, s, lab in preds], targets, images)
+        if found(given, alt, n_obj) and (best is None or (alt or 0.0) > best[1]):
             best = (what, alt or 0.0)
     if best is None:
         return []
     return [
-        Finding(
-            "label_shift",
-            f"labels that agree with the ground truth only {best[0]} "
-            f"({_seen(given, best[1], 'as given', best[0].split(' (')[0])}): an off-by-one in the class list?",
+        (
+            best[1],
+            Finding(
+                "label_shift",
+                f"labels that agree with the ground truth only {best[0]} "
+                f"({_seen(given, best[1], 'as given', best[0].split(' (')[0])}): an off-by-one in the class list?",
+            ),
         )
     ]
 
 
-#: The other box conventions: (name, ``x1, y1, x2, y2`` as given -> the box that convention means).
-BOX_READINGS: tuple[tuple[str, Callable[[np.ndarray], np.ndarray]], ...] = (
-    ("x, y, w, h", lambda b: np.stack([b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]], axis=1)),
+#: The other box conventions: (name, (``x1, y1, x2, y2`` as given, per box the offset ``c``) -> the box that
+#: convention means). ``c``: where the boxes were returned in a letterboxed input and mapped back as ``x, y``, a
+#: ``y, x`` pair comes back shifted by ``c = (pad_top - pad_left) / ratio`` (0 for a square frame).
+BOX_READINGS: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = (
+    ("x, y, w, h", lambda b, c: np.stack([b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]], axis=1)),
     (
         "cx, cy, w, h",
-        lambda b: np.stack(
+        lambda b, c: np.stack(
             [b[:, 0] - b[:, 2] / 2, b[:, 1] - b[:, 3] / 2, b[:, 0] + b[:, 2] / 2, b[:, 1] + b[:, 3] / 2], axis=1
         ),
     ),
-    ("y1, x1, y2, x2 (y first)", lambda b: b[:, [1, 0, 3, 2]]),
+    (
+        "y1, x1, y2, x2 (y first)",
+        lambda b, c: np.stack([b[:, 1] + c, b[:, 0] - c, b[:, 3] + c, b[:, 2] - c], axis=1),
+    ),
 )
 
 
 def box_findings(
-    preds: Sequence[Pred], targets: Targets, images: Sequence[int], readings: Sequence[str] | None = None
+    preds: Sequence[Pred],
+    targets: Targets,
+    images: Sequence[int],
+    readings: Sequence[str] | None = None,
+    offsets: Sequence[float] | None = None,
 ) -> list[Finding]:
-    """``box_format`` when the boxes agree far better in another convention (``BOX_READINGS``; ``readings``: some)."""
+    """``box_format`` when the boxes agree far better in another convention (``BOX_READINGS``; ``readings``: some;
+    ``offsets``: per prediction, the letterbox's ``c``, else 0)."""
+    return [f for _, f in _box_best(preds, targets, images, readings, offsets)]
+
+
+def _box_best(
+    preds: Sequence[Pred],
+    targets: Targets,
+    images: Sequence[int],
+    readings: Sequence[str] | None = None,
+    offsets: Sequence[float] | None = None,
+) -> list[Candidate]:
     if not preds:
         return []
     boxes = np.asarray([b for _, b, _, _ in preds], dtype=np.float64).reshape(-1, 4)
-    given = agreement(preds, targets, images)
+    given, n_obj = ap50(preds, targets, images), count_objects(targets, images)
     best: tuple[str, float] | None = None
     for what, read in BOX_READINGS:
         if readings is not None and what not in readings:
             continue
+        c = np.zeros(len(boxes)) if offsets is None else np.asarray(offsets, dtype=np.float64)
         with np.errstate(invalid="ignore", over="ignore"):
-            other = read(boxes)
-        alt = agreement([(i, o, s, lab) for (i, _, s, lab), o in zip(preds, other.tolist())], targets, images)
-        if shift_found(given, alt) and (best is None or (alt or 0.0) > best[1]):
+            other = read(boxes, c)
+        alt = ap50([(i, o, s, lab) for (i, _, s, lab), o in zip(preds, other.tolist())], targets, images)
+        if found(given, alt, n_obj) and (best is None or (alt or 0.0) > best[1]):
             best = (what, alt or 0.0)
     if best is None:
         return []
     return [
-        Finding(
-            "box_format",
-            f"boxes that agree with the ground truth only read as {best[0]} "
-            f"({_seen(given, best[1], 'as x1, y1, x2, y2', f'as {best[0]}')})",
+        (
+            best[1],
+            Finding(
+                "box_format",
+                f"boxes that agree with the ground truth only read as {best[0]} "
+                f"({_seen(given, best[1], 'as x1, y1, x2, y2', f'as {best[0]}')})",
+            ),
         )
     ]
 
@@ -168,23 +267,30 @@ def box_findings(
 def image_findings(preds: Sequence[Pred], targets: Targets, images: Sequence[int]) -> list[Finding]:
     """``image_shift`` when the predictions agree far better moved to the neighbouring image of ``images`` (in the
     order given: image-id order)."""
+    return [f for _, f in _image_best(preds, targets, images)]
+
+
+def _image_best(preds: Sequence[Pred], targets: Targets, images: Sequence[int]) -> list[Candidate]:
     order = list(images)
     pos = {idx: k for k, idx in enumerate(order)}
-    given = agreement(preds, targets, order)
+    given, n_obj = ap50(preds, targets, order), count_objects(targets, order)
     for d in (1, -1):
         moved = [
             (order[pos[i] + d], b, s, lab)
             for i, b, s, lab in preds
             if i in pos and 0 <= pos[i] + d < len(order)  # type: ignore[index]
         ]
-        alt = agreement(moved, targets, order)
-        if shift_found(given, alt):
+        alt = ap50(moved, targets, order)
+        if found(given, alt, n_obj):
             return [
-                Finding(
-                    "image_shift",
-                    f"predictions that agree with the ground truth only moved to the "
-                    f"{'next' if d == 1 else 'previous'} image in image-id order "
-                    f"({_seen(given, alt, 'as given', 'moved')}): image ids off by one?",
+                (
+                    alt or 0.0,
+                    Finding(
+                        "image_shift",
+                        f"predictions that agree with the ground truth only moved to the "
+                        f"{'next' if d == 1 else 'previous'} image in image-id order "
+                        f"({_seen(given, alt, 'as given', 'moved')}): image ids off by one?",
+                    ),
                 )
             ]
     return []
@@ -196,10 +302,12 @@ def check(
     images: Sequence[int],
     num_classes: int,
     only: Sequence[str] = CHECKS,
+    offsets: Sequence[float] | None = None,
 ) -> list[Finding]:
     """The findings of every check in ``only`` (``CHECKS``) on ``preds`` against the ground truth of ``images`` (in
     image-id order), with labels in 0..``num_classes``-1. A set with a score or duplicate finding is not read further
-    (its agreement would say nothing new)."""
+    (its agreement would say nothing new); of the other readings only the one that agrees best is a finding (one
+    misreading makes the others agree a little by chance). ``offsets``: see ``box_findings``."""
     out: list[Finding] = []
     if "score_scale" in only:
         out += score_findings([s for _, _, s, _ in preds])
@@ -207,13 +315,14 @@ def check(
         out += duplicate_findings(preds)
     if out:
         return out
+    candidates: list[Candidate] = []
     if "label_shift" in only:
-        out += label_findings(preds, targets, images, num_classes)
-    if "box_format" in only and not out:
-        out += box_findings(preds, targets, images)
-    if "image_shift" in only and not out:
-        out += image_findings(preds, targets, images)
-    return out
+        candidates += _label_best(preds, targets, images, num_classes)
+    if "box_format" in only:
+        candidates += _box_best(preds, targets, images, offsets=offsets)
+    if "image_shift" in only:
+        candidates += _image_best(preds, targets, images)
+    return [max(candidates, key=lambda c: c[0])[1]] if candidates else []
 
 
 def coco_targets(gt: Mapping[str, Any]) -> tuple[Targets, list[int]]:
@@ -243,22 +352,37 @@ def coco_preds(dets: Sequence[Mapping[str, Any]]) -> list[Pred]:
     return out
 
 
+def letterbox_offset(width: float, height: float, size: int) -> float:
+    """``c = (pad_top - pad_left) / ratio`` of an image letterboxed to ``size x size`` (``harness.engine.augment``)."""
+    r = min(size / height, size / width)
+    nw, nh = max(1, round(width * r)), max(1, round(height * r))
+    left, top = int(round((size - nw) / 2 - 0.1)), int(round((size - nh) / 2 - 0.1))
+    return (top - left) / r
+
+
 def check_run(
     detector: str,
     dets: Sequence[Mapping[str, Any]],
     gt: Mapping[str, Any],
     num_classes: int,
     allow: bool = False,
+    imgsz: int | None = None,
 ) -> list[str]:
     """``harness run``: the agreement check on a detector plugin's held-out predictions (COCO results in the thermal
     frame) against the fold's ground truth ``gt``, before they are scored or stored. A finding stops the run with a
     ``PluginError`` naming the detector, unless ``allow`` (``eval.allow_degenerate``): then the findings come back as
     labels for the stored result (none when the set is plausible). Image ids are the harness's own here, so the
-    image shift is not looked for."""
+    image shift is not looked for. ``imgsz``: the square input the images were letterboxed to (for the y-first
+    reading of non-square frames)."""
     from harness.errors import PluginError
 
     targets, ids = coco_targets(gt)
-    found = check(coco_preds(dets), targets, ids, num_classes, only=CHECKS[:4])
+    preds = coco_preds(dets)
+    offsets = None
+    if imgsz:
+        sizes = {int(im["id"]): (float(im["width"]), float(im["height"])) for im in gt.get("images") or []}
+        offsets = [letterbox_offset(*sizes[i], imgsz) if i in sizes else 0.0 for i, _, _, _ in preds]
+    found = check(preds, targets, ids, num_classes, only=CHECKS[:4], offsets=offsets)
     if not found:
         return []
     fixes = {

@@ -539,18 +539,9 @@ def _agreement(
     preds = [(i, b, s, lab) for i in order for b, s, lab, _ in moved.get(i, [])]
     if not preds:
         return []
-    kinds = {f.kind for f in m.findings}
-    only = [
-        c
-        for c, blocked in (
-            ("score_scale", ()),
-            ("duplicates", ()),
-            ("label_shift", ("category_shift", "unknown_categories")),
-            ("box_format", ("box_format", "normalised", "outside", "frame")),
-            ("image_shift", ("image_shift", "unknown_images", "other_folds_by_id")),
-        )
-        if not kinds & set(blocked)
-    ]
+    # a misreading found above makes every other reading agree a little by chance: then only scores and duplicates
+    misread = {f.kind for f in m.findings} - {"other_folds_by_id"}
+    only = ["score_scale", "duplicates"] + ([] if misread else ["label_shift", "box_format", "image_shift"])
     out: list[Finding] = []
     n = sum(pairs.values())
     if n:  # names and ids that disagree: the names are read; say so before any other reading of the labels
@@ -561,20 +552,20 @@ def _agreement(
             by_name.setdefault(name, Counter())[cid] += c
         odd = max(n - sum(c.most_common(1)[0][1] for c in d.values()) for d in (by_id, by_name))
         both = [(i, it, c) for i in order for it, c in zip(moved.get(i, []), by_cid[i]) if c is not None]
-        as_named = agreement([(i, it[0], it[1], it[2]) for i, it, _ in both], prepared.targets, order)
-        as_ids = agreement([(i, it[0], it[1], c) for i, it, c in both], prepared.targets, order)
-        if too_many(odd, n) or shift_found(as_named, as_ids):
+        as_named = ag.ap50([(i, it[0], it[1], it[2]) for i, it, _ in both], prepared.targets, order)
+        as_ids = ag.ap50([(i, it[0], it[1], c) for i, it, c in both], prepared.targets, order)
+        if too_many(odd, n) or ag.found(as_named, as_ids, ag.count_objects(prepared.targets, order)):
             ex = ", ".join(f"{cid}/{name}" for (cid, name), _ in pairs.most_common(4))
             out.append(
                 Finding(
                     "category_conflict",
                     f"category_id and category_name disagree: {len(pairs)} id/name pairs in {n} predictions, "
-                    f"e.g. {ex}{f' ({odd} against the pairing of the others)' if odd else ''}; recall at IoU 0.50 "
-                    f"{as_named or 0:.0%} by name (as read), {as_ids or 0:.0%} by id: write one of them, or map "
+                    f"e.g. {ex}{f' ({odd} against the pairing of the others)' if odd else ''}; AP50 "
+                    f"{as_named or 0:.3f} by name (as read), {as_ids or 0:.3f} by id: write one of them, or map "
                     f"them with --category-map",
                 )
             )
-            only = [c for c in only if c != "label_shift"]
+            only = only[:2]
     out += [
         Finding(f.kind, f"{f.message}; {AGREEMENT_FIXES[f.kind]}")
         for f in ag.check(preds, prepared.targets, order, len(prepared.categories), only=only)
