@@ -296,8 +296,8 @@ def profile_option(
     """``--profile`` (default ``smoke``, or the profile a command is about: ``benchmark``) -> parameter ``profile``
     (or ``param``). ``uses_config=False``: the command uses the profile only for its default store."""
     text = help or (
-        "Run profile under configs/profiles/ (smoke: small, CPU; paper: the seed's protocol); it also "
-        "names the default store, results/<profile>."
+        "Run profile under configs/profiles/ (smoke: small, CPU; demo: `make demo`'s; benchmark: the reference "
+        "results'; paper: the seed's protocol); it also names the default store, results/<profile>."
         if uses_config
         else "Run profile whose results store (results/<profile>) is used when --store is not given."
     )
@@ -430,8 +430,13 @@ def folder_option(*decls: str, help: str, required: bool = False) -> Callable[[F
 
 
 def workers_option(help: str) -> Callable[[F], F]:
-    """``--workers`` -> parameter ``workers``: processes, at least 1 [default: 1]."""
-    return click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help=help)
+    """``--workers`` -> parameter ``workers``: processes, at least 1 and at most ``config.worker_cap()`` (4 per CPU
+    core) [default: 1]."""
+    from harness.config import worker_cap
+
+    return click.option(
+        "--workers", type=click.IntRange(min=1, max=worker_cap()), default=1, show_default=True, help=help
+    )
 
 
 def model_shape_options(*, imgsz_help: str = "Square input size.") -> Callable[[F], F]:

@@ -199,6 +199,21 @@ def _front(rows: Sequence[Entry]) -> set[str] | None:
     return {pts[i][0] for i in idx}
 
 
+def _refs_option(view: Any) -> str:
+    """`` --reference-results shipped`` (or the folder) when the report reads reference results, so a suggested
+    ``harness compare-detectors`` command finds the ``ref:`` entries it names; empty otherwise."""
+    refs = getattr(view, "references", None)
+    if refs is None:
+        return ""
+    from harness.references import resolve
+
+    try:
+        shipped = Path(refs.root).resolve() == resolve("shipped").resolve()
+    except HarnessError:
+        shipped = False
+    return f" --reference-results {'shipped' if shipped else refs.root}"
+
+
 def _paired_section(
     view: StoreView,
     dataset: str,
@@ -256,7 +271,7 @@ def _paired_section(
         sec.absent = (
             f"fewer than two detectors (or encodings) evaluated on the same folds of {dataset}; fill with "
             f"`harness run --detector OTHER --dataset {dataset} --store {view.root}`, then "
-            f"`harness compare-detectors A B --dataset {dataset} --store {view.root}`."
+            f"`harness compare-detectors A B --dataset {dataset} --store {view.root}{_refs_option(view)}`."
         )
         return sec, []
     from harness.evaluation import SampleMismatchError
@@ -293,7 +308,7 @@ def _paired_section(
             sec.absent = "no pair of entries was scored on the same samples: " + "; ".join(skipped)
     sec.notes.append(
         f"Single pairs with more resamples: `harness compare-detectors A B --dataset {dataset} --store "
-        f"{view.root} --resamples 1000`."
+        f"{view.root}{_refs_option(view)} --resamples 1000`."
     )
     return sec, comps
 

@@ -199,6 +199,30 @@ class Source:
     note: str | None = None
 
 
+def _same_samples(run: StoredRun, root: Path) -> Any:
+    """A prepared dataset in the cache ``root`` whose held-out samples of ``run``'s fold have the content digest the
+    run recorded (``metrics.samples.aligned.held_out``): the same samples prepared under another key (the shipped
+    references were prepared on another machine, so their key names no folder here), or None."""
+    from harness.cache.folds import resolve_folds
+    from harness.cache.reader import PreparedDataset
+    from harness.plugins import get_host
+
+    metrics = run.metrics if isinstance(run.metrics, dict) else {}
+    want = ((metrics.get("samples") or {}).get("aligned") or {}).get("held_out")
+    if not want:
+        return None
+    for manifest in sorted((root / run.key.dataset).glob("*/manifest.json")):
+        try:
+            ds = PreparedDataset(manifest.parent)
+            folds = resolve_folds(get_host().dataset(run.key.dataset), ds, run.config)
+            fold = next((f for f in folds if f.name == run.key.fold), None)
+            if fold is not None and ds.content_digest(ds.indices(fold.val_groups)) == want:
+                return ds
+        except (HarnessError, OSError, ValueError, KeyError):
+            continue
+    return None
+
+
 def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[Any, str | None]:
     """The prepared samples a run was scored on, from the cache (``harness.cache.cached``), or (None, why not)."""
     from harness.cache import cache_root as default_root
@@ -214,10 +238,16 @@ def prepared_of(run: StoredRun, cache_root: str | Path | None = None) -> tuple[A
         return None, f"{run.key}: the prepared data in the cache is unreadable ({exc})"
     where = Path(cache_root) if cache_root is not None else default_root()
     if prepared is None:
+        # prepared elsewhere (the shipped references): the same samples under another key serve as well
+        same = _same_samples(run, where)
+        if same is not None:
+            return same, None
         return None, (
             f"the prepared samples of {run.key.dataset} (key {key}) are not in the cache {where} "
-            f"(HARNESS_CACHE); `harness prepare --dataset {run.key.dataset}` with the runs' settings, or "
-            f"point HARNESS_CACHE at the cache the runs used, then rebuild the report"
+            f"(HARNESS_CACHE), and no prepared {run.key.dataset} there holds the samples its fold {run.key.fold} "
+            f"was scored on; prepare them (for the reference results: `harness synth`, then `harness prepare "
+            f"--dataset {run.key.dataset}` with default settings) or point HARNESS_CACHE at the cache the runs "
+            "used, then rebuild the report"
         )
     stored = meta.get("prepared_fingerprint")
     if stored and stored != prepared.manifest.get("fingerprint"):

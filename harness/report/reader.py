@@ -633,6 +633,11 @@ class StoreView:
         available = ", ".join(e.label for e in entries) or "none"
         if not found:
             det = spec if spec.startswith("external/") else spec.partition("/")[0]
+            if det.startswith(REFERENCE_PREFIX):  # a reference result: read with the references, never run here
+                raise StoreError(
+                    f"{self.root}: {spec!r} is a reference result, not a run of this store (available: "
+                    f"{available}); give the reference results with --reference-results shipped (or their folder)"
+                )
             how = (
                 f"harness score --dataset {dataset} --name {det.partition('/')[2]} ..."
                 if det.startswith("external/")
