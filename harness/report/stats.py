@@ -289,10 +289,10 @@ class BootstrapScorer:
             raise StoreError(f"{run.gt_path}: no images; nothing to resample")
         rows = np.concatenate([np.arange(n)[None, :], bootstrap_indices(n, self.resamples, self.seed, fold)])
         if self.workers > 1 and len(rows) >= 4 * self.workers:
-            from concurrent.futures import ProcessPoolExecutor
+            from harness.workers import worker_pool  # workers ignore Ctrl-C: the parent stops them
 
             chunks = np.array_split(rows, 4 * self.workers)
-            with ProcessPoolExecutor(self.workers) as pool:
+            with worker_pool(self.workers) as pool:
                 futures = [
                     pool.submit(_score_chunk, str(run.gt_path), str(run.predictions_path), engine, c, self.categories)
                     for c in chunks

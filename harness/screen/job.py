@@ -375,7 +375,8 @@ def frontend_results(
     its first capture comes up, and every capture of the group is screened with that registration (``registered``:
     the groups registered already, by an earlier call)."""
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+
+    from harness.workers import worker_pool
 
     registered = dict(registered or {})
     everyone = list(members if members is not None else caps)
@@ -391,8 +392,9 @@ def frontend_results(
                 f"processes ({type(exc).__name__}: {exc}); use --workers 1"
             ) from None
         # spawned, not forked: a process forked while the model's threads hold a lock can hang for good
-        pool = ProcessPoolExecutor(
-            max_workers=min(workers, len(caps)),
+        # workers ignore Ctrl-C (``harness.workers``): the parent stops the pool, with one message and no tracebacks
+        pool = worker_pool(
+            min(workers, len(caps)),
             mp_context=mp.get_context("spawn"),
             initializer=_init_worker,
             initargs=(fe.settings, fe.encoding),

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import os
 import struct
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
@@ -281,7 +281,9 @@ def decode_batch(
             else:
                 record(i, _run(job, options))
     else:
-        with ProcessPoolExecutor(max_workers=min(workers, total)) as pool:
+        from harness.workers import worker_pool  # workers ignore Ctrl-C: the parent stops them, no tracebacks
+
+        with worker_pool(min(workers, total)) as pool:
             pending: dict[Future, int] = {}
             it = iter(enumerate(jobs))
             try:
