@@ -207,7 +207,7 @@ class MutationPlugin:
         register(
             DatasetSpec(
                 name="wide-shapes",
-                open=lambda root=None, sensing=None, **opts: ShapesSource(size=SIZE),
+                open=lambda root=None, sensing=None, **opts: ShapesSource(size=SIZE, per_group=24),
                 categories=CATEGORIES,
                 default_encoding="test-ir8",
                 description="coloured shapes on 80 x 64 images",

@@ -176,8 +176,9 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
     assert [r["run"] for r in route.tables[0].rows] == ["tinydet/c2/P4+P5/seed0"]
     store = Store(real_store)
     titles = [t.title for t in report.tables]
-    assert titles[:3] == [
+    assert titles[:4] == [
         f"{DATASET}: project-grouped folds (held-out mAP, %)",
+        f"{DATASET}: training budget (plateau slope in points/epoch)",
         f"{DATASET}: per category (AP over the folds that contain the category, %)",
         f"{DATASET}: encoding ablation of tinydet (held-out fold P4+P5, %)",
     ]
@@ -197,7 +198,7 @@ def test_report_of_real_runs_has_every_section(real_store, real_report):
         runs[("tinydet", "c2", f)]["support"]["images"] for f in ("P1", "P2", "P3", "P4+P5")
     )
     # the ablation: one row per encoding, with the seed's two thermal-only defects
-    ablation = report.tables[2]
+    ablation = report.tables[3]  # after the folds, training budget and per-category tables
     assert [r["encoding"] for r in ablation.rows] == ["c2", "ir8", "none"]
     assert [c.label for c in ablation.columns][-2:] == ["AP50 delamination", "AP50 water_seepage"]
     # paired comparisons with bootstrap intervals that bracket their observed difference
