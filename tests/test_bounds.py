@@ -78,9 +78,12 @@ def test_workers_of_a_command_are_bounded(cli_runner, tmp_path):
 
 
 POOL = """
-import multiprocessing as mp, sys, time
+import multiprocessing as mp, signal, sys, time
 from concurrent.futures import ProcessPoolExecutor
 from harness.workers import worker_pool
+# Ctrl-C as in a terminal: a process started in the background by a non-interactive shell (as a CI job may be)
+# inherits SIGINT ignored, and Python then raises no KeyboardInterrupt
+signal.signal(signal.SIGINT, signal.default_int_handler)
 ctx = mp.get_context("spawn")
 pool = worker_pool(2, mp_context=ctx) if sys.argv[1] == "quiet" else ProcessPoolExecutor(2, mp_context=ctx)
 for f in [pool.submit(time.sleep, 0.01) for _ in range(4)]:
