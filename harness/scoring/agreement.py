@@ -26,7 +26,7 @@ unless ``eval.allow_degenerate=true``, which stores the result labelled with the
 from __future__ import annotations
 
 from collections import Counter
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -185,13 +185,28 @@ def label_findings(preds: Sequence[Pred], targets: Targets, images: Sequence[int
     return [f for _, f in _label_best(preds, targets, images, num_classes)]
 
 
+def _best_reading(
+    given: float | None, objects: int, alternatives: Iterable[tuple[str, float | None]]
+) -> tuple[str, float] | None:
+    """The other reading (how it is read, its AP50) that agrees best among those ``found`` far better than the reading
+    as given; None when none is."""
+    best: tuple[str, float] | None = None
+    for what, alt in alternatives:
+        if found(given, alt, objects) and (best is None or (alt or 0.0) > best[1]):
+            best = (what, alt or 0.0)
+    return best
+
+
 def _label_best(preds: Sequence[Pred], targets: Targets, images: Sequence[int], num_classes: int) -> list[Candidate]:
     given, n_obj = ap50(preds, targets, images), count_objects(targets, images)
-    best: tuple[str, float] | None = None
-    for what, read in label_readings(num_classes):
-        alt = ap50([(i, b, s, None if lab is None else read(lab)) for i, b, s, lab in preds], targets, images)
-        if found(given, alt, n_obj) and (best is None or (alt or 0.0) > best[1]):
-            best = (what, alt or 0.0)
+    best = _best_reading(
+        given,
+        n_obj,
+        (
+            (what, ap50([(i, b, s, None if lab is None else read(lab)) for i, b, s, lab in preds], targets, images))
+            for what, read in label_readings(num_classes)
+        ),
+    )
     if best is None:
         return []
     return [
@@ -247,16 +262,17 @@ def _box_best(
         return []
     boxes = np.asarray([b for _, b, _, _ in preds], dtype=np.float64).reshape(-1, 4)
     given, n_obj = ap50(preds, targets, images), count_objects(targets, images)
-    best: tuple[str, float] | None = None
-    for what, read in BOX_READINGS:
-        if readings is not None and what not in readings:
-            continue
-        c = np.zeros(len(boxes)) if offsets is None else np.asarray(offsets, dtype=np.float64)
-        with np.errstate(invalid="ignore", over="ignore"):
-            other = read(boxes, c)
-        alt = ap50([(i, o, s, lab) for (i, _, s, lab), o in zip(preds, other.tolist())], targets, images)
-        if found(given, alt, n_obj) and (best is None or (alt or 0.0) > best[1]):
-            best = (what, alt or 0.0)
+    c = np.zeros(len(boxes)) if offsets is None else np.asarray(offsets, dtype=np.float64)
+
+    def alternatives() -> Iterator[tuple[str, float | None]]:
+        for what, read in BOX_READINGS:
+            if readings is not None and what not in readings:
+                continue
+            with np.errstate(invalid="ignore", over="ignore"):
+                other = read(boxes, c)
+            yield what, ap50([(i, o, s, lab) for (i, _, s, lab), o in zip(preds, other.tolist())], targets, images)
+
+    best = _best_reading(given, n_obj, alternatives())
     if best is None:
         return []
     return [
