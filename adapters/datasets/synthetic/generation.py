@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
 import time
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -118,7 +117,7 @@ def generate(
     ``workers``: processes rendering in parallel (default: up to 4, at most the CPU count; 1 renders in this
     process). The output does not depend on it: every image draws from its own seed.
     """
-    from harness.io import atomic_write_json, atomic_write_text, make_temp_dir
+    from harness.io import atomic_folder, atomic_write_json, atomic_write_text
 
     prof = get_profile(profile)
     if thermal_format not in THERMAL_FORMATS:
@@ -128,23 +127,11 @@ def generate(
         raise DataError(f"{out} already exists and is not empty; pass --force to replace it, or choose --out")
     if workers is None:
         workers = 1 if prof.total <= 16 else min(4, os.cpu_count() or 1)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_temp_dir(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     t_start = time.perf_counter()
-    try:
+    with atomic_folder(out) as tmp:
         summary = _generate_into(
             tmp, prof, seed, thermal_format, progress, max(1, int(workers)), atomic_write_json, atomic_write_text
         )
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     summary.root = out
     summary.seconds = time.perf_counter() - t_start
     log.info("generated %d synthetic pairs in %s (%.1f s)", sum(summary.images.values()), out, summary.seconds)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -129,7 +128,7 @@ def generate(
     ``workers``: processes rendering sequences in parallel (default: up to 4, at most the CPU count; 1 renders
     in this process). The files do not depend on it.
     """
-    from harness.io import make_temp_dir
+    from harness.io import atomic_folder
 
     prof = get_profile(profile)
     out = Path(out) if out is not None else default_root(profile, seed)
@@ -137,24 +136,12 @@ def generate(
         raise DataError(f"{out} already exists and is not empty; pass --force to replace it, or choose --out")
     if workers is None:
         workers = 1 if prof.total <= 32 else min(4, os.cpu_count() or 1)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_temp_dir(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     t_start = time.perf_counter()
-    try:
+    with atomic_folder(out) as tmp:
         plan = plan_dataset(prof, seed)
         tasks = [_Task(str(tmp), prof.name, seed, s.index) for s in plan.sequences]
         _run(tasks, max(1, int(workers)), progress, f"generating {GENERATOR} ({prof.name})", prof.frames)
         summary = _write_files(tmp, plan)
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     summary.root = out
     summary.seconds = time.perf_counter() - t_start
     log.info("generated %d synthetic RGBT-Tiny-like pairs in %s (%.1f s)", prof.total, out, summary.seconds)
