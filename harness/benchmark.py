@@ -21,6 +21,14 @@ The cells:
   (its ``c2`` cells are the detector grid's own).
 
 The shipped reference results (``harness.references``) are this benchmark's store, exported.
+
+A second suite, ``rgbt-tiny-synth`` (``SUITES``, ``--suite``), runs the same machinery on the RGBT-Tiny-like stand-in
+(``harness synth --family rgbt-tiny``, read by the ``rgbt-tiny`` adapter): every detector of ``DETECTORS`` with each
+annotation source (``dataset.gt`` thermal or visible: folds ``test-T`` and ``test-RGB``, the release's own split by
+sequence), seeds 0, 1, 2, and ``ours`` with ``none``, ``proxy8`` and ``ir8`` on the thermal-source annotations. It
+runs at the ``benchmark`` profile with its own layer and per-detector files (``configs/benchmark-rgbt-tiny/``), into
+``results/benchmark-rgbt-tiny``; its references go to ``references/rgbt-tiny-synth-benchmark``. A suite is data
+(``Suite``): what differs between the two is there; the planning, lanes, resume, export and rerun are the same code.
 """
 
 from __future__ import annotations
@@ -63,15 +71,144 @@ RELATIVE_COST = {"ours": 1.0, "eme": 0.8, "icafusion": 1.9, "cmadet": 2.3}
 OWN_SIZES_PROFILES = ("paper",)
 
 
-def detector_config(detector: str, profile: str | None = PROFILE) -> Path | None:
-    """``configs/benchmark/<detector>.yaml`` when it exists (the per-detector options of the benchmark), except at a
-    profile of ``OWN_SIZES_PROFILES``."""
+def detector_config(detector: str, profile: str | None = PROFILE, folder: str = "benchmark") -> Path | None:
+    """``configs/<folder>/<detector>.yaml`` when it exists (the per-detector options of the benchmark; ``folder`` is
+    the suite's ``Suite.detector_configs``), except at a profile of ``OWN_SIZES_PROFILES``."""
     from harness.config import config_dir
 
     if profile in OWN_SIZES_PROFILES:
         return None
-    path = config_dir() / "benchmark" / f"{detector}.yaml"
+    path = config_dir() / folder / f"{detector}.yaml"
     return path if path.is_file() else None
+
+
+# ------------------------------------------------------------------------------------------------- suites
+@dataclass(frozen=True)
+class Suite:
+    """One reference benchmark: its dataset and data, its cells, its profile, store and reference folder.
+
+    ``variants``: the dataset options that make each set of cells, as ``(name, --set overrides)`` (the RGBT-Tiny
+    suite's two annotation sources; one unnamed variant without overrides for ``m3t-synth``); every detector runs on
+    ``folds`` of every variant. The ablation runs ``ablation_detector`` with each of ``encodings`` on
+    ``ablation_fold`` of the variant named ``ablation_variant``; ``grid_encoding`` is the ablation detector's
+    encoding in the detector grid. ``data``: the command that writes the suite's data folder, ``data_root`` that
+    folder (``None``: the dataset plugin makes its data itself), read through ``dataset.root``."""
+
+    name: str
+    dataset: str
+    profile: str
+    detectors: tuple[str, ...] = DETECTORS
+    seeds: tuple[int, ...] = SEEDS
+    folds: str = "all"
+    variants: tuple[tuple[str, tuple[str, ...]], ...] = (("", ()),)
+    ablation_detector: str = ABLATION_DETECTOR
+    ablation_fold: str = ABLATION_FOLD
+    ablation_variant: str = ""
+    encodings: tuple[str, ...] = ENCODINGS
+    grid_encoding: str = "c2"
+    detector_configs: str = "benchmark"
+    references: str = "m3t-synth-benchmark"
+    data: tuple[str, ...] = ()
+    data_root: str | None = None
+    #: the suite's own layers on top of the profile, under ``configs/`` (before each detector's file)
+    config_files: tuple[str, ...] = ()
+    #: the default results store's folder under ``results/`` (default: the profile's, the one rule of ``--store``)
+    store_name: str | None = None
+
+    @property
+    def store(self) -> Path:
+        """The default results store: ``results/<store_name or profile>``."""
+        return Path("results") / (self.store_name or self.profile)
+
+    def layers(self) -> tuple[str, ...]:
+        """``config_files`` as paths of the configuration folder."""
+        from harness.config import config_dir
+
+        return tuple(str(config_dir() / f) for f in self.config_files)
+
+    def variant_overrides(self, name: str) -> tuple[str, ...]:
+        return dict(self.variants)[name]
+
+    def data_overrides(self) -> tuple[str, ...]:
+        """``dataset.root=<the data folder>`` when the suite reads a generated folder (a location: not part of a
+        run's identity), else nothing."""
+        return (f"dataset.root={self.data_folder()}",) if self.data_root else ()
+
+    def data_folder(self) -> Path | None:
+        """The suite's data folder, under ``$HARNESS_DATA`` (default ``./data``), resolved."""
+        if not self.data_root:
+            return None
+        return (Path(os.environ.get("HARNESS_DATA") or "data") / self.data_root).resolve()
+
+
+#: The suites ``harness benchmark --suite`` knows; the first is the default.
+SUITES: dict[str, Suite] = {
+    s.name: s
+    for s in (
+        Suite("m3t-synth", DATASET, PROFILE),
+        Suite(
+            "rgbt-tiny-synth",
+            "rgbt-tiny",
+            PROFILE,
+            variants=(("thermal", ("dataset.gt=thermal",)), ("visible", ("dataset.gt=visible",))),
+            ablation_fold="test-T",
+            ablation_variant="thermal",
+            encodings=("none", "proxy8", "ir8"),
+            grid_encoding="proxy8",
+            detector_configs="benchmark-rgbt-tiny",
+            references="rgbt-tiny-synth-benchmark",
+            data=("synth", "--family", "rgbt-tiny", "--profile", "small", "--seed", "0"),
+            data_root="rgbt-tiny-synth-small-seed0",
+            config_files=("benchmark-rgbt-tiny/suite.yaml",),
+            store_name="benchmark-rgbt-tiny",
+        ),
+    )
+}
+DEFAULT_SUITE = "m3t-synth"
+
+
+def get_suite(name: str | None) -> Suite:
+    """The suite called ``name`` (``None``: the default); an unknown name is a ``ConfigError`` listing the known."""
+    if name is None:
+        return SUITES[DEFAULT_SUITE]
+    if name not in SUITES:
+        raise ConfigError(f"--suite {name!r}: unknown benchmark suite; choose one of {', '.join(SUITES)}")
+    return SUITES[name]
+
+
+def suite_spec(suite: str | Suite | None = None, **kwargs: Any) -> "BenchmarkSpec":
+    """The ``BenchmarkSpec`` of ``suite`` (its dataset, profile, store, detectors, seeds and encodings), with
+    ``kwargs`` on top."""
+    s = suite if isinstance(suite, Suite) else get_suite(suite)
+    base: dict[str, Any] = dict(
+        suite=s.name,
+        dataset=s.dataset,
+        profile=s.profile,
+        store=s.store,
+        detectors=s.detectors,
+        seeds=s.seeds,
+        encodings=s.encodings,
+    )
+    return BenchmarkSpec(**{**base, **kwargs})
+
+
+def ensure_data(suite: Suite, stream: TextIO | None = None) -> Path | None:
+    """Write the suite's data folder with its command (``harness synth ...``, in a child process, its output on
+    stderr) when it is not there yet; the folder, or None for a suite whose dataset plugin makes its own data."""
+    folder = suite.data_folder()
+    if folder is None:
+        return None
+    if (folder / "synth.json").is_file():
+        return folder
+    cmd = [sys.executable, "-m", "harness", *suite.data, "--out", str(folder)]
+    log.info("benchmark %s: writing its data folder %s (%s)", suite.name, folder, " ".join(cmd[2:]))
+    proc = subprocess.run(cmd, stdout=stream or sys.stderr, stderr=stream or sys.stderr)
+    if proc.returncode != 0 or not (folder / "synth.json").is_file():
+        raise ConfigError(
+            f"benchmark {suite.name}: could not write its data folder {folder} (exit {proc.returncode}); run "
+            f"`harness {' '.join(suite.data)} --out {folder}` to see why"
+        )
+    return folder
 
 
 @dataclass(frozen=True)
@@ -89,6 +226,11 @@ class BenchmarkSpec:
     config_files: tuple[str, ...] = ()  # applied after each detector's configs/benchmark/<detector>.yaml
     overrides: tuple[str, ...] = ()
     force: bool = False
+    suite: str = DEFAULT_SUITE  # what the cells are (``SUITES``); ``suite_spec`` fills the rest from it
+
+    @property
+    def suite_def(self) -> Suite:
+        return get_suite(self.suite)
 
 
 @dataclass
@@ -104,21 +246,25 @@ class BenchmarkPlan:
 
 
 def _specs(spec: BenchmarkSpec) -> list[SweepSpec]:
+    suite = spec.suite_def
     out = []
     for det in spec.detectors:
-        cfg = detector_config(det, spec.profile)
-        common = dict(
-            datasets=(spec.dataset,),
-            seeds=tuple(spec.seeds),
-            profile=spec.profile,
-            config_files=((str(cfg),) if cfg else ()) + tuple(spec.config_files),
-            overrides=tuple(spec.overrides),
-            store=str(spec.store),
-            force=spec.force,
-        )
-        out.append(SweepSpec(detectors=(det,), folds=spec.folds, **common))  # type: ignore[arg-type]
-        if spec.ablation and det == ABLATION_DETECTOR:
-            out.append(SweepSpec(detectors=(det,), folds=ABLATION_FOLD, encodings=tuple(spec.encodings), **common))  # type: ignore[arg-type]
+        cfg = detector_config(det, spec.profile, suite.detector_configs)
+        for variant, options in suite.variants:
+            common = dict(
+                datasets=(spec.dataset,),
+                seeds=tuple(spec.seeds),
+                profile=spec.profile,
+                config_files=suite.layers() + ((str(cfg),) if cfg else ()) + tuple(spec.config_files),
+                overrides=suite.data_overrides() + tuple(options) + tuple(spec.overrides),
+                store=str(spec.store),
+                force=spec.force,
+            )
+            out.append(SweepSpec(detectors=(det,), folds=spec.folds, **common))  # type: ignore[arg-type]
+            if spec.ablation and det == suite.ablation_detector and variant == suite.ablation_variant:
+                out.append(
+                    SweepSpec(detectors=(det,), folds=suite.ablation_fold, encodings=tuple(spec.encodings), **common)  # type: ignore[arg-type]
+                )
     return out
 
 
@@ -130,6 +276,7 @@ def plan_benchmark(spec: BenchmarkSpec) -> BenchmarkPlan:
         raise ConfigError("the benchmark needs at least one seed (--seeds)")
     if len(set(spec.seeds)) != len(spec.seeds):
         raise ConfigError(f"--seeds {','.join(map(str, spec.seeds))}: a seed is listed twice")
+    ensure_data(spec.suite_def)
     plan = BenchmarkPlan(store=Path(spec.store).resolve())
     seen: set[str] = set()
     for sweep_spec in _specs(spec):
@@ -163,6 +310,8 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
     detector's grid is the encoding its runs used on every fold (one encoding per detector)."""
     from harness.store import Store
 
+    suite = spec.suite_def
+    abl_det, abl_fold, grid = suite.ablation_detector, suite.ablation_fold, suite.grid_encoding
     runs = {r.key: r for r in Store(spec.store).runs(dataset=spec.dataset)}
     want_folds = None if spec.folds == "all" else set(spec.folds.split(","))
     found: list[Any] = []
@@ -173,8 +322,8 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
             missing.append(f"{det}: no runs")
             continue
         encodings = sorted({k.encoding for k in mine})
-        if det == ABLATION_DETECTOR and spec.ablation and len(encodings) > 1:  # its grid: the dataset's c2
-            encodings = ["c2"] if "c2" in encodings else sorted({k.encoding for k in mine if k.fold != ABLATION_FOLD})
+        if det == abl_det and spec.ablation and len(encodings) > 1:  # its grid: the dataset's encoding (c2)
+            encodings = [grid] if grid in encodings else sorted({k.encoding for k in mine if k.fold != abl_fold})
         if len(encodings) != 1:
             missing.append(f"{det}: one encoding on every fold expected, found {encodings or 'none'}")
             continue
@@ -189,15 +338,11 @@ def finished_cells(spec: BenchmarkSpec) -> tuple[list[Any], list[str]]:
         for enc in spec.encodings:
             for seed in spec.seeds:
                 key = next(
-                    (
-                        k
-                        for k in runs
-                        if (k.detector, k.encoding, k.fold, k.seed) == (ABLATION_DETECTOR, enc, ABLATION_FOLD, seed)
-                    ),
+                    (k for k in runs if (k.detector, k.encoding, k.fold, k.seed) == (abl_det, enc, abl_fold, seed)),
                     None,
                 )
                 if key is None:
-                    missing.append(f"{ABLATION_DETECTOR}/{enc}/{ABLATION_FOLD}/seed{seed}")
+                    missing.append(f"{abl_det}/{enc}/{abl_fold}/seed{seed}")
                 elif key not in found:
                     found.append(key)
     return found, missing
@@ -508,7 +653,11 @@ def run_benchmark(
         raise ConfigError(f"--lanes is for --executor local; with --executor {executor} the cluster decides")
     lanes = lanes or (default_lanes() if executor == "local" else 1)
     plan = plan_benchmark(spec)
-    epochs = int(load_config(profile=spec.profile, overrides=list(spec.overrides))["protocol"]["epochs"])
+    epochs = int(
+        load_config(profile=spec.profile, files=spec.suite_def.layers(), overrides=list(spec.overrides))["protocol"][
+            "epochs"
+        ]
+    )
     log.info(
         "benchmark: %d cells, %d finished earlier, %d to run %s; store %s",
         plan.cells,
@@ -614,7 +763,14 @@ RERUN_NEUTRAL_KEYS = ("meta.prepared_fingerprint", "meta.prepared_key", "meta.pr
 
 
 def rerun_cell(
-    refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path, progress: bool = False
+    refs: Any,
+    detector: str,
+    encoding: str,
+    fold: str,
+    seed: int,
+    store: Path,
+    progress: bool = False,
+    overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train one reference cell again into ``store`` with the reference run's own configuration and compare it with
     the reference run.
@@ -632,7 +788,7 @@ def rerun_cell(
     from harness.store import Run, RunKey
     from harness.verdict import judge
 
-    request, ref = rerun_request(refs, detector, encoding, fold, seed, store, progress)
+    request, ref = rerun_request(refs, detector, encoding, fold, seed, store, progress, overrides)
     checked = check_rerun(refs, ref, request)
     run(request)
     new_run = read_run(Run(Path(store), RunKey(refs.dataset, detector, encoding, fold, seed)))
@@ -675,12 +831,19 @@ def rerun_cell(
 
 
 def rerun_request(
-    refs: Any, detector: str, encoding: str, fold: str, seed: int, store: Path, progress: bool = False
+    refs: Any,
+    detector: str,
+    encoding: str,
+    fold: str,
+    seed: int,
+    store: Path,
+    progress: bool = False,
+    overrides: Sequence[str] = (),
 ) -> tuple[Any, Any]:
     """(the ``RunRequest`` that trains reference cell ``detector/encoding/fold/seed`` again into ``store``, the
     reference run as read by the store's reader). The reference run's own configuration is the last layer, so the
     rerun resolves to the same settings whatever the checkout's profiles say (its locations and its record of the run
-    left out)."""
+    left out); ``overrides``: locations on top (a suite's ``dataset.root``)."""
     import yaml
 
     from harness.io import atomic_write_text
@@ -711,6 +874,7 @@ def rerun_request(
         seeds=[seed],
         profile=(ref.config.get("meta") or {}).get("profile"),
         config_files=[str(cfg_file)],
+        overrides=list(overrides),
         store=store,
         force=True,
         progress=progress,
@@ -951,11 +1115,16 @@ __all__ = [
     "BenchmarkSpec",
     "BenchmarkSummary",
     "DATASET",
+    "DEFAULT_SUITE",
     "DETECTORS",
     "ENCODINGS",
     "PROFILE",
     "SEEDS",
+    "SUITES",
+    "Suite",
     "default_lanes",
+    "ensure_data",
+    "get_suite",
     "cpu_name",
     "detector_config",
     "job_command",
@@ -967,5 +1136,6 @@ __all__ = [
     "run_cell",
     "run_lanes",
     "run_on_executor",
+    "suite_spec",
     "write_timing",
 ]

@@ -30,14 +30,56 @@ def _cell_key(text: str) -> tuple[str, str, str, int]:
         raise click.BadParameter(f"{text!r}: the seed part must be seedN or N", param_hint="CELL") from None
 
 
+def suite_option() -> Any:
+    """``--suite NAME`` -> parameter ``suite``: which reference benchmark (``harness.benchmark.SUITES``)."""
+    from harness.benchmark import DEFAULT_SUITE, SUITES
+
+    return click.option(
+        "--suite",
+        type=click.Choice(list(SUITES)),
+        default=DEFAULT_SUITE,
+        show_default=True,
+        help="Which reference benchmark: m3t-synth (the four M3T-like folds and the c2 ablation) or rgbt-tiny-synth "
+        "(the RGBT-Tiny-like stand-in, both annotation sources, the proxy8 ablation).",
+    )
+
+
+def _suite_store(suite: Any, store: Path | None, profile: str) -> Path:
+    """``--store``, else the suite's own store at its profile, else ``results/<profile>``."""
+    if store is not None:
+        return store
+    return suite.store if profile == suite.profile else opt.resolve_store(None, profile)
+
+
+def _suite_references(suite: Any, reference_results: str | None) -> Any:
+    """``--reference-results`` loaded; not given or ``shipped``: the suite's shipped folder."""
+    from harness.errors import StoreError
+    from harness.references import SHIPPED, load_references, shipped_root
+
+    if reference_results not in (None, "shipped"):
+        return load_references(reference_results)
+    if suite.references == SHIPPED:
+        return load_references("shipped")
+    folder = shipped_root() / suite.references
+    if not (folder / "references.json").is_file():
+        raise StoreError(
+            f"{folder}: the {suite.name} suite's reference results are not shipped yet; make them with `harness "
+            f"benchmark run --suite {suite.name}` and `harness benchmark export --suite {suite.name}`, or pass "
+            f"--reference-results DIR (a folder `harness benchmark export` wrote)"
+        )
+    return load_references(folder)
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.group(name="benchmark")
     def benchmark_group() -> None:
-        """The reference benchmark: four detectors x four folds x three seeds and the encoding ablation on m3t-synth
-        at the benchmark profile (docs/benchmark.md)."""
+        """The reference benchmarks (--suite): four detectors x four folds x three seeds and the encoding ablation on
+        m3t-synth, or the four detectors x two annotation sources x three seeds and the proxy8 ablation on the
+        RGBT-Tiny-like stand-in, at the benchmark profile (docs/benchmark.md)."""
 
     @benchmark_group.command(name="run")
+    @suite_option()
     @opt.profile_option(default="benchmark")
     @opt.store_option()
     @click.option(
@@ -75,6 +117,7 @@ def register_commands(cli: click.Group) -> None:
     @_executor_options
     @opt.no_progress_option()
     def run_cmd(
+        suite: str,
         profile: str,
         store: Path | None,
         lanes: int | None,
@@ -112,10 +155,12 @@ def register_commands(cli: click.Group) -> None:
         from harness.progress import progress_on
         from harness.sweep import ExecutorOptions, SweepSummary, sweep_table
 
-        seed_list = opt.parse_seeds(seeds) or list(B.SEEDS)
-        spec = B.BenchmarkSpec(
-            store=opt.resolve_store(store, profile),
-            detectors=detectors or B.DETECTORS,
+        chosen = B.get_suite(suite)
+        seed_list = opt.parse_seeds(seeds) or list(chosen.seeds)
+        spec = B.suite_spec(
+            chosen,
+            store=_suite_store(chosen, store, profile),
+            detectors=detectors or chosen.detectors,
             folds=folds,
             seeds=tuple(seed_list),
             ablation=ablation,
@@ -147,7 +192,8 @@ def register_commands(cli: click.Group) -> None:
         )
         if summary.failed:
             click.secho(
-                f"{len(summary.failed)} cell(s) failed; run `harness benchmark run` again to retry them "
+                f"{len(summary.failed)} cell(s) failed; run `harness benchmark run"
+                f"{'' if suite == B.DEFAULT_SUITE else ' --suite ' + suite}` again to retry them "
                 f"(logs in {summary.store / '_benchmark' / 'logs'})",
                 fg="red",
                 err=True,
@@ -155,20 +201,24 @@ def register_commands(cli: click.Group) -> None:
             raise SystemExit(1)
 
     @benchmark_group.command(name="export")
+    @suite_option()
     @opt.profile_option(default="benchmark", uses_config=False)
     @opt.store_option(reads=True)
     @opt.folder_option(
         "--out",
-        help="Folder to write [default: the shipped references, references/m3t-synth-benchmark].",
+        help="Folder to write [default: the suite's shipped references, references/m3t-synth-benchmark or "
+        "references/rgbt-tiny-synth-benchmark].",
     )
-    def export_cmd(profile: str, store: Path | None, out: Path | None) -> None:
+    def export_cmd(suite: str, profile: str, store: Path | None, out: Path | None) -> None:
         """Export a finished benchmark store as reference results: metrics, error analysis, logs, and the ground
         truth and predictions the paired bootstrap re-scores (gzip), with the samples' digests (at most 10 MiB)."""
         from harness import benchmark as B
         from harness.errors import StoreError
-        from harness.references import export_references, resolve
+        from harness.references import export_references, shipped_root
 
-        spec = B.BenchmarkSpec(store=opt.resolve_store(store, profile), profile=profile)
+        chosen = B.get_suite(suite)
+        spec = B.suite_spec(chosen, store=_suite_store(chosen, store, profile), profile=profile)
+        out = out or shipped_root() / chosen.references
         root = Path(spec.store)
         if not root.is_dir():
             raise StoreError(f"{root}: no results store here; run `harness benchmark run` first")
@@ -176,15 +226,13 @@ def register_commands(cli: click.Group) -> None:
         if missing:
             raise StoreError(
                 f"the benchmark in {root} is not finished: {len(missing)} missing (e.g. {', '.join(missing[:3])}); "
-                f"run `harness benchmark run --store {root}` first"
+                f"run `harness benchmark run --suite {suite} --store {root}` first"
             )
-        manifest = export_references(root, out or resolve("shipped"), found, benchmark=B.read_timing(root))
-        click.echo(
-            f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> "
-            f"{out or resolve('shipped')}"
-        )
+        manifest = export_references(root, out, found, benchmark=B.read_timing(root))
+        click.echo(f"reference results: {len(manifest['cells'])} runs, {manifest['bytes'] / 2**20:.2f} MiB -> {out}")
 
     @benchmark_group.command(name="fingerprint")
+    @suite_option()
     @opt.reference_results_option()
     @click.option(
         "--prepared",
@@ -193,16 +241,23 @@ def register_commands(cli: click.Group) -> None:
         help="A prepared-data folder holding the references' samples [default: prepare the references' dataset "
         "with default options, in $HARNESS_CACHE or ./cache].",
     )
-    def fingerprint_cmd(reference_results: str | None, prepared: Path | None) -> None:
+    def fingerprint_cmd(suite: str, reference_results: str | None, prepared: Path | None) -> None:
         """Store the fingerprint of the reference results' samples beside them (what matching across library
         releases measures against), after checking that the prepared samples are exactly the references'."""
+        from harness import benchmark as B
         from harness.cache import PreparedDataset
         from harness.config import load_config
-        from harness.references import load_references, write_fingerprint
+        from harness.references import write_fingerprint
         from harness.runner import prepare_dataset
 
-        refs = load_references(reference_results or "shipped")
-        data = PreparedDataset(prepared) if prepared else prepare_dataset(refs.dataset, load_config(refs.profile))
+        chosen = B.get_suite(suite)
+        refs = _suite_references(chosen, reference_results)
+        if prepared:
+            data = PreparedDataset(prepared)
+        else:
+            B.ensure_data(chosen)
+            cfg = load_config(refs.profile, files=chosen.layers(), overrides=list(chosen.data_overrides()))
+            data = prepare_dataset(refs.dataset, cfg)
         out = write_fingerprint(refs.root, data)
         click.echo(f"sample fingerprint: {out['bytes'] / 2**10:.0f} KiB -> {out['fingerprint']}")
 
@@ -216,10 +271,11 @@ def register_commands(cli: click.Group) -> None:
         show_default=True,
         help="Results store the cell is trained into (a finished cell there is trained again).",
     )
+    @suite_option()
     @opt.reference_results_option()
     @opt.format_option("text", "json")
     @opt.no_progress_option()
-    def rerun_cmd(cell: str, work_dir: Path, reference_results: str | None, fmt: str) -> None:
+    def rerun_cmd(cell: str, work_dir: Path, suite: str, reference_results: str | None, fmt: str) -> None:
         """Train one reference CELL again (DETECTOR/ENCODING/FOLD/seedN, e.g. ours/c2/P1/seed0) and compare it with the
         reference results' (default: the shipped ones).
 
@@ -230,11 +286,14 @@ def register_commands(cli: click.Group) -> None:
         training run), with the environment facts that differ. Exits 1 when a number differs."""
         from harness import benchmark as B
         from harness.progress import progress_on
-        from harness.references import load_references
 
         det, enc, fold, seed = _cell_key(cell)
-        refs = load_references(reference_results or "shipped")
-        result = B.rerun_cell(refs, det, enc, fold, seed, work_dir, progress=progress_on())
+        chosen = B.get_suite(suite)
+        refs = _suite_references(chosen, reference_results)
+        B.ensure_data(chosen)
+        result = B.rerun_cell(
+            refs, det, enc, fold, seed, work_dir, progress=progress_on(), overrides=chosen.data_overrides()
+        )
         if fmt == "json":
             click.echo(json.dumps(result, indent=2))
         else:
