@@ -68,7 +68,8 @@ def _logit(s: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Operator:
     """One mistake: ``image`` changes one image's predictions (both boundaries), ``file`` the written results list
-    (``harness score`` only); ``images``: the results come with an image list (``--images``); ``run`` and ``score``:
+    (``harness score`` only); ``images``: the results come with an image list (``--images``), ``listed`` changes
+    that list (``harness score`` only); ``run`` and ``score``:
     what the refusal must say at each boundary; ``classes``: the model is built for this many classes more than the
     dataset has (``harness run`` only)."""
 
@@ -79,6 +80,7 @@ class Operator:
     file: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None
     images: bool = False
     classes: int = 0
+    listed: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None
 
 
 def _same(b: np.ndarray, s: np.ndarray, lab: np.ndarray, w: int, h: int) -> Arrays:
@@ -87,6 +89,14 @@ def _same(b: np.ndarray, s: np.ndarray, lab: np.ndarray, w: int, h: int) -> Arra
 
 def _image_shift(dets: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{**d, "image_id": d["image_id"] + 1} for d in dets]
+
+
+#: Where the ids of another codebase that numbers its images itself begin.
+OWN = 1000
+
+
+def _own_ids(dets: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{**d, "image_id": d["image_id"] + OWN} for d in dets]
 
 
 def _name_conflict(dets: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -130,6 +140,13 @@ OPERATORS = (
     Operator("category_name disagrees with category_id", score="category_id and category_name", file=_name_conflict),
     Operator("image ids +1", score="shift of -1", file=_image_shift),
     Operator("image ids +1 with --images", score="previous image", file=_image_shift, images=True),
+    Operator(
+        "--images lists every other image",
+        score="not in the image list given with --images",
+        file=_own_ids,
+        images=True,
+        listed=lambda names: [{**n, "id": n["id"] + OWN} for n in names[::2]],
+    ),
     Operator("model built for fewer classes", run="built for 2 classes (model.nc), the dataset has 3", classes=-1),
 )
 BOUNDARIES = ("run", "score")
@@ -292,7 +309,8 @@ def outcome(
     else:
         (tmp / "preds.json").write_text(json.dumps(results_file(per_image, op), allow_nan=True))
         extra = ["--images", str(tmp / "images.json")] if op is not None and op.images else []
-        (tmp / "images.json").write_text(json.dumps({"images": names}))
+        listed = op.listed(names) if op is not None and op.listed is not None else names
+        (tmp / "images.json").write_text(json.dumps({"images": listed}))
         args = ["score", "--dataset", "wide-shapes", "--folds", "A", "--predictions", str(tmp / "preds.json")]
         res = cli_runner([*args, "--name", "x", "--store", str(store), *extra, *set_args(RUN), *more])
         found = sorted(store.glob("wide-shapes/external.x/*/A/seed0/metrics.json"))

@@ -96,6 +96,8 @@ class Matching:
     not_listed: int = 0
     #: predictions whose image was found by reading their ``image_id`` as the harness's own image id
     by_harness_id: int = 0
+    #: how many images the image list given with ``--images`` names (None without one)
+    listed_images: int | None = None
     #: of those, predictions on images of other folds
     outside_fold_by_id: int = 0
     #: why the matching looks like a misreading of the ids (``harness.scoring.plausibility``)
@@ -310,6 +312,7 @@ def match_predictions(
     listed: set[int] | None = None
     if images is not None:
         listed = set()
+        m.listed_images = len(images.get("images") or [])
         for im in images.get("images") or []:
             fname = im.get(image_key) or im.get("file_name")
             if "id" in im and fname:
@@ -455,7 +458,10 @@ def _findings(
     if too_many(unknown, n):
         ex = ", ".join(str(k) for k, v in m.unmatched_images.most_common(4) if k != NOT_LISTED)
         hint = (
-            "; their image_id values were read as the harness's image ids: give the other codebase's image list "
+            f"; their image_id values are not in the image list given with --images ({m.listed_images} images) "
+            "and were read as the harness's image ids: give the complete list the predictions were made on"
+            if m.by_harness_id and m.listed_images is not None
+            else "; their image_id values were read as the harness's image ids: give the other codebase's image list "
             "with --images (for MMDetection, the annotation file it was tested on)"
             if m.by_harness_id
             else "; check --image-key and --images"
@@ -474,7 +480,7 @@ def _findings(
                 "other_folds_by_id",
                 f"{other} of {n} predictions ({pct(other, n)}) name images of other "
                 f"folds by the harness's image ids; if these are the other codebase's "
-                f"own ids, give its image list with --images",
+                f"own ids, {_list_advice(m.listed_images)}",
             )
         )
     on_fold = sum(len(v) for v in moved.values())
@@ -492,8 +498,19 @@ def _findings(
         )
     out += _category_shift(prepared, moved, sorted(fold), many_unknown_cat)
     if by_harness_id:
-        out += _image_shift(prepared, by_harness_id, by_id, fold, frame)
+        out += _image_shift(prepared, by_harness_id, by_id, fold, frame, m.listed_images)
     return out
+
+
+def _list_advice(listed_images: int | None) -> str:
+    """What to do about image ids read as the harness's: give the other codebase's image list, or, where one was
+    given, the complete one (those ids are not in it)."""
+    if listed_images is None:
+        return "give its image list with --images"
+    return (
+        f"they are not in the image list given with --images ({listed_images} images): give the complete list "
+        "the predictions were made on"
+    )
 
 
 def _id_label(det: Mapping[str, Any], names_by_id: Mapping[Any, str], categories: Sequence[str], pairs: Counter) -> Any:
@@ -780,6 +797,7 @@ def _image_shift(
     by_id: Mapping[int, int],
     fold: set[int],
     frame: str,
+    listed_images: int | None = None,
 ) -> list[Finding]:
     """Image ids read as the harness's whose predictions agree with the ground truth only shifted by one."""
 
@@ -812,8 +830,8 @@ def _image_shift(
                     "image_shift",
                     f"image ids read as the harness's match the fold's images only after a "
                     f"shift of {shift:+d} (recall at IoU 0.50 {given or 0:.0%} as read, "
-                    f"{shifted:.0%} shifted): are they the other codebase's own ids? give its "
-                    f"image list with --images",
+                    f"{shifted:.0%} shifted): are they the other codebase's own ids? "
+                    f"{_list_advice(listed_images)}",
                 )
             ]
     return []
