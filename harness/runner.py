@@ -6,7 +6,10 @@ host, resolves the configuration (``harness.config.load_config``: default < prot
 same cached, aligned samples), resolves the folds, and then for each fold and seed:
 
 * a run that already **finished** with the same configuration hash is skipped (its stored metrics are reused);
-  one that finished with a different configuration is refused before anything is trained, unless ``force``;
+  one that finished with a different configuration is refused before anything is trained, unless ``force``. The
+  hash holds the detector plugin's code (``meta.detector_code``: an edited helper module is another configuration);
+  a run that differs only in the prepared data's cache key and recorded the samples prepared now (by content) is
+  the same run;
 * a run that was **interrupted** resumes from its last checkpoint (``checkpoints/last.pt``);
 * otherwise the detector is built (seeded), optionally initialised from ``init``, trained, and the selected weights
   predict the held-out images once, which ``harness.evaluation.evaluate`` scores.
@@ -53,7 +56,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping, Sequence, Ty
 
 from harness import tracking
 from harness.errors import ConfigError, HarnessError, StoreError
-from harness.io import atomic_write_json, file_digest
+from harness.io import atomic_write_json, file_digest, read_json
 from harness.progress import OverallProgress
 from harness.report.reader import StoredRun, read_run
 from harness.store import KEEP_WEIGHTS, Run, RunBusyError, RunKey, Store, config_hash, image_ids_hash
@@ -98,6 +101,14 @@ def selection_of(cfg: Mapping[str, Any]) -> str:
 #: part of the identity (runs stored before it existed stay "finished"), but a finished run that recorded another
 #: one than the prepared data has now was scored on other pictures under the same cache key, and is a conflict.
 SAMPLES_KEY = ("meta", "prepared_samples")
+#: The digest of the detector plugin's code (``harness.cache.key.detector_code``): part of the identity, so an edited
+#: detector (a helper module it imports included) never reuses a finished run; compared only when the stored run
+#: recorded one (runs stored before it existed, the shipped references among them, keep their state). Beside it,
+#: ``meta.detector_code_files`` (each file's digest, left out of the identity) names the files that changed.
+CODE_KEY, CODE_FILES_KEY = ("meta", "detector_code"), ("meta", "detector_code_files")
+#: Where the prepared data lies under which key: a finished run that differs only in these and recorded the same
+#: samples (by content, ``PreparedDataset.content_digest``) as the prepared data holds now is the same run.
+CACHE_KEYS = (("meta", "prepared_key"), ("meta", "prepared_fingerprint"))
 
 
 @dataclass
@@ -284,7 +295,9 @@ def run_identity(cfg: Mapping[str, Any]) -> dict[str, Any]:
     trimmed["meta"] = {
         k: v
         for k, v in trimmed.get("meta", {}).items()
-        if k not in ("sources", "registration") and ("meta", k) not in GUARD_KEYS and ("meta", k) != SAMPLES_KEY
+        if k not in ("sources", "registration")
+        and ("meta", k) not in GUARD_KEYS
+        and ("meta", k) not in (SAMPLES_KEY, CODE_FILES_KEY)
     }
     proto, ev = trimmed.get("protocol"), trimmed.get("eval")
     if isinstance(proto, dict) and proto.get("selection", "held-out") == "held-out":
@@ -314,14 +327,63 @@ def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def without_meta(cfg: Mapping[str, Any], keys: Sequence[tuple[str, str]]) -> Mapping[str, Any]:
+    """``cfg`` without the ``meta`` entries ``keys`` (a shallow copy; ``cfg`` itself when it holds none of them)."""
+    meta = cfg.get("meta")
+    if not isinstance(meta, Mapping) or not any(k in meta for _, k in keys):
+        return cfg
+    return {**cfg, "meta": {k: v for k, v in meta.items() if ("meta", k) not in keys}}
+
+
+def comparable(stored: Mapping[str, Any] | None, now: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``now`` as it compares with ``stored``: without ``meta.detector_code`` when ``stored`` recorded none (a run
+    stored before the key existed keeps its state; the code it ran is unknown, not different)."""
+    if stored is not None and (stored.get("meta") or {}).get(CODE_KEY[1]):
+        return now
+    return without_meta(now, [CODE_KEY])
+
+
 def identity_diff(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 8) -> list[str]:
-    """``key: old -> new`` for every setting of the run identity that differs (at most ``limit``, then a count)."""
+    """``key: old -> new`` for every setting of the run identity that differs (at most ``limit``, then a count);
+    ``meta.detector_code`` only when both recorded one, with the files that changed."""
+    old, new = comparable(new, old), comparable(old, new)
     a, b = _flat(run_identity(old)), _flat(run_identity(new))
     keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "<unset>") != b.get(k, "<unset>"))
     out = [f"{k}: {a.get(k, '<unset>')} -> {b.get(k, '<unset>')}" for k in keys[:limit]]
+    code = ".".join(CODE_KEY)
+    if code in keys[:limit]:
+        from harness.cache.key import changed_code_files
+
+        files = changed_code_files(*((c.get("meta") or {}).get(CODE_FILES_KEY[1]) for c in (old, new)))
+        shown = ", ".join(files[:4]) + (f" (+{len(files) - 4} more)" if len(files) > 4 else "")
+        out[keys.index(code)] += f" (the detector plugin's code changed{': ' + shown if shown else ''})"
     if len(keys) > limit:
         out.append(f"(+{len(keys) - limit} more)")
     return out
+
+
+class SamplesCheck:
+    """Whether a finished run that differs only in where its prepared data lies (``CACHE_KEYS``) trained on and scored
+    the samples the prepared data holds now: the content digests it recorded (``metrics.json`` ``samples.train`` and
+    ``samples.held_out``, with its encoding) against those of the prepared data, computed once per fold and encoding
+    for the whole plan (every seed shares them). A run whose ``meta.prepared_samples`` differs from the prepared
+    data's is refused without reading a sample."""
+
+    def __init__(self, prepared: Any, encoding: Any) -> None:
+        self.prepared, self.encoding = prepared, encoding
+        self._digests: dict[tuple[str, str], dict[str, str]] = {}
+        self.noted = False
+
+    def now(self, fold: Fold, params: Mapping[str, Any]) -> dict[str, str]:
+        memo = (fold.name, json.dumps(dict(params), sort_keys=True, default=str))
+        if memo not in self._digests:
+            train_idx, val_idx = fold_indices(self.prepared, fold)
+            digest = self.prepared.content_digest
+            self._digests[memo] = {
+                "train": digest(train_idx, self.encoding, dict(params)),
+                "held_out": digest(val_idx, self.encoding, dict(params)),
+            }
+        return self._digests[memo]
 
 
 # ------------------------------------------------------------------------------------------------- the job
@@ -334,6 +396,7 @@ class PlannedRun:
     run: Run
     config: dict[str, Any]
     digest: str
+    samples: SamplesCheck | None = None
 
     @property
     def state(self) -> str:
@@ -342,10 +405,54 @@ class PlannedRun:
             return "todo"
         if self._other_samples():
             return "conflict"
-        if (self.run.status() or {}).get("config_hash") == self.digest:
+        stored = self.stored_config()
+        now = comparable(stored, self.config)
+        hashes = {self.digest if now is self.config else run_hash(now)}
+        if stored is None:  # nothing to tell whether it recorded the code: either hash it may have been stored with
+            hashes.add(run_hash(without_meta(self.config, [CODE_KEY])))
+        if (self.run.status() or {}).get("config_hash") in hashes:
             return "finished"
-        stored = self.stored_config()  # a run stored before the identity left out locations: compare settings
-        return "finished" if stored is not None and run_hash(stored) == self.digest else "conflict"
+        if stored is None:
+            return "conflict"
+        if run_hash(stored) in hashes:  # a run stored before the identity left out locations: compare settings
+            return "finished"
+        return "finished" if self._same_samples(stored, now)[0] else "conflict"
+
+    def _same_samples(self, stored: Mapping[str, Any], now: Mapping[str, Any]) -> tuple[bool, str]:
+        """(True when ``stored`` differs from ``now`` only in ``CACHE_KEYS`` and recorded the samples the prepared data
+        holds now, why not otherwise: "" when it differs in more, or cannot tell)."""
+        moved_only = run_hash(without_meta(stored, CACHE_KEYS)) == run_hash(without_meta(now, CACHE_KEYS))
+        if self.samples is None or not moved_only:
+            return False, ""
+        then_meta, now_meta = stored.get("meta") or {}, now.get("meta") or {}
+        then_ids, now_ids = then_meta.get(SAMPLES_KEY[1]), now_meta.get(SAMPLES_KEY[1])
+        if then_ids and now_ids and then_ids != now_ids:
+            return False, f"meta.prepared_samples: {then_ids} -> {now_ids} (other samples under its image ids)"
+        try:
+            recorded = read_json(self.run.metrics_path).get("samples") or {}
+        except (OSError, ValueError, AttributeError):
+            recorded = {}
+        then = {k: str(recorded.get(k) or "") for k in ("train", "held_out")}
+        if not all(then.values()) or recorded.get("encoding") != self.run.key.encoding:
+            return False, ""  # stored before runs recorded their samples: nothing to compare
+        params = ((now.get("encoding") or {}).get(self.run.key.encoding)) or {}
+        here = self.samples.now(self.fold, params if isinstance(params, Mapping) else {})
+        if here != then:
+            return False, (
+                f"samples: train {then['train'][:12]}.. held-out {then['held_out'][:12]}.. -> train "
+                f"{here['train'][:12]}.. held-out {here['held_out'][:12]}.. (the samples it trained on and scored "
+                "differ from those prepared now)"
+            )
+        if not self.samples.noted:
+            self.samples.noted = True
+            log.info(
+                "%s: the prepared data's cache key changed (meta.prepared_key %s -> %s) but the samples are identical "
+                "to those the finished run trained on and scored: it stays finished",
+                self.run.key,
+                then_meta.get("prepared_key"),
+                now_meta.get("prepared_key"),
+            )
+        return True, ""
 
     def stored_config(self) -> dict[str, Any] | None:
         from harness.config import read_yaml
@@ -378,7 +485,8 @@ class PlannedRun:
                 f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
                 f"now {self.digest} (no readable {self.run.config_path})"
             ]
-        return identity_diff(stored, self.config)
+        why = self._same_samples(stored, comparable(stored, self.config))[1]
+        return [why] if why else identity_diff(stored, self.config)
 
 
 @dataclass
@@ -436,6 +544,11 @@ def plan(request: RunRequest) -> RunPlan:
     # dataset plugin's code, so a finished run on other samples is never reused as "same configuration"
     prepared_key = str(getattr(prepared, "key", None) or prepared.manifest.get("key", ""))
     registration = _registration_routes(prepared)
+    from harness.cache.key import detector_code
+
+    code, code_files = detector_code(det.name)
+    code_meta = {CODE_KEY[1]: code, CODE_FILES_KEY[1]: code_files} if code else {}
+    samples = SamplesCheck(prepared, enc)
     risks = [f"{r['kind']}: {r['message']}" for r in getattr(prepared, "input_risks", None) or []]
     if risks:
         cfg["meta"] = {**cfg.get("meta", {}), "input_risks": risks}
@@ -457,6 +570,7 @@ def plan(request: RunRequest) -> RunPlan:
                     "prepared_fingerprint": fingerprint,
                     "prepared_key": prepared_key,
                     **({SAMPLES_KEY[1]: samples_digest} if samples_digest else {}),
+                    **code_meta,
                     "val_groups": list(fold.val_groups),
                     "train_groups": list(fold.train_groups),
                     **carved,
@@ -464,7 +578,7 @@ def plan(request: RunRequest) -> RunPlan:
                     **({"registration": registration} if registration else {}),
                 },
             )
-            runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg)))
+            runs.append(PlannedRun(fold, seed, store.run(key), rcfg, run_hash(rcfg), samples))
     return RunPlan(det, ds, enc, cfg, init, store, prepared, runs)
 
 

@@ -3,7 +3,11 @@
 Layout under the store root (``--store``, default ``results/<profile>``)::
 
     <dataset>/<detector>/<encoding>/<fold>/seed<seed>/
-        config.yaml          the fully resolved configuration of the run
+        config.yaml          the fully resolved configuration of the run; ``meta`` holds its identity: the
+                             prepared data (``prepared_key``, ``prepared_fingerprint``, ``prepared_samples``) and
+                             ``detector_code``, a digest of the detector plugin's code (its modules and the built-in
+                             ones it imports; ``harness.cache.key.detector_code``), with ``detector_code_files``
+                             ({file: digest}) naming what changed; runs stored before it existed have none
         status.json          {"state": "running" | "finished" | "failed", "config_hash", "started", "updated", ...}
         metrics.json         evaluation of the held-out fold (schema below)
         predictions.json     COCO-format detections on the held-out images (category ids as in the GT), at the
