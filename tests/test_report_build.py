@@ -119,7 +119,7 @@ def test_unmatched_rows_get_a_loud_label_everywhere(tmp_path):
     assert paired.absent and "image count" in paired.absent
 
 
-def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, tmp_path):
+def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, tmp_path, monkeypatch):
     store, _, _ = built
     res = cli_runner(
         [
@@ -137,11 +137,14 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
     )
     assert res.exit_code == 0, res.output
     assert "synth: project-grouped folds" in res.output and "Registration error: ABSENT" in res.output
-    assert not (tmp_path / "r").exists()  # --print prints instead of writing
-    res = cli_runner(
-        ["report", "--store", str(store.root), "--out", str(tmp_path / "r"), "--file-types", "md", "--resamples", "0"]
-    )
+    # --print with --out DIR prints and writes DIR too, naming the files
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
+    assert f"-> {tmp_path / 'r' / 'report.md'}" in res.output
+    (tmp_path / "w").mkdir()
+    monkeypatch.chdir(tmp_path / "w")
+    res = cli_runner(["report", "--store", str(store.root), "--resamples", "0", "--print"])
+    assert res.exit_code == 0 and "synth: project-grouped folds" in res.output and "-> " not in res.output
+    assert not (tmp_path / "w" / "reports").exists()  # --print alone prints instead of writing
     res = cli_runner(["report", "--store", str(store.root), "--out", str(tmp_path / "r2"), "--resamples", "0"])
     assert res.exit_code == 0 and "-> " in res.output and "report.html" in res.output
     res = cli_runner(["report", "--store", str(tmp_path / "nowhere")])

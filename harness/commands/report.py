@@ -52,7 +52,8 @@ def register_commands(cli: click.Group) -> None:
         "--print",
         "print_tables",
         is_flag=True,
-        help="Print every table in the terminal (aligned) instead of writing the report files.",
+        help="Print every table in the terminal (aligned) instead of writing the report files (with --out, as well "
+        "as writing them).",
     )
     @opt.bootstrap_options(
         resamples=200,
@@ -141,7 +142,7 @@ def register_commands(cli: click.Group) -> None:
         report = build_report(
             root,
             names,
-            out=None if print_tables else target,
+            out=None if print_tables and out is None else target,
             formats=fmts,
             seed=bootstrap_seed,
             ablation_categories=cats,
@@ -154,7 +155,8 @@ def register_commands(cli: click.Group) -> None:
         )
         if print_tables:
             click.echo(report.to_text())
-            return
+            if out is None:
+                return  # with --out the files were written too: say which below
         warned = [t.title for t in report.tables if t.warning]
         absent = [f"{s.dataset or 'all'}: {s.title}" for s in report.sections if s.absent]
         click.echo(
