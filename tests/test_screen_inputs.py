@@ -275,6 +275,25 @@ def test_records_of_removed_captures_are_removed(trained, tmp_path):
     assert {r["frame"] for r in _csv(out)} == {sorted(POSITIONS)[0]}
 
 
+@pytest.mark.slow  # three screens: about 30 s
+def test_a_rerun_after_a_capture_was_removed_equals_a_fresh_screen_of_the_folder(trained, tmp_path):
+    """The two P1 captures are one inspection group, registered pooled over both; with one removed, a re-run screens
+    the other anew with the group's registration pooled over what is there now, not the one of the first call."""
+    flight = p1_flight(trained.tiny, tmp_path / "flight", extras=False)
+    out = tmp_path / "out"
+    _screen(trained, flight, out, "--conf", trained.eval_conf)
+    kept, gone = sorted(POSITIONS)
+    assert _frames(out)[kept]["registration"]["frames"] == 2
+    for path in flight.glob(f"{gone}_*"):
+        path.unlink()
+    _screen(trained, flight, out, "--conf", trained.eval_conf)
+    _screen(trained, flight, tmp_path / "fresh", "--conf", trained.eval_conf)
+    (resumed,), (fresh,) = _frames(out).values(), _frames(tmp_path / "fresh").values()
+    for field in ("route", "registration", "registered", "H_rgb_to_aligned", "findings"):
+        assert resumed[field] == fresh[field], field
+    assert resumed["registered"]["members"] == [kept]
+
+
 # ------------------------------------------------------------------------------------------------ decoding routes
 def _m4t_flight(trained, folder: Path) -> Path:
     """The P1 captures with M4T-like thermal R-JPEGs (their emissivity table asks for DJI's re-mapping, so their

@@ -41,3 +41,54 @@ def test_a_calibration_unknown_without_the_prepared_data_is_asked_for_by_its_own
     assert wanted in text and f"--{given}-camera FILE" not in text
     if given is not None:  # the one given still counts: --no-undistort only for the other
         assert "--no-undistort if its dataset had no" in text
+
+
+def test_the_screening_route_numbers_are_printed_with_their_unit():
+    """``harness score-route`` and the report's screening-route table show mAP as percentages, with a "%"."""
+    from harness.report.tables import screening_route_table
+    from harness.screen.route import summary_lines
+
+    result = {
+        "routes": {
+            "landmarks": {"mAP50_95": 0.4321, "mAP50": 0.6},
+            "automatic": {"mAP50_95": 0.4012, "mAP50": 0.55, "registered_automatically": 1, "screened": 2},
+            "prior": {"mAP50_95": 0.3, "mAP50": None},
+        },
+        "recorded_route": {"route": "landmarks"},
+    }
+    lines = summary_lines(result)
+    assert lines[0].split() == ["landmarks", "mAP50-95", "43.2", "%", "mAP50", "60.0", "%"]
+    assert lines[2].endswith("mAP50 -")
+    run = SimpleNamespace(
+        key=SimpleNamespace(detector="ours", encoding="c2", fold="P4", seed=0),
+        name="P4/seed0",
+        screening_route=lambda: result,
+    )
+    table = screening_route_table([run], "m3t")
+    assert table is not None
+    text = table.to_text()
+    assert "(held-out fold, mAP50-95, %)" in text and "mAP50-95 landmarks %" in text
+    assert "43.2" in text and "mAP50-95 prior %" in text
+
+
+def test_a_truncated_checkpoint_and_a_safetensors_file_are_named_for_what_they_are(tmp_path, cli_runner):
+    """``weights import`` (and ``--init``, through the same reader) on a torch.save file cut in half and on a
+    safetensors file: each refusal says what the file is and what to do, not only "not a PyTorch checkpoint"."""
+    import torch
+    from safetensors.torch import save_file
+
+    state = {"a.weight": torch.randn(64, 32), "a.bias": torch.randn(64)}
+    torch.save(state, tmp_path / "good.pt")
+    data = (tmp_path / "good.pt").read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    save_file(state, str(tmp_path / "w.safetensors"))
+    (tmp_path / "noise.pt").write_bytes(bytes(range(256)) * 8)
+    for name, says in [
+        ("cut.pt", "the file is truncated"),
+        ("w.safetensors", "a safetensors file"),
+        ("noise.pt", "not a PyTorch checkpoint"),
+    ]:
+        res = cli_runner(["weights", "import", str(tmp_path / name), "--out", str(tmp_path / "o.safetensors")])
+        assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
+    res = cli_runner(["weights", "import", str(tmp_path / "good.pt"), "--out", str(tmp_path / "o.safetensors")])
+    assert res.exit_code == 0, res.output

@@ -1003,13 +1003,13 @@ def screening_route_table(runs: Sequence[Any], dataset: str) -> Table | None:
     name = f"{_slug(dataset)}-screening-route"
     cols = [
         Column("run", "Run"),
-        Column("landmarks", "mAP50-95 landmarks", "pct"),
-        Column("automatic", "mAP50-95 automatic", "pct"),
-        Column("prior", "mAP50-95 prior", "pct"),
+        Column("landmarks", "mAP50-95 landmarks %", "pct"),
+        Column("automatic", "mAP50-95 automatic %", "pct"),
+        Column("prior", "mAP50-95 prior %", "pct"),
         Column("registered", "Registered automatically"),
         Column("route", "Samples registered by"),
     ]
-    table = Table(name, f"{dataset}: accuracy under the screening route (held-out fold, mAP50-95)", cols)
+    table = Table(name, f"{dataset}: accuracy under the screening route (held-out fold, mAP50-95, %)", cols)
     for run in runs:
         result = run.screening_route()
         if not result:

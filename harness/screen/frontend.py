@@ -467,6 +467,7 @@ class FrontEnd:
             "route": f"auto (group {name})" if res.ok else REJECTED_ROUTE,
             "group": name,
             "capture": None,
+            "members": [c.name for c in caps],  # what it was pooled over: a re-run reuses it for these alone
         }
         return given, sizes[1]
 

@@ -15,7 +15,7 @@ import time
 from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from harness.errors import ConfigError, DataError, HarnessError
 from harness.io import file_digest
@@ -215,12 +215,7 @@ def resolve_cameras(
             if recorded == "unread":
                 recorded = recorded_cameras(sm)
             if recorded is None:
-                raise ConfigError(
-                    "the run's prepared data is not in the cache (HARNESS_CACHE, now "
-                    f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the lens calibration its training "
-                    "undistorted the images with is unknown: give it with --rgb-camera FILE (e.g. the dataset's "
-                    "calibration/wide_camera.yaml), or --no-undistort if its dataset had none"
-                )
+                raise ConfigError(_unknown_camera(sensor, given))
             cams[sensor] = recorded[0 if sensor == "rgb" else 1]
             source[sensor] = (
                 f"the run's prepared data ({recorded[2]})"
@@ -233,6 +228,25 @@ def resolve_cameras(
             "not undistorted; give the one the model's training data was undistorted with"
         )
     return cams["rgb"], cams["thermal"], source
+
+
+def _unknown_camera(sensor: str, given: Mapping[str, Any]) -> str:
+    """Why ``sensor``'s calibration is unknown (the run's prepared data is not in the cache) and what to give: the
+    option of that sensor, not of the other one, which may have been given already."""
+    option, camera = ("--rgb-camera", "wide") if sensor == "rgb" else ("--thermal-camera", "thermal")
+    other, other_camera = ("--thermal-camera", "thermal") if sensor == "rgb" else ("--rgb-camera", "wide")
+    example = " (e.g. the dataset's calibration/wide_camera.yaml)" if sensor == "rgb" else ""
+    none = (
+        f"add --no-undistort if its dataset had no {camera}-camera calibration ({other} still undistorts the "
+        f"{other_camera} images)"
+        if given.get("thermal" if sensor == "rgb" else "rgb") is not None
+        else "--no-undistort if its dataset had none"
+    )
+    return (
+        "the run's prepared data is not in the cache (HARNESS_CACHE, now "
+        f"{os.environ.get('HARNESS_CACHE') or './cache'}), so the {camera}-camera calibration its training "
+        f"undistorted the {camera} images with is unknown: give it with {option} FILE{example}, or {none}"
+    )
 
 
 def load_homography(path: str | Path | None, group: str | None) -> dict[str, Any] | None:
@@ -356,6 +370,32 @@ def group_registrations(
         if groups is not None and reg and reg.get("group") is not None and name in groups:
             out.setdefault(groups[name], reg)
     return out
+
+
+def same_groups(done: dict[str, dict[str, Any]], groups: dict[str, str] | None) -> dict[str, dict[str, Any]]:
+    """The frames screened earlier whose inspection group still has the captures its registration was pooled over:
+    a capture added to or removed from a group changes the group's registration, so all its frames are screened
+    anew (as a fresh screen of the folder would screen them)."""
+    if groups is None:
+        return done
+    members: dict[str, list[str]] = {}
+    for name, group in groups.items():
+        members.setdefault(group, []).append(name)
+    keep, stale = {}, set()
+    for name, rec in done.items():
+        reg = rec.get("registered") or {}
+        group = groups.get(name)
+        if reg.get("group") is not None and (reg["group"] != group or reg.get("members") != members.get(group)):
+            stale.add(str(group))
+            continue
+        keep[name] = rec
+    if stale:
+        log.info(
+            "inspection group(s) %s: captures were added or removed since they were screened; their frames are "
+            "screened anew with a registration pooled over the captures there now",
+            ", ".join(sorted(stale)),
+        )
+    return keep
 
 
 def frontend_results(
@@ -597,7 +637,10 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
     folder = Path(req.out)
     _prepare_out(folder, key, req.force)
     predictor = Predictor(sm, req.backend, req.device, folder, req.threads)
-    done = _done_frames(folder, key, flight.captures)
+    groups = None
+    if settings.register == "group" and settings.homography is None and fe.options.registration.method == "auto":
+        groups = inspection_groups(flight.captures, fe.options.group_gap_s)
+    done = same_groups(_done_frames(folder, key, flight.captures), groups)
     todo = [c for c in flight.captures if c.name not in done]
     if done:
         log.info(
@@ -651,9 +694,6 @@ def _screen(req: ScreenRequest, on_frame: Callable[[dict[str, Any]], None] | Non
         batch.clear()
         bar.advance(n, _note(records, failures))
 
-    groups = None
-    if settings.register == "group" and settings.homography is None and fe.options.registration.method == "auto":
-        groups = inspection_groups(flight.captures, fe.options.group_gap_s)
     if req.workers == 1 and req.overlap and len(todo) > 1:
         thread = FrontEndThread()
     interrupted = False

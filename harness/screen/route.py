@@ -255,4 +255,4 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
 
 
 def _f(v: Any) -> str:
-    return "-" if v is None else f"{100 * float(v):.1f}"
+    return "-" if v is None else f"{100 * float(v):.1f} %"

@@ -662,6 +662,25 @@ def _load_zip(path: Path, zf: zipfile.ZipFile, limits: Limits, placeholders: boo
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 
 
+def _what_else(path: Path) -> str:
+    """Why a file that is neither a zip archive nor a legacy checkpoint was refused: what its first bytes say it is
+    where they say it (a zip archive cut short, a safetensors file), else that it is not a PyTorch checkpoint."""
+    with open(path, "rb") as f:
+        head = f.read(9)
+    size = path.stat().st_size
+    if head.startswith(b"PK\x03\x04"):
+        return (
+            f"a zip archive (as torch.save writes) cut short: its end-of-archive record is missing ({human(size)} on "
+            "disk), so the file is truncated (an interrupted download or copy?); fetch or copy it again"
+        )
+    if len(head) == 9 and head[8:] == b"{" and 2 <= int.from_bytes(head[:8], "little") <= size - 8:
+        return (
+            "a safetensors file (a plain state dict, as `harness weights import` writes), not a torch.save "
+            "checkpoint: it needs no import; use it as it is, named *.safetensors (e.g. --init FILE.safetensors)"
+        )
+    return "not a PyTorch checkpoint (no zip archive, no legacy magic number)"
+
+
 def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) -> tuple[Any, set[str]]:
     """The pre-1.6 format: magic, protocol, sys info, the object, the storage keys, then each storage's bytes.
 
@@ -677,7 +696,7 @@ def _load_legacy(path: Path, f: BinaryIO, limits: Limits, placeholders: bool) ->
     except (HarnessError, *_READ_ERRORS):
         magic = None
     if type(magic) is not int or magic != _LEGACY_MAGIC:
-        raise CheckpointFormatError(f"{path}: not a PyTorch checkpoint (no zip archive, no legacy magic number)")
+        raise CheckpointFormatError(f"{path}: {_what_else(path)}")
     plain()  # protocol version
     plain()  # sys info
     loaded: dict[str, torch.Tensor] = {}
