@@ -15,7 +15,15 @@ The sample-matched guard checks what goes out of a run; this one checks what com
   such as 8-bit counts read as centi-Kelvin (-273 C); a few pixels outside are made missing at preparation and
   counted, not a finding;
 * ``empty-folds``: folds of the dataset's own whose held-out groups have no prepared sample (the plugin's
-  ``groups()`` or ``folds()`` name them, ``samples()`` yielded none): they are left out of every fold list.
+  ``groups()`` or ``folds()`` name them, ``samples()`` yielded none): they are left out of every fold list;
+* ``invalid-samples``: samples the dataset yielded that break the sample contract (boxes outside the frame, labels
+  past the class list, a thermal map of another shape: the prepare report's skips ``invalid sample``). Each takes its
+  objects with it, and a plugin that breaks the contract for one sample usually does for many;
+* ``duplicate-boxes``: more than ``agreement.DUPLICATE_SHARE`` of the boxes repeat another one of their image exactly
+  (the same label and box): every annotation listed twice, the check ``harness.scoring.agreement`` makes of a
+  prediction set;
+* ``normalised-boxes``: every box lies within 0..1 while the frames are larger: coordinates given as fractions of
+  the image size instead of pixels.
 
 Each finding is a line with the counts and a few examples. An unaccepted one raises a ``DataError`` listing them all
 and naming the option; ``inputs.accept`` (a list of kinds, or ``all``) accepts them, and the accepted findings are
@@ -31,7 +39,17 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from harness.errors import ConfigError, DataError
 
-KINDS = ("no-labels", "unlabelled-images", "dropped-annotations", "category-order", "temperature-range", "empty-folds")
+KINDS = (
+    "no-labels",
+    "unlabelled-images",
+    "dropped-annotations",
+    "category-order",
+    "temperature-range",
+    "empty-folds",
+    "invalid-samples",
+    "duplicate-boxes",
+    "normalised-boxes",
+)
 #: Share of images without any box above which a dataset or fold part is implausible...
 DEFAULT_MAX_UNLABELLED = 0.2
 #: ... once at least this many of its images have none (a share of a handful of images says little).
@@ -190,6 +208,7 @@ def inspect(
                 list(temps.get("examples") or []),
             )
         )
+    out += _sample_findings(prepared, report)
     if own_folds:
         present = set(prepared.groups)
         in_use = {f.name for f in folds}
@@ -207,6 +226,55 @@ def inspect(
                     left_out,
                 )
             )
+    return out
+
+
+def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
+    """``invalid-samples``, ``duplicate-boxes`` and ``normalised-boxes`` (module docstring)."""
+    import numpy as np
+
+    from harness.scoring.agreement import duplicate_findings
+
+    out: list[Finding] = []
+    invalid = [(w, r) for w, r in report.get("skipped_files") or [] if str(r).startswith("invalid sample")]
+    if invalid:
+        total = len(invalid) + len(prepared.records)
+        out.append(
+            _finding(
+                "invalid-samples",
+                f"{len(invalid)} of the {total} samples the dataset yielded break the sample contract and were "
+                f'left out with their boxes (fix the plugin\'s samples(); docs/datasets.md, "The sample contract")',
+                [f"{w}: {r}" for w, r in invalid],
+            )
+        )
+    preds, frames, top = [], [], 0.0
+    for i in range(len(prepared.records)):
+        boxes, labels = prepared.targets(i)
+        preds += [(i, box, 1.0, int(lab)) for box, lab in zip(boxes.tolist(), labels.tolist())]
+        if len(boxes):
+            top = max(top, float(np.abs(boxes).max()))
+            r = prepared.records[i]
+            frames.append(min(int(r.get("width") or 0), int(r.get("height") or 0)))
+    for f in duplicate_findings(preds):
+        seen: set[tuple[Any, ...]] = set()
+        repeated: dict[int, None] = {}
+        for k, box, _, lab in preds:
+            key = (k, lab, tuple(round(v, 3) for v in box))
+            if key in seen:
+                repeated[k] = None
+            seen.add(key)
+        said = f.message.replace("predictions", "boxes", 1).replace(" and score", "").replace("detection", "box")
+        out.append(_finding("duplicate-boxes", f"the dataset's {said}", [_name(prepared.records[k]) for k in repeated]))
+    if preds and top <= 1.0 and min(frames) > 2:
+        out.append(
+            _finding(
+                "normalised-boxes",
+                f"all {len(preds)} boxes lie within 0..{top:.2f} px in frames of at least {min(frames)} px: "
+                f"coordinates normalised to 0..1? Boxes are pixels of the thermal frame (multiply by its width "
+                f"and height)",
+                [],
+            )
+        )
     return out
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from engine_helpers import ContractSource as _Good
 from harness import DatasetSpec, DetectorSpec, EncodingSpec, Fold, hookimpl
-from harness.errors import PluginError
+from harness.errors import DataError, PluginError
 
 
 # ------------------------------------------------------------------------------------------- one module, exported
@@ -257,8 +257,11 @@ def test_a_source_that_yields_something_else_than_a_sample_gets_a_counted_skip(t
             yield from super().samples(report)
 
     spec = DatasetSpec("undo-src", open=lambda root=None: Mixed(), categories=("thing",))
-    ds = prepare(spec, load_config(protocol="default"), cache_root=tmp_path, progress=False)
-    assert len(ds) == 3
+    with pytest.raises(DataError, match=r"invalid-samples: 1 of the 4 samples the dataset yielded break the sample"):
+        prepare(spec, load_config(protocol="default"), cache_root=tmp_path, progress=False)
+    cfg = load_config(protocol="default", overrides=["inputs.accept=[invalid-samples]"])
+    ds = prepare(spec, cfg, cache_root=tmp_path, progress=False)
+    assert len(ds) == 3 and [r["kind"] for r in ds.input_risks] == ["invalid-samples"]
     assert ds.manifest["report"]["skip_reasons"] == {"invalid sample": 1}
     assert ds.manifest["report"]["skipped_files"] == [["dict", "invalid sample: expected an AlignedSample, got dict"]]
 

@@ -185,7 +185,9 @@ def test_boxes_outside_the_frame_are_counted_under_one_reason(tmp_path):
     from harness.commands.data import prepare_summary
 
     samples = [_sample(i, "ab"[i % 2], inside=i > 8) for i in range(1, 21)]
-    ds = _prepare(_spec(samples), tmp_path)
+    with pytest.raises(DataError, match=r"invalid-samples: 8 of the 20 samples"):
+        _prepare(_spec(samples), tmp_path)
+    ds = _prepare(_spec(samples), tmp_path, "inputs.accept=[invalid-samples]")
     reasons = ds.manifest["report"]["skip_reasons"]
     assert reasons == {"invalid sample, field 'boxes': a box lies outside its frame": 8}
     text = prepare_summary(ds)

@@ -16,6 +16,10 @@
   counted skips, and the preparation's plausibility guard (``harness.input_guard``) stops unless the risk is
   accepted, because a dropped box leaves an unlabelled object that training learns as background.
 
+``box_reading(boxes)`` is the adapters' check of the box convention: COCO ``bbox`` is ``[x, y, width, height]``;
+boxes written as corners (``x1, y1, x2, y2``) or with ``y`` first reach past the frame's edge when read as COCO,
+and fit inside it read the way they were written.
+
 The adapters add their own fields on top (``CocoImage.entry`` is the raw record): the M3T's ``project`` and
 ``date_captured``, coco-rgbt's ``thermal_file_name``, ``group`` and ``homography``.
 """
@@ -257,3 +261,38 @@ def parse_bbox(value: Any) -> list[float] | None:
     if not all(math.isfinite(v) for v in box) or box[2] <= 0 or box[3] <= 0:
         return None
     return box
+
+
+#: ``box_reading``: the share (and count) of boxes reaching past the frame as given above which another reading that
+#: fits them all is the finding
+PAST_EDGE_SHARE = 0.1
+PAST_EDGE_MIN = 3
+#: how far past the edge (px) a box may reach before it counts (rounding at the border)
+EDGE_TOL = 1.0
+#: the readings ``box_reading`` tries: name, [x, y, w, h] of a written box
+_READINGS = (
+    ("x1, y1, x2, y2 (corners)", lambda b: (b[0], b[1], b[2] - b[0], b[3] - b[1])),
+    ("y, x, h, w (y first)", lambda b: (b[1], b[0], b[3], b[2])),
+)
+
+
+def _past_edge(x: float, y: float, w: float, h: float, width: int, height: int) -> bool:
+    return w <= 0 or h <= 0 or x < -EDGE_TOL or y < -EDGE_TOL or x + w > width + EDGE_TOL or y + h > height + EDGE_TOL
+
+
+def box_reading(boxes: list[tuple[list[float], int, int]]) -> str | None:
+    """``(bbox [x, y, w, h] as written, frame width, frame height)`` of every annotation: a sentence saying what was
+    seen when at least ``PAST_EDGE_SHARE`` (and ``PAST_EDGE_MIN``) of them reach past the frame read as COCO
+    ``[x, y, w, h]`` and another reading (corners, ``y`` first) fits every one inside; ``None`` otherwise."""
+    n = len(boxes)
+    given = sum(_past_edge(*b, w, h) for b, w, h in boxes)
+    if n == 0 or given < max(PAST_EDGE_MIN, PAST_EDGE_SHARE * n):
+        return None
+    for name, read in _READINGS:
+        if not any(_past_edge(*read(b), w, h) for b, w, h in boxes):
+            return (
+                f"{given} of {n} boxes reach past their frame's edge read as COCO [x, y, width, height], none read "
+                f"as {name}: the bbox values look written as {name.split(' (')[0]}; write [x, y, width, height] "
+                f"(top-left corner, size) in the thermal frame's pixels"
+            )
+    return None

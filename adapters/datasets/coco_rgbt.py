@@ -52,7 +52,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from adapters.datasets._coco import read_coco
+from adapters.datasets._coco import box_reading, read_coco
 from adapters.datasets._eightbit import (
     BoxStats,
     ImageReadError,
@@ -216,9 +216,9 @@ def read_temperature(
     R-JPEG, decoded with ``sensing``'s decoder and measurement overrides. Raises ``SkipPair`` with the reason
     for an 8-bit image, an unreadable file, non-finite or implausible values.
     """
+    from harness.sensing import plausible
     from harness.sensing.radiometry import (
         UNITS,
-        implausible_to_missing,
         load_thermal_array,
         read_sidecar,
         read_thermal,
@@ -245,10 +245,11 @@ def read_temperature(
             "dataset.thermal=8bit (and use --encoding proxy8 or ir8)"
         )
     nodata = None
+    stated = False  # the unit was stated (by a sidecar or the dataset options): a unit mix-up only warns
     if arr.dtype.kind in "iu":
         if scale is not None or offset is not None:
             s, o = (CENTIKELVIN[0] if scale is None else scale), (CENTIKELVIN[1] if offset is None else offset)
-            unit = "dataset.thermal_scale/offset"
+            unit, stated = "dataset.thermal_scale/offset", True
         else:
             try:
                 side = read_sidecar(path)
@@ -257,9 +258,9 @@ def read_temperature(
             nodata = side.get("nodata") if side else None  # what `harness sensing decode` writes for a missing pixel
             if side and ("scale" in side or "offset" in side):
                 s, o = float(side.get("scale", 1.0)), float(side.get("offset", 0.0))
-                unit = str(side.get("unit") or "sidecar")
+                unit, stated = str(side.get("unit") or "sidecar"), True
             elif side and side.get("unit") in UNITS:
-                (s, o), unit = UNITS[side["unit"]], str(side["unit"])
+                (s, o), unit, stated = UNITS[side["unit"]], str(side["unit"]), True
             else:
                 (s, o), unit = CENTIKELVIN, "centikelvin"
         temp = (arr.astype(np.float64) * s + o).astype(np.float32)
@@ -279,8 +280,18 @@ def read_temperature(
             raise SkipPair(f"non-finite temperatures: {exc}") from None
         temp = np.where(finite, temp, np.float32(np.nan))
     lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
-    try:  # a few values outside the plausible range are missing (counted at preparation); mostly outside: a skip
-        implausible_to_missing(temp, path.name, f"{unit}")
+    try:  # garbage and unit mix-ups (Kelvin, Fahrenheit, 8-bit counts): a skip saying what was seen, as every
+        # thermal input is checked (harness.sensing.plausible); a few values outside the range become missing
+        plausible.check(temp, path.name, f"read as {unit}", declared=stated)
+    except DataError as exc:
+        fix = (
+            "float files are read as degrees C: write them in C"
+            if arr.dtype.kind == "f"
+            else f"write a sidecar {path.name}.json with its 'unit' or set dataset.thermal_scale and thermal_offset "
+            "(C = value * scale + offset)"
+        )
+        raise SkipPair(f"implausible temperatures: {exc}; {fix}") from None
+    try:  # mostly outside the range: a skip
         from harness.sensing.c2 import valid_mask
 
         valid_mask(temp, path.name)
@@ -391,6 +402,7 @@ class CocoRgbtSource:
             report.skip(where, reason)
         stats = BoxStats()
         warped = 0
+        self._written: list[tuple[list[float], int, int]] = []  # every box as written, with its frame's size
         for p in self.pairs:
             try:
                 sample, box_stats = self._sample(p, report)
@@ -401,6 +413,9 @@ class CocoRgbtSource:
             stats.add(box_stats)
             warped += "H_rgb_to_frame" in sample.meta
             yield sample
+        problem = box_reading(self._written)
+        if problem:
+            raise DataError(f"{self.ann_path}: {problem}. Nothing was cached")
         if stats.clipped:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
         if stats.crowd:
@@ -445,8 +460,12 @@ class CocoRgbtSource:
             thermal, info = None, {"unit": None, "format": "8bit", "colour": colour}
         h, w = ir8.shape
         if p.width is not None and p.height is not None and (p.width, p.height) != (w, h):
+            rgb_size = (p.width, p.height) == (rgb.shape[1], rgb.shape[0])
             raise SkipPair(
-                f"size mismatch: the JSON says {p.width}x{p.height}, the thermal frame {p.thermal_file_name} is {w}x{h}"
+                f"size mismatch: the JSON says {p.width}x{p.height}"
+                + (" (the RGB image's size)" if rgb_size else "")
+                + f", the thermal frame {p.thermal_file_name} is {w}x{h}; images[].width and height are the thermal "
+                "frame's size (or leave them out)"
             )
         H = p.homography if p.homography is not None else self.coco.homographies.get(p.group)
         if H is None and rgb.shape[:2] != (h, w):
@@ -455,6 +474,7 @@ class CocoRgbtSource:
                 f"{p.thermal_file_name} is {w}x{h}; give the RGB -> thermal homography as "
                 f"images[].homography or homographies[{p.group!r}] in the JSON"
             )
+        self._written += [(list(b[1]), w, h) for b in p.boxes]
         xywh = np.asarray([b[1] for b in p.boxes], np.float64).reshape(-1, 4)
         labels = np.asarray([b[2] for b in p.boxes], np.int64)
         ids = [b[0] for b in p.boxes]

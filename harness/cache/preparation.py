@@ -219,8 +219,12 @@ def _checked(
     accepted findings, as dicts, that label every result on these samples)."""
     from harness import input_guard
 
-    folds = resolve_folds(spec, ds, cfg)
-    ensure_coco(ds, folds)
+    try:
+        folds = resolve_folds(spec, ds, cfg)
+        ensure_coco(ds, folds)
+    except DataError:
+        input_guard.check(ds, [], cfg)  # samples left out on the way (invalid, dropped boxes) explain an empty fold
+        raise
     risks = input_guard.check(ds, folds, cfg)
     for line in input_guard.describe(risks):
         log.warning("%s: %s", spec.name, line)
