@@ -92,3 +92,48 @@ def test_a_truncated_checkpoint_and_a_safetensors_file_are_named_for_what_they_a
         assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
     res = cli_runner(["weights", "import", str(tmp_path / "good.pt"), "--out", str(tmp_path / "o.safetensors")])
     assert res.exit_code == 0, res.output
+
+
+def _toy(width: int = 4):
+    from torch import nn
+
+    return nn.Sequential(nn.Conv2d(3, width, 3), nn.BatchNorm2d(width), nn.Conv2d(width, 2, 1))
+
+
+def _importer(model, state):
+    """A detector's own importer, as the YOLOv5-family plugins (EME, CMA-Det, ICAFusion) have: loads by name and
+    shape, lists what it skipped, raises nothing."""
+    from adapters.detectors.yolo.v5 import load_state_dict_report
+
+    return load_state_dict_report(model, state, "toy")
+
+
+def test_init_through_a_detectors_importer_refuses_what_does_not_fit(tmp_path, caplog):
+    """``--init`` on a detector with its own importer: a foreign state dict (nothing loaded) and a checkpoint of
+    another size (most tensors mismatched) are refused, as the name-and-shape importer refuses them; a head for other
+    classes (a few tensors) loads, with a warning naming the counts."""
+    import logging
+
+    import torch
+
+    from harness.engine import checkpoint as ckpt
+
+    torch.save({"x.weight": torch.zeros(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(ckpt.CheckpointError, match="none of its 1 tensors"):
+        ckpt.init_from(_toy(), tmp_path / "foreign.pt", _importer)
+    torch.save(_toy(width=8).state_dict(), tmp_path / "wider.pt")
+    with pytest.raises(ckpt.CheckpointError, match="have the model's names but other shapes"):
+        ckpt.init_from(_toy(), tmp_path / "wider.pt", _importer)
+    other_head = _toy()
+    other_head[2] = torch.nn.Conv2d(4, 5, 1)  # trained for other classes: the last layer's 2 tensors differ
+    torch.save(other_head.state_dict(), tmp_path / "head.pt")
+    with caplog.at_level(logging.INFO, logger="harness.engine.checkpoint"):
+        report = ckpt.init_from(_toy(), tmp_path / "head.pt", _importer)
+    assert len(report["loaded"]) == 7 and len(report["mismatched"]) == 2
+    (rec,) = [r for r in caplog.records if "initialised" in r.getMessage()]
+    assert rec.levelno == logging.WARNING and "mismatched=2" in rec.getMessage()
+    torch.save(_toy().state_dict(), tmp_path / "same.pt")
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="harness.engine.checkpoint"):
+        ckpt.init_from(_toy(), tmp_path / "same.pt", _importer)
+    assert [r.levelno for r in caplog.records if "initialised" in r.getMessage()] == [logging.INFO]

@@ -145,12 +145,27 @@ def init_from(
     else:
         report = load_matching(model, state)
         report["importer"] = "name-and-shape"
-        if report["loaded"] == 0:
-            raise CheckpointError(
-                f"{path}: none of its {len(state)} tensors matches the model's parameter names and shapes; "
-                f"is it a checkpoint of this detector?"
-            )
+    loaded, mismatched = _count(report.get("loaded")), _count(report.get("mismatched", report.get("shape_mismatch")))
+    if loaded == 0:
+        raise CheckpointError(
+            f"{path}: none of its {len(state)} tensors matches the model's parameter names and shapes; "
+            f"is it a checkpoint of this detector?"
+        )
+    if mismatched > loaded:  # a head for another number of classes mismatches a few tensors, not most of them
+        shown = "; ".join(str(m) for m in list(report.get("mismatched") or report.get("shape_mismatch") or [])[:3])
+        raise CheckpointError(
+            f"{path}: {mismatched} of its tensors have the model's names but other shapes (e.g. {shown}), only "
+            f"{loaded} loaded: a checkpoint of another detector, or of another size (model.scale)?"
+        )
     report["path"] = str(path)
-    counts = (f"{k}={v if not isinstance(v, list) else len(v)}" for k, v in report.items() if k != "path")
-    log.info("initialised from %s (%s)", path, ", ".join(counts))
+    counts = ", ".join(f"{k}={_count(v)}" for k, v in report.items() if k not in ("path", "importer"))
+    if mismatched or _count(report.get("missing")):  # the model starts partly from its own initialisation
+        log.warning("initialised in part from %s (%s; importer %s)", path, counts, report["importer"])
+    else:
+        log.info("initialised from %s (%s; importer %s)", path, counts, report["importer"])
     return report
+
+
+def _count(v: Any) -> int:
+    """A count of an importer's report: a number, or the length of a list of names."""
+    return len(v) if isinstance(v, (list, tuple, set, dict)) else int(v or 0)
