@@ -54,6 +54,9 @@ MANIFEST_SCHEMA = 1
 PREFIX = REFERENCE_PREFIX
 #: The folder of the shipped references under ``references/`` (``harness.shipped_references`` when installed).
 SHIPPED = "m3t-synth-benchmark"
+#: Every shipped reference folder, one per benchmark suite (``harness.benchmark.SUITES``); ``shipped`` reads each that
+#: exists, ``SHIPPED`` first and the others as its ``siblings``.
+SHIPPED_FOLDERS = (SHIPPED, "rgbt-tiny-synth-benchmark")
 #: The built-in synthetic dataset, whose generator a reference records.
 SYNTHETIC = "m3t-synth"
 #: Largest reference store the project ships.
@@ -97,10 +100,17 @@ class ReferenceSet:
     root: Path
     manifest: dict[str, Any]
     problems: list[str] = field(default_factory=list)
+    #: the other shipped reference stores (of other datasets), read with this one when ``shipped`` was asked for;
+    #: a report matches each on its own dataset's samples
+    siblings: list["ReferenceSet"] = field(default_factory=list)
 
     @property
     def dataset(self) -> str:
         return str(self.manifest["dataset"])
+
+    def all(self) -> list["ReferenceSet"]:
+        """This reference store and its ``siblings``."""
+        return [self, *self.siblings]
 
     @property
     def profile(self) -> str:
@@ -152,9 +162,22 @@ def load_references(spec: str | Path) -> ReferenceSet: ...
 def load_references(spec: None) -> None: ...
 def load_references(spec: str | Path | None) -> ReferenceSet | None:
     """The reference store at ``spec`` (``shipped`` or a folder; None: none); a missing or malformed one is a clear
-    error."""
+    error. ``shipped``: the m3t-synth references, with every other shipped folder of ``SHIPPED_FOLDERS`` that exists
+    as its ``siblings`` (another dataset each)."""
     if spec is None or str(spec) == "":
         return None
+    refs = _load_one(spec)
+    if str(spec) == "shipped":
+        for name in SHIPPED_FOLDERS[1:]:
+            if (shipped_root() / name / MANIFEST).is_file():
+                sibling = _load_one(shipped_root() / name)
+                if sibling.dataset == refs.dataset or any(s.dataset == sibling.dataset for s in refs.siblings):
+                    raise StoreError(f"{sibling.root}: a second shipped reference store of dataset {sibling.dataset}")
+                refs.siblings.append(sibling)
+    return refs
+
+
+def _load_one(spec: str | Path) -> ReferenceSet:
     from harness.io import read_json
 
     root = resolve(spec)
@@ -612,6 +635,7 @@ __all__ = [
     "MANIFEST",
     "PREFIX",
     "SHIPPED",
+    "SHIPPED_FOLDERS",
     "ReferenceMismatchError",
     "ReferenceSet",
     "check_matched",

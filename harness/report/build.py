@@ -211,7 +211,7 @@ def _refs_option(view: Any) -> str:
         shipped = Path(refs.root).resolve() == resolve("shipped").resolve()
     except HarnessError:
         shipped = False
-    return f" --reference-results {'shipped' if shipped else refs.root}"
+    return f" --reference-results {'shipped' if shipped else refs.root}"  # siblings: read with `shipped` too
 
 
 def _paired_section(
@@ -364,7 +364,7 @@ def _scale_note(view: StoreView, dataset: str) -> str | None:
     refs = (
         " The reference results (ref:DETECTOR, `make benchmark`'s profile, three seeds) are shown beside them for "
         "scale."
-        if view.references is not None
+        if view.references_for(dataset) is not None
         else " `make benchmark` runs the reference benchmark, at a scale "
         "where detectors learn, with three seeds; `harness report --reference-results shipped` shows its results "
         "beside these."
@@ -437,6 +437,45 @@ def _claims_section(view: StoreView, dataset: str, scorer: BootstrapScorer, prog
     return sec
 
 
+def _tiny_section(view: StoreView, dataset: str, scorer: BootstrapScorer, progress: Any = None) -> Section:
+    """A dataset with RGBT-Tiny's folds (one per annotation source): the seed's table per source with paired
+    intervals against ours, SAFit-AP per size bin, and the paper's four RGBT-Tiny claims (``harness.report.tiny``)."""
+    from harness.report.tables import Column, Table
+    from harness.report.tiny import evaluate_tiny_claims, tiny_lead, tiny_records, tiny_standin, tiny_tables
+
+    where = "on the synthetic stand-in" if tiny_standin(view, dataset) else "on these data"
+    sec = Section("rgbt-tiny", f"RGBT-Tiny: per annotation source, and the paper's claims, tested {where}", dataset)
+    start = (lambda n: progress.start(n, f"rgbt-tiny claims {dataset}")) if progress is not None else None
+    claims, notes = evaluate_tiny_claims(view, dataset, scorer, on_total=start)
+    tables, table_notes = tiny_tables(view, dataset, scorer)
+    sec.tables += tables
+    sec.tables.append(
+        Table(
+            f"{dataset}-rgbt-tiny-claims".replace("/", "-"),
+            f"{dataset}: the paper's RGBT-Tiny claims, tested {where} at the benchmark's model sizes",
+            [
+                Column("n", "#"),
+                Column("claim", "claim"),
+                Column("verdict", "verdict"),
+                Column("evidence", "evidence: value [95 % interval]"),
+            ],
+            [
+                {
+                    "n": chr(ord("a") + c.number - 1),
+                    "claim": c.text,
+                    "verdict": c.verdict,
+                    "evidence": "; ".join(c.evidence),
+                }
+                for c in claims
+            ],
+            records=list(tiny_records(claims)),
+        )
+    )
+    sec.lead.append(tiny_lead(view, dataset))
+    sec.notes += table_notes + notes
+    return sec
+
+
 def dataset_sections(
     view: StoreView,
     dataset: str,
@@ -467,7 +506,8 @@ def dataset_sections(
     if len(shown) < len(rows) and evidence_secs and view.references is not None:
         evidence_secs[0].notes.append(
             "The reference results' error analysis (each run's analysis.json.gz, stored beside its metrics): "
-            f"`harness report --store {view.references.root} --resamples 0 --print` shows it (TIDE, confusion, PR "
+            f"`harness report --store {view.references_for(dataset).root} --resamples 0 --print` shows it (TIDE, "
+            "confusion, PR "
             "curves per reference detector)."
         )
     sections: list[Section] = []
@@ -540,6 +580,10 @@ def dataset_sections(
     sections.append(sec)
     if claim_categories:
         sections.append(_claims_section(view, dataset, scorer, progress))
+    from harness.report.tiny import is_tiny_layout
+
+    if is_tiny_layout(view, dataset):
+        sections.append(_tiny_section(view, dataset, scorer, progress))
     sections += evidence_secs
     if gallery:
         sections.append(gallery_section(dataset, evidence, out, cache_root))
@@ -662,11 +706,15 @@ def build_report(
     if references is not None and references_optional:
         from harness.references import ReferenceMismatchError
 
-        try:
-            view.finished_runs(references.dataset)  # checks the store's runs against the references' samples
-        except ReferenceMismatchError as exc:
-            view.references = None  # nothing of theirs was read: the check comes first
-            references_note = unavailable_references_line(exc)
+        unread = []
+        for refs in view.reference_sets():  # each dataset's references on that dataset's samples
+            try:
+                view.finished_runs(refs.dataset)  # checks the store's runs against the references' samples
+            except ReferenceMismatchError as exc:
+                view.drop_references(refs.dataset)  # nothing of theirs was read: the check comes first
+                unread.append(unavailable_references_line(exc))
+        if unread:
+            references_note = " ".join(unread)
     if references_note:
         log.warning("%s", references_note)
     available = view.datasets()

@@ -434,8 +434,8 @@ def is_synthetic(view: StoreView, dataset: str) -> bool:
     for it record the generator that made them."""
     if "synth" in dataset.lower():
         return True
-    refs = view.references
-    return bool(refs is not None and refs.dataset == dataset and (refs.manifest or {}).get("generator"))
+    refs = view.references_for(dataset)
+    return bool(refs is not None and (refs.manifest or {}).get("generator"))
 
 
 def standin_lead(view: StoreView, dataset: str) -> str:

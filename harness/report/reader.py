@@ -510,8 +510,9 @@ class StoreView:
         self._entries: dict[str, list[Entry]] = {}
         #: files that could not be read (named, with the reason); the report lists them instead of failing
         self.problems: list[str] = []
-        #: reference results read beside the store (``harness.references.ReferenceSet``): their runs join the
-        #: store's as ``ref:<detector>`` entries once the store's runs are checked to use the same samples
+        #: reference results read beside the store (``harness.references.ReferenceSet``, with its ``siblings`` of
+        #: other datasets): their runs join the store's as ``ref:<detector>`` entries once the store's runs of that
+        #: dataset are checked to use the same samples
         self.references = references
         self._reference_runs: dict[str, list[StoredRun]] = {}
         #: per dataset: notes on the reference results (what they are, which folds they lack)
@@ -521,6 +522,30 @@ class StoreView:
     @property
     def root(self) -> Path:
         return self.store.root
+
+    def reference_sets(self) -> list[Any]:
+        """Every reference store read beside the store (one per dataset), or none."""
+        refs = self.references
+        if refs is None:
+            return []
+        return list(refs.all()) if hasattr(refs, "all") else [refs]
+
+    def references_for(self, dataset: str) -> Any:
+        """The reference store of ``dataset`` read beside the store, or None."""
+        return next((r for r in self.reference_sets() if r.dataset == dataset), None)
+
+    def drop_references(self, dataset: str) -> None:
+        """Read no reference results of ``dataset`` (those of other datasets stay)."""
+        kept = [r for r in self.reference_sets() if r.dataset != dataset]
+        if not kept:
+            self.references = None
+            return
+        first = kept[0]
+        if hasattr(first, "siblings"):
+            import dataclasses
+
+            first = dataclasses.replace(first, siblings=kept[1:])
+        self.references = first
 
     def problem(self, text: str) -> None:
         """Record (and log) a file that could not be read; each is recorded once."""
@@ -544,7 +569,7 @@ class StoreView:
                 self.problem(f"{run.key}: skipped, {run.metrics_path} has no {', '.join(missing)} section")
                 continue
             out.append(stored)
-        if self.references is not None and dataset == self.references.dataset:
+        if self.references_for(dataset) is not None:
             out += self.reference_runs(dataset, out)
         return out
 
@@ -552,7 +577,7 @@ class StoreView:
         """The reference results' runs of ``dataset``, after checking that ``own`` (the store's runs) used the same
         samples (``harness.references.check_matched``: a mismatch is an error naming what differs)."""
         if dataset not in self._reference_runs:
-            refs = self.references  # a harness.references.ReferenceSet: it checks the store's runs itself
+            refs = self.references_for(dataset)  # a harness.references.ReferenceSet: it checks the store's runs
             notes = refs.check_matched(own)
             runs = refs.runs()
             for text in refs.problems:
@@ -587,7 +612,7 @@ class StoreView:
 
     def pairs_with_references(self, dataset: str) -> bool:
         """Whether paired comparisons may pair the store's entries with the reference entries of ``dataset``."""
-        if self.references is None or dataset != self.references.dataset:
+        if self.references_for(dataset) is None:
             return False
         if dataset not in self._reference_runs:
             self.finished_runs(dataset)
@@ -599,8 +624,7 @@ class StoreView:
         names = {r.key.dataset for r in self.store.runs(finished_only=False)}
         for p in self.root.glob("*/_sensing/*.json"):
             names.add(p.parent.parent.name)
-        if self.references is not None:
-            names.add(self.references.dataset)
+        names.update(r.dataset for r in self.reference_sets())
         return sorted((n for n in names if not n.startswith("_")), key=natural_key)
 
     def unfinished(self, dataset: str) -> list[tuple[str, str]]:
