@@ -137,3 +137,23 @@ def test_init_through_a_detectors_importer_refuses_what_does_not_fit(tmp_path, c
     with caplog.at_level(logging.INFO, logger="harness.engine.checkpoint"):
         ckpt.init_from(_toy(), tmp_path / "same.pt", _importer)
     assert [r.levelno for r in caplog.records if "initialised" in r.getMessage()] == [logging.INFO]
+
+
+def test_prepare_prints_the_advice_of_a_skip_reason_in_full(tmp_path, cli_runner, monkeypatch):
+    """coco-rgbt ``width``/``height`` are the thermal frame's size: pairs given the RGB habit's (here twice the
+    thermal size) are skipped, and the summary on stdout shows the first one's reason with its advice, uncut."""
+    from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
+
+    root = make_coco_rgbt(tmp_path / "pairs", n=6)
+    coco = read_json(root)
+    for im in coco["images"][:3]:
+        im["width"], im["height"] = 2 * im["width"], 2 * im["height"]
+    write_json(root, coco)
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    res = cli_runner(["prepare", "--dataset", "coco-rgbt", "--root", str(root)])
+    assert res.exit_code == 0, res.output
+    out = " ".join(res.stdout.split())
+    assert "skipped pairs: 3 (size mismatch: 3)" in out
+    assert "images[].width and height are the thermal frame's size (or leave them out)" in out
+    examples = [line for line in res.stdout.splitlines() if "e.g." in line or "images[]" in line]
+    assert len(examples) == 4 and max(map(len, examples)) <= 100, examples  # the first wrapped, two cut

@@ -94,10 +94,14 @@ def prepare_summary(ds: Any) -> str:
         f"skipped annotations: {sum(anns.values())}"
         + (" (" + ", ".join(f"{k}: {v}" for k, v in anns.items()) + ")" if anns else "")
     )
-    for where, reason in (rep.get("skipped_files") or [])[:3]:
-        lines.append(_cut(f"  e.g. {where}: {reason}"))
     from harness.input_guard import describe
     from harness.textable import fit_text
+
+    shown: set[str] = set()  # the first example of each kind of reason in full (its advice), the others cut
+    for where, reason in (rep.get("skipped_files") or [])[:3]:
+        kind = str(reason).split(":")[0]
+        lines.append(_cut(f"  e.g. {where}: {reason}") if kind in shown else fit_text(f"  e.g. {where}: {reason}"))
+        shown.add(kind)
 
     lines += [fit_text(line) for line in describe(getattr(ds, "input_risks", None) or [])]
     missing = rep.get("missing_temperatures") or {}
