@@ -140,7 +140,10 @@ def init_from(
     except CheckpointError as exc:
         raise CheckpointError(exc.args[0] if str(path) in str(exc) else f"{path}: {exc}") from None
     if load_official is not None:
-        report = dict(load_official(model, state) or {})
+        try:
+            report = dict(load_official(model, state) or {})
+        except HarnessError as exc:  # the detector's importer refuses the weights: say which file they came from
+            raise CheckpointError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
         report.setdefault("importer", "detector")
     else:
         report = load_matching(model, state)

@@ -668,6 +668,10 @@ def _what_else(path: Path) -> str:
     with open(path, "rb") as f:
         head = f.read(9)
     size = path.stat().st_size
+    if size == 0:
+        return (
+            "an empty file (0 bytes), not a PyTorch checkpoint: an interrupted download or copy? Fetch or copy it again"
+        )
     if head.startswith(b"PK\x03\x04"):
         return (
             f"a zip archive (as torch.save writes) cut short: its end-of-archive record is missing ({human(size)} on "
