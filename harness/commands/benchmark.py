@@ -106,7 +106,8 @@ def register_commands(cli: click.Group) -> None:
         "--ablation/--no-ablation",
         default=True,
         show_default=True,
-        help="Also run the encoding ablation (ours: none, ir8, linear16, c2 on P4+P5).",
+        help="Also run the encoding ablation (m3t-synth: ours with none, ir8, linear16, c2 on P4+P5; "
+        "rgbt-tiny-synth: ours with none, proxy8, ir8 on the thermal-source annotations, test-T).",
     )
     @opt.config_options(
         help_set="Override one config key of every cell, e.g. --set protocol.imgsz=256 (such a "
