@@ -30,12 +30,14 @@ def worker_pool(
 ) -> ProcessPoolExecutor:
     """A ``ProcessPoolExecutor`` (``max_workers``, ``mp_context``, ``initializer(*initargs)`` in each worker) whose
     workers ignore SIGINT. The processes are started here, with SIGINT ignored in the parent for that moment, so a
-    spawned worker ignores it from its first instruction (a Ctrl-C during its imports raises nothing there either)."""
+    spawned worker ignores it from its first instruction (a Ctrl-C during its imports raises nothing there either).
+    All ``max_workers`` are started: a spawning pool otherwise starts them one per task, later, without that."""
     pool = ProcessPoolExecutor(max_workers, mp_context=mp_context, initializer=_quiet, initargs=(initializer, initargs))
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
-            pool.submit(_nothing)  # starts the worker processes now, while SIGINT is ignored
+            for _ in range(max_workers):  # one task each, none idle yet: every worker process starts now
+                pool.submit(_nothing)
         finally:
             signal.signal(signal.SIGINT, previous)
     return pool

@@ -127,3 +127,17 @@ def test_ctrl_c_stops_the_workers_without_tracebacks_within_seconds():
     assert code == 130 and err.strip() == "interrupted: stopped" and seconds < 5, err
     code, err, _ = _interrupted("plain")  # a plain pool's waiting workers each print a KeyboardInterrupt traceback
     assert err.count("KeyboardInterrupt") >= 1 and "Traceback" in err, err
+
+
+def test_every_worker_starts_while_ctrl_c_is_ignored():
+    """A spawning pool starts a worker per task as tasks come; ``worker_pool`` starts all of them at once, while
+    SIGINT is ignored, so none is still importing (and raising KeyboardInterrupt) when Ctrl-C comes later."""
+    import multiprocessing as mp
+
+    from harness.workers import worker_pool
+
+    pool = worker_pool(3, mp_context=mp.get_context("spawn"))
+    try:
+        assert len(pool._processes) == 3  # noqa: SLF001 - how many processes the pool has started
+    finally:
+        pool.shutdown(wait=True)
