@@ -209,6 +209,9 @@ def parse_override(item: str) -> dict[str, Any]:
     return node
 
 
+#: ``protocol.imgsz`` is a multiple of this (the detectors' largest stride; the trainer needs it)
+IMGSZ_STRIDE = 32
+
 #: Ranges of the numeric keys the harness reads itself: (low, high, low included, high included, integer); None is
 #: unbounded. Checked once the layers are merged, so a bad value stops before anything is prepared or trained.
 _RANGES: dict[tuple[str, str], tuple[float | None, float | None, bool, bool, bool]] = {
@@ -268,6 +271,16 @@ def check_values(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str
             raise ConfigError(
                 f"{source}: {section}.{key}={value!r} must be {_range_text(low, high, low_in, high_in, integer)}"
             )
+    size = (cfg.get("protocol") or {}).get("imgsz") if isinstance(cfg.get("protocol"), Mapping) else None
+    if isinstance(size, int) and not isinstance(size, bool) and size % IMGSZ_STRIDE:
+        source = next(
+            (src for src, layer in reversed(list(layers)) if "imgsz" in (layer.get("protocol") or {})),
+            "the configuration",
+        )
+        raise ConfigError(
+            f"{source}: protocol.imgsz={size} must be a multiple of {IMGSZ_STRIDE} (the detectors' largest stride), "
+            f"e.g. {max(IMGSZ_STRIDE, size // IMGSZ_STRIDE * IMGSZ_STRIDE)}"
+        )
 
 
 #: Memory of one image per input pixel (bytes, at ``protocol.imgsz`` squared) in a training step (forward + backward:
