@@ -409,14 +409,15 @@ class PlannedRun:
         now = comparable(stored, self.config)
         hashes = {self.digest if now is self.config else run_hash(now)}
         if stored is None:  # nothing to tell whether it recorded the code: either hash it may have been stored with
-            hashes.add(run_hash(without_meta(self.config, [CODE_KEY])))
+            hashes.add(self.digest)
         if (self.run.status() or {}).get("config_hash") in hashes:
             return "finished"
         if stored is None:
             return "conflict"
-        if run_hash(stored) in hashes:  # a run stored before the identity left out locations: compare settings
+        then = comparable(now, stored)  # the code compared only when both recorded it
+        if run_hash(then) in hashes:  # a run stored before the identity left out locations: compare settings
             return "finished"
-        return "finished" if self._same_samples(stored, now)[0] else "conflict"
+        return "finished" if self._same_samples(then, now)[0] else "conflict"
 
     def _same_samples(self, stored: Mapping[str, Any], now: Mapping[str, Any]) -> tuple[bool, str]:
         """(True when ``stored`` differs from ``now`` only in ``CACHE_KEYS`` and recorded the samples the prepared data
@@ -485,8 +486,9 @@ class PlannedRun:
                 f"stored configuration hash {(self.run.status() or {}).get('config_hash')}, "
                 f"now {self.digest} (no readable {self.run.config_path})"
             ]
-        why = self._same_samples(stored, comparable(stored, self.config))[1]
-        return [why] if why else identity_diff(stored, self.config)
+        now = comparable(stored, self.config)
+        why = self._same_samples(comparable(now, stored), now)[1]
+        return identity_diff(stored, self.config) + ([why] if why else [])
 
 
 @dataclass

@@ -244,9 +244,11 @@ def test_a_changed_cache_key_over_other_samples_stays_a_conflict_naming_them(sha
     finish(planned, config=config, metrics=metrics)
     again = first_run(tmp_path, "tinydet")
     assert again.state == "conflict"
-    (why,) = again.differences()
+    fingerprint, key, why = again.differences()
+    assert key == f"meta.prepared_key: 0123456789abcdef -> {planned.config['meta']['prepared_key']}"
+    assert fingerprint.startswith("meta.prepared_fingerprint: elsewhere -> ")
     assert why.startswith("samples: train ffffffffffff..") and "differ from those prepared now" in why
     # recorded image-id identities that differ refuse it without reading a sample
     config["meta"]["prepared_samples"] = "0" * 16
     finish(planned, config=config, metrics=_moved_cache(planned, _samples(p, planned))[1])
-    assert first_run(tmp_path, "tinydet").differences()[0].startswith("meta.prepared_samples: 0000000000000000 ->")
+    assert first_run(tmp_path, "tinydet").differences()[-1].startswith("meta.prepared_samples: 0000000000000000 ->")
