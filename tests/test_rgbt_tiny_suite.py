@@ -264,6 +264,7 @@ def test_a_source_whose_rows_differ_in_samples_is_labelled_and_gets_no_intervals
 
 
 # ---------------------------------------------------------------------------------------------------- the claims
+@pytest.mark.slow
 def test_the_four_claims_get_verdicts_from_the_intervals(tiny):
     from harness.report.claims import SUPPORTED
     from harness.report.reader import StoreView
