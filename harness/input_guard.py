@@ -17,8 +17,9 @@ The sample-matched guard checks what goes out of a run; this one checks what com
 * ``empty-folds``: folds of the dataset's own whose held-out groups have no prepared sample (the plugin's
   ``groups()`` or ``folds()`` name them, ``samples()`` yielded none): they are left out of every fold list;
 * ``invalid-samples``: samples the dataset yielded that break the sample contract (boxes outside the frame, labels
-  past the class list, a thermal map of another shape: the prepare report's skips ``invalid sample``). Each takes its
-  objects with it, and a plugin that breaks the contract for one sample usually does for many;
+  past the class list, a thermal map of another shape: the prepare report's skips ``invalid sample``, except frames
+  mostly without valid temperatures, which are counted skips of the data). Each takes its objects with it, and a
+  plugin that breaks the contract for one sample usually does for many;
 * ``duplicate-boxes``: more than ``agreement.DUPLICATE_SHARE`` of the boxes repeat another one of their image exactly
   (the same label and box): every annotation listed twice, the check ``harness.scoring.agreement`` makes of a
   prediction set;
@@ -50,6 +51,9 @@ KINDS = (
     "duplicate-boxes",
     "normalised-boxes",
 )
+#: What the contract's refusal of a map mostly without valid temperatures says (``harness.contracts``): such a frame
+#: is a counted skip of the data, not an ``invalid-samples`` finding.
+UNMEASURED = "non-finite temperature values"
 #: Share of images without any box above which a dataset or fold part is implausible...
 DEFAULT_MAX_UNLABELLED = 0.2
 #: ... once at least this many of its images have none (a share of a handful of images says little).
@@ -236,7 +240,13 @@ def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
     from harness.scoring.agreement import duplicate_findings
 
     out: list[Finding] = []
-    invalid = [(w, r) for w, r in report.get("skipped_files") or [] if str(r).startswith("invalid sample")]
+    # a frame mostly without valid temperatures (the camera could not measure it) is a counted skip of the data, not
+    # a break of the contract by the plugin
+    invalid = [
+        (w, r)
+        for w, r in report.get("skipped_files") or []
+        if str(r).startswith("invalid sample") and UNMEASURED not in str(r)
+    ]
     if invalid:
         total = len(invalid) + len(prepared.records)
         out.append(
