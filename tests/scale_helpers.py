@@ -4,9 +4,11 @@ environment such a process needs."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
+from typing import Iterator
 
 from engine_helpers import PLUGIN_SRC, write_plugin_dir
 
@@ -40,6 +42,26 @@ def plugin_dir(folder: Path) -> Path:
     write_plugin_dir(folder)
     (folder / "tinydet_plugin.py").write_text(TINYDET_FILE.format(src=str(PLUGIN_SRC)))
     return folder
+
+
+@contextlib.contextmanager
+def plugins_dir_in_process(folder: Path) -> Iterator[None]:
+    """The plugin files of ``folder`` registered in this process as ``HARNESS_PLUGINS_DIR`` registers them in a worker
+    (the same modules, names and files), for a ``with`` block: planning here then sees the code the workers run, which
+    is part of a run's identity (``meta.detector_code``)."""
+    import importlib.util
+
+    from harness.testing import temporary_plugin
+
+    with contextlib.ExitStack() as stack:
+        for path in sorted(folder.glob("*.py")):
+            name = f"harness_plugins_dir.{path.stem}"
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+            sys.modules[name] = module
+            spec.loader.exec_module(module)  # type: ignore[union-attr]
+            stack.enter_context(temporary_plugin(module, name=f"{path.stem}-in-process"))
+        yield
 
 
 def subprocess_env(tmp_path: Path, **extra: str) -> dict[str, str]:

@@ -12,19 +12,19 @@ import pytest
 pytest.importorskip("harness.cache")
 pytest.importorskip("harness.evaluation")
 
-from engine_helpers import shapes_and_tinydet
 from harness.errors import ConfigError, StoreError
-from scale_helpers import TINY, plugin_dir
+from scale_helpers import TINY, plugin_dir, plugins_dir_in_process
 
 
 @pytest.fixture
 def plugins(host, tmp_path, monkeypatch):
     """The test plugins here (for planning) and, through HARNESS_* variables, in every worker process."""
     monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(plugin_dir(tmp_path / "plugins")))
+    folder = plugin_dir(tmp_path / "plugins")
+    monkeypatch.setenv("HARNESS_PLUGINS_DIR", str(folder))
     monkeypatch.setenv("HARNESS_DISABLE_PLUGIN_AUTOLOAD", "1")
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    with shapes_and_tinydet("test"):
+    with plugins_dir_in_process(folder):
         yield host
 
 
