@@ -244,9 +244,10 @@ def convert(
     temp = np.where(np.isfinite(temp) & (temp > NO_MEASUREMENT_C), temp, np.float32(np.nan)).astype(np.float32)
     from harness.sensing import plausible
 
-    # random bytes, big-endian floats, Kelvin or 8-bit counts: refused; a few values outside: missing, on the console.
-    # Not Fahrenheit: as C it reads as a 50..115 C scene, which a sunlit roof of solar panels can be
-    implausible = plausible.check(temp, str(source), f"the converter ({conv.name})", units=("counts8", "kelvin"))
+    # random bytes, big-endian floats or 8-bit counts: refused; a few values outside: missing, on the console. Kelvin
+    # is refused after this against the file's own blackbody reading (``radiometry``), which says by how much. Not
+    # Fahrenheit: as C it reads as a 50..115 C scene, which a sunlit roof of solar panels can be
+    implausible = plausible.check(temp, str(source), f"the converter ({conv.name})", units=("counts8",))
     shown = ["<output>" if a == str(output) else a for a in argv]
     record = {
         "converter": conv.name,
