@@ -492,7 +492,8 @@ def build_corpus(folder: Path, marker: Path) -> list[Case]:
         z.writestr("archive/data/0", W_BYTES)
         for i in range(20_000):
             z.writestr(f"archive/junk/{i}", b"")
-    cut = add("zip_cut", r"not a PyTorch checkpoint|not a readable|holds \d+ of", "an archive cut in the middle")
+    cut_said = r"the file is truncated|not a PyTorch checkpoint|not a readable|holds \d+ of"
+    cut = add("zip_cut", cut_said, "an archive cut in the middle")
     data = torch_zip(cut, _with_model(lambda p: p.raw(b"N")), {"0": W_BYTES}).read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
     # --- sizes --------------------------------------------------------------------------------------------------

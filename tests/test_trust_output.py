@@ -51,7 +51,7 @@ def test_ctrl_c_exits_130(cli_runner, monkeypatch):
     assert cli_runner(["list"]).exit_code == 130
 
 
-def test_report_print_writes_no_report_folder(tmp_path, cli_runner):
+def test_report_print_writes_the_report_folder_only_with_out(tmp_path, cli_runner):
     pytest.importorskip("harness.evaluation")
     sys.path.insert(0, str(Path(__file__).parent))
     from report_fixtures import synthetic_store
@@ -61,7 +61,10 @@ def test_report_print_writes_no_report_folder(tmp_path, cli_runner):
         ["report", "--print", "--store", str(store.root), "--out", str(tmp_path / "rep"), "--resamples", "0"]
     )
     assert res.exit_code == 0, res.output
-    assert "project-grouped folds" in res.output and not (tmp_path / "rep").exists()
+    assert "project-grouped folds" in res.output and (tmp_path / "rep" / "report.md").is_file()
+    assert f"-> {tmp_path / 'rep' / 'report.md'}" in res.output  # said, not silent
+    res = cli_runner(["report", "--print", "--store", str(store.root), "--resamples", "0"])
+    assert res.exit_code == 0 and "project-grouped folds" in res.output and "-> " not in res.output
 
 
 def test_a_dataset_with_only_invalid_samples_names_the_reasons_with_counts(host, tmp_path, monkeypatch):
