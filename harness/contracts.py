@@ -504,6 +504,19 @@ def _check_boxes(b: Any, where: str, image_size: tuple[int, int] | None) -> None
         raise PluginError(f"{where}: {found[0].message}")
 
 
+def check_built_model(model: Any, detector: str) -> None:
+    """What a detector's ``build`` returned must be a ``torch.nn.Module`` (it is trained, put in eval mode, saved):
+    anything else (``None`` from a builder that forgot its ``return``, a tuple, a config) is a ``PluginError`` naming
+    the detector and the type it got."""
+    import torch
+
+    if not isinstance(model, torch.nn.Module):
+        raise PluginError(
+            f"detector {detector!r}: build(num_classes, ...) returned {type(model).__name__}, not a torch.nn.Module; "
+            "the builder must return the model (a missing `return`?)"
+        )
+
+
 def check_class_count(model: Any, detector: str, num_classes: int) -> None:
     """A model that declares fewer classes (``nc`` or ``num_classes``, as an int) than the dataset has: a
     ``PluginError`` naming the detector and both counts, before training would fail on a label it has no output for.

@@ -195,6 +195,11 @@ def safe_join(root: Path, rel: str | os.PathLike[str], what: str) -> Path:
         raise DataError(f"{what}: empty or invalid path {rel_s!r}")
     root_a = Path(os.path.abspath(root))
     target = Path(os.path.normpath(root_a / rel_s))
+    if os.path.isabs(rel_s) and root_a in target.parents:  # inside the folder, but written absolute: not portable
+        raise DataError(
+            f"{what}: path {rel_s!r} is absolute; write it relative to the dataset root {root_a} "
+            f"({target.relative_to(root_a).as_posix()!r}), so the folder can be moved"
+        )
     if os.path.isabs(rel_s) or (target != root_a and root_a not in target.parents):
         raise DataError(
             f"{what}: path {rel_s!r} leads outside the dataset root {root_a} (to {target}); "

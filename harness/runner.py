@@ -1093,7 +1093,7 @@ def check_settings(det: DetectorSpec, dataset: DatasetSpec, enc: EncodingSpec, c
 
 def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg: Mapping[str, Any]) -> torch.nn.Module:
     """``det.build(num_classes, in_channels=..., **model_cfg)`` with bad options reported as a config error."""
-    from harness.contracts import check_class_count
+    from harness.contracts import check_built_model, check_class_count
 
     try:
         model = det.build(num_classes, in_channels=in_channels, **dict(model_cfg))
@@ -1103,6 +1103,7 @@ def build_model(det: DetectorSpec, num_classes: int, in_channels: int, model_cfg
                 f"detector {det.name!r} does not accept the model options {sorted(model_cfg)}: {exc}"
             ) from None
         raise
+    check_built_model(model, det.name)
     check_class_count(model, det.name, num_classes)
     return model
 

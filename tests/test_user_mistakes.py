@@ -3,6 +3,7 @@ again, and a number is printed with its unit."""
 
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -157,3 +158,85 @@ def test_prepare_prints_the_advice_of_a_skip_reason_in_full(tmp_path, cli_runner
     assert "images[].width and height are the thermal frame's size (or leave them out)" in out
     examples = [line for line in res.stdout.splitlines() if "e.g." in line or "images[]" in line]
     assert len(examples) == 4 and max(map(len, examples)) <= 100, examples  # the first wrapped, two cut
+
+
+@pytest.mark.parametrize("returned", [None, ("model", "config")])
+def test_a_builder_that_returns_no_module_is_refused_naming_the_detector(returned, tmp_path):
+    """A detector plugin whose ``build`` forgets its ``return`` (or returns a tuple) is refused by name, with the type
+    it returned, on the run's path and on profiling's, not left to fail later as a bug."""
+    from harness import DetectorSpec
+    from harness.errors import PluginError
+    from harness.profiling import build_detector
+    from harness.runner import build_model
+
+    spec = DetectorSpec(name="forgetful", build=lambda num_classes, in_channels=4, **cfg: returned, description="x")
+    with pytest.raises(PluginError, match=f"'forgetful'.*returned {type(returned).__name__}, not a torch.nn.Module"):
+        build_model(spec, 2, 4, {})
+    host = SimpleNamespace(detector=lambda name: spec)
+    with pytest.raises(PluginError, match="returned .*not a torch.nn.Module"):
+        build_detector("forgetful", 2, 4, host=host)
+
+
+def _prepared_pairs(tmp_path, monkeypatch, cli_runner):
+    from coco_rgbt_helpers import make_coco_rgbt, read_json
+
+    root = make_coco_rgbt(tmp_path / "pairs", n=6)
+    monkeypatch.setenv("HARNESS_CACHE", str(tmp_path / "cache"))
+    assert cli_runner(["prepare", "--dataset", "coco-rgbt", "--root", str(root)]).exit_code == 0
+    return root, read_json(root)
+
+
+def test_category_names_written_as_category_id_are_read_as_names_and_a_missing_one_is_named(
+    tmp_path, monkeypatch, cli_runner
+):
+    """Some exporters write the class name in ``category_id``: a word can only be a name, so it is matched by name
+    (the score is the ground truth's own). Predictions with neither ``category_id`` nor ``category_name`` (a
+    ``label`` key instead) are refused saying so, not as "categories the dataset does not have: None"."""
+    root, coco = _prepared_pairs(tmp_path, monkeypatch, cli_runner)
+    names = {c["id"]: c["name"] for c in coco["categories"]}
+    base = [
+        {"image_id": a["image_id"], "bbox": a["bbox"], "score": 0.9, "cid": a["category_id"]}
+        for a in coco["annotations"]
+    ]
+    args = ["score", "--dataset", "coco-rgbt", "--root", str(root), "--folds", "site-a", "--frame", "thermal"]
+    args += ["--images", str(root / "annotations.json"), "--store", str(tmp_path / "store")]
+    named = [{**{k: v for k, v in p.items() if k != "cid"}, "category_id": names[p["cid"]]} for p in base]
+    (tmp_path / "named.json").write_text(json.dumps(named))
+    res = cli_runner([*args, "--predictions", str(tmp_path / "named.json"), "--name", "named"])
+    assert res.exit_code == 0 and "mAP50 100.0" in res.output, res.output
+    unlabelled = [{**{k: v for k, v in p.items() if k != "cid"}, "label": p["cid"]} for p in base]
+    (tmp_path / "label.json").write_text(json.dumps(unlabelled))
+    res = cli_runner([*args, "--predictions", str(tmp_path / "label.json"), "--name", "label"])
+    assert res.exit_code == 2 and "no category_id or category_name" in res.output, res.output
+
+
+def test_an_absolute_path_inside_the_folder_is_refused_as_absolute_with_the_relative_one(tmp_path, cli_runner):
+    """coco-rgbt ``file_name`` written as an absolute path inside the dataset folder: the refusal says the path is
+    absolute and gives the relative one to write, not that it "leads outside the dataset root"."""
+    from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
+
+    root = make_coco_rgbt(tmp_path / "pairs", n=6)
+    coco = read_json(root)
+    for im in coco["images"]:
+        im["file_name"] = str(root / im["file_name"])
+    write_json(root, coco)
+    res = cli_runner(["prepare", "--dataset", "coco-rgbt", "--root", str(root), "--cache", str(tmp_path / "c")])
+    out = " ".join(res.output.split())
+    assert res.exit_code == 2 and "absolute path: 6" in out, res.output
+    assert "is absolute; write it relative to the dataset root" in out and "'rgb/000.png'" in out
+    assert "leads outside" not in out
+
+
+def test_weights_import_says_what_a_file_without_a_model_is(tmp_path, cli_runner):
+    """``weights import`` of a TorchScript archive and of a dict of numpy arrays saved with torch.save: the refusal
+    says which of the two the file is and what to save instead, beside "no model found"."""
+    import torch
+
+    torch.jit.save(torch.jit.script(torch.nn.Linear(2, 2)), tmp_path / "scripted.pt")
+    torch.save({"a.weight": np.zeros((2, 2), np.float32)}, tmp_path / "arrays.pt")
+    for name, says in [
+        ("scripted.pt", "it is a TorchScript archive (torch.jit.save): load it with torch.jit.load"),
+        ("arrays.pt", "its values are ndarray, not tensors"),
+    ]:
+        res = cli_runner(["weights", "import", str(tmp_path / name), "--out", str(tmp_path / "o.safetensors")])
+        assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output

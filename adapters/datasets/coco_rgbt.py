@@ -433,7 +433,8 @@ class CocoRgbtSource:
         try:
             path = safe_join(self.root, str(rel), f"{self.ann_path.name}: image {p.image_id}")
         except DataError as exc:
-            raise SkipPair(f"path outside the dataset root: {exc}") from None
+            kind = "absolute path" if "is absolute;" in str(exc) else "path outside the dataset root"
+            raise SkipPair(f"{kind}: {exc}") from None
         if not path.is_file():
             raise SkipPair(f"missing {what}: {rel} not found under {self.root}")
         return path

@@ -167,9 +167,10 @@ def build_detector(
             f"detector {name!r} could not be built (num_classes={num_classes}, "
             f"in_channels={channels}, model options {options}): {type(exc).__name__}: {exc}"
         ) from exc
-    from harness.contracts import plugin_label
+    from harness.contracts import check_built_model, plugin_label
     from harness.profiling.model_io import check_input_channels
 
+    check_built_model(model, spec.name)
     check_input_channels(model, plugin_label("detector", spec.name), spec.input_kind, channels, spec.thermal_channels)
     return spec, model.eval()
 

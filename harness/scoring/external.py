@@ -266,6 +266,10 @@ def _category_resolver(
         name = det.get("category_name")
         if name is None and cid is not None:
             name = names_by_id.get(cid, names_by_id.get(str(cid)))
+        if name is None and isinstance(cid, str) and _as_int(cid) is None:
+            name = cid  # a class name written as category_id (some exporters do): a word can only be a name
+        if name is None and cid is None:
+            return None, "no category_id or category_name", None
         for key in (str(cid) if cid is not None else None, name):
             if key is not None and str(key) in explicit:
                 return ours[normalise_category(explicit[str(key)])], str(key), None

@@ -102,8 +102,22 @@ def find_model(obj: Any, where: str) -> tuple[Any, str]:
         kinds = brief(obj)
     raise HarnessError(
         f"{where}: no model found (looked for a module or a state dict at the top level and under "
-        f"{', '.join(MODEL_KEYS)}; the file holds {kinds})"
+        f"{', '.join(MODEL_KEYS)}; the file holds {kinds}){_why_no_model(obj)}"
     )
+
+
+def _why_no_model(obj: Any) -> str:
+    """What the file is instead, where it can be told: a TorchScript archive, or a dict of arrays that are not
+    tensors (numpy arrays saved with torch.save)."""
+    if isinstance(obj, Stub) and "__torch__" in brief(obj):
+        return (
+            "; it is a TorchScript archive (torch.jit.save): load it with torch.jit.load and torch.save its "
+            "state_dict() instead"
+        )
+    if isinstance(obj, Mapping) and obj and not any(isinstance(v, (torch.Tensor, Mapping)) for v in obj.values()):
+        kinds = sorted({brief(v, 40) if isinstance(v, Stub) else type(v).__name__ for v in list(obj.values())[:100]})
+        return f"; its values are {', '.join(kinds[:3])}, not tensors: save torch tensors (torch.from_numpy)"
+    return ""
 
 
 def to_float32(sd: Mapping[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], list[str]]:
