@@ -266,7 +266,7 @@ def plugin_case(
     code: str,
     args: list[str] | Callable[[Ctx], list[str]],
     check: Callable[[Ctx, str], bool] | None = None,
-    timeout: int = 120,
+    timeout: int = 300,
 ) -> Case:
     """A plugin file in a folder named by ``HARNESS_PLUGINS_DIR``, and a command run in its own process."""
     case = Case(name, "plugins", args, says, check, sub=True, timeout=timeout)
@@ -1199,7 +1199,7 @@ def main() -> int:
     global CTX
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write every outcome (with its output's tail) as JSON here")
-    ap.add_argument("--only", help="run only the cases whose id contains this")
+    ap.add_argument("--only", help="run only the cases whose id contains one of these (comma-separated)")
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder (its path goes to stderr)")
     a = ap.parse_args()
     import logging
@@ -1212,7 +1212,8 @@ def main() -> int:
     t0 = time.perf_counter()
     try:
         CTX = build_world(tmp)
-        todo = [c for c in cases() if not a.only or a.only in c.id]
+        only = [w for w in (a.only or "").split(",") if w]
+        todo = [c for c in cases() if not only or any(w in c.id for w in only)]
         ids = [c.id for c in todo]
         dupes = {i for i in ids if ids.count(i) > 1}
         if dupes:
