@@ -240,3 +240,22 @@ def test_weights_import_says_what_a_file_without_a_model_is(tmp_path, cli_runner
     ]:
         res = cli_runner(["weights", "import", str(tmp_path / name), "--out", str(tmp_path / "o.safetensors")])
         assert res.exit_code == 2 and says in " ".join(res.output.split()), res.output
+
+
+def test_an_ablation_category_the_store_does_not_have_is_refused_with_those_it_has(tmp_path, cli_runner):
+    """A mistyped ``--ablation-categories`` name stops with the store's categories; the spellings the report matches
+    (case, spaces for underscores) pass."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from report_fixtures import synthetic_store
+
+    store = synthetic_store(tmp_path / "s", folds=("P1", "P2"), per_fold=3)
+    args = ["report", "--print", "--store", str(store.root), "--resamples", "0", "--ablation-categories"]
+    res = cli_runner([*args, "windows"])
+    text = " ".join(res.output.split())
+    assert res.exit_code == 2 and "'windows': no such category in the runs of" in text, res.output
+    assert "categories there:" in text and "window" in text.split("categories there:")[1]
+    ok = cli_runner([*args, "Window"])
+    assert ok.exit_code == 0, ok.output

@@ -29,6 +29,32 @@ def _check_reference(root: Path, reference: str, datasets: list[str] | None) -> 
     )
 
 
+def _check_categories(root: Path, categories: list[str], datasets: list[str] | None) -> None:
+    """Category names the user gave ``--ablation-categories`` must name categories of the store's runs (spelling as
+    the report matches them: case, spaces and underscores aside)."""
+    from harness.report.reader import StoreView, find_category
+
+    if not Path(root).is_dir():
+        return  # the report itself says the store is missing
+    view = StoreView(root)
+    present = sorted(
+        {
+            c
+            for ds in (datasets or view.datasets())
+            for e in view.entries(ds)
+            for f in e.folds.values()
+            for c in f.metrics.get("per_category") or {}
+        }
+    )
+    unknown = [c for c in categories if find_category(c, present) is None]
+    if present and unknown:
+        raise click.BadParameter(
+            f"{', '.join(map(repr, unknown))}: no such category in the runs of {root}; categories there: "
+            f"{', '.join(present)}",
+            param_hint="--ablation-categories",
+        )
+
+
 @hookimpl
 def register_commands(cli: click.Group) -> None:
     @cli.command(name="report")
@@ -132,6 +158,8 @@ def register_commands(cli: click.Group) -> None:
         if ctx.get_parameter_source("reference") is not click.core.ParameterSource.DEFAULT:
             _check_reference(root, reference, names)  # the default falls back to the best; a named one must exist
         cats = [c.strip() for c in ablation_categories.split(",") if c.strip()]
+        if ctx.get_parameter_source("ablation_categories") is not click.core.ParameterSource.DEFAULT:
+            _check_categories(root, cats, names)  # the default names the paper's two; a typed name must exist
         refs, unread = None, None
         try:
             refs = load_references(reference_results)
