@@ -237,7 +237,7 @@ def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
     """``invalid-samples``, ``duplicate-boxes`` and ``normalised-boxes`` (module docstring)."""
     import numpy as np
 
-    from harness.scoring.agreement import duplicate_findings
+    from harness.scoring.agreement import duplicate_findings, duplicate_key
 
     out: list[Finding] = []
     # a frame mostly without valid temperatures (the camera could not measure it) is a counted skip of the data, not
@@ -267,11 +267,10 @@ def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
             frames.append(min(int(r.get("width") or 0), int(r.get("height") or 0)))
     for f in duplicate_findings(preds):
         seen: set[tuple[Any, ...]] = set()
-        repeated: dict[int, None] = {}
-        for k, box, _, lab in preds:
-            key = (k, lab, tuple(round(v, 3) for v in box))
-            if key in seen:
-                repeated[k] = None
+        repeated: dict[int, None] = {}  # the images holding a repeat, in order: the finding's examples
+        for pred in preds:
+            if (key := duplicate_key(pred)) in seen:
+                repeated[pred[0]] = None
             seen.add(key)
         said = f.message.replace("predictions", "boxes", 1).replace(" and score", "").replace("detection", "box")
         out.append(_finding("duplicate-boxes", f"the dataset's {said}", [_name(prepared.records[k]) for k in repeated]))

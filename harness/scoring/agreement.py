@@ -136,12 +136,19 @@ def score_findings(scores: Sequence[float]) -> list[Finding]:
     ]
 
 
+def duplicate_key(pred: Pred) -> tuple[Any, ...]:
+    """What makes two predictions (image, box, score, label) the same one written twice: image, label, the box to
+    1e-3 px and the score to 1e-6."""
+    idx, box, score, label = pred
+    return (idx, label, tuple(round(float(v), 3) for v in box), round(float(score), 6))
+
+
 def duplicate_findings(preds: Sequence[Pred]) -> list[Finding]:
     """``duplicates`` when more than ``SHARE`` of the predictions repeat another exactly (image, label, box, score)."""
     keys = Counter(
-        (idx, label, tuple(round(float(v), 3) for v in box), round(float(score), 6))
-        for idx, box, score, label in preds
-        if float(box[2]) > float(box[0]) and float(box[3]) > float(box[1])  # a detector's collapsed boxes are not
+        duplicate_key(p)
+        for p in preds
+        if float(p[1][2]) > float(p[1][0]) and float(p[1][3]) > float(p[1][1])  # a detector's collapsed boxes are not
     )  # a set written twice: an untrained one returns many identical zero-size boxes at a frame's edge
     extra = sum(c - 1 for c in keys.values() if c > 1)
     n = len(preds)
