@@ -25,7 +25,9 @@ def run_inflation(log: Path) -> dict[str, Any] | None:
     """(epoch chosen on held-out, last epoch, mAP50:95 and mAP50 at each) of one run's log; None without a held-out
     curve."""
     rows = []
-    for line in log.read_text(encoding="utf-8").splitlines():
+    from harness.io import read_packed_text
+
+    for line in read_packed_text(log).splitlines():
         if not line.strip():
             continue
         rec = json.loads(line)
@@ -53,7 +55,10 @@ def main(argv: list[str] | None = None) -> int:
     for metrics in sorted(args.store.glob("*/*/*/*/seed*/metrics.json")):
         run = metrics.parent
         dataset, det, enc = run.parts[-5], run.parts[-4], run.parts[-3]
-        got = run_inflation(run / "log.jsonl") if (run / "log.jsonl").is_file() else None
+        from harness.store import packed_or_plain
+
+        log = packed_or_plain(run / "log.jsonl")  # the shipped reference results keep it as log.jsonl.gz
+        got = run_inflation(log) if log.is_file() else None
         if got is None:
             print(f"{run}: no held-out scores in log.jsonl (eval.log_held_out off?)", file=sys.stderr)
             continue

@@ -161,6 +161,21 @@ def read_text(path: str | Path, error: type[Exception] | None = None, what: str 
         raise fail(f"{path}: cannot read ({exc.strerror})") from None
 
 
+def read_packed_text(path: str | Path) -> str:
+    """The UTF-8 text of ``path``, decompressed when its name ends in ``.gz`` (the shipped reference results keep
+    their training logs so); errors are ``OSError`` as from ``Path.read_text``."""
+    path = Path(path)
+    if path.suffix == ".gz":
+        import gzip
+
+        try:
+            with gzip.open(path, "rt", encoding="utf-8") as f:
+                return f.read()
+        except EOFError as exc:
+            raise OSError(f"{path}: truncated gzip ({exc})") from None
+    return path.read_text(encoding="utf-8")
+
+
 def read_json(path: str | Path) -> Any:
     """Read JSON; a malformed file is a ``DataError`` naming the file and the position."""
     from harness.errors import DataError

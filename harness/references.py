@@ -12,8 +12,9 @@ Layout (``export_references``)::
 
     <folder>/references.json             manifest (``MANIFEST_SCHEMA`` below)
     <folder>/<dataset>/<detector>/<encoding>/<fold>/seed<seed>/
-        config.yaml status.json metrics.json log.jsonl
+        config.yaml status.json metrics.json
         gt.json.gz predictions.json.gz analysis.json.gz   (gzip, read by ``harness.io.read_json``; no checkpoints)
+        log.jsonl.gz                                      (gzip, read by ``harness.io.read_packed_text``)
 
 ``references.json``::
 
@@ -22,7 +23,8 @@ Layout (``export_references``)::
      "samples": {"<fold>/<encoding>": {"train": digest, "held_out": digest}},
      "aligned": {"<fold>": {"train": digest, "held_out": digest}},   # the same samples before encoding
      "cells": ["<detector>/<encoding>/<fold>/seed<seed>", ...],
-     "training": {"imgsz", "epochs", "scale", "threads"},
+     "training": {"imgsz", "epochs", "scale", "threads", "selection",   # the first run's
+                  "epochs_by_detector": {"<detector>": epochs}},   # each detector's budget
      "environment": {...},                                           # torch build, CPU, threads of the runs
      "benchmark": {"wall_s", "cpu_s", "lanes", "cpu"} | null,        # how long `harness benchmark run` took
      "samples_environment": {...},   # Python and the sample-shaping packages the samples were reproduced with
@@ -62,8 +64,10 @@ SYNTHETIC = "m3t-synth"
 #: Largest reference store the project ships.
 MAX_BYTES = 10 * 2**20
 #: Run files copied as they are, and those gzip-compressed.
-COPIED = ("config.yaml", "status.json", "metrics.json", "log.jsonl")
+COPIED = ("config.yaml", "status.json", "metrics.json")
 PACKED = ("gt.json", "predictions.json", "analysis.json")
+#: Run files gzip-compressed when the run has them (a training log; runs scored from checkpoints have none).
+PACKED_IF_ANY = ("log.jsonl",)
 
 
 class ReferenceMismatchError(StoreError):
@@ -117,13 +121,19 @@ class ReferenceSet:
         return str(self.manifest.get("profile") or "?")
 
     def describe(self) -> str:
-        """``m3t-synth (generator v2, small, seed 0), benchmark profile: 256 px, 20 epochs, scale n``."""
+        """``m3t-synth (generator v2, small, seed 0), benchmark profile: 192 px, epochs ours 30, eme 80, ...,
+        scale n`` (one number of epochs when every detector trained for as many)."""
         g = self.manifest.get("generator") or {}
         t = self.manifest.get("training") or {}
         gen = f" (generator v{g.get('version')}, {g.get('profile')}, seed {g.get('seed')})" if g else ""
-        train = ", ".join(
-            f"{v}{u}" for v, u in ((t.get("imgsz"), " px"), (t.get("epochs"), " epochs")) if v is not None
+        own = t.get("epochs_by_detector") or {}
+        epochs = (
+            "epochs " + ", ".join(f"{d} {n}" for d, n in own.items())
+            if len(set(own.values())) > 1
+            else (f"{t['epochs']} epochs" if t.get("epochs") is not None else None)
         )
+        px = f"{t['imgsz']} px" if t.get("imgsz") is not None else None
+        train = ", ".join(x for x in (px, epochs) if x)
         scale = f", scale {t['scale']}" if t.get("scale") else ""
         return f"{self.dataset}{gen}, {self.profile} profile: {train}{scale}"
 
@@ -493,16 +503,47 @@ def training_of(run: Any) -> dict[str, Any]:
         "epochs": (cfg.get("protocol") or {}).get("epochs"),
         "scale": (cfg.get("model") or {}).get("scale"),
         "threads": (cfg.get("train") or {}).get("threads"),
+        "selection": (cfg.get("protocol") or {}).get("selection"),
+        "profile": (cfg.get("meta") or {}).get("profile"),
     }
 
 
+def _training_record(runs: Sequence[Any]) -> dict[str, Any]:
+    """The references' ``training`` record: the first run's settings, and the epochs of every detector (the benchmark
+    profile gives each detector its own budget, chosen from learning curves)."""
+    record = training_of(runs[0])
+    record.pop("profile", None)  # the manifest's own "profile"
+    own: dict[str, Any] = {}
+    for r in runs:
+        own.setdefault(r.key.detector.removeprefix(PREFIX), training_of(r).get("epochs"))
+    record["epochs_by_detector"] = dict(sorted(own.items()))
+    return record
+
+
 def same_training(refs: ReferenceSet, runs: Sequence[Any]) -> bool:
-    """Whether every one of ``runs`` was trained with the references' image size and epochs (a comparison of
-    accuracy is then a comparison of detectors at one budget, not of two budgets)."""
+    """Whether every one of ``runs`` was trained at the references' budget, so that a comparison of accuracy is one of
+    detectors at one budget and not of two budgets: the references' image size and model selection, and
+
+    * for a detector the references trained, its epochs there;
+    * for another detector, the references' profile (its epochs are the profile's, or its own config's);
+    * references that record one number of epochs for every run: that number."""
     t = refs.manifest.get("training") or {}
-    return bool(runs) and all(
-        training_of(r).get("imgsz") == t.get("imgsz") and training_of(r).get("epochs") == t.get("epochs") for r in runs
-    )
+    own = t.get("epochs_by_detector") or {}
+
+    def same(r: Any) -> bool:
+        got = training_of(r)
+        if got.get("imgsz") != t.get("imgsz"):
+            return False
+        if t.get("selection") is not None and got.get("selection") != t.get("selection"):
+            return False
+        if not own:
+            return bool(got.get("epochs") == t.get("epochs"))
+        det = str(r.key.detector).removeprefix(PREFIX)
+        if det in own:
+            return bool(got.get("epochs") == own[det])
+        return bool(got.get("profile") is not None and got.get("profile") == refs.manifest.get("profile"))
+
+    return bool(runs) and all(same(r) for r in runs)
 
 
 # ------------------------------------------------------------------------------------------------- export
@@ -580,6 +621,9 @@ def export_references(
             if not src.is_file():
                 raise StoreError(f"{src}: missing; the bootstrap needs it (rerun {r.key} with --force)")
             _gzip_copy(src, dst / f"{name}.gz")
+        for name in PACKED_IF_ANY:
+            if (r.path / name).is_file():
+                _gzip_copy(r.path / name, dst / f"{name}.gz")
     ds_file = store / datasets[0] / "_dataset.json"
     if ds_file.is_file():
         shutil.copyfile(ds_file, tmp / datasets[0] / "_dataset.json")
@@ -592,7 +636,7 @@ def export_references(
         "samples": dict(sorted(samples.items())),
         "aligned": dict(sorted(aligned.items())),
         "cells": sorted(str(k).removeprefix(f"{datasets[0]}/") for k in keys),
-        "training": training_of(first),
+        "training": _training_record(runs),
         "environment": first.metrics.get("environment") or {},
         "benchmark": dict(benchmark) if benchmark else None,
     }

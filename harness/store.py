@@ -201,7 +201,7 @@ class _RunFile:
     """A file (or folder) of a run's folder, as a read-only attribute: ``run.metrics_path``.
 
     ``packed``: the file may be stored gzip-compressed as ``<name>.gz`` (the shipped reference results keep their
-    ground truth and predictions so); the path is then that of the ``.gz`` file when only it exists, and
+    ground truth, predictions and training log so); the path is then that of the ``.gz`` file when only it exists, and
     ``harness.io.read_json`` reads either."""
 
     def __init__(self, name: str, packed: bool = False):
@@ -234,7 +234,7 @@ class Run:
     metrics_path = _RunFile("metrics.json")
     predictions_path = _RunFile("predictions.json", packed=True)
     gt_path = _RunFile("gt.json", packed=True)
-    log_path = _RunFile("log.jsonl")
+    log_path = _RunFile("log.jsonl", packed=True)
     checkpoint_dir = _RunFile("checkpoints")
     lock_path = _RunFile(".lock")
 
@@ -409,7 +409,9 @@ class Run:
         if not self.log_path.exists():
             return []
         out = []
-        for line in self.log_path.read_text(encoding="utf-8").splitlines():
+        from harness.io import read_packed_text
+
+        for line in read_packed_text(self.log_path).splitlines():
             try:
                 out.append(json.loads(line))
             except json.JSONDecodeError:

@@ -128,6 +128,7 @@ def test_export_is_compact_and_reads_back(bench, tmp_path):
     assert manifest["generator"]["seed"] == 0 and manifest["training"]["imgsz"] == 64
     run = tmp_path / "refs" / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0"
     assert not (run / "checkpoints").exists() and not (run / "predictions.json").exists()
+    assert not (run / "log.jsonl").exists() and (run / "log.jsonl.gz").is_file()  # the training log, compressed
     original = json.loads(
         (bench["store"] / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "predictions.json").read_text()
     )
@@ -136,6 +137,13 @@ def test_export_is_compact_and_reads_back(bench, tmp_path):
     runs = refs.runs()
     assert {r.key.detector for r in runs} == {"ref:tinydet"} and len(runs) == 4
     assert runs[0].predictions() and runs[0].ground_truth()["images"]
+    from harness.report.curves import read_log
+    from harness.store import Run, RunKey
+
+    logged = Run(tmp_path / "refs", RunKey("m3t-synth", "tinydet", "c2", "P1", 0))
+    assert logged.log_path.name == "log.jsonl.gz"
+    epochs = [r["epoch"] for r in read_log(logged.log_path)]
+    assert epochs and epochs == [r["epoch"] for r in logged.read_log()]
 
 
 def test_a_users_detector_is_compared_with_the_references_without_training_them(bench, tmp_path):

@@ -61,7 +61,9 @@ class EntryCurves:
 def read_log(path: Path) -> list[dict[str, Any]]:
     """The records of one ``log.jsonl``; a line that is not JSON is skipped with a warning naming the file."""
     out = []
-    for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+    from harness.io import read_packed_text
+
+    for i, line in enumerate(read_packed_text(path).splitlines(), 1):
         if not line.strip():
             continue
         try:
