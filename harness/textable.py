@@ -61,13 +61,17 @@ def column_panels(widths: Sequence[int], width: int | None = WIDTH, keep: int = 
 
 
 def fit_text(text: str, width: int = WIDTH) -> str:
-    """Lines longer than ``width`` wrapped at spaces, continuation lines indented two more than the line."""
+    """Lines longer than ``width`` wrapped at spaces, continuation lines indented two more than the line; a rule
+    (dashes) is cut to ``width``."""
     import textwrap
 
     out = []
     for line in text.splitlines():
         if len(line) <= width:
             out.append(line)
+            continue
+        if line.strip() and set(line) <= set("-= "):  # a table's rule: cut to the width, not wrapped into several
+            out.append(line[:width].rstrip())
             continue
         indent = " " * (len(line) - len(line.lstrip()))
         out.extend(

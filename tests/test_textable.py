@@ -16,3 +16,14 @@ def test_explicit_alignment_and_its_length_is_checked():
 
 def test_no_rows_gives_header_and_rule():
     assert text_table(["col", "x"], []) == "col  x\n---  -"
+
+
+def test_a_rule_wider_than_the_terminal_is_cut_not_wrapped_into_lines_of_dashes():
+    from harness.textable import fit_text, text_table
+
+    table = text_table(["#", "evidence"], [["1", "word " * 60]], align="ll")
+    out = fit_text(table, 100).splitlines()
+    assert all(len(line) <= 100 for line in out)
+    rules = [line for line in out if line and set(line) <= set("- ")]
+    assert len(rules) == 1 and len(rules[0]) == 100
+    assert sum("word" in line for line in out) >= 3  # the long cell still wraps
