@@ -403,6 +403,7 @@ class CocoRgbtSource:
         stats = BoxStats()
         warped = 0
         self._written: list[tuple[list[float], int, int]] = []  # every box as written, with its frame's size
+        instances = 0  # boxes that are objects, not crowd regions
         for p in self.pairs:
             try:
                 sample, box_stats = self._sample(p, report)
@@ -412,10 +413,17 @@ class CocoRgbtSource:
                 continue
             stats.add(box_stats)
             warped += "H_rgb_to_frame" in sample.meta
+            instances += len(sample.boxes) - len(sample.meta.get("crowd") or [])
             yield sample
         problem = box_reading(self._written)
         if problem:
             raise DataError(f"{self.ann_path}: {problem}. Nothing was cached")
+        if stats.crowd and not instances:
+            raise DataError(
+                f"{self.ann_path}: every one of its {stats.crowd} box(es) is a crowd region (iscrowd 1): nothing to "
+                "train on or to score (COCO ignores detections on crowd regions). Objects take iscrowd 0. Nothing "
+                "was cached"
+            )
         if stats.clipped:
             report.note(f"{stats.clipped} box(es) reaching past the image edge were clipped to it")
         if stats.crowd:
