@@ -274,14 +274,21 @@ def _run_chunks(chunks: list[_Chunk], workers: int, progress: bool, label: str) 
                 bar.advance(len(c.items))
         else:
             import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
+            from concurrent.futures import as_completed
+
+            from harness.workers import worker_pool  # workers ignore Ctrl-C: the parent stops them, no tracebacks
 
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(chunks)), mp_context=ctx) as pool:
+            with worker_pool(min(workers, len(chunks)), mp_context=ctx) as pool:
                 futures = {pool.submit(_render_chunk, c): n for n, c in enumerate(chunks)}
-                for fut in as_completed(futures):
-                    results[futures[fut]] = fut.result()
-                    bar.advance(len(chunks[futures[fut]].items))
+                try:
+                    for fut in as_completed(futures):
+                        results[futures[fut]] = fut.result()
+                        bar.advance(len(chunks[futures[fut]].items))
+                except BaseException:
+                    for fut in futures:
+                        fut.cancel()
+                    raise
     return [r for r in results if r is not None]
 
 

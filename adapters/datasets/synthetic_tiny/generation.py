@@ -107,12 +107,20 @@ def _run(tasks: list[_Task], workers: int, progress: bool, label: str, frames: i
                 bar.advance(_render_sequence(task))
             return
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures import as_completed
+
+        from harness.workers import worker_pool  # workers ignore Ctrl-C: the parent stops them, no tracebacks
 
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx) as pool:
-            for fut in as_completed([pool.submit(_render_sequence, t) for t in tasks]):
-                bar.advance(fut.result())
+        with worker_pool(min(workers, len(tasks)), mp_context=ctx) as pool:
+            futures = [pool.submit(_render_sequence, t) for t in tasks]
+            try:
+                for fut in as_completed(futures):
+                    bar.advance(fut.result())
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
 
 
 def generate(
