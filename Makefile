@@ -116,7 +116,7 @@ demo: $(STAMP)
 benchmark: $(STAMP)
 	$(BIN)/harness prepare --dataset m3t-synth
 	$(BENCH_ENV) $(BIN)/harness benchmark run --store $(BENCH_STORE)
-	$(BIN)/harness report --store $(BENCH_STORE) --out $(BENCH_OUT) --workers 2
+	$(BIN)/harness report --store $(BENCH_STORE) --out $(BENCH_OUT) --resamples 1000 --workers 2
 
 test: $(DEV_STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

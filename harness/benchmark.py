@@ -762,6 +762,42 @@ RERUN_SECTIONS = ("support", "metrics", "per_category")
 RERUN_NEUTRAL_KEYS = ("meta.prepared_fingerprint", "meta.prepared_key", "meta.prepared_samples")
 
 
+def _short(v: Any) -> str:
+    """A number with 4 significant digits; another value as it is written (a list or mapping by its size)."""
+    if isinstance(v, bool) or v is None:
+        return repr(v)
+    if isinstance(v, (int, float)):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return f"[{len(v)} values]"
+    if isinstance(v, dict):
+        return f"{{{len(v)} fields}}"
+    return repr(v)
+
+
+def section_difference(a: Any, b: Any, most: int = 4) -> str:
+    """What differs between two metrics.json sections, reference ``a`` against rerun ``b``, in a line a person
+    reads: each differing field as ``name A vs B``, mAP50 and mAP50_95 first (numbers to 4 significant digits, a list
+    by how many of its values differ, a per-category record by its AP50 or its first differing field), at most
+    ``most``, then how many more."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return "differs"
+    first = [k for k in ("mAP50", "mAP50_95") if k in a or k in b]  # the headline numbers lead
+    keys = [k for k in (*first, *sorted({*a, *b} - set(first))) if a.get(k) != b.get(k)]
+    parts = []
+    for k in keys[:most]:
+        x, y = a.get(k), b.get(k)
+        if isinstance(x, dict) and isinstance(y, dict):
+            inner = [f for f in ("AP50", *sorted({*x, *y})) if x.get(f) != y.get(f)]
+            parts.append(f"{k} {inner[0]} {_short(x.get(inner[0]))} vs {_short(y.get(inner[0]))}")
+        elif isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+            parts.append(f"{k} ({sum(u != v for u, v in zip(x, y))} of {len(x)} values)")
+        else:
+            parts.append(f"{k} {_short(x)} vs {_short(y)}")
+    more = f", and {len(keys) - most} more field(s)" if len(keys) > most else ""
+    return (", ".join(parts) + more) or "differs"
+
+
 def rerun_cell(
     refs: Any,
     detector: str,
@@ -796,12 +832,7 @@ def rerun_cell(
     for section in RERUN_SECTIONS:
         a, b = ref.metrics.get(section), new_run.metrics.get(section)
         if a != b:
-            keys = sorted({*(a or {}), *(b or {})}) if isinstance(a, dict) and isinstance(b, dict) else []
-            diff = [k for k in keys if (a or {}).get(k) != (b or {}).get(k)]
-            differences.append(
-                f"metrics.json {section}: "
-                + (", ".join(f"{k} {(a or {}).get(k)!r} vs {(b or {}).get(k)!r}" for k in diff[:4]) or "differs")
-            )
+            differences.append(f"metrics.json {section}: {section_difference(a, b)}")
     same_predictions = read_json(ref.predictions_path) == read_json(new_run.predictions_path)
     if not same_predictions:
         differences.append("predictions differ")

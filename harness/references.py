@@ -525,7 +525,8 @@ def same_training(refs: ReferenceSet, runs: Sequence[Any]) -> bool:
     detectors at one budget and not of two budgets: the references' image size and model selection, and
 
     * for a detector the references trained, its epochs there;
-    * for another detector, the references' profile (its epochs are the profile's, or its own config's);
+    * for another detector, the references' profile (its epochs are the profile's, or its own config's, and its
+      plateau record says whether they sufficed), or the epochs of one of the reference detectors;
     * references that record one number of epochs for every run: that number."""
     t = refs.manifest.get("training") or {}
     own = t.get("epochs_by_detector") or {}
@@ -541,7 +542,8 @@ def same_training(refs: ReferenceSet, runs: Sequence[Any]) -> bool:
         det = str(r.key.detector).removeprefix(PREFIX)
         if det in own:
             return bool(got.get("epochs") == own[det])
-        return bool(got.get("profile") is not None and got.get("profile") == refs.manifest.get("profile"))
+        at_profile = got.get("profile") is not None and got.get("profile") == refs.manifest.get("profile")
+        return bool(at_profile or got.get("epochs") in own.values())
 
     return bool(runs) and all(same(r) for r in runs)
 

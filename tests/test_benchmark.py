@@ -76,7 +76,7 @@ def _export(bench, out: Path):
 
 
 def _user_run(bench, folds: str, store: Path, *extra: str) -> None:
-    """A user's run of the other TinyDet (dual-stream) at the tiny benchmark's settings, seed 0."""
+    """A user's run of the other TinyDet (dual-stream) at the tiny benchmark's profile and settings, seed 0."""
     cli(
         [
             "run",
@@ -90,6 +90,8 @@ def _user_run(bench, folds: str, store: Path, *extra: str) -> None:
             "0",
             "--store",
             str(store),
+            "--profile",
+            "benchmark",
             *bench["sets"],
             *extra,
         ]
@@ -240,7 +242,7 @@ def test_a_rerun_that_differs_is_reported(bench, tmp_path):
     m["metrics"]["mAP50"] = 0.123456  # as if the references had been made by other code
     metrics.write_text(json.dumps(m))
     result = rerun_cell(load_references(tmp_path / "refs"), "tinydet", "c2", "P1", 0, tmp_path / "rerun")
-    assert not result["identical"] and any("mAP50 0.123456" in d for d in result["differences"])
+    assert not result["identical"] and any("mAP50 0.1235 vs " in d for d in result["differences"])
 
 
 def test_progress_eta_uses_measured_epochs_and_relative_costs():

@@ -381,3 +381,18 @@ def test_rerun_text_fits_100_columns(tmp_path):
     assert "verdict: within training variance" in text
     assert "CPU model: reference AMD EPYC, here Intel(R) Xeon(R)" in text
     json.dumps(result)  # --format json
+
+
+def test_a_differing_section_is_summarised_in_a_line_a_person_reads():
+    from harness.benchmark import section_difference
+
+    ref = {"mAP50": 0.24736489537911868, "coco_stats": [0.1, 0.2, None], "detections": 3187}
+    new = {"mAP50": 0.25293925494547254, "coco_stats": [0.1, 0.3, None], "detections": 3098}
+    assert section_difference(ref, new) == "mAP50 0.2474 vs 0.2529, coco_stats (1 of 3 values), detections 3187 vs 3098"
+    cats_a = {c: {"AP50": 0.5, "recall": 0.2} for c in "abcdef"}
+    cats_b = {**cats_a, "a": {"AP50": 0.6012, "recall": 0.2}, "b": {"AP50": 0.5, "recall": 0.25}}
+    cats_b.update({c: {"AP50": 0.1, "recall": 0.2} for c in "cdef"})
+    text = section_difference(cats_a, cats_b)
+    assert text.startswith("a AP50 0.5 vs 0.6012, b recall 0.2 vs 0.25, c AP50 0.5 vs 0.1, d AP50 0.5 vs 0.1")
+    assert text.endswith(", and 2 more field(s)")
+    assert section_difference([1], [2]) == "differs"
