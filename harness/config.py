@@ -294,6 +294,9 @@ EVAL_BYTES_PER_PIXEL = 160
 #: its own copy of the loader); never fewer than ``MIN_WORKER_CAP``.
 MAX_WORKERS_PER_CPU = 4
 MIN_WORKER_CAP = 8
+#: Most epochs a run may ask for: 10x the longest schedules of the field's detectors (YOLO's 300-500, the paper's
+#: 150); a count past it is a slip of the keyboard that would hold the machine for years, not a training plan.
+MAX_EPOCHS = 5000
 
 
 def worker_cap() -> int:
@@ -341,9 +344,10 @@ def _gib(n: float) -> str:
 
 
 def check_bounds(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str, Any]]] = ()) -> None:
-    """Settings that would exhaust the machine stop before any work: ``train.workers`` above ``worker_cap()``, and
-    an image size x batch whose memory (``memory_needed``, a lower estimate) exceeds ``available_memory``. The
-    ``ConfigError`` names the keys, the layer that set them, the memory needed and the memory there is."""
+    """Settings that would exhaust the machine stop before any work: ``train.workers`` above ``worker_cap()``,
+    ``protocol.epochs`` above ``MAX_EPOCHS``, and an image size x batch whose memory (``memory_needed``, a lower
+    estimate) exceeds ``available_memory``. The ``ConfigError`` names the keys, the layer that set them, the memory
+    needed and the memory there is."""
     layers = list(layers)
 
     def source(*keys: tuple[str, str]) -> str:
@@ -357,6 +361,12 @@ def check_bounds(cfg: Mapping[str, Any], layers: Iterable[tuple[str, Mapping[str
         raise ConfigError(
             f"{source(('train', 'workers'))}: train.workers={workers} asks for more worker processes than "
             f"{worker_cap()} ({MAX_WORKERS_PER_CPU} per CPU core, {os.cpu_count()} here); use at most {worker_cap()}"
+        )
+    epochs = (cfg.get("protocol") or {}).get("epochs")
+    if isinstance(epochs, int) and not isinstance(epochs, bool) and epochs > MAX_EPOCHS:
+        raise ConfigError(
+            f"{source(('protocol', 'epochs'))}: protocol.epochs={epochs} is more than {MAX_EPOCHS} epochs (10x the "
+            f"longest schedules of the field's detectors); use at most {MAX_EPOCHS}"
         )
     need = memory_needed(cfg)
     have, where = available_memory(str((cfg.get("train") or {}).get("device") or "auto"))
