@@ -24,7 +24,11 @@ The sample-matched guard checks what goes out of a run; this one checks what com
   (the same label and box): every annotation listed twice, the check ``harness.scoring.agreement`` makes of a
   prediction set;
 * ``normalised-boxes``: every box lies within 0..1 while the frames are larger: coordinates given as fractions of
-  the image size instead of pixels.
+  the image size instead of pixels;
+* ``mismatched-pairs``: more than half of the compared samples' RGB frames agree clearly better with another
+  sample's thermal frame than with their own (edges compared at 64 px, ``pair_statistics``): RGB and thermal files
+  paired with the wrong partner, such as every thermal file name shifted by one image. Consecutive frames of a
+  video sequence (RGBT-Tiny) are near copies of each other, so a shift by one there is not seen.
 
 Each finding is a line with the counts and a few examples. An unaccepted one raises a ``DataError`` listing them all
 and naming the option; ``inputs.accept`` (a list of kinds, or ``all``) accepts them, and the accepted findings are
@@ -38,6 +42,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
+import numpy as np
+
 from harness.errors import ConfigError, DataError
 
 KINDS = (
@@ -50,6 +56,7 @@ KINDS = (
     "invalid-samples",
     "duplicate-boxes",
     "normalised-boxes",
+    "mismatched-pairs",
 )
 #: What the contract's refusal of a map mostly without valid temperatures says (``harness.contracts``): such a frame
 #: is a counted skip of the data, not an ``invalid-samples`` finding.
@@ -213,6 +220,7 @@ def inspect(
             )
         )
     out += _sample_findings(prepared, report)
+    out += _pair_findings(prepared)
     if own_folds:
         present = set(prepared.groups)
         in_use = {f.name for f in folds}
@@ -285,6 +293,156 @@ def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
             )
         )
     return out
+
+
+# ------------------------------------------------------------------------------------------- mismatched pairs
+#: ``mismatched-pairs``: at most this many samples of one frame size are compared, in runs of ``PAIR_RUN``
+#: consecutive samples spread evenly over the dataset (a shift by one in the file order keeps a sample's true
+#: partner next to it), ...
+PAIR_SAMPLES = 32
+PAIR_RUN = 4
+#: ... and fewer than this many comparable samples of one size are not compared at all.
+MIN_PAIRS = 4
+#: The frames are compared at this many pixels on their longer side (area-averaged).
+PAIR_GRID = 64
+#: A sample is beaten when its RGB frame agrees with another sample's thermal frame by at least ``BEATEN_BY`` more
+#: (Pearson r of the gradient magnitudes) than either given pair of the two, and by at least ``BEATEN_AT``; ...
+BEATEN_BY = 0.1
+BEATEN_AT = 0.2
+#: ... the finding needs more than this share of the compared samples beaten.
+MAX_BEATEN = 0.5
+# Measured (benchmarks/pair_agreement.py; share of the compared samples beaten, given pairs -> shifted by one):
+# make_coco_rgbt 4, 12 and 64 pairs 0 % -> 100 %; m3t-synth small seed 0 (32 of 112 compared) 0 % -> 84 %;
+# rgbt-tiny synth small (32 of 240) 9 % -> 6 %: a video sequence's next frame is a near copy, so its shift is missed,
+# and its correct pairs stay far below the threshold.
+
+
+def _structure(frame: np.ndarray) -> np.ndarray:
+    """The gradient magnitude of ``frame`` (2-D, float; NaN missing) area-averaged to ``PAIR_GRID`` px on its
+    longer side: the edges of a scene, which RGB and thermal frames of the same scene share whatever the contrast's
+    sign. A missing pixel makes its cells missing (NaN), never zero."""
+    import cv2
+
+    img: np.ndarray = np.asarray(frame, np.float32)
+    h, w = img.shape
+    scale = PAIR_GRID / max(h, w)
+    if scale < 1:
+        size = (max(2, round(w * scale)), max(2, round(h * scale)))
+        img = np.asarray(cv2.resize(img, size, interpolation=cv2.INTER_AREA), np.float32)
+    gx, gy = np.diff(img, axis=1)[:-1, :], np.diff(img, axis=0)[:, :-1]
+    return np.hypot(gx, gy).ravel()
+
+
+def pair_agreement(rgbs: Sequence[np.ndarray], thermals: Sequence[np.ndarray]) -> np.ndarray:
+    """``r[i, j]``: Pearson correlation of the structure (``_structure``) of RGB frame ``i`` (its luminance) and of
+    thermal frame ``j`` (temperatures or 8-bit), over the pixels where thermal ``j`` is valid; NaN where either is
+    flat or thermal ``j`` is mostly missing. All frames have one size."""
+    import cv2
+
+    x = np.stack([_structure(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)) for rgb in rgbs])
+    y = np.stack([_structure(t) for t in thermals]).astype(np.float64)
+    x = x.astype(np.float64)
+    m = np.isfinite(y)
+    y = np.where(m, y, 0.0)
+    mf = m.astype(np.float64)
+    n = mf.sum(1)[None, :]
+    # numpy's own loops, not BLAS: a few million products, and a BLAS thread pool waits for busy cores
+    sx, sxx, sxy = (np.einsum("ip,jp->ij", a, b) for a, b in ((x, mf), (x * x, mf), (x, y)))
+    sy, syy = y.sum(1)[None, :], (y * y).sum(1)[None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = sxy - sx * sy / n
+        vx, vy = sxx - sx * sx / n, syy - sy * sy / n
+        r = cov / np.sqrt(vx * vy)
+    flat = (vx <= 1e-9 * np.maximum(sxx, 1e-30)) | (vy <= 1e-9 * np.maximum(syy, 1e-30)) | (n < 0.5 * y.shape[1])
+    return np.where(flat, np.nan, r)
+
+
+def pair_statistics(r: np.ndarray) -> dict[str, Any]:
+    """What ``mismatched-pairs`` decides on, from ``pair_agreement``'s matrix: the samples compared (own agreement
+    and some other agreement defined), the agreements of the given pairs (``own``), of the other pairings
+    (``shuffled``) and of each RGB frame's best other thermal frame (``best_other``), and which samples are beaten:
+    RGB frame ``i`` agrees with another sample's thermal frame ``j`` by ``BEATEN_BY`` more than with its own *and*
+    than that thermal frame agrees with its own RGB frame, and by ``BEATEN_AT`` in all (a thermal frame that agrees
+    with every RGB frame, a sharper frame of a video sequence, beats no one). ``beaten`` lists (i, j, own r, r)."""
+    own = np.diag(r).copy()
+    other = r.copy()
+    np.fill_diagonal(other, np.nan)
+    ok = np.isfinite(own) & np.isfinite(other).any(1)
+    empty: dict[str, Any] = {"compared": 0, "own": [], "shuffled": [], "best_other": [], "beaten": []}
+    if not ok.any():
+        return empty
+    # how much RGB i with thermal j beats the better of the two given pairs (RGB i's own, thermal j's own)
+    gain = other - np.fmax(own[:, None], own[None, :])
+    gain = np.where(np.isfinite(gain) & ok[:, None] & ok[None, :], gain, -np.inf)
+    best = gain.argmax(1)
+    top = np.nanmax(np.where(np.isfinite(other), other, -np.inf), 1)
+    rows = np.arange(len(r))
+    beaten = ok & (gain[rows, best] >= BEATEN_BY) & (other[rows, best] >= BEATEN_AT)
+    return {
+        "compared": int(ok.sum()),
+        "own": own[ok].tolist(),
+        "shuffled": other[ok][np.isfinite(other[ok])].tolist(),
+        "best_other": top[ok].tolist(),
+        "beaten": [(int(i), int(best[i]), float(own[i]), float(other[i, best[i]])) for i in np.flatnonzero(beaten)],
+    }
+
+
+def _pair_selection(indices: Sequence[int]) -> list[int]:
+    """At most ``PAIR_SAMPLES`` of ``indices``: all of them, or runs of ``PAIR_RUN`` consecutive ones spread evenly."""
+    if len(indices) <= PAIR_SAMPLES:
+        return list(indices)
+    starts = np.linspace(0, len(indices) - PAIR_RUN, PAIR_SAMPLES // PAIR_RUN).round().astype(int)
+    return [indices[k] for k in sorted({int(s) + d for s in starts for d in range(PAIR_RUN)})]
+
+
+def pair_summary(prepared: Any) -> dict[str, Any]:
+    """``pair_statistics`` pooled over the frame sizes of ``prepared`` (anything with ``records`` and samples by
+    index), on at most ``PAIR_SAMPLES`` samples of each size (``_pair_selection``); sizes with fewer than
+    ``MIN_PAIRS`` comparable samples are left out. ``beaten`` holds dataset indices."""
+    sizes: dict[tuple[int, int], list[int]] = {}
+    for i, rec in enumerate(prepared.records):
+        sizes.setdefault((int(rec["height"]), int(rec["width"])), []).append(i)
+    out: dict[str, Any] = {"compared": 0, "own": [], "shuffled": [], "best_other": [], "beaten": []}
+    for indices in sizes.values():
+        if len(indices) < MIN_PAIRS:
+            continue
+        chosen = _pair_selection(indices)
+        rgbs, thermals = [], []
+        for i in chosen:
+            sample = prepared[i]
+            rgbs.append(np.asarray(sample.rgb))
+            thermals.append(np.asarray(sample.thermal if sample.thermal is not None else sample.ir8))
+        stats = pair_statistics(pair_agreement(rgbs, thermals))
+        if stats["compared"] < MIN_PAIRS:
+            continue
+        for key in ("compared", "own", "shuffled", "best_other"):
+            out[key] += stats[key]
+        out["beaten"] += [(chosen[i], chosen[j], a, b) for i, j, a, b in stats["beaten"]]
+    return out
+
+
+def _pair_findings(prepared: Any) -> list[Finding]:
+    """``mismatched-pairs`` (module docstring; the measurements under ``BEATEN_BY``)."""
+    summary = pair_summary(prepared)
+    compared, beaten, own, shuffled = (summary[k] for k in ("compared", "beaten", "own", "shuffled"))
+    if not compared or len(beaten) <= MAX_BEATEN * compared:
+        return []
+    records = prepared.records
+
+    def thermal_name(k: int) -> str:
+        meta = records[k].get("meta")
+        name = meta.get("thermal_file") if isinstance(meta, dict) else None
+        return str(name or f"the thermal frame of {_name(records[k])}")
+
+    return [
+        _finding(
+            "mismatched-pairs",
+            f"{len(beaten)} of {compared} compared RGB frames agree better with another image's thermal frame than "
+            f"with their own (edge agreement r, median: own pairs {np.median(own):.2f}, other pairings "
+            f"{np.median(shuffled):.2f}): RGB and thermal files paired with the wrong partner (shifted by one?)",
+            [f"{_name(records[i])}: r {a:.2f} with its own, {b:.2f} with {thermal_name(j)}" for i, j, a, b in beaten],
+        )
+    ]
 
 
 def check(prepared: Any, folds: Iterable[Any], cfg: Mapping[str, Any] | None) -> list[Finding]:

@@ -84,6 +84,12 @@ def _image_ids_shifted(root: Path, coco: Coco) -> None:
         a["image_id"] = a["image_id"] % len(coco["images"]) + 1
 
 
+def _thermal_shifted(root: Path, coco: Coco) -> None:
+    names = [im["thermal_file_name"] for im in coco["images"]]
+    for im, name in zip(coco["images"], names[1:] + names[:1]):
+        im["thermal_file_name"] = name
+
+
 def _empty(root: Path, coco: Coco) -> None:
     coco["annotations"] = []
 
@@ -142,6 +148,7 @@ OPERATORS = (
         "image",
         unseen="every image of the set has boxes of the same sizes: only the pixels under the boxes could tell",
     ),
+    Operator("thermal files shifted by one image", _thermal_shifted, "mismatched-pairs"),
     Operator("no annotations", _empty, "no-labels"),
     Operator("annotations for a quarter of the images", _few_images_labelled, "unlabelled-images"),
     Operator("no groups", _no_groups, "group"),
