@@ -44,6 +44,12 @@ READINGS = {
     "previous": "each image's boxes read as the previous image's (image ids shifted by +1)",
     "next": "each image's boxes read as the next image's (image ids shifted by -1)",
 }
+#: What to check when a reading fits better.
+ADVICE = {
+    "centre": "COCO's bbox is x, y of the top-left corner, w, h",
+    "previous": "each annotation's image_id names the image its box is drawn on",
+    "next": "each annotation's image_id names the image its box is drawn on",
+}
 #: How many samples (in neighbouring pairs) and boxes are measured: the check costs a fraction of a second.
 MAX_SAMPLES = 32
 MAX_BOXES = 2000
@@ -91,6 +97,10 @@ class Reading:
             f"{READINGS[self.name]} sit on image structure better: in-box contrast {self.contrast:.2f} vs "
             f"{self.given:.2f} (given), higher for {self.share:.0%} of {self.compared} {self.unit}"
         )
+
+    def advice(self) -> str:
+        """The message and what to check."""
+        return f"{self.message()} ({ADVICE[self.name]})"
 
 
 class _Frame:

@@ -28,7 +28,12 @@ The sample-matched guard checks what goes out of a run; this one checks what com
 * ``mismatched-pairs``: more than half of the compared samples' RGB frames agree clearly better with another
   sample's thermal frame than with their own (edges compared at 64 px, ``pair_statistics``): RGB and thermal files
   paired with the wrong partner, such as every thermal file name shifted by one image. Consecutive frames of a
-  video sequence (RGBT-Tiny) are near copies of each other, so a shift by one there is not seen.
+  video sequence (RGBT-Tiny) are near copies of each other, so a shift by one there is not seen;
+* ``misplaced-boxes``: the boxes sit on image structure clearly better read another way than as given
+  (``harness.box_fit``: in-box contrast against the ring around each box, on the thermal picture and the RGB
+  luminance of at most 32 samples): as centre x, centre y, w, h, or as the previous or next image's (image ids
+  shifted by one). In a video sequence (RGBT-Tiny) the next frame's boxes fit about as well, so a shift of the image
+  ids there is not seen.
 
 Each finding is a line with the counts and a few examples. An unaccepted one raises a ``DataError`` listing them all
 and naming the option; ``inputs.accept`` (a list of kinds, or ``all``) accepts them, and the accepted findings are
@@ -57,6 +62,7 @@ KINDS = (
     "duplicate-boxes",
     "normalised-boxes",
     "mismatched-pairs",
+    "misplaced-boxes",
 )
 #: What the contract's refusal of a map mostly without valid temperatures says (``harness.contracts``): such a frame
 #: is a counted skip of the data, not an ``invalid-samples`` finding.
@@ -242,9 +248,10 @@ def inspect(
 
 
 def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
-    """``invalid-samples``, ``duplicate-boxes`` and ``normalised-boxes`` (module docstring)."""
+    """``invalid-samples``, ``duplicate-boxes``, ``normalised-boxes`` and ``misplaced-boxes`` (module docstring)."""
     import numpy as np
 
+    from harness import box_fit
     from harness.scoring.agreement import duplicate_findings, duplicate_key
 
     out: list[Finding] = []
@@ -292,6 +299,8 @@ def _sample_findings(prepared: Any, report: Mapping[str, Any]) -> list[Finding]:
                 [],
             )
         )
+    elif preds and (fits := box_fit.misplaced(prepared)) is not None:
+        out.append(_finding("misplaced-boxes", fits.advice(), []))
     return out
 
 

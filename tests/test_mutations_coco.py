@@ -126,8 +126,7 @@ OPERATORS = (
     Operator(
         "boxes cx, cy, w, h",
         _boxes(lambda b: [b[0] + b[2] / 2, b[1] + b[3] / 2, b[2], b[3]]),
-        "cx, cy",
-        unseen="every box still fits its frame: only the pixels under the boxes could tell",
+        "misplaced-boxes: boxes read as centre x, centre y, w, h",
     ),
     Operator("boxes normalised", _boxes(lambda b: [b[0] / W, b[1] / H, b[2] / W, b[3] / H]), "normalised-boxes"),
     Operator("boxes y first", _boxes(lambda b: [b[1], b[0], b[3], b[2]]), "y first"),
@@ -143,10 +142,7 @@ OPERATORS = (
     Operator("every annotation twice", _twice, "duplicate-boxes"),
     Operator("image ids that point nowhere", _image_ids_nowhere, "unknown image id"),
     Operator(
-        "image ids shifted by one image",
-        _image_ids_shifted,
-        "image",
-        unseen="every image of the set has boxes of the same sizes: only the pixels under the boxes could tell",
+        "image ids shifted by one image", _image_ids_shifted, "misplaced-boxes: each image's boxes read as the previous"
     ),
     Operator("thermal files shifted by one image", _thermal_shifted, "mismatched-pairs"),
     Operator("no annotations", _empty, "no-labels"),
