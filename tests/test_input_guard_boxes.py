@@ -76,3 +76,16 @@ def test_a_kind_the_guard_knows(tmp_path):
 
     assert "misplaced-boxes" in KINDS
     assert settings({"inputs": {"accept": ["misplaced-boxes"]}})[0] == {"misplaced-boxes"}
+
+
+def test_every_finding_and_the_rule_are_in_the_datasets_guide():
+    from harness import box_fit
+    from harness.input_guard import KINDS
+
+    guide = " ".join((Path(__file__).resolve().parents[1] / "docs" / "datasets.md").read_text().split())
+    assert all(f"| `{kind}` |" in guide for kind in KINDS)
+    rule = (
+        f"at least {box_fit.FACTOR:g} times and {box_fit.MIN_GAIN:g} above the given one's and higher for at least "
+        f"{box_fit.SHARE:.0%} of at least {box_fit.MIN_COMPARED} boxes"
+    ).replace("%", " %")
+    assert rule in guide and f"at most {box_fit.MAX_SAMPLES} samples" in guide
