@@ -3,10 +3,10 @@
 For each prepared dataset named (cache folders, ``--prepared``) and for ``make_coco_rgbt`` folders of the tests
 (``--coco N``, N pairs; prepared into a temporary cache), it measures ``harness.input_guard.pair_summary`` on the
 pairs as given and on the same samples with every thermal frame replaced by the next sample's of the same size
-(in memory, the ``pairs-shifted-by-one`` mistake), and prints one row each: the samples compared, the median edge
-agreement of the given pairs, of the other pairings and of each RGB frame's best other thermal frame, the share of
-samples beaten (the finding needs more than ``MAX_BEATEN``), whether the guard finds ``mismatched-pairs``, and the
-median time of the check on the correct set.
+(in memory, the ``pairs-shifted-by-one`` mistake), by the one 2 and 5 on, and by a random one, and prints a row
+each: the samples compared, the median edge agreement of the given pairs, of the other pairings and of each RGB
+frame's best other thermal frame, the share of samples beaten (the finding needs more than ``MAX_BEATEN``), whether
+the guard finds ``mismatched-pairs``, and the median time of the check on the correct set.
 
 Usage: ``nice -n 15 python benchmarks/pair_agreement.py [--prepared FOLDER ...] [--coco N ...] [--repeat 3]``.
 """
@@ -27,15 +27,23 @@ on_path("tests")
 
 
 class Shifted:
-    """``prepared`` with every sample's thermal frame (temperatures and 8-bit) taken from the next sample of the same
-    frame size, in record order (the last takes the first's)."""
+    """``prepared`` with every sample's thermal frame (temperatures and 8-bit) taken from another sample of the same
+    frame size: the sample ``shift`` places on in record order (wrapping round), or with ``shift=0`` one of a random
+    permutation (seed 0)."""
 
-    def __init__(self, prepared: Any):
+    def __init__(self, prepared: Any, shift: int = 1):
+        import numpy as np
+
         self.prepared, self.records = prepared, prepared.records
         sizes: dict[tuple[int, int], list[int]] = {}
         for i, rec in enumerate(self.records):
             sizes.setdefault((rec["height"], rec["width"]), []).append(i)
-        self.next = {a: b for idx in sizes.values() for a, b in zip(idx, idx[1:] + idx[:1])}
+        rng = np.random.default_rng(0)
+        self.next: dict[int, int] = {}
+        for idx in sizes.values():
+            k = shift % len(idx)
+            other = idx[k:] + idx[:k] if shift else [idx[k] for k in rng.permutation(len(idx))]
+            self.next.update(zip(idx, other))
 
     def __getitem__(self, i: int) -> Any:
         own, other = self.prepared[i], self.prepared[self.next[i]]
@@ -88,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, data in sets:
             seconds = median_time(lambda d=data: _pair_findings(d), args.repeat)
             print(_row(name, "given", data, seconds), flush=True)
-            print(_row(name, "shifted", Shifted(data), None), flush=True)
+            for pairing, shift in (("shift 1", 1), ("shift 2", 2), ("shift 5", 5), ("random", 0)):
+                print(_row(name, pairing, Shifted(data, shift), None), flush=True)
     for line in (
         "cmp: samples compared; own, other, best: median edge agreement r of the given pairs, of the other",
         "pairings and of each RGB frame's best other thermal frame; beaten: share of the compared samples",

@@ -25,7 +25,7 @@ The sample-matched guard checks what goes out of a run; this one checks what com
   prediction set;
 * ``normalised-boxes``: every box lies within 0..1 while the frames are larger: coordinates given as fractions of
   the image size instead of pixels;
-* ``mismatched-pairs``: more than half of the compared samples' RGB frames agree clearly better with another
+* ``mismatched-pairs``: more than 40 % of the compared samples' RGB frames agree clearly better with another
   sample's thermal frame than with their own (edges compared at 64 px, ``pair_statistics``): RGB and thermal files
   paired with the wrong partner, such as every thermal file name shifted by one image. Consecutive frames of a
   video sequence (RGBT-Tiny) are near copies of each other, so a shift by one there is not seen;
@@ -319,11 +319,12 @@ PAIR_GRID = 64
 BEATEN_BY = 0.1
 BEATEN_AT = 0.2
 #: ... the finding needs more than this share of the compared samples beaten.
-MAX_BEATEN = 0.5
-# Measured (benchmarks/pair_agreement.py; share of the compared samples beaten, given pairs -> shifted by one):
-# make_coco_rgbt 4, 12 and 64 pairs 0 % -> 100 %; m3t-synth small seed 0 (32 of 112 compared) 0 % -> 84 %;
-# rgbt-tiny synth small (32 of 240) 9 % -> 6 %: a video sequence's next frame is a near copy, so its shift is missed,
-# and its correct pairs stay far below the threshold.
+MAX_BEATEN = 0.4
+# Measured (benchmarks/pair_agreement.py; share of the compared samples, at most 32, beaten; correct -> thermal frames
+# shifted by 1, 2, 5 samples, randomly permuted): make_coco_rgbt 12 and 64 pairs 0 % -> 83..100 %, 91..92 %;
+# m3t-synth small seeds 0 and 1 (112 pairs) 0 % -> 84 %, 69..75 %, 47..50 %, 47..53 %; rgbt-tiny synth small seeds 0
+# and 1 (240 pairs) 0..9 % -> 0..6 % (missed: the next frames of a video sequence are near copies), random 50..72 %.
+# No correct set comes near 40 %; a shift by one of frames that are not near copies is well above it.
 
 
 def _structure(frame: np.ndarray) -> np.ndarray:
