@@ -12,6 +12,20 @@ summary: the epoch of the best validation fitness, the least-squares slope of th
         --json docs/learning-curves/p1-seed0.json --plot docs/learning-curves/p1-seed0.png
     python benchmarks/learning_curves.py --store /tmp/curves --read-only   # the tables of runs already made
 
+``--suite rgbt-tiny-synth`` makes the curves of that benchmark suite (``harness.benchmark.SUITES``): its dataset
+(``rgbt-tiny``) read from the suite's data folder under ``$HARNESS_DATA`` (written first when missing), its layer
+``configs/benchmark-rgbt-tiny/suite.yaml`` and per-detector files, its ablation fold and annotation source (default
+``--fold test-T`` with ``dataset.gt=thermal``). ``--set KEY=VALUE`` (repeatable) overrides every run after the
+script's own settings, e.g. to compare image sizes (one ``--store`` per size):
+
+    python benchmarks/learning_curves.py --suite rgbt-tiny-synth --store /tmp/curves320 --set protocol.imgsz=320 \
+        --epochs 30,icafusion=24,cmadet=24 --json docs/learning-curves/rgbt-tiny-test-T-seed0.json
+
+Each run's CPU seconds (its own and its children's, from ``wait4``) are printed when it ends and kept beside it in
+``--store`` (``<detector>-<fold>-seed<seed>.usage.json``; the summary's ``cpu_s_per_epoch``): on a shared machine
+they say more of a run's cost than its wall time. A run stopped early (``exit`` not 0) keeps its epochs so far: its
+curve is read as far as it goes, and its CPU seconds per epoch count the epoch it was in.
+
 Runs already finished in ``--store`` with the same configuration are reused (``harness run`` skips them). Set
 ``ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2`` as the benchmark does (``make benchmark``).
 """
@@ -20,15 +34,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from _common import REPO
+from _common import REPO, on_path
 
 DETECTORS = ("ours", "eme", "icafusion", "cmadet")
+DEFAULT_SUITE = "m3t-synth"
 
 
 def command(det: str, args: argparse.Namespace) -> list[str]:
@@ -39,12 +55,41 @@ def command(det: str, args: argparse.Namespace) -> list[str]:
         "eval.log_held_out=true",
         "train.threads=1",
     ]
-    cmd = [sys.executable, "-m", "harness", "run", "--detector", det, "--dataset", "m3t-synth", "--folds", args.fold]
+    if args.suite == DEFAULT_SUITE:
+        dataset, configs = "m3t-synth", [REPO / "configs" / "benchmark" / f"{det}.yaml"]
+    else:
+        suite = suite_of(args.suite)
+        own = detector_config(det, suite.profile, suite.detector_configs)
+        dataset, configs = suite.dataset, [Path(c) for c in suite.layers()] + ([own] if own else [])
+        # the suite's data folder and the annotation source of its ablation variant (the fold's own, e.g. thermal)
+        sets = [*suite.data_overrides(), *suite.variant_overrides(suite.ablation_variant), *sets]
+    cmd = [sys.executable, "-m", "harness", "run", "--detector", det, "--dataset", dataset, "--folds", args.fold]
     cmd += ["--seeds", str(args.seed), "--store", str(args.store), "--profile", "benchmark", "--no-progress"]
-    cmd += ["--config", str(REPO / "configs" / "benchmark" / f"{det}.yaml")]
-    for s in sets:
+    for c in configs:
+        cmd += ["--config", str(c)]
+    for s in sets + list(args.set):
         cmd += ["--set", s]
     return cmd
+
+
+def suite_of(name: str) -> Any:
+    """The benchmark suite ``name`` (``harness.benchmark.SUITES``)."""
+    on_path()
+    from harness.benchmark import get_suite
+
+    return get_suite(name)
+
+
+def detector_config(det: str, profile: str, folder: str) -> Path | None:
+    on_path()
+    from harness.benchmark import detector_config as find
+
+    return find(det, profile, folder)
+
+
+def dataset_of(suite: str) -> str:
+    """The dataset (the store's first folder) of the suite's runs."""
+    return "m3t-synth" if suite == DEFAULT_SUITE else str(suite_of(suite).dataset)
 
 
 def epochs_of(det: str, spec: str) -> int:
@@ -68,8 +113,8 @@ def slope(points: list[tuple[float, float]]) -> float | None:
     return sum((x - mx) * (y - my) for x, y in points) / sxx
 
 
-def read_curve(store: Path, det: str, fold: str, seed: int) -> dict[str, Any] | None:
-    logs = sorted((store / "m3t-synth" / det).glob(f"*/{fold}/seed{seed}/log.jsonl"))
+def read_curve(store: Path, det: str, fold: str, seed: int, dataset: str = "m3t-synth") -> dict[str, Any] | None:
+    logs = sorted((store / dataset / det).glob(f"*/{fold}/seed{seed}/log.jsonl"))
     if not logs:
         return None
     rows = []
@@ -85,6 +130,8 @@ def read_curve(store: Path, det: str, fold: str, seed: int) -> dict[str, Any] | 
                 "time_s": r["time_s"],
             }
         )
+    usage_file = store / f"{det}-{fold}-seed{seed}.usage.json"
+    usage = json.loads(usage_file.read_text()) if usage_file.exists() else {}
     metrics_path = logs[0].parent / "metrics.json"
     final = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
     return {
@@ -94,6 +141,7 @@ def read_curve(store: Path, det: str, fold: str, seed: int) -> dict[str, Any] | 
         "seed": seed,
         "rows": rows,
         "selection": final.get("selection"),
+        **({"run_cpu_s": usage["cpu_s"], "run_wall_s": usage["wall_s"]} if usage else {}),
     }
 
 
@@ -105,6 +153,7 @@ def summarise(curve: dict[str, Any], windows: list[int], at: list[int]) -> dict[
         "epochs": len(rows),
         "best_validation_epoch": int(best[0]) if best else None,
         "mean_epoch_s": round(sum(r["time_s"] for r in rows) / max(len(rows), 1), 2),
+        **({"cpu_s_per_epoch": round(curve["run_cpu_s"] / len(rows), 2)} if curve.get("run_cpu_s") and rows else {}),
         "slope": {},
     }
     out["plateau_epoch"] = {}
@@ -182,19 +231,38 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--store", type=Path, required=True)
     p.add_argument("--detectors", default=",".join(DETECTORS))
-    p.add_argument("--fold", default="P1")
+    p.add_argument(
+        "--suite",
+        default=DEFAULT_SUITE,
+        help="the benchmark suite whose data and configuration files the runs use (harness benchmark --suite)",
+    )
+    p.add_argument("--fold", help="the fold (default: P1 for m3t-synth, else the suite's ablation fold)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--epochs", default="60", help="epochs of each run: N, or N,detector=M,...")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one torch thread each)")
     p.add_argument("--window", default="5,10", help="epochs of the slope (comma-separated)")
     p.add_argument("--at", default="20,30,40,50,60", help="epochs at which the slope is reported")
     p.add_argument("--read-only", action="store_true", help="read the runs in --store, train nothing")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override of every run, after the script's own (e.g. protocol.imgsz=416); repeatable",
+    )
     p.add_argument("--json", type=Path, help="write the curves and summaries here")
     p.add_argument("--plot", type=Path, help="write a PNG of the curves here")
     args = p.parse_args()
     dets = [d for d in args.detectors.split(",") if d]
+    if args.fold is None:
+        args.fold = "P1" if args.suite == DEFAULT_SUITE else suite_of(args.suite).ablation_fold
     if not args.read_only:
         args.store.mkdir(parents=True, exist_ok=True)
+        if args.suite != DEFAULT_SUITE:
+            on_path()
+            from harness.benchmark import ensure_data
+
+            ensure_data(suite_of(args.suite), sys.stderr)
         pending = list(dets)
         running: list[tuple[str, subprocess.Popen[bytes], float]] = []
         while pending or running:
@@ -207,13 +275,20 @@ def main() -> int:
             time.sleep(2)
             for item in list(running):
                 det, proc, t0 = item
-                if proc.poll() is not None:
+                pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+                if pid:
+                    proc.returncode = os.waitstatus_to_exitcode(status)
                     running.remove(item)
-                    print(f"{det}: exit {proc.returncode} after {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+                    wall, cpu = time.perf_counter() - t0, usage.ru_utime + usage.ru_stime
+                    print(f"{det}: exit {proc.returncode} after {wall:.0f} s ({cpu:.0f} CPU s)", file=sys.stderr)
+                    usage_file = args.store / f"{det}-{args.fold}-seed{args.seed}.usage.json"
+                    if not usage_file.exists():  # the first run (a stopped one too), not a reuse of it
+                        usage = {"exit": proc.returncode, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1)}
+                        usage_file.write_text(json.dumps(usage) + "\n")
     at = [int(x) for x in args.at.split(",") if x]
     out = []
     for det in dets:
-        curve = read_curve(args.store, det, args.fold, args.seed)
+        curve = read_curve(args.store, det, args.fold, args.seed, dataset_of(args.suite))
         if curve is None:
             print(f"{det}: no run in {args.store}", file=sys.stderr)
             continue
