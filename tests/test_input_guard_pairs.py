@@ -109,3 +109,17 @@ def test_scenes_of_their_own_are_told_apart_from_a_shift():
     assert given["beaten"] == [] and np.median(given["own"]) > 0.8
     assert len(shifted["beaten"]) > MAX_BEATEN * shifted["compared"]
     assert {(i, j) for i, j, _, _ in shifted["beaten"]} == {(i, (i - 1) % 6) for i in range(6)}
+
+
+def test_the_guide_states_the_rule_the_guard_applies():
+    from harness import input_guard as g
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "datasets.md").read_text()
+    row = next(line for line in doc.splitlines() if line.startswith("| `mismatched-pairs` |"))
+    for said in (
+        f"more than {g.MAX_BEATEN:.0%}".replace("%", " %"),
+        f"at most {g.PAIR_SAMPLES} of each frame size, in runs of {g.PAIR_RUN} consecutive",
+        f"at {g.PAIR_GRID} px, by {g.BEATEN_BY} or more, and at least {g.BEATEN_AT}",
+        f"Fewer than {g.MIN_PAIRS} samples of a size are not compared",
+    ):
+        assert said in row, said
