@@ -204,35 +204,44 @@ def pairs(prepared: Any, limit: int = MAX_SAMPLES, run: int = RUN) -> list[tuple
 
 def fit(prepared: Any) -> list[Reading]:
     """Each other reading of ``READINGS`` measured against the given one on a subset of ``prepared`` (module
-    docstring); a reading with nothing to compare is left out."""
+    docstring); a reading with nothing to compare is left out. Two samples' pictures are held at a time."""
     chosen = pairs(prepared)
-    frames: dict[int, _Frame] = {}
     targets: dict[int, np.ndarray] = {}
     budget = MAX_BOXES
     for i in sorted({i for p in chosen for i in p}):
-        boxes = np.asarray(prepared.targets(i)[0], dtype=np.float64).reshape(-1, 4)[: max(0, budget)]
-        budget -= len(boxes)
-        targets[i] = boxes
-    for i in targets:
-        if any(len(targets[j]) for p in chosen if i in p for j in p):
+        targets[i] = np.asarray(prepared.targets(i)[0], dtype=np.float64).reshape(-1, 4)[: max(0, budget)]
+        budget -= len(targets[i])
+    frames: dict[int, _Frame] = {}  # the last two samples' (neighbours are measured in runs)
+    given: dict[int, np.ndarray] = {}
+    centre: dict[int, np.ndarray] = {}
+    moved: dict[str, tuple[list[float], list[float]]] = {"previous": ([], []), "next": ([], [])}
+
+    def frame(i: int) -> _Frame:
+        if i not in frames:
+            if len(frames) >= 2:
+                frames.pop(next(iter(frames)))
             frames[i] = _Frame(channels(prepared[i]))
-    given: dict[int, np.ndarray] = {i: frames[i].contrast(b) for i, b in targets.items() if i in frames}
+            given[i], centre[i] = frames[i].contrast(targets[i]), frames[i].contrast(centred(targets[i]))
+        return frames[i]
+
+    for a, b in chosen:
+        for i in (a, b):
+            if len(targets[i]):
+                frame(i)
+        if not (len(targets[a]) and len(targets[b])):
+            continue
+        for name, on, other in (("previous", a, b), ("next", b, a)):
+            g, alt = given[on], frame(on).contrast(targets[other])
+            if np.isfinite(g).any() and np.isfinite(alt).any():
+                moved[name][0].append(float(np.nanmean(g)))
+                moved[name][1].append(float(np.nanmean(alt)))
     out = []
     g_all = np.concatenate([given[i] for i in sorted(given)]) if given else np.zeros(0)
-    c_all = np.concatenate([frames[i].contrast(centred(targets[i])) for i in sorted(given)]) if given else np.zeros(0)
+    c_all = np.concatenate([centre[i] for i in sorted(given)]) if given else np.zeros(0)
     ok = np.isfinite(g_all) & np.isfinite(c_all)
     if ok.any():
         out.append(_reading("centre", g_all[ok], c_all[ok], "boxes"))
-    for name, (own, other) in (("previous", (0, 1)), ("next", (1, 0))):
-        g_img, a_img = [], []
-        for p in chosen:
-            on, moved = p[own], p[other]
-            if on not in frames or not len(targets[on]) or not len(targets[moved]):
-                continue
-            g, a = given[on], frames[on].contrast(targets[moved])
-            if np.isfinite(g).any() and np.isfinite(a).any():
-                g_img.append(float(np.nanmean(g)))
-                a_img.append(float(np.nanmean(a)))
+    for name, (g_img, a_img) in moved.items():
         if g_img:
             out.append(_reading(name, np.asarray(g_img), np.asarray(a_img), "images"))
     return out
