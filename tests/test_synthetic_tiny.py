@@ -94,7 +94,7 @@ def test_the_two_sources_differ_by_a_registration_offset_and_by_objects_seen_in_
     assert np.median(dy) > 1.0 > abs(np.median(dx))  # the lenses sit one above the other
 
 
-@pytest.mark.parametrize("profile", ["small", "full"])
+@pytest.mark.parametrize("profile", ["small", "small-320", "full"])
 def test_targets_are_mostly_tiny_and_every_safit_bin_is_populated_in_each_split_and_source(profile):
     docs = coco_documents(plan_dataset(profile, 0))
     for (m, s), doc in docs.items():
@@ -106,6 +106,19 @@ def test_targets_are_mostly_tiny_and_every_safit_bin_is_populated_in_each_split_
     train = {im["file_name"].split("/")[0] for im in docs["01", "train"]["images"]}
     test = {im["file_name"].split("/")[0] for im in docs["01", "test"]["images"]}
     assert train and test and not train & test  # split by sequence
+
+
+def test_small_320_is_small_on_a_quarter_of_the_frame_with_targets_of_the_same_sizes():
+    small, quarter = plan_dataset("small", 0), plan_dataset("small-320", 0)
+    assert quarter.profile.size == (320, 256) and quarter.profile.total == small.profile.total == 240
+    assert quarter.profile.sequences == small.profile.sequences
+
+    def share_under_16(plan):
+        docs = coco_documents(plan)
+        areas = [a["bbox"][2] * a["bbox"][3] for d in docs.values() for a in d["annotations"]]
+        return sum(a < 16 * 16 for a in areas) / len(areas)
+
+    assert abs(share_under_16(quarter) - share_under_16(small)) < 0.02  # the same sizes in px, not halved
 
 
 def test_targets_move_smoothly_through_their_sequence():

@@ -21,16 +21,18 @@ def add_synth_command(cli: click.Group) -> None:
         default="m3t",
         show_default=True,
         help="m3t: M3T-like facades (m3t-synth); rgbt-tiny: RGBT-Tiny-like tiny targets in that release's layout "
-        "(tiny: 20 pairs, small: 240 pairs, full: 1,400 pairs, all 640x512 but tiny).",
+        "(tiny: 20 pairs, small: 240 pairs, full: 1,400 pairs, all 640x512 but tiny; small-320: small's "
+        "sequences at 320x256).",
     )
     @opt.option(
         "--size",
         "profile",
         old=("--profile",),
-        type=click.Choice(["tiny", "small", "full"]),
+        type=click.Choice(["tiny", "small", "small-320", "full"]),
         default="small",
         show_default=True,
-        help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512.",
+        help="small: 112 pairs, thermal 320x256 (demo, CPU); full: the seed's 674 pairs at 640x512; small-320: "
+        "--family rgbt-tiny only.",
     )
     @opt.folder_option(
         "--out",

@@ -85,6 +85,15 @@ PROFILES: dict[str, Profile] = {
             "240 pairs at 640x512 (6 train / 4 test sequences): CPU benchmarks",
         ),
         Profile(
+            "small-320",
+            (320, 256),
+            24,
+            _seqs("train", "sky", "sky", "sea", "sea", "ground", "ground-night")
+            + _seqs("test", "sky", "sea", "ground", "ground-night"),
+            "240 pairs at 320x256 (small's sequences on a quarter of the frame, the targets at their own size): "
+            "CPU benchmarks at 320 px without halving the targets",
+        ),
+        Profile(
             "full",
             (640, 512),
             40,
