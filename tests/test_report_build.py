@@ -140,6 +140,7 @@ def test_report_command_prints_tables_and_refuses_bad_input(cli_runner, built, t
     # --print with --out DIR prints and writes DIR too, naming the files
     assert (tmp_path / "r" / "report.md").exists() and not (tmp_path / "r" / "report.html").exists()
     assert f"-> {tmp_path / 'r' / 'report.md'}" in res.output
+    assert "-> " not in res.stdout and "synth: project-grouped folds" in res.stdout  # the files are named on stderr
     (tmp_path / "w").mkdir()
     monkeypatch.chdir(tmp_path / "w")
     res = cli_runner(["report", "--store", str(store.root), "--resamples", "0", "--print"])

@@ -187,9 +187,11 @@ def register_commands(cli: click.Group) -> None:
                 return  # with --out the files were written too: say which below
         warned = [t.title for t in report.tables if t.warning]
         absent = [f"{s.dataset or 'all'}: {s.title}" for s in report.sections if s.absent]
+        aside = print_tables  # with --print the report is standard output; what was written goes to stderr
         click.echo(
             f"report of {report.store} ({', '.join(report.datasets)}): {len(report.tables)} tables, "
-            f"{sum(len(s.figures) for s in report.sections)} figure(s)"
+            f"{sum(len(s.figures) for s in report.sections)} figure(s)",
+            err=aside,
         )
         if warned:
             click.secho(
@@ -198,9 +200,11 @@ def register_commands(cli: click.Group) -> None:
         if absent:
             from harness.textable import fit_text
 
-            click.echo(fit_text("absent (see the report for the command that fills each): " + "; ".join(absent)))
+            click.echo(
+                fit_text("absent (see the report for the command that fills each): " + "; ".join(absent)), err=aside
+            )
         for path in report.files:
-            click.echo(f"-> {path}")
+            click.echo(f"-> {path}", err=aside)
         if log_to:
             from harness.tracking import log_report, parse_names
 
