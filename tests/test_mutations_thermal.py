@@ -55,13 +55,7 @@ def _counts8(t: np.ndarray) -> np.ndarray:
 
 OPERATORS = (
     Operator("Kelvin", lambda t: t + 273.15, "Kelvin"),
-    Operator(
-        "Fahrenheit",
-        lambda t: t * 1.8 + 32,
-        "Fahrenheit",
-        unseen="as C a 68..115 F scene reads 68..115 C, which a sunlit roof of solar panels can be: a converter "
-        "states no unit",
-    ),
+    Operator("Fahrenheit", lambda t: t * 1.8 + 32, "Fahrenheit"),
     Operator("8-bit counts", _counts8, "8-bit counts"),
     Operator("centi-Kelvin as floats", lambda t: (t + 273.15) * 100, "outside the plausible"),
     Operator("big-endian floats", _big_endian, "big-endian"),

@@ -75,12 +75,12 @@ def calls(log: Path) -> list[dict]:
     return [json.loads(line) for line in log.read_text().splitlines()] if log.exists() else []
 
 
-def builtin_table_file(path: Path, params: dict | None = None) -> Path:
+def builtin_table_file(path: Path, params: dict | None = None, scene: np.ndarray | None = None) -> Path:
     """A camera-layout iirp file whose APP5 says "the camera's built-in table" (as four of five public M2EA files):
-    the harness cannot correct it."""
+    the harness cannot correct it. ``scene``: its temperatures in C (default 30 C everywhere, 20x16)."""
     src = write_rjpeg(
         path.with_name("src_" + path.name),
-        np.full((16, 20), 30.0, np.float32),
+        np.full((16, 20), 30.0, np.float32) if scene is None else scene,
         params=params or {"emissivity": 0.9, "distance": 7.0, "humidity": 40.0, "reflected": 21.0, "ambient": 21.0},
     ).read_bytes()
     seg = next(s for s in jpeg.read_segments(src).segments if s.marker == jpeg.APP5)
@@ -229,3 +229,37 @@ def test_hirp_through_the_converter_gets_the_parameters_the_file_states(standin,
     opts = dict(zip(calls(log)[-1]["args"][8::2], calls(log)[-1]["args"][9::2]))
     # what DJI's SDK reports for this file: distance 1 m, humidity 60 %, emissivity 0.95, reflection 21.6 C
     assert opts == {"--distance": "1", "--humidity": "60", "--emissivity": "0.949951", "--reflection": "21.6"}
+
+
+# ------------------------------------------------------------------------------------------- the converter's unit
+WRITES = """
+import sys
+import numpy as np
+out, kind, own = sys.argv[2], sys.argv[3], np.load(sys.argv[4])
+t = {"c": own + 2.0, "offset": own + 12.0, "f": own * 1.8 + 32.0}[kind]
+t.astype("<f4").tofile(out)
+"""
+
+
+@pytest.mark.parametrize("kind, fahrenheit", [("c", False), ("offset", False), ("f", True)])
+def test_a_converter_writing_fahrenheit_is_told_from_the_files_own_reading(tmp_path, kind, fahrenheit):
+    """A scene of 5-45 C whose table only a converter applies: the converter's map against the file's own counts
+    corrected for emissivity and the reflected temperature. C (2 C off) and a 12 C offset pass; 1.8 x C + 32 is
+    refused as Fahrenheit with the numbers."""
+    scene = np.linspace(5.0, 45.0, 16 * 20, dtype=np.float32).reshape(16, 20)
+    params = {"emissivity": 0.95, "distance": 5.0, "humidity": 50.0, "reflected": 20.0, "ambient": 20.0}
+    path = builtin_table_file(tmp_path / "m2ea.jpg", params=params, scene=scene)
+    own = read_rjpeg(path, approximate=True)._own_reading({})
+    assert abs(float(np.median(own)) - 25.0) < 3.0  # the counts say where the scene is, without the SDK's table
+    np.save(tmp_path / "own.npy", own)
+    (tmp_path / "writes.py").write_text(WRITES)
+    conv = dji_converter.resolve(
+        f"{sys.executable} {tmp_path / 'writes.py'} {{input}} {{output}} {kind} {tmp_path}/own.npy"
+    )
+    if fahrenheit:
+        with pytest.raises(DataError, match=r"Fahrenheit, not C") as err:
+            read_thermal(path, converter=conv)
+        assert "from the file's own reading" in str(err.value) and str(path) in str(err.value)
+    else:
+        temp, info = read_thermal(path, converter=conv)
+        assert info["decoder"] == "converter" and np.isfinite(temp).all()

@@ -273,11 +273,22 @@ class RJpeg:
         h, w = self.raw14.shape
         temp, record = dji_converter.convert(self.converter, self.path, w, h, self.converter_params(overrides))
         if self.fmt == "iirp" and np.isfinite(temp).any():  # the file's own counts say roughly where the scene is
-            gap = float(np.nanmedian(temp)) - float(np.median(self.blackbody_c()))
+            seen_c = float(np.nanmedian(temp))
+            gap = seen_c - float(np.median(self.blackbody_c()))
             if abs(gap - KELVIN) < KELVIN_GAP_C:
                 raise DataError(
                     f"{self.path}: the converter ({self.converter.name}) wrote temperatures "
                     f"{gap:.1f} C above the file's own blackbody reading: Kelvin, not C; make it write C "
+                    "(float32 degrees Celsius)"
+                )
+            own = self._own_reading(overrides)
+            own_c = float(np.nanmedian(own)) if np.isfinite(own).any() else float("nan")
+            if _reads_as_fahrenheit(temp, own, seen_c, own_c):
+                raise DataError(
+                    f"{self.path}: the converter ({self.converter.name}) wrote a median of {seen_c:.1f}, "
+                    f"{seen_c - own_c:+.1f} from the file's own reading ({own_c:.1f} C: its counts corrected for "
+                    f"emissivity and the reflected temperature) and {seen_c - (1.8 * own_c + 32):+.1f} from that "
+                    f"reading in Fahrenheit ({1.8 * own_c + 32:.1f} F): Fahrenheit, not C; make it write C "
                     "(float32 degrees Celsius)"
                 )
         seen = plausible.classify(temp, units=("kelvin",))  # any format: a scene's median of 223..373 in C
@@ -287,6 +298,26 @@ class RJpeg:
                 "(float32 degrees Celsius)"
             )
         return temp, record
+
+    def _own_reading(self, overrides: Mapping[str, float | None]) -> np.ndarray:
+        """The file's own reading of the scene, to check a converter's unit against: its counts corrected for
+        emissivity and the reflected temperature at the converter's parameters with the transmission taken as 1
+        (``dji_approximate.unity_table``; within 0.8 C of DJI's SDK up to 30 C and 4.4 C up to 63 C on the Mavic 2
+        Enterprise Advanced, whose table only a converter applies), or the blackbody reading when the file's
+        parameters cannot be read."""
+        try:
+            p = self.correction_params(**overrides)
+            return dji_correction.correct_raw14(
+                self.raw14,
+                dji_approximate.unity_table(),
+                p["emissivity"],
+                p["distance"],
+                p["humidity"],
+                p["reflected"],
+                p["atmosphere"],
+            )
+        except (DataError, ConfigError, KeyError):
+            return self.blackbody_c()
 
     def deci_celsius(self, **overrides: float | None) -> np.ndarray:
         """``dirp_measure``'s int16 deci-C: ``trunc(10 * T)`` of ``corrected_c(**overrides)`` (toward zero)."""
@@ -644,6 +675,33 @@ THERMAL_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".npy")
 #: a converter's median this close to 273.15 C above the file's blackbody median wrote Kelvin (a correction for
 #: emissivity and atmosphere moves a scene by tens of degrees at most, never by 273)
 KELVIN_GAP_C = 60.0
+
+
+#: A converter's median this far (C) from the file's own reading (``RJpeg._own_reading``: within a few C of DJI's
+#: SDK, the transmission left out) ...
+FAHRENHEIT_GAP_C = 15.0
+#: ... and this many times closer to that reading written in Fahrenheit (1.8 x C + 32) wrote Fahrenheit; where the
+#: reading has a spread (IQR above 1 C), the converter's must be 1.5-2.2 times it (Fahrenheit: 1.8; a correct
+#: converter: about 1). Below -40 C the two scales cross (-40 C = -40 F) and the medians cannot tell them apart.
+FAHRENHEIT_CLOSER = 3.0
+FAHRENHEIT_SPREAD = (1.5, 2.2)
+
+
+def _reads_as_fahrenheit(temp: np.ndarray, own: np.ndarray, seen_c: float, own_c: float) -> bool:
+    """Whether a converter's map ``temp`` (median ``seen_c``) is the file's own reading ``own`` (median ``own_c``)
+    written in Fahrenheit rather than C (``FAHRENHEIT_GAP_C``, ``FAHRENHEIT_CLOSER``, ``FAHRENHEIT_SPREAD``);
+    missing values are left out, and a reading without a valid value decides nothing."""
+    if not (np.isfinite(seen_c) and np.isfinite(own_c)):
+        return False
+    as_c, as_f = abs(seen_c - own_c), abs(seen_c - (1.8 * own_c + 32.0))
+    if as_c < FAHRENHEIT_GAP_C or as_f * FAHRENHEIT_CLOSER > as_c:
+        return False
+    q_own = np.nanpercentile(own, [25, 75])
+    if q_own[1] - q_own[0] > 1.0:
+        q = np.nanpercentile(temp, [25, 75])
+        ratio = float(q[1] - q[0]) / float(q_own[1] - q_own[0])
+        return FAHRENHEIT_SPREAD[0] <= ratio <= FAHRENHEIT_SPREAD[1]
+    return True
 
 
 def sidecar_path(path: str | Path) -> Path:
