@@ -49,3 +49,28 @@ def reference_arrays(argv: list[str] | None, description: str, data: Path, patte
         print(f"no reference arrays ({pattern}) in {args.data}", file=sys.stderr)
         raise SystemExit(1)
     return found
+
+
+def add_set_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--prepared``, ``--coco`` and ``--repeat``: the datasets an input-guard measurement runs on (``measured_sets``)
+    and how often the check is timed."""
+    ap.add_argument("--prepared", type=Path, nargs="*", default=[], help="prepared dataset folders (manifest.json)")
+    ap.add_argument("--coco", type=int, nargs="*", default=[], help="make_coco_rgbt folders of N pairs")
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs of the check per correct set")
+
+
+def measured_sets(coco: list[int], prepared: list[Path], tmp: Path) -> list[tuple[str, Any]]:
+    """(name, prepared dataset) of the tests' ``make_coco_rgbt`` folders of N pairs (``coco``, prepared into ``tmp``
+    with every input-guard finding accepted: they are measured, not refused) and of the prepared folders named."""
+    on_path("tests")
+    from coco_rgbt_helpers import make_coco_rgbt, prepare_coco_rgbt
+    from harness.cache.reader import PreparedDataset
+
+    sets = [
+        (f"coco-rgbt n={n}", prepare_coco_rgbt(make_coco_rgbt(tmp / f"coco-{n}", n=n), tmp / "cache", "all"))
+        for n in coco
+    ]
+    for path in prepared:
+        data = PreparedDataset(path)
+        sets.append((f"{data.name} {len(data)}", data))
+    return sets

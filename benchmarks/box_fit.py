@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from _common import median_time, on_path
+from _common import add_set_arguments, measured_sets, median_time, on_path
 
 on_path("tests")
 
@@ -49,18 +49,6 @@ class Mistaken:
         return np.minimum(b, [rec["width"], rec["height"], rec["width"], rec["height"]]), labels
 
 
-def _coco(n: int, tmp: Path) -> Any:
-    from coco_rgbt_helpers import make_coco_rgbt
-    from harness.cache import prepare
-    from harness.config import load_config
-
-    root = make_coco_rgbt(tmp / f"coco-{n}", n=n)
-    cfg = load_config(protocol="default")
-    cfg["dataset"] = {"root": str(root)}
-    cfg["inputs"] = {"accept": ["all"]}  # measured here, not refused
-    return prepare("coco-rgbt", cfg, cache_root=tmp / "cache", progress=False)
-
-
 def _rows(name: str, boxes: str, data: Any, seconds: float | None) -> list[str]:
     from harness import box_fit
 
@@ -79,21 +67,17 @@ def _rows(name: str, boxes: str, data: Any, seconds: float | None) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--prepared", type=Path, nargs="*", default=[], help="prepared dataset folders (manifest.json)")
-    ap.add_argument("--coco", type=int, nargs="*", default=[], help="make_coco_rgbt folders of N pairs")
-    ap.add_argument("--repeat", type=int, default=3, help="timed runs of the check per correct set")
+    add_set_arguments(ap)
     args = ap.parse_args(argv)
 
     from harness import box_fit
-    from harness.cache.reader import PreparedDataset
 
     print(
         f"{'dataset':22s} {'boxes':7s} {'reading':8s} {'given':>6s} {'other':>6s} {'ratio':>5s} {'higher':>9s} "
         f"{'shr':>4s} {'clr':>3s} {'finding':>8s} {'ms':>6s}"
     )
     with tempfile.TemporaryDirectory() as tmp:
-        sets = [(f"coco-rgbt n={n}", _coco(n, Path(tmp))) for n in args.coco]
-        sets += [(f"{PreparedDataset(p).name} {len(PreparedDataset(p))}", PreparedDataset(p)) for p in args.prepared]
+        sets = measured_sets(args.coco, args.prepared, Path(tmp))
         for name, data in sets:
             seconds = median_time(lambda d=data: box_fit.misplaced(d), args.repeat)
             for boxes, view in (

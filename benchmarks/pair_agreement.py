@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from _common import median_time, on_path
+from _common import add_set_arguments, measured_sets, median_time, on_path
 
 on_path("tests")
 
@@ -50,18 +50,6 @@ class Shifted:
         return dataclasses.replace(own, thermal=other.thermal, ir8=other.ir8)
 
 
-def _coco(n: int, tmp: Path) -> Any:
-    from coco_rgbt_helpers import make_coco_rgbt
-    from harness.cache import prepare
-    from harness.config import load_config
-
-    root = make_coco_rgbt(tmp / f"coco-{n}", n=n)
-    cfg = load_config(protocol="default")
-    cfg["dataset"] = {"root": str(root)}
-    cfg["inputs"] = {"accept": ["all"]}  # measured here, not refused
-    return prepare("coco-rgbt", cfg, cache_root=tmp / "cache", progress=False)
-
-
 def _row(name: str, pairing: str, data: Any, seconds: float | None) -> str:
     from harness.input_guard import _pair_findings, pair_summary
 
@@ -78,12 +66,9 @@ def _row(name: str, pairing: str, data: Any, seconds: float | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--prepared", type=Path, nargs="*", default=[], help="prepared dataset folders (manifest.json)")
-    ap.add_argument("--coco", type=int, nargs="*", default=[], help="make_coco_rgbt folders of N pairs")
-    ap.add_argument("--repeat", type=int, default=3, help="timed runs of the check per correct set")
+    add_set_arguments(ap)
     args = ap.parse_args(argv)
 
-    from harness.cache.reader import PreparedDataset
     from harness.input_guard import _pair_findings
 
     print(
@@ -91,8 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{'found':>5s} {'ms':>7s}"
     )
     with tempfile.TemporaryDirectory() as tmp:
-        sets = [(f"coco-rgbt n={n}", _coco(n, Path(tmp))) for n in args.coco]
-        sets += [(f"{PreparedDataset(p).name} {len(PreparedDataset(p))}", PreparedDataset(p)) for p in args.prepared]
+        sets = measured_sets(args.coco, args.prepared, Path(tmp))
         for name, data in sets:
             seconds = median_time(lambda d=data: _pair_findings(d), args.repeat)
             print(_row(name, "given", data, seconds), flush=True)

@@ -76,3 +76,15 @@ def read_json(root: Path) -> dict[str, Any]:
 
 def write_json(root: Path, coco: dict[str, Any]) -> None:
     (root / "annotations.json").write_text(json.dumps(coco))
+
+
+def prepare_coco_rgbt(root: Path, cache: Path, *accept: str) -> Any:
+    """``harness prepare`` of the ``coco-rgbt`` folder ``root`` into ``cache`` with the default protocol, accepting
+    the input guard's findings ``accept`` (``"all"`` for every one)."""
+    from harness.cache import prepare
+    from harness.config import load_config
+
+    cfg = load_config(protocol="default")
+    cfg["dataset"] = {"root": str(root)}
+    cfg["inputs"] = {"accept": list(accept)}
+    return prepare("coco-rgbt", cfg, cache_root=cache, progress=False)

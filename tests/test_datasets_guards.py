@@ -182,9 +182,7 @@ def test_coco_rgbt_keeps_crowd_boxes_as_crowd_regions_not_instances(tmp_path):
 
 def test_coco_rgbt_with_every_box_a_crowd_region_is_an_error_naming_the_file(tmp_path):
     """Nothing would be left to train on or score: an error, not a run on zero instances."""
-    from coco_rgbt_helpers import make_coco_rgbt, read_json, write_json
-    from harness.cache import prepare
-    from harness.config import load_config
+    from coco_rgbt_helpers import make_coco_rgbt, prepare_coco_rgbt, read_json, write_json
     from harness.errors import DataError
 
     root = make_coco_rgbt(tmp_path / "coco", n=4)
@@ -192,10 +190,8 @@ def test_coco_rgbt_with_every_box_a_crowd_region_is_an_error_naming_the_file(tmp
     for a in coco["annotations"]:
         a["iscrowd"] = 1
     write_json(root, coco)
-    cfg = load_config(protocol="default")
-    cfg["dataset"] = {"root": str(root)}
     with pytest.raises(DataError, match=r"every one of its \d+ box\(es\) is a crowd region \(iscrowd 1\)") as err:
-        prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
+        prepare_coco_rgbt(root, tmp_path / "cache")
     assert ".json" in str(err.value)
     assert not any((tmp_path / "cache").rglob("manifest.json"))
 

@@ -37,13 +37,9 @@ def _coco(tmp_path: Path, edit: Callable[[Coco], None] | None = None, n: int = 1
 
 
 def _prepare(root: Path, tmp_path: Path, *accept: str):
-    from harness.cache import prepare
-    from harness.config import load_config
+    from coco_rgbt_helpers import prepare_coco_rgbt
 
-    cfg = load_config(protocol="default")
-    cfg["dataset"] = {"root": str(root)}
-    cfg["inputs"] = {"accept": list(accept)}
-    return prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
+    return prepare_coco_rgbt(root, tmp_path / "cache", *accept)
 
 
 @pytest.mark.parametrize(

@@ -26,13 +26,9 @@ def _coco(tmp_path: Path, shift: int = 0, n: int = 12) -> Path:
 
 
 def _prepare(root: Path, tmp_path: Path, *accept: str):
-    from harness.cache import prepare
-    from harness.config import load_config
+    from coco_rgbt_helpers import prepare_coco_rgbt
 
-    cfg = load_config(protocol="default")
-    cfg["dataset"] = {"root": str(root)}
-    cfg["inputs"] = {"accept": list(accept)}
-    return prepare("coco-rgbt", cfg, cache_root=tmp_path / "cache", progress=False)
+    return prepare_coco_rgbt(root, tmp_path / "cache", *accept)
 
 
 def test_thermal_files_shifted_by_one_image_stop_with_the_agreements_and_the_option(tmp_path):
