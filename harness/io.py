@@ -163,16 +163,18 @@ def read_text(path: str | Path, error: type[Exception] | None = None, what: str 
 
 def read_packed_text(path: str | Path) -> str:
     """The UTF-8 text of ``path``, decompressed when its name ends in ``.gz`` (the shipped reference results keep
-    their training logs so); errors are ``OSError`` as from ``Path.read_text``."""
+    their training logs, predictions and ground truth so); errors are ``OSError`` as from ``Path.read_text`` (a
+    gzip stream cut short too, its ``strerror`` saying so)."""
     path = Path(path)
     if path.suffix == ".gz":
+        import errno
         import gzip
 
         try:
             with gzip.open(path, "rt", encoding="utf-8") as f:
                 return f.read()
         except EOFError as exc:
-            raise OSError(f"{path}: truncated gzip ({exc})") from None
+            raise OSError(errno.EIO, f"gzip stream cut short: {exc}", str(path)) from None
     return path.read_text(encoding="utf-8")
 
 
@@ -182,15 +184,12 @@ def read_json(path: str | Path) -> Any:
 
     path = Path(path)
     if path.suffix == ".gz":  # gzip-compressed JSON (the shipped reference results' predictions and ground truth)
-        import gzip
-
         try:
-            with gzip.open(path, "rt", encoding="utf-8") as f:
-                text = f.read()
+            text = read_packed_text(path)
         except FileNotFoundError:
             raise DataError(f"{path}: file not found") from None
-        except (OSError, EOFError) as exc:
-            raise DataError(f"{path}: cannot read gzip-compressed JSON ({exc})") from None
+        except OSError as exc:
+            raise DataError(f"{path}: cannot read gzip-compressed JSON ({exc.strerror or exc})") from None
     else:
         text = read_text(path)
     try:
