@@ -92,7 +92,7 @@ def test_the_tiny_suite_runs_every_detector_on_both_sources_and_the_ablation_on_
     assert ("ours", ("dataset.gt=thermal",), ("none", "proxy8", "ir8"), "test-T") in grid
     assert len(specs) == 9
     for s in specs:
-        assert s.overrides[0].startswith("dataset.root=") and s.overrides[0].endswith("rgbt-tiny-synth-small-seed0")
+        assert s.overrides[0].startswith("dataset.root=") and s.overrides[0].endswith("rgbt-tiny-synth-small-320-seed0")
         assert s.seeds == (0, 1, 2) and s.profile == "benchmark"
         assert s.config_files[0].endswith("benchmark-rgbt-tiny/suite.yaml")
         assert s.config_files[1].endswith(f"benchmark-rgbt-tiny/{s.detectors[0]}.yaml")
