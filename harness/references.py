@@ -63,6 +63,8 @@ SHIPPED_FOLDERS = (SHIPPED, "rgbt-tiny-synth-benchmark")
 SYNTHETIC = "m3t-synth"
 #: Largest reference store the project ships.
 MAX_BYTES = 10 * 2**20
+#: Largest the shipped reference folders may take together (``SHIPPED_FOLDERS`` side by side: 15 MB).
+MAX_TOTAL_BYTES = 15 * 10**6
 #: Run files copied as they are, and those gzip-compressed.
 COPIED = ("config.yaml", "status.json", "metrics.json")
 PACKED = ("gt.json", "predictions.json", "analysis.json")
@@ -564,7 +566,8 @@ def export_references(
 ) -> dict[str, Any]:
     """Write the reference store of ``cells`` (``harness.sweep.JobResult``-like: ``.run`` is the run key text, or
     ``RunKey``) from ``store`` into ``out``. Every cell must be finished and carry its samples' digests, and every
-    run of a (fold, encoding) must have used the same samples; the result must fit in ``MAX_BYTES``."""
+    run of a (fold, encoding) must have used the same samples; the result must fit in ``MAX_BYTES``, and together
+    with the other shipped folders (``SHIPPED_FOLDERS``) beside ``out`` in ``MAX_TOTAL_BYTES``."""
     from harness.report.reader import StoreView, read_run
     from harness.store import Run, RunKey
 
@@ -657,6 +660,19 @@ def export_references(
         raise StoreError(
             f"the reference store would take {size / 2**20:.1f} MiB, over the {MAX_BYTES / 2**20:.0f} MiB "
             f"the project ships"
+        )
+    beside = {
+        name: sum(p.stat().st_size for p in (out.parent / name).rglob("*") if p.is_file())
+        for name in SHIPPED_FOLDERS
+        if name != out.name and (out.parent / name).is_dir()
+    }
+    if size + sum(beside.values()) > MAX_TOTAL_BYTES:
+        shutil.rmtree(tmp, ignore_errors=True)
+        others = ", ".join(f"{n} {b / 1e6:.2f} MB" for n, b in beside.items())
+        raise StoreError(
+            f"the reference store would take {size / 1e6:.2f} MB, and with the reference folders beside it in "
+            f"{out.parent} ({others}) {(size + sum(beside.values())) / 1e6:.2f} MB, over the "
+            f"{MAX_TOTAL_BYTES / 1e6:.0f} MB the project ships together"
         )
     if out.exists():
         shutil.rmtree(out)

@@ -148,6 +148,33 @@ def test_export_is_compact_and_reads_back(bench, tmp_path):
     assert epochs and epochs == [r["epoch"] for r in logged.read_log()]
 
 
+def test_export_refuses_what_would_take_the_shipped_folders_together_over_their_limit(bench, tmp_path, monkeypatch):
+    import harness.references as R
+    from harness.errors import StoreError
+
+    beside = tmp_path / "refs" / R.SHIPPED_FOLDERS[1]  # another suite's references, already in the folder
+    beside.mkdir(parents=True)
+    (beside / "blob").write_bytes(b"x" * 200_000)
+    size = _export(bench, tmp_path / "refs" / R.SHIPPED)["bytes"]  # fits beside it
+    monkeypatch.setattr(R, "MAX_TOTAL_BYTES", size + 150_000)
+    with pytest.raises(StoreError, match=r"together") as err:
+        _export(bench, tmp_path / "refs" / R.SHIPPED)
+    assert R.SHIPPED_FOLDERS[1] in str(err.value) and "0.20 MB" in str(err.value)
+    assert (tmp_path / "refs" / R.SHIPPED).is_dir()  # the folder exported before is kept
+    assert not (tmp_path / "refs" / f"{R.SHIPPED}.tmp").exists()
+
+
+def test_the_shipped_reference_folders_fit_together():
+    from harness.references import MAX_TOTAL_BYTES, SHIPPED_FOLDERS, shipped_root
+
+    sizes = {
+        n: sum(p.stat().st_size for p in (shipped_root() / n).rglob("*") if p.is_file())
+        for n in SHIPPED_FOLDERS
+        if (shipped_root() / n).is_dir()
+    }
+    assert sizes and sum(sizes.values()) <= MAX_TOTAL_BYTES, sizes
+
+
 def test_a_users_detector_is_compared_with_the_references_without_training_them(bench, tmp_path):
     from harness.references import load_references
     from harness.report import build_report
