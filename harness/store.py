@@ -105,7 +105,7 @@ import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 from harness.errors import HarnessError, StoreError
 from harness.io import atomic_write_json, atomic_write_text, read_json
@@ -444,7 +444,27 @@ class Run:
             p.unlink()
         if keep is not None and keep.name == "last.pt":
             slim_final_checkpoint(keep)
+        if dropped:
+            self._forget_checkpoints(dropped)
         return dropped
+
+    def _forget_checkpoints(self, dropped: Sequence[Path]) -> None:
+        """``metrics.json``'s ``train.best_path`` / ``train.last_path`` that name a deleted checkpoint become null, so
+        that no recorded path leads to a missing file."""
+        from harness.io import atomic_write_json, read_json
+
+        metrics = read_json(self.metrics_path)
+        train = metrics.get("train") if isinstance(metrics, dict) else None
+        if not isinstance(train, dict):
+            return
+        gone = {p.name for p in dropped}
+        changed = False
+        for k in ("best_path", "last_path"):
+            if isinstance(train.get(k), str) and Path(train[k]).name in gone:
+                train[k] = None
+                changed = True
+        if changed:
+            atomic_write_json(self.metrics_path, metrics)
 
 
 #: What ``harness run --keep-weights`` keeps of a finished run's checkpoints: ``all`` (``last.pt`` and ``best.pt``),

@@ -158,7 +158,8 @@ def _fake_run(root: Path, state: str, final: str = "best"):
     for name in ("best.pt", "last.pt"):
         (run.checkpoint_dir / name).write_bytes(b"x")
     run.config_path.write_text(f"train:\n  final: {final}\n")
-    run.metrics_path.write_text("{}")
+    paths = {k: str(run.checkpoint_dir / f"{k.split('_')[0]}.pt") for k in ("best_path", "last_path")}
+    run.metrics_path.write_text(json.dumps({"train": paths}))
     run.set_status(state)
     return run
 
@@ -177,6 +178,8 @@ def test_only_a_finished_run_drops_the_weights_it_did_not_predict_with(tmp_path,
     dropped = run.keep_final_checkpoint()
     assert _checkpoints(run.path) == kept
     assert sorted(p.name for p in dropped) == sorted({"best.pt", "last.pt"} - set(kept))
+    recorded = json.loads(run.metrics_path.read_text())["train"]  # no recorded path leads to a deleted file
+    assert sorted(Path(v).name for v in recorded.values() if v) == kept
 
 
 def test_a_finished_run_without_best_weights_keeps_last(tmp_path):
@@ -199,7 +202,12 @@ def test_keep_weights_final_leaves_what_report_screen_and_a_rerun_need(tiny_sour
         args += ["--set", f"dataset.root={tiny_source}"]
         out = cli([*args, "--keep-weights", "final"])
         assert "skipped" in out and _checkpoints(run) == ["best.pt"]
-        assert (run / "metrics.json").read_bytes() == metrics  # nothing but the checkpoint changed
+        after = json.loads((run / "metrics.json").read_text())
+        before = json.loads(metrics)
+        assert after["train"]["last_path"] is None and before["train"]["last_path"]  # it names no deleted file
+        assert after["train"]["best_path"] == before["train"]["best_path"]
+        after["train"]["last_path"] = before["train"]["last_path"]
+        assert after == before  # nothing else changed
         assert "skipped" in cli([*args, "--keep-weights", "final"])  # a finished run needs no last.pt
         assert "trained" in cli([*args, "--keep-weights", "final", "--force"])  # redone from the start, trimmed
         assert _checkpoints(run) == ["best.pt"]
