@@ -977,7 +977,7 @@ def _compare_samples(
 
     from harness import provenance
     from harness.cache import fingerprint as FP
-    from harness.references import FINGERPRINT, LOCK_COMMAND, ReferenceMismatchError, _measure
+    from harness.references import FINGERPRINT, LOCK_COMMAND, ReferenceMismatchError, measure_samples
 
     rows = [
         ("train", here.get("train"), theirs.get("train")),
@@ -1005,7 +1005,7 @@ def _compare_samples(
     diff, why = None, f"the references in {refs.root} hold no sample fingerprint ({FINGERPRINT}) to measure against"
     if (refs.root / FINGERPRINT).is_file():
         try:
-            diff, why = _measure(run, FP.load(refs.root / FINGERPRINT), {})
+            diff, why = measure_samples(run, FP.load(refs.root / FINGERPRINT), {})
         except (OSError, ValueError) as exc:
             why = f"the references' sample fingerprint could not be read ({exc})"
     if diff is not None:

@@ -393,7 +393,7 @@ def _within_tolerance(refs: ReferenceSet, runs: Sequence[Any]) -> tuple[list[str
     refused: dict[str, str] = {}
     accepted: dict[str, list[str]] = {}
     for run in runs:
-        diff, why = _measure(run, ref_fp, measured)
+        diff, why = measure_samples(run, ref_fp, measured)
         if diff is None or not diff.within(FP.TOLERANCE):
             refused[str(run.key)] = (f"measured: {diff.describe()}" if diff is not None else "") or why
             continue
@@ -413,8 +413,11 @@ def _within_tolerance(refs: ReferenceSet, runs: Sequence[Any]) -> tuple[list[str
     return notes, refused, summary
 
 
-def _measure(run: Any, ref_fp: dict[str, Any], memo: dict[tuple[str, str, str], tuple[Any, str]]) -> tuple[Any, str]:
-    """(the fingerprint difference of ``run``'s samples from the references', or None, and why none)."""
+def measure_samples(
+    run: Any, ref_fp: dict[str, Any], memo: dict[tuple[str, str, str], tuple[Any, str]]
+) -> tuple[Any, str]:
+    """(the fingerprint difference of ``run``'s samples from the references', or None, and why none); ``memo``: the
+    measurements of this call's prepared folders, kept across calls."""
     from harness.cache import fingerprint as FP
     from harness.cache.reader import PreparedDataset
     from harness.errors import HarnessError
@@ -703,6 +706,7 @@ __all__ = [
     "check_matched",
     "export_references",
     "load_references",
+    "measure_samples",
     "resolve",
     "same_training",
     "shipped_root",
