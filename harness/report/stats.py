@@ -661,7 +661,7 @@ def two_level(
         sb.append(pb.mean(axis=1))
         single.append(pa[:, 0] - pb[:, 0])
         fixed.append(xa[:, 1:].mean(axis=0) - xb[:, 1:].mean(axis=0))
-        v_seed.append(xa[:, 0].var(axis=0, ddof=1) + xb[:, 0].var(axis=0, ddof=1))
+        v_seed.append(_seed_var(xa[:, 0]) + _seed_var(xb[:, 0]))
     n_folds = len(folds)
     out = []
     for j in range(a_runs[0].shape[2]):
@@ -678,6 +678,13 @@ def two_level(
             }
         )
     return out
+
+
+def _seed_var(x: np.ndarray) -> np.ndarray:
+    """Per metric, the sample variance over the seeds (rows) of ``x``; NaN with a single seed (no warning)."""
+    if x.shape[0] < 2:
+        return np.full(x.shape[1:], np.nan)
+    return x.var(axis=0, ddof=1)
 
 
 def _pooled_sd(per_fold: Sequence[np.ndarray]) -> float | None:
