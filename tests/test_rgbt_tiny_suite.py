@@ -132,13 +132,13 @@ def test_a_finished_tiny_store_has_every_cell_of_the_suite(tiny):
     assert "ours/proxy8/test-T/seed3" in missing and "ours/none/test-T/seed3" in missing
 
 
-def test_the_tiny_suite_references_are_not_shipped_yet_and_rerun_says_so(cli_runner, monkeypatch, tmp_path):
+def test_without_the_tiny_suite_references_rerun_says_they_are_missing(cli_runner, monkeypatch, tmp_path):
     import harness.references as R
 
     monkeypatch.setattr(R, "shipped_root", lambda: tmp_path)
     res = cli_runner(["benchmark", "rerun", "ours/proxy8/test-T/seed0", "--suite", "rgbt-tiny-synth"])
     text = " ".join(res.output.split())
-    assert res.exit_code != 0 and "rgbt-tiny-synth suite's reference results are not shipped yet" in text, text
+    assert res.exit_code != 0 and "rgbt-tiny-synth suite's reference results are missing" in text, text
 
 
 # ---------------------------------------------------------------------------------------------------- references

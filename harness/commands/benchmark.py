@@ -63,8 +63,9 @@ def _suite_references(suite: Any, reference_results: str | None) -> Any:
     folder = shipped_root() / suite.references
     if not (folder / "references.json").is_file():
         raise StoreError(
-            f"{folder}: the {suite.name} suite's reference results are not shipped yet; make them with `harness "
-            f"benchmark run --suite {suite.name}` and `harness benchmark export --suite {suite.name}`, or pass "
+            f"{folder}: the {suite.name} suite's reference results are missing (no references.json); make them "
+            f"with `harness benchmark run --suite {suite.name}` and `harness benchmark export --suite {suite.name}`, "
+            f"or pass "
             f"--reference-results DIR (a folder `harness benchmark export` wrote)"
         )
     return load_references(folder)
