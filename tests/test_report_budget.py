@@ -188,3 +188,20 @@ def test_runs_without_records_count_as_the_seeds_protocol(tmp_path):
     assert sec.notes == [
         "Plateau not recorded for eme, ours: runs made before plateau records, or without per-epoch scores."
     ]
+
+
+@pytest.mark.parametrize(
+    ("map50", "map5095", "slope", "rising"),
+    [
+        (0.05, 0.019, 0.15, True),  # fitness 2.2 points: a slope of 0.15 is 7 % of it per epoch, barely started
+        (0.05, 0.019, 0.08, False),  # 3.6 %: flat enough
+        (0.45, 0.24, 0.15, False),  # fitness 26 points: the absolute threshold decides alone
+        (0.05, 0.019, -0.15, False),  # falling is not rising
+        (0.0, 0.0, 0.01, True),  # nothing learnt yet and moving: not a plateau
+    ],
+)
+def test_a_slope_under_the_threshold_still_rises_when_it_is_large_for_the_runs_level(map50, map5095, slope, rising):
+    from harness.report.tables import _rising_for_its_level
+
+    assert _rising_for_its_level({"metrics": {"mAP50": map50, "mAP50_95": map5095}}, slope) is rising
+    assert _rising_for_its_level({}, slope) is False  # no held-out score: the absolute rule alone
