@@ -641,6 +641,17 @@ def _rising_for_its_level(metrics: Mapping[str, Any], slope: Any) -> bool:
     return float(slope) > 0 and float(slope) >= RELATIVE_RISE * level
 
 
+def run_still_rising(metrics: Mapping[str, Any]) -> bool | None:
+    """Whether a run was still improving when it stopped (its plateau record over the threshold, or under it but
+    rising by ``RELATIVE_RISE`` of its level); None for a run without a plateau record."""
+    from harness.report.reader import run_plateau
+
+    rec = run_plateau(metrics)
+    if rec is None:
+        return None
+    return not rec.get("reached") or _rising_for_its_level(metrics, rec.get("slope_per_epoch"))
+
+
 def _low_text(low: int) -> str:
     return (
         f"; {low} of them under the slope threshold, but rising by {RELATIVE_RISE * 100:g} % of their level or more "

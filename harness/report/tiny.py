@@ -306,7 +306,25 @@ def evaluate_tiny_claims(
         f"{scorer.seed}), paired within a source; a bound decides a part only when clear of the threshold by its "
         "Monte-Carlo error (else inconclusive)."
     ]
+    rising = _still_rising(entries)
+    if rising:
+        notes.append(
+            f"Trained short of a plateau (the training-budget table): {'; '.join(rising)}. A verdict that rests on "
+            "these entries compares detectors at this budget, and may change with more epochs."
+        )
     return claims, notes
+
+
+def _still_rising(entries: Sequence[Entry]) -> list[str]:
+    """Per entry with runs still improving when they stopped (``run_still_rising``), '<label> N of M runs'."""
+    from harness.report.tables import run_still_rising
+
+    out = []
+    for e in entries:
+        flags = [f for f in (run_still_rising(r.metrics) for r in e.runs()) if f is not None]
+        if any(flags):
+            out.append(f"{e.label} {sum(flags)} of {len(flags)} runs")
+    return out
 
 
 def tiny_standin(view: StoreView, dataset: str) -> bool:
