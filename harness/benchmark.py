@@ -977,7 +977,7 @@ def _compare_samples(
 
     from harness import provenance
     from harness.cache import fingerprint as FP
-    from harness.references import FINGERPRINT, LOCK_COMMAND, ReferenceMismatchError, measure_samples
+    from harness.references import LOCK_COMMAND, ReferenceMismatchError, fingerprint_path, measure_samples
 
     rows = [
         ("train", here.get("train"), theirs.get("train")),
@@ -1002,10 +1002,11 @@ def _compare_samples(
         config=planned.config,
         metrics={"samples": {**here, "prepared": str(prepared.folder)}, "environment": provenance.package_versions()},
     )
-    diff, why = None, f"the references in {refs.root} hold no sample fingerprint ({FINGERPRINT}) to measure against"
-    if (refs.root / FINGERPRINT).is_file():
+    fp_path = fingerprint_path(refs.root, refs.manifest, planned.run.key.fold)
+    diff, why = None, f"the references in {refs.root} hold no sample fingerprint ({fp_path.name}) to measure against"
+    if fp_path.is_file():
         try:
-            diff, why = measure_samples(run, FP.load(refs.root / FINGERPRINT), {})
+            diff, why = measure_samples(run, FP.load(fp_path), {})
         except (OSError, ValueError) as exc:
             why = f"the references' sample fingerprint could not be read ({exc})"
     if diff is not None:

@@ -13,7 +13,9 @@ Layout (``export_references``)::
     <folder>/references.json             manifest (``MANIFEST_SCHEMA`` below)
     <folder>/<dataset>/<detector>/<encoding>/<fold>/seed<seed>/
         config.yaml status.json metrics.json
-        gt.json.gz predictions.json.gz analysis.json.gz   (gzip, read by ``harness.io.read_json``; no checkpoints)
+        gt.json.gz analysis.json.gz                       (gzip, read by ``harness.io.read_json``; no checkpoints)
+        predictions.npz                                   (``harness.io.pack_detections``: exact columns; or
+                                                           predictions.json.gz where they would not be exact)
         log.jsonl.gz                                      (gzip, read by ``harness.io.read_packed_text``)
 
 ``references.json``::
@@ -46,6 +48,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence, overload
 
 from harness.errors import StoreError
+from harness.io import pack_detections, read_json
 from harness.report.reader import REFERENCE_PREFIX
 
 log = logging.getLogger(__name__)
@@ -68,6 +71,9 @@ MAX_TOTAL_BYTES = 15 * 10**6
 #: Run files copied as they are, and those gzip-compressed.
 COPIED = ("config.yaml", "status.json", "metrics.json")
 PACKED = ("gt.json", "predictions.json", "analysis.json")
+#: ... of which the detections are kept as packed columns where they give back every value exactly
+#: (``harness.io.pack_detections``, ``predictions.npz``), else gzip-compressed too.
+DETECTIONS = "predictions.json"
 #: Run files gzip-compressed when the run has them (a training log; runs scored from checkpoints have none).
 PACKED_IF_ANY = ("log.jsonl",)
 
@@ -381,19 +387,22 @@ def _within_tolerance(refs: ReferenceSet, runs: Sequence[Any]) -> tuple[list[str
     sentence on what was measured)."""
     from harness.cache import fingerprint as FP
 
-    path = refs.root / FINGERPRINT
-    if not path.is_file():
-        return [], {str(r.key): "" for r in runs}, ""
-    try:
-        ref_fp = FP.load(path)
-    except (OSError, ValueError) as exc:
-        log.warning("reference results: %s", exc)
-        return [], {str(r.key): "" for r in runs}, ""
+    loaded: dict[Path, Any] = {}
     measured: dict[tuple[str, str, str], tuple[FP.Difference | None, str]] = {}
     refused: dict[str, str] = {}
     accepted: dict[str, list[str]] = {}
     for run in runs:
-        diff, why = measure_samples(run, ref_fp, measured)
+        path = fingerprint_path(refs.root, refs.manifest, run.key.fold)
+        if path not in loaded:
+            try:
+                loaded[path] = FP.load(path) if path.is_file() else None
+            except (OSError, ValueError) as exc:
+                log.warning("reference results: %s", exc)
+                loaded[path] = None
+        if loaded[path] is None:
+            refused[str(run.key)] = ""
+            continue
+        diff, why = measure_samples(run, loaded[path], measured)
         if diff is None or not diff.within(FP.TOLERANCE):
             refused[str(run.key)] = (f"measured: {diff.describe()}" if diff is not None else "") or why
             continue
@@ -446,10 +455,20 @@ def measure_samples(
     return memo[memo_key]
 
 
-def write_fingerprint(root: str | Path, prepared: Any, encodings: Sequence[str] | None = None) -> dict[str, Any]:
-    """Write the fingerprint of the reference results' samples (``FINGERPRINT``) and the sample-shaping package
-    versions (``samples_environment``) into the reference store at ``root``, from ``prepared`` (a
-    ``PreparedDataset``) after checking that it holds exactly the samples every digest of the manifest names."""
+def write_fingerprint(
+    root: str | Path,
+    prepared: Any,
+    encodings: Sequence[str] | None = None,
+    folds: Iterable[str] | None = None,
+    name: str = FINGERPRINT,
+) -> dict[str, Any]:
+    """Write the fingerprint of the reference results' samples (``name``, default ``FINGERPRINT``) and the
+    sample-shaping package versions (``samples_environment``) into the reference store at ``root``, from ``prepared``
+    (a ``PreparedDataset``) after checking that it holds exactly the samples every digest of the manifest names.
+
+    ``folds``: only the digests of these folds are checked, and the manifest's ``fingerprints`` records that ``name``
+    holds their samples (``fingerprint_path``): a dataset prepared once per annotation source (RGBT-Tiny's thermal and
+    visible boxes) gets one fingerprint per preparation."""
     from harness import provenance
     from harness.cache import fingerprint as FP
     from harness.cache.folds import resolve_folds
@@ -459,9 +478,13 @@ def write_fingerprint(root: str | Path, prepared: Any, encodings: Sequence[str] 
     host = get_host()
     spec = host.dataset(refs.dataset)
     folds = {f.name: f for f in resolve_folds(spec, prepared, {"protocol": _protocol_of(refs)})}
-    names = encodings or sorted({key.split("/")[1] for key in refs.manifest.get("samples") or {}})
+    only = set(folds) if folds is not None else None
+    samples = {k: v for k, v in (refs.manifest.get("samples") or {}).items() if only is None or k.split("/")[0] in only}
+    if only is not None and not samples:
+        raise StoreError(f"{refs.root}: the references record no samples of fold(s) {', '.join(sorted(only))}")
+    names = encodings or sorted({key.split("/")[1] for key in samples})
     wrong = []
-    for key, want in (refs.manifest.get("samples") or {}).items():
+    for key, want in samples.items():
         fold, enc_name = key.split("/")
         f = folds.get(fold)
         if f is None:
@@ -477,15 +500,26 @@ def write_fingerprint(root: str | Path, prepared: Any, encodings: Sequence[str] 
             f"the fingerprint is written only from the references' own samples"
         )
     fp = FP.compute(prepared, [(host.encoding(n), {}) for n in names])
-    FP.save(refs.root / FINGERPRINT, fp)
+    FP.save(refs.root / name, fp)
     manifest = dict(refs.manifest)
+    if only is not None:
+        manifest["fingerprints"] = {**(manifest.get("fingerprints") or {}), name: sorted(only)}
     manifest["samples_environment"] = provenance.sample_environment()
     ran_with = str((manifest.get("environment") or {}).get("torch") or "")
     if ran_with and ran_with == provenance.package_versions().get("torch"):
         # the BLAS, LAPACK and oneDNN builds of the torch build the runs record (read from that same build here)
         manifest["torch_build"] = provenance.torch_build()
     (refs.root / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
-    return {"fingerprint": str(refs.root / FINGERPRINT), "bytes": (refs.root / FINGERPRINT).stat().st_size}
+    return {"fingerprint": str(refs.root / name), "bytes": (refs.root / name).stat().st_size}
+
+
+def fingerprint_path(root: str | Path, manifest: Mapping[str, Any], fold: str) -> Path:
+    """The fingerprint file of the reference results at ``root`` that holds the samples of ``fold`` (the manifest's
+    ``fingerprints``; ``FINGERPRINT`` for references with one preparation)."""
+    for name, folds in (manifest.get("fingerprints") or {}).items():
+        if fold in folds:
+            return Path(root) / name
+    return Path(root) / FINGERPRINT
 
 
 def _protocol_of(refs: ReferenceSet) -> dict[str, Any]:
@@ -628,6 +662,9 @@ def export_references(
             src = r.path / name
             if not src.is_file():
                 raise StoreError(f"{src}: missing; the bootstrap needs it (rerun {r.key} with --force)")
+            if name == DETECTIONS and (packed := pack_detections(read_json(src))) is not None:
+                (dst / Path(name).with_suffix(".npz").name).write_bytes(packed)  # exact, a third of the gzip size
+                continue
             _gzip_copy(src, dst / f"{name}.gz")
         for name in PACKED_IF_ANY:
             if (r.path / name).is_file():
@@ -649,11 +686,25 @@ def export_references(
         "benchmark": dict(benchmark) if benchmark else None,
     }
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, sort_keys=False) + "\n", encoding="utf-8")
-    folder = prepared_folder(first)
-    if folder is not None:  # what matching across library releases measures against
+    folders: dict[Path, set[str]] = {}  # each preparation of the runs, with the folds it holds
+    for r in runs:
+        if (f := prepared_folder(r)) is not None:
+            folders.setdefault(f, set()).add(r.key.fold)
+    if len(folders) == 1 and prepared_folder(first) is not None:  # one preparation: every digest checked on it
         from harness.cache.reader import PreparedDataset
 
-        write_fingerprint(tmp, PreparedDataset(folder))
+        write_fingerprint(tmp, PreparedDataset(next(iter(folders))))
+        manifest = load_references(tmp).manifest
+    elif folders:  # what matching across library releases measures against: one fingerprint per preparation
+        from harness.cache.reader import PreparedDataset
+
+        covered: set[str] = set()
+        for n, (folder, its_folds) in enumerate(folders.items()):
+            if its_folds <= covered:
+                continue
+            name = FINGERPRINT if n == 0 else f"samples-{'+'.join(sorted(its_folds - covered))}.npz"
+            write_fingerprint(tmp, PreparedDataset(folder), folds=its_folds - covered, name=name)
+            covered |= its_folds
         manifest = load_references(tmp).manifest
     else:
         log.warning("%s: the prepared data of the runs is gone; the references get no sample fingerprint", store)
@@ -705,6 +756,7 @@ __all__ = [
     "ReferenceSet",
     "check_matched",
     "export_references",
+    "fingerprint_path",
     "load_references",
     "measure_samples",
     "resolve",

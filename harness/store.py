@@ -213,11 +213,12 @@ class _RunFile:
 
 
 def packed_or_plain(path: Path) -> Path:
-    """``path``, or its gzip-compressed ``<name>.gz`` when only that exists (read both with ``read_json``)."""
+    """``path``, or, when only that exists, its gzip-compressed ``<name>.gz`` or (detections) its packed columns
+    ``<stem>.npz`` (``harness.io.pack_detections``); ``read_json`` reads each."""
     if not path.exists():
-        gz = path.with_name(path.name + ".gz")
-        if gz.exists():
-            return gz
+        for other in (path.with_name(path.name + ".gz"), path.with_suffix(".npz")):
+            if other.exists():
+                return other
     return path
 
 

@@ -134,7 +134,10 @@ def test_export_is_compact_and_reads_back(bench, tmp_path):
     original = json.loads(
         (bench["store"] / "m3t-synth" / "tinydet" / "c2" / "P1" / "seed0" / "predictions.json").read_text()
     )
-    assert json.loads(gzip.decompress((run / "predictions.json.gz").read_bytes())) == original
+    from harness.io import read_json, unpack_detections
+
+    assert unpack_detections((run / "predictions.npz").read_bytes()) == original  # packed, value for value
+    assert json.loads(gzip.decompress((run / "gt.json.gz").read_bytes())) == read_json(run / "gt.json.gz")
     refs = load_references(tmp_path / "refs")
     runs = refs.runs()
     assert {r.key.detector for r in runs} == {"ref:tinydet"} and len(runs) == 4
