@@ -113,10 +113,15 @@ def slope(points: list[tuple[float, float]]) -> float | None:
     return sum((x - mx) * (y - my) for x, y in points) / sxx
 
 
-def read_curve(store: Path, det: str, fold: str, seed: int, dataset: str = "m3t-synth") -> dict[str, Any] | None:
+def read_curve(
+    store: Path, det: str, fold: str, seed: int, dataset: str = "m3t-synth", prefer: str | None = None
+) -> dict[str, Any] | None:
+    """The curve of ``det`` on ``fold``/``seed`` in ``store``; of several encodings (a benchmark store with the
+    encoding ablation), ``prefer``'s, else the first by name."""
     logs = sorted((store / dataset / det).glob(f"*/{fold}/seed{seed}/log.jsonl"))
     if not logs:
         return None
+    logs = [p for p in logs if p.parts[-4] == prefer] or logs
     rows = []
     for line in logs[0].read_text().splitlines():
         r = json.loads(line)
@@ -211,18 +216,22 @@ def plot(curves: list[dict[str, Any]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharex=True)
+    validated = any(r["fitness"] is not None for c in curves for r in c["rows"])  # none under selection=last
+    fig, axes = plt.subplots(1, 2 if validated else 1, figsize=(10 if validated else 5.5, 3.6), squeeze=False)
+    ax_val, ax_held = (axes[0][0], axes[0][1]) if validated else (None, axes[0][0])
     for c in curves:
         e = [r["epoch"] for r in c["rows"]]
         label = f"{c['detector']}/{c['encoding']}"
-        (line,) = axes[0].plot(e, [r["fitness"] for r in c["rows"]], label=label)
-        axes[1].plot(e, [r["held_out_mAP50_95"] for r in c["rows"]], color=line.get_color(), label=label)
-    axes[0].set_title("validation fitness (x100)")
-    axes[1].set_title("held-out mAP50:95 (x100, logged only)")
-    for ax in axes:
+        (line,) = ax_held.plot(e, [r["held_out_mAP50_95"] for r in c["rows"]], label=label)
+        if ax_val is not None:
+            ax_val.plot(e, [r["fitness"] for r in c["rows"]], color=line.get_color(), label=label)
+    if ax_val is not None:
+        ax_val.set_title("validation fitness (x100)")
+    ax_held.set_title("held-out mAP50:95 (x100, logged only)")
+    for ax in axes[0]:
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    (ax_val or ax_held).legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
 
@@ -288,7 +297,9 @@ def main() -> int:
     at = [int(x) for x in args.at.split(",") if x]
     out = []
     for det in dets:
-        curve = read_curve(args.store, det, args.fold, args.seed, dataset_of(args.suite))
+        curve = read_curve(
+            args.store, det, args.fold, args.seed, dataset_of(args.suite), suite_of(args.suite).grid_encoding
+        )
         if curve is None:
             print(f"{det}: no run in {args.store}", file=sys.stderr)
             continue
