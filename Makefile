@@ -71,9 +71,11 @@ TINY_OUT    ?= reports/benchmark-rgbt-tiny
 BENCH_ISA   ?= avx2
 BENCH_ENV   := $(if $(filter avx2,$(BENCH_ISA)),ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2,)
 # the shipped reference results, shown beside the demo's own runs once they are in the checkout; when the demo's
-# samples differ from theirs (another OpenCV release, say), the report is written without them and says why
+# samples differ from theirs (another OpenCV release, say), the report is written without them and says why. Only
+# the demo's dataset: the cross-dataset references' section would add 1 min 43 s to the report (its bootstrap over 30
+# runs), over the demo's 5 min; `harness report --store references/rgbt-tiny-synth-benchmark --print` shows them.
 DEMO_REFS   := $(if $(wildcard references/m3t-synth-benchmark/references.json),--reference-results shipped \
-	--references-optional,)
+	--references-optional --datasets m3t-synth,)
 
 .PHONY: demo benchmark benchmark-rgbt-tiny test lint venv clean-venv
 
