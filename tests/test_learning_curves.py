@@ -57,7 +57,7 @@ def test_rgbt_tiny_command_reads_the_suite_data_layers_and_overrides(lc, tmp_pat
         "benchmark-rgbt-tiny/ours.yaml",
     ]
     sets = [cmd[i + 1] for i, c in enumerate(cmd) if c == "--set"]
-    assert sets[0] == f"dataset.root={(tmp_path / 'rgbt-tiny-synth-small-seed0').resolve()}"
+    assert sets[0] == f"dataset.root={(tmp_path / 'rgbt-tiny-synth-small-320-seed0').resolve()}"
     assert "dataset.gt=thermal" in sets
     assert "protocol.epochs=60" in sets
     assert sets[-1] == "protocol.imgsz=416"  # the passthrough comes after the script's own settings
