@@ -61,39 +61,60 @@ CHECKS = ("score_scale", "duplicates", "label_shift", "box_format", "image_shift
 Targets = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 
-def ap50(preds: Sequence[Pred], targets: Targets, images: Sequence[int], top: int = TOP_PER_IMAGE) -> float | None:
-    """Average precision at IoU 0.50 of ``preds`` on ``images``, all classes pooled: each image's ``top``
-    highest-scoring predictions matched greedily (highest score first) to unmatched objects of their label, the
-    precision made monotone as COCO's is, summed at every true positive over the number of objects. ``None`` when
-    the images hold no objects."""
+def _ranked(
+    preds: Sequence[Pred], images: Sequence[int], top: int
+) -> dict[int, list[tuple[float, Sequence[float], int]]]:
+    """Per image of ``images``, its ``top`` highest-scoring labelled predictions as (score, box, label)."""
     wanted = set(images)
     by_image: dict[int, list[tuple[float, Sequence[float], int]]] = {}
     for idx, box, score, label in preds:
         if idx in wanted and label is not None:
             by_image.setdefault(idx, []).append((score, box, label))  # type: ignore[arg-type]
+    return {idx: sorted(items, key=lambda t: -t[0])[:top] for idx, items in by_image.items()}
+
+
+def _greedy(
+    items: Sequence[tuple[float, Sequence[float], int]], gt_boxes: Any, gt_labels: Any, same_label: bool = True
+) -> list[int]:
+    """Per item (in order: highest score first), the object it matches at IoU 0.50, or -1: each to the unmatched
+    object it overlaps most, of its own label unless ``same_label`` is False."""
+    boxes = np.asarray([b for _, b, _ in items], dtype=np.float64).reshape(-1, 4)
+    with np.errstate(invalid="ignore"):
+        iou = np.nan_to_num(_iou(boxes, np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)))
+    ok = iou >= 0.5
+    if same_label:
+        ok &= np.asarray([lab for _, _, lab in items])[:, None] == np.asarray(gt_labels)[None, :]
+    used = np.zeros(len(gt_boxes), dtype=bool)
+    out = []
+    for k in range(len(items)):
+        free = ok[k] & ~used
+        j = int(np.argmax(np.where(free, iou[k], -1.0))) if free.any() else -1
+        if j >= 0:
+            used[j] = True
+        out.append(j)
+    return out
+
+
+def ap50(preds: Sequence[Pred], targets: Targets, images: Sequence[int], top: int = TOP_PER_IMAGE) -> float | None:
+    """Average precision at IoU 0.50 of ``preds`` on ``images``, all classes pooled: each image's ``top``
+    highest-scoring predictions matched greedily (highest score first) to unmatched objects of their label, the
+    precision made monotone as COCO's is, summed at every true positive over the number of objects. ``None`` when
+    the images hold no objects."""
+    ranked = _ranked(preds, images, top)
     objects = 0
     scores: list[float] = []
     hits: list[bool] = []
-    for idx in wanted:
+    for idx in set(images):
         gt_boxes, gt_labels = targets(idx)
         objects += len(gt_boxes)
-        items = sorted(by_image.get(idx, []), key=lambda t: -t[0])[:top]
+        items = ranked.get(idx, [])
         if not items:
             continue
         scores += [t[0] for t in items]
         if len(gt_boxes) == 0:
             hits += [False] * len(items)
             continue
-        boxes = np.asarray([b for _, b, _ in items], dtype=np.float64).reshape(-1, 4)
-        with np.errstate(invalid="ignore"):
-            iou = np.nan_to_num(_iou(boxes, np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)))
-        ok = (iou >= 0.5) & (np.asarray([lab for _, _, lab in items])[:, None] == np.asarray(gt_labels)[None, :])
-        used = np.zeros(len(gt_boxes), dtype=bool)
-        for k in range(len(items)):
-            free = ok[k] & ~used
-            if free.any():
-                used[int(np.argmax(np.where(free, iou[k], -1.0)))] = True
-            hits.append(bool(free.any()))
+        hits += [j >= 0 for j in _greedy(items, gt_boxes, gt_labels)]
     if not objects:
         return None
     if not hits:
@@ -218,26 +239,13 @@ def agnostic_matches(
 ) -> list[tuple[int, int]]:
     """(predicted label, object label) of each prediction that overlaps an object at IoU 0.50 whatever the labels:
     each image's ``top`` highest-scoring predictions matched greedily, highest score first, to unmatched objects."""
-    wanted = set(images)
-    by_image: dict[int, list[tuple[float, Sequence[float], int]]] = {}
-    for idx, box, score, label in preds:
-        if idx in wanted and label is not None:
-            by_image.setdefault(idx, []).append((score, box, label))  # type: ignore[arg-type]
     pairs: list[tuple[int, int]] = []
-    for idx, found_here in by_image.items():
+    for idx, items in _ranked(preds, images, top).items():
         gt_boxes, gt_labels = targets(idx)
         if len(gt_boxes) == 0:
             continue
-        items = sorted(found_here, key=lambda t: -t[0])[:top]
-        boxes = np.asarray([b for _, b, _ in items], dtype=np.float64).reshape(-1, 4)
-        with np.errstate(invalid="ignore"):
-            iou = np.nan_to_num(_iou(boxes, np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)))
-        used = np.zeros(len(gt_boxes), dtype=bool)
-        for k, (_, _, lab) in enumerate(items):
-            free = (iou[k] >= 0.5) & ~used
-            if free.any():
-                j = int(np.argmax(np.where(free, iou[k], -1.0)))
-                used[j] = True
+        for (_, _, lab), j in zip(items, _greedy(items, gt_boxes, gt_labels, same_label=False)):
+            if j >= 0:
                 pairs.append((int(lab), int(gt_labels[j])))
     return pairs
 
